@@ -1,0 +1,29 @@
+"""torchdeform: a tensor-based soft-tissue simulator on PyTorch.
+
+Mass-spring bodies on regular 3-D grids whose springs are convolution stencils, with
+integrators from explicit Euler to implicit Euler, stability bounds and scene files.
+
+    >>> import torchdeform as td
+    >>> grid = td.Grid((8, 8, 8), spacing=0.005, topology=26)
+    >>> model = td.Model(grid, stiffness=20.0, damping=0.05, density=1000.0,
+    ...                  gravity=(-9.81, 0, 0), fixed=grid.face("bottom"))
+    >>> state, record = td.simulate(model, model.rest_state(), dt=td.suggest_dt(model), steps=100)
+"""
+from .errors import ConfigError, DivergenceError, StabilityWarning, TorchdeformError
+from .forces import Drag, PointForce, SurfaceForce
+from .grid import Grid
+from .integrators import (INTEGRATORS, RK4, DampedVerlet, ExplicitEuler, ImplicitEuler, Integrator,
+                          KnocheRelaxation, SymplecticEuler, conjugate_gradient, simulate)
+from .model import Model, State, lumped_mass
+from .stability import (DivergenceMonitor, gershgorin_omega2, power_omega2, suggest_dt, check_dt,
+                        time_step_bound)
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "ConfigError", "DivergenceError", "StabilityWarning", "TorchdeformError", "Drag", "PointForce",
+    "SurfaceForce", "Grid", "INTEGRATORS", "RK4", "DampedVerlet", "ExplicitEuler", "ImplicitEuler",
+    "Integrator", "KnocheRelaxation", "SymplecticEuler", "conjugate_gradient", "simulate", "Model", "State",
+    "lumped_mass", "DivergenceMonitor", "gershgorin_omega2", "power_omega2", "suggest_dt", "check_dt",
+    "time_step_bound",
+]
