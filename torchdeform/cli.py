@@ -1,0 +1,73 @@
+"""The ``torchdeform`` command.
+
+    torchdeform run SCENE.toml --out DIR     run a scene file
+    torchdeform demo --out DIR               run the built-in demo scene
+    torchdeform bench speed [--quick] [--json]
+
+Errors that a user can cause print one line (``torchdeform: <file>: <key>: expected ...``) and
+exit with status 2, without a traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from .errors import TorchdeformError
+
+
+def _run(args) -> int:
+    from .scene import load_scene, run_scene
+    scene = load_scene(args.scene)
+    run_scene(scene, args.out, progress=not args.quiet, device=args.device)
+    return 0
+
+
+def _demo(args) -> int:
+    from .scene import demo_scene, run_scene
+    run_scene(demo_scene(), args.out, progress=not args.quiet, device=args.device)
+    return 0
+
+
+def _bench(args) -> int:
+    from . import bench
+    return bench.main(args)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="torchdeform", description="Soft-tissue simulation on PyTorch.")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    r = sub.add_parser("run", help="run a scene file (TOML)")
+    r.add_argument("scene", help="scene file (.toml)")
+    r.add_argument("--out", required=True, help="output folder")
+    r.add_argument("--device", default=None, help="cpu or cuda (default: the scene's, else cpu)")
+    r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.set_defaults(func=_run)
+
+    d = sub.add_parser("demo", help="run the built-in demo: a soft cube, fixed base, top centre dragged")
+    d.add_argument("--out", default="demo-out", help="output folder (default: demo-out)")
+    d.add_argument("--device", default=None, help="cpu or cuda")
+    d.add_argument("--quiet", action="store_true", help="no progress bar")
+    d.set_defaults(func=_demo)
+
+    b = sub.add_parser("bench", help="benchmarks")
+    from . import bench
+    bench.add_arguments(b)
+    b.set_defaults(func=_bench)
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except TorchdeformError as e:
+        print(f"torchdeform: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("torchdeform: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
