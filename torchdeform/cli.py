@@ -16,15 +16,19 @@ from .errors import TorchdeformError
 
 
 def _run(args) -> int:
-    from .scene import load_scene, run_scene
-    scene = load_scene(args.scene)
-    run_scene(scene, args.out, progress=not args.quiet, device=args.device)
+    from .scene import load_scene, one_line_warnings, report, run_scene
+    with one_line_warnings():
+        scene = load_scene(args.scene)
+        summary = run_scene(scene, args.out, progress=not args.quiet, device=args.device)
+    print(report(summary, args.out))
     return 0
 
 
 def _demo(args) -> int:
-    from .scene import demo_scene, run_scene
-    run_scene(demo_scene(), args.out, progress=not args.quiet, device=args.device)
+    from .scene import demo_scene, one_line_warnings, report, run_scene
+    with one_line_warnings():
+        summary = run_scene(demo_scene(), args.out, progress=not args.quiet, device=args.device)
+    print(report(summary, args.out))
     return 0
 
 
