@@ -230,3 +230,12 @@ def test_stiffness_per_direction_class():
     assert m.stiffness.flatten().tolist() == [1.0] * 3 + [2.0] * 6 + [3.0] * 4
     with pytest.raises(td.ConfigError, match="direction class"):
         td.Model(g, stiffness={"axis": 1.0}, mass=1.0)
+
+
+def test_density_gives_thin_masked_features_positive_mass():
+    mask = torch.zeros(4, 4, 4, dtype=torch.bool)
+    mask[:, 1, 1] = True                                 # a one-node-thick rod
+    mask[0] = True                                       # on a plate
+    g = td.Grid((4, 4, 4), spacing=0.01, node_mask=mask)
+    m = td.Model(g, stiffness=1.0, density=1000.0, fixed=g.face("bottom"), dtype=f64)
+    assert bool((m.mass[0, 0][mask] > 0).all()) and bool((m.mass[0, 0][~mask] == 0).all())

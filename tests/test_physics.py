@@ -656,7 +656,6 @@ def test_gradcheck_rollout_per_direction_parameters():
     assert torch.autograd.gradcheck(_rollout(td.SymplecticEuler(), 3, 0.005), (k, c, m))
 
 
-@pytest.mark.filterwarnings("ignore:Converting a tensor with requires_grad=True to a scalar")
 def test_gradcheck_implicit_euler():
     """Through the CG solves of implicit Euler (tight tolerance)."""
     integ = td.ImplicitEuler(cg_iters=300, cg_tol=1e-13)

@@ -155,7 +155,7 @@ def conjugate_gradient(apply_A, b, precond=None, mask=None, iters: int = 100, to
     z = r if precond is None else precond * r
     p = z
     rz = _dot(r, z)
-    bnorm = b.flatten(1).norm(dim=1).clamp_min(1e-300)
+    bnorm = b.detach().flatten(1).norm(dim=1).clamp_min(1e-300)
     rel = 0.0
     for it in range(1, iters + 1):
         Ap = filt(apply_A(p))
@@ -163,7 +163,7 @@ def conjugate_gradient(apply_A, b, precond=None, mask=None, iters: int = 100, to
         alpha = torch.where(pAp > 0, rz / torch.where(pAp > 0, pAp, 1.0), 0.0)
         u = u + alpha * p
         r = r - alpha * Ap
-        rel = float((r.flatten(1).norm(dim=1) / bnorm).max())
+        rel = float((r.detach().flatten(1).norm(dim=1) / bnorm).max())
         if rel <= tol:
             return u, it, rel
         z = r if precond is None else precond * r

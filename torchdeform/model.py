@@ -91,18 +91,20 @@ def node_param(value, grid: Grid, key: str, dtype, device) -> torch.Tensor:
 def lumped_mass(grid: Grid, density: float, dtype=torch.float64, device=None) -> torch.Tensor:
     """Node masses ``(1, 1, D, H, W)`` from a density (kg/m^3).
 
-    Each hexahedral cell whose 8 corners are in the body gives ``density * cell volume`` in
-    equal eighths to its corners (a lumped mass matrix). Lower-dimensional grids (a side of 1
-    node) use the cell of the remaining axes with the spacing as thickness.
+    Every existing node owns the box-shaped voxel around it (its dual cell), cut at the faces
+    of the grid: ``density * prod_a spacing_a * w_a`` with ``w_a = 1/2`` on the first and last
+    node along axis ``a`` (when it has more than one node). For a box this is the usual lumped
+    mass (corners 1/8 of a cell, interior nodes one cell; total ``density * volume``); with a
+    node mask, thin features keep a positive mass.
     """
-    nodes = grid.nodes().to(torch.float64)[None, None]
-    kernel = [min(2, n) for n in grid.shape]
-    cells = torch.nn.functional.avg_pool3d(nodes, kernel, stride=1)          # 1 where a whole cell
-    cells = (cells > 1 - 1e-9).to(torch.float64)
-    volume = math.prod(grid.spacing)
-    per_corner = density * volume / math.prod(kernel)
-    mass = torch.nn.functional.conv_transpose3d(cells, torch.ones(1, 1, *kernel, dtype=torch.float64))
-    return (mass * per_corner).to(dtype=dtype, device=device)
+    mass = torch.full(grid.shape, float(density), dtype=torch.float64)
+    for axis, (n, h) in enumerate(zip(grid.shape, grid.spacing)):
+        w = torch.full((n,), h, dtype=torch.float64)
+        if n > 1:
+            w[0] = w[-1] = h / 2
+        mass = mass * w.view([-1 if a == axis else 1 for a in range(3)])
+    mass = mass * grid.nodes()
+    return mass.view(1, 1, *grid.shape).to(dtype=dtype, device=device)
 
 
 class Model:
