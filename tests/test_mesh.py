@@ -93,7 +93,7 @@ def test_axis_convention_x_to_d():
 def test_grid_from_stl_file(tmp_path):
     path = tmp_path / "ball.stl"
     trimesh.creation.icosphere(subdivisions=2, radius=0.005).export(path)
-    grid = grid_from_mesh(path, 0.001, topology=6, whole_cells=False)
+    grid = grid_from_mesh(path, 0.001, topology=6)
     assert isinstance(grid, Grid) and grid.topology == 6
     mask, origin, shape = voxelize(path, 0.001)
     assert grid.shape == shape and grid.origin == pytest.approx(origin)
@@ -103,23 +103,12 @@ def test_grid_from_stl_file(tmp_path):
     assert bool(grid.nodes()[5, 5, 5]) and not bool(grid.nodes()[0, 0, 0])
 
 
-def test_whole_cells_drops_only_nodes_without_a_cell(tmp_path):
-    """The poles of a sphere are lone inside nodes: no cell, so no mass from a density."""
-    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.005)
-    raw = grid_from_mesh(ball, 0.001, 26, whole_cells=False).nodes().numpy()
-    kept = grid_from_mesh(ball, 0.001, 26).nodes().numpy()
-    assert raw[0, 5, 5] and not kept[0, 5, 5] and kept.sum() < raw.sum() and not (kept & ~raw).any()
-    # independent check: a kept node is a corner of a 2x2x2 block of inside nodes
-    D, H, W = raw.shape
-    in_cell = np.zeros_like(raw)
-    for i, j, k in np.ndindex(D - 1, H - 1, W - 1):
-        if raw[i:i + 2, j:j + 2, k:k + 2].all():
-            in_cell[i:i + 2, j:j + 2, k:k + 2] = True
-    assert np.array_equal(kept, in_cell)
-    with pytest.raises(ConfigError, match="mass"):
-        td.Model(grid_from_mesh(ball, 0.001, 26, whole_cells=False), 1.0, density=1000.0)
-    model = td.Model(grid_from_mesh(ball, 0.001, 26), 1.0, density=1000.0)
-    assert bool((model.mass[0, 0][torch.from_numpy(kept)] > 0).all())
+def test_voxelised_body_gets_positive_masses_from_a_density():
+    """The poles of a sphere are lone inside nodes; they still get mass and move."""
+    grid = grid_from_mesh(trimesh.creation.icosphere(subdivisions=2, radius=0.005), 0.001, 26)
+    assert bool(grid.nodes()[0, 5, 5]) and not bool(grid.nodes()[0, 4:7, 4:7].all())
+    model = td.Model(grid, 1.0, density=1000.0)
+    assert bool((model.mass[0, 0][grid.nodes()] > 0).all())
 
 
 def test_missing_file_is_config_error(tmp_path):

@@ -174,16 +174,10 @@ def voxelize(mesh_or_path, spacing, padding: int = 0, scale: float = 1.0):
     return torch.from_numpy(mask), origin, shape
 
 
-def grid_from_mesh(path, spacing, topology: int = 26, padding: int = 0, scale: float = 1.0,
-                   whole_cells: bool = True) -> Grid:
+def grid_from_mesh(path, spacing, topology: int = 26, padding: int = 0, scale: float = 1.0) -> Grid:
     """A :class:`~torchdeform.grid.Grid` whose node mask is a voxelised closed mesh.
 
-    Args: as :func:`voxelize`, plus
-        topology: 6, 14, 18 or 26 neighbours.
-        whole_cells: keep only the inside nodes that are a corner of at least one grid cell
-            whose 8 corners are all inside (default). Other inside nodes (a lone node at a
-            pole, a one-node-thin fin) would get no mass from a density (masses are lumped
-            from whole cells, :func:`~torchdeform.model.lumped_mass`) and hang on a few springs.
+    Args: as :func:`voxelize`, plus ``topology`` (6, 14, 18 or 26 neighbours).
 
     Example:
         >>> import trimesh
@@ -192,12 +186,6 @@ def grid_from_mesh(path, spacing, topology: int = 26, padding: int = 0, scale: f
         ((11, 11, 11), True)
     """
     mask, origin, shape = voxelize(path, spacing, padding, scale)
-    if whole_cells:
-        from .model import lumped_mass
-        mask = lumped_mass(Grid(shape, spacing, topology, node_mask=mask), 1.0)[0, 0] > 0
-        if not bool(mask.any()):
-            raise ConfigError("spacing", "a spacing small enough that a whole grid cell fits inside the mesh",
-                              spacing)
     return Grid(shape, spacing, topology, node_mask=mask, origin=origin)
 
 

@@ -109,7 +109,7 @@ SECTIONS = {
     "output": ("record_every", "name"),
 }
 REQUIRED = ("grid", "material", "mass", "integrator")
-#: Options of each integrator: key -> (expected, check).
+#: Options of each integrator (keyword arguments of its class): key -> what is expected.
 INTEGRATOR_OPTIONS = {
     "explicit": {}, "symplectic": {}, "rk4": {},
     "verlet": {"kd": "a number in [0, 1)"},
@@ -622,11 +622,13 @@ def one_line_warnings(prefix: str = "torchdeform: warning: "):
         yield
 
 
-def energy_series(model: Model, x: torch.Tensor, v: torch.Tensor, chunk: int = 16) -> dict:
+def energy_series(model: Model, x: torch.Tensor, v: torch.Tensor, chunk: int = 1) -> dict:
     """Energies and largest displacement of recorded frames.
 
     Args:
         x, v: frames ``(T, 3, D, H, W)`` (any device).
+        chunk: frames per evaluation (1 by default: batched small frames run multi-threaded,
+            which is slower than a loop when the CPU cores are shared).
     Returns:
         dict of ``(T,)`` float64 numpy arrays: ``kinetic``, ``elastic``, ``gravity`` (if the
         model has gravity), ``total`` (J), ``max_displacement`` (m, largest ``|x - X|``) and
