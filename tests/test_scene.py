@@ -389,3 +389,11 @@ def test_bad_scene_subprocess_has_no_traceback(tmp_path):
     assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
     line = line_containing(TINY, "steps =")
     assert proc.stderr.startswith(f"torchdeform: {path}:{line}: integrator.steps: expected an integer >= 0")
+
+
+@pytest.mark.parametrize("device", ["foo", "cuda:99"])
+def test_cli_bad_device_is_one_line(device, tmp_path, capsys):
+    path = write(tmp_path, TINY)
+    assert cli.main(["run", str(path), "--out", str(tmp_path / "out"), "--device", device, "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "integrator.device" in err and str(path) in err

@@ -321,9 +321,16 @@ class Scene:
 
     def build(self, device=None) -> Model:
         """The :class:`Model` on ``device`` (default: the scene's, else CPU); built once per device."""
-        dev = torch.device(device or self.device or "cpu")
+        try:
+            dev = torch.device(device or self.device or "cpu")
+        except (RuntimeError, ValueError):
+            raise self.source.error("integrator.device", 'a device name such as "cpu" or "cuda"',
+                                    device or self.device) from None
         if dev.type == "cuda" and not torch.cuda.is_available():
             raise self.source.error("integrator.device", '"cpu" (CUDA is not available here)', str(dev))
+        if dev.type == "cuda" and (dev.index or 0) >= torch.cuda.device_count():
+            raise self.source.error("integrator.device", f"one of the {torch.cuda.device_count()} CUDA devices",
+                                    str(dev))
         if str(dev) not in self._models:
             with self.source.located("material", MODEL_KEYS):
                 self._models[str(dev)] = Model(self.grid, **self.model_args, dtype=self.dtype, device=dev)
