@@ -55,7 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.set_defaults(func=_demo)
 
     b = sub.add_parser("bench", help="benchmarks")
-    from . import bench
+    from . import bench                     # light: imports nothing heavy until a bench runs
     bench.add_arguments(b)
     b.set_defaults(func=_bench)
     return p

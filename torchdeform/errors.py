@@ -23,10 +23,11 @@ class ConfigError(TorchdeformError, ValueError):
 
     def __init__(self, key: str, expected: str, got=None, file=None, line=None, *, show_got=True):
         self.key, self.expected, self.got, self.file, self.line = key, expected, got, file, line
+        self.show_got = show_got and got is not None
         where = ""
         if file is not None:
             where = f"{file}:{line}: " if line is not None else f"{file}: "
-        tail = f", got {got!r}" if show_got and got is not None else ""
+        tail = f", got {got!r}" if self.show_got else ""
         super().__init__(f"{where}{key}: expected {expected}{tail}")
 
 

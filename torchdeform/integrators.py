@@ -315,6 +315,8 @@ def simulate(model: Model, state: State, dt: float, steps: int, integrator: Inte
     if warn and integrator.name not in ("implicit", "knoche"):
         check_dt(model, dt, integrator)
     monitor = DivergenceMonitor(model, dt, integrator)
+    if model.drags:                                   # dragged nodes start on their path
+        state = State(*model.constrain(state.x, state.v, state.t), state.t)
     ts, xs, vs = [], [], []
 
     def record(st):

@@ -174,7 +174,7 @@ class Source:
         except ConfigError as e:
             if e.file is not None:
                 raise
-            shown = e.got is not None and str(e).endswith(f", got {e.got!r}")
+            shown = e.show_got
             if e.key in (keys or {}):
                 key = keys[e.key]
             elif e.key.split(".")[0] in SECTIONS and "." in e.key:     # already a scene key
@@ -725,8 +725,6 @@ def run_scene(scene: Scene, out_dir, progress: bool = True, device=None) -> dict
     if integrator.name in EXPLICIT:
         check_dt(model, dt, integrator, bound)
     state = model.rest_state()
-    if model.drags:
-        state = State(*model.constrain(state.x, state.v, 0.0), 0.0)
 
     start = time.perf_counter()
     final, rec = simulate(model, state, dt, scene.steps, integrator, record_every=scene.frames_every,
