@@ -15,6 +15,7 @@ from .grid import Grid
 from .integrators import (INTEGRATORS, RK4, DampedVerlet, ExplicitEuler, ImplicitEuler, Integrator,
                           KnocheRelaxation, SymplecticEuler, conjugate_gradient, simulate)
 from .model import Model, State, lumped_mass
+from .scene import Scene, demo_scene, load_scene, run_scene
 from .stability import (DivergenceMonitor, gershgorin_omega2, power_omega2, suggest_dt, check_dt,
                         time_step_bound)
 
@@ -25,5 +26,5 @@ __all__ = [
     "SurfaceForce", "Grid", "INTEGRATORS", "RK4", "DampedVerlet", "ExplicitEuler", "ImplicitEuler",
     "Integrator", "KnocheRelaxation", "SymplecticEuler", "conjugate_gradient", "simulate", "Model", "State",
     "lumped_mass", "DivergenceMonitor", "gershgorin_omega2", "power_omega2", "suggest_dt", "check_dt",
-    "time_step_bound",
+    "time_step_bound", "Scene", "demo_scene", "load_scene", "run_scene",
 ]
