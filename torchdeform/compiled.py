@@ -20,7 +20,6 @@ Example:
 """
 from __future__ import annotations
 
-import math
 import types
 import warnings
 
@@ -79,7 +78,6 @@ class CompiledStep:
         self.integrator, self.model, self.loads = integrator, model, loads
         self.dt = _check_dt(dt)
         self.compile_error = None
-        decay = None if model.decay is None or model.drags else math.exp(-model.decay * self.dt)
 
         # The step must not depend on t: dynamo specialises on Python floats, so a changing t
         # would recompile at every step (and give up after 8). Time-dependent loads stay eager.
@@ -87,8 +85,7 @@ class CompiledStep:
         dt_ = self.dt
 
         def advance(x, v):
-            x, v = integrator.advance(model, State(x, v, 0.0), dt_, loads)
-            return (x, v) if decay is None else (x, v * decay)
+            return integrator.advance(model, State(x, v, 0.0), dt_, loads)
 
         self._fn = None
         self.compiled = bool(enable) and not time_dependent
@@ -124,12 +121,7 @@ class CompiledStep:
         except Exception as e:                              # noqa: BLE001 (any failure -> eager)
             self._fallback(e)
             return self.integrator.step(self.model, state, self.dt, self.loads)
-        t1 = state.t + self.dt
-        if self.model.drags:
-            x, v = self.model.constrain(x, v, t1)
-            if self.model.decay is not None:
-                v = v * math.exp(-self.model.decay * self.dt)
-        return State(x, v, t1)
+        return self.integrator.finish(self.model, state, x, v, self.dt)
 
 
 def compiled_step(integrator, model, dt: float, loads=None, *, mode: str | None = None,

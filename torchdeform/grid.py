@@ -140,12 +140,21 @@ class Grid:
         """Bool ``(S, D, H, W)``: spring exists (both ends in the grid and in the node mask)."""
         key = ("spring_mask", str(device))
         if key not in self._cache:
+            mask = self.in_grid_mask()
+            if self.node_mask is not None:
+                mask = mask.clone()
+                for s, (src, dst) in enumerate(self.stencil):
+                    mask[(s, *src)] &= self.node_mask[src] & self.node_mask[dst]
+            self._cache[key] = mask.to(device)
+        return self._cache[key]
+
+    def in_grid_mask(self, device=None) -> torch.Tensor:
+        """Bool ``(S, D, H, W)``: the spring's far end lies inside the box (ignores the node mask)."""
+        key = ("in_grid", str(device))
+        if key not in self._cache:
             mask = torch.zeros((self.S,) + self.shape, dtype=torch.bool)
-            for s, (src, dst) in enumerate(self.stencil):
-                if self.node_mask is None:
-                    mask[(s, *src)] = True
-                else:
-                    mask[(s, *src)] = self.node_mask[src] & self.node_mask[dst]
+            for s, (src, _) in enumerate(self.stencil):
+                mask[(s, *src)] = True
             self._cache[key] = mask.to(device)
         return self._cache[key]
 

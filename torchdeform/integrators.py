@@ -61,6 +61,11 @@ class Integrator:
         """
         dt = _check_dt(dt)
         x, v = self.advance(model, state, dt, loads)
+        return self.finish(model, state, x, v, dt)
+
+    @staticmethod
+    def finish(model: Model, state: State, x, v, dt: float) -> State:
+        """End of a step: dragged nodes onto their path at ``t + dt``, then global drag."""
         t1 = state.t + dt
         if model.drags:
             x, v = model.constrain(x, v, t1)

@@ -32,17 +32,6 @@ def stencil_weights(grid: Grid, dtype=torch.float32, device=None) -> torch.Tenso
     return w
 
 
-def _in_grid(grid: Grid, device) -> torch.Tensor:
-    """Bool ``(S, D, H, W)``: the spring's far end lies inside the box (ignores the node mask)."""
-    key = ("in_grid", str(device))
-    if key not in grid._cache:
-        mask = torch.zeros((grid.S,) + grid.shape, dtype=torch.bool)
-        for s, (src, _) in enumerate(grid.stencil):
-            mask[(s, *src)] = True
-        grid._cache[key] = mask.to(device)
-    return grid._cache[key]
-
-
 def difference_conv(x: torch.Tensor, grid: Grid) -> torch.Tensor:
     """Reference ``D x`` with ``conv3d``.
 
@@ -56,7 +45,7 @@ def difference_conv(x: torch.Tensor, grid: Grid) -> torch.Tensor:
     w = stencil_weights(grid, x.dtype, x.device)
     y = F.conv3d(x.reshape(B * C, 1, *grid.shape), w, padding=1)
     y = y.reshape(B, C, grid.S, *grid.shape).transpose(1, 2)
-    return y * _in_grid(grid, x.device)[:, None]
+    return y * grid.in_grid_mask(x.device)[:, None]
 
 
 def adjoint_conv(f: torch.Tensor, grid: Grid) -> torch.Tensor:
@@ -68,7 +57,7 @@ def adjoint_conv(f: torch.Tensor, grid: Grid) -> torch.Tensor:
         node field ``(B, C, D, H, W)``.
     """
     B, S, C = f.shape[:3]
-    f = f * _in_grid(grid, f.device)[:, None]
+    f = f * grid.in_grid_mask(f.device)[:, None]
     w = stencil_weights(grid, f.dtype, f.device)
     y = F.conv_transpose3d(f.transpose(1, 2).reshape(B * C, S, *grid.shape), w, padding=1)
     return y.reshape(B, C, *grid.shape)
