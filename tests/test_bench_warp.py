@@ -129,7 +129,7 @@ def test_warp_speed_row(wp, variant):
     assert row["springs"] == grid.num_springs and row["nodes"] == grid.num_nodes == 216
     assert (row["mode"], row["threads"], row["device"], row["dtype"]) == (f"warp-{variant}", 1, "cpu", "float32")
     assert (row["steps"], row["repeats"], row["grid"]) == (3, 2, "6^3")
-    assert row["ms_per_step"] > 0 and row["compile_s"] > 0
+    assert row["ms_per_step"] > 0 and row["compile_s"] >= 0
     assert row["msprings_per_s"] == pytest.approx(row["springs"] / row["ms_per_step"] * 1e3 / 1e6, rel=1e-12)
     assert row["node_steps_per_s"] == pytest.approx(row["nodes"] / row["ms_per_step"] * 1e3, rel=1e-12)
     assert row["max_abs_diff"] < 1e-6
