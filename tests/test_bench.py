@@ -18,9 +18,23 @@ def test_bench_speed_quick_json(capsys, tmp_path):
     assert "recompile_limit" not in captured.err      # one compilation per shape, not per step
     doc = json.loads(captured.out)                        # stdout holds exactly one JSON document
     assert doc["bench"] == "speed"
-    assert doc["machine"]["torch"] and doc["machine"]["threads"] == 2 and doc["machine"]["device"] == "cpu"
-    rows = doc["rows"]
+    assert doc["machine"]["torch"] and doc["machine"]["device"] == "cpu"
+    rows = [r for r in doc["rows"] if not r["mode"].startswith("warp")]
+    warp = [r for r in doc["rows"] if r["mode"].startswith("warp")]
     assert {r["topology"] for r in rows} == {6, 26}
+    assert "ratio_vs_warp" in doc and doc["ratio_vs_warp"] is None     # no 64^3 row in --quick
+    from torchdeform.bench_warp import warp_available
+    if warp_available()[0]:
+        assert doc["warp"] == "measured" and len(warp) == 1
+        w = warp[0]
+        assert w["threads"] == 1 and w["max_abs_diff"] <= 1e-6       # Warp computes the same step
+        eager = next(r for r in rows if (r["n"], r["topology"], r["mode"]) == (w["n"], w["topology"], "eager"))
+        assert eager["vs_warp"] == pytest.approx(eager["msprings_per_s"] / w["msprings_per_s"])
+    else:
+        assert doc["warp"].startswith("skipped") and not warp
+    beam = doc["beam"]
+    assert [b["mode"] for b in beam] == ["eager"] and beam[0]["cg_iters"] == 20
+    assert beam[0]["steps_per_s"] == pytest.approx(1e3 / beam[0]["ms_per_step"])
     keys = {"grid", "topology", "mode", "dtype", "threads", "msprings_per_s", "node_steps_per_s",
             "ms_per_step", "compile_s", "max_abs_diff"}
     for r in rows:
@@ -44,8 +58,8 @@ def test_bench_speed_quick_json(capsys, tmp_path):
 
 
 def test_bench_speed_table_eager_only(capsys):
-    assert cli.main(["bench", "speed", "--quick", "--no-compile", "--sizes", "4", "--topologies", "6",
-                     "--steps", "2", "--repeats", "1"]) == 0
+    assert cli.main(["bench", "speed", "--quick", "--no-compile", "--no-warp", "--no-beam", "--sizes", "4",
+                     "--topologies", "6", "--steps", "2", "--repeats", "1"]) == 0
     out = capsys.readouterr().out
     assert "Msprings/s" in out and "4^3" in out and "compiled" not in out
 

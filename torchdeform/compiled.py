@@ -20,13 +20,15 @@ Example:
 """
 from __future__ import annotations
 
+import functools
 import types
 import warnings
 
 import torch
 
-from .integrators import _check_dt
+from .integrators import ImplicitEuler, _check_dt, cg_iteration, cg_start
 from .model import State
+from .packed import PackedLinearisation, PackedModel
 
 __all__ = ["CompileFallbackWarning", "CompiledStep", "compiled_step"]
 
@@ -47,12 +49,25 @@ def _warn_once(reason: str) -> None:
                   CompileFallbackWarning, stacklevel=3)
 
 
-#: Inductor options for the spring step. The shifted-slice accumulation is a chain of 2 S in-place
-#: slice updates of one buffer; left to its defaults, inductor inlines the whole chain into one
-#: expression whose size doubles with each update, so 18 or 26 neighbours never finish compiling
-#: (> 10 min for an 8^3 grid, torch 2.13 CPU). Realising intermediate buffers early fixes that
-#: (8^3: 26 neighbours ~30 s) and also gives faster code (32^3, 6 neighbours: 3x).
-INDUCTOR_OPTIONS = {"realize_opcount_threshold": 8, "realize_acc_reads_threshold": 4}
+#: Inductor options for the packed step. By default inductor stores ("realises") every
+#: intermediate that is read more than a few times or costs more than 30 operations; for the
+#: gather loop that means one buffer per spring direction, written and read back by serial loops
+#: (64^3, 26 neighbours: ~100 Msprings/s). Raising the thresholds keeps the whole force sum and
+#: the update in registers, one parallel vectorised loop (~600 Msprings/s, same machine). Fields
+#: that really must be stored (RK4 stages, CG directions) go through :func:`_realize`.
+INDUCTOR_OPTIONS = {"realize_opcount_threshold": 10_000, "realize_reads_threshold": 1_000,
+                    "realize_acc_reads_threshold": 1_000}
+
+
+@torch.library.custom_op("torchdeform::realize", mutates_args=())
+def _realize(x: torch.Tensor) -> torch.Tensor:
+    """Identity that inductor cannot see through: its input and output live in memory."""
+    return x.clone()
+
+
+@_realize.register_fake
+def _(x):
+    return torch.empty_like(x)
 
 
 def _fresh(fn):
@@ -63,41 +78,56 @@ def _fresh(fn):
 
 
 class CompiledStep:
-    """``state -> State``: one step of ``integrator`` on ``model`` with time step ``dt``.
+    """One step of ``integrator`` on ``model`` with time step ``dt``, compiled (see
+    :func:`compiled_step`).
 
-    Same result as ``integrator.step(model, state, dt, loads)`` (up to float rounding); see
-    :func:`compiled_step`.
+    The compiled function works in the packed layout of :class:`~torchdeform.packed.PackedModel`:
+    ``__call__`` packs and unpacks a grid-layout :class:`State` around one step, :meth:`run`
+    packs once and advances many steps, and :meth:`step_packed` is the bare packed step.
 
     Attributes:
+        packed: the :class:`~torchdeform.packed.PackedModel`.
         compiled: False once the wrapper has fallen back to the eager step.
         compile_error: the reason of the fall-back, or None.
     """
 
     def __init__(self, integrator, model, dt: float, loads=None, *, mode: str | None = None,
-                 enable: bool = True):
+                 enable: bool = True, options: dict | None = None):
         self.integrator, self.model, self.loads = integrator, model, loads
         self.dt = _check_dt(dt)
         self.compile_error = None
+        self.packed = pm = PackedModel(model)
+        self._loads = None if loads is None or callable(loads) else pm.pack(torch.as_tensor(
+            loads, dtype=model.dtype, device=model.device).expand(-1, 3, *model.grid.shape))
+        dt_, loads_p = self.dt, self._loads
 
-        # The step must not depend on t: dynamo specialises on Python floats, so a changing t
-        # would recompile at every step (and give up after 8). Time-dependent loads stay eager.
-        time_dependent = bool(model.loads) or callable(loads)
-        dt_ = self.dt
-
-        def advance(x, v):
-            return integrator.advance(model, State(x, v, 0.0), dt_, loads)
+        # t enters as a 0-d tensor: ramps and drag paths are evaluated inside the compiled code
+        # without branches, and a new t never triggers a recompilation.
+        def step(x, v, t):
+            pm.graph_inputs = (x, v)
+            state = State(x, v, t)
+            out = integrator.finish(pm, state, *integrator.advance(pm, state, dt_, loads_p), dt_)
+            return out.x, out.v
 
         self._fn = None
-        self.compiled = bool(enable) and not time_dependent
-        if enable and time_dependent:
-            self.compile_error = "time-dependent loads are not compiled"
-            _warn_once(self.compile_error)
+        self.compiled = bool(enable)
+        if enable and callable(loads):
+            self._fallback(TypeError("callable loads are not compiled"))
         elif enable:
             try:
-                self._fn = torch.compile(_fresh(advance), dynamic=False, mode=mode,
-                                         options=None if mode else dict(INDUCTOR_OPTIONS))
+                pm.realize = _realize
+                compile_ = functools.partial(torch.compile, dynamic=False, mode=mode,
+                                             options=None if mode else dict(options or INDUCTOR_OPTIONS))
+                if isinstance(integrator, ImplicitEuler):
+                    self._fn = self._implicit_step
+                    self._implicit = _ImplicitParts(integrator, pm, self.dt, loads_p, compile_)
+                else:
+                    self._fn = compile_(_fresh(step))
             except Exception as e:                          # noqa: BLE001 (any failure -> eager)
                 self._fallback(e)
+
+    def _implicit_step(self, x, v, t):
+        return self._implicit(x, v, t)
 
     def _fallback(self, e: Exception) -> None:
         self.compiled, self._fn = False, None
@@ -112,16 +142,104 @@ class CompiledStep:
         return any(t is not None and t.requires_grad
                    for t in (state.x, state.v, m.stiffness, m.damping, m.mass, m.inv_mass))
 
+    def step_packed(self, state: State) -> State:
+        """One step on a packed state (``x``, ``v``: ``(B, 3, P)``), no gradient."""
+        if self._fn is not None:
+            try:
+                with torch.no_grad():
+                    t = torch.tensor(float(state.t), dtype=self.model.dtype, device=self.model.device)
+                    x, v = self._fn(state.x, state.v, t)
+                return State(x, v, state.t + self.dt)
+            except Exception as e:                          # noqa: BLE001 (any failure -> eager)
+                self._fallback(e)
+        with torch.no_grad():
+            return self.integrator.step(self.packed, state, self.dt, self._loads if self._loads is not None
+                                        else self.loads)
+
     def __call__(self, state: State) -> State:
+        """One step on a grid-layout state (``(B, 3, D, H, W)``); eager when a gradient is needed."""
         if self._fn is None or self._needs_grad(state):
             return self.integrator.step(self.model, state, self.dt, self.loads)
-        try:
-            with torch.no_grad():
-                x, v = self._fn(state.x, state.v)
-        except Exception as e:                              # noqa: BLE001 (any failure -> eager)
-            self._fallback(e)
-            return self.integrator.step(self.model, state, self.dt, self.loads)
-        return self.integrator.finish(self.model, state, x, v, self.dt)
+        return self.packed.unpack_state(self.step_packed(self.packed.pack_state(state)))
+
+    def run(self, state: State, steps: int, callback=None) -> State:
+        """``steps`` steps from a grid-layout state, packed once; returns a grid-layout state.
+
+        ``callback(i, packed_state)`` (optional) is called after every step; unpack with
+        ``self.packed.unpack_state``.
+        """
+        ps = self.packed.pack_state(state)
+        for i in range(int(steps)):
+            ps = self.step_packed(ps)
+            if callback is not None:
+                callback(i, ps)
+        return self.packed.unpack_state(ps)
+
+
+class _ImplicitParts:
+    """Implicit Euler in three compiled pieces: set-up of the system and the CG start, one CG
+    iteration (compiled once, called ``cg_iters`` times), and the update. A compiled graph with
+    all iterations unrolled would cost 20 copies of the spring kernel to compile (> 15 min for
+    20 iterations on 2 cores); ``cg_unroll`` iterations per call (default 2) cost that many
+    copies, and each call ~50-100 us of call overhead on these CPUs. With a tolerance
+    (``cg_tol > 0``) every iteration is a call, followed by a residual check."""
+
+    def __init__(self, integ, pm, dt, loads, compile_, cg_unroll: int = 2):
+        self.integ, self.pm, self.dt, self.loads = integ, pm, dt, loads
+        self.precond = integ.preconditioner(pm, dt)
+        precond, mask = self.precond, pm.free
+
+        def setup(x, v, vcur, t, it):
+            pm.graph_inputs = (x, v, vcur)
+            _, apply_A, rhs, delta_c = integ.system(pm, State(x, v, t), vcur, it, dt, loads)
+            u, r, p, rz = cg_start(rhs, precond, mask)
+            return (apply_A.lin.fields, u, r, p, rz, r.flatten(1).norm(dim=1).clamp_min(1e-300),
+                    torch.zeros_like(v) if delta_c is None else delta_c)
+
+        unroll = self.unroll = max(1, min(int(cg_unroll), integ.cg_iters)) if integ.cg_tol <= 0 else 1
+
+        def iterate(fields, u, r, p, rz):
+            pm.graph_inputs = (u, r, p, rz)
+            _, apply_A = integ.operator(pm, PackedLinearisation(pm, fields=fields), dt)
+            for _ in range(unroll):
+                u, r, p, rz = cg_iteration(apply_A, u, r, p, rz, precond, mask)
+            return u, r, p, rz
+
+        def update(x, v, t, vnew):
+            pm.graph_inputs = ()
+            out = integ.finish(pm, State(x, v, t), x + dt * vnew, vnew, dt)
+            return out.x, out.v
+
+        def setup_first(x, v, vcur, t):
+            return setup(x, v, vcur, t, 0)
+
+        def setup_newton(x, v, vcur, t):
+            return setup(x, v, vcur, t, 1)
+
+        self.setup = [compile_(_fresh(setup_first))]
+        if integ.newton_iters:
+            self.setup.append(compile_(_fresh(setup_newton)))
+        self.iterate, self.update = compile_(_fresh(iterate)), compile_(_fresh(update))
+
+    def __call__(self, x, v, t):
+        integ, vcur = self.integ, v
+        for it in range(1 + integ.newton_iters):
+            fields, u, r, p, rz, bnorm, delta_c = self.setup[min(it, 1)](x, v, vcur, t)
+            n_it = 0
+            while n_it + self.unroll <= integ.cg_iters:
+                u, r, p, rz = self.iterate(fields, u, r, p, rz)
+                n_it += self.unroll
+                if integ.cg_tol > 0 and float((r.flatten(1).norm(dim=1) / bnorm).max()) <= integ.cg_tol:
+                    break
+            if n_it < integ.cg_iters and integ.cg_tol <= 0:          # odd remainder of an unrolled count
+                _, apply_A = integ.operator(self.pm, PackedLinearisation(self.pm, fields=fields), self.dt)
+                for _ in range(integ.cg_iters - n_it):
+                    u, r, p, rz = cg_iteration(apply_A, u, r, p, rz, self.precond, self.pm.free)
+                n_it = integ.cg_iters
+            rel = (r.flatten(1).norm(dim=1) / bnorm).max()
+            integ.last_cg = (n_it, float(rel) if integ.cg_tol > 0 else rel)
+            vcur = vcur + u + delta_c
+        return self.update(x, v, t, vcur)
 
 
 def compiled_step(integrator, model, dt: float, loads=None, *, mode: str | None = None,

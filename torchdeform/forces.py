@@ -30,7 +30,11 @@ def _vec3(value, key) -> tuple:
     return v
 
 
-def _ramp(t: float, start: float, ramp: float) -> float:
+def _ramp(t, start: float, ramp: float):
+    """Load factor in ``[0, 1]`` at time ``t`` (a float, or a 0-d tensor inside compiled code)."""
+    if torch.is_tensor(t):
+        a = torch.ones_like(t) if ramp <= 0 else ((t - start) / ramp).clamp(max=1.0)
+        return torch.where(t < start, torch.zeros_like(t), a)
     if t < start:
         return 0.0
     return 1.0 if ramp <= 0 else min(1.0, (t - start) / ramp)
@@ -120,9 +124,15 @@ class Drag:
         self._t = times
         self._o = [_vec3(p[1], "drag.path offset") for p in self.path]
 
-    def offset(self, t: float) -> tuple:
-        """Offset ``(3,)`` at time ``t``."""
+    def offset(self, t):
+        """Offset ``(3,)`` at time ``t``: a tuple for a float ``t``, a tensor for a 0-d tensor
+        (the form compiled code uses, without branches)."""
         ts, os_ = self._t, self._o
+        if torch.is_tensor(t):
+            o = t.new_tensor(os_[0])
+            for (t0, o0), (t1, o1) in zip(zip(ts, os_), zip(ts[1:], os_[1:])):
+                o = o + ((t - t0) / (t1 - t0)).clamp(0.0, 1.0) * t.new_tensor([q - p for p, q in zip(o0, o1)])
+            return o
         if t <= ts[0]:
             return os_[0]
         for (t0, o0), (t1, o1) in zip(zip(ts, os_), zip(ts[1:], os_[1:])):
@@ -131,9 +141,16 @@ class Drag:
                 return tuple(p + a * (q - p) for p, q in zip(o0, o1))
         return os_[-1]
 
-    def velocity(self, t: float) -> tuple:
-        """Velocity ``(3,)`` of the path at time ``t`` (the segment entered at ``t``)."""
+    def velocity(self, t):
+        """Velocity ``(3,)`` of the path at time ``t`` (the segment entered at ``t``); a tensor
+        for a 0-d tensor ``t``, as :meth:`offset`."""
         ts, os_ = self._t, self._o
+        if torch.is_tensor(t):
+            vel = t.new_zeros(3)
+            for (t0, o0), (t1, o1) in zip(zip(ts, os_), zip(ts[1:], os_[1:])):
+                inside = ((t >= t0) & (t < t1)).to(t.dtype)
+                vel = vel + inside * t.new_tensor([(q - p) / (t1 - t0) for p, q in zip(o0, o1)])
+            return vel
         for (t0, o0), (t1, o1) in zip(zip(ts, os_), zip(ts[1:], os_[1:])):
             if t0 <= t < t1:
                 return tuple((q - p) / (t1 - t0) for p, q in zip(o0, o1))

@@ -18,7 +18,7 @@ import torch
 from .errors import ConfigError
 from .forces import Drag, PointForce, SurfaceForce, _vec3, home_force
 from .grid import CLASSES, Grid
-from .springs import Linearisation, spring_energy, spring_forces, spring_forces_conv
+from .springs import Linearisation, node_sums, spring_energy, spring_forces, spring_forces_conv
 
 
 @dataclass
@@ -186,6 +186,7 @@ class Model:
             constrained = constrained | fixed
         for d in self.drags:
             constrained = constrained | torch.as_tensor(d.nodes, dtype=torch.bool)
+        self.drag_masks = [torch.as_tensor(d.nodes, dtype=torch.bool, device=dev)[None, None] for d in self.drags]
         self.constrained = constrained.to(dev)
         free = (~constrained).to(dtype=dtype, device=dev)[None, None]
         bad = (self.mass <= 0) & (free > 0)
@@ -223,23 +224,25 @@ class Model:
         x = self.X.expand(batch, -1, -1, -1, -1).clone()
         return State(x, torch.zeros_like(x), 0.0)
 
-    def constrain(self, x: torch.Tensor, v: torch.Tensor, t: float):
+    def _vector(self, value, like: torch.Tensor) -> torch.Tensor:
+        """A 3-vector as ``(1, 3, 1, ...)`` broadcasting against node fields like ``like``."""
+        return torch.as_tensor(value, dtype=self.dtype, device=self.device).view(1, 3, *[1] * (like.dim() - 2))
+
+    def constrain(self, x: torch.Tensor, v: torch.Tensor, t):
         """Put dragged nodes on their path at time ``t`` (positions and velocities)."""
-        for d in self.drags:
-            m = torch.as_tensor(d.nodes, dtype=torch.bool, device=self.device)[None, None]
-            off = torch.tensor(d.offset(t), dtype=self.dtype, device=self.device).view(1, 3, 1, 1, 1)
-            vel = torch.tensor(d.velocity(t), dtype=self.dtype, device=self.device).view(1, 3, 1, 1, 1)
+        for d, m in zip(self.drags, self.drag_masks):
+            off, vel = self._vector(d.offset(t), x), self._vector(d.velocity(t), x)
             x = torch.where(m, self.X + off, x)
             v = torch.where(m, vel.expand_as(v), v)
         return x, v
 
     # --------------------------------------------------------------- forces
-    def external(self, t: float):
+    def external(self, t):
         """Sum of point and surface loads at time ``t``, ``(1, 3, D, H, W)``, or None."""
         total = None
         for load, dense in self.loads:
             f = load.factor(t)
-            if f:
+            if torch.is_tensor(f) or f:
                 total = dense * f if total is None else total + dense * f
         return total
 
@@ -252,8 +255,7 @@ class Model:
             loads: extra force ``(B|1, 3, D, H, W)`` or a callable ``t -> force``, or None.
             impl: ``"fast"`` (shifted slices) or ``"conv"`` (conv3d reference).
         """
-        fn = spring_forces if impl == "fast" else spring_forces_conv
-        F = fn(x, v, self.grid, self.stiffness, self.rest_length, self.damping, self.projected)
+        F = self.spring_forces(x, v, impl)
         if self.k_home is not None:
             F = F + home_force(x, self.X, self.k_home)
         if self.gravity is not None:
@@ -264,6 +266,16 @@ class Model:
         if loads is not None:
             F = F + (loads(t) if callable(loads) else loads)
         return F
+
+    def spring_forces(self, x, v, impl: str = "fast") -> torch.Tensor:
+        """Forces of the grid springs alone, ``(B, 3, D, H, W)``; ``impl`` as in :meth:`forces`."""
+        fn = spring_forces if impl == "fast" else spring_forces_conv
+        return fn(x, v, self.grid, self.stiffness, self.rest_length, self.damping, self.projected)
+
+    def spring_sums(self, p: torch.Tensor) -> torch.Tensor:
+        """``sum_j p_ij`` over the springs at each node, ``(Bp, 1, D, H, W)``, for a spring
+        parameter ``p`` such as :attr:`stiffness` (Gershgorin bounds, Jacobi preconditioners)."""
+        return node_sums(self.grid, p)
 
     def acceleration(self, x, v, t: float = 0.0, loads=None) -> torch.Tensor:
         """``M^-1 F``, zero at constrained nodes, ``(B, 3, D, H, W)``."""

@@ -131,8 +131,33 @@ def _length(delta: torch.Tensor) -> torch.Tensor:
     return sq.clamp_min(torch.finfo(delta.dtype).tiny).sqrt()
 
 
+def spring_law(sq, dxdv, k, l0, c, projected: bool):
+    """The spring law, as coefficients: the force on a spring's endpoint ``i`` is
+    ``alpha (x_j - x_i) + beta (v_j - v_i)``.
+
+    ``alpha = k (l - l0) / l + c ((v_j - v_i) . delta) / l^2`` for projected damping (a dashpot
+    along the spring), ``beta = c`` for Radetzky's unprojected damping. ``l`` is kept ``>= sqrt(tiny)``
+    so coincident nodes give finite values. Every spring force in torchdeform (the slice path,
+    the packed fast path) comes from here.
+
+    Args:
+        sq: ``|x_j - x_i|^2``; dxdv: ``(x_j - x_i) . (v_j - v_i)`` (ignored when ``c`` is None);
+        k, l0, c: stiffness, rest length, damping (``c`` may be None), all broadcastable.
+    Returns:
+        ``(alpha, beta)``; ``beta`` is None unless the damping is unprojected.
+    """
+    l = sq.clamp_min(torch.finfo(sq.dtype).tiny).sqrt()
+    inv_l = 1.0 / l
+    alpha = k * (l - l0) * inv_l           # exactly 0 at rest length
+    if c is None:
+        return alpha, None
+    if projected:
+        return alpha + c * dxdv * (inv_l * inv_l), None
+    return alpha, c
+
+
 def tension(delta, dv, k, l0, c, projected: bool) -> torch.Tensor:
-    """Tension vector of springs: ``k (l - l0) n`` plus damping.
+    """Tension vector of springs: ``k (l - l0) n`` plus damping (:func:`spring_law`).
 
     Args:
         delta: ``x_j - x_i``, ``(B, 3, ...)``; ``dv``: ``v_j - v_i`` or ``None``.
@@ -143,12 +168,11 @@ def tension(delta, dv, k, l0, c, projected: bool) -> torch.Tensor:
     Returns:
         ``(B, 3, ...)``: the force on ``i`` (its negative acts on ``j``).
     """
-    l = _length(delta)
-    n = delta / l
-    f = (k * (l - l0)) * n
-    if c is not None:
-        f = f + (c * (dv * n).sum(1, keepdim=True) * n if projected else c * dv)
-    return f
+    sq = (delta * delta).sum(1, keepdim=True)
+    dxdv = (delta * dv).sum(1, keepdim=True) if c is not None and projected else None
+    alpha, beta = spring_law(sq, dxdv, k, l0, c, projected)
+    f = alpha * delta
+    return f if beta is None else f + beta * dv
 
 
 def spring_forces(x, v, grid, k, l0, c=None, projected=True) -> torch.Tensor:

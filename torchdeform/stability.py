@@ -24,12 +24,11 @@ import warnings
 import torch
 
 from .errors import DivergenceError, StabilityWarning
-from .springs import node_sums
 
 
 def gershgorin_omega2(model) -> float:
     """Upper bound on ``omega_max^2 = lambda_max(M^-1 K)`` at rest (Gershgorin)."""
-    ksum = 2 * node_sums(model.grid, model.stiffness)
+    ksum = 2 * model.spring_sums(model.stiffness)
     if model.k_home is not None:
         ksum = ksum + model.k_home
     return float((model.inv_mass * ksum).max())
@@ -39,7 +38,7 @@ def damping_rate_bound(model) -> float:
     """Upper bound on ``lambda_max(M^-1 C)`` of the spring dashpots (Gershgorin); 0 if undamped."""
     if model.damping is None:
         return 0.0
-    return float((model.inv_mass * 2 * node_sums(model.grid, model.damping)).max())
+    return float((model.inv_mass * 2 * model.spring_sums(model.damping)).max())
 
 
 def _stiffness_product(model, lin, u):

@@ -1,0 +1,116 @@
+"""The packed layout of the fast path against the grid-layout model (itself tested against the
+numpy edge list in test_stencil / test_physics). No torch.compile here: the packed code is
+plain tensor code and runs eagerly; the compiled kernel is compared with the eager step by the
+``bench speed --quick`` smoke test."""
+import pytest
+import torch
+
+import torchdeform as td
+from torchdeform.compiled import CompiledStep, _ImplicitParts
+from torchdeform.packed import PackedModel
+
+F64 = torch.float64
+INTEGRATORS = [td.ExplicitEuler(), td.SymplecticEuler(), td.DampedVerlet(0.1), td.RK4(),
+               td.ImplicitEuler(cg_iters=60, cg_tol=1e-13), td.ImplicitEuler(cg_iters=20, cg_tol=0, newton_iters=1)]
+
+
+def _scene(topology, mode="projected", batch=1):
+    node_mask = torch.ones(5, 4, 6, dtype=torch.bool)
+    node_mask[3:, 2:, :3] = False                                   # an L-shaped body
+    grid = td.Grid((5, 4, 6), spacing=(0.01, 0.011, 0.012), topology=topology, node_mask=node_mask)
+    g = torch.Generator().manual_seed(topology)
+    k = 40 * (1 + torch.rand((grid.S,) + grid.shape, generator=g, dtype=F64))
+    drag = td.Drag(grid.index_mask([(0, 0, 5)]), [(0.0, (0, 0, 0)), (0.004, (1e-3, 0, 0)), (0.01, (1e-3, 2e-3, 0))])
+    model = td.Model(grid, stiffness=k, damping=0.05, damping_mode=mode, density=1000.0, gravity=(-9.81, 0, 0),
+                     fixed=grid.face("bottom") & grid.nodes(), drags=[drag], decay=0.3, anchors=(5.0, 2),
+                     loads=[td.PointForce((4, 0, 2), (0.01, 0.0, -0.02), start=0.001, ramp=0.003)], dtype=F64)
+    x = model.X + 2e-4 * torch.randn((batch, 3) + grid.shape, generator=g, dtype=F64)
+    v = 1e-2 * torch.randn((batch, 3) + grid.shape, generator=g, dtype=F64)
+    x, v = model.constrain(x, v, 0.0)
+    return model, td.State(x, v, 0.0)
+
+
+@pytest.mark.parametrize("topology", [6, 14, 18, 26])
+@pytest.mark.parametrize("mode", ["projected", "unprojected"])
+def test_packed_forces_equal_grid_forces(topology, mode):
+    model, state = _scene(topology, mode, batch=2)
+    pm = PackedModel(model)
+    ps = pm.pack_state(state)
+    F_grid = model.forces(state.x, state.v, 0.002)
+    F_packed = pm.unpack(pm.forces(ps.x, ps.v, 0.002))
+    assert torch.allclose(F_packed, F_grid, rtol=1e-12, atol=1e-14 * float(F_grid.abs().max()))
+    assert torch.equal(pm.pack(F_grid)[..., : pm.G], torch.zeros_like(pm.pack(F_grid)[..., : pm.G]))
+    # Gershgorin sums and stiffness products, the other spring operators of the packed model
+    assert torch.allclose(pm.unpack(pm.spring_sums(pm.stiffness)), model.spring_sums(model.stiffness), rtol=1e-12)
+    u = torch.randn_like(state.x)
+    Ku = model.linearise(state.x).apply(u, 0.7, model.damping, model.projected, 0.3)
+    Ku_p = pm.unpack(pm.linearise(ps.x).apply(pm.pack(u), 0.7, pm.damping, pm.projected, 0.3))
+    assert torch.allclose(Ku_p, Ku, rtol=1e-10, atol=1e-12 * float(Ku.abs().max()))
+
+
+@pytest.mark.parametrize("integ", INTEGRATORS, ids=lambda i: f"{i.name}{getattr(i, 'newton_iters', '')}")
+def test_packed_steps_equal_grid_steps(integ):
+    """20 steps through drags, a ramped load, anchors, decay and a node mask; time as a float and
+    as the 0-d tensor the compiled step passes."""
+    model, state = _scene(26)
+    pm = PackedModel(model)
+    ref, s, st = state, pm.pack_state(state), pm.pack_state(td.State(state.x, state.v, torch.tensor(0.0, dtype=F64)))
+    for _ in range(20):
+        ref = integ.step(model, ref, 5e-4)
+        s = integ.step(pm, s, 5e-4)
+        st = integ.step(pm, st, 5e-4)
+    for packed in (s, st):
+        out = pm.unpack_state(packed)
+        assert torch.allclose(out.x, ref.x, rtol=0, atol=1e-12)
+        assert torch.allclose(out.v, ref.v, rtol=0, atol=1e-9)
+    assert float(st.t) == pytest.approx(ref.t)
+
+
+def test_compiled_implicit_pieces_equal_eager_step():
+    """The compiled implicit Euler's pieces (set-up, unrolled CG iterations, update), run here
+    uncompiled, give the eager step, including an odd iteration count with unroll 2."""
+    model, state = _scene(18)
+    for integ in (td.ImplicitEuler(cg_iters=7, cg_tol=0), td.ImplicitEuler(cg_iters=40, cg_tol=1e-9)):
+        cs = CompiledStep(integ, model, 5e-4, enable=False)
+        parts = _ImplicitParts(integ, cs.packed, 5e-4, None, lambda f: f, cg_unroll=2)
+        ps = cs.packed.pack_state(state)
+        x, v = parts(ps.x, ps.v, torch.tensor(0.0, dtype=F64))
+        n_parts = integ.last_cg[0]
+        ref = integ.step(model, state, 5e-4)
+        assert integ.last_cg[0] == n_parts if integ.cg_tol > 0 else n_parts == 7
+        assert torch.allclose(cs.packed.unpack(x), ref.x, rtol=0, atol=1e-12)
+        assert torch.allclose(cs.packed.unpack(v), ref.v, rtol=0, atol=1e-9)
+
+
+def test_time_functions_agree_for_floats_and_tensors():
+    drag = td.Drag(torch.ones(2, 2, 2, dtype=torch.bool), [(0.1, (0, 0, 0)), (0.3, (1.0, -2.0, 0.5)), (0.4, (0, 0, 1))])
+    load = td.PointForce((0, 0, 0), (1, 0, 0), start=0.05, ramp=0.1)
+    for t in [0.0, 0.1, 0.2, 0.29999, 0.3, 0.35, 0.4, 0.7]:
+        tt = torch.tensor(t, dtype=F64)
+        assert torch.allclose(drag.offset(tt), torch.tensor(drag.offset(t), dtype=F64), atol=1e-15)
+        assert torch.allclose(drag.velocity(tt), torch.tensor(drag.velocity(t), dtype=F64), atol=1e-12)
+        assert float(load.factor(tt)) == pytest.approx(load.factor(t), abs=1e-15)
+
+
+def test_spring_law_is_exactly_zero_at_rest_length():
+    """``k (l - l0) / l`` is exactly 0 when ``|delta|`` rounds to ``l0``: a body at rest is an
+    exact equilibrium (up to the rounding of the rest lengths themselves)."""
+    from torchdeform.springs import spring_law
+    for dtype in (torch.float32, F64):
+        delta = torch.tensor([[0.01, 0.013, 0.017], [0.0, 0.0, 0.02], [3.0, 4.0, 0.0]], dtype=dtype)
+        sq = (delta * delta).sum(1)
+        alpha, beta = spring_law(sq, torch.zeros_like(sq), 123.0, sq.sqrt(), 0.4, True)
+        assert torch.equal(alpha, torch.zeros_like(alpha)) and beta is None
+    grid = td.Grid((3, 3, 3), spacing=0.01, topology=26)
+    model = td.Model(grid, stiffness=123.0, damping=0.4, mass=1.0, dtype=F64)
+    pm = PackedModel(model)
+    rest = pm.rest_state()
+    scale = 123.0 * 0.01
+    assert float(model.forces(model.X, torch.zeros_like(model.X)).abs().max()) <= 1e-14 * scale
+    assert float(pm.forces(rest.x, rest.v).abs().max()) <= 1e-14 * scale
+
+
+def test_packed_model_rejects_a_packed_model():
+    model, _ = _scene(6)
+    with pytest.raises(TypeError):
+        PackedModel(PackedModel(model))

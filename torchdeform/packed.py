@@ -1,0 +1,227 @@
+"""The packed layout of the fast path: node fields padded by one halo layer and flattened.
+
+A node field ``(B, C, D, H, W)`` becomes ``(B, C, P)`` with ``P = (D+2)(H+2)(W+2)``: the grid
+is padded with a zero halo and flattened. A neighbour at stencil offset ``d`` is then a fixed
+linear offset ``o = d_D (H+2)(W+2) + d_H (W+2) + d_W``, so every spring term is one contiguous
+slice ``t[G + o : P - G + o]`` over the "core" range ``[G, P - G)`` (``G`` = the largest offset).
+The core covers every real node; the halo nodes it also covers have no mass, no free degree of
+freedom and no springs, so they never move.
+
+In this layout each node gathers the forces of all its ``2 S`` springs (every spring is
+evaluated from both ends) instead of scattering into shifted slices. That costs twice the
+arithmetic but has no read-modify-write, so ``torch.compile`` fuses forces and update into one
+vectorised loop over the nodes: the fast path (:mod:`torchdeform.compiled`).
+
+:class:`PackedModel` is a :class:`~torchdeform.model.Model` whose tensors are in this layout,
+so every integrator runs on it unchanged; only the spring terms differ, and they use the same
+spring law (:func:`~torchdeform.springs.spring_law`).
+
+Example:
+    >>> import torchdeform as td
+    >>> from torchdeform.packed import PackedModel
+    >>> model = td.Model(td.Grid((4, 5, 6), 0.01, 26), stiffness=50.0, damping=0.1, mass=1e-3)
+    >>> pm = PackedModel(model)
+    >>> s = pm.pack_state(model.rest_state())     # x, v: (1, 3, 6 * 7 * 8)
+    >>> s = td.SymplecticEuler().step(pm, s, 1e-4)
+    >>> pm.unpack_state(s).x.shape
+    torch.Size([1, 3, 4, 5, 6])
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from .model import Model, State
+from .springs import spring_law
+
+__all__ = ["PackedModel", "PackedLinearisation"]
+
+
+class PackedModel(Model):
+    """A :class:`~torchdeform.model.Model` in the packed layout (see the module docstring).
+
+    Node fields are ``(B|1, C, P)``, spring parameters ``(Bp, S, 1)`` (one value per direction)
+    or ``(Bp, S, P)`` (one per spring, stored at its first endpoint, zero in the halo). States
+    are packed with :meth:`pack_state` and unpacked with :meth:`unpack_state`.
+
+    Args:
+        model: the model to lay out; it is not changed.
+    """
+
+    def __init__(self, model: Model):
+        if isinstance(model, PackedModel):
+            raise TypeError("PackedModel(model): the model is already packed")
+        self.__dict__.update(model.__dict__)
+        self.source = model
+        grid = model.grid
+        D, H, W = grid.shape
+        plane, row = (H + 2) * (W + 2), W + 2
+        self.P = (D + 2) * plane
+        self.G = plane + row + 1
+        self.offsets = [dd * plane + dh * row + dw for dd, dh, dw in grid.directions]
+
+        self.inside = self.pack(grid.nodes().to(self.dtype)[None, None].to(self.device))[0, 0]    # (P,)
+        self.X = self.pack(model.X)
+        self.mass = self._node(model.mass)
+        self.inv_mass = self._node(model.inv_mass)
+        self.free = self._node(model.inv_mass.new_ones(1, 1, 1, 1, 1) if model.free is None else model.free)
+        self.constrained = self.free[0, 0] == 0                                       # (P,), halo too
+        self.drag_masks = [self.pack(m.to(self.dtype)) > 0 for m in model.drag_masks]
+        self.k_home = None if model.k_home is None else self._node(model.k_home)
+        self.loads = [(ld, self.pack(dense)) for ld, dense in model.loads]
+        if model.gravity is not None:
+            self.gravity = model.gravity.view(1, 3, 1)
+        self.stiffness = self._spring(model.stiffness)
+        self.rest_length = self._spring(model.rest_length)
+        self.damping = None if model.damping is None else self._spring(model.damping)
+        #: set by the compiled step: a function that makes inductor store a field in memory, and
+        #: the graph inputs (already in memory) that need no such barrier; see :meth:`gather`.
+        self.realize, self.graph_inputs = None, ()
+
+    # ------------------------------------------------------------------ layout
+    def pack(self, t: torch.Tensor) -> torch.Tensor:
+        """``(B, C, D, H, W) -> (B, C, P)`` with a zero halo."""
+        return F.pad(t, (1, 1, 1, 1, 1, 1)).flatten(2)
+
+    def unpack(self, t: torch.Tensor) -> torch.Tensor:
+        """``(B, C, P) -> (B, C, D, H, W)`` (a view of the interior)."""
+        D, H, W = self.grid.shape
+        return t.view(*t.shape[:2], D + 2, H + 2, W + 2)[..., 1:-1, 1:-1, 1:-1]
+
+    def pack_state(self, state: State) -> State:
+        return State(self.pack(state.x), self.pack(state.v), state.t)
+
+    def unpack_state(self, state: State) -> State:
+        return State(self.unpack(state.x).contiguous(), self.unpack(state.v).contiguous(), state.t)
+
+    def rest_state(self, batch: int = 1) -> State:
+        return self.pack_state(self.source.rest_state(batch))
+
+    def _node(self, t: torch.Tensor) -> torch.Tensor:
+        return self.pack(t.expand(*t.shape[:2], *self.grid.shape))
+
+    def _spring(self, p: torch.Tensor) -> torch.Tensor:
+        if p.shape[-3:] == (1, 1, 1):
+            return p.reshape(p.shape[0], p.shape[1], 1)
+        return self.pack(p.expand(p.shape[0], p.shape[1], *self.grid.shape))
+
+    def shift(self, t: torch.Tensor, o: int) -> torch.Tensor:
+        """The core range of ``t`` (last axis ``P``) shifted by the linear offset ``o``."""
+        return t[..., self.G + o:self.P - self.G + o]
+
+    def param(self, p: torch.Tensor, s: int, sign: int) -> torch.Tensor:
+        """Spring parameter of the spring from each core node along ``sign * d_s``:
+        ``(Bp, 1)`` or ``(Bp, P_core)``."""
+        q = p[:, s]
+        if q.shape[-1] == 1:
+            return q
+        return self.shift(q, 0 if sign > 0 else -self.offsets[s])
+
+    def gather(self, fn, *fields: torch.Tensor) -> torch.Tensor:
+        """Sum a spring quantity over the ``2 S`` springs of every node, channels kept apart.
+
+        For each half-direction ``s`` and ``sign`` in ``(+1, -1)``, ``fn(s, sign, mask, *deltas)``
+        gets the neighbour mask ``(P_core,)`` (1 where the neighbour exists) and, per field, the
+        list of its channel differences ``field_c[i + sign d_s] - field_c[i]``, each
+        ``(B, P_core)``; it returns a list of ``C`` terms ``(B|Bp, P_core)``. Keeping channels
+        apart (no channel axis) is what lets inductor fuse the whole sum into one loop.
+
+        Returns:
+            ``(B, C, P)``, zero at halo nodes and outside the core range.
+        """
+        if self.realize is not None:
+            # A field computed in the same compiled graph (an RK4 stage, a CG direction) must be
+            # stored before 2 S shifted reads, or inductor inlines its whole computation into
+            # every read, and the next stage's into that (compile time explodes).
+            fields = [f if any(f is g for g in self.graph_inputs) else self.realize(f) for f in fields]
+        comps = [[f[:, a] for a in range(f.shape[1])] for f in fields]
+        centre = [[self.shift(c, 0) for c in comp] for comp in comps]
+        total = None
+        for s, o in enumerate(self.offsets):
+            for sign in (1, -1):
+                deltas = [[self.shift(c, sign * o) - c0 for c, c0 in zip(comp, cen)]
+                          for comp, cen in zip(comps, centre)]
+                terms = fn(s, sign, self.shift(self.inside, sign * o), *deltas)
+                total = terms if total is None else [a + b for a, b in zip(total, terms)]
+        own = self.shift(self.inside, 0)                 # halo nodes get exactly zero
+        return F.pad(torch.stack([t * own for t in total], 1), (self.G, self.G))
+
+    # ------------------------------------------------------------------ springs
+    def spring_forces(self, x, v, impl: str = "fast") -> torch.Tensor:
+        """Forces of the grid springs, ``(B, 3, P)`` (``impl`` is ignored: one layout, one path)."""
+        k, l0, c, projected = self.stiffness, self.rest_length, self.damping, self.projected
+
+        def fn(s, sign, mask, dx, dv=None):
+            sq = dx[0] * dx[0] + dx[1] * dx[1] + dx[2] * dx[2]
+            dxdv = None if dv is None else dx[0] * dv[0] + dx[1] * dv[1] + dx[2] * dv[2]
+            alpha, beta = spring_law(sq, dxdv, self.param(k, s, sign), self.param(l0, s, sign),
+                                     None if c is None else self.param(c, s, sign), projected)
+            alpha = alpha * mask
+            if beta is None:
+                return [alpha * d for d in dx]
+            beta = beta * mask
+            return [alpha * d + beta * w for d, w in zip(dx, dv)]
+
+        return self.gather(fn, x) if c is None else self.gather(fn, x, v)
+
+    def spring_sums(self, p: torch.Tensor) -> torch.Tensor:
+        """``sum_j p_ij`` per node, ``(Bp, 1, P)``."""
+        return self.gather(lambda s, sign, mask: [self.param(p, s, sign) * mask])
+
+    def linearise(self, x, clamp=True) -> "PackedLinearisation":
+        return PackedLinearisation(self, x, clamp)
+
+    def energy(self, state: State) -> dict:
+        return self.source.energy(self.unpack_state(state))
+
+
+class PackedLinearisation:
+    """:class:`~torchdeform.springs.Linearisation` in the packed layout: ``K u`` products for
+    implicit solves without a matrix.
+
+    The springs are linearised once: per half-direction ``s`` and node, the unit direction ``n``
+    and the coefficients ``a = k max(1 - l0 / l, 0)`` and ``b = k - a`` are stored in
+    :attr:`fields` ``(B, S, 5, P)`` (``n_0, n_1, n_2, a, b``, zero outside the core). Every product
+    then reads them (the far end's spring at a shifted index) instead of recomputing a square
+    root and a division per spring.
+
+    Args:
+        pm: the packed model; x: positions ``(B, 3, P)``; clamp: clamp the compressive term.
+        fields: stored fields from an earlier linearisation (then ``x`` is ignored).
+    """
+
+    def __init__(self, pm: PackedModel, x: torch.Tensor | None = None, clamp: bool = True, fields=None):
+        self.pm = pm
+        if fields is None:
+            per_s = []
+            centre = pm.shift(x, 0)
+            for s, o in enumerate(pm.offsets):
+                dx = pm.shift(x, o) - centre                                   # (B, 3, Pc)
+                sq = (dx * dx).sum(1, keepdim=True)
+                k = pm.param(pm.stiffness, s, 1).unsqueeze(1)
+                a, _ = spring_law(sq, None, k, pm.param(pm.rest_length, s, 1).unsqueeze(1), None, True)
+                if clamp:
+                    a = a.clamp_min(0)
+                n = dx / sq.clamp_min(torch.finfo(sq.dtype).tiny).sqrt()
+                per_s.append(torch.cat([n, a.expand_as(sq), (k - a).expand_as(sq)], 1))
+            fields = F.pad(torch.stack(per_s, 1), (pm.G, pm.G))
+        self.fields = fields
+
+    def apply(self, u, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> torch.Tensor:
+        """``(h2 K + h C) u``, ``(B, 3, P)``; arguments as
+        :meth:`torchdeform.springs.Linearisation.apply`."""
+        pm, fields = self.pm, self.fields
+
+        def fn(s, sign, mask, du):
+            q = [pm.shift(fields[:, s, i], 0 if sign > 0 else -pm.offsets[s]) for i in range(5)]
+            alpha, beta = alpha_scale * q[3], alpha_scale * q[4]
+            if c is not None:
+                cs = c_scale * pm.param(c, s, sign)
+                if projected:
+                    beta = beta + cs
+                else:
+                    alpha = alpha + cs
+            proj = beta * (q[0] * du[0] + q[1] * du[1] + q[2] * du[2])
+            return [mask * (alpha * w + proj * n) for n, w in zip(q[:3], du)]
+
+        return -pm.gather(fn, u)
