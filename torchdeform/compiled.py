@@ -104,7 +104,7 @@ class CompiledStep:
         # t enters as a 0-d tensor: ramps and drag paths are evaluated inside the compiled code
         # without branches, and a new t never triggers a recompilation.
         def step(x, v, t):
-            pm.graph_inputs = (x, v)
+            pm.graph_inputs, pm.store_sums = (x, v), False
             state = State(x, v, t)
             out = integrator.finish(pm, state, *integrator.advance(pm, state, dt_, loads_p), dt_)
             return out.x, out.v
@@ -190,7 +190,7 @@ class _ImplicitParts:
         precond, mask = self.precond, pm.free
 
         def setup(x, v, vcur, t, it):
-            pm.graph_inputs = (x, v, vcur)
+            pm.graph_inputs, pm.store_sums = (x, v, vcur), True
             _, apply_A, rhs, delta_c = integ.system(pm, State(x, v, t), vcur, it, dt, loads)
             u, r, p, rz = cg_start(rhs, precond, mask)
             return (apply_A.lin.fields, u, r, p, rz, r.flatten(1).norm(dim=1).clamp_min(1e-300),
@@ -199,14 +199,14 @@ class _ImplicitParts:
         unroll = self.unroll = max(1, min(int(cg_unroll), integ.cg_iters)) if integ.cg_tol <= 0 else 1
 
         def iterate(fields, u, r, p, rz):
-            pm.graph_inputs = (u, r, p, rz)
+            pm.graph_inputs, pm.store_sums = (u, r, p, rz), True
             _, apply_A = integ.operator(pm, PackedLinearisation(pm, fields=fields), dt)
             for _ in range(unroll):
                 u, r, p, rz = cg_iteration(apply_A, u, r, p, rz, precond, mask)
             return u, r, p, rz
 
         def update(x, v, t, vnew):
-            pm.graph_inputs = ()
+            pm.graph_inputs, pm.store_sums = (), True
             out = integ.finish(pm, State(x, v, t), x + dt * vnew, vnew, dt)
             return out.x, out.v
 
