@@ -2,7 +2,10 @@
 
 =========  ================================================================================
 speed      spring-step throughput of symplectic Euler on a damped cube: Msprings/s,
-           node-steps/s and ms/step for n^3 grids, topologies, eager and compiled
+           node-steps/s and ms/step for n^3 grids, topologies, eager and compiled, dtypes,
+           thread counts, against NVIDIA Warp's CPU backend; implicit Euler on a beam
+accuracy   error against wall time of every integrator on four standard scenes and a
+           resolution sweep, with the Pareto front and a recommendation
 =========  ================================================================================
 
 Each benchmark is one entry of :data:`BENCHES`: a help line, a function that adds its
@@ -457,8 +460,16 @@ def _speed_plot(rows, path: Path, machine: dict) -> None:
 
 
 #: name -> (help line, add_arguments(parser), run(args) -> int)
+def _accuracy():
+    from . import bench_accuracy            # imported lazily: it imports this module
+    return bench_accuracy
+
+
 BENCHES = {
-    "speed": ("spring-step throughput (Msprings/s, node-steps/s), eager and compiled", _add_speed, _speed),
+    "speed": ("spring-step throughput (Msprings/s, node-steps/s), eager and compiled, against Warp; "
+              "implicit Euler on a beam", _add_speed, _speed),
+    "accuracy": ("error against wall time of every integrator on standard scenes, a resolution sweep, "
+                 "Pareto front", lambda p: _accuracy().add_arguments(p), lambda args: _accuracy().run(args)),
 }
 
 __all__ = ["BENCHES", "add_arguments", "main", "speed_cube", "speed_row", "beam_scene", "beam_row", "format_table",
