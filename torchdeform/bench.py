@@ -238,6 +238,30 @@ def _measure(step, state, *, steps, repeats, target_s, sync, max_steps=200):
     return first, _time_steps(step, state, steps, repeats, sync), first_s, steps
 
 
+def _time_mode(integ, model, state, dt, mode, *, steps, repeats, target_s, sync, reference=None, max_steps=200):
+    """Time ``integ`` on ``model`` from ``state``, eager (grid layout) or compiled (packed state
+    kept between steps), without gradients. Returns ``(first_state, s_per_step, compile_s,
+    steps, fallback, max_abs_diff)``; ``compile_s`` is None for eager, ``max_abs_diff`` compares
+    the first step with ``reference`` (or None)."""
+    from .compiled import CompiledStep
+    with torch.no_grad():
+        compile_s, fallback = None, False
+        if mode == "eager":
+            first, sec, _, steps = _measure(lambda s: integ.step(model, s, dt), state, steps=steps,
+                                            repeats=repeats, target_s=target_s, sync=sync, max_steps=max_steps)
+        else:
+            cs = CompiledStep(integ, model, dt)
+            first, sec, compile_s, steps = _measure(cs.step_packed, cs.packed.pack_state(state), steps=steps,
+                                                    repeats=repeats, target_s=target_s, sync=sync,
+                                                    max_steps=max_steps)
+            first = cs.packed.unpack_state(first)
+            fallback = not cs.compiled
+        diff = None
+        if reference is not None:
+            diff = max(float((first.x - reference.x).abs().max()), float((first.v - reference.v).abs().max()))
+    return first, sec, compile_s, steps, fallback, diff
+
+
 def speed_row(n: int, topology: int, mode: str, *, dtype=torch.float32, device="cpu", steps=None,
               repeats: int = 5, target_s: float = 0.2, reference=None) -> dict:
     """Time symplectic Euler steps on :func:`speed_cube`; one row of the speed table.
@@ -248,7 +272,6 @@ def speed_row(n: int, topology: int, mode: str, *, dtype=torch.float32, device="
     and compilation are excluded from the timing; ``compile_s`` is the first call's wall time.
     ``peak_rss_mb`` is the process's peak resident memory during the row (Linux), torch included.
     """
-    from .compiled import CompiledStep
     from .integrators import SymplecticEuler
     reset = _reset_peak()
     model, state, dt = speed_cube(n, topology, dtype, device)
@@ -257,21 +280,9 @@ def speed_row(n: int, topology: int, mode: str, *, dtype=torch.float32, device="
     row = {"grid": f"{n}^3", "n": n, "topology": topology, "mode": mode, "dtype": str(dtype).replace("torch.", ""),
            "threads": torch.get_num_threads(), "device": device, "nodes": model.grid.num_nodes,
            "springs": model.grid.num_springs}
-    with torch.no_grad():
-        compile_s, fallback = None, False
-        if mode == "eager":
-            first, sec, _, steps = _measure(lambda s: integ.step(model, s, dt), state, steps=steps,
-                                            repeats=repeats, target_s=target_s, sync=sync)
-        else:
-            cs = CompiledStep(integ, model, dt)
-            packed = cs.packed.pack_state(state)
-            first, sec, compile_s, steps = _measure(cs.step_packed, packed, steps=steps, repeats=repeats,
-                                                    target_s=target_s, sync=sync)
-            first = cs.packed.unpack_state(first)
-            fallback = not cs.compiled
-        diff = None
-        if reference is not None:
-            diff = max(float((first.x - reference.x).abs().max()), float((first.v - reference.v).abs().max()))
+    first, sec, compile_s, steps, fallback, diff = _time_mode(integ, model, state, dt, mode, steps=steps,
+                                                              repeats=repeats, target_s=target_s,
+                                                              sync=sync, reference=reference)
     row.update(steps=steps, repeats=repeats, ms_per_step=sec * 1e3,
                msprings_per_s=row["springs"] / sec / 1e6, node_steps_per_s=row["nodes"] / sec,
                compile_s=compile_s, max_abs_diff=diff, fallback=fallback,
@@ -287,7 +298,6 @@ def beam_row(mode: str, *, dtype=torch.float32, device="cpu", cg_iters: int = 20
     """Implicit Euler steps per second on :func:`beam_scene` (``cg_iters`` CG iterations, no
     tolerance: every step does exactly that many, as SOFA's benchmark). ``mode`` as in
     :func:`speed_row`."""
-    from .compiled import CompiledStep
     from .integrators import ImplicitEuler
     model, state, dt = beam_scene(dtype, device)
     integ = ImplicitEuler(cg_iters=cg_iters, cg_tol=0)
@@ -295,21 +305,9 @@ def beam_row(mode: str, *, dtype=torch.float32, device="cpu", cg_iters: int = 20
     row = {"scene": "beam 40x10x10", "mode": mode, "dtype": str(dtype).replace("torch.", ""),
            "threads": torch.get_num_threads(), "device": device, "nodes": model.grid.num_nodes,
            "springs": model.grid.num_springs, "dt": dt, "cg_iters": cg_iters}
-    with torch.no_grad():
-        compile_s, fallback = None, False
-        if mode == "eager":
-            first, sec, _, steps = _measure(lambda s: integ.step(model, s, dt), state, steps=steps,
-                                            repeats=repeats, target_s=target_s, sync=sync, max_steps=100)
-        else:
-            cs = CompiledStep(integ, model, dt)
-            packed = cs.packed.pack_state(state)
-            first, sec, compile_s, steps = _measure(cs.step_packed, packed, steps=steps, repeats=repeats,
-                                                    target_s=target_s, sync=sync, max_steps=500)
-            first = cs.packed.unpack_state(first)
-            fallback = not cs.compiled
-        diff = None
-        if reference is not None:
-            diff = max(float((first.x - reference.x).abs().max()), float((first.v - reference.v).abs().max()))
+    first, sec, compile_s, steps, fallback, diff = _time_mode(
+        integ, model, state, dt, mode, steps=steps, repeats=repeats, target_s=target_s, sync=sync,
+        reference=reference, max_steps=100 if mode == "eager" else 500)
     row.update(steps=steps, repeats=repeats, ms_per_step=sec * 1e3, steps_per_s=1.0 / sec,
                compile_s=compile_s, max_abs_diff=diff, fallback=fallback)
     row["_first"] = first

@@ -125,15 +125,11 @@ class CompiledStep:
                 compile_ = functools.partial(torch.compile, dynamic=False, mode=mode,
                                              options=None if mode else dict(options or INDUCTOR_OPTIONS))
                 if isinstance(integrator, ImplicitEuler):
-                    self._fn = self._implicit_step
-                    self._implicit = _ImplicitParts(integrator, pm, self.dt, loads_p, compile_)
+                    self._fn = _ImplicitParts(integrator, pm, self.dt, loads_p, compile_)
                 else:
                     self._fn = compile_(_fresh(step))
             except Exception as e:                          # noqa: BLE001 (any failure -> eager)
                 self._fallback(e)
-
-    def _implicit_step(self, x, v, t):
-        return self._implicit(x, v, t)
 
     def _fallback(self, e: Exception) -> None:
         self.compiled, self._fn = False, None
