@@ -230,14 +230,18 @@ class ImplicitEuler(Integrator):
         return torch.where(ok, 1.0 / torch.where(ok, diag, torch.ones_like(diag)), torch.zeros_like(diag))
 
     def operator(self, model, x_lin, h: float):
-        """``(linearisation, apply_A)`` with ``A u = M u + h C u + h^2 K(x_lin) u``; ``x_lin`` may
-        also be a linearisation already made (``apply_A.lin`` is the linearisation)."""
+        """``(linearisation, apply_A)`` with ``A u = M u + h C u + h^2 K(x_lin) u``.
+
+        ``x_lin`` is a position field, a linearisation already made, or the combined operator of
+        an earlier call (``apply_A.op``: ``h^2 K + h C`` with its coefficients merged once per
+        solve, so CG products skip the scaling); ``apply_A.lin`` is the linearisation."""
         lin = model.linearise(x_lin) if torch.is_tensor(x_lin) else x_lin
+        op = lin if lin.combined else lin.scaled(h * h, model.damping, model.projected, h)
 
         def apply_A(u):
-            y = model.mass * u + lin.apply(u, h * h, model.damping, model.projected, h)
+            y = model.mass * u + op.apply(u)
             return y if model.k_home is None else y + (h * h) * model.k_home * u
-        apply_A.lin = lin
+        apply_A.lin, apply_A.op = lin, op
         return lin, apply_A
 
     def system(self, model, state, v, it: int, h: float, loads):

@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 
 from .model import Model, State
-from .springs import spring_law
+from .springs import combine_coefficients, spring_law
 
 __all__ = ["PackedModel", "PackedLinearisation"]
 
@@ -194,8 +194,9 @@ class PackedLinearisation:
         fields: stored fields from an earlier linearisation (then ``x`` is ignored).
     """
 
-    def __init__(self, pm: PackedModel, x: torch.Tensor | None = None, clamp: bool = True, fields=None):
-        self.pm = pm
+    def __init__(self, pm: PackedModel, x: torch.Tensor | None = None, clamp: bool = True, fields=None,
+                 combined: bool = False):
+        self.pm, self.combined = pm, combined
         if fields is None:
             per_s = []
             centre = pm.shift(x, 0)
@@ -211,21 +212,36 @@ class PackedLinearisation:
             fields = F.pad(torch.stack(per_s, 1), (pm.G, pm.G))
         self.fields = fields
 
+    def scaled(self, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> "PackedLinearisation":
+        """The operator ``u -> apply(u, alpha_scale, c, projected, c_scale)`` as a linearisation
+        with combined coefficients: its fields hold ``n``, ``alpha`` and ``beta`` of ``h2 K + h C``
+        already multiplied by the spring-exists mask, so a product reads 5 fields per spring and
+        does no scaling or masking (the CG loop's inner kernel)."""
+        pm, core = self.pm, self.fields[..., self.pm.G:self.pm.P - self.pm.G]
+        own = pm.shift(pm.inside, 0)
+        per_s = []
+        for s, o in enumerate(pm.offsets):
+            exists = own * pm.shift(pm.inside, o)
+            alpha, beta = combine_coefficients(core[:, s, 3], core[:, s, 4], alpha_scale,
+                                               None if c is None else pm.param(c, s, 1), projected, c_scale)
+            per_s.append(torch.stack([core[:, s, 0], core[:, s, 1], core[:, s, 2],
+                                      alpha * exists, beta * exists], 1))
+        return PackedLinearisation(pm, fields=F.pad(torch.stack(per_s, 1), (pm.G, pm.G)), combined=True)
+
     def apply(self, u, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> torch.Tensor:
         """``(h2 K + h C) u``, ``(B, 3, P)``; arguments as
-        :meth:`torchdeform.springs.Linearisation.apply`."""
-        pm, fields = self.pm, self.fields
+        :meth:`torchdeform.springs.Linearisation.apply` (a combined operator takes none)."""
+        pm, fields, combined = self.pm, self.fields, self.combined
+        if combined and not (alpha_scale == 1 and c is None):
+            raise ValueError("a combined operator (PackedLinearisation.scaled) takes no scales")
 
         def fn(s, sign, mask, du):
             q = [pm.shift(fields[:, s, i], 0 if sign > 0 else -pm.offsets[s]) for i in range(5)]
-            alpha, beta = alpha_scale * q[3], alpha_scale * q[4]
-            if c is not None:
-                cs = c_scale * pm.param(c, s, sign)
-                if projected:
-                    beta = beta + cs
-                else:
-                    alpha = alpha + cs
+            c_s = None if c is None else pm.param(c, s, sign)
+            alpha, beta = combine_coefficients(q[3], q[4], alpha_scale, c_s, projected, c_scale)
+            if not combined:
+                alpha, beta = alpha * mask, beta * mask
             proj = beta * (q[0] * du[0] + q[1] * du[1] + q[2] * du[2])
-            return [mask * (alpha * w + proj * n) for n, w in zip(q[:3], du)]
+            return [alpha * w + proj * n for n, w in zip(q[:3], du)]
 
         return -pm.gather(fn, u)

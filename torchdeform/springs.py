@@ -251,17 +251,44 @@ class Linearisation:
                 a = a.clamp_min(0)
             self.parts.append((delta / l, a, ks - a))
 
+    #: True for the operator of :meth:`scaled` (coefficients already combined).
+    combined = False
+
+    def scaled(self, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> "Linearisation":
+        """The operator ``u -> apply(u, alpha_scale, c, projected, c_scale)`` with its per-spring
+        coefficients combined once (for many products with the same scales, as in CG)."""
+        out = object.__new__(type(self))
+        out.grid, out.combined, out.parts = self.grid, True, []
+        for s, (src, _) in enumerate(self.grid.stencil):
+            n, a, b = self.parts[s]
+            out.parts.append((n, *combine_coefficients(a, b, alpha_scale, None if c is None else take(c, s, src),
+                                                       projected, c_scale)))
+        return out
+
     def apply(self, u: torch.Tensor, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> torch.Tensor:
         """``(h2 K + h C) u`` as a node field ``(B, 3, D, H, W)``, with ``h2 = alpha_scale`` and
         ``h = c_scale``; ``K = -dF/dx`` (clamped) and ``C = -dF/dv`` (damping ``c`` or none)."""
         def fn(s, src, du):
             n, a, b = self.parts[s]
-            alpha, beta = alpha_scale * a, alpha_scale * b
-            if c is not None:
-                cs = c_scale * take(c, s, src)
-                if projected:
-                    beta = beta + cs
-                else:
-                    alpha = alpha + cs
+            alpha, beta = combine_coefficients(a, b, alpha_scale, None if c is None else take(c, s, src),
+                                               projected, c_scale)
             return alpha * du + beta * (n * du).sum(1, keepdim=True) * n
         return -accumulate(self.grid, fn, u)
+
+
+def _times(scale, t):
+    return t if isinstance(scale, (int, float)) and scale == 1 else scale * t
+
+
+def combine_coefficients(a, b, alpha_scale=1.0, c=None, projected=True, c_scale=1.0):
+    """``(alpha, beta)`` of one linearised spring in ``h2 K + h C``: ``K``'s coefficients ``a, b``
+    scaled by ``h2 = alpha_scale``, plus the damping ``h c`` (``h = c_scale``) on the projected
+    (``beta``) or the full (``alpha``) term. Scales of exactly 1 and no damping cost nothing."""
+    alpha, beta = _times(alpha_scale, a), _times(alpha_scale, b)
+    if c is not None:
+        cs = _times(c_scale, c)
+        if projected:
+            beta = beta + cs
+        else:
+            alpha = alpha + cs
+    return alpha, beta
