@@ -6,6 +6,7 @@ speed      spring-step throughput of symplectic Euler on a damped cube: Msprings
            thread counts, against NVIDIA Warp's CPU backend; implicit Euler on a beam
 accuracy   error against wall time of every integrator on four standard scenes and a
            resolution sweep, with the Pareto front and a recommendation
+fuzzy      Mamdani inputs per second, eager and compiled, against scikit-fuzzy
 =========  ================================================================================
 
 Each benchmark is one entry of :data:`BENCHES`: a help line, a function that adds its
@@ -463,11 +464,18 @@ def _accuracy():
     return bench_accuracy
 
 
+def _fuzzy():
+    from . import bench_fuzzy
+    return bench_fuzzy
+
+
 BENCHES = {
     "speed": ("spring-step throughput (Msprings/s, node-steps/s), eager and compiled, against Warp; "
               "implicit Euler on a beam", _add_speed, _speed),
     "accuracy": ("error against wall time of every integrator on standard scenes, a resolution sweep, "
                  "Pareto front", lambda p: _accuracy().add_arguments(p), lambda args: _accuracy().run(args)),
+    "fuzzy": ("Mamdani inputs per second (SUSILAP-G preset by default), eager and compiled, against "
+              "scikit-fuzzy", lambda p: _fuzzy().add_arguments(p), lambda args: _fuzzy().run(args)),
 }
 
 __all__ = ["BENCHES", "add_arguments", "main", "speed_cube", "speed_row", "beam_scene", "beam_row", "format_table",

@@ -3,6 +3,9 @@
     torchdeform run SCENE.toml --out DIR     run a scene file
     torchdeform demo --out DIR               run the built-in demo scene
     torchdeform bench speed [--quick] [--json]
+    torchdeform fuzzy show FILE.fis                      variables, terms, rules
+    torchdeform fuzzy eval FILE.fis NAME=VALUE ... [--json] | --inputs FILE.csv
+    torchdeform fuzzy plot FILE.fis --out DIR
 
 Errors that a user can cause print one line (``torchdeform: <file>: <key>: expected ...``) and
 exit with status 2, without a traceback.
@@ -37,6 +40,11 @@ def _bench(args) -> int:
     return bench.main(args)
 
 
+def _fuzzy(args) -> int:
+    from .fuzzy import commands
+    return commands.main(args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="torchdeform", description="Soft-tissue simulation on PyTorch.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -58,6 +66,11 @@ def build_parser() -> argparse.ArgumentParser:
     from . import bench                     # light: imports nothing heavy until a bench runs
     bench.add_arguments(b)
     b.set_defaults(func=_bench)
+
+    f = sub.add_parser("fuzzy", help="Mamdani rule files: show, evaluate, plot")
+    from .fuzzy import commands                 # light: torch and the engine only
+    commands.add_arguments(f)
+    f.set_defaults(func=_fuzzy)
     return p
 
 

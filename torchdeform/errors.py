@@ -49,5 +49,9 @@ class DivergenceError(TorchdeformError, FloatingPointError):
         )
 
 
+class NoRuleFiredError(TorchdeformError, ValueError):
+    """A fuzzy system asked to raise (``on_empty="error"``) found input rows where no rule fires."""
+
+
 class StabilityWarning(UserWarning):
     """A requested explicit time step exceeds the model's stability bound."""

@@ -1,0 +1,19 @@
+"""Mamdani fuzzy systems: linguistic tissue terms to stiffness and viscosity.
+
+    >>> from torchdeform import fuzzy
+    >>> fis = fuzzy.load_preset("susilap_g")          # Radetzky's SUSILAP-G rule base
+    >>> fis.evaluate(consistency=5.5)                  # spring_const, viscosity
+
+Modules: :mod:`.membership` (membership functions, hedges), :mod:`.rules` (variables,
+rule sentences), :mod:`.system` (inference, defuzzification), :mod:`.fis` (MATLAB ``.fis``
+files), :mod:`.presets` (the shipped rule files), :mod:`.coupling` (per-node and per-region
+inputs to per-spring stiffness and damping).
+"""
+from .membership import HEDGES, KINDS, Bell, Gaussian, MembershipFunction, Sigmoid, Singleton, Trapezoid, Triangle
+from .rules import Clause, Rule, Variable
+from .system import (AGGREGATIONS, AND_METHODS, DEFUZZIFIERS, IMPLICATIONS, OR_METHODS, EmptyOutputWarning,
+                     MamdaniSystem, defuzzify)
+
+__all__ = ["HEDGES", "KINDS", "Bell", "Gaussian", "MembershipFunction", "Sigmoid", "Singleton", "Trapezoid",
+           "Triangle", "Clause", "Rule", "Variable", "AGGREGATIONS", "AND_METHODS", "DEFUZZIFIERS",
+           "IMPLICATIONS", "OR_METHODS", "EmptyOutputWarning", "MamdaniSystem", "defuzzify"]

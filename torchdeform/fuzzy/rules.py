@@ -1,0 +1,190 @@
+"""Linguistic variables and rules, readable as sentences.
+
+A rule reads like the sentence a surgeon would say::
+
+    IF consistency IS very soft AND sensitiveness IS NOT large THEN spring_const IS small
+    AND viscosity IS large WITH 0.5
+
+``IS`` may be followed by hedges (``very``, ``somewhat``, ``extremely``, ``seldom``, ``not``;
+several in a row, read left to right: "not very soft" = not(very(soft))), ``AND`` / ``OR``
+join the antecedent clauses (one connective per rule, as in MATLAB), ``AND`` joins the
+consequents, and ``WITH w`` (optional) is the rule weight in ``[0, 1]``. Keywords are
+case-insensitive; variable and term names are not.
+"""
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+
+from torch import nn
+
+from ..errors import ConfigError
+from .membership import HEDGES, MembershipFunction
+
+_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.\-]*$")
+
+
+def check_name(name: str, key: str) -> str:
+    """A variable or term name: letters, digits, ``_ . -``, not starting with a digit."""
+    if not isinstance(name, str) or not _NAME.match(name) or name.upper() in _KEYWORDS or name in HEDGES:
+        raise ConfigError(key, "a name of letters, digits and _ . - (not a keyword or hedge)", name)
+    return name
+
+
+class Variable(nn.Module):
+    """A linguistic variable: a name, a range and named terms (membership functions).
+
+    Args:
+        name: the variable's name (``consistency``).
+        range: ``(lo, hi)`` with ``lo < hi``. Inputs are clipped to it before fuzzification
+            (as in MATLAB and scikit-fuzzy, whose universes end there); outputs are
+            defuzzified over it.
+        terms: ``{term name: MembershipFunction}``, in order (the order is the MF index in
+            ``.fis`` files).
+        default: outputs only: the crisp value when no rule fires for an input row. ``None``
+            gives the middle of the range (MATLAB's convention).
+    """
+
+    def __init__(self, name: str, range, terms: dict, default: float | None = None):
+        super().__init__()
+        self.name = check_name(name, "variable name")
+        try:
+            lo, hi = (float(v) for v in range)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{name}.range", "two numbers lo < hi", range) from None
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+            raise ConfigError(f"{name}.range", "two finite numbers lo < hi", (lo, hi))
+        self.range = (lo, hi)
+        if not terms:
+            raise ConfigError(f"{name}.terms", "at least one term", terms)
+        for t, mf in terms.items():
+            check_name(t, f"{name} term name")
+            if not isinstance(mf, MembershipFunction):
+                raise ConfigError(f"{name}.{t}", "a membership function", mf)
+        self.terms = nn.ModuleDict(terms)
+        self.default = 0.5 * (lo + hi) if default is None else float(default)
+
+    @property
+    def term_names(self) -> list:
+        return list(self.terms.keys())
+
+    def index(self, term: str, key: str = "term") -> int:
+        try:
+            return self.term_names.index(term)
+        except ValueError:
+            raise ConfigError(key, f"a term of {self.name} ({', '.join(self.term_names)})", term) from None
+
+    def __repr__(self) -> str:
+        terms = ", ".join(f"{t}={mf!r}" for t, mf in self.terms.items())
+        return f"Variable({self.name!r}, range={self.range}, {terms})"
+
+
+@dataclass(frozen=True)
+class Clause:
+    """``variable IS [hedges] term``; ``hedges`` outermost first, e.g. ``("not", "very")``."""
+
+    variable: str
+    term: str
+    hedges: tuple = ()
+
+    def __str__(self) -> str:
+        return " ".join([self.variable, "IS", *self.hedges, self.term])
+
+
+@dataclass
+class Rule:
+    """One Mamdani rule.
+
+    Attributes:
+        antecedent: clauses joined by ``connective`` (``"and"`` or ``"or"``).
+        consequent: output clauses (each output at most once).
+        weight: in ``[0, 1]``; multiplies the firing degree.
+    """
+
+    antecedent: list
+    consequent: list
+    connective: str = "and"
+    weight: float = 1.0
+    text: str = field(default="", compare=False)
+
+    def __post_init__(self):
+        if self.connective not in ("and", "or"):
+            raise ConfigError("rule connective", "'and' or 'or'", self.connective)
+        if not self.antecedent:
+            raise ConfigError("rule", "at least one antecedent clause", str(self))
+        if not self.consequent:
+            raise ConfigError("rule", "at least one consequent clause", str(self))
+        w = float(self.weight)
+        if not (0.0 <= w <= 1.0):
+            raise ConfigError("rule weight", "a number in [0, 1]", self.weight)
+        self.weight = w
+        outs = [c.variable for c in self.consequent]
+        if len(set(outs)) != len(outs):
+            raise ConfigError("rule", "each output at most once in a consequent", str(self))
+
+    def __str__(self) -> str:
+        join = f" {self.connective.upper()} "
+        s = "IF " + join.join(map(str, self.antecedent)) + " THEN " + " AND ".join(map(str, self.consequent))
+        return s + (f" WITH {self.weight:g}" if self.weight != 1.0 else "")
+
+    @staticmethod
+    def parse(text: str) -> "Rule":
+        """Parse a rule sentence (see the module docstring). Raises :class:`ConfigError`
+        naming the rule and what was expected."""
+        return _parse(text)
+
+
+_KEYWORDS = {"IF", "THEN", "IS", "AND", "OR", "WITH"}
+
+
+def _parse(text: str) -> Rule:
+    words = str(text).replace("(", " ").replace(")", " ").split()
+
+    def fail(expected, got):
+        raise ConfigError(f"rule {text.strip()!r}", expected, got)
+
+    if not words or words[0].upper() != "IF":
+        fail("a sentence starting with IF", words[0] if words else "")
+    up = [w.upper() for w in words]
+    if "THEN" not in up:
+        fail("THEN between the conditions and the conclusions", None)
+    then = up.index("THEN")
+    weight = 1.0
+    end = len(words)
+    if "WITH" in up:
+        k = up.index("WITH")
+        if k < then or k != len(words) - 2:
+            fail("WITH <weight> at the end", " ".join(words[k:]))
+        try:
+            weight = float(words[k + 1])
+        except ValueError:
+            fail("a number after WITH", words[k + 1])
+        end = k
+
+    def clauses(ws, allow_or):
+        out, conns, cur = [], set(), []
+        for i, w in enumerate(ws + [None]):
+            if w is not None and w.upper() not in ("AND", "OR"):
+                cur.append(w)
+                continue
+            if w is not None:
+                if w.upper() == "OR" and not allow_or:
+                    fail("AND between conclusions", "OR")
+                conns.add(w.lower())
+            if len(cur) < 3 or cur[1].upper() != "IS":
+                fail("'variable IS [hedge ...] term'", " ".join(cur))
+            hedges = tuple(h.lower() for h in cur[2:-1])
+            for h in hedges:
+                if h not in HEDGES:
+                    fail(f"a hedge ({', '.join(HEDGES)}) before the term", h)
+            out.append(Clause(cur[0], cur[-1], hedges))
+            cur = []
+        return out, conns
+
+    ante, conns = clauses(words[1:then], True)
+    if len(conns) > 1:
+        fail("one connective per rule (all AND or all OR)", "AND and OR mixed")
+    cons, _ = clauses(words[then + 1:end], False)
+    connective = "or" if "or" in conns else "and"
+    return Rule(ante, cons, connective, weight, text=str(text).strip())
