@@ -1,12 +1,12 @@
 """Mamdani fuzzy systems: linguistic tissue terms to stiffness and viscosity.
 
-    >>> from torchdeform import fuzzy
-    >>> fis = fuzzy.load_preset("susilap_g")          # Radetzky's SUSILAP-G rule base
-    >>> fis.evaluate(consistency=5.5)                  # spring_const, viscosity
+    >>> from torchdeform.fuzzy.fis import read_fis
+    >>> fis = read_fis("tests/data/fis/tipper.fis")
+    >>> fis.evaluate(service=1.0, food=2.0)            # {'tip': tensor(5.5539)}
 
 Modules: :mod:`.membership` (membership functions, hedges), :mod:`.rules` (variables,
 rule sentences), :mod:`.system` (inference, defuzzification), :mod:`.fis` (MATLAB ``.fis``
-files), :mod:`.presets` (the shipped rule files), :mod:`.coupling` (per-node and per-region
+files), :mod:`.coupling` (per-node and per-region
 inputs to per-spring stiffness and damping).
 """
 from .membership import HEDGES, KINDS, Bell, Gaussian, MembershipFunction, Sigmoid, Singleton, Trapezoid, Triangle

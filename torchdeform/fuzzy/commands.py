@@ -26,7 +26,10 @@ def load(name_or_path) -> MamdaniSystem:
     p = Path(name_or_path)
     if p.exists() or p.suffix == ".fis" or "/" in str(name_or_path):
         return read_fis(p)
-    from .presets import load_preset
+    try:
+        from .presets import load_preset
+    except ImportError:                         # the preset library has not landed yet
+        raise ConfigError("file", "an existing .fis file (no presets are shipped yet)", str(name_or_path)) from None
     return load_preset(str(name_or_path))
 
 

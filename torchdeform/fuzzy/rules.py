@@ -17,6 +17,7 @@ import math
 import re
 from dataclasses import dataclass, field
 
+import torch
 from torch import nn
 
 from ..errors import ConfigError
@@ -56,6 +57,9 @@ class Variable(nn.Module):
         if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
             raise ConfigError(f"{name}.range", "two finite numbers lo < hi", (lo, hi))
         self.range = (lo, hi)
+        # the range as a buffer follows .to()/.double() like the parameters, so a system built in
+        # float32 clips inputs to the same rounded ends as its float32 corner points
+        self.register_buffer("bounds", torch.tensor([lo, hi], dtype=torch.get_default_dtype()))
         if not terms:
             raise ConfigError(f"{name}.terms", "at least one term", terms)
         for t, mf in terms.items():
@@ -126,7 +130,7 @@ class Rule:
     def __str__(self) -> str:
         join = f" {self.connective.upper()} "
         s = "IF " + join.join(map(str, self.antecedent)) + " THEN " + " AND ".join(map(str, self.consequent))
-        return s + (f" WITH {self.weight:g}" if self.weight != 1.0 else "")
+        return s + (f" WITH {self.weight!r}" if self.weight != 1.0 else "")
 
     @staticmethod
     def parse(text: str) -> "Rule":
@@ -174,6 +178,8 @@ def _parse(text: str) -> Rule:
                 conns.add(w.lower())
             if len(cur) < 3 or cur[1].upper() != "IS":
                 fail("'variable IS [hedge ...] term'", " ".join(cur))
+            if cur[-1] in HEDGES:
+                fail("a term after the hedges", " ".join(cur))
             hedges = tuple(h.lower() for h in cur[2:-1])
             for h in hedges:
                 if h not in HEDGES:
@@ -187,4 +193,7 @@ def _parse(text: str) -> Rule:
         fail("one connective per rule (all AND or all OR)", "AND and OR mixed")
     cons, _ = clauses(words[then + 1:end], False)
     connective = "or" if "or" in conns else "and"
-    return Rule(ante, cons, connective, weight, text=str(text).strip())
+    try:
+        return Rule(ante, cons, connective, weight, text=str(text).strip())
+    except ConfigError as e:                    # weight out of [0, 1], an output twice: name the rule
+        fail(e.expected, e.got)

@@ -170,7 +170,8 @@ class MamdaniSystem(nn.Module):
         (clipped to each input's range)."""
         out = []
         for i, v in enumerate(self.inputs):
-            xi = x[:, i].clamp(*v.range)
+            b = v.bounds.to(x.dtype)        # rounded like the corners: a shoulder at the range end holds
+            xi = x[:, i].clamp(b[0], b[1])
             out.append(torch.stack([mf(xi) for mf in v.terms.values()], dim=1))
         return out
 
@@ -331,9 +332,10 @@ def defuzzify(agg: torch.Tensor, y: torch.Tensor, h: float | None, method: str) 
         if h is None:
             return yk, mass
         frac = (half[:, None] - before) / torch.where(cell > 0, cell, torch.ones_like(cell))
-        return (yk - 0.5 * h + h * frac.clamp(0, 1))[:, 0], mass * h
+        return yk - 0.5 * h + h * frac[:, 0].clamp(0, 1), mass * h
     top = agg.amax(dim=1, keepdim=True)
-    on = (agg >= top * (1 - 1e-6)) & (top > 0)
+    rtol = max(1e-12, 8 * torch.finfo(agg.dtype).eps)   # ties up to rounding: ~1e-6 in float32, 1e-12 in float64
+    on = (agg >= top * (1 - rtol)) & (top > 0)
     if method == "mom":
         n = on.sum(dim=1)
         return (on.to(agg.dtype) @ y) / n.clamp_min(1), mass * (h or 1.0)
