@@ -18,11 +18,16 @@ odd points of the 2001-point scikit-fuzzy universes, where all term corners and 
 the first/last maximum is located to ``range / 3000`` by torchdeform and to ``range / 2000`` by
 scikit-fuzzy. At the default 1000 cells the first/last maximum alone can be off by a whole
 cell, ``1e-3`` of the range.
+
+Counted and skipped, never silently: outputs where no rule fires (scikit-fuzzy drops them;
+torchdeform must return the default, checked), firing below 1e-9 (scikit-fuzzy's centroid
+divides by max(area, 2.2e-16)), and for mom/som/lom maxima that are ambiguous at the engines'
+precision (``fuzzy_oracle.ambiguous_maximum``). mom over several separate maxima (exact ties) is
+compared with the length-weighted mean of the maximising stretches instead of scikit-fuzzy's
+point average, with the cell-counting error of the torchdeform grid added to the tolerance.
 """
 from __future__ import annotations
 
-import copy
-import functools
 import math
 import time
 import warnings
@@ -199,7 +204,7 @@ def test_skfuzzy_outputs_helper_is_the_control_api():
     """``skfuzzy_outputs`` (one aggregated set, five defuzzifiers) gives what
     ``ControlSystemSimulation.compute`` puts in ``sim.output`` for each ``defuzzify_method``."""
     n = 0
-    for seed in range(8):
+    for seed in range(6):
         spec = random_system(seed)
         for m in METHODS:
             sim, cons, used = build_skfuzzy(spec)
@@ -217,7 +222,7 @@ def test_skfuzzy_outputs_helper_is_the_control_api():
                     else:
                         assert sim.output[v.name] == got[2][m]
                         n += 1
-    assert n > 100
+    assert n > 60
 
 
 def test_ambiguity_detector():
@@ -510,7 +515,7 @@ def test_no_rule_fires_default_and_finite_gradients(method, ops):
     X = torch.tensor([[8.0], [3.5], [0.0], [11.0]], dtype=F64, requires_grad=True)
     out = fis(X)
     assert out[0, 0] == 3.25 and out[2, 0] == 3.25 and out[3, 0] == 3.25      # y: explicit default
-    assert float(out[1, 0]) == pytest.approx(15.0, abs=1e-3 * 20)                    # symmetric term 'high' (clip 1)
+    assert float(out[1, 0].detach()) == pytest.approx(15.0, abs=1e-3 * 20)           # symmetric term 'high' (clip 1)
     assert torch.isfinite(out).all()
     if method in MAX_METHODS:                     # piecewise constant: no graph at all
         assert not out.requires_grad

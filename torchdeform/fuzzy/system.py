@@ -12,13 +12,15 @@ For each row of crisp inputs ``x`` (shape ``(N, n_inputs)``):
 Output sets live on a grid of ``resolution`` cells over the output range (midpoints), so the
 centroid is the midpoint rule: for the piecewise-linear sets of typical tissue rule bases its
 error is below ``1e-5`` of the range at the default 1000 cells (checked against
-scikit-fuzzy's exact piecewise-linear centroid in the tests). Outputs whose terms are all
+scikit-fuzzy's exact piecewise-linear centroid in the tests); a side steeper than one cell (a
+vertical side inside the range, or a set clipped at a tiny degree) can move it by up to about a
+quarter cell. mom/som/lom are located to one cell. Outputs whose terms are all
 singletons are defuzzified over the singleton positions instead (weighted mean for
 ``centroid``).
 
 When no rule fires for a row and output (zero firing mass), that output takes the output
 variable's ``default``; ``on_empty="warn"`` also warns, ``"error"`` raises
-:class:`~torchdeform.errors.ConfigError` instead. Gradients stay finite there.
+:class:`~torchdeform.errors.NoRuleFiredError` instead. Gradients stay finite there.
 
 With ``max`` aggregation, rules that share a consequent term are merged first (the maximum
 of their degrees), so the grid work grows with the number of distinct consequent terms, not
