@@ -117,6 +117,15 @@ def one_thread():
     torch.set_num_threads(n)
 
 
+def _ours_all_methods(fis, xt):
+    """Outputs for every defuzzifier: one build, the method switched (builds are slow)."""
+    ours = {}
+    for m in METHODS:
+        fis.defuzzification = m
+        ours[m] = fis(xt).numpy()
+    return ours
+
+
 @pytest.fixture(scope="module")
 def skfuzzy_random():
     t0 = time.perf_counter()
@@ -125,11 +134,7 @@ def skfuzzy_random():
         spec = random_system(seed)
         X = random_points(spec, 10_000 + seed, POINTS)
         xt = torch.tensor(X, dtype=F64)
-        fis = build_torch(spec)
-        ours = {}
-        for m in METHODS:                      # (one build, the method switched: builds are slow)
-            fis.defuzzification = m
-            ours[m] = fis(xt).numpy()
+        ours = _ours_all_methods(build_torch(spec), xt)
         sim, cons, used = build_skfuzzy(spec)
         res.systems += 1
         for p, x in enumerate(X):
@@ -347,11 +352,7 @@ def test_operators_match_numpy_oracle(combo):
         spec = random_system(500 + seed, hedges=seed % 2 == 1, methods=combo)
         X = random_points(spec, 600 + seed, 5)
         xt = torch.tensor(X, dtype=F64)
-        fis = build_torch(spec)
-        ours = {}
-        for m in METHODS:                      # (one build, the method switched: builds are slow)
-            fis.defuzzification = m
-            ours[m] = fis(xt).numpy()
+        ours = _ours_all_methods(build_torch(spec), xt)
         res.systems += 1
         for p, x in enumerate(X):
             res.points += 1

@@ -98,7 +98,7 @@ def spring_parameters(fis: MamdaniSystem, grid: Grid, inputs: torch.Tensor, dtyp
                           tuple(inputs.shape))
     rows = inputs.reshape(len(fis.inputs), -1).T
     unique, inverse = torch.unique(rows, dim=0, return_inverse=True)
-    values = fis(unique.to(next(iter(fis.outputs[0].terms.values())).raw.dtype)).to(torch.float64)
+    values = fis(unique.to(fis.dtype)).to(torch.float64)
     nodes = values[inverse].T.reshape((len(fis.outputs), 1) + grid.shape)    # (O, 1, D, H, W)
     ends = nodes + difference(nodes, grid)[:, :, 0]                            # other end: (O, S, D, H, W)
     here = nodes.expand_as(ends)

@@ -125,23 +125,31 @@ def _sections(text: str, path) -> list:
     return sections
 
 
-def _string(sec, key, path, required=True):
+def _item(sec, key, path, required, form=None):
+    """``(value text, line)`` of ``key`` in a section; None when absent and not required."""
     if key not in sec.items:
         if required:
-            raise _err(path, sec.line, f"[{sec.name}] {key}", f"a {key}= line in this section", None, False)
+            raise _err(path, sec.line, f"[{sec.name}] {key}", f"a {form or key + '='} line in this section",
+                       None, False)
         return None
-    value, n = sec.items[key]
+    return sec.items[key]
+
+
+def _string(sec, key, path, required=True):
+    item = _item(sec, key, path, required)
+    if item is None:
+        return None
+    value, n = item
     if len(value) < 2 or value[0] != "'" or value[-1] != "'":
         raise _err(path, n, f"[{sec.name}] {key}", "a quoted string like 'text'", value)
     return value[1:-1]
 
 
 def _int(sec, key, path, required=True):
-    if key not in sec.items:
-        if required:
-            raise _err(path, sec.line, f"[{sec.name}] {key}", f"a {key}= line in this section", None, False)
+    item = _item(sec, key, path, required)
+    if item is None:
         return None
-    value, n = sec.items[key]
+    value, n = item
     if not re.fullmatch(r"\d+", value):
         raise _err(path, n, f"[{sec.name}] {key}", "a non-negative integer", value)
     return int(value)
@@ -169,9 +177,7 @@ def _variable(sec, path, output: bool) -> Variable:
             raise _err(path, n, f"[{sec.name}] {key}", f"one of Name, Range, NumMFs, MFk{', Default' if output else ''}",
                        None, False)
     name = _string(sec, "Name", path)
-    if "Range" not in sec.items:
-        raise _err(path, sec.line, f"[{sec.name}] Range", "a Range=[lo hi] line in this section", None, False)
-    text, n = sec.items["Range"]
+    text, n = _item(sec, "Range", path, True, form="Range=[lo hi]")
     m = re.fullmatch(r"\[(.*)\]", text)
     rng = _numbers(m.group(1), path, n, f"[{sec.name}] Range", "[lo hi] with two numbers") if m else None
     if rng is None or len(rng) != 2 or not rng[0] < rng[1] or not all(map(math.isfinite, rng)):

@@ -136,6 +136,11 @@ class MamdaniSystem(nn.Module):
 
     # ------------------------------------------------------------ structure
 
+    @property
+    def dtype(self) -> torch.dtype:
+        """The dtype of the parameters (follows ``.to()``, ``.double()``)."""
+        return self.inputs[0].bounds.dtype
+
     def input_names(self) -> list:
         return [v.name for v in self.inputs]
 
@@ -294,8 +299,7 @@ class MamdaniSystem(nn.Module):
             raise ConfigError("inputs", f"exactly the inputs {', '.join(self.input_names())}",
                               f"missing {missing}, unknown {unknown}" if missing else f"unknown {unknown}",
                               show_got=True)
-        dtype = self.outputs[0].terms[self.outputs[0].term_names[0]].raw.dtype
-        cols = torch.broadcast_tensors(*[torch.as_tensor(values[n], dtype=dtype) for n in self.input_names()])
+        cols = torch.broadcast_tensors(*[torch.as_tensor(values[n], dtype=self.dtype) for n in self.input_names()])
         out = self(torch.stack(cols, dim=-1))
         return {n: out[..., k] for k, n in enumerate(self.output_names())}
 
