@@ -676,6 +676,59 @@ def test_batch_shapes_and_chunks(method):
 
 
 @pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("ops", [{}] + COMBOS, ids=lambda c: "-".join(c.values()) or "min-max")
+def test_sparsity_plan_gives_the_dense_result(method, ops):
+    """The plan the compiled path uses skips groups that are zero on a run of cells; it must
+    give the dense result (itself checked against scikit-fuzzy above) for every operator set,
+    hedged consequents ("not" makes a term non-zero outside its support) and Gaussian/bell
+    tails."""
+    planned = 0
+    for seed in range(40, 52):
+        spec = random_system(seed, hedges=seed % 2 == 0)
+        fis = build_torch(spec, defuzzification=method, resolution=400, **ops).double()
+        plan = fis.sparsity_plan()
+        for runs in plan:
+            assert runs[0][0] == 0 and runs[-1][1] == 400                          # the runs tile the grid
+            assert all(a[1] == b[0] for a, b in zip(runs, runs[1:]))
+            planned += sum((b - a) * len(g) for a, b, g in runs)
+        X = torch.tensor(random_points(spec, seed, 64), dtype=F64)
+        dense, empty = fis.infer(X)
+        sparse, empty_sparse = fis.infer(X, plan)
+        torch.testing.assert_close(sparse, dense, rtol=0, atol=1e-9)
+        assert torch.equal(empty_sparse, empty)
+    assert planned > 0
+
+
+def test_sparsity_plan_skips_disjoint_terms():
+    """Three trapezoids, neighbours overlapping: the plan visits one group where one term
+    lives, two where two overlap, none where no term does."""
+    x = Variable("x", (0, 1), {"a": Triangle(0, 0, 1), "b": Triangle(0, 1, 1)})
+    y = Variable("y", (0, 10), {"lo": Trapezoid(0, 0, 2, 4), "mid": Trapezoid(3, 4, 5, 6), "hi": Trapezoid(5, 7, 8, 9)})
+    fis = MamdaniSystem("s", [x], [y], ["IF x IS a THEN y IS lo", "IF x IS b THEN y IS mid",
+                                        "IF x IS b THEN y IS hi"], resolution=10).double()
+    (runs,) = fis.sparsity_plan()
+    lo, mid, hi = (next(g for g, c in enumerate(fis._cons[0]) if c.term == y.index(t, "")) for t in ("lo", "mid", "hi"))
+    # cell midpoints 0.5, 1.5, ..., 9.5
+    assert runs == ((0, 3, (lo,)), (3, 4, (lo, mid)), (4, 5, (mid,)), (5, 6, (mid, hi)), (6, 9, (hi,)), (9, 10, ()))
+
+
+def test_compiled_rebuilds_the_plan_when_parameters_change(monkeypatch):
+    """The compiled function's plan is made from the parameters; after they change (learning,
+    load_state_dict) it must be rebuilt, not silently reused. torch.compile is replaced by the
+    identity so that no compilation runs in the unit tests."""
+    monkeypatch.setattr(torch, "compile", lambda fn, **kw: fn)
+    x = Variable("x", (0, 1), {"a": Triangle(0, 0, 1), "b": Triangle(0, 1, 1)})
+    y = Variable("y", (0, 10), {"lo": Trapezoid(0, 0, 2, 4), "hi": Trapezoid(5, 7, 8, 9)})
+    fis = MamdaniSystem("s", [x], [y], ["IF x IS a THEN y IS lo", "IF x IS b THEN y IS hi"]).double()
+    f = fis.compiled(chunk=16)
+    X = torch.linspace(0, 1, 21, dtype=F64)[:, None]
+    torch.testing.assert_close(f(X), fis(X), rtol=0, atol=1e-9)
+    with torch.no_grad():
+        y.terms["lo"].raw.copy_(torch.tensor([0.0, 1.0, 6.0, 8.0]))     # 'lo' now reaches cells it did not
+    torch.testing.assert_close(f(X), fis(X), rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("method", METHODS)
 def test_float32_matches_float64(method):
     """1e-4 of the range for centroid and bisector. mom/som/lom pick grid cells: a float32
     rounding may move them by one cell (range / resolution) where a plateau edge sits at a cell

@@ -103,7 +103,8 @@ def emit(name: str, args, rows: list, columns: list, extra: dict | None = None, 
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
         with open(out / f"{name}.csv", "w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=list(rows[0]) if rows else [c[0] for c in columns])
+            keys = list(dict.fromkeys(k for r in rows for k in r)) or [c[0] for c in columns]
+            w = csv.DictWriter(fh, fieldnames=keys)              # rows may differ (compile_s ...)
             w.writeheader()
             w.writerows(rows)
     if args.json:
