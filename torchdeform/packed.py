@@ -179,6 +179,12 @@ class PackedModel(Model):
         return self.source.energy(self.unpack_state(state))
 
 
+def _stored(pm: PackedModel, fields: torch.Tensor) -> torch.Tensor:
+    """Per-spring fields are read 2 S times by every product: under ``torch.compile`` store them
+    once (one square root per spring) instead of letting each read recompute them."""
+    return fields if pm.realize is None else pm.realize(fields)
+
+
 class PackedLinearisation:
     """:class:`~torchdeform.springs.Linearisation` in the packed layout: ``K u`` products for
     implicit solves without a matrix.
@@ -209,7 +215,7 @@ class PackedLinearisation:
                     a = a.clamp_min(0)
                 n = dx / sq.clamp_min(torch.finfo(sq.dtype).tiny).sqrt()
                 per_s.append(torch.cat([n, a.expand_as(sq), (k - a).expand_as(sq)], 1))
-            fields = F.pad(torch.stack(per_s, 1), (pm.G, pm.G))
+            fields = _stored(pm, F.pad(torch.stack(per_s, 1), (pm.G, pm.G)))
         self.fields = fields
 
     def scaled(self, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> "PackedLinearisation":
@@ -226,7 +232,7 @@ class PackedLinearisation:
                                                None if c is None else pm.param(c, s, 1), projected, c_scale)
             per_s.append(torch.stack([core[:, s, 0], core[:, s, 1], core[:, s, 2],
                                       alpha * exists, beta * exists], 1))
-        return PackedLinearisation(pm, fields=F.pad(torch.stack(per_s, 1), (pm.G, pm.G)), combined=True)
+        return PackedLinearisation(pm, fields=_stored(pm, F.pad(torch.stack(per_s, 1), (pm.G, pm.G))), combined=True)
 
     def apply(self, u, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> torch.Tensor:
         """``(h2 K + h C) u``, ``(B, 3, P)``; arguments as
