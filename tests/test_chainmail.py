@@ -1,0 +1,445 @@
+"""ChainMail, Enhanced ChainMail, tensor ChainMail and relaxation, against independent oracles.
+
+Oracles written here, sharing no code with ``torchdeform.chainmail``:
+
+* :func:`reference_move`: the least-motion solution of the limits, coordinate by coordinate, by
+  a plain Bellman-Ford loop over the grid's links (an element must come within every link's
+  limits of the picked elements' targets; everything else stays);
+* :func:`plain_violation`: the limits checked link by link in Python loops;
+* a single chain (1-D grid) pulled against a fixed end, solved by hand.
+"""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import torchdeform as td
+from torchdeform import cli
+from torchdeform.chainmail import (BlockedMoveError, ChainMail, Limits, crease_measure, limit_violation, relax,
+                                   relax_energy, tensor_chainmail, tissue_limits)
+from torchdeform.errors import ConfigError
+
+F64 = torch.float64
+
+
+# ------------------------------------------------------------------ independent oracles
+def _links(shape):
+    """Every link of a box grid as (node, neighbour, axis), neighbour = node + e_axis."""
+    D, H, W = shape
+    for i in range(D):
+        for j in range(H):
+            for k in range(W):
+                for a in range(3):
+                    q = [i, j, k]
+                    q[a] += 1
+                    if q[a] < shape[a]:
+                        yield (i, j, k), tuple(q), a
+
+
+def plain_violation(x, mn, mx, sh):
+    """Largest excess over all links, loops only. ``x`` (3, D, H, W); limits per link (3, D, H, W)."""
+    worst = 0.0
+    for p, q, a in _links(x.shape[1:]):
+        d = [x[c][q] - x[c][p] for c in range(3)]
+        worst = max(worst, mn[a][p] - d[a], d[a] - mx[a][p],
+                    *[abs(d[c]) - sh[a][p] for c in range(3) if c != a])
+    return worst
+
+
+def reference_move(x, mn, mx, sh, picks, delta):
+    """The positions after moving ``picks`` by ``delta``, by Bellman-Ford per coordinate.
+
+    For a pull of coordinate c, element n must satisfy x_n >= x_q - hi(x_q - x_n) for every
+    neighbour q, starting from the picked targets; the answer is max(old, that bound)."""
+    shape = x.shape[1:]
+    new = x.copy()
+    adj = {}
+    for p, q, a in _links(shape):                       # allowed range of x_q - x_p per coordinate
+        for c in range(3):
+            lo, hi = (mn[a][p], mx[a][p]) if c == a else (-sh[a][p], sh[a][p])
+            adj.setdefault((p, c), []).append((q, lo, hi))           # x_q - x_p in [lo, hi]
+            adj.setdefault((q, c), []).append((p, -hi, -lo))         # x_p - x_q in [-hi, -lo]
+    nodes = [(i, j, k) for i in range(shape[0]) for j in range(shape[1]) for k in range(shape[2])]
+    for c in range(3):
+        if delta[c] == 0:
+            continue
+        pull = delta[c] > 0
+        env = {n: (-math.inf if pull else math.inf) for n in nodes}
+        for p in picks:
+            env[p] = x[c][p] + delta[c]
+        changed = True
+        while changed:
+            changed = False
+            for n in nodes:
+                if n in picks:
+                    continue
+                for q, lo, hi in adj[(n, c)]:            # x_q - x_n in [lo, hi]
+                    cand = env[q] - hi if pull else env[q] - lo
+                    if (pull and cand > env[n]) or (not pull and cand < env[n]):
+                        env[n], changed = cand, True
+        for n in nodes:
+            new[c][n] = env[n] if n in picks else (max(x[c][n], env[n]) if pull else min(x[c][n], env[n]))
+    return new
+
+
+def _np_limits(lim):
+    return tuple(t.numpy() for t in lim.per_link())
+
+
+def _random_moves(rng, shape, count, most=3, scale=1.5):
+    out = []
+    for _ in range(count):
+        base = np.array([rng.integers(0, n) for n in shape])
+        picks = {tuple(int(v) for v in np.minimum(base + rng.integers(0, 2, 3), np.array(shape) - 1))
+                 for _ in range(int(rng.integers(1, most + 1)))}
+        out.append((sorted(picks), rng.normal(size=3) * scale))
+    return out
+
+
+def _hetero_limits(grid, rng):
+    comp = torch.tensor(rng.uniform(0.6, 0.95, grid.shape))
+    st = torch.tensor(rng.uniform(1.05, 1.4, grid.shape))
+    sh = torch.tensor(rng.uniform(0.05, 0.3, grid.shape))
+    return Limits.from_material(grid, comp, st, sh)
+
+
+GRID = td.Grid((6, 5, 4), spacing=(1.0, 0.9, 1.1))
+
+
+# ------------------------------------------------------------------ sequential versions
+@pytest.mark.parametrize("method", ["gibson", "enhanced"])
+def test_sequential_matches_reference_homogeneous(method):
+    rng = np.random.default_rng(0)
+    lim = Limits.from_material(GRID, 0.8, 1.2, 0.15)
+    mn, mx, sh = _np_limits(lim)
+    for trial in range(4):
+        cm = ChainMail(GRID, lim, method=method)
+        for picks, d in _random_moves(rng, GRID.shape, 3):
+            before = cm.positions()[0].numpy()
+            r = cm.move(picks, d)
+            after = cm.positions()[0].numpy()
+            assert not r.blocked and r.fraction == 1.0
+            np.testing.assert_allclose(after, reference_move(before, mn, mx, sh, picks, d), rtol=0, atol=1e-12)
+            assert plain_violation(after, mn, mx, sh) <= 1e-12
+            assert float(limit_violation(cm.positions(), GRID, lim)[0]) <= 1e-12
+            assert r.max_touches == 1                              # each element at most once per pass
+            for p in r.passes:
+                assert np.bincount(p, minlength=1).max() <= 1
+            moved = np.flatnonzero(np.abs(after - before).max(0).reshape(-1) > 0)
+            assert set(moved) <= set(r.moved_nodes.tolist())
+            for p in picks:                                          # picked elements move rigidly
+                np.testing.assert_allclose(after[:, p[0], p[1], p[2]] - before[:, p[0], p[1], p[2]], d,
+                                           atol=1e-12)
+
+
+def test_gibson_single_pull_one_pass_touches_each_element_once():
+    g = td.Grid((12, 12, 12), spacing=1.0)
+    cm = ChainMail(g, Limits.from_material(g, 0.8, 1.2, 0.2))
+    r = cm.move([(6, 6, 6)], (2.0, -1.0, 0.5))
+    assert len(r.passes) == 1 and r.checked == len(r.passes[0])
+    assert np.bincount(r.passes[0]).max() == 1
+    assert r.moved > 100 and r.checked < 6 * r.moved             # only the moved region and its rim
+
+
+def test_enhanced_matches_reference_heterogeneous():
+    rng = np.random.default_rng(1)
+    lim = _hetero_limits(GRID, rng)
+    assert not lim.uniform
+    mn, mx, sh = _np_limits(lim)
+    for trial in range(3):
+        cm = ChainMail(GRID, lim, method="enhanced")
+        for picks, d in _random_moves(rng, GRID.shape, 3):
+            before = cm.positions()[0].numpy()
+            r = cm.move(picks, d)
+            after = cm.positions()[0].numpy()
+            assert r.fraction == 1.0 and r.max_touches == 1
+            np.testing.assert_allclose(after, reference_move(before, mn, mx, sh, picks, d), rtol=0, atol=1e-12)
+            assert plain_violation(after, mn, mx, sh) <= 1e-12
+
+
+def test_single_chain_analytic_and_blocked_by_fixed_end():
+    # a chain of 11 elements 1 m apart, stretch <= 1.2 m per link, its first element fixed
+    g = td.Grid((11, 1, 1), spacing=1.0)
+    lim = Limits.from_material(g, 0.8, 1.2, 0.2)
+    fixed = torch.zeros(g.shape, dtype=torch.bool)
+    fixed[0] = True
+    for method in ("gibson", "enhanced"):
+        cm = ChainMail(g, lim, fixed=fixed, method=method)
+        r = cm.move([(10, 0, 0)], (1.1, 0.3, 0.0))
+        u = cm.displacement(F64)[0, 0, :, 0, 0].numpy()
+        # element 10 - k follows by max(0, 1.1 - 0.2 k) along d; sideways by max(0, 0.3 - 0.2 k)
+        k = np.arange(10, -1, -1)
+        np.testing.assert_allclose(u, np.maximum(0, 1.1 - 0.2 * k), atol=1e-12)
+        np.testing.assert_allclose(cm.displacement(F64)[0, 1, :, 0, 0].numpy(), np.maximum(0, 0.3 - 0.2 * k),
+                                   atol=1e-12)
+        assert r.moved == 6 and not r.blocked
+        # 3 m more needs 4.1 m of stretch in all, the chain has 10 * 0.2 = 2 m: 0.9 / 3 is carried out
+        r = cm.move([(10, 0, 0)], (3.0, 0.0, 0.0))
+        assert r.blocked and r.fraction == pytest.approx(0.3, abs=2 ** -11)
+        assert float(cm.displacement(F64)[0, 0, 0, 0, 0]) == 0.0            # the fixed end stays
+        assert float(limit_violation(cm.positions(), g, lim)[0]) <= 1e-12
+        before = cm.positions()
+        with pytest.raises(BlockedMoveError):
+            cm.move([(10, 0, 0)], (5.0, 0.0, 0.0), on_blocked="error")
+        assert torch.equal(cm.positions(), before)                           # nothing moved
+
+
+def test_limits_hold_after_every_move_with_fixed_faces_and_node_mask():
+    rng = np.random.default_rng(2)
+    mask = torch.ones(7, 6, 6, dtype=torch.bool)
+    mask[4:, :3, :3] = False                                                 # an L-shaped body
+    g = td.Grid((7, 6, 6), spacing=0.01, node_mask=mask)
+    box = td.Grid(g.shape, spacing=0.01)
+    for method, g, mask in (("gibson", box, torch.ones_like(mask)), ("enhanced", box, torch.ones_like(mask)),
+                            ("enhanced", g, mask)):
+        lim = Limits.from_material(g, 0.85, 1.15, 0.1)
+        fixed = g.face("bottom")
+        cm = ChainMail(g, lim, fixed=fixed, method=method)
+        inside = [tuple(int(v) for v in ijk) for ijk in (mask & ~fixed).nonzero()]
+        for step in range(8):
+            picks = [inside[int(rng.integers(len(inside)))]]
+            before = cm.positions()
+            r = cm.move(picks, rng.normal(size=3) * 0.02)
+            after = cm.positions()
+            assert float(limit_violation(after, g, lim)[0]) <= 1e-12
+            assert torch.equal(after[0][:, fixed], before[0][:, fixed])          # fixed elements stay
+            assert not cm.displacement(F64)[0][:, ~mask].any()                  # outside the body: nothing
+            assert 0.0 <= r.fraction <= 1.0
+
+
+def test_checker_agrees_with_plain_loops():
+    rng = np.random.default_rng(3)
+    lim = _hetero_limits(GRID, rng)
+    mn, mx, sh = _np_limits(lim)
+    X = GRID.rest_positions(F64)
+    for scale in (0.0, 0.05, 0.3):
+        x = X + scale * torch.tensor(rng.normal(size=X.shape))
+        worst, per_link = limit_violation(x, GRID, lim, per_link=True)
+        assert float(worst[0]) == pytest.approx(max(0.0, plain_violation(x[0].numpy(), mn, mx, sh)), abs=1e-14)
+        assert per_link.shape == (1, 3) + GRID.shape
+    assert float(limit_violation(X, GRID, lim)[0]) == 0.0
+
+
+def test_locality_same_work_on_small_and_large_grids():
+    counts = []
+    for n in (32, 64):
+        g = td.Grid((n, n, n), spacing=0.001)
+        cm = ChainMail(g, Limits.from_material(g, 0.8, 1.2, 0.2))
+        r = cm.move([(n // 2, n // 2, n // 2)], (0.002, 0.001, 0.0))
+        counts.append((r.moved, r.checked))
+    assert counts[0] == counts[1] and 1000 <= counts[0][0] <= 2000   # a ~1,300-element pull, same work
+
+
+# ------------------------------------------------------------------ tensor version
+def test_tensor_chainmail_matches_reference_batched():
+    rng = np.random.default_rng(4)
+    lim = _hetero_limits(GRID, rng)
+    mn, mx, sh = _np_limits(lim)
+    X = GRID.rest_positions(F64)
+    picks = [[(2, 2, 1)], [(5, 0, 3), (5, 1, 3)], [(0, 4, 0)]]
+    d = torch.tensor([[1.5, -0.5, 0.3], [-2.0, 0.0, 1.0], [0.5, 1.0, -1.0]], dtype=F64)
+    mask = torch.zeros((3,) + GRID.shape, dtype=torch.bool)
+    for b, ps in enumerate(picks):
+        for p in ps:
+            mask[(b,) + p] = True
+    r = tensor_chainmail(X.repeat(3, 1, 1, 1, 1), GRID, lim, mask, d)
+    for b in range(3):
+        ref = reference_move(X[0].numpy(), mn, mx, sh, picks[b], d[b].numpy())
+        np.testing.assert_allclose(r.positions[b].numpy(), ref, rtol=0, atol=1e-12)
+        moved = np.abs(ref - X[0].numpy()).max(0) > 0
+        assert torch.equal(r.moved[b], torch.from_numpy(moved) | mask[b])
+    assert float(r.violation.max()) <= 1e-12
+
+
+def test_tensor_sweeps_follow_the_propagation_depth():
+    g = td.Grid((24, 24, 24), spacing=1.0)
+    lim = Limits.from_material(g, 0.8, 1.2, 0.2)
+    pick = torch.zeros(g.shape, dtype=torch.bool)
+    pick[12, 12, 12] = True
+    # d is pulled 0.2 m less per hop (stretch along d, shear across): moved within delta / 0.2 hops
+    for delta, hops in (((1.1, 0.0, 0.0), 5), ((2.1, 0.0, 0.0), 10), ((2.1, -1.1, 0.5), 10)):
+        r = tensor_chainmail(g.rest_positions(F64), g, lim, pick, torch.tensor(delta, dtype=F64))
+        # shortest paths are monotone lattice paths here: one sweep per hop, nothing revised later
+        assert int(r.depth[0]) == hops and r.sweeps == hops
+        cm = ChainMail(g, lim)
+        cm.move([(12, 12, 12)], delta)
+        torch.testing.assert_close(r.positions, cm.positions(), rtol=0, atol=1e-12)
+
+
+def test_tensor_reports_a_blocked_move_and_keeps_fixed_elements():
+    g = td.Grid((6, 1, 1), spacing=1.0)
+    lim = Limits.from_material(g, 0.8, 1.2, 0.2)
+    fixed = torch.zeros(g.shape, dtype=torch.bool)
+    fixed[0] = True
+    pick = torch.zeros(g.shape, dtype=torch.bool)
+    pick[5] = True
+    r = tensor_chainmail(g.rest_positions(F64), g, lim, pick, torch.tensor([2.0, 0, 0], dtype=F64), fixed=fixed)
+    assert float(r.positions[0, 0, 0, 0, 0]) == 0.0
+    assert float(r.violation[0]) == pytest.approx(1.0)          # 2 m asked, 5 links x 0.2 m possible
+
+
+# ------------------------------------------------------------------ relaxation
+def _pulled(method="gibson", n=16):
+    g = td.Grid((n, n, n), spacing=1.0)
+    lim = Limits.from_material(g, 0.7, 1.3, 0.3)
+    cm = ChainMail(g, lim, fixed=g.face("bottom"), method=method)
+    cm.move([(n - 1, n // 2, n // 2)], (3.0, 1.0, 0.0))
+    return g, lim, cm
+
+
+def test_relaxation_lowers_energy_monotonically_and_removes_creases():
+    g, lim, cm = _pulled()
+    x0 = cm.positions()
+    held = torch.zeros(g.shape, dtype=torch.bool)
+    held[15, 8, 8] = True
+    free = ~g.face("bottom") & ~held
+    c0 = float(crease_measure(x0, g, free))
+    x1, e1 = relax(x0, g, lim, steps=1, free=free)
+    x4, e4 = relax(x0, g, lim, steps=4, free=free)
+    _, e10 = relax(x0, g, lim, steps=10, free=free)
+    assert all(b <= a * (1 + 1e-12) for a, b in zip(e10, e10[1:])) and e10[-1] < 0.9 * e10[0]
+    # the energy is the Dirichlet energy of the offsets, computed here with plain numpy
+    u = (x4 - g.rest_positions(F64))[0].numpy()
+    dirichlet = sum(0.5 * ((np.diff(u, axis=1 + a)) ** 2).sum() for a in range(3))
+    assert e4[-1] == pytest.approx(dirichlet, rel=1e-12)
+    c1, c4 = float(crease_measure(x1, g, free)), float(crease_measure(x4, g, free))
+    assert c1 < 0.7 * c0 and c4 < c1
+    for x in (x1, x4):
+        assert float(limit_violation(x, g, lim)[0]) <= 1e-12
+        assert torch.equal(x[0][:, ~free], x0[0][:, ~free])       # fixed and held elements stay
+
+
+def test_relaxation_goal_mode_and_only_moved():
+    g = td.Grid((12, 12, 12), spacing=1.0)
+    lim = Limits.from_material(g, 0.9, 1.5, 0.3)                # goal distance 1.2 m, not the spacing
+    cm = ChainMail(g, lim, method="enhanced")
+    cm.move([(6, 6, 6)], (2.0, 0.0, 1.0))
+    moved = cm.moved_mask()
+    before = cm.positions()
+    energies = cm.relax(steps=3, mode="goal", only_moved=True)
+    after = cm.positions()
+    assert all(b <= a * (1 + 1e-12) for a, b in zip(energies, energies[1:])) and energies[-1] < energies[0]
+    assert energies[0] == pytest.approx(float(relax_energy(before, g, lim, "goal")[0]))
+    assert torch.equal(after[0][:, ~moved], before[0][:, ~moved])
+    assert torch.equal(after[0][:, 6, 6, 6], before[0][:, 6, 6, 6])   # the picked element is held
+    assert float(limit_violation(after, g, lim)[0]) <= 1e-12
+
+
+# ------------------------------------------------------------------ outputs and materials
+def test_displacement_field_and_mass_spring_state():
+    g, lim, cm = _pulled(n=8)
+    u = cm.displacement()
+    assert u.shape == (1, 3, 8, 8, 8) and u.dtype == torch.float32
+    state = cm.state(F64)
+    torch.testing.assert_close(state.x, g.rest_positions(F64) + cm.displacement(F64))
+    model = td.Model(g, stiffness=10.0, mass=1e-3, fixed=g.face("bottom"), dtype=F64)
+    nxt = td.SymplecticEuler().step(model, state, dt=1e-4)
+    assert torch.isfinite(nxt.x).all() and float(nxt.v.abs().max()) > 0     # springs pull it back
+    cm2 = ChainMail(g, lim, positions=state.x)                             # and back into ChainMail
+    torch.testing.assert_close(cm2.positions(), cm.positions(), rtol=0, atol=1e-12)
+
+
+def test_limits_from_material_and_tissues():
+    g = td.Grid((4, 3, 2), spacing=(0.001, 0.002, 0.003))
+    lim = Limits.from_material(g, compression=0.8, stretch=1.25, shear=0.1)
+    np.testing.assert_allclose(lim.min.numpy(), [0.0008, 0.0016, 0.0024])
+    np.testing.assert_allclose(lim.max.numpy(), [0.00125, 0.0025, 0.00375])
+    np.testing.assert_allclose(lim.shear.numpy(), [0.0001, 0.0002, 0.0003])
+    from torchdeform.fuzzy.presets import tissue_parameters
+    liver = tissue_limits(g, "liver")
+    eps = 300.0 / tissue_parameters("liver")["youngs_modulus"]
+    np.testing.assert_allclose(liver.max.numpy(), (1 + eps) * np.array(g.spacing), rtol=1e-9)
+    labels = torch.zeros(g.shape, dtype=torch.long)
+    labels[2:] = 1
+    mixed = tissue_limits(g, ["brain", "liver_cirrhotic"], labels)
+    assert not mixed.uniform
+    e_b = 300.0 / tissue_parameters("brain")["youngs_modulus"]
+    e_c = 300.0 / tissue_parameters("liver_cirrhotic")["youngs_modulus"]
+    assert mixed.shear[0, 0, 0, 0] == pytest.approx(e_b * 0.001)             # brain-brain link
+    assert mixed.shear[0, 1, 0, 0] == pytest.approx(0.5 * (e_b + e_c) * 0.001)  # brain-cirrhotic: mean
+    assert mixed.shear[0, 2, 0, 0] == pytest.approx(e_c * 0.001)
+    assert e_b > e_c                                                         # softer tissue, wider limits
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda g: Limits(g, min=1.2, max=0.8, shear=0.1), "min <= max"),
+    (lambda g: Limits(g, min=0.8, max=1.2, shear=-0.1), "shear limits >= 0"),
+    (lambda g: Limits.from_material(g, 0.9, 1.1, -0.2), "ratio >= 0"),
+    (lambda g: ChainMail(g, Limits.from_material(g, 0.9, 1.1, 0.1), fixed=g.face("top")).move(
+        [(3, 1, 1)], (1, 0, 0)), "fixed and cannot be moved"),
+    (lambda g: ChainMail(g, Limits.from_material(g, 0.9, 1.1, 0.1)).move([(4, 1, 1)], (1, 0, 0)),
+     "outside the grid"),
+    (lambda g: ChainMail(g, Limits.from_material(g, 0.9, 1.1, 0.1)).move([(-1, 1, 1)], (1, 0, 0)),
+     "outside the grid"),
+    (lambda g: ChainMail(g, Limits.from_material(g, 0.9, 1.1, 0.1)).move([(1, 1, 1)], (1, 0)),
+     "displacement"),
+    (lambda g: ChainMail(g, Limits.from_material(g, torch.full(g.shape, 0.9), 1.1, 0.1)), "enhanced"),
+    (lambda g: ChainMail(g, Limits.from_material(g, 1.05, 1.2, 0.1)), "satisfy the ChainMail limits"),
+    (lambda g: ChainMail(g, Limits.from_material(g, 0.9, 1.1, 0.1), method="fast"), "gibson"),
+    (lambda g: ChainMail(td.Grid(g.shape, 1.0, node_mask=g.face("top")), Limits.from_material(g, 0.9, 1.1, 0.1)),
+     "node mask"),
+])
+def test_bad_input_gives_one_clear_error(make, message):
+    g = td.Grid((4, 3, 3), spacing=1.0)
+    with pytest.raises(ConfigError, match=message):
+        make(g)
+
+
+# ------------------------------------------------------------------ command and scene
+def test_bench_chainmail_quick_json(capsys, tmp_path):
+    rc = cli.main(["bench", "chainmail", "--quick", "--json", "--out", str(tmp_path)])
+    assert rc == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["bench"] == "chainmail"
+    rows = doc["rows"]
+    assert {r["variant"] for r in rows} == {"gibson", "enhanced", "tensor"}
+    for r in rows:
+        assert {"grid", "moved", "variant", "ms"} <= set(r) and r["ms"] > 0 and r["moved"] > 0
+    tensor = [r for r in rows if r["variant"] == "tensor"]
+    assert all(r["sweeps"] >= r["depth"] for r in tensor)
+    assert (tmp_path / "chainmail.csv").is_file() and (tmp_path / "chainmail.png").is_file()
+
+
+SCENE = """\
+model = "chainmail"
+
+[grid]
+shape = [10, 8, 8]
+spacing = 0.001
+
+[chainmail]
+method = "enhanced"
+compression = 0.8
+stretch = 1.2
+shear = 0.2
+frames = 6
+relax_steps = 2
+
+[boundary]
+fixed = "bottom"
+
+[[drags]]
+nodes = [[9, 4, 4]]
+path = [[0.0, [0.0, 0.0, 0.0]], [1.0, [0.0015, 0.001, 0.0]]]
+"""
+
+
+def test_chainmail_scene_runs(tmp_path):
+    path = tmp_path / "pull.toml"
+    path.write_text(SCENE)
+    scene = td.load_scene(path)
+    summary = td.run_scene(scene, tmp_path / "out", progress=False)
+    data = np.load(tmp_path / "out" / "trajectory.npz")
+    assert data["x"].shape == (7, 3, 10, 8, 8)
+    np.testing.assert_allclose(data["x"][-1][:, 9, 4, 4] - data["X"][:, 9, 4, 4], [0.0015, 0.001, 0.0], atol=1e-9)
+    assert summary["max_violation_m"] <= 1e-12 and summary["frames"] == 7 and summary["blocked_frames"] == 0
+    assert np.all(data["x"][:, :, 0] == data["X"][None, :, 0])                  # the fixed bottom stays
+    assert (tmp_path / "out" / "summary.json").is_file() and (tmp_path / "out" / "energy.png").is_file()
+    bad = tmp_path / "bad.toml"
+    bad.write_text(SCENE.replace("shear = 0.2", "shear = -0.2"))
+    with pytest.raises(ConfigError, match=r"bad.toml:\d+: chainmail.shear"):
+        td.load_scene(bad)
