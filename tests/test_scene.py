@@ -84,6 +84,8 @@ def assert_same_scene(a: Scene, b: Scene):
     assert type(a.integrator) is type(b.integrator) and vars(a.integrator) == vars(b.integrator)
     assert (a.dt, a.steps, a.frames_every, a.name, a.dtype, a.safety) == \
         (b.dt, b.steps, b.frames_every, b.name, b.dtype, b.safety)
+    volume = [{k: v for k, v in (s.volume or {}).items() if k != "base"} for s in (a, b)]
+    assert volume[0] == volume[1]
 
 
 # ------------------------------------------------------------------ loading

@@ -470,6 +470,16 @@ def _fuzzy():
     return bench_fuzzy
 
 
+def _volume():
+    from . import bench_volume
+    return bench_volume
+
+
+def _chainmail():
+    from . import bench_chainmail
+    return bench_chainmail
+
+
 BENCHES = {
     "speed": ("spring-step throughput (Msprings/s, node-steps/s), eager and compiled, against Warp; "
               "implicit Euler on a beam", _add_speed, _speed),
@@ -477,6 +487,11 @@ BENCHES = {
                  "Pareto front", lambda p: _accuracy().add_arguments(p), lambda args: _accuracy().run(args)),
     "fuzzy": ("Mamdani inputs per second (SUSILAP-G preset by default), eager and compiled, against "
               "scikit-fuzzy", lambda p: _fuzzy().add_arguments(p), lambda args: _fuzzy().run(args)),
+    "volume": ("deform and render a 256^3 volume to a 256^2 image: frames per second, through the "
+               "displacement field against building the warped volume first",
+               lambda p: _volume().add_arguments(p), lambda args: _volume().run(args)),
+    "chainmail": ("ChainMail: time of a local pull against grid size and moved elements, Gibson, Enhanced "
+                  "and tensor", lambda p: _chainmail().add_arguments(p), lambda args: _chainmail().run(args)),
 }
 
 __all__ = ["BENCHES", "add_arguments", "main", "speed_cube", "speed_row", "beam_scene", "beam_row", "format_table",

@@ -778,6 +778,9 @@ def add_arguments(p) -> None:
                         f"{REPEAT_LIMIT_S:g} s are timed once")
     p.add_argument("--targets", default=None,
                    help="error targets of the recommendation (default 1e-1,1e-2,1e-4)")
+    p.add_argument("--inverse-warp", action="store_true",
+                   help="also rows of the fixed-point inverse warp (torchdeform.volume): round-trip error "
+                        "|X + u(X) - p| in voxels against iterations and wall time (scene 'inverse-warp')")
 
 
 def _check_args(args):
@@ -880,6 +883,10 @@ def _run(args, device, n, resolutions, ref_n) -> int:
     mark_pareto(rows)
     recs = recommend(rows, args.targets)
     used = list(dict.fromkeys(r["method"] for r in rows))
+    if getattr(args, "inverse_warp", False):          # after the recommendation: not an integrator
+        inv_rows, references["inverse-warp"] = inverse_warp_rows(args.quick, dtype, repeats)
+        rows += inv_rows
+        mark_pareto(rows)
     machine = machine_info(device)
     extra = {"machine": machine, "dtype": args.dtype, "quick": bool(args.quick), "references": references,
              "methods": {k: METHODS[k].description for k in used}, "skipped": dict(SKIPPED), "not_run": not_run,
@@ -934,6 +941,65 @@ def _static_orders(rows: list) -> None:
             if a["error"] > 0 and b["error"] > 0:
                 order = math.log(a["error"] / b["error"]) / math.log((b["n"] - 1) / (a["n"] - 1))
                 b["note"] = f"order {order:.2f} from n={a['n']}"
+
+
+# ------------------------------------------------------------- inverse warp rows
+
+
+def inverse_warp_rows(quick: bool, dtype=torch.float64, repeats: int = 3, seed: int = 0):
+    """Rows of the fixed-point inverse warp (:func:`torchdeform.volume.inverse_points`).
+
+    A ``64^3`` volume (quick ``32^3``) under ``9^3`` node offsets (quick ``5^3``), uniform random
+    up to 0.15 node spacings (neighbouring nodes differ by at most 0.3 spacings per component, so
+    ``|grad u|_F <= 0.9 < 1``: a contraction, well below the folding limit). At every voxel centre
+    ``p``, ``X_k`` after ``k`` iterations of ``X <- p - u(X)`` (``k = 0``: first order
+    ``p - u(p)``); the error is the largest round-trip residual ``|X_k + u(X_k) - p|`` in voxels
+    (not relative, unlike the mechanical scenes) and the wall time that of ``inverse_points``.
+
+    Returns:
+        ``(rows, reference)``: rows with :data:`COLUMNS` (scene ``inverse-warp``, method
+        ``fixed-point``, ``steps`` = iterations, ``n`` = nodes per axis) and a reference dict.
+    """
+    from .volume import DisplacementField, identity_points, inverse_points, inverse_residual
+    size, nodes = (32, 5) if quick else (64, 9)
+    AMP = 0.15                                          # noqa: N806 (node spacings)
+    iters = (0, 1, 2, 4, 8) if quick else (0, 1, 2, 3, 4, 6, 8, 12, 16, 24)
+    g = torch.Generator().manual_seed(seed)
+    spacing = (size - 1) / (nodes - 1)
+    offsets = ((torch.rand(3, nodes, nodes, nodes, generator=g, dtype=torch.float64) * 2 - 1) * AMP * spacing)
+    field = DisplacementField(offsets.to(dtype), (size,) * 3)
+    p = identity_points((size,) * 3, dtype)
+    rows = []
+    info = dict(n=nodes, dt=None, bound_s=None, bound_of=None, dt_bound=None)
+    with torch.no_grad():
+        for k in iters:
+            times = []
+            for _ in range(max(1, repeats)):
+                t0 = time.perf_counter()
+                X, _ = inverse_points(field, p, k, tol=0.0)
+                times.append(time.perf_counter() - t0)
+            err = float(inverse_residual(field, X, p).max())
+            rows.append(_row("inverse-warp", _InverseWarp, k, dict(info, steps=k), error=err,
+                             wall_s=statistics.median(times), repeats=len(times), status="ok",
+                             note="max |X + u(X) - p| [voxels]"))
+    reached = [r["steps"] for r in rows if r["error"] < 1e-3]
+    ref = dict(method="exact", n=nodes, max_displacement_m=None,
+               text=(f"fixed-point inverse warp X <- p - u(X) at all {size}^3 voxel centres, {nodes}^3 node offsets "
+                     f"up to {AMP:g} node spacings ({AMP * spacing:.2g} voxels), {str(dtype).replace('torch.', '')}; "
+                     f"error = max round-trip residual |X + u(X) - p| in voxels (exact inverse: 0); below 1e-3 "
+                     f"voxel from {min(reached) if reached else 'no'} iteration(s)"))
+    return rows, ref
+
+
+class _InverseWarpMethod(Method):
+    name = "fixed-point"
+    description = "fixed-point inverse warp X <- p - u(X) (torchdeform.volume.inverse_points)"
+
+    def label(self, param):
+        return f"{param} it"
+
+
+_InverseWarp = _InverseWarpMethod()
 
 
 # -------------------------------------------------------------------------- plot

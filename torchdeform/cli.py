@@ -6,6 +6,10 @@
     torchdeform fuzzy show FILE.fis                      variables, terms, rules
     torchdeform fuzzy eval FILE.fis NAME=VALUE ... [--json] | --inputs FILE.csv
     torchdeform fuzzy plot FILE.fis --out DIR
+    torchdeform data cube --out FILE.npz [--springs 70 | --n 4 --load sine] [--noise 0.01]
+    torchdeform data balloon --out FILE.npz              synthetic series for torchdeform.learn
+    torchdeform warp VOLUME.npy OFFSETS.npy --out OUT.npy [--mode deform|carve|knoche] [--inverse-iters N]
+    torchdeform render VOLUME --out IMAGE.png [--offsets FILE] [--mode mip|dvr|average] [--tf PRESET]
 
 Errors that a user can cause print one line (``torchdeform: <file>: <key>: expected ...``) and
 exit with status 2, without a traceback.
@@ -71,6 +75,19 @@ def build_parser() -> argparse.ArgumentParser:
     from .fuzzy import commands                 # light: torch and the engine only
     commands.add_arguments(f)
     f.set_defaults(func=_fuzzy)
+
+    from . import data as _data                 # synthetic series for learning (torchdeform.data)
+    s = sub.add_parser("data", help="generate synthetic time series (.npz): data cube|balloon --out FILE")
+    _data.add_arguments(s)
+    s.set_defaults(func=_data.command)
+
+    from . import volume_io                     # light: numpy only until a command runs
+    w = sub.add_parser("warp", help="warp a volume by node offsets (3, n_d, n_h, n_w) in voxels")
+    volume_io.add_warp_arguments(w)
+    w.set_defaults(func=volume_io.warp_command)
+    v = sub.add_parser("render", help="render a volume (MIP, DVR, average), optionally deformed by node offsets")
+    volume_io.add_render_arguments(v)
+    v.set_defaults(func=volume_io.render_command)
     return p
 
 

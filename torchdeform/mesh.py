@@ -190,3 +190,221 @@ def grid_from_mesh(path, spacing, topology: int = 26, padding: int = 0, scale: f
 
 
 __all__ = ["voxelize", "grid_from_mesh", "load_mesh", "inside_mask"]
+
+
+# ------------------------------------------------------------------ surfaces (marching tetrahedra)
+#: The six tetrahedra of a cube (Kuhn / Freudenthal split along the main diagonal 0 -> 7), cube corner
+#: ``c = 4 i + 2 j + k`` at offset ``(i, j, k)``. Every tetrahedron is a chain 0 -> ... -> 7 with one
+#: axis stepped at a time, so neighbouring cubes split their shared faces the same way (no cracks).
+_CUBE_TETS = np.array([[0, 4, 6, 7], [0, 4, 5, 7], [0, 2, 6, 7], [0, 2, 3, 7], [0, 1, 5, 7], [0, 1, 3, 7]])
+_CORNERS = np.array([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)])
+
+
+def _tet_cases() -> dict:
+    """Case (4 inside bits) -> triangles as triples of tetrahedron edges ``(a, b)``."""
+    cases = {}
+    for case in range(1, 15):
+        inside = [v for v in range(4) if case >> v & 1]
+        outside = [v for v in range(4) if not case >> v & 1]
+        if len(inside) in (1, 3):
+            lone, rest = (inside[0], outside) if len(inside) == 1 else (outside[0], inside)
+            cases[case] = [[(lone, r) for r in rest]]
+        else:
+            (i, j), (k, l) = inside, outside
+            cases[case] = [[(i, k), (i, l), (j, l)], [(i, k), (j, l), (j, k)]]
+    return cases
+
+
+_TET_CASES = _tet_cases()
+
+
+def _as_field(field, key):
+    arr = field.detach().cpu().double().numpy() if torch.is_tensor(field) else np.asarray(field, dtype=np.float64)
+    if arr.ndim != 3 or min(arr.shape) < 1:
+        raise ConfigError(key, "a 3-D array (D, H, W)", tuple(arr.shape))
+    if not np.isfinite(arr).all():
+        raise ConfigError(key, "finite values (no NaN or inf)", "non-finite values", show_got=True)
+    return arr
+
+
+def marching_tetrahedra(field, level: float = 0.5, pad: bool = True):
+    """Iso-surface ``field = level`` of a scalar grid, as a closed, consistently oriented triangle mesh.
+
+    Each grid cube is split into six tetrahedra along its main diagonal (the split matches across
+    shared faces); a tetrahedron crossed by the level gives one or two triangles whose vertices lie
+    on its edges at the linearly interpolated crossing. Vertices on the same grid edge are shared,
+    so the mesh is watertight when the surface is closed; ``pad`` surrounds the grid with one layer
+    below ``level`` first, which closes surfaces that reach the border. "Inside" is
+    ``field > level``; triangles face outwards (towards lower values). Fully vectorised (numpy),
+    only the cubes the level crosses are processed.
+
+    Args:
+        field: ``(D, H, W)`` array or tensor (e.g. a node mask as 0/1, a warped volume).
+        level: the iso-value.
+        pad: close the surface at the grid border.
+    Returns:
+        ``(vertices (V, 3) float64, faces (F, 3) int64)``; vertex coordinates are fractional grid
+        indices ``(d, h, w)`` of ``field`` (``-0.5`` .. ``N - 0.5`` with ``pad`` and a 0/1 mask).
+
+    Example:
+        >>> m = np.zeros((4, 4, 4)); m[1:3, 1:3, 1:3] = 1
+        >>> v, f = marching_tetrahedra(m)
+        >>> float(v.min()), float(v.max())
+        (0.5, 2.5)
+    """
+    arr = _as_field(field, "field")
+    level = float(level)
+    if not math.isfinite(level):
+        raise ConfigError("level", "a finite iso-value", level)
+    shift = 0
+    if pad:
+        # below the level; for a 0/1 mask at 0.5 the value 0, so the border crossing sits half-way
+        arr = np.pad(arr, 1, constant_values=min(float(arr.min()), 2 * level - float(arr.max()), level - 1e-9))
+        shift = 1
+    D, H, W = arr.shape
+    if min(arr.shape) < 2:
+        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
+    inside = arr > level
+    corner_in = [inside[i:D - 1 + i, j:H - 1 + j, k:W - 1 + k] for i, j, k in _CORNERS]
+    n_in = sum(c.astype(np.int8) for c in corner_in)
+    cubes = np.argwhere((n_in > 0) & (n_in < 8))                                     # (K, 3) lower corners
+    flat = arr.reshape(-1)
+    strides = np.array([H * W, W, 1])
+    corner_ids = (cubes @ strides)[:, None] + (_CORNERS @ strides)[None, :]          # (K, 8) node ids
+    tets = corner_ids[:, _CUBE_TETS].reshape(-1, 4)                                  # (6K, 4)
+    vals = flat[tets]
+    case = ((vals > level) * np.array([1, 2, 4, 8])).sum(1)
+    edges_a, edges_b, inside_c = [], [], []
+    for c, tris in _TET_CASES.items():
+        sel = case == c
+        if not sel.any():
+            continue
+        t = tets[sel]
+        ins = [v for v in range(4) if c >> v & 1]
+        for tri in tris:
+            edges_a.append(np.stack([t[:, a] for a, _ in tri], 1))
+            edges_b.append(np.stack([t[:, b] for _, b in tri], 1))
+            inside_c.append(t[:, ins])
+    if not edges_a:
+        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
+    ea, eb = np.concatenate(edges_a), np.concatenate(edges_b)                       # (F, 3) node ids
+    lo, hi = np.minimum(ea, eb), np.maximum(ea, eb)
+    keys = lo.astype(np.int64) * (D * H * W) + hi
+    uniq, faces = np.unique(keys.reshape(-1), return_inverse=True)
+    faces = faces.reshape(-1, 3).astype(np.int64)
+    a, b = uniq // (D * H * W), uniq % (D * H * W)
+    fa, fb = flat[a], flat[b]
+    # a node exactly at the level would put the vertices of all its edges on one point; keeping them
+    # 1e-6 of an edge apart keeps the mesh manifold after trimesh merges vertices by position
+    t = np.clip((level - fa) / np.where(fb == fa, 1.0, fb - fa), 1e-6, 1.0 - 1e-6)
+    pa = np.stack(np.unravel_index(a, (D, H, W)), 1).astype(np.float64)
+    pb = np.stack(np.unravel_index(b, (D, H, W)), 1).astype(np.float64)
+    verts = pa + t[:, None] * (pb - pa) - shift
+    # orient outwards: the normal must point away from the inside corners of the tetrahedron
+    tri = verts[faces]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    ins_pos = []
+    for grp in inside_c:
+        P = np.stack(np.unravel_index(grp, (D, H, W)), -1).astype(np.float64) - shift   # (n, k, 3)
+        ins_pos.append(P.mean(1))
+    ins_pos = np.concatenate(ins_pos)
+    flip = (normal * (tri.mean(1) - ins_pos)).sum(1) < 0
+    faces[flip] = faces[flip][:, ::-1]
+    return verts, faces
+
+
+def _interp_positions(x: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Trilinear interpolation of node positions ``x`` ``(3, D, H, W)`` at fractional node indices
+    ``q`` ``(V, 3)``, extrapolating linearly from the border cells (for vertices half a spacing
+    outside the grid)."""
+    shape = x.shape[1:]
+    i0 = [np.clip(np.floor(q[:, c]), 0, max(n - 2, 0)).astype(np.int64) for c, n in enumerate(shape)]
+    f = [q[:, c] - i0[c] if n > 1 else np.zeros(len(q)) for c, n in enumerate(shape)]
+    i1 = [np.minimum(i0[c] + 1, n - 1) for c, n in enumerate(shape)]
+    out = np.zeros((len(q), 3))
+    for a in (0, 1):
+        wa = f[0] if a else 1 - f[0]
+        for b in (0, 1):
+            wb = f[1] if b else 1 - f[1]
+            for c in (0, 1):
+                wc = f[2] if c else 1 - f[2]
+                idx = ((i1 if a else i0)[0], (i1 if b else i0)[1], (i1 if c else i0)[2])
+                out += (wa * wb * wc)[:, None] * x[:, idx[0], idx[1], idx[2]].T
+    return out
+
+
+def body_surface(x, node_mask=None, level: float = 0.5):
+    """Surface of a (deformed) grid body: marching tetrahedra over the node mask, moved with the nodes.
+
+    The surface of ``node_mask`` (half a spacing outside the body's outer nodes, at ``level`` of the
+    0/1 mask) is found in node-index coordinates, and every vertex is placed by trilinear
+    interpolation of the node positions ``x`` (linear extrapolation half a cell beyond the grid),
+    so the mesh follows the deformation.
+
+    Args:
+        x: node positions ``(3, D, H, W)`` or ``(1, 3, D, H, W)`` (metres), e.g. ``state.x``.
+        node_mask: bool ``(D, H, W)`` (default: every node).
+        level: iso-level of the mask (0.5: half-way between an inside and an outside node).
+    Returns:
+        ``(vertices (V, 3), faces (F, 3))``; vertices in the units of ``x``, coordinates ``(x, y, z)``
+        = axes ``(D, H, W)`` (the convention of :func:`voxelize`).
+
+    Example:
+        >>> X = torch.stack(torch.meshgrid(*[torch.arange(3.0)] * 3, indexing="ij"))
+        >>> v, f = body_surface(X + torch.tensor([1.0, 0, 0]).view(3, 1, 1, 1))
+        >>> float(v[:, 0].min()), float(v[:, 0].max())
+        (0.5, 3.5)
+    """
+    xs = x.detach().cpu().double().numpy() if torch.is_tensor(x) else np.asarray(x, dtype=np.float64)
+    if xs.ndim == 5 and xs.shape[0] == 1:
+        xs = xs[0]
+    if xs.ndim != 4 or xs.shape[0] != 3:
+        raise ConfigError("x", "node positions (3, D, H, W) or (1, 3, D, H, W)", tuple(xs.shape))
+    mask = np.ones(xs.shape[1:]) if node_mask is None else _as_field(node_mask, "node_mask")
+    if mask.shape != xs.shape[1:]:
+        raise ConfigError("node_mask", f"a mask of the grid shape {tuple(xs.shape[1:])}", tuple(mask.shape))
+    q, faces = marching_tetrahedra(mask.astype(np.float64), level)
+    return _interp_positions(xs, q), faces
+
+
+def volume_surface(volume, level: float, offsets=None, spacing=(1.0, 1.0, 1.0), **warp_kw):
+    """Iso-surface of a volume (optionally warped by node offsets first, :func:`~torchdeform.volume.warp`).
+
+    Args:
+        volume: ``(D, H, W)``.
+        level: iso-value in volume units (e.g. 300 HU for bone).
+        offsets: node offsets in voxels ``(3, n_d, n_h, n_w)`` or None.
+        spacing: voxel size ``(sd, sh, sw)``; vertices are ``index * spacing``.
+    Returns:
+        ``(vertices (V, 3), faces (F, 3))``.
+    """
+    from .volume import as_volume, warp
+    vol, _ = as_volume(volume)
+    if vol.shape[:2] != (1, 1):
+        raise ConfigError("volume", "a single volume (D, H, W)", tuple(vol.shape))
+    if offsets is not None:
+        vol = warp(vol, offsets, **warp_kw)
+    v, f = marching_tetrahedra(vol.reshape(vol.shape[-3:]), level)
+    return v * np.asarray(spacing, dtype=np.float64).reshape(1, 3), f
+
+
+SURFACE_SUFFIXES = (".ply", ".stl", ".obj")
+
+
+def save_surface(path, vertices, faces) -> None:
+    """Write a triangle mesh with trimesh: ``.ply``, ``.stl`` or ``.obj`` (chosen by the suffix).
+
+    Raises:
+        ConfigError: another suffix, or bad arrays.
+    """
+    import trimesh
+    path = Path(path)
+    if path.suffix.lower() not in SURFACE_SUFFIXES:
+        raise ConfigError("surface file", "a .ply, .stl or .obj path", str(path))
+    v, f = np.asarray(vertices, dtype=np.float64), np.asarray(faces)
+    if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or (len(f) and (f.min() < 0 or f.max() >= len(v))):
+        raise ConfigError("surface", "vertices (V, 3) and faces (F, 3) indexing them", (v.shape, f.shape))
+    trimesh.Trimesh(vertices=v, faces=f, process=False).export(str(path))
+
+
+__all__ += ["marching_tetrahedra", "body_surface", "volume_surface", "save_surface"]

@@ -62,6 +62,15 @@ Keys
 ``[output]`` (optional)
     ``record_every``  steps between saved frames (default: about 100 frames)
     ``name``  title of the run (default: the file's name)
+``[volume]`` (optional): a volume filling the grid's bounding box, deformed by the final state;
+    the run also writes ``volume_before.png``, ``volume_after.png``, ``volume_deformed.npy``
+    ``file``  a volume file (.npy, .npz, .nii, .nrrd; relative to the scene file) or ``"phantom:N"``
+    ``tf``  transfer-function preset or file (default ``"ct-soft"``); ``mode``  ``"dvr"``
+    (default), ``"mip"`` or ``"average"``; ``view``  axis view (default ``"h"``)
+``model = "chainmail"`` (optional top-level key, before any section): a ChainMail scene instead
+    of a mass-spring one: ``[grid]``, ``[chainmail]`` (required), ``[boundary]`` (``fixed``,
+    ``fixed_nodes``), ``[[drags]]`` (the picked elements and their paths), ``[output]``; see
+    :func:`torchdeform.chainmail.chainmail_scene` for the ``[chainmail]`` keys
 
 Every problem is a :class:`~torchdeform.errors.ConfigError` naming the file, the line (found
 by a text search, best effort), the dotted key (``integrator.dt``, ``loads[0].force``; array
@@ -107,6 +116,9 @@ SECTIONS = {
     "drags": ("nodes", "face", "box", "path"),
     "integrator": ("name", "dt", "safety", "steps", "dtype", "device"),
     "output": ("record_every", "name"),
+    "volume": ("file", "tf", "mode", "view"),
+    "chainmail": ("method", "compression", "stretch", "shear", "tissue", "reference_stress", "frames",
+                  "relax_steps", "relax_mode", "relax_moved_only", "on_blocked"),
 }
 REQUIRED = ("grid", "material", "mass", "integrator")
 #: Options of each integrator (keyword arguments of its class): key -> what is expected.
@@ -317,6 +329,9 @@ class Scene:
     device: str | None = None
     safety: float = 0.9
     source: Source = field(default_factory=Source)
+    #: optional ``{"file": .., "tf": .., "mode": .., "view": ..}``: a volume (file or ``"phantom:N"``)
+    #: deformed by the final state; ``run_scene`` then writes before/after renders and the deformed volume
+    volume: dict | None = None
     _models: dict = field(default_factory=dict, init=False, repr=False)
 
     def build(self, device=None) -> Model:
@@ -370,10 +385,13 @@ def _read(path) -> tuple[Source, dict]:
         line = int(m.group(1)) if m else None
         msg = re.sub(r"\s*\(at line \d+, column \d+\)", "", msg) + (f" at column {m.group(2)}" if m else "")
         raise ConfigError("toml", f"valid TOML syntax ({msg})", file=str(path), line=line) from None
+    model = data.get("model", "mass-spring")                 # top-level key: which deformation model
+    if model not in ("mass-spring", "chainmail"):
+        raise src.error("model", '"mass-spring" (default) or "chainmail"', model)
     for name in data:
-        if name not in SECTIONS:
+        if name not in SECTIONS and name != "model":
             raise src.error(name, "one of the sections " + ", ".join(f"[{s}]" for s in SECTIONS), name)
-    for name in REQUIRED:
+    for name in (("grid", "chainmail") if model == "chainmail" else REQUIRED):
         if name not in data:
             raise src.error(name, f"a [{name}] section (required)")
     return src, data
@@ -583,6 +601,11 @@ def load_scene(path) -> Scene:
     """
     src, data = _read(path)
     base = Path(path).parent
+    if data.get("model") == "chainmail":                     # torchdeform.chainmail runs these
+        from .chainmail import chainmail_scene
+        return chainmail_scene(src, data, base, Path(path).stem)
+    if "chainmail" in data:
+        raise src.error("chainmail", 'model = "chainmail" (a top-level key) for a [chainmail] section')
     options = tuple(k for opts in INTEGRATOR_OPTIONS.values() for k in opts)
     section = {name: _Table(src, name, data[name], keys + (options if name == "integrator" else ()))
                for name, keys in SECTIONS.items() if name in data and name not in ("loads", "drags")}
@@ -599,6 +622,13 @@ def load_scene(path) -> Scene:
     scene = Scene(grid, model_args, **run, source=src,
                   record_every=out.integer("record_every", "an integer >= 1 (steps between frames)", None, lo=1),
                   name=out.text("name", "a string", Path(path).stem))
+    if "volume" in data:
+        vt = _Table(src, "volume", data["volume"], SECTIONS["volume"])
+        scene.volume = {"file": vt.text("file", 'a volume file or "phantom:N"'),
+                        "tf": vt.text("tf", "a transfer-function preset or file", "ct-soft"),
+                        "mode": vt.text("mode", '"dvr", "mip" or "average"', "dvr", ("dvr", "mip", "average")),
+                        "view": vt.text("view", "an axis view d, h, w, -d, -h, -w", "h",
+                                        ("d", "h", "w", "-d", "-h", "-w")), "base": str(base)}
     scene.build("cpu")
     return scene
 
@@ -617,7 +647,10 @@ def demo_scene() -> Scene:
     top_centre = Drag(grid.index_mask([(10, 5, 5)]), [(0.0, (0.0, 0.0, 0.0)), (0.05, (0.002, 0.001, 0.0))])
     model_args = dict(stiffness=3.0, normalize=False, damping=1e-4, damping_mode="projected", density=1000.0,
                       fixed=grid.face("bottom"), decay=100.0, gravity=(-9.81, 0.0, 0.0), drags=[top_centre])
-    return Scene(grid, model_args, SymplecticEuler(), dt=1e-4, steps=1500, record_every=15, name="demo")
+    # the procedural CT phantom fills the cube; run_scene also writes its before/after renders
+    volume = {"file": "phantom:64", "tf": "ct-soft", "mode": "dvr", "view": "h"}
+    return Scene(grid, model_args, SymplecticEuler(), dt=1e-4, steps=1500, record_every=15, name="demo",
+                 volume=volume)
 
 
 # ------------------------------------------------------------------ running
@@ -717,6 +750,8 @@ def run_scene(scene: Scene, out_dir, progress: bool = True, device=None) -> dict
     Raises:
         DivergenceError: the run became unstable (naming step and a safe dt).
     """
+    if not isinstance(scene, Scene):                          # a ChainMail scene runs itself
+        return scene.run(_out_dir(out_dir), progress=progress, device=device)
     out = _out_dir(out_dir)
     model = scene.build(device)
     integrator = scene.integrator
@@ -769,6 +804,10 @@ def run_scene(scene: Scene, out_dir, progress: bool = True, device=None) -> dict
         "peak_displacement_m": float(series["max_displacement"].max()),
         "max_free_displacement_m": float(series["max_free_displacement"][-1]),
     }
+    if scene.volume:
+        from .volume_io import scene_volume_outputs
+        v = dict(scene.volume)
+        summary["volume"] = scene_volume_outputs(v.pop("file"), final.x[:1], model.X, grid.spacing, out, **v)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     plot_energy(out / "energy.png", t, series, f"{scene.name}: {integrator.name}, dt = {dt:.3g} s")
     return summary

@@ -278,13 +278,15 @@ class MamdaniSystem(nn.Module):
         call (the plan depends on them); the last chunk is padded so that one shape is compiled.
         Returns ``f(x) -> outputs`` like ``self(x)``.
         """
+        from ..compiled import inductor_options
         cache = {}
 
         def run(x):
             key = self._parameter_snapshot()
             if "key" not in cache or not _same(cache["key"], key):
                 plan = self.sparsity_plan()
-                cache.update(key=key, fn=torch.compile(lambda part: self.infer(part, plan), dynamic=False))
+                cache.update(key=key, fn=torch.compile(lambda part: self.infer(part, plan), dynamic=False,
+                                                       options=inductor_options()))
             return self._run(x, cache["fn"], chunk, pad=True)
         return run
 
