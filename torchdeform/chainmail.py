@@ -794,11 +794,8 @@ class ChainMail:
 
 # ---------------------------------------------------------------- neighbour boxes (tensor)
 def _axis_slices(grid: Grid, a: int):
-    n = grid.shape[a]
-    first = [slice(None)] * 3
-    second = [slice(None)] * 3
-    first[a], second[a] = slice(0, n - 1), slice(1, n)
-    return tuple(first), tuple(second)
+    """``(first, second)`` index tuples of the links along axis ``a``: the 6-neighbour stencil."""
+    return _grid6(grid).stencil[a]
 
 
 def _link_values(t: torch.Tensor, a: int, region) -> torch.Tensor:

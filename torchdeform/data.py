@@ -59,7 +59,7 @@ from .errors import ConfigError
 from .grid import Grid
 from .integrators import INTEGRATORS
 from .model import Model, State
-from .springs import difference
+from .springs import harmonic_mean_of_ends
 
 FORMAT = "torchdeform-series/1"
 
@@ -221,15 +221,7 @@ def node_to_springs(values: torch.Tensor, grid: Grid, spring_mask=None) -> torch
         ``(S, D, H, W)`` (or ``(B, S, D, H, W)``), zero where no spring exists. Differentiable.
     """
     lead = values.dim() == 4
-    v = values if lead else values.unsqueeze(0)
-    nodes = v.unsqueeze(1)                                     # (B, 1, D, H, W)
-    ends = nodes + difference(nodes, grid)[:, :, 0]            # (B, S, D, H, W): value at the far end
-    here = nodes.expand_as(ends)
-    total = here + ends
-    safe = torch.where(total > 0, total, torch.ones_like(total))
-    out = torch.where(total > 0, 2.0 * here * ends / safe, torch.zeros_like(total))
-    mask = grid.spring_mask(values.device) if spring_mask is None else spring_mask.to(values.device)
-    out = out * mask
+    out = harmonic_mean_of_ends(values if lead else values.unsqueeze(0), grid, spring_mask)
     return out if lead else out[0]
 
 

@@ -49,8 +49,10 @@ Example:
 """
 from __future__ import annotations
 
+import json
 import math
 import pickle
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -62,7 +64,7 @@ from torch.utils.checkpoint import checkpoint as _checkpoint
 from tqdm.auto import tqdm
 
 from .data import Series, node_to_springs
-from .errors import ConfigError
+from .errors import ConfigError, TorchdeformError
 from .integrators import INTEGRATORS
 from .model import State
 
@@ -870,9 +872,6 @@ def run_script(name: str, args, fit, summary) -> int:
     is printed at the end (the result then also holds ``wall_seconds``, ``cpu_seconds`` and
     ``threads``). Returns the exit status.
     """
-    import json
-    import sys
-    from .errors import TorchdeformError
     torch.set_num_threads(args.threads)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -113,6 +113,20 @@ def difference(x: torch.Tensor, grid: Grid) -> torch.Tensor:
     return out
 
 
+def harmonic_mean_of_ends(values: torch.Tensor, grid: Grid, spring_mask=None) -> torch.Tensor:
+    """Per-node values ``(B, D, H, W)`` to per-spring values ``(B, S, D, H, W)``: the harmonic
+    mean ``2 a b / (a + b)`` of the spring's two end nodes (springs in series), zero where no
+    spring exists (``spring_mask``, default the grid's) or both ends are zero. Differentiable."""
+    nodes = values.unsqueeze(1)                                    # (B, 1, D, H, W)
+    ends = nodes + difference(nodes, grid)[:, :, 0]                # value at the far end
+    here = nodes.expand_as(ends)
+    total = here + ends
+    safe = torch.where(total > 0, total, torch.ones_like(total))
+    out = torch.where(total > 0, 2.0 * here * ends / safe, torch.zeros_like(total))
+    mask = grid.spring_mask(values.device) if spring_mask is None else spring_mask.to(values.device)
+    return out * mask
+
+
 def adjoint(f: torch.Tensor, grid: Grid) -> torch.Tensor:
     """Fast ``D^T f`` with shifted slices; same result as :func:`adjoint_conv`."""
     out = torch.zeros((f.shape[0],) + f.shape[2:], dtype=f.dtype, device=f.device)

@@ -30,7 +30,7 @@ import torch
 
 from ..errors import ConfigError
 from ..grid import Grid
-from ..springs import difference
+from ..springs import harmonic_mean_of_ends
 from .system import MamdaniSystem
 
 
@@ -99,13 +99,8 @@ def spring_parameters(fis: MamdaniSystem, grid: Grid, inputs: torch.Tensor, dtyp
     rows = inputs.reshape(len(fis.inputs), -1).T
     unique, inverse = torch.unique(rows, dim=0, return_inverse=True)
     values = fis(unique.to(fis.dtype)).to(torch.float64)
-    nodes = values[inverse].T.reshape((len(fis.outputs), 1) + grid.shape)    # (O, 1, D, H, W)
-    ends = nodes + difference(nodes, grid)[:, :, 0]                            # other end: (O, S, D, H, W)
-    here = nodes.expand_as(ends)
-    prod, total = here * ends, here + ends
-    mean = torch.where(total > 0, 2.0 * prod / torch.where(total > 0, total, torch.ones_like(total)),
-                       torch.zeros_like(total))
-    mean = mean * grid.spring_mask(mean.device)
+    nodes = values[inverse].T.reshape((len(fis.outputs),) + grid.shape)       # (O, D, H, W)
+    mean = harmonic_mean_of_ends(nodes, grid)                                  # (O, S, D, H, W)
     out = {name: mean[o].to(dtype) for o, name in enumerate(fis.output_names())}
     out["_evaluations"] = int(unique.shape[0])
     return out
