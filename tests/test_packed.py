@@ -6,7 +6,7 @@ import pytest
 import torch
 
 import torchdeform as td
-from torchdeform.compiled import CompiledStep, _ImplicitParts
+from torchdeform.compiled import CompiledStep, _ImplicitStep
 from torchdeform.packed import PackedModel
 
 F64 = torch.float64
@@ -66,18 +66,24 @@ def test_packed_steps_equal_grid_steps(integ):
     assert float(st.t) == pytest.approx(ref.t)
 
 
-def test_compiled_implicit_pieces_equal_eager_step():
-    """The compiled implicit Euler's pieces (set-up, unrolled CG iterations, update), run here
-    uncompiled, give the eager step, including an odd iteration count with unroll 2."""
+def test_compiled_implicit_graph_equals_eager_step():
+    """The compiled implicit Euler's graph (set-up, CG iterations in a while_loop, update), run
+    here uncompiled, gives the eager step: a fixed iteration count, a tolerance (the loop
+    condition reads the residual) and a Newton iteration."""
     model, state = _scene(18)
-    for integ in (td.ImplicitEuler(cg_iters=7, cg_tol=0), td.ImplicitEuler(cg_iters=40, cg_tol=1e-9)):
+    for integ in (td.ImplicitEuler(cg_iters=7, cg_tol=0), td.ImplicitEuler(cg_iters=40, cg_tol=1e-9),
+                  td.ImplicitEuler(cg_iters=9, cg_tol=0, newton_iters=1)):
         cs = CompiledStep(integ, model, 5e-4, enable=False)
-        parts = _ImplicitParts(integ, cs.packed, 5e-4, None, lambda f: f, cg_unroll=2)
+        graph = _ImplicitStep(integ, cs.packed, 5e-4, None)
         ps = cs.packed.pack_state(state)
-        x, v = parts(ps.x, ps.v, torch.tensor(0.0, dtype=F64))
-        n_parts = integ.last_cg[0]
+        x, v = graph(ps.x, ps.v, torch.tensor(0.0, dtype=F64))
+        n_graph, rel_graph = integ.last_cg
         ref = integ.step(model, state, 5e-4)
-        assert integ.last_cg[0] == n_parts if integ.cg_tol > 0 else n_parts == 7
+        if integ.cg_tol > 0:
+            assert 1 < n_graph < 40 and rel_graph <= 1e-9
+            assert integ.last_cg[0] == n_graph and integ.last_cg[1] == pytest.approx(rel_graph, rel=1e-6)
+        else:
+            assert n_graph == integ.cg_iters
         assert torch.allclose(cs.packed.unpack(x), ref.x, rtol=0, atol=1e-12)
         assert torch.allclose(cs.packed.unpack(v), ref.v, rtol=0, atol=1e-9)
 

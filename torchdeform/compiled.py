@@ -3,8 +3,8 @@
 :func:`compiled_step` runs ``integrator.advance`` and ``finish`` on the packed layout of
 :class:`~torchdeform.packed.PackedModel` (every node gathers its springs; forces and update fuse
 into one vectorised loop) and compiles it, for one model and one time step. Every integrator of
-:mod:`torchdeform.integrators` runs unchanged on the packed model; implicit Euler is compiled in
-three pieces (:class:`_ImplicitParts`). Time enters as a 0-d tensor, so ramped loads and drag
+:mod:`torchdeform.integrators` runs unchanged on the packed model; implicit Euler's CG iterations
+run as a loop inside the one compiled graph (:class:`_ImplicitStep`). Time enters as a 0-d tensor, so ramped loads and drag
 paths never trigger a recompilation.
 
 The eager :meth:`~torchdeform.integrators.Integrator.step` stays the default and the path for
@@ -64,6 +64,16 @@ def _warn_once(reason: str) -> None:
 #: that really must be stored (RK4 stages, CG directions) go through :func:`_realize`.
 INDUCTOR_OPTIONS = {"realize_opcount_threshold": 10_000, "realize_reads_threshold": 1_000,
                     "realize_acc_reads_threshold": 1_000}
+
+
+#: Extra options for the implicit step, whose CG loop body runs ``cg_iters`` times per step:
+#: inductor's C++ wrapper runs that loop without Python (each pass otherwise allocates its
+#: buffers and checks its inputs' strides from Python), and the stride checks are dropped
+#: (dynamo's guards already check the step's own inputs). Measured on the beam of ``bench speed``,
+#: variants interleaved in one process: 5.09 ms per step with both, 5.55 without the C++ wrapper,
+#: 5.63 with neither (medians of 30). The loop graph misses inductor's disk cache either way
+#: (~100 s to compile in every new process).
+IMPLICIT_OPTIONS = {"cpp_wrapper": True, "size_asserts": False, "alignment_asserts": False}
 
 
 def inductor_options(options: dict | None = None) -> dict:
@@ -169,10 +179,12 @@ class CompiledStep:
         elif enable:
             try:
                 pm.realize = _realize
-                compile_ = functools.partial(torch.compile, dynamic=False, mode=mode,
-                                             options=None if mode else inductor_options(options or INDUCTOR_OPTIONS))
-                if isinstance(integrator, ImplicitEuler):
-                    self._fn = _ImplicitParts(integrator, pm, self.dt, loads_p, compile_)
+                implicit = isinstance(integrator, ImplicitEuler)
+                opts = dict(options or INDUCTOR_OPTIONS, **(IMPLICIT_OPTIONS if implicit else {}))
+                compile_ = functools.partial(torch.compile, dynamic=False, mode=mode, fullgraph=implicit,
+                                             options=None if mode else inductor_options(opts))
+                if implicit:
+                    self._fn = _ImplicitStep(integrator, pm, self.dt, loads_p, compile_)
                 else:
                     self._fn = compile_(_fresh(step))
             except Exception as e:                          # noqa: BLE001 (any failure -> eager)
@@ -225,72 +237,65 @@ class CompiledStep:
         return self.packed.unpack_state(ps)
 
 
-class _ImplicitParts:
-    """Implicit Euler in three compiled pieces: set-up of the system and the CG start, one CG
-    iteration (compiled once, called ``cg_iters`` times), and the update. A compiled graph with
-    all iterations unrolled would cost 20 copies of the spring kernel to compile (> 15 min for
-    20 iterations on 2 cores); ``cg_unroll`` iterations per call (default 2) cost that many
-    copies, and each call ~50-100 us of call overhead on these CPUs. With a tolerance
-    (``cg_tol > 0``) every iteration is a call, followed by a residual check."""
+def _while_loop():
+    """``torch._higher_order_ops.while_loop`` (a loop that stays one loop in the compiled graph),
+    or None where this torch lacks it."""
+    try:
+        from torch._higher_order_ops.while_loop import while_loop
+    except ImportError:                                                 # pragma: no cover
+        return None
+    return while_loop
 
-    def __init__(self, integ, pm, dt, loads, compile_, cg_unroll: int = 2):
-        self.integ, self.pm, self.dt, self.loads = integ, pm, dt, loads
-        self.precond = integ.preconditioner(pm, dt)
-        precond, mask = self.precond, pm.free
 
-        def setup(x, v, vcur, t, it):
-            pm.graph_inputs, pm.store_sums = (x, v, vcur), True
-            _, apply_A, rhs, delta_c = integ.system(pm, State(x, v, t), vcur, it, dt, loads)
-            u, r, p, rz = cg_start(rhs, precond, mask)
-            return (apply_A.op.fields, u, r, p, rz, r.flatten(1).norm(dim=1).clamp_min(1e-300),
-                    torch.zeros_like(v) if delta_c is None else delta_c)
+class _ImplicitStep:
+    """Implicit Euler as one compiled graph: set-up of the system, the CG iterations as a
+    ``while_loop`` (one iteration's code, compiled once and looped inside the graph, so the spring
+    kernel is not copied ``cg_iters`` times and no iteration pays a Python call), and the update.
 
-        unroll = self.unroll = max(1, min(int(cg_unroll), integ.cg_iters)) if integ.cg_tol <= 0 else 1
+    Called as ``(x, v, t) -> (x, v)`` on packed fields; sets ``integrator.last_cg``. With a
+    tolerance (``cg_tol > 0``) the loop condition reads the residual, as the eager solver does
+    after every iteration; without one it runs exactly ``cg_iters`` iterations.
+    """
 
-        def iterate(fields, u, r, p, rz):
-            pm.graph_inputs, pm.store_sums = (u, r, p, rz), True
-            _, apply_A = integ.operator(pm, PackedLinearisation(pm, fields=fields, combined=True), dt)
-            for _ in range(unroll):
-                u, r, p, rz = cg_iteration(apply_A, u, r, p, rz, precond, mask)
-            return u, r, p, rz
+    def __init__(self, integ, pm, dt, loads, compile_=None):
+        while_loop = _while_loop()
+        if while_loop is None:                                          # pragma: no cover
+            raise RuntimeError("this torch has no while_loop for the compiled implicit solve")
+        precond, mask, iters, tol = integ.preconditioner(pm, dt), pm.free, integ.cg_iters, integ.cg_tol
+        self.integ = integ
 
-        def update(x, v, t, vcur, u, delta_c, r, bnorm):
-            pm.graph_inputs, pm.store_sums = (), True
-            vnew = vcur + u + delta_c
-            out = integ.finish(pm, State(x, v, t), x + dt * vnew, vnew, dt)
-            return out.x, out.v, (r.flatten(1).norm(dim=1) / bnorm).max()
+        def step(x, v, t):
+            vcur = v
+            for it in range(1 + integ.newton_iters):
+                pm.graph_inputs, pm.store_sums, pm.inputs_stored = (x, v), True, False
+                _, apply_A, rhs, delta_c = integ.system(pm, State(x, v, t), vcur, it, dt, loads)
+                u, r, p, rz = cg_start(rhs, precond, mask)
+                bnorm = r.flatten(1).norm(dim=1).clamp_min(1e-300)
+                fields = apply_A.op.fields
 
-        def setup_first(x, v, vcur, t):
-            return setup(x, v, vcur, t, 0)
+                def cond(i, u, r, p, rz):
+                    if tol <= 0:
+                        return i < iters
+                    return (i < 1) | ((i < iters) & ((r.flatten(1).norm(dim=1) / bnorm).max() > tol))
 
-        def setup_newton(x, v, vcur, t):
-            return setup(x, v, vcur, t, 1)
+                def body(i, u, r, p, rz):
+                    _, A = integ.operator(pm, PackedLinearisation(pm, fields=fields, combined=True), dt)
+                    return (i + 1, *cg_iteration(A, u, r, p, rz, precond, mask))
 
-        self.setup = [compile_(_fresh(setup_first))]
-        if integ.newton_iters:
-            self.setup.append(compile_(_fresh(setup_newton)))
-        self.iterate, self.update = compile_(_fresh(iterate)), compile_(_fresh(update))
+                # Inside the loop body every field is a body input, already in memory.
+                pm.inputs_stored = True
+                n_it, u, r, p, rz = while_loop(cond, body, (torch.zeros((), dtype=torch.int64, device=x.device),
+                                                            u, r, p, rz))
+                vcur = vcur + u if delta_c is None else vcur + u + delta_c
+            pm.graph_inputs, pm.inputs_stored = (), False
+            out = integ.finish(pm, State(x, v, t), x + dt * vcur, vcur, dt)
+            return out.x, out.v, n_it, (r.flatten(1).norm(dim=1) / bnorm).max()
+
+        self.fn = step if compile_ is None else compile_(_fresh(step))
 
     def __call__(self, x, v, t):
-        integ, vcur = self.integ, v
-        for it in range(1 + integ.newton_iters):
-            fields, u, r, p, rz, bnorm, delta_c = self.setup[min(it, 1)](x, v, vcur, t)
-            n_it = 0
-            while n_it + self.unroll <= integ.cg_iters:
-                u, r, p, rz = self.iterate(fields, u, r, p, rz)
-                n_it += self.unroll
-                if integ.cg_tol > 0 and float((r.flatten(1).norm(dim=1) / bnorm).max()) <= integ.cg_tol:
-                    break
-            if n_it < integ.cg_iters and integ.cg_tol <= 0:          # odd remainder of an unrolled count
-                _, apply_A = integ.operator(self.pm, PackedLinearisation(self.pm, fields=fields, combined=True),
-                                            self.dt)
-                for _ in range(integ.cg_iters - n_it):
-                    u, r, p, rz = cg_iteration(apply_A, u, r, p, rz, self.precond, self.pm.free)
-                n_it = integ.cg_iters
-            if it < integ.newton_iters:
-                vcur = vcur + u + delta_c
-        x, v, rel = self.update(x, v, t, vcur, u, delta_c, r, bnorm)
-        integ.last_cg = (n_it, float(rel) if integ.cg_tol > 0 else rel)
+        x, v, n_it, rel = self.fn(x, v, t)
+        self.integ.last_cg = (int(n_it), float(rel)) if self.integ.cg_tol > 0 else (self.integ.cg_iters, rel)
         return x, v
 
 

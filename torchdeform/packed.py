@@ -59,6 +59,9 @@ class PackedModel(Model):
         self.P = (D + 2) * plane
         self.G = plane + row + 1
         self.offsets = [dd * plane + dh * row + dw for dd, dh, dw in grid.directions]
+        #: (dd + 1, dh + 1, dw + 1) of every half-direction, as three ``(S,)`` index tensors
+        self._dir_index = tuple(torch.tensor([d[a] + 1 for d in grid.directions], device=model.device)
+                                for a in range(3))
 
         self.inside = self.pack(grid.nodes().to(self.dtype)[None, None].to(self.device))[0, 0]    # (P,)
         self.X = self.pack(model.X)
@@ -77,6 +80,9 @@ class PackedModel(Model):
         #: set by the compiled step: a function that makes inductor store a field in memory, and
         #: the graph inputs (already in memory) that need no such barrier; see :meth:`gather`.
         self.realize, self.graph_inputs, self.store_sums = None, (), False
+        #: set inside a compiled loop body: every field handed to :meth:`gather` is a body input,
+        #: already in memory.
+        self.inputs_stored = False
 
     # ------------------------------------------------------------------ layout
     def pack(self, t: torch.Tensor) -> torch.Tensor:
@@ -109,6 +115,23 @@ class PackedModel(Model):
         """The core range of ``t`` (last axis ``P``) shifted by the linear offset ``o``."""
         return t[..., self.G + o:self.P - self.G + o]
 
+    def neighbours(self, t: torch.Tensor) -> torch.Tensor:
+        """The far end of every half-direction's spring from each core node: ``t`` ``(B, C, P)``
+        -> ``(B, C, S, P_core)``, one strided view indexed by direction (no per-direction copies,
+        so under ``torch.compile`` it stays one loop)."""
+        D, H, W = self.grid.shape
+        plane, row = (H + 2) * (W + 2), W + 2
+        # The corner neighbour (-1, -1, -1) of the first core node G = plane + row + 1 is node 0,
+        # so the view starts where t starts.
+        t = t.contiguous()
+        cube = t.as_strided((*t.shape[:2], 3, 3, 3, self.P - 2 * self.G), (t.stride(0), t.stride(1), plane, row, 1, 1))
+        return cube[:, :, self._dir_index[0], self._dir_index[1], self._dir_index[2]]
+
+    def core(self, p: torch.Tensor) -> torch.Tensor:
+        """Spring parameters ``(Bp, S, 1|P)`` of every half-direction from each core node:
+        ``(Bp, S, 1|P_core)``."""
+        return p if p.shape[-1] == 1 else self.shift(p, 0)
+
     def param(self, p: torch.Tensor, s: int, sign: int) -> torch.Tensor:
         """Spring parameter of the spring from each core node along ``sign * d_s``:
         ``(Bp, 1)`` or ``(Bp, P_core)``."""
@@ -129,7 +152,7 @@ class PackedModel(Model):
         Returns:
             ``(B, C, P)``, zero at halo nodes and outside the core range.
         """
-        if self.realize is not None:
+        if self.realize is not None and not self.inputs_stored:
             # A field computed in the same compiled graph (an RK4 stage, a CG direction) must be
             # stored before 2 S shifted reads, or inductor inlines its whole computation into
             # every read, and the next stage's into that (compile time explodes).
@@ -204,35 +227,31 @@ class PackedLinearisation:
                  combined: bool = False):
         self.pm, self.combined = pm, combined
         if fields is None:
-            per_s = []
-            centre = pm.shift(x, 0)
-            for s, o in enumerate(pm.offsets):
-                dx = pm.shift(x, o) - centre                                   # (B, 3, Pc)
-                sq = (dx * dx).sum(1, keepdim=True)
-                k = pm.param(pm.stiffness, s, 1).unsqueeze(1)
-                a, _ = spring_law(sq, None, k, pm.param(pm.rest_length, s, 1).unsqueeze(1), None, True)
-                if clamp:
-                    a = a.clamp_min(0)
-                n = dx / sq.clamp_min(torch.finfo(sq.dtype).tiny).sqrt()
-                per_s.append(torch.cat([n, a.expand_as(sq), (k - a).expand_as(sq)], 1))
-            fields = _stored(pm, F.pad(torch.stack(per_s, 1), (pm.G, pm.G)))
+            dx = pm.neighbours(x) - pm.shift(x, 0).unsqueeze(2)                  # (B, 3, S, Pc)
+            sq = (dx * dx).sum(1)                                                 # (B, S, Pc)
+            k = pm.core(pm.stiffness)
+            a, _ = spring_law(sq, None, k, pm.core(pm.rest_length), None, True)
+            if clamp:
+                a = a.clamp_min(0)
+            n = dx / sq.clamp_min(torch.finfo(sq.dtype).tiny).sqrt().unsqueeze(1)
+            fields = torch.cat([n.transpose(1, 2), a.unsqueeze(2), (k - a).unsqueeze(2)], 2)
+            fields = _stored(pm, F.pad(fields, (pm.G, pm.G)))
         self.fields = fields
 
     def scaled(self, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> "PackedLinearisation":
         """The operator ``u -> apply(u, alpha_scale, c, projected, c_scale)`` as a linearisation
-        with combined coefficients: its fields hold ``n``, ``alpha`` and ``beta`` of ``h2 K + h C``
-        already multiplied by the spring-exists mask, so a product reads 5 fields per spring and
-        does no scaling or masking (the CG loop's inner kernel)."""
-        pm, core = self.pm, self.fields[..., self.pm.G:self.pm.P - self.pm.G]
-        own = pm.shift(pm.inside, 0)
-        per_s = []
-        for s, o in enumerate(pm.offsets):
-            exists = own * pm.shift(pm.inside, o)
-            alpha, beta = combine_coefficients(core[:, s, 3], core[:, s, 4], alpha_scale,
-                                               None if c is None else pm.param(c, s, 1), projected, c_scale)
-            per_s.append(torch.stack([core[:, s, 0], core[:, s, 1], core[:, s, 2],
-                                      alpha * exists, beta * exists], 1))
-        return PackedLinearisation(pm, fields=_stored(pm, F.pad(torch.stack(per_s, 1), (pm.G, pm.G))), combined=True)
+        with combined coefficients, the CG loop's inner kernel: per spring ``alpha I + beta n n^T``
+        of ``h2 K + h C`` is stored as 4 fields ``m = sqrt(beta) n`` and ``alpha`` (``(B, S, 4, P)``,
+        already multiplied by the spring-exists mask), so a product reads 4 fields per spring
+        and computes ``alpha du + (m . du) m``, with no scaling or masking. ``beta >= 0`` holds
+        for non-negative stiffness and damping (``b = k - a = k min(l0 / l, 1)``)."""
+        pm, core = self.pm, self.pm.core(self.fields)                            # (B, S, 5, Pc)
+        exists = pm.shift(pm.inside, 0) * pm.neighbours(pm.inside.view(1, 1, -1))[0, 0]   # (S, Pc)
+        alpha, beta = combine_coefficients(core[:, :, 3], core[:, :, 4], alpha_scale,
+                                           None if c is None else pm.core(c), projected, c_scale)
+        m = core[:, :, :3] * (beta * exists).clamp_min(0).sqrt().unsqueeze(2)
+        fields = torch.cat([m, (alpha * exists).unsqueeze(2)], 2)
+        return PackedLinearisation(pm, fields=_stored(pm, F.pad(fields, (pm.G, pm.G))), combined=True)
 
     def apply(self, u, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> torch.Tensor:
         """``(h2 K + h C) u``, ``(B, 3, P)``; arguments as
@@ -242,12 +261,15 @@ class PackedLinearisation:
             raise ValueError("a combined operator (PackedLinearisation.scaled) takes no scales")
 
         def fn(s, sign, mask, du):
-            q = [pm.shift(fields[:, s, i], 0 if sign > 0 else -pm.offsets[s]) for i in range(5)]
-            c_s = None if c is None else pm.param(c, s, sign)
-            alpha, beta = combine_coefficients(q[3], q[4], alpha_scale, c_s, projected, c_scale)
-            if not combined:
-                alpha, beta = alpha * mask, beta * mask
-            proj = beta * (q[0] * du[0] + q[1] * du[1] + q[2] * du[2])
-            return [alpha * w + proj * n for n, w in zip(q[:3], du)]
+            q = [pm.shift(fields[:, s, i], 0 if sign > 0 else -pm.offsets[s]) for i in range(fields.shape[2])]
+            if combined:                                   # q = m (= sqrt(beta) n), alpha
+                m, alpha = q[:3], q[3]
+                proj = m[0] * du[0] + m[1] * du[1] + m[2] * du[2]
+            else:                                          # q = n, a, b
+                c_s = None if c is None else pm.param(c, s, sign)
+                alpha, beta = combine_coefficients(q[3], q[4], alpha_scale, c_s, projected, c_scale)
+                alpha, beta, m = alpha * mask, beta * mask, q[:3]
+                proj = beta * (m[0] * du[0] + m[1] * du[1] + m[2] * du[2])
+            return [alpha * w + proj * n for n, w in zip(m, du)]
 
         return -pm.gather(fn, u)
