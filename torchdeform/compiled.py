@@ -4,15 +4,16 @@
 :class:`~torchdeform.packed.PackedModel` (every node gathers its springs; forces and update fuse
 into one vectorised loop) and compiles it, for one model and one time step. Every integrator of
 :mod:`torchdeform.integrators` runs unchanged on the packed model; implicit Euler's CG iterations
-run as a loop inside the one compiled graph (:class:`_ImplicitStep`). Time enters as a 0-d tensor, so ramped loads and drag
-paths never trigger a recompilation.
+run as a loop inside the one compiled graph (:class:`_ImplicitStep`). Time enters as a 0-d
+tensor, so ramped loads and drag paths never trigger a recompilation.
 
 The eager :meth:`~torchdeform.integrators.Integrator.step` stays the default and the path for
 autograd: the wrapper calls it whenever a gradient is needed, and it falls back to it for good,
 with one warning line, when compilation is unavailable or fails.
 
 Compilation happens on the first call and costs 20-60 s per grid shape on a 2-core CPU
-(implicit Euler about 2 minutes); inductor caches it on disk.
+(implicit Euler about 100 s); inductor caches it on disk, except the implicit step's loop graph,
+which is compiled again in every new process.
 
 Example:
     >>> import torch, torchdeform as td
@@ -284,8 +285,8 @@ class _ImplicitStep:
 
                 # Inside the loop body every field is a body input, already in memory.
                 pm.inputs_stored = True
-                n_it, u, r, p, rz = while_loop(cond, body, (torch.zeros((), dtype=torch.int64, device=x.device),
-                                                            u, r, p, rz))
+                start = torch.zeros((), dtype=torch.int64, device=x.device)
+                n_it, u, r, p, rz = while_loop(cond, body, (start, u, r, p, rz))
                 vcur = vcur + u if delta_c is None else vcur + u + delta_c
             pm.graph_inputs, pm.inputs_stored = (), False
             out = integ.finish(pm, State(x, v, t), x + dt * vcur, vcur, dt)

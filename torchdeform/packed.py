@@ -124,7 +124,8 @@ class PackedModel(Model):
         # The corner neighbour (-1, -1, -1) of the first core node G = plane + row + 1 is node 0,
         # so the view starts where t starts.
         t = t.contiguous()
-        cube = t.as_strided((*t.shape[:2], 3, 3, 3, self.P - 2 * self.G), (t.stride(0), t.stride(1), plane, row, 1, 1))
+        cube = t.as_strided((*t.shape[:2], 3, 3, 3, self.P - 2 * self.G),
+                            (t.stride(0), t.stride(1), plane, row, 1, 1))
         return cube[:, :, self._dir_index[0], self._dir_index[1], self._dir_index[2]]
 
     def core(self, p: torch.Tensor) -> torch.Tensor:
