@@ -135,8 +135,9 @@ class RK4(Integrator):
 
 
 def _dot(a, b):
-    """Per-batch-entry inner product, shaped to broadcast against ``a``."""
-    return (a * b).flatten(1).sum(1).view(-1, *[1] * (a.dim() - 1))
+    """Per-batch-entry inner product, shaped to broadcast against ``a``. (Summed over the axes
+    as they are: a flattened sum would index ``i % P`` under ``torch.compile`` and run scalar.)"""
+    return (a * b).sum(tuple(range(1, a.dim())), keepdim=True)
 
 
 def cg_start(b, precond=None, mask=None):
