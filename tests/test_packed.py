@@ -7,7 +7,7 @@ import torch
 
 import torchdeform as td
 from torchdeform.compiled import CompiledStep, _ImplicitStep
-from torchdeform.packed import PackedModel
+from torchdeform.packed import BLOCK, PackedModel
 
 F64 = torch.float64
 INTEGRATORS = [td.ExplicitEuler(), td.SymplecticEuler(), td.DampedVerlet(0.1), td.RK4(),
@@ -46,6 +46,21 @@ def test_packed_forces_equal_grid_forces(topology, mode):
     Ku = model.linearise(state.x).apply(u, 0.7, model.damping, model.projected, 0.3)
     Ku_p = pm.unpack(pm.linearise(ps.x).apply(pm.pack(u), 0.7, pm.damping, pm.projected, 0.3))
     assert torch.allclose(Ku_p, Ku, rtol=1e-10, atol=1e-12 * float(Ku.abs().max()))
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 1), (2, 3, 5), (5, 4, 6), (10, 10, 40), (7, 1, 9)])
+def test_packed_layout_round_trips_and_core_is_whole_blocks(shape):
+    """pack/unpack round-trip any shape; the core range is a whole number of blocks, and every
+    entry of a packed field outside the grid (halo and tail) is zero."""
+    model = td.Model(td.Grid(shape, 0.01, 26), stiffness=10.0, mass=1e-3, dtype=F64)
+    pm = PackedModel(model)
+    assert (pm.P - 2 * pm.G) % BLOCK == 0 and pm.P >= (shape[0] + 2) * (shape[1] + 2) * (shape[2] + 2)
+    t = torch.randn((2, 3) + shape, dtype=F64)
+    packed = pm.pack(t)
+    assert packed.shape == (2, 3, pm.P)
+    assert torch.equal(pm.unpack(packed), t)
+    assert float(packed.abs().sum()) == pytest.approx(float(t.abs().sum()), rel=1e-12)
+    assert pm.blocks(packed).shape == (2, 3, (pm.P - 2 * pm.G) // BLOCK, BLOCK)
 
 
 @pytest.mark.parametrize("integ", INTEGRATORS, ids=lambda i: f"{i.name}{getattr(i, 'newton_iters', '')}")

@@ -11,9 +11,11 @@ The eager :meth:`~torchdeform.integrators.Integrator.step` stays the default and
 autograd: the wrapper calls it whenever a gradient is needed, and it falls back to it for good,
 with one warning line, when compilation is unavailable or fails.
 
-Compilation happens on the first call and costs 20-60 s per grid shape on a 2-core CPU
-(implicit Euler about 100 s); inductor caches it on disk, except the implicit step's loop graph,
-which is compiled again in every new process.
+Compilation happens on the first call and costs 20-60 s per grid shape on a 2-core CPU;
+inductor caches it on disk, except the implicit step, whose loop graph inductor will not cache
+("Can't cache HigherOrderOperator: while_loop") and compiles again in every new process (45-60 s
+on the 40 x 10 x 10 beam). Unrolling its CG iterations instead would be cacheable but took over
+14 minutes to compile for 20 iterations.
 
 Example:
     >>> import torch, torchdeform as td
@@ -70,10 +72,9 @@ INDUCTOR_OPTIONS = {"realize_opcount_threshold": 10_000, "realize_reads_threshol
 #: Extra options for the implicit step, whose CG loop body runs ``cg_iters`` times per step:
 #: inductor's C++ wrapper runs that loop without Python (each pass otherwise allocates its
 #: buffers and checks its inputs' strides from Python), and the stride checks are dropped
-#: (dynamo's guards already check the step's own inputs). Measured on the beam of ``bench speed``,
-#: variants interleaved in one process: 5.09 ms per step with both, 5.55 without the C++ wrapper,
-#: 5.63 with neither (medians of 30). The loop graph misses inductor's disk cache either way
-#: (~100 s to compile in every new process).
+#: (dynamo's guards already check the step's own inputs). Measured on the beam of ``bench speed``
+#: with the earlier per-direction spring kernel, variants interleaved in one process: 5.09 ms per
+#: step with both, 5.55 without the C++ wrapper, 5.63 with neither (medians of 30).
 IMPLICIT_OPTIONS = {"cpp_wrapper": True, "size_asserts": False, "alignment_asserts": False}
 
 

@@ -11,7 +11,10 @@ free degree of freedom and no springs, so they never move.
 In this layout each node gathers the forces of all its ``2 S`` springs (every spring is
 evaluated from both ends) instead of scattering into shifted slices. That costs twice the
 arithmetic but has no read-modify-write, so ``torch.compile`` fuses forces and update into one
-vectorised loop over the nodes: the fast path (:mod:`torchdeform.compiled`).
+vectorised loop over the nodes: the fast path (:mod:`torchdeform.compiled`). The stiffness
+products of implicit solves (:class:`PackedLinearisation`) are written as one sum over the
+``2 S`` directions instead: ``torch.compile`` makes that a loop over blocks of :data:`BLOCK`
+nodes with the directions as its inner loop, reading per-spring fields stored block by block.
 
 :class:`PackedModel` is a :class:`~torchdeform.model.Model` whose tensors are in this layout,
 so every integrator runs on it unchanged; only the spring terms differ, and they use the same
@@ -22,7 +25,7 @@ Example:
     >>> from torchdeform.packed import PackedModel
     >>> model = td.Model(td.Grid((4, 5, 6), 0.01, 26), stiffness=50.0, damping=0.1, mass=1e-3)
     >>> pm = PackedModel(model)
-    >>> s = pm.pack_state(model.rest_state())     # x, v: (1, 3, 6 * 7 * 8)
+    >>> s = pm.pack_state(model.rest_state())     # x, v: (1, 3, P), P >= 6 * 7 * 8
     >>> s = td.SymplecticEuler().step(pm, s, 1e-4)
     >>> pm.unpack_state(s).x.shape
     torch.Size([1, 3, 4, 5, 6])
