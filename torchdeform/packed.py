@@ -154,8 +154,8 @@ class PackedModel(Model):
         ``i`` is stored at node ``i - o_s``)."""
         if p.shape[-1] == 1:
             return torch.cat([p, p], 1).unsqueeze(-1)
-        back = torch.stack([self.shift(p[:, s], -o) for s, o in enumerate(self.offsets)], 1)
-        return self.blocks(torch.cat([self.shift(p, 0), back], 1))
+        both = [self.param(p, s, sign) for sign in (1, -1) for s in range(len(self.offsets))]
+        return self.blocks(torch.stack(both, 1))
 
     def param(self, p: torch.Tensor, s: int, sign: int) -> torch.Tensor:
         """Spring parameter of the spring from each core node along ``sign * d_s``:
@@ -186,9 +186,9 @@ class PackedModel(Model):
                           for comp, cen in zip(comps, centre)]
                 terms = fn(s, sign, self.shift(self.inside, sign * o), *deltas)
                 total = terms if total is None else [a + b for a, b in zip(total, terms)]
-        # In an implicit solve the sum is read by reductions and updates alike (K p in p.Kp and in
-        # r - alpha K p): store it rather than let each reader recompute 2 S springs. In an explicit
-        # step it feeds one fused update, and storing it would cost ~30%.
+        # In an implicit step the forces feed the right-hand side, which several reductions and the
+        # CG loop's first vectors read: store them rather than let each reader recompute 2 S
+        # springs. In an explicit step they feed one fused update, and storing would cost ~30%.
         return self._spread(total, self.store_sums)
 
     def _operand(self, f: torch.Tensor) -> torch.Tensor:
