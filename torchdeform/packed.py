@@ -201,14 +201,14 @@ class PackedModel(Model):
         return self.realize(f)
 
     def _spread(self, comps, store: bool = False, halo_zero: bool = False) -> torch.Tensor:
-        """Per-channel sums over the core nodes (``C`` tensors ``(B, P_core)``) -> ``(B, C, P)``,
-        zero outside the core range and at halo nodes (set ``halo_zero`` when the sums are zero
-        there already); under ``torch.compile`` stored when ``store``, otherwise computed inside
-        each reader."""
+        """Per-channel sums over the core nodes (``C`` tensors ``(B, P_core)``, or one tensor
+        ``(B, C, P_core)``) -> ``(B, C, P)``, zero outside the core range and at halo nodes (set
+        ``halo_zero`` when the sums are zero there already); under ``torch.compile`` stored when
+        ``store``, otherwise computed inside each reader."""
+        out = comps if torch.is_tensor(comps) else torch.stack(comps, 1)
         if not halo_zero:
-            own = self.shift(self.inside, 0)
-            comps = [t * own for t in comps]
-        out = F.pad(torch.stack(comps, 1), (self.G, self.G))
+            out = out * self.shift(self.inside, 0)
+        out = F.pad(out, (self.G, self.G))
         return self.realize(out) if self.realize is not None and store else out
 
     # ------------------------------------------------------------------ springs
@@ -320,7 +320,9 @@ class PackedLinearisation:
             m = [self.fields[0][:, a] for a in range(3)]
             proj = beta * (m[0] * du[:, 0] + m[1] * du[:, 1] + m[2] * du[:, 2])
         # Channels are kept apart (three sums, one loop): a channel axis would be a second reduction.
-        # Inductor stores the sums as reductions; readers take them through the padding. Springs of
-        # halo nodes do not exist, so their sums are zero already.
-        sums = [(alpha * du[:, a] + proj * m[a]).sum(1).flatten(-2) for a in range(3)]
-        return -pm._spread(sums, halo_zero=True)
+        # Each sum keeps its direction axis (size 1), so inductor writes the three straight into
+        # the concatenated (B, 3, N, L) buffer (a flattened sum would be copied there, one loop per
+        # channel). Readers take it through the padding. Springs of halo nodes do not exist, so
+        # the sums are zero there already.
+        sums = torch.cat([(alpha * du[:, a] + proj * m[a]).sum(1, keepdim=True) for a in range(3)], 1)
+        return -pm._spread(sums.flatten(-2), halo_zero=True)
