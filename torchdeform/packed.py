@@ -205,9 +205,11 @@ class PackedModel(Model):
         ``(B, C, P_core)``) -> ``(B, C, P)``, zero outside the core range and at halo nodes (set
         ``halo_zero`` when the sums are zero there already); under ``torch.compile`` stored when
         ``store``, otherwise computed inside each reader."""
-        out = comps if torch.is_tensor(comps) else torch.stack(comps, 1)
-        if not halo_zero:
-            out = out * self.shift(self.inside, 0)
+        own = None if halo_zero else self.shift(self.inside, 0)
+        if torch.is_tensor(comps):
+            out = comps if own is None else comps * own
+        else:       # masked before stacking: each channel's loop writes its slice of the stack
+            out = torch.stack(comps if own is None else [t * own for t in comps], 1)
         out = F.pad(out, (self.G, self.G))
         return self.realize(out) if self.realize is not None and store else out
 
