@@ -189,7 +189,8 @@ class PackedModel(Model):
         # In an implicit step the forces feed the right-hand side, which several reductions and the
         # CG loop's first vectors read: store them rather than let each reader recompute 2 S
         # springs. In an explicit step they feed one fused update, and storing would cost ~30%.
-        return self._spread(total, self.store_sums)
+        own = self.shift(self.inside, 0)               # halo nodes get exactly zero
+        return self._spread(torch.stack([t * own for t in total], 1), self.store_sums)
 
     def _operand(self, f: torch.Tensor) -> torch.Tensor:
         """A field about to be read at every spring's far end. Under ``torch.compile`` a field
@@ -200,17 +201,11 @@ class PackedModel(Model):
             return f
         return self.realize(f)
 
-    def _spread(self, comps, store: bool = False, halo_zero: bool = False) -> torch.Tensor:
-        """Per-channel sums over the core nodes (``C`` tensors ``(B, P_core)``, or one tensor
-        ``(B, C, P_core)``) -> ``(B, C, P)``, zero outside the core range and at halo nodes (set
-        ``halo_zero`` when the sums are zero there already); under ``torch.compile`` stored when
-        ``store``, otherwise computed inside each reader."""
-        own = None if halo_zero else self.shift(self.inside, 0)
-        if torch.is_tensor(comps):
-            out = comps if own is None else comps * own
-        else:       # masked before stacking: each channel's loop writes its slice of the stack
-            out = torch.stack(comps if own is None else [t * own for t in comps], 1)
-        out = F.pad(out, (self.G, self.G))
+    def _spread(self, sums: torch.Tensor, store: bool = False) -> torch.Tensor:
+        """Sums over the core nodes ``(B, C, P_core)`` -> ``(B, C, P)``, zero outside the core
+        range; under ``torch.compile`` stored when ``store``, otherwise computed inside each
+        reader."""
+        out = F.pad(sums, (self.G, self.G))
         return self.realize(out) if self.realize is not None and store else out
 
     # ------------------------------------------------------------------ springs
@@ -327,4 +322,4 @@ class PackedLinearisation:
         # channel). Readers take it through the padding. Springs of halo nodes do not exist, so
         # the sums are zero there already.
         sums = torch.cat([(alpha * du[:, a] + proj * m[a]).sum(1, keepdim=True) for a in range(3)], 1)
-        return -pm._spread(sums.flatten(-2), halo_zero=True)
+        return -pm._spread(sums.flatten(-2))
