@@ -23,7 +23,7 @@ def test_bench_speed_quick_json(capsys, tmp_path):
     warp = [r for r in doc["rows"] if r["mode"].startswith("warp")]
     assert {r["topology"] for r in rows} == {6, 26}
     assert "ratio_vs_warp" in doc and doc["ratio_vs_warp"] is None     # no 64^3 row in --quick
-    from torchdeform.bench_warp import warp_available
+    from torchdeform.bench.warp_baseline import warp_available
     if warp_available()[0]:
         assert doc["warp"] == "measured" and len(warp) == 1
         w = warp[0]

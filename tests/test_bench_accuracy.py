@@ -15,7 +15,9 @@ import pytest
 import torch
 
 import torchdeform as td
-from torchdeform import bench, bench_accuracy as ba, cli
+from torchdeform import cli
+from torchdeform.bench import accuracy as ba
+from torchdeform.bench import registry as bench
 
 EXPLICIT = ("explicit", "symplectic", "verlet", "rk4")
 SMOOTH = ("load", "supports")          # the drag path has kinks, which cap the observed order

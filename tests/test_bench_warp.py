@@ -1,4 +1,4 @@
-"""The NVIDIA Warp baseline of ``torchdeform bench speed`` (``torchdeform.bench_warp``).
+"""The NVIDIA Warp baseline of ``torchdeform bench speed`` (``torchdeform.bench.warp_baseline``).
 
 The Warp steps must be torchdeform's step (same springs, same integrator): both variants are
 compared with the eager ``SymplecticEuler`` after 1 and 20 steps. The missing-Warp path and the
@@ -13,8 +13,8 @@ import torch
 from conftest import EdgeList
 
 import torchdeform as td
-from torchdeform import bench_warp
-from torchdeform.bench import speed_cube
+from torchdeform.bench import warp_baseline as bench_warp
+from torchdeform.bench.common import speed_cube
 
 #: (positions m, velocities m/s) tolerances of the Warp step against the eager step; float32
 #: differs by summation order and one reciprocal (positions are ~4 cm, so 1 ulp ~ 4e-9 m).
@@ -35,7 +35,7 @@ def _eager(model, state, dt, steps):
 
 # --------------------------------------------------------------- no warp needed
 def test_import_does_not_import_warp():
-    code = "import sys, torchdeform.bench_warp; assert 'warp' not in sys.modules, 'warp imported'"
+    code = "import sys, torchdeform.bench.warp_baseline; assert 'warp' not in sys.modules, 'warp imported'"
     subprocess.run([sys.executable, "-c", code], check=True)
 
 

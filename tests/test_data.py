@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from torchdeform import data
+import torchdeform as td
+from torchdeform import learn
 from torchdeform.cli import main as cli_main
 from torchdeform.errors import ConfigError
 
@@ -58,7 +59,7 @@ def reference_cube(springs, k, d, m, force, steps, dt, h):
 
 @pytest.mark.parametrize("springs", [54, 70, 86, 126])
 def test_radetzky_cube_matches_edge_list_simulation(springs):
-    s = data.radetzky_cube(springs=springs, steps=40)
+    s = learn.radetzky_cube(springs=springs, steps=40)
     ref, count = reference_cube(springs, 10.0, 0.1, 0.01, np.array([-0.05, 0.0, 0.0]), 40, 0.005, 0.01)
     assert int(s.spring_mask_tensor().sum()) == count == springs
     got = s.positions.reshape(41, 3, 27).transpose(0, 2, 1)
@@ -69,18 +70,18 @@ def test_radetzky_cube_matches_edge_list_simulation(springs):
 
 
 def test_cube_reaches_equilibrium_in_250_steps():
-    s = data.radetzky_cube(springs=70)
+    s = learn.radetzky_cube(springs=70)
     assert s.positions.shape == (251, 3, 3, 3, 3) and s.steps[-1] == 250
     speed = np.abs(np.diff(s.positions, axis=0)).max(axis=(1, 2, 3, 4)) / s.dt
     assert speed[-1] < 1e-3 * speed.max()
 
 
 def test_sine_drag_and_indentation_follow_their_paths():
-    s = data.cube_series(n=4, topology=26, load="sine", steps=60, dt=0.005, period=0.2, amplitude=0.001)
+    s = learn.cube_series(n=4, topology=26, load="sine", steps=60, dt=0.005, period=0.2, amplitude=0.001)
     t = s.steps * s.dt
     top = s.positions[:, 1, 3, 2, 1] - 2 * 0.01           # channel h of a top node, minus its rest position
     assert np.allclose(top, 0.001 * np.sin(2 * np.pi * t / 0.2), atol=1e-15)
-    s = data.cube_series(n=4, load="indent", steps=100, dt=0.005, duration=0.25, amplitude=0.002)
+    s = learn.cube_series(n=4, load="indent", steps=100, dt=0.005, duration=0.25, amplitude=0.002)
     presc = s.prescribed()
     assert presc.sum() >= 1 and presc[3].sum() == presc.sum()        # only top nodes
     i = tuple(np.argwhere(presc)[0])
@@ -89,13 +90,13 @@ def test_sine_drag_and_indentation_follow_their_paths():
 
 
 def test_ramp_force_profile():
-    ld = data.point_force((1, 1, 1), (1.0, 0, 0), "ramp", start=0.1, duration=0.2)
+    ld = td.PointForce((1, 1, 1), (1.0, 0, 0), start=0.1, ramp=0.2)
     assert ld.factor([0.0, 0.1, 0.2, 0.3, 1.0]).tolist() == pytest.approx([0, 0, 0.5, 1, 1])
 
 
 def test_heterogeneous_springs_are_harmonic_means():
-    s = data.cube_series(n=4, topology=6, stiffness=[10.0, 40.0], damping=0.1,
-                         regions=data.layered_regions(data.cube_grid(4)[0], 2), steps=5)
+    s = learn.cube_series(n=4, topology=6, stiffness=[10.0, 40.0], damping=0.1,
+                         regions=learn.layered_regions(learn.cube_grid(4)[0], 2), steps=5)
     k = s.truth["stiffness"]
     # axis-D spring from layer 0 (node row 1) to layer 1 (row 2): 2 * 10 * 40 / 50 = 16
     assert k[0, 1, 1, 1] == pytest.approx(16.0)
@@ -104,9 +105,9 @@ def test_heterogeneous_springs_are_harmonic_means():
 
 
 def test_noise_level_and_seed():
-    clean = data.radetzky_cube(springs=86)
-    a = data.radetzky_cube(springs=86, noise=0.01, seed=3)
-    b = data.radetzky_cube(springs=86, noise=0.01, seed=3)
+    clean = learn.radetzky_cube(springs=86)
+    a = learn.radetzky_cube(springs=86, noise=0.01, seed=3)
+    b = learn.radetzky_cube(springs=86, noise=0.01, seed=3)
     assert np.array_equal(a.positions, b.positions)
     X = clean.grid.rest_positions(torch.float64)[0].numpy()
     free = ~clean.constrained()
@@ -119,14 +120,14 @@ def test_noise_level_and_seed():
 def test_partial_observation_and_sparse_times():
     observe = np.zeros((3, 3, 3), dtype=bool)
     observe[2] = True
-    s = data.radetzky_cube(springs=70, every=10, observe=observe)
+    s = learn.radetzky_cube(springs=70, every=10, observe=observe)
     assert s.steps.tolist() == list(range(0, 251, 10))
     assert s.mask.shape == (26, 3, 3, 3) and s.mask[:, 2].all() and not s.mask[:, :2].any()
     assert (s.positions[:, :, :2] == 0).all()
 
 
 def test_balloon_series_snapshots_grow():
-    s = data.balloon_series()
+    s = learn.balloon_series()
     assert s.steps.tolist() == [0, 50, 100, 150, 200] and s.dt == 0.02
     X = s.grid.rest_positions(torch.float64)[0].numpy()
     nodes = s.grid.nodes().numpy()
@@ -136,25 +137,25 @@ def test_balloon_series_snapshots_grow():
 
 
 def test_save_load_roundtrip(tmp_path):
-    s = data.cube_series(n=3, load="sine", steps=20, noise=0.01, regions=np.zeros((3, 3, 3), int),
+    s = learn.cube_series(n=3, load="sine", steps=20, noise=0.01, regions=np.zeros((3, 3, 3), int),
                          stiffness=[5.0], damping=[0.1])
     f = s.save(tmp_path / "s.npz")
-    t = data.load_series(f)
+    t = learn.load_series(f)
     assert np.array_equal(s.positions, t.positions) and np.array_equal(s.mask, t.mask)
-    assert t.dt == s.dt and t.grid.shape == s.grid.shape and t.loads[0].kind == "drag"
+    assert t.dt == s.dt and t.grid.shape == s.grid.shape and isinstance(t.loads[0], td.Drag)
     for key in ("stiffness", "damping", "mass", "regions"):
         assert np.array_equal(s.truth[key], t.truth[key])
     # the stored truth reproduces the (clean) dynamics of the reloaded series
     with torch.no_grad():
         x = t.simulate(t.true_model())[:, 0].numpy()
-    clean = data.cube_series(n=3, load="sine", steps=20, stiffness=5.0, damping=0.1)
+    clean = learn.cube_series(n=3, load="sine", steps=20, stiffness=5.0, damping=0.1)
     assert np.abs(x - clean.positions).max() < 1e-15
-    b = data.balloon_series().save(tmp_path / "b.npz")
-    assert data.load_series(b).loads[0].array.shape == (3,) + data.load_series(b).grid.shape
+    b = learn.balloon_series().save(tmp_path / "b.npz")
+    assert learn.load_series(b).loads[0].field.shape == (3,) + learn.load_series(b).grid.shape
 
 
 def _corrupt(tmp_path, name, edit):
-    src = data.radetzky_cube(springs=54, steps=10).save(tmp_path / "ok.npz")
+    src = learn.radetzky_cube(springs=54, steps=10).save(tmp_path / "ok.npz")
     with np.load(src) as z:
         arrays = {k: z[k] for k in z.files}
     meta = json.loads(str(arrays["meta"]))
@@ -188,7 +189,7 @@ def test_bad_files_give_one_line_errors(tmp_path, case):
     edit, key = BAD[case]
     path = _corrupt(tmp_path, f"{case}.npz", edit)
     with pytest.raises(ConfigError) as e:
-        data.load_series(path)
+        learn.load_series(path)
     msg = str(e.value)
     assert "\n" not in msg and str(path) in msg and key in msg, msg
 
@@ -197,28 +198,28 @@ def test_not_a_series_file(tmp_path):
     p = tmp_path / "x.npz"
     p.write_text("hello")
     with pytest.raises(ConfigError, match="x.npz"):
-        data.load_series(p)
+        learn.load_series(p)
     with pytest.raises(ConfigError, match="not found"):
-        data.load_series(tmp_path / "missing.npz")
+        learn.load_series(tmp_path / "missing.npz")
 
 
 def test_generator_argument_errors():
     with pytest.raises(ConfigError, match="springs"):
-        data.radetzky_cube(springs=60)
+        learn.radetzky_cube(springs=60)
     with pytest.raises(ConfigError, match="every"):
-        data.radetzky_cube(steps=250, every=7)
+        learn.radetzky_cube(steps=250, every=7)
     with pytest.raises(ConfigError, match="load"):
-        data.cube_series(load="twist")
+        learn.cube_series(load="twist")
 
 
 def test_cli_generates_series(tmp_path, capsys):
     out = tmp_path / "c.npz"
     assert cli_main(["data", "cube", "--springs", "86", "--steps", "20", "--out", str(out)]) == 0
-    s = data.load_series(out)
+    s = learn.load_series(out)
     assert s.grid.num_springs == 86 and s.steps[-1] == 20
     out2 = tmp_path / "n.npz"
     assert cli_main(["data", "cube", "--n", "4", "--load", "indent", "--steps", "10", "--noise", "0.01",
                      "--out", str(out2)]) == 0
-    assert data.load_series(out2).grid.shape == (4, 4, 4)
+    assert learn.load_series(out2).grid.shape == (4, 4, 4)
     assert cli_main(["data", "cube", "--springs", "60", "--out", str(out)]) == 2
     assert "springs" in capsys.readouterr().err

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchdeform import data, fuzzy, learn
+from torchdeform import fuzzy, learn
 from torchdeform.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -27,7 +27,7 @@ def one_thread():
 
 
 def cube(steps=100, **kw):
-    return data.radetzky_cube(springs=kw.pop("springs", 70), steps=steps, **kw)
+    return learn.radetzky_cube(springs=kw.pop("springs", 70), steps=steps, **kw)
 
 
 def shared(series, k, c, mass=None):
@@ -49,7 +49,7 @@ def test_transforms_roundtrip_and_positive(transform):
 
 
 def test_sharing_modes():
-    g, _ = data.cube_grid(4, 0.01, None, 26)
+    g, _ = learn.cube_grid(4, 0.01, None, 26)
     mask = g.spring_mask()
     k = learn.SpringParameter(g, None, 3.0, "shared")()
     assert torch.allclose(k, 3.0 * mask.to(k.dtype), rtol=1e-14, atol=0)
@@ -57,7 +57,7 @@ def test_sharing_modes():
     for s, cls in enumerate(g.direction_class()):
         expect = {"axis": 1.0, "face": 2.0, "body": 3.0}[cls]
         assert torch.allclose(c[s][mask[s]], torch.tensor(expect, dtype=c.dtype))
-    lab = data.layered_regions(g, 2)
+    lab = learn.layered_regions(g, 2)
     r = learn.SpringParameter(g, None, torch.tensor([2.0, 8.0]), "region", regions=lab)()
     # oracle: harmonic mean of the two end nodes' region values, spring by spring
     vals = np.array([2.0, 8.0])[lab]
@@ -111,7 +111,7 @@ def test_gradient_matches_finite_differences():
 
 
 def test_checkpointing_gives_the_same_loss_and_gradient():
-    s = data.cube_series(n=3, load="sine", steps=30, period=0.1)
+    s = learn.cube_series(n=3, load="sine", steps=30, period=0.1)
     grads = []
     for ckpt in (None, 7):
         p = shared(s, 13.0, 0.2)
@@ -148,7 +148,7 @@ def test_shared_recovery_from_offset_start():
 
 
 def test_shared_recovery_with_one_percent_noise():
-    s = data.radetzky_cube(springs=70, noise=0.01, seed=2)
+    s = learn.radetzky_cube(springs=70, noise=0.01, seed=2)
     p = shared(s, 30.0, 0.04)
     tr = learn.Trainer(p, learn.WindowLoss(s, window=50, smooth=10), optimizer="lbfgs", iterations=10, patience=3,
                        progress=False)
@@ -193,7 +193,7 @@ def test_spread_report_verdicts():
 
 @pytest.mark.slow
 def test_sparse_snapshots_recover_stiffness():
-    s = data.balloon_series()
+    s = learn.balloon_series()
     k0 = s.meta["truth"]["stiffness"]
     p = learn.Parameters(s, learn.SpringParameter.like(s, k0 / 3), s.truth["damping"], s.truth["mass"])
     tr = learn.Trainer(p, learn.WindowLoss(s, window=1, velocity="zero"), optimizer="lbfgs", iterations=5,

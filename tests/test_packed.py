@@ -6,8 +6,8 @@ import pytest
 import torch
 
 import torchdeform as td
-from torchdeform.compiled import CompiledStep, _ImplicitStep
-from torchdeform.packed import BLOCK, PackedModel
+from torchdeform.sim.compiled import CompiledStep, ImplicitGraph
+from torchdeform.sim.packed import BLOCK, PackedModel
 
 F64 = torch.float64
 INTEGRATORS = [td.ExplicitEuler(), td.SymplecticEuler(), td.DampedVerlet(0.1), td.RK4(),
@@ -89,7 +89,7 @@ def test_compiled_implicit_graph_equals_eager_step():
     for integ in (td.ImplicitEuler(cg_iters=7, cg_tol=0), td.ImplicitEuler(cg_iters=40, cg_tol=1e-9),
                   td.ImplicitEuler(cg_iters=9, cg_tol=0, newton_iters=1)):
         cs = CompiledStep(integ, model, 5e-4, enable=False)
-        graph = _ImplicitStep(integ, cs.packed, 5e-4, None)
+        graph = ImplicitGraph(integ, cs.packed, 5e-4, None)
         ps = cs.packed.pack_state(state)
         x, v = graph(ps.x, ps.v, torch.tensor(0.0, dtype=F64))
         n_graph, rel_graph = integ.last_cg
@@ -116,7 +116,7 @@ def test_time_functions_agree_for_floats_and_tensors():
 def test_spring_law_is_exactly_zero_at_rest_length():
     """``k (l - l0) / l`` is exactly 0 when ``|delta|`` rounds to ``l0``: a body at rest is an
     exact equilibrium (up to the rounding of the rest lengths themselves)."""
-    from torchdeform.springs import spring_law
+    from torchdeform.sim.springs import spring_law
     for dtype in (torch.float32, F64):
         delta = torch.tensor([[0.01, 0.013, 0.017], [0.0, 0.0, 0.02], [3.0, 4.0, 0.0]], dtype=dtype)
         sq = (delta * delta).sum(1)

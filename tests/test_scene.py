@@ -273,7 +273,7 @@ def test_cli_run_prints_summary(tmp_path, capsys):
 
 
 def test_cli_demo_wiring(tmp_path, capsys, monkeypatch):
-    import torchdeform.scene as scene_mod
+    import torchdeform.scene.commands as scene_mod
 
     def short_demo():
         scene = demo_scene()

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 import torchdeform as td
-from torchdeform import springs
+from torchdeform.sim import springs
 
 from conftest import EdgeList
 

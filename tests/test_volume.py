@@ -9,7 +9,7 @@ from scipy.ndimage import map_coordinates
 from torchdeform.errors import ConfigError
 from torchdeform.volume import (DisplacementField, FoldingWarning, folding_fraction, inverse_points,
                                 inverse_residual, jacobian_determinant, offset_texture, warp)
-from torchdeform.volume_io import load_volume, save_volume
+from torchdeform.volume.io import load_volume, save_volume
 
 
 def trilinear_nodes_np(nodes, shape):
@@ -213,7 +213,7 @@ def test_bench_volume_quick_smoke(capsys):
 
 
 def test_inverse_warp_accuracy_rows():
-    from torchdeform.bench_accuracy import COLUMNS, inverse_warp_rows
+    from torchdeform.bench.accuracy import COLUMNS, inverse_warp_rows
     rows, ref = inverse_warp_rows(quick=True, dtype=torch.float64, repeats=1)
     assert all(set(r) == set(COLUMNS) and r["scene"] == "inverse-warp" and r["wall_s"] > 0 for r in rows)
     errors = [r["error"] for r in sorted(rows, key=lambda r: r["steps"])]

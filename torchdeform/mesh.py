@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from .errors import ConfigError
-from .grid import Grid
+from .sim.grid import Grid
 
 #: Relative distance (in units of the smallest spacing) within which a node counts as on the
 #: surface, and therefore inside.

@@ -30,7 +30,7 @@ import time
 import numpy as np
 import torch
 
-from torchdeform import data, learn
+from torchdeform import learn
 
 
 def parse_args(argv=None):
@@ -39,7 +39,7 @@ def parse_args(argv=None):
     p.add_argument("--out", required=True, help="output folder (result.json, plots)")
     p.add_argument("--runs", default="1,2,3", help="comma-separated runs to do (default 1,2,3)")
     p.add_argument("--data", default=None, help="a series file (.npz) instead of generating Radetzky's cube")
-    p.add_argument("--springs", type=int, default=70, choices=sorted(data.SPRING_SETS), help="spring set (default 70)")
+    p.add_argument("--springs", type=int, default=70, choices=sorted(learn.SPRING_SETS), help="spring set (default 70)")
     p.add_argument("--noise", type=float, default=0.0, help="relative observation noise (0.01 = 1%%)")
     p.add_argument("--seed", type=int, default=0, help="seed of the noise and of random initial values")
     p.add_argument("--offset", default="3,0.4", help="run 3 initial factors for stiffness,damping (default 3,0.4)")
@@ -155,7 +155,7 @@ def per_spring_run(series, args, out, with_mass: bool) -> dict:
 
 def long_run(args, out) -> dict:
     """Full BPTT over one long rollout: shared k, d of a 4^3 cube dragged sinusoidally."""
-    series = data.cube_series(n=4, topology=26, load="sine", steps=args.long, dt=0.005, period=1.0)
+    series = learn.cube_series(n=4, topology=26, load="sine", steps=args.long, dt=0.005, period=1.0)
     kt, ct = series.meta["truth"]["stiffness"], series.meta["truth"]["damping"]
     params = learn.Parameters(series, learn.SpringParameter.like(series, kt * 2.0),
                               learn.SpringParameter.like(series, ct * 0.5), series.truth["mass"])
@@ -184,9 +184,9 @@ def fit(args, out) -> dict:
         result = {"long_rollout": long_run(args, out)}
     else:
         if args.data:
-            series = data.load_series(args.data)
+            series = learn.load_series(args.data)
         else:
-            series = data.radetzky_cube(springs=args.springs, noise=args.noise, seed=args.seed)
+            series = learn.radetzky_cube(springs=args.springs, noise=args.noise, seed=args.seed)
         runs = [int(r) for r in args.runs.split(",") if r.strip()]
         if any(r not in (1, 2, 3) for r in runs):
             raise SystemExit("fit_cube.py: --runs takes numbers among 1, 2, 3")

@@ -29,7 +29,7 @@ import sys
 import numpy as np
 import torch
 
-from torchdeform import data, fuzzy, learn
+from torchdeform import fuzzy, learn
 
 
 def parse_args(argv=None):
@@ -62,7 +62,7 @@ def fit(args, out) -> dict:
     name = ref.input_names()[0]
     target = {k: float(v) for k, v in ref.evaluate({name: args.target}).items()}
     kt, ct = target["spring_const"], target["viscosity"]
-    series = data.radetzky_cube(springs=70, stiffness=kt, damping=ct, mass=args.mass)
+    series = learn.radetzky_cube(springs=70, stiffness=kt, damping=ct, mass=args.mass)
     fs = learn.FuzzySprings(fuzzy.load_preset(args.preset), {name: args.init}, grid=series.grid,
                             spring_mask=series.spring_mask_tensor(), learn=args.learn)
     params = learn.Parameters(series, fs.part("stiffness"), fs.part("damping"), series.truth["mass"])

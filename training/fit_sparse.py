@@ -28,7 +28,7 @@ import sys
 import numpy as np
 import torch
 
-from torchdeform import data, learn
+from torchdeform import learn
 
 
 def parse_args(argv=None):
@@ -64,7 +64,7 @@ def main(argv=None) -> int:
 
 
 def fit(args, out) -> dict:
-    series = data.balloon_series(subdivisions=args.subdivisions, radius=args.radius, spacing=args.spacing,
+    series = learn.balloon_series(subdivisions=args.subdivisions, radius=args.radius, spacing=args.spacing,
                                  snapshots=args.snapshots, interval=args.interval, dt=args.dt,
                                  noise=args.noise, seed=args.seed, mesh=args.mesh)
     kt = series.meta["truth"]["stiffness"]

@@ -29,8 +29,8 @@ from dataclasses import dataclass
 import torch
 
 from ..errors import ConfigError
-from ..grid import Grid
-from ..springs import harmonic_mean_of_ends
+from ..sim.grid import Grid
+from ..sim.springs import harmonic_mean_of_ends
 from .system import MamdaniSystem
 
 

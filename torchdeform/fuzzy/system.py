@@ -278,7 +278,7 @@ class MamdaniSystem(nn.Module):
         call (the plan depends on them); the last chunk is padded so that one shape is compiled.
         Returns ``f(x) -> outputs`` like ``self(x)``.
         """
-        from ..compiled import inductor_options
+        from .._compile import inductor_options
         cache = {}
 
         def run(x):

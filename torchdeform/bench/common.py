@@ -1,0 +1,107 @@
+"""Helpers every benchmark shares: the common options, machine information, progress bars, the
+output conventions (a table on stdout, or exactly one JSON document with ``--json``; ``--out DIR``
+writes ``<name>.csv``), and the speed scene that :mod:`.speed` and :mod:`.warp_baseline` both time.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import os
+import platform
+import sys
+from pathlib import Path
+
+import torch
+
+from ..errors import ConfigError
+from ..sim.grid import Grid
+from ..sim.model import Model, State
+
+__all__ = ["int_list", "add_common", "machine_info", "device_sync", "progress", "emit", "format_table", "speed_cube"]
+
+
+def int_list(key):
+    """An ``argparse`` type: comma-separated integers (a located error for ``key`` otherwise)."""
+    def parse(text):
+        try:
+            values = [int(v) for v in str(text).split(",") if v.strip()]
+        except ValueError:
+            raise ConfigError(key, "comma-separated integers, e.g. 16,32,64", text) from None
+        if not values:
+            raise ConfigError(key, "at least one integer", text)
+        return values
+    return parse
+
+
+def add_common(p) -> None:
+    """Options every benchmark takes."""
+    p.add_argument("--quick", action="store_true", help="tiny sizes, few steps: a smoke run in seconds")
+    p.add_argument("--json", action="store_true", help="print one JSON document on stdout, nothing else")
+    p.add_argument("--out", default=None, help="folder for the CSV and the plot")
+    p.add_argument("--threads", type=int, default=None, help="CPU threads (default: torch's current)")
+    p.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
+    p.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+
+
+def machine_info(device: str) -> dict:
+    """torch and Python versions, thread and CPU counts, the device (and the GPU's name)."""
+    info = {"torch": torch.__version__, "python": platform.python_version(), "threads": torch.get_num_threads(),
+            "device": device, "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count()}
+    if device.startswith("cuda") and torch.cuda.is_available():
+        info["gpu"] = torch.cuda.get_device_name(torch.device(device))
+    return info
+
+
+def device_sync(device: str):
+    """A function that waits for the device (CUDA) to finish; a no-op on the CPU."""
+    if device.startswith("cuda"):
+        return torch.cuda.synchronize
+    return lambda: None
+
+
+def progress(total: int, desc: str):
+    """A tqdm bar on stderr (so stdout keeps exactly the table or the JSON document)."""
+    from tqdm.auto import tqdm
+    return tqdm(total=total, desc=desc, unit="row", file=sys.stderr, disable=None, leave=False)
+
+
+def emit(name: str, args, rows: list, columns: list, extra: dict | None = None, display=None) -> None:
+    """Write ``--out DIR/<name>.csv`` and print the JSON document (``--json``) or the table of
+    ``display`` rows (default ``rows``)."""
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        with open(out / f"{name}.csv", "w", newline="") as fh:
+            keys = list(dict.fromkeys(k for r in rows for k in r)) or [c[0] for c in columns]
+            w = csv.DictWriter(fh, fieldnames=keys)              # rows may differ (compile_s ...)
+            w.writeheader()
+            w.writerows(rows)
+    if args.json:
+        doc = {"bench": name, **(extra or {}), "rows": rows}
+        sys.stdout.write(json.dumps(doc, indent=1) + "\n")
+        sys.stdout.flush()
+    else:
+        print(format_table(rows if display is None else display, columns))
+
+
+def format_table(rows: list, columns: list) -> str:
+    """``columns``: ``(key, header, format)``; ``None`` values print as ``-``."""
+    cells = [[h for _, h, _ in columns]]
+    for r in rows:
+        cells.append(["-" if r.get(k) is None else (fmt.format(r[k]) if fmt else str(r[k]))
+                      for k, _, fmt in columns])
+    widths = [max(len(row[i]) for row in cells) for i in range(len(columns))]
+    lines = ["  ".join(c.rjust(w) for c, w in zip(row, widths)) for row in cells]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def speed_cube(n: int, topology: int, dtype=torch.float32, device="cpu", seed: int = 0):
+    """The speed scene: an ``n^3`` damped cube (1 cm spacing, k = 100 N/m, c = 0.05 N s/m,
+    1 g per node, no gravity), slightly perturbed from rest. Returns ``(model, state, dt)``."""
+    grid = Grid((n, n, n), spacing=0.01, topology=topology)
+    model = Model(grid, stiffness=100.0, damping=0.05, mass=1e-3, dtype=dtype, device=device)
+    g = torch.Generator().manual_seed(seed)
+    x = model.X + (1e-4 * torch.randn(model.X.shape, generator=g, dtype=torch.float64)).to(dtype=dtype, device=device)
+    v = (1e-3 * torch.randn(model.X.shape, generator=g, dtype=torch.float64)).to(dtype=dtype, device=device)
+    return model, State(x, v, 0.0), 1e-4       # dt well below the bound (~8e-4 s for 26 neighbours)

@@ -1,0 +1,30 @@
+"""The benchmarks of ``torchdeform bench``: one entry per benchmark, a help line and the module
+that runs it. Each module has ``add_arguments(parser)`` and ``run(args) -> int``; it is imported
+when the command line is built (benchmark modules import nothing heavy at module level).
+
+A new benchmark is one module in :mod:`torchdeform.bench` and one entry here.
+"""
+from __future__ import annotations
+
+import importlib
+
+__all__ = ["BENCHES", "module"]
+
+#: name -> (help line, module of :mod:`torchdeform.bench`)
+BENCHES = {
+    "speed": ("spring-step throughput (Msprings/s, node-steps/s), eager and compiled, against Warp; "
+              "implicit Euler on a beam", "speed"),
+    "accuracy": ("error against wall time of every integrator on standard scenes, a resolution sweep, "
+                 "Pareto front", "accuracy"),
+    "fuzzy": ("Mamdani inputs per second (SUSILAP-G preset by default), eager and compiled, against "
+              "scikit-fuzzy", "fuzzy"),
+    "volume": ("deform and render a 256^3 volume to a 256^2 image: frames per second, through the "
+               "displacement field against building the warped volume first", "volume"),
+    "chainmail": ("ChainMail: time of a local pull against grid size and moved elements, Gibson, Enhanced "
+                  "and tensor", "chainmail"),
+}
+
+
+def module(name: str):
+    """The module of benchmark ``name`` (a key of :data:`BENCHES`)."""
+    return importlib.import_module(f"{__package__}.{BENCHES[name][1]}")

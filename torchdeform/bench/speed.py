@@ -1,0 +1,340 @@
+"""``torchdeform bench speed``: spring-step throughput of symplectic Euler on a damped cube
+(Msprings/s, node-steps/s, ms/step) for n^3 grids, topologies, eager and compiled, dtypes and
+thread counts, against NVIDIA Warp's CPU backend (:mod:`.warp_baseline`), and implicit Euler on a
+40 x 10 x 10 beam shaped like SOFA's spring-beam benchmark.
+"""
+from __future__ import annotations
+
+import contextlib
+import math
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from ..errors import ConfigError
+from ..sim.grid import Grid
+from ..sim.integrators import ImplicitEuler, SymplecticEuler
+from ..sim.model import Model
+from .common import emit, format_table, int_list, machine_info, progress, speed_cube, device_sync
+
+__all__ = ["add_arguments", "run", "speed_row", "beam_row", "beam_scene", "SPEED_COLUMNS", "BEAM_COLUMNS"]
+
+
+SPEED_COLUMNS = [("grid", "grid", None), ("topology", "topo", None), ("mode", "mode", None),
+                 ("dtype", "dtype", None), ("threads", "thr", None),
+                 ("springs", "springs", "{:,}"), ("steps", "steps", None), ("ms_per_step", "ms/step", "{:.3f}"),
+                 ("msprings_per_s", "Msprings/s", "{:.1f}"), ("node_steps_per_s", "Mnode-steps/s", None),
+                 ("vs_warp", "x Warp", "{:.2f}"), ("peak_rss_mb", "peak MB", "{:.0f}"),
+                 ("compile_s", "compile s", "{:.1f}"), ("max_abs_diff", "max|diff|", "{:.1e}")]
+BEAM_COLUMNS = [("scene", "scene", None), ("mode", "mode", None), ("dtype", "dtype", None), ("threads", "thr", None),
+                ("cg_iters", "CG iters", None), ("steps", "steps", None), ("ms_per_step", "ms/step", "{:.2f}"),
+                ("steps_per_s", "steps/s", "{:.0f}"), ("compile_s", "compile s", "{:.1f}"),
+                ("max_abs_diff", "max|diff|", "{:.1e}")]
+
+
+def add_arguments(p) -> None:
+    """Options of ``torchdeform bench speed``."""
+    p.add_argument("--quick", action="store_true", help="tiny sizes, few steps: a smoke run in seconds")
+    p.add_argument("--json", action="store_true", help="print one JSON document on stdout, nothing else")
+    p.add_argument("--out", default=None, help="folder for speed.csv and speed.png")
+    p.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
+    p.add_argument("--sizes", type=int_list("--sizes"), default=None,
+                   help="grid sizes n (n^3 nodes), comma-separated (default 16,32,64,128; quick 8,12)")
+    p.add_argument("--topologies", type=int_list("--topologies"), default=None,
+                   help="neighbour counts, comma-separated (default 6,18,26; quick 6,26)")
+    p.add_argument("--dtypes", default=None, help="float32,float64 (default both; quick float32)")
+    p.add_argument("--threads", type=int_list("--threads"), default=None,
+                   help="CPU thread counts, comma-separated (default 1,2; quick: torch's current)")
+    p.add_argument("--no-compile", action="store_true", help="eager rows only")
+    p.add_argument("--no-warp", action="store_true", help="skip the NVIDIA Warp rows")
+    p.add_argument("--no-beam", action="store_true", help="skip the implicit-Euler beam")
+    p.add_argument("--steps", type=int, default=None,
+                   help="steps per timed repeat (default: enough for ~0.2 s, 3..200)")
+    p.add_argument("--repeats", type=int, default=None, help="timed repeats, the median is kept (default 5; quick 3)")
+
+
+def beam_scene(dtype=torch.float32, device="cpu"):
+    """The implicit benchmark, shaped like SOFA's spring-beam benchmark: a 16 x 4 x 4 m beam of
+    40 x 10 x 10 nodes (W is the long axis), 26 neighbours, stiffness 100 and damping 1 divided by
+    the rest length (SOFA's convention), 20 kg in all, gravity along -D, the w = 0 end fixed.
+    Returns ``(model, state, dt)`` with dt = 0.01 s."""
+    grid = Grid((10, 10, 40), spacing=(4 / 9, 4 / 9, 16 / 39), topology=26)
+    fixed = torch.zeros(grid.shape, dtype=torch.bool)
+    fixed[:, :, 0] = True
+    model = Model(grid, stiffness=100.0, damping=1.0, normalize=True, mass=20.0 / grid.num_nodes,
+                  gravity=(-9.81, 0, 0), fixed=fixed, dtype=dtype, device=device)
+    return model, model.rest_state(), 0.01
+
+
+def _reset_peak() -> bool:
+    """Reset the process's peak resident memory (Linux ``clear_refs``); False where unsupported."""
+    try:
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def _peak_rss_mb():
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return None
+
+
+def _time_steps(step, state, steps: int, repeats: int, sync) -> float:
+    """Median seconds per step over ``repeats`` runs of ``steps`` steps from ``state``."""
+    times = []
+    for _ in range(repeats):
+        s = state
+        sync()
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            s = step(s)
+        sync()
+        times.append((time.perf_counter() - t0) / steps)
+    return statistics.median(times)
+
+
+def _measure(step, state, *, steps, repeats, target_s, sync, max_steps=200):
+    """Warm up (and time the first call: compilation), size and time a step. Returns
+    ``(first_result, seconds_per_step, first_call_s, steps)``."""
+    t0 = time.perf_counter()
+    first = step(state)
+    sync()
+    first_s = time.perf_counter() - t0
+    t0 = time.perf_counter()                       # second warm-up call, also sizes the run
+    step(state)
+    sync()
+    warm = max(time.perf_counter() - t0, 1e-7)
+    if steps is None:
+        steps = int(min(max_steps, max(3, math.ceil(target_s / warm))))
+    return first, _time_steps(step, state, steps, repeats, sync), first_s, steps
+
+
+def _time_mode(integ, model, state, dt, mode, *, steps, repeats, target_s, sync, reference=None, max_steps=200):
+    """Time ``integ`` on ``model`` from ``state``, eager (grid layout) or compiled (packed state
+    kept between steps), without gradients. Returns ``(first_state, s_per_step, compile_s,
+    steps, fallback, max_abs_diff)``; ``compile_s`` is None for eager, ``max_abs_diff`` compares
+    the first step with ``reference`` (or None)."""
+    from ..sim.compiled import CompiledStep          # the fast path, only when timed
+    with torch.no_grad():
+        compile_s, fallback = None, False
+        if mode == "eager":
+            first, sec, _, steps = _measure(lambda s: integ.step(model, s, dt), state, steps=steps,
+                                            repeats=repeats, target_s=target_s, sync=sync, max_steps=max_steps)
+        else:
+            cs = CompiledStep(integ, model, dt)
+            first, sec, compile_s, steps = _measure(cs.step_packed, cs.packed.pack_state(state), steps=steps,
+                                                    repeats=repeats, target_s=target_s, sync=sync,
+                                                    max_steps=max_steps)
+            first = cs.packed.unpack_state(first)
+            fallback = not cs.compiled
+        diff = None
+        if reference is not None:
+            diff = max(float((first.x - reference.x).abs().max()), float((first.v - reference.v).abs().max()))
+    return first, sec, compile_s, steps, fallback, diff
+
+
+def speed_row(n: int, topology: int, mode: str, *, dtype=torch.float32, device="cpu", steps=None,
+              repeats: int = 5, target_s: float = 0.2, reference=None) -> dict:
+    """Time symplectic Euler steps on :func:`speed_cube`; one row of the speed table.
+
+    ``mode`` is ``"eager"`` (``SymplecticEuler.step``, shifted slices) or ``"compiled"`` (the
+    packed fast path, :class:`~torchdeform.sim.compiled.CompiledStep`, state kept packed between
+    steps). ``reference``: the eager state after one step, to report ``max_abs_diff``. Warm-up
+    and compilation are excluded from the timing; ``compile_s`` is the first call's wall time.
+    ``peak_rss_mb`` is the process's peak resident memory during the row (Linux), torch included.
+    """
+    reset = _reset_peak()
+    model, state, dt = speed_cube(n, topology, dtype, device)
+    integ = SymplecticEuler()
+    sync = device_sync(device)
+    row = {"grid": f"{n}^3", "n": n, "topology": topology, "mode": mode, "dtype": str(dtype).replace("torch.", ""),
+           "threads": torch.get_num_threads(), "device": device, "nodes": model.grid.num_nodes,
+           "springs": model.grid.num_springs}
+    first, sec, compile_s, steps, fallback, diff = _time_mode(integ, model, state, dt, mode, steps=steps,
+                                                              repeats=repeats, target_s=target_s,
+                                                              sync=sync, reference=reference)
+    row.update(steps=steps, repeats=repeats, ms_per_step=sec * 1e3,
+               msprings_per_s=row["springs"] / sec / 1e6, node_steps_per_s=row["nodes"] / sec,
+               compile_s=compile_s, max_abs_diff=diff, fallback=fallback,
+               peak_rss_mb=_peak_rss_mb() if reset and device == "cpu" else None)
+    if device.startswith("cuda"):
+        row["peak_rss_mb"] = torch.cuda.max_memory_allocated() / 2**20
+    row["_first"] = first
+    return row
+
+
+def beam_row(mode: str, *, dtype=torch.float32, device="cpu", cg_iters: int = 20, steps=None, repeats: int = 5,
+             target_s: float = 0.5, reference=None) -> dict:
+    """Implicit Euler steps per second on :func:`beam_scene` (``cg_iters`` CG iterations, no
+    tolerance: every step does exactly that many, as SOFA's benchmark). ``mode`` as in
+    :func:`speed_row`."""
+    model, state, dt = beam_scene(dtype, device)
+    integ = ImplicitEuler(cg_iters=cg_iters, cg_tol=0)
+    sync = device_sync(device)
+    row = {"scene": "beam 40x10x10", "mode": mode, "dtype": str(dtype).replace("torch.", ""),
+           "threads": torch.get_num_threads(), "device": device, "nodes": model.grid.num_nodes,
+           "springs": model.grid.num_springs, "dt": dt, "cg_iters": cg_iters}
+    first, sec, compile_s, steps, fallback, diff = _time_mode(
+        integ, model, state, dt, mode, steps=steps, repeats=repeats, target_s=target_s, sync=sync,
+        reference=reference, max_steps=100 if mode == "eager" else 500)
+    row.update(steps=steps, repeats=repeats, ms_per_step=sec * 1e3, steps_per_s=1.0 / sec,
+               compile_s=compile_s, max_abs_diff=diff, fallback=fallback)
+    row["_first"] = first
+    return row
+
+
+def _warp_row(n, topology, dtype, steps, repeats, target_s, reference):
+    from .warp_baseline import warp_speed_row
+    row = warp_speed_row(n, topology, "atomic", dtype=dtype, steps=steps, repeats=repeats, target_s=target_s,
+                         reference=reference)
+    row.setdefault("peak_rss_mb", None)
+    return row
+
+
+def run(args) -> int:
+    """Run ``torchdeform bench speed``; returns the exit status."""
+    device = str(torch.device(args.device))
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise ConfigError("--device", "cpu, or cuda on a machine with CUDA", args.device)
+    sizes = args.sizes or ([8, 12] if args.quick else [16, 32, 64, 128])
+    topologies = args.topologies or ([6, 26] if args.quick else [6, 18, 26])
+    dtypes = (args.dtypes or ("float32" if args.quick else "float32,float64")).split(",")
+    threads = args.threads or ([torch.get_num_threads()] if args.quick else [1, 2])
+    if min(sizes) < 2:
+        raise ConfigError("--sizes", "grid sizes >= 2", sizes)
+    for t in topologies:
+        if t not in (6, 14, 18, 26):
+            raise ConfigError("--topologies", "6, 14, 18 or 26", t)
+    for d in dtypes:
+        if d not in ("float32", "float64"):
+            raise ConfigError("--dtypes", "float32 and/or float64, comma-separated", args.dtypes)
+    if min(threads) < 1:
+        raise ConfigError("--threads", "integers >= 1", threads)
+    if args.steps is not None and args.steps < 1:
+        raise ConfigError("--steps", "an integer >= 1", args.steps)
+    repeats = args.repeats or (3 if args.quick else 5)
+    target_s = 0.02 if args.quick else 0.2
+    modes = ["eager"] if args.no_compile else ["eager", "compiled"]
+    warp_ok, warp_why = (False, "--no-warp") if args.no_warp else (False, "Warp runs on the CPU rows only")
+    if not args.no_warp and device == "cpu":
+        from .warp_baseline import warp_available
+        warp_ok, warp_why = warp_available()
+    # --quick compiles one shape only (the smallest grid, first topology): compilation costs
+    # 10-60 s per shape on 2 cores, the smoke run must stay well under a minute.
+    tasks = [("torch", n, t, d, th, m) for d in dtypes for th in threads for t in topologies for n in sizes
+             for m in modes if not (m == "compiled" and args.quick and (n, t) != (min(sizes), topologies[0]))]
+    if warp_ok:
+        tasks += [("warp", n, t, d, 1, "warp") for d in dtypes for t in topologies for n in sizes
+                  if not (args.quick and (n, t) != (min(sizes), topologies[-1]))]
+    if not args.no_beam:
+        tasks += [("beam", None, None, d, th, m) for d in dtypes[:1] for th in threads for m in modes
+                  if not (args.quick and m == "compiled")]
+
+    rows, beam_rows, refs, beam_refs = [], [], {}, {}
+    saved_threads = torch.get_num_threads()
+    redirect = contextlib.redirect_stdout(sys.stderr) if args.json else contextlib.nullcontext()
+    try:
+        with redirect, progress(len(tasks), "bench speed") as bar:
+            for kind, n, t, d, th, m in tasks:
+                bar.set_postfix_str(f"{kind} {n or ''} {t or ''} {d} {th}thr {m}")
+                torch.set_num_threads(th)
+                dtype = getattr(torch, d)
+                if kind == "beam":
+                    # ~1 s per repeat: a few-ms step timed over only ~60 steps is at the mercy
+                    # of a busy host's hiccups.
+                    row = beam_row(m, dtype=dtype, device=device, steps=args.steps, repeats=repeats,
+                                   target_s=target_s if args.quick else 1.0, reference=beam_refs.get(d))
+                    first = row.pop("_first")
+                    beam_refs.setdefault(d, first)
+                    beam_rows.append(row)
+                elif kind == "warp":
+                    row = _warp_row(n, t, dtype, args.steps, repeats, target_s, refs.get((n, t, d)))
+                    rows.append(row)
+                else:
+                    row = speed_row(n, t, m, dtype=dtype, device=device, steps=args.steps, repeats=repeats,
+                                    target_s=target_s, reference=refs.get((n, t, d)))
+                    first = row.pop("_first")
+                    refs.setdefault((n, t, d), first)
+                    rows.append(row)
+                bar.update(1)
+    finally:
+        torch.set_num_threads(saved_threads)
+
+    warp_by = {(r["n"], r["topology"], r["dtype"]): r["msprings_per_s"] for r in rows if r["mode"].startswith("warp")}
+    for r in rows:
+        r["node_steps_per_s"] = float(r["node_steps_per_s"])
+        w = warp_by.get((r["n"], r["topology"], r["dtype"]))
+        r["vs_warp"] = r["msprings_per_s"] / w if w and not r["mode"].startswith("warp") else None
+    headline = [r for r in rows if (r["n"], r["topology"], r["dtype"], r["mode"]) == (64, 26, "float32", "compiled")]
+    headline = max(headline, key=lambda r: r["threads"]) if headline else None
+    ratio = headline["vs_warp"] if headline else None
+    machine = machine_info(device)
+    machine.pop("threads")
+    extra = {"machine": machine, "scene": _SCENE, "ratio_vs_warp": ratio,
+             "ratio_vs_warp_case": "64^3, 26 neighbours, float32, symplectic Euler, compiled (most threads) "
+                                   "over Warp CPU (atomic edge list, 1 thread)",
+             "warp": "measured" if warp_ok else f"skipped: {warp_why}",
+             "beam_scene": _BEAM, "beam": beam_rows}
+    if args.out:
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+        _speed_plot(rows, Path(args.out) / "speed.png", machine)
+    display = [dict(r, node_steps_per_s=f"{r['node_steps_per_s'] / 1e6:.2f}",
+                    mode=r["mode"] + (" (eager fallback)" if r.get("fallback") else "")) for r in rows]
+    if not args.json:
+        print(f"symplectic Euler on a damped n^3 cube, {device}, torch {machine['torch']}")
+        if not warp_ok:
+            print(f"Warp rows skipped: {warp_why}")
+    emit("speed", args, rows, SPEED_COLUMNS, extra, display)
+    if not args.json:
+        if beam_rows:
+            print(f"\nimplicit Euler: {_BEAM}")
+            print(format_table(beam_rows, BEAM_COLUMNS))
+        if ratio is not None:
+            print(f"\nratio_vs_warp (64^3, 26 neighbours, float32, compiled, {headline['threads']} threads): {ratio:.1f}x")
+        if args.out:
+            print(f"wrote {Path(args.out) / 'speed.csv'} and {Path(args.out) / 'speed.png'}")
+    return 0
+
+
+_SCENE = ("symplectic Euler, dt 1e-4 s, damped cube (1 cm spacing, k 100 N/m, c 0.05 N s/m, 1 g nodes), "
+          "no gravity; msprings_per_s = springs / (s per step) / 1e6, median over repeats, warm-up excluded; "
+          "peak_rss_mb: peak resident memory of the process during the row")
+_BEAM = ("40x10x10 nodes, 26 neighbours, k 100/l0, c 1/l0, 20 kg, one end fixed, gravity, dt 0.01 s, "
+         "exactly cg_iters CG iterations per step (SOFA's spring-beam benchmark shape)")
+
+
+def _speed_plot(rows, path: Path, machine: dict) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    topologies = sorted({r["topology"] for r in rows})
+    fig, axes = plt.subplots(1, len(topologies), figsize=(4.5 * len(topologies), 4), sharey=True, squeeze=False)
+    for ax, topo in zip(axes[0], topologies):
+        keys = sorted({(r["mode"], r["dtype"], r["threads"]) for r in rows if r["topology"] == topo})
+        for mode, dt, th in keys:
+            pts = sorted((r["nodes"], r["msprings_per_s"]) for r in rows
+                         if (r["topology"], r["mode"], r["dtype"], r["threads"]) == (topo, mode, dt, th))
+            style = {"compiled": "-", "eager": "--"}.get(mode, ":")
+            ax.plot(*zip(*pts), marker="o", ls=style, label=f"{mode} {dt} {th} thr")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("nodes")
+        ax.set_title(f"{topo} neighbours")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0][0].set_ylabel("Msprings/s")
+    axes[0][-1].legend(fontsize=7)
+    fig.suptitle(f"spring-step throughput, symplectic Euler ({machine['device']}, torch {machine['torch']})")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,203 @@
+"""The loss of rollouts over a series: teacher-forcing windows, checkpointed back-propagation
+through time, masks for missing observations.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch.utils.checkpoint import checkpoint as _checkpoint
+
+from ..errors import ConfigError
+from ..sim.integrators import INTEGRATORS
+from ..sim.model import State
+from .parameters import Parameters, _check
+from .series import Series
+
+__all__ = ["WindowLoss"]
+
+
+# ------------------------------------------------------------------- loss
+class WindowLoss:
+    """Loss of (teacher-forced) rollouts over a series.
+
+    Args:
+        series: observations and set-up (observation steps must be evenly spaced).
+        window: observation intervals per window (teacher forcing every ``window``
+            intervals, Radetzky's K); None: one window over the whole series (full BPTT).
+        velocity: start velocity of windows after the first: ``"difference"``, ``"zero"``
+            or ``"carry"`` (windows in sequence; see the module docstring).
+        checkpoint: steps per gradient-checkpoint segment (None: keep the whole graph).
+        detach: with ``velocity="carry"``, cut the gradient between windows (truncated BPTT).
+        integrator: an integrator instance (default: the series' own).
+        smooth: for noisy data, start windows from a local quadratic fit over ``2 smooth + 1``
+            observations (positions and velocities) instead of the raw observation and the
+            backward difference (0: off).
+
+    Call with a :class:`Parameters` (or a model) and optionally ``windows`` (a LongTensor of
+    window indices, for stochastic subsets) to get a 0-d loss tensor.
+    """
+
+    def __init__(self, series: Series, window: int | None = 10, velocity: str = "difference",
+                 checkpoint: int | None = None, detach: bool = True, integrator=None, smooth: int = 0,
+                 dtype=torch.float64):
+        _check("velocity", velocity, ("difference", "zero", "carry"))
+        self.series, self.velocity, self.dtype, self.detach = series, velocity, dtype, bool(detach)
+        steps = np.asarray(series.steps)
+        T = len(steps)
+        E = series.every
+        if T < 2 or (np.diff(steps) != E).any():
+            raise ConfigError("series.steps", "evenly spaced observation steps (resample the series first)",
+                              steps[:6].tolist())
+        if window is not None and int(window) < 1:
+            raise ConfigError("window", "an integer >= 1 (observation intervals) or None", window)
+        if checkpoint is not None and int(checkpoint) < 1:
+            raise ConfigError("checkpoint", "an integer >= 1 (steps per segment) or None", checkpoint)
+        self.K = T - 1 if window is None else min(int(window), T - 1)
+        self.every, self.T = E, T
+        self.checkpoint = None if checkpoint is None else int(checkpoint)
+        self.integrator = integrator or INTEGRATORS[series.integrator]()
+        self.obs = torch.as_tensor(series.positions, dtype=dtype)                 # (T, 3, D, H, W)
+        free = ~torch.as_tensor(series.constrained())
+        self.weight = (torch.as_tensor(series.mask) & free).to(dtype).unsqueeze(1)  # (T, 1, D, H, W)
+        X = series.grid.rest_positions(dtype)
+        disp = ((self.obs - X) ** 2 * self.weight).sum()
+        self.count = float(self.weight.sum()) * 3
+        if self.count == 0:
+            raise ConfigError("series.mask", "at least one observed free node", "none", show_got=True)
+        self.ref = math.sqrt(max(float(disp) / self.count, 1e-300))
+        self.starts = list(range(0, T - 1, self.K))                               # window start observations
+        if int(smooth) < 0:
+            raise ConfigError("smooth", "an integer >= 0 (half-width in observations)", smooth)
+        self.smooth = int(smooth)
+        # normalisation over the whole series, so a subset of windows has the same scale
+        self.scale = 1.0 / (self.count * self.ref ** 2)
+
+    @property
+    def num_windows(self) -> int:
+        return len(self.starts)
+
+    # ---------------------------------------------------------------- starting states
+    def _start(self, model, starts: list) -> State:
+        s = self.series
+        st = s.start_state(model, len(starts))
+        x, v = st.x, st.v
+        if all(i == 0 for i in starts):
+            return State(x, v, 0.0)
+        idx = torch.tensor(starts)
+        obs, w = self.obs[idx], torch.as_tensor(s.mask)[idx].unsqueeze(1)
+        later = torch.tensor([i > 0 for i in starts]).view(-1, 1, 1, 1, 1)
+        free = ~torch.as_tensor(s.constrained())
+        use = w & later & free
+        x = torch.where(use, obs, x)
+        tab = s.tables(model.dtype, model.device)
+        if tab["drag"] is not None:                                # boundary: known prescribed positions
+            steps = torch.as_tensor(s.steps)[idx]
+            x = torch.where(tab["drag_mask"], tab["drag"][steps], x)
+        if self.smooth:
+            xs, dv, ok = self._smoothed(starts)
+            x = torch.where(use & ok, xs, x)
+        if self.velocity == "difference":
+            prev = (idx - 1).clamp_min(0)
+            both = use & torch.as_tensor(s.mask)[prev].unsqueeze(1)
+            if not self.smooth:
+                dv, ok = (obs - self.obs[prev]) / (self.every * s.dt), both
+            v = torch.where(use & ok, dv, v)
+            if tab["drag"] is not None:
+                steps = torch.as_tensor(s.steps)[idx]
+                vd = (tab["drag"][steps] - tab["drag"][(steps - 1).clamp_min(0)]) / s.dt
+                v = torch.where(tab["drag_mask"] & later, vd, v)
+        return State(x, v, 0.0)
+
+    def _smoothed(self, starts: list):
+        """Savitzky-Golay start states for noisy data: a quadratic fitted by least squares to
+        the observations ``i - smooth .. i + smooth`` (clipped to the series) gives the
+        position ``a`` and, with ``b`` and ``c`` its first coefficients, the symplectic-Euler
+        velocity ``b - c dt`` (the backward difference of the fitted path). Returns
+        ``(x, v, ok)`` with ``ok`` False where a node is unobserved somewhere in the stencil."""
+        h, E, dt = self.smooth, self.every, self.series.dt
+        xs, vs, oks = [], [], []
+        mask = torch.as_tensor(self.series.mask)
+        for i in starts:
+            j = np.arange(max(0, i - h), min(self.T - 1, i + h) + 1)
+            tau = (j - i) * E * dt
+            V = np.stack([np.ones_like(tau), tau, tau ** 2], 1)
+            W = torch.as_tensor(np.linalg.pinv(V), dtype=self.dtype)          # (3, len(j))
+            o = self.obs[torch.as_tensor(j)]
+            a = torch.einsum("j,j...->...", W[0], o)
+            b = torch.einsum("j,j...->...", W[1], o)
+            c = torch.einsum("j,j...->...", W[2], o)
+            xs.append(a)
+            vs.append(b - c * dt)
+            oks.append(mask[torch.as_tensor(j)].all(0)[None])
+        return torch.stack(xs), torch.stack(vs), torch.stack(oks)
+
+    # ---------------------------------------------------------------- rollouts
+    def _segment(self, model, x, v, n0: torch.Tensor, length: int, offset: int, targets, weights):
+        """``length`` steps from per-entry steps ``n0 + offset``; loss at every observation step."""
+        s = self.series
+        loss = x.new_zeros(())
+        st = State(x, v, 0.0)
+        for j in range(length):
+            n = (n0 + offset + j).clamp_max(s.num_steps)
+            st = s.advance(model, st, n, self.integrator)
+            local = offset + j + 1
+            if local % self.every == 0:
+                k = local // self.every - 1
+                loss = loss + (((st.x - targets[:, k]) ** 2) * weights[:, k]).sum()
+        return st.x, st.v, loss
+
+    def _window_loss(self, model, state: State, starts: list):
+        """Loss of the windows starting at observation indices ``starts`` (one batch)."""
+        K, E = self.K, self.every
+        idx = torch.tensor(starts)
+        obs_idx = (idx.view(-1, 1) + torch.arange(1, K + 1).view(1, -1))         # (B, K)
+        valid = (obs_idx <= self.T - 1).to(self.dtype).view(len(starts), K, 1, 1, 1, 1)
+        obs_idx = obs_idx.clamp_max(self.T - 1)
+        targets = self.obs[obs_idx]                                              # (B, K, 3, D, H, W)
+        weights = self.weight[obs_idx] * valid                                  # (B, K, 1, D, H, W)
+        n0 = torch.as_tensor(self.series.steps)[idx]
+        total = K * E
+        seg = self.checkpoint or total
+        x, v = state.x, state.v
+        loss = x.new_zeros(())
+        for off in range(0, total, seg):
+            length = min(seg, total - off)
+            if self.checkpoint is not None and torch.is_grad_enabled():
+                # reentrant checkpointing runs the segment's forward without building a graph
+                # (the non-reentrant kind still records every autograd node, which for small
+                # bodies is most of the memory); the parameters go in as explicit inputs and
+                # the segment rebuilds its model from them
+                k, c, m = model.stiffness, model.damping, model.mass
+
+                def segment(x, v, k, c, m, off=off, length=length):
+                    sub = self.series.model(k, c, m, model.dtype, model.device)
+                    return self._segment(sub, x, v, n0, length, off, targets, weights)
+                x, v, part = _checkpoint(segment, x, v, k, c, m, use_reentrant=True)
+            else:
+                x, v, part = self._segment(model, x, v, n0, length, off, targets, weights)
+            loss = loss + part
+        return loss, State(x, v, 0.0)
+
+    def __call__(self, params, windows=None) -> torch.Tensor:
+        model = params.model() if isinstance(params, Parameters) else params
+        chosen = self.starts if windows is None else [self.starts[int(i)] for i in windows]
+        if self.velocity != "carry":
+            loss, _ = self._window_loss(model, self._start(model, chosen), chosen)
+            return loss * self.scale
+        # in sequence: reset observed free positions at each window start, carry the rest
+        state = self.series.start_state(model)
+        total = state.x.new_zeros(())
+        s = self.series
+        free = ~torch.as_tensor(s.constrained())
+        for i in self.starts:
+            if i > 0:
+                w = torch.as_tensor(s.mask)[i][None, None] & free
+                state = State(torch.where(w, self.obs[i:i + 1], state.x), state.v, 0.0)
+            loss, state = self._window_loss(model, state, [i])
+            if i in chosen:
+                total = total + loss
+            if self.detach:
+                state = state.detach()
+        return total * self.scale

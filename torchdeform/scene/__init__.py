@@ -1,0 +1,98 @@
+"""Scene files (TOML) -> a model, an integrator and run settings, and the runner.
+
+A scene file only builds the objects of the Python API: :class:`Scene` holds a
+:class:`~torchdeform.sim.grid.Grid`, the keyword arguments of :class:`~torchdeform.sim.model.Model`
+(``scene.model_args``), an :class:`~torchdeform.sim.integrators.Integrator` and the run settings;
+:func:`demo_scene` builds the built-in demo with the API alone. :func:`run_scene` runs a
+scene and writes ``trajectory.npz``, ``summary.json`` and ``energy.png``.
+
+Units are SI (m, kg, s, N). Vectors are in channel order ``(D, H, W)``; axis D is "up" in
+the built-in scenes (face ``"bottom"`` = ``"d-"``, ``"top"`` = ``"d+"``). Node indices are
+``[i, j, k]`` along ``(D, H, W)``, from 0.
+
+Keys
+----
+``[grid]`` (required)
+    ``shape = [D, H, W]``  node counts, each >= 1 (or ``mesh``)
+    ``mesh = "organ.stl"``  a closed triangle mesh voxelised into the node mask (instead of
+    ``shape``; path relative to the scene file; mesh x, y, z -> D, H, W)
+    ``spacing``  metres, one number or ``[sd, sh, sw]`` (required)
+    ``topology``  6, 14, 18 or 26 neighbours (default 26)
+    ``origin = [od, oh, ow]``  position of node [0, 0, 0] in metres (default 0; ``shape`` only)
+    ``padding``  extra node layers around the mesh's bounding box (default 0; ``mesh`` only)
+    ``scale``  metres per mesh unit, e.g. 0.001 for a mesh in mm (default 1; ``mesh`` only)
+``[material]`` (required)
+    ``stiffness``  spring stiffness k in N/m: a number, or one per direction class
+    ``{axis = .., face = .., body = ..}`` (only the classes of the topology are needed)
+    ``modulus``  instead of ``stiffness``: Y in N, each spring gets ``k = Y / l0``
+    (resolution-independent); a number or a table as for ``stiffness``
+    ``damping``  dashpot along each spring in N s/m (divided by l0 too with ``modulus``);
+    a number or a class table (default: none)
+    ``damping_mode``  ``"projected"`` (default) or ``"unprojected"`` (Radetzky)
+``[mass]`` (required, exactly one key)
+    ``mass``  kg per node, or ``density``  kg/m^3 (lumped from cell volumes)
+``[boundary]`` (optional)
+    ``fixed``  a face name or a list of them: ``"bottom"``, ``"top"``, ``"d-"``, ``"d+"``,
+    ``"h-"``, ``"h+"``, ``"w-"``, ``"w+"``
+    ``fixed_nodes = [[i, j, k], ...]``  more fixed nodes
+    ``home``  stiffness (N/m) of home springs to every node's rest position (Punak)
+    ``anchors = {stiffness = .., every = ..}``  anchor springs (N/m) on every k-th node (Radetzky)
+    ``decay``  global drag rate c in 1/s: ``v <- v exp(-c dt)`` each step
+    ``gravity = [gd, gh, gw]``  m/s^2
+``[[loads]]`` (optional, repeatable), one of
+    ``node = [i, j, k]`` with ``force = [fd, fh, fw]`` (N), or
+    ``face = "top"`` with ``traction = [td, th, tw]`` (Pa, lumped onto the face's nodes);
+    both take ``start`` (s, default 0) and ``ramp`` (s to reach full strength, default 0)
+``[[drags]]`` (optional, repeatable): a group of nodes moved rigidly along a path
+    ``nodes = [[i, j, k], ...]`` or ``face = "top"`` or ``box = {lo = [..], hi = [..]}``
+    (rest positions in metres, bounds included), and
+    ``path = [[t, [od, oh, ow]], ...]``  offsets (m) from the rest position at increasing
+    times (s), linear in between, held after the last
+``[integrator]`` (required)
+    ``name``  ``"explicit"``, ``"symplectic"`` (default), ``"verlet"``, ``"rk4"``,
+    ``"implicit"`` or ``"knoche"``
+    ``dt``  seconds > 0, or ``"auto"`` (explicit integrators: ``safety`` x the stability bound)
+    ``safety``  fraction of the bound used by ``dt = "auto"`` (default 0.9)
+    ``steps``  number of steps >= 0 (required)
+    ``dtype``  ``"float32"`` (default) or ``"float64"``;  ``device``  ``"cpu"`` (default), ``"cuda"``
+    options of ``verlet``: ``kd`` (per-step damping in [0, 1), default 0);
+    of ``implicit``: ``cg_iters`` (100), ``cg_tol`` (1e-6), ``newton_iters`` (0);
+    of ``knoche`` (needs ``topology = 6``): ``material`` (w in [0, 1], a number or a
+    ``[D][H][W]`` array), ``eps`` (1e-3), ``gain`` (default 3 / D)
+``[output]`` (optional)
+    ``record_every``  steps between saved frames (default: about 100 frames)
+    ``name``  title of the run (default: the file's name)
+``[volume]`` (optional): a volume filling the grid's bounding box, deformed by the final state;
+    the run also writes ``volume_before.png``, ``volume_after.png``, ``volume_deformed.npy``
+    ``file``  a volume file (.npy, .npz, .nii, .nrrd; relative to the scene file) or ``"phantom:N"``
+    ``tf``  transfer-function preset or file (default ``"ct-soft"``); ``mode``  ``"dvr"``
+    (default), ``"mip"`` or ``"average"``; ``view``  axis view (default ``"h"``)
+``model = "chainmail"`` (optional top-level key, before any section): a ChainMail scene instead
+    of a mass-spring one: ``[grid]``, ``[chainmail]`` (required), ``[boundary]`` (``fixed``,
+    ``fixed_nodes``), ``[[drags]]`` (the picked elements and their paths), ``[output]``; see
+    :func:`torchdeform.scene.chainmail.chainmail_scene` for the ``[chainmail]`` keys
+
+Every problem is a :class:`~torchdeform.errors.ConfigError` naming the file, the line (found
+by a text search, best effort), the dotted key (``integrator.dt``, ``loads[0].force``; array
+tables count from 0) and what was expected.
+
+Modules: :mod:`.reader` (files, located errors, typed values and the shared sections: the API a
+new model kind builds on), :mod:`.mass_spring`, :mod:`.chainmail`, :mod:`.run` (load and run),
+:mod:`.commands` (``torchdeform run`` and ``demo``).
+
+Example:
+    >>> from torchdeform.scene import demo_scene, run_scene
+    >>> scene = demo_scene()
+    >>> scene.steps = 20
+    >>> summary = run_scene(scene, getfixture("tmp_path"), progress=False)
+    >>> summary["steps"], summary["frames"]
+    (20, 3)
+"""
+from .chainmail import ChainMailScene, chainmail_scene
+from .mass_spring import Scene, demo_scene, mass_spring_scene
+from .reader import SECTIONS, Source, Table
+from .run import energy_series, load_scene, one_line_warnings, plot_energy, report, run_scene, scene_volume_outputs
+
+__all__ = ["Scene", "ChainMailScene", "Source", "Table", "load_scene", "demo_scene", "run_scene", "mass_spring_scene",
+           "chainmail_scene", "energy_series", "plot_energy", "one_line_warnings", "report", "scene_volume_outputs",
+           "SECTIONS"]

@@ -1,0 +1,277 @@
+"""Mass-spring scenes: the ``[material]``, ``[mass]``, ``[boundary]``, ``[[loads]]``,
+``[integrator]``, ``[output]`` and ``[volume]`` sections, the :class:`Scene` they build, and the
+built-in demo (:func:`demo_scene`).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from ..sim.forces import Drag, PointForce, SurfaceForce
+from ..sim.grid import FACES, Grid
+from ..sim.integrators import INTEGRATORS, Integrator, SymplecticEuler
+from ..sim.model import Model
+from .reader import SECTIONS, Source, Table, drags_section, faces, grid_section, is_number, node_list
+
+__all__ = ["Scene", "mass_spring_scene", "demo_scene", "INTEGRATOR_OPTIONS", "EXPLICIT", "DTYPES", "MODEL_KEYS"]
+
+#: Options of each integrator (keyword arguments of its class): key -> what is expected.
+INTEGRATOR_OPTIONS = {
+    "explicit": {}, "symplectic": {}, "rk4": {},
+    "verlet": {"kd": "a number in [0, 1)"},
+    "implicit": {"cg_iters": "an integer >= 1", "cg_tol": "a positive number", "newton_iters": "an integer >= 0"},
+    "knoche": {"material": "a number in [0, 1] or a [D][H][W] array of them", "eps": "a positive number",
+               "gain": "a positive number"},
+}
+EXPLICIT = ("explicit", "symplectic", "verlet", "rk4")
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
+#: Model keyword -> scene key, to locate errors raised by the core.
+MODEL_KEYS = {"stiffness": "material.stiffness", "damping": "material.damping",
+              "damping_mode": "material.damping_mode", "mass": "mass", "density": "mass.density",
+              "gravity": "boundary.gravity", "home": "boundary.home", "anchors.stiffness": "boundary.anchors.stiffness",
+              "anchors.every": "boundary.anchors.every", "decay": "boundary.decay", "fixed": "boundary.fixed"}
+
+
+# ------------------------------------------------------------------ the scene
+@dataclass(eq=False)
+class Scene:
+    """A scene: a grid, the keyword arguments of :class:`Model`, an integrator and run settings.
+
+    Args:
+        grid: the :class:`~torchdeform.grid.Grid`.
+        model_args: keyword arguments of :class:`~torchdeform.model.Model` besides ``grid``,
+            ``dtype`` and ``device`` (``stiffness``, ``density``, ``fixed``, ``drags``, ...).
+        integrator: an :class:`~torchdeform.integrators.Integrator`.
+        dt: seconds, or ``"auto"`` (``safety`` times the stability bound of ``integrator``).
+        steps: number of steps.
+        record_every: steps between saved frames (default: about 100 frames).
+        name: title of the run.
+        dtype, device: of the model (``device`` None = CPU).
+        safety: fraction of the stability bound used by ``dt = "auto"``.
+        source: the scene file (:class:`Source`) for error messages, or None.
+    """
+
+    grid: Grid
+    model_args: dict
+    integrator: Integrator = field(default_factory=SymplecticEuler)
+    dt: float | str = "auto"
+    steps: int = 1000
+    record_every: int | None = None
+    name: str = "scene"
+    dtype: torch.dtype = torch.float32
+    device: str | None = None
+    safety: float = 0.9
+    source: Source = field(default_factory=Source)
+    #: optional ``{"file": .., "tf": .., "mode": .., "view": ..}``: a volume (file or ``"phantom:N"``)
+    #: deformed by the final state; ``run_scene`` then writes before/after renders and the deformed volume
+    volume: dict | None = None
+    _models: dict = field(default_factory=dict, init=False, repr=False)
+
+    def build(self, device=None) -> Model:
+        """The :class:`Model` on ``device`` (default: the scene's, else CPU); built once per device."""
+        try:
+            dev = torch.device(device or self.device or "cpu")
+        except (RuntimeError, ValueError):
+            raise self.source.error("integrator.device", 'a device name such as "cpu" or "cuda"',
+                                    device or self.device) from None
+        if dev.type == "cuda" and not torch.cuda.is_available():
+            raise self.source.error("integrator.device", '"cpu" (CUDA is not available here)', str(dev))
+        if dev.type == "cuda" and (dev.index or 0) >= torch.cuda.device_count():
+            raise self.source.error("integrator.device", f"one of the {torch.cuda.device_count()} CUDA devices",
+                                    str(dev))
+        if str(dev) not in self._models:
+            with self.source.located("material", MODEL_KEYS):
+                self._models[str(dev)] = Model(self.grid, **self.model_args, dtype=self.dtype, device=dev)
+        return self._models[str(dev)]
+
+    def time_step(self, bound: float) -> float:
+        """The time step (s): ``dt``, or ``safety * bound`` for ``dt = "auto"``."""
+        if self.dt != "auto":
+            return float(self.dt)
+        if not (0 < bound < math.inf):
+            raise self.source.error(
+                "integrator.dt", f'seconds: "auto" needs a finite, positive stability bound and '
+                f'{self.integrator.name} has {bound:g} s here', "auto")
+        return self.safety * bound
+
+    @property
+    def frames_every(self) -> int:
+        """Steps between saved frames."""
+        return self.record_every or max(1, self.steps // 100)
+
+
+def _material(t: Table) -> dict:
+    which = t.one_of("stiffness", "modulus")
+    args = {"stiffness": t.per_class(which, "N/m" if which == "stiffness" else "N"),
+            "normalize": which == "modulus"}
+    if t.has("damping"):
+        args["damping"] = t.per_class("damping", "N s/m")
+    args["damping_mode"] = t.text("damping_mode", '"projected" or "unprojected"', "projected",
+                                 ("projected", "unprojected"))
+    return args
+
+
+def _mass(t: Table) -> dict:
+    which = t.one_of("mass", "density")
+    unit = "kg per node" if which == "mass" else "kg/m^3"
+    return {which: t.num(which, f"a positive number ({unit})", lo=0, lo_open=True)}
+
+
+def _boundary(t: Table, grid: Grid) -> dict:
+    args = {}
+    fixed = None
+    if t.has("fixed"):
+        fixed = faces(t, "fixed", grid)
+    if t.has("fixed_nodes"):
+        nodes = node_list(t, "fixed_nodes", grid)
+        fixed = nodes if fixed is None else fixed | nodes
+    if fixed is not None:
+        args["fixed"] = fixed
+    if t.has("home"):
+        args["home"] = t.num("home", "a number >= 0 (N/m)", lo=0)
+    if t.has("anchors"):
+        a = Table(t.src, t.key("anchors"), t.data["anchors"], ("stiffness", "every"))
+        args["anchors"] = (a.num("stiffness", "a number >= 0 (N/m)", lo=0),
+                           a.integer("every", "an integer >= 1 (every k-th node)", lo=1))
+    if t.has("decay"):
+        args["decay"] = t.num("decay", "a rate >= 0 (1/s)", lo=0)
+    if t.has("gravity"):
+        args["gravity"] = t.vec("gravity", "three numbers [gd, gh, gw] in m/s^2")
+    return args
+
+
+def _loads(src: Source, items, grid: Grid) -> list:
+    if not isinstance(items, list):
+        raise src.error("loads", "[[loads]] tables", items)
+    loads = []
+    for n, item in enumerate(items):
+        t = Table(src, f"loads[{n}]", item, SECTIONS["loads"])
+        timing = dict(start=t.num("start", "a time >= 0 (s)", 0.0, lo=0),
+                      ramp=t.num("ramp", "a duration >= 0 (s)", 0.0, lo=0))
+        if t.one_of("node", "face") == "node":
+            t.only_with("traction", "node")
+            node = t.index("node")
+            with src.located(t.key("node")):
+                grid.index_mask([node])
+            loads.append(PointForce(node, t.vec("force", "three numbers [fd, fh, fw] in N"), **timing))
+        else:
+            t.only_with("force", "face")
+            face = t.text("face", "a face name: " + ", ".join(f'"{f}"' for f in FACES), choices=FACES)
+            loads.append(SurfaceForce(face, t.vec("traction", "three numbers [td, th, tw] in Pa"), **timing))
+    return loads
+
+
+def _integrator(t: Table, grid: Grid) -> dict:
+    name = t.text("name", "one of " + ", ".join(f'"{n}"' for n in INTEGRATORS), "symplectic", INTEGRATORS)
+    options = INTEGRATOR_OPTIONS[name]
+    for k in t.data:
+        if k not in SECTIONS["integrator"] and k not in options:
+            own = ", ".join(options) if options else "none"
+            raise t.fail(k, f"one of the keys {', '.join(SECTIONS['integrator'])} (options of {name}: {own})", k)
+    kwargs = {}
+    for k, expected in options.items():
+        if not t.has(k):
+            continue
+        if k in ("cg_iters", "newton_iters"):
+            kwargs[k] = t.integer(k, expected, lo=1 if k == "cg_iters" else 0)
+        elif k == "kd":
+            kwargs[k] = t.num(k, expected, lo=0, hi=1, hi_open=True)
+        elif k == "material":
+            v = t.data[k]
+            try:
+                w = torch.as_tensor(v, dtype=torch.float64)
+            except (TypeError, ValueError, RuntimeError):
+                raise t.fail(k, expected, v) from None
+            if isinstance(v, bool) or not (w.dim() == 0 or tuple(w.shape) == grid.shape) \
+                    or not bool(((w >= 0) & (w <= 1)).all()):
+                raise t.fail(k, expected + f" (grid {grid.shape})", v if w.dim() == 0 else tuple(w.shape))
+            kwargs[k] = float(w) if w.dim() == 0 else w
+        else:
+            kwargs[k] = t.num(k, expected, lo=0, lo_open=True)
+    if name == "knoche" and grid.topology != 6:
+        raise t.src.error("grid.topology", "6 for the knoche integrator", grid.topology)
+    with t.src.located(t.name):
+        integrator = INTEGRATORS[name](**kwargs)
+
+    dt = t.raw("dt", 'a positive number of seconds or "auto"')
+    if dt == "auto":
+        if name not in EXPLICIT:
+            raise t.fail("dt", f'a positive number of seconds ("auto" needs an explicit integrator, '
+                               f'not {name})', dt)
+    elif not (is_number(dt) and dt > 0):
+        raise t.fail("dt", 'a positive number of seconds or "auto"', dt)
+    if t.has("safety") and dt != "auto":
+        raise t.fail("safety", 'no safety unless dt = "auto"', t.data["safety"])
+    device = t.text("device", 'a device name such as "cpu" or "cuda"', None)
+    if device is not None:
+        try:
+            torch.device(device)
+        except (RuntimeError, ValueError):
+            raise t.fail("device", 'a device name such as "cpu" or "cuda"', device) from None
+    return dict(integrator=integrator, dt=dt if dt == "auto" else float(dt),
+                safety=t.num("safety", "a number in (0, 1]", 0.9, lo=0, hi=1, lo_open=True),
+                steps=t.integer("steps", "an integer >= 0 (number of steps)"),
+                dtype=DTYPES[t.text("dtype", '"float32" or "float64"', "float32", DTYPES)], device=device)
+
+
+def mass_spring_scene(src: Source, data: dict, base: Path, name: str = "scene") -> Scene:
+    """Build a :class:`Scene` from a parsed scene file (:func:`~torchdeform.scene.reader.read`)
+    whose model is ``"mass-spring"`` (called by :func:`torchdeform.scene.load_scene`).
+
+    The model is built once (on the CPU) to check every value.
+
+    Args:
+        src: the file (for located errors); data: its parsed TOML; base: the folder that
+            relative paths (mesh, volume) start from; name: the default title of the run.
+    """
+    if "chainmail" in data:
+        raise src.error("chainmail", 'model = "chainmail" (a top-level key) for a [chainmail] section')
+    options = tuple(k for opts in INTEGRATOR_OPTIONS.values() for k in opts)
+    section = {name_: Table(src, name_, data[name_], keys + (options if name_ == "integrator" else ()))
+               for name_, keys in SECTIONS.items() if name_ in data and name_ not in ("loads", "drags")}
+    grid = grid_section(section["grid"], base)
+    model_args = {**_material(section["material"]), **_mass(section["mass"])}
+    if "boundary" in section:
+        model_args.update(_boundary(section["boundary"], grid))
+    if "loads" in data:
+        model_args["loads"] = _loads(src, data["loads"], grid)
+    if "drags" in data:
+        model_args["drags"] = drags_section(src, data["drags"], grid)
+    run = _integrator(section["integrator"], grid)
+    out = section.get("output") or Table(src, "output", {}, SECTIONS["output"])
+    scene = Scene(grid, model_args, **run, source=src,
+                  record_every=out.integer("record_every", "an integer >= 1 (steps between frames)", None, lo=1),
+                  name=out.text("name", "a string", name))
+    if "volume" in data:
+        vt = Table(src, "volume", data["volume"], SECTIONS["volume"])
+        scene.volume = {"file": vt.text("file", 'a volume file or "phantom:N"'),
+                        "tf": vt.text("tf", "a transfer-function preset or file", "ct-soft"),
+                        "mode": vt.text("mode", '"dvr", "mip" or "average"', "dvr", ("dvr", "mip", "average")),
+                        "view": vt.text("view", "an axis view d, h, w, -d, -h, -w", "h",
+                                        ("d", "h", "w", "-d", "-h", "-w")), "base": str(base)}
+    scene.build("cpu")
+    return scene
+
+
+# ------------------------------------------------------------------ the demo
+def demo_scene() -> Scene:
+    """The built-in demo (same as ``scenes/demo.toml``), built with the Python API.
+
+    A 1 cm cube of liver-like tissue (11 x 11 x 11 nodes, 1 mm apart, 26 neighbours,
+    density 1000 kg/m^3, k = 3 N/m, i.e. E of roughly 8 kPa), its base fixed, sagging under
+    gravity (along -D), its top centre node dragged 2 mm up and 1 mm sideways within 50 ms
+    and then held; symplectic Euler at dt = 0.1 ms (below the bound of about 0.12 ms) for
+    0.15 s, with global drag so it settles.
+    """
+    grid = Grid((11, 11, 11), spacing=0.001, topology=26)
+    top_centre = Drag(grid.index_mask([(10, 5, 5)]), [(0.0, (0.0, 0.0, 0.0)), (0.05, (0.002, 0.001, 0.0))])
+    model_args = dict(stiffness=3.0, normalize=False, damping=1e-4, damping_mode="projected", density=1000.0,
+                      fixed=grid.face("bottom"), decay=100.0, gravity=(-9.81, 0.0, 0.0), drags=[top_centre])
+    # the procedural CT phantom fills the cube; run_scene also writes its before/after renders
+    volume = {"file": "phantom:64", "tf": "ct-soft", "mode": "dvr", "view": "h"}
+    return Scene(grid, model_args, SymplecticEuler(), dt=1e-4, steps=1500, record_every=15, name="demo",
+                 volume=volume)
+

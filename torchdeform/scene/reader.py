@@ -1,0 +1,325 @@
+"""Reading scene files (TOML): located errors and typed values, and the sections every model kind
+shares. This is the public sibling API of the scene modules: :mod:`.mass_spring` and
+:mod:`.chainmail` (and any new model kind) build their scenes from these helpers.
+
+* :class:`Source`: a file's path and text; builds :class:`~torchdeform.errors.ConfigError` s that
+  name the file and the line of a dotted key (``loads[1].force``).
+* :class:`Table`: one TOML table with typed getters (``num``, ``integer``, ``text``, ``vec``,
+  ``index``, ``per_class``, ``one_of``) that raise located errors.
+* :func:`read`: the file, parsed and checked for known sections.
+* the shared sections: :func:`grid_section` (``[grid]``), :func:`faces`, :func:`node_list`
+  (``fixed``, ``fixed_nodes``), :func:`drags_section` (``[[drags]]``).
+
+Example:
+    >>> src = Source("scene.toml", "[grid]\nspacing = -1\n")
+    >>> t = Table(src, "grid", {"spacing": -1}, SECTIONS["grid"])
+    >>> t.num("spacing", "a positive number", lo=0, lo_open=True)
+    Traceback (most recent call last):
+    ...
+    torchdeform.errors.ConfigError: scene.toml:2: grid.spacing: expected a positive number, got -1
+"""
+from __future__ import annotations
+
+import math
+import re
+from contextlib import contextmanager
+from pathlib import Path
+
+import torch
+
+from ..errors import ConfigError
+from ..sim.forces import Drag
+from ..sim.grid import CLASSES, FACES, TOPOLOGIES, Grid
+
+try:
+    import tomllib
+except ModuleNotFoundError:                                   # Python 3.10
+    import tomli as tomllib
+
+__all__ = ["Source", "Table", "read", "is_number", "grid_section", "faces", "node_list", "drags_section",
+           "SECTIONS", "REQUIRED", "MISSING"]
+
+SECTIONS = {
+    "grid": ("shape", "mesh", "spacing", "topology", "origin", "padding", "scale"),
+    "material": ("stiffness", "modulus", "damping", "damping_mode"),
+    "mass": ("mass", "density"),
+    "boundary": ("fixed", "fixed_nodes", "home", "anchors", "decay", "gravity"),
+    "loads": ("node", "force", "face", "traction", "start", "ramp"),
+    "drags": ("nodes", "face", "box", "path"),
+    "integrator": ("name", "dt", "safety", "steps", "dtype", "device"),
+    "output": ("record_every", "name"),
+    "volume": ("file", "tf", "mode", "view"),
+    "chainmail": ("method", "compression", "stretch", "shear", "tissue", "reference_stress", "frames",
+                  "relax_steps", "relax_mode", "relax_moved_only", "on_blocked"),
+}
+REQUIRED = ("grid", "material", "mass", "integrator")
+#: marks an argument that was not given (``got`` not shown, no default)
+MISSING = object()
+_HEADER = re.compile(r"^\s*\[\[?\s*([A-Za-z0-9_.\-]+)\s*\]\]?")
+
+
+# ------------------------------------------------------------------ locating errors
+class Source:
+    """A scene file's path and text: builds :class:`ConfigError` s that name file and line."""
+
+    def __init__(self, path=None, text: str = ""):
+        self.path, self.text = (None if path is None else str(path)), text
+
+    def error(self, key: str, expected: str, got=MISSING) -> ConfigError:
+        """A ConfigError for the dotted ``key``; ``got`` omitted = not shown."""
+        shown = got is not MISSING
+        return ConfigError(key, expected, got if shown else None, file=self.path,
+                           line=self.line_of(key) if self.path else None, show_got=shown)
+
+    def line_of(self, key: str) -> int | None:
+        """1-based line of a dotted key like ``loads[1].force`` (best effort), else None."""
+        lines = self.text.splitlines()
+        parts = [re.fullmatch(r"(.*?)(?:\[(\d+)\])?", p).groups() for p in key.split(".")]
+        names = [p[0] for p in parts]
+        headers = [(i, m.group(1)) for i, line in enumerate(lines) if (m := _HEADER.match(line))]
+        start, end, best, rest = -1, headers[0][0] if headers else len(lines), None, names
+        for n in range(len(names), 0, -1):                     # longest matching table header
+            hits = [i for i, h in headers if h == ".".join(names[:n])]
+            index = int(parts[n - 1][1] or 0)
+            if len(hits) > index:
+                start = best = hits[index]
+                end = next((i for i, _ in headers if i > start), len(lines))
+                rest = names[n:]
+                break
+        pos = start + 1
+        for name in rest:
+            pat = re.compile(r"(^|[\s{,])" + re.escape(name) + r"\s*=")
+            found = next((i for i in range(pos, end) if pat.search(lines[i].split("#")[0])), None)
+            if found is None:
+                break
+            best = pos = found
+        return None if best is None else best + 1
+
+    @contextmanager
+    def located(self, key: str, keys: dict | None = None):
+        """Re-raise a core ConfigError as one about scene ``key`` (or ``keys[core key]``)."""
+        try:
+            yield
+        except ConfigError as e:
+            if e.file is not None:
+                raise
+            shown = e.show_got
+            if e.key in (keys or {}):
+                key = keys[e.key]
+            elif e.key.split(".")[0] in SECTIONS and "." in e.key:     # already a scene key
+                key = e.key
+            raise self.error(key, e.expected, e.got if shown else MISSING) from None
+
+
+# ------------------------------------------------------------------ typed values
+def is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+class Table:
+    """One TOML table with its dotted name; typed getters raise located ConfigErrors."""
+
+    def __init__(self, src: Source, name: str, data, allowed):
+        if not isinstance(data, dict):
+            raise src.error(name, "a table", data)
+        unknown = [k for k in data if k not in allowed]
+        if unknown:
+            raise src.error(f"{name}.{unknown[0]}", "one of the keys " + ", ".join(allowed), unknown[0])
+        self.src, self.name, self.data = src, name, data
+
+    def key(self, k: str) -> str:
+        return f"{self.name}.{k}"
+
+    def has(self, k: str) -> bool:
+        return k in self.data
+
+    def fail(self, k: str, expected: str, got=MISSING) -> ConfigError:
+        return self.src.error(self.key(k), expected, got)
+
+    def raw(self, k, expected, default=MISSING):
+        """The value of ``k``, or ``default``; a missing key without default is an error."""
+        if k not in self.data:
+            if default is MISSING:
+                raise self.fail(k, expected + " (required)")
+            return default
+        return self.data[k]
+
+    def num(self, k, expected="a number", default=MISSING, lo=None, hi=None, lo_open=False, hi_open=False):
+        """A finite number, optionally in ``[lo, hi]`` (ends open with ``lo_open``/``hi_open``)."""
+        if k not in self.data:
+            return self.raw(k, expected, default)
+        v = self.data[k]
+        ok = is_number(v) and (lo is None or (v > lo if lo_open else v >= lo)) \
+            and (hi is None or (v < hi if hi_open else v <= hi))
+        if not ok:
+            raise self.fail(k, expected, v)
+        return float(v)
+
+    def integer(self, k, expected, default=MISSING, lo=0):
+        """An integer >= ``lo``."""
+        if k not in self.data:
+            return self.raw(k, expected, default)
+        v = self.data[k]
+        if not isinstance(v, int) or isinstance(v, bool) or v < lo:
+            raise self.fail(k, expected, v)
+        return v
+
+    def text(self, k, expected, default=MISSING, choices=None):
+        """A string, optionally one of ``choices``."""
+        if k not in self.data:
+            return self.raw(k, expected, default)
+        v = self.data[k]
+        if not isinstance(v, str) or (choices is not None and v not in choices):
+            raise self.fail(k, expected, v)
+        return v
+
+    def vec(self, k, expected="three numbers [d, h, w]", default=MISSING):
+        """Three finite numbers."""
+        if k not in self.data:
+            return self.raw(k, expected, default)
+        v = self.data[k]
+        if not (isinstance(v, list) and len(v) == 3 and all(is_number(c) for c in v)):
+            raise self.fail(k, expected, v)
+        return tuple(float(c) for c in v)
+
+    def index(self, k, value=MISSING, where=None):
+        """A node index ``[i, j, k]`` (three integers >= 0)."""
+        v = self.raw(k, "a node index [i, j, k]") if value is MISSING else value
+        if not (isinstance(v, list) and len(v) == 3 and all(isinstance(c, int) and not isinstance(c, bool)
+                                                            and c >= 0 for c in v)):
+            raise self.src.error(where or self.key(k), "a node index [i, j, k] of three integers >= 0", v)
+        return tuple(v)
+
+    def per_class(self, k, unit):
+        """A number >= 0 or a table by direction class ``{axis, face, body}``."""
+        expected = f"a number >= 0 ({unit}) or a table {{axis = .., face = .., body = ..}}"
+        v = self.raw(k, expected)
+        if isinstance(v, dict):
+            if not v or not all(c in CLASSES and is_number(x) and x >= 0 for c, x in v.items()):
+                raise self.fail(k, expected, v)
+            return {c: float(x) for c, x in v.items()}
+        if not is_number(v) or v < 0:
+            raise self.fail(k, expected, v)
+        return float(v)
+
+    def one_of(self, *keys) -> str:
+        """The one key of ``keys`` that is present (exactly one must be)."""
+        present = [k for k in keys if k in self.data]
+        if len(present) != 1:
+            what = " or ".join(keys)
+            raise (self.fail(present[1], f"exactly one of {what}", present) if present else
+                   self.src.error(self.name, f"exactly one of the keys {what}"))
+        return present[0]
+
+    def only_with(self, k, other):
+        if k in self.data:
+            raise self.fail(k, f"no {k} together with {self.name}.{other}", self.data[k])
+
+
+# ------------------------------------------------------------------ reading files
+def read(path) -> tuple[Source, dict]:
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError("scene", "an existing scene file (.toml)", str(path)) from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError("scene", "a readable UTF-8 text file", f"{path} ({e})") from None
+    src = Source(path, text)
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        msg = str(e)
+        m = re.search(r"\(at line (\d+), column (\d+)\)", msg)
+        line = int(m.group(1)) if m else None
+        msg = re.sub(r"\s*\(at line \d+, column \d+\)", "", msg) + (f" at column {m.group(2)}" if m else "")
+        raise ConfigError("toml", f"valid TOML syntax ({msg})", file=str(path), line=line) from None
+    model = data.get("model", "mass-spring")                 # top-level key: which deformation model
+    if model not in ("mass-spring", "chainmail"):
+        raise src.error("model", '"mass-spring" (default) or "chainmail"', model)
+    for name in data:
+        if name not in SECTIONS and name != "model":
+            raise src.error(name, "one of the sections " + ", ".join(f"[{s}]" for s in SECTIONS), name)
+    for name in (("grid", "chainmail") if model == "chainmail" else REQUIRED):
+        if name not in data:
+            raise src.error(name, f"a [{name}] section (required)")
+    return src, data
+
+
+def grid_section(t: Table, base: Path) -> Grid:
+    spacing = t.raw("spacing", "one positive number or three [sd, sh, sw] in metres")
+    if not (is_number(spacing) and spacing > 0) and not (isinstance(spacing, list) and len(spacing) == 3
+                                                        and all(is_number(s) and s > 0 for s in spacing)):
+        raise t.fail("spacing", "one positive number or three [sd, sh, sw] in metres", spacing)
+    topology = t.integer("topology", "6, 14, 18 or 26", 26)
+    if topology not in TOPOLOGIES:
+        raise t.fail("topology", "6, 14, 18 or 26", topology)
+    if t.one_of("shape", "mesh") == "mesh":
+        from ..mesh import grid_from_mesh
+        t.only_with("origin", "mesh")
+        mesh = t.text("mesh", "a mesh file name (relative to the scene file)")
+        padding = t.integer("padding", "an integer >= 0 (node layers)", 0)
+        scale = t.num("scale", "a positive number (metres per mesh unit)", 1.0, lo=0, lo_open=True)
+        with t.src.located(t.key("mesh"), {k: t.key(k) for k in ("spacing", "padding", "scale")}):
+            return grid_from_mesh(base / mesh, spacing, topology, padding, scale)
+    t.only_with("padding", "shape")
+    t.only_with("scale", "shape")
+    shape = t.raw("shape", "three node counts [D, H, W]")
+    if not (isinstance(shape, list) and len(shape) == 3 and all(isinstance(n, int) and not isinstance(n, bool)
+                                                                 for n in shape)) or min(shape) < 1:
+        raise t.fail("shape", "three node counts [D, H, W], each >= 1", shape)
+    origin = t.vec("origin", "three numbers [od, oh, ow] in metres", (0.0, 0.0, 0.0))
+    with t.src.located(t.name):
+        return Grid(tuple(shape), spacing, topology, origin=origin)
+
+
+def faces(t: Table, k: str, grid: Grid) -> torch.Tensor:
+    v = t.data[k]
+    names = [v] if isinstance(v, str) else v
+    expected = "a face name or a list of them: " + ", ".join(f'"{f}"' for f in FACES)
+    if not isinstance(names, list) or not all(isinstance(n, str) and n in FACES for n in names):
+        raise t.fail(k, expected, v)
+    mask = torch.zeros(grid.shape, dtype=torch.bool)
+    for n in names:
+        mask |= grid.face(n)
+    return mask
+
+
+def node_list(t: Table, k: str, grid: Grid) -> torch.Tensor:
+    v = t.raw(k, "a list of node indices [[i, j, k], ...]")
+    if not isinstance(v, list) or not v:
+        raise t.fail(k, "a non-empty list of node indices [[i, j, k], ...]", v)
+    for n, ijk in enumerate(v):
+        t.index(k, ijk, where=f"{t.key(k)}[{n}]")
+    with t.src.located(t.key(k)):
+        return grid.index_mask(v)
+
+
+def drags_section(src: Source, items, grid: Grid) -> list:
+    if not isinstance(items, list):
+        raise src.error("drags", "[[drags]] tables", items)
+    drags = []
+    for n, item in enumerate(items):
+        t = Table(src, f"drags[{n}]", item, SECTIONS["drags"])
+        which = t.one_of("nodes", "face", "box")
+        if which == "nodes":
+            nodes = node_list(t, "nodes", grid)
+        elif which == "face":
+            nodes = faces(t, "face", grid)
+        else:
+            b = Table(src, t.key("box"), t.data["box"], ("lo", "hi"))
+            lo, hi = b.vec("lo", "three numbers [d, h, w] in metres"), b.vec("hi", "three numbers [d, h, w] in metres")
+            nodes = grid.box_mask(lo, hi)
+            if not bool(nodes.any()):
+                raise t.fail("box", "a box {lo, hi} (rest positions, m) containing at least one node",
+                             {"lo": list(lo), "hi": list(hi)})
+        expected = "a list of waypoints [[t, [od, oh, ow]], ...] (s, m)"
+        path = t.raw("path", expected)
+        if not (isinstance(path, list) and path and all(
+                isinstance(p, list) and len(p) == 2 and is_number(p[0]) and isinstance(p[1], list)
+                and len(p[1]) == 3 and all(is_number(c) for c in p[1]) for p in path)):
+            raise t.fail("path", expected, path)
+        with src.located(t.key("path")):
+            drags.append(Drag(nodes, [(float(p[0]), tuple(float(c) for c in p[1])) for p in path]))
+    return drags
+

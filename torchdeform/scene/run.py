@@ -1,0 +1,249 @@
+"""Loading and running scenes: :func:`load_scene` (any model kind), :func:`run_scene` (writes
+``trajectory.npz``, ``summary.json``, ``energy.png`` and, with a ``[volume]`` section, the
+deformed volume and its renders), and the pieces the command line shows.
+"""
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+import warnings
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import ConfigError
+from ..sim.integrators import simulate
+from ..sim.model import Model, State
+from ..sim.stability import check_dt, time_step_bound
+from .chainmail import ChainMailScene, chainmail_scene
+from .mass_spring import EXPLICIT, Scene, mass_spring_scene
+from .reader import read
+
+__all__ = ["load_scene", "run_scene", "energy_series", "plot_energy", "one_line_warnings", "report",
+           "scene_volume_outputs"]
+
+
+def load_scene(path) -> Scene | ChainMailScene:
+    """Read a TOML scene file (see :mod:`torchdeform.scene` for its keys) into a :class:`Scene`
+    (mass-spring, the default) or a :class:`ChainMailScene` (``model = "chainmail"``).
+
+    The model is built once (on the CPU) to check every value.
+
+    Raises:
+        ConfigError: naming the file, the line (best effort), the dotted key and what was
+            expected: syntax errors, unknown keys, wrong types, missing sections or keys, bad
+            values, a missing or open mesh.
+
+    Examples:
+        >>> from torchdeform.scene import load_scene
+        >>> scene = load_scene("scenes/beam_sag.toml")
+        >>> scene.grid.shape, scene.integrator.name
+        ((5, 5, 17), 'implicit')
+    """
+    src, data = read(path)
+    base, name = Path(path).parent, Path(path).stem
+    if data.get("model") == "chainmail":
+        return chainmail_scene(src, data, base, name)
+    return mass_spring_scene(src, data, base, name)
+
+
+@contextmanager
+def one_line_warnings(prefix: str = "torchdeform: warning: "):
+    """Show warnings (e.g. :class:`StabilityWarning`) as one line on stderr, for the CLI."""
+    with warnings.catch_warnings():
+        warnings.showwarning = lambda message, *args, **kw: print(f"{prefix}{message}", file=sys.stderr)
+        yield
+
+
+def energy_series(model: Model, x: torch.Tensor, v: torch.Tensor, chunk: int = 1) -> dict:
+    """Energies and largest displacement of recorded frames.
+
+    Args:
+        x, v: frames ``(T, 3, D, H, W)`` (any device).
+        chunk: frames per evaluation (1 by default: batched small frames run multi-threaded,
+            which is slower than a loop when the CPU cores are shared).
+    Returns:
+        dict of ``(T,)`` float64 numpy arrays: ``kinetic``, ``elastic``, ``gravity`` (if the
+        model has gravity), ``total`` (J), ``max_displacement`` (m, largest ``|x - X|``) and
+        ``max_free_displacement`` (m, the same over nodes that are neither fixed nor dragged).
+    """
+    out = {}
+    free = ~model.constrained.view(1, *model.grid.shape)
+    with torch.no_grad():
+        for a in range(0, len(x), chunk):
+            xc = x[a:a + chunk].to(model.device, model.dtype)
+            vc = v[a:a + chunk].to(model.device, model.dtype)
+            terms = model.energy(State(xc, vc))
+            u = (xc - model.X).norm(dim=1)                                  # (T, D, H, W)
+            terms["max_displacement"] = u.flatten(1).amax(1)
+            terms["max_free_displacement"] = (u * free).flatten(1).amax(1)
+            for k, val in terms.items():
+                out.setdefault(k, []).append(val.double().cpu())
+    return {k: torch.cat(v).numpy() for k, v in out.items()}
+
+
+def plot_energy(path, t: np.ndarray, series: dict, title: str = "") -> None:
+    """Write a PNG: energies (J) and largest displacement (mm) over time (s)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(7, 6), layout="constrained")
+    FigureCanvasAgg(fig)
+    top, bottom = fig.subplots(2, 1, sharex=True)
+    for k in ("kinetic", "elastic", "gravity", "total"):
+        if k in series:
+            top.plot(t, series[k], label=k, lw=2 if k == "total" else 1.2)
+    top.set_ylabel("energy (J)")
+    top.legend(loc="best", fontsize="small")
+    top.grid(alpha=0.3)
+    top.set_title(title)
+    bottom.plot(t, series["max_displacement"] * 1e3, color="k", label="all nodes")
+    bottom.plot(t, series["max_free_displacement"] * 1e3, color="tab:blue", ls="--",
+                label="free nodes (not fixed or dragged)")
+    bottom.legend(loc="best", fontsize="small")
+    bottom.set_ylabel("max displacement (mm)")
+    bottom.set_xlabel("time (s)")
+    bottom.grid(alpha=0.3)
+    fig.savefig(path, dpi=100)
+
+
+def _out_dir(out_dir) -> Path:
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ConfigError("--out", f"a folder that can be created ({e.strerror})", str(out)) from None
+    return out
+
+
+def _bound_method(name: str) -> str:
+    if name == "implicit":
+        return "none: implicit Euler is unconditionally stable"
+    if name == "knoche":
+        return "none: relaxation, dt only advances the clock"
+    return "power iteration on the spring stencil (linearised at rest)"
+
+
+def run_scene(scene: Scene, out_dir, progress: bool = True, device=None) -> dict:
+    """Run a scene and write ``trajectory.npz``, ``summary.json`` and ``energy.png`` to ``out_dir``.
+
+    ``trajectory.npz``: ``t`` ``(T,)`` s (float64), ``x``, ``v`` ``(T, 3, D, H, W)`` (float32),
+    rest positions ``X`` ``(3, D, H, W)``, ``node_mask`` ``(D, H, W)``, ``shape``, ``spacing``,
+    ``origin``, ``topology``, ``dt``, ``integrator``, and the series of :func:`energy_series`
+    (``kinetic``, ``elastic``, ``gravity``, ``total``, ``max_displacement``,
+    ``max_free_displacement``, each ``(T,)``). The last frame is always the final state.
+
+    Args:
+        scene: a :class:`Scene` (:func:`load_scene`, :func:`demo_scene` or your own).
+        out_dir: output folder (created).
+        progress: show a progress bar.
+        device: run on this device instead of the scene's.
+    Returns:
+        the summary (also written to ``summary.json``).
+    Raises:
+        DivergenceError: the run became unstable (naming step and a safe dt).
+    """
+    if not isinstance(scene, Scene):                          # a ChainMail scene runs itself
+        return scene.run(_out_dir(out_dir), progress=progress, device=device)
+    out = _out_dir(out_dir)
+    model = scene.build(device)
+    integrator = scene.integrator
+    bound = time_step_bound(model, integrator)
+    dt = scene.time_step(bound)
+    if integrator.name in EXPLICIT:
+        check_dt(model, dt, integrator, bound)
+    state = model.rest_state()
+
+    start = time.perf_counter()
+    final, rec = simulate(model, state, dt, scene.steps, integrator, record_every=scene.frames_every,
+                          progress=progress, warn=False)
+    wall = time.perf_counter() - start
+
+    t, x, v = rec["t"].numpy(), rec["x"][:, 0], rec["v"][:, 0]
+    if scene.steps % scene.frames_every:
+        t = np.append(t, final.t)
+        x = torch.cat([x, final.x[:1].detach().cpu()])
+        v = torch.cat([v, final.v[:1].detach().cpu()])
+    series = energy_series(model, x, v)
+    grid = model.grid
+    np.savez(out / "trajectory.npz", t=t, x=x.float().numpy(), v=v.float().numpy(),
+             X=model.X[0].float().cpu().numpy(), node_mask=grid.nodes().numpy(),
+             shape=np.array(grid.shape), spacing=np.array(grid.spacing), origin=np.array(grid.origin),
+             topology=grid.topology, dt=dt, integrator=integrator.name, **series)
+
+    options = {k: v for k, v in vars(integrator).items() if isinstance(v, (int, float, str)) and not k.startswith("_")}
+    summary = {
+        "name": scene.name,
+        "scene": scene.source.path,
+        "integrator": {"name": integrator.name, **options},
+        "steps": scene.steps,
+        "dt_s": dt,
+        "dt_auto": scene.dt == "auto",
+        "simulated_time_s": float(final.t),
+        "time_step_bound_s": bound if math.isfinite(bound) else None,
+        "stability_bound_method": _bound_method(integrator.name),
+        "wall_time_s": wall,
+        "steps_per_s": scene.steps / wall if wall > 0 else None,
+        "nodes": grid.num_nodes,
+        "springs": grid.num_springs,
+        "grid": {"shape": list(grid.shape), "spacing": list(grid.spacing), "origin": list(grid.origin),
+                 "topology": grid.topology},
+        "dtype": str(model.dtype).replace("torch.", ""),
+        "device": str(model.device),
+        "frames": len(t),
+        "final_energy_J": {k: float(series[k][-1]) for k in ("kinetic", "elastic", "gravity", "total")
+                           if k in series},
+        "max_displacement_m": float(series["max_displacement"][-1]),
+        "peak_displacement_m": float(series["max_displacement"].max()),
+        "max_free_displacement_m": float(series["max_free_displacement"][-1]),
+    }
+    if scene.volume:
+        v = dict(scene.volume)
+        summary["volume"] = scene_volume_outputs(v.pop("file"), final.x[:1], model.X, grid.spacing, out, **v)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    plot_energy(out / "energy.png", t, series, f"{scene.name}: {integrator.name}, dt = {dt:.3g} s")
+    return summary
+
+
+def report(summary: dict, out_dir) -> str:
+    """One line for the CLI: what ran, how fast, and where the outputs are."""
+    bound = summary["time_step_bound_s"]
+    bound = f" (bound {bound:.3g} s)" if bound else ""
+    return (f"{summary['name']}: {summary['steps']} {summary['integrator']['name']} steps of "
+            f"{summary['dt_s']:.3g} s{bound} in {summary['wall_time_s']:.2f} s, max displacement "
+            f"{summary['max_displacement_m'] * 1e3:.3g} mm; wrote trajectory.npz, summary.json, "
+            f"energy.png to {out_dir}")
+
+
+def scene_volume_outputs(volume, x, X, spacing, out_dir, tf: str = "ct-soft", mode: str = "dvr",
+                         view: str = "h", base=None) -> dict:
+    """Deform a scene's volume by its final node positions and write ``volume_before.png``,
+    ``volume_after.png`` and ``volume_deformed.npy`` to ``out_dir``.
+
+    The volume fills the node grid's bounding box (:func:`~torchdeform.volume.node_offsets`).
+
+    Args:
+        volume: a file name (relative to ``base``), ``"phantom"`` or ``"phantom:N"``.
+        x, X: final and rest node positions ``(1, 3, n_d, n_h, n_w)`` (m); spacing: node spacing (m).
+    Returns:
+        a summary dict for ``summary.json``.
+    """
+    from ..volume import load_volume, node_offsets, render, save_png, save_volume, to_image, warp
+    name = str(volume)
+    path = name if name.startswith("phantom") or base is None else str(Path(base) / name)
+    vol = torch.from_numpy(load_volume(path, "volume.file"))
+    out = Path(out_dir)
+    with torch.no_grad():
+        offsets = node_offsets(x.double().cpu(), X.double().cpu(), spacing, tuple(vol.shape)).float()
+        deformed, info = warp(vol, offsets, return_info=True)
+        flip = view in ("h", "-h", "w", "-w")
+        save_png(out / "volume_before.png", to_image(render(vol, tf, mode, view), flip_up=flip))
+        save_png(out / "volume_after.png", to_image(render(vol, tf, mode, view, offsets=offsets), flip_up=flip))
+    save_volume(out / "volume_deformed.npy", deformed.numpy())
+    return {"volume": name, "shape": list(vol.shape), "max_offset_voxels": float(offsets.abs().max()),
+            "folded_fraction": info["folded"], "outputs": ["volume_before.png", "volume_after.png",
+                                                            "volume_deformed.npy"]}

@@ -1,0 +1,30 @@
+"""The mass-spring core: grids, the one spring operator, force terms, models and states,
+integrators, stability bounds and the compiled fast path.
+
+=====================  ===========================================================================
+:mod:`.grid`           :class:`Grid`: node counts, spacing, topology (6/14/18/26 neighbours), masks
+:mod:`.springs`        the one spring operator: stencil differences and their adjoint (slices and
+                       ``conv3d`` reference), the spring law, energies, linearisations
+:mod:`.forces`         loads (point, surface, field), drags, home springs: the one load vocabulary
+:mod:`.model`          :class:`Model` (what a step reads) and :class:`State` (``x``, ``v``, ``t``)
+:mod:`.integrators`    explicit/symplectic Euler, damped Verlet, RK4, implicit Euler, Knoche
+                       relaxation; :func:`simulate`
+:mod:`.stability`      time-step bounds, :func:`suggest_dt`, divergence monitoring
+:mod:`.packed`         the padded, flattened layout of the fast path
+:mod:`.compiled`       :func:`compiled_step`: one integrator step under ``torch.compile``
+=====================  ===========================================================================
+
+Imports point downwards in that order; :mod:`.compiled` is imported only by code that asks for
+the fast path.
+"""
+from .forces import Drag, FieldForce, PointForce, SurfaceForce
+from .grid import Grid
+from .integrators import (INTEGRATORS, RK4, DampedVerlet, ExplicitEuler, ImplicitEuler, Integrator, KnocheRelaxation,
+                          SymplecticEuler, conjugate_gradient, simulate)
+from .model import Model, State, lumped_mass
+from .stability import DivergenceMonitor, check_dt, gershgorin_omega2, power_omega2, suggest_dt, time_step_bound
+
+__all__ = ["Grid", "Model", "State", "lumped_mass", "Drag", "PointForce", "SurfaceForce", "FieldForce",
+           "INTEGRATORS", "Integrator", "ExplicitEuler", "SymplecticEuler", "DampedVerlet", "RK4", "ImplicitEuler",
+           "KnocheRelaxation", "conjugate_gradient", "simulate", "DivergenceMonitor", "check_dt", "gershgorin_omega2",
+           "power_omega2", "suggest_dt", "time_step_bound"]

@@ -1,0 +1,392 @@
+"""Integrators: pure functions of ``(model, state, dt, loads)`` that return a new ``State``.
+
+=====================  ==========================================================  =====
+class                  update                                                      order
+=====================  ==========================================================  =====
+ExplicitEuler          ``x' = x + h v``;  ``v' = v + h a(x, v)``                    1
+SymplecticEuler        ``v' = v + h a(x, v)``;  ``x' = x + h v'``                  1
+DampedVerlet           ``x' = x + (1 - kd)(x - x_prev) + h^2 a`` (Punak eq. 4-1)    1-2
+RK4                    classic Runge-Kutta, 4 force evaluations                    4
+ImplicitEuler          Baraff-Witkin linearised step, CG on stencil products,     1
+                       optional Newton iterations
+KnocheRelaxation       Knoche's first-order offset relaxation (his Cg shader)      -
+=====================  ==========================================================  =====
+
+``DampedVerlet`` keeps ``v = (x - x_prev) / h`` in the state, which makes eq. 4-1 read
+``v' = (1 - kd) v + h a``, ``x' = x + h v'``.
+
+Dragged nodes follow their path exactly (they are put on it after every step and before every
+force evaluation); global drag (``model.decay``) is applied after the step as
+``v <- v exp(-c h)``, which is unconditionally stable.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from tqdm.auto import tqdm
+
+from ..errors import ConfigError
+from .model import Model, State
+from .springs import accumulate
+from .stability import DivergenceMonitor, check_dt, time_step_bound
+
+
+def positive_dt(dt) -> float:
+    """``dt`` as a float, or a :class:`~torchdeform.errors.ConfigError` unless it is a positive,
+    finite number of seconds."""
+    try:
+        dt = float(dt)
+    except (TypeError, ValueError):
+        raise ConfigError("dt", "a positive number of seconds", dt) from None
+    if not math.isfinite(dt) or dt <= 0:
+        raise ConfigError("dt", "a positive, finite number of seconds", dt)
+    return dt
+
+
+class Integrator:
+    """Base class. Subclasses implement :meth:`advance`; :meth:`step` adds the checks, the
+    constraints and the global drag."""
+
+    name = "base"
+
+    def step(self, model: Model, state: State, dt: float, loads=None) -> State:
+        """Advance ``state`` by ``dt`` seconds.
+
+        Args:
+            model: the :class:`~torchdeform.model.Model`.
+            state: positions and velocities ``(B, 3, D, H, W)``.
+            dt: time step (s), > 0.
+            loads: extra node forces ``(B|1, 3, D, H, W)`` or a callable ``t -> forces``.
+        Returns:
+            the new :class:`~torchdeform.model.State` at ``t + dt``.
+        """
+        dt = positive_dt(dt)
+        x, v = self.advance(model, state, dt, loads)
+        return self.finish(model, state, x, v, dt)
+
+    @staticmethod
+    def finish(model: Model, state: State, x, v, dt: float) -> State:
+        """End of a step: dragged nodes onto their path at ``t + dt``, then global drag."""
+        t1 = state.t + dt
+        if model.drags:
+            x, v = model.constrain(x, v, t1)
+        if model.decay is not None:
+            v = v * math.exp(-model.decay * dt)
+        return State(x, v, t1)
+
+    def advance(self, model, state, dt, loads):                       # pragma: no cover
+        raise NotImplementedError
+
+
+class ExplicitEuler(Integrator):
+    """Forward Euler; unstable without damping for every dt (use it for comparisons)."""
+    name = "explicit"
+
+    def advance(self, model, state, dt, loads):
+        a = model.acceleration(state.x, state.v, state.t, loads)
+        return state.x + dt * state.v, state.v + dt * a
+
+
+class SymplecticEuler(Integrator):
+    """Semi-implicit (symplectic) Euler: velocities first, then positions with the new velocity."""
+    name = "symplectic"
+
+    def advance(self, model, state, dt, loads):
+        v = state.v + dt * model.acceleration(state.x, state.v, state.t, loads)
+        return state.x + dt * v, v
+
+
+class DampedVerlet(Integrator):
+    """Punak's damped Verlet (eq. 4-1): ``x' = x + (1 - kd)(x - x_prev) + h^2 F / m``.
+
+    Args:
+        kd: dimensionless per-step damping in ``[0, 1)``; roughly a viscous ``c = kd m / h``.
+    """
+    name = "verlet"
+
+    def __init__(self, kd: float = 0.0):
+        if not 0 <= kd < 1:
+            raise ConfigError("verlet.kd", "a number in [0, 1)", kd)
+        self.kd = float(kd)
+
+    def advance(self, model, state, dt, loads):
+        v = (1 - self.kd) * state.v + dt * model.acceleration(state.x, state.v, state.t, loads)
+        return state.x + dt * v, v
+
+
+class RK4(Integrator):
+    """Classic fourth-order Runge-Kutta on ``(x, v)``; dragged nodes are put on their path at
+    every stage time."""
+    name = "rk4"
+
+    def advance(self, model, state, dt, loads):
+        t0, x0, v0 = state.t, state.x, state.v
+
+        def f(t, x, v):
+            if model.drags:
+                x, v = model.constrain(x, v, t)
+            return v, model.acceleration(x, v, t, loads)
+
+        k1x, k1v = f(t0, x0, v0)
+        k2x, k2v = f(t0 + dt / 2, x0 + dt / 2 * k1x, v0 + dt / 2 * k1v)
+        k3x, k3v = f(t0 + dt / 2, x0 + dt / 2 * k2x, v0 + dt / 2 * k2v)
+        k4x, k4v = f(t0 + dt, x0 + dt * k3x, v0 + dt * k3v)
+        return (x0 + dt / 6 * (k1x + 2 * k2x + 2 * k3x + k4x),
+                v0 + dt / 6 * (k1v + 2 * k2v + 2 * k3v + k4v))
+
+
+def _dot(a, b):
+    """Per-batch-entry inner product, shaped to broadcast against ``a``. (Summed over the axes
+    as they are: a flattened sum would index ``i % P`` under ``torch.compile`` and run scalar.)"""
+    return (a * b).sum(tuple(range(1, a.dim())), keepdim=True)
+
+
+def cg_start(b, precond=None, mask=None):
+    """Initial conjugate-gradient state ``(u, r, p, rz)`` for ``A u = b`` (see
+    :func:`conjugate_gradient`); ``u = 0``, ``r`` the filtered ``b``."""
+    r = b if mask is None else b * mask
+    z = r if precond is None else precond * r
+    return torch.zeros_like(r), r, z, _dot(r, z)
+
+
+def cg_iteration(apply_A, u, r, p, rz, precond=None, mask=None):
+    """One preconditioned conjugate-gradient iteration: ``(u, r, p, rz) -> (u, r, p, rz)``.
+
+    Guarded so that an exactly solved system (``p^T A p = 0`` or ``r^T z = 0``) stays put
+    instead of dividing by zero."""
+    Ap = apply_A(p)
+    if mask is not None:
+        Ap = Ap * mask
+    pAp = _dot(p, Ap)
+    alpha = torch.where(pAp > 0, rz / torch.where(pAp > 0, pAp, 1.0), 0.0)
+    u = u + alpha * p
+    r = r - alpha * Ap
+    z = r if precond is None else precond * r
+    rz_new = _dot(r, z)
+    p = z + torch.where(rz > 0, rz_new / torch.where(rz > 0, rz, 1.0), 0.0) * p
+    return u, r, p, rz_new
+
+
+def conjugate_gradient(apply_A, b, precond=None, mask=None, iters: int = 100, tol: float = 1e-8):
+    """Solve ``A u = b`` for symmetric positive definite ``A`` given as a function.
+
+    Batched over the leading dimension; entries where ``mask`` is 0 are held at 0 (Baraff-Witkin
+    filtering of constrained nodes).
+
+    Args:
+        apply_A: ``u -> A u`` on node fields (``(B, 3, D, H, W)`` or packed ``(B, 3, P)``).
+        b: right-hand side, same shape.
+        precond: diagonal preconditioner (multiplies the residual), broadcastable, or None.
+        mask: broadcastable 0/1 filter or None.
+        iters: maximum iterations; tol: stop when ``|r| <= tol |b|`` for every batch entry.
+            ``tol <= 0`` runs exactly ``iters`` iterations without reading the residual on the
+            host (no synchronisation).
+    Returns:
+        ``(u, iterations used, relative residual)`` (the residual is a 0-d tensor when ``tol <= 0``).
+    """
+    u, r, p, rz = cg_start(b, precond, mask)
+    bnorm = r.detach().flatten(1).norm(dim=1).clamp_min(1e-300)
+    for it in range(1, iters + 1):
+        u, r, p, rz = cg_iteration(apply_A, u, r, p, rz, precond, mask)
+        if tol > 0:
+            rel = float((r.detach().flatten(1).norm(dim=1) / bnorm).max())
+            if rel <= tol:
+                return u, it, rel
+    rel = (r.detach().flatten(1).norm(dim=1) / bnorm).max()
+    return u, iters, (float(rel) if tol > 0 else rel)
+
+
+class ImplicitEuler(Integrator):
+    """Implicit (backward) Euler, Baraff-Witkin style, matrix-free.
+
+    The first iteration is Baraff and Witkin's linearised step
+    ``(M - h dF/dv - h^2 dF/dx) dv = h (F0 + h dF/dx v0)``; each of ``newton_iters`` further
+    iterations re-linearises at ``x0 + h v`` and solves
+    ``(M - h dF/dv - h^2 dF/dx) delta = h F(x0 + h v, v) - M (v - v0)``. The systems are solved by
+    Jacobi-preconditioned conjugate gradients on the spring stencil's stiffness products; the
+    compressive term is clamped in the matrix so it stays positive definite.
+
+    Args:
+        cg_iters: maximum CG iterations per solve; cg_tol: relative residual to stop at
+            (``0``: always exactly ``cg_iters``, as SOFA's fixed-count benchmarks and compiled code do).
+        newton_iters: extra Newton iterations (0 = one linearised step).
+    Attributes:
+        last_cg: ``(iterations, relative residual)`` of the last solve (the residual is a 0-d
+            tensor when ``cg_tol = 0``).
+    """
+    name = "implicit"
+
+    def __init__(self, cg_iters: int = 100, cg_tol: float = 1e-6, newton_iters: int = 0):
+        self.cg_iters, self.cg_tol, self.newton_iters = int(cg_iters), float(cg_tol), int(newton_iters)
+        self.last_cg = (0, 0.0)
+
+    def preconditioner(self, model, h: float) -> torch.Tensor:
+        """Jacobi preconditioner ``1 / diag(M + h C + h^2 K)`` (with ``K``'s diagonal bounded by
+        the spring sums), zero on empty rows (nodes outside a node mask, the packed halo)."""
+        diag = model.mass + h * h * model.spring_sums(model.stiffness)
+        if model.k_home is not None:
+            diag = diag + h * h * model.k_home
+        if model.damping is not None:
+            diag = diag + h * model.spring_sums(model.damping)
+        ok = diag > 0
+        return torch.where(ok, 1.0 / torch.where(ok, diag, torch.ones_like(diag)), torch.zeros_like(diag))
+
+    def operator(self, model, x_lin, h: float):
+        """``(linearisation, apply_A)`` with ``A u = M u + h C u + h^2 K(x_lin) u``.
+
+        ``x_lin`` is a position field, a linearisation already made, or the combined operator of
+        an earlier call (``apply_A.op``: ``h^2 K + h C`` with its coefficients merged once per
+        solve, so CG products skip the scaling); ``apply_A.lin`` is the linearisation."""
+        lin = model.linearise(x_lin) if torch.is_tensor(x_lin) else x_lin
+        op = lin if lin.combined else lin.scaled(h * h, model.damping, model.projected, h)
+
+        def apply_A(u):
+            y = model.mass * u + op.apply(u)
+            return y if model.k_home is None else y + (h * h) * model.k_home * u
+        apply_A.lin, apply_A.op = lin, op
+        return lin, apply_A
+
+    def system(self, model, state, v, it: int, h: float, loads):
+        """The linear system of Newton iteration ``it`` from ``state`` with current velocity ``v``.
+
+        Returns:
+            ``(x_lin, apply_A, rhs, delta_c)``: the linearisation point, the operator, the
+            right-hand side and the prescribed velocity change of dragged nodes (or None); the
+            new velocity is ``v + solution + delta_c``.
+        """
+        x0, v0, t1 = state.x, state.v, state.t + h
+        x_lin = x0 if it == 0 else x0 + h * v
+        lin, apply_A = self.operator(model, x_lin, h)
+        F = model.forces(x_lin, v, t1, loads)
+        if it == 0:
+            k_v = lin.apply(v0) + (0 if model.k_home is None else model.k_home * v0)
+            rhs = h * (F - h * k_v)
+        else:
+            rhs = h * F - model.mass * (v - v0)
+        delta_c = None
+        if model.drags:      # prescribed velocities of dragged nodes over the step
+            _, v_target = model.constrain(x0, v0, t1 - 1e-12 * (1.0 + abs(t1)))
+            delta_c = torch.where(model.constrained[None, None], v_target - v, torch.zeros_like(v))
+            rhs = rhs - apply_A(delta_c)
+        return x_lin, apply_A, rhs, delta_c
+
+    def advance(self, model, state, dt, loads):
+        precond = self.preconditioner(model, dt)
+        v = state.v
+        for it in range(1 + self.newton_iters):
+            _, apply_A, rhs, delta_c = self.system(model, state, v, it, dt, loads)
+            delta, n_it, rel = conjugate_gradient(apply_A, rhs, precond, model.free, self.cg_iters, self.cg_tol)
+            self.last_cg = (n_it, rel)
+            v = v + delta if delta_c is None else v + delta + delta_c
+        return state.x + dt * v, v
+
+
+class KnocheRelaxation(Integrator):
+    """Knoche's first-order offset relaxation (2008, Code Example 2), reproduced exactly.
+
+    Offsets ``u = x - X``; per node a material value ``w`` in ``[0, 1]``. A node with
+    ``w > 1 - eps`` is fixed; every other node moves by ``gain (1 - w_c) F`` with
+    ``F = sum_k (u_k - u_c) s(w_k) (w_k + w_c) / 2`` over its 6 face neighbours, ``s = 0.5`` for a
+    neighbour with ``w < eps`` and 1 otherwise; neighbours outside the grid are ghosts with
+    ``u = 0``, ``w = 0``. Updates are Jacobi (all nodes from the previous offsets).
+
+    ``dt`` only advances the clock: one step is one shader pass. Velocities stay zero.
+
+    Args:
+        material: ``w``, a number or ``(D, H, W)``.
+        eps: threshold of "fixed" and "free" (Knoche does not state it; default 1e-3).
+        gain: step factor, default ``3 / n`` with ``n = D`` (the shader's ``3.0 / dim``).
+    """
+    name = "knoche"
+
+    def __init__(self, material, eps: float = 1e-3, gain: float | None = None):
+        self.material, self.eps, self.gain = material, float(eps), gain
+
+    def advance(self, model, state, dt, loads):
+        grid = model.grid
+        if grid.topology != 6:
+            raise ConfigError("integrator", "a 6-neighbour grid for Knoche relaxation", grid.topology)
+        w = torch.as_tensor(self.material, dtype=model.dtype, device=model.device)
+        w = w.expand(grid.shape).reshape(1, 1, *grid.shape)
+        eps = self.eps
+        gain = 3.0 / grid.shape[0] if self.gain is None else self.gain
+        half = torch.where(w < eps, 0.5, 1.0)
+        u = state.x - model.X
+
+        # asymmetric edge weights: node i sees s(w_j)(w_i+w_j)/2, node j sees s(w_i)(w_i+w_j)/2
+        def edge(s, src, du, dw, dhalf):
+            wi = w[(..., *src)]
+            mean = wi + 0.5 * dw
+            s_i = half[(..., *src)]
+            s_j = s_i + dhalf
+            return s_j * mean * du, -s_i * mean * du
+        F = accumulate(grid, edge, u, w, half, channels=3)
+        ghosts = grid.missing_neighbours(model.device).to(model.dtype)[None, None]
+        F = F - ghosts * 0.5 * (0.5 * w) * u
+        moving = (w <= 1 - eps).to(model.dtype)
+        if model.free is not None:
+            moving = moving * model.free
+        u = u + gain * (1 - w) * moving * F
+        return model.X + u, torch.zeros_like(state.v)
+
+
+INTEGRATORS = {cls.name: cls for cls in (ExplicitEuler, SymplecticEuler, DampedVerlet, RK4, ImplicitEuler,
+                                          KnocheRelaxation)}
+
+
+def simulate(model: Model, state: State, dt: float, steps: int, integrator: Integrator | None = None,
+             loads=None, record_every: int | None = None, check_every: int = 10, progress: bool = False,
+             warn: bool = True, callback=None):
+    """Run ``steps`` steps with divergence detection.
+
+    Args:
+        model, state, dt: as for :meth:`Integrator.step`.
+        steps: number of steps (>= 0).
+        integrator: default :class:`SymplecticEuler`.
+        record_every: keep every k-th state (positions and velocities) on the CPU, or None.
+        check_every: check for non-finite values and runaway energy every k steps (and at the end).
+        progress: show a tqdm progress bar.
+        warn: warn when an explicit ``dt`` exceeds the stability bound.
+        callback: ``callback(step, state)`` after every step, or None.
+    Returns:
+        ``(final state, record)`` where record is a dict with ``t`` ``(T,)``, ``x`` and ``v``
+        ``(T, B, 3, D, H, W)`` (empty if nothing was recorded).
+    Raises:
+        DivergenceError: naming the step, the quantity and a safe dt.
+    """
+    integrator = integrator or SymplecticEuler()
+    dt = positive_dt(dt)
+    if int(steps) < 0:
+        raise ConfigError("steps", "an integer >= 0", steps)
+    if warn and integrator.name not in ("implicit", "knoche"):
+        check_dt(model, dt, integrator)
+    monitor = DivergenceMonitor(model, dt, integrator)
+    if model.drags:                                   # dragged nodes start on their path
+        state = State(*model.constrain(state.x, state.v, state.t), state.t)
+    ts, xs, vs = [], [], []
+
+    def record(st):
+        ts.append(st.t)
+        xs.append(st.x.detach().cpu())
+        vs.append(st.v.detach().cpu())
+
+    if record_every:
+        record(state)
+    for i in tqdm(range(1, int(steps) + 1), disable=not progress, desc="simulate", unit="step"):
+        state = integrator.step(model, state, dt, loads)
+        if i % check_every == 0 or i == steps:
+            monitor.check(state, i)
+        if record_every and i % record_every == 0:
+            record(state)
+        if callback is not None:
+            callback(i, state)
+    rec = {}
+    if xs:
+        rec = {"t": torch.tensor(ts, dtype=torch.float64), "x": torch.stack(xs), "v": torch.stack(vs)}
+    return state, rec
+
+
+__all__ = ["Integrator", "ExplicitEuler", "SymplecticEuler", "DampedVerlet", "RK4", "ImplicitEuler",
+           "KnocheRelaxation", "conjugate_gradient", "cg_start", "cg_iteration", "simulate", "INTEGRATORS",
+           "time_step_bound", "positive_dt"]

@@ -1,0 +1,308 @@
+"""``Model`` (what a step reads and does not change) and ``State`` (positions, velocities).
+
+Example:
+    >>> import torchdeform as td
+    >>> grid = td.Grid((5, 5, 5), spacing=0.01, topology=26)
+    >>> model = td.Model(grid, stiffness=50.0, damping=0.1, density=1000.0,
+    ...                  gravity=(-9.81, 0, 0), fixed=grid.face("bottom"))
+    >>> state = model.rest_state()
+    >>> state = td.SymplecticEuler().step(model, state, dt=1e-4)
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from ..errors import ConfigError
+from .forces import as_vec3, home_force
+from .grid import CLASSES, Grid
+from .springs import Linearisation, node_sums, spring_energy, spring_forces, spring_forces_conv
+
+
+@dataclass
+class State:
+    """Positions ``x`` and velocities ``v``, both ``(B, 3, D, H, W)``, at time ``t`` (s)."""
+    x: torch.Tensor
+    v: torch.Tensor
+    t: float = 0.0
+
+    def detach(self) -> "State":
+        return State(self.x.detach(), self.v.detach(), self.t)
+
+
+def _as_tensor(value, key, dtype, device) -> torch.Tensor:
+    try:
+        t = torch.as_tensor(value, dtype=dtype, device=device) if not torch.is_tensor(value) \
+            else value.to(dtype=dtype, device=device)
+    except (TypeError, ValueError, RuntimeError):
+        raise ConfigError(key, "a number or an array of numbers", value) from None
+    if not bool(torch.isfinite(t).all()):
+        raise ConfigError(key, "finite values (no NaN or inf)", "non-finite values", show_got=True)
+    return t
+
+
+def spring_param(value, grid: Grid, key: str, dtype, device, allow_zero=True) -> torch.Tensor:
+    """Normalise a spring parameter to shape ``(Bp, S, 1|D, 1|H, 1|W)``.
+
+    Accepts a number (all springs), a dict by direction class ``{"axis": .., "face": ..,
+    "body": ..}``, ``(S,)`` (per half-direction), ``(S, D, H, W)`` (per spring), ``(B, S)`` or
+    ``(B, S, D, H, W)`` (per batch entry). Values must be finite and >= 0.
+    """
+    if isinstance(value, dict):
+        classes = grid.direction_class()
+        unknown = set(value) - set(CLASSES)
+        missing = set(classes) - set(value)
+        if unknown or missing:
+            raise ConfigError(key, f"one value per direction class {sorted(set(classes))}", value)
+        value = [float(value[c]) for c in classes]
+    t = _as_tensor(value, key, dtype, device)
+    S, shape = grid.S, grid.shape
+    if t.dim() == 0:
+        t = t.expand(1, S).reshape(1, S, 1, 1, 1)
+    elif t.dim() == 1 and t.shape[0] == S:
+        t = t.view(1, S, 1, 1, 1)
+    elif t.dim() == 2 and t.shape[1] == S:
+        t = t.view(-1, S, 1, 1, 1)
+    elif t.dim() == 4 and tuple(t.shape) == (S,) + shape:
+        t = t.unsqueeze(0)
+    elif not (t.dim() == 5 and tuple(t.shape[1:]) == (S,) + shape):
+        raise ConfigError(key, f"a number, (S,), (S, D, H, W) or (B, S, D, H, W) with S = {S}, "
+                               f"grid {shape}", tuple(t.shape))
+    if bool((t < 0).any()) or (not allow_zero and bool((t == 0).any())):
+        raise ConfigError(key, "values >= 0" if allow_zero else "values > 0", float(t.min()))
+    return t
+
+
+def node_param(value, grid: Grid, key: str, dtype, device) -> torch.Tensor:
+    """Normalise a per-node parameter to ``(Bp, 1, 1|D, 1|H, 1|W)``: a number, ``(D, H, W)``
+    or ``(B, 1, D, H, W)``."""
+    t = _as_tensor(value, key, dtype, device)
+    if t.dim() == 0:
+        return t.view(1, 1, 1, 1, 1)
+    if tuple(t.shape) == grid.shape:
+        return t.view(1, 1, *grid.shape)
+    if t.dim() == 5 and tuple(t.shape[1:]) == (1,) + grid.shape:
+        return t
+    raise ConfigError(key, f"a number, (D, H, W) or (B, 1, D, H, W) with grid {grid.shape}", tuple(t.shape))
+
+
+def lumped_mass(grid: Grid, density: float, dtype=torch.float64, device=None) -> torch.Tensor:
+    """Node masses ``(1, 1, D, H, W)`` from a density (kg/m^3).
+
+    Every existing node owns the box-shaped voxel around it (its dual cell), cut at the faces
+    of the grid: ``density * prod_a spacing_a * w_a`` with ``w_a = 1/2`` on the first and last
+    node along axis ``a`` (when it has more than one node). For a box this is the usual lumped
+    mass (corners 1/8 of a cell, interior nodes one cell; total ``density * volume``); with a
+    node mask, thin features keep a positive mass.
+    """
+    mass = torch.full(grid.shape, float(density), dtype=torch.float64)
+    for axis, (n, h) in enumerate(zip(grid.shape, grid.spacing)):
+        w = torch.full((n,), h, dtype=torch.float64)
+        if n > 1:
+            w[0] = w[-1] = h / 2
+        mass = mass * w.view([-1 if a == axis else 1 for a in range(3)])
+    mass = mass * grid.nodes()
+    return mass.view(1, 1, *grid.shape).to(dtype=dtype, device=device)
+
+
+class Model:
+    """Everything a step reads: grid, masses, spring parameters, other force terms, constraints.
+
+    Only the terms that are given exist: ``damping=None`` costs nothing, no gravity vector means
+    no gravity term, and so on.
+
+    Args:
+        grid: the :class:`~torchdeform.grid.Grid`.
+        stiffness: spring stiffness k (N/m); see :func:`spring_param` for the accepted shapes.
+            With ``normalize=True`` it is a modulus Y (N) and each spring gets ``k = Y / l0``,
+            so a chain keeps its overall stiffness when the resolution changes.
+        damping: spring damping (N s/m) like ``stiffness`` (``/ l0`` too when normalised), or None.
+        damping_mode: ``"projected"`` (dashpot along the spring) or ``"unprojected"``
+            (Radetzky: ``-d (v_i - v_j)``, which also damps rigid rotation of a pair).
+        mass: node mass (kg): a number, ``(D, H, W)`` or ``(B, 1, D, H, W)``; or
+        density: kg/m^3, lumped from cell volumes (:func:`lumped_mass`). Exactly one of the two.
+        gravity: acceleration ``(gd, gh, gw)`` m/s^2, or None.
+        fixed: bool ``(D, H, W)`` of nodes that never move, or None.
+        drags: list of :class:`~torchdeform.sim.forces.Drag` (prescribed motion), or None.
+        home: stiffness (N/m) of home springs to every node's rest position (Punak), or None.
+        anchors: ``(stiffness, every)`` anchor springs on every k-th node (Radetzky), or None.
+        decay: global drag rate c (1/s): ``v <- v exp(-c dt)`` after every step, or None.
+        loads: list of :class:`~torchdeform.sim.forces.PointForce`, ``SurfaceForce`` or
+            ``FieldForce``, or None.
+        spring_mask: optional bool ``(S, D, H, W)`` of springs that exist (e.g. after a cut).
+        dtype, device: of every tensor of the model.
+    """
+
+    def __init__(self, grid: Grid, stiffness, damping=None, *, damping_mode="projected", normalize=False,
+                 mass=None, density=None, gravity=None, fixed=None, drags=None, home=None, anchors=None,
+                 decay=None, loads=None, spring_mask=None, dtype=torch.float32, device=None):
+        self.grid, self.dtype, self.device = grid, dtype, torch.device(device or "cpu")
+        dev = self.device
+        if damping_mode not in ("projected", "unprojected"):
+            raise ConfigError("damping_mode", '"projected" or "unprojected"', damping_mode)
+        self.projected = damping_mode == "projected"
+        self.X = grid.rest_positions(dtype, dev)
+        self.rest_length = grid.rest_lengths(dtype, dev).view(1, grid.S, 1, 1, 1)
+
+        # springs (masked only when some springs are missing)
+        k = spring_param(stiffness, grid, "stiffness", dtype, dev)
+        c = None if damping is None else spring_param(damping, grid, "damping", dtype, dev)
+        if normalize:
+            k = k / self.rest_length
+            c = None if c is None else c / self.rest_length
+        mask = grid.spring_mask(dev)
+        if spring_mask is not None:
+            spring_mask = torch.as_tensor(spring_mask, dtype=torch.bool, device=dev)
+            if tuple(spring_mask.shape) != (grid.S,) + grid.shape:
+                raise ConfigError("spring_mask", f"bool (S, D, H, W) = {(grid.S,) + grid.shape}",
+                                  tuple(spring_mask.shape))
+            mask = mask & spring_mask
+        if grid.node_mask is not None or spring_mask is not None:
+            m = mask.unsqueeze(0).to(dtype)
+            k = k * m
+            c = None if c is None else c * m
+        if c is not None and not bool((c != 0).any()):
+            c = None
+        self.stiffness, self.damping = k, c
+
+        # masses
+        if (mass is None) == (density is None):
+            raise ConfigError("mass", "exactly one of mass or density", {"mass": mass, "density": density})
+        if density is not None:
+            rho = float(density)
+            if not math.isfinite(rho) or rho <= 0:
+                raise ConfigError("density", "a positive number (kg/m^3)", density)
+            mass = lumped_mass(grid, rho, dtype, dev)
+        self.mass = node_param(mass, grid, "mass", dtype, dev)
+
+        # constrained nodes: fixed, dragged, and nodes outside the node mask
+        self.drags = list(drags or [])
+        constrained = ~grid.nodes()
+        if fixed is not None:
+            fixed = torch.as_tensor(fixed, dtype=torch.bool)
+            if tuple(fixed.shape) != grid.shape:
+                raise ConfigError("fixed", f"a bool mask of shape {grid.shape}", tuple(fixed.shape))
+            constrained = constrained | fixed
+        for d in self.drags:
+            constrained = constrained | torch.as_tensor(d.nodes, dtype=torch.bool)
+        self.drag_masks = [torch.as_tensor(d.nodes, dtype=torch.bool, device=dev)[None, None] for d in self.drags]
+        self.constrained = constrained.to(dev)
+        free = (~constrained).to(dtype=dtype, device=dev)[None, None]
+        bad = (self.mass <= 0) & (free > 0)
+        if bool(bad.any()):
+            idx = tuple(int(i) for i in bad.expand(-1, -1, *grid.shape).nonzero()[0][2:])
+            raise ConfigError("mass", f"a positive mass at every free node; node {idx} has "
+                                      f"{float(self.mass.expand(-1, -1, *grid.shape)[(0, 0) + idx]):g} kg",
+                              show_got=False)
+        self.free = None if not bool(constrained.any()) else free
+        safe_mass = torch.where(self.mass > 0, self.mass, torch.ones_like(self.mass))
+        self.inv_mass = 1.0 / safe_mass if self.free is None else free / safe_mass
+
+        # other terms
+        self.gravity = None if gravity is None else torch.tensor(
+            as_vec3(gravity, "gravity"), dtype=dtype, device=dev).view(1, 3, 1, 1, 1)
+        k_home = None
+        if home is not None:
+            k_home = node_param(home, grid, "home", dtype, dev)
+        if anchors is not None:
+            ka, every = anchors
+            ka = node_param(ka, grid, "anchors.stiffness", dtype, dev)
+            ka = ka * grid.every_kth(every).to(dtype=dtype, device=dev)[None, None]
+            k_home = ka if k_home is None else k_home + ka
+        if k_home is not None and bool((k_home < 0).any()):
+            raise ConfigError("home", "stiffness >= 0", float(k_home.min()))
+        self.k_home = k_home
+        if decay is not None and (not math.isfinite(float(decay)) or float(decay) < 0):
+            raise ConfigError("decay", "a rate >= 0 (1/s)", decay)
+        self.decay = None if not decay else float(decay)
+        self.loads = [(ld, ld.dense(grid, dtype, dev)) for ld in (loads or [])]
+
+    # --------------------------------------------------------------- states
+    def rest_state(self, batch: int = 1) -> State:
+        """The body at rest: ``x = X``, ``v = 0``, each ``(batch, 3, D, H, W)``."""
+        x = self.X.expand(batch, -1, -1, -1, -1).clone()
+        return State(x, torch.zeros_like(x), 0.0)
+
+    def _vector(self, value, like: torch.Tensor) -> torch.Tensor:
+        """A 3-vector as ``(1, 3, 1, ...)`` broadcasting against node fields like ``like``."""
+        return torch.as_tensor(value, dtype=self.dtype, device=self.device).view(1, 3, *[1] * (like.dim() - 2))
+
+    def constrain(self, x: torch.Tensor, v: torch.Tensor, t):
+        """Put dragged nodes on their path at time ``t`` (positions and velocities)."""
+        for d, m in zip(self.drags, self.drag_masks):
+            off, vel = self._vector(d.offset(t), x), self._vector(d.velocity(t), x)
+            x = torch.where(m, self.X + off, x)
+            v = torch.where(m, vel.expand_as(v), v)
+        return x, v
+
+    # --------------------------------------------------------------- forces
+    def external(self, t):
+        """Sum of point and surface loads at time ``t``, ``(1, 3, D, H, W)``, or None."""
+        total = None
+        for load, dense in self.loads:
+            f = load.factor(t)
+            if torch.is_tensor(f) or f:
+                total = dense * f if total is None else total + dense * f
+        return total
+
+    def forces(self, x, v, t: float = 0.0, loads=None, impl: str = "fast") -> torch.Tensor:
+        """Total force on every node (springs, home/anchor springs, gravity, loads), ``(B, 3, D, H, W)``.
+
+        Args:
+            x, v: ``(B, 3, D, H, W)``.
+            t: time (s) for time-dependent loads.
+            loads: extra force ``(B|1, 3, D, H, W)`` or a callable ``t -> force``, or None.
+            impl: ``"fast"`` (shifted slices) or ``"conv"`` (conv3d reference).
+        """
+        F = self.spring_forces(x, v, impl)
+        if self.k_home is not None:
+            F = F + home_force(x, self.X, self.k_home)
+        if self.gravity is not None:
+            F = F + self.mass * self.gravity
+        ext = self.external(t)
+        if ext is not None:
+            F = F + ext
+        if loads is not None:
+            F = F + (loads(t) if callable(loads) else loads)
+        return F
+
+    def spring_forces(self, x, v, impl: str = "fast") -> torch.Tensor:
+        """Forces of the grid springs alone, ``(B, 3, D, H, W)``; ``impl`` as in :meth:`forces`."""
+        fn = spring_forces if impl == "fast" else spring_forces_conv
+        return fn(x, v, self.grid, self.stiffness, self.rest_length, self.damping, self.projected)
+
+    def spring_sums(self, p: torch.Tensor) -> torch.Tensor:
+        """``sum_j p_ij`` over the springs at each node, ``(Bp, 1, D, H, W)``, for a spring
+        parameter ``p`` such as :attr:`stiffness` (Gershgorin bounds, Jacobi preconditioners)."""
+        return node_sums(self.grid, p)
+
+    def acceleration(self, x, v, t: float = 0.0, loads=None) -> torch.Tensor:
+        """``M^-1 F``, zero at constrained nodes, ``(B, 3, D, H, W)``."""
+        return self.inv_mass * self.forces(x, v, t, loads)
+
+    def linearise(self, x, clamp=True) -> Linearisation:
+        """Springs linearised at ``x`` for stiffness products (implicit Euler, bounds)."""
+        return Linearisation(x, self.grid, self.stiffness, self.rest_length, clamp)
+
+    # --------------------------------------------------------------- energy
+    def energy(self, state: State) -> dict:
+        """Energies per batch entry, each ``(B,)``: ``kinetic``, ``elastic`` (springs and home
+        springs), ``gravity`` (``-m g . (x - X)``), ``total``. External loads are not included."""
+        x, v = state.x, state.v
+        ke = 0.5 * (self.mass * v * v).flatten(1).sum(1)
+        el = spring_energy(x, self.grid, self.stiffness, self.rest_length)
+        if self.k_home is not None:
+            el = el + 0.5 * (self.k_home * (x - self.X) ** 2).flatten(1).sum(1)
+        out = {"kinetic": ke, "elastic": el}
+        total = ke + el
+        if self.gravity is not None:
+            gp = -(self.mass * self.gravity * (x - self.X)).flatten(1).sum(1)
+            out["gravity"] = gp
+            total = total + gp
+        out["total"] = total
+        return out
+
+
+__all__ = ["Model", "State", "spring_param", "node_param", "lumped_mass"]

@@ -1,0 +1,39 @@
+"""Volume deformation and rendering: a CT/MR volume deformed by a model's node offsets through an
+offset texture (Knoche 2008) and rendered, differentiable end to end.
+
+=====================  ===========================================================================
+:mod:`.deform`         offset texture (trilinear, cubic B-spline), :func:`warp` (deform, carve,
+                       Knoche's lookup), fixed-point inverse, folding detection, node offsets
+:mod:`.rendering`      transfer functions, :func:`render` (MIP, average, emission-absorption;
+                       axis views and an orbit camera; a compiled fast path), PNG and GIF
+:mod:`.io`             ``.npy``/``.npz``/NIfTI/NRRD volumes (nibabel and pynrrd imported on use)
+:mod:`.phantoms`       the procedural CT phantom
+:mod:`.commands`       ``torchdeform warp`` and ``torchdeform render``
+=====================  ===========================================================================
+
+Example:
+    >>> import torch
+    >>> from torchdeform.volume import phantom, warp, render, to_image
+    >>> vol = phantom((32, 32, 32))
+    >>> offsets = torch.zeros(3, 5, 5, 5)
+    >>> offsets[0, 4, 2, 2] = 3.0                   # top centre node moved 3 voxels along +D
+    >>> img = render(warp(vol, offsets), mode="mip", view="h")
+    >>> to_image(img).shape
+    torch.Size([32, 32, 3])
+"""
+from .deform import (MODES, DisplacementField, FoldingWarning, as_offsets, as_volume, axis_weights, axis_weights_at,
+                     check_folding, folding_fraction, identity_points, inverse_points, inverse_residual,
+                     jacobian_determinant, node_offsets, offset_texture, sample, sample_points, to_grid_sample, warp)
+from .io import SUFFIXES, check_array, load_volume, read_array, save_volume
+from .phantoms import phantom
+from .rendering import (AXIS_VIEWS, ENGINES, PRESETS, RENDER_MODES, OrbitCamera, RenderCompileWarning,
+                        TransferFunction, get_tf, load_tf, orbit_frames, preset, render, save_gif, save_png,
+                        to_image, trilinear_flat)
+
+__all__ = ["FoldingWarning", "DisplacementField", "MODES", "as_volume", "as_offsets", "to_grid_sample",
+           "identity_points", "sample", "axis_weights", "axis_weights_at", "offset_texture", "inverse_points",
+           "inverse_residual", "jacobian_determinant", "folding_fraction", "check_folding", "sample_points", "warp",
+           "node_offsets", "SUFFIXES", "check_array", "load_volume", "read_array", "save_volume", "phantom",
+           "TransferFunction", "PRESETS", "preset", "load_tf", "get_tf", "OrbitCamera", "render", "to_image",
+           "save_png", "save_gif", "orbit_frames", "RENDER_MODES", "AXIS_VIEWS", "ENGINES", "trilinear_flat",
+           "RenderCompileWarning"]
