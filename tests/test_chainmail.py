@@ -19,8 +19,17 @@ import torch
 
 import torchdeform as td
 from torchdeform import cli
-from torchdeform.chainmail import (BlockedMoveError, ChainMail, Limits, crease_measure, limit_violation, relax,
-                                   relax_energy, tensor_chainmail, tissue_limits)
+from torchdeform.chainmail import (
+    BlockedMoveError,
+    ChainMail,
+    Limits,
+    crease_measure,
+    limit_violation,
+    relax,
+    relax_energy,
+    tensor_chainmail,
+    tissue_limits,
+)
 from torchdeform.errors import ConfigError
 
 F64 = torch.float64

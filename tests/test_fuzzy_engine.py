@@ -39,19 +39,41 @@ import numpy as np
 import pytest
 import skfuzzy as fuzz
 import torch
+from fuzzy_oracle import (
+    TORCH_RES,
+    ambiguous_maximum,
+    build_skfuzzy,
+    build_torch,
+    default_dtype,
+    hedge,
+    mean_of_maximum,
+    numpy_aggregate,
+    random_points,
+    random_system,
+    sk_membership,
+    skfuzzy_outputs,
+    top_stretches,
+)
 from skfuzzy import control as ctrl
 from skfuzzy.control.controlsystem import CrispValueCalculator
 from torch.func import functional_call
 
 from torchdeform.errors import ConfigError, NoRuleFiredError, TorchdeformError
-from torchdeform.fuzzy import (Bell, Clause, EmptyOutputWarning, Gaussian, MamdaniSystem, Rule, Sigmoid, Singleton,
-                               Trapezoid, Triangle, Variable)
+from torchdeform.fuzzy import (
+    Bell,
+    Clause,
+    EmptyOutputWarning,
+    Gaussian,
+    MamdaniSystem,
+    Rule,
+    Sigmoid,
+    Singleton,
+    Trapezoid,
+    Triangle,
+    Variable,
+)
 from torchdeform.fuzzy.membership import apply_hedges
 from torchdeform.fuzzy.system import defuzzify
-
-from fuzzy_oracle import (TORCH_RES, ambiguous_maximum, build_skfuzzy, build_torch, default_dtype, hedge,
-                          mean_of_maximum, numpy_aggregate, random_points, random_system, sk_membership,
-                          skfuzzy_outputs, top_stretches)
 
 F64 = torch.float64
 METHODS = ("centroid", "bisector", "mom", "som", "lom")

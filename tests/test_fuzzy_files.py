@@ -19,7 +19,7 @@ import torch
 
 from torchdeform import Grid
 from torchdeform.errors import ConfigError
-from torchdeform.fuzzy import (Bell, Gaussian, MamdaniSystem, Sigmoid, Singleton, Trapezoid, Triangle, Variable)
+from torchdeform.fuzzy import Bell, Gaussian, MamdaniSystem, Sigmoid, Singleton, Trapezoid, Triangle, Variable
 from torchdeform.fuzzy.coupling import Ellipsoid, node_inputs, spring_parameters
 from torchdeform.fuzzy.fis import fis_text, parse_fis, read_fis, write_fis
 

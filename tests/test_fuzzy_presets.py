@@ -16,8 +16,7 @@ import pytest
 import torch
 
 from torchdeform.errors import ConfigError
-from torchdeform.fuzzy import MamdaniSystem
-from torchdeform.fuzzy import presets
+from torchdeform.fuzzy import MamdaniSystem, presets
 from torchdeform.fuzzy.fis import parse_fis
 
 if sys.version_info >= (3, 11):

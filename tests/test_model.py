@@ -1,6 +1,5 @@
 """Model terms, constraints, batching and the stiff/extreme cases, each with a defined outcome."""
 import math
-import warnings
 
 import pytest
 import torch

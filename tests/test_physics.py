@@ -23,11 +23,10 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 import torch
+from conftest import EdgeList
 from scipy.integrate import solve_ivp
 
 import torchdeform as td
-
-from conftest import EdgeList
 
 F64 = torch.float64
 

@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from torchdeform.errors import ConfigError
-from torchdeform.volume.rendering import OrbitCamera, TransferFunction, load_tf, preset, render, to_image
 from torchdeform.volume import warp
+from torchdeform.volume.rendering import OrbitCamera, TransferFunction, load_tf, preset, render, to_image
 
 F64 = torch.float64
 
@@ -134,6 +134,7 @@ def test_bad_render_input():
 
 def test_images_and_cli_render(tmp_path, capsys):
     from PIL import Image
+
     from torchdeform import cli
     from torchdeform.volume import phantom
     vol = phantom((24, 24, 24))
@@ -195,6 +196,7 @@ def test_fast_engine_mip_equals_scipy_warp():
 @pytest.mark.parametrize("padding,mode", [("border", "nearest"), ("zeros", "grid-constant")])
 def test_trilinear_flat_equals_map_coordinates(padding, mode):
     from scipy.ndimage import map_coordinates
+
     from torchdeform.volume.rendering import trilinear_flat
     rng = np.random.default_rng(6)
     vol = rng.normal(size=(5, 6, 7))
@@ -205,8 +207,8 @@ def test_trilinear_flat_equals_map_coordinates(padding, mode):
 
 
 def test_fast_engine_skips_transparent_slabs_and_float32():
-    from torchdeform.volume.rendering import _render_axis_fast
     from torchdeform.volume import DisplacementField
+    from torchdeform.volume.rendering import _render_axis_fast
     vol = torch.full((40, 12, 12), -1000.0)
     vol[25:30, 3:9, 3:9] = 800.0                                             # bone in a slab of air
     offsets = torch.zeros(3, 5, 3, 3)

@@ -12,11 +12,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from conftest import EdgeList
 
 import torchdeform as td
 from torchdeform.sim import springs
-
-from conftest import EdgeList
 
 TOPOLOGIES = (6, 14, 18, 26)
 SHAPE = (4, 3, 5)                       # non-cubic, so that axis mix-ups show

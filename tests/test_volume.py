@@ -7,8 +7,16 @@ import torch
 from scipy.ndimage import map_coordinates
 
 from torchdeform.errors import ConfigError
-from torchdeform.volume import (DisplacementField, FoldingWarning, folding_fraction, inverse_points,
-                                inverse_residual, jacobian_determinant, offset_texture, warp)
+from torchdeform.volume import (
+    DisplacementField,
+    FoldingWarning,
+    folding_fraction,
+    inverse_points,
+    inverse_residual,
+    jacobian_determinant,
+    offset_texture,
+    warp,
+)
 from torchdeform.volume.io import load_volume, save_volume
 
 
@@ -202,6 +210,7 @@ def test_cli_warp_matches_library_and_rejects_bad_input(tmp_path, capsys):
 
 def test_bench_volume_quick_smoke(capsys):
     import json
+
     from torchdeform import cli
     assert cli.main(["bench", "volume", "--quick", "--json", "--repeats", "1", "--size", "24", "--nodes", "4"]) == 0
     doc = json.loads(capsys.readouterr().out)

@@ -20,10 +20,32 @@ from . import chainmail, learn, scene, sim, volume
 from .chainmail import ChainMail, Limits, limit_violation, tensor_chainmail
 from .errors import ConfigError, DivergenceError, StabilityWarning, TorchdeformError
 from .scene import Scene, demo_scene, load_scene, run_scene
-from .sim import (INTEGRATORS, RK4, DampedVerlet, DivergenceMonitor, Drag, ExplicitEuler, FieldForce, Grid,
-                  ImplicitEuler, Integrator, KnocheRelaxation, Model, PointForce, State, SurfaceForce, SymplecticEuler,
-                  check_dt, conjugate_gradient, gershgorin_omega2, lumped_mass, power_omega2, simulate, suggest_dt,
-                  time_step_bound)
+from .sim import (
+                  INTEGRATORS,
+                  RK4,
+                  DampedVerlet,
+                  DivergenceMonitor,
+                  Drag,
+                  ExplicitEuler,
+                  FieldForce,
+                  Grid,
+                  ImplicitEuler,
+                  Integrator,
+                  KnocheRelaxation,
+                  Model,
+                  PointForce,
+                  State,
+                  SurfaceForce,
+                  SymplecticEuler,
+                  check_dt,
+                  conjugate_gradient,
+                  gershgorin_omega2,
+                  lumped_mass,
+                  power_omega2,
+                  simulate,
+                  suggest_dt,
+                  time_step_bound,
+)
 from .volume import render, warp
 
 __version__ = "0.1.0"

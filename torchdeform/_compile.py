@@ -38,7 +38,8 @@ _warned: set = set()
 
 def warn_fallback(reason: str, what: str = "the eager step", stacklevel: int = 3) -> None:
     """Warn once per kind of ``reason`` (its text before the first colon) that compilation is
-    unavailable and ``what`` runs instead."""
+    unavailable and ``what`` runs instead.
+    """
     key = reason.split(":")[0]
     if key in _warned:
         return
@@ -76,7 +77,8 @@ def inductor_options(options: dict | None = None) -> dict:
 @torch.library.custom_op("torchdeform::stored", mutates_args=())
 def realize(x: torch.Tensor) -> torch.Tensor:
     """Identity that inductor cannot see through: its input and output live in memory, the output
-    contiguous in the input's axis order (so a permuted view is stored in that order)."""
+    contiguous in the input's axis order (so a permuted view is stored in that order).
+    """
     return x.clone(memory_format=torch.contiguous_format)
 
 
@@ -89,7 +91,8 @@ def _register_realize_lowering() -> None:
     """Lower :func:`realize` inside inductor as a stored buffer (computed by the fused loop that
     produces it) instead of an external ``clone`` call: each external call costs ~50-90 us of
     dispatch on these CPUs, several times per CG iteration. Without the private lowering API
-    the op still works, as the external call."""
+    the op still works, as the external call.
+    """
     try:
         from torch._inductor import lowering
     except ImportError:                                                 # pragma: no cover
@@ -123,7 +126,8 @@ def no_autograd_cache():
 
 def skip_guards():
     """Run compiled code without evaluating dynamo's guards (``skip_guard_eval_unsafe``), for calls
-    whose inputs match the call that compiled it; a no-op where this torch lacks the stance."""
+    whose inputs match the call that compiled it; a no-op where this torch lacks the stance.
+    """
     try:
         return torch.compiler.set_stance(skip_guard_eval_unsafe=True)
     except (AttributeError, TypeError):                                 # pragma: no cover
@@ -147,7 +151,8 @@ def fresh(fn):
 
 def while_loop():
     """``torch._higher_order_ops.while_loop`` (a loop that stays one loop in the compiled graph),
-    or None where this torch lacks it."""
+    or None where this torch lacks it.
+    """
     try:
         from torch._higher_order_ops.while_loop import while_loop as loop
     except ImportError:                                                 # pragma: no cover

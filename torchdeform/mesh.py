@@ -39,6 +39,7 @@ def load_mesh(mesh_or_path, scale: float = 1.0, key: str = "mesh"):
             (``.stl``, ``.obj``, ``.ply``, ``.off``, ...).
         scale: multiplies the mesh coordinates (``1e-3`` for millimetres).
         key: the parameter name used in error messages.
+
     Raises:
         ConfigError: the file is missing or unreadable, has no triangles, or the mesh is not
             closed (every edge must be shared by exactly two triangles).
@@ -77,6 +78,7 @@ def _crossings_above(tri: np.ndarray, xq: np.ndarray, yq: np.ndarray, zq: np.nda
         tri: triangles ``(F, 3, 3)`` (vertex, coordinate).
         xq, yq, zq: sorted query coordinates ``(D,)``, ``(H,)``, ``(W,)``; the columns
             ``(yq[j], zq[k])`` must not lie on a projected edge (callers perturb them).
+
     Returns:
         bool ``(D, H, W)``: odd number of crossings, i.e. inside a closed mesh.
     """
@@ -140,9 +142,11 @@ def voxelize(mesh_or_path, spacing, padding: int = 0, scale: float = 1.0):
         spacing: node spacing in metres, one number or ``(sd, sh, sw)``.
         padding: extra node layers around the bounding box (>= 0).
         scale: multiplies the mesh coordinates first (``1e-3`` for a mesh in millimetres).
+
     Returns:
         ``(node_mask, origin, shape)``: bool tensor ``(D, H, W)``, the position (m) of node
         ``(0, 0, 0)`` as a tuple ``(3,)``, and ``(D, H, W)``.
+
     Raises:
         ConfigError: missing/unreadable file, a mesh that is not closed, a bad spacing or
             padding, or a spacing so coarse that no node falls inside.
@@ -242,6 +246,7 @@ def marching_tetrahedra(field, level: float = 0.5, pad: bool = True):
         field: ``(D, H, W)`` array or tensor (e.g. a node mask as 0/1, a warped volume).
         level: the iso-value.
         pad: close the surface at the grid border.
+
     Returns:
         ``(vertices (V, 3) float64, faces (F, 3) int64)``; vertex coordinates are fractional grid
         indices ``(d, h, w)`` of ``field`` (``-0.5`` .. ``N - 0.5`` with ``pad`` and a 0/1 mask).
@@ -316,7 +321,8 @@ def marching_tetrahedra(field, level: float = 0.5, pad: bool = True):
 def _interp_positions(x: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Trilinear interpolation of node positions ``x`` ``(3, D, H, W)`` at fractional node indices
     ``q`` ``(V, 3)``, extrapolating linearly from the border cells (for vertices half a spacing
-    outside the grid)."""
+    outside the grid).
+    """
     shape = x.shape[1:]
     i0 = [np.clip(np.floor(q[:, c]), 0, max(n - 2, 0)).astype(np.int64) for c, n in enumerate(shape)]
     f = [q[:, c] - i0[c] if n > 1 else np.zeros(len(q)) for c, n in enumerate(shape)]
@@ -345,6 +351,7 @@ def body_surface(x, node_mask=None, level: float = 0.5):
         x: node positions ``(3, D, H, W)`` or ``(1, 3, D, H, W)`` (metres), e.g. ``state.x``.
         node_mask: bool ``(D, H, W)`` (default: every node).
         level: iso-level of the mask (0.5: half-way between an inside and an outside node).
+
     Returns:
         ``(vertices (V, 3), faces (F, 3))``; vertices in the units of ``x``, coordinates ``(x, y, z)``
         = axes ``(D, H, W)`` (the convention of :func:`voxelize`).
@@ -375,6 +382,7 @@ def volume_surface(volume, level: float, offsets=None, spacing=(1.0, 1.0, 1.0), 
         level: iso-value in volume units (e.g. 300 HU for bone).
         offsets: node offsets in voxels ``(3, n_d, n_h, n_w)`` or None.
         spacing: voxel size ``(sd, sh, sw)``; vertices are ``index * spacing``.
+
     Returns:
         ``(vertices (V, 3), faces (F, 3))``.
     """

@@ -22,7 +22,6 @@ CPU time) and DIR/run<k>_loss.png, DIR/run<k>_spread_*.png.
 from __future__ import annotations
 
 import argparse
-import json
 import resource
 import sys
 import time

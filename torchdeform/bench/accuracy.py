@@ -78,13 +78,13 @@ from typing import Callable
 
 import torch
 
-from .common import add_common, emit, machine_info, progress, device_sync
 from ..errors import ConfigError, DivergenceError
 from ..sim.forces import Drag, SurfaceForce
 from ..sim.grid import Grid
 from ..sim.integrators import INTEGRATORS, RK4, DampedVerlet, ImplicitEuler, simulate
 from ..sim.model import Model, State
 from ..sim.stability import time_step_bound
+from .common import add_common, device_sync, emit, machine_info, progress
 
 HELP = ("error against wall time of every integrator on standard scenes (load, stiff, drag, "
         "supports) and a resolution sweep; Pareto front and a computed recommendation")
@@ -303,7 +303,8 @@ def _displacement(x: torch.Tensor, X: torch.Tensor) -> float:
 
 def kinetic_energy(mass: torch.Tensor, v: torch.Tensor) -> float:
     """Largest kinetic energy (J) over the leading axes of ``v`` ``(..., 3, D, H, W)``;
-    ``mass`` broadcasts as ``(1, 1, D, H, W)``."""
+    ``mass`` broadcasts as ``(1, 1, D, H, W)``.
+    """
     e = 0.5 * (mass.double().cpu() * v.double() ** 2).sum(dim=(-4, -3, -2, -1))
     return float(e.max())
 
@@ -330,7 +331,8 @@ class Job:
 
 class Method:
     """One family of rows. Subclasses set :attr:`name` and :attr:`description` and implement
-    :meth:`applies`, :meth:`params` and :meth:`prepare`."""
+    :meth:`applies`, :meth:`params` and :meth:`prepare`.
+    """
 
     name = "method"
     description = ""
@@ -383,7 +385,8 @@ class TimeStepping(Method):
 
     def steps(self, ctx, param) -> tuple[int, float]:
         """``(steps, dt)`` for a multiple: at most the requested step below the bound (so
-        "0.9x" stays stable), the nearest step count that lands on the output times above it."""
+        "0.9x" stays stable), the nearest step count that lands on the output times above it.
+        """
         return ctx.steps_for(param * ctx.bound(self.bound_of), at_most=param <= 1)
 
     def skip(self, ctx, param):
@@ -422,7 +425,8 @@ def _plain(cls):
 
 def _verlet(ctx, dt):
     """Damped Verlet solving the same equations: the model's global drag ``c`` is replaced by
-    Verlet's per-step damping ``kd = 1 - exp(-c dt)`` (so ``v' = exp(-c dt) v + dt a``)."""
+    Verlet's per-step damping ``kd = 1 - exp(-c dt)`` (so ``v' = exp(-c dt) v + dt a``).
+    """
     decay = ctx.model.decay or 0.0
     return DampedVerlet(kd=1.0 - math.exp(-decay * dt)), ctx.make_model(decay=None)
 
@@ -657,6 +661,7 @@ def pareto_front(points) -> list[bool]:
 
     Args:
         points: sequence of ``(error, time)`` pairs (any two "smaller is better" numbers).
+
     Returns:
         one bool per point, True on the front. ``O(P log P)``: sweep in order of time.
     """
@@ -786,7 +791,8 @@ def add_arguments(p) -> None:
 def _check_args(args):
     """Validate the options; lists are parsed here so that a mistake is one ConfigError line.
     Returns ``(device, n, resolutions, ref_n)`` and sets ``args.scenes``, ``args.methods``,
-    ``args.targets`` to lists (or None)."""
+    ``args.targets`` to lists (or None).
+    """
     args.scenes = _list(args.scenes, "--scenes", str, list(SCENES))
     args.methods = _list(args.methods, "--methods", str, list(METHODS))
     args.targets = _list(args.targets, "--targets", float) or list(TARGETS)
@@ -830,7 +836,8 @@ def run(args) -> int:
 
 def _plan(args, device, dtype, n, resolutions, ref_n):
     """Build each scene's :class:`Context` and its cases; returns ``(plan, not_run)`` with
-    ``plan = [(ctx, [(method, param), ...]), ...]``."""
+    ``plan = [(ctx, [(method, param), ...]), ...]``.
+    """
     methods = [m for k, m in METHODS.items() if args.methods is None or k in args.methods]
     methods = [StaticResolution(resolutions, resolutions) if m.name == "static" else m for m in methods]
     plan, not_run = [], []
@@ -1009,7 +1016,8 @@ def plot(rows: list, path: Path, references: dict | None = None) -> None:
     """Log-log error against wall time: one panel per scene, one colour per method (points joined
     in order of dt, or n), the Pareto front as a black step line with ringed points, diverged runs
     as crosses along the top. ``rows`` as returned by the bench; ``references`` names the
-    reference in each panel's title."""
+    reference in each panel's title.
+    """
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -28,8 +28,8 @@ import time
 
 import torch
 
-from .common import add_common, emit, int_list, machine_info, progress
 from ..errors import ConfigError
+from .common import add_common, emit, int_list, machine_info, progress
 
 COLUMNS = [("grid", "grid", None), ("variant", "variant", None), ("pull_mm", "pull mm", "{:.1f}"),
            ("moved", "moved", "{:,}"), ("checked", "checked", "{:,}"), ("ms", "ms (median)", "{:.2f}"),

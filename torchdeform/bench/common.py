@@ -44,7 +44,7 @@ def add_common(p) -> None:
 
 
 def machine_info(device: str) -> dict:
-    """torch and Python versions, thread and CPU counts, the device (and the GPU's name)."""
+    """Torch and Python versions, thread and CPU counts, the device (and the GPU's name)."""
     info = {"torch": torch.__version__, "python": platform.python_version(), "threads": torch.get_num_threads(),
             "device": device, "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count()}
     if device.startswith("cuda") and torch.cuda.is_available():
@@ -67,7 +67,8 @@ def progress(total: int, desc: str):
 
 def emit(name: str, args, rows: list, columns: list, extra: dict | None = None, display=None) -> None:
     """Write ``--out DIR/<name>.csv`` and print the JSON document (``--json``) or the table of
-    ``display`` rows (default ``rows``)."""
+    ``display`` rows (default ``rows``).
+    """
     if args.out:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
@@ -98,7 +99,8 @@ def format_table(rows: list, columns: list) -> str:
 
 def speed_cube(n: int, topology: int, dtype=torch.float32, device="cpu", seed: int = 0):
     """The speed scene: an ``n^3`` damped cube (1 cm spacing, k = 100 N/m, c = 0.05 N s/m,
-    1 g per node, no gravity), slightly perturbed from rest. Returns ``(model, state, dt)``."""
+    1 g per node, no gravity), slightly perturbed from rest. Returns ``(model, state, dt)``.
+    """
     grid = Grid((n, n, n), spacing=0.01, topology=topology)
     model = Model(grid, stiffness=100.0, damping=0.05, mass=1e-3, dtype=dtype, device=device)
     g = torch.Generator().manual_seed(seed)

@@ -19,8 +19,8 @@ import time
 
 import torch
 
-from .common import add_common, emit, machine_info
 from ..errors import ConfigError
+from .common import add_common, emit, machine_info
 
 COLUMNS = [("system", "system", None), ("mode", "mode", None), ("threads", "thr", None), ("inputs", "inputs", "{:,}"),
            ("seconds", "s (median)", "{:.4f}"), ("inputs_per_s", "inputs/s", "{:,.0f}"),
@@ -39,7 +39,8 @@ def add_arguments(p) -> None:
 
 def to_skfuzzy(fis, points: int = 2001):
     """The same system in scikit-fuzzy (``ControlSystemSimulation``), universes of ``points``
-    samples. Supports min/max inference and the membership kinds scikit-fuzzy has."""
+    samples. Supports min/max inference and the membership kinds scikit-fuzzy has.
+    """
     import numpy as np
     import skfuzzy as fz
     from skfuzzy import control as ctrl

@@ -18,7 +18,7 @@ from ..errors import ConfigError
 from ..sim.grid import Grid
 from ..sim.integrators import ImplicitEuler, SymplecticEuler
 from ..sim.model import Model
-from .common import emit, format_table, int_list, machine_info, progress, speed_cube, device_sync
+from .common import device_sync, emit, format_table, int_list, machine_info, progress, speed_cube
 
 __all__ = ["add_arguments", "run", "speed_row", "beam_row", "beam_scene", "SPEED_COLUMNS", "BEAM_COLUMNS"]
 
@@ -60,7 +60,8 @@ def beam_scene(dtype=torch.float32, device="cpu"):
     """The implicit benchmark, shaped like SOFA's spring-beam benchmark: a 16 x 4 x 4 m beam of
     40 x 10 x 10 nodes (W is the long axis), 26 neighbours, stiffness 100 and damping 1 divided by
     the rest length (SOFA's convention), 20 kg in all, gravity along -D, the w = 0 end fixed.
-    Returns ``(model, state, dt)`` with dt = 0.01 s."""
+    Returns ``(model, state, dt)`` with dt = 0.01 s.
+    """
     grid = Grid((10, 10, 40), spacing=(4 / 9, 4 / 9, 16 / 39), topology=26)
     fixed = torch.zeros(grid.shape, dtype=torch.bool)
     fixed[:, :, 0] = True
@@ -106,7 +107,8 @@ def _time_steps(step, state, steps: int, repeats: int, sync) -> float:
 
 def _measure(step, state, *, steps, repeats, target_s, sync, max_steps=200):
     """Warm up (and time the first call: compilation), size and time a step. Returns
-    ``(first_result, seconds_per_step, first_call_s, steps)``."""
+    ``(first_result, seconds_per_step, first_call_s, steps)``.
+    """
     t0 = time.perf_counter()
     first = step(state)
     sync()
@@ -124,8 +126,9 @@ def _time_mode(integ, model, state, dt, mode, *, steps, repeats, target_s, sync,
     """Time ``integ`` on ``model`` from ``state``, eager (grid layout) or compiled (packed state
     kept between steps), without gradients. Returns ``(first_state, s_per_step, compile_s,
     steps, fallback, max_abs_diff)``; ``compile_s`` is None for eager, ``max_abs_diff`` compares
-    the first step with ``reference`` (or None)."""
-    from ..sim.compiled import CompiledStep          # the fast path, only when timed
+    the first step with ``reference`` (or None).
+    """
+    from ..sim.compiled import CompiledStep  # the fast path, only when timed
     with torch.no_grad():
         compile_s, fallback = None, False
         if mode == "eager":
@@ -178,7 +181,8 @@ def beam_row(mode: str, *, dtype=torch.float32, device="cpu", cg_iters: int = 20
              target_s: float = 0.5, reference=None) -> dict:
     """Implicit Euler steps per second on :func:`beam_scene` (``cg_iters`` CG iterations, no
     tolerance: every step does exactly that many, as SOFA's benchmark). ``mode`` as in
-    :func:`speed_row`."""
+    :func:`speed_row`.
+    """
     model, state, dt = beam_scene(dtype, device)
     integ = ImplicitEuler(cg_iters=cg_iters, cg_tol=0)
     sync = device_sync(device)

@@ -32,8 +32,8 @@ import time
 
 import torch
 
-from .common import add_common, emit, machine_info, progress
 from ..errors import ConfigError
+from .common import add_common, emit, machine_info, progress
 
 COLUMNS = [("size", "volume", None), ("image", "image", None), ("mode", "mode", None), ("path", "path", None),
            ("threads", "thr", None), ("ms_per_frame", "ms/frame", "{:.0f}"), ("fps", "fps", "{:.2f}"),
@@ -57,6 +57,7 @@ def add_arguments(p) -> None:
 def bench_volume(size: int, nodes: int = 9, amplitude: float = 3.0, dtype=torch.float32):
     """The bench's volume ``(size,)*3`` (HU) and node offsets ``(3, nodes, nodes, nodes)`` in voxels."""
     import torch.nn.functional as F
+
     from ..volume import phantom
     half = max(8, size // 2)
     vol = phantom((half,) * 3, dtype=dtype)
@@ -79,8 +80,7 @@ def _time(fn, repeats):
 
 
 def run(args) -> int:
-    from ..volume import preset, render
-    from ..volume import warp
+    from ..volume import preset, render, warp
     size = args.size or (64 if args.quick else 256)
     repeats = args.repeats or (2 if args.quick else 5)
     modes = [m.strip() for m in args.modes.split(",") if m.strip()]

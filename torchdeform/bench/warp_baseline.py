@@ -189,7 +189,8 @@ def _check_model(model) -> None:
 
 def _per_spring(model) -> tuple:
     """Stiffness, damping and rest length of every spring slot, each ``(S, D, H, W)`` float64 CPU;
-    zero stiffness and damping where no spring exists (``grid.spring_mask``)."""
+    zero stiffness and damping where no spring exists (``grid.spring_mask``).
+    """
     grid = model.grid
     full = (grid.S,) + grid.shape
     mask = grid.spring_mask().to(torch.float64)
@@ -285,7 +286,8 @@ class WarpSprings:
 
     def load(self) -> float:
         """Build (or load from Warp's kernel cache) the modules of this variant's kernels on the
-        CPU; returns the wall time in seconds (about 0 when they are loaded already)."""
+        CPU; returns the wall time in seconds (about 0 when they are loaded already).
+        """
         names = ("springs_atomic", "integrate") if self.variant == "atomic" else ("gather_step",)
         t0 = time.perf_counter()
         for name in names:
@@ -304,7 +306,8 @@ class WarpSprings:
 
     def _commands(self, dt: float) -> list:
         """Recorded launches (``wp.launch(..., record_cmd=True)``) of one step for ``dt``;
-        gather records the two ping-pong directions."""
+        gather records the two ping-pong directions.
+        """
         if self._cmds is not None and self._cmd_dt == dt:
             return self._cmds
         wp, kern, sc = self.wp, self.kern, self.kern["scalar"]
@@ -341,7 +344,8 @@ class WarpSprings:
 
     def state(self):
         """The current state as a torch :class:`~torchdeform.model.State`, ``(1, 3, D, H, W)``
-        in the model's dtype, on the CPU."""
+        in the model's dtype, on the CPU.
+        """
         from ..sim.model import State
         self.wp.synchronize()
         x, v = (self.x2, self.v2) if self._flip else (self.x, self.v)

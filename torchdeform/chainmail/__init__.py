@@ -65,8 +65,17 @@ Example:
     >>> u = cm.displacement()                                 # (1, 3, 20, 20, 20) metres
     >>> energies = cm.relax(steps=4)                          # smooth the straight-line artefacts
 """
-from .limits import (DIRECTIONS, GIBSON_SUCCESSORS, METHODS, RELAX_MODES, BlockedMoveError, Limits, limit_violation,
-                     neighbour_boxes, tissue_limits)
+from .limits import (
+                     DIRECTIONS,
+                     GIBSON_SUCCESSORS,
+                     METHODS,
+                     RELAX_MODES,
+                     BlockedMoveError,
+                     Limits,
+                     limit_violation,
+                     neighbour_boxes,
+                     tissue_limits,
+)
 from .relax import crease_measure, relax, relax_energy
 from .sequential import ChainMail, MoveResult
 from .tensor import SweepResult, tensor_chainmail

@@ -32,7 +32,8 @@ _OUTSIDE, _FREE, _FIXED = 0, 1, 2
 
 class BlockedMoveError(TorchdeformError):
     """A move cannot be carried out: it would have to move a fixed element (or, in Enhanced
-    ChainMail, two neighbours demand incompatible positions). Raised with ``on_blocked="error"``."""
+    ChainMail, two neighbours demand incompatible positions). Raised with ``on_blocked="error"``.
+    """
 
 
 # ------------------------------------------------------------------------- limits
@@ -111,7 +112,8 @@ class Limits:
     def offset_bounds(self, dtype=torch.float64, device=None) -> tuple:
         """Limits on offset differences ``u_j - u_i`` (``u = x - X``), as ``(lo, hi, shear)``:
         ``lo_a = min_a - spacing_a``, ``hi_a = max_a - spacing_a``. Each ``(3,)`` when
-        :attr:`uniform` allows it, else ``(3, D, H, W)``."""
+        :attr:`uniform` allows it, else ``(3, D, H, W)``.
+        """
         h = torch.tensor(self.grid.spacing, dtype=torch.float64)
         out = []
         for t, shift in ((self.min, True), (self.max, True), (self.shear, False)):
@@ -184,6 +186,7 @@ def tissue_limits(grid: Grid, tissue, labels=None, reference_stress: float = 300
             (heterogeneous tissue: per-link limits, use ``method="enhanced"``).
         reference_stress: Pa.
         slack_range: ``(lo, hi)`` clip of ``eps``.
+
     Returns:
         :class:`Limits`.
 
@@ -235,6 +238,7 @@ def limit_violation(positions: torch.Tensor, grid: Grid, limits: Limits, per_lin
         grid, limits: the grid (its node mask decides which links exist) and the limits.
         per_link: also return the excess of every link, ``(B, 3, D, H, W)`` (axis ``a`` at the
             link's first endpoint; 0 where the link does not exist).
+
     Returns:
         ``(B,)`` largest excess, 0 where every limit holds (and the field with ``per_link``).
 
@@ -296,6 +300,7 @@ def neighbour_boxes(u: torch.Tensor, grid: Grid, bounds: tuple, source: torch.Te
         grid: the grid.
         bounds: ``(lo, hi, shear)`` from :meth:`Limits.offset_bounds` (same dtype and device as ``u``).
         source: bool ``(B|1, 1, D, H, W)``: neighbours that constrain (moved, fixed, or all).
+
     Returns:
         ``(lo, hi)``, each ``(B, 3, D, H, W)``: the intersection of the boxes, ``-inf``/``+inf``
         where no neighbour in ``source`` constrains.

@@ -17,7 +17,8 @@ __all__ = ["relax", "relax_energy", "crease_measure"]
 
 def _goal_shift(grid: Grid, limits: Limits | None, mode: str, dtype, device):
     """Per axis, the goal offset difference along the link: 0 (centroid) or the middle of
-    ``[min, max]`` minus the spacing (Gibson's goal), ``(3,)`` or ``(3, D, H, W)``."""
+    ``[min, max]`` minus the spacing (Gibson's goal), ``(3,)`` or ``(3, D, H, W)``.
+    """
     if mode == "centroid" or limits is None:
         return None
     lo, hi, _ = limits.offset_bounds(dtype, device)
@@ -27,7 +28,8 @@ def _goal_shift(grid: Grid, limits: Limits | None, mode: str, dtype, device):
 
 def _goal_vector(goal, s: int, src, like: torch.Tensor) -> torch.Tensor:
     """The goal offset difference of the links of half-direction ``s`` as a vector field
-    broadcasting against ``like`` ``(B, 3, *region)``: ``goal_s`` on channel ``s``, 0 elsewhere."""
+    broadcasting against ``like`` ``(B, 3, *region)``: ``goal_s`` on channel ``s``, 0 elsewhere.
+    """
     g = _link_values(goal, s, src)
     g = g.expand(like.shape[2:]) if g.dim() else g.expand(like.shape[2:]).clone()
     vec = torch.zeros(like.shape[1:], dtype=like.dtype, device=like.device)
@@ -37,7 +39,8 @@ def _goal_vector(goal, s: int, src, like: torch.Tensor) -> torch.Tensor:
 
 def _residual(u, grid6: Grid, goal):
     """``sum_j (u_j - u_i - b_ij)`` over existing face neighbours ``(B, 3, D, H, W)``, and the
-    neighbour counts ``(1, 1, D, H, W)``."""
+    neighbour counts ``(1, 1, D, H, W)``.
+    """
     masks = grid6.spring_mask(u.device)
 
     def fn(s, src, du):
@@ -124,6 +127,7 @@ def relax(positions: torch.Tensor, grid: Grid, limits: Limits, steps: int = 1, m
         free: bool ``(D, H, W)`` or ``(B, D, H, W)`` of elements that may move (default all;
             exclude fixed and picked elements, or pass the elements ChainMail moved).
         omega: relaxation factor in ``(0, 2)`` (1: straight to the target).
+
     Returns:
         ``(positions, energies)``: the relaxed positions (offsets with ``offsets=True``), same
         shape as the input, and the energy (summed over the batch) before and after every step,

@@ -13,8 +13,17 @@ import torch
 
 from ..errors import ConfigError
 from ..sim.grid import Grid
-from .limits import (DIRECTIONS, GIBSON_SUCCESSORS, METHODS, BlockedMoveError, Limits, _FIXED, _FREE, _OUTSIDE,
-                     limit_violation)
+from .limits import (
+    _FIXED,
+    _FREE,
+    _OUTSIDE,
+    DIRECTIONS,
+    GIBSON_SUCCESSORS,
+    METHODS,
+    BlockedMoveError,
+    Limits,
+    limit_violation,
+)
 from .relax import relax
 
 __all__ = ["ChainMail", "MoveResult"]
@@ -238,8 +247,10 @@ class ChainMail:
                 ``"scale"`` (default) carry out the largest fraction that can be done (bisection,
                 ``bisections`` halvings), ``"error"`` raise :class:`BlockedMoveError` and change nothing.
             bisections: halvings for ``"scale"``.
+
         Returns:
             :class:`MoveResult`.
+
         Raises:
             ConfigError: picked elements outside the grid, outside the node mask or fixed; a bad
                 displacement or option.
@@ -291,7 +302,8 @@ class ChainMail:
 
     def _attempt(self, start, d, scale):
         """One try at moving the picked elements by ``scale * d``; returns
-        ``(ok, undo log, processed indices per pass, checks)``. The log is flat: index, old u."""
+        ``(ok, undo log, processed indices per pass, checks)``. The log is flat: index, old u.
+        """
         log, passes = [], []
         ux, uy, uz = self._mu
         targets = [(p, x0 + scale * d[0], y0 + scale * d[1], z0 + scale * d[2]) for p, x0, y0, z0 in start]
@@ -385,7 +397,8 @@ class ChainMail:
         direction k of a final element e, ``(offset, limit array or None, constant, factor,
         link at e)`` such that the neighbour n = e + offset must satisfy
         ``u_n[c] >= u_e[c] + factor * limit`` (pull) or ``<=`` (push), the limit being that of the
-        link (stored at e when ``link at e``, else at n)."""
+        link (stored at e when ``link at e``, else at n).
+        """
         table = []
         for k, (a, s) in enumerate(DIRECTIONS):
             if c == a:
@@ -406,7 +419,8 @@ class ChainMail:
         (the old positions satisfied the limits), so largest-violation-first is a label-setting
         order: an element popped is final, moved exactly onto the bound of its worst-violated
         link, and never touched again in that pass. Every limit holds afterwards; a fixed element
-        that would have to move means the move is infeasible (blocked)."""
+        that would have to move means the move is infeasible (blocked).
+        """
         U = self._mu
         flag, stamp = self._mflag, self._mstamp
         push, pop = heapq.heappush, heapq.heappop

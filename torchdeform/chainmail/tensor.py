@@ -53,7 +53,8 @@ def _dilate(m: torch.Tensor, grid: Grid) -> torch.Tensor:
 
 def _hops(picked: torch.Tensor, grid: Grid, moved: torch.Tensor) -> torch.Tensor:
     """Largest 6-neighbour hop distance (through the body) from ``picked`` to an element of
-    ``moved``, ``(B,)``; both ``(B, D, H, W)`` bool."""
+    ``moved``, ``(B,)``; both ``(B, D, H, W)`` bool.
+    """
     nodes = _exists(grid, picked.device)
     reach = picked.clone()
     depth = torch.zeros(picked.shape[0], dtype=torch.long, device=picked.device)
@@ -94,6 +95,7 @@ def tensor_chainmail(positions: torch.Tensor, grid: Grid, limits: Limits, picked
         displacement: ``(3,)`` or ``(B, 3)`` metres.
         fixed: optional bool ``(D, H, W)`` or ``(B, D, H, W)``.
         max_sweeps: default ``D + H + W`` (enough for any propagation).
+
     Returns:
         :class:`SweepResult` (positions, moved, sweeps, depth, violation).
 

@@ -10,10 +10,18 @@ files), :mod:`.presets` (the shipped rule files), :mod:`.coupling` (per-node and
 inputs to per-spring stiffness and damping).
 """
 from .membership import HEDGES, KINDS, Bell, Gaussian, MembershipFunction, Sigmoid, Singleton, Trapezoid, Triangle
-from .rules import Clause, Rule, Variable
-from .system import (AGGREGATIONS, AND_METHODS, DEFUZZIFIERS, IMPLICATIONS, OR_METHODS, EmptyOutputWarning,
-                     MamdaniSystem, defuzzify)
 from .presets import list_presets, load_preset, tissue_parameters, tissues
+from .rules import Clause, Rule, Variable
+from .system import (
+                     AGGREGATIONS,
+                     AND_METHODS,
+                     DEFUZZIFIERS,
+                     IMPLICATIONS,
+                     OR_METHODS,
+                     EmptyOutputWarning,
+                     MamdaniSystem,
+                     defuzzify,
+)
 
 __all__ = ["HEDGES", "KINDS", "Bell", "Gaussian", "MembershipFunction", "Sigmoid", "Singleton", "Trapezoid",
            "Triangle", "Clause", "Rule", "Variable", "AGGREGATIONS", "AND_METHODS", "DEFUZZIFIERS",

@@ -78,7 +78,8 @@ def parse_assignments(fis: MamdaniSystem, items) -> dict:
 
 def read_inputs_csv(fis: MamdaniSystem, path) -> torch.Tensor:
     """Rows ``(N, n_inputs)`` from a CSV file whose header names the inputs (extra columns are
-    ignored)."""
+    ignored).
+    """
     p = Path(path)
     try:
         f = p.open(newline="", encoding="utf-8")
@@ -130,7 +131,8 @@ def format_rows(fis: MamdaniSystem, rows: list, as_json: bool) -> str:
 def plot(fis: MamdaniSystem, out_dir, points: int = 401) -> list:
     """Write PNGs: ``mf_<variable>.png`` (every term of every variable) and
     ``curve_<input>_<output>.png`` (each output against each input, the other inputs at the
-    middle of their ranges). Returns the paths written."""
+    middle of their ranges). Returns the paths written.
+    """
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

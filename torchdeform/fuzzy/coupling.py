@@ -37,7 +37,8 @@ from .system import MamdaniSystem
 @dataclass(frozen=True)
 class Ellipsoid:
     """An axis-aligned ellipsoid in world coordinates (metres, the grid's ``(D, H, W)`` axis
-    order): ``center`` ``(3,)``, ``radii`` ``(3,)``."""
+    order): ``center`` ``(3,)``, ``radii`` ``(3,)``.
+    """
 
     center: tuple
     radii: tuple
@@ -89,6 +90,7 @@ def spring_parameters(fis: MamdaniSystem, grid: Grid, inputs: torch.Tensor, dtyp
         grid: the grid.
         inputs: ``(n_inputs, D, H, W)`` input values per node (see :func:`node_inputs`).
         dtype: dtype of the results.
+
     Returns:
         dict of per-spring tensors; also ``"_evaluations"``: how many distinct input rows
         were evaluated.

@@ -379,7 +379,8 @@ def fis_text(system: MamdaniSystem, comments: str = "") -> str:
 
 def write_fis(system: MamdaniSystem, path, comments: str = "") -> Path:
     """Write a system as a MATLAB ``.fis`` file; returns the path. Reading it back with
-    :func:`read_fis` gives a system with identical outputs."""
+    :func:`read_fis` gives a system with identical outputs.
+    """
     p = Path(path)
     p.write_text(fis_text(system, comments), encoding="utf-8")
     return p

@@ -43,7 +43,7 @@ _TINY = 1e-12
 
 
 def _safe_sqrt(t: torch.Tensor) -> torch.Tensor:
-    """sqrt with a finite gradient at 0 (where the gradient is set to 0)."""
+    """Sqrt with a finite gradient at 0 (where the gradient is set to 0)."""
     pos = t > 0
     return torch.where(pos, torch.sqrt(torch.where(pos, t, torch.ones_like(t))), torch.zeros_like(t))
 
@@ -57,7 +57,8 @@ def _rise(x: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
 
 def _fall(x: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
     """1 up to ``lo``, 0 from ``hi`` on, linear in between; 1 up to and including ``lo`` when
-    lo == hi."""
+    lo == hi.
+    """
     wide = hi > lo
     den = torch.where(wide, hi - lo, torch.ones_like(hi))
     return torch.where(wide, ((hi - x) / den).clamp(0.0, 1.0), (x <= lo).to(x.dtype))
@@ -292,7 +293,8 @@ HEDGES = {
 
 def apply_hedges(mu: torch.Tensor, hedges) -> torch.Tensor:
     """Apply hedges to degrees, innermost first: ``("not", "very")`` reads "not very term" and
-    computes ``not(very(mu))``."""
+    computes ``not(very(mu))``.
+    """
     for h in reversed(tuple(hedges)):
         mu = HEDGES[h](mu)
     return mu

@@ -43,7 +43,8 @@ except ModuleNotFoundError:                                  # Python < 3.11
 
 def _preset_dir():
     """The folder of the rule files: the installed data package ``torchdeform.rulefiles``, or the
-    checkout's ``fuzzy/`` folder when torchdeform runs from a source tree that is not installed."""
+    checkout's ``fuzzy/`` folder when torchdeform runs from a source tree that is not installed.
+    """
     try:
         from importlib.resources import files
         return files("torchdeform.rulefiles")
@@ -69,7 +70,8 @@ def _name(name) -> str:
 
 def preset_path(name: str):
     """The file of preset ``name`` (with or without ``.fis``). Raises :class:`ConfigError` naming
-    the preset and listing the known ones when there is none."""
+    the preset and listing the known ones when there is none.
+    """
     name = _name(name)
     known = list_presets()
     if name not in known:
@@ -99,7 +101,8 @@ def _library() -> dict:
 
 def tissues() -> dict:
     """The tissue library: ``{name: {"consistency", "term", "youngs_modulus_range" [Pa],
-    "density" [kg/m^3], "source"}}`` from ``fuzzy/tissues.toml`` (a copy; edit freely)."""
+    "density" [kg/m^3], "source"}}`` from ``fuzzy/tissues.toml`` (a copy; edit freely).
+    """
     return copy.deepcopy(_library()["tissues"])
 
 
@@ -109,6 +112,7 @@ def tissue_parameters(name: str, system: MamdaniSystem | None = None) -> dict:
     Args:
         name: a key of :func:`tissues` (``"liver"``, ``"brain"``, ...).
         system: the system to evaluate; default the library's own (``tissue_si``).
+
     Returns:
         ``{"youngs_modulus": E [Pa], "viscosity": eta [Pa*s], "density": rho [kg/m^3],
         "consistency": input value, "term": its linguistic term,

@@ -135,7 +135,8 @@ class Rule:
     @staticmethod
     def parse(text: str) -> "Rule":
         """Parse a rule sentence (see the module docstring). Raises :class:`ConfigError`
-        naming the rule and what was expected."""
+        naming the rule and what was expected.
+        """
         return _parse(text)
 
 

@@ -44,7 +44,7 @@ from torch import nn
 
 from ..errors import ConfigError, NoRuleFiredError
 from .membership import apply_hedges
-from .rules import Clause, Rule, Variable
+from .rules import Rule
 
 AND_METHODS = ("min", "prod")
 OR_METHODS = ("max", "probor")
@@ -174,7 +174,8 @@ class MamdaniSystem(nn.Module):
 
     def fuzzify(self, x: torch.Tensor) -> list:
         """Degrees of every input term: a list over inputs of ``(N, T_i)``; ``x``: ``(N, n_inputs)``
-        (clipped to each input's range)."""
+        (clipped to each input's range).
+        """
         out = []
         for i, v in enumerate(self.inputs):
             b = v.bounds.to(x.dtype)        # rounded like the corners: a shoulder at the range end holds
@@ -390,6 +391,7 @@ def defuzzify(agg: torch.Tensor, y: torch.Tensor, h: float | None, method: str) 
         agg: ``(N, U)`` degrees on the points ``y`` ``(U,)``: cell midpoints of width ``h``
             (continuous sets, midpoint rule), or singleton positions (``h=None``).
         method: ``centroid``, ``bisector``, ``mom``, ``som``, ``lom``.
+
     Returns:
         ``(value (N,), mass (N,))``; ``mass`` is the firing mass (area, or summed singleton
         degrees). Where ``mass == 0`` the value is meaningless (the caller substitutes).

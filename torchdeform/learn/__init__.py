@@ -54,13 +54,40 @@ Example:
 """
 from .commands import run_script
 from .loss import WindowLoss
-from .parameters import (SHARING, TRANSFORMS, FuzzySprings, NodeParameter, Parameters, Positive, SpringParameter,
-                         expand_spring_param, from_raw, node_to_springs, to_raw)
-from .reports import (active_springs, curvature_report, history_dicts, plot_history, plot_scan, plot_spread,
-                      relative_error, spread_report)
+from .parameters import (
+                         SHARING,
+                         TRANSFORMS,
+                         FuzzySprings,
+                         NodeParameter,
+                         Parameters,
+                         Positive,
+                         SpringParameter,
+                         expand_spring_param,
+                         from_raw,
+                         node_to_springs,
+                         to_raw,
+)
+from .reports import (
+                         active_springs,
+                         curvature_report,
+                         history_dicts,
+                         plot_history,
+                         plot_scan,
+                         plot_spread,
+                         relative_error,
+                         spread_report,
+)
 from .series import FORMAT, Series, load_series
-from .synthetic import (SPRING_SETS, balloon_series, cube_grid, cube_series, inclusion_regions, indentation,
-                        layered_regions, radetzky_cube)
+from .synthetic import (
+                         SPRING_SETS,
+                         balloon_series,
+                         cube_grid,
+                         cube_series,
+                         inclusion_regions,
+                         indentation,
+                         layered_regions,
+                         radetzky_cube,
+)
 from .trainer import Record, Trainer
 
 __all__ = ["Series", "load_series", "FORMAT", "radetzky_cube", "cube_series", "balloon_series", "cube_grid",

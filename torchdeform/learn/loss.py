@@ -115,7 +115,8 @@ class WindowLoss:
         the observations ``i - smooth .. i + smooth`` (clipped to the series) gives the
         position ``a`` and, with ``b`` and ``c`` its first coefficients, the symplectic-Euler
         velocity ``b - c dt`` (the backward difference of the fitted path). Returns
-        ``(x, v, ok)`` with ``ok`` False where a node is unobserved somewhere in the stencil."""
+        ``(x, v, ok)`` with ``ok`` False where a node is unobserved somewhere in the stencil.
+        """
         h, E, dt = self.smooth, self.every, self.series.dt
         xs, vs, oks = [], [], []
         mask = torch.as_tensor(self.series.mask)

@@ -29,6 +29,7 @@ def node_to_springs(values: torch.Tensor, grid: Grid, spring_mask=None) -> torch
 
     Args:
         values: ``(..., D, H, W)`` with at most one leading dimension (``(D, H, W)`` or ``(B, D, H, W)``).
+
     Returns:
         ``(S, D, H, W)`` (or ``(B, S, D, H, W)``), zero where no spring exists. Differentiable.
     """
@@ -39,7 +40,8 @@ def node_to_springs(values: torch.Tensor, grid: Grid, spring_mask=None) -> torch
 
 def expand_spring_param(value, grid: Grid, regions=None, spring_mask=None, dtype=torch.float64):
     """A spring parameter as ``(S, D, H, W)``: a number, a per-region table ``(R,)`` (with
-    node ``regions`` labels ``(D, H, W)``), ``(S,)`` or ``(S, D, H, W)``."""
+    node ``regions`` labels ``(D, H, W)``), ``(S,)`` or ``(S, D, H, W)``.
+    """
     t = torch.as_tensor(np.asarray(value, dtype=np.float64) if not torch.is_tensor(value) else value).to(dtype)
     S, shape = grid.S, grid.shape
     mask = (grid.spring_mask() if spring_mask is None else spring_mask).to(dtype)
@@ -172,13 +174,15 @@ class SpringParameter(nn.Module):
 
     def per_spring(self, tensor: torch.Tensor) -> torch.Tensor:
         """The existing springs' entries of a ``(S, D, H, W)`` tensor, ``(n_springs,)``, in the
-        order of ``sharing="spring"`` values."""
+        order of ``sharing="spring"`` values.
+        """
         return torch.as_tensor(tensor)[self.mask]
 
 
 class NodeParameter(nn.Module):
     """A learned node mass: ``"shared"`` (one value) or ``"node"`` (one per node ``(D, H, W)``).
-    Calling it returns ``(D, H, W)``."""
+    Calling it returns ``(D, H, W)``.
+    """
 
     def __init__(self, grid, init=1.0, sharing: str = "shared", transform: str = "log", dtype=torch.float64):
         super().__init__()

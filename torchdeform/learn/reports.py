@@ -22,7 +22,8 @@ def active_springs(series: Series) -> torch.Tensor:
     """Bool ``(S, D, H, W)``: springs that exist and have at least one end free to move.
 
     A spring between two fixed (or dragged) nodes never changes length, so no data can
-    determine its parameters; identifiability reports leave those out and count them."""
+    determine its parameters; identifiability reports leave those out and count them.
+    """
     c = torch.as_tensor(series.constrained()).to(torch.float64)[None, None]
     far = c + difference(c, series.grid)[:, :, 0]
     both = (c > 0) & (far > 0)
@@ -39,6 +40,7 @@ def spread_report(learned, truth) -> dict:
 
     Args:
         learned, truth: ``(n,)`` values of the same springs.
+
     Returns:
         dict: ``n``; quantiles of the ratio learned/true (``min, p05, p25, median, p75, p95,
         max``); ``log_ratio_std``; ``median_rel_error``, ``max_rel_error``;
@@ -92,7 +94,8 @@ def curvature_report(params: Parameters, loss, rel_threshold: float = 1e-6, max_
 
 def plot_history(history, path, title: str = "learning curve", extra: dict | None = None) -> Path:
     """Loss against iteration (log scale) to ``path`` (PNG); ``extra``: more curves
-    ``{label: (iterations, values)}``."""
+    ``{label: (iterations, values)}``.
+    """
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -119,7 +122,8 @@ def plot_history(history, path, title: str = "learning curve", extra: dict | Non
 def plot_scan(values, losses, marker_at, path, xlabel: str, marker: str = "true value", title: str = "scan",
               logx: bool = False) -> Path:
     """Loss against one scanned parameter (log loss axis), a vertical line at ``marker_at``;
-    written to ``path`` (PNG). Returns the path."""
+    written to ``path`` (PNG). Returns the path.
+    """
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -111,7 +111,8 @@ def load_to_json(load, index: int) -> tuple[dict, dict]:
 
 def load_from_json(d, arrays: dict, shape: tuple, where: str) -> list:
     """The loads of one JSON table (see :func:`load_to_json`; a ``"force"`` on several nodes is one
-    :class:`PointForce` per node). Raises a :class:`ConfigError` naming ``where`` and the key."""
+    :class:`PointForce` per node). Raises a :class:`ConfigError` naming ``where`` and the key.
+    """
     def bad(key, expected, got):
         return ConfigError(f"{where}.{key}", expected, got)
     if not isinstance(d, dict):
@@ -245,7 +246,8 @@ class Series:
         """Dense load tables over steps ``0 .. num_steps + 1``:
         ``force`` ``(N + 2, 3, D, H, W)`` (external force at ``t_n``) or None, and
         ``drag`` ``(N + 2, 3, D, H, W)`` (prescribed positions at ``t_n``) with ``drag_mask``
-        ``(1, 1, D, H, W)``, or None."""
+        ``(1, 1, D, H, W)``, or None.
+        """
         key = (dtype, str(device))
         cache = self.__dict__.setdefault("_tables", {})
         if key in cache:
@@ -273,7 +275,8 @@ class Series:
 
     def model(self, stiffness, damping, mass, dtype=torch.float64, device=None) -> Model:
         """The :class:`~torchdeform.model.Model` of this set-up with the given parameters
-        (any shape :class:`Model` accepts; tensors keep their autograd graph)."""
+        (any shape :class:`Model` accepts; tensors keep their autograd graph).
+        """
         fixed = torch.as_tensor(self.constrained())
         return Model(self.grid, stiffness=stiffness, damping=damping, damping_mode=self.damping_mode, mass=mass,
                      fixed=fixed, spring_mask=None if self.spring_mask is None else torch.as_tensor(self.spring_mask),
@@ -289,7 +292,8 @@ class Series:
     def advance(self, model: Model, state: State, n, integrator=None) -> State:
         """One step of the series' dynamics from step ``n`` (an int, or a ``(B,)`` LongTensor
         of per-batch-entry steps) to ``n + 1``: external force at ``t_n``, the integrator's
-        step, dragged nodes onto their positions at ``t_{n+1}``."""
+        step, dragged nodes onto their positions at ``t_{n+1}``.
+        """
         tab = self.tables(model.dtype, model.device)
         integrator = integrator or INTEGRATORS[self.integrator]()
         now, nxt = (n, n + 1) if torch.is_tensor(n) else (slice(n, n + 1), slice(n + 1, n + 2))
@@ -313,7 +317,8 @@ class Series:
 
     def simulate(self, model: Model, steps: int | None = None, integrator=None) -> torch.Tensor:
         """Positions ``(N + 1, B, 3, D, H, W)`` at steps ``0 .. N`` (no gradient tracking
-        unless the model's parameters require it)."""
+        unless the model's parameters require it).
+        """
         steps = self.num_steps if steps is None else int(steps)
         integrator = integrator or INTEGRATORS[self.integrator]()
         st = self.start_state(model)

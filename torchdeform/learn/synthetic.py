@@ -51,7 +51,8 @@ SPRING_SETS = {54: (6, None), 70: (14, ((1, 1, 1), (1, -1, -1))), 86: (14, None)
 def indentation(grid: Grid, depth: float, radius: int = 0, duration: float = 0.5) -> Drag:
     """An indenter pushed ``depth`` metres into the top face (axis D, ``"top"``) over
     ``duration`` seconds: the top nodes within ``radius`` nodes (Chebyshev) of the face centre
-    are prescribed at ``X - depth e_D`` (a ramp)."""
+    are prescribed at ``X - depth e_D`` (a ramp).
+    """
     D, H, W = grid.shape
     ch, cw = (H - 1) / 2, (W - 1) / 2
     nodes = [(D - 1, j, k) for j in range(H) for k in range(W)
@@ -66,6 +67,7 @@ def cube_grid(n: int = 3, spacing: float = 0.01, springs: int | None = None, top
         n: nodes per edge; spacing: metres.
         springs: one of Radetzky's sets (54, 70, 86, 126; ``n = 3`` only), or None to use ``topology``.
         topology: 6, 14, 18 or 26 (when ``springs`` is None).
+
     Returns:
         ``(grid, spring_mask)``: the mask is bool ``(S, D, H, W)`` or None (every spring).
     """
@@ -148,6 +150,7 @@ def radetzky_cube(springs: int = 70, stiffness=10.0, damping=0.1, mass=0.01, for
         mass: kg per node, a number or ``(3, 3, 3)``.
         force: newtons on node (2, 1, 1) (axis D is up).
         noise, every, observe, seed: as in :func:`cube_series`.
+
     Returns:
         a :class:`Series`.
     """
@@ -193,7 +196,8 @@ def layered_regions(grid: Grid, layers: int = 2) -> np.ndarray:
 
 def inclusion_regions(grid: Grid, radius: float) -> np.ndarray:
     """Region labels ``(D, H, W)``: 1 inside a sphere of ``radius`` node spacings about the
-    centre, 0 outside (a stiff or soft inclusion)."""
+    centre, 0 outside (a stiff or soft inclusion).
+    """
     idx = np.stack(np.meshgrid(*[np.arange(n) for n in grid.shape], indexing="ij"))
     c = (np.array(grid.shape) - 1)[:, None, None, None] / 2
     return (np.sqrt(((idx - c) ** 2).sum(0)) <= radius).astype(np.int64)
@@ -221,6 +225,7 @@ def cube_series(n: int = 4, topology: int = 26, load: str = "constant", amplitud
         every: observe every k-th step (sparse times).
         observe: bool ``(D, H, W)`` of observed nodes (partial observation), or None (all).
         seed: noise seed.
+
     Returns:
         a :class:`Series`.
     """
@@ -266,6 +271,7 @@ def balloon_series(subdivisions: int = 1, radius: float = 0.05, spacing: float |
             ``pressure * spacing^2`` newtons along the normal of its nearest mesh vertex.
         mesh: a closed ``trimesh.Trimesh`` or a mesh file instead of the icosphere.
         stiffness, damping, mass, noise, seed: as in :func:`cube_series`.
+
     Returns:
         a :class:`Series` whose centre node is fixed (it pins the free body in space).
     """

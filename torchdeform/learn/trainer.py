@@ -125,7 +125,8 @@ class Trainer:
 
     def run(self, iterations: int | None = None, stop_after: int | None = None) -> list:
         """Train until ``iterations`` (total), early stopping, or ``stop_after`` iterations of
-        this call (to simulate an interruption). Returns the history (list of :class:`Record`)."""
+        this call (to simulate an interruption). Returns the history (list of :class:`Record`).
+        """
         total = self.iterations if iterations is None else int(iterations)
         bar = tqdm(total=total, initial=self.iteration, disable=not self.progress, desc="fit", unit="it")
         done = 0

@@ -43,7 +43,8 @@ class ChainMailScene:
 
     def run(self, out_dir, progress: bool = True, device=None) -> dict:
         """Run the scene; returns the summary (also written to ``summary.json``). ``device`` is
-        not used (the sequential ChainMail runs on the CPU)."""
+        not used (the sequential ChainMail runs on the CPU).
+        """
         out = Path(out_dir)
         cm = ChainMail(self.grid, self.limits, fixed=self.fixed, method=self.method)
         end = max((float(d.path[-1][0]) for d in self.drags), default=0.0)

@@ -66,6 +66,7 @@ def energy_series(model: Model, x: torch.Tensor, v: torch.Tensor, chunk: int = 1
         x, v: frames ``(T, 3, D, H, W)`` (any device).
         chunk: frames per evaluation (1 by default: batched small frames run multi-threaded,
             which is slower than a loop when the CPU cores are shared).
+
     Returns:
         dict of ``(T,)`` float64 numpy arrays: ``kinetic``, ``elastic``, ``gravity`` (if the
         model has gravity), ``total`` (J), ``max_displacement`` (m, largest ``|x - X|``) and
@@ -142,8 +143,10 @@ def run_scene(scene: Scene, out_dir, progress: bool = True, device=None) -> dict
         out_dir: output folder (created).
         progress: show a progress bar.
         device: run on this device instead of the scene's.
+
     Returns:
         the summary (also written to ``summary.json``).
+
     Raises:
         DivergenceError: the run became unstable (naming step and a safe dt).
     """
@@ -229,6 +232,7 @@ def scene_volume_outputs(volume, x, X, spacing, out_dir, tf: str = "ct-soft", mo
     Args:
         volume: a file name (relative to ``base``), ``"phantom"`` or ``"phantom:N"``.
         x, X: final and rest node positions ``(1, 3, n_d, n_h, n_w)`` (m); spacing: node spacing (m).
+
     Returns:
         a summary dict for ``summary.json``.
     """

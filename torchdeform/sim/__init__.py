@@ -19,8 +19,18 @@ the fast path.
 """
 from .forces import Drag, FieldForce, PointForce, SurfaceForce
 from .grid import Grid
-from .integrators import (INTEGRATORS, RK4, DampedVerlet, ExplicitEuler, ImplicitEuler, Integrator, KnocheRelaxation,
-                          SymplecticEuler, conjugate_gradient, simulate)
+from .integrators import (
+                          INTEGRATORS,
+                          RK4,
+                          DampedVerlet,
+                          ExplicitEuler,
+                          ImplicitEuler,
+                          Integrator,
+                          KnocheRelaxation,
+                          SymplecticEuler,
+                          conjugate_gradient,
+                          simulate,
+)
 from .model import Model, State, lumped_mass
 from .stability import DivergenceMonitor, check_dt, gershgorin_omega2, power_omega2, suggest_dt, time_step_bound
 

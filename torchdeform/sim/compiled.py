@@ -33,8 +33,17 @@ import functools
 
 import torch
 
-from .._compile import (INDUCTOR_OPTIONS, CompileFallbackWarning, fresh, inductor_options, no_autograd_cache, realize,
-                        skip_guards, warn_fallback, while_loop)
+from .._compile import (
+    INDUCTOR_OPTIONS,
+    CompileFallbackWarning,
+    fresh,
+    inductor_options,
+    no_autograd_cache,
+    realize,
+    skip_guards,
+    warn_fallback,
+    while_loop,
+)
 from .integrators import ImplicitEuler, cg_iteration, cg_start, positive_dt
 from .model import State
 from .packed import PackedLinearisation, PackedModel, TraceContext
@@ -236,6 +245,7 @@ def compiled_step(integrator, model, dt: float, loads=None, *, mode: str | None 
             on ``t`` in ways that force recompilation).
         mode: ``torch.compile`` mode (default None).
         enable: False gives the eager step behind the same interface.
+
     Returns:
         a :class:`CompiledStep`, ``step(state) -> State``. It runs the compiled code under
         ``torch.no_grad``; when a gradient is needed (grad mode on and the state or the model's

@@ -59,6 +59,7 @@ def profile_factor(t, start: float = 0.0, ramp: float = 0.0, period: float | Non
         t: seconds: a float, a 0-d tensor, or an array / list of times.
         start: s, before which the factor is 0; ramp: s to rise linearly from 0 to 1;
         period: s of a sine oscillation, or None.
+
     Returns:
         a float for a float ``t``, a tensor for a tensor, a numpy array of ``t``'s shape otherwise.
 
@@ -255,7 +256,8 @@ class Drag(_Timed):
     def offset(self, t):
         """Offset at time ``t``: a tuple ``(3,)`` for a float ``t``, a tensor ``(3,)`` for a 0-d
         tensor (the form compiled code uses, without branches), an array ``(T, 3)`` for an array
-        of ``T`` times."""
+        of ``T`` times.
+        """
         if self.path is None:
             f, o = self.factor(t), self.offset_vector
             if torch.is_tensor(t):
@@ -282,7 +284,8 @@ class Drag(_Timed):
 
     def velocity(self, t):
         """Velocity ``(3,)`` at time ``t`` (for a path: of the segment entered at ``t``); a tensor
-        for a 0-d tensor ``t``, as :meth:`offset`."""
+        for a 0-d tensor ``t``, as :meth:`offset`.
+        """
         if self.path is None:
             return self._profile_velocity(t)
         ts, os_ = self._t, self._o

@@ -34,7 +34,8 @@ from .stability import DivergenceMonitor, check_dt, time_step_bound
 
 def positive_dt(dt) -> float:
     """``dt`` as a float, or a :class:`~torchdeform.errors.ConfigError` unless it is a positive,
-    finite number of seconds."""
+    finite number of seconds.
+    """
     try:
         dt = float(dt)
     except (TypeError, ValueError):
@@ -46,7 +47,8 @@ def positive_dt(dt) -> float:
 
 class Integrator:
     """Base class. Subclasses implement :meth:`advance`; :meth:`step` adds the checks, the
-    constraints and the global drag."""
+    constraints and the global drag.
+    """
 
     name = "base"
 
@@ -58,6 +60,7 @@ class Integrator:
             state: positions and velocities ``(B, 3, D, H, W)``.
             dt: time step (s), > 0.
             loads: extra node forces ``(B|1, 3, D, H, W)`` or a callable ``t -> forces``.
+
         Returns:
             the new :class:`~torchdeform.model.State` at ``t + dt``.
         """
@@ -117,7 +120,8 @@ class DampedVerlet(Integrator):
 
 class RK4(Integrator):
     """Classic fourth-order Runge-Kutta on ``(x, v)``; dragged nodes are put on their path at
-    every stage time."""
+    every stage time.
+    """
     name = "rk4"
 
     def advance(self, model, state, dt, loads):
@@ -138,13 +142,15 @@ class RK4(Integrator):
 
 def _dot(a, b):
     """Per-batch-entry inner product, shaped to broadcast against ``a``. (Summed over the axes
-    as they are: a flattened sum would index ``i % P`` under ``torch.compile`` and run scalar.)"""
+    as they are: a flattened sum would index ``i % P`` under ``torch.compile`` and run scalar.)
+    """
     return (a * b).sum(tuple(range(1, a.dim())), keepdim=True)
 
 
 def cg_start(b, precond=None, mask=None):
     """Initial conjugate-gradient state ``(u, r, p, rz)`` for ``A u = b`` (see
-    :func:`conjugate_gradient`); ``u = 0``, ``r`` the filtered ``b``."""
+    :func:`conjugate_gradient`); ``u = 0``, ``r`` the filtered ``b``.
+    """
     r = b if mask is None else b * mask
     z = r if precond is None else precond * r
     return torch.zeros_like(r), r, z, _dot(r, z)
@@ -154,7 +160,8 @@ def cg_iteration(apply_A, u, r, p, rz, precond=None, mask=None):
     """One preconditioned conjugate-gradient iteration: ``(u, r, p, rz) -> (u, r, p, rz)``.
 
     Guarded so that an exactly solved system (``p^T A p = 0`` or ``r^T z = 0``) stays put
-    instead of dividing by zero."""
+    instead of dividing by zero.
+    """
     Ap = apply_A(p)
     if mask is not None:
         Ap = Ap * mask
@@ -182,6 +189,7 @@ def conjugate_gradient(apply_A, b, precond=None, mask=None, iters: int = 100, to
         iters: maximum iterations; tol: stop when ``|r| <= tol |b|`` for every batch entry.
             ``tol <= 0`` runs exactly ``iters`` iterations without reading the residual on the
             host (no synchronisation).
+
     Returns:
         ``(u, iterations used, relative residual)`` (the residual is a 0-d tensor when ``tol <= 0``).
     """
@@ -211,6 +219,7 @@ class ImplicitEuler(Integrator):
         cg_iters: maximum CG iterations per solve; cg_tol: relative residual to stop at
             (``0``: always exactly ``cg_iters``, as SOFA's fixed-count benchmarks and compiled code do).
         newton_iters: extra Newton iterations (0 = one linearised step).
+
     Attributes:
         last_cg: ``(iterations, relative residual)`` of the last solve (the residual is a 0-d
             tensor when ``cg_tol = 0``).
@@ -223,7 +232,8 @@ class ImplicitEuler(Integrator):
 
     def preconditioner(self, model, h: float) -> torch.Tensor:
         """Jacobi preconditioner ``1 / diag(M + h C + h^2 K)`` (with ``K``'s diagonal bounded by
-        the spring sums), zero on empty rows (nodes outside a node mask, the packed halo)."""
+        the spring sums), zero on empty rows (nodes outside a node mask, the packed halo).
+        """
         diag = model.mass + h * h * model.spring_sums(model.stiffness)
         if model.k_home is not None:
             diag = diag + h * h * model.k_home
@@ -237,7 +247,8 @@ class ImplicitEuler(Integrator):
 
         ``x_lin`` is a position field, a linearisation already made, or the combined operator of
         an earlier call (``apply_A.op``: ``h^2 K + h C`` with its coefficients merged once per
-        solve, so CG products skip the scaling); ``apply_A.lin`` is the linearisation."""
+        solve, so CG products skip the scaling); ``apply_A.lin`` is the linearisation.
+        """
         lin = model.linearise(x_lin) if torch.is_tensor(x_lin) else x_lin
         op = lin if lin.combined else lin.scaled(h * h, model.damping, model.projected, h)
 
@@ -349,9 +360,11 @@ def simulate(model: Model, state: State, dt: float, steps: int, integrator: Inte
         progress: show a tqdm progress bar.
         warn: warn when an explicit ``dt`` exceeds the stability bound.
         callback: ``callback(step, state)`` after every step, or None.
+
     Returns:
         ``(final state, record)`` where record is a dict with ``t`` ``(T,)``, ``x`` and ``v``
         ``(T, B, 3, D, H, W)`` (empty if nothing was recorded).
+
     Raises:
         DivergenceError: naming the step, the quantity and a safe dt.
     """

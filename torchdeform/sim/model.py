@@ -77,7 +77,8 @@ def spring_param(value, grid: Grid, key: str, dtype, device, allow_zero=True) ->
 
 def node_param(value, grid: Grid, key: str, dtype, device) -> torch.Tensor:
     """Normalise a per-node parameter to ``(Bp, 1, 1|D, 1|H, 1|W)``: a number, ``(D, H, W)``
-    or ``(B, 1, D, H, W)``."""
+    or ``(B, 1, D, H, W)``.
+    """
     t = _as_tensor(value, key, dtype, device)
     if t.dim() == 0:
         return t.view(1, 1, 1, 1, 1)
@@ -275,7 +276,8 @@ class Model:
 
     def spring_sums(self, p: torch.Tensor) -> torch.Tensor:
         """``sum_j p_ij`` over the springs at each node, ``(Bp, 1, D, H, W)``, for a spring
-        parameter ``p`` such as :attr:`stiffness` (Gershgorin bounds, Jacobi preconditioners)."""
+        parameter ``p`` such as :attr:`stiffness` (Gershgorin bounds, Jacobi preconditioners).
+        """
         return node_sums(self.grid, p)
 
     def acceleration(self, x, v, t: float = 0.0, loads=None) -> torch.Tensor:
@@ -289,7 +291,8 @@ class Model:
     # --------------------------------------------------------------- energy
     def energy(self, state: State) -> dict:
         """Energies per batch entry, each ``(B,)``: ``kinetic``, ``elastic`` (springs and home
-        springs), ``gravity`` (``-m g . (x - X)``), ``total``. External loads are not included."""
+        springs), ``gravity`` (``-m g . (x - X)``), ``total``. External loads are not included.
+        """
         x, v = state.x, state.v
         ke = 0.5 * (self.mass * v * v).flatten(1).sum(1)
         el = spring_energy(x, self.grid, self.stiffness, self.rest_length)

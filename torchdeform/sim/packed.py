@@ -147,7 +147,8 @@ class PackedModel(Model):
 
     def traced(self, ctx: TraceContext) -> "PackedModel":
         """A view of this model (same tensors) whose kernels follow the compile-time context
-        ``ctx``; this model itself is not changed."""
+        ``ctx``; this model itself is not changed.
+        """
         view = copy.copy(self)
         view.trace = ctx
         return view
@@ -187,7 +188,8 @@ class PackedModel(Model):
         """The far end of the spring along each of the ``2 S`` directions from each core node:
         ``t`` ``(B, C, P)`` -> ``(B, C, 2 S, N, BLOCK)`` (core nodes in ``N`` blocks), one strided
         view indexed by direction (no per-direction copies: under ``torch.compile`` a sum over the
-        directions is one loop over the nodes with the directions as its inner reduction)."""
+        directions is one loop over the nodes with the directions as its inner reduction).
+        """
         D, H, W = self.grid.shape
         plane, row = (H + 2) * (W + 2), W + 2
         # The corner neighbour (-1, -1, -1) of the first core node G = plane + row + 1 is node 0,
@@ -199,7 +201,8 @@ class PackedModel(Model):
 
     def blocks(self, t: torch.Tensor) -> torch.Tensor:
         """A core-range field ``(..., P_core)`` as ``(..., N, BLOCK)``; a full field ``(..., P)``
-        is cut to its core range first."""
+        is cut to its core range first.
+        """
         if t.shape[-1] == self.P:
             t = self.shift(t, 0)
         return t.unflatten(-1, (-1, BLOCK))
@@ -207,7 +210,8 @@ class PackedModel(Model):
     def directed(self, p: torch.Tensor) -> torch.Tensor:
         """Spring parameters ``(Bp, S, 1|P)`` along each of the ``2 S`` directions from each core
         node: ``(Bp, 2 S, 1, 1)`` or ``(Bp, 2 S, N, BLOCK)`` (the spring along ``-d_s`` from node
-        ``i`` is stored at node ``i - o_s``)."""
+        ``i`` is stored at node ``i - o_s``).
+        """
         if p.shape[-1] == 1:
             return torch.cat([p, p], 1).unsqueeze(-1)
         both = [self.param(p, s, sign) for sign in (1, -1) for s in range(len(self.offsets))]
@@ -215,7 +219,8 @@ class PackedModel(Model):
 
     def param(self, p: torch.Tensor, s: int, sign: int) -> torch.Tensor:
         """Spring parameter of the spring from each core node along ``sign * d_s``:
-        ``(Bp, 1)`` or ``(Bp, P_core)``."""
+        ``(Bp, 1)`` or ``(Bp, P_core)``.
+        """
         q = p[:, s]
         if q.shape[-1] == 1:
             return q
@@ -251,7 +256,8 @@ class PackedModel(Model):
     def spread(self, sums: torch.Tensor, store: bool = False) -> torch.Tensor:
         """Sums over the core nodes ``(B, C, P_core)`` -> ``(B, C, P)``, zero outside the core
         range; under ``torch.compile`` stored when ``store``, otherwise computed inside each
-        reader."""
+        reader.
+        """
         return self.trace.keep(F.pad(sums, (self.G, self.G)), store)
 
     # ------------------------------------------------------------------ springs
@@ -327,7 +333,8 @@ class PackedLinearisation:
 
         Each field is stored block by block, ``(B, N, 2 S, BLOCK)``: the product's inner loop over
         the directions then reads 4 contiguous streams instead of ``4 x 2 S`` planes at once
-        (measured on the 40 x 10 x 10 beam, 2 cores: half the time per product)."""
+        (measured on the 40 x 10 x 10 beam, 2 cores: half the time per product).
+        """
         pm, n = self.pm, self.fields[0]
         alpha, beta = self._coefficients(alpha_scale, c, projected, c_scale)
         w = beta.clamp_min(0).sqrt()
@@ -345,7 +352,8 @@ class PackedLinearisation:
 
     def apply(self, u, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> torch.Tensor:
         """``(h2 K + h C) u``, ``(B, 3, P)``; arguments as
-        :meth:`torchdeform.springs.Linearisation.apply` (a combined operator takes none)."""
+        :meth:`torchdeform.springs.Linearisation.apply` (a combined operator takes none).
+        """
         pm = self.pm
         u = pm.trace.operand(u)
         du = pm.ends(u) - pm.blocks(u).unsqueeze(2)                              # (B, 3, 2S, N, L)

@@ -39,6 +39,7 @@ def difference_conv(x: torch.Tensor, grid: Grid) -> torch.Tensor:
 
     Args:
         x: node field ``(B, C, D, H, W)``.
+
     Returns:
         ``(B, S, C, D, H, W)`` with ``[b, s, c, i] = x[b, c, i + d_s] - x[b, c, i]``, zero where
         ``i + d_s`` is outside the grid.
@@ -55,6 +56,7 @@ def adjoint_conv(f: torch.Tensor, grid: Grid) -> torch.Tensor:
 
     Args:
         f: per-spring field ``(B, S, C, D, H, W)``; entries of springs outside the grid are ignored.
+
     Returns:
         node field ``(B, C, D, H, W)``.
     """
@@ -89,6 +91,7 @@ def accumulate(grid: Grid, fn: Callable, *fields: torch.Tensor, channels: int | 
         fn: per-direction function, see above.
         fields: node fields ``(B, C, D, H, W)`` whose differences ``fn`` needs (at least one).
         channels: channel count of the result, default that of ``fields[0]``.
+
     Returns:
         node field ``(B, channels, D, H, W)``.
     """
@@ -118,7 +121,8 @@ def difference(x: torch.Tensor, grid: Grid) -> torch.Tensor:
 def harmonic_mean_of_ends(values: torch.Tensor, grid: Grid, spring_mask=None) -> torch.Tensor:
     """Per-node values ``(B, D, H, W)`` to per-spring values ``(B, S, D, H, W)``: the harmonic
     mean ``2 a b / (a + b)`` of the spring's two end nodes (springs in series), zero where no
-    spring exists (``spring_mask``, default the grid's) or both ends are zero. Differentiable."""
+    spring exists (``spring_mask``, default the grid's) or both ends are zero. Differentiable.
+    """
     nodes = values.unsqueeze(1)                                    # (B, 1, D, H, W)
     ends = nodes + difference(nodes, grid)[:, :, 0]                # value at the far end
     here = nodes.expand_as(ends)
@@ -142,7 +146,8 @@ def adjoint(f: torch.Tensor, grid: Grid) -> torch.Tensor:
 # ------------------------------------------------------------- spring physics
 def _length(delta: torch.Tensor) -> torch.Tensor:
     """``|delta|`` over the channel axis, kept ``>= tiny`` so that coincident nodes give a zero
-    direction (and zero force direction) instead of NaN, in values and gradients."""
+    direction (and zero force direction) instead of NaN, in values and gradients.
+    """
     sq = (delta * delta).sum(1, keepdim=True)
     return sq.clamp_min(torch.finfo(delta.dtype).tiny).sqrt()
 
@@ -159,6 +164,7 @@ def spring_law(sq, dxdv, k, l0, c, projected: bool):
     Args:
         sq: ``|x_j - x_i|^2``; dxdv: ``(x_j - x_i) . (v_j - v_i)`` (ignored when ``c`` is None);
         k, l0, c: stiffness, rest length, damping (``c`` may be None), all broadcastable.
+
     Returns:
         ``(alpha, beta)``; ``beta`` is None unless the damping is unprojected.
     """
@@ -181,6 +187,7 @@ def tension(delta, dv, k, l0, c, projected: bool) -> torch.Tensor:
             ``c`` may be ``None`` (no damping, no cost).
         projected: damping along the spring ``c ((dv . n) n)`` if True, else Radetzky's
             unprojected relative-velocity damping ``c dv``.
+
     Returns:
         ``(B, 3, ...)``: the force on ``i`` (its negative acts on ``j``).
     """
@@ -198,6 +205,7 @@ def spring_forces(x, v, grid, k, l0, c=None, projected=True) -> torch.Tensor:
         x, v: positions and velocities ``(B, 3, D, H, W)`` (``v`` unused when ``c`` is None).
         k: stiffness ``(Bk, S, 1|D, 1|H, 1|W)``; l0: rest length, same convention;
         c: damping like ``k`` or ``None``.
+
     Returns:
         forces ``(B, 3, D, H, W)``.
     """
@@ -210,7 +218,8 @@ def spring_forces(x, v, grid, k, l0, c=None, projected=True) -> torch.Tensor:
 
 def spring_forces_conv(x, v, grid, k, l0, c=None, projected=True) -> torch.Tensor:
     """Node forces of all springs through the ``conv3d`` reference; same arguments as
-    :func:`spring_forces`."""
+    :func:`spring_forces`.
+    """
     delta = difference_conv(x, grid).movedim(2, 1)            # (B, 3, S, D, H, W)
     dv = difference_conv(v, grid).movedim(2, 1) if c is not None else None
     unsq = (lambda p: None if p is None else p.unsqueeze(1))   # (Bk, 1, S, ...)
@@ -272,7 +281,8 @@ class Linearisation:
 
     def scaled(self, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> "Linearisation":
         """The operator ``u -> apply(u, alpha_scale, c, projected, c_scale)`` with its per-spring
-        coefficients combined once (for many products with the same scales, as in CG)."""
+        coefficients combined once (for many products with the same scales, as in CG).
+        """
         out = object.__new__(type(self))
         out.grid, out.combined, out.parts = self.grid, True, []
         for s, (src, _) in enumerate(self.grid.stencil):
@@ -283,7 +293,8 @@ class Linearisation:
 
     def apply(self, u: torch.Tensor, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> torch.Tensor:
         """``(h2 K + h C) u`` as a node field ``(B, 3, D, H, W)``, with ``h2 = alpha_scale`` and
-        ``h = c_scale``; ``K = -dF/dx`` (clamped) and ``C = -dF/dv`` (damping ``c`` or none)."""
+        ``h = c_scale``; ``K = -dF/dx`` (clamped) and ``C = -dF/dv`` (damping ``c`` or none).
+        """
         def fn(s, src, du):
             n, a, b = self.parts[s]
             alpha, beta = combine_coefficients(a, b, alpha_scale, None if c is None else take(c, s, src),
@@ -299,7 +310,8 @@ def _times(scale, t):
 def combine_coefficients(a, b, alpha_scale=1.0, c=None, projected=True, c_scale=1.0):
     """``(alpha, beta)`` of one linearised spring in ``h2 K + h C``: ``K``'s coefficients ``a, b``
     scaled by ``h2 = alpha_scale``, plus the damping ``h c`` (``h = c_scale``) on the projected
-    (``beta``) or the full (``alpha``) term. Scales of exactly 1 and no damping cost nothing."""
+    (``beta``) or the full (``alpha``) term. Scales of exactly 1 and no damping cost nothing.
+    """
     alpha, beta = _times(alpha_scale, a), _times(alpha_scale, b)
     if c is not None:
         cs = _times(c_scale, c)

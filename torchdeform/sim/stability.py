@@ -54,6 +54,7 @@ def power_omega2(model, x=None, iters: int = 60, seed: int = 0) -> float:
     Args:
         x: state ``(B, 3, D, H, W)`` to linearise at (default: rest).
         iters: power iterations; each costs one stiffness product.
+
     Returns:
         the largest eigenvalue found over the batch (a lower bound that is tight once converged).
     """
@@ -86,6 +87,7 @@ def time_step_bound(model, integrator="symplectic", method: str = "power", x=Non
         integrator: an integrator or its name (``"explicit"``, ``"symplectic"``, ``"verlet"``,
             ``"rk4"``, ``"implicit"``, ``"knoche"``).
         method: ``"power"`` (tight) or ``"gershgorin"`` (guaranteed, up to ~3x smaller).
+
     Returns:
         the bound in seconds; ``inf`` for implicit Euler and Knoche relaxation (no time step).
     """

@@ -21,14 +21,47 @@ Example:
     >>> to_image(img).shape
     torch.Size([32, 32, 3])
 """
-from .deform import (MODES, DisplacementField, FoldingWarning, as_offsets, as_volume, axis_weights, axis_weights_at,
-                     check_folding, folding_fraction, identity_points, inverse_points, inverse_residual,
-                     jacobian_determinant, node_offsets, offset_texture, sample, sample_points, to_grid_sample, warp)
+from .deform import (
+                     MODES,
+                     DisplacementField,
+                     FoldingWarning,
+                     as_offsets,
+                     as_volume,
+                     axis_weights,
+                     axis_weights_at,
+                     check_folding,
+                     folding_fraction,
+                     identity_points,
+                     inverse_points,
+                     inverse_residual,
+                     jacobian_determinant,
+                     node_offsets,
+                     offset_texture,
+                     sample,
+                     sample_points,
+                     to_grid_sample,
+                     warp,
+)
 from .io import SUFFIXES, check_array, load_volume, read_array, save_volume
 from .phantoms import phantom
-from .rendering import (AXIS_VIEWS, ENGINES, PRESETS, RENDER_MODES, OrbitCamera, RenderCompileWarning,
-                        TransferFunction, get_tf, load_tf, orbit_frames, preset, render, save_gif, save_png,
-                        to_image, trilinear_flat)
+from .rendering import (
+                     AXIS_VIEWS,
+                     ENGINES,
+                     PRESETS,
+                     RENDER_MODES,
+                     OrbitCamera,
+                     RenderCompileWarning,
+                     TransferFunction,
+                     get_tf,
+                     load_tf,
+                     orbit_frames,
+                     preset,
+                     render,
+                     save_gif,
+                     save_png,
+                     to_image,
+                     trilinear_flat,
+)
 
 __all__ = ["FoldingWarning", "DisplacementField", "MODES", "as_volume", "as_offsets", "to_grid_sample",
            "identity_points", "sample", "axis_weights", "axis_weights_at", "offset_texture", "inverse_points",

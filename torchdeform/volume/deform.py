@@ -147,6 +147,7 @@ def to_grid_sample(points: torch.Tensor, shape, align_corners: bool = True) -> t
     Args:
         points: ``(B, 3, *S)`` coordinates in voxels (channel c along axis c of ``shape``).
         shape: ``(D, H, W)`` of the sampled array.
+
     Returns:
         ``(B, *S, 3)``.
 
@@ -180,6 +181,7 @@ def sample(volume: torch.Tensor, points: torch.Tensor, padding: str = "border", 
         volume: ``(B, C, D, H, W)``.
         points: ``(B or 1, 3, *S)`` voxel coordinates (``*S`` = one to three axes).
         padding: ``"border"`` (clamp to the edge voxels) or ``"zeros"`` (``fill`` outside).
+
     Returns:
         ``(B, C, *S)``.
     """
@@ -229,7 +231,8 @@ def axis_weights_at(pos, n: int, N: int, order: str = "linear", cell_centred: bo
 def axis_weights(n: int, N: int, order: str = "linear", dtype=torch.float64, device=None,
                  cell_centred: bool = False) -> torch.Tensor:
     """Interpolation matrix ``(N, n)`` from ``n`` nodes to the ``N`` voxel centres of an axis
-    (:func:`axis_weights_at` at ``0, 1, ..., N - 1``)."""
+    (:func:`axis_weights_at` at ``0, 1, ..., N - 1``).
+    """
     pos = torch.arange(N, dtype=torch.float64)
     return axis_weights_at(pos, n, N, order, cell_centred).to(dtype=dtype, device=device)
 
@@ -241,6 +244,7 @@ def offset_texture(offsets, volume_shape, order: str = "linear") -> torch.Tensor
         offsets: ``(B, 3, n_d, n_h, n_w)`` or ``(3, n_d, n_h, n_w)``, voxel units.
         volume_shape: ``(D, H, W)``.
         order: ``"linear"`` (trilinear, ``align_corners=True``) or ``"bspline"`` (cubic B-spline).
+
     Returns:
         ``(B, 3, D, H, W)``, same dtype as ``offsets``.
 
@@ -327,6 +331,7 @@ def inverse_points(field: DisplacementField, points: torch.Tensor, iters: int = 
     Args:
         field: the :class:`DisplacementField`.
         points: ``(B or 1, 3, *S)`` voxel coordinates.
+
     Returns:
         ``(X (B, 3, *S), info)`` with ``info = {"iterations": k, "update": last max update}``.
     """
@@ -360,6 +365,7 @@ def jacobian_determinant(field: torch.Tensor, spacing=(1.0, 1.0, 1.0)) -> torch.
     Args:
         field: ``(B, 3, D, H, W)`` displacement (same unit as ``spacing``), each axis >= 2.
         spacing: sample spacing along ``(D, H, W)``.
+
     Returns:
         ``(B, D, H, W)``.
 
@@ -448,6 +454,7 @@ def warp(volume, offsets, mode: str = "deform", *, inverse_iters: int = 0, tol: 
             default: 1 inside the node box, 0 outside.
         check: warn (:class:`FoldingWarning`) when the deformation folds.
         return_info: also return ``{"iterations", "update", "folded"}``.
+
     Returns:
         the warped volume, in the layout of ``volume`` (``(B, C, D, H, W)`` when the offsets
         carry a batch ``B > 1`` for a plain volume).
@@ -525,6 +532,7 @@ def node_offsets(x: torch.Tensor, X: torch.Tensor, spacing, volume_shape) -> tor
         x, X: deformed and rest positions ``(B, 3, n_d, n_h, n_w)`` (m).
         spacing: node spacing ``(sd, sh, sw)`` (m).
         volume_shape: ``(D, H, W)`` voxels.
+
     Returns:
         ``(B, 3, n_d, n_h, n_w)`` offsets in voxels.
     """

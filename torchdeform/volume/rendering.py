@@ -53,7 +53,7 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import ConfigError
-from .deform import (DisplacementField, as_offsets, as_volume, axis_weights_at, inverse_points, sample)
+from .deform import DisplacementField, as_offsets, as_volume, axis_weights_at, sample
 
 RENDER_MODES = ("dvr", "mip", "average")
 AXIS_VIEWS = ("d", "h", "w", "-d", "-h", "-w")
@@ -363,6 +363,7 @@ def render(volume, tf=None, mode: str = "dvr", view="d", *, offsets=None, warp_m
             20-60 s, with the eager code as fallback). The fast path takes batch 1, linear
             offsets, ``inverse_iters=0`` and no gradient; anything else uses ``grid_sample``.
             Same image either way up to rounding.
+
     Returns:
         ``dvr``: ``(B, 4, h, w)`` premultiplied RGB + alpha; ``mip``/``average``: ``(B, 1, h, w)``.
 
@@ -536,7 +537,8 @@ class RenderCompileWarning(UserWarning):
 def _axis_terms(pos, N: int, padding: str):
     """Per-axis trilinear terms at voxel coordinates ``pos``: corner indices ``(j0, j1)`` (int32,
     inside ``[0, N - 1]``) and weights ``(w0, w1)``; ``zeros`` padding zeroes the weight of a
-    corner outside the volume (grid_sample ``align_corners=True`` semantics)."""
+    corner outside the volume (grid_sample ``align_corners=True`` semantics).
+    """
     if N == 1:
         zero = torch.zeros_like(pos, dtype=torch.int32)
         if padding == "border":
@@ -570,6 +572,7 @@ def trilinear_flat(v: torch.Tensor, X, shape, padding: str = "border", fill: flo
         X: three broadcastable tensors, voxel coordinates along ``D``, ``H``, ``W``.
         shape: ``(D, H, W)``.
         padding, fill: ``"border"`` (clamp) or ``"zeros"`` (``fill`` outside).
+
     Returns:
         the samples, shape of ``X[0] + X[1] + X[2]``.
 
@@ -679,7 +682,8 @@ class _FastAxis:
 
 def _fast_chunk_fn(spec: _FastAxis, engine: str):
     """The chunk function of ``spec``: eager, or compiled once (cached per spec; eager fallback with
-    one warning line when compilation is unavailable)."""
+    one warning line when compilation is unavailable).
+    """
     if engine == "eager":
         return spec.chunk
     from .._compile import fresh, inductor_options
@@ -742,7 +746,8 @@ _SLAB_MAX: dict = {}
 
 def _slab_max(v: torch.Tensor, others) -> torch.Tensor:
     """Largest voxel value of each slab across ``others`` (cached for the last volume: a frame loop
-    renders one volume many times; the key includes the tensor's version counter)."""
+    renders one volume many times; the key includes the tensor's version counter).
+    """
     key = (v.data_ptr(), v._version, tuple(v.shape), v.dtype, tuple(others))
     if key not in _SLAB_MAX:
         _SLAB_MAX.clear()
@@ -753,7 +758,8 @@ def _slab_max(v: torch.Tensor, others) -> torch.Tensor:
 def _render_axis_fast(vol, field, tf, mode, view, padding, fill, step, size, stop, chunk_points, lo, hi, table,
                       engine):
     """:func:`render` of an axis view through the offsets, by :class:`_FastAxis` chunks (``engine``
-    ``"eager"`` or ``"compiled"``); returns ``(image, info)`` with ``info`` the chunks run/skipped."""
+    ``"eager"`` or ``"compiled"``); returns ``(image, info)`` with ``info`` the chunks run/skipped.
+    """
     shape = tuple(vol.shape[2:])
     dtype, device = vol.dtype, vol.device
     axis = "dhw".index(view[-1])
