@@ -1,5 +1,8 @@
+"""``python -m torchdeform``: the ``torchdeform`` command (:func:`torchdeform.cli.main`)."""
 import sys
 
 from .cli import main
+
+__all__: list = []
 
 sys.exit(main())

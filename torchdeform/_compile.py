@@ -1,6 +1,8 @@
-"""``torch.compile`` helpers that every fast path shares (mass-spring steps, fuzzy inference,
-volume rendering): inductor options, the "store this field" barrier, per-wrapper code objects,
-and the one-line fallback warning.
+"""``torch.compile`` helpers that every fast path shares.
+
+The fast paths are mass-spring steps, fuzzy inference and volume rendering; the helpers are
+inductor options, the "store this field" barrier, per-wrapper code objects, and the one-line
+fallback warning.
 
 Nothing here knows about springs or volumes; it sits on the ground floor next to
 :mod:`torchdeform.errors` so that :mod:`torchdeform.sim`, :mod:`torchdeform.fuzzy` and
@@ -37,8 +39,9 @@ _warned: set = set()
 
 
 def warn_fallback(reason: str, what: str = "the eager step", stacklevel: int = 3) -> None:
-    """Warn once per kind of ``reason`` (its text before the first colon) that compilation is
-    unavailable and ``what`` runs instead.
+    """Warn that compilation is unavailable and ``what`` runs instead.
+
+    Once per kind of ``reason`` (its text before the first colon).
     """
     key = reason.split(":")[0]
     if key in _warned:
@@ -76,8 +79,10 @@ def inductor_options(options: dict | None = None) -> dict:
 
 @torch.library.custom_op("torchdeform::stored", mutates_args=())
 def realize(x: torch.Tensor) -> torch.Tensor:
-    """Identity that inductor cannot see through: its input and output live in memory, the output
-    contiguous in the input's axis order (so a permuted view is stored in that order).
+    """Identity that inductor cannot see through.
+
+    Its input and output live in memory, the output contiguous in the input's axis order (so a
+    permuted view is stored in that order).
     """
     return x.clone(memory_format=torch.contiguous_format)
 
@@ -88,10 +93,11 @@ def _(x):
 
 
 def _register_realize_lowering() -> None:
-    """Lower :func:`realize` inside inductor as a stored buffer (computed by the fused loop that
-    produces it) instead of an external ``clone`` call: each external call costs ~50-90 us of
-    dispatch on these CPUs, several times per CG iteration. Without the private lowering API
-    the op still works, as the external call.
+    """Lower :func:`realize` inside inductor as a stored buffer.
+
+    The buffer is computed by the fused loop that produces it, instead of an external ``clone``
+    call: each external call costs ~50-90 us of dispatch on these CPUs, several times per CG
+    iteration. Without the private lowering API the op still works, as the external call.
     """
     try:
         from torch._inductor import lowering
@@ -125,8 +131,10 @@ def no_autograd_cache():
 
 
 def skip_guards():
-    """Run compiled code without evaluating dynamo's guards (``skip_guard_eval_unsafe``), for calls
-    whose inputs match the call that compiled it; a no-op where this torch lacks the stance.
+    """Run compiled code without evaluating dynamo's guards (``skip_guard_eval_unsafe``).
+
+    For calls whose inputs match the call that compiled it; a no-op where this torch lacks the
+    stance.
     """
     try:
         return torch.compiler.set_stance(skip_guard_eval_unsafe=True)
@@ -135,8 +143,10 @@ def skip_guards():
 
 
 def fresh(fn):
-    """A copy of ``fn`` with its own code object: dynamo keeps its cache (and its limit of
-    recompilations) per code object, so every wrapper gets its own instead of sharing one.
+    """A copy of ``fn`` with its own code object.
+
+    Dynamo keeps its cache (and its limit of recompilations) per code object, so every wrapper
+    gets its own instead of sharing one.
 
     Examples:
         >>> def f(x):
@@ -150,8 +160,9 @@ def fresh(fn):
 
 
 def while_loop():
-    """``torch._higher_order_ops.while_loop`` (a loop that stays one loop in the compiled graph),
-    or None where this torch lacks it.
+    """``torch._higher_order_ops.while_loop``, or None where this torch lacks it.
+
+    A loop that stays one loop in the compiled graph.
     """
     try:
         from torch._higher_order_ops.while_loop import while_loop as loop

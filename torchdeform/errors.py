@@ -5,9 +5,22 @@ wrong (file, key, parameter, node or step) and what was expected.
 """
 from __future__ import annotations
 
+__all__ = ["TorchdeformError", "ConfigError", "DivergenceError", "NoRuleFiredError", "StabilityWarning"]
+
 
 class TorchdeformError(Exception):
-    """Base class of every error torchdeform raises on purpose."""
+    """Base class of every error torchdeform raises on purpose.
+
+    Examples:
+        >>> import torchdeform as td
+        >>> try:
+        ...     td.Grid((0, 4, 4), spacing=0.01)
+        ... except td.TorchdeformError as e:
+        ...     print(type(e).__name__, "-", e)
+        ConfigError - grid.shape: expected three node counts D, H, W, each >= 1, got (0, 4, 4)
+        >>> issubclass(td.DivergenceError, td.TorchdeformError)
+        True
+    """
 
 
 class ConfigError(TorchdeformError, ValueError):
@@ -19,6 +32,15 @@ class ConfigError(TorchdeformError, ValueError):
         got: the offending value (shown with ``repr``), optional.
         file: the scene file, optional.
         line: line number in ``file``, optional.
+        show_got: show ``got`` in the message (when it is not None).
+
+    Examples:
+        >>> import torchdeform as td
+        >>> e = td.ConfigError("material.stiffness", "a number >= 0 (N/m)", -3.0, file="cube.toml", line=7)
+        >>> str(e)
+        'cube.toml:7: material.stiffness: expected a number >= 0 (N/m), got -3.0'
+        >>> e.key, e.line, isinstance(e, ValueError)
+        ('material.stiffness', 7, True)
     """
 
     def __init__(self, key: str, expected: str, got=None, file=None, line=None, *, show_got=True):
@@ -38,7 +60,16 @@ class DivergenceError(TorchdeformError, FloatingPointError):
         step: the step index at which it was detected.
         quantity: what went wrong (``"position"``, ``"velocity"``, ``"kinetic energy"`` ...).
         value: the offending value (may be ``nan`` or ``inf``).
-        dt: the time step in use; ``safe_dt``: a time step that the stability bound allows.
+        dt: the time step in use.
+        safe_dt: a time step that the stability bound allows, or None.
+
+    Examples:
+        >>> import torchdeform as td
+        >>> e = td.DivergenceError(120, "velocity", float("inf"), dt=1e-3, safe_dt=2e-4)
+        >>> str(e).split(";")[0]
+        'simulation diverged at step 120: velocity is inf with dt = 0.001 s'
+        >>> e.safe_dt, isinstance(e, FloatingPointError)
+        (0.0002, True)
     """
 
     def __init__(self, step: int, quantity: str, value: float, dt: float, safe_dt: float | None):
@@ -54,4 +85,15 @@ class NoRuleFiredError(TorchdeformError, ValueError):
 
 
 class StabilityWarning(UserWarning):
-    """A requested explicit time step exceeds the model's stability bound."""
+    """A requested explicit time step exceeds the model's stability bound.
+
+    Examples:
+        >>> import warnings
+        >>> import torchdeform as td
+        >>> model = td.Model(td.Grid((3, 3, 3), 0.01), stiffness=10.0, mass=1e-3)
+        >>> with warnings.catch_warnings(record=True) as caught:
+        ...     warnings.simplefilter("always")
+        ...     bound = td.check_dt(model, 1.0, "symplectic")          # 1 s: far above the bound
+        >>> caught[0].category is td.StabilityWarning, issubclass(td.StabilityWarning, UserWarning)
+        (True, True)
+    """

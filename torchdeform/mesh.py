@@ -76,8 +76,10 @@ def _crossings_above(tri: np.ndarray, xq: np.ndarray, yq: np.ndarray, zq: np.nda
 
     Args:
         tri: triangles ``(F, 3, 3)`` (vertex, coordinate).
-        xq, yq, zq: sorted query coordinates ``(D,)``, ``(H,)``, ``(W,)``; the columns
-            ``(yq[j], zq[k])`` must not lie on a projected edge (callers perturb them).
+        xq: sorted query coordinates ``(D,)`` along the rays.
+        yq: sorted query coordinates ``(H,)``; the columns ``(yq[j], zq[k])`` must not lie on a
+            projected edge (callers perturb them).
+        zq: sorted query coordinates ``(W,)``.
 
     Returns:
         bool ``(D, H, W)``: odd number of crossings, i.e. inside a closed mesh.
@@ -179,7 +181,7 @@ def voxelize(mesh_or_path, spacing, padding: int = 0, scale: float = 1.0):
 
 
 def grid_from_mesh(path, spacing, topology: int = 26, padding: int = 0, scale: float = 1.0) -> Grid:
-    """A :class:`~torchdeform.grid.Grid` whose node mask is a voxelised closed mesh.
+    """A :class:`~torchdeform.sim.grid.Grid` whose node mask is a voxelised closed mesh.
 
     Args: as :func:`voxelize`, plus ``topology`` (6, 14, 18 or 26 neighbours).
 
@@ -319,9 +321,9 @@ def marching_tetrahedra(field, level: float = 0.5, pad: bool = True):
 
 
 def _interp_positions(x: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Trilinear interpolation of node positions ``x`` ``(3, D, H, W)`` at fractional node indices
-    ``q`` ``(V, 3)``, extrapolating linearly from the border cells (for vertices half a spacing
-    outside the grid).
+    """Trilinear interpolation of node positions ``x`` ``(3, D, H, W)`` at fractional node indices ``q`` ``(V, 3)``.
+
+    Extrapolates linearly from the border cells (for vertices half a spacing outside the grid).
     """
     shape = x.shape[1:]
     i0 = [np.clip(np.floor(q[:, c]), 0, max(n - 2, 0)).astype(np.int64) for c, n in enumerate(shape)]
@@ -382,6 +384,7 @@ def volume_surface(volume, level: float, offsets=None, spacing=(1.0, 1.0, 1.0), 
         level: iso-value in volume units (e.g. 300 HU for bone).
         offsets: node offsets in voxels ``(3, n_d, n_h, n_w)`` or None.
         spacing: voxel size ``(sd, sh, sw)``; vertices are ``index * spacing``.
+        **warp_kw: keyword arguments of :func:`~torchdeform.volume.warp` (with ``offsets``).
 
     Returns:
         ``(vertices (V, 3), faces (F, 3))``.

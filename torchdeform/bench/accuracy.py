@@ -15,7 +15,7 @@ stiff          the same cube 100x stiffer, the load ramped in over the whole run
                of a stiff body, where the explicit stability bound is tiny and implicit Euler
                can take steps far above it
 drag           bottom face fixed, the central top patch dragged sideways 4 mm along a path
-               (:class:`~torchdeform.forces.Drag`), then held
+               (:class:`~torchdeform.sim.forces.Drag`), then held
 supports       "falling onto fixed supports": torchdeform has no contact model, so the cube is
                released from rest under gravity held only by four fixed support nodes on its
                bottom face (posts fixed from t = 0); it drops and sags onto them
@@ -28,12 +28,12 @@ reported (RK4 is 4th order, so the reference's own error is about 1/15 of it). T
 a run is the largest node position error over the output times ``T/4, T/2, 3T/4, T``,
 divided by the largest node displacement of the reference over the same times:
 ``max_{t, node} |x - x_ref| / max_{t, node} |x_ref - X|``. Every time step is a multiple of a
-stability bound from :func:`~torchdeform.stability.time_step_bound` (power iteration): each
+stability bound from :func:`~torchdeform.sim.stability.time_step_bound` (power iteration): each
 explicit integrator's own bound, the symplectic Euler bound for implicit Euler (whose own bound
 is infinite). The step is then shrunk so that a whole number of steps lands on every output
 time; ``dt_bound`` is the step actually used over the bound.
 
-Wall time: ``time.perf_counter`` around the run (:func:`~torchdeform.integrators.simulate`
+Wall time: ``time.perf_counter`` around the run (:func:`~torchdeform.sim.integrators.simulate`
 with its divergence checks), after one untimed warm-up step; the median of ``--repeats`` runs
 (default 3; runs slower than 0.5 s are timed once), 1 with ``--quick``. A run that raises
 :class:`~torchdeform.errors.DivergenceError`, ends non-finite, or ends with an error above 10 or
@@ -41,7 +41,7 @@ a kinetic energy above 100x the reference's largest (it is blowing up but the mo
 caught it yet) is a ``diverged`` row.
 
 The scenes have global drag (``decay``), which every integrator applies after its step
-(:meth:`~torchdeform.integrators.Integrator.finish`, a splitting): at small steps that splitting
+(:meth:`~torchdeform.sim.integrators.Integrator.finish`, a splitting): at small steps that splitting
 error, not RK4's own, limits RK4's observed order (about 2 instead of 4).
 
 Resolution sweep (``load-static``). The continuum limit needs physically scaled parameters:
@@ -121,7 +121,7 @@ def cell_share(grid: Grid) -> torch.Tensor:
     ``s = prod_{c: d_c = 0} w_c(i_c)`` with ``w_c = 1/2`` on the first and last node of axis
     ``c`` and 1 elsewhere (interior springs 1, springs in a face of the box 1/2, along an edge
     of the box 1/4): the weights that make a lattice with ``k = E h s`` the same material at
-    every resolution, as :func:`~torchdeform.model.lumped_mass` does for masses.
+    every resolution, as :func:`~torchdeform.sim.model.lumped_mass` does for masses.
     Entries of springs that leave the grid are unused.
     """
     out = torch.ones((grid.S,) + grid.shape, dtype=torch.float64)
@@ -290,7 +290,8 @@ def relative_error(x: torch.Tensor, ref: torch.Tensor, scale: float) -> float:
     """``max |x - ref| / scale`` over everything but the channel axis.
 
     Args:
-        x, ref: positions ``(..., 3, D, H, W)`` with the channel at dim -4.
+        x: positions ``(..., 3, D, H, W)`` with the channel at dim -4.
+        ref: reference positions, the same shape (or broadcastable).
         scale: the reference's largest displacement (m).
     """
     diff = (x.double() - ref.double()).norm(dim=-4)
@@ -302,7 +303,8 @@ def _displacement(x: torch.Tensor, X: torch.Tensor) -> float:
 
 
 def kinetic_energy(mass: torch.Tensor, v: torch.Tensor) -> float:
-    """Largest kinetic energy (J) over the leading axes of ``v`` ``(..., 3, D, H, W)``;
+    """Largest kinetic energy (J) over the leading axes of ``v`` ``(..., 3, D, H, W)``.
+
     ``mass`` broadcasts as ``(1, 1, D, H, W)``.
     """
     e = 0.5 * (mass.double().cpu() * v.double() ** 2).sum(dim=(-4, -3, -2, -1))
@@ -330,14 +332,17 @@ class Job:
 
 
 class Method:
-    """One family of rows. Subclasses set :attr:`name` and :attr:`description` and implement
-    :meth:`applies`, :meth:`params` and :meth:`prepare`.
+    """One family of rows.
+
+    Subclasses set :attr:`name` and :attr:`description` and implement :meth:`applies`,
+    :meth:`params` and :meth:`prepare`.
     """
 
     name = "method"
     description = ""
 
     def applies(self, scene: AccuracyScene) -> bool:                  # pragma: no cover
+        """Whether this method runs on ``scene`` (dynamic or static scenes)."""
         raise NotImplementedError
 
     def params(self, ctx: "Context") -> list:                         # pragma: no cover
@@ -349,9 +354,11 @@ class Method:
         return None
 
     def label(self, param) -> str:
+        """The row label of a parameter."""
         return str(param)
 
     def prepare(self, ctx: Context, param) -> Job:                     # pragma: no cover
+        """The :class:`Job` that runs ``param`` on ``ctx``'s scene."""
         raise NotImplementedError
 
     def compare(self, ctx: Context, x: torch.Tensor) -> float:
@@ -360,8 +367,9 @@ class Method:
 
 
 class TimeStepping(Method):
-    """An integrator of :data:`~torchdeform.integrators.INTEGRATORS` at time steps that are
-    multiples of a stability bound.
+    """An integrator of :data:`~torchdeform.sim.integrators.INTEGRATORS` at multiples of a stability bound.
+
+    The time steps are multiples of the bound of ``bound_of``.
 
     Args:
         name: the integrator's name.
@@ -377,19 +385,24 @@ class TimeStepping(Method):
         self.description = description
 
     def applies(self, scene):
+        """Dynamic scenes only."""
         return not scene.static
 
     def params(self, ctx):
+        """The bound multiples of this integrator on the scene (``ctx.quick``: the short list)."""
         default, fast = ctx.scene.multiples.get(self.name, (self.multiples, self.quick_multiples))
         return list(fast if ctx.quick else default)
 
     def steps(self, ctx, param) -> tuple[int, float]:
-        """``(steps, dt)`` for a multiple: at most the requested step below the bound (so
-        "0.9x" stays stable), the nearest step count that lands on the output times above it.
+        """``(steps, dt)`` for a multiple.
+
+        At most the requested step below the bound (so "0.9x" stays stable), the nearest step
+        count that lands on the output times above it.
         """
         return ctx.steps_for(param * ctx.bound(self.bound_of), at_most=param <= 1)
 
     def skip(self, ctx, param):
+        """Why a multiple is not run: no whole number of steps per output interval near its ``dt``; or None."""
         want = param * ctx.bound(self.bound_of)
         dt = self.steps(ctx, param)[1]
         if abs(dt / want - 1) > MAX_DT_CHANGE:
@@ -398,9 +411,11 @@ class TimeStepping(Method):
         return None
 
     def label(self, param):
+        """``"0.9x"``: the multiple of the stability bound."""
         return f"{param:g}x"
 
     def prepare(self, ctx, param):
+        """A :class:`Job` simulating the scene at the multiple's ``dt``, recording the output times."""
         bound = ctx.bound(self.bound_of)
         steps, dt = self.steps(ctx, param)
         integ, model = self.make(ctx, dt)
@@ -424,8 +439,10 @@ def _plain(cls):
 
 
 def _verlet(ctx, dt):
-    """Damped Verlet solving the same equations: the model's global drag ``c`` is replaced by
-    Verlet's per-step damping ``kd = 1 - exp(-c dt)`` (so ``v' = exp(-c dt) v + dt a``).
+    """Damped Verlet solving the same equations.
+
+    The model's global drag ``c`` is replaced by Verlet's per-step damping
+    ``kd = 1 - exp(-c dt)`` (so ``v' = exp(-c dt) v + dt a``).
     """
     decay = ctx.model.decay or 0.0
     return DampedVerlet(kd=1.0 - math.exp(-decay * dt)), ctx.make_model(decay=None)
@@ -437,11 +454,11 @@ def _verlet_note(ctx, dt):
 
 
 class StaticResolution(Method):
-    """Static equilibrium of a ``static`` scene at grid size ``n`` (the parameter), against the
-    scene's reference at ``ref_n``, compared at the coarse nodes.
+    """Static equilibrium of a ``static`` scene at grid size ``n`` (the parameter).
 
-    Solved by implicit Euler at ``dt = STATIC_DT`` (Newton's method on ``F(x) = 0``) until the
-    largest node move is below ``tol`` times the displacement.
+    Compared against the scene's reference at ``ref_n``, at the coarse nodes. Solved by implicit
+    Euler at ``dt = STATIC_DT`` (Newton's method on ``F(x) = 0``) until the largest node move is
+    below ``tol`` times the displacement.
     """
 
     name = "static"
@@ -453,12 +470,15 @@ class StaticResolution(Method):
         self.tol, self.max_iters = tol, max_iters
 
     def applies(self, scene):
+        """Static scenes only."""
         return scene.static
 
     def params(self, ctx):
+        """The grid sizes ``n`` (``ctx.quick``: the short list)."""
         return list(self.quick_resolutions if ctx.quick else self.resolutions)
 
     def label(self, param):
+        """``"n=5"``."""
         return f"n={param}"
 
     @staticmethod
@@ -490,6 +510,7 @@ class StaticResolution(Method):
         raise DivergenceError(self.max_iters, "Newton update (not converged)", move, STATIC_DT, None)
 
     def prepare(self, ctx, param):
+        """A :class:`Job` solving the static equilibrium at grid size ``n = param``."""
         n = int(param)
         grid, kwargs = ctx.scene.build(n, 0.0)
         model = Model(grid, **kwargs, dtype=ctx.dtype, device=ctx.device)
@@ -507,6 +528,7 @@ class StaticResolution(Method):
         return Job(run, warmup, info, iters)
 
     def compare(self, ctx, x):
+        """Error at the coarse nodes against the fine reference (every ``(ref_n - 1) / (n - 1)``-th node)."""
         ref_n = ctx.n
         n = x.shape[-1]
         stride = (ref_n - 1) // (n - 1)
@@ -790,6 +812,7 @@ def add_arguments(p) -> None:
 
 def _check_args(args):
     """Validate the options; lists are parsed here so that a mistake is one ConfigError line.
+
     Returns ``(device, n, resolutions, ref_n)`` and sets ``args.scenes``, ``args.methods``,
     ``args.targets`` to lists (or None).
     """
@@ -835,8 +858,9 @@ def run(args) -> int:
 
 
 def _plan(args, device, dtype, n, resolutions, ref_n):
-    """Build each scene's :class:`Context` and its cases; returns ``(plan, not_run)`` with
-    ``plan = [(ctx, [(method, param), ...]), ...]``.
+    """Build each scene's :class:`Context` and its cases.
+
+    Returns ``(plan, not_run)`` with ``plan = [(ctx, [(method, param), ...]), ...]``.
     """
     methods = [m for k, m in METHODS.items() if args.methods is None or k in args.methods]
     methods = [StaticResolution(resolutions, resolutions) if m.name == "static" else m for m in methods]
@@ -1013,10 +1037,11 @@ _InverseWarp = _InverseWarpMethod()
 
 
 def plot(rows: list, path: Path, references: dict | None = None) -> None:
-    """Log-log error against wall time: one panel per scene, one colour per method (points joined
-    in order of dt, or n), the Pareto front as a black step line with ringed points, diverged runs
-    as crosses along the top. ``rows`` as returned by the bench; ``references`` names the
-    reference in each panel's title.
+    """Log-log error against wall time.
+
+    One panel per scene, one colour per method (points joined in order of dt, or n), the Pareto
+    front as a black step line with ringed points, diverged runs as crosses along the top. ``rows``
+    as returned by the bench; ``references`` names the reference in each panel's title.
     """
     import matplotlib
     matplotlib.use("Agg")

@@ -31,6 +31,8 @@ import torch
 from ..errors import ConfigError
 from .common import add_common, emit, int_list, machine_info, progress
 
+__all__ = ["COLUMNS", "SPACING", "PULLS", "add_arguments", "run"]
+
 COLUMNS = [("grid", "grid", None), ("variant", "variant", None), ("pull_mm", "pull mm", "{:.1f}"),
            ("moved", "moved", "{:,}"), ("checked", "checked", "{:,}"), ("ms", "ms (median)", "{:.2f}"),
            ("us_per_moved", "us/moved", "{:.2f}"), ("sweeps", "sweeps", None), ("depth", "depth", None),
@@ -41,6 +43,7 @@ PULLS = (1e-3, 2e-3, 4e-3)
 
 
 def add_arguments(p) -> None:
+    """The options of ``torchdeform bench chainmail``."""
     add_common(p)
     p.add_argument("--sizes", type=int_list("--sizes"), default=None,
                    help="grid sizes n (n^3 elements), comma-separated (default 32,64,100,128; quick 16,24)")
@@ -62,6 +65,7 @@ def _median_ms(fn, reset, repeats):
 
 
 def run(args) -> int:
+    """Run the bench: one row per grid size, pull and variant; returns the exit status."""
     from ..chainmail import ChainMail, Limits, limit_violation, tensor_chainmail
     from ..sim.grid import Grid
     if args.threads:

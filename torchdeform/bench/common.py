@@ -1,6 +1,8 @@
-"""Helpers every benchmark shares: the common options, machine information, progress bars, the
-output conventions (a table on stdout, or exactly one JSON document with ``--json``; ``--out DIR``
-writes ``<name>.csv``), and the speed scene that :mod:`.speed` and :mod:`.warp_baseline` both time.
+"""Helpers every benchmark shares.
+
+The common options, machine information, progress bars, the output conventions (a table on
+stdout, or exactly one JSON document with ``--json``; ``--out DIR`` writes ``<name>.csv``), and
+the speed scene that :mod:`.speed` and :mod:`.warp_baseline` both time.
 """
 from __future__ import annotations
 
@@ -66,8 +68,9 @@ def progress(total: int, desc: str):
 
 
 def emit(name: str, args, rows: list, columns: list, extra: dict | None = None, display=None) -> None:
-    """Write ``--out DIR/<name>.csv`` and print the JSON document (``--json``) or the table of
-    ``display`` rows (default ``rows``).
+    """Write ``--out DIR/<name>.csv`` and print the JSON document (``--json``) or the table.
+
+    The table shows the ``display`` rows (default ``rows``).
     """
     if args.out:
         out = Path(args.out)
@@ -98,8 +101,10 @@ def format_table(rows: list, columns: list) -> str:
 
 
 def speed_cube(n: int, topology: int, dtype=torch.float32, device="cpu", seed: int = 0):
-    """The speed scene: an ``n^3`` damped cube (1 cm spacing, k = 100 N/m, c = 0.05 N s/m,
-    1 g per node, no gravity), slightly perturbed from rest. Returns ``(model, state, dt)``.
+    """The speed scene: an ``n^3`` damped cube, slightly perturbed from rest.
+
+    1 cm spacing, k = 100 N/m, c = 0.05 N s/m, 1 g per node, no gravity. Returns
+    ``(model, state, dt)``.
     """
     grid = Grid((n, n, n), spacing=0.01, topology=topology)
     model = Model(grid, stiffness=100.0, damping=0.05, mass=1e-3, dtype=dtype, device=device)

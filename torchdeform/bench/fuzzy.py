@@ -22,6 +22,8 @@ import torch
 from ..errors import ConfigError
 from .common import add_common, emit, machine_info
 
+__all__ = ["COLUMNS", "add_arguments", "to_skfuzzy", "run"]
+
 COLUMNS = [("system", "system", None), ("mode", "mode", None), ("threads", "thr", None), ("inputs", "inputs", "{:,}"),
            ("seconds", "s (median)", "{:.4f}"), ("inputs_per_s", "inputs/s", "{:,.0f}"),
            ("vs_skfuzzy", "x skfuzzy", "{:,.0f}"), ("max_diff_of_range", "max|diff|/range", "{:.1e}"),
@@ -29,6 +31,7 @@ COLUMNS = [("system", "system", None), ("mode", "mode", None), ("threads", "thr"
 
 
 def add_arguments(p) -> None:
+    """The options of ``torchdeform bench fuzzy``."""
     add_common(p)
     p.add_argument("--system", default="susilap_g", help="preset name or .fis file (default susilap_g)")
     p.add_argument("--inputs", type=int, default=None, help="input rows for torchdeform (default 2,000,000)")
@@ -38,8 +41,9 @@ def add_arguments(p) -> None:
 
 
 def to_skfuzzy(fis, points: int = 2001):
-    """The same system in scikit-fuzzy (``ControlSystemSimulation``), universes of ``points``
-    samples. Supports min/max inference and the membership kinds scikit-fuzzy has.
+    """The same system in scikit-fuzzy (``ControlSystemSimulation``), universes of ``points`` samples.
+
+    Supports min/max inference and the membership kinds scikit-fuzzy has.
     """
     import numpy as np
     import skfuzzy as fz
@@ -88,6 +92,7 @@ def _time(fn, repeats):
 
 
 def run(args) -> int:
+    """Run the bench: eager, compiled and scikit-fuzzy rows; returns the exit status."""
     from ..fuzzy.commands import load
     fis = load(args.system)
     if args.threads:

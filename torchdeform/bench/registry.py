@@ -1,6 +1,7 @@
-"""The benchmarks of ``torchdeform bench``: one entry per benchmark, a help line and the module
-that runs it. Each module has ``add_arguments(parser)`` and ``run(args) -> int``; it is imported
-when the command line is built (benchmark modules import nothing heavy at module level).
+"""The benchmarks of ``torchdeform bench``: one entry per benchmark, a help line and the module that runs it.
+
+Each module has ``add_arguments(parser)`` and ``run(args) -> int``; it is imported when the command
+line is built (benchmark modules import nothing heavy at module level).
 
 A new benchmark is one module in :mod:`torchdeform.bench` and one entry here.
 """

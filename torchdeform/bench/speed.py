@@ -1,5 +1,6 @@
-"""``torchdeform bench speed``: spring-step throughput of symplectic Euler on a damped cube
-(Msprings/s, node-steps/s, ms/step) for n^3 grids, topologies, eager and compiled, dtypes and
+"""``torchdeform bench speed``: spring-step throughput of symplectic Euler on a damped cube.
+
+Msprings/s, node-steps/s and ms/step for n^3 grids, topologies, eager and compiled, dtypes and
 thread counts, against NVIDIA Warp's CPU backend (:mod:`.warp_baseline`), and implicit Euler on a
 40 x 10 x 10 beam shaped like SOFA's spring-beam benchmark.
 """
@@ -57,10 +58,11 @@ def add_arguments(p) -> None:
 
 
 def beam_scene(dtype=torch.float32, device="cpu"):
-    """The implicit benchmark, shaped like SOFA's spring-beam benchmark: a 16 x 4 x 4 m beam of
-    40 x 10 x 10 nodes (W is the long axis), 26 neighbours, stiffness 100 and damping 1 divided by
-    the rest length (SOFA's convention), 20 kg in all, gravity along -D, the w = 0 end fixed.
-    Returns ``(model, state, dt)`` with dt = 0.01 s.
+    """The implicit benchmark, shaped like SOFA's spring-beam benchmark.
+
+    A 16 x 4 x 4 m beam of 40 x 10 x 10 nodes (W is the long axis), 26 neighbours, stiffness 100
+    and damping 1 divided by the rest length (SOFA's convention), 20 kg in all, gravity along -D,
+    the w = 0 end fixed. Returns ``(model, state, dt)`` with dt = 0.01 s.
     """
     grid = Grid((10, 10, 40), spacing=(4 / 9, 4 / 9, 16 / 39), topology=26)
     fixed = torch.zeros(grid.shape, dtype=torch.bool)
@@ -106,8 +108,9 @@ def _time_steps(step, state, steps: int, repeats: int, sync) -> float:
 
 
 def _measure(step, state, *, steps, repeats, target_s, sync, max_steps=200):
-    """Warm up (and time the first call: compilation), size and time a step. Returns
-    ``(first_result, seconds_per_step, first_call_s, steps)``.
+    """Warm up (and time the first call: compilation), size and time a step.
+
+    Returns ``(first_result, seconds_per_step, first_call_s, steps)``.
     """
     t0 = time.perf_counter()
     first = step(state)
@@ -123,10 +126,11 @@ def _measure(step, state, *, steps, repeats, target_s, sync, max_steps=200):
 
 
 def _time_mode(integ, model, state, dt, mode, *, steps, repeats, target_s, sync, reference=None, max_steps=200):
-    """Time ``integ`` on ``model`` from ``state``, eager (grid layout) or compiled (packed state
-    kept between steps), without gradients. Returns ``(first_state, s_per_step, compile_s,
-    steps, fallback, max_abs_diff)``; ``compile_s`` is None for eager, ``max_abs_diff`` compares
-    the first step with ``reference`` (or None).
+    """Time ``integ`` on ``model`` from ``state``, eager (grid layout) or compiled (packed state kept between steps).
+
+    Without gradients. Returns ``(first_state, s_per_step, compile_s, steps, fallback,
+    max_abs_diff)``; ``compile_s`` is None for eager, ``max_abs_diff`` compares the first step with
+    ``reference`` (or None).
     """
     from ..sim.compiled import CompiledStep  # the fast path, only when timed
     with torch.no_grad():
@@ -179,9 +183,10 @@ def speed_row(n: int, topology: int, mode: str, *, dtype=torch.float32, device="
 
 def beam_row(mode: str, *, dtype=torch.float32, device="cpu", cg_iters: int = 20, steps=None, repeats: int = 5,
              target_s: float = 0.5, reference=None) -> dict:
-    """Implicit Euler steps per second on :func:`beam_scene` (``cg_iters`` CG iterations, no
-    tolerance: every step does exactly that many, as SOFA's benchmark). ``mode`` as in
-    :func:`speed_row`.
+    """Implicit Euler steps per second on :func:`beam_scene`.
+
+    ``cg_iters`` CG iterations, no tolerance: every step does exactly that many, as SOFA's
+    benchmark. ``mode`` as in :func:`speed_row`.
     """
     model, state, dt = beam_scene(dtype, device)
     integ = ImplicitEuler(cg_iters=cg_iters, cg_tol=0)

@@ -1,12 +1,12 @@
 """``torchdeform bench volume``: deform and render a volume, frames per second.
 
-A phantom (:mod:`torchdeform.phantom`, generated at half size and upsampled) of ``--size``^3
+A phantom (:mod:`torchdeform.volume.phantoms`, generated at half size and upsampled) of ``--size``^3
 voxels is deformed by smooth random node offsets (``--nodes``^3 nodes, up to ``--amplitude``
 voxels) and rendered along axis H to a ``size x size`` image, one sample per voxel, in two ways:
 
 ``naive``        build the warped volume (:func:`~torchdeform.volume.warp`: dense offset texture +
                  ``grid_sample`` of every voxel), then composite its slices;
-``grid_sample``  render through the displacement field (:func:`~torchdeform.render.render` with
+``grid_sample``  render through the displacement field (:func:`~torchdeform.volume.rendering.render` with
                  ``offsets``): slab by slab, the offsets at the slab from the node grid by separable
                  weights, one ``grid_sample`` per batch of slabs. The warped volume is never built;
 ``eager``        the fast path (``engine="eager"``): trilinear interpolation by hand (offsets from
@@ -35,6 +35,8 @@ import torch
 from ..errors import ConfigError
 from .common import add_common, emit, machine_info, progress
 
+__all__ = ["COLUMNS", "PATHS", "add_arguments", "bench_volume", "run"]
+
 COLUMNS = [("size", "volume", None), ("image", "image", None), ("mode", "mode", None), ("path", "path", None),
            ("threads", "thr", None), ("ms_per_frame", "ms/frame", "{:.0f}"), ("fps", "fps", "{:.2f}"),
            ("cpu_ms", "cpu ms", "{:.0f}"), ("speedup", "x naive", "{:.2f}"), ("max_abs_diff", "max|diff|", "{:.1e}"),
@@ -43,6 +45,7 @@ PATHS = ("naive", "grid_sample", "eager", "compiled")
 
 
 def add_arguments(p) -> None:
+    """The options of ``torchdeform bench volume``."""
     add_common(p)
     p.add_argument("--size", type=int, default=None, help="volume side in voxels (default 256; quick 64)")
     p.add_argument("--nodes", type=int, default=9, help="node grid side (default 9)")
@@ -80,6 +83,7 @@ def _time(fn, repeats):
 
 
 def run(args) -> int:
+    """Run the bench: one row per mode and path; returns the exit status."""
     from ..volume import preset, render, warp
     size = args.size or (64 if args.quick else 256)
     repeats = args.repeats or (2 if args.quick else 5)

@@ -20,9 +20,9 @@ gather      one per-node kernel: each node loops over the ``2 S`` stencil offset
 Spring force on node ``i`` from the spring ``(i, j)``: ``f = (k (l - l0) + c ((v_j - v_i) . n)) n``
 with ``n = (x_j - x_i) / l`` and ``l = sqrt(max(|x_j - x_i|^2, tiny))`` (torchdeform's guard for
 coincident nodes); ``j`` gets ``-f``. Spring parameters are per spring in both variants (warp.sim
-keeps per-spring arrays too), taken from the :class:`~torchdeform.model.Model`, so the springs
+keeps per-spring arrays too), taken from the :class:`~torchdeform.sim.model.Model`, so the springs
 are exactly torchdeform's (the stencil and rest lengths come from the
-:class:`~torchdeform.grid.Grid`).
+:class:`~torchdeform.sim.grid.Grid`).
 
 Warp's CPU backend runs a kernel launch as a serial loop over its threads on the calling
 thread (its CPU ``atomic_add`` is a plain add), so the rows report ``threads = 1``.
@@ -188,8 +188,9 @@ def _check_model(model) -> None:
 
 
 def _per_spring(model) -> tuple:
-    """Stiffness, damping and rest length of every spring slot, each ``(S, D, H, W)`` float64 CPU;
-    zero stiffness and damping where no spring exists (``grid.spring_mask``).
+    """Stiffness, damping and rest length of every spring slot, each ``(S, D, H, W)`` float64 CPU.
+
+    Zero stiffness and damping where no spring exists (``grid.spring_mask``).
     """
     grid = model.grid
     full = (grid.S,) + grid.shape
@@ -202,12 +203,11 @@ def _per_spring(model) -> tuple:
 
 
 def edge_list(model) -> dict:
-    """The springs of ``model`` as an edge list, in the Grid's stencil order (half-direction
-    ``s``, then node).
+    """The springs of ``model`` as an edge list.
 
-    Nodes are numbered row-major over ``(D, H, W)``: node ``(a, b, e)`` is ``(a H + b) W + e``.
-    Only springs with both ends in the grid (and in its node mask) are listed, so
-    ``E = grid.num_springs``.
+    In the Grid's stencil order (half-direction ``s``, then node). Nodes are numbered row-major over
+    ``(D, H, W)``: node ``(a, b, e)`` is ``(a H + b) W + e``. Only springs with both ends in the
+    grid (and in its node mask) are listed, so ``E = grid.num_springs``.
 
     Returns:
         dict of numpy arrays, each ``(E,)``: ``i``, ``j`` (int32; ``j = i + direction``),
@@ -237,10 +237,10 @@ class WarpSprings:
     """torchdeform's spring step (symplectic Euler) for one model, on Warp's CPU backend.
 
     Args:
-        model: a :class:`~torchdeform.model.Model` with springs (projected damping or none),
+        model: a :class:`~torchdeform.sim.model.Model` with springs (projected damping or none),
             masses and optional fixed nodes; nothing else (no gravity, loads, drags, home
             springs, decay; ValueError otherwise), float32 or float64, unbatched parameters.
-        state: initial :class:`~torchdeform.model.State`, ``x`` and ``v`` ``(1, 3, D, H, W)``.
+        state: initial :class:`~torchdeform.sim.model.State`, ``x`` and ``v`` ``(1, 3, D, H, W)``.
         variant: ``"atomic"`` or ``"gather"`` (see the module docstring).
 
     Arrays live on Warp's ``"cpu"`` device: ``x``, ``v`` ``(N,)`` of ``wp.vec3`` / ``wp.vec3d``
@@ -285,8 +285,9 @@ class WarpSprings:
         self.set_state(state)
 
     def load(self) -> float:
-        """Build (or load from Warp's kernel cache) the modules of this variant's kernels on the
-        CPU; returns the wall time in seconds (about 0 when they are loaded already).
+        """Build (or load from Warp's kernel cache) the modules of this variant's kernels on the CPU.
+
+        Returns the wall time in seconds (about 0 when they are loaded already).
         """
         names = ("springs_atomic", "integrate") if self.variant == "atomic" else ("gather_step",)
         t0 = time.perf_counter()
@@ -305,8 +306,9 @@ class WarpSprings:
         self._flip = False                                   # gather: which buffer holds the state
 
     def _commands(self, dt: float) -> list:
-        """Recorded launches (``wp.launch(..., record_cmd=True)``) of one step for ``dt``;
-        gather records the two ping-pong directions.
+        """Recorded launches (``wp.launch(..., record_cmd=True)``) of one step for ``dt``.
+
+        Gather records the two ping-pong directions.
         """
         if self._cmds is not None and self._cmd_dt == dt:
             return self._cmds
@@ -343,8 +345,9 @@ class WarpSprings:
         self.t += steps * float(dt)
 
     def state(self):
-        """The current state as a torch :class:`~torchdeform.model.State`, ``(1, 3, D, H, W)``
-        in the model's dtype, on the CPU.
+        """The current state as a torch :class:`~torchdeform.sim.model.State`.
+
+        ``(1, 3, D, H, W)`` in the model's dtype, on the CPU.
         """
         from ..sim.model import State
         self.wp.synchronize()
@@ -369,10 +372,13 @@ def warp_speed_row(n: int, topology: int = 26, variant: str = "atomic", *, dtype
     and ``fallback`` (always False).
 
     Args:
-        n: grid size (``n^3`` nodes); topology: 6, 14, 18 or 26; variant: ``"atomic"`` or ``"gather"``.
+        n: grid size (``n^3`` nodes).
+        topology: 6, 14, 18 or 26.
+        variant: ``"atomic"`` or ``"gather"``.
         dtype: ``torch.float32`` (``wp.vec3``) or ``torch.float64`` (``wp.vec3d``).
         steps: steps per timed repeat (default: enough for about ``target_s`` seconds, 3..200).
         repeats: timed repeats; the median seconds per step is kept.
+        target_s: wall time aimed at per timed repeat when ``steps`` is None (s).
         reference: torchdeform's eager state after one step from the scene's state
             (``(1, 3, n, n, n)``); computed here with ``SymplecticEuler().step`` when None.
             ``max_abs_diff`` is the largest difference of positions and velocities after one

@@ -1,5 +1,7 @@
-"""ChainMail (Gibson 1997), Enhanced ChainMail (Schill 1998/2001), a batched tensor ChainMail
-and elastic relaxation, on the face neighbours of a :class:`~torchdeform.sim.grid.Grid`.
+"""ChainMail, Enhanced ChainMail, a batched tensor ChainMail and elastic relaxation.
+
+ChainMail (Gibson 1997), Enhanced ChainMail (Schill 1998/2001), a batched tensor ChainMail and
+elastic relaxation, on the face neighbours of a :class:`~torchdeform.sim.grid.Grid`.
 
 ChainMail is geometric: every link between two face neighbours may stretch, compress and shear
 within limits; moving an element drags, pushes or shears its neighbours only when a limit is
@@ -46,7 +48,7 @@ an element does not move (its neighbours then do not move either). Gibson's dime
 paths are shortest paths when the limits are homogeneous; largest-violation-first is a
 label-setting (Dijkstra) order because a violation never grows along a propagation; the
 sponsor-front sweeps are Bellman-Ford, which is why they need about one sweep per hop. So all
-three give the same positions (tested to rounding against a plain Bellman-Ford reference),
+three give the same positions (tested to rounding against a plain Bellman-Ford reference).
 They differ in cost
 (the sequential order decides which elements are touched; Enhanced ChainMail's order has no
 parallel equivalent, the sweeps touch the whole grid every time), in that Gibson needs
@@ -56,7 +58,7 @@ reports the remaining excess.
 
 Example:
     >>> import torchdeform as td
-    >>> from torchdeform.chainmail import ChainMail, Limits
+    >>> from torchdeform.chainmail import ChainMail, Limits, limit_violation
     >>> grid = td.Grid((20, 20, 20), spacing=0.001)
     >>> cm = ChainMail(grid, Limits.from_material(grid, compression=0.8, stretch=1.2, shear=0.2))
     >>> r = cm.move([(19, 10, 10)], (0.003, 0.0, 0.0))      # pull the top centre up 3 mm
@@ -64,6 +66,8 @@ Example:
     (True, True)
     >>> u = cm.displacement()                                 # (1, 3, 20, 20, 20) metres
     >>> energies = cm.relax(steps=4)                          # smooth the straight-line artefacts
+    >>> u.shape, len(energies), energies[-1] <= energies[0]
+    (torch.Size([1, 3, 20, 20, 20]), 5, True)
 """
 from .limits import (
                      DIRECTIONS,
@@ -76,7 +80,7 @@ from .limits import (
                      neighbour_boxes,
                      tissue_limits,
 )
-from .relax import crease_measure, relax, relax_energy
+from .relaxation import crease_measure, relax, relax_energy
 from .sequential import ChainMail, MoveResult
 from .tensor import SweepResult, tensor_chainmail
 

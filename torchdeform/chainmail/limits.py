@@ -31,8 +31,10 @@ _OUTSIDE, _FREE, _FIXED = 0, 1, 2
 
 
 class BlockedMoveError(TorchdeformError):
-    """A move cannot be carried out: it would have to move a fixed element (or, in Enhanced
-    ChainMail, two neighbours demand incompatible positions). Raised with ``on_blocked="error"``.
+    """A move cannot be carried out.
+
+    It would have to move a fixed element (or, in Enhanced ChainMail, two neighbours demand
+    incompatible positions). Raised with ``on_blocked="error"``.
     """
 
 
@@ -65,12 +67,18 @@ class Limits:
 
     Args:
         grid: the grid the limits belong to.
-        min, max, shear: see above; ``0 <= min <= max``, ``shear >= 0``.
+        min: smallest distance along a link's axis (m), ``0 <= min <= max``.
+        max: largest distance along a link's axis (m).
+        shear: largest offset across a link's axis (m), ``>= 0``.
 
-    Example:
-        >>> g = Grid((4, 4, 4), spacing=0.01)
-        >>> Limits(g, min=0.008, max=0.012, shear=0.002).uniform
-        True
+    Examples:
+        >>> import torchdeform as td
+        >>> g = td.Grid((4, 4, 4), spacing=0.01)
+        >>> lim = td.Limits(g, min=0.008, max=0.012, shear=0.002)
+        >>> lim.uniform, [round(float(v), 6) for v in lim.offset_bounds()[1]]    # max - spacing
+        (True, [0.002, 0.002, 0.002])
+        >>> td.Limits(g, min=0.008, max=0.012, shear=[0.001, 0.002, 0.003]).shear.tolist()
+        [0.001, 0.002, 0.003]
     """
 
     grid: Grid
@@ -110,7 +118,8 @@ class Limits:
                      for t in (self.min, self.max, self.shear))
 
     def offset_bounds(self, dtype=torch.float64, device=None) -> tuple:
-        """Limits on offset differences ``u_j - u_i`` (``u = x - X``), as ``(lo, hi, shear)``:
+        """Limits on offset differences ``u_j - u_i`` (``u = x - X``), as ``(lo, hi, shear)``.
+
         ``lo_a = min_a - spacing_a``, ``hi_a = max_a - spacing_a``. Each ``(3,)`` when
         :attr:`uniform` allows it, else ``(3, D, H, W)``.
         """
@@ -123,14 +132,17 @@ class Limits:
 
     @classmethod
     def from_material(cls, grid: Grid, compression=0.9, stretch=1.1, shear=0.1) -> "Limits":
-        """Limits as ratios of the rest spacing: ``min_a = compression * h_a``,
-        ``max_a = stretch * h_a``, ``shear_a = shear * h_a``.
+        """Limits as ratios of the rest spacing.
+
+        ``min_a = compression * h_a``, ``max_a = stretch * h_a``, ``shear_a = shear * h_a``.
 
         Each ratio is a number, three numbers ``(d, h, w)`` (anisotropic, e.g. muscle fibres) or
         a ``(D, H, W)`` array per element; a link then gets the mean of its two elements' values
         (Schill's rule for heterogeneous tissue).
 
         Example:
+            >>> from torchdeform.chainmail import Limits
+            >>> from torchdeform.sim.grid import Grid
             >>> g = Grid((8, 8, 8), spacing=0.001)
             >>> lim = Limits.from_material(g, compression=0.8, stretch=1.25, shear=0.15)
             >>> [round(float(v), 6) for v in lim.max]
@@ -191,7 +203,11 @@ def tissue_limits(grid: Grid, tissue, labels=None, reference_stress: float = 300
         :class:`Limits`.
 
     Example:
+        >>> from torchdeform.chainmail import tissue_limits
+        >>> from torchdeform.sim.grid import Grid
         >>> lim = tissue_limits(Grid((8, 8, 8), spacing=0.001), "liver")
+        >>> lim.uniform
+        True
     """
     from ..fuzzy.presets import load_preset, tissue_parameters
     if not (isinstance(reference_stress, (int, float)) and reference_stress > 0):
@@ -230,22 +246,33 @@ def _exists(grid: Grid, device) -> torch.Tensor:
 
 
 def limit_violation(positions: torch.Tensor, grid: Grid, limits: Limits, per_link: bool = False):
-    """Largest amount (m) by which any link exceeds its ChainMail limits: an independent,
-    vectorised check written on absolute positions (not on the offsets the algorithms use).
+    """Largest amount (m) by which any link exceeds its ChainMail limits.
+
+    An independent, vectorised check written on absolute positions (not on the offsets the
+    algorithms use).
 
     Args:
         positions: ``(B, 3, D, H, W)`` or ``(3, D, H, W)``.
-        grid, limits: the grid (its node mask decides which links exist) and the limits.
+        grid: the grid (its node mask decides which links exist).
+        limits: the :class:`Limits`.
         per_link: also return the excess of every link, ``(B, 3, D, H, W)`` (axis ``a`` at the
             link's first endpoint; 0 where the link does not exist).
 
     Returns:
         ``(B,)`` largest excess, 0 where every limit holds (and the field with ``per_link``).
 
-    Example:
-        >>> g = Grid((3, 3, 3), spacing=1.0)
-        >>> float(limit_violation(g.rest_positions(), g, Limits(g, 0.9, 1.1, 0.1))[0])
+    Examples:
+        >>> import torch
+        >>> import torchdeform as td
+        >>> g = td.Grid((3, 3, 3), spacing=1.0)
+        >>> lim = td.Limits(g, 0.9, 1.1, 0.1)
+        >>> x = g.rest_positions(torch.float64)
+        >>> float(td.limit_violation(x, g, lim)[0])
         0.0
+        >>> x[0, 0, 2] += 0.5                            # lift the top layer: its links stretch to 1.5
+        >>> worst, per_link = td.limit_violation(x, g, lim, per_link=True)
+        >>> round(float(worst[0]), 6), per_link.shape
+        (0.4, torch.Size([1, 3, 3, 3, 3]))
     """
     x = positions if positions.dim() == 5 else positions.unsqueeze(0)
     dev, dt = x.device, x.dtype

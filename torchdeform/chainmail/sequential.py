@@ -1,6 +1,8 @@
-"""Sequential ChainMail with persistent state: Gibson's six FIFO lists (one sponsor path per
-element) and Schill's Enhanced ChainMail (one priority queue per coordinate, largest violation
-first, per-link limits). Cost is proportional to the elements that move, not to the grid.
+"""Sequential ChainMail with persistent state.
+
+Gibson's six FIFO lists (one sponsor path per element) and Schill's Enhanced ChainMail (one
+priority queue per coordinate, largest violation first, per-link limits). Cost is proportional
+to the elements that move, not to the grid.
 """
 from __future__ import annotations
 
@@ -24,7 +26,7 @@ from .limits import (
     Limits,
     limit_violation,
 )
-from .relax import relax
+from .relaxation import relax
 
 __all__ = ["ChainMail", "MoveResult"]
 
@@ -64,15 +66,16 @@ class MoveResult:
 
 # ------------------------------------------------------------ sequential ChainMail
 class ChainMail:
-    """Sequential ChainMail with persistent state: each :meth:`move` costs in proportion to
-    the elements it moves, not to the grid.
+    """Sequential ChainMail with persistent state.
+
+    Each :meth:`move` costs in proportion to the elements it moves, not to the grid.
 
     Positions are kept as float64 offsets ``u = x - X`` in flat arrays padded by one layer of
     "outside" elements, so a neighbour is a constant index offset and no bounds test is needed;
     scalar access goes through memoryviews (a torch scalar op costs microseconds).
 
     Args:
-        grid: the :class:`~torchdeform.grid.Grid` (its spacing and node mask; the spring
+        grid: the :class:`~torchdeform.sim.grid.Grid` (its spacing and node mask; the spring
             topology is ignored: ChainMail links the six face neighbours).
         limits: :class:`Limits` (per-axis for ``"gibson"``, per-axis or per-link for ``"enhanced"``).
         fixed: optional bool ``(D, H, W)`` of elements that never move.
@@ -80,12 +83,16 @@ class ChainMail:
             mass-spring state's ``x``); default the rest positions. They must satisfy the limits.
         method: ``"gibson"`` or ``"enhanced"``.
 
-    Example:
-        >>> g = Grid((16, 16, 16), spacing=0.001)
-        >>> cm = ChainMail(g, Limits.from_material(g, 0.8, 1.2, 0.2), fixed=g.face("bottom"))
-        >>> r = cm.move([(15, 8, 8)], (0.002, 0.0, 0.0))
-        >>> r.fraction, r.max_touches
-        (1.0, 1)
+    Examples:
+        >>> import torchdeform as td
+        >>> g = td.Grid((16, 16, 16), spacing=0.001)
+        >>> cm = td.ChainMail(g, td.Limits.from_material(g, 0.8, 1.2, 0.2), fixed=g.face("bottom"))
+        >>> r = cm.move([(15, 8, 8)], (0.002, 0.0, 0.0))       # pull the top centre up 2 mm
+        >>> r.fraction, r.max_touches, r.moved > 1
+        (1.0, 1, True)
+        >>> u = cm.displacement()
+        >>> u.shape, round(float(u[0, 0, 15, 8, 8]), 6), float(u[0, 0, 0].abs().max())   # base fixed
+        (torch.Size([1, 3, 16, 16, 16]), 0.002, 0.0)
     """
 
     def __init__(self, grid: Grid, limits: Limits, fixed=None, positions=None, method: str = "gibson"):
@@ -184,7 +191,7 @@ class ChainMail:
         return self.grid.rest_positions(dtype, device) + self.offsets(dtype, device)
 
     def state(self, dtype=torch.float32, device=None):
-        """A :class:`~torchdeform.model.State` (``x``, ``v = 0``) the mass-spring integrators continue from."""
+        """A :class:`~torchdeform.sim.model.State` (``x``, ``v = 0``) the mass-spring integrators continue from."""
         from ..sim.model import State
         x = self.positions(dtype, device)
         return State(x, torch.zeros_like(x), 0.0)
@@ -194,6 +201,7 @@ class ChainMail:
         return torch.from_numpy(self._interior(self._moved).copy())
 
     def clear_moved(self) -> None:
+        """Forget which elements moved (see :meth:`moved_mask`)."""
         self._moved[:] = False
 
     @property
@@ -237,8 +245,7 @@ class ChainMail:
 
     # ------------------------------------------------------------------ moving
     def move(self, nodes, displacement, on_blocked: str = "scale", bisections: int = 12) -> MoveResult:
-        """Move the picked elements rigidly by ``displacement`` and let ChainMail drag, push and
-        shear the rest.
+        """Move the picked elements rigidly by ``displacement``; ChainMail drags, pushes and shears the rest.
 
         Args:
             nodes: picked elements: a list of ``(i, j, k)`` or a bool ``(D, H, W)`` mask.
@@ -301,8 +308,10 @@ class ChainMail:
             u[0, p], u[1, p], u[2, p] = log[n + 1], log[n + 2], log[n + 3]
 
     def _attempt(self, start, d, scale):
-        """One try at moving the picked elements by ``scale * d``; returns
-        ``(ok, undo log, processed indices per pass, checks)``. The log is flat: index, old u.
+        """One try at moving the picked elements by ``scale * d``.
+
+        Returns ``(ok, undo log, processed indices per pass, checks)``. The log is flat: index,
+        old u.
         """
         log, passes = [], []
         ux, uy, uz = self._mu
@@ -393,9 +402,10 @@ class ChainMail:
         return True
 
     def _feed_table(self, c: int, sign: int) -> list:
-        """For coordinate ``c`` pulled (``sign > 0``) or pushed (``sign < 0``): per neighbour
-        direction k of a final element e, ``(offset, limit array or None, constant, factor,
-        link at e)`` such that the neighbour n = e + offset must satisfy
+        """The feeding rules of coordinate ``c`` pulled (``sign > 0``) or pushed (``sign < 0``).
+
+        Per neighbour direction k of a final element e, ``(offset, limit array or None,
+        constant, factor, link at e)`` such that the neighbour n = e + offset must satisfy
         ``u_n[c] >= u_e[c] + factor * limit`` (pull) or ``<=`` (push), the limit being that of the
         link (stored at e when ``link at e``, else at n).
         """
@@ -411,8 +421,10 @@ class ChainMail:
         return table
 
     def _enhanced(self, targets, delta, log: list, passes: list) -> bool:
-        """Enhanced ChainMail: the picked elements are placed, then every coordinate that moves is
-        propagated with one priority queue, largest violation first.
+        """Enhanced ChainMail: place the picked elements, then propagate each moving coordinate.
+
+        Every coordinate that moves is propagated with one priority queue, largest violation
+        first.
 
         The limits bound differences of one coordinate at a time, so the three coordinates are
         three independent systems; within one, a violation never grows along a propagation

@@ -1,6 +1,8 @@
-"""Tensor ChainMail: sponsor-front Jacobi sweeps over the whole grid with torch ops, batched over
-bodies, on any device. An element is bounded only by neighbours that have moved; about one sweep
-per lattice hop of propagation (Bellman-Ford on each coordinate's difference constraints).
+"""Tensor ChainMail: sponsor-front Jacobi sweeps over the whole grid with torch ops.
+
+Batched over bodies, on any device. An element is bounded only by neighbours that have moved;
+about one sweep per lattice hop of propagation (Bellman-Ford on each coordinate's difference
+constraints).
 """
 from __future__ import annotations
 
@@ -52,8 +54,9 @@ def _dilate(m: torch.Tensor, grid: Grid) -> torch.Tensor:
 
 
 def _hops(picked: torch.Tensor, grid: Grid, moved: torch.Tensor) -> torch.Tensor:
-    """Largest 6-neighbour hop distance (through the body) from ``picked`` to an element of
-    ``moved``, ``(B,)``; both ``(B, D, H, W)`` bool.
+    """Largest 6-neighbour hop distance (through the body) from ``picked`` to an element of ``moved``.
+
+    Returns ``(B,)``; ``picked`` and ``moved`` are both ``(B, D, H, W)`` bool.
     """
     nodes = _exists(grid, picked.device)
     reach = picked.clone()
@@ -90,22 +93,31 @@ def tensor_chainmail(positions: torch.Tensor, grid: Grid, limits: Limits, picked
 
     Args:
         positions: ``(B, 3, D, H, W)`` start positions satisfying the limits.
-        grid, limits: grid (node mask respected) and :class:`Limits`.
+        grid: the grid (node mask respected).
+        limits: the :class:`Limits`.
         picked: bool ``(D, H, W)`` or ``(B, D, H, W)``: the elements moved rigidly.
         displacement: ``(3,)`` or ``(B, 3)`` metres.
         fixed: optional bool ``(D, H, W)`` or ``(B, D, H, W)``.
-        max_sweeps: default ``D + H + W`` (enough for any propagation).
+        max_sweeps: default ``2 (D + H + W)`` (enough for any propagation).
 
     Returns:
         :class:`SweepResult` (positions, moved, sweeps, depth, violation).
 
-    Example:
-        >>> g = Grid((16, 16, 16), spacing=1.0)
-        >>> pick = torch.zeros(16, 16, 16, dtype=torch.bool); pick[15, 8, 8] = True
-        >>> r = tensor_chainmail(g.rest_positions(torch.float64).repeat(2, 1, 1, 1, 1), g,
-        ...                      Limits.from_material(g, 0.8, 1.2, 0.2), pick,
-        ...                      torch.tensor([[2.0, 0, 0], [-1.0, 0.5, 0]], dtype=torch.float64))
-        >>> r.sweeps, r.violation.tolist()                       # doctest: +SKIP
+    Examples:
+        >>> import torch
+        >>> import torchdeform as td
+        >>> g = td.Grid((16, 16, 16), spacing=1.0)
+        >>> lim = td.Limits.from_material(g, 0.8, 1.2, 0.2)
+        >>> pick = torch.zeros(16, 16, 16, dtype=torch.bool)
+        >>> pick[15, 8, 8] = True                                   # the top centre
+        >>> r = td.tensor_chainmail(g.rest_positions(torch.float64).repeat(2, 1, 1, 1, 1), g, lim, pick,
+        ...                         torch.tensor([[2.0, 0, 0], [-1.0, 0.5, 0]], dtype=torch.float64))
+        >>> r.sweeps, r.depth.tolist(), r.moved.flatten(1).sum(1).tolist(), bool((r.violation < 1e-12).all())
+        (10, [10, 5], [853, 146], True)
+        >>> cm = td.ChainMail(g, lim)                               # the sequential version agrees
+        >>> _ = cm.move([(15, 8, 8)], (2.0, 0.0, 0.0))
+        >>> float((cm.positions() - r.positions[:1]).abs().max()) < 1e-12
+        True
     """
     x = positions
     if x.dim() != 5 or x.shape[1] != 3 or tuple(x.shape[2:]) != grid.shape:

@@ -2,7 +2,9 @@
 
     >>> from torchdeform import fuzzy
     >>> fis = fuzzy.load_preset("susilap_g")          # Radetzky's SUSILAP-G (reconstructed MFs)
-    >>> fis.evaluate(consistency=5.5)                  # spring_const 16.26, viscosity 2.877
+    >>> out = fis.evaluate(consistency=5.5)
+    >>> round(float(out["spring_const"]), 2), round(float(out["viscosity"]), 3)
+    (16.26, 2.877)
 
 Modules: :mod:`.membership` (membership functions, hedges), :mod:`.rules` (variables,
 rule sentences), :mod:`.system` (inference, defuzzification), :mod:`.fis` (MATLAB ``.fis``

@@ -20,6 +20,9 @@ from ..errors import ConfigError
 from .fis import read_fis
 from .system import MamdaniSystem
 
+__all__ = ["load", "describe", "parse_assignments", "read_inputs_csv", "evaluate_rows", "format_rows", "plot", "main",
+           "add_arguments"]
+
 
 def load(name_or_path) -> MamdaniSystem:
     """A system from a ``.fis`` path, or from a preset name when no such file exists."""
@@ -77,8 +80,9 @@ def parse_assignments(fis: MamdaniSystem, items) -> dict:
 
 
 def read_inputs_csv(fis: MamdaniSystem, path) -> torch.Tensor:
-    """Rows ``(N, n_inputs)`` from a CSV file whose header names the inputs (extra columns are
-    ignored).
+    """Rows ``(N, n_inputs)`` from a CSV file whose header names the inputs.
+
+    Extra columns are ignored; blank lines are skipped.
     """
     p = Path(path)
     try:
@@ -120,6 +124,7 @@ def evaluate_rows(fis: MamdaniSystem, x: torch.Tensor) -> list:
 
 
 def format_rows(fis: MamdaniSystem, rows: list, as_json: bool) -> str:
+    """The rows of :func:`evaluate_rows` as CSV (a header, then ``%.6g`` values) or JSON (one row: one object)."""
     if as_json:
         return json.dumps(rows[0] if len(rows) == 1 else rows, indent=None)
     names = fis.input_names() + fis.output_names()
@@ -129,9 +134,11 @@ def format_rows(fis: MamdaniSystem, rows: list, as_json: bool) -> str:
 
 
 def plot(fis: MamdaniSystem, out_dir, points: int = 401) -> list:
-    """Write PNGs: ``mf_<variable>.png`` (every term of every variable) and
-    ``curve_<input>_<output>.png`` (each output against each input, the other inputs at the
-    middle of their ranges). Returns the paths written.
+    """Write PNGs of the membership functions and the input-output curves.
+
+    ``mf_<variable>.png`` (every term of every variable) and ``curve_<input>_<output>.png``
+    (each output against each input, the other inputs at the middle of their ranges).
+    Returns the paths written.
     """
     import matplotlib
     matplotlib.use("Agg")

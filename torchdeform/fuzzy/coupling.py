@@ -12,14 +12,19 @@ writes the resulting spring constant and viscosity to every spring there. Here:
    material, so its value is the harmonic mean of the two end values (equal ends give that
    value). Springs that do not exist are 0.
 
-The result plugs into :class:`~torchdeform.model.Model` (``stiffness=``, ``damping=``).
+The result plugs into :class:`~torchdeform.sim.model.Model` (``stiffness=``, ``damping=``).
 
 Example:
+    >>> from torchdeform.fuzzy import load_preset
+    >>> from torchdeform.fuzzy.coupling import Ellipsoid, node_inputs, spring_parameters
+    >>> from torchdeform.sim import Grid, Model
     >>> fis = load_preset("susilap_g")
     >>> grid = Grid((10, 10, 10), spacing=0.01, topology=26)
     >>> inputs = node_inputs(grid, fis, {"consistency": 5.5},
     ...                      [(Ellipsoid((0.05, 0.05, 0.05), (0.02, 0.03, 0.02)), {"consistency": 10.1})])
     >>> params = spring_parameters(fis, grid, inputs)
+    >>> params["_evaluations"], tuple(params["spring_const"].shape)      # two tissues: two evaluations
+    (2, (13, 10, 10, 10))
     >>> model = Model(grid, stiffness=params["spring_const"], damping=params["viscosity"], density=1000.0)
 """
 from __future__ import annotations
@@ -33,11 +38,14 @@ from ..sim.grid import Grid
 from ..sim.springs import harmonic_mean_of_ends
 from .system import MamdaniSystem
 
+__all__ = ["Ellipsoid", "node_inputs", "spring_parameters"]
+
 
 @dataclass(frozen=True)
 class Ellipsoid:
-    """An axis-aligned ellipsoid in world coordinates (metres, the grid's ``(D, H, W)`` axis
-    order): ``center`` ``(3,)``, ``radii`` ``(3,)``.
+    """An axis-aligned ellipsoid in world coordinates.
+
+    Metres, in the grid's ``(D, H, W)`` axis order: ``center`` ``(3,)``, ``radii`` ``(3,)``.
     """
 
     center: tuple

@@ -45,8 +45,14 @@ names the file, the line and what was expected, e.g.
 ``tipper.fis:14: [Input2] MF3: expected 'name':'type',[params], got "'good':trimf [5 10 10]"``.
 
 Example:
-    >>> fis = read_fis("fuzzy/susilap_g.fis")
-    >>> write_fis(fis, "copy.fis")
+    >>> import torch
+    >>> from torchdeform.fuzzy.fis import read_fis, write_fis
+    >>> from torchdeform.fuzzy.presets import preset_path
+    >>> fis = read_fis(preset_path("susilap_g"))                 # the shipped fuzzy/susilap_g.fis
+    >>> path = write_fis(fis, getfixture("tmp_path") / "copy.fis")
+    >>> x = torch.tensor([[2.5], [5.5], [10.1]])
+    >>> torch.equal(read_fis(path)(x), fis(x))
+    True
 """
 from __future__ import annotations
 
@@ -61,6 +67,8 @@ from ..errors import ConfigError
 from .membership import Bell, Gaussian, Sigmoid, Singleton, Trapezoid, Triangle
 from .rules import Clause, Rule, Variable
 from .system import AGGREGATIONS, AND_METHODS, DEFUZZIFIERS, IMPLICATIONS, OR_METHODS, MamdaniSystem
+
+__all__ = ["parse_fis", "read_fis", "fis_text", "write_fis"]
 
 # MATLAB name -> (our class, MATLAB parameter order as indices into our order)
 _MF_READ = {
@@ -378,8 +386,9 @@ def fis_text(system: MamdaniSystem, comments: str = "") -> str:
 
 
 def write_fis(system: MamdaniSystem, path, comments: str = "") -> Path:
-    """Write a system as a MATLAB ``.fis`` file; returns the path. Reading it back with
-    :func:`read_fis` gives a system with identical outputs.
+    """Write a system as a MATLAB ``.fis`` file; returns the path.
+
+    Reading it back with :func:`read_fis` gives a system with identical outputs.
     """
     p = Path(path)
     p.write_text(fis_text(system, comments), encoding="utf-8")

@@ -26,6 +26,8 @@ on, as in MATLAB and scikit-fuzzy. Gradients are finite everywhere (safe denomin
 square roots); at the corners themselves they are one-sided.
 
 Example:
+    >>> import torch
+    >>> from torchdeform.fuzzy import Trapezoid
     >>> mf = Trapezoid(0.0, 2.0, 4.0, 6.0)
     >>> mf(torch.tensor([1.0, 3.0, 5.5]))
     tensor([0.5000, 1.0000, 0.2500])
@@ -38,6 +40,9 @@ import torch
 from torch import nn
 
 from ..errors import ConfigError
+
+__all__ = ["MembershipFunction", "Trapezoid", "Triangle", "Gaussian", "Bell", "Sigmoid", "Singleton", "KINDS", "make",
+           "HEDGES", "apply_hedges"]
 
 _TINY = 1e-12
 
@@ -56,8 +61,9 @@ def _rise(x: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
 
 
 def _fall(x: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
-    """1 up to ``lo``, 0 from ``hi`` on, linear in between; 1 up to and including ``lo`` when
-    lo == hi.
+    """1 up to ``lo``, 0 from ``hi`` on, linear in between.
+
+    When lo == hi: 1 up to and including ``lo``, 0 after it.
     """
     wide = hi > lo
     den = torch.where(wide, hi - lo, torch.ones_like(hi))
@@ -95,10 +101,12 @@ class MembershipFunction(nn.Module):
 
     @property
     def is_singleton(self) -> bool:
+        """Whether this is a point mass (:class:`Singleton`): defuzzified over the positions."""
         return False
 
     @property
     def is_piecewise_linear(self) -> bool:
+        """Whether the membership is piecewise linear (trapezoids and triangles)."""
         return False
 
     def support(self) -> tuple:
@@ -110,6 +118,7 @@ class MembershipFunction(nn.Module):
         raise NotImplementedError
 
     def extra_repr(self) -> str:
+        """The parameters as ``name=value`` for :meth:`__repr__`."""
         return ", ".join(f"{n}={v:.6g}" for n, v in zip(self.names, self.values()))
 
     def __repr__(self) -> str:
@@ -126,26 +135,32 @@ class Trapezoid(MembershipFunction):
     kind, names = "trapezoid", ("a", "b", "c", "d")
 
     def check(self, values):
+        """Raise :class:`ConfigError` unless the corner points are in order ``a <= b <= c <= d``."""
         if any(q < p for p, q in zip(values, values[1:])):
             raise ConfigError(self.kind, "corner points in order a <= b <= c <= d", values)
 
     @property
     def params(self):
+        """Corner points ``(4,)`` (``(3,)`` for a triangle), ordered by a running maximum of ``raw``."""
         return torch.cummax(self.raw, dim=0).values
 
     @property
     def is_piecewise_linear(self):
+        """Always true: trapezoids and triangles are piecewise linear."""
         return True
 
     def forward(self, x):
+        """Degrees of ``x`` (any shape, same shape out): ``min(rise(a, b), fall(c, d))``."""
         p = self.params.to(x.dtype)
         return torch.minimum(_rise(x, p[0], p[1]), _fall(x, p[2], p[3]))
 
     def support(self):
+        """The interval ``(a, d)`` (``(a, c)`` for a triangle)."""
         v = self.values()
         return v[0], v[-1]
 
     def peak(self):
+        """The middle of the plateau, ``(b + c) / 2`` (``b`` for a triangle)."""
         v = self.values()
         return 0.5 * (v[1] + v[-2])
 
@@ -156,6 +171,7 @@ class Triangle(Trapezoid):
     kind, names = "triangle", ("a", "b", "c")
 
     def forward(self, x):
+        """Degrees of ``x`` (any shape, same shape out): ``min(rise(a, b), fall(b, c))``."""
         p = self.params.to(x.dtype)
         return torch.minimum(_rise(x, p[0], p[1]), _fall(x, p[1], p[2]))
 
@@ -166,22 +182,27 @@ class Gaussian(MembershipFunction):
     kind, names = "gaussian", ("mean", "sigma")
 
     def check(self, values):
+        """Raise :class:`ConfigError` for ``sigma == 0``."""
         if values[1] == 0:
             raise ConfigError(self.kind, "sigma != 0", values)
 
     @property
     def params(self):
+        """``(mean, |sigma|)`` with ``|sigma|`` kept above a tiny positive floor."""
         return torch.stack([self.raw[0], self.raw[1].abs().clamp_min(_TINY)])
 
     def forward(self, x):
+        """Degrees ``exp(-(x - mean)^2 / (2 sigma^2))`` of ``x`` (any shape, same shape out)."""
         p = self.params.to(x.dtype)
         return torch.exp(-0.5 * ((x - p[0]) / p[1]) ** 2)
 
     def support(self):
+        """``mean +- 4 sigma`` (degree below ``3.4e-4`` outside)."""
         m, s = self.values()
         return m - 4 * s, m + 4 * s
 
     def peak(self):
+        """The mean."""
         return self.values()[0]
 
 
@@ -191,25 +212,30 @@ class Bell(MembershipFunction):
     kind, names = "bell", ("width", "slope", "center")
 
     def check(self, values):
+        """Raise :class:`ConfigError` for ``width == 0``."""
         if values[0] == 0:
             raise ConfigError(self.kind, "width != 0", values)
 
     @property
     def params(self):
+        """``(|width|, slope, center)`` with ``|width|`` kept above a tiny positive floor."""
         return torch.stack([self.raw[0].abs().clamp_min(_TINY), self.raw[1], self.raw[2]])
 
     def forward(self, x):
+        """Degrees ``1 / (1 + |(x - center)/width|^(2 slope))`` of ``x`` (any shape, same shape out)."""
         p = self.params.to(x.dtype)
         z2 = ((x - p[2]) / p[0]) ** 2
         return 1.0 / (1.0 + torch.exp(p[1] * torch.log(z2.clamp_min(1e-300 if x.dtype == torch.float64
                                                                           else 1e-38))))
 
     def support(self):
+        """``center +- width 100^(1 / (2 |slope|))`` (degree below about 0.01 outside)."""
         w, s, c = self.values()
         r = w * 100.0 ** (1.0 / (2.0 * abs(s))) if s else w
         return c - r, c + r
 
     def peak(self):
+        """The center."""
         return self.values()[2]
 
 
@@ -219,15 +245,18 @@ class Sigmoid(MembershipFunction):
     kind, names = "sigmoid", ("center", "slope")
 
     def forward(self, x):
+        """Degrees ``1 / (1 + exp(-slope (x - center)))`` of ``x`` (any shape, same shape out)."""
         p = self.params.to(x.dtype)
         return torch.sigmoid(p[1] * (x - p[0]))
 
     def support(self):
+        """``center +- 7 / |slope|`` (degree below about 0.001 or above 0.999 outside)."""
         c, s = self.values()
         r = 7.0 / abs(s) if s else 1.0
         return c - r, c + r
 
     def peak(self):
+        """``+inf`` for a rising sigmoid (slope > 0), ``-inf`` otherwise."""
         c, s = self.values()
         return math.inf if s > 0 else -math.inf
 
@@ -244,16 +273,20 @@ class Singleton(MembershipFunction):
 
     @property
     def is_singleton(self):
+        """Always true: a singleton is a point mass."""
         return True
 
     def forward(self, x):
+        """Degree 1 where ``x == value`` and 0 elsewhere (any shape, same shape out)."""
         return (x == self.params[0].to(x.dtype)).to(x.dtype)
 
     def support(self):
+        """The point ``(value, value)``."""
         v = self.values()[0]
         return v, v
 
     def peak(self):
+        """The value."""
         return self.values()[0]
 
 
@@ -292,8 +325,16 @@ HEDGES = {
 
 
 def apply_hedges(mu: torch.Tensor, hedges) -> torch.Tensor:
-    """Apply hedges to degrees, innermost first: ``("not", "very")`` reads "not very term" and
-    computes ``not(very(mu))``.
+    """Apply hedges to degrees, innermost first.
+
+    ``("not", "very")`` reads "not very term" and computes ``not(very(mu))``.
+
+    Args:
+        mu: degrees in ``[0, 1]``, any shape.
+        hedges: hedge names (keys of :data:`HEDGES`), outermost first.
+
+    Returns:
+        The hedged degrees, same shape as ``mu``.
     """
     for h in reversed(tuple(hedges)):
         mu = HEDGES[h](mu)

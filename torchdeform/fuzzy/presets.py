@@ -21,9 +21,15 @@ their consistency value on the ``tissue_si`` scale, literature Young's-modulus r
 and source.
 
 Example:
+    >>> from torchdeform.fuzzy import load_preset, tissue_parameters
     >>> fis = load_preset("susilap_g")
-    >>> fis.evaluate(consistency=5.5)["spring_const"]        # 16.2606 (Fallopian tube)
-    >>> tissue_parameters("liver")["youngs_modulus"]         # Pa
+    >>> round(float(fis.evaluate(consistency=5.5)["spring_const"]), 2)     # published 16.2606 (Fallopian tube)
+    16.26
+    >>> liver = tissue_parameters("liver")
+    >>> liver["term"], liver["youngs_modulus_range"]                       # Pa
+    ('soft', (500.0, 10000.0))
+    >>> 500.0 <= liver["youngs_modulus"] <= 10000.0
+    True
 """
 from __future__ import annotations
 
@@ -35,6 +41,8 @@ from ..errors import ConfigError
 from .fis import parse_fis
 from .system import MamdaniSystem
 
+__all__ = ["PRESET_DIR", "TISSUE_FILE", "list_presets", "preset_path", "load_preset", "tissues", "tissue_parameters"]
+
 try:
     import tomllib
 except ModuleNotFoundError:                                  # Python < 3.11
@@ -42,8 +50,10 @@ except ModuleNotFoundError:                                  # Python < 3.11
 
 
 def _preset_dir():
-    """The folder of the rule files: the installed data package ``torchdeform.rulefiles``, or the
-    checkout's ``fuzzy/`` folder when torchdeform runs from a source tree that is not installed.
+    """The folder of the rule files.
+
+    The installed data package ``torchdeform.rulefiles``, or the checkout's ``fuzzy/`` folder when
+    torchdeform runs from a source tree that is not installed.
     """
     try:
         from importlib.resources import files
@@ -69,8 +79,9 @@ def _name(name) -> str:
 
 
 def preset_path(name: str):
-    """The file of preset ``name`` (with or without ``.fis``). Raises :class:`ConfigError` naming
-    the preset and listing the known ones when there is none.
+    """The file of preset ``name`` (with or without ``.fis``).
+
+    Raises :class:`ConfigError` naming the preset and listing the known ones when there is none.
     """
     name = _name(name)
     known = list_presets()
@@ -100,8 +111,9 @@ def _library() -> dict:
 
 
 def tissues() -> dict:
-    """The tissue library: ``{name: {"consistency", "term", "youngs_modulus_range" [Pa],
-    "density" [kg/m^3], "source"}}`` from ``fuzzy/tissues.toml`` (a copy; edit freely).
+    """The tissue library from ``fuzzy/tissues.toml`` (a copy; edit freely).
+
+    ``{name: {"consistency", "term", "youngs_modulus_range" [Pa], "density" [kg/m^3], "source"}}``.
     """
     return copy.deepcopy(_library()["tissues"])
 

@@ -23,6 +23,8 @@ from torch import nn
 from ..errors import ConfigError
 from .membership import HEDGES, MembershipFunction
 
+__all__ = ["check_name", "Variable", "Clause", "Rule"]
+
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.\-]*$")
 
 
@@ -71,9 +73,11 @@ class Variable(nn.Module):
 
     @property
     def term_names(self) -> list:
+        """The term names, in order (the term index of a ``.fis`` file is its position here plus one)."""
         return list(self.terms.keys())
 
     def index(self, term: str, key: str = "term") -> int:
+        """The position of ``term`` in :attr:`term_names`; :class:`ConfigError` under ``key`` if there is none."""
         try:
             return self.term_names.index(term)
         except ValueError:
@@ -134,8 +138,9 @@ class Rule:
 
     @staticmethod
     def parse(text: str) -> "Rule":
-        """Parse a rule sentence (see the module docstring). Raises :class:`ConfigError`
-        naming the rule and what was expected.
+        """Parse a rule sentence (see the module docstring).
+
+        Raises :class:`ConfigError` naming the rule and what was expected.
         """
         return _parse(text)
 

@@ -42,15 +42,17 @@ Modules: :mod:`.series` (series and their files), :mod:`.synthetic` (generators)
 
 Example:
     >>> from torchdeform import learn
-    >>> series = learn.radetzky_cube(springs=70)
+    >>> series = learn.radetzky_cube(springs=70, steps=100)          # the first 100 of its 250 steps
     >>> params = learn.Parameters(series, stiffness=learn.SpringParameter.like(series, 30.0),
     ...                           damping=learn.SpringParameter.like(series, 0.04),
     ...                           mass=series.truth["mass"])
     >>> loss = learn.WindowLoss(series, window=10)
-    >>> trainer = learn.Trainer(params, loss, optimizer="lbfgs", iterations=30)
+    >>> trainer = learn.Trainer(params, loss, optimizer="lbfgs", iterations=30, tol=1e-12, progress=False)
     >>> history = trainer.run()
-    >>> round(params.summary()["stiffness"], 3)
-    10.0
+    >>> trainer.stopped, len(history) < 30
+    ('loss <= tol (1e-12)', True)
+    >>> round(params.summary()["stiffness"], 3), round(params.summary()["damping"], 4)
+    (10.0, 0.1)
 """
 from .commands import run_script
 from .loss import WindowLoss

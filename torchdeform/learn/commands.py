@@ -1,5 +1,7 @@
-"""Command-line code of learning: ``torchdeform data cube|balloon`` (synthetic series) and
-:func:`run_script`, the frame every training script in ``training/`` shares.
+"""Command-line code of learning.
+
+``torchdeform data cube|balloon`` (synthetic series) and :func:`run_script`, the frame every
+training script in ``training/`` shares.
 """
 from __future__ import annotations
 
@@ -82,9 +84,10 @@ def command(args) -> int:
 
 
 def run_script(name: str, args, fit, summary) -> int:
-    """The frame every training script shares: ``args.threads`` torch threads, the ``args.out``
-    folder, wall and CPU time, ``result.json``, and one line on stderr (exit status 2) for a
-    :class:`~torchdeform.errors.TorchdeformError`.
+    """The frame every training script shares.
+
+    ``args.threads`` torch threads, the ``args.out`` folder, wall and CPU time, ``result.json``,
+    and one line on stderr (exit status 2) for a :class:`~torchdeform.errors.TorchdeformError`.
 
     ``fit(args, out) -> dict`` does the work and returns the result; ``summary(result) -> str``
     is printed at the end (the result then also holds ``wall_seconds``, ``cpu_seconds`` and

@@ -1,5 +1,7 @@
-"""The loss of rollouts over a series: teacher-forcing windows, checkpointed back-propagation
-through time, masks for missing observations.
+"""The loss of rollouts over a series.
+
+Teacher-forcing windows, checkpointed back-propagation through time, masks for missing
+observations.
 """
 from __future__ import annotations
 
@@ -76,6 +78,7 @@ class WindowLoss:
 
     @property
     def num_windows(self) -> int:
+        """Number of teacher-forcing windows (1 for ``window=None``)."""
         return len(self.starts)
 
     # ---------------------------------------------------------------- starting states
@@ -111,11 +114,13 @@ class WindowLoss:
         return State(x, v, 0.0)
 
     def _smoothed(self, starts: list):
-        """Savitzky-Golay start states for noisy data: a quadratic fitted by least squares to
-        the observations ``i - smooth .. i + smooth`` (clipped to the series) gives the
-        position ``a`` and, with ``b`` and ``c`` its first coefficients, the symplectic-Euler
-        velocity ``b - c dt`` (the backward difference of the fitted path). Returns
-        ``(x, v, ok)`` with ``ok`` False where a node is unobserved somewhere in the stencil.
+        """Savitzky-Golay start states for noisy data.
+
+        A quadratic fitted by least squares to the observations ``i - smooth .. i + smooth``
+        (clipped to the series) gives the position ``a`` and, with ``b`` and ``c`` its first
+        coefficients, the symplectic-Euler velocity ``b - c dt`` (the backward difference of the
+        fitted path). Returns ``(x, v, ok)`` with ``ok`` False where a node is unobserved
+        somewhere in the stencil.
         """
         h, E, dt = self.smooth, self.every, self.series.dt
         xs, vs, oks = [], [], []
@@ -182,6 +187,12 @@ class WindowLoss:
         return loss, State(x, v, 0.0)
 
     def __call__(self, params, windows=None) -> torch.Tensor:
+        """The loss, a 0-d tensor.
+
+        Args:
+            params: a :class:`Parameters` (or a model) to simulate with.
+            windows: indices of the windows to include (a stochastic subset), or None (all).
+        """
         model = params.model() if isinstance(params, Parameters) else params
         chosen = self.starts if windows is None else [self.starts[int(i)] for i in windows]
         if self.velocity != "carry":

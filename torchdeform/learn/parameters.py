@@ -1,6 +1,8 @@
-"""Learnable physical parameters: positive transforms, spring and node parameters (shared, per
-direction class, per region, per spring), fuzzy springs, and the bundle that builds a
-:class:`~torchdeform.sim.model.Model` (Radetzky's network weights ``1/m``, ``c``, ``d``).
+"""Learnable physical parameters.
+
+Positive transforms, spring and node parameters (shared, per direction class, per region, per
+spring), fuzzy springs, and the bundle that builds a :class:`~torchdeform.sim.model.Model`
+(Radetzky's network weights ``1/m``, ``c``, ``d``).
 """
 from __future__ import annotations
 
@@ -15,7 +17,8 @@ from ..sim.grid import Grid
 from ..sim.springs import harmonic_mean_of_ends
 from .series import Series
 
-__all__ = ["Positive", "SpringParameter", "NodeParameter", "FuzzySprings", "Parameters", "to_raw", "from_raw", "node_to_springs", "expand_spring_param", "TRANSFORMS", "SHARING"]
+__all__ = ["Positive", "SpringParameter", "NodeParameter", "FuzzySprings", "Parameters", "to_raw", "from_raw",
+           "node_to_springs", "expand_spring_param", "TRANSFORMS", "SHARING"]
 
 
 TRANSFORMS = ("log", "softplus")
@@ -29,6 +32,8 @@ def node_to_springs(values: torch.Tensor, grid: Grid, spring_mask=None) -> torch
 
     Args:
         values: ``(..., D, H, W)`` with at most one leading dimension (``(D, H, W)`` or ``(B, D, H, W)``).
+        grid: the grid (its springs' directions).
+        spring_mask: bool ``(S, D, H, W)`` of existing springs, or None (every spring of the grid).
 
     Returns:
         ``(S, D, H, W)`` (or ``(B, S, D, H, W)``), zero where no spring exists. Differentiable.
@@ -39,8 +44,10 @@ def node_to_springs(values: torch.Tensor, grid: Grid, spring_mask=None) -> torch
 
 
 def expand_spring_param(value, grid: Grid, regions=None, spring_mask=None, dtype=torch.float64):
-    """A spring parameter as ``(S, D, H, W)``: a number, a per-region table ``(R,)`` (with
-    node ``regions`` labels ``(D, H, W)``), ``(S,)`` or ``(S, D, H, W)``.
+    """A spring parameter as ``(S, D, H, W)``.
+
+    ``value`` is a number, a per-region table ``(R,)`` (with node ``regions`` labels
+    ``(D, H, W)``), ``(S,)`` or ``(S, D, H, W)``; zero where no spring exists.
     """
     t = torch.as_tensor(np.asarray(value, dtype=np.float64) if not torch.is_tensor(value) else value).to(dtype)
     S, shape = grid.S, grid.shape
@@ -78,8 +85,9 @@ def _check(key, value, allowed):
 
 
 class Positive(nn.Module):
-    """A learnable tensor of positive values, ``value = scale * T(raw)`` with ``T`` = exp or
-    softplus (``scale`` makes softplus well-conditioned for values far from 1).
+    """A learnable tensor of positive values, ``value = scale * T(raw)``.
+
+    ``T`` is exp or softplus (``scale`` makes softplus well-conditioned for values far from 1).
 
     Args:
         init: positive initial values (any shape).
@@ -98,6 +106,7 @@ class Positive(nn.Module):
         self.raw = nn.Parameter(to_raw(init / scale, transform))
 
     def forward(self) -> torch.Tensor:
+        """The positive values (the shape of ``init``)."""
         return self.scale * from_raw(self.raw, self.transform)
 
 
@@ -160,6 +169,7 @@ class SpringParameter(nn.Module):
         return self.value()
 
     def forward(self) -> torch.Tensor:
+        """The per-spring tensor ``(S, D, H, W)`` (zero where no spring exists)."""
         v = self.value()
         dtype = v.dtype
         mask = self.mask.to(dtype)
@@ -173,14 +183,16 @@ class SpringParameter(nn.Module):
         return out.masked_scatter(self.mask, v)
 
     def per_spring(self, tensor: torch.Tensor) -> torch.Tensor:
-        """The existing springs' entries of a ``(S, D, H, W)`` tensor, ``(n_springs,)``, in the
-        order of ``sharing="spring"`` values.
+        """The existing springs' entries of a ``(S, D, H, W)`` tensor, ``(n_springs,)``.
+
+        In the order of ``sharing="spring"`` values.
         """
         return torch.as_tensor(tensor)[self.mask]
 
 
 class NodeParameter(nn.Module):
     """A learned node mass: ``"shared"`` (one value) or ``"node"`` (one per node ``(D, H, W)``).
+
     Calling it returns ``(D, H, W)``.
     """
 
@@ -201,9 +213,11 @@ class NodeParameter(nn.Module):
         self.value = Positive(init, transform, dtype)
 
     def values(self) -> torch.Tensor:
+        """The learned values, ``(1,)`` (shared) or ``(num_nodes,)`` (per node)."""
         return self.value()
 
     def forward(self) -> torch.Tensor:
+        """Mass per node ``(D, H, W)`` (zero outside the body)."""
         v = self.value()
         if self.sharing == "shared":
             return v[0] * self.nodes.to(v.dtype)
@@ -211,8 +225,9 @@ class NodeParameter(nn.Module):
 
 
 class FuzzySprings(nn.Module):
-    """Stiffness and damping from a fuzzy system (Radetzky's shape modeler), learnable
-    through its inputs (slider values) or its membership functions.
+    """Stiffness and damping from a fuzzy system (Radetzky's shape modeler).
+
+    Learnable through its inputs (slider values) or its membership functions.
 
     The body is one tissue: the system is evaluated once and its outputs set every spring.
 
@@ -294,7 +309,7 @@ class Parameters(nn.Module):
     """Learned and fixed parameters of a series' model.
 
     Args:
-        series: the :class:`~torchdeform.data.Series` (grid, springs, constraints).
+        series: the :class:`~torchdeform.learn.series.Series` (grid, springs, constraints).
         stiffness, damping: a :class:`SpringParameter` (learned) or fixed values (a number or
             ``(S, D, H, W)``).
         mass: a :class:`NodeParameter` (learned) or fixed kg per node (a number or ``(D, H, W)``).
@@ -320,7 +335,7 @@ class Parameters(nn.Module):
         return out
 
     def model(self):
-        """The :class:`~torchdeform.model.Model` with the current values (differentiable)."""
+        """The :class:`~torchdeform.sim.model.Model` with the current values (differentiable)."""
         p = self.physical()
         return self.series.model(p["stiffness"], p["damping"], p["mass"], self.dtype)
 

@@ -1,5 +1,7 @@
-"""Identifiability reports and plots of learning runs: spread of per-spring fits, curvature of
-the loss (undetermined directions), learning curves and scans.
+"""Identifiability reports and plots of learning runs.
+
+Spread of per-spring fits, curvature of the loss (undetermined directions), learning curves
+and scans.
 """
 from __future__ import annotations
 
@@ -14,7 +16,8 @@ from .parameters import Parameters
 from .series import Series
 from .trainer import Record
 
-__all__ = ["active_springs", "relative_error", "spread_report", "curvature_report", "plot_history", "plot_scan", "plot_spread", "history_dicts"]
+__all__ = ["active_springs", "relative_error", "spread_report", "curvature_report", "plot_history", "plot_scan",
+           "plot_spread", "history_dicts"]
 
 
 # ------------------------------------------------------------------- reports and plots
@@ -39,7 +42,8 @@ def spread_report(learned, truth) -> dict:
     """How far per-spring (or per-node) values spread around their true values.
 
     Args:
-        learned, truth: ``(n,)`` values of the same springs.
+        learned: ``(n,)`` learned values.
+        truth: ``(n,)`` true values of the same springs (or nodes), in the same order.
 
     Returns:
         dict: ``n``; quantiles of the ratio learned/true (``min, p05, p25, median, p75, p95,
@@ -93,8 +97,9 @@ def curvature_report(params: Parameters, loss, rel_threshold: float = 1e-6, max_
 
 
 def plot_history(history, path, title: str = "learning curve", extra: dict | None = None) -> Path:
-    """Loss against iteration (log scale) to ``path`` (PNG); ``extra``: more curves
-    ``{label: (iterations, values)}``.
+    """Loss against iteration (log scale) to ``path`` (PNG).
+
+    ``extra``: more curves ``{label: (iterations, values)}``. Returns the path.
     """
     import matplotlib
     matplotlib.use("Agg")
@@ -121,8 +126,9 @@ def plot_history(history, path, title: str = "learning curve", extra: dict | Non
 
 def plot_scan(values, losses, marker_at, path, xlabel: str, marker: str = "true value", title: str = "scan",
               logx: bool = False) -> Path:
-    """Loss against one scanned parameter (log loss axis), a vertical line at ``marker_at``;
-    written to ``path`` (PNG). Returns the path.
+    """Loss against one scanned parameter (log loss axis), a vertical line at ``marker_at``.
+
+    Written to ``path`` (PNG). Returns the path.
     """
     import matplotlib
     matplotlib.use("Agg")

@@ -4,23 +4,11 @@ A :class:`Series` holds observed node positions at some steps of a simulation pl
 needed to run that simulation again: the grid and its springs, fixed nodes, loads, the time
 step, the integrator and, for synthetic data, the true parameters.
 
-=========================  ================================================================
-generator                  what
-=========================  ================================================================
-:func:`radetzky_cube`      Radetzky's cube: 3 x 3 x 3 nodes, 54 / 70 / 86 / 126 springs,
-                           lower 9 nodes fixed, a constant force on the top-centre node,
-                           250 steps (thesis §2.3, EUFIT'99)
-:func:`cube_series`        n^3 cubes, any topology, loads (constant, ramps, sinusoidal
-                           drags, indentation), heterogeneous materials by region,
-                           observation noise, partial observation, sparse times
-:func:`balloon_series`     a closed surface from trimesh (icosphere by default) voxelised
-                           into a grid, inflated by a rising pressure along the vertex
-                           normals, observed in a few snapshots (Radetzky's balloon)
-=========================  ================================================================
+The generators of synthetic series are in :mod:`torchdeform.learn.synthetic`.
 
 Conventions:
 
-* Dynamics are those of :class:`~torchdeform.integrators.SymplecticEuler` (default) with
+* Dynamics are those of :class:`~torchdeform.sim.integrators.SymplecticEuler` (default) with
   the external force of step ``n`` evaluated at ``t_n = n dt`` and prescribed (dragged) nodes
   put on their path at ``t_{n+1}`` after every step; :meth:`Series.advance` is that step, the
   same for generation and learning, so a model with the true parameters reproduces clean
@@ -28,11 +16,6 @@ Conventions:
 * The series starts from rest (``x = X``, ``v = 0``) at step 0.
 * Observations ``positions[i]`` are taken at step ``steps[i]``; ``mask[i]`` says which nodes
   were seen (missing data / partial observation).
-* Noise: Gaussian with standard deviation ``noise * RMS(x - X)`` over the free-node
-  coordinates of the clean observations (so ``noise=0.01`` is "1 % noise").
-* Heterogeneous materials: integer region labels per node; a spring whose ends lie in
-  different regions gets the harmonic mean of the two values (two half-springs in series,
-  as :mod:`torchdeform.fuzzy.coupling` does).
 
 Files are ``.npz``: arrays plus one JSON string ``meta`` (format version, dt, grid, spring
 set, integrator, loads, noise, seed, description). :func:`load_series` validates everything
@@ -49,7 +32,7 @@ turns them into per-step tables (:meth:`Series.tables`). In the file each is one
 Example:
     >>> from torchdeform import learn
     >>> s = learn.radetzky_cube(springs=70)
-    >>> s.positions.shape, int(s.steps[-1]), s.grid.num_springs
+    >>> s.positions.shape, int(s.steps[-1]), int(s.spring_mask_tensor().sum())
     ((251, 3, 3, 3, 3), 250, 70)
     >>> path = s.save(getfixture("tmp_path") / "cube70.npz")
     >>> learn.load_series(path).loads
@@ -110,8 +93,10 @@ def load_to_json(load, index: int) -> tuple[dict, dict]:
 
 
 def load_from_json(d, arrays: dict, shape: tuple, where: str) -> list:
-    """The loads of one JSON table (see :func:`load_to_json`; a ``"force"`` on several nodes is one
-    :class:`PointForce` per node). Raises a :class:`ConfigError` naming ``where`` and the key.
+    """The loads of one JSON table (see :func:`load_to_json`).
+
+    A ``"force"`` on several nodes is one :class:`PointForce` per node. Raises a
+    :class:`ConfigError` naming ``where`` and the key.
     """
     def bad(key, expected, got):
         return ConfigError(f"{where}.{key}", expected, got)
@@ -190,12 +175,12 @@ class Series:
         steps: step index of each observation ``(T,)`` (int, strictly increasing).
         mask: bool ``(T, D, H, W)``: node observed at that time.
         dt: time step (s).
-        grid: the :class:`~torchdeform.grid.Grid`; spring_mask: bool ``(S, D, H, W)`` or None.
+        grid: the :class:`~torchdeform.sim.grid.Grid`; spring_mask: bool ``(S, D, H, W)`` or None.
         fixed: bool ``(D, H, W)`` nodes that never move.
         loads: list of :class:`~torchdeform.sim.forces.PointForce`, ``SurfaceForce``,
             ``FieldForce`` and :class:`~torchdeform.sim.forces.Drag` (the loads of every model).
         damping_mode: ``"unprojected"`` (Radetzky) or ``"projected"``.
-        integrator: name in :data:`~torchdeform.integrators.INTEGRATORS` (``"symplectic"``).
+        integrator: name in :data:`~torchdeform.sim.integrators.INTEGRATORS` (``"symplectic"``).
         truth: true parameters (synthetic data): ``stiffness``, ``damping`` (per-spring
             ``(S, D, H, W)`` arrays), ``mass`` (``(D, H, W)``), optionally ``regions`` (node
             labels) and the scalar/table values in ``meta["truth"]``.
@@ -243,7 +228,8 @@ class Series:
         return self.fixed | self.prescribed()
 
     def tables(self, dtype=torch.float64, device=None) -> dict:
-        """Dense load tables over steps ``0 .. num_steps + 1``:
+        """Dense load tables over steps ``0 .. num_steps + 1``.
+
         ``force`` ``(N + 2, 3, D, H, W)`` (external force at ``t_n``) or None, and
         ``drag`` ``(N + 2, 3, D, H, W)`` (prescribed positions at ``t_n``) with ``drag_mask``
         ``(1, 1, D, H, W)``, or None.
@@ -274,8 +260,9 @@ class Series:
         return out
 
     def model(self, stiffness, damping, mass, dtype=torch.float64, device=None) -> Model:
-        """The :class:`~torchdeform.model.Model` of this set-up with the given parameters
-        (any shape :class:`Model` accepts; tensors keep their autograd graph).
+        """The :class:`~torchdeform.sim.model.Model` of this set-up with the given parameters.
+
+        Any shape :class:`Model` accepts; tensors keep their autograd graph.
         """
         fixed = torch.as_tensor(self.constrained())
         return Model(self.grid, stiffness=stiffness, damping=damping, damping_mode=self.damping_mode, mass=mass,
@@ -290,9 +277,10 @@ class Series:
                           torch.as_tensor(self.truth["mass"]), dtype, device)
 
     def advance(self, model: Model, state: State, n, integrator=None) -> State:
-        """One step of the series' dynamics from step ``n`` (an int, or a ``(B,)`` LongTensor
-        of per-batch-entry steps) to ``n + 1``: external force at ``t_n``, the integrator's
-        step, dragged nodes onto their positions at ``t_{n+1}``.
+        """One step of the series' dynamics from step ``n`` to ``n + 1``.
+
+        ``n`` is an int, or a ``(B,)`` LongTensor of per-batch-entry steps. External force at
+        ``t_n``, the integrator's step, dragged nodes onto their positions at ``t_{n+1}``.
         """
         tab = self.tables(model.dtype, model.device)
         integrator = integrator or INTEGRATORS[self.integrator]()
@@ -316,8 +304,9 @@ class Series:
         return st
 
     def simulate(self, model: Model, steps: int | None = None, integrator=None) -> torch.Tensor:
-        """Positions ``(N + 1, B, 3, D, H, W)`` at steps ``0 .. N`` (no gradient tracking
-        unless the model's parameters require it).
+        """Positions ``(N + 1, B, 3, D, H, W)`` at steps ``0 .. N``.
+
+        No gradient tracking unless the model's parameters require it.
         """
         steps = self.num_steps if steps is None else int(steps)
         integrator = integrator or INTEGRATORS[self.integrator]()
@@ -379,7 +368,7 @@ def load_series(path) -> Series:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
     except Exception as e:                                  # zip/pickle/format errors of many kinds
-        raise _fail(path, "file", "a .npz archive written by torchdeform.data", f"{type(e).__name__}: {e}") from None
+        raise _fail(path, "file", "a .npz archive written by torchdeform.learn", f"{type(e).__name__}: {e}") from None
     for key in ("meta", "positions", "steps", "mask", "fixed"):
         if key not in arrays:
             raise _fail(path, key, "an array in the file", "missing")

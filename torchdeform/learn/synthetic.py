@@ -1,5 +1,6 @@
-"""Synthetic series for learning: Radetzky's cube, n^3 cubes under several loads, and Radetzky's
-balloon, each simulated with known ("true") parameters.
+"""Synthetic series for learning, each simulated with known ("true") parameters.
+
+Radetzky's cube, n^3 cubes under several loads, and Radetzky's balloon.
 
 =========================  ================================================================
 generator                  what
@@ -49,9 +50,10 @@ SPRING_SETS = {54: (6, None), 70: (14, ((1, 1, 1), (1, -1, -1))), 86: (14, None)
 
 
 def indentation(grid: Grid, depth: float, radius: int = 0, duration: float = 0.5) -> Drag:
-    """An indenter pushed ``depth`` metres into the top face (axis D, ``"top"``) over
-    ``duration`` seconds: the top nodes within ``radius`` nodes (Chebyshev) of the face centre
-    are prescribed at ``X - depth e_D`` (a ramp).
+    """An indenter pushed ``depth`` metres into the top face (axis D, ``"top"``) over ``duration`` seconds.
+
+    The top nodes within ``radius`` nodes (Chebyshev) of the face centre are prescribed at
+    ``X - depth e_D`` (a ramp).
     """
     D, H, W = grid.shape
     ch, cw = (H - 1) / 2, (W - 1) / 2
@@ -64,7 +66,8 @@ def cube_grid(n: int = 3, spacing: float = 0.01, springs: int | None = None, top
     """A cube of ``n^3`` nodes and its spring mask.
 
     Args:
-        n: nodes per edge; spacing: metres.
+        n: nodes per edge.
+        spacing: node spacing (metres).
         springs: one of Radetzky's sets (54, 70, 86, 126; ``n = 3`` only), or None to use ``topology``.
         topology: 6, 14, 18 or 26 (when ``springs`` is None).
 
@@ -134,22 +137,29 @@ def _truth_meta(stiffness, damping, mass) -> dict:
 def radetzky_cube(springs: int = 70, stiffness=10.0, damping=0.1, mass=0.01, force=(-0.05, 0.0, 0.0),
                   steps: int = 250, dt: float = 0.005, spacing: float = 0.01, noise: float = 0.0, every: int = 1,
                   observe=None, seed: int = 0, damping_mode: str = "unprojected") -> Series:
-    """Radetzky's cube experiment: 3 x 3 x 3 nodes, lower 9 fixed, a constant force on the
-    top-centre node for ``steps`` steps.
+    """Radetzky's cube experiment: 3 x 3 x 3 nodes, lower 9 fixed, a constant force on the top-centre node.
 
-    The thesis gives neither the parameters, the force, ``t_c`` nor the edge length; these
-    defaults (k = 10 N/m, d = 0.1 N s/m unprojected as in his eq. 2.21, m = 10 g, 1 cm
-    edges, dt = 5 ms, force (-0.05, 0, 0) N: pushing the top-centre node down) bring every
-    spring set to equilibrium within the 250 steps (a sideways force makes the 54- and
-    70-spring cubes, which have little or no shear stiffness, creep for much longer).
+    The force acts for all ``steps`` steps. The thesis gives neither the parameters, the force,
+    ``t_c`` nor the edge length; these defaults (k = 10 N/m, d = 0.1 N s/m unprojected as in his
+    eq. 2.21, m = 10 g, 1 cm edges, dt = 5 ms, force (-0.05, 0, 0) N: pushing the top-centre node
+    down) bring every spring set to equilibrium within the 250 steps (a sideways force makes the
+    54- and 70-spring cubes, which have little or no shear stiffness, creep for much longer).
 
     Args:
         springs: 54 (axes), 70 (axes + 16 body diagonals), 86 (axes + 32 body diagonals) or
             126 (axes + 72 face diagonals); see :data:`SPRING_SETS`.
-        stiffness, damping: a number, ``(S,)`` or ``(S, D, H, W)`` (true values).
+        stiffness: true stiffness (N/m): a number, ``(S,)`` or ``(S, D, H, W)``.
+        damping: true damping (N s/m): a number, ``(S,)`` or ``(S, D, H, W)``.
         mass: kg per node, a number or ``(3, 3, 3)``.
         force: newtons on node (2, 1, 1) (axis D is up).
-        noise, every, observe, seed: as in :func:`cube_series`.
+        steps: number of time steps simulated.
+        dt: time step (s).
+        spacing: edge length of one cell (m).
+        noise: as in :func:`cube_series`.
+        every: as in :func:`cube_series`.
+        observe: as in :func:`cube_series`.
+        seed: as in :func:`cube_series`.
+        damping_mode: ``"unprojected"`` (Radetzky's eq. 2.21) or ``"projected"`` (along the spring).
 
     Returns:
         a :class:`Series`.
@@ -195,8 +205,9 @@ def layered_regions(grid: Grid, layers: int = 2) -> np.ndarray:
 
 
 def inclusion_regions(grid: Grid, radius: float) -> np.ndarray:
-    """Region labels ``(D, H, W)``: 1 inside a sphere of ``radius`` node spacings about the
-    centre, 0 outside (a stiff or soft inclusion).
+    """Region labels ``(D, H, W)``: 1 inside a sphere about the centre, 0 outside.
+
+    The sphere has ``radius`` node spacings (a stiff or soft inclusion).
     """
     idx = np.stack(np.meshgrid(*[np.arange(n) for n in grid.shape], indexing="ij"))
     c = (np.array(grid.shape) - 1)[:, None, None, None] / 2
@@ -210,21 +221,28 @@ def cube_series(n: int = 4, topology: int = 26, load: str = "constant", amplitud
     """An ``n^3`` cube with its bottom face fixed under one of several loads.
 
     Args:
-        n: nodes per edge (>= 2); topology: 6, 14, 18 or 26.
+        n: nodes per edge (>= 2).
+        topology: 6, 14, 18 or 26.
         load: ``"constant"`` (force on the top-centre node), ``"ramp"`` (the same force ramped
             in over ``duration``), ``"sine"`` (the top face dragged sideways,
             ``amplitude sin(2 pi t / period)``), ``"indent"`` (top-centre patch pushed down by
             ``amplitude`` over ``duration``).
         amplitude: N for forces (default 0.05 N), m for drags and indentation (default 0.2 spacing).
-        stiffness, damping: true values: a number, or a per-region table ``(R,)`` with ``regions``,
+        stiffness: true stiffness (N/m): a number, or a per-region table ``(R,)`` with ``regions``,
             or ``(S,)`` / ``(S, D, H, W)``.
+        damping: true damping (N s/m), the same shapes as ``stiffness``.
         mass: kg per node, a number or ``(D, H, W)``.
         regions: node labels ``(D, H, W)`` (see :func:`layered_regions`, :func:`inclusion_regions`).
-        steps, dt: number of steps and time step (s).
+        steps: number of time steps.
+        dt: time step (s).
+        spacing: node spacing (m).
         noise: relative observation noise (0.01 = 1 %).
         every: observe every k-th step (sparse times).
         observe: bool ``(D, H, W)`` of observed nodes (partial observation), or None (all).
         seed: noise seed.
+        damping_mode: ``"unprojected"`` (Radetzky) or ``"projected"`` (along the spring).
+        period: period of the ``"sine"`` drag (s).
+        duration: ramp time of ``"ramp"`` and ``"indent"`` (s).
 
     Returns:
         a :class:`Series`.
@@ -259,18 +277,29 @@ def balloon_series(subdivisions: int = 1, radius: float = 0.05, spacing: float |
                    stiffness=2.0, damping=0.05, mass=0.05, pressure: float = 30.0, snapshots: int = 5,
                    interval: float = 1.0, dt: float = 0.02, noise: float = 0.0, seed: int = 0,
                    mesh=None) -> Series:
-    """Radetzky's balloon, synthetically: a closed trimesh surface (an icosphere by default)
-    voxelised into a grid body, inflated by a pressure rising linearly over the run, applied
-    along the mesh's vertex normals at the surface nodes; observed in ``snapshots`` snapshots
-    ``interval`` seconds apart (``interval / dt`` steps between them, 50 with the defaults).
+    """Radetzky's balloon, synthetically: a voxelised closed surface inflated by a rising pressure.
+
+    A closed trimesh surface (an icosphere by default) voxelised into a grid body, inflated by a
+    pressure rising linearly over the run, applied along the mesh's vertex normals at the surface
+    nodes; observed in ``snapshots`` snapshots ``interval`` seconds apart (``interval / dt`` steps
+    between them, 50 with the defaults).
 
     Args:
-        subdivisions, radius: of ``trimesh.creation.icosphere`` (when ``mesh`` is None).
+        subdivisions: subdivisions of ``trimesh.creation.icosphere`` (when ``mesh`` is None).
+        radius: radius (m) of the icosphere (when ``mesh`` is None).
         spacing: grid spacing (default ``radius / 2``: a coarse body of a few dozen nodes).
+        topology: 6, 14, 18 or 26.
+        stiffness: as in :func:`cube_series`.
+        damping: as in :func:`cube_series`.
+        mass: as in :func:`cube_series`.
         pressure: final pressure (Pa) at the end of the run; each surface node gets
             ``pressure * spacing^2`` newtons along the normal of its nearest mesh vertex.
+        snapshots: number of observations (the first at rest).
+        interval: time between snapshots (s), a whole number of steps.
+        dt: time step (s).
+        noise: as in :func:`cube_series`.
+        seed: as in :func:`cube_series`.
         mesh: a closed ``trimesh.Trimesh`` or a mesh file instead of the icosphere.
-        stiffness, damping, mass, noise, seed: as in :func:`cube_series`.
 
     Returns:
         a :class:`Series` whose centre node is fixed (it pins the free body in space).

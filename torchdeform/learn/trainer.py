@@ -1,5 +1,7 @@
-"""Training loops: Adam or L-BFGS over a :class:`~torchdeform.learn.loss.WindowLoss`, early
-stopping, checkpoint and bitwise resume, a divergence guard.
+"""Training loops.
+
+Adam or L-BFGS over a :class:`~torchdeform.learn.loss.WindowLoss`, early stopping, checkpoint
+and bitwise resume, a divergence guard.
 """
 from __future__ import annotations
 
@@ -124,8 +126,9 @@ class Trainer:
         return (math.inf if loss >= _BLOWUP else loss), self._grad_norm()
 
     def run(self, iterations: int | None = None, stop_after: int | None = None) -> list:
-        """Train until ``iterations`` (total), early stopping, or ``stop_after`` iterations of
-        this call (to simulate an interruption). Returns the history (list of :class:`Record`).
+        """Train until ``iterations`` (total), early stopping, or ``stop_after`` iterations of this call.
+
+        ``stop_after`` simulates an interruption. Returns the history (list of :class:`Record`).
         """
         total = self.iterations if iterations is None else int(iterations)
         bar = tqdm(total=total, initial=self.iteration, disable=not self.progress, desc="fit", unit="it")
@@ -169,6 +172,7 @@ class Trainer:
 
     # ---------------------------------------------------------------- checkpoints
     def state_dict(self) -> dict:
+        """Everything a resume needs: parameters, optimizer, sampling RNG, counters and history."""
         return {"params": self.params.state_dict(), "optimizer": self.opt.state_dict(),
                 "generator": self.generator.get_state(), "iteration": self.iteration, "best": self.best,
                 "since_best": self.since_best, "stopped": self.stopped, "seconds": self.seconds,

@@ -84,6 +84,7 @@ Example:
     >>> from torchdeform.scene import demo_scene, run_scene
     >>> scene = demo_scene()
     >>> scene.steps = 20
+    >>> scene.volume = None              # skip the volume renders (about a second)
     >>> summary = run_scene(scene, getfixture("tmp_path"), progress=False)
     >>> summary["steps"], summary["frames"]
     (20, 3)

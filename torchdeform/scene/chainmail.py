@@ -1,6 +1,8 @@
-"""ChainMail scenes (``model = "chainmail"`` in a scene file): the ``[chainmail]`` section and the
-runner that moves the drag groups frame by frame, relaxes, and writes the same outputs as a
-mass-spring run (``trajectory.npz``, ``summary.json``, ``energy.png``).
+"""ChainMail scenes (``model = "chainmail"`` in a scene file).
+
+The ``[chainmail]`` section and the runner that moves the drag groups frame by frame, relaxes,
+and writes the same outputs as a mass-spring run (``trajectory.npz``, ``summary.json``,
+``energy.png``).
 """
 from __future__ import annotations
 
@@ -42,8 +44,9 @@ class ChainMailScene:
     source: object = None
 
     def run(self, out_dir, progress: bool = True, device=None) -> dict:
-        """Run the scene; returns the summary (also written to ``summary.json``). ``device`` is
-        not used (the sequential ChainMail runs on the CPU).
+        """Run the scene; returns the summary (also written to ``summary.json``).
+
+        ``device`` is not used (the sequential ChainMail runs on the CPU).
         """
         out = Path(out_dir)
         cm = ChainMail(self.grid, self.limits, fixed=self.fixed, method=self.method)
@@ -122,11 +125,11 @@ def _plot_scene(path, t, energy, disp, title):
 
 
 def chainmail_scene(src, data: dict, base, name: str = "chainmail") -> ChainMailScene:
-    """Build a :class:`ChainMailScene` from a parsed scene file with ``model = "chainmail"``
-    (called by :func:`torchdeform.scene.load_scene`).
+    """Build a :class:`ChainMailScene` from a parsed scene file with ``model = "chainmail"``.
 
-    ``[chainmail]`` keys: ``method`` (``"gibson"`` default, or ``"enhanced"``); the limits as
-    ratios of the spacing ``compression`` (0.9), ``stretch`` (1.1), ``shear`` (0.1), or
+    Called by :func:`torchdeform.scene.load_scene`. ``[chainmail]`` keys: ``method``
+    (``"gibson"`` default, or ``"enhanced"``); the limits as ratios of the spacing
+    ``compression`` (0.9), ``stretch`` (1.1), ``shear`` (0.1), or
     ``tissue`` (a name of the fuzzy tissue library or a consistency 0..10) with
     ``reference_stress`` (Pa, 300); ``frames`` (20); ``relax_steps`` (0), ``relax_mode``
     (``"centroid"`` or ``"goal"``), ``relax_moved_only`` (false); ``on_blocked`` (``"scale"``

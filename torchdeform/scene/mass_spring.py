@@ -1,6 +1,7 @@
-"""Mass-spring scenes: the ``[material]``, ``[mass]``, ``[boundary]``, ``[[loads]]``,
-``[integrator]``, ``[output]`` and ``[volume]`` sections, the :class:`Scene` they build, and the
-built-in demo (:func:`demo_scene`).
+"""Mass-spring scenes.
+
+The ``[material]``, ``[mass]``, ``[boundary]``, ``[[loads]]``, ``[integrator]``, ``[output]`` and
+``[volume]`` sections, the :class:`Scene` they build, and the built-in demo (:func:`demo_scene`).
 """
 from __future__ import annotations
 
@@ -41,17 +42,30 @@ class Scene:
     """A scene: a grid, the keyword arguments of :class:`Model`, an integrator and run settings.
 
     Args:
-        grid: the :class:`~torchdeform.grid.Grid`.
-        model_args: keyword arguments of :class:`~torchdeform.model.Model` besides ``grid``,
+        grid: the :class:`~torchdeform.sim.grid.Grid`.
+        model_args: keyword arguments of :class:`~torchdeform.sim.model.Model` besides ``grid``,
             ``dtype`` and ``device`` (``stiffness``, ``density``, ``fixed``, ``drags``, ...).
-        integrator: an :class:`~torchdeform.integrators.Integrator`.
+        integrator: an :class:`~torchdeform.sim.integrators.Integrator`.
         dt: seconds, or ``"auto"`` (``safety`` times the stability bound of ``integrator``).
         steps: number of steps.
         record_every: steps between saved frames (default: about 100 frames).
         name: title of the run.
-        dtype, device: of the model (``device`` None = CPU).
+        dtype: of the model.
+        device: of the model (None = CPU).
         safety: fraction of the stability bound used by ``dt = "auto"``.
         source: the scene file (:class:`Source`) for error messages, or None.
+
+    Examples:
+        >>> import torchdeform as td
+        >>> grid = td.Grid((4, 4, 4), spacing=0.01)
+        >>> scene = td.Scene(grid, dict(stiffness=50.0, damping=0.1, density=1000.0, fixed=grid.face("bottom")),
+        ...                  td.SymplecticEuler(), dt="auto", steps=200)
+        >>> model = scene.build()                                  # built once per device
+        >>> model is scene.build("cpu"), model.grid is grid, scene.frames_every
+        (True, True, 2)
+        >>> bound = td.time_step_bound(model)
+        >>> scene.time_step(bound) == 0.9 * bound                  # dt = "auto": safety * bound
+        True
     """
 
     grid: Grid
@@ -218,14 +232,17 @@ def _integrator(t: Table, grid: Grid) -> dict:
 
 
 def mass_spring_scene(src: Source, data: dict, base: Path, name: str = "scene") -> Scene:
-    """Build a :class:`Scene` from a parsed scene file (:func:`~torchdeform.scene.reader.read`)
-    whose model is ``"mass-spring"`` (called by :func:`torchdeform.scene.load_scene`).
+    """Build a :class:`Scene` from a parsed scene file whose model is ``"mass-spring"``.
 
-    The model is built once (on the CPU) to check every value.
+    The file is parsed by :func:`~torchdeform.scene.reader.read`; this is called by
+    :func:`torchdeform.scene.load_scene`. The model is built once (on the CPU) to check every
+    value.
 
     Args:
-        src: the file (for located errors); data: its parsed TOML; base: the folder that
-            relative paths (mesh, volume) start from; name: the default title of the run.
+        src: the file (for located errors).
+        data: its parsed TOML.
+        base: the folder that relative paths (mesh, volume) start from.
+        name: the default title of the run.
     """
     if "chainmail" in data:
         raise src.error("chainmail", 'model = "chainmail" (a top-level key) for a [chainmail] section')
@@ -265,6 +282,14 @@ def demo_scene() -> Scene:
     gravity (along -D), its top centre node dragged 2 mm up and 1 mm sideways within 50 ms
     and then held; symplectic Euler at dt = 0.1 ms (below the bound of about 0.12 ms) for
     0.15 s, with global drag so it settles.
+
+    Examples:
+        >>> import torchdeform as td
+        >>> scene = td.demo_scene()
+        >>> scene.grid.shape, scene.integrator.name, scene.dt, scene.steps
+        ((11, 11, 11), 'symplectic', 0.0001, 1500)
+        >>> len(scene.model_args["drags"]), scene.volume["file"]
+        (1, 'phantom:64')
     """
     grid = Grid((11, 11, 11), spacing=0.001, topology=26)
     top_centre = Drag(grid.index_mask([(10, 5, 5)]), [(0.0, (0.0, 0.0, 0.0)), (0.05, (0.002, 0.001, 0.0))])

@@ -1,5 +1,6 @@
-"""Reading scene files (TOML): located errors and typed values, and the sections every model kind
-shares. This is the public sibling API of the scene modules: :mod:`.mass_spring` and
+r"""Reading scene files (TOML): located errors and typed values, and the sections every model kind shares.
+
+This is the public sibling API of the scene modules: :mod:`.mass_spring` and
 :mod:`.chainmail` (and any new model kind) build their scenes from these helpers.
 
 * :class:`Source`: a file's path and text; builds :class:`~torchdeform.errors.ConfigError` s that
@@ -11,6 +12,7 @@ shares. This is the public sibling API of the scene modules: :mod:`.mass_spring`
   (``fixed``, ``fixed_nodes``), :func:`drags_section` (``[[drags]]``).
 
 Example:
+    >>> from torchdeform.scene.reader import SECTIONS, Source, Table
     >>> src = Source("scene.toml", "[grid]\nspacing = -1\n")
     >>> t = Table(src, "grid", {"spacing": -1}, SECTIONS["grid"])
     >>> t.num("spacing", "a positive number", lo=0, lo_open=True)
@@ -113,6 +115,7 @@ class Source:
 
 # ------------------------------------------------------------------ typed values
 def is_number(v) -> bool:
+    """True for a finite int or float (not a bool)."""
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
@@ -128,12 +131,15 @@ class Table:
         self.src, self.name, self.data = src, name, data
 
     def key(self, k: str) -> str:
+        """The dotted scene key of ``k`` in this table, e.g. ``integrator.dt``."""
         return f"{self.name}.{k}"
 
     def has(self, k: str) -> bool:
+        """True when the table has the key ``k``."""
         return k in self.data
 
     def fail(self, k: str, expected: str, got=MISSING) -> ConfigError:
+        """A located ConfigError for key ``k`` of this table (to raise); ``got`` omitted = not shown."""
         return self.src.error(self.key(k), expected, got)
 
     def raw(self, k, expected, default=MISSING):
@@ -212,12 +218,22 @@ class Table:
         return present[0]
 
     def only_with(self, k, other):
+        """Raise a located ConfigError if ``k`` is present: it does not go together with ``other``."""
         if k in self.data:
             raise self.fail(k, f"no {k} together with {self.name}.{other}", self.data[k])
 
 
 # ------------------------------------------------------------------ reading files
 def read(path) -> tuple[Source, dict]:
+    """Read and parse a scene file; check its top-level ``model`` key and its sections.
+
+    Returns:
+        ``(source, data)``: the :class:`Source` and the parsed TOML.
+
+    Raises:
+        ConfigError: a missing or unreadable file, a TOML syntax error (with its line), an
+            unknown model or section, or a required section missing.
+    """
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
@@ -247,6 +263,10 @@ def read(path) -> tuple[Source, dict]:
 
 
 def grid_section(t: Table, base: Path) -> Grid:
+    """The :class:`~torchdeform.sim.grid.Grid` of a ``[grid]`` table (a box ``shape`` or a ``mesh``).
+
+    ``base`` is the folder a mesh path is relative to.
+    """
     spacing = t.raw("spacing", "one positive number or three [sd, sh, sw] in metres")
     if not (is_number(spacing) and spacing > 0) and not (isinstance(spacing, list) and len(spacing) == 3
                                                         and all(is_number(s) and s > 0 for s in spacing)):
@@ -274,6 +294,7 @@ def grid_section(t: Table, base: Path) -> Grid:
 
 
 def faces(t: Table, k: str, grid: Grid) -> torch.Tensor:
+    """Bool ``(D, H, W)`` of the nodes on the face or faces named by key ``k`` (a name or a list)."""
     v = t.data[k]
     names = [v] if isinstance(v, str) else v
     expected = "a face name or a list of them: " + ", ".join(f'"{f}"' for f in FACES)
@@ -286,6 +307,7 @@ def faces(t: Table, k: str, grid: Grid) -> torch.Tensor:
 
 
 def node_list(t: Table, k: str, grid: Grid) -> torch.Tensor:
+    """Bool ``(D, H, W)`` of the nodes listed by key ``k`` (``[[i, j, k], ...]``)."""
     v = t.raw(k, "a list of node indices [[i, j, k], ...]")
     if not isinstance(v, list) or not v:
         raise t.fail(k, "a non-empty list of node indices [[i, j, k], ...]", v)
@@ -296,6 +318,7 @@ def node_list(t: Table, k: str, grid: Grid) -> torch.Tensor:
 
 
 def drags_section(src: Source, items, grid: Grid) -> list:
+    """The :class:`~torchdeform.sim.forces.Drag` s of the ``[[drags]]`` tables ``items``."""
     if not isinstance(items, list):
         raise src.error("drags", "[[drags]] tables", items)
     drags = []

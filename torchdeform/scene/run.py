@@ -1,6 +1,8 @@
-"""Loading and running scenes: :func:`load_scene` (any model kind), :func:`run_scene` (writes
-``trajectory.npz``, ``summary.json``, ``energy.png`` and, with a ``[volume]`` section, the
-deformed volume and its renders), and the pieces the command line shows.
+"""Loading and running scenes.
+
+:func:`load_scene` (any model kind), :func:`run_scene` (writes ``trajectory.npz``,
+``summary.json``, ``energy.png`` and, with a ``[volume]`` section, the deformed volume and its
+renders), and the pieces the command line shows.
 """
 from __future__ import annotations
 
@@ -28,10 +30,13 @@ __all__ = ["load_scene", "run_scene", "energy_series", "plot_energy", "one_line_
 
 
 def load_scene(path) -> Scene | ChainMailScene:
-    """Read a TOML scene file (see :mod:`torchdeform.scene` for its keys) into a :class:`Scene`
-    (mass-spring, the default) or a :class:`ChainMailScene` (``model = "chainmail"``).
+    """Read a TOML scene file (see :mod:`torchdeform.scene` for its keys).
 
-    The model is built once (on the CPU) to check every value.
+    The result is a :class:`Scene` (mass-spring, the default) or a :class:`ChainMailScene`
+    (``model = "chainmail"``). The model is built once (on the CPU) to check every value.
+
+    Args:
+        path: the scene file (.toml); relative paths in it (mesh, volume) start from its folder.
 
     Raises:
         ConfigError: naming the file, the line (best effort), the dotted key and what was
@@ -39,10 +44,32 @@ def load_scene(path) -> Scene | ChainMailScene:
             values, a missing or open mesh.
 
     Examples:
-        >>> from torchdeform.scene import load_scene
-        >>> scene = load_scene("scenes/beam_sag.toml")
-        >>> scene.grid.shape, scene.integrator.name
-        ((5, 5, 17), 'implicit')
+        >>> import torchdeform as td
+        >>> path = getfixture("tmp_path") / "cube.toml"
+        >>> _ = path.write_text('''
+        ... [grid]
+        ... shape = [4, 4, 6]
+        ... spacing = 0.01
+        ... [material]
+        ... stiffness = 50.0
+        ... [mass]
+        ... density = 1000.0
+        ... [boundary]
+        ... fixed = "bottom"
+        ... [integrator]
+        ... name = "implicit"
+        ... dt = 0.01
+        ... steps = 10
+        ... ''')
+        >>> scene = td.load_scene(path)
+        >>> scene.grid.shape, scene.integrator.name, scene.dt, scene.name
+        ((4, 4, 6), 'implicit', 0.01, 'cube')
+        >>> _ = path.write_text(path.read_text().replace("dt = 0.01", "dt = -1"))
+        >>> try:
+        ...     td.load_scene(path)
+        ... except td.ConfigError as e:
+        ...     print(e.key, "on line", e.line)
+        integrator.dt on line 13
     """
     src, data = read(path)
     base, name = Path(path).parent, Path(path).stem
@@ -63,7 +90,9 @@ def energy_series(model: Model, x: torch.Tensor, v: torch.Tensor, chunk: int = 1
     """Energies and largest displacement of recorded frames.
 
     Args:
-        x, v: frames ``(T, 3, D, H, W)`` (any device).
+        model: the :class:`~torchdeform.sim.model.Model` of the run.
+        x: positions of the frames, ``(T, 3, D, H, W)`` (any device).
+        v: velocities of the frames, ``(T, 3, D, H, W)``.
         chunk: frames per evaluation (1 by default: batched small frames run multi-threaded,
             which is slower than a loop when the CPU cores are shared).
 
@@ -149,6 +178,21 @@ def run_scene(scene: Scene, out_dir, progress: bool = True, device=None) -> dict
 
     Raises:
         DivergenceError: the run became unstable (naming step and a safe dt).
+
+    Examples:
+        >>> import json
+        >>> import torchdeform as td
+        >>> grid = td.Grid((4, 4, 4), spacing=0.01)
+        >>> scene = td.Scene(grid, dict(stiffness=50.0, damping=0.1, density=1000.0, gravity=(-9.81, 0, 0),
+        ...                             fixed=grid.face("bottom")), steps=40, record_every=10, name="cube")
+        >>> out = getfixture("tmp_path")
+        >>> summary = td.run_scene(scene, out, progress=False)
+        >>> summary["steps"], summary["frames"], summary["nodes"], summary["max_displacement_m"] > 0
+        (40, 5, 64, True)
+        >>> sorted(p.name for p in out.iterdir())
+        ['energy.png', 'summary.json', 'trajectory.npz']
+        >>> json.loads((out / "summary.json").read_text())["name"]
+        'cube'
     """
     if not isinstance(scene, Scene):                          # a ChainMail scene runs itself
         return scene.run(_out_dir(out_dir), progress=progress, device=device)
@@ -224,14 +268,21 @@ def report(summary: dict, out_dir) -> str:
 
 def scene_volume_outputs(volume, x, X, spacing, out_dir, tf: str = "ct-soft", mode: str = "dvr",
                          view: str = "h", base=None) -> dict:
-    """Deform a scene's volume by its final node positions and write ``volume_before.png``,
-    ``volume_after.png`` and ``volume_deformed.npy`` to ``out_dir``.
+    """Deform a scene's volume by its final node positions and write its renders.
 
+    Writes ``volume_before.png``, ``volume_after.png`` and ``volume_deformed.npy`` to ``out_dir``.
     The volume fills the node grid's bounding box (:func:`~torchdeform.volume.node_offsets`).
 
     Args:
         volume: a file name (relative to ``base``), ``"phantom"`` or ``"phantom:N"``.
-        x, X: final and rest node positions ``(1, 3, n_d, n_h, n_w)`` (m); spacing: node spacing (m).
+        x: final node positions ``(1, 3, n_d, n_h, n_w)`` (m).
+        X: rest node positions ``(1, 3, n_d, n_h, n_w)`` (m).
+        spacing: node spacing (m).
+        out_dir: the output folder.
+        tf: transfer-function preset or file.
+        mode: ``"dvr"``, ``"mip"`` or ``"average"``.
+        view: axis view, ``"d"``, ``"h"``, ``"w"``, ``"-d"``, ``"-h"`` or ``"-w"``.
+        base: the folder a volume file name is relative to, or None.
 
     Returns:
         a summary dict for ``summary.json``.

@@ -1,5 +1,7 @@
-"""The mass-spring core: grids, the one spring operator, force terms, models and states,
-integrators, stability bounds and the compiled fast path.
+"""The mass-spring core.
+
+Grids, the one spring operator, force terms, models and states, integrators, stability bounds
+and the compiled fast path.
 
 =====================  ===========================================================================
 :mod:`.grid`           :class:`Grid`: node counts, spacing, topology (6/14/18/26 neighbours), masks

@@ -7,7 +7,7 @@ into one vectorised loop) and compiles it, for one model and one time step. Ever
 run as a loop inside the one compiled graph (:class:`ImplicitGraph`). Time enters as a 0-d
 tensor, so ramped loads and drag paths never trigger a recompilation.
 
-The eager :meth:`~torchdeform.integrators.Integrator.step` stays the default and the path for
+The eager :meth:`~torchdeform.sim.integrators.Integrator.step` stays the default and the path for
 autograd: the wrapper calls it whenever a gradient is needed, and it falls back to it for good,
 with one warning line, when compilation is unavailable or fails.
 
@@ -18,14 +18,19 @@ on the 40 x 10 x 10 beam). Unrolling its CG iterations instead would be cacheabl
 14 minutes to compile for 20 iterations.
 
 Example:
-    >>> import torch, torchdeform as td
+    >>> import torch
+    >>> import torchdeform as td
     >>> from torchdeform.sim.compiled import compiled_step
-    >>> model = td.Model(td.Grid((8, 8, 8), 0.01, 26), stiffness=50.0, damping=0.1, mass=1e-3)
+    >>> model = td.Model(td.Grid((8, 8, 8), 0.01, 26), stiffness=50.0, damping=0.1, mass=1e-3,
+    ...                  gravity=(-9.81, 0, 0))
     >>> step = compiled_step(td.SymplecticEuler(), model, dt=1e-4)
-    >>> state = model.rest_state()
-    >>> with torch.no_grad():
-    ...     for _ in range(10):
-    ...         state = step(state)       # doctest: +SKIP
+    >>> state = step.run(model.rest_state(), 10)      # compiles on this first call  # doctest: +SKIP
+    >>> eager = compiled_step(td.SymplecticEuler(), model, dt=1e-4, enable=False)   # same interface
+    >>> state = eager.run(model.rest_state(), 10)
+    >>> state.x.shape, eager.compiled, round(state.t, 6)
+    (torch.Size([1, 3, 8, 8, 8]), False, 0.001)
+    >>> bool(state.v[0, 0].mean() < 0)                  # falling under gravity
+    True
 """
 from __future__ import annotations
 
@@ -61,8 +66,7 @@ IMPLICIT_OPTIONS = {"cpp_wrapper": True, "size_asserts": False, "alignment_asser
 
 
 class CompiledStep:
-    """One step of ``integrator`` on ``model`` with time step ``dt``, compiled (see
-    :func:`compiled_step`).
+    """One step of ``integrator`` on ``model`` with time step ``dt``, compiled (see :func:`compiled_step`).
 
     The compiled function works in the packed layout of :class:`~torchdeform.sim.packed.PackedModel`:
     ``__call__`` packs and unpacks a grid-layout :class:`State` around one step, :meth:`run`
@@ -171,9 +175,11 @@ class CompiledStep:
 
 
 class ImplicitGraph:
-    """Implicit Euler as one compiled graph: set-up of the system, the CG iterations as a
-    ``while_loop`` (one iteration's code, compiled once and looped inside the graph, so the spring
-    kernel is not copied ``cg_iters`` times and no iteration pays a Python call), and the update.
+    """Implicit Euler as one compiled graph.
+
+    Set-up of the system, the CG iterations as a ``while_loop`` (one iteration's code, compiled
+    once and looped inside the graph, so the spring kernel is not copied ``cg_iters`` times and
+    no iteration pays a Python call), and the update.
 
     Called as ``(x, v, t) -> (x, v)`` on packed fields; sets ``integrator.last_cg``. With a
     tolerance (``cg_tol > 0``) the loop condition reads the residual, as the eager solver does
@@ -181,7 +187,8 @@ class ImplicitGraph:
 
     Args:
         integ: the :class:`~torchdeform.sim.integrators.ImplicitEuler`.
-        pm: the :class:`~torchdeform.sim.packed.PackedModel`; dt: time step (s);
+        pm: the :class:`~torchdeform.sim.packed.PackedModel`.
+        dt: time step (s).
         loads: packed extra forces ``(B, 3, P)`` or None.
         compile_: ``fn -> compiled fn`` (``torch.compile`` with options), or None to run the graph
             eagerly (``while_loop`` then runs as a Python loop: the tested reference of the graph).
@@ -227,6 +234,7 @@ class ImplicitGraph:
         self.fn = step if compile_ is None else compile_(fresh(step))
 
     def __call__(self, x, v, t):
+        """One step on packed fields: ``(x, v, t) -> (x, v)``; sets ``integrator.last_cg``."""
         x, v, n_it, rel = self.fn(x, v, t)
         self.integ.last_cg = (int(n_it), float(rel)) if self.integ.cg_tol > 0 else (self.integ.cg_iters, rel)
         return x, v
@@ -237,9 +245,9 @@ def compiled_step(integrator, model, dt: float, loads=None, *, mode: str | None 
     """Wrap one integrator step on one model in ``torch.compile`` (the no-grad fast path).
 
     Args:
-        integrator: an :class:`~torchdeform.integrators.Integrator` whose ``advance`` is plain
+        integrator: an :class:`~torchdeform.sim.integrators.Integrator` whose ``advance`` is plain
             tensor code (symplectic, explicit Euler, Verlet, RK4).
-        model: the :class:`~torchdeform.model.Model`; its tensors are baked into the compiled code.
+        model: the :class:`~torchdeform.sim.model.Model`; its tensors are baked into the compiled code.
         dt: time step (s), fixed for the wrapper.
         loads: extra forces as for :meth:`Integrator.step` (a tensor; a callable must not depend
             on ``t`` in ways that force recompilation).

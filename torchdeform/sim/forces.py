@@ -1,5 +1,6 @@
-"""Force terms other than the grid springs, and prescribed motion: the one load vocabulary of
-:class:`~torchdeform.sim.model.Model`, scene files and learning series.
+"""Force terms other than the grid springs, and prescribed motion.
+
+The one load vocabulary of :class:`~torchdeform.sim.model.Model`, scene files and learning series.
 
 Each term exists in a :class:`~torchdeform.sim.model.Model` only when the scene names it:
 
@@ -57,13 +58,15 @@ def profile_factor(t, start: float = 0.0, ramp: float = 0.0, period: float | Non
 
     Args:
         t: seconds: a float, a 0-d tensor, or an array / list of times.
-        start: s, before which the factor is 0; ramp: s to rise linearly from 0 to 1;
+        start: s, before which the factor is 0.
+        ramp: s to rise linearly from 0 to 1.
         period: s of a sine oscillation, or None.
 
     Returns:
         a float for a float ``t``, a tensor for a tensor, a numpy array of ``t``'s shape otherwise.
 
     Examples:
+        >>> from torchdeform.sim.forces import profile_factor
         >>> profile_factor(0.5, start=0.0, ramp=1.0)
         0.5
         >>> profile_factor([0.0, 0.1, 0.2, 0.3], start=0.1, ramp=0.1).tolist()
@@ -101,12 +104,15 @@ class PointForce(_Timed):
     Args:
         node: ``(i, j, k)`` node index.
         force: ``(fd, fh, fw)`` newtons.
-        start: time (s) at which the force appears; ramp: seconds to ramp it linearly to full;
+        start: time (s) at which the force appears.
+        ramp: seconds to ramp it linearly to full.
         period: seconds of a sinusoidal oscillation ``sin(2 pi (t - start) / period)``, or None.
 
     Examples:
-        >>> f = PointForce((2, 1, 1), (-0.05, 0.0, 0.0), ramp=0.2)
-        >>> f.factor(0.1), f.dense(Grid((3, 3, 3), 0.01), torch.float64, "cpu")[0, 0, 2, 1, 1].item()
+        >>> import torch
+        >>> import torchdeform as td
+        >>> f = td.PointForce((2, 1, 1), (-0.05, 0.0, 0.0), ramp=0.2)
+        >>> f.factor(0.1), f.dense(td.Grid((3, 3, 3), 0.01), torch.float64, "cpu")[0, 0, 2, 1, 1].item()
         (0.5, -0.05)
     """
     node: tuple
@@ -138,8 +144,10 @@ class SurfaceForce(_Timed):
         start, ramp, period: the time profile, as for :class:`PointForce`.
 
     Examples:
-        >>> g = Grid((3, 3, 3), 0.01)
-        >>> top = SurfaceForce("top", (-100.0, 0.0, 0.0)).dense(g, torch.float64, "cpu")
+        >>> import torch
+        >>> import torchdeform as td
+        >>> g = td.Grid((3, 3, 3), 0.01)
+        >>> top = td.SurfaceForce("top", (-100.0, 0.0, 0.0)).dense(g, torch.float64, "cpu")
         >>> round(top.sum().item(), 6)                # -100 Pa over a 2 cm x 2 cm face
         -0.04
     """
@@ -179,8 +187,11 @@ class FieldForce(_Timed):
         start, ramp, period: the time profile, as for :class:`PointForce`.
 
     Examples:
-        >>> f = FieldForce(np.ones((3, 2, 2, 2)), ramp=1.0)
-        >>> f.dense(Grid((2, 2, 2), 0.01), torch.float32, "cpu").shape, f.factor(0.25)
+        >>> import numpy as np
+        >>> import torch
+        >>> import torchdeform as td
+        >>> f = td.FieldForce(np.ones((3, 2, 2, 2)), ramp=1.0)
+        >>> f.dense(td.Grid((2, 2, 2), 0.01), torch.float32, "cpu").shape, f.factor(0.25)
         (torch.Size([1, 3, 2, 2, 2]), 0.25)
     """
     field: np.ndarray
@@ -217,11 +228,12 @@ class Drag(_Timed):
     The dragged nodes are constrained: they ignore forces and follow the path exactly.
 
     Examples:
-        >>> g = Grid((3, 3, 3), 0.01)
-        >>> d = Drag(g.face("top"), [(0.0, (0, 0, 0)), (1.0, (0.002, 0, 0))])
+        >>> import torchdeform as td
+        >>> g = td.Grid((3, 3, 3), 0.01)
+        >>> d = td.Drag(g.face("top"), [(0.0, (0, 0, 0)), (1.0, (0.002, 0, 0))])
         >>> d.offset(0.5), d.velocity(0.5)
         ((0.001, 0.0, 0.0), (0.002, 0.0, 0.0))
-        >>> Drag(g.face("top"), offset=(0.002, 0, 0), ramp=1.0).offset(0.5)
+        >>> td.Drag(g.face("top"), offset=(0.002, 0, 0), ramp=1.0).offset(0.5)
         (0.001, 0.0, 0.0)
     """
     nodes: torch.Tensor
@@ -254,9 +266,10 @@ class Drag(_Timed):
         return torch.as_tensor(self.nodes, dtype=torch.bool)
 
     def offset(self, t):
-        """Offset at time ``t``: a tuple ``(3,)`` for a float ``t``, a tensor ``(3,)`` for a 0-d
-        tensor (the form compiled code uses, without branches), an array ``(T, 3)`` for an array
-        of ``T`` times.
+        """Offset (m) from the rest position at time ``t``.
+
+        A tuple ``(3,)`` for a float ``t``, a tensor ``(3,)`` for a 0-d tensor (the form compiled
+        code uses, without branches), an array ``(T, 3)`` for an array of ``T`` times.
         """
         if self.path is None:
             f, o = self.factor(t), self.offset_vector
@@ -283,8 +296,9 @@ class Drag(_Timed):
         return os_[-1]
 
     def velocity(self, t):
-        """Velocity ``(3,)`` at time ``t`` (for a path: of the segment entered at ``t``); a tensor
-        for a 0-d tensor ``t``, as :meth:`offset`.
+        """Velocity ``(3,)`` at time ``t`` (for a path: of the segment entered at ``t``).
+
+        A tensor for a 0-d tensor ``t``, as :meth:`offset`.
         """
         if self.path is None:
             return self._profile_velocity(t)
@@ -330,7 +344,8 @@ def home_force(x: torch.Tensor, X: torch.Tensor, k_home: torch.Tensor) -> torch.
     """Zero-length springs to the rest positions: ``k_home (X - x)``.
 
     Args:
-        x: positions ``(B, 3, D, H, W)``; X: rest positions ``(1, 3, D, H, W)``;
+        x: positions ``(B, 3, D, H, W)``.
+        X: rest positions ``(1, 3, D, H, W)``.
         k_home: stiffness per node, broadcastable to ``(B, 1, D, H, W)`` (zero where absent).
     """
     return k_home * (X - x)

@@ -66,10 +66,13 @@ class Grid:
             (no springs, no mass, never move), so a body need not be a box.
         origin: position of node ``(0, 0, 0)`` in metres.
 
-    Example:
-        >>> g = Grid((3, 3, 3), spacing=0.01, topology=6)
-        >>> g.num_springs
-        54
+    Examples:
+        >>> import torchdeform as td
+        >>> g = td.Grid((3, 3, 3), spacing=0.01, topology=6)
+        >>> g.num_nodes, g.S, g.num_springs
+        (27, 3, 54)
+        >>> g.rest_positions().shape, int(g.face("top").sum())
+        (torch.Size([1, 3, 3, 3, 3]), 9)
     """
 
     shape: tuple
@@ -114,6 +117,7 @@ class Grid:
 
     @property
     def num_nodes(self) -> int:
+        """Number of existing nodes (those in the node mask, or all ``D H W``)."""
         return int(self.node_mask.sum()) if self.node_mask is not None else math.prod(self.shape)
 
     @cached_property

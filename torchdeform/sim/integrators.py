@@ -18,6 +18,16 @@ KnocheRelaxation       Knoche's first-order offset relaxation (his Cg shader)   
 Dragged nodes follow their path exactly (they are put on it after every step and before every
 force evaluation); global drag (``model.decay``) is applied after the step as
 ``v <- v exp(-c h)``, which is unconditionally stable.
+
+:data:`INTEGRATORS` maps each class's ``name`` (the ``[integrator] name`` of scene files) to the
+class.
+
+Examples:
+    >>> import torchdeform as td
+    >>> sorted(td.INTEGRATORS)
+    ['explicit', 'implicit', 'knoche', 'rk4', 'symplectic', 'verlet']
+    >>> td.INTEGRATORS["rk4"] is td.RK4, td.INTEGRATORS["implicit"](cg_iters=20).cg_iters
+    (True, 20)
 """
 from __future__ import annotations
 
@@ -33,8 +43,10 @@ from .stability import DivergenceMonitor, check_dt, time_step_bound
 
 
 def positive_dt(dt) -> float:
-    """``dt`` as a float, or a :class:`~torchdeform.errors.ConfigError` unless it is a positive,
-    finite number of seconds.
+    """``dt`` as a float.
+
+    Raises:
+        ConfigError: unless ``dt`` is a positive, finite number of seconds.
     """
     try:
         dt = float(dt)
@@ -46,8 +58,23 @@ def positive_dt(dt) -> float:
 
 
 class Integrator:
-    """Base class. Subclasses implement :meth:`advance`; :meth:`step` adds the checks, the
-    constraints and the global drag.
+    """Base class of the integrators.
+
+    Subclasses implement :meth:`advance`; :meth:`step` adds the checks, the constraints and the
+    global drag.
+
+    Examples:
+        >>> import torchdeform as td
+        >>> class Still(td.Integrator):                     # x and v unchanged by the update
+        ...     name = "still"
+        ...     def advance(self, model, state, dt, loads):
+        ...         return state.x, state.v
+        >>> model = td.Model(td.Grid((3, 3, 3), 0.01), stiffness=10.0, mass=1e-3, decay=100.0)
+        >>> s = model.rest_state()
+        >>> s.v += 1.0
+        >>> s = Still().step(model, s, dt=0.01)              # step adds the clock and the global drag
+        >>> s.t, round(float(s.v.mean()), 4)                 # v exp(-100 * 0.01)
+        (0.01, 0.3679)
     """
 
     name = "base"
@@ -56,13 +83,13 @@ class Integrator:
         """Advance ``state`` by ``dt`` seconds.
 
         Args:
-            model: the :class:`~torchdeform.model.Model`.
+            model: the :class:`~torchdeform.sim.model.Model`.
             state: positions and velocities ``(B, 3, D, H, W)``.
             dt: time step (s), > 0.
             loads: extra node forces ``(B|1, 3, D, H, W)`` or a callable ``t -> forces``.
 
         Returns:
-            the new :class:`~torchdeform.model.State` at ``t + dt``.
+            the new :class:`~torchdeform.sim.model.State` at ``t + dt``.
         """
         dt = positive_dt(dt)
         x, v = self.advance(model, state, dt, loads)
@@ -79,23 +106,42 @@ class Integrator:
         return State(x, v, t1)
 
     def advance(self, model, state, dt, loads):                       # pragma: no cover
+        """The update of one step: ``(x, v)`` at ``t + dt``, before constraints and global drag."""
         raise NotImplementedError
 
 
 class ExplicitEuler(Integrator):
-    """Forward Euler; unstable without damping for every dt (use it for comparisons)."""
+    """Forward Euler; unstable without damping for every dt (use it for comparisons).
+
+    Examples:
+        >>> import torchdeform as td
+        >>> model = td.Model(td.Grid((3, 3, 3), 0.01), stiffness=10.0, mass=1e-3, gravity=(-9.81, 0, 0))
+        >>> s = td.ExplicitEuler().step(model, model.rest_state(), dt=1e-3)
+        >>> float((s.x - model.X).abs().max()), round(float(s.v[0, 0].mean()), 5)   # x' = x + h v, v' = h g
+        (0.0, -0.00981)
+    """
     name = "explicit"
 
     def advance(self, model, state, dt, loads):
+        """``x' = x + h v``, ``v' = v + h a(x, v)``."""
         a = model.acceleration(state.x, state.v, state.t, loads)
         return state.x + dt * state.v, state.v + dt * a
 
 
 class SymplecticEuler(Integrator):
-    """Semi-implicit (symplectic) Euler: velocities first, then positions with the new velocity."""
+    """Semi-implicit (symplectic) Euler: velocities first, then positions with the new velocity.
+
+    Examples:
+        >>> import torchdeform as td
+        >>> model = td.Model(td.Grid((3, 3, 3), 0.01), stiffness=10.0, mass=1e-3, gravity=(-9.81, 0, 0))
+        >>> s = td.SymplecticEuler().step(model, model.rest_state(), dt=1e-3)
+        >>> round(float((s.x - model.X)[0, 0].mean()), 8)        # x' = x + h v' = h^2 g
+        -9.81e-06
+    """
     name = "symplectic"
 
     def advance(self, model, state, dt, loads):
+        """``v' = v + h a(x, v)``, ``x' = x + h v'``."""
         v = state.v + dt * model.acceleration(state.x, state.v, state.t, loads)
         return state.x + dt * v, v
 
@@ -105,6 +151,15 @@ class DampedVerlet(Integrator):
 
     Args:
         kd: dimensionless per-step damping in ``[0, 1)``; roughly a viscous ``c = kd m / h``.
+
+    Examples:
+        >>> import torchdeform as td
+        >>> model = td.Model(td.Grid((3, 3, 3), 0.01), stiffness=10.0, mass=1e-3)
+        >>> s = model.rest_state()
+        >>> s.v += 1.0                                           # a rigid translation: no spring force
+        >>> s = td.DampedVerlet(kd=0.1).step(model, s, dt=1e-3)
+        >>> round(float(s.v.mean()), 6)                          # v' = (1 - kd) v + h a
+        0.9
     """
     name = "verlet"
 
@@ -114,17 +169,34 @@ class DampedVerlet(Integrator):
         self.kd = float(kd)
 
     def advance(self, model, state, dt, loads):
+        """``v' = (1 - kd) v + h a(x, v)``, ``x' = x + h v'``."""
         v = (1 - self.kd) * state.v + dt * model.acceleration(state.x, state.v, state.t, loads)
         return state.x + dt * v, v
 
 
 class RK4(Integrator):
-    """Classic fourth-order Runge-Kutta on ``(x, v)``; dragged nodes are put on their path at
-    every stage time.
+    """Classic fourth-order Runge-Kutta on ``(x, v)``.
+
+    Dragged nodes are put on their path at every stage time.
+
+    Examples:
+        >>> import math
+        >>> import torch
+        >>> import torchdeform as td
+        >>> grid = td.Grid((1, 1, 2), spacing=1.0, topology=6)     # two nodes, one spring along W
+        >>> model = td.Model(grid, stiffness=1.0, mass=1.0, fixed=grid.index_mask([(0, 0, 0)]),
+        ...                  dtype=torch.float64)                   # omega = sqrt(k / m) = 1 rad/s
+        >>> s = model.rest_state()
+        >>> s.x[0, 2, 0, 0, 1] += 0.1                               # stretch the spring by 0.1 m
+        >>> for _ in range(10):
+        ...     s = td.RK4().step(model, s, dt=0.1)
+        >>> round(float(s.x[0, 2, 0, 0, 1]) - 1.0, 6), round(0.1 * math.cos(s.t), 6)
+        (0.05403, 0.05403)
     """
     name = "rk4"
 
     def advance(self, model, state, dt, loads):
+        """Four force evaluations at ``t``, ``t + h/2`` (twice) and ``t + h``."""
         t0, x0, v0 = state.t, state.x, state.v
 
         def f(t, x, v):
@@ -141,15 +213,18 @@ class RK4(Integrator):
 
 
 def _dot(a, b):
-    """Per-batch-entry inner product, shaped to broadcast against ``a``. (Summed over the axes
-    as they are: a flattened sum would index ``i % P`` under ``torch.compile`` and run scalar.)
+    """Per-batch-entry inner product, shaped to broadcast against ``a``.
+
+    (Summed over the axes as they are: a flattened sum would index ``i % P`` under
+    ``torch.compile`` and run scalar.)
     """
     return (a * b).sum(tuple(range(1, a.dim())), keepdim=True)
 
 
 def cg_start(b, precond=None, mask=None):
-    """Initial conjugate-gradient state ``(u, r, p, rz)`` for ``A u = b`` (see
-    :func:`conjugate_gradient`); ``u = 0``, ``r`` the filtered ``b``.
+    """Initial conjugate-gradient state ``(u, r, p, rz)`` for ``A u = b``.
+
+    See :func:`conjugate_gradient`; ``u = 0``, ``r`` the filtered ``b``.
     """
     r = b if mask is None else b * mask
     z = r if precond is None else precond * r
@@ -186,12 +261,25 @@ def conjugate_gradient(apply_A, b, precond=None, mask=None, iters: int = 100, to
         b: right-hand side, same shape.
         precond: diagonal preconditioner (multiplies the residual), broadcastable, or None.
         mask: broadcastable 0/1 filter or None.
-        iters: maximum iterations; tol: stop when ``|r| <= tol |b|`` for every batch entry.
-            ``tol <= 0`` runs exactly ``iters`` iterations without reading the residual on the
-            host (no synchronisation).
+        iters: maximum iterations.
+        tol: stop when ``|r| <= tol |b|`` for every batch entry. ``tol <= 0`` runs exactly
+            ``iters`` iterations without reading the residual on the host (no synchronisation).
 
     Returns:
         ``(u, iterations used, relative residual)`` (the residual is a 0-d tensor when ``tol <= 0``).
+
+    Examples:
+        >>> import torch
+        >>> import torchdeform as td
+        >>> b = torch.ones(1, 3, 2, 2, 2, dtype=torch.float64)
+        >>> u, iters, rel = td.conjugate_gradient(lambda u: 4.0 * u, b)        # A = 4 I
+        >>> float(u.mean()), iters, rel <= 1e-8
+        (0.25, 1, True)
+        >>> mask = torch.ones(1, 1, 2, 2, 2, dtype=torch.float64)
+        >>> mask[..., 0, 0, 0] = 0                                            # a constrained node
+        >>> u, _, _ = td.conjugate_gradient(lambda u: 4.0 * u, b, mask=mask)
+        >>> float(u[..., 0, 0, 0].abs().max()), float(u[..., 1, 1, 1].min())
+        (0.0, 0.25)
     """
     u, r, p, rz = cg_start(b, precond, mask)
     bnorm = r.detach().flatten(1).norm(dim=1).clamp_min(1e-300)
@@ -216,13 +304,27 @@ class ImplicitEuler(Integrator):
     compressive term is clamped in the matrix so it stays positive definite.
 
     Args:
-        cg_iters: maximum CG iterations per solve; cg_tol: relative residual to stop at
-            (``0``: always exactly ``cg_iters``, as SOFA's fixed-count benchmarks and compiled code do).
+        cg_iters: maximum CG iterations per solve.
+        cg_tol: relative residual to stop at (``0``: always exactly ``cg_iters``, as SOFA's
+            fixed-count benchmarks and compiled code do).
         newton_iters: extra Newton iterations (0 = one linearised step).
 
     Attributes:
         last_cg: ``(iterations, relative residual)`` of the last solve (the residual is a 0-d
             tensor when ``cg_tol = 0``).
+
+    Examples:
+        >>> import torch
+        >>> import torchdeform as td
+        >>> grid = td.Grid((1, 1, 2), spacing=1.0, topology=6)     # two nodes, one spring along W
+        >>> model = td.Model(grid, stiffness=1.0, mass=1.0, fixed=grid.index_mask([(0, 0, 0)]),
+        ...                  dtype=torch.float64)                   # explicit bound: dt < 2 s
+        >>> s = model.rest_state()
+        >>> s.x[0, 2, 0, 0, 1] += 0.1
+        >>> implicit = td.ImplicitEuler(cg_tol=1e-10)
+        >>> s = implicit.step(model, s, dt=100.0)                   # stable far beyond the bound
+        >>> abs(float(s.x[0, 2, 0, 0, 1]) - 1.0) < 1e-3, implicit.last_cg[0]
+        (True, 1)
     """
     name = "implicit"
 
@@ -231,8 +333,10 @@ class ImplicitEuler(Integrator):
         self.last_cg = (0, 0.0)
 
     def preconditioner(self, model, h: float) -> torch.Tensor:
-        """Jacobi preconditioner ``1 / diag(M + h C + h^2 K)`` (with ``K``'s diagonal bounded by
-        the spring sums), zero on empty rows (nodes outside a node mask, the packed halo).
+        """Jacobi preconditioner ``1 / diag(M + h C + h^2 K)``.
+
+        ``K``'s diagonal is bounded by the spring sums; the preconditioner is zero on empty rows
+        (nodes outside a node mask, the packed halo).
         """
         diag = model.mass + h * h * model.spring_sums(model.stiffness)
         if model.k_home is not None:
@@ -283,6 +387,7 @@ class ImplicitEuler(Integrator):
         return x_lin, apply_A, rhs, delta_c
 
     def advance(self, model, state, dt, loads):
+        """``1 + newton_iters`` linear solves for the new velocity; ``x' = x + h v'``."""
         precond = self.preconditioner(model, dt)
         v = state.v
         for it in range(1 + self.newton_iters):
@@ -308,6 +413,18 @@ class KnocheRelaxation(Integrator):
         material: ``w``, a number or ``(D, H, W)``.
         eps: threshold of "fixed" and "free" (Knoche does not state it; default 1e-3).
         gain: step factor, default ``3 / n`` with ``n = D`` (the shader's ``3.0 / dim``).
+
+    Examples:
+        >>> import torch
+        >>> import torchdeform as td
+        >>> model = td.Model(td.Grid((4, 4, 4), 0.01, topology=6), stiffness=1.0, mass=1.0,
+        ...                  dtype=torch.float64)
+        >>> s = model.rest_state()
+        >>> s.x[0, 0, 2, 2, 2] += 0.001                            # a 1 mm bump at one node
+        >>> s = td.KnocheRelaxation(material=0.8).step(model, s, dt=1.0)
+        >>> u = s.x - model.X           # u' = u + gain (1 - w) F, F = -6 w u at the bump: 28% left
+        >>> round(float(u[0, 0, 2, 2, 2]), 7), round(float(u[0, 0, 1, 2, 2]), 7), bool((s.v == 0).all())
+        (0.00028, 0.00012, True)
     """
     name = "knoche"
 
@@ -315,6 +432,7 @@ class KnocheRelaxation(Integrator):
         self.material, self.eps, self.gain = material, float(eps), gain
 
     def advance(self, model, state, dt, loads):
+        """One Jacobi pass of the offsets; velocities are zero."""
         grid = model.grid
         if grid.topology != 6:
             raise ConfigError("integrator", "a 6-neighbour grid for Knoche relaxation", grid.topology)
@@ -352,9 +470,12 @@ def simulate(model: Model, state: State, dt: float, steps: int, integrator: Inte
     """Run ``steps`` steps with divergence detection.
 
     Args:
-        model, state, dt: as for :meth:`Integrator.step`.
+        model: the :class:`~torchdeform.sim.model.Model`.
+        state: the start state, positions and velocities ``(B, 3, D, H, W)``.
+        dt: time step (s), > 0.
         steps: number of steps (>= 0).
         integrator: default :class:`SymplecticEuler`.
+        loads: extra node forces as for :meth:`Integrator.step`, or None.
         record_every: keep every k-th state (positions and velocities) on the CPU, or None.
         check_every: check for non-finite values and runaway energy every k steps (and at the end).
         progress: show a tqdm progress bar.
@@ -367,6 +488,18 @@ def simulate(model: Model, state: State, dt: float, steps: int, integrator: Inte
 
     Raises:
         DivergenceError: naming the step, the quantity and a safe dt.
+
+    Examples:
+        >>> import torchdeform as td
+        >>> grid = td.Grid((4, 4, 4), spacing=0.01)
+        >>> model = td.Model(grid, stiffness=50.0, damping=0.1, density=1000.0, gravity=(-9.81, 0, 0),
+        ...                  fixed=grid.face("bottom"))
+        >>> dt = td.suggest_dt(model)
+        >>> state, record = td.simulate(model, model.rest_state(), dt, steps=50, record_every=10)
+        >>> record["x"].shape, len(record["t"]), round(state.t / dt)
+        (torch.Size([6, 1, 3, 4, 4, 4]), 6, 50)
+        >>> bool(state.x[0, 0, -1].mean() < model.X[0, 0, -1].mean())        # the top sags
+        True
     """
     integrator = integrator or SymplecticEuler()
     dt = positive_dt(dt)

@@ -7,6 +7,8 @@ Example:
     ...                  gravity=(-9.81, 0, 0), fixed=grid.face("bottom"))
     >>> state = model.rest_state()
     >>> state = td.SymplecticEuler().step(model, state, dt=1e-4)
+    >>> state.x.shape, state.t
+    (torch.Size([1, 3, 5, 5, 5]), 0.0001)
 """
 from __future__ import annotations
 
@@ -23,12 +25,22 @@ from .springs import Linearisation, node_sums, spring_energy, spring_forces, spr
 
 @dataclass
 class State:
-    """Positions ``x`` and velocities ``v``, both ``(B, 3, D, H, W)``, at time ``t`` (s)."""
+    """Positions ``x`` and velocities ``v``, both ``(B, 3, D, H, W)``, at time ``t`` (s).
+
+    Examples:
+        >>> import torch
+        >>> import torchdeform as td
+        >>> x = torch.zeros(2, 3, 4, 4, 4)
+        >>> s = td.State(x, torch.zeros_like(x), t=0.5)
+        >>> s.x.shape, s.t
+        (torch.Size([2, 3, 4, 4, 4]), 0.5)
+    """
     x: torch.Tensor
     v: torch.Tensor
     t: float = 0.0
 
     def detach(self) -> "State":
+        """The same state with ``x`` and ``v`` detached from the autograd graph."""
         return State(self.x.detach(), self.v.detach(), self.t)
 
 
@@ -76,8 +88,9 @@ def spring_param(value, grid: Grid, key: str, dtype, device, allow_zero=True) ->
 
 
 def node_param(value, grid: Grid, key: str, dtype, device) -> torch.Tensor:
-    """Normalise a per-node parameter to ``(Bp, 1, 1|D, 1|H, 1|W)``: a number, ``(D, H, W)``
-    or ``(B, 1, D, H, W)``.
+    """Normalise a per-node parameter to ``(Bp, 1, 1|D, 1|H, 1|W)``.
+
+    Accepts a number, ``(D, H, W)`` or ``(B, 1, D, H, W)``.
     """
     t = _as_tensor(value, key, dtype, device)
     if t.dim() == 0:
@@ -97,6 +110,14 @@ def lumped_mass(grid: Grid, density: float, dtype=torch.float64, device=None) ->
     node along axis ``a`` (when it has more than one node). For a box this is the usual lumped
     mass (corners 1/8 of a cell, interior nodes one cell; total ``density * volume``); with a
     node mask, thin features keep a positive mass.
+
+    Examples:
+        >>> import torchdeform as td
+        >>> m = td.lumped_mass(td.Grid((3, 3, 3), spacing=0.01), density=1000.0)
+        >>> m.shape, round(float(m.sum()), 9)              # 1000 kg/m^3 * (2 cm)^3
+        (torch.Size([1, 1, 3, 3, 3]), 0.008)
+        >>> round(float(m[0, 0, 1, 1, 1] / m[0, 0, 0, 0, 0]), 9)     # interior node / corner
+        8.0
     """
     mass = torch.full(grid.shape, float(density), dtype=torch.float64)
     for axis, (n, h) in enumerate(zip(grid.shape, grid.spacing)):
@@ -115,7 +136,7 @@ class Model:
     no gravity term, and so on.
 
     Args:
-        grid: the :class:`~torchdeform.grid.Grid`.
+        grid: the :class:`~torchdeform.sim.grid.Grid`.
         stiffness: spring stiffness k (N/m); see :func:`spring_param` for the accepted shapes.
             With ``normalize=True`` it is a modulus Y (N) and each spring gets ``k = Y / l0``,
             so a chain keeps its overall stiffness when the resolution changes.
@@ -133,7 +154,20 @@ class Model:
         loads: list of :class:`~torchdeform.sim.forces.PointForce`, ``SurfaceForce`` or
             ``FieldForce``, or None.
         spring_mask: optional bool ``(S, D, H, W)`` of springs that exist (e.g. after a cut).
-        dtype, device: of every tensor of the model.
+        dtype: of every tensor of the model.
+        device: of every tensor of the model.
+
+    Examples:
+        >>> import torchdeform as td
+        >>> grid = td.Grid((4, 4, 4), spacing=0.01, topology=26)
+        >>> model = td.Model(grid, stiffness=50.0, damping=0.1, density=1000.0,
+        ...                  gravity=(-9.81, 0, 0), fixed=grid.face("bottom"))
+        >>> round(float(model.mass.sum()), 6)                  # 1000 kg/m^3 * (3 cm)^3
+        0.027
+        >>> state = model.rest_state(batch=2)
+        >>> a = model.acceleration(state.x, state.v)           # at rest: gravity only
+        >>> a.shape, round(float(a[0, 0, 2, 2, 2]), 4), bool((a[:, :, 0] == 0).all())   # free, fixed base
+        (torch.Size([2, 3, 4, 4, 4]), -9.81, True)
     """
 
     def __init__(self, grid: Grid, stiffness, damping=None, *, damping_mode="projected", normalize=False,
@@ -252,7 +286,8 @@ class Model:
         """Total force on every node (springs, home/anchor springs, gravity, loads), ``(B, 3, D, H, W)``.
 
         Args:
-            x, v: ``(B, 3, D, H, W)``.
+            x: positions ``(B, 3, D, H, W)``.
+            v: velocities ``(B, 3, D, H, W)``.
             t: time (s) for time-dependent loads.
             loads: extra force ``(B|1, 3, D, H, W)`` or a callable ``t -> force``, or None.
             impl: ``"fast"`` (shifted slices) or ``"conv"`` (conv3d reference).
@@ -275,8 +310,10 @@ class Model:
         return fn(x, v, self.grid, self.stiffness, self.rest_length, self.damping, self.projected)
 
     def spring_sums(self, p: torch.Tensor) -> torch.Tensor:
-        """``sum_j p_ij`` over the springs at each node, ``(Bp, 1, D, H, W)``, for a spring
-        parameter ``p`` such as :attr:`stiffness` (Gershgorin bounds, Jacobi preconditioners).
+        """``sum_j p_ij`` over the springs at each node, ``(Bp, 1, D, H, W)``.
+
+        ``p`` is a spring parameter such as :attr:`stiffness` (Gershgorin bounds, Jacobi
+        preconditioners).
         """
         return node_sums(self.grid, p)
 
@@ -290,8 +327,10 @@ class Model:
 
     # --------------------------------------------------------------- energy
     def energy(self, state: State) -> dict:
-        """Energies per batch entry, each ``(B,)``: ``kinetic``, ``elastic`` (springs and home
-        springs), ``gravity`` (``-m g . (x - X)``), ``total``. External loads are not included.
+        """Energies per batch entry, each ``(B,)``.
+
+        ``kinetic``, ``elastic`` (springs and home springs), ``gravity`` (``-m g . (x - X)``),
+        ``total``. External loads are not included.
         """
         x, v = state.x, state.v
         ke = 0.5 * (self.mass * v * v).flatten(1).sum(1)

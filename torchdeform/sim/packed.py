@@ -11,18 +11,18 @@ free degree of freedom and no springs, so they never move.
 In this layout each node gathers the forces of all its ``2 S`` springs (every spring is
 evaluated from both ends) instead of scattering into shifted slices. That costs twice the
 arithmetic but has no read-modify-write, so ``torch.compile`` fuses forces and update into one
-vectorised loop over the nodes: the fast path (:mod:`torchdeform.compiled`). The stiffness
+vectorised loop over the nodes: the fast path (:mod:`torchdeform.sim.compiled`). The stiffness
 products of implicit solves (:class:`PackedLinearisation`) are written as one sum over the
 ``2 S`` directions instead: ``torch.compile`` makes that a loop over blocks of :data:`BLOCK`
 nodes with the directions as its inner loop, reading per-spring fields stored block by block.
 
-:class:`PackedModel` is a :class:`~torchdeform.model.Model` whose tensors are in this layout,
+:class:`PackedModel` is a :class:`~torchdeform.sim.model.Model` whose tensors are in this layout,
 so every integrator runs on it unchanged; only the spring terms differ, and they use the same
-spring law (:func:`~torchdeform.springs.spring_law`).
+spring law (:func:`~torchdeform.sim.springs.spring_law`).
 
 Example:
     >>> import torchdeform as td
-    >>> from torchdeform.packed import PackedModel
+    >>> from torchdeform.sim.packed import PackedModel
     >>> model = td.Model(td.Grid((4, 5, 6), 0.01, 26), stiffness=50.0, damping=0.1, mass=1e-3)
     >>> pm = PackedModel(model)
     >>> s = pm.pack_state(model.rest_state())     # x, v: (1, 3, P), P >= 6 * 7 * 8
@@ -98,7 +98,7 @@ class TraceContext:
 
 
 class PackedModel(Model):
-    """A :class:`~torchdeform.model.Model` in the packed layout (see the module docstring).
+    """A :class:`~torchdeform.sim.model.Model` in the packed layout (see the module docstring).
 
     Node fields are ``(B|1, C, P)``, spring parameters ``(Bp, S, 1)`` (one value per direction)
     or ``(Bp, S, P)`` (one per spring, stored at its first endpoint, zero in the halo). States
@@ -146,8 +146,9 @@ class PackedModel(Model):
         self.trace = TraceContext()
 
     def traced(self, ctx: TraceContext) -> "PackedModel":
-        """A view of this model (same tensors) whose kernels follow the compile-time context
-        ``ctx``; this model itself is not changed.
+        """A view of this model (same tensors) whose kernels follow the compile-time context ``ctx``.
+
+        This model itself is not changed.
         """
         view = copy.copy(self)
         view.trace = ctx
@@ -164,12 +165,15 @@ class PackedModel(Model):
         return t[..., :self._P_grid].view(*t.shape[:2], D + 2, H + 2, W + 2)[..., 1:-1, 1:-1, 1:-1]
 
     def pack_state(self, state: State) -> State:
+        """A grid-layout state (``(B, 3, D, H, W)``) in the packed layout (``(B, 3, P)``)."""
         return State(self.pack(state.x), self.pack(state.v), state.t)
 
     def unpack_state(self, state: State) -> State:
+        """A packed state back in the grid layout (contiguous ``(B, 3, D, H, W)``)."""
         return State(self.unpack(state.x).contiguous(), self.unpack(state.v).contiguous(), state.t)
 
     def rest_state(self, batch: int = 1) -> State:
+        """The body at rest, packed: ``x = X``, ``v = 0``, each ``(batch, 3, P)``."""
         return self.pack_state(self.source.rest_state(batch))
 
     def _node(self, t: torch.Tensor) -> torch.Tensor:
@@ -185,7 +189,8 @@ class PackedModel(Model):
         return t[..., self.G + o:self.P - self.G + o]
 
     def ends(self, t: torch.Tensor) -> torch.Tensor:
-        """The far end of the spring along each of the ``2 S`` directions from each core node:
+        """The far end of the spring along each of the ``2 S`` directions from each core node.
+
         ``t`` ``(B, C, P)`` -> ``(B, C, 2 S, N, BLOCK)`` (core nodes in ``N`` blocks), one strided
         view indexed by direction (no per-direction copies: under ``torch.compile`` a sum over the
         directions is one loop over the nodes with the directions as its inner reduction).
@@ -200,17 +205,19 @@ class PackedModel(Model):
         return self.blocks(cube[:, :, self._dir_index[0], self._dir_index[1], self._dir_index[2]])
 
     def blocks(self, t: torch.Tensor) -> torch.Tensor:
-        """A core-range field ``(..., P_core)`` as ``(..., N, BLOCK)``; a full field ``(..., P)``
-        is cut to its core range first.
+        """A core-range field ``(..., P_core)`` as ``(..., N, BLOCK)``.
+
+        A full field ``(..., P)`` is cut to its core range first.
         """
         if t.shape[-1] == self.P:
             t = self.shift(t, 0)
         return t.unflatten(-1, (-1, BLOCK))
 
     def directed(self, p: torch.Tensor) -> torch.Tensor:
-        """Spring parameters ``(Bp, S, 1|P)`` along each of the ``2 S`` directions from each core
-        node: ``(Bp, 2 S, 1, 1)`` or ``(Bp, 2 S, N, BLOCK)`` (the spring along ``-d_s`` from node
-        ``i`` is stored at node ``i - o_s``).
+        """Spring parameters ``(Bp, S, 1|P)`` along each of the ``2 S`` directions from each core node.
+
+        The result is ``(Bp, 2 S, 1, 1)`` or ``(Bp, 2 S, N, BLOCK)`` (the spring along ``-d_s``
+        from node ``i`` is stored at node ``i - o_s``).
         """
         if p.shape[-1] == 1:
             return torch.cat([p, p], 1).unsqueeze(-1)
@@ -218,8 +225,9 @@ class PackedModel(Model):
         return self.blocks(torch.stack(both, 1))
 
     def param(self, p: torch.Tensor, s: int, sign: int) -> torch.Tensor:
-        """Spring parameter of the spring from each core node along ``sign * d_s``:
-        ``(Bp, 1)`` or ``(Bp, P_core)``.
+        """Spring parameter of the spring from each core node along ``sign * d_s``.
+
+        The result is ``(Bp, 1)`` or ``(Bp, P_core)``.
         """
         q = p[:, s]
         if q.shape[-1] == 1:
@@ -254,9 +262,10 @@ class PackedModel(Model):
         return self.spread(torch.stack([t * own for t in total], 1), self.trace.store_sums)
 
     def spread(self, sums: torch.Tensor, store: bool = False) -> torch.Tensor:
-        """Sums over the core nodes ``(B, C, P_core)`` -> ``(B, C, P)``, zero outside the core
-        range; under ``torch.compile`` stored when ``store``, otherwise computed inside each
-        reader.
+        """Sums over the core nodes ``(B, C, P_core)`` -> ``(B, C, P)``, zero outside the core range.
+
+        Under ``torch.compile`` the result is stored when ``store``, otherwise computed inside
+        each reader.
         """
         return self.trace.keep(F.pad(sums, (self.G, self.G)), store)
 
@@ -283,15 +292,18 @@ class PackedModel(Model):
         return self.gather(lambda s, sign, mask: [self.param(p, s, sign) * mask])
 
     def linearise(self, x, clamp=True) -> "PackedLinearisation":
+        """Springs linearised at packed positions ``x`` (:class:`PackedLinearisation`)."""
         return PackedLinearisation(self, x, clamp)
 
     def energy(self, state: State) -> dict:
+        """Energies of a packed state, as :meth:`~torchdeform.sim.model.Model.energy` (unpacked first)."""
         return self.source.energy(self.unpack_state(state))
 
 
 class PackedLinearisation:
-    """:class:`~torchdeform.springs.Linearisation` in the packed layout: ``K u`` products for
-    implicit solves without a matrix.
+    """:class:`~torchdeform.sim.springs.Linearisation` in the packed layout.
+
+    ``K u`` products for implicit solves without a matrix.
 
     The springs are linearised along each of the ``2 S`` directions from each core node (so every
     spring twice, once from each end): :attr:`fields` are the unit direction ``n``
@@ -304,8 +316,10 @@ class PackedLinearisation:
     The operator of a CG solve is made once per solve by :meth:`scaled`, and stored.
 
     Args:
-        pm: the packed model; x: positions ``(B, 3, P)``; clamp: clamp the compressive term.
-        fields: fields from an earlier linearisation (then ``x`` is ignored);
+        pm: the packed model.
+        x: positions ``(B, 3, P)``.
+        clamp: clamp the compressive term.
+        fields: fields from an earlier linearisation (then ``x`` is ignored).
         combined: the fields are those of :meth:`scaled`.
     """
 
@@ -324,12 +338,13 @@ class PackedLinearisation:
         self.fields = tuple(fields)
 
     def scaled(self, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> "PackedLinearisation":
-        """The operator ``u -> apply(u, alpha_scale, c, projected, c_scale)`` as a linearisation
-        with combined coefficients, the CG loop's inner kernel: per spring ``alpha I + beta n n^T``
-        of ``h2 K + h C`` is stored as 4 fields ``m = sqrt(beta) n`` and ``alpha``, already
-        multiplied by the spring-exists mask, so a product reads 4 fields per spring and computes
-        ``alpha du + (m . du) m``, with no scaling or masking. ``beta >= 0`` holds for
-        non-negative stiffness and damping (``b = k - a = k min(l0 / l, 1)``).
+        """The operator ``u -> apply(u, alpha_scale, c, projected, c_scale)``, coefficients combined.
+
+        A linearisation with combined coefficients, the CG loop's inner kernel: per spring
+        ``alpha I + beta n n^T`` of ``h2 K + h C`` is stored as 4 fields ``m = sqrt(beta) n`` and
+        ``alpha``, already multiplied by the spring-exists mask, so a product reads 4 fields per
+        spring and computes ``alpha du + (m . du) m``, with no scaling or masking. ``beta >= 0``
+        holds for non-negative stiffness and damping (``b = k - a = k min(l0 / l, 1)``).
 
         Each field is stored block by block, ``(B, N, 2 S, BLOCK)``: the product's inner loop over
         the directions then reads 4 contiguous streams instead of ``4 x 2 S`` planes at once
@@ -351,8 +366,10 @@ class PackedLinearisation:
         return alpha * pm.spring_exists, beta * pm.spring_exists
 
     def apply(self, u, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> torch.Tensor:
-        """``(h2 K + h C) u``, ``(B, 3, P)``; arguments as
-        :meth:`torchdeform.springs.Linearisation.apply` (a combined operator takes none).
+        """``(h2 K + h C) u``, ``(B, 3, P)``.
+
+        Arguments as :meth:`torchdeform.sim.springs.Linearisation.apply` (a combined operator
+        takes none).
         """
         pm = self.pm
         u = pm.trace.operand(u)

@@ -21,7 +21,9 @@ import torch.nn.functional as F
 
 from .grid import Grid
 
-__all__ = ["stencil_weights", "difference_conv", "adjoint_conv", "take", "accumulate", "difference", "harmonic_mean_of_ends", "adjoint", "spring_law", "tension", "spring_forces", "spring_forces_conv", "spring_energy", "node_sums", "Linearisation", "combine_coefficients"]
+__all__ = ["stencil_weights", "difference_conv", "adjoint_conv", "take", "accumulate", "difference",
+           "harmonic_mean_of_ends", "adjoint", "spring_law", "tension", "spring_forces", "spring_forces_conv",
+           "spring_energy", "node_sums", "Linearisation", "combine_coefficients"]
 
 
 # ------------------------------------------------------------------ reference path
@@ -39,6 +41,7 @@ def difference_conv(x: torch.Tensor, grid: Grid) -> torch.Tensor:
 
     Args:
         x: node field ``(B, C, D, H, W)``.
+        grid: the grid.
 
     Returns:
         ``(B, S, C, D, H, W)`` with ``[b, s, c, i] = x[b, c, i + d_s] - x[b, c, i]``, zero where
@@ -56,6 +59,7 @@ def adjoint_conv(f: torch.Tensor, grid: Grid) -> torch.Tensor:
 
     Args:
         f: per-spring field ``(B, S, C, D, H, W)``; entries of springs outside the grid are ignored.
+        grid: the grid.
 
     Returns:
         node field ``(B, C, D, H, W)``.
@@ -119,9 +123,11 @@ def difference(x: torch.Tensor, grid: Grid) -> torch.Tensor:
 
 
 def harmonic_mean_of_ends(values: torch.Tensor, grid: Grid, spring_mask=None) -> torch.Tensor:
-    """Per-node values ``(B, D, H, W)`` to per-spring values ``(B, S, D, H, W)``: the harmonic
-    mean ``2 a b / (a + b)`` of the spring's two end nodes (springs in series), zero where no
-    spring exists (``spring_mask``, default the grid's) or both ends are zero. Differentiable.
+    """Per-node values ``(B, D, H, W)`` to per-spring values ``(B, S, D, H, W)``.
+
+    Each spring gets the harmonic mean ``2 a b / (a + b)`` of its two end nodes (springs in
+    series), zero where no spring exists (``spring_mask``, default the grid's) or both ends are
+    zero. Differentiable.
     """
     nodes = values.unsqueeze(1)                                    # (B, 1, D, H, W)
     ends = nodes + difference(nodes, grid)[:, :, 0]                # value at the far end
@@ -145,25 +151,32 @@ def adjoint(f: torch.Tensor, grid: Grid) -> torch.Tensor:
 
 # ------------------------------------------------------------- spring physics
 def _length(delta: torch.Tensor) -> torch.Tensor:
-    """``|delta|`` over the channel axis, kept ``>= tiny`` so that coincident nodes give a zero
-    direction (and zero force direction) instead of NaN, in values and gradients.
+    """``|delta|`` over the channel axis, kept ``>= tiny``.
+
+    Coincident nodes then give a zero direction (and zero force direction) instead of NaN, in
+    values and gradients.
     """
     sq = (delta * delta).sum(1, keepdim=True)
     return sq.clamp_min(torch.finfo(delta.dtype).tiny).sqrt()
 
 
 def spring_law(sq, dxdv, k, l0, c, projected: bool):
-    """The spring law, as coefficients: the force on a spring's endpoint ``i`` is
-    ``alpha (x_j - x_i) + beta (v_j - v_i)``.
+    """The spring law, as coefficients.
 
+    The force on a spring's endpoint ``i`` is ``alpha (x_j - x_i) + beta (v_j - v_i)``, with
     ``alpha = k (l - l0) / l + c ((v_j - v_i) . delta) / l^2`` for projected damping (a dashpot
     along the spring), ``beta = c`` for Radetzky's unprojected damping. ``l`` is kept ``>= sqrt(tiny)``
     so coincident nodes give finite values. Every spring force in torchdeform (the slice path,
     the packed fast path) comes from here.
 
     Args:
-        sq: ``|x_j - x_i|^2``; dxdv: ``(x_j - x_i) . (v_j - v_i)`` (ignored when ``c`` is None);
-        k, l0, c: stiffness, rest length, damping (``c`` may be None), all broadcastable.
+        sq: ``|x_j - x_i|^2``.
+        dxdv: ``(x_j - x_i) . (v_j - v_i)`` (ignored when ``c`` is None).
+        k: stiffness, broadcastable.
+        l0: rest length, broadcastable.
+        c: damping, broadcastable, or None.
+        projected: damping along the spring (in ``alpha``) if True, else Radetzky's unprojected
+            damping (``beta = c``).
 
     Returns:
         ``(alpha, beta)``; ``beta`` is None unless the damping is unprojected.
@@ -182,9 +195,11 @@ def tension(delta, dv, k, l0, c, projected: bool) -> torch.Tensor:
     """Tension vector of springs: ``k (l - l0) n`` plus damping (:func:`spring_law`).
 
     Args:
-        delta: ``x_j - x_i``, ``(B, 3, ...)``; ``dv``: ``v_j - v_i`` or ``None``.
-        k, l0, c: stiffness, rest length and damping, broadcastable to ``(B, 1, ...)``;
-            ``c`` may be ``None`` (no damping, no cost).
+        delta: ``x_j - x_i``, ``(B, 3, ...)``.
+        dv: ``v_j - v_i`` or ``None``.
+        k: stiffness, broadcastable to ``(B, 1, ...)``.
+        l0: rest length, broadcastable to ``(B, 1, ...)``.
+        c: damping, broadcastable to ``(B, 1, ...)``, or ``None`` (no damping, no cost).
         projected: damping along the spring ``c ((dv . n) n)`` if True, else Radetzky's
             unprojected relative-velocity damping ``c dv``.
 
@@ -202,9 +217,13 @@ def spring_forces(x, v, grid, k, l0, c=None, projected=True) -> torch.Tensor:
     """Node forces of all springs (fast path).
 
     Args:
-        x, v: positions and velocities ``(B, 3, D, H, W)`` (``v`` unused when ``c`` is None).
-        k: stiffness ``(Bk, S, 1|D, 1|H, 1|W)``; l0: rest length, same convention;
+        x: positions ``(B, 3, D, H, W)``.
+        v: velocities ``(B, 3, D, H, W)`` (unused when ``c`` is None).
+        grid: the grid.
+        k: stiffness ``(Bk, S, 1|D, 1|H, 1|W)``.
+        l0: rest length, same convention.
         c: damping like ``k`` or ``None``.
+        projected: damping along the spring if True, else unprojected (see :func:`tension`).
 
     Returns:
         forces ``(B, 3, D, H, W)``.
@@ -217,8 +236,9 @@ def spring_forces(x, v, grid, k, l0, c=None, projected=True) -> torch.Tensor:
 
 
 def spring_forces_conv(x, v, grid, k, l0, c=None, projected=True) -> torch.Tensor:
-    """Node forces of all springs through the ``conv3d`` reference; same arguments as
-    :func:`spring_forces`.
+    """Node forces of all springs through the ``conv3d`` reference.
+
+    Same arguments as :func:`spring_forces`.
     """
     delta = difference_conv(x, grid).movedim(2, 1)            # (B, 3, S, D, H, W)
     dv = difference_conv(v, grid).movedim(2, 1) if c is not None else None
@@ -280,8 +300,10 @@ class Linearisation:
     combined = False
 
     def scaled(self, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> "Linearisation":
-        """The operator ``u -> apply(u, alpha_scale, c, projected, c_scale)`` with its per-spring
-        coefficients combined once (for many products with the same scales, as in CG).
+        """The operator ``u -> apply(u, alpha_scale, c, projected, c_scale)``, combined once.
+
+        Its per-spring coefficients are combined once, for many products with the same scales,
+        as in CG.
         """
         out = object.__new__(type(self))
         out.grid, out.combined, out.parts = self.grid, True, []
@@ -292,8 +314,10 @@ class Linearisation:
         return out
 
     def apply(self, u: torch.Tensor, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> torch.Tensor:
-        """``(h2 K + h C) u`` as a node field ``(B, 3, D, H, W)``, with ``h2 = alpha_scale`` and
-        ``h = c_scale``; ``K = -dF/dx`` (clamped) and ``C = -dF/dv`` (damping ``c`` or none).
+        """``(h2 K + h C) u`` as a node field ``(B, 3, D, H, W)``.
+
+        ``h2 = alpha_scale`` and ``h = c_scale``; ``K = -dF/dx`` (clamped) and ``C = -dF/dv``
+        (damping ``c`` or none).
         """
         def fn(s, src, du):
             n, a, b = self.parts[s]
@@ -308,9 +332,11 @@ def _times(scale, t):
 
 
 def combine_coefficients(a, b, alpha_scale=1.0, c=None, projected=True, c_scale=1.0):
-    """``(alpha, beta)`` of one linearised spring in ``h2 K + h C``: ``K``'s coefficients ``a, b``
-    scaled by ``h2 = alpha_scale``, plus the damping ``h c`` (``h = c_scale``) on the projected
-    (``beta``) or the full (``alpha``) term. Scales of exactly 1 and no damping cost nothing.
+    """``(alpha, beta)`` of one linearised spring in ``h2 K + h C``.
+
+    ``K``'s coefficients ``a, b`` scaled by ``h2 = alpha_scale``, plus the damping ``h c``
+    (``h = c_scale``) on the projected (``beta``) or the full (``alpha``) term. Scales of exactly
+    1 and no damping cost nothing.
     """
     alpha, beta = _times(alpha_scale, a), _times(alpha_scale, b)
     if c is not None:

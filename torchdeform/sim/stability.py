@@ -25,11 +25,22 @@ import torch
 
 from ..errors import DivergenceError, StabilityWarning
 
-__all__ = ["gershgorin_omega2", "damping_rate_bound", "power_omega2", "time_step_bound", "suggest_dt", "check_dt", "DivergenceMonitor"]
+__all__ = ["gershgorin_omega2", "damping_rate_bound", "power_omega2", "time_step_bound", "suggest_dt", "check_dt",
+           "DivergenceMonitor"]
 
 
 def gershgorin_omega2(model) -> float:
-    """Upper bound on ``omega_max^2 = lambda_max(M^-1 K)`` at rest (Gershgorin)."""
+    """Upper bound on ``omega_max^2 = lambda_max(M^-1 K)`` at rest (Gershgorin).
+
+    Examples:
+        >>> import torch
+        >>> import torchdeform as td
+        >>> grid = td.Grid((1, 1, 2), spacing=1.0, topology=6)       # two nodes, one spring
+        >>> model = td.Model(grid, stiffness=1.0, mass=1.0, fixed=grid.index_mask([(0, 0, 0)]),
+        ...                  dtype=torch.float64)                     # omega^2 = k / m = 1
+        >>> td.gershgorin_omega2(model), round(td.power_omega2(model), 9)   # bound and exact value
+        (2.0, 1.0)
+    """
     ksum = 2 * model.spring_sums(model.stiffness)
     if model.k_home is not None:
         ksum = ksum + model.k_home
@@ -52,11 +63,20 @@ def power_omega2(model, x=None, iters: int = 60, seed: int = 0) -> float:
     """``lambda_max(M^-1 K)`` by power iteration on ``M^-1/2 K M^-1/2`` (free nodes only).
 
     Args:
+        model: the :class:`~torchdeform.sim.model.Model`.
         x: state ``(B, 3, D, H, W)`` to linearise at (default: rest).
         iters: power iterations; each costs one stiffness product.
+        seed: seed of the random start vector.
 
     Returns:
         the largest eigenvalue found over the batch (a lower bound that is tight once converged).
+
+    Examples:
+        >>> import torchdeform as td
+        >>> model = td.Model(td.Grid((4, 4, 4), 0.01), stiffness=50.0, mass=1e-3)
+        >>> lk = td.power_omega2(model)                   # (rad/s)^2
+        >>> 0 < lk <= td.gershgorin_omega2(model)
+        True
     """
     x = model.X if x is None else x.detach()
     lin = model.linearise(x)
@@ -84,12 +104,25 @@ def time_step_bound(model, integrator="symplectic", method: str = "power", x=Non
     """Largest stable time step (s) of an explicit integrator for this model.
 
     Args:
+        model: the :class:`~torchdeform.sim.model.Model`.
         integrator: an integrator or its name (``"explicit"``, ``"symplectic"``, ``"verlet"``,
             ``"rk4"``, ``"implicit"``, ``"knoche"``).
         method: ``"power"`` (tight) or ``"gershgorin"`` (guaranteed, up to ~3x smaller).
+        x: state ``(B, 3, D, H, W)`` to linearise at (default: rest; ``"power"`` only).
 
     Returns:
         the bound in seconds; ``inf`` for implicit Euler and Knoche relaxation (no time step).
+
+    Examples:
+        >>> import torch
+        >>> import torchdeform as td
+        >>> grid = td.Grid((1, 1, 2), spacing=1.0, topology=6)       # two nodes, one spring
+        >>> model = td.Model(grid, stiffness=1.0, mass=1.0, fixed=grid.index_mask([(0, 0, 0)]),
+        ...                  dtype=torch.float64)                     # omega^2 = k / m = 1
+        >>> round(td.time_step_bound(model), 6), round(td.time_step_bound(model, "rk4"), 6)
+        (2.0, 2.828427)
+        >>> round(td.time_step_bound(model, method="gershgorin"), 6), td.time_step_bound(model, "implicit")
+        (1.414214, inf)
     """
     name = _name(integrator)
     if name in ("implicit", "knoche"):
@@ -111,12 +144,36 @@ def time_step_bound(model, integrator="symplectic", method: str = "power", x=Non
 
 
 def suggest_dt(model, integrator="symplectic", safety: float = 0.9, method: str = "power") -> float:
-    """A stable time step: ``safety`` times :func:`time_step_bound` (s)."""
+    """A stable time step: ``safety`` times :func:`time_step_bound` (s).
+
+    Examples:
+        >>> import torch
+        >>> import torchdeform as td
+        >>> grid = td.Grid((1, 1, 2), spacing=1.0, topology=6)       # two nodes, one spring
+        >>> model = td.Model(grid, stiffness=1.0, mass=1.0, fixed=grid.index_mask([(0, 0, 0)]),
+        ...                  dtype=torch.float64)                     # omega^2 = k / m = 1
+        >>> round(td.suggest_dt(model), 6), round(td.suggest_dt(model, "rk4", safety=0.5), 6)
+        (1.8, 1.414214)
+    """
     return safety * time_step_bound(model, integrator, method)
 
 
 def check_dt(model, dt: float, integrator, bound: float | None = None) -> float:
-    """Warn with :class:`StabilityWarning` when ``dt`` exceeds the bound; returns the bound."""
+    """Warn with :class:`StabilityWarning` when ``dt`` exceeds the bound; returns the bound.
+
+    Examples:
+        >>> import warnings
+        >>> import torch
+        >>> import torchdeform as td
+        >>> grid = td.Grid((1, 1, 2), spacing=1.0, topology=6)       # two nodes, one spring
+        >>> model = td.Model(grid, stiffness=1.0, mass=1.0, fixed=grid.index_mask([(0, 0, 0)]),
+        ...                  dtype=torch.float64)                     # omega^2 = k / m = 1
+        >>> with warnings.catch_warnings(record=True) as caught:
+        ...     warnings.simplefilter("always")
+        ...     bound = td.check_dt(model, 3.0, "symplectic")          # 3 s > 2 s
+        >>> round(bound, 6), [w.category.__name__ for w in caught]
+        (2.0, ['StabilityWarning'])
+    """
     bound = time_step_bound(model, integrator) if bound is None else bound
     if dt > bound:
         what = "is unstable for every dt without damping" if bound == 0 else f"bound is {bound:.3g} s"
@@ -133,8 +190,23 @@ class DivergenceMonitor:
     every spring stretched to twice its rest length plus ``M |g|`` times the body's size.
 
     Args:
-        model, dt, integrator: of the run (``integrator`` names the safe dt in the message).
+        model: the :class:`~torchdeform.sim.model.Model` of the run.
+        dt: the time step of the run (s).
+        integrator: the integrator of the run, or its name (names the safe dt in the message).
         factor: runaway threshold (default ``1e4``).
+
+    Examples:
+        >>> import torchdeform as td
+        >>> model = td.Model(td.Grid((3, 3, 3), 0.01), stiffness=10.0, mass=1e-3)
+        >>> monitor = td.DivergenceMonitor(model, dt=1e-4, integrator="symplectic")
+        >>> state = model.rest_state()
+        >>> monitor.check(state, step=1)                    # finite and calm: nothing happens
+        >>> state.v[0, 0, 1, 1, 1] = float("nan")
+        >>> try:
+        ...     monitor.check(state, step=2)
+        ... except td.DivergenceError as e:
+        ...     print(e.step, e.quantity, e.dt)
+        2 velocity 0.0001
     """
 
     def __init__(self, model, dt, integrator, factor: float = 1e4):

@@ -1,5 +1,7 @@
-"""Volume deformation and rendering: a CT/MR volume deformed by a model's node offsets through an
-offset texture (Knoche 2008) and rendered, differentiable end to end.
+"""Volume deformation and rendering.
+
+A CT/MR volume deformed by a model's node offsets through an offset texture (Knoche 2008) and
+rendered, differentiable end to end.
 
 =====================  ===========================================================================
 :mod:`.deform`         offset texture (trilinear, cubic B-spline), :func:`warp` (deform, carve,
@@ -18,8 +20,8 @@ Example:
     >>> offsets = torch.zeros(3, 5, 5, 5)
     >>> offsets[0, 4, 2, 2] = 3.0                   # top centre node moved 3 voxels along +D
     >>> img = render(warp(vol, offsets), mode="mip", view="h")
-    >>> to_image(img).shape
-    torch.Size([32, 32, 3])
+    >>> to_image(img).shape                         # uint8 RGB (numpy)
+    (32, 32, 3)
 """
 from .deform import (
                      MODES,

@@ -19,6 +19,7 @@ __all__ = ["add_warp_arguments", "add_render_arguments", "warp_command", "render
 
 
 def add_warp_arguments(p) -> None:
+    """The arguments of ``torchdeform warp`` on an :mod:`argparse` parser."""
     p.add_argument("volume", help="volume file (.npy, .npz, .nii, .nii.gz, .nrrd) or phantom[:N]")
     p.add_argument("offsets", help="node offsets .npy/.npz, shape (3, n_d, n_h, n_w), voxels, channels (D, H, W)")
     p.add_argument("--out", required=True, help="output volume (.npy, .npz, .nii, .nii.gz, .nrrd)")
@@ -41,6 +42,7 @@ def load_offsets(path, volume_shape=None):
 
 
 def warp_command(args) -> int:
+    """``torchdeform warp``: deform a volume by node offsets and save it; returns the exit status."""
     vol = load_volume(args.volume)
     offsets = load_offsets(args.offsets, vol.shape)
     if args.inverse_iters < 0:
@@ -57,6 +59,7 @@ def warp_command(args) -> int:
 
 
 def add_render_arguments(p) -> None:
+    """The arguments of ``torchdeform render`` on an :mod:`argparse` parser."""
     p.add_argument("volume", help="volume file (.npy, .npz, .nii, .nii.gz, .nrrd) or phantom[:N]")
     p.add_argument("--out", required=True, help="image file (.png; .gif writes an orbit)")
     p.add_argument("--offsets", default=None, help="node offsets (3, n_d, n_h, n_w) in voxels: render deformed")
@@ -75,6 +78,7 @@ def add_render_arguments(p) -> None:
 
 
 def render_command(args) -> int:
+    """``torchdeform render``: a PNG of one view, or a GIF orbit; returns the exit status."""
     out = Path(args.out)
     if out.suffix.lower() not in (".png", ".gif"):
         raise ConfigError("--out", "an image file ending in .png or .gif", str(out))

@@ -147,11 +147,15 @@ def to_grid_sample(points: torch.Tensor, shape, align_corners: bool = True) -> t
     Args:
         points: ``(B, 3, *S)`` coordinates in voxels (channel c along axis c of ``shape``).
         shape: ``(D, H, W)`` of the sampled array.
+        align_corners: ``grid_sample``'s convention (True: voxel centres ``0`` and ``N - 1`` map
+            to -1 and 1; False: the outer voxel faces do).
 
     Returns:
         ``(B, *S, 3)``.
 
     Example:
+        >>> import torch
+        >>> from torchdeform.volume import to_grid_sample
         >>> p = torch.tensor([[0.0, 2.0, 4.0]]).view(1, 3, 1)
         >>> to_grid_sample(p, (3, 3, 5)).view(3).tolist()
         [1.0, 1.0, -1.0]
@@ -181,6 +185,8 @@ def sample(volume: torch.Tensor, points: torch.Tensor, padding: str = "border", 
         volume: ``(B, C, D, H, W)``.
         points: ``(B or 1, 3, *S)`` voxel coordinates (``*S`` = one to three axes).
         padding: ``"border"`` (clamp to the edge voxels) or ``"zeros"`` (``fill`` outside).
+        fill: the value outside the volume with ``padding="zeros"``.
+        align_corners: as in :func:`to_grid_sample` (voxel centres at the voxel coordinates: True).
 
     Returns:
         ``(B, C, *S)``.
@@ -206,14 +212,13 @@ def _bspline(t: torch.Tensor) -> torch.Tensor:
 
 
 def axis_weights_at(pos, n: int, N: int, order: str = "linear", cell_centred: bool = False) -> torch.Tensor:
-    """Interpolation weights ``(P, n)`` of ``n`` nodes at voxel positions ``pos`` ``(P,)`` along one axis
-    of ``N`` voxels.
+    """Interpolation weights ``(P, n)`` of ``n`` nodes at voxel positions ``pos`` ``(P,)`` along one axis.
 
-    ``linear``: hat functions with node ``a`` at voxel ``a (N - 1) / (n - 1)`` (or, with
-    ``cell_centred``, at ``(a + 0.5) N / n - 0.5``), positions clamped to the node range;
-    ``bspline``: cubic B-spline with the nodes as control points, the ends extended by repeating
-    the edge nodes (smoother; reproduces constants, does not interpolate). Rows sum to 1;
-    differentiable in ``pos``.
+    The axis has ``N`` voxels. ``linear``: hat functions with node ``a`` at voxel
+    ``a (N - 1) / (n - 1)`` (or, with ``cell_centred``, at ``(a + 0.5) N / n - 0.5``), positions
+    clamped to the node range; ``bspline``: cubic B-spline with the nodes as control points, the
+    ends extended by repeating the edge nodes (smoother; reproduces constants, does not
+    interpolate). Rows sum to 1; differentiable in ``pos``.
     """
     if n == 1:
         return torch.ones(pos.shape[0], 1, dtype=pos.dtype, device=pos.device)
@@ -230,8 +235,9 @@ def axis_weights_at(pos, n: int, N: int, order: str = "linear", cell_centred: bo
 
 def axis_weights(n: int, N: int, order: str = "linear", dtype=torch.float64, device=None,
                  cell_centred: bool = False) -> torch.Tensor:
-    """Interpolation matrix ``(N, n)`` from ``n`` nodes to the ``N`` voxel centres of an axis
-    (:func:`axis_weights_at` at ``0, 1, ..., N - 1``).
+    """Interpolation matrix ``(N, n)`` from ``n`` nodes to the ``N`` voxel centres of an axis.
+
+    :func:`axis_weights_at` at ``0, 1, ..., N - 1``.
     """
     pos = torch.arange(N, dtype=torch.float64)
     return axis_weights_at(pos, n, N, order, cell_centred).to(dtype=dtype, device=device)
@@ -249,6 +255,8 @@ def offset_texture(offsets, volume_shape, order: str = "linear") -> torch.Tensor
         ``(B, 3, D, H, W)``, same dtype as ``offsets``.
 
     Example:
+        >>> import torch
+        >>> from torchdeform.volume import offset_texture
         >>> u = offset_texture(torch.ones(3, 2, 2, 2), (4, 5, 6))
         >>> tuple(u.shape), float(u.min()), float(u.max())
         ((1, 3, 4, 5, 6), 1.0, 1.0)
@@ -272,6 +280,8 @@ class DisplacementField:
         cell_centred: Knoche's node placement (see the module docstring).
 
     Example:
+        >>> import torch
+        >>> from torchdeform.volume import DisplacementField
         >>> f = DisplacementField(torch.ones(3, 3, 3, 3), (9, 9, 9))
         >>> f.at(torch.zeros(1, 3, 2)).tolist()
         [[[1.0, 1.0], [1.0, 1.0], [1.0, 1.0]]]
@@ -286,6 +296,7 @@ class DisplacementField:
 
     @property
     def node_shape(self) -> tuple:
+        """The node grid ``(n_d, n_h, n_w)``."""
         return tuple(self.nodes.shape[2:])
 
     def dense(self) -> torch.Tensor:
@@ -331,6 +342,8 @@ def inverse_points(field: DisplacementField, points: torch.Tensor, iters: int = 
     Args:
         field: the :class:`DisplacementField`.
         points: ``(B or 1, 3, *S)`` voxel coordinates.
+        iters: at most this many fixed-point iterations after the first-order guess (0: none).
+        tol: stop once the largest update is below this (voxels).
 
     Returns:
         ``(X (B, 3, *S), info)`` with ``info = {"iterations": k, "update": last max update}``.
@@ -370,6 +383,8 @@ def jacobian_determinant(field: torch.Tensor, spacing=(1.0, 1.0, 1.0)) -> torch.
         ``(B, D, H, W)``.
 
     Example:
+        >>> import torch
+        >>> from torchdeform.volume import identity_points, jacobian_determinant
         >>> A = torch.tensor([[0.1, 0, 0], [0, -0.2, 0], [0, 0, 0.0]])
         >>> p = identity_points((4, 4, 4))
         >>> u = torch.einsum("ij,bjdhw->bidhw", A, p)
@@ -394,6 +409,8 @@ def folding_fraction(offsets, volume_shape, order: str = "linear", samples=None)
     trilinear field), and differentiated there.
 
     Example:
+        >>> import torch
+        >>> from torchdeform.volume import folding_fraction
         >>> folding_fraction(torch.zeros(3, 5, 5, 5), (32, 32, 32))
         0.0
     """
@@ -444,8 +461,8 @@ def warp(volume, offsets, mode: str = "deform", *, inverse_iters: int = 0, tol: 
         volume: ``(D, H, W)`` or ``(B, C, D, H, W)``; integer volumes become float32.
         offsets: ``(3, n_d, n_h, n_w)`` or ``(B, 3, n_d, n_h, n_w)`` in voxels, channels ``(D, H, W)``.
         mode: ``"deform"``, ``"carve"`` or ``"knoche"`` (module docstring).
-        inverse_iters, tol: fixed-point inverse iterations (``deform`` and ``carve``) and their
-            stopping tolerance in voxels.
+        inverse_iters: fixed-point inverse iterations (``deform`` and ``carve``; 0: first order).
+        tol: stopping tolerance of the inverse iterations, in voxels.
         order: ``"linear"`` or ``"bspline"`` offset texture (``deform``, ``carve``).
         padding: ``"border"`` or ``"zeros"`` (value ``fill`` outside the volume).
         fill: background value (also what ``carve`` leaves where material was removed).
@@ -464,6 +481,8 @@ def warp(volume, offsets, mode: str = "deform", *, inverse_iters: int = 0, tol: 
             mode, order or padding.
 
     Example:
+        >>> import torch
+        >>> from torchdeform.volume import warp
         >>> vol = torch.zeros(9, 9, 9); vol[2, 4, 4] = 1.0
         >>> offsets = torch.zeros(3, 3, 3, 3); offsets[0] = 3.0      # move 3 voxels along +D
         >>> int(warp(vol, offsets).argmax()) == 5 * 81 + 4 * 9 + 4
@@ -529,7 +548,8 @@ def node_offsets(x: torch.Tensor, X: torch.Tensor, spacing, volume_shape) -> tor
     centre ``(0, 0, 0)``, the last node at the last voxel centre.
 
     Args:
-        x, X: deformed and rest positions ``(B, 3, n_d, n_h, n_w)`` (m).
+        x: deformed positions ``(B, 3, n_d, n_h, n_w)`` (m).
+        X: rest positions ``(B, 3, n_d, n_h, n_w)`` (m).
         spacing: node spacing ``(sd, sh, sw)`` (m).
         volume_shape: ``(D, H, W)`` voxels.
 

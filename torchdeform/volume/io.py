@@ -7,9 +7,9 @@ same array. ``phantom`` (optionally ``phantom:N``) names the procedural phantom 
 :mod:`torchdeform.volume.phantoms` instead of a file.
 
 Example:
-    >>> import numpy as np, tempfile, os
+    >>> import numpy as np
     >>> from torchdeform.volume.io import load_volume, save_volume
-    >>> path = os.path.join(tempfile.mkdtemp(), "v.npy")
+    >>> path = getfixture("tmp_path") / "v.npy"
     >>> save_volume(path, np.zeros((4, 5, 6), np.float32))
     >>> load_volume(path).shape
     (4, 5, 6)

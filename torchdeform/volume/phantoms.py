@@ -18,7 +18,7 @@ Gaussian noise (``noise`` HU, default 8) is added inside the body only, so the a
 exactly -1000 (empty-space tests can rely on it). Deterministic for a given ``seed``.
 
 Example:
-    >>> from torchdeform.phantom import phantom
+    >>> from torchdeform.volume import phantom
     >>> v = phantom((32, 32, 32))
     >>> tuple(v.shape), float(v.min()), float(v.max()) > 700
     ((32, 32, 32), -1000.0, True)
@@ -59,6 +59,7 @@ def phantom(shape=(128, 128, 128), noise: float = 8.0, seed: int = 0, dtype=torc
         shape: voxels ``(D, H, W)``, each >= 8.
         noise: standard deviation (HU) of the Gaussian noise inside the body.
         seed: noise seed.
+        dtype: floating-point dtype of the result.
     """
     try:
         shape = tuple(int(n) for n in shape)

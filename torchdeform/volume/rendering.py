@@ -37,7 +37,7 @@ samples can only read values of zero extinction.
 
 Example:
     >>> import torch
-    >>> from torchdeform.render import render, TransferFunction
+    >>> from torchdeform.volume import render
     >>> vol = torch.zeros(8, 8, 8); vol[4, 4, 4] = 1000.0
     >>> img = render(vol, mode="mip", view="d")
     >>> tuple(img.shape), float(img.max())
@@ -77,6 +77,8 @@ class TransferFunction:
     entries.
 
     Example:
+        >>> import torch
+        >>> from torchdeform.volume import TransferFunction
         >>> tf = TransferFunction([0.0, 100.0], [[0, 0, 0], [1, 1, 1]], [0.0, 2.0])
         >>> rgb, s = tf(torch.tensor([50.0]))
         >>> [round(float(c), 3) for c in rgb[0]], round(float(s[0]), 3)
@@ -139,6 +141,7 @@ class TransferFunction:
         return out[:3].movedim(0, -1), out[3]
 
     def to(self, dtype) -> "TransferFunction":
+        """A copy with colours and extinctions in ``dtype`` (the control values stay float64)."""
         return TransferFunction(self.values, self.colors.to(dtype), self.sigma.to(dtype), self.relative,
                                 self.resolution, self.name)
 
@@ -348,7 +351,9 @@ def render(volume, tf=None, mode: str = "dvr", view="d", *, offsets=None, warp_m
         warp_mode: ``"deform"`` or ``"knoche"`` lookup of the offsets.
         inverse_iters: fixed-point inverse iterations (0: first order ``p - u(p)``).
         order: ``"linear"`` or ``"bspline"`` offset texture.
-        padding, fill: volume lookups outside the volume (as :func:`~torchdeform.volume.warp`).
+        padding: volume lookups outside the volume, ``"border"`` or ``"zeros"`` (as
+            :func:`~torchdeform.volume.warp`).
+        fill: the value outside the volume with ``padding="zeros"``.
         step: sample spacing along the rays in voxels (axis views: rounded so that a whole
             number of samples covers the volume).
         size: image ``(h, w)`` for axis views (default: the volume's own two axes).
@@ -368,11 +373,22 @@ def render(volume, tf=None, mode: str = "dvr", view="d", *, offsets=None, warp_m
         ``dvr``: ``(B, 4, h, w)`` premultiplied RGB + alpha; ``mip``/``average``: ``(B, 1, h, w)``.
 
     Example:
+        >>> import math
+        >>> import torch
+        >>> from torchdeform.volume import TransferFunction, render
         >>> vol = torch.full((10, 4, 4), 500.0)
         >>> tf = TransferFunction([0, 1000], [[1, 1, 1], [1, 1, 1]], [0.1, 0.1])
         >>> img = render(vol, tf, "dvr", "d", stop=0)
         >>> abs(float(img[0, 3, 0, 0]) - (1 - math.exp(-0.1 * 10))) < 1e-5
         True
+
+        Through node offsets: a bright voxel moved 2 voxels along +W shows up 2 pixels further on.
+
+        >>> vol = torch.zeros(16, 16, 16); vol[8, 8, 4] = 1000.0
+        >>> offsets = torch.zeros(3, 3, 3, 3); offsets[2] = 2.0
+        >>> img = render(vol, mode="mip", view="d", offsets=offsets)
+        >>> divmod(int(img[0, 0].argmax()), 16)
+        (8, 6)
     """
     vol, _ = as_volume(volume)
     if vol.shape[1] != 1:
@@ -535,9 +551,11 @@ class RenderCompileWarning(UserWarning):
 
 
 def _axis_terms(pos, N: int, padding: str):
-    """Per-axis trilinear terms at voxel coordinates ``pos``: corner indices ``(j0, j1)`` (int32,
-    inside ``[0, N - 1]``) and weights ``(w0, w1)``; ``zeros`` padding zeroes the weight of a
-    corner outside the volume (grid_sample ``align_corners=True`` semantics).
+    """Per-axis trilinear terms at voxel coordinates ``pos``.
+
+    Corner indices ``(j0, j1)`` (int32, inside ``[0, N - 1]``) and weights ``(w0, w1)``; ``zeros``
+    padding zeroes the weight of a corner outside the volume (grid_sample ``align_corners=True``
+    semantics).
     """
     if N == 1:
         zero = torch.zeros_like(pos, dtype=torch.int32)
@@ -571,12 +589,15 @@ def trilinear_flat(v: torch.Tensor, X, shape, padding: str = "border", fill: flo
         v: the volume's flat contiguous view ``(D * H * W,)``.
         X: three broadcastable tensors, voxel coordinates along ``D``, ``H``, ``W``.
         shape: ``(D, H, W)``.
-        padding, fill: ``"border"`` (clamp) or ``"zeros"`` (``fill`` outside).
+        padding: ``"border"`` (clamp) or ``"zeros"`` (``fill`` outside).
+        fill: the value outside the volume with ``padding="zeros"``.
 
     Returns:
         the samples, shape of ``X[0] + X[1] + X[2]``.
 
     Example:
+        >>> import torch
+        >>> from torchdeform.volume import trilinear_flat
         >>> vol = torch.arange(27.0).reshape(3, 3, 3)
         >>> X = [torch.tensor([1.0]), torch.tensor([0.5]), torch.tensor([2.0])]
         >>> float(trilinear_flat(vol.reshape(-1), X, (3, 3, 3)))
@@ -681,8 +702,9 @@ class _FastAxis:
 
 
 def _fast_chunk_fn(spec: _FastAxis, engine: str):
-    """The chunk function of ``spec``: eager, or compiled once (cached per spec; eager fallback with
-    one warning line when compilation is unavailable).
+    """The chunk function of ``spec``: eager, or compiled once.
+
+    Cached per spec; eager fallback with one warning line when compilation is unavailable.
     """
     if engine == "eager":
         return spec.chunk
@@ -745,8 +767,10 @@ _SLAB_MAX: dict = {}
 
 
 def _slab_max(v: torch.Tensor, others) -> torch.Tensor:
-    """Largest voxel value of each slab across ``others`` (cached for the last volume: a frame loop
-    renders one volume many times; the key includes the tensor's version counter).
+    """Largest voxel value of each slab across ``others``.
+
+    Cached for the last volume: a frame loop renders one volume many times; the key includes the
+    tensor's version counter.
     """
     key = (v.data_ptr(), v._version, tuple(v.shape), v.dtype, tuple(others))
     if key not in _SLAB_MAX:
@@ -757,8 +781,10 @@ def _slab_max(v: torch.Tensor, others) -> torch.Tensor:
 
 def _render_axis_fast(vol, field, tf, mode, view, padding, fill, step, size, stop, chunk_points, lo, hi, table,
                       engine):
-    """:func:`render` of an axis view through the offsets, by :class:`_FastAxis` chunks (``engine``
-    ``"eager"`` or ``"compiled"``); returns ``(image, info)`` with ``info`` the chunks run/skipped.
+    """:func:`render` of an axis view through the offsets, by :class:`_FastAxis` chunks.
+
+    ``engine`` is ``"eager"`` or ``"compiled"``; returns ``(image, info)`` with ``info`` the chunks
+    run/skipped.
     """
     shape = tuple(vol.shape[2:])
     dtype, device = vol.dtype, vol.device

@@ -10,7 +10,6 @@ Oracles written here, sharing no code with ``torchdeform.chainmail``:
 """
 from __future__ import annotations
 
-import json
 import math
 
 import numpy as np
@@ -18,7 +17,6 @@ import pytest
 import torch
 
 import torchdeform as td
-from torchdeform import cli
 from torchdeform.chainmail import (
     BlockedMoveError,
     ChainMail,
@@ -396,59 +394,3 @@ def test_bad_input_gives_one_clear_error(make, message):
     g = td.Grid((4, 3, 3), spacing=1.0)
     with pytest.raises(ConfigError, match=message):
         make(g)
-
-
-# ------------------------------------------------------------------ command and scene
-def test_bench_chainmail_quick_json(capsys, tmp_path):
-    rc = cli.main(["bench", "chainmail", "--quick", "--json", "--out", str(tmp_path)])
-    assert rc == 0
-    doc = json.loads(capsys.readouterr().out)
-    assert doc["bench"] == "chainmail"
-    rows = doc["rows"]
-    assert {r["variant"] for r in rows} == {"gibson", "enhanced", "tensor"}
-    for r in rows:
-        assert {"grid", "moved", "variant", "ms"} <= set(r) and r["ms"] > 0 and r["moved"] > 0
-    tensor = [r for r in rows if r["variant"] == "tensor"]
-    assert all(r["sweeps"] >= r["depth"] for r in tensor)
-    assert (tmp_path / "chainmail.csv").is_file() and (tmp_path / "chainmail.png").is_file()
-
-
-SCENE = """\
-model = "chainmail"
-
-[grid]
-shape = [10, 8, 8]
-spacing = 0.001
-
-[chainmail]
-method = "enhanced"
-compression = 0.8
-stretch = 1.2
-shear = 0.2
-frames = 6
-relax_steps = 2
-
-[boundary]
-fixed = "bottom"
-
-[[drags]]
-nodes = [[9, 4, 4]]
-path = [[0.0, [0.0, 0.0, 0.0]], [1.0, [0.0015, 0.001, 0.0]]]
-"""
-
-
-def test_chainmail_scene_runs(tmp_path):
-    path = tmp_path / "pull.toml"
-    path.write_text(SCENE)
-    scene = td.load_scene(path)
-    summary = td.run_scene(scene, tmp_path / "out", progress=False)
-    data = np.load(tmp_path / "out" / "trajectory.npz")
-    assert data["x"].shape == (7, 3, 10, 8, 8)
-    np.testing.assert_allclose(data["x"][-1][:, 9, 4, 4] - data["X"][:, 9, 4, 4], [0.0015, 0.001, 0.0], atol=1e-9)
-    assert summary["max_violation_m"] <= 1e-12 and summary["frames"] == 7 and summary["blocked_frames"] == 0
-    assert np.all(data["x"][:, :, 0] == data["X"][None, :, 0])                  # the fixed bottom stays
-    assert (tmp_path / "out" / "summary.json").is_file() and (tmp_path / "out" / "energy.png").is_file()
-    bad = tmp_path / "bad.toml"
-    bad.write_text(SCENE.replace("shear = 0.2", "shear = -0.2"))
-    with pytest.raises(ConfigError, match=r"bad.toml:\d+: chainmail.shear"):
-        td.load_scene(bad)

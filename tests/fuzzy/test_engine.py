@@ -5,7 +5,7 @@ Oracles (none of them produced by torchdeform):
 * ``skfuzzy.control`` (scikit-fuzzy 0.5): 200 seeded random Mamdani systems and the tipping
   problem of its tutorial, all five defuzzifiers; min AND, max OR, min implication, max
   aggregation (its fixed choices);
-* a numpy Mamdani evaluation (``fuzzy_oracle.numpy_aggregate``) for product implication, sum
+* a numpy Mamdani evaluation (``tests.oracles.fuzzy.numpy_aggregate``) for product implication, sum
   and probabilistic-OR aggregation, product AND and probabilistic-OR OR, and hedges,
   defuzzified by ``skfuzzy.defuzz``;
 * ``skfuzzy.membership`` for every membership function; REFERENCE.md 3.4 for the hedges,
@@ -13,7 +13,7 @@ Oracles (none of them produced by torchdeform):
 * finite differences (``torch.autograd.gradcheck``) for gradients.
 
 Tolerance: 1e-3 of the output range (REFERENCE.md 3.5), from both engines' grids: the
-torchdeform systems here use 3000 cells (``fuzzy_oracle.TORCH_RES``; its midpoints contain the
+torchdeform systems here use 3000 cells (``tests.oracles.fuzzy.TORCH_RES``; its midpoints contain the
 odd points of the 2001-point scikit-fuzzy universes, where all term corners and peaks sit), so
 the first/last maximum is located to ``range / 3000`` by torchdeform and to ``range / 2000`` by
 scikit-fuzzy. At the default 1000 cells the first/last maximum alone can be off by a whole
@@ -22,7 +22,7 @@ cell, ``1e-3`` of the range.
 Counted and skipped, never silently: outputs where no rule fires (scikit-fuzzy drops them;
 torchdeform must return the default, checked), firing below 1e-9 (scikit-fuzzy's centroid
 divides by max(area, 2.2e-16)), and for mom/som/lom maxima that are ambiguous at the engines'
-precision (``fuzzy_oracle.ambiguous_maximum``). mom over several separate maxima (exact ties) is
+precision (``tests.oracles.fuzzy.ambiguous_maximum``). mom over several separate maxima (exact ties) is
 compared with the length-weighted mean of the maximising stretches instead of scikit-fuzzy's
 point average, with the cell-counting error of the torchdeform grid added to the tolerance.
 """
@@ -39,7 +39,11 @@ import numpy as np
 import pytest
 import skfuzzy as fuzz
 import torch
-from fuzzy_oracle import (
+from skfuzzy import control as ctrl
+from skfuzzy.control.controlsystem import CrispValueCalculator
+from torch.func import functional_call
+
+from tests.oracles.fuzzy import (
     TORCH_RES,
     ambiguous_maximum,
     build_skfuzzy,
@@ -54,10 +58,6 @@ from fuzzy_oracle import (
     skfuzzy_outputs,
     top_stretches,
 )
-from skfuzzy import control as ctrl
-from skfuzzy.control.controlsystem import CrispValueCalculator
-from torch.func import functional_call
-
 from torchdeform.errors import ConfigError, NoRuleFiredError, TorchdeformError
 from torchdeform.fuzzy import (
     Bell,

@@ -24,7 +24,7 @@ if sys.version_info >= (3, 11):
 else:
     import tomli as tomllib
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 FUZZY = REPO / "fuzzy"
 
 # ---------------------------------------------------------------- the published data (thesis appendix C)

@@ -10,9 +10,9 @@ import sys
 import numpy as np
 import pytest
 import torch
-from conftest import EdgeList
 
 import torchdeform as td
+from tests.oracles.edge_list import EdgeList
 from torchdeform.bench import warp_baseline as bench_warp
 from torchdeform.bench.common import speed_cube
 

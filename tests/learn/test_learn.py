@@ -15,7 +15,7 @@ import torch
 from torchdeform import fuzzy, learn
 from torchdeform.errors import ConfigError
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(autouse=True)

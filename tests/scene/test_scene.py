@@ -17,7 +17,7 @@ import torchdeform as td
 from torchdeform import ConfigError, cli
 from torchdeform.scene import Scene, demo_scene, load_scene, run_scene
 
-SCENES = Path(__file__).resolve().parents[1] / "scenes"
+SCENES = Path(__file__).resolve().parents[2] / "scenes"
 
 TINY = """
 [grid]

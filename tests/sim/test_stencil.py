@@ -1,6 +1,6 @@
 """The spring operator against a plain edge list.
 
-Oracle: :class:`conftest.EdgeList`, which lists every spring of the grid from the node
+Oracle: :class:`tests.oracles.edge_list.EdgeList`, which lists every spring of the grid from the node
 coordinates (every node, every neighbour offset) and computes differences, forces (Hookean,
 projected and unprojected damping), energies and stiffness matrices spring by spring in numpy.
 The conv3d reference (``difference_conv`` / ``adjoint_conv`` / ``spring_forces_conv``) and the
@@ -12,9 +12,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from conftest import EdgeList
 
 import torchdeform as td
+from tests.oracles.edge_list import EdgeList
 from torchdeform.sim import springs
 
 TOPOLOGIES = (6, 14, 18, 26)

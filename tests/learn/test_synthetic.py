@@ -1,4 +1,4 @@
-"""Synthetic series (torchdeform.data): spring sets, dynamics against a plain edge-list
+"""Synthetic series (torchdeform.learn.synthetic): spring sets, dynamics against a plain edge-list
 simulation, loads, noise, partial observation, files and their validation."""
 import itertools
 import json

@@ -1,7 +1,8 @@
-"""Elastic relaxation of a ChainMail deformation: red-black projected Jacobi steps of the offsets
-towards the centroid of the neighbours' offsets (Knoche) or towards Gibson's goal positions,
-within the limits; never raises :func:`relax_energy`, the Dirichlet energy
-``1/2 sum |u_j - u_i - b_ij|^2`` of the offsets.
+"""Elastic relaxation of a ChainMail deformation.
+
+Red-black projected Jacobi steps of the offsets towards the centroid of the neighbours' offsets
+(Knoche) or towards Gibson's goal positions, within the limits; never raises
+:func:`relax_energy`, the Dirichlet energy ``1/2 sum |u_j - u_i - b_ij|^2`` of the offsets.
 """
 from __future__ import annotations
 
@@ -16,8 +17,10 @@ __all__ = ["relax", "relax_energy", "crease_measure"]
 
 
 def _goal_shift(grid: Grid, limits: Limits | None, mode: str, dtype, device):
-    """Per axis, the goal offset difference along the link: 0 (centroid) or the middle of
-    ``[min, max]`` minus the spacing (Gibson's goal), ``(3,)`` or ``(3, D, H, W)``.
+    """Per axis, the goal offset difference along the link.
+
+    0 (centroid) or the middle of ``[min, max]`` minus the spacing (Gibson's goal), ``(3,)`` or
+    ``(3, D, H, W)``.
     """
     if mode == "centroid" or limits is None:
         return None
@@ -27,8 +30,9 @@ def _goal_shift(grid: Grid, limits: Limits | None, mode: str, dtype, device):
 
 
 def _goal_vector(goal, s: int, src, like: torch.Tensor) -> torch.Tensor:
-    """The goal offset difference of the links of half-direction ``s`` as a vector field
-    broadcasting against ``like`` ``(B, 3, *region)``: ``goal_s`` on channel ``s``, 0 elsewhere.
+    """The goal offset difference of the links of half-direction ``s`` as a vector field.
+
+    It broadcasts against ``like`` ``(B, 3, *region)``: ``goal_s`` on channel ``s``, 0 elsewhere.
     """
     g = _link_values(goal, s, src)
     g = g.expand(like.shape[2:]) if g.dim() else g.expand(like.shape[2:]).clone()
@@ -38,8 +42,9 @@ def _goal_vector(goal, s: int, src, like: torch.Tensor) -> torch.Tensor:
 
 
 def _residual(u, grid6: Grid, goal):
-    """``sum_j (u_j - u_i - b_ij)`` over existing face neighbours ``(B, 3, D, H, W)``, and the
-    neighbour counts ``(1, 1, D, H, W)``.
+    """``sum_j (u_j - u_i - b_ij)`` over existing face neighbours ``(B, 3, D, H, W)``.
+
+    Returned with the neighbour counts ``(1, 1, D, H, W)``.
     """
     masks = grid6.spring_mask(u.device)
 
@@ -58,10 +63,12 @@ def _residual(u, grid6: Grid, goal):
 
 def relax_energy(positions: torch.Tensor, grid: Grid, limits: Limits | None = None, mode: str = "centroid",
                  offsets: bool = False) -> torch.Tensor:
-    """The energy relaxation lowers, ``(B,)``: ``E(u) = 1/2 sum_links |u_j - u_i - b_ij|^2`` over
-    the face-neighbour links, with ``u = x - X``. ``b = 0`` for ``mode="centroid"`` (the
-    Dirichlet energy of the offsets, REFERENCE 2.4), ``b_ij = (goal_a - h_a) e_a`` for
-    ``mode="goal"`` (zero-length springs to Gibson's goal distance ``goal_a = (min_a + max_a) / 2``).
+    """The energy relaxation lowers, ``(B,)``.
+
+    ``E(u) = 1/2 sum_links |u_j - u_i - b_ij|^2`` over the face-neighbour links, with
+    ``u = x - X``. ``b = 0`` for ``mode="centroid"`` (the Dirichlet energy of the offsets,
+    REFERENCE 2.4), ``b_ij = (goal_a - h_a) e_a`` for ``mode="goal"`` (zero-length springs to
+    Gibson's goal distance ``goal_a = (min_a + max_a) / 2``).
     """
     if mode not in RELAX_MODES:
         raise ConfigError("mode", '"centroid" or "goal"', mode)
@@ -80,8 +87,10 @@ def relax_energy(positions: torch.Tensor, grid: Grid, limits: Limits | None = No
 
 
 def crease_measure(positions: torch.Tensor, grid: Grid, free=None, offsets: bool = False) -> torch.Tensor:
-    """Straight-line artefact measure, ``(B,)`` in m^2: ``sum_i |c_i - u_i|^2`` over the free
-    elements, where ``c_i`` is the centroid of the offsets of ``i``'s face neighbours.
+    """Straight-line artefact measure, ``(B,)`` in m^2.
+
+    ``sum_i |c_i - u_i|^2`` over the free elements, where ``c_i`` is the centroid of the offsets
+    of ``i``'s face neighbours.
 
     ChainMail leaves piecewise-linear offsets whose straight segments meet at creases (the
     straight lines running out from the pulled element); along a straight segment the offset
@@ -90,7 +99,9 @@ def crease_measure(positions: torch.Tensor, grid: Grid, free=None, offsets: bool
 
     Args:
         positions: ``(B, 3, D, H, W)`` positions (or offsets with ``offsets=True``).
+        grid: the grid.
         free: bool ``(D, H, W)`` elements to include (default: all existing elements).
+        offsets: ``positions`` are offsets ``u = x - X``.
     """
     u = positions if offsets else positions - grid.rest_positions(positions.dtype, positions.device)
     u = u if u.dim() == 5 else u.unsqueeze(0)
@@ -120,13 +131,15 @@ def relax(positions: torch.Tensor, grid: Grid, limits: Limits, steps: int = 1, m
 
     Args:
         positions: ``(B, 3, D, H, W)`` positions (or offsets with ``offsets=True``), inside the limits.
-        grid, limits: grid and :class:`Limits`.
+        grid: the grid.
+        limits: the :class:`Limits`.
         steps: relaxation steps (>= 0).
         mode: ``"centroid"`` (Knoche) or ``"goal"`` (Gibson's goal positions: the middle of each
             link's ``[min, max]``; the same as the centroid when that middle is the spacing).
         free: bool ``(D, H, W)`` or ``(B, D, H, W)`` of elements that may move (default all;
             exclude fixed and picked elements, or pass the elements ChainMail moved).
         omega: relaxation factor in ``(0, 2)`` (1: straight to the target).
+        offsets: ``positions`` are offsets ``u = x - X`` (and so is the result).
 
     Returns:
         ``(positions, energies)``: the relaxed positions (offsets with ``offsets=True``), same
@@ -134,6 +147,9 @@ def relax(positions: torch.Tensor, grid: Grid, limits: Limits, steps: int = 1, m
         ``steps + 1`` floats.
 
     Example:
+        >>> import torch
+        >>> from torchdeform.chainmail import ChainMail, Limits, relax
+        >>> from torchdeform.sim.grid import Grid
         >>> g = Grid((9, 9, 9), spacing=1.0)
         >>> cm = ChainMail(g, Limits.from_material(g, 0.7, 1.3, 0.3))
         >>> r = cm.move([(4, 4, 4)], (2.0, 0.0, 0.0))

@@ -1,4 +1,4 @@
-"""Independent oracles for the Mamdani engine tests (``test_fuzzy_engine.py``).
+"""Independent oracles for the Mamdani engine tests (``tests/fuzzy/test_engine.py``).
 
 Nothing here calls the inference code of torchdeform. Systems are described by plain
 dataclasses (:class:`SystemSpec`) from which three things are built:

@@ -12,7 +12,7 @@ Oracles used here (none of them produced by torchdeform):
 * Knoche's Cg shader transcribed literally (loop over nodes) and REFERENCE.md section 1.3;
 * finite differences (``torch.autograd.gradcheck``) for gradients.
 
-The edge-list helpers live in ``conftest.py``.
+The edge-list helpers live in ``tests/oracles/edge_list.py``.
 """
 from __future__ import annotations
 
@@ -23,10 +23,10 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 import torch
-from conftest import EdgeList
 from scipy.integrate import solve_ivp
 
 import torchdeform as td
+from tests.oracles.edge_list import EdgeList
 
 F64 = torch.float64
 

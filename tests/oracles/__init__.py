@@ -1,0 +1,7 @@
+"""Independent test oracles, sharing no code with the parts of torchdeform that they check.
+
+* :mod:`tests.oracles.edge_list`: every spring of a grid listed one by one (forces, energies,
+  Hessians and damping matrices in plain numpy);
+* :mod:`tests.oracles.fuzzy`: Mamdani systems described as plain data, built in scikit-fuzzy and
+  evaluated in numpy.
+"""

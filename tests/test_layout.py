@@ -1,0 +1,182 @@
+"""Package layout: the import graph of torchdeform, read from the source with ``ast``.
+
+* the module import graph (every ``import`` statement, also those inside functions) is acyclic;
+* no module imports a ``_private`` name (or a ``_private`` module) from another subpackage
+  (subpackage = the first component below ``torchdeform``; each top-level module is its own;
+  ``torchdeform._compile`` is the shared ground floor, importable everywhere, though the
+  underscore names inside it are still private);
+* ``import torchdeform`` and building the CLI parser load none of the heavy optional libraries.
+
+Imports by computed name (``importlib.import_module`` in the bench registry) are not seen here.
+"""
+from __future__ import annotations
+
+import ast
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PKG = ROOT / "torchdeform"
+GROUND_FLOOR = "torchdeform._compile"
+HEAVY = ("matplotlib", "trimesh", "scipy", "warp", "nibabel", "nrrd", "skfuzzy")
+
+
+# ------------------------------------------------------------------ the graph
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+MODULES = {_module_name(p): p for p in sorted(PKG.rglob("*.py")) if "__pycache__" not in p.parts}
+
+
+def _is_package(name: str) -> bool:
+    return MODULES[name].name == "__init__.py"
+
+
+def _resolve(importer: str, level: int, module: str | None) -> str:
+    """The absolute module of ``from <level dots><module> import ...`` written in ``importer``."""
+    if level == 0:
+        return module or ""
+    package = importer.split(".") if _is_package(importer) else importer.split(".")[:-1]
+    if level - 1 >= len(package):
+        raise AssertionError(f"{importer}: relative import beyond the top-level package")
+    base = package[:len(package) - (level - 1)]
+    return ".".join(base + ([module] if module else []))
+
+
+def _ours(name: str) -> bool:
+    return name == "torchdeform" or name.startswith("torchdeform.")
+
+
+def imports_of(name: str):
+    """``(target module, imported name or None, line)`` for every torchdeform import in ``name``.
+
+    ``from .x import y`` gives ``(x.y, None)`` when ``y`` is a submodule, else ``(x, "y")``."""
+    tree = ast.parse(MODULES[name].read_text(), filename=str(MODULES[name]))
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                if _ours(alias.name):
+                    yield alias.name, None, node.lineno
+        elif isinstance(node, ast.ImportFrom):
+            base = _resolve(name, node.level, node.module)
+            if not _ours(base):
+                continue
+            for alias in node.names:
+                sub = f"{base}.{alias.name}"
+                if sub in MODULES:
+                    yield sub, None, node.lineno
+                else:
+                    yield base, alias.name, node.lineno
+
+
+IMPORTS = {name: list(imports_of(name)) for name in MODULES}
+GRAPH = {name: sorted({target for target, _, _ in found}) for name, found in IMPORTS.items()}
+
+
+def find_cycle(graph: dict) -> list | None:
+    """One cycle ``[a, b, ..., a]`` of a directed graph ``{node: [successors]}``, or ``None``."""
+    colour = dict.fromkeys(graph, 0)                    # 0 unseen, 1 on the current path, 2 done
+    path = []
+
+    def visit(node):
+        colour[node] = 1
+        path.append(node)
+        for nxt in graph.get(node, ()):
+            if colour.get(nxt, 0) == 1:
+                return path[path.index(nxt):] + [nxt]
+            if colour.get(nxt, 0) == 0:
+                found = visit(nxt)
+                if found:
+                    return found
+        colour[node] = 2
+        path.pop()
+        return None
+
+    for start in sorted(graph):
+        if colour[start] == 0:
+            found = visit(start)
+            if found:
+                return found
+    return None
+
+
+def group(module: str) -> str:
+    """The subpackage of a module (``sim``, ``learn``, ...), or the top-level module itself."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else parts[0]
+
+
+def _private(name: str) -> bool:
+    return name.startswith("_") and not name.startswith("__")
+
+
+def private_imports() -> list:
+    """Every import of a private name or private module across subpackages, as readable lines."""
+    bad = []
+    for importer, found in IMPORTS.items():
+        for target, name, line in found:
+            if group(importer) == group(target):
+                continue
+            where = f"{MODULES[importer].relative_to(ROOT)}:{line}"
+            if target != GROUND_FLOOR and any(_private(p) for p in target.split(".")[1:]):
+                bad.append(f"{where}: {importer} imports the private module {target}")
+            if name is not None and _private(name):
+                bad.append(f"{where}: {importer} imports the private name {target}.{name}")
+    return bad
+
+
+# ------------------------------------------------------------------ tests
+def test_graph_sees_the_package():
+    assert {"torchdeform", "torchdeform.sim", "torchdeform.sim.springs", "torchdeform.cli", GROUND_FLOOR} <= set(MODULES)
+    assert "torchdeform.sim" in GRAPH["torchdeform"]
+    unknown = [(m, t) for m, found in IMPORTS.items() for t, _, _ in found if t not in MODULES]
+    assert not unknown, f"imports that resolve to no module of the package: {unknown}"
+
+
+def test_relative_import_resolution():
+    assert _resolve("torchdeform.sim.model", 1, "springs") == "torchdeform.sim.springs"
+    assert _resolve("torchdeform.sim.model", 2, "errors") == "torchdeform.errors"
+    assert _resolve("torchdeform.sim", 1, "grid") == "torchdeform.sim.grid"
+    assert _resolve("torchdeform.sim", 2, None) == "torchdeform"
+    assert _resolve("torchdeform.cli", 1, None) == "torchdeform"
+
+
+def test_cycle_finder_finds_cycles():
+    assert find_cycle({"a": ["b"], "b": ["c"], "c": []}) is None
+    assert find_cycle({"a": ["b"], "b": ["c"], "c": ["a"]}) == ["a", "b", "c", "a"]
+    assert find_cycle({"a": ["a"]}) == ["a", "a"]
+
+
+def test_import_graph_is_acyclic():
+    cycle = find_cycle(GRAPH)
+    assert cycle is None, "import cycle: " + " -> ".join(cycle)
+
+
+def test_no_private_imports_across_subpackages():
+    assert group("torchdeform.sim.springs") == "sim" and group("torchdeform.mesh") == "mesh"
+    bad = private_imports()
+    assert not bad, "private imports across subpackages:\n" + "\n".join(bad)
+
+
+def _loaded_heavy(statement: str) -> list:
+    code = (f"import json, sys\n{statement}\n"
+            f"print(json.dumps(sorted(m for m in sys.modules if m.split('.')[0] in {HEAVY!r})))")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert res.returncode == 0, res.stderr
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.parametrize("statement", ["import torchdeform",
+                                       "from torchdeform.cli import build_parser; build_parser()"])
+def test_heavy_libraries_are_not_loaded(statement):
+    assert _loaded_heavy(statement) == []
+
+
+def test_heavy_library_check_can_fail():
+    assert "scipy" in _loaded_heavy("import scipy")
