@@ -18,6 +18,16 @@ and the compiled fast path.
 
 Imports point downwards in that order; :mod:`.compiled` is imported only by code that asks for
 the fast path.
+
+Examples:
+    >>> import torch
+    >>> from torchdeform import sim
+    >>> grid = sim.Grid((4, 4, 4), spacing=0.01, topology=18)
+    >>> model = sim.Model(grid, stiffness=10.0, damping=0.01, mass=1e-3, fixed=grid.face("bottom"),
+    ...                   loads=[sim.PointForce((3, 1, 1), (-0.01, 0.0, 0.0), ramp=0.05)])
+    >>> state = sim.SymplecticEuler().step(model, model.rest_state(), dt=1e-3)
+    >>> state.x.shape, state.t
+    (torch.Size([1, 3, 4, 4, 4]), 0.001)
 """
 from .forces import Drag, FieldForce, PointForce, SurfaceForce
 from .grid import Grid
