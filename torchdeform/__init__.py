@@ -4,7 +4,8 @@ Mass-spring bodies on regular 3-D grids whose springs are convolution stencils, 
 integrators from explicit Euler to implicit Euler, stability bounds and scene files
 (:mod:`torchdeform.sim`, :mod:`torchdeform.scene`); ChainMail (:mod:`torchdeform.chainmail`),
 fuzzy tissue parameters (:mod:`torchdeform.fuzzy`), learning from time series
-(:mod:`torchdeform.learn`) and volume deformation and rendering (:mod:`torchdeform.volume`).
+(:mod:`torchdeform.learn`), volume deformation and rendering (:mod:`torchdeform.volume`) and tools
+in contact with the tissue (:mod:`torchdeform.interact`).
 Benchmarks (:mod:`torchdeform.bench`) are a command, ``torchdeform bench``.
 
 Examples:
@@ -16,7 +17,7 @@ Examples:
     >>> bool(state.x[0, 0, -1].mean() < model.X[0, 0, -1].mean())        # it sags under gravity
     True
 """
-from . import chainmail, learn, scene, sim, volume
+from . import chainmail, interact, learn, scene, sim, volume
 from .chainmail import ChainMail, Limits, limit_violation, tensor_chainmail
 from .errors import ConfigError, DivergenceError, StabilityWarning, TorchdeformError
 from .scene import Scene, demo_scene, load_scene, run_scene
@@ -57,5 +58,5 @@ __all__ = [
     "lumped_mass", "DivergenceMonitor", "gershgorin_omega2", "power_omega2", "suggest_dt", "check_dt",
     "time_step_bound", "Scene", "demo_scene", "load_scene", "run_scene",
     "ChainMail", "Limits", "limit_violation", "tensor_chainmail", "warp", "render",
-    "sim", "chainmail", "learn", "volume", "scene",
+    "sim", "chainmail", "learn", "volume", "scene", "interact",
 ]

@@ -97,10 +97,12 @@ class Integrator:
 
     @staticmethod
     def finish(model: Model, state: State, x, v, dt: float) -> State:
-        """End of a step: dragged nodes onto their path at ``t + dt``, then global drag."""
+        """End of a step: dragged nodes onto their path at ``t + dt``, contacts, then global drag."""
         t1 = state.t + dt
         if model.drags:
             x, v = model.constrain(x, v, t1)
+        for contact in model.contacts:
+            x, v = contact.project(model, x, v, t1, dt)
         if model.decay is not None:
             v = v * math.exp(-model.decay * dt)
         return State(x, v, t1)
