@@ -133,7 +133,7 @@ def test_body_dropped_on_a_floor_never_gains_energy():
     grid = td.Grid((2, 2, 2), spacing=0.01, topology=26)
     floor = Tool(HalfSpace((1.0, 0.0, 0.0)), position=(-0.02, 0.0, 0.0))   # 2 cm below the body
     model = td.Model(grid, stiffness=50.0, mass=1e-3, gravity=(-9.81, 0.0, 0.0),
-                     contacts=[ProjectionContact(floor)], dtype=torch.float64)
+                     interactions=[ProjectionContact(floor)], dtype=torch.float64)
     state = model.rest_state()
     e0 = _energy(model, state)
     energies, lowest = [], []
@@ -156,7 +156,7 @@ def test_incline_sticks_below_the_friction_angle_and_slides_above(ratio):
     floor = Tool(HalfSpace(normal), position=(0.0, 0.0, 0.0))          # the node rests on the plane
     g = 9.81
     model = td.Model(grid, stiffness=1.0, mass=1e-3, gravity=(-g, 0.0, 0.0),
-                     contacts=[ProjectionContact(floor, friction=mu)], dtype=torch.float64)
+                     interactions=[ProjectionContact(floor, friction=mu)], dtype=torch.float64)
     state, _ = td.simulate(model, model.rest_state(), dt=1e-4, steps=2000)      # 0.2 s
     downhill = torch.tensor([-math.sin(theta), math.cos(theta), 0.0], dtype=torch.float64)
     s = float((state.x[0, :, 0, 0, 0] * downhill).sum())
@@ -176,7 +176,7 @@ def test_penalty_contact_gradcheck_stiffness_and_tool_position():
     def forces(k, centre):
         tool = Tool(Sphere(0.008), position=lambda t: centre)
         contact = PenaltyContact(tool, stiffness=k, damping=0.0)
-        model = td.Model(grid, stiffness=5.0, mass=1e-3, contacts=[contact], dtype=torch.float64)
+        model = td.Model(grid, stiffness=5.0, mass=1e-3, interactions=[contact], dtype=torch.float64)
         x = X + 0.001
         state = td.SymplecticEuler().step(model, td.State(x, torch.zeros_like(x)), 1e-3)
         return state.x
@@ -193,7 +193,7 @@ def test_packed_layout_gives_the_same_contact_step():
     probe = Tool(Sphere(0.012), path=[(0.0, (0.045, 0.02, 0.01)), (0.01, (0.035, 0.02, 0.01))])
     floor = Tool(HalfSpace((1.0, 0.0, 0.0)), position=(-0.001, 0.0, 0.0))
     model = td.Model(grid, stiffness=30.0, damping=0.02, mass=1e-3, gravity=(-9.81, 0, 0),
-                     contacts=[ProjectionContact([probe, floor], friction=0.3),
+                     interactions=[ProjectionContact([probe, floor], friction=0.3),
                                PenaltyContact(probe, stiffness=5.0, damping=0.01)], dtype=torch.float64)
     pm = PackedModel(model)
     state, packed = model.rest_state(), pm.rest_state()
@@ -216,7 +216,7 @@ def test_packed_layout_gives_the_same_contact_step():
     (lambda: Tool("sphere", position=(0, 0, 0)), "tool.shape"),
     (lambda: ProjectionContact(Tool(Sphere(0.1), position=(0, 0, 0)), friction=-1.0), "contact.friction"),
     (lambda: PenaltyContact(Tool(Sphere(0.1), position=(0, 0, 0)), stiffness=0.0), "contact.stiffness"),
-    (lambda: td.Model(td.Grid((2, 2, 2), 0.01), stiffness=1.0, mass=1.0, contacts=[object()]), "contacts"),
+    (lambda: td.Model(td.Grid((2, 2, 2), 0.01), stiffness=1.0, mass=1.0, interactions=[object()]), "interactions"),
 ])
 def test_bad_tool_input_is_one_clear_error(make, key):
     with pytest.raises(ConfigError) as e:

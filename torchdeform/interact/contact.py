@@ -1,7 +1,7 @@
 """Contact between tools and tissue: projection after the step, or a smooth penalty force.
 
 Both are contact responses a :class:`~torchdeform.sim.model.Model` takes through
-``Model(..., contacts=[...])``; the model knows them only by two methods, so the mass-spring core
+``Model(..., interactions=[...])``; the model knows them only by two methods, so the mass-spring core
 does not import this package:
 
 * ``project(model, x, v, t, dt) -> (x, v)``, called by every integrator at the end of a step
@@ -28,7 +28,7 @@ Examples:
     >>> grid = td.Grid((2, 2, 2), spacing=0.01)
     >>> floor = Tool(HalfSpace((1.0, 0.0, 0.0)), position=(-0.001, 0.0, 0.0))   # 1 mm below the body
     >>> model = td.Model(grid, stiffness=10.0, mass=1e-3, gravity=(-9.81, 0, 0),
-    ...                  contacts=[ProjectionContact([floor])], dtype=torch.float64)
+    ...                  interactions=[ProjectionContact([floor])], dtype=torch.float64)
     >>> state, _ = td.simulate(model, model.rest_state(), dt=1e-3, steps=300)
     >>> bool(state.x[:, 0].min() >= -0.001 - 1e-12)                 # nothing sinks through the floor
     True

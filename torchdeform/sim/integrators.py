@@ -97,11 +97,14 @@ class Integrator:
 
     @staticmethod
     def finish(model: Model, state: State, x, v, dt: float) -> State:
-        """End of a step: dragged nodes onto their path at ``t + dt``, contacts, then global drag."""
+        """End of a step: dragged nodes onto their path, interactions, then global drag.
+
+        Interactions (tool contact, strain limits) see the time ``t + dt``.
+        """
         t1 = state.t + dt
         if model.drags:
             x, v = model.constrain(x, v, t1)
-        for contact in model.contacts:
+        for contact in model.interactions:
             x, v = contact.project(model, x, v, t1, dt)
         if model.decay is not None:
             v = v * math.exp(-model.decay * dt)

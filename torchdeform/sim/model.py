@@ -153,9 +153,9 @@ class Model:
         decay: global drag rate c (1/s): ``v <- v exp(-c dt)`` after every step, or None.
         loads: list of :class:`~torchdeform.sim.forces.PointForce`, ``SurfaceForce`` or
             ``FieldForce``, or None.
-        contacts: contact responses with ``project(model, x, v, t, dt)`` (applied at the end of
-            every step) and ``force(model, x, v, t)`` (added to the forces), e.g.
-            :class:`torchdeform.interact.ProjectionContact`; or None.
+        interactions: objects with ``project(model, x, v, t, dt) -> (x, v)`` (applied at the end
+            of every step) and ``force(model, x, v, t)`` (added to the forces, or None): tool
+            contact, strain limiting (:mod:`torchdeform.interact`); or None.
         spring_mask: optional bool ``(S, D, H, W)`` of springs that exist (e.g. after a cut).
         dtype: of every tensor of the model.
         device: of every tensor of the model.
@@ -175,7 +175,7 @@ class Model:
 
     def __init__(self, grid: Grid, stiffness, damping=None, *, damping_mode="projected", normalize=False,
                  mass=None, density=None, gravity=None, fixed=None, drags=None, home=None, anchors=None,
-                 decay=None, loads=None, contacts=None, spring_mask=None, dtype=torch.float32, device=None):
+                 decay=None, loads=None, interactions=None, spring_mask=None, dtype=torch.float32, device=None):
         self.grid, self.dtype, self.device = grid, dtype, torch.device(device or "cpu")
         dev = self.device
         if damping_mode not in ("projected", "unprojected"):
@@ -256,12 +256,12 @@ class Model:
             raise ConfigError("decay", "a rate >= 0 (1/s)", decay)
         self.decay = None if not decay else float(decay)
         self.loads = [(ld, ld.dense(grid, dtype, dev)) for ld in (loads or [])]
-        for c in contacts or []:
+        for c in interactions or []:
             if not (callable(getattr(c, "project", None)) and callable(getattr(c, "force", None))):
-                raise ConfigError("contacts", "contact responses with project() and force() "
+                raise ConfigError("interactions", "interactions with project() and force() "
                                               "(torchdeform.interact.ProjectionContact, PenaltyContact)",
                                   type(c).__name__)
-        self.contacts = list(contacts or [])
+        self.interactions = list(interactions or [])
 
     # --------------------------------------------------------------- states
     def rest_state(self, batch: int = 1) -> State:
@@ -311,7 +311,7 @@ class Model:
             F = F + ext
         if loads is not None:
             F = F + (loads(t) if callable(loads) else loads)
-        for contact in self.contacts:
+        for contact in self.interactions:
             f = contact.force(self, x, v, t)
             if f is not None:
                 F = F + f

@@ -1,0 +1,110 @@
+"""Strain limiting (torchdeform.interact.StrainLimit) against a plain edge-list Jacobi pass.
+
+The oracle lists every spring from the node coordinates (tests.oracles.edge_list), computes each
+violating spring's correction in numpy and averages per node, so it shares nothing with the
+stencil code but the rule itself (Provot's averaged corrections, REFERENCE §6.3).
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import torchdeform as td
+from tests.oracles.edge_list import EdgeList
+from torchdeform.errors import ConfigError
+from torchdeform.interact import StrainLimit
+from torchdeform.sim.packed import PackedModel
+
+
+def oracle_pass(edges: EdgeList, x: np.ndarray, free: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """One averaged Jacobi pass over the listed springs; ``x`` ``(N, 3)``, ``free`` ``(N,)`` bool."""
+    total, count = np.zeros_like(x), np.zeros(len(x))
+    for (a, b, _), l0 in zip(edges.springs, edges.l0):
+        d = x[b] - x[a]
+        length = np.linalg.norm(d)
+        excess = length - min(max(length, lo * l0), hi * l0)
+        if excess == 0:
+            continue
+        wa, wb = float(free[a]), float(free[b])
+        if wa + wb == 0:
+            continue
+        step = excess * d / length / (wa + wb)
+        total[a] += wa * step
+        total[b] -= wb * step
+        count[a] += wa
+        count[b] += wb
+    return x + total / np.maximum(count, 1)[:, None]
+
+
+def _stretched(shape=(3, 4, 3), topology=18, seed=0):
+    grid = td.Grid(shape, spacing=(0.01, 0.012, 0.01), topology=topology)
+    model = td.Model(grid, stiffness=1.0, mass=1e-3, fixed=grid.face("bottom"), dtype=torch.float64)
+    g = torch.Generator().manual_seed(seed)
+    x = model.X * torch.tensor([1.6, 1.0, 0.7], dtype=torch.float64).view(1, 3, 1, 1, 1)   # stretch D, squeeze W
+    x = x + 1e-3 * torch.randn(x.shape, generator=g, dtype=torch.float64)
+    x = torch.where(model.constrained[None, None], model.X, x)                              # fixed nodes at rest
+    return grid, model, x
+
+
+@pytest.mark.parametrize("topology", [6, 18, 26])
+def test_one_pass_equals_the_edge_list_oracle(topology):
+    grid, model, x = _stretched(topology=topology)
+    edges = EdgeList(grid.shape, grid.spacing, topology)
+    free = ~edges.from_field(model.constrained[None].expand(3, *grid.shape).numpy())[:, 0].astype(bool)
+    want = oracle_pass(edges, edges.from_field(x[0]), free, 0.9, 1.1)
+    got, _ = StrainLimit(0.9, 1.1, passes=1, update_velocity=False).project(model, x, torch.zeros_like(x), 0.0, 1e-3)
+    assert np.abs(edges.from_field(got[0]) - want).max() < 1e-15
+
+
+def test_passes_bring_every_spring_within_its_bounds():
+    grid, model, x = _stretched(topology=26)
+    edges = EdgeList(grid.shape, grid.spacing, 26)
+
+    def worst(xx):
+        p = edges.from_field(xx[0])
+        ratio = np.linalg.norm(p[edges.b] - p[edges.a], axis=1) / edges.l0
+        return max(ratio.max() - 1.1, 0.9 - ratio.min(), 0.0)
+
+    assert worst(x) > 0.4
+    limit = StrainLimit(0.9, 1.1, passes=300, update_velocity=False)
+    x1, _ = limit.project(model, x, torch.zeros_like(x), 0.0, 1e-3)
+    assert worst(x1) < 1e-6
+    assert torch.equal(x1[:, :, 0], x[:, :, 0])                                   # fixed nodes stay
+
+
+def test_no_op_within_bounds_and_velocity_follows():
+    grid = td.Grid((3, 3, 3), spacing=0.01, topology=26)
+    model = td.Model(grid, stiffness=1.0, mass=1e-3, dtype=torch.float64)
+    g = torch.Generator().manual_seed(1)
+    x = model.X + 2e-4 * torch.randn(model.X.shape, generator=g, dtype=torch.float64)   # < 4 % strain
+    v = torch.randn(x.shape, generator=g, dtype=torch.float64)
+    x1, v1 = StrainLimit(0.9, 1.1, passes=3).project(model, x, v, 0.0, 1e-3)
+    assert torch.equal(x1, x) and torch.equal(v1, v)
+    _, model2, xs = _stretched()
+    x2, v2 = StrainLimit(0.9, 1.1, passes=2).project(model2, xs, torch.zeros_like(xs), 0.0, 1e-3)
+    assert torch.allclose(v2, (x2 - xs) / 1e-3, rtol=0, atol=1e-12)
+
+
+def test_in_a_simulation_and_bad_input():
+    grid = td.Grid((4, 3, 3), spacing=0.01, topology=26)
+    pull = td.Drag(grid.face("top"), [(0.0, (0, 0, 0)), (0.01, (0.004, 0, 0))])     # 4 mm up in 10 ms
+    edges = EdgeList(grid.shape, grid.spacing, 26)
+
+    def largest_ratio(interactions):
+        model = td.Model(grid, stiffness=0.5, mass=1e-3, fixed=grid.face("bottom"), drags=[pull],
+                         interactions=interactions, dtype=torch.float64)
+        state, _ = td.simulate(model, model.rest_state(), dt=1e-3, steps=10)
+        p = edges.from_field(state.x[0])
+        return (np.linalg.norm(p[edges.b] - p[edges.a], axis=1) / edges.l0).max(), model
+
+    free_ratio, _ = largest_ratio(None)
+    limited_ratio, model = largest_ratio([StrainLimit(0.9, 1.2, passes=200)])
+    assert free_ratio > 1.3 and limited_ratio < 1.2 + 1e-6          # the soft springs would stretch far more
+    with pytest.raises(ConfigError, match="compiled"):
+        StrainLimit().project(PackedModel(model), model.X, model.X, 0.0, 1e-3)
+    for kwargs, key in (({"min_ratio": 1.2}, "strain_limit"), ({"passes": 0}, "strain_limit.passes"),
+                        ({"max_ratio": -1.0}, "strain_limit.max_ratio")):
+        with pytest.raises(ConfigError) as e:
+            StrainLimit(**kwargs)
+        assert e.value.key == key
