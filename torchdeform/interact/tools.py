@@ -29,7 +29,7 @@ import math
 import torch
 
 from ..errors import ConfigError
-from ..sim.forces import as_vec3
+from ..sim.forces import Waypoints, as_vec3
 
 __all__ = ["Shape", "Sphere", "Capsule", "Box", "HalfSpace", "Tool", "SHAPES"]
 
@@ -210,14 +210,9 @@ class Tool:
         if (path is None) == (position is None):
             raise ConfigError("tool", "exactly one of path (waypoints) or position (fixed or callable)",
                               "both" if path is not None else "neither")
-        self.shape, self.name, self._fn = shape, name, None
+        self.shape, self.name, self._fn, self._path = shape, name, None, None
         if path is not None:
-            if not path:
-                raise ConfigError("tool.path", "at least one waypoint [t, [pd, ph, pw]]", path)
-            times = [float(p[0]) for p in path]
-            if any(b <= a for a, b in zip(times, times[1:])):
-                raise ConfigError("tool.path", "waypoint times strictly increasing", times)
-            self._t, self._p = times, [as_vec3(p[1], "tool.path position") for p in path]
+            self._path = Waypoints(path, "tool.path")
         elif callable(position):
             self._fn = position
         else:
@@ -225,26 +220,14 @@ class Tool:
 
     def move_to(self, position) -> None:
         """Set a fixed position ``(3,)`` m (a device loop calls this before each step)."""
-        self._t, self._p, self._fn = [0.0], [as_vec3(position, "tool.position")], None
+        self._path, self._fn = Waypoints([(0.0, as_vec3(position, "tool.position"))], "tool.position"), None
 
     def position(self, t):
         """Position at time ``t``: a tuple for a float ``t``, a tensor ``(3,)`` for a 0-d tensor."""
         if self._fn is not None:
             p = self._fn(t)
             return p if torch.is_tensor(p) or not torch.is_tensor(t) else t.new_tensor(p)
-        ts, ps = self._t, self._p
-        if torch.is_tensor(t):
-            p = t.new_tensor(ps[0])
-            for (t0, p0), (t1, p1) in zip(zip(ts, ps), zip(ts[1:], ps[1:])):
-                p = p + ((t - t0) / (t1 - t0)).clamp(0.0, 1.0) * t.new_tensor([b - a for a, b in zip(p0, p1)])
-            return p
-        if t <= ts[0]:
-            return ps[0]
-        for (t0, p0), (t1, p1) in zip(zip(ts, ps), zip(ts[1:], ps[1:])):
-            if t <= t1:
-                a = (t - t0) / (t1 - t0)
-                return tuple(u + a * (w - u) for u, w in zip(p0, p1))
-        return ps[-1]
+        return self._path.at(t)
 
     def velocity(self, t, dt: float = 1e-6):
         """Velocity ``(3,)`` m/s at ``t``.
@@ -256,17 +239,7 @@ class Tool:
             if torch.is_tensor(a):
                 return (b - a) / (2 * dt)
             return tuple((q - p) / (2 * dt) for p, q in zip(a, b))
-        ts, ps = self._t, self._p
-        if torch.is_tensor(t):
-            vel = t.new_zeros(3)
-            for (t0, p0), (t1, p1) in zip(zip(ts, ps), zip(ts[1:], ps[1:])):
-                inside = ((t >= t0) & (t < t1)).to(t.dtype)
-                vel = vel + inside * t.new_tensor([(b - a) / (t1 - t0) for a, b in zip(p0, p1)])
-            return vel
-        for (t0, p0), (t1, p1) in zip(zip(ts, ps), zip(ts[1:], ps[1:])):
-            if t0 <= t < t1:
-                return tuple((b - a) / (t1 - t0) for a, b in zip(p0, p1))
-        return (0.0, 0.0, 0.0)
+        return self._path.rate(t)
 
     def sdf(self, x: torch.Tensor, t) -> tuple[torch.Tensor, torch.Tensor]:
         """Signed distance ``(B, 1, ...)`` and outward normal ``(B, 3, ...)`` of nodes ``x`` at time ``t``.

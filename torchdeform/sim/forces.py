@@ -31,7 +31,7 @@ import torch
 from ..errors import ConfigError
 from .grid import FACES, Grid
 
-__all__ = ["PointForce", "SurfaceForce", "FieldForce", "Drag", "home_force", "profile_factor", "as_vec3"]
+__all__ = ["PointForce", "SurfaceForce", "FieldForce", "Drag", "Waypoints", "home_force", "profile_factor", "as_vec3"]
 
 
 def as_vec3(value, key) -> tuple:
@@ -210,6 +210,65 @@ class FieldForce(_Timed):
         return f.to(dtype=dtype, device=device).unsqueeze(0)
 
 
+class Waypoints:
+    """A piecewise-linear path of 3-vectors through waypoints ``[(t, (a, b, c)), ...]``.
+
+    Held at the first value before the first time and at the last after the last; evaluated at a
+    float (tuples), a 0-d tensor (tensors, without branches: the form compiled code uses) or an
+    array of times (``(T, 3)`` numpy). Drags (offsets) and tools (positions) share it.
+
+    Args:
+        path: waypoints with strictly increasing times (s).
+        key: the name errors use (``"drag.path"``, ``"tool.path"``).
+
+    Examples:
+        >>> w = Waypoints([(0.0, (0.0, 0.0, 0.0)), (2.0, (2.0, 0.0, -4.0))])
+        >>> w.at(0.5), w.rate(0.5), w.at(3.0)
+        ((0.5, 0.0, -1.0), (1.0, 0.0, -2.0), (2.0, 0.0, -4.0))
+    """
+
+    def __init__(self, path, key: str = "path"):
+        if not path:
+            raise ConfigError(key, "at least one waypoint [t, [a, b, c]]", path)
+        times = [float(p[0]) for p in path]
+        if any(b <= a for a, b in zip(times, times[1:])):
+            raise ConfigError(key, "waypoint times strictly increasing", times)
+        self.times, self.values = times, [as_vec3(p[1], f"{key} value") for p in path]
+
+    def at(self, t):
+        """The value at time ``t`` (a tuple, a tensor ``(3,)`` or an array ``(T, 3)``)."""
+        ts, os_ = self.times, self.values
+        if torch.is_tensor(t):
+            o = t.new_tensor(os_[0])
+            for (t0, o0), (t1, o1) in zip(zip(ts, os_), zip(ts[1:], os_[1:])):
+                o = o + ((t - t0) / (t1 - t0)).clamp(0.0, 1.0) * t.new_tensor([q - p for p, q in zip(o0, o1)])
+            return o
+        if not isinstance(t, (int, float)):
+            t = np.asarray(t, dtype=np.float64)
+            return np.stack([np.interp(t, ts, [o[c] for o in os_]) for c in range(3)], -1)
+        if t <= ts[0]:
+            return os_[0]
+        for (t0, o0), (t1, o1) in zip(zip(ts, os_), zip(ts[1:], os_[1:])):
+            if t <= t1:
+                a = (t - t0) / (t1 - t0)
+                return tuple(p + a * (q - p) for p, q in zip(o0, o1))
+        return os_[-1]
+
+    def rate(self, t):
+        """The rate of change at ``t`` (of the segment entered at ``t``; zero outside the path)."""
+        ts, os_ = self.times, self.values
+        if torch.is_tensor(t):
+            vel = t.new_zeros(3)
+            for (t0, o0), (t1, o1) in zip(zip(ts, os_), zip(ts[1:], os_[1:])):
+                inside = ((t >= t0) & (t < t1)).to(t.dtype)
+                vel = vel + inside * t.new_tensor([(q - p) / (t1 - t0) for p, q in zip(o0, o1)])
+            return vel
+        for (t0, o0), (t1, o1) in zip(zip(ts, os_), zip(ts[1:], os_[1:])):
+            if t0 <= t < t1:
+                return tuple((q - p) / (t1 - t0) for p, q in zip(o0, o1))
+        return (0.0, 0.0, 0.0)
+
+
 @dataclass
 class Drag(_Timed):
     """Prescribed rigid translation of a group of nodes.
@@ -251,15 +310,7 @@ class Drag(_Timed):
             raise ConfigError("drag", "exactly one of path (waypoints) or offset (with a time profile)",
                               "both" if path is not None else "neither")
         _timing(start, ramp, period, "drag")
-        if path is None:
-            return
-        if not path:
-            raise ConfigError("drag.path", "at least one waypoint [t, [od, oh, ow]]", path)
-        times = [float(p[0]) for p in path]
-        if any(b <= a for a, b in zip(times, times[1:])):
-            raise ConfigError("drag.path", "waypoint times strictly increasing", times)
-        self._t = times
-        self._o = [as_vec3(p[1], "drag.path offset") for p in path]
+        self._path = None if path is None else Waypoints(path, "drag.path")
 
     def mask(self) -> torch.Tensor:
         """The dragged nodes as a bool tensor ``(D, H, W)``."""
@@ -278,22 +329,7 @@ class Drag(_Timed):
             if isinstance(t, (int, float)):
                 return tuple(c * f for c in o)
             return f[:, None] * np.asarray(o)[None]
-        ts, os_ = self._t, self._o
-        if torch.is_tensor(t):
-            o = t.new_tensor(os_[0])
-            for (t0, o0), (t1, o1) in zip(zip(ts, os_), zip(ts[1:], os_[1:])):
-                o = o + ((t - t0) / (t1 - t0)).clamp(0.0, 1.0) * t.new_tensor([q - p for p, q in zip(o0, o1)])
-            return o
-        if not isinstance(t, (int, float)):
-            t = np.asarray(t, dtype=np.float64)
-            return np.stack([np.interp(t, ts, [o[c] for o in os_]) for c in range(3)], -1)
-        if t <= ts[0]:
-            return os_[0]
-        for (t0, o0), (t1, o1) in zip(zip(ts, os_), zip(ts[1:], os_[1:])):
-            if t <= t1:
-                a = (t - t0) / (t1 - t0)
-                return tuple(p + a * (q - p) for p, q in zip(o0, o1))
-        return os_[-1]
+        return self._path.at(t)
 
     def velocity(self, t):
         """Velocity ``(3,)`` at time ``t`` (for a path: of the segment entered at ``t``).
@@ -302,17 +338,7 @@ class Drag(_Timed):
         """
         if self.path is None:
             return self._profile_velocity(t)
-        ts, os_ = self._t, self._o
-        if torch.is_tensor(t):
-            vel = t.new_zeros(3)
-            for (t0, o0), (t1, o1) in zip(zip(ts, os_), zip(ts[1:], os_[1:])):
-                inside = ((t >= t0) & (t < t1)).to(t.dtype)
-                vel = vel + inside * t.new_tensor([(q - p) / (t1 - t0) for p, q in zip(o0, o1)])
-            return vel
-        for (t0, o0), (t1, o1) in zip(zip(ts, os_), zip(ts[1:], os_[1:])):
-            if t0 <= t < t1:
-                return tuple((q - p) / (t1 - t0) for p, q in zip(o0, o1))
-        return (0.0, 0.0, 0.0)
+        return self._path.rate(t)
 
     def _profile_velocity(self, t):
         """Time derivative of ``offset * factor(t)`` (the ramp's slope on ``[start, start + ramp)``)."""
