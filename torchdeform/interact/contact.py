@@ -98,6 +98,9 @@ class ProjectionContact:
         """
         free = model.free
         for tool in self.tools:
+            # each tool reads the state many times: under torch.compile it is stored once first,
+            # or every read would recompute the step and the tools before (compile time explodes)
+            x, v = model.keep(x), model.keep(v)
             d, n = tool.sdf(x, t)
             inside = d < 0
             if free is not None:

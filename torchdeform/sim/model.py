@@ -281,6 +281,14 @@ class Model:
             v = torch.where(m, vel.expand_as(v), v)
         return x, v
 
+    def keep(self, field: torch.Tensor) -> torch.Tensor:
+        """A field that many operations will read: identity here.
+
+        The packed model of the compiled step stores it in memory instead of letting each read
+        recompute it.
+        """
+        return field
+
     # --------------------------------------------------------------- forces
     def external(self, t):
         """Sum of point and surface loads at time ``t``, ``(1, 3, D, H, W)``, or None."""

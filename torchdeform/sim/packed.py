@@ -145,6 +145,10 @@ class PackedModel(Model):
         #: view of this model bound to its own context (:meth:`traced`)
         self.trace = TraceContext()
 
+    def keep(self, field: torch.Tensor) -> torch.Tensor:
+        """``field`` stored in memory under ``torch.compile`` (see :meth:`TraceContext.keep`)."""
+        return self.trace.keep(field)
+
     def traced(self, ctx: TraceContext) -> "PackedModel":
         """A view of this model (same tensors) whose kernels follow the compile-time context ``ctx``.
 
