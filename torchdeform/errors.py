@@ -5,7 +5,10 @@ wrong (file, key, parameter, node or step) and what was expected.
 """
 from __future__ import annotations
 
-__all__ = ["TorchdeformError", "ConfigError", "DivergenceError", "NoRuleFiredError", "StabilityWarning"]
+import math
+
+__all__ = ["TorchdeformError", "ConfigError", "DivergenceError", "NoRuleFiredError", "StabilityWarning",
+           "positive_number"]
 
 
 class TorchdeformError(Exception):
@@ -97,3 +100,23 @@ class StabilityWarning(UserWarning):
         >>> caught[0].category is td.StabilityWarning, issubclass(td.StabilityWarning, UserWarning)
         (True, True)
     """
+
+
+def positive_number(value, key: str, expected: str = "a positive number") -> float:
+    """``value`` as a positive, finite float, or a :class:`ConfigError` naming ``key``.
+
+    Examples:
+        >>> positive_number("0.5", "radius")
+        0.5
+        >>> positive_number(-1, "radius", "a positive number of metres")
+        Traceback (most recent call last):
+        ...
+        torchdeform.errors.ConfigError: radius: expected a positive number of metres, got -1
+    """
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(key, expected, value) from None
+    if not math.isfinite(v) or v <= 0:
+        raise ConfigError(key, expected, value)
+    return v

@@ -28,20 +28,10 @@ import math
 
 import torch
 
-from ..errors import ConfigError
+from ..errors import ConfigError, positive_number
 from ..sim.forces import Waypoints, as_vec3
 
 __all__ = ["Shape", "Sphere", "Capsule", "Box", "HalfSpace", "Tool", "SHAPES"]
-
-
-def _positive(value, key) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ConfigError(key, "a positive number of metres", value) from None
-    if not math.isfinite(v) or v <= 0:
-        raise ConfigError(key, "a positive number of metres", value)
-    return v
 
 
 def _unit(p: torch.Tensor, fallback: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -74,7 +64,7 @@ class Sphere(Shape):
     """
 
     def __init__(self, radius: float):
-        self.radius = _positive(radius, "sphere.radius")
+        self.radius = positive_number(radius, "sphere.radius", "a positive number of metres")
 
     def sdf(self, p):
         """Signed distance and outward normal (see :meth:`Shape.sdf`)."""
@@ -101,7 +91,7 @@ class Capsule(Shape):
     """
 
     def __init__(self, radius: float, half_length: float, axis: int = 2):
-        self.radius = _positive(radius, "capsule.radius")
+        self.radius = positive_number(radius, "capsule.radius", "a positive number of metres")
         try:
             self.half_length = float(half_length)
         except (TypeError, ValueError):

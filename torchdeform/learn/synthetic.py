@@ -29,12 +29,10 @@ Example:
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 
-from ..errors import ConfigError
+from ..errors import ConfigError, positive_number
 from ..sim.forces import Drag, FieldForce, PointForce
 from ..sim.grid import Grid
 from .parameters import expand_spring_param
@@ -165,7 +163,7 @@ def radetzky_cube(springs: int = 70, stiffness=10.0, damping=0.1, mass=0.01, for
         a :class:`Series`.
     """
     grid, smask = cube_grid(3, spacing, springs)
-    s = Series(np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool), _pos(dt, "dt"), grid,
+    s = Series(np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool), positive_number(dt, "dt"), grid,
                None if smask is None else smask.numpy(), grid.face("bottom").numpy(),
                [PointForce((2, 1, 1), tuple(float(c) for c in force))], damping_mode=damping_mode,
                meta={"generator": "radetzky_cube", "springs": springs, "steps": int(steps),
@@ -173,16 +171,6 @@ def radetzky_cube(springs: int = 70, stiffness=10.0, damping=0.1, mass=0.01, for
                                     f"constant force {tuple(force)} N on the top-centre node",
                      "truth": _truth_meta(stiffness, damping, mass)})
     return _finish(s, stiffness, damping, mass, noise, every, observe, seed, steps)
-
-
-def _pos(v, key) -> float:
-    try:
-        v = float(v)
-    except (TypeError, ValueError):
-        raise ConfigError(key, "a positive number", v) from None
-    if not math.isfinite(v) or v <= 0:
-        raise ConfigError(key, "a positive number", v)
-    return v
 
 
 def _finish(s: Series, stiffness, damping, mass, noise, every, observe, seed, steps) -> Series:
@@ -265,7 +253,8 @@ def cube_series(n: int = 4, topology: int = 26, load: str = "constant", amplitud
     truth = {} if regions is None else {"regions": np.asarray(regions, dtype=np.int64)}
     if regions is not None and tuple(np.shape(regions)) != grid.shape:
         raise ConfigError("regions", f"integer labels of shape {grid.shape}", np.shape(regions))
-    s = Series(np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool), _pos(dt, "dt"), grid, None,
+    s = Series(np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool), positive_number(dt, "dt"), grid,
+               None,
                grid.face("bottom").numpy(), [ld], damping_mode=damping_mode, truth=truth,
                meta={"generator": "cube_series", "n": int(n), "load": load, "steps": int(steps),
                      "description": f"{n}^3 cube, {topology} neighbours, bottom fixed, load {load}",
@@ -311,7 +300,7 @@ def balloon_series(subdivisions: int = 1, radius: float = 0.05, spacing: float |
 
     if mesh is None:
         mesh = trimesh.creation.icosphere(subdivisions=int(subdivisions), radius=float(radius))
-    spacing = float(radius) / 2 if spacing is None else _pos(spacing, "spacing")
+    spacing = float(radius) / 2 if spacing is None else positive_number(spacing, "spacing")
     grid = grid_from_mesh(mesh, spacing, topology=topology)
     vertices, faces = load_mesh(mesh)
     normals = np.asarray(trimesh.Trimesh(vertices, faces, process=False).vertex_normals)
@@ -337,7 +326,8 @@ def balloon_series(subdivisions: int = 1, radius: float = 0.05, spacing: float |
                                                    np.inf)), grid.shape)
     fixed[centre] = True
     ld = FieldForce(field_, ramp=steps * dt)
-    s = Series(np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool), _pos(dt, "dt"), grid, None, fixed,
+    s = Series(np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool), positive_number(dt, "dt"), grid,
+               None, fixed,
                [ld], damping_mode="unprojected",
                meta={"generator": "balloon_series", "steps": steps, "snapshots": int(snapshots),
                      "interval": float(interval), "surface_nodes": int(surface.sum()),

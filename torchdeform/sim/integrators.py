@@ -105,9 +105,7 @@ class Integrator:
         if model.drags:
             x, v = model.constrain(x, v, t1)
         for interaction in model.interactions:
-            # interactions read the new state many times: under torch.compile it is stored once
-            # rather than every read recomputing the step's force sum (and the interactions before)
-            x, v = interaction.project(model, model.keep(x), model.keep(v), t1, dt)
+            x, v = interaction.project(model, x, v, t1, dt)
         if model.decay is not None:
             v = v * math.exp(-model.decay * dt)
         return State(x, v, t1)
