@@ -2,15 +2,16 @@
 
 =====================  ===========================================================================
 :mod:`.tools`          shapes (sphere, capsule, box, half-space) with signed distances, and tools
-                       that move them along a path, by a callable or from Python
-:mod:`.contact`        projection after the step (inelastic, Coulomb friction) and a smooth
-                       penalty force; a model takes them as ``Model(..., interactions=[...])``
+                       whose pose (position, orientation) follows a path, a callable or Python
+:mod:`.meshes`         any closed triangle mesh as a tool shape (a sampled signed distance field)
+:mod:`.reactions`      forces back: each tool's force and torque, supports' reactions
+:mod:`.contact`        projection after the step (normal or along the motion; inelastic, Coulomb
+                       friction, hold against jitter) and a smooth penalty force; a model takes
+                       them as ``Model(..., interactions=[...])``
+:mod:`.grasp`          forceps: nodes in the jaws follow the tool while closed
 :mod:`.strain`         strain limiting: springs pulled back into ``[min, max]`` times their rest
                        length by averaged Jacobi corrections (Provot)
 =====================  ===========================================================================
-
-This is the first part of the interaction issue: grasping, reaction and haptic forces, scene
-sections and the benchmark come next.
 
 Examples:
     >>> import torch
@@ -26,8 +27,10 @@ Examples:
     True
 """
 from .contact import PenaltyContact, ProjectionContact
+from .grasp import Attachment, Grasp
+from .reactions import support_reaction
 from .strain import StrainLimit
 from .tools import SHAPES, Box, Capsule, HalfSpace, Shape, Sphere, Tool
 
 __all__ = ["Tool", "Shape", "Sphere", "Capsule", "Box", "HalfSpace", "SHAPES", "ProjectionContact",
-           "PenaltyContact", "StrainLimit"]
+           "PenaltyContact", "Grasp", "Attachment", "StrainLimit", "support_reaction"]

@@ -4,8 +4,10 @@ Both are contact responses a :class:`~torchdeform.sim.model.Model` takes through
 ``Model(..., interactions=[...])``; the model knows them only by two methods, so the mass-spring core
 does not import this package:
 
-* ``project(model, x, v, t, dt) -> (x, v)``, called by every integrator at the end of a step
-  (after dragged nodes are put on their path), inside the compiled step too;
+* ``project(model, x, v, t, dt, readings) -> (x, v)``, called by every integrator at the end of
+  a step (after dragged nodes are put on their path), inside the compiled step too; it adds what
+  it measured (forces on the tools, :mod:`~torchdeform.interact.reactions`) to the dict
+  ``readings``, which the step returns as ``State.readings``;
 * ``force(model, x, v, t) -> (B, 3, ...) | None``, added to the model's forces.
 
 :class:`ProjectionContact` (Punak eqs. 4-3..4-5): a free node that penetrates a tool
@@ -15,7 +17,8 @@ shrinks by ``mu`` times the removed normal speed (to zero at most: sticking), an
 the step made with the removed tangential speed (``dt`` times it: exact for symplectic Euler,
 ``x1 = x0 + dt v1``) is taken back. A node resting on a floor tilted by ``theta`` therefore stays
 put when ``tan(theta) <= mu`` and slides with acceleration ``g (sin theta - mu cos theta)``
-otherwise.
+otherwise. With ``direction="motion"`` the node goes out along the tool's direction of motion
+instead (Radetzky), and ``hold=True`` keeps touched nodes on the tool until they pull away.
 
 :class:`PenaltyContact`: the force ``k max(-d, 0) n - c min(v_rel . n, 0) n`` on penetrating
 nodes, smooth in the node positions, the stiffness and the tool's position away from contact
@@ -40,7 +43,9 @@ import math
 import torch
 
 from ..errors import ConfigError
-from .tools import Tool
+from .grasp import Attachment
+from .reactions import report, report_momentum
+from .tools import Tool, _field
 
 __all__ = ["ProjectionContact", "PenaltyContact"]
 
@@ -52,8 +57,14 @@ def _tools(tools) -> list:
     return tools
 
 
-def _tool_velocity(tool: Tool, t, like: torch.Tensor) -> torch.Tensor:
-    return torch.as_tensor(tool.velocity(t), dtype=like.dtype, device=like.device).view(1, 3, *[1] * (like.dim() - 2))
+def _number(value, key, expected, low=0.0):
+    if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value) or value < low:
+        raise ConfigError(key, expected, value)
+    return float(value)
+
+
+#: projection directions: the surface normal (Punak) or the tool's direction of motion (Radetzky)
+DIRECTIONS = ("normal", "motion")
 
 
 class ProjectionContact:
@@ -63,6 +74,18 @@ class ProjectionContact:
         tools: a :class:`~torchdeform.interact.tools.Tool` or a list of them (also static
             obstacles: a floor is a tool with a :class:`HalfSpace` shape and a fixed position).
         friction: Coulomb coefficient ``mu >= 0`` (0: frictionless).
+        direction: ``"normal"`` (the nearest surface point, Punak) or ``"motion"`` (along the
+            tool's direction of motion, Radetzky; the normal where the tool stands still or the
+            node is beside it: where the normal and the motion are less than 60 degrees apart).
+        hold: Radetzky's remedy against jitter: a node the tool touched stays fixed to the tool
+            until its velocity relative to the tool points away from it (its force pulls it off).
+            Eager step only.
+        haptic_gain: report Punak's haptic force ``<name>.haptic = -gain * mean(Delta_i)`` (N), the
+            mean push-out ``Delta_i`` of the nodes projected this step, with ``gain`` in N/m
+            (None: not reported).
+
+    Reports ``<name>.force``, ``<name>.torque`` and ``<name>.contacts`` per tool every step (see
+    :mod:`~torchdeform.interact.reactions`).
 
     Examples:
         >>> import torch
@@ -76,17 +99,38 @@ class ProjectionContact:
         ([-0.2, 0.0, 0.0], [0.0, 1.0, 1.0])
     """
 
-    def __init__(self, tools, friction: float = 0.0):
+    def __init__(self, tools, friction: float = 0.0, *, direction: str = "normal", hold: bool = False,
+                 haptic_gain: float | None = None):
         self.tools = _tools(tools)
-        if not isinstance(friction, (int, float)) or not math.isfinite(friction) or friction < 0:
-            raise ConfigError("contact.friction", "a Coulomb coefficient >= 0", friction)
-        self.friction = float(friction)
+        self.friction = _number(friction, "contact.friction", "a Coulomb coefficient >= 0")
+        if direction not in DIRECTIONS:
+            raise ConfigError("contact.direction", " or ".join(DIRECTIONS), direction)
+        self.direction, self.hold = direction, bool(hold)
+        self.haptic_gain = None if haptic_gain is None else _number(haptic_gain, "contact.haptic_gain",
+                                                                    "a gain >= 0 (N/m)")
+        self._held = [Attachment() for _ in self.tools] if self.hold else None
 
     def force(self, model, x, v, t):
         """Projection adds no force."""
         return None
 
-    def project(self, model, x, v, t, dt):
+    def _push_out(self, tool, x, d, n, t, inside):
+        """Penetrating nodes onto the surface: along the normal, or along the tool's motion."""
+        if self.direction == "normal":
+            return torch.where(inside, x - d * n, x)
+        u = _field(tool.velocity(t), x)
+        u = u / u.norm(dim=1, keepdim=True).clamp_min(torch.finfo(x.dtype).tiny)
+        ahead = inside & ((n * u).sum(1, keepdim=True) > 0.5)
+        s = torch.zeros_like(d)
+        for _ in range(4):                  # Newton on sdf(x + s u) = 0 along the motion
+            ds, ns = tool.sdf(x + s * u, t)
+            s = s - ds / (ns * u).sum(1, keepdim=True).clamp_min(0.5)
+        y = x + s * u
+        ds, ns = tool.sdf(y, t)
+        y = y - ds.clamp_max(0) * ns        # what the ray left inside goes along the normal
+        return torch.where(ahead, y, torch.where(inside, x - d * n, x))
+
+    def project(self, model, x, v, t, dt, readings=None):
         """Nodes inside a tool moved to its surface at time ``t``, velocities corrected.
 
         Args:
@@ -95,18 +139,36 @@ class ProjectionContact:
             v: velocities ``(B, 3, ...)``.
             t: the time at the end of the step (a float or a 0-d tensor).
             dt: the step (s): the slip that friction takes back is ``dt`` times the removed speed.
+            readings: the step's readings dict (forces are added to it), or None.
         """
         free = model.free
-        for tool in self.tools:
+        for k, tool in enumerate(self.tools):
             # each tool reads the state many times: under torch.compile it is stored once first,
             # or every read would recompute the step and the tools before (compile time explodes)
             x, v = model.keep(x), model.keep(v)
+            x0, v0 = x, v
+            held = None
+            if self.hold:
+                if torch.is_tensor(t):
+                    raise ConfigError("contact.hold", "the eager step (held nodes are kept in Python)",
+                                      "a compiled step")
+                att = self._held[k]
+                if att.mask is not None:        # release the held nodes whose motion leaves the tool
+                    d, n = tool.sdf(x, t)
+                    leaving = ((v - tool.point_velocity(x, t)) * n).sum(1, keepdim=True) > 0
+                    att.release(leaving)
+                    x, v = att.follow(tool, x, v, t)
+                held = att.mask
             d, n = tool.sdf(x, t)
             inside = d < 0
             if free is not None:
                 inside = inside & (free > 0)
-            x = torch.where(inside, x - d * n, x)
-            vt = _tool_velocity(tool, t, v)
+            if held is not None:
+                inside = inside & ~held
+            x = self._push_out(tool, x, d, n, t, inside)
+            if self.direction != "normal":
+                _, n = tool.sdf(x, t)
+            vt = tool.point_velocity(x, t)
             vr = v - vt
             vn = (vr * n).sum(1, keepdim=True)
             hit = inside & (vn < 0)
@@ -119,6 +181,17 @@ class ProjectionContact:
                 x = torch.where(hit, x - dt * (1 - keep) * tangential, x)
                 tangential = tangential * keep
             v = torch.where(hit, tangential + vt, v)
+            if self.hold:
+                self._held[k].attach(tool, inside, x, t)
+            if readings is not None:
+                c, _ = tool.frame(t, x)
+                report_momentum(readings, tool.name, model.mass, v - v0, x, c, dt)
+                touched = inside if held is None else inside | held
+                report(readings, tool.name, "contacts", touched.flatten(1).sum(1).to(x.dtype))
+                if self.haptic_gain is not None:
+                    n_in = inside.flatten(2).sum(2).to(x.dtype)               # (B, 1)
+                    push = torch.where(inside, x - x0, torch.zeros_like(x)).flatten(2).sum(2)
+                    report(readings, tool.name, "haptic", -self.haptic_gain * push / n_in.clamp_min(1))
         return x, v
 
 
@@ -144,9 +217,7 @@ class PenaltyContact:
         k = stiffness
         if not torch.is_tensor(k) and (not isinstance(k, (int, float)) or not math.isfinite(k) or k <= 0):
             raise ConfigError("contact.stiffness", "a positive number (N/m)", stiffness)
-        if not isinstance(damping, (int, float)) or not math.isfinite(damping) or damping < 0:
-            raise ConfigError("contact.damping", "a number >= 0 (N s/m)", damping)
-        self.stiffness, self.damping = stiffness, float(damping)
+        self.stiffness, self.damping = stiffness, _number(damping, "contact.damping", "a number >= 0 (N s/m)")
 
     def force(self, model, x, v, t):
         """Penalty forces ``(B, 3, ...)`` on the nodes at positions ``x``, velocities ``v``, time ``t``.
@@ -158,16 +229,27 @@ class PenaltyContact:
             t: time (s), a float or a 0-d tensor.
         """
         total = None
+        for f, _ in self._forces(x, v, t):
+            total = f if total is None else total + f
+        return total
+
+    def _forces(self, x, v, t):
+        """``(force field, penetrating mask)`` of each tool."""
         for tool in self.tools:
             d, n = tool.sdf(x, t)
             depth = (-d).clamp_min(0)
             f = self.stiffness * depth * n
             if self.damping > 0:
-                vn = ((v - _tool_velocity(tool, t, v)) * n).sum(1, keepdim=True)
+                vn = ((v - tool.point_velocity(x, t)) * n).sum(1, keepdim=True)
                 f = f - self.damping * vn.clamp_max(0) * (depth > 0) * n
-            total = f if total is None else total + f
-        return total
+            yield f, d < 0
 
-    def project(self, model, x, v, t, dt):
-        """A penalty changes nothing after the step."""
+    def project(self, model, x, v, t, dt, readings=None):
+        """Positions unchanged; reports each tool's force and torque, the penalty at the end of the step."""
+        if readings is not None:
+            for tool, (f, inside) in zip(self.tools, self._forces(x, v, t)):
+                c, _ = tool.frame(t, x)
+                report(readings, tool.name, "force", -f.flatten(2).sum(2))
+                report(readings, tool.name, "torque", -torch.cross(x - c, f, dim=1).flatten(2).sum(2))
+                report(readings, tool.name, "contacts", inside.flatten(1).sum(1).to(x.dtype))
         return x, v

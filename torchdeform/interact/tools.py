@@ -1,10 +1,11 @@
 """Rigid tools: a shape and a pose that changes over time, and their signed distance.
 
-A tool is a :class:`Shape` (sphere, capsule, box, half-space) placed at a position that follows a
-piecewise-linear path of waypoints, a callable ``t -> (3,)``, or a value set from Python before
-each step (:meth:`Tool.move_to`, a device loop). Positions are in metres, channel order
-``(D, H, W)`` as everywhere in torchdeform. This first version translates tools only (no
-orientation); capsules and boxes are aligned with the grid axes.
+A tool is a :class:`Shape` (sphere, capsule, box, half-space, or a closed triangle mesh through
+:class:`~torchdeform.interact.meshes.MeshShape`) with a pose (position and orientation) that
+follows a piecewise-linear path of waypoints, a callable ``t -> (3,)``, or values set from Python
+before each step (:meth:`Tool.move_to`, a device loop). Positions are in metres, channel order
+``(D, H, W)`` as everywhere in torchdeform; orientations are rotation vectors (radians). A pose may
+differ per batch entry (``(B, 3)``).
 
 Every shape answers :meth:`Shape.sdf`: for points ``p`` ``(B, 3, ...)`` in the tool's frame, the
 signed distance ``d`` ``(B, 1, ...)`` (negative inside) and the outward unit normal ``n``
@@ -177,59 +178,148 @@ class HalfSpace(Shape):
 SHAPES = {"sphere": Sphere, "capsule": Capsule, "box": Box, "half_space": HalfSpace}
 
 
+def _rotation_matrix(r: torch.Tensor) -> torch.Tensor:
+    """Rodrigues: rotation vectors ``(..., 3)`` (axis times angle, radians) -> matrices ``(..., 3, 3)``."""
+    theta = r.norm(dim=-1, keepdim=True)[..., None]                 # (..., 1, 1)
+    k = r / theta[..., 0].clamp_min(torch.finfo(r.dtype).tiny)
+    z = torch.zeros_like(k[..., 0])
+    K = torch.stack([z, -k[..., 2], k[..., 1], k[..., 2], z, -k[..., 0], -k[..., 1], k[..., 0], z], -1)
+    K = K.view(*k.shape[:-1], 3, 3)
+    eye = torch.eye(3, dtype=r.dtype, device=r.device).expand_as(K)
+    return eye + torch.sin(theta) * K + (1 - torch.cos(theta)) * (K @ K)
+
+
+def _field(value, like: torch.Tensor) -> torch.Tensor:
+    """A 3-vector ``(3,)`` or one per batch entry ``(B, 3)`` as ``(B|1, 3, 1, ...)`` against fields like ``like``."""
+    t = torch.as_tensor(value, dtype=like.dtype, device=like.device)
+    return t.reshape(-1, 3, *[1] * (like.dim() - 2))
+
+
+def _rotate(R: torch.Tensor, p: torch.Tensor, transpose: bool = False) -> torch.Tensor:
+    """``R p`` (or ``R^T p``) for matrices ``(B|1, 3, 3)`` and fields ``(B|1, 3, ...)``."""
+    q = (R.transpose(-1, -2) if transpose else R) @ p.flatten(2)
+    return q.view(q.shape[0], 3, *p.shape[2:])
+
+
 class Tool:
-    """A shape whose position follows a path, a callable, or values set from Python.
+    """A shape whose pose follows a path, a callable, or values set from Python.
+
+    The pose is a position ``c`` and an orientation ``R``: a point ``p`` of the shape's own frame
+    is at ``c + R p``. Orientations are rotation vectors (axis times angle, radians); along a path
+    they are interpolated linearly, which is exact for rotations about a fixed axis. Positions and
+    rotation vectors may be ``(3,)`` (all batch entries) or ``(B, 3)`` (one pose per batch entry).
 
     Args:
         shape: a :class:`Shape`.
-        path: waypoints ``[(t, (pd, ph, pw)), ...]``: positions (m) at strictly increasing times
-            (s), linear in between, held before the first and after the last.
-        position: instead of ``path``: a fixed position ``(3,)`` or a callable ``t -> (3,)``.
-        name: for reports.
+        path: waypoints ``[(t, (pd, ph, pw)), ...]`` or ``[(t, (pd, ph, pw), (rd, rh, rw)), ...]``:
+            positions (m) and optional rotation vectors (rad) at strictly increasing times (s),
+            linear in between, held before the first and after the last.
+        position: instead of ``path``: a fixed position ``(3,)`` / ``(B, 3)`` or a callable ``t -> (3,)``.
+        orientation: with ``position``: a fixed rotation vector or a callable ``t -> (3,)``; None
+            is the identity.
+        name: for reports (the keys of the force readings).
 
     Examples:
+        >>> import math
         >>> tool = Tool(Sphere(0.005), position=(0.0, 0.0, 0.01))
         >>> tool.move_to((0.001, 0.0, 0.01))                    # a device loop sets the pose each tick
         >>> tool.position(0.0), tool.velocity(0.0)
         ((0.001, 0.0, 0.01), (0.0, 0.0, 0.0))
+        >>> shaft = Tool(Capsule(0.002, 0.02, axis=0), position=(0.0, 0.0, 0.0),
+        ...              orientation=(0.0, 0.0, math.pi / 2))   # the D-axis shaft turned onto H
+        >>> d, n = shaft.sdf(torch.tensor([[[0.0], [0.015], [0.005]]]), 0.0)
+        >>> round(d.item(), 6), [round(c, 6) for c in n[0, :, 0].tolist()]
+        (0.003, [0.0, 0.0, 1.0])
     """
 
-    def __init__(self, shape: Shape, path=None, *, position=None, name: str = "tool"):
+    def __init__(self, shape: Shape, path=None, *, position=None, orientation=None, name: str = "tool"):
         if not isinstance(shape, Shape):
-            raise ConfigError("tool.shape", "a Sphere, Capsule, Box or HalfSpace", type(shape).__name__)
+            raise ConfigError("tool.shape", "a Sphere, Capsule, Box, HalfSpace or MeshShape", type(shape).__name__)
         if (path is None) == (position is None):
             raise ConfigError("tool", "exactly one of path (waypoints) or position (fixed or callable)",
                               "both" if path is not None else "neither")
-        self.shape, self.name, self._fn, self._path = shape, name, None, None
+        if path is not None and orientation is not None:
+            raise ConfigError("tool.orientation", "orientations inside the path waypoints (t, position, rotation)",
+                              orientation)
+        self.shape, self.name = shape, str(name)
+        self._fn = self._path = self._rot_fn = self._rot = None
         if path is not None:
-            self._path = Waypoints(path, "tool.path")
-        elif callable(position):
-            self._fn = position
+            try:
+                rows = [tuple(w) for w in path]
+            except TypeError:
+                raise ConfigError("tool.path", "waypoints [t, [d, h, w]] or [t, [d, h, w], [rd, rh, rw]]", path) from None
+            sizes = {len(w) for w in rows}
+            if not rows or not sizes <= {2, 3} or len(sizes) != 1:
+                raise ConfigError("tool.path", "waypoints all [t, position] or all [t, position, rotation]", path)
+            self._path = Waypoints([w[:2] for w in rows], "tool.path")
+            if sizes == {3}:
+                self._rot = Waypoints([(w[0], w[2]) for w in rows], "tool.path rotation")
         else:
-            self.move_to(position)
+            self.move_to(position, orientation)
 
-    def move_to(self, position) -> None:
-        """Set a fixed position ``(3,)`` m (a device loop calls this before each step)."""
-        self._path, self._fn = Waypoints([(0.0, as_vec3(position, "tool.position"))], "tool.position"), None
+    def move_to(self, position, orientation=None) -> None:
+        """Set the pose: a position ``(3,)`` / ``(B, 3)`` m or a callable ``t -> (3,)``, and a rotation vector.
+
+        A device loop calls this before each step; the tool's velocity is then zero (give it a
+        callable or a path for a moving contact's friction and grasp release velocity).
+        """
+        self._path = self._rot = None
+        if callable(position):
+            self._fn = position
+        elif torch.is_tensor(position) and position.dim() == 2:
+            self._fn = _constant(position)
+        else:
+            self._fn = None
+            self._path = Waypoints([(0.0, as_vec3(position, "tool.position"))], "tool.position")
+        self._rot_fn = None
+        if callable(orientation):
+            self._rot_fn = orientation
+        elif torch.is_tensor(orientation) and orientation.dim() == 2:
+            self._rot_fn = _constant(orientation)
+        elif orientation is not None:
+            self._rot = Waypoints([(0.0, as_vec3(orientation, "tool.orientation"))], "tool.orientation")
 
     def position(self, t):
-        """Position at time ``t``: a tuple for a float ``t``, a tensor ``(3,)`` for a 0-d tensor."""
+        """Position at time ``t``: a tuple for a float ``t``, a tensor ``(3,)`` / ``(B, 3)`` for a 0-d tensor."""
         if self._fn is not None:
             p = self._fn(t)
             return p if torch.is_tensor(p) or not torch.is_tensor(t) else t.new_tensor(p)
         return self._path.at(t)
 
+    def rotation(self, t):
+        """Rotation vector (rad) at time ``t`` as :meth:`position` gives positions, or None (identity)."""
+        if self._rot_fn is not None:
+            r = self._rot_fn(t)
+            return r if torch.is_tensor(r) or not torch.is_tensor(t) else t.new_tensor(r)
+        return None if self._rot is None else self._rot.at(t)
+
+    @staticmethod
+    def _rate(fn, t, dt):
+        a, b = fn(t - dt), fn(t + dt)
+        if torch.is_tensor(a) or torch.is_tensor(b):
+            return (torch.as_tensor(b) - torch.as_tensor(a)) / (2 * dt)
+        return tuple((q - p) / (2 * dt) for p, q in zip(a, b))
+
     def velocity(self, t, dt: float = 1e-6):
-        """Velocity ``(3,)`` m/s at ``t``.
+        """Velocity ``(3,)`` m/s of the tool's origin at ``t``.
 
         The path segment entered at ``t``; a central difference of step ``dt`` for a callable.
         """
         if self._fn is not None:
-            a, b = self.position(t - dt), self.position(t + dt)
-            if torch.is_tensor(a):
-                return (b - a) / (2 * dt)
-            return tuple((q - p) / (2 * dt) for p, q in zip(a, b))
+            return self._rate(self._fn, t, dt)
         return self._path.rate(t)
+
+    def angular_velocity(self, t, dt: float = 1e-6):
+        """Angular velocity ``(3,)`` rad/s: the rate of the rotation vector (exact about a fixed axis)."""
+        if self._rot_fn is not None:
+            return self._rate(self._rot_fn, t, dt)
+        return None if self._rot is None else self._rot.rate(t)
+
+    def frame(self, t, like: torch.Tensor):
+        """``(c, R)``: the position ``(B|1, 3, 1, ...)`` against fields like ``like``, and ``R`` ``(B|1, 3, 3)`` or None."""
+        r = self.rotation(t)
+        R = None if r is None else _rotation_matrix(torch.as_tensor(r, dtype=like.dtype, device=like.device).reshape(-1, 3))
+        return _field(self.position(t), like), R
 
     def sdf(self, x: torch.Tensor, t) -> tuple[torch.Tensor, torch.Tensor]:
         """Signed distance ``(B, 1, ...)`` and outward normal ``(B, 3, ...)`` of nodes ``x`` at time ``t``.
@@ -238,5 +328,24 @@ class Tool:
             x: node positions ``(B, 3, ...)`` (m).
             t: time (s), a float or a 0-d tensor.
         """
-        c = torch.as_tensor(self.position(t), dtype=x.dtype, device=x.device).view(1, 3, *[1] * (x.dim() - 2))
-        return self.shape.sdf(x - c)
+        c, R = self.frame(t, x)
+        if R is None:
+            return self.shape.sdf(x - c)
+        d, n = self.shape.sdf(_rotate(R, x - c, transpose=True))
+        return d, _rotate(R, n)
+
+    def point_velocity(self, x: torch.Tensor, t) -> torch.Tensor:
+        """Velocity ``(B|1, 3, ...)`` of the tool's material point at positions ``x`` ``(B, 3, ...)``: ``v + w x (x - c)``."""
+        v = _field(self.velocity(t), x)
+        w = self.angular_velocity(t)
+        if w is None:
+            return v
+        c = _field(self.position(t), x)
+        return v + torch.cross(_field(w, x).expand_as(x), x - c, dim=1)
+
+
+def _constant(value: torch.Tensor):
+    """A callable ``t -> value`` (a pose per batch entry, set from Python)."""
+    def fn(t):
+        return value
+    return fn

@@ -99,7 +99,7 @@ class CompiledStep:
             ctx.set(graph_inputs=(x, v))
             state = State(x, v, t)
             out = integrator.finish(pmc, state, *integrator.advance(pmc, state, dt_, loads_p), dt_)
-            return out.x, out.v
+            return out.x, out.v, out.readings or {}
 
         self._fn, self._compiled_for = None, None
         self.compiled = bool(enable)
@@ -142,12 +142,12 @@ class CompiledStep:
                     # Same shapes as the compiled call, and the model is baked in: dynamo's guards
                     # (one check per model tensor, ~0.15 ms per call on the beam) cannot fail.
                     with torch.no_grad(), skip_guards():
-                        x, v = self._fn(x, v, t)
+                        x, v, readings = self._fn(x, v, t)
                 else:
                     with torch.no_grad(), no_autograd_cache():
-                        x, v = self._fn(x, v, t)
+                        x, v, readings = self._fn(x, v, t)
                     self._compiled_for = signature
-                return State(x, v, state.t + self.dt)
+                return State(x, v, state.t + self.dt, readings or None)
             except Exception as e:                          # noqa: BLE001 (any failure -> eager)
                 self._fallback(e)
         with torch.no_grad():
@@ -181,7 +181,7 @@ class ImplicitGraph:
     once and looped inside the graph, so the spring kernel is not copied ``cg_iters`` times and
     no iteration pays a Python call), and the update.
 
-    Called as ``(x, v, t) -> (x, v)`` on packed fields; sets ``integrator.last_cg``. With a
+    Called as ``(x, v, t) -> (x, v, readings)`` on packed fields; sets ``integrator.last_cg``. With a
     tolerance (``cg_tol > 0``) the loop condition reads the residual, as the eager solver does
     after every iteration; without one it runs exactly ``cg_iters`` iterations.
 
@@ -229,15 +229,15 @@ class ImplicitGraph:
                 vcur = vcur + u if delta_c is None else vcur + u + delta_c
             ctx.set(store_sums=True)
             out = integ.finish(pm, State(x, v, t), x + dt * vcur, vcur, dt)
-            return out.x, out.v, n_it, (r.flatten(1).norm(dim=1) / bnorm).max()
+            return out.x, out.v, n_it, (r.flatten(1).norm(dim=1) / bnorm).max(), out.readings or {}
 
         self.fn = step if compile_ is None else compile_(fresh(step))
 
     def __call__(self, x, v, t):
-        """One step on packed fields: ``(x, v, t) -> (x, v)``; sets ``integrator.last_cg``."""
-        x, v, n_it, rel = self.fn(x, v, t)
+        """One step on packed fields: ``(x, v, t) -> (x, v, readings)``; sets ``integrator.last_cg``."""
+        x, v, n_it, rel, readings = self.fn(x, v, t)
         self.integ.last_cg = (int(n_it), float(rel)) if self.integ.cg_tol > 0 else (self.integ.cg_iters, rel)
-        return x, v
+        return x, v, readings
 
 
 def compiled_step(integrator, model, dt: float, loads=None, *, mode: str | None = None,

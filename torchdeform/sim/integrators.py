@@ -99,16 +99,18 @@ class Integrator:
     def finish(model: Model, state: State, x, v, dt: float) -> State:
         """End of a step: dragged nodes onto their path, interactions, then global drag.
 
-        Interactions (tool contact, strain limits) see the time ``t + dt``.
+        Interactions (tool contact, grasp, strain limits) see the time ``t + dt``; what they
+        measure is the new state's ``readings`` (None without interactions).
         """
         t1 = state.t + dt
         if model.drags:
             x, v = model.constrain(x, v, t1)
+        readings = {} if model.interactions else None
         for interaction in model.interactions:
-            x, v = interaction.project(model, x, v, t1, dt)
+            x, v = interaction.project(model, x, v, t1, dt, readings)
         if model.decay is not None:
             v = v * math.exp(-model.decay * dt)
-        return State(x, v, t1)
+        return State(x, v, t1, readings or None)
 
     def advance(self, model, state, dt, loads):                       # pragma: no cover
         """The update of one step: ``(x, v)`` at ``t + dt``, before constraints and global drag."""

@@ -27,6 +27,10 @@ from .springs import Linearisation, node_sums, spring_energy, spring_forces, spr
 class State:
     """Positions ``x`` and velocities ``v``, both ``(B, 3, D, H, W)``, at time ``t`` (s).
 
+    ``readings`` holds what the interactions measured over the step that produced the state
+    (forces on tools, ``{"<tool>.force": (B, 3), ...}``; see :mod:`torchdeform.interact.reactions`),
+    or None.
+
     Examples:
         >>> import torch
         >>> import torchdeform as td
@@ -38,10 +42,12 @@ class State:
     x: torch.Tensor
     v: torch.Tensor
     t: float = 0.0
+    readings: dict | None = None
 
     def detach(self) -> "State":
-        """The same state with ``x`` and ``v`` detached from the autograd graph."""
-        return State(self.x.detach(), self.v.detach(), self.t)
+        """The same state with ``x``, ``v`` and the readings detached from the autograd graph."""
+        readings = None if self.readings is None else {k: r.detach() for k, r in self.readings.items()}
+        return State(self.x.detach(), self.v.detach(), self.t, readings)
 
 
 def _as_tensor(value, key, dtype, device) -> torch.Tensor:
@@ -153,7 +159,7 @@ class Model:
         decay: global drag rate c (1/s): ``v <- v exp(-c dt)`` after every step, or None.
         loads: list of :class:`~torchdeform.sim.forces.PointForce`, ``SurfaceForce`` or
             ``FieldForce``, or None.
-        interactions: objects with ``project(model, x, v, t, dt) -> (x, v)`` (applied at the end
+        interactions: objects with ``project(model, x, v, t, dt, readings) -> (x, v)`` (applied at the end
             of every step) and ``force(model, x, v, t)`` (added to the forces, or None): tool
             contact, strain limiting (:mod:`torchdeform.interact`); or None.
         spring_mask: optional bool ``(S, D, H, W)`` of springs that exist (e.g. after a cut).

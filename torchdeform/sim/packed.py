@@ -170,11 +170,11 @@ class PackedModel(Model):
 
     def pack_state(self, state: State) -> State:
         """A grid-layout state (``(B, 3, D, H, W)``) in the packed layout (``(B, 3, P)``)."""
-        return State(self.pack(state.x), self.pack(state.v), state.t)
+        return State(self.pack(state.x), self.pack(state.v), state.t, state.readings)
 
     def unpack_state(self, state: State) -> State:
         """A packed state back in the grid layout (contiguous ``(B, 3, D, H, W)``)."""
-        return State(self.unpack(state.x).contiguous(), self.unpack(state.v).contiguous(), state.t)
+        return State(self.unpack(state.x).contiguous(), self.unpack(state.v).contiguous(), state.t, state.readings)
 
     def rest_state(self, batch: int = 1) -> State:
         """The body at rest, packed: ``x = X``, ``v = 0``, each ``(batch, 3, P)``."""
