@@ -23,6 +23,8 @@ BENCHES = {
                "displacement field against building the warped volume first", "volume"),
     "chainmail": ("ChainMail: time of a local pull against grid size and moved elements, Gibson, Enhanced "
                   "and tensor", "chainmail"),
+    "interaction": ("a sphere tool pressing into an n^3 body: steps/s with contact and force readout "
+                    "(compiled), and the haptic loop's force rate on 64^3", "interaction"),
 }
 
 

@@ -9,6 +9,8 @@
                        friction, hold against jitter) and a smooth penalty force; a model takes
                        them as ``Model(..., interactions=[...])``
 :mod:`.grasp`          forceps: nodes in the jaws follow the tool while closed
+:mod:`.haptic`         a haptic loop: tool pose in, force out at 1 kHz (a local linear contact
+                       model between body steps for large bodies)
 :mod:`.strain`         strain limiting: springs pulled back into ``[min, max]`` times their rest
                        length by averaged Jacobi corrections (Provot)
 =====================  ===========================================================================
@@ -28,9 +30,10 @@ Examples:
 """
 from .contact import PenaltyContact, ProjectionContact
 from .grasp import Attachment, Grasp
+from .haptic import HapticLoop
 from .reactions import support_reaction
 from .strain import StrainLimit
 from .tools import SHAPES, Box, Capsule, HalfSpace, Shape, Sphere, Tool
 
 __all__ = ["Tool", "Shape", "Sphere", "Capsule", "Box", "HalfSpace", "SHAPES", "ProjectionContact",
-           "PenaltyContact", "Grasp", "Attachment", "StrainLimit", "support_reaction"]
+           "PenaltyContact", "Grasp", "Attachment", "StrainLimit", "support_reaction", "HapticLoop"]

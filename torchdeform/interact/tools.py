@@ -261,12 +261,14 @@ class Tool:
         """Set the pose: a position ``(3,)`` / ``(B, 3)`` m or a callable ``t -> (3,)``, and a rotation vector.
 
         A device loop calls this before each step; the tool's velocity is then zero (give it a
-        callable or a path for a moving contact's friction and grasp release velocity).
+        callable or a path for a moving contact's friction and grasp release velocity). A tensor
+        is read at every step: update it in place (``copy_``) to move a tool inside a compiled
+        step without recompiling it.
         """
         self._path = self._rot = None
         if callable(position):
             self._fn = position
-        elif torch.is_tensor(position) and position.dim() == 2:
+        elif torch.is_tensor(position) and position.shape[-1:] == (3,) and position.dim() <= 2:
             self._fn = _constant(position)
         else:
             self._fn = None
@@ -274,7 +276,7 @@ class Tool:
         self._rot_fn = None
         if callable(orientation):
             self._rot_fn = orientation
-        elif torch.is_tensor(orientation) and orientation.dim() == 2:
+        elif torch.is_tensor(orientation) and orientation.shape[-1:] == (3,) and orientation.dim() <= 2:
             self._rot_fn = _constant(orientation)
         elif orientation is not None:
             self._rot = Waypoints([(0.0, as_vec3(orientation, "tool.orientation"))], "tool.orientation")
