@@ -258,10 +258,3 @@ def test_implicit_euler_stops_at_its_own_fixed_point():
     assert np.abs(wt).max() < 1e-9 * scale                             # on it, along the normal only
     assert np.abs(F.reshape(-1, 3)[~active]).max() > 1e-3              # unbalanced forces remain
     assert np.abs(x - eq.x).max() > 1e-5                               # the O(h^2) gap (see above)
-
-
-@pytest.mark.xfail(strict=True, reason="implicit Euler + post-step projection stops O(dt^2) away from the "
-                                       "equilibrium (see test_implicit_euler_stops_at_its_own_fixed_point)")
-def test_implicit_euler_reaches_the_equilibrium():
-    el, _, _, eq, state, _ = _implicit_run(IMPLICIT_DT)
-    assert np.abs(el.from_field(state.x[0]) - eq.x).max() < 1e-6
