@@ -659,3 +659,22 @@ def test_gradcheck_implicit_euler():
     """Through the CG solves of implicit Euler (tight tolerance)."""
     integ = td.ImplicitEuler(cg_iters=300, cg_tol=1e-13)
     assert torch.autograd.gradcheck(_rollout(integ, 1, 0.02), _scalars())
+
+
+@pytest.mark.parametrize("decay", [0.0, 200.0, 5000.0])
+def test_bound_with_global_drag_is_the_edge_of_stability(decay):
+    """Global drag after a symplectic step (v <- e^{-c h} v) lowers the stable step. Oracle: the
+    spectral radius of the 2 x 2 update matrix of one spring, [[1 - h^2 w^2, h], [-d h w^2, d]]
+    with d = e^{-c h}, computed by numpy: < 1 just below the bound, > 1 just above it."""
+    grid = td.Grid((1, 1, 2), spacing=1.0, topology=6)
+    model = td.Model(grid, stiffness=1e4, mass=1.0, fixed=grid.index_mask([(0, 0, 0)]), decay=decay or None,
+                     dtype=F64)
+    w2 = 1e4
+    h = td.time_step_bound(model)
+
+    def radius(t):
+        d = math.exp(-decay * t)
+        return max(abs(np.linalg.eigvals([[1 - t * t * w2, t], [-d * t * w2, d]])))
+    assert radius(0.999 * h) <= 1 + 1e-12 < 1.001 < radius(1.001 * h)    # undamped: on the unit circle below
+    if decay >= 5000:                                     # a strong drag: down to 1/sqrt(2) of 2/w
+        assert h < 0.75 * 2 / math.sqrt(w2)

@@ -17,7 +17,9 @@ KnocheRelaxation       Knoche's first-order offset relaxation (his Cg shader)   
 
 Dragged nodes follow their path exactly (they are put on it after every step and before every
 force evaluation); global drag (``model.decay``) is applied after the step as
-``v <- v exp(-c h)``, which is unconditionally stable.
+``v <- v exp(-c h)``: exact for the drag alone, but after a symplectic or Verlet update it lowers
+the stable step (to ``1/sqrt(2)`` of the undamped bound for a strong drag), which
+:func:`~torchdeform.sim.stability.time_step_bound` accounts for.
 
 :data:`INTEGRATORS` maps each class's ``name`` (the ``[integrator] name`` of scene files) to the
 class.

@@ -140,7 +140,19 @@ def time_step_bound(model, integrator="symplectic", method: str = "power", x=Non
         return min(h, 2.78 / lc) if lc > 0 else h
     if lk == 0:
         return 2 / lc if lc > 0 else math.inf
-    return (-lc + math.sqrt(lc * lc + 4 * lk)) / lk
+    h = (-lc + math.sqrt(lc * lc + 4 * lk)) / lk
+    c = float(model.decay or 0.0)
+    if c > 0:
+        # global drag after the step, v <- e^{-c h} v, scales the update's determinant: stable while
+        # h^2 w^2 <= 2 + 2 e^{-c h} (1 - h g) (Jury), down to 1/sqrt(2) of the bound for a strong drag
+        def stable(t):
+            return t * t * lk <= 2 + 2 * math.exp(-c * t) * (1 - t * lc)
+        lo, hi = 0.0, h
+        for _ in range(80):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if stable(mid) else (lo, mid)
+        h = lo
+    return h
 
 
 def suggest_dt(model, integrator="symplectic", safety: float = 0.9, method: str = "power") -> float:
