@@ -31,9 +31,14 @@ Examples:
 from .contact import PenaltyContact, ProjectionContact
 from .grasp import Attachment, Grasp
 from .haptic import HapticLoop
+from .meshes import MeshShape
 from .reactions import support_reaction
 from .strain import StrainLimit
-from .tools import SHAPES, Box, Capsule, HalfSpace, Shape, Sphere, Tool
+from .tools import SHAPES as _ANALYTIC
+from .tools import Box, Capsule, HalfSpace, Shape, Sphere, Tool
 
-__all__ = ["Tool", "Shape", "Sphere", "Capsule", "Box", "HalfSpace", "SHAPES", "ProjectionContact",
+#: shape names of scene files -> classes (the analytic shapes and ``mesh``)
+SHAPES = {**_ANALYTIC, "mesh": MeshShape}
+
+__all__ = ["Tool", "Shape", "Sphere", "Capsule", "Box", "HalfSpace", "MeshShape", "SHAPES", "ProjectionContact",
            "PenaltyContact", "Grasp", "Attachment", "StrainLimit", "support_reaction", "HapticLoop"]

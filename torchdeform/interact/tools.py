@@ -174,7 +174,7 @@ class HalfSpace(Shape):
         return (p * n).sum(1, keepdim=True), n.expand_as(p)
 
 
-#: shape names of scene files -> classes
+#: analytic shape names of scene files -> classes (``torchdeform.interact.SHAPES`` adds ``mesh``)
 SHAPES = {"sphere": Sphere, "capsule": Capsule, "box": Box, "half_space": HalfSpace}
 
 
@@ -234,7 +234,8 @@ class Tool:
 
     def __init__(self, shape: Shape, path=None, *, position=None, orientation=None, name: str = "tool"):
         if not isinstance(shape, Shape):
-            raise ConfigError("tool.shape", "a Sphere, Capsule, Box, HalfSpace or MeshShape", type(shape).__name__)
+            raise ConfigError("tool.shape", "a Shape (Sphere, Capsule, Box, HalfSpace, MeshShape)",
+                              type(shape).__name__)
         if (path is None) == (position is None):
             raise ConfigError("tool", "exactly one of path (waypoints) or position (fixed or callable)",
                               "both" if path is not None else "neither")
