@@ -14,6 +14,11 @@ Two kinds of rows:
 Rows carry ``n``, ``topology``, ``mode``, ``engine``, ``hz``, ``force_N`` (the tool's force along
 D at the end), ``compile_s`` and ``threads``.
 
+It runs on one CPU thread unless ``--threads`` says otherwise: an interactive step on a body this
+small is short, and with two threads each step waits at OpenMP barriers; when another process
+keeps a core busy, those waits grow a hundredfold (16^3: 7,900 steps/s on one thread, 64 on two
+with a busy neighbour; measured 2026-11-24 on the 2-core CI machine).
+
 Example:
     torchdeform bench interaction --quick
     torchdeform bench interaction --json --out bench-out
@@ -117,8 +122,7 @@ def _haptic_row(n, seconds, dtype, device, compiled=True):
 
 def run(args) -> int:
     """Run the bench; returns the exit status."""
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    torch.set_num_threads(args.threads or 1)
     sizes = args.sizes or ([8, 16] if args.quick else [8, 16, 24, 32, 48])
     hn = args.haptic_size or (24 if args.quick else 64)
     seconds = args.seconds or (1.0 if args.quick else 3.0)

@@ -45,7 +45,7 @@ import torch
 from ..errors import ConfigError
 from .grasp import Attachment
 from .reactions import report, report_momentum
-from .tools import Tool, _field
+from .tools import Tool, _field, length
 
 __all__ = ["ProjectionContact", "PenaltyContact"]
 
@@ -119,7 +119,7 @@ class ProjectionContact:
         if self.direction == "normal":
             return torch.where(inside, x - d * n, x)
         u = _field(tool.velocity(t), x)
-        u = u / u.norm(dim=1, keepdim=True).clamp_min(torch.finfo(x.dtype).tiny)
+        u = u / length(u).clamp_min(torch.finfo(x.dtype).tiny)
         ahead = inside & ((n * u).sum(1, keepdim=True) > 0.5)
         s = torch.zeros_like(d)
         for _ in range(4):                  # Newton on sdf(x + s u) = 0 along the motion
@@ -174,7 +174,7 @@ class ProjectionContact:
             hit = inside & (vn < 0)
             tangential = vr - vn * n
             if self.friction > 0:
-                speed = tangential.norm(dim=1, keepdim=True)
+                speed = length(tangential)
                 keep = (1 - self.friction * (-vn) / speed.clamp_min(torch.finfo(v.dtype).tiny)).clamp_min(0)
                 # the step moved the node by dt * v along the surface (x1 = x0 + dt v1): friction
                 # takes back the part of that slip it removes from the velocity

@@ -4,7 +4,9 @@ A scene file only builds the objects of the Python API: :class:`Scene` holds a
 :class:`~torchdeform.sim.grid.Grid`, the keyword arguments of :class:`~torchdeform.sim.model.Model`
 (``scene.model_args``), an :class:`~torchdeform.sim.integrators.Integrator` and the run settings;
 :func:`demo_scene` builds the built-in demo with the API alone. :func:`run_scene` runs a
-scene and writes ``trajectory.npz``, ``summary.json`` and ``energy.png``.
+scene and writes ``trajectory.npz``, ``summary.json`` and ``energy.png``; with ``[[tools]]`` also
+``tools.npz``, ``forces.png`` and the tools' force series in ``summary.json``
+(:mod:`.tools`).
 
 Units are SI (m, kg, s, N). Vectors are in channel order ``(D, H, W)``; axis D is "up" in
 the built-in scenes (face ``"bottom"`` = ``"d-"``, ``"top"`` = ``"d+"``). Node indices are
@@ -29,6 +31,15 @@ Keys
     ``damping``  dashpot along each spring in N s/m (divided by l0 too with ``modulus``);
     a number or a class table (default: none)
     ``damping_mode``  ``"projected"`` (default) or ``"unprojected"`` (Radetzky)
+    ``tissue``  instead of ``stiffness``: words of the fuzzy tissue library (:mod:`torchdeform.fuzzy`):
+    a tissue (``"liver"``, ``"fat"``, ...), a consistency term (``"very_soft"`` ... ``"hard"``) or
+    a consistency number 0..10; its Young's modulus E becomes ``k = E / lattice_modulus(grid)``
+    (``k = E h / 2.7`` for 26 neighbours)
+``[[regions]]`` (optional, repeatable; needs ``stiffness`` as one number or ``tissue``): a part of
+    the body with its own stiffness, later regions on top of earlier ones
+    ``sphere = {center = [d, h, w], radius = r}`` or ``box = {lo = [..], hi = [..]}`` (rest
+    positions, m), and ``stiffness`` (N/m) or ``tissue`` (as in ``[material]``); a spring gets
+    the harmonic mean of its two end nodes' stiffness
 ``[mass]`` (required, exactly one key)
     ``mass``  kg per node, or ``density``  kg/m^3 (lumped from cell volumes)
 ``[boundary]`` (optional)
@@ -48,6 +59,22 @@ Keys
     (rest positions in metres, bounds included), and
     ``path = [[t, [od, oh, ow]], ...]``  offsets (m) from the rest position at increasing
     times (s), linear in between, held after the last
+``[[tools]]`` (optional, repeatable): rigid tools touching the tissue (:mod:`torchdeform.interact`)
+    ``name`` (default ``tool1``, ``tool2``, ...; unique: the keys of the force readings)
+    ``shape``  ``"sphere"`` (``radius``), ``"capsule"`` (``radius``, ``half_length``, ``axis`` =
+    ``"d"``, ``"h"`` or ``"w"``), ``"box"`` (``half_extents = [hd, hh, hw]``), ``"half_space"``
+    (``normal``, default ``[1, 0, 0]``) or ``"mesh"`` (``file``, a closed mesh relative to the scene
+    file, and ``resolution`` of its distance field, default 32); metres
+    ``position = [d, h, w]`` (fixed, with an optional ``orientation = [rd, rh, rw]``, a rotation
+    vector in radians) or ``path = [[t, [d, h, w]], ...]`` / ``[[t, [d, h, w], [rd, rh, rw]], ...]``
+    (increasing times, linear in between, held after the last)
+    ``contact``  ``"projection"`` (default; options ``friction``, ``direction`` = ``"normal"`` or
+    ``"motion"``, ``hold``, ``haptic_gain``), ``"penalty"`` (``stiffness`` N/m, ``damping``) or
+    ``"none"`` (with a grasp)
+    ``grasp = {close = t1, open = t2, margin = m}``  forceps: what lies in the shape (plus
+    ``margin``) at ``close`` follows the tool until ``open`` (s; ``inf`` for never)
+``[strain_limit]`` (optional): ``min`` (0.9), ``max`` (1.1): bounds of every spring's length over
+    its rest length; ``passes`` (4); ``update_velocity`` (true)
 ``[integrator]`` (required)
     ``name``  ``"explicit"``, ``"symplectic"`` (default), ``"verlet"``, ``"rk4"``,
     ``"implicit"`` or ``"knoche"``
@@ -55,6 +82,7 @@ Keys
     ``safety``  fraction of the bound used by ``dt = "auto"`` (default 0.9)
     ``steps``  number of steps >= 0 (required)
     ``dtype``  ``"float32"`` (default) or ``"float64"``;  ``device``  ``"cpu"`` (default), ``"cuda"``
+    ``threads``  CPU threads of the run (default: torch's; small bodies run faster on one)
     options of ``verlet``: ``kd`` (per-step damping in [0, 1), default 0);
     of ``implicit``: ``cg_iters`` (100), ``cg_tol`` (1e-6), ``newton_iters`` (0);
     of ``knoche`` (needs ``topology = 6``): ``material`` (w in [0, 1], a number or a
@@ -62,6 +90,8 @@ Keys
 ``[output]`` (optional)
     ``record_every``  steps between saved frames (default: about 100 frames)
     ``name``  title of the run (default: the file's name)
+    ``palpation``  ``true`` (the first tool with a contact) or a tool's name: analyse its presses,
+    write ``palpation.png`` and a ``"palpation"`` part of ``summary.json``
 ``[volume]`` (optional): a volume filling the grid's bounding box, deformed by the final state;
     the run also writes ``volume_before.png``, ``volume_after.png``, ``volume_deformed.npy``
     ``file``  a volume file (.npy, .npz, .nii, .nrrd; relative to the scene file) or ``"phantom:N"``
@@ -77,7 +107,8 @@ by a text search, best effort), the dotted key (``integrator.dt``, ``loads[0].fo
 tables count from 0) and what was expected.
 
 Modules: :mod:`.reader` (files, located errors, typed values and the shared sections: the API a
-new model kind builds on), :mod:`.mass_spring`, :mod:`.chainmail`, :mod:`.run` (load and run),
+new model kind builds on), :mod:`.mass_spring`, :mod:`.tools` (``[[tools]]``, ``[strain_limit]``
+and the tool outputs of a run), :mod:`.chainmail`, :mod:`.run` (load and run),
 :mod:`.commands` (``torchdeform run`` and ``demo``).
 
 Example:

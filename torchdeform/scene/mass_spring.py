@@ -1,7 +1,10 @@
 """Mass-spring scenes.
 
-The ``[material]``, ``[mass]``, ``[boundary]``, ``[[loads]]``, ``[integrator]``, ``[output]`` and
-``[volume]`` sections, the :class:`Scene` they build, and the built-in demo (:func:`demo_scene`).
+The ``[material]`` (a stiffness, a modulus, or tissue words through the fuzzy tissue library:
+:func:`tissue_moduli`, :func:`lattice_modulus`), ``[[regions]]``, ``[mass]``, ``[boundary]``,
+``[[loads]]``, ``[integrator]``, ``[output]`` and ``[volume]`` sections, the :class:`Scene` they
+build, and the built-in demo (:func:`demo_scene`). ``[[tools]]`` and ``[strain_limit]`` are read
+by :mod:`.tools`.
 """
 from __future__ import annotations
 
@@ -16,8 +19,10 @@ from ..sim.grid import FACES, Grid
 from ..sim.integrators import INTEGRATORS, Integrator, SymplecticEuler
 from ..sim.model import Model
 from .reader import SECTIONS, Source, Table, drags_section, faces, grid_section, is_number, node_list
+from .tools import ToolSet, palpation_option, strain_limit_section, tools_section
 
-__all__ = ["Scene", "mass_spring_scene", "demo_scene", "INTEGRATOR_OPTIONS", "EXPLICIT", "DTYPES", "MODEL_KEYS"]
+__all__ = ["Scene", "mass_spring_scene", "demo_scene", "lattice_modulus", "tissue_moduli", "INTEGRATOR_OPTIONS",
+           "EXPLICIT", "DTYPES", "MODEL_KEYS", "TISSUE_EXPECTED"]
 
 #: Options of each integrator (keyword arguments of its class): key -> what is expected.
 INTEGRATOR_OPTIONS = {
@@ -53,6 +58,8 @@ class Scene:
         dtype: of the model.
         device: of the model (None = CPU).
         safety: fraction of the stability bound used by ``dt = "auto"``.
+        threads: CPU threads ``run_scene`` simulates with (None: torch's setting). Small bodies run
+            faster on one thread, and much faster than on two when another process holds a core.
         source: the scene file (:class:`Source`) for error messages, or None.
 
     Examples:
@@ -78,10 +85,14 @@ class Scene:
     dtype: torch.dtype = torch.float32
     device: str | None = None
     safety: float = 0.9
+    threads: int | None = None
     source: Source = field(default_factory=Source)
     #: optional ``{"file": .., "tf": .., "mode": .., "view": ..}``: a volume (file or ``"phantom:N"``)
     #: deformed by the final state; ``run_scene`` then writes before/after renders and the deformed volume
     volume: dict | None = None
+    #: optional :class:`~torchdeform.scene.tools.ToolSet` (``[[tools]]``, ``[strain_limit]``): ``run_scene``
+    #: runs fresh interactions built from it and writes the tools' force series and plots
+    tools: ToolSet | None = None
     _models: dict = field(default_factory=dict, init=False, repr=False)
 
     def build(self, device=None) -> Model:
@@ -117,15 +128,114 @@ class Scene:
         return self.record_every or max(1, self.steps // 100)
 
 
-def _material(t: Table) -> dict:
-    which = t.one_of("stiffness", "modulus")
-    args = {"stiffness": t.per_class(which, "N/m" if which == "stiffness" else "N"),
-            "normalize": which == "modulus"}
+# ------------------------------------------------------------------ tissue words -> stiffness
+TISSUE_EXPECTED = ("a tissue of the fuzzy library (brain, fat, liver, ...), a consistency term (very_soft, soft, "
+                   "medium, firm, hard) or a consistency value in [0, 10]")
+
+
+def lattice_modulus(grid: Grid) -> float:
+    """Young's modulus (Pa) of the grid's spring lattice per N/m of spring stiffness (all springs equal).
+
+    The small-strain stiffness of a lattice of springs ``k`` (Cauchy-Born): per node, in Voigt
+    notation, ``C = (k / V) sum_s l_s^2 a_s a_s^T`` over the ``S`` half-directions, with
+    ``a = (n_d^2, n_h^2, n_w^2, n_h n_w, n_d n_w, n_d n_h)`` of the unit direction ``n``, rest length
+    ``l_s`` and cell volume ``V``. Normal and shear parts decouple on a box lattice, so the Young's
+    modulus along axis ``i`` is ``1 / (C_nn^-1)_ii`` of the normal 3 x 3 block; this is the mean over
+    the three axes. For 26 neighbours and spacing ``h`` it is ``2.7 / h``: ``E = 2.7 k / h``
+    (Poisson's ratio 0.35); for 6 neighbours ``1 / h`` (and no shear stiffness).
+
+    Examples:
+        >>> from torchdeform.sim.grid import Grid
+        >>> round(lattice_modulus(Grid((2, 2, 2), spacing=0.001, topology=26)) * 0.001, 6)
+        2.7
+    """
+    d = torch.tensor(grid.directions, dtype=torch.float64) * torch.tensor(grid.spacing, dtype=torch.float64)
+    length = d.norm(dim=1, keepdim=True)
+    n = d / length
+    a = n * n                                                         # the normal part of a_s
+    C = (length ** 2 * a).T @ a / math.prod(grid.spacing)              # (3, 3) per unit k
+    return float((1.0 / torch.linalg.inv(C).diagonal()).mean())
+
+
+def tissue_moduli(values, key: str = "tissue") -> list:
+    """Young's moduli (Pa) of tissue words or consistency values, from the fuzzy tissue library.
+
+    Each value is a tissue of :func:`torchdeform.fuzzy.tissues` (its consistency), a term of the
+    ``consistency`` input of the library's system ``tissue_si`` (the middle of the term's plateau)
+    or a consistency number in ``[0, 10]``; the system turns the consistency into a Young's modulus.
+    The system is evaluated once for all values.
+
+    Examples:
+        >>> E = tissue_moduli(["fat", "hard", 5.0])
+        >>> [round(e / 1000, 1) for e in E]            # kPa
+        [2.8, 58.5, 11.0]
+    """
+    from ..errors import ConfigError
+    from ..fuzzy.presets import load_preset, tissues
+    library, fis = tissues(), load_preset("tissue_si")
+    var = fis.inputs[0]
+    consistency = []
+    for v in values:
+        if isinstance(v, str) and v in library:
+            consistency.append(float(library[v]["consistency"]))
+        elif isinstance(v, str) and v in var.term_names:
+            consistency.append(float(var.terms[v].peak()))
+        elif is_number(v) and 0 <= v <= 10:
+            consistency.append(float(v))
+        else:
+            raise ConfigError(key, TISSUE_EXPECTED, v)
+    out = fis(torch.tensor(consistency, dtype=fis.dtype).view(-1, 1))
+    return [float(e) for e in out[:, fis.output_names().index("youngs_modulus")]]
+
+
+def _material(t: Table, grid: Grid) -> dict:
+    which = t.one_of("stiffness", "modulus", "tissue")
+    if which == "tissue":
+        with t.src.located(t.key("tissue")):
+            E = tissue_moduli([t.data["tissue"]])[0]
+        args = {"stiffness": E / lattice_modulus(grid), "normalize": False}
+    else:
+        args = {"stiffness": t.per_class(which, "N/m" if which == "stiffness" else "N"),
+                "normalize": which == "modulus"}
     if t.has("damping"):
         args["damping"] = t.per_class("damping", "N s/m")
     args["damping_mode"] = t.text("damping_mode", '"projected" or "unprojected"', "projected",
                                  ("projected", "unprojected"))
     return args
+
+
+def _regions(src: Source, items, grid: Grid, base_stiffness) -> torch.Tensor:
+    """Per-spring stiffness ``(S, D, H, W)`` of ``[[regions]]``: each spring the harmonic mean of its ends' k."""
+    from ..sim.springs import harmonic_mean_of_ends
+    if not isinstance(items, list):
+        raise src.error("regions", "[[regions]] tables", items)
+    if not is_number(base_stiffness):
+        raise src.error("material", "stiffness = a number or tissue = .. with [[regions]] (not a class table or "
+                                    "modulus)")
+    k = torch.full(grid.shape, float(base_stiffness), dtype=torch.float64)
+    X = grid.rest_positions(torch.float64)[0]
+    for n, item in enumerate(items):
+        t = Table(src, f"regions[{n}]", item, SECTIONS["regions"])
+        if t.one_of("sphere", "box") == "sphere":
+            b = Table(src, t.key("sphere"), t.data["sphere"], ("center", "radius"))
+            c = torch.tensor(b.vec("center", "three numbers [d, h, w] in metres"), dtype=torch.float64)
+            r = b.num("radius", "a positive number of metres", lo=0, lo_open=True)
+            mask = ((X - c.view(3, 1, 1, 1)) ** 2).sum(0) <= r * r * (1 + 1e-12)
+        else:
+            b = Table(src, t.key("box"), t.data["box"], ("lo", "hi"))
+            mask = grid.box_mask(b.vec("lo", "three numbers [d, h, w] in metres"),
+                                 b.vec("hi", "three numbers [d, h, w] in metres"))
+        mask = mask & grid.nodes()
+        if not bool(mask.any()):
+            raise t.fail(t.one_of("sphere", "box"), "a region containing at least one node (rest positions, m)",
+                         t.data[t.one_of("sphere", "box")])
+        if t.one_of("stiffness", "tissue") == "stiffness":
+            value = t.num("stiffness", "a positive number (N/m)", lo=0, lo_open=True)
+        else:
+            with src.located(t.key("tissue")):
+                value = tissue_moduli([t.data["tissue"]], "tissue")[0] / lattice_modulus(grid)
+        k[mask] = value
+    return harmonic_mean_of_ends(k[None], grid)[0]
 
 
 def _mass(t: Table) -> dict:
@@ -228,7 +338,8 @@ def _integrator(t: Table, grid: Grid) -> dict:
     return dict(integrator=integrator, dt=dt if dt == "auto" else float(dt),
                 safety=t.num("safety", "a number in (0, 1]", 0.9, lo=0, hi=1, lo_open=True),
                 steps=t.integer("steps", "an integer >= 0 (number of steps)"),
-                dtype=DTYPES[t.text("dtype", '"float32" or "float64"', "float32", DTYPES)], device=device)
+                dtype=DTYPES[t.text("dtype", '"float32" or "float64"', "float32", DTYPES)], device=device,
+                threads=t.integer("threads", "an integer >= 1 (CPU threads of the run)", None, lo=1))
 
 
 def mass_spring_scene(src: Source, data: dict, base: Path, name: str = "scene") -> Scene:
@@ -248,20 +359,31 @@ def mass_spring_scene(src: Source, data: dict, base: Path, name: str = "scene") 
         raise src.error("chainmail", 'model = "chainmail" (a top-level key) for a [chainmail] section')
     options = tuple(k for opts in INTEGRATOR_OPTIONS.values() for k in opts)
     section = {name_: Table(src, name_, data[name_], keys + (options if name_ == "integrator" else ()))
-               for name_, keys in SECTIONS.items() if name_ in data and name_ not in ("loads", "drags")}
+               for name_, keys in SECTIONS.items() if name_ in data and name_ not in ("loads", "drags", "regions", "tools")}
     grid = grid_section(section["grid"], base)
-    model_args = {**_material(section["material"]), **_mass(section["mass"])}
+    model_args = {**_material(section["material"], grid), **_mass(section["mass"])}
+    if "regions" in data:
+        model_args["stiffness"] = _regions(src, data["regions"], grid, model_args["stiffness"])
     if "boundary" in section:
         model_args.update(_boundary(section["boundary"], grid))
     if "loads" in data:
         model_args["loads"] = _loads(src, data["loads"], grid)
     if "drags" in data:
         model_args["drags"] = drags_section(src, data["drags"], grid)
+    tools = None
+    if "tools" in data or "strain_limit" in data:
+        tools = tools_section(src, data["tools"], base) if "tools" in data else ToolSet()
+        if "strain_limit" in section:
+            tools.strain_limit = strain_limit_section(section["strain_limit"])
+        model_args["interactions"] = tools.interactions()
     run = _integrator(section["integrator"], grid)
     out = section.get("output") or Table(src, "output", {}, SECTIONS["output"])
+    palpation = palpation_option(out, tools)
+    if palpation is not None:
+        tools.palpation = palpation
     scene = Scene(grid, model_args, **run, source=src,
                   record_every=out.integer("record_every", "an integer >= 1 (steps between frames)", None, lo=1),
-                  name=out.text("name", "a string", name))
+                  name=out.text("name", "a string", name), tools=tools)
     if "volume" in data:
         vt = Table(src, "volume", data["volume"], SECTIONS["volume"])
         scene.volume = {"file": vt.text("file", 'a volume file or "phantom:N"'),

@@ -6,8 +6,10 @@ renders), and the pieces the command line shows.
 """
 from __future__ import annotations
 
+import copy
 import json
 import math
+import re
 import sys
 import time
 import warnings
@@ -24,6 +26,7 @@ from ..sim.stability import check_dt, time_step_bound
 from .chainmail import ChainMailScene, chainmail_scene
 from .mass_spring import EXPLICIT, Scene, mass_spring_scene
 from .reader import read
+from .tools import ToolRecorder, support_series, tool_outputs
 
 __all__ = ["load_scene", "run_scene", "energy_series", "plot_energy", "one_line_warnings", "report",
            "scene_volume_outputs"]
@@ -167,6 +170,12 @@ def run_scene(scene: Scene, out_dir, progress: bool = True, device=None) -> dict
     (``kinetic``, ``elastic``, ``gravity``, ``total``, ``max_displacement``,
     ``max_free_displacement``, each ``(T,)``). The last frame is always the final state.
 
+    A scene with tools (``scene.tools``) runs fresh contacts and grasps built from it, records every
+    step's tool readings and also writes ``tools.npz``, ``forces.png``, the ``"tools"`` and
+    ``"support_reaction_N"`` parts of ``summary.json`` and, with ``[output] palpation``,
+    ``palpation.png`` (see :mod:`torchdeform.scene.tools`). ``scene.threads`` sets torch's CPU
+    threads for the run.
+
     Args:
         scene: a :class:`Scene` (:func:`load_scene`, :func:`demo_scene` or your own).
         out_dir: output folder (created).
@@ -196,8 +205,24 @@ def run_scene(scene: Scene, out_dir, progress: bool = True, device=None) -> dict
     """
     if not isinstance(scene, Scene):                          # a ChainMail scene runs itself
         return scene.run(_out_dir(out_dir), progress=progress, device=device)
-    out = _out_dir(out_dir)
+    threads = torch.get_num_threads()
+    if scene.threads:
+        torch.set_num_threads(scene.threads)
+    try:
+        return _run(scene, _out_dir(out_dir), progress, device)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
+    """:func:`run_scene` of a mass-spring scene, with the scene's threads set."""
     model = scene.build(device)
+    recorder = None
+    if scene.tools is not None:                               # fresh contacts and grasps: they keep state
+        model = copy.copy(model)
+        model.interactions = scene.tools.interactions()
+        if scene.tools.tools:
+            recorder = ToolRecorder(scene.tools.names, scene.steps, model.device, model.dtype)
     integrator = scene.integrator
     bound = time_step_bound(model, integrator)
     dt = scene.time_step(bound)
@@ -207,7 +232,7 @@ def run_scene(scene: Scene, out_dir, progress: bool = True, device=None) -> dict
 
     start = time.perf_counter()
     final, rec = simulate(model, state, dt, scene.steps, integrator, record_every=scene.frames_every,
-                          progress=progress, warn=False)
+                          progress=progress, warn=False, callback=recorder)
     wall = time.perf_counter() - start
 
     t, x, v = rec["t"].numpy(), rec["x"][:, 0], rec["v"][:, 0]
@@ -241,6 +266,7 @@ def run_scene(scene: Scene, out_dir, progress: bool = True, device=None) -> dict
                  "topology": grid.topology},
         "dtype": str(model.dtype).replace("torch.", ""),
         "device": str(model.device),
+        **({"threads": scene.threads} if scene.threads else {}),
         "frames": len(t),
         "final_energy_J": {k: float(series[k][-1]) for k in ("kinetic", "elastic", "gravity", "total")
                            if k in series},
@@ -248,10 +274,19 @@ def run_scene(scene: Scene, out_dir, progress: bool = True, device=None) -> dict
         "peak_displacement_m": float(series["max_displacement"].max()),
         "max_free_displacement_m": float(series["max_free_displacement"][-1]),
     }
+    if recorder is not None:
+        summary.update(tool_outputs(scene.tools, recorder.series(), (t, support_series(model, t, x, v)), out,
+                                    f"{scene.name}: {integrator.name}, dt = {dt:.3g} s"))
     if scene.volume:
         v = dict(scene.volume)
         summary["volume"] = scene_volume_outputs(v.pop("file"), final.x[:1], model.X, grid.spacing, out, **v)
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    text = json.dumps(summary, indent=2)
+    if "tools" in summary:                # each series (lists of numbers, lists of those) on one line
+        text = re.sub(r"\[\s+([-+\d.eE,\s]+?)\s+\]", lambda m: "[" + ", ".join(re.split(r",\s*", m.group(1))) + "]",
+                      text)
+        text = re.sub(r"\[\s+(\[[^\[\]]*\](?:,\s+\[[^\[\]]*\])*)\s+\]",
+                      lambda m: "[" + ", ".join(re.split(r"(?<=\]),\s+", m.group(1))) + "]", text)
+    (out / "summary.json").write_text(text + "\n")
     plot_energy(out / "energy.png", t, series, f"{scene.name}: {integrator.name}, dt = {dt:.3g} s")
     return summary
 
@@ -260,10 +295,21 @@ def report(summary: dict, out_dir) -> str:
     """One line for the CLI: what ran, how fast, and where the outputs are."""
     bound = summary["time_step_bound_s"]
     bound = f" (bound {bound:.3g} s)" if bound else ""
+    files = ["trajectory.npz", "summary.json", "energy.png"]
+    tools = ""
+    if "tools" in summary:
+        files += ["tools.npz", "forces.png"]
+        tools = ", max tool force " + ", ".join(f"{name} {entry['max_force_N']:.3g} N"
+                                                for name, entry in summary["tools"].items())
+    stiffest = (summary.get("palpation") or {}).get("stiffest")
+    if "palpation" in summary:
+        files.append("palpation.png")
+    if stiffest:
+        tools += (f", stiffest press at {stiffest['along_m'] * 1e3:.3g} mm along the line "
+                  f"({stiffest['peak_force_N']:.3g} N)")
     return (f"{summary['name']}: {summary['steps']} {summary['integrator']['name']} steps of "
             f"{summary['dt_s']:.3g} s{bound} in {summary['wall_time_s']:.2f} s, max displacement "
-            f"{summary['max_displacement_m'] * 1e3:.3g} mm; wrote trajectory.npz, summary.json, "
-            f"energy.png to {out_dir}")
+            f"{summary['max_displacement_m'] * 1e3:.3g} mm{tools}; wrote {', '.join(files)} to {out_dir}")
 
 
 def scene_volume_outputs(volume, x, X, spacing, out_dir, tf: str = "ct-soft", mode: str = "dvr",
