@@ -2,7 +2,8 @@
 
 The oracle lists every spring from the node coordinates (tests.oracles.edge_list), computes each
 violating spring's correction in numpy and averages per node, so it shares nothing with the
-stencil code but the rule itself (Provot's averaged corrections, REFERENCE §6.3).
+stencil code but the rule itself (Provot's averaged corrections, REFERENCE §6.3). The packed
+layout of the compiled step (every node gathers its springs) is held to the grid layout.
 """
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import torchdeform as td
 from tests.oracles.edge_list import EdgeList
 from torchdeform.errors import ConfigError
 from torchdeform.interact import StrainLimit
+from torchdeform.sim.compiled import compiled_step
 from torchdeform.sim.packed import PackedModel
 
 
@@ -101,10 +103,65 @@ def test_in_a_simulation_and_bad_input():
     free_ratio, _ = largest_ratio(None)
     limited_ratio, model = largest_ratio([StrainLimit(0.9, 1.2, passes=200)])
     assert free_ratio > 1.3 and limited_ratio < 1.2 + 1e-6          # the soft springs would stretch far more
-    with pytest.raises(ConfigError, match="compiled"):
-        StrainLimit().project(PackedModel(model), model.X, model.X, 0.0, 1e-3)
     for kwargs, key in (({"min_ratio": 1.2}, "strain_limit"), ({"passes": 0}, "strain_limit.passes"),
                         ({"max_ratio": -1.0}, "strain_limit.max_ratio")):
         with pytest.raises(ConfigError) as e:
             StrainLimit(**kwargs)
         assert e.value.key == key
+
+
+@pytest.mark.parametrize("topology", [6, 18, 26])
+def test_packed_layout_gives_the_same_projection(topology):
+    """One ``project`` call on the packed layout (gathered from both ends) equals the grid layout's."""
+    nodes = torch.ones(4, 5, 3, dtype=torch.bool)
+    nodes[3, 4, :] = False                                                         # a body that is not a box
+    grid = td.Grid((4, 5, 3), spacing=(0.01, 0.012, 0.01), topology=topology, node_mask=nodes)
+    g = torch.Generator().manual_seed(topology)
+    springs = torch.rand((grid.S,) + grid.shape, generator=g) > 0.25               # cut a quarter of them
+    fixed = torch.zeros(grid.shape, dtype=torch.bool)
+    fixed[0, :2] = True
+    limit = StrainLimit(0.9, 1.1, passes=2)
+
+    def project(spring_mask):
+        model = td.Model(grid, stiffness=torch.rand(grid.S, generator=g, dtype=torch.float64) + 0.5, mass=1e-3,
+                         fixed=fixed, spring_mask=spring_mask, dtype=torch.float64)
+        x = model.X * torch.tensor([1.5, 1.0, 0.75], dtype=torch.float64).view(1, 3, 1, 1, 1)
+        x = x + 2e-3 * torch.randn((2,) + x.shape[1:], generator=g, dtype=torch.float64)   # batch of 2
+        x = torch.where(model.constrained[None, None], model.X, x)
+        v = torch.randn(x.shape, generator=g, dtype=torch.float64)
+        grid_out = limit.project(model, x, v, 0.0, 1e-3)
+        pm = PackedModel(model)
+        ps = pm.pack_state(td.State(x, v))
+        packed_out = limit.project(pm, ps.x, ps.v, 0.0, 1e-3)
+        for a in packed_out:                                                        # halo and padding stay 0
+            assert torch.equal(pm.pack(pm.unpack(a)), a)
+        return x, grid_out, pm.unpack_state(td.State(*packed_out))
+
+    x, (xg, vg), packed = project(springs)
+    assert (xg - x).abs().max() > 1e-3                                              # it did correct
+    assert (packed.x - xg).abs().max() < 1e-12 and (packed.v - vg).abs().max() < 1e-12
+    assert torch.equal(xg[..., ~nodes], x[..., ~nodes]) and torch.equal(xg[:, :, fixed], x[:, :, fixed])
+    _, (x_uncut, _), _ = project(None)                                              # the cut springs mattered
+    assert (x_uncut - xg).abs().max() > 1e-4
+
+
+def test_compiled_step_wrapper_runs_strain_limits_like_simulate():
+    """The eager packed path behind ``compiled_step`` (``enable=False``) equals ``td.simulate``."""
+    grid = td.Grid((4, 3, 3), spacing=0.01, topology=26)
+    pull = td.Drag(grid.face("top"), [(0.0, (0, 0, 0)), (0.01, (0.004, 0.001, 0))])
+    model = td.Model(grid, stiffness=0.5, damping=0.002, mass=1e-3, gravity=(-9.81, 0, 0),
+                     fixed=grid.face("bottom"), drags=[pull], interactions=[StrainLimit(0.9, 1.15, passes=5)],
+                     dtype=torch.float64)
+    dt, steps = 5e-4, 20
+    rest = model.rest_state(batch=2)
+    start = td.State(*model.constrain(rest.x, rest.v, 0.0), 0.0)   # dragged nodes on their path, as simulate
+    step = compiled_step(td.SymplecticEuler(), model, dt, enable=False)
+    assert not step.compiled
+    got = step.run(start, steps)
+    want, _ = td.simulate(model, start, dt=dt, steps=steps, warn=False)
+    free, _ = td.simulate(td.Model(grid, stiffness=0.5, damping=0.002, mass=1e-3, gravity=(-9.81, 0, 0),
+                                   fixed=grid.face("bottom"), drags=[pull], dtype=torch.float64),
+                          start, dt=dt, steps=steps, warn=False)
+    assert (free.x - want.x).abs().max() > 1e-4                                     # the limit was active
+    assert (got.x - want.x).abs().max() < 1e-10 and (got.v - want.v).abs().max() < 1e-10
+    assert got.t == pytest.approx(want.t)

@@ -3,10 +3,15 @@
 After a step, every spring whose length ``l`` left ``[min_ratio l0, max_ratio l0]`` asks for the
 correction that brings it back to the nearest bound: its excess ``e = l - clamp(l)`` split
 between its two endpoints along the spring (all of it to the free end when the other is fixed or
-dragged). Each node then moves by the **average** of the corrections its violating springs ask
-for (a Jacobi pass: no scatter, every spring evaluated once per pass through the one spring
-operator, :func:`torchdeform.sim.springs.accumulate`). ``passes`` passes per step; velocities
-follow the positions (``v += dx / dt``) unless ``update_velocity=False``.
+dragged, nothing when both are). Each node then moves by the **average** of the corrections its
+violating springs ask for (a Jacobi pass). ``passes`` passes per step; velocities follow the
+positions (``v += dx / dt``) unless ``update_velocity=False``.
+
+The rule itself (:meth:`StrainLimit.rule`) is written once; each layout only sums it onto the nodes
+with its own spring operator: the grid layout through :func:`torchdeform.sim.springs.accumulate`
+(every spring evaluated once per pass, scattered to both ends), the packed layout of the compiled
+step through :meth:`torchdeform.sim.packed.PackedModel.gather` (every node gathers its ``2 S``
+springs, so each spring is evaluated from both ends and there is no scatter).
 
 A body whose springs are all within bounds is left exactly as it is.
 
@@ -39,7 +44,8 @@ class StrainLimit:
     """Keep every spring's length within ``[min_ratio, max_ratio]`` times its rest length.
 
     Pass it to a model with ``Model(..., interactions=[StrainLimit(...)])``; it runs at the end of
-    every eager step (the compiled step does not support it yet and falls back to the eager one).
+    every step, eager (grid layout) or compiled (:func:`torchdeform.sim.compiled.compiled_step`,
+    packed layout), with the same result.
 
     Args:
         min_ratio: smallest length / rest length, in ``(0, 1]``.
@@ -68,46 +74,96 @@ class StrainLimit:
         """Strain limiting adds no force."""
         return None
 
-    def corrections(self, model, x: torch.Tensor) -> torch.Tensor:
-        """One Jacobi pass: the average correction ``(B, 3, D, H, W)`` each node's violating springs ask for.
+    def rule(self, sq, l0, exists, wa, wb):
+        """The rule for springs from ``a`` to ``b``, the one both layouts use.
+
+        Endpoint ``a`` asks to move by ``wa * alpha * (x_b - x_a)`` and ``b`` by
+        ``wb * alpha * (x_a - x_b)``, each counting ``violated`` towards its average: the excess
+        ``e = l - clamp(l, min_ratio l0, max_ratio l0)`` is shared in proportion to the ends'
+        free-ness ``wa, wb`` (1 free, 0 fixed or dragged), all of it to the free end when the other
+        is constrained and nothing when both are. ``l`` is kept ``>= sqrt(tiny)``, so coincident
+        nodes ask for no (finite, zero) move.
 
         Args:
-            model: the model (grid, rest lengths, stiffness as the spring-exists mask, free nodes).
-            x: positions ``(B, 3, D, H, W)``.
+            sq: ``|x_b - x_a|^2``.
+            l0: rest length, broadcastable.
+            exists: bool, the spring exists, broadcastable.
+            wa: free-ness of ``a``, broadcastable.
+            wb: free-ness of ``b``, broadcastable.
+
+        Returns:
+            ``(alpha, violated)``, ``violated`` 1 where the spring exists and is out of bounds, else 0.
+
+        Examples:
+            >>> import torch
+            >>> one = torch.ones(1, dtype=torch.float64)
+            >>> alpha, n = StrainLimit(0.9, 1.1).rule(4 * one, one, one > 0, one, 0 * one)   # l = 2 l0
+            >>> round(alpha.item(), 12), n.item()    # the free end a moves 0.45 * 2 = 0.9 towards b
+            (0.45, 1.0)
         """
+        l = sq.clamp_min(torch.finfo(sq.dtype).tiny).sqrt()
+        excess = l - l.clamp(self.min_ratio * l0, self.max_ratio * l0)
+        violated = (exists & (excess != 0)).to(sq.dtype)
+        return excess / l * violated / (wa + wb).clamp_min(1), violated
+
+    def corrections(self, model, x: torch.Tensor) -> torch.Tensor:
+        """One Jacobi pass: the average correction each node's violating springs ask for.
+
+        Args:
+            model: the model (grid, rest lengths, stiffness as the spring-exists mask, free nodes),
+                in the grid layout or packed (:class:`~torchdeform.sim.packed.PackedModel`).
+            x: positions ``(B, 3, D, H, W)``, or ``(B, 3, P)`` on a packed model.
+
+        Returns:
+            the corrections, shaped like ``x``.
+        """
+        total = self._packed_sums(model, x) if isinstance(model, PackedModel) else self._grid_sums(model, x)
+        # read once per channel: under torch.compile stored, not recomputed by every read
+        total = model.keep(total)
+        return total[:, :3] / total[:, 3:].clamp_min(1)
+
+    def _grid_sums(self, model, x):
+        """Per node, the sum of its corrections and its count of violated springs, ``(B, 4, D, H, W)``."""
         grid = model.grid
         free = torch.ones_like(x[:, :1]) if model.free is None else model.free.expand_as(x[:, :1])
 
         def fn(s, src, dx):
-            dst = grid.stencil[s][1]
-            l = dx.norm(dim=1, keepdim=True)
-            l0 = take(model.rest_length, s, src)
-            exists = take(model.stiffness, s, src) > 0
-            excess = l - l.clamp(self.min_ratio * l0, self.max_ratio * l0)
-            violated = (exists & (excess != 0)).to(x.dtype)
-            wa, wb = free[(..., *src)], free[(..., *dst)]
-            share = violated / (wa + wb).clamp_min(1)
-            unit = dx / l.clamp_min(torch.finfo(x.dtype).tiny)
-            step = excess * unit * share                               # moves a towards b when too long
-            return (torch.cat([step * wa, violated * wa], 1), torch.cat([-step * wb, violated * wb], 1))
+            wa, wb = free[(..., *src)], free[(..., *grid.stencil[s][1])]
+            alpha, violated = self.rule((dx * dx).sum(1, keepdim=True), take(model.rest_length, s, src),
+                                        take(model.stiffness, s, src) > 0, wa, wb)
+            step = alpha * dx                                          # moves a towards b when too long
+            return torch.cat([step * wa, violated * wa], 1), torch.cat([-step * wb, violated * wb], 1)
 
-        total = accumulate(grid, fn, x, channels=4)
-        return total[:, :3] / total[:, 3:].clamp_min(1)
+        return accumulate(grid, fn, x, channels=4)
 
-    def project(self, model, x, v, t, dt):
+    def _packed_sums(self, pm: PackedModel, x):
+        """As :meth:`_grid_sums` on a packed model, gathered from both ends, ``(B, 4, P)``."""
+        free = pm.free[:, 0]                                            # (1, P), 0 in the halo
+        w_here = pm.shift(free, 0)
+
+        def fn(s, sign, mask, dx):
+            sq = dx[0] * dx[0] + dx[1] * dx[1] + dx[2] * dx[2]
+            exists = (pm.param(pm.stiffness, s, sign) > 0) & (mask > 0)
+            alpha, violated = self.rule(sq, pm.param(pm.rest_length, s, sign), exists, w_here,
+                                        pm.shift(free, sign * pm.offsets[s]))
+            alpha = alpha * w_here
+            return [alpha * d for d in dx] + [violated * w_here]
+
+        return pm.gather(fn, x)
+
+    def project(self, model, x, v, t, dt, readings=None):
         """``passes`` Jacobi passes on the positions at the end of a step (velocities follow).
 
         Args:
-            model: the model (grid layout).
-            x: positions ``(B, 3, D, H, W)``.
-            v: velocities ``(B, 3, D, H, W)``.
+            model: the model, grid layout or packed.
+            x: positions ``(B, 3, D, H, W)`` (``(B, 3, P)`` packed).
+            v: velocities, like ``x``.
             t: time (s), unused.
             dt: the step (s), for the velocity update.
+            readings: the step's readings, unused (strain limiting measures nothing).
         """
-        if isinstance(model, PackedModel):
-            raise ConfigError("interactions", "strain limiting on the grid layout (the eager step); the compiled "
-                                              "step does not support it yet", "a packed model")
-        x0 = x
+        # read again by the velocity update: under torch.compile stored once, not recomputed
+        x0 = x = model.keep(x) if self.update_velocity else x
         for _ in range(self.passes):
             x = x + self.corrections(model, x)
         if self.update_velocity:
