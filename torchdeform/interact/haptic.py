@@ -199,7 +199,7 @@ class HapticLoop:
         wait = self._next - time.perf_counter()
         if wait > 0:
             time.sleep(wait)
-        elif wait < -2.0 / self.rate:                           # far behind: start again, no burst
+        elif wait < -10.0 / self.rate:      # more than 10 ticks behind: start again, no long burst
             self._next = time.perf_counter()
         self._last_tick = time.perf_counter()
         return force

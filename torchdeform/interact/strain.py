@@ -7,11 +7,17 @@ dragged, nothing when both are). Each node then moves by the **average** of the 
 violating springs ask for (a Jacobi pass). ``passes`` passes per step; velocities follow the
 positions (``v += dx / dt``) unless ``update_velocity=False``.
 
+A spring counts as violated only when ``|e| > tol l0`` with ``tol = 64 eps`` of the dtype: a
+spring that sits on its bound (after an earlier pass, say) is then neither corrected nor counted
+in its nodes' averages according to rounding noise.
+
 The rule itself (:meth:`StrainLimit.rule`) is written once; each layout only sums it onto the nodes
 with its own spring operator: the grid layout through :func:`torchdeform.sim.springs.accumulate`
 (every spring evaluated once per pass, scattered to both ends), the packed layout of the compiled
-step through :meth:`torchdeform.sim.packed.PackedModel.gather` (every node gathers its ``2 S``
-springs, so each spring is evaluated from both ends and there is no scatter).
+step as one sum over the ``2 S`` directions of every core node (:meth:`PackedModel.ends
+<torchdeform.sim.packed.PackedModel.ends>`, as :class:`~torchdeform.sim.packed.PackedLinearisation`:
+each spring is evaluated from both ends and there is no scatter; under ``torch.compile`` the sum is
+one loop over the nodes with the directions as its inner reduction, not ``2 S`` unrolled terms).
 
 A body whose springs are all within bounds is left exactly as it is.
 
@@ -81,8 +87,10 @@ class StrainLimit:
         ``wb * alpha * (x_a - x_b)``, each counting ``violated`` towards its average: the excess
         ``e = l - clamp(l, min_ratio l0, max_ratio l0)`` is shared in proportion to the ends'
         free-ness ``wa, wb`` (1 free, 0 fixed or dragged), all of it to the free end when the other
-        is constrained and nothing when both are. ``l`` is kept ``>= sqrt(tiny)``, so coincident
-        nodes ask for no (finite, zero) move.
+        is constrained and nothing when both are. The spring is violated only when
+        ``|e| > tol l0``, ``tol = 64 eps`` of the dtype (on its bound within rounding it asks for
+        nothing and is not counted). ``l`` is kept ``>= sqrt(tiny)``, so coincident nodes ask for
+        no (finite, zero) move.
 
         Args:
             sq: ``|x_b - x_a|^2``.
@@ -92,7 +100,8 @@ class StrainLimit:
             wb: free-ness of ``b``, broadcastable.
 
         Returns:
-            ``(alpha, violated)``, ``violated`` 1 where the spring exists and is out of bounds, else 0.
+            ``(alpha, violated)``, ``violated`` 1 where the spring exists and is out of bounds by
+            more than ``tol l0``, else 0.
 
         Examples:
             >>> import torch
@@ -103,7 +112,8 @@ class StrainLimit:
         """
         l = sq.clamp_min(torch.finfo(sq.dtype).tiny).sqrt()
         excess = l - l.clamp(self.min_ratio * l0, self.max_ratio * l0)
-        violated = (exists & (excess != 0)).to(sq.dtype)
+        tol = 64 * torch.finfo(sq.dtype).eps
+        violated = (exists & (excess.abs() > tol * l0)).to(sq.dtype)
         return excess / l * violated / (wa + wb).clamp_min(1), violated
 
     def corrections(self, model, x: torch.Tensor) -> torch.Tensor:
@@ -137,19 +147,17 @@ class StrainLimit:
         return accumulate(grid, fn, x, channels=4)
 
     def _packed_sums(self, pm: PackedModel, x):
-        """As :meth:`_grid_sums` on a packed model, gathered from both ends, ``(B, 4, P)``."""
-        free = pm.free[:, 0]                                            # (1, P), 0 in the halo
-        w_here = pm.shift(free, 0)
-
-        def fn(s, sign, mask, dx):
-            sq = dx[0] * dx[0] + dx[1] * dx[1] + dx[2] * dx[2]
-            exists = (pm.param(pm.stiffness, s, sign) > 0) & (mask > 0)
-            alpha, violated = self.rule(sq, pm.param(pm.rest_length, s, sign), exists, w_here,
-                                        pm.shift(free, sign * pm.offsets[s]))
-            alpha = alpha * w_here
-            return [alpha * d for d in dx] + [violated * w_here]
-
-        return pm.gather(fn, x)
+        """As :meth:`_grid_sums` on a packed model: one sum over the ``2 S`` directions, ``(B, 4, P)``."""
+        x = pm.trace.operand(x)
+        dx = pm.ends(x) - pm.blocks(x).unsqueeze(2)                          # (B, 3, 2S, N, L)
+        sq = dx[:, 0] * dx[:, 0] + dx[:, 1] * dx[:, 1] + dx[:, 2] * dx[:, 2]  # (B, 2S, N, L)
+        wa = pm.blocks(pm.free)[:, 0]                                        # (1, 1, N, L), 0 in the halo
+        wb = pm.ends(pm.free)[:, 0]                                          # (1, 2S, N, L)
+        exists = (pm.directed(pm.stiffness) > 0) & (pm.spring_exists > 0)
+        alpha, violated = self.rule(sq, pm.directed(pm.rest_length), exists, wa, wb)
+        # Channels kept apart (four sums, one loop over the nodes), as PackedLinearisation.apply.
+        sums = [(alpha * dx[:, a]).sum(1, keepdim=True) for a in range(3)] + [violated.sum(1, keepdim=True)]
+        return pm.spread((torch.cat(sums, 1) * wa).flatten(-2))
 
     def project(self, model, x, v, t, dt, readings=None):
         """``passes`` Jacobi passes on the positions at the end of a step (velocities follow).
