@@ -23,13 +23,12 @@ Example:
 from __future__ import annotations
 
 import statistics
-import sys
 import time
 
 import torch
 
 from ..errors import ConfigError
-from .common import add_common, emit, int_list, machine_info, progress
+from .common import add_common, axes, emit, int_list, machine_info, progress, save_figure
 
 __all__ = ["COLUMNS", "SPACING", "PULLS", "add_arguments", "run"]
 
@@ -140,12 +139,7 @@ def run(args) -> int:
 
 
 def _plot(rows, out_dir) -> None:
-    from pathlib import Path
-
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    fig, ax = axes((6.5, 4.5))
     styles = {"gibson": "-", "enhanced": "--", "tensor": ":"}
     for variant in ("gibson", "enhanced", "tensor"):
         for n in sorted({r["n"] for r in rows if r["variant"] == variant}):
@@ -160,8 +154,4 @@ def _plot(rows, out_dir) -> None:
     ax.set_title("ChainMail: a local pull, cost against moved elements and grid size")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, ncol=2)
-    fig.tight_layout()
-    Path(out_dir).mkdir(parents=True, exist_ok=True)
-    fig.savefig(Path(out_dir) / "chainmail.png", dpi=110)
-    plt.close(fig)
-    print(f"wrote {Path(out_dir) / 'chainmail.png'}", file=sys.stderr)
+    save_figure(fig, out_dir, "chainmail.png")

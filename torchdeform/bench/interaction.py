@@ -26,13 +26,12 @@ Example:
 from __future__ import annotations
 
 import statistics
-import sys
 import time
 
 import torch
 
 from ..errors import ConfigError
-from .common import add_common, emit, int_list, machine_info, progress
+from .common import add_common, axes, emit, int_list, machine_info, progress, save_figure
 
 __all__ = ["COLUMNS", "add_arguments", "run", "pressing_scene"]
 
@@ -154,12 +153,7 @@ def run(args) -> int:
 
 
 def _plot(rows, out_dir) -> None:
-    from pathlib import Path
-
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    fig, ax = axes((6.5, 4.2))
     for engine, style in (("compiled", "-o"), ("eager", "--s")):
         pts = sorted((r["n"], r["hz"]) for r in rows if r["mode"] == "step" and r["engine"] == engine)
         if pts:
@@ -175,8 +169,4 @@ def _plot(rows, out_dir) -> None:
     ax.set_title("A sphere tool pressing in: steps/s and haptic rate")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    Path(out_dir).mkdir(parents=True, exist_ok=True)
-    fig.savefig(Path(out_dir) / "interaction.png", dpi=110)
-    plt.close(fig)
-    print(f"wrote {Path(out_dir) / 'interaction.png'}", file=sys.stderr)
+    save_figure(fig, out_dir, "interaction.png")
