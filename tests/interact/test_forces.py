@@ -31,7 +31,7 @@ from torchdeform.interact import (
     Tool,
     support_reaction,
 )
-from torchdeform.sim.compiled import compiled_step
+from torchdeform.sim.compiled import CompileFallbackWarning, compiled_step
 
 F64 = torch.float64
 
@@ -220,3 +220,19 @@ def test_packed_layout_reports_the_same_forces():
     assert eager.readings["probe.contacts"].item() > 0
     for k, r in eager.readings.items():
         assert torch.allclose(packed.readings[k], r, atol=1e-12), k
+
+
+def test_compiled_step_runs_a_grasp_eagerly_without_trying_to_compile():
+    grid = td.Grid((3, 3, 3), spacing=0.01)
+    jaws = Tool(Box((0.004,) * 3), path=[(0.0, (0.02, 0.01, 0.01)), (0.2, (0.03, 0.01, 0.01))], name="forceps")
+    model = td.Model(grid, stiffness=20.0, damping=0.05, mass=1e-3, fixed=grid.face("bottom"), dtype=F64,
+                     interactions=[Grasp(jaws, close=0.0, open=1.0)])
+    with pytest.warns(CompileFallbackWarning, match="Grasp runs in the eager step"):
+        step = compiled_step(td.SymplecticEuler(), model, 5e-4)
+    assert not step.compiled
+    state = step.run(model.rest_state(), 400)                     # t = 0.2: lifted (almost) 1 cm
+    model.interactions = [Grasp(jaws, close=0.0, open=1.0)]      # a fresh grasp for the grid-layout run
+    ref, _ = td.simulate(model, model.rest_state(), dt=5e-4, steps=400)
+    assert state.x[0, 0, 2, 1, 1].item() > 0.0299
+    assert torch.allclose(state.x, ref.x, atol=1e-14) and state.readings["forceps.grasped"].tolist() == [1.0]
+    assert ProjectionContact(jaws, hold=True).eager_only and not ProjectionContact(jaws).eager_only

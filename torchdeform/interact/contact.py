@@ -110,6 +110,11 @@ class ProjectionContact:
                                                                     "a gain >= 0 (N/m)")
         self._held = [Attachment() for _ in self.tools] if self.hold else None
 
+    @property
+    def eager_only(self) -> bool:
+        """With ``hold`` the held nodes live in Python between steps: a compiled step runs eagerly."""
+        return self.hold
+
     def force(self, model, x, v, t):
         """Projection adds no force."""
         return None

@@ -134,6 +134,9 @@ class Grasp:
         #: closed now (a device loop sets it when no times are given)
         self.closed = False
 
+    #: keeps the grasped nodes in Python between steps: a compiled step falls back to the eager one
+    eager_only = True
+
     def closed_at(self, t: float) -> bool:
         """Whether the jaws are closed at time ``t`` (s) by the schedule."""
         if self.close is None:

@@ -103,8 +103,11 @@ class CompiledStep:
 
         self._fn, self._compiled_for = None, None
         self.compiled = bool(enable)
+        eager_only = [type(c).__name__ for c in model.interactions if getattr(c, "eager_only", False)]
         if enable and callable(loads):
             self._fallback(TypeError("callable loads are not compiled"))
+        elif enable and eager_only:
+            self._fallback(TypeError(f"{', '.join(eager_only)} runs in the eager step"))
         elif enable:
             try:
                 implicit = isinstance(integrator, ImplicitEuler)
@@ -164,8 +167,11 @@ class CompiledStep:
         """``steps`` steps from a grid-layout state, packed once; returns a grid-layout state.
 
         ``callback(i, packed_state)`` (optional) is called after every step; unpack with
-        ``self.packed.unpack_state``.
+        ``self.packed.unpack_state``. Dragged nodes start on their path, as in
+        :func:`~torchdeform.sim.integrators.simulate`.
         """
+        if self.model.drags:
+            state = State(*self.model.constrain(state.x, state.v, state.t), state.t, state.readings)
         ps = self.packed.pack_state(state)
         for i in range(int(steps)):
             ps = self.step_packed(ps)

@@ -161,7 +161,8 @@ class Model:
             ``FieldForce``, or None.
         interactions: objects with ``project(model, x, v, t, dt, readings) -> (x, v)`` (applied at the end
             of every step) and ``force(model, x, v, t)`` (added to the forces, or None): tool
-            contact, strain limiting (:mod:`torchdeform.interact`); or None.
+            contact, grasp, strain limiting (:mod:`torchdeform.interact`); or None. One whose
+            ``eager_only`` is true makes the compiled step run eagerly.
         spring_mask: optional bool ``(S, D, H, W)`` of springs that exist (e.g. after a cut).
         dtype: of every tensor of the model.
         device: of every tensor of the model.
