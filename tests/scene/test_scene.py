@@ -348,13 +348,6 @@ def line_containing(text, needle):
     return next(i for i, line in enumerate(text.splitlines(), 1) if needle in line)
 
 
-@pytest.fixture
-def bad_dir(tmp_path):
-    box = trimesh.creation.box((0.01, 0.01, 0.01))
-    trimesh.Trimesh(box.vertices, box.faces[:-2]).export(tmp_path / "open.stl")
-    return tmp_path
-
-
 @pytest.mark.parametrize("case", list(BAD), ids=list(BAD))
 def test_bad_scene_is_one_line_exit_2(case, bad_dir, capsys):
     text, key, expected, needle = BAD[case]

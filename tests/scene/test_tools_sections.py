@@ -126,7 +126,6 @@ def assert_same_interactions(a: list, b: list):
 
 # ------------------------------------------------------------------ parsing
 def test_every_tool_key_builds_the_same_objects(tmp_path):
-    pytest.importorskip("torchdeform.interact.meshes")
     from torchdeform.interact.meshes import MeshShape
     trimesh.creation.icosphere(subdivisions=2, radius=0.003).export(tmp_path / "ball.stl")
     text = BODY + """
@@ -316,17 +315,8 @@ BAD = {
 }
 
 
-@pytest.fixture
-def bad_dir(tmp_path):
-    box = trimesh.creation.box((0.01, 0.01, 0.01))
-    trimesh.Trimesh(box.vertices, box.faces[:-2]).export(tmp_path / "open.stl")
-    return tmp_path
-
-
 @pytest.mark.parametrize("case", list(BAD), ids=list(BAD))
 def test_bad_tools_are_one_line_exit_2(case, bad_dir, capsys):
-    if case.startswith("mesh"):
-        pytest.importorskip("torchdeform.interact.meshes")
     text, key, expected, needle = BAD[case]
     path = bad_dir / "bad.toml"
     path.write_text(text)
@@ -341,7 +331,6 @@ def test_bad_tools_are_one_line_exit_2(case, bad_dir, capsys):
 
 
 def test_bad_mesh_tool_through_the_entry_point(bad_dir):
-    pytest.importorskip("torchdeform.interact.meshes")
     path = write(bad_dir, BODY + MESH + RUN, "bad.toml")
     proc = subprocess.run([sys.executable, "-m", "torchdeform", "run", str(path), "--out", str(bad_dir / "o")],
                           capture_output=True, text=True)
