@@ -1,0 +1,127 @@
+"""Cutting and connected components (torchdeform.topology) against independent oracles.
+
+* a full cut between two adjacent layers removes the analytic counts of REFERENCE.md §6.2
+  (6: n^2, 14: n^2 + 4(n-1)^2, 18: n^2 + 4n(n-1), 26: (3n-2)^2) and leaves 2 components;
+* a tilted, partial blade through a deformed body cuts exactly the springs a plain numpy
+  segment-rectangle test over an explicit edge list finds;
+* components equal scipy.sparse.csgraph.connected_components of the remaining edge list;
+* after a full cut the upper piece falls freely (acceleration g exactly, nothing holds it).
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+import torchdeform as td
+from tests.oracles.edge_list import EdgeList
+from torchdeform.errors import ConfigError
+from torchdeform.topology import Blade, components, crossing, cut
+
+F64 = torch.float64
+H = 0.01
+
+
+def _model(n, topology, shape=None):
+    grid = td.Grid(shape or (n, n, n), spacing=H, topology=topology)
+    return grid, td.Model(grid, stiffness=10.0, damping=0.01, mass=1e-3, dtype=F64)
+
+
+@pytest.mark.parametrize("topology, count", [(6, lambda n: n * n), (14, lambda n: n * n + 4 * (n - 1) ** 2),
+                                             (18, lambda n: n * n + 4 * n * (n - 1)),
+                                             (26, lambda n: (3 * n - 2) ** 2)])
+@pytest.mark.parametrize("n", [3, 5])
+def test_full_layer_cut_removes_the_analytic_count(topology, count, n):
+    grid, model = _model(n, topology)
+    blade = Blade((1.5 * H, -H, -H), (0.0, (n + 1) * H, 0.0), (0.0, 0.0, (n + 1) * H))
+    assert cut(model, model.X, blade) == count(n)
+    assert int(((model.stiffness != 0) & grid.spring_mask()).sum()) == grid.num_springs - count(n)
+    assert components(model)[1] == 2
+    assert cut(model, model.X, blade) == 0                      # nothing left to cut there
+
+
+def _numpy_crossings(el, x, o, u, v):
+    """Springs (a, b) of the edge list whose segment meets the rectangle o + a u + b v."""
+    n = np.cross(u, v)
+    n /= np.linalg.norm(n)
+    out = set()
+    for a, b, _ in el.springs:
+        p, q = x[a], x[b]
+        hp, hq = (p - o) @ n, (q - o) @ n
+        if (hp > 0) == (hq > 0):
+            continue
+        r = p + hp / (hp - hq) * (q - p)
+        s, t = (r - o) @ u / (u @ u), (r - o) @ v / (v @ v)
+        if 0 <= s <= 1 and 0 <= t <= 1:
+            out.add((a, b))
+    return out
+
+
+@pytest.mark.parametrize("topology", [6, 18, 26])
+def test_partial_tilted_blade_on_a_deformed_body_matches_numpy(topology):
+    grid, model = _model(0, topology, shape=(5, 6, 4))
+    gen = torch.Generator().manual_seed(1)
+    x = model.X + 0.2 * H * torch.randn(model.X.shape, generator=gen, dtype=F64)
+    rng = np.random.default_rng(2)
+    axis = rng.normal(size=3)
+    u = np.cross(axis, [0.3, 1.0, 0.2])
+    u *= 0.035 / np.linalg.norm(u)
+    v = np.cross(axis, u)
+    v *= 0.03 / np.linalg.norm(v)
+    o = np.array([0.02, 0.025, 0.015]) - 0.5 * u - 0.4 * v
+    blade = Blade(tuple(o), tuple(u), tuple(v))
+    hit = crossing(grid, x, blade)[0]
+    el = EdgeList(grid.shape, (H,) * 3, topology)
+    expect = _numpy_crossings(el, el.from_field(x[0]), o, u, v)
+    got = set()
+    for s, d in enumerate(grid.directions):
+        for ijk in zip(*torch.nonzero(hit[s], as_tuple=True)):
+            a = el.index[tuple(int(i) for i in ijk)]
+            b = el.index[tuple(int(i) + c for i, c in zip(ijk, d))]
+            got.add((min(a, b), max(a, b)))
+    assert len(expect) > 5 and got == expect
+
+
+def test_components_equal_scipy_on_random_removals():
+    grid, model = _model(0, 18, shape=(4, 5, 6))
+    gen = torch.Generator().manual_seed(3)
+    keep = torch.rand((1, grid.S) + grid.shape, generator=gen, dtype=F64) > 0.8
+    model.stiffness = model.stiffness.expand_as(keep) * keep
+    labels, count = components(model)
+    el = EdgeList(grid.shape, (H,) * 3, 18)
+    alive = []
+    for s, d in enumerate(grid.directions):
+        for ijk in zip(*torch.nonzero((model.stiffness[0, s] != 0) & grid.spring_mask()[s], as_tuple=True)):
+            alive.append((el.index[tuple(int(i) for i in ijk)], el.index[tuple(int(i) + c for i, c in zip(ijk, d))]))
+    a, b = np.array(alive).T
+    ref_count, ref = connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(el.N, el.N)), directed=False)
+    assert count == ref_count > 3
+    flat = labels.flatten().numpy()
+    same_ref = ref[:, None] == ref[None, :]
+    same = flat[:, None] == flat[None, :]
+    order = [np.ravel_multi_index(ijk, grid.shape) for ijk in el.nodes]
+    assert np.array_equal(same[np.ix_(order, order)], same_ref)
+
+
+def test_cut_piece_falls_freely():
+    grid = td.Grid((4, 3, 3), spacing=H, topology=26)
+    model = td.Model(grid, stiffness=20.0, damping=0.02, mass=1e-3, gravity=(-9.81, 0, 0), fixed=grid.face("bottom"),
+                     dtype=F64)
+    blade = Blade((1.5 * H, -H, -H), (0.0, 5 * H, 0.0), (0.0, 0.0, 5 * H))
+    cut(model, model.X, blade)
+    state, _ = td.simulate(model, model.rest_state(), dt=1e-4, steps=200)
+    top = state.x[0, 0, 2:] - model.X[0, 0, 2:]
+    t = state.t
+    # symplectic Euler: x_n = x_0 - g h^2 n (n + 1) / 2 exactly for a free particle
+    n = 200
+    assert torch.allclose(top, torch.full_like(top, -9.81 * 1e-8 * n * (n + 1) / 2), atol=1e-13)
+    assert abs(t - 0.02) < 1e-12
+
+
+def test_blade_must_be_a_rectangle():
+    with pytest.raises(ConfigError, match="right angles"):
+        Blade((0, 0, 0), (1, 0, 0), (1, 1, 0))
+    with pytest.raises(ConfigError, match="blade"):
+        Blade((0, 0, 0), (0, 0, 0), (0, 1, 0))

@@ -1,0 +1,29 @@
+"""Topology as state: cutting and connected components (the first part of the topology issue).
+
+=====================  ===========================================================================
+:mod:`.cut`            a rectangular blade: which springs its surface crosses, removing them from a
+                       model (stiffness and damping set to zero), which side each node lies on
+:mod:`.components`     connected components of the body through its remaining springs (label
+                       propagation on the stencil)
+=====================  ===========================================================================
+
+Cautery, tearing, coagulation, swept and progressive blades, the compiled path and ChainMail
+unlinking come next.
+
+Examples:
+    >>> import torch
+    >>> import torchdeform as td
+    >>> from torchdeform.topology import Blade, components, cut
+    >>> grid = td.Grid((4, 4, 4), spacing=0.01, topology=26)
+    >>> model = td.Model(grid, stiffness=10.0, mass=1e-3, dtype=torch.float64)
+    >>> blade = Blade((0.015, -0.01, -0.01), (0.0, 0.05, 0.0), (0.0, 0.0, 0.05))   # between layers 1 and 2
+    >>> cut(model, model.X, blade)                          # (3n - 2)^2 springs for 26 neighbours
+    100
+    >>> labels, count = components(model)
+    >>> count
+    2
+"""
+from .components import components
+from .cut import Blade, crossing, cut
+
+__all__ = ["Blade", "crossing", "cut", "components"]

@@ -1,0 +1,52 @@
+"""Connected components of the body through its remaining springs.
+
+Label propagation on the stencil: every node starts with its own index; each sweep gives both ends
+of every spring the smaller of their labels, until nothing changes (at most the body's diameter
+in sweeps). A spring exists where the model's stiffness is not zero.
+
+Examples:
+    >>> import torch
+    >>> import torchdeform as td
+    >>> model = td.Model(td.Grid((3, 1, 1), spacing=1.0, topology=6), stiffness=1.0, mass=1.0)
+    >>> components(model)[1]
+    1
+"""
+from __future__ import annotations
+
+import torch
+
+__all__ = ["components"]
+
+
+def components(model, batch: int = 0) -> tuple[torch.Tensor, int]:
+    """``(labels, count)``: the component of every node ``(D, H, W)`` (int64, -1 outside the node mask).
+
+    Labels are the smallest flat node index in each component.
+
+    Args:
+        model: the :class:`~torchdeform.sim.model.Model`.
+        batch: which batch entry of a batched stiffness.
+    """
+    grid = model.grid
+    shape = grid.shape
+    k = model.stiffness
+    k = k[min(batch, k.shape[0] - 1)].expand((grid.S,) + shape)
+    exists = (k != 0) & grid.spring_mask(k.device)
+    inside = torch.ones(shape, dtype=torch.bool, device=k.device) if grid.node_mask is None \
+        else grid.node_mask.to(k.device)
+    big = torch.iinfo(torch.int64).max
+    labels = torch.arange(inside.numel(), device=k.device).view(shape)
+    labels = torch.where(inside, labels, torch.full_like(labels, big))
+    while True:
+        new = labels.clone()
+        for s, (src, dst) in enumerate(grid.stencil):
+            m = exists[(s, *src)]
+            a, b = labels[src], labels[dst]
+            low = torch.minimum(a, b)
+            new[src] = torch.minimum(new[src], torch.where(m, low, a))
+            new[dst] = torch.minimum(new[dst], torch.where(m, low, b))
+        if torch.equal(new, labels):
+            break
+        labels = new
+    labels = torch.where(inside, labels, torch.full_like(labels, -1))
+    return labels, int(torch.unique(labels[inside]).numel())
