@@ -5,7 +5,8 @@ integrators from explicit Euler to implicit Euler, stability bounds and scene fi
 (:mod:`torchdeform.sim`, :mod:`torchdeform.scene`); ChainMail (:mod:`torchdeform.chainmail`),
 fuzzy tissue parameters (:mod:`torchdeform.fuzzy`), learning from time series
 (:mod:`torchdeform.learn`), volume deformation and rendering (:mod:`torchdeform.volume`) and tools
-in contact with the tissue (:mod:`torchdeform.interact`).
+in contact with the tissue (:mod:`torchdeform.interact`), and topology changes: cutting, tearing,
+coagulation (:mod:`torchdeform.topology`).
 Benchmarks (:mod:`torchdeform.bench`) are a command, ``torchdeform bench``.
 
 Examples:
@@ -17,7 +18,7 @@ Examples:
     >>> bool(state.x[0, 0, -1].mean() < model.X[0, 0, -1].mean())        # it sags under gravity
     True
 """
-from . import chainmail, interact, learn, scene, sim, volume
+from . import chainmail, interact, learn, scene, sim, topology, volume
 from .chainmail import ChainMail, Limits, limit_violation, tensor_chainmail
 from .errors import ConfigError, DivergenceError, StabilityWarning, TorchdeformError
 from .scene import Scene, demo_scene, load_scene, run_scene
@@ -58,5 +59,5 @@ __all__ = [
     "lumped_mass", "DivergenceMonitor", "gershgorin_omega2", "power_omega2", "suggest_dt", "check_dt",
     "time_step_bound", "Scene", "demo_scene", "load_scene", "run_scene",
     "ChainMail", "Limits", "limit_violation", "tensor_chainmail", "warp", "render",
-    "sim", "chainmail", "learn", "volume", "scene", "interact",
+    "sim", "chainmail", "learn", "volume", "scene", "interact", "topology",
 ]

@@ -3,11 +3,14 @@
 =====================  ===========================================================================
 :mod:`.cut`            a rectangular blade: which springs its surface crosses, removing them from a
                        model (stiffness and damping set to zero), which side each node lies on
+:mod:`.tear`           tearing (springs past a strain or force limit break, all at once or the
+                       most strained first) and coagulation (a region's deformed shape becomes its
+                       rest shape, its viscosity rises)
 :mod:`.components`     connected components of the body through its remaining springs (label
                        propagation on the stencil)
 =====================  ===========================================================================
 
-Cautery, tearing, coagulation, swept and progressive blades, the compiled path and ChainMail
+Cautery, swept and progressive blades, the compiled path without recompiling and ChainMail
 unlinking come next.
 
 Examples:
@@ -24,6 +27,8 @@ Examples:
     2
 """
 from .components import components
-from .cut import Blade, crossing, cut
+from .cut import Blade, crossing, cut, sides
+from .tear import coagulate, spring_lengths, spring_strain, strain_limit_from_force, tear
 
-__all__ = ["Blade", "crossing", "cut", "components"]
+__all__ = ["Blade", "crossing", "cut", "sides", "components", "tear", "coagulate", "spring_lengths",
+           "spring_strain", "strain_limit_from_force"]

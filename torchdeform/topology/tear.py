@@ -1,0 +1,115 @@
+"""Tearing and coagulation: springs that break past a strain, and a region whose shape sets.
+
+:func:`tear` breaks every spring stretched beyond ``max_strain`` (``l / l0 - 1``; a number, or a
+per-spring / per-tissue tensor ``(1|B, S, D, H, W)``), either all at once or only the most
+strained one (ties: the lowest flat index, so the order is deterministic). Radetzky tore when the
+spring force passed a limit; for a spring ``k (l - l0)`` that is a strain limit of
+``F_max / (k l0)``, which :func:`strain_limit_from_force` gives per spring.
+
+:func:`coagulate` (Radetzky, REFERENCE §6.2): in a region, rest length := current length (the
+deformed shape becomes the new rest shape) and the viscosity (spring damping) rises by a factor.
+
+Examples:
+    >>> import torch
+    >>> import torchdeform as td
+    >>> from torchdeform.topology import components
+    >>> grid = td.Grid((3, 1, 1), spacing=1.0, topology=6)              # two springs along D
+    >>> model = td.Model(grid, stiffness=1.0, mass=1.0, dtype=torch.float64)
+    >>> x = model.X.clone()
+    >>> x[0, 0, 2] = 2.5                                                 # strains 0 and 0.5
+    >>> tear(model, x, max_strain=0.3), components(model)[1]
+    (1, 2)
+"""
+from __future__ import annotations
+
+import torch
+
+from ..errors import ConfigError
+from ..sim.springs import difference
+
+__all__ = ["spring_lengths", "spring_strain", "tear", "strain_limit_from_force", "coagulate"]
+
+
+def _full(model, p: torch.Tensor) -> torch.Tensor:
+    return p.expand((p.shape[0], model.grid.S) + model.grid.shape)
+
+
+def _alive(model) -> torch.Tensor:
+    """Bool ``(Bp, S, D, H, W)``: the spring exists in the grid and has stiffness."""
+    return (_full(model, model.stiffness) != 0) & model.grid.spring_mask(model.stiffness.device)
+
+
+def spring_lengths(grid, x: torch.Tensor) -> torch.Tensor:
+    """Current length of every spring slot ``(B, S, D, H, W)`` (zero where the grid has no spring)."""
+    d = difference(x, grid)                                           # (B, S, 3, D, H, W)
+    return (d * d).sum(2).sqrt() * grid.spring_mask(x.device)
+
+
+def spring_strain(model, x: torch.Tensor) -> torch.Tensor:
+    """``l / l0 - 1`` of every existing spring ``(B, S, D, H, W)``; zero for removed springs and empty slots."""
+    l0 = _full(model, model.rest_length)
+    strain = spring_lengths(model.grid, x) / l0.clamp_min(torch.finfo(x.dtype).tiny) - 1
+    return torch.where(_alive(model), strain, torch.zeros_like(strain))
+
+
+def strain_limit_from_force(model, max_force) -> torch.Tensor:
+    """Per-spring strain limit ``F_max / (k l0)`` ``(Bp, S, D, H, W)`` for a force limit (N)."""
+    k, l0 = _full(model, model.stiffness), _full(model, model.rest_length)
+    return torch.as_tensor(max_force, dtype=k.dtype, device=k.device) / (k * l0).clamp_min(torch.finfo(k.dtype).tiny)
+
+
+def tear(model, x: torch.Tensor, max_strain, one_per_step: bool = False) -> int:
+    """Break the springs strained beyond ``max_strain`` at positions ``x`` (in place); returns how many.
+
+    Args:
+        model: the :class:`~torchdeform.sim.model.Model` (its stiffness and damping change).
+        x: positions ``(B, 3, D, H, W)`` (one tear per batch entry).
+        max_strain: a number > 0 or a tensor broadcasting against ``(B, S, D, H, W)``.
+        one_per_step: break only the most strained spring of each batch entry.
+    """
+    if not torch.is_tensor(max_strain) and (not isinstance(max_strain, (int, float)) or not max_strain > 0):
+        raise ConfigError("tear.max_strain", "a positive strain (l / l0 - 1)", max_strain)
+    strain = spring_strain(model, x)
+    over = strain > max_strain
+    if one_per_step:
+        flat = torch.where(over, strain, torch.full_like(strain, -torch.inf)).flatten(1)
+        top = flat.argmax(1)                                          # first of the largest
+        pick = torch.zeros_like(flat, dtype=torch.bool)
+        pick[torch.arange(flat.shape[0]), top] = True
+        over = over & pick.view_as(over)
+    keep = (~over).to(model.dtype)
+    model.stiffness = _full(model, model.stiffness) * keep
+    if model.damping is not None:
+        model.damping = _full(model, model.damping) * keep
+    return int(over.sum())
+
+
+def coagulate(model, x: torch.Tensor, region: torch.Tensor, viscosity_factor: float = 1.0) -> int:
+    """Springs with both ends in ``region`` take their current length as rest length; damping x factor.
+
+    Args:
+        model: the model (its ``rest_length`` and ``damping`` change in place).
+        x: positions ``(1, 3, D, H, W)`` (the shape that sets).
+        region: bool ``(D, H, W)`` of the coagulated nodes.
+        viscosity_factor: >= 1, the rise of the spring damping there.
+
+    Returns:
+        the number of springs changed.
+    """
+    grid = model.grid
+    if x.shape[0] != 1:
+        raise ConfigError("coagulate.x", "positions of one body (1, 3, D, H, W)", tuple(x.shape))
+    if not isinstance(viscosity_factor, (int, float)) or not viscosity_factor >= 1:
+        raise ConfigError("coagulate.viscosity_factor", "a factor >= 1", viscosity_factor)
+    region = torch.as_tensor(region, dtype=torch.bool, device=x.device)
+    if tuple(region.shape) != grid.shape:
+        raise ConfigError("coagulate.region", f"a bool mask of shape {grid.shape}", tuple(region.shape))
+    both = torch.zeros((1, grid.S) + grid.shape, dtype=torch.bool, device=x.device)
+    for s, (src, dst) in enumerate(grid.stencil):
+        both[(0, s, *src)] = region[src] & region[dst]
+    both = both & _alive(model)
+    lengths = spring_lengths(grid, x)
+    model.rest_length = torch.where(both, lengths, _full(model, model.rest_length))
+    if model.damping is not None and viscosity_factor != 1:
+        model.damping = torch.where(both, _full(model, model.damping) * viscosity_factor, _full(model, model.damping))
+    return int(both.sum())
