@@ -234,6 +234,8 @@ class Model:
             constrained = constrained | torch.as_tensor(d.nodes, dtype=torch.bool)
         self.drag_masks = [torch.as_tensor(d.nodes, dtype=torch.bool, device=dev)[None, None] for d in self.drags]
         self.constrained = constrained.to(dev)
+        #: bool ``(D, H, W)`` of nodes removed from the body by a topology change (cautery), or None
+        self.removed = None
         free = (~constrained).to(dtype=dtype, device=dev)[None, None]
         bad = (self.mass <= 0) & (free > 0)
         if bool(bad.any()):

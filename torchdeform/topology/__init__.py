@@ -6,11 +6,13 @@
 :mod:`.tear`           tearing (springs past a strain or force limit break, all at once or the
                        most strained first) and coagulation (a region's deformed shape becomes its
                        rest shape, its viscosity rises)
+:mod:`.cautery`        nodes inside a tool's volume burnt away with their springs; the removed mass
+                       and momentum returned
 :mod:`.components`     connected components of the body through its remaining springs (label
                        propagation on the stencil)
 =====================  ===========================================================================
 
-Cautery, swept and progressive blades, the compiled path without recompiling and ChainMail
+Swept and progressive blades, mass-conserving node splits (Radetzky's eq. 4.14), the compiled path without recompiling and ChainMail
 unlinking come next.
 
 Examples:
@@ -26,9 +28,10 @@ Examples:
     >>> count
     2
 """
+from .cautery import cauterize
 from .components import components
 from .cut import Blade, crossing, cut, sides
 from .tear import coagulate, spring_lengths, spring_strain, strain_limit_from_force, tear
 
-__all__ = ["Blade", "crossing", "cut", "sides", "components", "tear", "coagulate", "spring_lengths",
+__all__ = ["Blade", "crossing", "cut", "sides", "cauterize", "components", "tear", "coagulate", "spring_lengths",
            "spring_strain", "strain_limit_from_force"]

@@ -19,7 +19,9 @@ __all__ = ["components"]
 
 
 def components(model, batch: int = 0) -> tuple[torch.Tensor, int]:
-    """``(labels, count)``: the component of every node ``(D, H, W)`` (int64, -1 outside the node mask).
+    """``(labels, count)``: the component of every node ``(D, H, W)`` (int64, -1 outside the body).
+
+    Outside the body: outside the grid's node mask, or removed by cautery.
 
     Labels are the smallest flat node index in each component.
 
@@ -34,6 +36,9 @@ def components(model, batch: int = 0) -> tuple[torch.Tensor, int]:
     exists = (k != 0) & grid.spring_mask(k.device)
     inside = torch.ones(shape, dtype=torch.bool, device=k.device) if grid.node_mask is None \
         else grid.node_mask.to(k.device)
+    removed = model.removed                         # burnt away (cautery)
+    if removed is not None:
+        inside = inside & ~removed.to(k.device)
     big = torch.iinfo(torch.int64).max
     labels = torch.arange(inside.numel(), device=k.device).view(shape)
     labels = torch.where(inside, labels, torch.full_like(labels, big))

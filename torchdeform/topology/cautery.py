@@ -1,0 +1,76 @@
+"""Cautery: the nodes inside a tool's volume are burnt away with all their springs (Punak).
+
+A removed node keeps its place in the grid but no longer belongs to the body: its springs (and
+anchor spring) are gone, its mass is zero and it is constrained, so it neither moves nor pulls on
+anything, and gravity no longer acts on it. The mass and momentum that left the body are
+returned, so that they can be accounted for: the body's mass after plus the removed mass is the
+mass before, and likewise for momentum. ``model.removed`` (bool ``(D, H, W)``) collects the
+removed nodes.
+
+Examples:
+    >>> import torch
+    >>> import torchdeform as td
+    >>> from torchdeform.interact import Sphere, Tool
+    >>> grid = td.Grid((3, 3, 3), spacing=0.01, topology=26)
+    >>> model = td.Model(grid, stiffness=10.0, mass=1e-3, dtype=torch.float64)
+    >>> burnt = cauterize(model, model.rest_state(), Tool(Sphere(0.005), position=(0.02, 0.01, 0.01)))
+    >>> burnt["nodes"], round(burnt["mass_kg"], 9)                 # the top centre node
+    (1, 0.001)
+"""
+from __future__ import annotations
+
+import torch
+
+from ..errors import ConfigError
+
+__all__ = ["cauterize"]
+
+
+def cauterize(model, state, tool) -> dict:
+    """Remove the nodes inside ``tool`` at the state's positions and time (in place).
+
+    Args:
+        model: the :class:`~torchdeform.sim.model.Model` (one body: batch 1).
+        state: the current state (positions ``(1, 3, D, H, W)``; the removed nodes' velocities
+            are set to zero in place).
+        tool: a :class:`~torchdeform.interact.tools.Tool` (anything with ``sdf(x, t) -> (d, n)``).
+
+    Returns:
+        ``{"nodes": int, "mass_kg": float, "momentum": (3,) tuple (kg m/s)}`` of what was removed.
+    """
+    grid = model.grid
+    if state.x.shape[0] != 1:
+        raise ConfigError("cauterize.state", "one body (batch 1)", tuple(state.x.shape))
+    dev = state.x.device
+    d, _ = tool.sdf(state.x, state.t)
+    removed = model.removed
+    if removed is None:
+        removed = torch.zeros(grid.shape, dtype=torch.bool, device=dev)
+    burn = (d[0, 0] < 0) & grid.nodes().to(dev) & ~removed
+    if not bool(burn.any()):
+        return {"nodes": 0, "mass_kg": 0.0, "momentum": (0.0, 0.0, 0.0)}
+    mass = model.mass.expand(1, 1, *grid.shape)
+    b = burn[None, None].to(model.dtype)
+    out = {"nodes": int(burn.sum()), "mass_kg": float((mass * b).sum()),
+           "momentum": tuple(float(p) for p in (mass * b * state.v).flatten(2).sum(2)[0])}
+    # springs with an end in the burnt set
+    touches = torch.zeros((1, grid.S) + grid.shape, dtype=torch.bool, device=dev)
+    for s, (src, dst) in enumerate(grid.stencil):
+        touches[(0, s, *src)] = burn[src] | burn[dst]
+    keep = (~touches).to(model.dtype)
+    full = (model.stiffness.shape[0], grid.S) + grid.shape
+    model.stiffness = model.stiffness.expand(full) * keep
+    if model.damping is not None:
+        model.damping = model.damping.expand(full) * keep
+    if model.k_home is not None:
+        model.k_home = model.k_home.expand(1, 1, *grid.shape) * (1 - b)
+    # the node leaves the body: no mass, constrained, at rest
+    model.mass = mass * (1 - b)
+    model.removed = removed | burn
+    model.constrained = model.constrained | burn
+    free = (~model.constrained).to(model.dtype)[None, None]
+    model.free = free
+    safe = torch.where(model.mass > 0, model.mass, torch.ones_like(model.mass))
+    model.inv_mass = free / safe
+    state.v.mul_(1 - b)
+    return out
