@@ -8,6 +8,8 @@
                        rest shape, its viscosity rises)
 :mod:`.cautery`        nodes inside a tool's volume burnt away with their springs; the removed mass
                        and momentum returned
+:mod:`.masks`          what they share: spring fields per slot, removing springs, node sets at
+                       spring ends
 :mod:`.components`     connected components of the body through its remaining springs (label
                        propagation on the stencil)
 =====================  ===========================================================================

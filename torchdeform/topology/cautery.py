@@ -22,6 +22,7 @@ from __future__ import annotations
 import torch
 
 from ..errors import ConfigError
+from .masks import ends, remove
 
 __all__ = ["cauterize"]
 
@@ -53,15 +54,8 @@ def cauterize(model, state, tool) -> dict:
     b = burn[None, None].to(model.dtype)
     out = {"nodes": int(burn.sum()), "mass_kg": float((mass * b).sum()),
            "momentum": tuple(float(p) for p in (mass * b * state.v).flatten(2).sum(2)[0])}
-    # springs with an end in the burnt set
-    touches = torch.zeros((1, grid.S) + grid.shape, dtype=torch.bool, device=dev)
-    for s, (src, dst) in enumerate(grid.stencil):
-        touches[(0, s, *src)] = burn[src] | burn[dst]
-    keep = (~touches).to(model.dtype)
-    full = (model.stiffness.shape[0], grid.S) + grid.shape
-    model.stiffness = model.stiffness.expand(full) * keep
-    if model.damping is not None:
-        model.damping = model.damping.expand(full) * keep
+    at_src, at_dst = ends(grid, burn)                                 # springs with an end burnt
+    remove(model, at_src | at_dst)
     if model.k_home is not None:
         model.k_home = model.k_home.expand(1, 1, *grid.shape) * (1 - b)
     # the node leaves the body: no mass, constrained, at rest

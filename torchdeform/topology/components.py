@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import torch
 
+from .masks import alive
+
 __all__ = ["components"]
 
 
@@ -31,16 +33,14 @@ def components(model, batch: int = 0) -> tuple[torch.Tensor, int]:
     """
     grid = model.grid
     shape = grid.shape
-    k = model.stiffness
-    k = k[min(batch, k.shape[0] - 1)].expand((grid.S,) + shape)
-    exists = (k != 0) & grid.spring_mask(k.device)
-    inside = torch.ones(shape, dtype=torch.bool, device=k.device) if grid.node_mask is None \
-        else grid.node_mask.to(k.device)
-    removed = model.removed                         # burnt away (cautery)
-    if removed is not None:
-        inside = inside & ~removed.to(k.device)
+    live = alive(model)
+    exists = live[min(batch, live.shape[0] - 1)]
+    dev = exists.device
+    inside = grid.nodes().to(dev)
+    if model.removed is not None:                                     # burnt away (cautery)
+        inside = inside & ~model.removed.to(dev)
     big = torch.iinfo(torch.int64).max
-    labels = torch.arange(inside.numel(), device=k.device).view(shape)
+    labels = torch.arange(inside.numel(), device=dev).view(shape)
     labels = torch.where(inside, labels, torch.full_like(labels, big))
     while True:
         new = labels.clone()

@@ -26,6 +26,7 @@ import torch
 from ..errors import ConfigError
 from ..sim.forces import as_vec3
 from ..sim.model import Model
+from .masks import remove
 
 __all__ = ["Blade", "crossing", "cut", "sides"]
 
@@ -58,9 +59,9 @@ class Blade:
     def _vec(self, value, like):
         return like.new_tensor(value).view(1, 3, *[1] * (like.dim() - 2))
 
-    def side(self, x: torch.Tensor) -> torch.Tensor:
-        """Bool ``(B, 1, ...)``: the node lies on the normal's side of the plane (strictly)."""
-        return ((x - self._vec(self.origin, x)) * self._vec(self.normal, x)).sum(1, keepdim=True) > 0
+    def height(self, x: torch.Tensor) -> torch.Tensor:
+        """Signed distance ``(B, 1, ...)`` of points ``x`` ``(B, 3, ...)`` from the blade's plane (along the normal)."""
+        return ((x - self._vec(self.origin, x)) * self._vec(self.normal, x)).sum(1, keepdim=True)
 
     def within(self, r: torch.Tensor) -> torch.Tensor:
         """Bool ``(B, 1, ...)``: points ``r`` on the plane lie within the rectangle."""
@@ -80,10 +81,8 @@ def crossing(grid, x: torch.Tensor, blade: Blade) -> torch.Tensor:
         x: node positions ``(B, 3, D, H, W)`` (rest or deformed: the cut follows the tissue).
         blade: the :class:`Blade`.
     """
-    side = blade.side(x)
-    n = blade._vec(blade.normal, x)
-    o = blade._vec(blade.origin, x)
-    h = ((x - o) * n).sum(1, keepdim=True)                                    # signed height
+    h = blade.height(x)
+    side = h > 0
     out = torch.zeros((x.shape[0], grid.S) + grid.shape, dtype=torch.bool, device=x.device)
     exists = grid.spring_mask(x.device)
     for s, (src, dst) in enumerate(grid.stencil):
@@ -98,7 +97,7 @@ def crossing(grid, x: torch.Tensor, blade: Blade) -> torch.Tensor:
 
 def sides(x: torch.Tensor, blade: Blade) -> torch.Tensor:
     """Int8 ``(B, 1, D, H, W)``: +1 on the normal's side of the blade's plane, -1 on the other (Punak's tags)."""
-    return blade.side(x).to(torch.int8) * 2 - 1
+    return (blade.height(x) > 0).to(torch.int8) * 2 - 1
 
 
 def cut(model: Model, x: torch.Tensor, blade: Blade) -> int:
@@ -111,12 +110,4 @@ def cut(model: Model, x: torch.Tensor, blade: Blade) -> int:
         x: node positions ``(B, 3, D, H, W)``; a batch of positions gives one cut per batch entry.
         blade: the :class:`Blade`.
     """
-    hit = crossing(model.grid, x, blade)
-    full = (hit.shape[0], model.grid.S) + model.grid.shape
-    keep = (~hit).to(model.dtype)
-    alive = model.stiffness.expand(full) != 0
-    removed = int((hit & alive).sum())
-    model.stiffness = model.stiffness.expand(full) * keep
-    if model.damping is not None:
-        model.damping = model.damping.expand(full) * keep
-    return removed
+    return remove(model, crossing(model.grid, x, blade))

@@ -26,17 +26,9 @@ import torch
 
 from ..errors import ConfigError
 from ..sim.springs import difference
+from .masks import alive, ends, full, remove
 
 __all__ = ["spring_lengths", "spring_strain", "tear", "strain_limit_from_force", "coagulate"]
-
-
-def _full(model, p: torch.Tensor) -> torch.Tensor:
-    return p.expand((p.shape[0], model.grid.S) + model.grid.shape)
-
-
-def _alive(model) -> torch.Tensor:
-    """Bool ``(Bp, S, D, H, W)``: the spring exists in the grid and has stiffness."""
-    return (_full(model, model.stiffness) != 0) & model.grid.spring_mask(model.stiffness.device)
 
 
 def spring_lengths(grid, x: torch.Tensor) -> torch.Tensor:
@@ -47,14 +39,14 @@ def spring_lengths(grid, x: torch.Tensor) -> torch.Tensor:
 
 def spring_strain(model, x: torch.Tensor) -> torch.Tensor:
     """``l / l0 - 1`` of every existing spring ``(B, S, D, H, W)``; zero for removed springs and empty slots."""
-    l0 = _full(model, model.rest_length)
+    l0 = full(model, model.rest_length)
     strain = spring_lengths(model.grid, x) / l0.clamp_min(torch.finfo(x.dtype).tiny) - 1
-    return torch.where(_alive(model), strain, torch.zeros_like(strain))
+    return torch.where(alive(model), strain, torch.zeros_like(strain))
 
 
 def strain_limit_from_force(model, max_force) -> torch.Tensor:
     """Per-spring strain limit ``F_max / (k l0)`` ``(Bp, S, D, H, W)`` for a force limit (N)."""
-    k, l0 = _full(model, model.stiffness), _full(model, model.rest_length)
+    k, l0 = full(model, model.stiffness), full(model, model.rest_length)
     return torch.as_tensor(max_force, dtype=k.dtype, device=k.device) / (k * l0).clamp_min(torch.finfo(k.dtype).tiny)
 
 
@@ -77,11 +69,7 @@ def tear(model, x: torch.Tensor, max_strain, one_per_step: bool = False) -> int:
         pick = torch.zeros_like(flat, dtype=torch.bool)
         pick[torch.arange(flat.shape[0]), top] = True
         over = over & pick.view_as(over)
-    keep = (~over).to(model.dtype)
-    model.stiffness = _full(model, model.stiffness) * keep
-    if model.damping is not None:
-        model.damping = _full(model, model.damping) * keep
-    return int(over.sum())
+    return remove(model, over)
 
 
 def coagulate(model, x: torch.Tensor, region: torch.Tensor, viscosity_factor: float = 1.0) -> int:
@@ -104,12 +92,10 @@ def coagulate(model, x: torch.Tensor, region: torch.Tensor, viscosity_factor: fl
     region = torch.as_tensor(region, dtype=torch.bool, device=x.device)
     if tuple(region.shape) != grid.shape:
         raise ConfigError("coagulate.region", f"a bool mask of shape {grid.shape}", tuple(region.shape))
-    both = torch.zeros((1, grid.S) + grid.shape, dtype=torch.bool, device=x.device)
-    for s, (src, dst) in enumerate(grid.stencil):
-        both[(0, s, *src)] = region[src] & region[dst]
-    both = both & _alive(model)
+    at_src, at_dst = ends(grid, region)
+    both = at_src & at_dst & alive(model)
     lengths = spring_lengths(grid, x)
-    model.rest_length = torch.where(both, lengths, _full(model, model.rest_length))
+    model.rest_length = torch.where(both, lengths, full(model, model.rest_length))
     if model.damping is not None and viscosity_factor != 1:
-        model.damping = torch.where(both, _full(model, model.damping) * viscosity_factor, _full(model, model.damping))
+        model.damping = torch.where(both, full(model, model.damping) * viscosity_factor, full(model, model.damping))
     return int(both.sum())
