@@ -120,8 +120,12 @@ def test_cut_piece_falls_freely():
     assert abs(t - 0.02) < 1e-12
 
 
-def test_blade_must_be_a_rectangle():
-    with pytest.raises(ConfigError, match="right angles"):
-        Blade((0, 0, 0), (1, 0, 0), (1, 1, 0))
+def test_degenerate_blades_are_refused():
+    with pytest.raises(ConfigError, match="not parallel"):
+        Blade((0, 0, 0), (1, 0, 0), (2, 0, 0))
     with pytest.raises(ConfigError, match="blade"):
         Blade((0, 0, 0), (0, 0, 0), (0, 1, 0))
+    with pytest.raises(ConfigError, match="not on one line"):
+        Blade.triangle((0, 0, 0), (1, 1, 1), (2, 2, 2))
+    with pytest.raises(ConfigError, match="sweeps a surface"):
+        Blade.swept([[(0, 0, 0), (0, 0, 1)], [(0, 0, 1), (0, 0, 2)]])

@@ -79,11 +79,11 @@ class CompiledStep:
     """
 
     def __init__(self, integrator, model, dt: float, loads=None, *, mode: str | None = None,
-                 enable: bool = True, options: dict | None = None):
+                 enable: bool = True, options: dict | None = None, editable: bool = False):
         self.integrator, self.model, self.loads = integrator, model, loads
         self.dt = positive_dt(dt)
         self.compile_error = None
-        self.packed = pm = PackedModel(model)
+        self.packed = pm = PackedModel(model, share=editable)
         self._loads = None if loads is None or callable(loads) else pm.pack(torch.as_tensor(
             loads, dtype=model.dtype, device=model.device).expand(-1, 3, *model.grid.shape))
         dt_, loads_p = self.dt, self._loads
@@ -247,7 +247,7 @@ class ImplicitGraph:
 
 
 def compiled_step(integrator, model, dt: float, loads=None, *, mode: str | None = None,
-                  enable: bool = True) -> CompiledStep:
+                  enable: bool = True, editable: bool = False) -> CompiledStep:
     """Wrap one integrator step on one model in ``torch.compile`` (the no-grad fast path).
 
     Args:
@@ -259,6 +259,10 @@ def compiled_step(integrator, model, dt: float, loads=None, *, mode: str | None 
             on ``t`` in ways that force recompilation).
         mode: ``torch.compile`` mode (default None).
         enable: False gives the eager step behind the same interface.
+        editable: the model's fields and the packed model's become one storage
+            (:meth:`~torchdeform.sim.packed.PackedModel.share`): topology changes made to
+            ``model`` in place between steps (:mod:`torchdeform.topology`) reach the compiled code
+            without a recompilation, at no cost per step.
 
     Returns:
         a :class:`CompiledStep`, ``step(state) -> State``. It runs the compiled code under
@@ -266,4 +270,4 @@ def compiled_step(integrator, model, dt: float, loads=None, *, mode: str | None 
         parameters require grad) it calls the eager step. If compilation fails it warns once
         (:class:`CompileFallbackWarning`) and uses the eager step from then on.
     """
-    return CompiledStep(integrator, model, dt, loads, mode=mode, enable=enable)
+    return CompiledStep(integrator, model, dt, loads, mode=mode, enable=enable, editable=editable)

@@ -236,6 +236,8 @@ class Model:
         self.constrained = constrained.to(dev)
         #: bool ``(D, H, W)`` of nodes removed from the body by a topology change (cautery), or None
         self.removed = None
+        #: bool ``(D, H, W)`` of nodes at the ends of springs cut so far (for pre-tension), or None
+        self.cut_nodes = None
         free = (~constrained).to(dtype=dtype, device=dev)[None, None]
         bad = (self.mass <= 0) & (free > 0)
         if bool(bad.any()):

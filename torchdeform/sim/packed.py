@@ -104,11 +104,18 @@ class PackedModel(Model):
     or ``(Bp, S, P)`` (one per spring, stored at its first endpoint, zero in the halo). States
     are packed with :meth:`pack_state` and unpacked with :meth:`unpack_state`.
 
+    With ``share=True`` (an editable model, for topology changes during a run) the spring
+    parameters are stored per spring and the node fields per node, and the source model's own
+    fields become grid-layout views of these packed tensors (:meth:`share`): an in-place edit
+    through either layout (a cut zeroing stiffness slots, cautery zeroing masses) is seen by the
+    other and by a compiled step, which reads the same tensors and never recompiles for it.
+
     Args:
-        model: the model to lay out; it is not changed.
+        model: the model to lay out; it is not changed unless ``share``.
+        share: store the fields once for both layouts (see above).
     """
 
-    def __init__(self, model: Model):
+    def __init__(self, model: Model, share: bool = False):
         if isinstance(model, PackedModel):
             raise TypeError("PackedModel(model): the model is already packed")
         self.__dict__.update(model.__dict__)
@@ -144,6 +151,34 @@ class PackedModel(Model):
         #: the compile-time context (:class:`TraceContext`): inert here; a compiled step traces a
         #: view of this model bound to its own context (:meth:`traced`)
         self.trace = TraceContext()
+        if share:
+            self.share(model)
+
+    #: the fields :meth:`share` stores once for both layouts
+    SHARED_SPRING_FIELDS = ("stiffness", "rest_length", "damping")
+    SHARED_NODE_FIELDS = ("mass", "inv_mass", "free", "k_home")
+
+    def share(self, model: Model) -> None:
+        """Make ``model``'s spring and node fields grid-layout views of this model's packed fields.
+
+        Spring parameters become per spring (``(Bp, S, P)`` here, ``(Bp, S, D, H, W)`` views in
+        ``model``), node fields per node (``(Bp, 1, P)`` / ``(Bp, 1, D, H, W)``), ``model.free`` is
+        made explicit (ones where free) and ``model.constrained`` becomes a view of
+        :attr:`constrained`. Absent terms (no damping, no home springs) stay absent.
+        """
+        S, shape = self.grid.S, self.grid.shape
+        for name in self.SHARED_SPRING_FIELDS:
+            p = getattr(model, name)
+            if p is not None:
+                packed = self.pack(p.expand(p.shape[0], S, *shape))
+                setattr(self, name, packed)
+                setattr(model, name, self.unpack(packed))
+        for name in self.SHARED_NODE_FIELDS:
+            t = getattr(self, name)
+            if t is not None:
+                setattr(model, name, self.unpack(t))
+        self.constrained = self.free[0, 0] == 0
+        model.constrained = self.unpack(self.constrained.view(1, 1, -1))[0, 0]
 
     def keep(self, field: torch.Tensor) -> torch.Tensor:
         """``field`` stored in memory under ``torch.compile`` (see :meth:`TraceContext.keep`)."""

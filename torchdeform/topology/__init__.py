@@ -32,8 +32,8 @@ Examples:
 """
 from .cautery import cauterize
 from .components import components
-from .cut import Blade, crossing, cut, sides
-from .tear import coagulate, spring_lengths, spring_strain, strain_limit_from_force, tear
+from .cut import Blade, Scalpel, crossed_slots, crossing, cut, pretension, sides
+from .tear import coagulate, coagulated_rest_length, spring_lengths, spring_strain, strain_limit_from_force, tear
 
-__all__ = ["Blade", "crossing", "cut", "sides", "cauterize", "components", "tear", "coagulate", "spring_lengths",
-           "spring_strain", "strain_limit_from_force"]
+__all__ = ["Blade", "Scalpel", "crossed_slots", "crossing", "cut", "pretension", "sides", "cauterize", "components",
+           "tear", "coagulate", "coagulated_rest_length", "spring_lengths", "spring_strain", "strain_limit_from_force"]

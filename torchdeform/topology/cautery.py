@@ -22,7 +22,7 @@ from __future__ import annotations
 import torch
 
 from ..errors import ConfigError
-from .masks import ends, remove
+from .masks import assign, ends, remove
 
 __all__ = ["cauterize"]
 
@@ -57,14 +57,15 @@ def cauterize(model, state, tool) -> dict:
     at_src, at_dst = ends(grid, burn)                                 # springs with an end burnt
     remove(model, at_src | at_dst)
     if model.k_home is not None:
-        model.k_home = model.k_home.expand(1, 1, *grid.shape) * (1 - b)
-    # the node leaves the body: no mass, constrained, at rest
-    model.mass = mass * (1 - b)
+        assign(model, "k_home", model.k_home.expand(1, 1, *grid.shape) * (1 - b))
+    # the node leaves the body: no mass, constrained, at rest (written in place where the model is
+    # editable, so a compiled step sharing its fields sees it)
+    assign(model, "mass", mass * (1 - b))
     model.removed = removed | burn
-    model.constrained = model.constrained | burn
+    assign(model, "constrained", model.constrained | burn)
     free = (~model.constrained).to(model.dtype)[None, None]
-    model.free = free
+    assign(model, "free", free)
     safe = torch.where(model.mass > 0, model.mass, torch.ones_like(model.mass))
-    model.inv_mass = free / safe
+    assign(model, "inv_mass", free / safe)
     state.v.mul_(1 - b)
     return out

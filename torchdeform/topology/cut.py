@@ -1,13 +1,31 @@
 """Cutting with a blade: every spring whose segment crosses the blade's surface is removed.
 
-A :class:`Blade` is a rectangle (Punak's blade): the points ``o + a u + b v`` for ``a, b`` in
-``[0, 1]``, with edges ``u`` and ``v`` at right angles. A spring from ``p`` to ``q`` crosses it when
-its ends lie on opposite sides of the blade's plane (a node exactly on the plane counts as the
-side the normal ``u x v`` points away from, so a plane through a layer of nodes cuts one set of
-springs, never two) and the point where the segment meets the plane lies within the rectangle.
+**Blades.** A :class:`Blade` is a surface made of flat patches, each the points
+``o + a u + b v`` with ``a, b >= 0`` and either ``a, b <= 1`` (a parallelogram, Punak's rectangular
+blade) or ``a + b <= 1`` (a triangle). ``Blade(o, u, v)`` is one parallelogram,
+:meth:`Blade.triangle` one triangle, :meth:`Blade.swept` the ruled surface a straight cutting edge
+sweeps through a sequence of poses (two triangles per interval: curved when the edge turns), and
+:class:`Scalpel` takes those poses from a :class:`~torchdeform.interact.tools.Tool`, so that a
+blade moving over many steps cuts as it goes (:meth:`Scalpel.update`).
 
-Removing a spring sets its stiffness (and damping) to zero in the model: the spring operator
-already skips zero-stiffness springs, so the cut body steps like any other.
+**Crossing.** A spring from ``p`` to ``q`` crosses a patch when its ends lie on opposite sides of
+the patch's plane (a node exactly on the plane counts as the side the normal ``u x v`` points
+away from, so a plane through a layer of nodes cuts one set of springs, never two) and the point
+where the segment meets the plane lies within the patch (closed, to a relative ``16 eps``, so a
+spring through the edge shared by two triangles is caught by one of them at least).
+
+**Search.** Only springs near the blade are tested: per plane the nodes' heights ``h = n . x - c``
+(one matrix-vector product), the range of layers along the axis closest to the normal that holds
+nodes of both signs within one layer of each other, and, in that range, the springs whose ends'
+heights differ in sign; only those get the in-patch test. The search returns the crossed slots as
+indices; :func:`cut` zeroes them in place on an editable model (see :mod:`.masks`), so a full
+cut of a ``64^3`` body costs well under a millisecond and a compiled step that shares the model's
+fields runs on without recompiling.
+
+**Gaping** (pre-tension, Radetzky): with ``gape > 0`` the springs left at the nodes of the cut
+(the ends of the springs it removed) get their rest lengths multiplied by ``1 - gape``; they
+contract, and the cut opens. :func:`pretension` is the same as a function of the rest lengths
+(differentiable: the gape can be learned).
 
 Examples:
     >>> import torch
@@ -19,60 +37,212 @@ Examples:
 """
 from __future__ import annotations
 
-import math
-
 import torch
 
 from ..errors import ConfigError
 from ..sim.forces import as_vec3
 from ..sim.model import Model
-from .masks import remove
+from .masks import _dense, alive, assign, ends, full, remove
 
-__all__ = ["Blade", "crossing", "cut", "sides"]
+__all__ = ["Blade", "Scalpel", "crossing", "crossed_slots", "cut", "sides", "pretension"]
+
+
+def _cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def _dot(a, b):
+    return sum(p * q for p, q in zip(a, b))
 
 
 class Blade:
-    """A rectangular blade ``o + a u + b v``, ``a, b`` in ``[0, 1]``.
+    """A blade surface: flat patches ``o + a u + b v`` (parallelograms and triangles).
+
+    ``Blade(origin, u, v)`` is one parallelogram (a rectangle when ``u`` and ``v`` are at right
+    angles). See the module docstring for the other forms.
 
     Args:
         origin: a corner ``(3,)`` m.
         u: one edge ``(3,)`` m.
-        v: the other edge ``(3,)`` m, at right angles to ``u``.
+        v: the other edge ``(3,)`` m, not parallel to ``u``.
+
+    Attributes:
+        patches: list of ``(origin, u, v, triangle)`` (3-tuples of floats, bool).
+        normal: the unit normal ``u x v / |u x v|`` of the first patch.
 
     Examples:
         >>> Blade((0, 0, 0), (1, 0, 0), (0, 2, 0)).normal
         (0.0, 0.0, 1.0)
+        >>> swept = Blade.swept([[(0, 0, 0), (0, 0, 1)], [(1, 0, 0), (1, 0, 1)], [(2, 0, 0), (2, 1, 1)]])
+        >>> [tri for *_, tri in swept.patches]       # a translation, then a turn: two triangles
+        [False, True, True]
     """
 
-    def __init__(self, origin, u, v):
-        self.origin, self.u, self.v = as_vec3(origin, "blade.origin"), as_vec3(u, "blade.u"), as_vec3(v, "blade.v")
-        uu, vv = sum(c * c for c in self.u), sum(c * c for c in self.v)
-        if uu == 0 or vv == 0:
-            raise ConfigError("blade", "two non-zero edges u and v", (self.u, self.v))
-        if abs(sum(a * b for a, b in zip(self.u, self.v))) > 1e-9 * math.sqrt(uu * vv):
-            raise ConfigError("blade", "edges u and v at right angles (a rectangle)", (self.u, self.v))
-        u, v = self.u, self.v
-        n = (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
-        s = math.sqrt(sum(c * c for c in n))
-        self.normal = tuple(c / s for c in n)
+    def __init__(self, origin, u, v, *, triangle: bool = False, key: str = "blade"):
+        self.patches = []
+        self._add(origin, u, v, triangle, key)
 
+    def _add(self, origin, u, v, triangle, key):
+        o, u, v = as_vec3(origin, f"{key}.origin"), as_vec3(u, f"{key}.u"), as_vec3(v, f"{key}.v")
+        n = _cross(u, v)
+        area, scale = _dot(n, n) ** 0.5, (_dot(u, u) * _dot(v, v)) ** 0.5
+        if not area > 1e-12 * scale or scale == 0:
+            what = "three corners not on one line" if triangle else "two non-zero edges u and v, not parallel"
+            raise ConfigError(key, f"a non-degenerate {'triangle' if triangle else 'blade'}: {what}",
+                              (o, u, v))
+        self.patches.append((o, u, v, bool(triangle)))
+        if len(self.patches) == 1:
+            self.normal = tuple(c / area for c in n)
+
+    @classmethod
+    def triangle(cls, a, b, c, key: str = "blade") -> "Blade":
+        """The triangle with corners ``a``, ``b``, ``c`` ``(3,)`` m."""
+        a, b, c = (as_vec3(p, f"{key}.corner") for p in (a, b, c))
+        return cls(a, [q - p for p, q in zip(a, b)], [q - p for p, q in zip(a, c)], triangle=True, key=key)
+
+    @classmethod
+    def swept(cls, edges, key: str = "blade") -> "Blade":
+        """The surface a straight cutting edge sweeps through ``K >= 2`` poses.
+
+        Args:
+            edges: the edge's two ends at each pose, ``(K, 2, 3)`` m (nested lists or a tensor).
+                Between poses ``k`` and ``k + 1`` the quadrilateral of the four ends becomes two
+                triangles (a planar parallelogram stays one patch).
+            key: the name in error messages.
+        """
+        e = torch.as_tensor(edges, dtype=torch.float64)
+        if e.dim() != 3 or e.shape[1:] != (2, 3) or e.shape[0] < 2:
+            raise ConfigError(key, "the edge's ends at two or more poses, shape (K, 2, 3)", tuple(e.shape))
+        blade = None
+        for k in range(e.shape[0] - 1):
+            a0, b0, a1, b1 = (tuple(float(c) for c in p) for p in (e[k, 0], e[k, 1], e[k + 1, 0], e[k + 1, 1]))
+            u, v, w = [q - p for p, q in zip(a0, b0)], [q - p for p, q in zip(a0, a1)], [q - p for p, q in zip(b0, b1)]
+            if _dot(_cross(u, v), _cross(u, v)) == 0:            # the edge moved along itself: nothing swept
+                continue
+            if all(abs(p - q) <= 1e-12 * (1 + abs(p)) for p, q in zip(v, w)):       # a translation: one parallelogram
+                parts = [(a0, u, v, False)]
+            else:
+                parts = [(a0, u, [q - p for p, q in zip(a0, b1)], True), (a0, [q - p for p, q in zip(a0, b1)], v, True)]
+            for o, p, q, tri in parts:
+                if blade is None:
+                    blade = cls(o, p, q, triangle=tri, key=key)
+                else:
+                    blade._add(o, p, q, tri, key)
+        if blade is None:
+            raise ConfigError(key, "an edge that sweeps a surface (it only moved along itself)", tuple(e.shape))
+        return blade
+
+    # --------------------------------------------------------------- geometry
     def _vec(self, value, like):
         return like.new_tensor(value).view(1, 3, *[1] * (like.dim() - 2))
 
     def height(self, x: torch.Tensor) -> torch.Tensor:
-        """Signed distance ``(B, 1, ...)`` of points ``x`` ``(B, 3, ...)`` from the blade's plane (along the normal)."""
-        return ((x - self._vec(self.origin, x)) * self._vec(self.normal, x)).sum(1, keepdim=True)
+        """Signed distance ``(B, 1, ...)`` of points ``x`` ``(B, 3, ...)`` from the first patch's plane."""
+        o = self.patches[0][0]
+        return ((x - self._vec(o, x)) * self._vec(self.normal, x)).sum(1, keepdim=True)
 
     def within(self, r: torch.Tensor) -> torch.Tensor:
-        """Bool ``(B, 1, ...)``: points ``r`` on the plane lie within the rectangle."""
-        d = r - self._vec(self.origin, r)
-        a = (d * self._vec(self.u, r)).sum(1, keepdim=True) / sum(c * c for c in self.u)
-        b = (d * self._vec(self.v, r)).sum(1, keepdim=True) / sum(c * c for c in self.v)
-        return (a >= 0) & (a <= 1) & (b >= 0) & (b <= 1)
+        """Bool ``(B, 1, ...)``: points ``r`` ``(B, 3, ...)`` on the blade's plane lie within one of its patches."""
+        flat = r.transpose(0, 1).reshape(3, -1)
+        return _patch_hits(flat, self.patches).view(r.shape[0], 1, *r.shape[2:])
+
+    def bounds(self) -> tuple[tuple, tuple]:
+        """The axis-aligned box ``(low, high)`` of the blade (m)."""
+        pts = []
+        for o, u, v, tri in self.patches:
+            pts += [o, tuple(a + b for a, b in zip(o, u)), tuple(a + b for a, b in zip(o, v))]
+            if not tri:
+                pts.append(tuple(a + b + c for a, b, c in zip(o, u, v)))
+        return tuple(min(p[i] for p in pts) for i in range(3)), tuple(max(p[i] for p in pts) for i in range(3))
+
+    def planes(self) -> list:
+        """The patches grouped by plane: ``[(normal, offset, [patch, ...]), ...]``."""
+        groups = {}
+        for o, u, v, tri in self.patches:
+            n = _cross(u, v)
+            s = _dot(n, n) ** 0.5
+            n = tuple(c / s for c in n)
+            key = tuple(round(c, 12) for c in n) + (round(_dot(n, o), 12),)
+            groups.setdefault(key, (n, _dot(n, o), []))[2].append((o, u, v, tri))
+        return list(groups.values())
 
 
-def crossing(grid, x: torch.Tensor, blade: Blade) -> torch.Tensor:
-    """Bool ``(B, S, D, H, W)``: the spring stored at each node along each half-direction crosses the blade.
+def _patch_coordinates(r: torch.Tensor, patch) -> tuple:
+    """``(a, b)`` of points ``r`` ``(3, ...)`` in a patch's frame ``o + a u + b v`` (normal part ignored)."""
+    o, u, v, _ = patch
+    uu, uv, vv = _dot(u, u), _dot(u, v), _dot(v, v)
+    det = uu * vv - uv * uv
+    d = r - r.new_tensor(o).view(3, *[1] * (r.dim() - 1))
+    du = d[0] * u[0] + d[1] * u[1] + d[2] * u[2]
+    dv = d[0] * v[0] + d[1] * v[1] + d[2] * v[2]
+    return (vv * du - uv * dv) / det, (uu * dv - uv * du) / det
+
+
+def _inside(a, b, triangle: bool, tol: float):
+    return (a >= -tol) & (b >= -tol) & ((a + b <= 1 + tol) if triangle else ((a <= 1 + tol) & (b <= 1 + tol)))
+
+
+def _covers(box: torch.Tensor, patches) -> bool:
+    """One of the patches holds the projection of the box ``(3, 2)`` (low, high) onto their plane.
+
+    The patch coordinates are linear in the point, so testing the 8 corners suffices.
+    """
+    corners = torch.cartesian_prod(box[0], box[1], box[2]).T                         # (3, 8)
+    tol = 16 * torch.finfo(box.dtype).eps
+    return any(bool(_inside(*_patch_coordinates(corners, patch), patch[3], tol).all()) for patch in patches)
+
+
+def _patch_hits(r: torch.Tensor, patches) -> torch.Tensor:
+    """Bool ``(E,)``: points ``r`` ``(3, E)`` on the patches' common plane lie within one of them."""
+    tol = 16 * torch.finfo(r.dtype).eps
+    hit = None
+    for patch in patches:
+        inside = _inside(*_patch_coordinates(r, patch), patch[3], tol)
+        hit = inside if hit is None else hit | inside
+    return hit
+
+
+def _layer_range(h: torch.Tensor, axis: int):
+    """Layers along ``axis`` that may hold the first end of a spring crossing the plane, or None."""
+    other = tuple(a for a in range(3) if a != axis)
+    pos, neg = h.amax(other) > 0, h.amin(other) <= 0                  # (n,) per layer
+    cand = pos & neg
+    cand[:-1] |= (pos[:-1] & neg[1:]) | (neg[:-1] & pos[1:])
+    cand[1:] |= (pos[1:] & neg[:-1]) | (neg[1:] & pos[:-1])
+    idx = cand.nonzero()
+    if idx.numel() == 0:
+        return None
+    return int(idx[0]), int(idx[-1])
+
+
+def _direction_index(grid, device) -> tuple:
+    """``(dd + 1, dh + 1, dw + 1)`` of the ``S`` half-directions, three ``(S,)`` index tensors."""
+    key = ("direction_index", str(device))
+    if key not in grid._cache:
+        grid._cache[key] = tuple(torch.tensor([d[a] + 1 for d in grid.directions], device=device) for a in range(3))
+    return grid._cache[key]
+
+
+def _far_ends(h: torch.Tensor, axis: int, lo: int, hi: int, index: tuple) -> tuple:
+    """Heights of the layers ``lo..hi`` along ``axis`` and of the far ends of their springs.
+
+    ``h`` ``(D, H, W)`` -> ``(near (n0, n1, n2), far (S, n0, n1, n2))``; far ends outside the grid
+    read 0 (their springs do not exist). One padded copy of the layers and one strided gather.
+    """
+    n = h.shape[axis]
+    lo2, hi2 = max(lo - 1, 0), min(hi + 1, n - 1)
+    sub = h.narrow(axis, lo2, hi2 - lo2 + 1)
+    pad = [1, 1, 1, 1, 1, 1]
+    pad[2 * (2 - axis)], pad[2 * (2 - axis) + 1] = 1 - (lo - lo2), 1 - (hi2 - hi)
+    hb = torch.nn.functional.pad(sub[None], pad)[0]                                  # (n0+2, n1+2, n2+2)
+    box = tuple(m - 2 for m in hb.shape)
+    st = hb.stride()
+    cube = hb.as_strided((3, 3, 3) + box, st + st)
+    return hb[1:-1, 1:-1, 1:-1], cube[index[0], index[1], index[2]]
+
+
+def crossed_slots(grid, x: torch.Tensor, blade: Blade) -> tuple:
+    """The slots whose springs cross ``blade``, as index tensors ``(b, s, d, h, w)`` (each slot once).
 
     Only springs the grid has (both ends inside the box and the node mask) are reported.
 
@@ -81,33 +251,185 @@ def crossing(grid, x: torch.Tensor, blade: Blade) -> torch.Tensor:
         x: node positions ``(B, 3, D, H, W)`` (rest or deformed: the cut follows the tissue).
         blade: the :class:`Blade`.
     """
-    h = blade.height(x)
-    side = h > 0
-    out = torch.zeros((x.shape[0], grid.S) + grid.shape, dtype=torch.bool, device=x.device)
-    exists = grid.spring_mask(x.device)
-    for s, (src, dst) in enumerate(grid.stencil):
-        p, q = x[(..., *src)], x[(..., *dst)]
-        hp, hq = h[(..., *src)], h[(..., *dst)]
-        opposite = side[(..., *src)] != side[(..., *dst)]
-        t = (hp / (hp - hq).where(hp != hq, torch.ones_like(hp))).clamp(0, 1)
-        hit = opposite & blade.within(p + t * (q - p))
-        out[(slice(None), s, *src)] = hit[:, 0] & exists[(s, *src)]
-    return out
+    D, H, W = grid.shape
+    N, dev = D * H * W, x.device
+    exists = grid.spring_mask(dev)
+    index = _direction_index(grid, dev)
+    planes = blade.planes()
+    offs = ((index[0] - 1) * H + index[1] - 1) * W + index[2] - 1            # (S,) flat offsets
+    out = []
+    for b in range(x.shape[0]):
+        xb = x[b].reshape(3, N)
+        for n, c, patches in planes:
+            h = (xb.new_tensor(n) @ xb - c).view(D, H, W)
+            axis = max(range(3), key=lambda a: abs(n[a]))
+            rng = _layer_range(h, axis)
+            if rng is None:
+                continue
+            lo, hi = rng
+            near, far = _far_ends(h, axis, lo, hi, index)
+            cand = ((near > 0).unsqueeze(0) != (far > 0)) & exists.narrow(axis + 1, lo, hi - lo + 1)
+            slot = list(cand.nonzero(as_tuple=True))                           # s, d, h, w
+            if slot[0].numel() == 0:
+                continue
+            slot[axis + 1] += lo
+            # The positions of the layers lo - 1 .. hi + 1 bound every candidate segment: when a
+            # patch covers that box, every candidate crosses it and none needs its own test.
+            lo2 = max(lo - 1, 0)
+            layers = x[b].narrow(axis + 1, lo2, min(hi + 1, grid.shape[axis] - 1) - lo2 + 1).reshape(3, -1)
+            box = torch.stack([layers.amin(1), layers.amax(1)], 1)
+            if not _covers(box, patches):
+                p_i = (slot[1] * H + slot[2]) * W + slot[3]
+                q_i = p_i + offs[slot[0]]
+                hf = h.view(-1)
+                hp, hq = hf[p_i], hf[q_i]
+                p, q = xb.index_select(1, p_i), xb.index_select(1, q_i)
+                hit = _patch_hits(p + (hp / (hp - hq)) * (q - p), patches)
+                keep = hit.nonzero()[:, 0]
+                slot = [i.index_select(0, keep) for i in slot]
+            out.append([torch.full_like(slot[0], b)] + slot)
+    if not out:
+        return tuple(torch.zeros(0, dtype=torch.int64, device=dev) for _ in range(5))
+    if len(out) == 1:
+        return tuple(out[0])
+    b, s, d, h, w = (torch.cat(parts) for parts in zip(*out))
+    ids = torch.unique((((b * grid.S + s) * D + d) * H + h) * W + w)      # a slot crossing two planes: once
+    node = ids % N
+    bs = ids // N
+    return bs // grid.S, bs % grid.S, node // (H * W), (node // W) % H, node % W
+
+
+def crossing(grid, x: torch.Tensor, blade: Blade) -> torch.Tensor:
+    """Bool ``(B, S, D, H, W)``: the spring stored at each node along each half-direction crosses the blade.
+
+    The dense form of :func:`crossed_slots`.
+    """
+    return _dense(grid, crossed_slots(grid, x, blade), x.shape[0], x.device)
 
 
 def sides(x: torch.Tensor, blade: Blade) -> torch.Tensor:
-    """Int8 ``(B, 1, D, H, W)``: +1 on the normal's side of the blade's plane, -1 on the other (Punak's tags)."""
+    """Int8 ``(B, 1, D, H, W)``: +1 on the normal's side of the first patch's plane, -1 on the other (Punak's tags)."""
     return (blade.height(x) > 0).to(torch.int8) * 2 - 1
 
 
-def cut(model: Model, x: torch.Tensor, blade: Blade) -> int:
-    """Remove the springs that cross ``blade`` from ``model`` (in place); returns how many.
+def pretension(model: Model, nodes: torch.Tensor, gape, springs: torch.Tensor | None = None) -> torch.Tensor:
+    """Rest lengths ``(Bp, S, D, H, W)`` with the springs at ``nodes`` shortened by the factor ``1 - gape``.
 
-    Springs stored per direction (``(Bp, S, 1, 1, 1)``) become a full per-spring field first.
+    A function of the model's rest lengths and ``gape`` (differentiable in both), the model is not
+    changed.
 
     Args:
-        model: the :class:`~torchdeform.sim.model.Model` (its ``stiffness`` and ``damping`` change).
+        model: the model.
+        nodes: bool ``(D, H, W)``: the springs (still alive) with an end here are shortened.
+        gape: a number or 0-d tensor in ``[0, 1)``.
+        springs: optional bool ``(1, S, D, H, W)`` restricting which of them (default: all).
+    """
+    if not torch.is_tensor(gape) and not 0 <= float(gape) < 1:
+        raise ConfigError("cut.gape", "a fraction in [0, 1) of the rest length", gape)
+    at_src, at_dst = ends(model.grid, nodes)
+    touch = (at_src | at_dst) & alive(model)
+    if springs is not None:
+        touch = touch & springs
+    l0 = full(model, model.rest_length)
+    return torch.where(touch, l0 * (1 - gape), l0)
+
+
+def cut(model: Model, x: torch.Tensor, blade: Blade, gape: float = 0.0) -> int:
+    """Remove the springs that cross ``blade`` from ``model`` (in place); returns how many.
+
+    Args:
+        model: the :class:`~torchdeform.sim.model.Model` (its ``stiffness`` and ``damping`` change;
+            in place when it is editable or shared with a compiled step, see :mod:`.masks`).
         x: node positions ``(B, 3, D, H, W)``; a batch of positions gives one cut per batch entry.
         blade: the :class:`Blade`.
+        gape: pre-tension: the springs left at the nodes of the cut get their rest lengths
+            multiplied by ``1 - gape`` (once: nodes of earlier cuts are not shortened again;
+            ``model.cut_nodes`` collects them).
+
+    Examples:
+        >>> import torchdeform as td
+        >>> model = td.Model(td.Grid((3, 3, 3), 0.01, 6), stiffness=10.0, mass=1e-3)
+        >>> cut(model, model.X, Blade((0.005, -0.01, -0.01), (0, 0.04, 0), (0, 0, 0.04)))     # n^2
+        9
     """
-    return remove(model, crossing(model.grid, x, blade))
+    slots = crossed_slots(model.grid, x, blade)
+    count = remove(model, slots)
+    if gape or torch.is_tensor(gape):
+        grid = model.grid
+        _, s, d, h, w = slots
+        nodes = torch.zeros(grid.shape, dtype=torch.bool, device=x.device)
+        nodes[d, h, w] = True
+        off = torch.tensor(grid.directions, dtype=torch.int64, device=x.device)[s]
+        nodes[d + off[:, 0], h + off[:, 1], w + off[:, 2]] = True
+        old = model.cut_nodes
+        fresh = nodes if old is None else nodes & ~old
+        springs = None
+        if old is not None:                                           # a spring shortened once only
+            a, b = ends(grid, old)
+            springs = ~(a | b)
+        assign(model, "rest_length", pretension(model, fresh, gape, springs))
+        model.cut_nodes = nodes if old is None else old | nodes
+    return count
+
+
+class Scalpel:
+    """A blade's straight cutting edge carried by a tool: it cuts what it sweeps (progressive cutting).
+
+    Args:
+        tool: the :class:`~torchdeform.interact.tools.Tool` (its path, callable or ``move_to``).
+        edge: the edge's two ends in the tool's frame, ``((3,), (3,))`` m.
+        pieces: triangles per update along the sweep (more follow a turning edge more closely).
+        gape: pre-tension of every cut (see :func:`cut`).
+
+    Examples:
+        >>> import torchdeform as td
+        >>> from torchdeform.interact import Sphere, Tool
+        >>> model = td.Model(td.Grid((4, 4, 4), 0.01, 6), stiffness=10.0, mass=1e-3)
+        >>> tool = Tool(Sphere(0.001), path=[(0.0, (0.015, -0.01, -0.01)), (1.0, (0.015, 0.05, -0.01))])
+        >>> knife = Scalpel(tool, edge=((0, 0, 0), (0, 0, 0.05)))
+        >>> state = model.rest_state()
+        >>> knife.update(model, state)                   # the first call only marks where it starts
+        0
+        >>> state.t = 0.5                                # the edge has swept y <= 0.02: 3 of 4 columns
+        >>> knife.update(model, state)
+        12
+    """
+
+    def __init__(self, tool, edge, pieces: int = 1, gape: float = 0.0):
+        self.tool = tool
+        self.edge = (as_vec3(edge[0], "scalpel.edge"), as_vec3(edge[1], "scalpel.edge"))
+        if self.edge[0] == self.edge[1]:
+            raise ConfigError("scalpel.edge", "two different ends", self.edge)
+        if int(pieces) < 1:
+            raise ConfigError("scalpel.pieces", "an integer >= 1", pieces)
+        self.pieces, self.gape = int(pieces), gape
+        self._last = None
+
+    def edge_at(self, t: float) -> torch.Tensor:
+        """The edge's two ends at time ``t``, ``(2, 3)`` float64 (batch entry 0 of the tool's pose)."""
+        like = torch.zeros(1, 3, dtype=torch.float64)
+        c, R = self.tool.frame(t, like)
+        e = torch.tensor(self.edge, dtype=torch.float64)                   # (2, 3)
+        if R is not None:
+            e = e @ R[0].T
+        return e + c.reshape(-1, 3)[0]
+
+    def swept(self, t0: float, t1: float) -> Blade | None:
+        """The surface the edge sweeps from ``t0`` to ``t1`` (None if it did not move)."""
+        ts = [t0 + (t1 - t0) * i / self.pieces for i in range(self.pieces + 1)]
+        edges = torch.stack([self.edge_at(t) for t in ts])
+        if bool((edges[1:] == edges[:-1]).all()):
+            return None
+        try:
+            return Blade.swept(edges, key="scalpel")
+        except ConfigError:                          # moved only along its own line
+            return None
+
+    def update(self, model: Model, state) -> int:
+        """Cut what the edge swept since the previous call (at the state's positions and time)."""
+        t = float(state.t)
+        if self._last is None or t == self._last:
+            self._last = t
+            return 0
+        blade, self._last = self.swept(self._last, t), t
+        return 0 if blade is None else cut(model, state.x, blade, self.gape)

@@ -1,8 +1,18 @@
-"""What every topology change shares: spring fields per slot, removing springs, node sets at spring ends.
+"""What every topology change shares: spring fields per slot, editing them, node sets at spring ends.
 
 Spring parameters may be stored per direction (``(Bp, S, 1, 1, 1)``); a topology change makes them
 per spring (``(Bp, S, D, H, W)``, one slot per node and half-direction, see
 :attr:`~torchdeform.sim.grid.Grid.stencil`).
+
+**Editing in place.** A model prepared by :func:`editable` (or shared with a compiled step, see
+:meth:`~torchdeform.sim.packed.PackedModel.share`) holds every spring and node field at full size;
+topology changes then write into those tensors (:func:`assign`, :func:`remove`) instead of
+replacing them, so a compiled step that reads the same storage sees the change with no
+recompilation, and a cut costs only the slots it touches. Fields that require grad are never
+written in place: they are replaced (the functional path autograd needs).
+
+Slots are given either as a bool field ``(B|1, S, D, H, W)`` or as a tuple of five index tensors
+``(b, s, d, h, w)`` (what the cut search returns: a cut touches a few thousand of millions of slots).
 
 Examples:
     >>> import torch
@@ -16,7 +26,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["full", "alive", "remove", "ends"]
+__all__ = ["full", "alive", "remove", "ends", "editable", "assign", "slot_index"]
 
 
 def full(model, p: torch.Tensor) -> torch.Tensor:
@@ -29,10 +39,110 @@ def alive(model) -> torch.Tensor:
     return (full(model, model.stiffness) != 0) & model.grid.spring_mask(model.stiffness.device)
 
 
-def remove(model, springs: torch.Tensor) -> int:
-    """Zero the stiffness and damping of the slots in bool ``springs`` ``(B|1, S, D, H, W)``; how many were alive."""
-    count = int((springs & alive(model)).sum())
-    keep = (~springs).to(model.dtype)
+def editable(model):
+    """Store ``model``'s spring fields per slot and its node fields per node, so that edits are in place.
+
+    Returns the model (changed in place). A model stepped by a compiled step does not need this:
+    ``compiled_step(..., editable=True)`` shares its fields with the step instead.
+
+    Examples:
+        >>> import torchdeform as td
+        >>> model = editable(td.Model(td.Grid((3, 3, 3), 0.01, 6), stiffness=1.0, mass=1e-3))
+        >>> tuple(model.stiffness.shape), tuple(model.mass.shape), model.free is not None
+        ((1, 3, 3, 3, 3), (1, 1, 3, 3, 3), True)
+    """
+    shape = model.grid.shape
+    for name in ("stiffness", "rest_length", "damping"):
+        p = getattr(model, name)
+        if p is not None:
+            setattr(model, name, full(model, p).clone())
+    if model.free is None:
+        model.free = (~model.constrained).to(model.dtype)[None, None]
+    for name in ("mass", "inv_mass", "free", "k_home"):
+        t = getattr(model, name)
+        if t is not None:
+            setattr(model, name, t.expand(t.shape[0], 1, *shape).clone())
+    return model
+
+
+def assign(model, name: str, value: torch.Tensor) -> None:
+    """``model.<name> = value``, written into the existing tensor when the shapes allow it.
+
+    In place when the current field has the full shape of ``value`` and neither requires grad;
+    otherwise the attribute is replaced (a compiled step sharing the old tensor would not see it).
+    """
+    cur = getattr(model, name)
+    if (cur is not None and tuple(cur.shape) == tuple(value.shape) and cur.dtype == value.dtype
+            and not cur.requires_grad and not value.requires_grad):
+        cur.copy_(value)
+    else:
+        setattr(model, name, value)
+
+
+def slot_index(grid, springs) -> tuple:
+    """Slots as five index tensors ``(b, s, d, h, w)``, from a bool field or such a tuple."""
+    if isinstance(springs, tuple):
+        return springs
+    return springs.nonzero(as_tuple=True)
+
+
+def _storage(t: torch.Tensor) -> torch.Tensor:
+    """All of ``t``'s storage as one flat tensor (writes through it reach ``t`` and its views)."""
+    return t.as_strided((t.untyped_storage().nbytes() // t.element_size(),), (1,), 0)
+
+
+def _linear(grid, t: torch.Tensor, idx: tuple) -> torch.Tensor:
+    """Storage positions of the slots ``t[b, s, d, h, w]`` of a full per-slot field ``t``.
+
+    The node part comes from a table of node offsets cached per stride (one gather).
+    """
+    b, s, d, h, w = idx
+    key = ("node_offsets", t.stride()[2:], str(t.device))
+    if key not in grid._cache:
+        D, H, W = grid.shape
+        st = t.stride()
+        grid._cache[key] = (torch.arange(D, device=t.device).view(-1, 1, 1) * st[2]
+                            + torch.arange(H, device=t.device).view(1, -1, 1) * st[3]
+                            + torch.arange(W, device=t.device).view(1, 1, -1) * st[4]).flatten()
+    _, H, W = grid.shape
+    at = grid._cache[key][(d * H + h) * W + w] + s * t.stride(1) + t.storage_offset()
+    return at if t.shape[0] == 1 else at + b * t.stride(0)
+
+
+def _dense(grid, idx: tuple, batch: int, device) -> torch.Tensor:
+    out = torch.zeros((batch, grid.S) + grid.shape, dtype=torch.bool, device=device)
+    out[idx] = True
+    return out
+
+
+def remove(model, springs) -> int:
+    """Zero the stiffness and damping of the given slots; how many of them held a spring.
+
+    Args:
+        model: the model (changed in place).
+        springs: bool ``(B|1, S, D, H, W)`` or index tensors ``(b, s, d, h, w)`` (no repeats).
+    """
+    idx = slot_index(model.grid, springs)
+    if idx[0].numel() == 0:
+        return 0
+    k = model.stiffness
+    nb = int(idx[0].max()) + 1
+    in_place = (k.dim() == 5 and tuple(k.shape[1:]) == (model.grid.S,) + model.grid.shape
+                and nb <= k.shape[0] and not k.requires_grad
+                and (model.damping is None or (model.damping.shape == k.shape and not model.damping.requires_grad)))
+    if in_place:
+        at = _linear(model.grid, k, idx)
+        flat = _storage(k)
+        count = int((flat[at] != 0).sum())
+        flat.index_fill_(0, at, 0)
+        c = model.damping
+        if c is not None:
+            same = c.stride() == k.stride() and c.storage_offset() == k.storage_offset()
+            _storage(c).index_fill_(0, at if same else _linear(model.grid, c, idx), 0)
+        return count
+    dense = _dense(model.grid, idx, nb, k.device)
+    count = int((dense & alive(model)).sum())
+    keep = (~dense).to(model.dtype)
     model.stiffness = full(model, model.stiffness) * keep
     if model.damping is not None:
         model.damping = full(model, model.damping) * keep

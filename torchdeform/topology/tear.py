@@ -26,9 +26,10 @@ import torch
 
 from ..errors import ConfigError
 from ..sim.springs import difference
-from .masks import alive, ends, full, remove
+from .masks import alive, assign, ends, full, remove
 
-__all__ = ["spring_lengths", "spring_strain", "tear", "strain_limit_from_force", "coagulate"]
+__all__ = ["spring_lengths", "spring_strain", "tear", "strain_limit_from_force", "coagulate",
+           "coagulated_rest_length"]
 
 
 def spring_lengths(grid, x: torch.Tensor) -> torch.Tensor:
@@ -94,8 +95,16 @@ def coagulate(model, x: torch.Tensor, region: torch.Tensor, viscosity_factor: fl
         raise ConfigError("coagulate.region", f"a bool mask of shape {grid.shape}", tuple(region.shape))
     at_src, at_dst = ends(grid, region)
     both = at_src & at_dst & alive(model)
-    lengths = spring_lengths(grid, x)
-    model.rest_length = torch.where(both, lengths, full(model, model.rest_length))
+    assign(model, "rest_length", coagulated_rest_length(model, x, both))
     if model.damping is not None and viscosity_factor != 1:
-        model.damping = torch.where(both, full(model, model.damping) * viscosity_factor, full(model, model.damping))
+        assign(model, "damping", torch.where(both, full(model, model.damping) * viscosity_factor,
+                                             full(model, model.damping)))
     return int(both.sum())
+
+
+def coagulated_rest_length(model, x: torch.Tensor, springs: torch.Tensor) -> torch.Tensor:
+    """Rest lengths ``(Bp, S, D, H, W)`` with the ``springs`` (bool, broadcasting) set to their lengths at ``x``.
+
+    A function (differentiable in ``x`` and the model's rest lengths), the model is not changed.
+    """
+    return torch.where(springs, spring_lengths(model.grid, x), full(model, model.rest_length))
