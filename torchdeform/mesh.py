@@ -402,8 +402,11 @@ def volume_surface(volume, level: float, offsets=None, spacing=(1.0, 1.0, 1.0), 
 SURFACE_SUFFIXES = (".ply", ".stl", ".obj")
 
 
-def save_surface(path, vertices, faces) -> None:
+def save_surface(path, vertices, faces, *, vertex_attributes=None) -> None:
     """Write a triangle mesh with trimesh: ``.ply``, ``.stl`` or ``.obj`` (chosen by the suffix).
+
+    ``vertex_attributes`` (name -> ``(V,)`` array) become extra per-vertex properties of a ``.ply``
+    (float64 ``property double <name>``); ``.stl`` and ``.obj`` have no place for them and drop them.
 
     Raises:
         ConfigError: another suffix, or bad arrays.
@@ -415,7 +418,11 @@ def save_surface(path, vertices, faces) -> None:
     v, f = np.asarray(vertices, dtype=np.float64), np.asarray(faces)
     if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or (len(f) and (f.min() < 0 or f.max() >= len(v))):
         raise ConfigError("surface", "vertices (V, 3) and faces (F, 3) indexing them", (v.shape, f.shape))
-    trimesh.Trimesh(vertices=v, faces=f, process=False).export(str(path))
+    attrs = {k: np.asarray(a, dtype=np.float64) for k, a in (vertex_attributes or {}).items()}
+    if any(a.shape != (len(v),) for a in attrs.values()):
+        raise ConfigError("vertex_attributes", f"one value per vertex ({len(v)},) for each name",
+                          {k: a.shape for k, a in attrs.items()})
+    trimesh.Trimesh(vertices=v, faces=f, process=False, vertex_attributes=attrs).export(str(path))
 
 
 __all__ += ["marching_tetrahedra", "body_surface", "volume_surface", "save_surface"]

@@ -37,3 +37,6 @@ from .tear import coagulate, coagulated_rest_length, spring_lengths, spring_stra
 
 __all__ = ["Blade", "Scalpel", "crossed_slots", "crossing", "cut", "pretension", "sides", "cauterize", "components",
            "tear", "coagulate", "coagulated_rest_length", "spring_lengths", "spring_strain", "strain_limit_from_force"]
+from .surfaces import CutSurface, cut_pieces, cut_surfaces, extend_displacement, save_cut_surfaces
+
+__all__ += ["CutSurface", "cut_surfaces", "save_cut_surfaces", "extend_displacement", "cut_pieces"]

@@ -27,6 +27,15 @@ fixed-point inverse); for an axis view ``u`` on a slab is two small matrix produ
 node grid (separable interpolation weights), so the warped volume is never built.
 Everything is differentiable with respect to the offsets and the transfer function.
 
+Through a cut (``pieces=[(offsets_1, material_1), ...]``): a body cut into pieces has one
+displacement field per piece (each extended over the whole node grid, e.g. by
+:func:`torchdeform.topology.cut_pieces`) and a material region per piece in rest space (a node
+mask, read by trilinear interpolation). A sample ``p`` is mapped back through every piece,
+``X_i = p - u_i(p)``; it shows ``V(X_i)`` of the piece whose material ``m_i(X_i)`` is largest,
+provided that is at least 1/2 (inside that piece's region), and ``fill`` otherwise. So the gap
+between two sides that moved apart is empty, where one interpolated field would smear the
+tissue across it. With every offset zero and pieces that cover the body, this is the plain render.
+
 The fast path (``render(..., engine="eager" | "compiled")``, axis views through offsets, no
 gradient): the same samples written as plain tensor code: per chunk of slabs, the offsets from the
 image-plane interpolated node layers, trilinear interpolation by hand (eight indexed loads from
@@ -339,7 +348,7 @@ def _chunk_slabs(n_img: int, chunk_points: int) -> int:
 def render(volume, tf=None, mode: str = "dvr", view="d", *, offsets=None, warp_mode: str = "deform",
            inverse_iters: int = 0, order: str = "linear", padding: str = "border", fill: float = 0.0,
            step: float = 1.0, size=None, stop: float = 1e-3, chunk_points: int = 1 << 20,
-           window=None, engine: str = "grid_sample") -> torch.Tensor:
+           window=None, engine: str = "grid_sample", pieces=None) -> torch.Tensor:
     """Render a volume, optionally through a displacement field (without building the warped volume).
 
     Args:
@@ -368,6 +377,11 @@ def render(volume, tf=None, mode: str = "dvr", view="d", *, offsets=None, warp_m
             20-60 s, with the eager code as fallback). The fast path takes batch 1, linear
             offsets, ``inverse_iters=0`` and no gradient; anything else uses ``grid_sample``.
             Same image either way up to rounding.
+        pieces: instead of ``offsets``, a cut body: a list of ``(offsets, material)`` pairs, one per
+            piece, with node offsets ``(3, n_d, n_h, n_w)`` / ``(B, 3, ...)`` in voxels (extended
+            over the whole node grid) and the piece's rest-space material ``(n_d, n_h, n_w)`` (1 at
+            its nodes, 0 elsewhere); samples outside every piece read ``fill`` (module docstring,
+            "Through a cut"). Always the ``grid_sample`` engine.
 
     Returns:
         ``dvr``: ``(B, 4, h, w)`` premultiplied RGB + alpha; ``mip``/``average``: ``(B, 1, h, w)``.
@@ -404,6 +418,14 @@ def render(volume, tf=None, mode: str = "dvr", view="d", *, offsets=None, warp_m
     size = _check_size(size)
     shape = tuple(vol.shape[2:])
     field = None
+    if pieces is not None:
+        if offsets is not None:
+            raise ConfigError("pieces", "either offsets or pieces, not both", "both given", show_got=True)
+        pieces = _Pieces(pieces, shape, order, warp_mode == "knoche", vol.dtype, vol.device)
+        if vol.shape[0] != pieces.batch and 1 not in (vol.shape[0], pieces.batch):
+            raise ConfigError("pieces", f"offsets with a batch of 1 or {vol.shape[0]} (the volume's)", pieces.batch)
+        if warp_mode == "knoche":
+            inverse_iters, padding = 0, "border"
     if offsets is not None:
         u = as_offsets(offsets, shape, dtype=vol.dtype, device=vol.device)
         if vol.shape[0] != u.shape[0] and 1 not in (vol.shape[0], u.shape[0]):
@@ -417,20 +439,21 @@ def render(volume, tf=None, mode: str = "dvr", view="d", *, offsets=None, warp_m
         lo, hi = tf.range(vol)
         table = tf.table(vol.dtype, vol.device)
     B = vol.shape[0] if field is None else max(vol.shape[0], field.nodes.shape[0])
+    B = B if pieces is None else max(B, pieces.batch)
     if isinstance(view, OrbitCamera):
         return _render_orbit(vol, field, tf, mode, view, inverse_iters, padding, fill, step, stop, chunk_points,
-                             lo, hi, table, B)
+                             lo, hi, table, B, pieces)
     if view not in AXIS_VIEWS:
         raise ConfigError("view", "an axis (" + ", ".join(AXIS_VIEWS) + ") or an OrbitCamera", view)
     if engine != "grid_sample" and _fast_supported(vol, field, view, inverse_iters, B):
         return _render_axis_fast(vol, field, tf, mode, view, padding, fill, step, size, stop, chunk_points,
                                  lo, hi, table, engine)[0]
     return _render_axis(vol, field, tf, mode, view, inverse_iters, padding, fill, step, size, stop,
-                        chunk_points, lo, hi, table, B)
+                        chunk_points, lo, hi, table, B, pieces)
 
 
 def _render_axis(vol, field, tf, mode, view, inverse_iters, padding, fill, step, size, stop, chunk_points,
-                 lo, hi, table, B):
+                 lo, hi, table, B, pieces=None):
     shape = tuple(vol.shape[2:])
     axis = "dhw".index(view[-1])
     reverse = view.startswith("-")
@@ -444,7 +467,7 @@ def _render_axis(vol, field, tf, mode, view, inverse_iters, padding, fill, step,
     pix = [(torch.arange(m, dtype=dtype, device=device) + 0.5) * (shape[a] / m) - 0.5
            for m, a in zip(img_shape, others)]
     native = size is None or tuple(size) == tuple(shape[a] for a in others)
-    direct = field is None and native and n == N            # samples on voxel centres: read slices
+    direct = field is None and pieces is None and native and n == N   # samples on voxel centres: read slices
     acc = _Accumulator(mode, tf, lo, hi, table, img_shape, dtype, device, B)
     S = _chunk_slabs(img_shape[0] * img_shape[1], chunk_points)
     order_k = range(n - 1, -1, -1) if reverse else range(n)
@@ -480,7 +503,10 @@ def _render_axis(vol, field, tf, mode, view, inverse_iters, padding, fill, step,
                     X, _ = _refine(field, p, X, inverse_iters)
             else:
                 X = p
-            v = sample(vol, X, padding, fill)[:, 0]                          # (B, S, h, w)
+            if pieces is not None:
+                v = pieces.sample(vol, p, padding, fill, inverse_iters)[:, 0]
+            else:
+                v = sample(vol, X, padding, fill)[:, 0]                      # (B, S, h, w)
         acc.add(v, torch.tensor(dt, dtype=dtype, device=device))
         if acc.done(stop):
             break
@@ -499,7 +525,7 @@ def _refine(field, p, X, iters, tol=1e-4):
 
 
 def _render_orbit(vol, field, tf, mode, cam, inverse_iters, padding, fill, step, stop, chunk_points, lo, hi,
-                  table, B):
+                  table, B, pieces=None):
     shape = tuple(vol.shape[2:])
     dtype, device = vol.dtype, vol.device
     eye, d = cam.rays(shape, dtype, device)                                    # (3,), (3, h, w)
@@ -526,11 +552,69 @@ def _render_orbit(vol, field, tf, mode, cam, inverse_iters, padding, fill, step,
             X = p - field.at(p)
             if inverse_iters:
                 X, _ = _refine(field, p, X, inverse_iters)
-        v = sample(vol, X, padding, fill)[:, 0]
+        if pieces is not None:
+            v = pieces.sample(vol, p, padding, fill, inverse_iters)[:, 0]
+        else:
+            v = sample(vol, X, padding, fill)[:, 0]
         acc.add(v, seglen.unsqueeze(0))
         if acc.done(stop):
             break
     return acc.result(float(vol.min()))
+
+
+class _Pieces:
+    """The pieces of a cut body for :func:`render`: per piece a displacement field and its rest-space material.
+
+    Args:
+        pieces: a non-empty list of ``(offsets, material)``: node offsets ``(3, n_d, n_h, n_w)`` or
+            ``(B, 3, ...)`` (voxels) and material ``(n_d, n_h, n_w)`` in ``[0, 1]``, on one node grid.
+        shape: the volume ``(D, H, W)``.
+        order, cell_centred: as :class:`~torchdeform.volume.DisplacementField`.
+    """
+
+    #: A sample belongs to a piece when its material there is at least this (1/2, less rounding).
+    INSIDE = 0.5 - 1e-6
+
+    def __init__(self, pieces, shape, order, cell_centred, dtype, device):
+        expected = "a non-empty list of (offsets (3, n_d, n_h, n_w), material (n_d, n_h, n_w)) pairs"
+        if not isinstance(pieces, (list, tuple)) or not pieces or \
+                not all(isinstance(pc, (list, tuple)) and len(pc) == 2 for pc in pieces):
+            raise ConfigError("pieces", expected, type(pieces).__name__)
+        self.fields, self.materials = [], []
+        for u, m in pieces:
+            field = DisplacementField(as_offsets(u, shape, "pieces offsets", dtype, device), shape, order, cell_centred)
+            m = torch.as_tensor(m).to(dtype=dtype, device=device)
+            if tuple(m.shape) != field.node_shape:
+                raise ConfigError("pieces material", f"a node array {field.node_shape} (the offsets' node grid)",
+                                  tuple(m.shape))
+            if not bool(torch.isfinite(m).all()) or bool((m < 0).any()) or bool((m > 1).any()):
+                raise ConfigError("pieces material", "values in [0, 1]", "values outside", show_got=True)
+            if self.fields and field.node_shape != self.fields[0].node_shape:
+                raise ConfigError("pieces offsets", f"one node grid {self.fields[0].node_shape} for every piece",
+                                  field.node_shape)
+            self.fields.append(field)
+            self.materials.append(m[None, None])
+        batches = {f.nodes.shape[0] for f in self.fields} - {1}
+        if len(batches) > 1:
+            raise ConfigError("pieces offsets", "one batch size (or 1) for every piece", sorted(batches))
+        self.batch = batches.pop() if batches else 1
+
+    def sample(self, vol, p, padding, fill, inverse_iters):
+        """Samples ``(B, 1, *S)`` of ``vol`` at the points ``p`` ``(1, 3, *S)`` through the pieces (``fill`` in gaps)."""
+        best_w = best_v = None
+        for field, m in zip(self.fields, self.materials):
+            X = p - field.at(p)
+            if inverse_iters:
+                X, _ = _refine(field, p, X, inverse_iters)
+            w = sample(m, field.to_node_coords(X), "border")                           # (B, 1, *S)
+            v = sample(vol, X, padding, fill)
+            if best_w is None:
+                best_w, best_v = w, v
+            else:
+                better = w > best_w
+                best_v = torch.where(better, v, best_v)
+                best_w = torch.maximum(w, best_w)
+        return torch.where(best_w >= self.INSIDE, best_v, torch.full_like(best_v, fill))
 
 
 # ================================================================= fast path (axis views through offsets)
