@@ -14,6 +14,9 @@ Limits (:class:`Limits`). For the link from element ``i`` to ``j = i + e_a`` alo
     min_a <= x_j[a] - x_i[a] <= max_a,      |x_j[b] - x_i[b]| <= shear_a   (b != a)
 
 per axis (homogeneous, Gibson) or per link (heterogeneous tissue, Enhanced ChainMail).
+Every solver takes an optional link mask, bool ``(3, D, H, W)`` stored like per-link limits
+(:func:`link_mask` gives the full one): a link that is False imposes no limit, which is how a cut
+unlinks elements (:func:`torchdeform.topology.unlink`); no mask costs nothing.
 
 =====================  ===========================================================================
 :class:`ChainMail`     sequential, cost proportional to the elements that move:
@@ -77,6 +80,7 @@ from .limits import (
                      BlockedMoveError,
                      Limits,
                      limit_violation,
+                     link_mask,
                      neighbour_boxes,
                      tissue_limits,
 )
@@ -85,5 +89,5 @@ from .sequential import ChainMail, MoveResult
 from .tensor import SweepResult, tensor_chainmail
 
 __all__ = ["Limits", "ChainMail", "MoveResult", "BlockedMoveError", "tissue_limits", "limit_violation",
-           "tensor_chainmail", "SweepResult", "neighbour_boxes", "relax", "relax_energy", "crease_measure",
+           "link_mask", "tensor_chainmail", "SweepResult", "neighbour_boxes", "relax", "relax_energy", "crease_measure",
            "DIRECTIONS", "GIBSON_SUCCESSORS", "METHODS", "RELAX_MODES"]

@@ -7,6 +7,13 @@ axis ``a`` of ``(D, H, W)``)::
 
 per axis (homogeneous, Gibson) or per link (heterogeneous tissue, Enhanced ChainMail). The links
 are the six face neighbours: the 6-neighbour stencil of :mod:`torchdeform.sim.springs`.
+
+Link masks. Every function that applies the limits takes an optional ``links``: bool
+``(3, D, H, W)`` (or ``(B, 3, D, H, W)`` per body), entry ``[a, i, j, k]`` for the link from node
+``(i, j, k)`` to its neighbour along ``+a`` (the layout of per-link limits and of the 6-neighbour
+per-spring tensors ``(S, D, H, W)``); a link whose entry is False does not exist and imposes no
+limit (Knoche's unlinked elements after a cut, :func:`torchdeform.topology.unlink`). ``None``
+(the default) means every link exists and costs nothing.
 """
 from __future__ import annotations
 
@@ -18,8 +25,8 @@ import torch
 from ..errors import ConfigError, TorchdeformError
 from ..sim.grid import Grid
 
-__all__ = ["Limits", "BlockedMoveError", "tissue_limits", "limit_violation", "neighbour_boxes", "DIRECTIONS",
-           "GIBSON_SUCCESSORS", "METHODS", "RELAX_MODES"]
+__all__ = ["Limits", "BlockedMoveError", "tissue_limits", "limit_violation", "neighbour_boxes", "link_mask",
+           "DIRECTIONS", "GIBSON_SUCCESSORS", "METHODS", "RELAX_MODES"]
 
 #: Directions of the six neighbour lists: (axis, sign) for +d, -d, +h, -h, +w, -w.
 DIRECTIONS = ((0, 1), (0, -1), (1, 1), (1, -1), (2, 1), (2, -1))
@@ -245,7 +252,40 @@ def _exists(grid: Grid, device) -> torch.Tensor:
     return grid.nodes().to(device)
 
 
-def limit_violation(positions: torch.Tensor, grid: Grid, limits: Limits, per_link: bool = False):
+def link_mask(grid: Grid, device=None) -> torch.Tensor:
+    """Bool ``(3, D, H, W)``: the links the grid has (both ends inside the box and the node mask).
+
+    Entry ``[a, i, j, k]`` is the link from node ``(i, j, k)`` to its neighbour along ``+a``; the
+    full mask of a ``links`` argument before any link is cut.
+
+    Example:
+        >>> from torchdeform.chainmail import link_mask
+        >>> from torchdeform.sim.grid import Grid
+        >>> m = link_mask(Grid((2, 3, 4), spacing=1.0))
+        >>> m.shape, int(m.sum())                     # 1*3*4 + 2*2*4 + 2*3*3 links
+        (torch.Size([3, 2, 3, 4]), 46)
+    """
+    return _grid6(grid).spring_mask(device)
+
+
+def _as_links(links, grid: Grid, device, batch: int | None = None, key: str = "links"):
+    """``None``, or the link mask as bool ``(1|B, 3, D, H, W)`` on ``device`` (validated)."""
+    if links is None:
+        return None
+    try:
+        m = links.to(device=device, dtype=torch.bool) if torch.is_tensor(links) \
+            else torch.as_tensor(links, dtype=torch.bool, device=device)
+    except (TypeError, ValueError, RuntimeError):
+        raise ConfigError(key, "a bool (3, D, H, W) or (B, 3, D, H, W) link mask", type(links).__name__) from None
+    if m.dim() == 4:
+        m = m.unsqueeze(0)
+    if m.dim() != 5 or tuple(m.shape[1:]) != (3,) + grid.shape or (batch is not None and m.shape[0] not in (1, batch)):
+        raise ConfigError(key, f"a bool (3, D, H, W) or (B, 3, D, H, W) link mask with grid {grid.shape}",
+                          tuple(m.shape))
+    return m
+
+
+def limit_violation(positions: torch.Tensor, grid: Grid, limits: Limits, per_link: bool = False, links=None):
     """Largest amount (m) by which any link exceeds its ChainMail limits.
 
     An independent, vectorised check written on absolute positions (not on the offsets the
@@ -257,6 +297,8 @@ def limit_violation(positions: torch.Tensor, grid: Grid, limits: Limits, per_lin
         limits: the :class:`Limits`.
         per_link: also return the excess of every link, ``(B, 3, D, H, W)`` (axis ``a`` at the
             link's first endpoint; 0 where the link does not exist).
+        links: optional bool link mask ``(3, D, H, W)`` or ``(B, 3, D, H, W)``; links that are
+            False are not checked (see the module docstring).
 
     Returns:
         ``(B,)`` largest excess, 0 where every limit holds (and the field with ``per_link``).
@@ -278,6 +320,7 @@ def limit_violation(positions: torch.Tensor, grid: Grid, limits: Limits, per_lin
     dev, dt = x.device, x.dtype
     mn, mx, sh = (t.to(device=dev, dtype=dt) for t in limits.per_link())
     nodes = _exists(grid, dev)
+    lk = _as_links(links, grid, dev, x.shape[0])
     field_ = torch.zeros((x.shape[0], 3) + grid.shape, dtype=dt, device=dev)
     for a in range(3):
         n = grid.shape[a]
@@ -294,6 +337,8 @@ def limit_violation(positions: torch.Tensor, grid: Grid, limits: Limits, per_lin
             if b != a:
                 excess = torch.maximum(excess, diff[:, b].abs() - sh[a][first])
         excess = excess.clamp_min(0) * (nodes[first] & nodes[second])
+        if lk is not None:
+            excess = excess * lk[(slice(None), a, *first)]
         field_[(slice(None), a, *first)] = excess
     worst = field_.flatten(1).amax(1)
     return (worst, field_) if per_link else worst
@@ -319,7 +364,7 @@ def _link_values(t: torch.Tensor, a: int, region) -> torch.Tensor:
     return t[a] if t.dim() == 1 else t[a][region]
 
 
-def neighbour_boxes(u: torch.Tensor, grid: Grid, bounds: tuple, source: torch.Tensor):
+def neighbour_boxes(u: torch.Tensor, grid: Grid, bounds: tuple, source: torch.Tensor, links=None):
     """The box each element's offset must lie in relative to its face neighbours in ``source``.
 
     Args:
@@ -327,6 +372,8 @@ def neighbour_boxes(u: torch.Tensor, grid: Grid, bounds: tuple, source: torch.Te
         grid: the grid.
         bounds: ``(lo, hi, shear)`` from :meth:`Limits.offset_bounds` (same dtype and device as ``u``).
         source: bool ``(B|1, 1, D, H, W)``: neighbours that constrain (moved, fixed, or all).
+        links: optional link mask, ``None`` or bool ``(B|1, 3, D, H, W)`` (as from ``_as_links``):
+            a neighbour constrains only through a link that exists.
 
     Returns:
         ``(lo, hi)``, each ``(B, 3, D, H, W)``: the intersection of the boxes, ``-inf``/``+inf``
@@ -340,6 +387,7 @@ def neighbour_boxes(u: torch.Tensor, grid: Grid, bounds: tuple, source: torch.Te
             continue
         first, second = _axis_slices(grid, a)
         la, ha, sa = (_link_values(t, a, first) for t in (L, Hh, S))
+        linked = None if links is None else links[(slice(None), slice(a, a + 1), *first)]
         for elem, nbr, sgn in ((second, first, 1), (first, second, -1)):
             centre = u[(..., *nbr)]
             rel_lo = [-sa, -sa, -sa]
@@ -348,6 +396,8 @@ def neighbour_boxes(u: torch.Tensor, grid: Grid, bounds: tuple, source: torch.Te
             blo = torch.stack([centre[:, c] + rel_lo[c] for c in range(3)], 1)
             bhi = torch.stack([centre[:, c] + rel_hi[c] for c in range(3)], 1)
             ok = source[(..., *nbr)]
+            if linked is not None:
+                ok = ok & linked
             blo = torch.where(ok, blo, -math.inf)
             bhi = torch.where(ok, bhi, math.inf)
             lo[(..., *elem)] = torch.maximum(lo[(..., *elem)], blo)

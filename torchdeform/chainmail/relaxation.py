@@ -3,6 +3,9 @@
 Red-black projected Jacobi steps of the offsets towards the centroid of the neighbours' offsets
 (Knoche) or towards Gibson's goal positions, within the limits; never raises
 :func:`relax_energy`, the Dirichlet energy ``1/2 sum |u_j - u_i - b_ij|^2`` of the offsets.
+
+With a link mask (``links``, see :mod:`.limits`) an unlinked neighbour is no neighbour: it is left
+out of the centroid, the limits' box and the energy, so the two sides of a cut relax apart.
 """
 from __future__ import annotations
 
@@ -11,7 +14,7 @@ import torch
 from ..errors import ConfigError
 from ..sim.grid import Grid
 from ..sim.springs import accumulate
-from .limits import RELAX_MODES, Limits, _exists, _grid6, _link_values, neighbour_boxes
+from .limits import RELAX_MODES, Limits, _as_links, _exists, _grid6, _link_values, neighbour_boxes
 
 __all__ = ["relax", "relax_energy", "crease_measure"]
 
@@ -41,40 +44,49 @@ def _goal_vector(goal, s: int, src, like: torch.Tensor) -> torch.Tensor:
     return vec.unsqueeze(0)
 
 
-def _residual(u, grid6: Grid, goal):
+def _residual(u, grid6: Grid, goal, links=None):
     """``sum_j (u_j - u_i - b_ij)`` over existing face neighbours ``(B, 3, D, H, W)``.
 
-    Returned with the neighbour counts ``(1, 1, D, H, W)``.
+    Returned with the neighbour counts ``(1|B, 1, D, H, W)``; ``links``: ``None`` or bool
+    ``(1|B, 3, D, H, W)``, the links that exist.
     """
     masks = grid6.spring_mask(u.device)
+    if links is None:
+        def weight(s, src):
+            return masks[s][src].to(u.dtype).view(1, 1, *masks[s][src].shape)
+    else:
+        def weight(s, src):
+            return (masks[s][src] & links[(slice(None), s, *src)]).to(u.dtype).unsqueeze(1)
 
     def fn(s, src, du):
         if goal is not None:
             du = du - _goal_vector(goal, s, src, du)
-        return du * masks[s][src].to(u.dtype)
+        return du * (masks[s][src].to(u.dtype) if links is None else weight(s, src))
     r = accumulate(grid6, fn, u)
-    ones = torch.ones((1, 1) + grid6.shape, dtype=u.dtype, device=u.device)
+    ones = torch.ones((1 if links is None else links.shape[0], 1) + grid6.shape, dtype=u.dtype, device=u.device)
 
     def count(s, src, _):
-        m = masks[s][src].to(u.dtype).view(1, 1, *masks[s][src].shape)
+        m = weight(s, src)
         return m, m
     return r, accumulate(grid6, count, ones)
 
 
 def relax_energy(positions: torch.Tensor, grid: Grid, limits: Limits | None = None, mode: str = "centroid",
-                 offsets: bool = False) -> torch.Tensor:
+                 offsets: bool = False, links=None) -> torch.Tensor:
     """The energy relaxation lowers, ``(B,)``.
 
     ``E(u) = 1/2 sum_links |u_j - u_i - b_ij|^2`` over the face-neighbour links, with
     ``u = x - X``. ``b = 0`` for ``mode="centroid"`` (the Dirichlet energy of the offsets,
     REFERENCE 2.4), ``b_ij = (goal_a - h_a) e_a`` for ``mode="goal"`` (zero-length springs to
-    Gibson's goal distance ``goal_a = (min_a + max_a) / 2``).
+    Gibson's goal distance ``goal_a = (min_a + max_a) / 2``). ``links``: optional bool link mask
+    ``(3, D, H, W)`` or ``(B, 3, D, H, W)``; unlinked pairs add nothing.
     """
     if mode not in RELAX_MODES:
         raise ConfigError("mode", '"centroid" or "goal"', mode)
     u = positions if offsets else positions - grid.rest_positions(positions.dtype, positions.device)
     u = u if u.dim() == 5 else u.unsqueeze(0)
     g6 = _grid6(grid)
+    lk = _as_links(links, grid, u.device, u.shape[0])
     goal = _goal_shift(grid, limits, mode, u.dtype, u.device)
     total = u.new_zeros(u.shape[0])
     for s, (src, dst) in enumerate(g6.stencil):
@@ -82,11 +94,13 @@ def relax_energy(positions: torch.Tensor, grid: Grid, limits: Limits | None = No
         if goal is not None:
             du = du - _goal_vector(goal, s, src, du)
         e = (du * du).sum(1) * g6.spring_mask(u.device)[s][src]
+        if lk is not None:
+            e = e * lk[(slice(None), s, *src)]
         total = total + 0.5 * e.flatten(1).sum(1)
     return total
 
 
-def crease_measure(positions: torch.Tensor, grid: Grid, free=None, offsets: bool = False) -> torch.Tensor:
+def crease_measure(positions: torch.Tensor, grid: Grid, free=None, offsets: bool = False, links=None) -> torch.Tensor:
     """Straight-line artefact measure, ``(B,)`` in m^2.
 
     ``sum_i |c_i - u_i|^2`` over the free elements, where ``c_i`` is the centroid of the offsets
@@ -102,17 +116,19 @@ def crease_measure(positions: torch.Tensor, grid: Grid, free=None, offsets: bool
         grid: the grid.
         free: bool ``(D, H, W)`` elements to include (default: all existing elements).
         offsets: ``positions`` are offsets ``u = x - X``.
+        links: optional bool link mask ``(3, D, H, W)`` or ``(B, 3, D, H, W)`` (unlinked
+            neighbours are not neighbours).
     """
     u = positions if offsets else positions - grid.rest_positions(positions.dtype, positions.device)
     u = u if u.dim() == 5 else u.unsqueeze(0)
-    r, deg = _residual(u, _grid6(grid), None)
+    r, deg = _residual(u, _grid6(grid), None, _as_links(links, grid, u.device, u.shape[0]))
     dev = (r / deg.clamp_min(1)) ** 2
     m = _exists(grid, u.device) if free is None else torch.as_tensor(free, dtype=torch.bool).to(u.device)
     return (dev.sum(1) * m).flatten(1).sum(1)
 
 
 def relax(positions: torch.Tensor, grid: Grid, limits: Limits, steps: int = 1, mode: str = "centroid",
-          free=None, omega: float = 1.0, offsets: bool = False):
+          free=None, omega: float = 1.0, offsets: bool = False, links=None):
     """Elastic relaxation within the ChainMail limits.
 
     Each step updates every free element once, red-black (the elements with even ``i + j + k``,
@@ -140,6 +156,8 @@ def relax(positions: torch.Tensor, grid: Grid, limits: Limits, steps: int = 1, m
             exclude fixed and picked elements, or pass the elements ChainMail moved).
         omega: relaxation factor in ``(0, 2)`` (1: straight to the target).
         offsets: ``positions`` are offsets ``u = x - X`` (and so is the result).
+        links: optional bool link mask ``(3, D, H, W)`` or ``(B, 3, D, H, W)``: an unlinked
+            neighbour is left out of the centroid, the box and the energy (default all linked).
 
     Returns:
         ``(positions, energies)``: the relaxed positions (offsets with ``offsets=True``), same
@@ -170,6 +188,7 @@ def relax(positions: torch.Tensor, grid: Grid, limits: Limits, steps: int = 1, m
     X = grid.rest_positions(dt, dev)
     u = x if offsets else x - X
     g6 = _grid6(grid)
+    lk = _as_links(links, grid, dev, u.shape[0])
     nodes = _exists(grid, dev)
     m = nodes if free is None else torch.as_tensor(free, dtype=torch.bool).to(dev) & nodes
     m = m.view(-1, 1, *grid.shape)
@@ -179,13 +198,13 @@ def relax(positions: torch.Tensor, grid: Grid, limits: Limits, steps: int = 1, m
     bounds = limits.offset_bounds(dt, dev)
     goal = _goal_shift(grid, limits, mode, dt, dev)
     source = nodes.view(1, 1, *grid.shape)
-    energies = [float(relax_energy(u, grid, limits, mode, offsets=True).sum())]
+    energies = [float(relax_energy(u, grid, limits, mode, offsets=True, links=lk).sum())]
     for _ in range(steps):
         for colour in colours:
-            r, deg = _residual(u, g6, goal)
+            r, deg = _residual(u, g6, goal, lk)
             target = u + omega * r / deg.clamp_min(1)
-            lo, hi = neighbour_boxes(u, grid, bounds, source)
+            lo, hi = neighbour_boxes(u, grid, bounds, source, lk)
             u = torch.where(colour, torch.minimum(torch.maximum(target, lo), hi), u)
-        energies.append(float(relax_energy(u, grid, limits, mode, offsets=True).sum()))
+        energies.append(float(relax_energy(u, grid, limits, mode, offsets=True, links=lk).sum()))
     out = u if offsets else X + u
     return (out[0] if squeeze else out), energies

@@ -3,6 +3,14 @@
 Gibson's six FIFO lists (one sponsor path per element) and Schill's Enhanced ChainMail (one
 priority queue per coordinate, largest violation first, per-link limits). Cost is proportional
 to the elements that move, not to the grid.
+
+Link masks (cut links, :func:`torchdeform.topology.unlink`). Per neighbour direction ``k`` a
+padded array ``ok_k`` says whether the element ``n`` may be reached from ``n - offset_k``: the
+element exists and so does the link. Without a mask every ``ok_k`` is the element flag array
+itself, so the queues test exactly what they tested before, at the same cost. Gibson's one path
+per element (d, then h, then w) may run through a cut link while a detour exists; with cut links
+a Gibson move therefore checks the links of the elements it moved (cost proportional to them)
+and, if a limit is left violated, redoes the move in Enhanced ChainMail's order.
 """
 from __future__ import annotations
 
@@ -24,7 +32,9 @@ from .limits import (
     METHODS,
     BlockedMoveError,
     Limits,
+    _as_links,
     limit_violation,
+    link_mask,
 )
 from .relaxation import relax
 
@@ -82,6 +92,10 @@ class ChainMail:
         positions: optional start positions ``(1, 3, D, H, W)`` or ``(3, D, H, W)`` (e.g. a
             mass-spring state's ``x``); default the rest positions. They must satisfy the limits.
         method: ``"gibson"`` or ``"enhanced"``.
+        links: optional bool ``(3, D, H, W)`` link mask (entry ``[a, i, j, k]``: the link from
+            ``(i, j, k)`` along ``+a`` exists); an unlinked pair imposes no limit on each other.
+            Default: every link exists (and no cost). See :attr:`links`, :meth:`set_links` and
+            :func:`torchdeform.topology.unlink`.
 
     Examples:
         >>> import torchdeform as td
@@ -95,7 +109,8 @@ class ChainMail:
         (torch.Size([1, 3, 16, 16, 16]), 0.002, 0.0)
     """
 
-    def __init__(self, grid: Grid, limits: Limits, fixed=None, positions=None, method: str = "gibson"):
+    def __init__(self, grid: Grid, limits: Limits, fixed=None, positions=None, method: str = "gibson",
+                 links=None):
         if not isinstance(grid, Grid):
             raise ConfigError("grid", "a torchdeform.Grid", type(grid).__name__)
         if not isinstance(limits, Limits) or limits.grid.shape != grid.shape:
@@ -144,8 +159,73 @@ class ChainMail:
                 view = arrays[k].reshape(3, *self._pshape)
                 view[:, 1:-1, 1:-1, 1:-1] = full.numpy()
             self._links = arrays
+        self._linkmask = None
+        self._install_links(links)
         self.set_positions(grid.rest_positions(torch.float64) if positions is None else positions)
         self._views()
+
+    # ------------------------------------------------------------------ links
+    def _install_links(self, links) -> None:
+        """Store the link mask and build the per-direction reachability arrays ``_ok``."""
+        lk = _as_links(links, self.grid, "cpu")
+        if lk is not None and lk.shape[0] != 1:
+            raise ConfigError("links", f"a bool (3, D, H, W) link mask with grid {self.grid.shape}",
+                              tuple(lk.shape))
+        if lk is None:
+            self._linkmask, self._cut = None, False
+            self._okarr = (self._flag,) * 6
+        else:
+            m = lk[0] & link_mask(self.grid)
+            self._linkmask, self._cut = m, bool((m != link_mask(self.grid)).any())
+            oks = []
+            for k, (a, sgn) in enumerate(DIRECTIONS):
+                lp = np.zeros(self._pshape, dtype=np.uint8)
+                lp[1:-1, 1:-1, 1:-1] = m[a].numpy()
+                lp = lp.reshape(-1)
+                off = self._off[a]
+                ok = np.zeros_like(self._flag)
+                if sgn > 0:                         # n = e + off: the link is stored at e = n - off
+                    ok[off:] = self._flag[off:] * lp[:-off]
+                else:                               # n = e - off: the link is stored at n
+                    ok[:] = self._flag * lp
+                oks.append(ok)
+            self._okarr = tuple(oks)
+        self._mok = tuple(memoryview(o) for o in self._okarr)
+
+    @property
+    def links(self) -> torch.Tensor:
+        """Bool ``(3, D, H, W)``: the links that exist (all of the grid's unless some were cut).
+
+        Entry ``[a, i, j, k]`` is the link from ``(i, j, k)`` to its neighbour along ``+a``
+        (False also where that neighbour is outside the grid or the node mask).
+        """
+        return (link_mask(self.grid) if self._linkmask is None else self._linkmask).clone()
+
+    def set_links(self, links) -> None:
+        """Replace the link mask (bool ``(3, D, H, W)``, or ``None`` for every link).
+
+        The current positions must satisfy the limits of the links that exist (always true when
+        links are only removed; relinking two elements that drifted apart is refused).
+
+        Example:
+            >>> import torchdeform as td
+            >>> g = td.Grid((4, 4, 4), spacing=1.0)
+            >>> cm = td.ChainMail(g, td.Limits.from_material(g, 0.8, 1.2, 0.2), method="enhanced")
+            >>> links = cm.links
+            >>> links[0, 1] = False                       # unlink layer 1 from layer 2 (along d)
+            >>> cm.set_links(links)
+            >>> r = cm.move([(0, 2, 2)], (-3.0, 0.0, 0.0))
+            >>> float(cm.displacement()[0, :, 2:].abs().max())   # layers 2 and 3 stay
+            0.0
+        """
+        lk = _as_links(links, self.grid, "cpu")
+        worst, excess = limit_violation(self.positions(), self.grid, self.limits, per_link=True, links=lk)
+        if float(worst) > 1e-12:
+            a, i, j, k = (int(v) for v in np.unravel_index(int(excess[0].flatten().argmax()), excess[0].shape))
+            raise ConfigError("links", "links whose limits the current positions satisfy; the link from "
+                                       f"node {(i, j, k)} along {'dhw'[a]} exceeds them by {float(worst):.3g} m",
+                              show_got=False)
+        self._install_links(links)
 
     # ------------------------------------------------------------ state in/out
     def _views(self):
@@ -165,7 +245,7 @@ class ChainMail:
         if tuple(x.shape) != (3,) + self.grid.shape:
             raise ConfigError("positions", f"(1, 3, D, H, W) or (3, D, H, W) with grid {self.grid.shape}",
                               tuple(x.shape))
-        worst, excess = limit_violation(x, self.grid, self.limits, per_link=True)
+        worst, excess = limit_violation(x, self.grid, self.limits, per_link=True, links=self._linkmask)
         if float(worst) > 1e-12:
             a, i, j, k = (int(v) for v in np.unravel_index(int(excess[0].flatten().argmax()), excess[0].shape))
             raise ConfigError("positions", "positions that satisfy the ChainMail limits (repair a mass-spring "
@@ -175,7 +255,7 @@ class ChainMail:
         self._interior(self._u)[...] = u.numpy()
 
     def reset(self) -> None:
-        """Back to the rest positions; forgets the moved elements."""
+        """Back to the rest positions; forgets the moved elements (cut links stay cut)."""
         self._u[...] = 0.0
         self._moved[:] = False
         self._held = np.zeros(0, dtype=np.int64)
@@ -332,17 +412,44 @@ class ChainMail:
             checked += len(touched)
             if not ok:
                 return False, log, passes, checked
+        if self._cut and not self._links_hold(np.unique(np.asarray(log[0::4], dtype=np.int64))):
+            self._undo(log)                          # a sponsor path ran through a cut: redo in order
+            log, passes = [], []
+            self._gen += 1
+            ok = self._enhanced(targets, [scale * v for v in d], log, passes)
+            return ok, log, passes, checked + sum(len(p) for p in passes)
         return True, log, passes, checked
+
+    def _links_hold(self, nodes: np.ndarray) -> bool:
+        """Every existing link of the (padded) elements ``nodes`` is within its (uniform) limits."""
+        u = self._u
+        for k, (a, sgn) in enumerate(DIRECTIONS):
+            n = nodes + self._doff[k]
+            sel = self._okarr[k][n] != 0
+            e, n = nodes[sel], n[sel]
+            if not len(e):
+                continue
+            diff = u[:, n] - u[:, e]
+            lo, hi, sh = self._bounds[a]
+            la, ha = (lo, hi) if sgn > 0 else (-hi, -lo)
+            excess = np.maximum(la - diff[a], diff[a] - ha)
+            for b in range(3):
+                if b != a:
+                    excess = np.maximum(excess, np.abs(diff[b]) - sh)
+            if float(excess.max()) > self.tol:
+                return False
+        return True
 
     def _gibson(self, e0: int, pinned: set, log: list, touched: list) -> bool:
         """Gibson's propagation from the initiator ``e0`` (already at its target)."""
         ux, uy, uz = self._mu
         flag = self._mflag
+        oks = self._mok
         doff = self._doff
         queues = [[], [], [], [], [], []]
         for k in range(6):
             n = e0 + doff[k]
-            if flag[n]:
+            if oks[k][n]:
                 queues[k].append(n)
         # per list: offset of the sponsor and the offset-difference box of each coordinate
         boxes = []
@@ -351,7 +458,7 @@ class ChainMail:
             b = [(-sh, sh)] * 3
             b[a] = (lo, hi) if s > 0 else (-hi, -lo)
             boxes.append((doff[k], b[0][0], b[0][1], b[1][0], b[1][1], b[2][0], b[2][1],
-                          [(queues[q], doff[q]) for q in GIBSON_SUCCESSORS[k]]))
+                          [(queues[q], doff[q], oks[q]) for q in GIBSON_SUCCESSORS[k]]))
         append = touched.append
         tol = self.tol
         busy = True
@@ -394,9 +501,9 @@ class ChainMail:
                         ux[e] = v
                         uy[e] = w
                         uz[e] = z
-                        for qq, o in succ:
+                        for qq, o, ok in succ:
                             n = e + o
-                            if flag[n]:
+                            if ok[n]:
                                 qq.append(n)
                 q.clear()
         return True
@@ -405,9 +512,10 @@ class ChainMail:
         """The feeding rules of coordinate ``c`` pulled (``sign > 0``) or pushed (``sign < 0``).
 
         Per neighbour direction k of a final element e, ``(offset, limit array or None,
-        constant, factor, link at e)`` such that the neighbour n = e + offset must satisfy
+        constant, factor, link at e, reachable)`` such that the neighbour n = e + offset must satisfy
         ``u_n[c] >= u_e[c] + factor * limit`` (pull) or ``<=`` (push), the limit being that of the
-        link (stored at e when ``link at e``, else at n).
+        link (stored at e when ``link at e``, else at n); ``reachable[n]`` is 0 when n does not
+        exist or the link is cut.
         """
         table = []
         for k, (a, s) in enumerate(DIRECTIONS):
@@ -417,7 +525,7 @@ class ChainMail:
                 which, factor = 2, (-1.0 if sign > 0 else 1.0)
             arr = None if self._links is None else self._mlinks[which][a]
             const = self._bounds[a][which] if self._links is None else 0.0
-            table.append((self._doff[k], arr, const, factor, s > 0))
+            table.append((self._doff[k], arr, const, factor, s > 0, self._mok[k]))
         return table
 
     def _enhanced(self, targets, delta, log: list, passes: list) -> bool:
@@ -458,9 +566,9 @@ class ChainMail:
             while True:
                 for e in todo:                               # queue e's violated, non-final neighbours
                     ue = uc[e]
-                    for off, arr, const, factor, at_e in table:
+                    for off, arr, const, factor, at_e, ok in table:
                         n = e + off
-                        if not flag[n] or stamp[n] == gen:
+                        if not ok[n] or stamp[n] == gen:
                             continue
                         bound = ue + factor * (const if arr is None else arr[e if at_e else n])
                         v = bound - uc[n] if sign > 0 else uc[n] - bound
@@ -492,7 +600,8 @@ class ChainMail:
 
         Fixed elements and the elements picked by the last :meth:`move` stay where they are
         (``hold``: a bool ``(D, H, W)`` mask to hold instead); with ``only_moved`` only the
-        elements ChainMail moved since :meth:`clear_moved` are relaxed.
+        elements ChainMail moved since :meth:`clear_moved` are relaxed. Cut links (:attr:`links`)
+        are left out: the two sides of a cut relax independently.
 
         Returns:
             the energy (:func:`relax_energy`) before and after every step, ``steps + 1`` floats.
@@ -507,6 +616,7 @@ class ChainMail:
         if only_moved:
             free &= self._interior(self._moved)
         u = self.offsets(torch.float64)
-        u, energies = relax(u, self.grid, self.limits, steps, mode, torch.from_numpy(free), omega, offsets=True)
+        u, energies = relax(u, self.grid, self.limits, steps, mode, torch.from_numpy(free), omega, offsets=True,
+                            links=self._linkmask)
         self._interior(self._u)[...] = u[0].numpy()
         return energies

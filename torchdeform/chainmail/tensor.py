@@ -12,7 +12,7 @@ import torch
 
 from ..errors import ConfigError
 from ..sim.grid import Grid
-from .limits import Limits, _axis_slices, _exists, limit_violation, neighbour_boxes
+from .limits import Limits, _as_links, _axis_slices, _exists, limit_violation, neighbour_boxes
 
 __all__ = ["tensor_chainmail", "SweepResult"]
 
@@ -42,18 +42,24 @@ class SweepResult:
         return self.positions - grid.rest_positions(self.positions.dtype, self.positions.device)
 
 
-def _dilate(m: torch.Tensor, grid: Grid) -> torch.Tensor:
+def _dilate(m: torch.Tensor, grid: Grid, links=None) -> torch.Tensor:
+    """Grow ``m`` ``(B, D, H, W)`` by one face-neighbour hop (through existing ``links`` ``(1|B, 3, D, H, W)``)."""
     out = m.clone()
     for a in range(3):
         if grid.shape[a] < 2:
             continue
         first, second = _axis_slices(grid, a)
-        out[(..., *second)] |= m[(..., *first)]
-        out[(..., *first)] |= m[(..., *second)]
+        if links is None:
+            out[(..., *second)] |= m[(..., *first)]
+            out[(..., *first)] |= m[(..., *second)]
+        else:
+            lk = links[(slice(None), a, *first)]
+            out[(..., *second)] |= m[(..., *first)] & lk
+            out[(..., *first)] |= m[(..., *second)] & lk
     return out
 
 
-def _hops(picked: torch.Tensor, grid: Grid, moved: torch.Tensor) -> torch.Tensor:
+def _hops(picked: torch.Tensor, grid: Grid, moved: torch.Tensor, links=None) -> torch.Tensor:
     """Largest 6-neighbour hop distance (through the body) from ``picked`` to an element of ``moved``.
 
     Returns ``(B,)``; ``picked`` and ``moved`` are both ``(B, D, H, W)`` bool.
@@ -63,7 +69,7 @@ def _hops(picked: torch.Tensor, grid: Grid, moved: torch.Tensor) -> torch.Tensor
     depth = torch.zeros(picked.shape[0], dtype=torch.long, device=picked.device)
     hop = 0
     while bool((moved & ~reach).any()):
-        grown = _dilate(reach, grid) & nodes
+        grown = _dilate(reach, grid, links) & nodes
         if bool((grown == reach).all()):
             break
         hop += 1
@@ -74,7 +80,7 @@ def _hops(picked: torch.Tensor, grid: Grid, moved: torch.Tensor) -> torch.Tensor
 
 
 def tensor_chainmail(positions: torch.Tensor, grid: Grid, limits: Limits, picked, displacement,
-                     fixed=None, max_sweeps: int | None = None) -> SweepResult:
+                     fixed=None, max_sweeps: int | None = None, links=None) -> SweepResult:
     """Batched ChainMail by sponsor-front Jacobi sweeps (torch ops only, any device).
 
     The picked elements move rigidly by their body's displacement. Each sweep, every free
@@ -98,7 +104,12 @@ def tensor_chainmail(positions: torch.Tensor, grid: Grid, limits: Limits, picked
         picked: bool ``(D, H, W)`` or ``(B, D, H, W)``: the elements moved rigidly.
         displacement: ``(3,)`` or ``(B, 3)`` metres.
         fixed: optional bool ``(D, H, W)`` or ``(B, D, H, W)``.
-        max_sweeps: default ``2 (D + H + W)`` (enough for any propagation).
+        max_sweeps: default ``2 (D + H + W)`` (enough for any propagation), or the number of
+            elements when ``links`` is given (a path around a cut may be that long); sweeps stop
+            as soon as nothing changes.
+        links: optional bool link mask ``(3, D, H, W)`` or ``(B, 3, D, H, W)``: a link that is
+            False imposes no limit, so nothing propagates through it (unlinked by a cut,
+            :func:`torchdeform.topology.unlink`); default every link exists.
 
     Returns:
         :class:`SweepResult` (positions, moved, sweeps, depth, violation).
@@ -145,6 +156,7 @@ def tensor_chainmail(positions: torch.Tensor, grid: Grid, limits: Limits, picked
         d = d.unsqueeze(0)
     if tuple(d.shape) not in ((1, 3), (B, 3)) or not bool(torch.isfinite(d).all()):
         raise ConfigError("displacement", "(3,) or (B, 3) finite numbers in metres", tuple(d.shape))
+    lk = _as_links(links, grid, dev, B)
     bounds = limits.offset_bounds(dt, dev)
     X = grid.rest_positions(dt, dev)
     u = torch.where(pick, x - X + d.view(-1, 3, 1, 1, 1), x - X)
@@ -152,10 +164,13 @@ def tensor_chainmail(positions: torch.Tensor, grid: Grid, limits: Limits, picked
     free = nodes & ~pick & ~fix
     sign = torch.sign(d).view(-1, 3, 1, 1, 1)
     pull, push = sign > 0, sign < 0
-    limit = max_sweeps if max_sweeps is not None else 2 * sum(grid.shape)
+    if max_sweeps is not None:
+        limit = max_sweeps
+    else:                               # a path around a cut may be as long as the body has elements
+        limit = 2 * sum(grid.shape) if lk is None else max(2 * sum(grid.shape), grid.num_nodes)
     sweeps = 0
     for _ in range(limit):
-        lo, hi = neighbour_boxes(u, grid, bounds, moved)
+        lo, hi = neighbour_boxes(u, grid, bounds, moved, lk)
         step = torch.where(pull, torch.maximum(u, lo), torch.where(push, torch.minimum(u, hi), u))
         new = torch.where(free, step, u)
         changed = (new != u).any(1, keepdim=True)
@@ -166,5 +181,5 @@ def tensor_chainmail(positions: torch.Tensor, grid: Grid, limits: Limits, picked
         u = new
     xn = X + u
     moved4 = moved[:, 0]
-    depth = _hops(pick[:, 0], grid, moved4)
-    return SweepResult(xn, moved4, sweeps, depth, limit_violation(xn, grid, limits))
+    depth = _hops(pick[:, 0], grid, moved4, lk)
+    return SweepResult(xn, moved4, sweeps, depth, limit_violation(xn, grid, limits, links=lk))

@@ -31,12 +31,14 @@ Examples:
     2
 """
 from .cautery import cauterize
+from .chainmail import link_crossing, unlink
 from .components import components
 from .cut import Blade, Scalpel, crossed_slots, crossing, cut, pretension, sides
 from .tear import coagulate, coagulated_rest_length, spring_lengths, spring_strain, strain_limit_from_force, tear
 
 __all__ = ["Blade", "Scalpel", "crossed_slots", "crossing", "cut", "pretension", "sides", "cauterize", "components",
            "tear", "coagulate", "coagulated_rest_length", "spring_lengths", "spring_strain", "strain_limit_from_force"]
+__all__ += ["link_crossing", "unlink"]
 from .surfaces import CutSurface, cut_pieces, cut_surfaces, extend_displacement, save_cut_surfaces
 
 __all__ += ["CutSurface", "cut_surfaces", "save_cut_surfaces", "extend_displacement", "cut_pieces"]
