@@ -87,6 +87,39 @@ def test_pulled_chain_tears_at_its_softest_spring():
     assert count == 2 and labels[:4].unique().numel() == 1 and labels[4:].unique().numel() == 1
 
 
+def test_chain_tears_when_the_spring_force_reaches_k_l0_limit_and_not_before():
+    """Quasi-static pull of a chain of unequal springs: the soft spring breaks at F = k l0 s_lim.
+
+    Oracle: spring forces k (l - l0) computed in numpy from the node positions at every check,
+    and the series-spring formula for the pull at which it happens, delta* = k_s l0 s_lim sum 1/k_i.
+    """
+    n, lim, l0 = 6, 0.3, H
+    grid = td.Grid((n, 1, 1), spacing=H, topology=6)
+    ks = np.array([50.0, 50.0, 50.0, 20.0, 50.0])                   # spring i joins nodes i, i+1
+    k = torch.zeros((1, grid.S) + grid.shape, dtype=F64)
+    k[0, 0, :n - 1, 0, 0] = torch.tensor(ks)
+    top = torch.zeros(grid.shape, dtype=torch.bool)
+    top[-1] = True
+    speed = 0.01                                                    # m/s: slow against the chain's ~14 Hz
+    model = td.Model(grid, stiffness=k, damping=0.02, mass=1e-3, fixed=grid.face("bottom"), dtype=F64,
+                     drags=[td.Drag(top, [(0.0, (0.0, 0.0, 0.0)), (10.0, (10 * speed, 0.0, 0.0))])])
+    state = model.rest_state()
+    limit = ks * l0 * lim                                           # N, per spring
+    for _ in range(2000):
+        x = state.x[0, 0, :, 0, 0].numpy()
+        force = ks * (np.diff(x) - l0)
+        torn = tear(model, state.x, lim)
+        if torn:
+            break
+        assert (force <= limit * (1 + 1e-12)).all()                 # not before
+        state, _ = td.simulate(model, state, dt=5e-4, steps=4)
+    assert torn == 1 and float(model.stiffness[0, 0, 3, 0, 0]) == 0  # the soft spring
+    assert force[3] >= limit[3] and (force[[0, 1, 2, 4]] < limit[[0, 1, 2, 4]]).all()
+    delta = float(state.x[0, 0, -1, 0, 0] - model.X[0, 0, -1, 0, 0])
+    expect = 20.0 * l0 * lim * float((1 / ks).sum())
+    assert abs(delta - expect) < 0.01 * expect                      # quasi-static (a check every 0.26 %)
+
+
 def test_coagulated_shape_is_the_new_rest_shape():
     grid, model, x = _deformed(26, amp=0.2)
     region = torch.zeros(grid.shape, dtype=torch.bool)

@@ -1,21 +1,26 @@
-"""Topology as state: cutting and connected components (the first part of the topology issue).
+"""Topology as state: cutting, cautery, tearing and coagulation change the body during a run.
+
+Every change is an edit of the model's spring and node fields (stiffness, damping, rest lengths,
+masses, constraints), in place where the model is editable or shared with a compiled step
+(``compiled_step(..., editable=True)``): a compiled step reads the same tensors, so a cut needs
+no recompilation and costs nothing per step afterwards.
 
 =====================  ===========================================================================
-:mod:`.cut`            a rectangular blade: which springs its surface crosses, removing them from a
-                       model (stiffness and damping set to zero), which side each node lies on
+:mod:`.cut`            blades (parallelograms, triangles, the surface a cutting edge sweeps), the
+                       springs they cross (a search near the blade only), removing them, gaping
+                       (pre-tension), :class:`Scalpel` for a tool's edge that cuts as it moves
 :mod:`.tear`           tearing (springs past a strain or force limit break, all at once or the
                        most strained first) and coagulation (a region's deformed shape becomes its
                        rest shape, its viscosity rises)
 :mod:`.cautery`        nodes inside a tool's volume burnt away with their springs; the removed mass
                        and momentum returned
-:mod:`.masks`          what they share: spring fields per slot, removing springs, node sets at
-                       spring ends
-:mod:`.components`     connected components of the body through its remaining springs (label
-                       propagation on the stencil)
+:mod:`.split`          adding a node with Radetzky's mass rule (eq. 4.14: mass and momentum kept)
+:mod:`.components`     connected components of the body through its remaining springs
+:mod:`.surfaces`       one closed surface per side of a cut (rest coordinates per vertex, PLY), and
+                       the pieces of a volume render that carves the gap
+:mod:`.chainmail`      ChainMail links a blade crosses stop constraining each other
+:mod:`.masks`          what they share: per-slot fields, in-place edits, node sets at spring ends
 =====================  ===========================================================================
-
-Swept and progressive blades, mass-conserving node splits (Radetzky's eq. 4.14), the compiled path without recompiling and ChainMail
-unlinking come next.
 
 Examples:
     >>> import torch
@@ -34,11 +39,11 @@ from .cautery import cauterize
 from .chainmail import link_crossing, unlink
 from .components import components
 from .cut import Blade, Scalpel, crossed_slots, crossing, cut, pretension, sides
+from .split import add_node, share_mass
+from .surfaces import CutSurface, cut_pieces, cut_surfaces, extend_displacement, save_cut_surfaces
 from .tear import coagulate, coagulated_rest_length, spring_lengths, spring_strain, strain_limit_from_force, tear
 
-__all__ = ["Blade", "Scalpel", "crossed_slots", "crossing", "cut", "pretension", "sides", "cauterize", "components",
-           "tear", "coagulate", "coagulated_rest_length", "spring_lengths", "spring_strain", "strain_limit_from_force"]
-__all__ += ["link_crossing", "unlink"]
-from .surfaces import CutSurface, cut_pieces, cut_surfaces, extend_displacement, save_cut_surfaces
-
-__all__ += ["CutSurface", "cut_surfaces", "save_cut_surfaces", "extend_displacement", "cut_pieces"]
+__all__ = ["Blade", "Scalpel", "crossed_slots", "crossing", "cut", "pretension", "sides", "cauterize", "add_node",
+           "share_mass", "components", "tear", "coagulate", "coagulated_rest_length", "spring_lengths",
+           "spring_strain", "strain_limit_from_force", "link_crossing", "unlink", "CutSurface", "cut_surfaces",
+           "save_cut_surfaces", "extend_displacement", "cut_pieces"]
