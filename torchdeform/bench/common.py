@@ -115,12 +115,12 @@ def speed_cube(n: int, topology: int, dtype=torch.float32, device="cpu", seed: i
     return model, State(x, v, 0.0), 1e-4       # dt well below the bound (~8e-4 s for 26 neighbours)
 
 
-def axes(figsize=(6.5, 4.5)):
-    """A matplotlib figure and axes for a bench plot (Agg: no screen needed)."""
+def axes(figsize=(6.5, 4.5), ncols: int = 1):
+    """A matplotlib figure and its axes (``ncols`` side by side) for a bench plot (Agg: no screen needed)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    return plt.subplots(figsize=figsize)
+    return plt.subplots(1, ncols, figsize=figsize)
 
 
 def save_figure(fig, out_dir, name: str) -> None:

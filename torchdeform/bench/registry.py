@@ -25,6 +25,8 @@ BENCHES = {
                   "and tensor", "chainmail"),
     "interaction": ("a sphere tool pressing into an n^3 body: steps/s with contact and force readout "
                     "(compiled), and the haptic loop's force rate on 64^3", "interaction"),
+    "topology": ("a full cut between two layers of an n^3 body under its compiled step: springs removed vs "
+                 "the analytic count, cut time, step time before and after, recompilations", "topology"),
 }
 
 
