@@ -10,13 +10,12 @@ Oracles written here, sharing no code with ``torchdeform.chainmail``:
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 import torch
 
 import torchdeform as td
+from tests.oracles.chainmail_moves import least_motion
 from torchdeform.chainmail import (
     BlockedMoveError,
     ChainMail,
@@ -58,39 +57,13 @@ def plain_violation(x, mn, mx, sh):
 
 
 def reference_move(x, mn, mx, sh, picks, delta):
-    """The positions after moving ``picks`` by ``delta``, by Bellman-Ford per coordinate.
+    """The positions after moving ``picks`` by ``delta`` (Bellman-Ford per coordinate, all links).
 
-    For a pull of coordinate c, element n must satisfy x_n >= x_q - hi(x_q - x_n) for every
-    neighbour q, starting from the picked targets; the answer is max(old, that bound)."""
-    shape = x.shape[1:]
-    new = x.copy()
-    adj = {}
-    for p, q, a in _links(shape):                       # allowed range of x_q - x_p per coordinate
-        for c in range(3):
-            lo, hi = (mn[a][p], mx[a][p]) if c == a else (-sh[a][p], sh[a][p])
-            adj.setdefault((p, c), []).append((q, lo, hi))           # x_q - x_p in [lo, hi]
-            adj.setdefault((q, c), []).append((p, -hi, -lo))         # x_p - x_q in [-hi, -lo]
-    nodes = [(i, j, k) for i in range(shape[0]) for j in range(shape[1]) for k in range(shape[2])]
-    for c in range(3):
-        if delta[c] == 0:
-            continue
-        pull = delta[c] > 0
-        env = {n: (-math.inf if pull else math.inf) for n in nodes}
-        for p in picks:
-            env[p] = x[c][p] + delta[c]
-        changed = True
-        while changed:
-            changed = False
-            for n in nodes:
-                if n in picks:
-                    continue
-                for q, lo, hi in adj[(n, c)]:            # x_q - x_n in [lo, hi]
-                    cand = env[q] - hi if pull else env[q] - lo
-                    if (pull and cand > env[n]) or (not pull and cand < env[n]):
-                        env[n], changed = cand, True
-        for n in nodes:
-            new[c][n] = env[n] if n in picks else (max(x[c][n], env[n]) if pull else min(x[c][n], env[n]))
-    return new
+    A link along axis ``a`` allows ``[min, max]`` of ``x_q - x_p`` along ``a`` and the shear
+    ``[-sh, sh]`` across it, per link."""
+    def bounds(p, a, c):
+        return (mn[a][p], mx[a][p]) if c == a else (-sh[a][p], sh[a][p])
+    return least_motion(x, x.shape[1:], list(_links(x.shape[1:])), bounds, picks, delta)
 
 
 def _np_limits(lim):

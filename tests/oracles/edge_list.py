@@ -93,6 +93,20 @@ class EdgeList:
                 raise AssertionError("spring direction not in the stencil")
         return out
 
+    def slot_pairs(self, directions, slots):
+        """The springs ``(a, b)``, ``a < b``, of bool slots ``(S, D, H, W)`` stored per half-direction.
+
+        ``directions``: the ``S`` offsets ``(dd, dh, dw)`` of the slots (slot ``(s, i, j, k)`` is
+        the spring from node ``(i, j, k)`` to ``(i, j, k) + directions[s]``).
+        """
+        out = set()
+        for s, d in enumerate(directions):
+            for ijk in zip(*np.nonzero(np.asarray(slots[s]))):
+                a = self.index[tuple(int(i) for i in ijk)]
+                b = self.index[tuple(int(i) + c for i, c in zip(ijk, d))]
+                out.add((min(a, b), max(a, b)))
+        return out
+
     def damping_matrix(self, x, c=1.0, projected=True):
         """``C = -dF/dv`` ``(3N, 3N)``: blocks ``c n n^T`` (projected) or ``c I``."""
         c = np.broadcast_to(np.asarray(c, dtype=np.float64), (len(self.springs),))

@@ -18,13 +18,12 @@ through the uncut links, and every solver (Gibson, Enhanced, tensor) equals the 
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 import torch
 
 import torchdeform as td
+from tests.oracles.chainmail_moves import least_motion
 from torchdeform.chainmail import ChainMail, Limits, limit_violation, link_mask, relax, tensor_chainmail
 from torchdeform.errors import ConfigError
 from torchdeform.topology import Blade, link_crossing, unlink
@@ -73,33 +72,9 @@ def reference_move(u0, shape, lo, hi, sh, links, picks, delta):
     shear); per coordinate ``c`` the offset difference ``u_q[c] - u_p[c]`` of link (p, q, a) lies in
     ``[lo_a, hi_a]`` when ``c == a``, else in ``[-sh_a, sh_a]``.
     """
-    new = u0.copy()
-    nodes = [(i, j, k) for i in range(shape[0]) for j in range(shape[1]) for k in range(shape[2])]
-    for c in range(3):
-        if delta[c] == 0:
-            continue
-        pull = delta[c] > 0
-        adj = {n: [] for n in nodes}
-        for p, q, a in links:
-            dlo, dhi = (lo[a], hi[a]) if c == a else (-sh[a], sh[a])
-            adj[q].append((p, dlo, dhi))                       # u_q - u_p in [dlo, dhi]
-            adj[p].append((q, -dhi, -dlo))                     # u_p - u_q in [-dhi, -dlo]
-        env = {n: (-math.inf if pull else math.inf) for n in nodes}
-        for p in picks:
-            env[p] = u0[c][p] + delta[c]
-        changed = True
-        while changed:
-            changed = False
-            for n in nodes:
-                if n in picks:
-                    continue
-                for q, dlo, dhi in adj[n]:                     # u_n - u_q in [dlo, dhi]
-                    cand = env[q] + dlo if pull else env[q] + dhi
-                    if (pull and cand > env[n]) or (not pull and cand < env[n]):
-                        env[n], changed = cand, True
-        for n in nodes:
-            new[c][n] = env[n] if n in picks else (max(u0[c][n], env[n]) if pull else min(u0[c][n], env[n]))
-    return new
+    def bounds(p, a, c):
+        return (lo[a], hi[a]) if c == a else (-sh[a], sh[a])
+    return least_motion(u0, shape, links, bounds, picks, delta)
 
 
 def _mask_from(links, shape):

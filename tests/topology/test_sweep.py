@@ -42,16 +42,6 @@ def _oracle(el, x, triangles):
     return out
 
 
-def _as_pairs(grid, el, hit):
-    got = set()
-    for s, d in enumerate(grid.directions):
-        for ijk in zip(*torch.nonzero(hit[s], as_tuple=True)):
-            a = el.index[tuple(int(i) for i in ijk)]
-            b = el.index[tuple(int(i) + c for i, c in zip(ijk, d))]
-            got.add((min(a, b), max(a, b)))
-    return got
-
-
 def _body(topology, seed=1):
     grid = td.Grid((6, 6, 5), spacing=H, topology=topology)
     model = td.Model(grid, stiffness=10.0, damping=0.01, mass=1e-3, dtype=F64)
@@ -77,7 +67,7 @@ def test_triangle_blade_matches_brute_force(topology):
     a, b, c = np.array([0.005, -0.004, 0.01]), np.array([0.05, 0.02, 0.002]), np.array([0.02, 0.055, 0.045])
     hit = crossing(grid, x, Blade.triangle(tuple(a), tuple(b), tuple(c)))[0]
     expect = _oracle(el, el.from_field(x[0]), [(a, b, c)])
-    assert len(expect) > 10 and _as_pairs(grid, el, hit) == expect
+    assert len(expect) > 10 and el.slot_pairs(grid.directions, hit) == expect
 
 
 @pytest.mark.parametrize("topology", [6, 18, 26])
@@ -92,7 +82,7 @@ def test_curved_swept_blade_matches_brute_force(topology):
         triangles += [(a0, b0, b1), (a0, b1, a1)]
     hit = crossing(grid, x, blade)[0]
     expect = _oracle(el, el.from_field(x[0]), triangles)
-    assert len(expect) > 20 and _as_pairs(grid, el, hit) == expect
+    assert len(expect) > 20 and el.slot_pairs(grid.directions, hit) == expect
     assert cut(model, x, blade) == len(expect)
 
 
@@ -126,7 +116,7 @@ def test_progressive_cut_equals_one_cut_of_the_whole_sweep():
     for k in range(len(ts) - 1):
         triangles += [(ends[k, 0], ends[k, 1], ends[k + 1, 1]), (ends[k, 0], ends[k + 1, 1], ends[k + 1, 0])]
     expect = _oracle(el, el.from_field(x[0]), triangles)
-    got = _as_pairs(grid, el, (model.stiffness[0] == 0) & grid.spring_mask())
+    got = el.slot_pairs(grid.directions, (model.stiffness[0] == 0) & grid.spring_mask())
     assert len(expect) > 20 and got == expect
 
 
