@@ -75,6 +75,11 @@ Keys
     ``margin``) at ``close`` follows the tool until ``open`` (s; ``inf`` for never)
 ``[strain_limit]`` (optional): ``min`` (0.9), ``max`` (1.1): bounds of every spring's length over
     its rest length; ``passes`` (4); ``update_velocity`` (true)
+``[[cuts]]``, ``[[cautery]]``, ``[tear]``, ``[[coagulate]]`` (optional): topology changes between steps
+    (:mod:`.topology`): blades (``origin``/``u``/``v``, ``triangle`` or ``edges``) cutting ``at`` a time,
+    or a ``tool`` carrying an ``edge`` from ``start`` to ``stop``, with ``gape``; a ``tool`` burning
+    nodes ``at`` a time or every step; springs tearing past ``max_strain`` or ``max_force``; a region
+    (as in ``[[regions]]``) whose shape sets ``at`` a time, its damping times ``viscosity_factor``
 ``[integrator]`` (required)
     ``name``  ``"explicit"``, ``"symplectic"`` (default), ``"verlet"``, ``"rk4"``,
     ``"implicit"`` or ``"knoche"``
@@ -92,6 +97,9 @@ Keys
     ``name``  title of the run (default: the file's name)
     ``palpation``  ``true`` (the first tool with a contact) or a tool's name: analyse its presses,
     write ``palpation.png`` and a ``"palpation"`` part of ``summary.json``
+    ``surfaces = [t1, t2, ...]``  times (s) at which the closed surface of every connected piece is
+    written as ``surface_<ms>ms_<label>.ply`` (with topology changes also ``topology.png`` and a
+    ``"topology"`` part of ``summary.json``)
 ``[volume]`` (optional): a volume filling the grid's bounding box, deformed by the final state;
     the run also writes ``volume_before.png``, ``volume_after.png``, ``volume_deformed.npy``
     ``file``  a volume file (.npy, .npz, .nii, .nrrd; relative to the scene file) or ``"phantom:N"``
@@ -108,7 +116,7 @@ tables count from 0) and what was expected.
 
 Modules: :mod:`.reader` (files, located errors, typed values and the shared sections: the API a
 new model kind builds on), :mod:`.mass_spring`, :mod:`.tools` (``[[tools]]``, ``[strain_limit]``
-and the tool outputs of a run), :mod:`.chainmail`, :mod:`.run` (load and run),
+and the tool outputs of a run), :mod:`.topology` (cuts, cautery, tearing, coagulation and their outputs), :mod:`.chainmail`, :mod:`.run` (load and run),
 :mod:`.commands` (``torchdeform run`` and ``demo``).
 
 Example:
@@ -124,7 +132,8 @@ from .chainmail import ChainMailScene, chainmail_scene
 from .mass_spring import Scene, demo_scene, mass_spring_scene
 from .reader import SECTIONS, Source, Table
 from .run import energy_series, load_scene, one_line_warnings, plot_energy, report, run_scene, scene_volume_outputs
+from .topology import TopologySet
 
 __all__ = ["Scene", "ChainMailScene", "Source", "Table", "load_scene", "demo_scene", "run_scene", "mass_spring_scene",
            "chainmail_scene", "energy_series", "plot_energy", "one_line_warnings", "report", "scene_volume_outputs",
-           "SECTIONS"]
+           "SECTIONS", "TopologySet"]

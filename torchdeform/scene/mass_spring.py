@@ -4,7 +4,7 @@ The ``[material]`` (a stiffness, a modulus, or tissue words through the fuzzy ti
 :func:`tissue_moduli`, :func:`lattice_modulus`), ``[[regions]]``, ``[mass]``, ``[boundary]``,
 ``[[loads]]``, ``[integrator]``, ``[output]`` and ``[volume]`` sections, the :class:`Scene` they
 build, and the built-in demo (:func:`demo_scene`). ``[[tools]]`` and ``[strain_limit]`` are read
-by :mod:`.tools`.
+by :mod:`.tools`, ``[[cuts]]``, ``[[cautery]]``, ``[tear]``, ``[[coagulate]]`` by :mod:`.topology`.
 """
 from __future__ import annotations
 
@@ -19,7 +19,8 @@ from ..sim.grid import FACES, Grid
 from ..sim.integrators import INTEGRATORS, Integrator, SymplecticEuler
 from ..sim.model import Model
 from .reader import SECTIONS, Source, Table, drags_section, faces, grid_section, is_number, node_list
-from .tools import ToolSet, palpation_option, strain_limit_section, tools_section
+from .tools import ToolSet, palpation_option, strain_limit_section
+from .topology import TOPOLOGY, TopologySet, tools_with_cutters, topology_section
 
 __all__ = ["Scene", "mass_spring_scene", "demo_scene", "lattice_modulus", "tissue_moduli", "INTEGRATOR_OPTIONS",
            "EXPLICIT", "DTYPES", "MODEL_KEYS", "TISSUE_EXPECTED"]
@@ -93,6 +94,9 @@ class Scene:
     #: optional :class:`~torchdeform.scene.tools.ToolSet` (``[[tools]]``, ``[strain_limit]``): ``run_scene``
     #: runs fresh interactions built from it and writes the tools' force series and plots
     tools: ToolSet | None = None
+    #: optional :class:`~torchdeform.scene.topology.TopologySet` (``[[cuts]]``, ``[[cautery]]``, ``[tear]``,
+    #: ``[[coagulate]]``, ``[output] surfaces``): ``run_scene`` applies them between steps on a copy of the model
+    topology: TopologySet | None = None
     _models: dict = field(default_factory=dict, init=False, repr=False)
 
     def build(self, device=None) -> Model:
@@ -359,7 +363,8 @@ def mass_spring_scene(src: Source, data: dict, base: Path, name: str = "scene") 
         raise src.error("chainmail", 'model = "chainmail" (a top-level key) for a [chainmail] section')
     options = tuple(k for opts in INTEGRATOR_OPTIONS.values() for k in opts)
     section = {name_: Table(src, name_, data[name_], keys + (options if name_ == "integrator" else ()))
-               for name_, keys in SECTIONS.items() if name_ in data and name_ not in ("loads", "drags", "regions", "tools")}
+               for name_, keys in SECTIONS.items()
+               if name_ in data and name_ not in ("loads", "drags", "regions", "tools", "cuts", "cautery", "coagulate")}
     grid = grid_section(section["grid"], base)
     model_args = {**_material(section["material"], grid), **_mass(section["mass"])}
     if "regions" in data:
@@ -372,7 +377,7 @@ def mass_spring_scene(src: Source, data: dict, base: Path, name: str = "scene") 
         model_args["drags"] = drags_section(src, data["drags"], grid)
     tools = None
     if "tools" in data or "strain_limit" in data:
-        tools = tools_section(src, data["tools"], base) if "tools" in data else ToolSet()
+        tools = tools_with_cutters(src, data, base) if "tools" in data else ToolSet()
         if "strain_limit" in section:
             tools.strain_limit = strain_limit_section(section["strain_limit"])
         model_args["interactions"] = tools.interactions()
@@ -381,9 +386,13 @@ def mass_spring_scene(src: Source, data: dict, base: Path, name: str = "scene") 
     palpation = palpation_option(out, tools)
     if palpation is not None:
         tools.palpation = palpation
+    topology = None
+    if any(k in data for k in TOPOLOGY) or out.has("surfaces"):           # times checked now if dt is a number
+        end = None if run["dt"] == "auto" else run["steps"] * run["dt"]
+        topology = topology_section(src, data, grid, tools, out, end)
     scene = Scene(grid, model_args, **run, source=src,
                   record_every=out.integer("record_every", "an integer >= 1 (steps between frames)", None, lo=1),
-                  name=out.text("name", "a string", name), tools=tools)
+                  name=out.text("name", "a string", name), tools=tools, topology=topology)
     if "volume" in data:
         vt = Table(src, "volume", data["volume"], SECTIONS["volume"])
         scene.volume = {"file": vt.text("file", 'a volume file or "phantom:N"'),

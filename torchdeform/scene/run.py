@@ -173,8 +173,10 @@ def run_scene(scene: Scene, out_dir, progress: bool = True, device=None) -> dict
     A scene with tools (``scene.tools``) runs fresh contacts and grasps built from it, records every
     step's tool readings and also writes ``tools.npz``, ``forces.png``, the ``"tools"`` and
     ``"support_reaction_N"`` parts of ``summary.json`` and, with ``[output] palpation``,
-    ``palpation.png`` (see :mod:`torchdeform.scene.tools`). ``scene.threads`` sets torch's CPU
-    threads for the run.
+    ``palpation.png`` (see :mod:`torchdeform.scene.tools`). A scene with topology changes
+    (``scene.topology``) applies them between steps to a copy of the model and also writes
+    ``topology.png``, the surfaces asked for (``.ply``) and the ``"topology"`` part of ``summary.json``
+    (see :mod:`torchdeform.scene.topology`). ``scene.threads`` sets torch's CPU threads for the run.
 
     Args:
         scene: a :class:`Scene` (:func:`load_scene`, :func:`demo_scene` or your own).
@@ -229,10 +231,19 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
     if integrator.name in EXPLICIT:
         check_dt(model, dt, integrator, bound)
     state = model.rest_state()
+    callback, events = recorder, None
+    if scene.topology is not None:                            # topology changes edit a copy of the model
+        if scene.topology.checked_end is None:                # dt = "auto": the run's length is known now
+            scene.topology.check(scene.steps * dt)
+        model = scene.topology.prepare(model)
+        events = scene.topology.events(model, dt, scene.steps * dt, out)
+        callback = _chain(recorder, events)
 
     start = time.perf_counter()
+    if events is not None:
+        events.begin(state)
     final, rec = simulate(model, state, dt, scene.steps, integrator, record_every=scene.frames_every,
-                          progress=progress, warn=False, callback=recorder)
+                          progress=progress, warn=False, callback=callback)
     wall = time.perf_counter() - start
 
     t, x, v = rec["t"].numpy(), rec["x"][:, 0], rec["v"][:, 0]
@@ -277,6 +288,8 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
     if recorder is not None:
         summary.update(tool_outputs(scene.tools, recorder.series(), (t, support_series(model, t, x, v)), out,
                                     f"{scene.name}: {integrator.name}, dt = {dt:.3g} s"))
+    if events is not None:
+        summary["topology"] = events.outputs(final, out, f"{scene.name}: {integrator.name}, dt = {dt:.3g} s")
     if scene.volume:
         v = dict(scene.volume)
         summary["volume"] = scene_volume_outputs(v.pop("file"), final.x[:1], model.X, grid.spacing, out, **v)
@@ -291,6 +304,16 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
     return summary
 
 
+def _chain(*callbacks):
+    """One ``callback(step, state)`` calling each of ``callbacks`` that is not None, in order."""
+    callbacks = [c for c in callbacks if c is not None]
+
+    def call(step, state):
+        for c in callbacks:
+            c(step, state)
+    return call
+
+
 def report(summary: dict, out_dir) -> str:
     """One line for the CLI: what ran, how fast, and where the outputs are."""
     bound = summary["time_step_bound_s"]
@@ -301,6 +324,11 @@ def report(summary: dict, out_dir) -> str:
         files += ["tools.npz", "forces.png"]
         tools = ", max tool force " + ", ".join(f"{name} {entry['max_force_N']:.3g} N"
                                                 for name, entry in summary["tools"].items())
+    if "topology" in summary:
+        topo = summary["topology"]
+        files += topo["outputs"]
+        tools += (f", {topo['springs_removed_by_cuts'] + topo['springs_removed_by_tear']} springs cut or torn, "
+                  f"{topo['cautery_nodes_removed']} nodes burnt, {topo['components']} piece(s)")
     stiffest = (summary.get("palpation") or {}).get("stiffest")
     if "palpation" in summary:
         files.append("palpation.png")
