@@ -42,9 +42,9 @@ import torch
 from ..errors import ConfigError
 from ..sim.forces import as_vec3
 from ..sim.model import Model
-from .masks import _dense, alive, assign, ends, full, remove
+from .masks import Slab, alive, assign, ends, full, remove, slot_index
 
-__all__ = ["Blade", "Scalpel", "crossing", "crossed_slots", "cut", "sides", "pretension"]
+__all__ = ["Blade", "Scalpel", "crossing", "crossed_pieces", "crossed_slots", "cut", "sides", "pretension"]
 
 
 def _cross(a, b):
@@ -156,7 +156,9 @@ class Blade:
         return tuple(min(p[i] for p in pts) for i in range(3)), tuple(max(p[i] for p in pts) for i in range(3))
 
     def planes(self) -> list:
-        """The patches grouped by plane: ``[(normal, offset, [patch, ...]), ...]``."""
+        """The patches grouped by plane: ``[(normal, offset, [patch, ...]), ...]`` (computed once)."""
+        if getattr(self, "_planes", None) is not None and self._planes[0] == len(self.patches):
+            return self._planes[1]
         groups = {}
         for o, u, v, tri in self.patches:
             n = _cross(u, v)
@@ -164,7 +166,8 @@ class Blade:
             n = tuple(c / s for c in n)
             key = tuple(round(c, 12) for c in n) + (round(_dot(n, o), 12),)
             groups.setdefault(key, (n, _dot(n, o), []))[2].append((o, u, v, tri))
-        return list(groups.values())
+        self._planes = (len(self.patches), list(groups.values()))
+        return self._planes[1]
 
 
 def _patch_coordinates(r: torch.Tensor, patch) -> tuple:
@@ -182,14 +185,29 @@ def _inside(a, b, triangle: bool, tol: float):
     return (a >= -tol) & (b >= -tol) & ((a + b <= 1 + tol) if triangle else ((a <= 1 + tol) & (b <= 1 + tol)))
 
 
-def _covers(box: torch.Tensor, patches) -> bool:
-    """One of the patches holds the projection of the box ``(3, 2)`` (low, high) onto their plane.
+def _covers(box, patches) -> bool:
+    """One of the patches holds the projection of the box ``[low (3,), high (3,)]`` onto their plane.
 
-    The patch coordinates are linear in the point, so testing the 8 corners suffices.
+    The patch coordinates are linear in the point, so testing the 8 corners suffices (plain floats:
+    a handful of numbers, no tensor calls).
     """
-    corners = torch.cartesian_prod(box[0], box[1], box[2]).T                         # (3, 8)
-    tol = 16 * torch.finfo(box.dtype).eps
-    return any(bool(_inside(*_patch_coordinates(corners, patch), patch[3], tol).all()) for patch in patches)
+    corners = [(x, y, z) for x in (box[0][0], box[1][0]) for y in (box[0][1], box[1][1])
+               for z in (box[0][2], box[1][2])]
+    tol = 1e-12
+    for o, u, v, tri in patches:
+        uu, uv, vv = _dot(u, u), _dot(u, v), _dot(v, v)
+        det = uu * vv - uv * uv
+        ok = True
+        for p in corners:
+            d = [a - b for a, b in zip(p, o)]
+            du, dv = _dot(d, u), _dot(d, v)
+            a, b = (vv * du - uv * dv) / det, (uu * dv - uv * du) / det
+            if a < tol or b < tol or (a + b > 1 - tol if tri else (a > 1 - tol or b > 1 - tol)):
+                ok = False
+                break
+        if ok:
+            return True
+    return False
 
 
 def _patch_hits(r: torch.Tensor, patches) -> torch.Tensor:
@@ -202,13 +220,20 @@ def _patch_hits(r: torch.Tensor, patches) -> torch.Tensor:
     return hit
 
 
-def _layer_range(h: torch.Tensor, axis: int):
-    """Layers along ``axis`` that may hold the first end of a spring crossing the plane, or None."""
-    other = tuple(a for a in range(3) if a != axis)
-    pos, neg = h.amax(other) > 0, h.amin(other) <= 0                  # (n,) per layer
+def _layer_range(top: torch.Tensor, bottom: torch.Tensor, steps: set):
+    """Layers that may hold the first end of a spring crossing a plane, from per-layer height bounds.
+
+    ``top``, ``bottom`` ``(n,)``: the largest and smallest height in each layer; ``steps``: the
+    layer steps (-1, 0, +1) of the half-directions along this axis (a spring is stored at its first
+    end, so along D, where every half-direction steps 0 or +1, only the layer below a crossing
+    holds it). Returns ``(lo, hi)`` or None.
+    """
+    pos, neg = top > 0, bottom <= 0
     cand = pos & neg
-    cand[:-1] |= (pos[:-1] & neg[1:]) | (neg[:-1] & pos[1:])
-    cand[1:] |= (pos[1:] & neg[:-1]) | (neg[1:] & pos[:-1])
+    if 1 in steps:
+        cand[:-1] |= (pos[:-1] & neg[1:]) | (neg[:-1] & pos[1:])
+    if -1 in steps:
+        cand[1:] |= (pos[1:] & neg[:-1]) | (neg[1:] & pos[:-1])
     idx = cand.nonzero()
     if idx.numel() == 0:
         return None
@@ -223,17 +248,23 @@ def _direction_index(grid, device) -> tuple:
     return grid._cache[key]
 
 
-def _far_ends(h: torch.Tensor, axis: int, lo: int, hi: int, index: tuple) -> tuple:
-    """Heights of the layers ``lo..hi`` along ``axis`` and of the far ends of their springs.
+def _steps(grid, axis: int) -> set:
+    """The layer steps ``{-1, 0, 1}`` of the grid's half-directions along ``axis``."""
+    key = ("layer_steps", axis)
+    if key not in grid._cache:
+        grid._cache[key] = {d[axis] for d in grid.directions}
+    return grid._cache[key]
 
-    ``h`` ``(D, H, W)`` -> ``(near (n0, n1, n2), far (S, n0, n1, n2))``; far ends outside the grid
-    read 0 (their springs do not exist). One padded copy of the layers and one strided gather.
+
+def _far_ends(sub: torch.Tensor, axis: int, before: int, after: int, index: tuple) -> tuple:
+    """Heights of the layers of a slab and of the far ends of their springs.
+
+    ``sub``: heights of the slab's layers plus ``before`` (0 or 1) layers before and ``after``
+    after it; returns ``(near (n0, n1, n2), far (S, n0, n1, n2))``, far ends outside the grid read 0
+    (their springs do not exist). One padded copy of the layers and one strided gather.
     """
-    n = h.shape[axis]
-    lo2, hi2 = max(lo - 1, 0), min(hi + 1, n - 1)
-    sub = h.narrow(axis, lo2, hi2 - lo2 + 1)
     pad = [1, 1, 1, 1, 1, 1]
-    pad[2 * (2 - axis)], pad[2 * (2 - axis) + 1] = 1 - (lo - lo2), 1 - (hi2 - hi)
+    pad[2 * (2 - axis)], pad[2 * (2 - axis) + 1] = 1 - before, 1 - after
     hb = torch.nn.functional.pad(sub[None], pad)[0]                                  # (n0+2, n1+2, n2+2)
     box = tuple(m - 2 for m in hb.shape)
     st = hb.stride()
@@ -241,10 +272,20 @@ def _far_ends(h: torch.Tensor, axis: int, lo: int, hi: int, index: tuple) -> tup
     return hb[1:-1, 1:-1, 1:-1], cube[index[0], index[1], index[2]]
 
 
-def crossed_slots(grid, x: torch.Tensor, blade: Blade) -> tuple:
-    """The slots whose springs cross ``blade``, as index tensors ``(b, s, d, h, w)`` (each slot once).
+def _heights(x: torch.Tensor, n, c):
+    """``h = n . x - c`` of positions ``(3, ...)``; a signed view for an axis-aligned ``n``."""
+    axis = max(range(3), key=lambda a: abs(n[a]))
+    if abs(n[axis]) == 1.0:
+        return x[axis] - c if n[axis] > 0 else -x[axis] - c
+    return n[0] * x[0] + n[1] * x[1] + n[2] * x[2] - c
 
-    Only springs the grid has (both ends inside the box and the node mask) are reported.
+
+def crossed_pieces(grid, x: torch.Tensor, blade: Blade) -> list:
+    """The slots whose springs cross ``blade``, as :class:`~torchdeform.topology.masks.Slab` masks.
+
+    Each piece covers the layers of one plane's search (see the module docstring); a slot that
+    crosses two planes of the blade may appear in two pieces. Only springs the grid has are
+    reported.
 
     Args:
         grid: the :class:`~torchdeform.sim.grid.Grid`.
@@ -255,56 +296,64 @@ def crossed_slots(grid, x: torch.Tensor, blade: Blade) -> tuple:
     N, dev = D * H * W, x.device
     exists = grid.spring_mask(dev)
     index = _direction_index(grid, dev)
-    planes = blade.planes()
     offs = ((index[0] - 1) * H + index[1] - 1) * W + index[2] - 1            # (S,) flat offsets
     out = []
     for b in range(x.shape[0]):
-        xb = x[b].reshape(3, N)
-        for n, c, patches in planes:
-            h = (xb.new_tensor(n) @ xb - c).view(D, H, W)
+        xb = x[b]
+        for n, c, patches in blade.planes():
             axis = max(range(3), key=lambda a: abs(n[a]))
-            rng = _layer_range(h, axis)
+            other = tuple(a for a in range(3) if a != axis)
+            if abs(n[axis]) == 1.0:                   # axis-aligned: the layer bounds from x itself
+                top, bottom = xb[axis].amax(other), xb[axis].amin(other)
+                top, bottom = (top - c, bottom - c) if n[axis] > 0 else (-bottom - c, -top - c)
+            else:
+                h = _heights(xb, n, c)
+                top, bottom = h.amax(other), h.amin(other)
+            steps = _steps(grid, axis)
+            rng = _layer_range(top, bottom, steps)
             if rng is None:
                 continue
             lo, hi = rng
-            near, far = _far_ends(h, axis, lo, hi, index)
-            cand = ((near > 0).unsqueeze(0) != (far > 0)) & exists.narrow(axis + 1, lo, hi - lo + 1)
-            slot = list(cand.nonzero(as_tuple=True))                           # s, d, h, w
-            if slot[0].numel() == 0:
-                continue
-            slot[axis + 1] += lo
-            # The positions of the layers lo - 1 .. hi + 1 bound every candidate segment: when a
-            # patch covers that box, every candidate crosses it and none needs its own test.
-            lo2 = max(lo - 1, 0)
-            layers = x[b].narrow(axis + 1, lo2, min(hi + 1, grid.shape[axis] - 1) - lo2 + 1).reshape(3, -1)
-            box = torch.stack([layers.amin(1), layers.amax(1)], 1)
+            lo2, hi2 = max(lo - (-1 in steps), 0), min(hi + (1 in steps), grid.shape[axis] - 1)
+            slab = xb.narrow(axis + 1, lo2, hi2 - lo2 + 1)                          # (3, ...) layers lo-1..hi+1
+            near, far = _far_ends(_heights(slab, n, c), axis, lo - lo2, hi2 - hi, index)
+            mask = ((near > 0).unsqueeze(0) != (far > 0)) & exists.narrow(axis + 1, lo, hi - lo + 1)
+            # The slab's positions bound every candidate segment: when a patch covers that box,
+            # every candidate crosses it and none needs its own test.
+            flat = slab.reshape(3, -1)
+            box = torch.stack([flat.amin(1), flat.amax(1)]).tolist()
             if not _covers(box, patches):
+                slot = list(mask.nonzero(as_tuple=True))                               # s, then the layers
+                slot[axis + 1] = slot[axis + 1] + lo
                 p_i = (slot[1] * H + slot[2]) * W + slot[3]
                 q_i = p_i + offs[slot[0]]
-                hf = h.view(-1)
-                hp, hq = hf[p_i], hf[q_i]
-                p, q = xb.index_select(1, p_i), xb.index_select(1, q_i)
-                hit = _patch_hits(p + (hp / (hp - hq)) * (q - p), patches)
-                keep = hit.nonzero()[:, 0]
-                slot = [i.index_select(0, keep) for i in slot]
-            out.append([torch.full_like(slot[0], b)] + slot)
-    if not out:
-        return tuple(torch.zeros(0, dtype=torch.int64, device=dev) for _ in range(5))
-    if len(out) == 1:
-        return tuple(out[0])
-    b, s, d, h, w = (torch.cat(parts) for parts in zip(*out))
-    ids = torch.unique((((b * grid.S + s) * D + d) * H + h) * W + w)      # a slot crossing two planes: once
-    node = ids % N
-    bs = ids // N
-    return bs // grid.S, bs % grid.S, node // (H * W), (node // W) % H, node % W
+                xf = xb.reshape(3, N)
+                p, q = xf.index_select(1, p_i), xf.index_select(1, q_i)
+                hp, hq = _heights(p, n, c), _heights(q, n, c)
+                mask = torch.zeros_like(mask)
+                slot[axis + 1] = slot[axis + 1] - lo
+                mask[tuple(slot)] = _patch_hits(p + (hp / (hp - hq)) * (q - p), patches)
+            out.append(Slab(b, axis, lo, mask))
+    return out
+
+
+def crossed_slots(grid, x: torch.Tensor, blade: Blade) -> tuple:
+    """The slots whose springs cross ``blade``, as index tensors ``(b, s, d, h, w)`` (each slot once).
+
+    The index form of :func:`crossed_pieces` (arguments as there).
+    """
+    return slot_index(grid, crossing(grid, x, blade))
 
 
 def crossing(grid, x: torch.Tensor, blade: Blade) -> torch.Tensor:
     """Bool ``(B, S, D, H, W)``: the spring stored at each node along each half-direction crosses the blade.
 
-    The dense form of :func:`crossed_slots`.
+    The dense form of :func:`crossed_pieces` (arguments as there).
     """
-    return _dense(grid, crossed_slots(grid, x, blade), x.shape[0], x.device)
+    out = torch.zeros((x.shape[0], grid.S) + grid.shape, dtype=torch.bool, device=x.device)
+    for piece in crossed_pieces(grid, x, blade):
+        piece.view(out).logical_or_(piece.mask)
+    return out
 
 
 def sides(x: torch.Tensor, blade: Blade) -> torch.Tensor:
@@ -352,11 +401,11 @@ def cut(model: Model, x: torch.Tensor, blade: Blade, gape: float = 0.0) -> int:
         >>> cut(model, model.X, Blade((0.005, -0.01, -0.01), (0, 0.04, 0), (0, 0, 0.04)))     # n^2
         9
     """
-    slots = crossed_slots(model.grid, x, blade)
-    count = remove(model, slots)
+    pieces = crossed_pieces(model.grid, x, blade)
+    count = remove(model, pieces)
     if gape or torch.is_tensor(gape):
         grid = model.grid
-        _, s, d, h, w = slots
+        _, s, d, h, w = slot_index(grid, pieces)
         nodes = torch.zeros(grid.shape, dtype=torch.bool, device=x.device)
         nodes[d, h, w] = True
         off = torch.tensor(grid.directions, dtype=torch.int64, device=x.device)[s]

@@ -11,8 +11,10 @@ replacing them, so a compiled step that reads the same storage sees the change w
 recompilation, and a cut costs only the slots it touches. Fields that require grad are never
 written in place: they are replaced (the functional path autograd needs).
 
-Slots are given either as a bool field ``(B|1, S, D, H, W)`` or as a tuple of five index tensors
-``(b, s, d, h, w)`` (what the cut search returns: a cut touches a few thousand of millions of slots).
+Slots are given as a bool field ``(B|1, S, D, H, W)``, as a tuple of five index tensors
+``(b, s, d, h, w)``, or as a list of :class:`Slab` masks (what the cut search returns: a cut
+touches the few layers around the blade, and a mask over those layers is edited with two dense
+operations, no index lists).
 
 Examples:
     >>> import torch
@@ -24,9 +26,28 @@ Examples:
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 
-__all__ = ["full", "alive", "remove", "ends", "editable", "assign", "slot_index"]
+__all__ = ["Slab", "full", "alive", "remove", "ends", "editable", "assign", "slot_index"]
+
+
+class Slab(NamedTuple):
+    """Slots of batch entry ``batch`` in the layers ``start ..`` along spatial ``axis``: ``mask`` ``(S, ...)``.
+
+    ``mask`` has the grid's shape except along ``axis``, where it spans ``mask.shape[axis + 1]``
+    layers from ``start``.
+    """
+    batch: int
+    axis: int
+    start: int
+    mask: torch.Tensor
+
+    def view(self, field: torch.Tensor) -> torch.Tensor:
+        """The part ``(S, ...)`` of a per-slot field ``(B|1, S, D, H, W)`` this slab covers (a view)."""
+        f = field[self.batch if field.shape[0] > 1 else 0]
+        return f.narrow(self.axis + 1, self.start, self.mask.shape[self.axis + 1])
 
 
 def full(model, p: torch.Tensor) -> torch.Tensor:
@@ -80,9 +101,15 @@ def assign(model, name: str, value: torch.Tensor) -> None:
 
 
 def slot_index(grid, springs) -> tuple:
-    """Slots as five index tensors ``(b, s, d, h, w)``, from a bool field or such a tuple."""
+    """Slots as five index tensors ``(b, s, d, h, w)``, from a bool field, slabs or such a tuple."""
     if isinstance(springs, tuple):
         return springs
+    if isinstance(springs, list):
+        dense = _dense(grid, (), 1 + max((p.batch for p in springs), default=0), springs[0].mask.device
+                       if springs else None)
+        for piece in springs:
+            piece.view(dense).logical_or_(piece.mask)
+        return dense.nonzero(as_tuple=True)
     return springs.nonzero(as_tuple=True)
 
 
@@ -111,8 +138,15 @@ def _linear(grid, t: torch.Tensor, idx: tuple) -> torch.Tensor:
 
 def _dense(grid, idx: tuple, batch: int, device) -> torch.Tensor:
     out = torch.zeros((batch, grid.S) + grid.shape, dtype=torch.bool, device=device)
-    out[idx] = True
+    if idx:
+        out[idx] = True
     return out
+
+
+def _full_slots(model, t) -> bool:
+    """``t`` is a full per-slot field that may be written in place."""
+    return (t is not None and t.dim() == 5 and tuple(t.shape[1:]) == (model.grid.S,) + model.grid.shape
+            and not t.requires_grad)
 
 
 def remove(model, springs) -> int:
@@ -120,8 +154,21 @@ def remove(model, springs) -> int:
 
     Args:
         model: the model (changed in place).
-        springs: bool ``(B|1, S, D, H, W)`` or index tensors ``(b, s, d, h, w)`` (no repeats).
+        springs: bool ``(B|1, S, D, H, W)``, index tensors ``(b, s, d, h, w)`` (no repeats) or a
+            list of :class:`Slab` (they may overlap).
     """
+    k, c = model.stiffness, model.damping
+    if isinstance(springs, list):
+        nb = 1 + max((p.batch for p in springs), default=0)
+        if _full_slots(model, k) and nb <= k.shape[0] and (c is None or (_full_slots(model, c) and c.shape == k.shape)):
+            count = 0
+            for piece in springs:                    # two dense operations over the slab's layers
+                kv = piece.view(k)
+                count += int(((kv != 0) & piece.mask).sum())
+                kv.masked_fill_(piece.mask, 0)
+                if c is not None:
+                    piece.view(c).masked_fill_(piece.mask, 0)
+            return count
     idx = slot_index(model.grid, springs)
     if idx[0].numel() == 0:
         return 0
