@@ -87,3 +87,29 @@ def test_compiled_step_sees_a_cut_without_recompiling():
     assert counters["stats"]["unique_graphs"] == graphs                        # no recompilation
     assert step.compiled and step.compile_error is None
     assert torch.allclose(state.x, ref.x, atol=1e-12, rtol=0)
+
+
+def test_coagulation_needs_shared_rest_lengths_and_then_matches_eager():
+    from torchdeform.errors import ConfigError
+    from torchdeform.topology import coagulate
+
+    region = torch.zeros((5, 4, 4), dtype=torch.bool)
+    region[2:] = True
+    model = _model()
+    step = compiled_step(td.SymplecticEuler(), model, 1e-4, enable=False, editable=True)
+    state = model.rest_state()
+    with pytest.raises(ConfigError, match="editable=\\('stiffness', 'rest_length'\\)"):
+        coagulate(model, state.x + 1e-4, region)
+    ref_model = _model()
+    ref = ref_model.rest_state()
+    model = _model()
+    step = compiled_step(td.SymplecticEuler(), model, 1e-4, enable=False,
+                         editable=("stiffness", "rest_length", "damping"))
+    state, packed = model.rest_state(), step.packed
+    for i in range(60):
+        if i == 30:
+            coagulate(ref_model, ref.x, region, viscosity_factor=3.0)
+            coagulate(model, state.x, region, viscosity_factor=3.0)
+        ref = td.SymplecticEuler().step(ref_model, ref, 1e-4)
+        state = packed.unpack_state(step.step_packed(packed.pack_state(state)))
+    assert torch.allclose(state.x, ref.x, atol=1e-12, rtol=0)

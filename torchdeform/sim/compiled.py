@@ -79,7 +79,7 @@ class CompiledStep:
     """
 
     def __init__(self, integrator, model, dt: float, loads=None, *, mode: str | None = None,
-                 enable: bool = True, options: dict | None = None, editable: bool = False):
+                 enable: bool = True, options: dict | None = None, editable=False):
         self.integrator, self.model, self.loads = integrator, model, loads
         self.dt = positive_dt(dt)
         self.compile_error = None
@@ -247,7 +247,7 @@ class ImplicitGraph:
 
 
 def compiled_step(integrator, model, dt: float, loads=None, *, mode: str | None = None,
-                  enable: bool = True, editable: bool = False) -> CompiledStep:
+                  enable: bool = True, editable=False) -> CompiledStep:
     """Wrap one integrator step on one model in ``torch.compile`` (the no-grad fast path).
 
     Args:
@@ -262,7 +262,10 @@ def compiled_step(integrator, model, dt: float, loads=None, *, mode: str | None 
         editable: the model's fields and the packed model's become one storage
             (:meth:`~torchdeform.sim.packed.PackedModel.share`): topology changes made to
             ``model`` in place between steps (:mod:`torchdeform.topology`) reach the compiled code
-            without a recompilation, at no cost per step.
+            without a recompilation, and a step costs the same after them. True shares the
+            stiffness per spring (cuts, tears, cautery); a tuple of spring fields adds
+            ``"rest_length"`` (coagulation, gaping cuts) and ``"damping"`` (coagulation's
+            viscosity rise); each per-spring field costs memory traffic in every step.
 
     Returns:
         a :class:`CompiledStep`, ``step(state) -> State``. It runs the compiled code under

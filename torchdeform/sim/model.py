@@ -238,6 +238,8 @@ class Model:
         self.removed = None
         #: bool ``(D, H, W)`` of nodes at the ends of springs cut so far (for pre-tension), or None
         self.cut_nodes = None
+        #: the spring fields stored once with a compiled step (``compiled_step(..., editable=...)``)
+        self.shared = ()
         free = (~constrained).to(dtype=dtype, device=dev)[None, None]
         bad = (self.mass <= 0) & (free > 0)
         if bool(bad.any()):

@@ -38,7 +38,7 @@ import torch
 import torch.nn.functional as F
 
 from .model import Model, State
-from .springs import combine_coefficients, spring_law
+from .springs import combine_coefficients, gate_damping, spring_law
 
 __all__ = ["BLOCK", "PackedModel", "PackedLinearisation", "TraceContext"]
 
@@ -104,18 +104,21 @@ class PackedModel(Model):
     or ``(Bp, S, P)`` (one per spring, stored at its first endpoint, zero in the halo). States
     are packed with :meth:`pack_state` and unpacked with :meth:`unpack_state`.
 
-    With ``share=True`` (an editable model, for topology changes during a run) the spring
-    parameters are stored per spring and the node fields per node, and the source model's own
-    fields become grid-layout views of these packed tensors (:meth:`share`): an in-place edit
-    through either layout (a cut zeroing stiffness slots, cautery zeroing masses) is seen by the
-    other and by a compiled step, which reads the same tensors and never recompiles for it.
+    With ``share`` (an editable model, for topology changes during a run) the stiffness (and the
+    spring fields named in ``share``) are stored per spring, the node fields per node, and the
+    source model's own fields become grid-layout views of these packed tensors (:meth:`share`):
+    an in-place edit through either layout (a cut zeroing stiffness slots, cautery zeroing
+    masses) is seen by the other and by a compiled step, which reads the same tensors and never
+    recompiles for it.
 
     Args:
         model: the model to lay out; it is not changed unless ``share``.
-        share: store the fields once for both layouts (see above).
+        share: False, True (the stiffness per spring: cuts, tears, cautery) or the names of the
+            spring fields to store per spring (``"stiffness"``, ``"rest_length"`` for coagulation
+            and gaping cuts, ``"damping"`` for coagulation's viscosity rise).
     """
 
-    def __init__(self, model: Model, share: bool = False):
+    def __init__(self, model: Model, share=False):
         if isinstance(model, PackedModel):
             raise TypeError("PackedModel(model): the model is already packed")
         self.__dict__.update(model.__dict__)
@@ -152,22 +155,33 @@ class PackedModel(Model):
         #: view of this model bound to its own context (:meth:`traced`)
         self.trace = TraceContext()
         if share:
-            self.share(model)
+            self.share(model, ("stiffness",) if share is True else tuple(share))
 
-    #: the fields :meth:`share` stores once for both layouts
+    #: the spring fields :meth:`share` may store per spring, and the node fields it always shares
     SHARED_SPRING_FIELDS = ("stiffness", "rest_length", "damping")
     SHARED_NODE_FIELDS = ("mass", "inv_mass", "free", "k_home")
 
-    def share(self, model: Model) -> None:
-        """Make ``model``'s spring and node fields grid-layout views of this model's packed fields.
+    def share(self, model: Model, fields=("stiffness",)) -> None:
+        """Make ``model``'s fields grid-layout views of this model's packed fields.
 
-        Spring parameters become per spring (``(Bp, S, P)`` here, ``(Bp, S, D, H, W)`` views in
-        ``model``), node fields per node (``(Bp, 1, P)`` / ``(Bp, 1, D, H, W)``), ``model.free`` is
-        made explicit (ones where free) and ``model.constrained`` becomes a view of
-        :attr:`constrained`. Absent terms (no damping, no home springs) stay absent.
+        The spring fields named in ``fields`` become per spring (``(Bp, S, P)`` here,
+        ``(Bp, S, D, H, W)`` views in ``model``); the others keep their layout (one value per
+        direction costs a step far less memory traffic than one per spring: at 64^3 with 26
+        neighbours, three per-spring fields made the compiled step three times slower). A spring
+        whose stiffness is zero has no damping either (:func:`~torchdeform.sim.springs.spring_law`),
+        so a cut needs only the stiffness. Node fields become per node (``(Bp, 1, P)`` /
+        ``(Bp, 1, D, H, W)``), ``model.free`` is made explicit (ones where free) and
+        ``model.constrained`` becomes a view of :attr:`constrained`. Absent terms (no damping, no
+        home springs) stay absent. ``model.shared`` records the shared spring fields, so that a
+        topology change needing another one can say so instead of being silently missed.
         """
+        unknown = set(fields) - set(self.SHARED_SPRING_FIELDS)
+        if unknown or "stiffness" not in fields:
+            raise ValueError(f"share: spring fields from {self.SHARED_SPRING_FIELDS}, stiffness included; "
+                             f"got {tuple(fields)}")
         S, shape = self.grid.S, self.grid.shape
-        for name in self.SHARED_SPRING_FIELDS:
+        model.shared = tuple(f for f in self.SHARED_SPRING_FIELDS if f in fields)
+        for name in model.shared:
             p = getattr(model, name)
             if p is not None:
                 packed = self.pack(p.expand(p.shape[0], S, *shape))
@@ -400,7 +414,11 @@ class PackedLinearisation:
     def _coefficients(self, alpha_scale, c, projected, c_scale):
         """Masked ``(alpha, beta)`` of ``h2 K + h C`` per direction and node, ``(B, 2S, N, L)``."""
         pm, (_, a, b) = self.pm, self.fields
-        alpha, beta = combine_coefficients(a, b, alpha_scale, None if c is None else pm.directed(c),
+        if c is not None:
+            c = pm.directed(c)
+            if pm.stiffness.shape[-1] != 1 and c.shape[-1] == 1:    # stiffness per spring: gate the damping
+                c = gate_damping(c, a + b)
+        alpha, beta = combine_coefficients(a, b, alpha_scale, c,
                                            projected, c_scale)
         return alpha * pm.spring_exists, beta * pm.spring_exists
 

@@ -23,7 +23,7 @@ from .grid import Grid
 
 __all__ = ["stencil_weights", "difference_conv", "adjoint_conv", "take", "accumulate", "difference",
            "harmonic_mean_of_ends", "adjoint", "spring_law", "tension", "spring_forces", "spring_forces_conv",
-           "spring_energy", "node_sums", "Linearisation", "combine_coefficients"]
+           "spring_energy", "node_sums", "Linearisation", "combine_coefficients", "gate_damping"]
 
 
 # ------------------------------------------------------------------ reference path
@@ -186,6 +186,8 @@ def spring_law(sq, dxdv, k, l0, c, projected: bool):
     alpha = k * (l - l0) * inv_l           # exactly 0 at rest length
     if c is None:
         return alpha, None
+    if _needs_gate(k, c):
+        c = gate_damping(c, k)
     if projected:
         return alpha + c * dxdv * (inv_l * inv_l), None
     return alpha, c
@@ -287,6 +289,8 @@ class Linearisation:
     def __init__(self, x, grid, k, l0, clamp=True):
         self.grid = grid
         self.parts = []
+        #: stiffness per spring: damping given per direction is gated by it (see :func:`gate_damping`)
+        self.gated = k.shape[-3:] != (1, 1, 1)
         for s, (src, dst) in enumerate(grid.stencil):
             delta = x[(..., *dst)] - x[(..., *src)]
             l = _length(delta)
@@ -306,12 +310,19 @@ class Linearisation:
         as in CG.
         """
         out = object.__new__(type(self))
-        out.grid, out.combined, out.parts = self.grid, True, []
+        out.grid, out.combined, out.parts, out.gated = self.grid, True, [], self.gated
         for s, (src, _) in enumerate(self.grid.stencil):
             n, a, b = self.parts[s]
-            out.parts.append((n, *combine_coefficients(a, b, alpha_scale, None if c is None else take(c, s, src),
+            out.parts.append((n, *combine_coefficients(a, b, alpha_scale, self._damping(c, s, src, a, b),
                                                        projected, c_scale)))
         return out
+
+    def _damping(self, c, s, src, a, b):
+        """The damping of half-direction ``s`` (gated where the stiffness is per spring), or None."""
+        if c is None:
+            return None
+        cs = take(c, s, src)
+        return gate_damping(cs, a + b) if self.gated and cs.shape[-3:] == (1, 1, 1) else cs  # a + b = k
 
     def apply(self, u: torch.Tensor, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> torch.Tensor:
         """``(h2 K + h C) u`` as a node field ``(B, 3, D, H, W)``.
@@ -321,14 +332,28 @@ class Linearisation:
         """
         def fn(s, src, du):
             n, a, b = self.parts[s]
-            alpha, beta = combine_coefficients(a, b, alpha_scale, None if c is None else take(c, s, src),
-                                               projected, c_scale)
+            alpha, beta = combine_coefficients(a, b, alpha_scale, self._damping(c, s, src, a, b), projected, c_scale)
             return alpha * du + beta * (n * du).sum(1, keepdim=True) * n
         return -accumulate(self.grid, fn, u)
 
 
 def _times(scale, t):
     return t if isinstance(scale, (int, float)) and scale == 1 else scale * t
+
+
+def _needs_gate(k, c) -> bool:
+    """Stiffness per spring, damping not: a removed spring's damping must be gated out."""
+    return torch.is_tensor(k) and torch.is_tensor(c) and k.numel() > c.numel()
+
+
+def gate_damping(c, k):
+    """Damping ``c`` where the stiffness ``k`` is not zero: a removed spring (cut, torn) damps nothing.
+
+    So a cut needs to zero only the stiffness, and damping stored per direction stays as it is
+    (:meth:`~torchdeform.sim.packed.PackedModel.share`). Applied only where the stiffness is per
+    spring and the damping is not (elsewhere it changes nothing and would cost a select per spring).
+    """
+    return torch.where(k != 0, c, torch.zeros((), dtype=c.dtype, device=c.device))
 
 
 def combine_coefficients(a, b, alpha_scale=1.0, c=None, projected=True, c_scale=1.0):

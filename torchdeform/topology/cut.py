@@ -220,24 +220,21 @@ def _patch_hits(r: torch.Tensor, patches) -> torch.Tensor:
     return hit
 
 
-def _layer_range(top: torch.Tensor, bottom: torch.Tensor, steps: set):
+def _layer_range(top: list, bottom: list, steps: set):
     """Layers that may hold the first end of a spring crossing a plane, from per-layer height bounds.
 
-    ``top``, ``bottom`` ``(n,)``: the largest and smallest height in each layer; ``steps``: the
-    layer steps (-1, 0, +1) of the half-directions along this axis (a spring is stored at its first
-    end, so along D, where every half-direction steps 0 or +1, only the layer below a crossing
-    holds it). Returns ``(lo, hi)`` or None.
+    ``top``, ``bottom``: the largest and smallest height in each layer (lists: a few dozen numbers,
+    plain Python is faster than tensor calls); ``steps``: the layer steps (-1, 0, +1) of the
+    half-directions along this axis (a spring is stored at its first end, so along D, where every
+    half-direction steps 0 or +1, only the layer below a crossing holds it). Returns ``(lo, hi)``
+    or None.
     """
-    pos, neg = top > 0, bottom <= 0
-    cand = pos & neg
-    if 1 in steps:
-        cand[:-1] |= (pos[:-1] & neg[1:]) | (neg[:-1] & pos[1:])
-    if -1 in steps:
-        cand[1:] |= (pos[1:] & neg[:-1]) | (neg[1:] & pos[:-1])
-    idx = cand.nonzero()
-    if idx.numel() == 0:
-        return None
-    return int(idx[0]), int(idx[-1])
+    pos, neg = [t > 0 for t in top], [b <= 0 for b in bottom]
+    n = len(pos)
+    found = [k for k in range(n) if (pos[k] and neg[k])
+             or (1 in steps and k + 1 < n and ((pos[k] and neg[k + 1]) or (neg[k] and pos[k + 1])))
+             or (-1 in steps and k > 0 and ((pos[k] and neg[k - 1]) or (neg[k] and pos[k - 1])))]
+    return (found[0], found[-1]) if found else None
 
 
 def _direction_index(grid, device) -> tuple:
@@ -257,19 +254,20 @@ def _steps(grid, axis: int) -> set:
 
 
 def _far_ends(sub: torch.Tensor, axis: int, before: int, after: int, index: tuple) -> tuple:
-    """Heights of the layers of a slab and of the far ends of their springs.
+    """Which side of the plane the nodes of a slab and the far ends of their springs lie on.
 
     ``sub``: heights of the slab's layers plus ``before`` (0 or 1) layers before and ``after``
-    after it; returns ``(near (n0, n1, n2), far (S, n0, n1, n2))``, far ends outside the grid read 0
-    (their springs do not exist). One padded copy of the layers and one strided gather.
+    after it; returns bool ``(near (n0, n1, n2), far (S, n0, n1, n2))`` (height > 0); far ends
+    outside the grid read False (their springs do not exist). One padded copy of the layers and
+    one strided gather of bytes.
     """
     pad = [1, 1, 1, 1, 1, 1]
     pad[2 * (2 - axis)], pad[2 * (2 - axis) + 1] = 1 - before, 1 - after
-    hb = torch.nn.functional.pad(sub[None], pad)[0]                                  # (n0+2, n1+2, n2+2)
-    box = tuple(m - 2 for m in hb.shape)
-    st = hb.stride()
-    cube = hb.as_strided((3, 3, 3) + box, st + st)
-    return hb[1:-1, 1:-1, 1:-1], cube[index[0], index[1], index[2]]
+    up = torch.nn.functional.pad(sub[None], pad)[0] > 0                              # (n0+2, n1+2, n2+2)
+    box = tuple(m - 2 for m in up.shape)
+    st = up.stride()
+    cube = up.as_strided((3, 3, 3) + box, st + st)
+    return up[1:-1, 1:-1, 1:-1], cube[index[0], index[1], index[2]]
 
 
 def _heights(x: torch.Tensor, n, c):
@@ -304,11 +302,14 @@ def crossed_pieces(grid, x: torch.Tensor, blade: Blade) -> list:
             axis = max(range(3), key=lambda a: abs(n[a]))
             other = tuple(a for a in range(3) if a != axis)
             if abs(n[axis]) == 1.0:                   # axis-aligned: the layer bounds from x itself
-                top, bottom = xb[axis].amax(other), xb[axis].amin(other)
-                top, bottom = (top - c, bottom - c) if n[axis] > 0 else (-bottom - c, -top - c)
+                top, bottom = torch.stack([xb[axis].amax(other), xb[axis].amin(other)]).tolist()
+                if n[axis] > 0:
+                    top, bottom = [t - c for t in top], [b - c for b in bottom]
+                else:
+                    top, bottom = [-b - c for b in bottom], [-t - c for t in top]
             else:
                 h = _heights(xb, n, c)
-                top, bottom = h.amax(other), h.amin(other)
+                top, bottom = torch.stack([h.amax(other), h.amin(other)]).tolist()
             steps = _steps(grid, axis)
             rng = _layer_range(top, bottom, steps)
             if rng is None:
@@ -317,7 +318,7 @@ def crossed_pieces(grid, x: torch.Tensor, blade: Blade) -> list:
             lo2, hi2 = max(lo - (-1 in steps), 0), min(hi + (1 in steps), grid.shape[axis] - 1)
             slab = xb.narrow(axis + 1, lo2, hi2 - lo2 + 1)                          # (3, ...) layers lo-1..hi+1
             near, far = _far_ends(_heights(slab, n, c), axis, lo - lo2, hi2 - hi, index)
-            mask = ((near > 0).unsqueeze(0) != (far > 0)) & exists.narrow(axis + 1, lo, hi - lo + 1)
+            mask = (near.unsqueeze(0) != far) & exists.narrow(axis + 1, lo, hi - lo + 1)
             # The slab's positions bound every candidate segment: when a patch covers that box,
             # every candidate crosses it and none needs its own test.
             flat = slab.reshape(3, -1)

@@ -30,6 +30,8 @@ from typing import NamedTuple
 
 import torch
 
+from ..errors import ConfigError
+
 __all__ = ["Slab", "full", "alive", "remove", "ends", "editable", "assign", "slot_index"]
 
 
@@ -96,8 +98,12 @@ def assign(model, name: str, value: torch.Tensor) -> None:
     if (cur is not None and tuple(cur.shape) == tuple(value.shape) and cur.dtype == value.dtype
             and not cur.requires_grad and not value.requires_grad):
         cur.copy_(value)
-    else:
-        setattr(model, name, value)
+        return
+    if model.shared and name in ("rest_length", "damping"):
+        raise ConfigError(f"model.{name}", f"a per-spring {name} shared with the compiled step: "
+                          f"compiled_step(..., editable=({', '.join(repr(f) for f in model.shared + (name,))}))",
+                          "a per-direction one", show_got=True)
+    setattr(model, name, value)
 
 
 def slot_index(grid, springs) -> tuple:
@@ -157,14 +163,17 @@ def remove(model, springs) -> int:
         springs: bool ``(B|1, S, D, H, W)``, index tensors ``(b, s, d, h, w)`` (no repeats) or a
             list of :class:`Slab` (they may overlap).
     """
+    # A spring with zero stiffness has no damping (spring_law): damping per direction stays as it
+    # is; damping stored per spring is zeroed too (so the model reads the same either way).
     k, c = model.stiffness, model.damping
+    c = c if _full_slots(model, c) and c.shape == k.shape else None
     if isinstance(springs, list):
         nb = 1 + max((p.batch for p in springs), default=0)
-        if _full_slots(model, k) and nb <= k.shape[0] and (c is None or (_full_slots(model, c) and c.shape == k.shape)):
+        if _full_slots(model, k) and nb <= k.shape[0]:
             count = 0
             for piece in springs:                    # two dense operations over the slab's layers
                 kv = piece.view(k)
-                count += int(((kv != 0) & piece.mask).sum())
+                count += int(torch.count_nonzero(kv * piece.mask))
                 kv.masked_fill_(piece.mask, 0)
                 if c is not None:
                     piece.view(c).masked_fill_(piece.mask, 0)
@@ -172,21 +181,18 @@ def remove(model, springs) -> int:
     idx = slot_index(model.grid, springs)
     if idx[0].numel() == 0:
         return 0
-    k = model.stiffness
     nb = int(idx[0].max()) + 1
-    in_place = (k.dim() == 5 and tuple(k.shape[1:]) == (model.grid.S,) + model.grid.shape
-                and nb <= k.shape[0] and not k.requires_grad
-                and (model.damping is None or (model.damping.shape == k.shape and not model.damping.requires_grad)))
-    if in_place:
+    if _full_slots(model, k) and nb <= k.shape[0]:
         at = _linear(model.grid, k, idx)
         flat = _storage(k)
         count = int((flat[at] != 0).sum())
         flat.index_fill_(0, at, 0)
-        c = model.damping
         if c is not None:
             same = c.stride() == k.stride() and c.storage_offset() == k.storage_offset()
             _storage(c).index_fill_(0, at if same else _linear(model.grid, c, idx), 0)
         return count
+    if model.shared:
+        raise ConfigError("remove.springs", f"one cut per batch entry of the model's {k.shape[0]}", nb)
     dense = _dense(model.grid, idx, nb, k.device)
     count = int((dense & alive(model)).sum())
     keep = (~dense).to(model.dtype)
