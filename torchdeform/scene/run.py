@@ -292,7 +292,8 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
         summary["topology"] = events.outputs(final, out, f"{scene.name}: {integrator.name}, dt = {dt:.3g} s")
     if scene.volume:
         v = dict(scene.volume)
-        summary["volume"] = scene_volume_outputs(v.pop("file"), final.x[:1], model.X, grid.spacing, out, **v)
+        cut = None if events is None else (grid, events.pieces())          # a cut body: a carved render
+        summary["volume"] = scene_volume_outputs(v.pop("file"), final.x[:1], model.X, grid.spacing, out, cut=cut, **v)
     text = json.dumps(summary, indent=2)
     if "tools" in summary:                # each series (lists of numbers, lists of those) on one line
         text = re.sub(r"\[\s+([-+\d.eE,\s]+?)\s+\]", lambda m: "[" + ", ".join(re.split(r",\s*", m.group(1))) + "]",
@@ -341,11 +342,14 @@ def report(summary: dict, out_dir) -> str:
 
 
 def scene_volume_outputs(volume, x, X, spacing, out_dir, tf: str = "ct-soft", mode: str = "dvr",
-                         view: str = "h", base=None) -> dict:
+                         view: str = "h", base=None, cut=None) -> dict:
     """Deform a scene's volume by its final node positions and write its renders.
 
     Writes ``volume_before.png``, ``volume_after.png`` and ``volume_deformed.npy`` to ``out_dir``.
     The volume fills the node grid's bounding box (:func:`~torchdeform.volume.node_offsets`).
+    For a body whose topology changed (``cut``), ``volume_after.png`` is the carved render: each
+    piece (side of a cut) samples the volume through its own displacement, so an opening shows
+    empty (:func:`~torchdeform.topology.surfaces.cut_pieces`).
 
     Args:
         volume: a file name (relative to ``base``), ``"phantom"`` or ``"phantom:N"``.
@@ -357,6 +361,7 @@ def scene_volume_outputs(volume, x, X, spacing, out_dir, tf: str = "ct-soft", mo
         mode: ``"dvr"``, ``"mip"`` or ``"average"``.
         view: axis view, ``"d"``, ``"h"``, ``"w"``, ``"-d"``, ``"-h"`` or ``"-w"``.
         base: the folder a volume file name is relative to, or None.
+        cut: ``(grid, labels (n_d, n_h, n_w))`` of the pieces, or None.
 
     Returns:
         a summary dict for ``summary.json``.
@@ -371,7 +376,14 @@ def scene_volume_outputs(volume, x, X, spacing, out_dir, tf: str = "ct-soft", mo
         deformed, info = warp(vol, offsets, return_info=True)
         flip = view in ("h", "-h", "w", "-w")
         save_png(out / "volume_before.png", to_image(render(vol, tf, mode, view), flip_up=flip))
-        save_png(out / "volume_after.png", to_image(render(vol, tf, mode, view, offsets=offsets), flip_up=flip))
+        if cut is None:
+            after = render(vol, tf, mode, view, offsets=offsets)
+        else:
+            from ..topology import cut_pieces
+            pieces = [(o.float(), m) for o, m in cut_pieces(cut[0], x.double().cpu(), cut[1].cpu(), tuple(vol.shape),
+                                                           X.double().cpu())]
+            after = render(vol, tf, mode, view, pieces=pieces, fill=float(vol.min()))    # the gap: "air"
+        save_png(out / "volume_after.png", to_image(after, flip_up=flip))
     save_volume(out / "volume_deformed.npy", deformed.numpy())
     return {"volume": name, "shape": list(vol.shape), "max_offset_voxels": float(offsets.abs().max()),
             "folded_fraction": info["folded"], "outputs": ["volume_before.png", "volume_after.png",
