@@ -18,7 +18,7 @@ from ..sim.forces import Drag, PointForce, SurfaceForce
 from ..sim.grid import FACES, Grid
 from ..sim.integrators import INTEGRATORS, Integrator, SymplecticEuler
 from ..sim.model import Model
-from .reader import SECTIONS, Source, Table, drags_section, faces, grid_section, is_number, node_list
+from .reader import SECTIONS, Source, Table, drags_section, faces, grid_section, is_number, node_list, region_mask
 from .tools import ToolSet, palpation_option, strain_limit_section
 from .topology import TOPOLOGY, TopologySet, tools_with_cutters, topology_section
 
@@ -217,22 +217,9 @@ def _regions(src: Source, items, grid: Grid, base_stiffness) -> torch.Tensor:
         raise src.error("material", "stiffness = a number or tissue = .. with [[regions]] (not a class table or "
                                     "modulus)")
     k = torch.full(grid.shape, float(base_stiffness), dtype=torch.float64)
-    X = grid.rest_positions(torch.float64)[0]
     for n, item in enumerate(items):
         t = Table(src, f"regions[{n}]", item, SECTIONS["regions"])
-        if t.one_of("sphere", "box") == "sphere":
-            b = Table(src, t.key("sphere"), t.data["sphere"], ("center", "radius"))
-            c = torch.tensor(b.vec("center", "three numbers [d, h, w] in metres"), dtype=torch.float64)
-            r = b.num("radius", "a positive number of metres", lo=0, lo_open=True)
-            mask = ((X - c.view(3, 1, 1, 1)) ** 2).sum(0) <= r * r * (1 + 1e-12)
-        else:
-            b = Table(src, t.key("box"), t.data["box"], ("lo", "hi"))
-            mask = grid.box_mask(b.vec("lo", "three numbers [d, h, w] in metres"),
-                                 b.vec("hi", "three numbers [d, h, w] in metres"))
-        mask = mask & grid.nodes()
-        if not bool(mask.any()):
-            raise t.fail(t.one_of("sphere", "box"), "a region containing at least one node (rest positions, m)",
-                         t.data[t.one_of("sphere", "box")])
+        mask = region_mask(t, grid)
         if t.one_of("stiffness", "tissue") == "stiffness":
             value = t.num("stiffness", "a positive number (N/m)", lo=0, lo_open=True)
         else:

@@ -39,7 +39,7 @@ except ModuleNotFoundError:                                   # Python 3.10
     import tomli as tomllib
 
 __all__ = ["Source", "Table", "read", "is_number", "grid_section", "faces", "node_list", "drags_section",
-           "SECTIONS", "REQUIRED", "MISSING"]
+           "region_mask", "SECTIONS", "REQUIRED", "MISSING"]
 
 SECTIONS = {
     "grid": ("shape", "mesh", "spacing", "topology", "origin", "padding", "scale"),
@@ -355,3 +355,23 @@ def drags_section(src: Source, items, grid: Grid) -> list:
             drags.append(Drag(nodes, [(float(p[0]), tuple(float(c) for c in p[1])) for p in path]))
     return drags
 
+
+def region_mask(t: Table, grid) -> torch.Tensor:
+    """Bool ``(D, H, W)`` of the nodes in the region of ``t``: ``sphere = {center, radius}`` or ``box = {lo, hi}``.
+
+    Rest positions in metres; a region without a node is an error naming the key.
+    """
+    which = t.one_of("sphere", "box")
+    if which == "sphere":
+        b = Table(t.src, t.key("sphere"), t.data["sphere"], ("center", "radius"))
+        c = torch.tensor(b.vec("center", "three numbers [d, h, w] in metres"), dtype=torch.float64)
+        r = b.num("radius", "a positive number of metres", lo=0, lo_open=True)
+        X = grid.rest_positions(torch.float64)[0]
+        mask = ((X - c.view(3, 1, 1, 1)) ** 2).sum(0) <= r * r * (1 + 1e-12)
+    else:
+        b = Table(t.src, t.key("box"), t.data["box"], ("lo", "hi"))
+        mask = grid.box_mask(b.vec("lo", "three numbers [d, h, w] in metres"), b.vec("hi", "three numbers [d, h, w] in metres"))
+    mask = mask & grid.nodes()
+    if not bool(mask.any()):
+        raise t.fail(which, "a region containing at least one node (rest positions, m)", t.data[which])
+    return mask

@@ -89,9 +89,9 @@ from ..topology import (
     tear,
 )
 from ..topology.masks import alive, editable
-from .reader import SECTIONS, Source, Table, is_number
+from .reader import SECTIONS, Source, Table, is_number, region_mask
 
-__all__ = ["TOPOLOGY", "TopologySet", "TopologyEvents", "topology_section", "tools_with_cutters", "region_mask",
+__all__ = ["TOPOLOGY", "TopologySet", "TopologyEvents", "topology_section", "tools_with_cutters",
            "plot_topology"]
 
 #: the sections read here
@@ -103,27 +103,6 @@ _METRES = "three numbers [d, h, w] in metres"
 
 
 # ------------------------------------------------------------------ regions (shared with [[regions]])
-def region_mask(t: Table, grid) -> torch.Tensor:
-    """Bool ``(D, H, W)`` of the nodes in the region of ``t``: ``sphere = {center, radius}`` or ``box = {lo, hi}``.
-
-    Rest positions in metres; a region without a node is an error naming the key.
-    """
-    which = t.one_of("sphere", "box")
-    if which == "sphere":
-        b = Table(t.src, t.key("sphere"), t.data["sphere"], ("center", "radius"))
-        c = torch.tensor(b.vec("center", _METRES), dtype=torch.float64)
-        r = b.num("radius", "a positive number of metres", lo=0, lo_open=True)
-        X = grid.rest_positions(torch.float64)[0]
-        mask = ((X - c.view(3, 1, 1, 1)) ** 2).sum(0) <= r * r * (1 + 1e-12)
-    else:
-        b = Table(t.src, t.key("box"), t.data["box"], ("lo", "hi"))
-        mask = grid.box_mask(b.vec("lo", _METRES), b.vec("hi", _METRES))
-    mask = mask & grid.nodes()
-    if not bool(mask.any()):
-        raise t.fail(which, "a region containing at least one node (rest positions, m)", t.data[which])
-    return mask
-
-
 # ------------------------------------------------------------------ tools that only cut or burn
 def tools_with_cutters(src: Source, data: dict, base):
     """The :class:`~torchdeform.scene.tools.ToolSet` of ``data["tools"]``; cutting tools need no contact.
