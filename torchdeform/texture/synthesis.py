@@ -1,0 +1,111 @@
+"""Solid texture synthesis as an indirection texture (Chen & He's tiling, REFERENCE §7.1 and §7.3).
+
+The texture space is cut into blocks of ``b`` voxels (Chen & He: ``b = 64``); block ``(i, j, k)``
+is a copy of the exemplar starting at a random offset ``o_ijk`` (integers, each in
+``[0, E - b]``, Chen & He's ``[0, 64]`` for a 128^3 exemplar). The colour at a point ``P``
+(voxels of texture space) is
+
+    C(P) = exemplar[o[floor(P / b)] + (P - b floor(P / b))]
+
+looked up with ``grid_sample`` (trilinear, or nearest), so nothing is materialised: the table
+``offsets`` ``(n_d, n_h, n_w, 3)`` is the whole texture. ``ceil(extent / b)`` blocks per axis
+cover the body's bounding box. Trilinear samples near a block's far face read the exemplar one
+voxel past the block (clamped at the exemplar's border): within a block the texture is the
+exemplar's own continuous field.
+
+Material coordinates (metres) map to texture voxels by ``(X - origin) / voxel``: a point of the
+tissue keeps its colour however the body moves or is cut (:meth:`SolidTexture.at_material`).
+
+Examples:
+    >>> import torch
+    >>> from torchdeform.texture import liver_exemplar
+    >>> tex = SolidTexture(liver_exemplar(32), block=16, extent=(40, 20, 20), seed=0)
+    >>> tex.blocks                                        # ceil(40/16), ceil(20/16), ceil(20/16)
+    (3, 2, 2)
+    >>> tex.colour(torch.tensor([[1.0, 2.0, 3.0]])).shape
+    torch.Size([1, 3])
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+from ..errors import ConfigError
+from ..volume.deform import to_grid_sample
+from .exemplar import as_exemplar
+
+__all__ = ["SolidTexture"]
+
+
+class SolidTexture:
+    """An indirection texture over a box of ``extent`` voxels (see the module docstring).
+
+    Args:
+        exemplar: ``(3, E_d, E_h, E_w)`` in ``[0, 1]`` (or anything :func:`~torchdeform.texture.as_exemplar` takes).
+        block: block size ``b`` in voxels (at most the exemplar's smallest side).
+        extent: ``(D, H, W)`` voxels to cover (the body's bounding box in texture voxels).
+        seed: the random offsets' seed.
+        voxel: texture voxel size (m) for material coordinates.
+        origin: the material point (m) at texture voxel ``(0, 0, 0)``.
+
+    Attributes:
+        offsets: int64 ``(n_d, n_h, n_w, 3)``: each block's start in the exemplar.
+        blocks: ``(n_d, n_h, n_w)`` = ``ceil(extent / b)``.
+    """
+
+    def __init__(self, exemplar, block: int = 64, extent=(64, 64, 64), seed: int = 0, voxel: float = 1.0,
+                 origin=(0.0, 0.0, 0.0)):
+        self.exemplar = exemplar if torch.is_tensor(exemplar) and exemplar.dim() == 4 and exemplar.shape[0] == 3 \
+            else as_exemplar(exemplar)
+        size = tuple(self.exemplar.shape[1:])
+        if not isinstance(block, int) or block < 2 or block > min(size):
+            raise ConfigError("texture.block", f"an integer block size from 2 to the exemplar's smallest side "
+                                               f"({min(size)} voxels)", block)
+        ext = tuple(int(e) for e in extent)
+        if len(ext) != 3 or min(ext) < 1:
+            raise ConfigError("texture.extent", "three positive voxel counts (D, H, W)", extent)
+        if not voxel > 0:
+            raise ConfigError("texture.voxel", "a positive voxel size (m)", voxel)
+        self.block, self.extent, self.voxel = block, ext, float(voxel)
+        self.origin = torch.tensor([float(c) for c in origin], dtype=torch.float64)
+        self.blocks = tuple(math.ceil(e / block) for e in ext)
+        gen = torch.Generator().manual_seed(int(seed))
+        high = torch.tensor([s - block + 1 for s in size])                       # offsets in [0, E - b]
+        self.offsets = (torch.rand(*self.blocks, 3, generator=gen) * high).long().clamp_(max=high - 1)
+
+    # ------------------------------------------------------------------ lookup
+    def exemplar_points(self, points: torch.Tensor) -> torch.Tensor:
+        """Exemplar voxel coordinates ``(N, 3)`` of texture points ``(N, 3)`` (voxels, float)."""
+        b = self.block
+        cell = torch.div(points, b, rounding_mode="floor")
+        idx = [cell[:, a].long().clamp(0, self.blocks[a] - 1) for a in range(3)]
+        start = self.offsets[idx[0], idx[1], idx[2]].to(points.dtype)             # (N, 3)
+        return start + (points - b * cell)
+
+    def colour(self, points: torch.Tensor, mode: str = "trilinear") -> torch.Tensor:
+        """Colours ``(N, 3)`` at texture points ``(N, 3)`` (voxels); ``mode`` ``"trilinear"`` or ``"nearest"``."""
+        if mode not in ("trilinear", "nearest"):
+            raise ConfigError("texture.mode", '"trilinear" or "nearest"', mode)
+        q = self.exemplar_points(points)
+        ex = self.exemplar.to(points.dtype)
+        grid = to_grid_sample(q.T.reshape(1, 3, -1, 1, 1), ex.shape[1:], align_corners=True)
+        out = F.grid_sample(ex[None], grid, mode="bilinear" if mode == "trilinear" else "nearest",
+                            padding_mode="border", align_corners=True)
+        return out.reshape(3, -1).T
+
+    def at_material(self, X: torch.Tensor, mode: str = "trilinear") -> torch.Tensor:
+        """Colours ``(N, 3)`` at material (rest) coordinates ``X`` ``(N, 3)`` (m)."""
+        Xv = (X.double() - self.origin) / self.voxel
+        return self.colour(Xv.to(self.exemplar.dtype if X.dtype != torch.float64 else torch.float64), mode)
+
+    def materialise(self, lo=(0, 0, 0), hi=None) -> torch.Tensor:
+        """The texture at the voxels ``lo <= p < hi`` (default: the whole extent), ``(3, d, h, w)``.
+
+        Integer voxels read the exemplar exactly (each block a plain copy of its exemplar block).
+        """
+        hi = self.extent if hi is None else tuple(hi)
+        axes = [torch.arange(int(a), int(b), dtype=torch.float32) for a, b in zip(lo, hi)]
+        P = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        return self.colour(P, "nearest").T.reshape(3, *[len(a) for a in axes])
