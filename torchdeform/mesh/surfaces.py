@@ -1,4 +1,4 @@
-"""Bridge to triangle meshes (trimesh): voxelise a closed mesh into the node mask of a grid.
+"""Bridge to triangle meshes (trimesh): voxelise a closed mesh into a node mask; extract and save surfaces.
 
 Axis convention: mesh coordinates ``(x, y, z)`` map to grid axes ``(D, H, W)`` in that order,
 so channel 0 of positions (axis D) is the mesh's x, channel 1 (H) its y and channel 2 (W)
@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .errors import ConfigError
-from .sim.grid import Grid
+from ..errors import ConfigError
+from ..sim.grid import Grid
 
 #: Relative distance (in units of the smallest spacing) within which a node counts as on the
 #: surface, and therefore inside.
@@ -389,7 +389,7 @@ def volume_surface(volume, level: float, offsets=None, spacing=(1.0, 1.0, 1.0), 
     Returns:
         ``(vertices (V, 3), faces (F, 3))``.
     """
-    from .volume import as_volume, warp
+    from ..volume import as_volume, warp
     vol, _ = as_volume(volume)
     if vol.shape[:2] != (1, 1):
         raise ConfigError("volume", "a single volume (D, H, W)", tuple(vol.shape))
