@@ -34,6 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .fuzzy import commands as fuzzy
     from .learn import commands as learn
     from .scene import commands as scene
+    from .texture import commands as texture
     from .volume import commands as volume
 
     p = argparse.ArgumentParser(prog="torchdeform", description="Soft-tissue simulation on PyTorch.")
@@ -64,6 +65,9 @@ def build_parser() -> argparse.ArgumentParser:
     v = sub.add_parser("render", help="render a volume (MIP, DVR, average), optionally deformed by node offsets")
     volume.add_render_arguments(v)
     v.set_defaults(func=volume.render_command)
+    t = sub.add_parser("texture", help="colour a closed mesh with a solid texture (.ply, .glb, .obj)")
+    texture.add_arguments(t)
+    t.set_defaults(func=texture.command)
     return p
 
 

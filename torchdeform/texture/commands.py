@@ -1,0 +1,83 @@
+"""Command-line code of solid textures: ``torchdeform texture EXEMPLAR --mesh MESH --out OUT``.
+
+Colours any closed triangle mesh with a solid texture: the mesh's own coordinates are its
+material coordinates. Bad input (an exemplar that is not RGB, slice images of different sizes, a
+block larger than the exemplar, a mesh that is not closed, an unknown output type) is a
+:class:`~torchdeform.errors.ConfigError`: one line on stderr and exit status 2.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import torch
+
+from ..errors import ConfigError
+
+__all__ = ["add_arguments", "command", "exemplar_from"]
+
+
+def add_arguments(p) -> None:
+    """The arguments of ``torchdeform texture`` on an :mod:`argparse` parser."""
+    p.add_argument("exemplar", help="liver[:N] (procedural, N^3 voxels, default 128), a .npy/.npz RGB volume or a "
+                                    "folder of slice images")
+    p.add_argument("--mesh", required=True, help="a closed triangle mesh (.stl, .obj, .ply, .off, ...)")
+    p.add_argument("--out", required=True, help="output: .ply (vertex colours), .glb or .obj (texture atlas)")
+    p.add_argument("--scale", type=float, default=1.0, help="metres per mesh unit (default 1)")
+    p.add_argument("--voxel", type=float, default=None,
+                   help="texture voxel size in metres (default: the mesh's largest extent / 128)")
+    p.add_argument("--block", type=int, default=None, help="block size in voxels (default: half the exemplar)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the block offsets (and of a procedural exemplar)")
+    p.add_argument("--image", default=None, help="also write a PNG view of the textured mesh")
+
+
+def exemplar_from(spec: str, seed: int = 0) -> torch.Tensor:
+    """``liver`` / ``liver:N`` (procedural) or a file or folder (:func:`~torchdeform.texture.load_exemplar`)."""
+    from .exemplar import liver_exemplar, load_exemplar
+    if spec == "liver" or spec.startswith("liver:"):
+        size = spec.partition(":")[2] or "128"
+        if not size.isdigit():
+            raise ConfigError("exemplar", "liver or liver:N with N voxels per side", spec)
+        return liver_exemplar(int(size), seed=seed)
+    return load_exemplar(spec)
+
+
+def command(args) -> int:
+    """``torchdeform texture``: colour a closed mesh with a solid texture; returns the exit status."""
+    from ..mesh import load_mesh
+    from .synthesis import SolidTexture
+    out = Path(args.out)
+    if out.suffix.lower() not in (".ply", ".glb", ".obj"):
+        raise ConfigError("--out", "a .ply, .glb or .obj file", str(out))
+    vertices, faces = load_mesh(args.mesh, args.scale, key="--mesh")
+    ex = exemplar_from(args.exemplar, args.seed)
+    lo, hi = vertices.min(0), vertices.max(0)
+    voxel = args.voxel or float((hi - lo).max()) / 128
+    if not voxel > 0:
+        raise ConfigError("--voxel", "a positive voxel size (m)", args.voxel)
+    block = args.block or min(ex.shape[1:]) // 2
+    extent = [int((h - l) / voxel) + 2 for l, h in zip(lo, hi)]
+    tex = SolidTexture(ex, block=block, extent=extent, seed=args.seed, voxel=voxel, origin=tuple(lo))
+    t0 = time.perf_counter()
+    from .atlas import export_textured
+    export_textured(out, vertices, faces, vertices, tex)
+    took = time.perf_counter() - t0
+    if args.image:
+        _image(args.image, vertices, faces, tex)
+    print(f"textured {args.mesh} ({len(vertices)} vertices, {len(faces)} faces) with {args.exemplar} "
+          f"({'x'.join(map(str, ex.shape[1:]))} voxels, {block}^3 blocks, {'x'.join(map(str, tex.blocks))} of them, "
+          f"{voxel * 1e3:.3g} mm voxels) in {took:.2f} s -> {out}" + (f", {args.image}" if args.image else ""))
+    return 0
+
+
+def _image(path, vertices, faces, tex) -> None:
+    """A perspective view of the textured mesh from an oblique corner."""
+    from ..mesh import Camera, save_png
+    from ..topology.surfaces import CutSurface
+    from .mapping import render_textured
+    v = torch.as_tensor(vertices, dtype=torch.float64)
+    centre, size = (v.max(0).values + v.min(0).values) / 2, float((v.max(0).values - v.min(0).values).max())
+    eye = centre + torch.tensor([1.2, -1.0, 1.4], dtype=torch.float64) * size
+    cam = Camera(eye=tuple(eye.tolist()), target=tuple(centre.tolist()), fov_deg=40, size=(384, 512))
+    out = render_textured([CutSurface(0, vertices, faces, vertices)], tex, cam, light=(1.0, -0.5, 0.7))
+    save_png(path, out["image"])
