@@ -27,6 +27,8 @@ BENCHES = {
                     "(compiled), and the haptic loop's force rate on 64^3", "interaction"),
     "topology": ("a full cut between two layers of an n^3 body under its compiled step: springs removed vs "
                  "the analytic count, cut time, step time before and after, recompilations", "topology"),
+    "texture": ("solid texture on meshes of Chen & He's model sizes: node colouring and triangle interiors "
+                "against their GPU times, and a fresh cut face", "texture"),
 }
 
 

@@ -76,6 +76,13 @@ class SolidTexture:
         self.offsets = (torch.rand(*self.blocks, 3, generator=gen) * high).long().clamp_(max=high - 1)
 
     # ------------------------------------------------------------------ lookup
+    def _exemplar(self, dtype) -> torch.Tensor:
+        """The exemplar in ``dtype``, converted once (a 128^3 float64 copy is 50 MB)."""
+        cache = self.__dict__.setdefault("_by_dtype", {self.exemplar.dtype: self.exemplar})
+        if dtype not in cache:
+            cache[dtype] = self.exemplar.to(dtype)
+        return cache[dtype]
+
     def exemplar_points(self, points: torch.Tensor) -> torch.Tensor:
         """Exemplar voxel coordinates ``(N, 3)`` of texture points ``(N, 3)`` (voxels, float)."""
         b = self.block
@@ -89,7 +96,7 @@ class SolidTexture:
         if mode not in ("trilinear", "nearest"):
             raise ConfigError("texture.mode", '"trilinear" or "nearest"', mode)
         q = self.exemplar_points(points)
-        ex = self.exemplar.to(points.dtype)
+        ex = self._exemplar(points.dtype)
         grid = to_grid_sample(q.T.reshape(1, 3, -1, 1, 1), ex.shape[1:], align_corners=True)
         out = F.grid_sample(ex[None], grid, mode="bilinear" if mode == "trilinear" else "nearest",
                             padding_mode="border", align_corners=True)
