@@ -91,6 +91,9 @@ class Scene:
     #: optional ``{"file": .., "tf": .., "mode": .., "view": ..}``: a volume (file or ``"phantom:N"``)
     #: deformed by the final state; ``run_scene`` then writes before/after renders and the deformed volume
     volume: dict | None = None
+    #: optional ``{"exemplar": .., "block": .., "seed": .., "voxel": ..}``: a solid texture on the body's
+    #: material coordinates; ``run_scene`` then writes ``textured.png`` of the final surfaces
+    texture: dict | None = None
     #: optional :class:`~torchdeform.scene.tools.ToolSet` (``[[tools]]``, ``[strain_limit]``): ``run_scene``
     #: runs fresh interactions built from it and writes the tools' force series and plots
     tools: ToolSet | None = None
@@ -387,6 +390,21 @@ def mass_spring_scene(src: Source, data: dict, base: Path, name: str = "scene") 
                         "mode": vt.text("mode", '"dvr", "mip" or "average"', "dvr", ("dvr", "mip", "average")),
                         "view": vt.text("view", "an axis view d, h, w, -d, -h, -w", "h",
                                         ("d", "h", "w", "-d", "-h", "-w")), "base": str(base)}
+    if "texture" in data:
+        tt = Table(src, "texture", data["texture"], SECTIONS["texture"])
+        exemplar = tt.text("exemplar", 'liver, liver:N or an exemplar file (.npy, .npz, a folder of slices)', "liver:64")
+        if not exemplar.startswith("liver"):
+            exemplar = str(Path(base) / exemplar)
+        with src.located(tt.key("exemplar")):
+            from ..texture.commands import exemplar_from
+            ex = exemplar_from(exemplar, tt.integer("seed", "an integer >= 0", 0))
+        block = tt.integer("block", "an integer block size >= 2 (voxels)", min(ex.shape[1:]) // 2, lo=2)
+        if block > min(ex.shape[1:]):
+            raise tt.fail("block", f"a block no larger than the exemplar's smallest side ({min(ex.shape[1:])} voxels)",
+                          block)
+        spacing = min(scene.grid.spacing)
+        scene.texture = {"exemplar": ex, "block": block, "seed": tt.integer("seed", "an integer >= 0", 0),
+                         "voxel": tt.num("voxel", "a positive voxel size (m)", spacing / 4, lo=0, lo_open=True)}
     scene.build("cpu")
     return scene
 

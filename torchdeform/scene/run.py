@@ -29,7 +29,7 @@ from .reader import read
 from .tools import ToolRecorder, support_series, tool_outputs
 
 __all__ = ["load_scene", "run_scene", "energy_series", "plot_energy", "one_line_warnings", "report",
-           "scene_volume_outputs"]
+           "scene_volume_outputs", "scene_texture_outputs"]
 
 
 def load_scene(path) -> Scene | ChainMailScene:
@@ -290,6 +290,9 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
                                     f"{scene.name}: {integrator.name}, dt = {dt:.3g} s"))
     if events is not None:
         summary["topology"] = events.outputs(final, out, f"{scene.name}: {integrator.name}, dt = {dt:.3g} s")
+    if scene.texture:
+        labels = events.pieces() if events is not None else torch.where(grid.nodes(), 0, -1)
+        summary["texture"] = scene_texture_outputs(scene.texture, grid, final.x[:1], labels, out)
     if scene.volume:
         v = dict(scene.volume)
         cut = None if events is None else (grid, events.pieces())          # a cut body: a carved render
@@ -388,3 +391,38 @@ def scene_volume_outputs(volume, x, X, spacing, out_dir, tf: str = "ct-soft", mo
     return {"volume": name, "shape": list(vol.shape), "max_offset_voxels": float(offsets.abs().max()),
             "folded_fraction": info["folded"], "outputs": ["volume_before.png", "volume_after.png",
                                                             "volume_deformed.npy"]}
+
+
+def scene_texture_outputs(spec: dict, grid, x, labels, out_dir) -> dict:
+    """Write ``textured.png``: the final surfaces (one per piece) coloured by a solid texture.
+
+    The texture covers the body's rest box; colours are looked up at every pixel's material
+    coordinates, so cut faces show the interior (:func:`~torchdeform.texture.render_textured`).
+
+    Args:
+        spec: ``{"exemplar": (3, E, E, E), "block", "seed", "voxel"}``.
+        grid: the grid.
+        x: final positions ``(1, 3, D, H, W)`` (m).
+        labels: pieces ``(D, H, W)`` (negative outside the body).
+        out_dir: the output folder.
+
+    Returns:
+        a summary dict for ``summary.json``.
+    """
+    from ..mesh import Camera, save_png
+    from ..texture import SolidTexture, render_textured
+    from ..topology import cut_surfaces
+    X = grid.rest_positions(torch.float64)[0].reshape(3, -1)
+    lo, hi = X.min(1).values, X.max(1).values
+    pad = 2 * max(grid.spacing)                                   # the surfaces reach half a cell out
+    extent = [int((h - l + 2 * pad) / spec["voxel"]) + 2 for l, h in zip(lo.tolist(), hi.tolist())]
+    tex = SolidTexture(spec["exemplar"], block=spec["block"], extent=extent, seed=spec["seed"], voxel=spec["voxel"],
+                       origin=tuple((lo - pad).tolist()))
+    pieces = cut_surfaces(grid, x.detach().double().cpu(), labels.cpu())
+    v = torch.cat([torch.as_tensor(p.vertices) for p in pieces])
+    centre, size = (v.max(0).values + v.min(0).values) / 2, float((v.max(0).values - v.min(0).values).max())
+    eye = centre + torch.tensor([1.3, -1.1, 0.9], dtype=torch.float64) * size
+    camera = Camera(eye=tuple(eye.tolist()), target=tuple(centre.tolist()), fov_deg=38, size=(384, 512))
+    save_png(Path(out_dir) / "textured.png", render_textured(pieces, tex, camera, light=(1.0, -0.5, 0.6))["image"])
+    return {"exemplar_voxels": list(spec["exemplar"].shape[1:]), "block": spec["block"], "blocks": list(tex.blocks),
+            "voxel_m": spec["voxel"], "pieces": len(pieces), "outputs": ["textured.png"]}
