@@ -87,7 +87,7 @@ from ..sim.grid import Grid
 from ..sim.integrators import conjugate_gradient
 from ..sim.springs import accumulate, adjoint, difference
 
-__all__ = ["seam_measure", "poisson_blend_3d", "poisson_blend_slices", "histogram_distance", "face_edges",
+__all__ = ["seam_measure", "seam_jump", "poisson_blend_3d", "poisson_blend_slices", "histogram_distance", "face_edges",
            "seam_band"]
 
 GUIDES = ("mean", "zero")
@@ -284,6 +284,66 @@ def seam_measure(volume: torch.Tensor, block, *, axis: int | None = None,
         dr = difference(reference[None], rgrid)[0].abs()
         den = dr[rgrid.in_grid_mask(reference.device)[:, None].expand_as(dr)].mean()
     return float(num / den.clamp_min(torch.finfo(den.dtype).tiny))
+
+
+def seam_jump(volume: torch.Tensor, block, *, reference: torch.Tensor | None = None) -> float:
+    """How much the colour gradient jumps across block faces, relative to the mean gradient.
+
+    For every face edge (planes ``k b - 1`` and ``k b`` along an axis) the step across the face is
+    compared with the mean of the steps just before and after it along the same axis:
+    ``J = mean |d_face - (d_before + d_after) / 2|`` over face edges and channels, divided by the
+    mean ``|d|`` over the 6-neighbour edges of ``reference`` (e.g. the exemplar), or of the
+    in-block edges of ``volume``. A seamless texture scores its own second-difference level (about
+    0.25 for the procedural liver, 0 for a linear ramp), a seam adds its jump: unlike
+    :func:`seam_measure`, whose floor is 1, it can fall as far as the seams can be removed.
+
+    Args:
+        volume: ``(C, D, H, W)`` float.
+        block: block size, one int or one per axis.
+        reference: optional ``(C, d, h, w)`` volume whose mean gradient is the denominator.
+
+    Returns:
+        the ratio, a Python float.
+
+    Example:
+        >>> import torch
+        >>> from torchdeform.texture.seams import seam_jump
+        >>> i, j, k = torch.meshgrid(*[torch.arange(8.0)] * 3, indexing="ij")
+        >>> v = (i + j + k).expand(3, 8, 8, 8).clone()             # a ramp: no jump anywhere
+        >>> seam_jump(v, 4)
+        0.0
+        >>> v[:, 4:] += 3.0                                        # a step of 3 on the face at D = 4
+        >>> seam_jump(v, 4)                                        # 3 on a third of the face edges
+        1.0
+    """
+    volume = _check_volume(volume)
+    shape = tuple(volume.shape[1:])
+    faces = face_edges(shape, block).to(volume.device)
+    grid = Grid(shape, spacing=1.0, topology=6)
+    d = difference(volume[None], grid)[0]                              # (3, C, D, H, W), signed
+    total, count = d.new_zeros(()), 0
+    for a in range(3):
+        n = shape[a]
+        ok = faces[a].clone()
+        idx = torch.arange(n, device=volume.device).view([-1 if b == a else 1 for b in range(3)])
+        ok &= (idx >= 1) & (idx + 2 <= n - 1)                          # steps before and after exist
+        if not bool(ok.any()):
+            continue
+        da = d[a]                                                      # (C, D, H, W)
+        before, after = torch.roll(da, 1, 1 + a), torch.roll(da, -1, 1 + a)
+        jump = (da - (before + after) / 2).abs()[:, ok]
+        total, count = total + jump.sum(), count + jump.numel()
+    if count == 0:
+        raise ConfigError("block", f"a block size that puts a face inside the volume {shape}", block)
+    if reference is None:
+        inblock = (grid.in_grid_mask(volume.device) & ~faces)[:, None].expand_as(d)
+        den = d.abs()[inblock].mean()
+    else:
+        reference = _check_volume(reference, "reference")
+        rgrid = Grid(tuple(reference.shape[1:]), spacing=1.0, topology=6)
+        dr = difference(reference[None], rgrid)[0].abs()
+        den = dr[rgrid.in_grid_mask(reference.device)[:, None].expand_as(dr)].mean()
+    return float(total / count / den.clamp_min(torch.finfo(den.dtype).tiny))
 
 
 def poisson_blend_3d(volume: torch.Tensor, block, *, iters: int = 2000, tol: float = 1e-6,
