@@ -409,8 +409,9 @@ def scene_texture_outputs(spec: dict, grid, x, labels, out_dir) -> dict:
     Returns:
         a summary dict for ``summary.json``.
     """
-    from ..mesh import Camera, save_png
+    from ..mesh import save_png
     from ..texture import SolidTexture, render_textured
+    from ..texture.mapping import framing_camera
     from ..topology import cut_surfaces
     X = grid.rest_positions(torch.float64)[0].reshape(3, -1)
     lo, hi = X.min(1).values, X.max(1).values
@@ -419,10 +420,7 @@ def scene_texture_outputs(spec: dict, grid, x, labels, out_dir) -> dict:
     tex = SolidTexture(spec["exemplar"], block=spec["block"], extent=extent, seed=spec["seed"], voxel=spec["voxel"],
                        origin=tuple((lo - pad).tolist()))
     pieces = cut_surfaces(grid, x.detach().double().cpu(), labels.cpu())
-    v = torch.cat([torch.as_tensor(p.vertices) for p in pieces])
-    centre, size = (v.max(0).values + v.min(0).values) / 2, float((v.max(0).values - v.min(0).values).max())
-    eye = centre + torch.tensor([1.3, -1.1, 0.9], dtype=torch.float64) * size
-    camera = Camera(eye=tuple(eye.tolist()), target=tuple(centre.tolist()), fov_deg=38, size=(384, 512))
+    camera = framing_camera(torch.cat([torch.as_tensor(p.vertices) for p in pieces]), (1.3, -1.1, 0.9), 38.0)
     save_png(Path(out_dir) / "textured.png", render_textured(pieces, tex, camera, light=(1.0, -0.5, 0.6))["image"])
     return {"exemplar_voxels": list(spec["exemplar"].shape[1:]), "block": spec["block"], "blocks": list(tex.blocks),
             "voxel_m": spec["voxel"], "pieces": len(pieces), "outputs": ["textured.png"]}

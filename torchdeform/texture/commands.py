@@ -72,12 +72,9 @@ def command(args) -> int:
 
 def _image(path, vertices, faces, tex) -> None:
     """A perspective view of the textured mesh from an oblique corner."""
-    from ..mesh import Camera, save_png
+    from ..mesh import save_png
     from ..topology.surfaces import CutSurface
-    from .mapping import render_textured
-    v = torch.as_tensor(vertices, dtype=torch.float64)
-    centre, size = (v.max(0).values + v.min(0).values) / 2, float((v.max(0).values - v.min(0).values).max())
-    eye = centre + torch.tensor([1.2, -1.0, 1.4], dtype=torch.float64) * size
-    cam = Camera(eye=tuple(eye.tolist()), target=tuple(centre.tolist()), fov_deg=40, size=(384, 512))
+    from .mapping import framing_camera, render_textured
+    cam = framing_camera(vertices, (1.2, -1.0, 1.4), 40.0, (384, 512))
     out = render_textured([CutSurface(0, vertices, faces, vertices)], tex, cam, light=(1.0, -0.5, 0.7))
     save_png(path, out["image"])

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["vertex_colours", "render_textured"]
+__all__ = ["vertex_colours", "render_textured", "framing_camera"]
 
 
 def vertex_colours(texture, surface) -> torch.Tensor:
@@ -34,6 +34,19 @@ def vertex_colours(texture, surface) -> torch.Tensor:
             :class:`~torchdeform.topology.surfaces.CutSurface`.
     """
     return texture.at_material(torch.as_tensor(surface.rest, dtype=torch.float64)).float()
+
+
+def framing_camera(vertices, direction=(1.2, -1.0, 1.4), fov_deg: float = 40.0, size=(384, 512)):
+    """A perspective camera looking at the centre of ``vertices`` ``(N, 3)`` from ``direction`` times their size.
+
+    ``direction`` is in units of the largest side of the vertices' bounding box (m), from its centre.
+    """
+    from ..mesh.raster import Camera
+    v = torch.as_tensor(vertices, dtype=torch.float64)
+    lo, hi = v.min(0).values, v.max(0).values
+    centre, extent = (hi + lo) / 2, float((hi - lo).max())
+    eye = centre + torch.tensor(direction, dtype=torch.float64) * extent
+    return Camera(eye=tuple(eye.tolist()), target=tuple(centre.tolist()), fov_deg=fov_deg, size=size)
 
 
 def render_textured(surfaces, texture, camera, *, light=None, ambient: float = 0.35, per_pixel: bool = True,

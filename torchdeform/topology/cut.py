@@ -141,11 +141,6 @@ class Blade:
         o = self.patches[0][0]
         return ((x - self._vec(o, x)) * self._vec(self.normal, x)).sum(1, keepdim=True)
 
-    def within(self, r: torch.Tensor) -> torch.Tensor:
-        """Bool ``(B, 1, ...)``: points ``r`` ``(B, 3, ...)`` on the blade's plane lie within one of its patches."""
-        flat = r.transpose(0, 1).reshape(3, -1)
-        return _patch_hits(flat, self.patches).view(r.shape[0], 1, *r.shape[2:])
-
     def bounds(self) -> tuple[tuple, tuple]:
         """The axis-aligned box ``(low, high)`` of the blade (m)."""
         pts = []
@@ -170,18 +165,21 @@ class Blade:
         return self._planes[1]
 
 
-def _patch_coordinates(r: torch.Tensor, patch) -> tuple:
-    """``(a, b)`` of points ``r`` ``(3, ...)`` in a patch's frame ``o + a u + b v`` (normal part ignored)."""
+def _patch_coordinates(point, patch) -> tuple:
+    """``(a, b)`` of a point in a patch's frame ``o + a u + b v`` (normal part ignored).
+
+    ``point``: three components, floats or tensors of any shape (``r`` ``(3, ...)`` works as is).
+    """
     o, u, v, _ = patch
     uu, uv, vv = _dot(u, u), _dot(u, v), _dot(v, v)
     det = uu * vv - uv * uv
-    d = r - r.new_tensor(o).view(3, *[1] * (r.dim() - 1))
-    du = d[0] * u[0] + d[1] * u[1] + d[2] * u[2]
-    dv = d[0] * v[0] + d[1] * v[1] + d[2] * v[2]
+    d = [point[i] - o[i] for i in range(3)]
+    du, dv = _dot(d, u), _dot(d, v)
     return (vv * du - uv * dv) / det, (uu * dv - uv * du) / det
 
 
 def _inside(a, b, triangle: bool, tol: float):
+    """Coordinates within the patch, widened by ``tol`` (narrowed when negative); floats or tensors."""
     return (a >= -tol) & (b >= -tol) & ((a + b <= 1 + tol) if triangle else ((a <= 1 + tol) & (b <= 1 + tol)))
 
 
@@ -189,25 +187,11 @@ def _covers(box, patches) -> bool:
     """One of the patches holds the projection of the box ``[low (3,), high (3,)]`` onto their plane.
 
     The patch coordinates are linear in the point, so testing the 8 corners suffices (plain floats:
-    a handful of numbers, no tensor calls).
+    a handful of numbers, no tensor calls), strictly inside by a margin of 1e-12.
     """
     corners = [(x, y, z) for x in (box[0][0], box[1][0]) for y in (box[0][1], box[1][1])
                for z in (box[0][2], box[1][2])]
-    tol = 1e-12
-    for o, u, v, tri in patches:
-        uu, uv, vv = _dot(u, u), _dot(u, v), _dot(v, v)
-        det = uu * vv - uv * uv
-        ok = True
-        for p in corners:
-            d = [a - b for a, b in zip(p, o)]
-            du, dv = _dot(d, u), _dot(d, v)
-            a, b = (vv * du - uv * dv) / det, (uu * dv - uv * du) / det
-            if a < tol or b < tol or (a + b > 1 - tol if tri else (a > 1 - tol or b > 1 - tol)):
-                ok = False
-                break
-        if ok:
-            return True
-    return False
+    return any(all(_inside(*_patch_coordinates(c, patch), patch[3], -1e-12) for c in corners) for patch in patches)
 
 
 def _patch_hits(r: torch.Tensor, patches) -> torch.Tensor:

@@ -111,35 +111,8 @@ def slot_index(grid, springs) -> tuple:
     if isinstance(springs, tuple):
         return springs
     if isinstance(springs, list):
-        dense = _dense(grid, (), 1 + max((p.batch for p in springs), default=0), springs[0].mask.device
-                       if springs else None)
-        for piece in springs:
-            piece.view(dense).logical_or_(piece.mask)
-        return dense.nonzero(as_tuple=True)
+        springs = _union(grid, springs)
     return springs.nonzero(as_tuple=True)
-
-
-def _storage(t: torch.Tensor) -> torch.Tensor:
-    """All of ``t``'s storage as one flat tensor (writes through it reach ``t`` and its views)."""
-    return t.as_strided((t.untyped_storage().nbytes() // t.element_size(),), (1,), 0)
-
-
-def _linear(grid, t: torch.Tensor, idx: tuple) -> torch.Tensor:
-    """Storage positions of the slots ``t[b, s, d, h, w]`` of a full per-slot field ``t``.
-
-    The node part comes from a table of node offsets cached per stride (one gather).
-    """
-    b, s, d, h, w = idx
-    key = ("node_offsets", t.stride()[2:], str(t.device))
-    if key not in grid._cache:
-        D, H, W = grid.shape
-        st = t.stride()
-        grid._cache[key] = (torch.arange(D, device=t.device).view(-1, 1, 1) * st[2]
-                            + torch.arange(H, device=t.device).view(1, -1, 1) * st[3]
-                            + torch.arange(W, device=t.device).view(1, 1, -1) * st[4]).flatten()
-    _, H, W = grid.shape
-    at = grid._cache[key][(d * H + h) * W + w] + s * t.stride(1) + t.storage_offset()
-    return at if t.shape[0] == 1 else at + b * t.stride(0)
 
 
 def _dense(grid, idx: tuple, batch: int, device) -> torch.Tensor:
@@ -149,10 +122,29 @@ def _dense(grid, idx: tuple, batch: int, device) -> torch.Tensor:
     return out
 
 
+def _union(grid, pieces: list, device=None) -> torch.Tensor:
+    """The slots of a list of :class:`Slab` as one bool field ``(B, S, D, H, W)``."""
+    device = pieces[0].mask.device if pieces else device
+    out = _dense(grid, (), 1 + max((p.batch for p in pieces), default=0), device)
+    for piece in pieces:
+        piece.view(out).logical_or_(piece.mask)
+    return out
+
+
 def _full_slots(model, t) -> bool:
     """``t`` is a full per-slot field that may be written in place."""
     return (t is not None and t.dim() == 5 and tuple(t.shape[1:]) == (model.grid.S,) + model.grid.shape
             and not t.requires_grad)
+
+
+def _slabs(grid, springs) -> list:
+    """Slots given in any accepted form as a list of :class:`Slab` (a bool field: one slab per batch entry)."""
+    if isinstance(springs, list):
+        return springs
+    if isinstance(springs, tuple):
+        springs = _dense(grid, springs, int(springs[0].max()) + 1 if springs[0].numel() else 1,
+                         springs[0].device)
+    return [Slab(b, 0, 0, springs[b]) for b in range(springs.shape[0])]
 
 
 def remove(model, springs) -> int:
@@ -167,33 +159,20 @@ def remove(model, springs) -> int:
     # is; damping stored per spring is zeroed too (so the model reads the same either way).
     k, c = model.stiffness, model.damping
     c = c if _full_slots(model, c) and c.shape == k.shape else None
-    if isinstance(springs, list):
-        nb = 1 + max((p.batch for p in springs), default=0)
-        if _full_slots(model, k) and nb <= k.shape[0]:
-            count = 0
-            for piece in springs:                    # two dense operations over the slab's layers
-                kv = piece.view(k)
-                count += int(torch.count_nonzero(kv * piece.mask))
-                kv.masked_fill_(piece.mask, 0)
-                if c is not None:
-                    piece.view(c).masked_fill_(piece.mask, 0)
-            return count
-    idx = slot_index(model.grid, springs)
-    if idx[0].numel() == 0:
-        return 0
-    nb = int(idx[0].max()) + 1
+    pieces = _slabs(model.grid, springs)
+    nb = 1 + max((p.batch for p in pieces), default=0)
     if _full_slots(model, k) and nb <= k.shape[0]:
-        at = _linear(model.grid, k, idx)
-        flat = _storage(k)
-        count = int((flat[at] != 0).sum())
-        flat.index_fill_(0, at, 0)
-        if c is not None:
-            same = c.stride() == k.stride() and c.storage_offset() == k.storage_offset()
-            _storage(c).index_fill_(0, at if same else _linear(model.grid, c, idx), 0)
+        count = 0
+        for piece in pieces:                         # two dense operations over the slab's layers
+            kv = piece.view(k)
+            count += int(torch.count_nonzero(kv * piece.mask))
+            kv.masked_fill_(piece.mask, 0)
+            if c is not None:
+                piece.view(c).masked_fill_(piece.mask, 0)
         return count
     if model.shared:
         raise ConfigError("remove.springs", f"one cut per batch entry of the model's {k.shape[0]}", nb)
-    dense = _dense(model.grid, idx, nb, k.device)
+    dense = _union(model.grid, pieces, k.device)
     count = int((dense & alive(model)).sum())
     keep = (~dense).to(model.dtype)
     model.stiffness = full(model, model.stiffness) * keep
