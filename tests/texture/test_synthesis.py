@@ -68,6 +68,28 @@ def test_nearest_lookup_is_integer_indexing_and_trilinear_interpolates(exemplar)
         assert np.allclose(got[n].numpy(), ref, atol=1e-12)
 
 
+@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 1e-4)])
+def test_trilinear_slice_lookup_equals_3d_grid_sample(dtype, tol):
+    """The slice-atlas lookup against one 3-D ``grid_sample`` (border padding), points inside and
+    outside a non-cubic exemplar; 20,001 points on 3 threads exercise the split into batch elements."""
+    import torch.nn.functional as F
+
+    from torchdeform.volume import to_grid_sample
+    ex = liver_exemplar(24, seed=4)[:, :19, :, :21].to(dtype)                 # 19 slices: 5 x 4 tiles
+    tex = SolidTexture(ex, block=8, extent=(16, 16, 16))
+    gen = torch.Generator().manual_seed(1)
+    q = torch.rand(20001, 3, generator=gen, dtype=dtype) * torch.tensor([23.0, 28, 25], dtype=dtype) - 2
+    grid = to_grid_sample(q.T.reshape(1, 3, -1, 1, 1), ex.shape[1:], align_corners=True)
+    ref = F.grid_sample(ex[None], grid, mode="bilinear", padding_mode="border", align_corners=True)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(3)
+    try:
+        got = tex._trilinear(q)
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.allclose(got, ref.reshape(3, -1).T, rtol=0, atol=tol)
+
+
 def test_colours_of_a_surface_ignore_rigid_motion(exemplar):
     """The surface of a body moved rigidly carries the same rest coordinates, hence the same colours."""
     from torchdeform.topology import cut_surfaces
