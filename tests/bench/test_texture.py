@@ -15,7 +15,8 @@ def test_hull_meshes_are_closed_with_chen_and_he_counts():
 
 
 def test_bench_texture_json(capsys, tmp_path):
-    assert cli.main(["bench", "texture", "--quick", "--json", "--repeats", "1", "--out", str(tmp_path)]) == 0
+    assert cli.main(["bench", "texture", "--quick", "--json", "--repeats", "1", "--out", str(tmp_path),
+                     "--seam-blocks", "2,1,1"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["bench"] == "texture" and {"machine", "met", "target_speedup"} <= set(doc)
     rows = {r["model"]: r for r in doc["rows"]}
@@ -27,3 +28,16 @@ def test_bench_texture_json(capsys, tmp_path):
         assert abs(r["speedup_nodes"] - gpu_nodes * 1e3 / r["node_ms"]) < 1e-9
     assert rows["cut face"]["samples"] > 0 and rows["cut face"]["triangle_ms"] > 0
     assert (tmp_path / "texture.csv").is_file() and (tmp_path / "texture.png").is_file()
+    seams = {r["method"]: r for r in doc["seams"]}
+    assert set(seams) == {"tiled", "3-D Poisson", "per-slice 2-D (D)", "exemplar (floor)"}
+    assert seams["tiled"]["box"] == [128, 64, 64]
+    for r in seams.values():
+        assert abs(r["reduction"] - seams["tiled"]["seam_jump"] / r["seam_jump"]) < 1e-9
+    assert seams["3-D Poisson"]["seam_jump"] < seams["tiled"]["seam_jump"]
+    assert (tmp_path / "texture_seams.png").is_file()
+
+
+def test_bad_seam_blocks_is_one_line_and_exit_2(capsys):
+    assert cli.main(["bench", "texture", "--seam-blocks", "2,x"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--seam-blocks" in err[0], err

@@ -13,6 +13,7 @@ TEXTURE = """
 exemplar = "liver:16"
 block = 8
 voxel = 0.0025
+seams = "3d"
 """
 
 
@@ -22,6 +23,7 @@ def test_texture_section_writes_a_textured_image(tmp_path):
     # the box: rest extent 3, 2, 3 cm plus two spacings on each side, in 2.5 mm voxels, blocks of 8
     extent = [int((e + 4 * 0.01) / 0.0025) + 2 for e in (0.03, 0.02, 0.03)]
     assert tex["blocks"] == [math.ceil(e / 8) for e in extent] and tex["pieces"] == 2
+    assert tex["seams"]["method"] == "3d" and tex["seams"]["seam_after"] < tex["seams"]["seam_before"]
     from matplotlib.image import imread
     img = imread(out / "textured.png")[..., :3]
     body_px = (img < 0.98).any(2)
@@ -31,7 +33,8 @@ def test_texture_section_writes_a_textured_image(tmp_path):
 
 @pytest.mark.parametrize("text, key", [('exemplar = "liver:16"\nblock = 32', "texture.block"),
                                        ('exemplar = "missing.npy"', "exemplar"),
-                                       ('exemplar = "liver:16"\nvoxel = -1.0', "texture.voxel")])
+                                       ('exemplar = "liver:16"\nvoxel = -1.0', "texture.voxel"),
+                                       ('exemplar = "liver:16"\nseams = "poisson"', "texture.seams")])
 def test_bad_texture_sections(tmp_path, capsys, text, key):
     path = write(tmp_path, body() + f"\n[texture]\n{text}\n" + run_part(steps=2))
     assert cli.main(["run", str(path), "--out", str(tmp_path / "o")]) == 2

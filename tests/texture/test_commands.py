@@ -18,9 +18,10 @@ def sphere(tmp_path):
 def test_texture_command_writes_vertex_colours(tmp_path, sphere, capsys):
     out = tmp_path / "sphere.ply"
     rc = cli.main(["texture", "liver:32", "--mesh", str(sphere), "--scale", "0.001", "--out", str(out),
-                   "--block", "16", "--image", str(tmp_path / "view.png")])
+                   "--block", "16", "--image", str(tmp_path / "view.png"), "--seams", "3d"])
     assert rc == 0
-    assert "textured" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "textured" in printed and "seams (3d Poisson" in printed
     mesh = trimesh.load(out)
     assert len(mesh.vertices) == 162 and mesh.is_watertight
     colours = np.asarray(mesh.visual.vertex_colors)[:, :3]
@@ -34,6 +35,7 @@ BAD = {
     "block larger than the exemplar": ("liver:16", "texture.block", "block size"),
     "open mesh": ("liver:16", "--mesh", "closed"),
     "unknown output": ("liver:16", "--out", ".ply, .glb or .obj"),
+    "unknown seam method": ("liver:16", "--seams", "none or 3d or slices"),
 }
 
 
@@ -53,7 +55,8 @@ def test_bad_input_is_one_line_and_exit_2(case, tmp_path, sphere, capsys):
         m.export(mesh)
     ex = str(tmp_path / ex) if not ex.startswith("liver") else ex
     out = tmp_path / ("x.txt" if case == "unknown output" else "x.ply")
-    args = ["texture", ex, "--mesh", str(mesh), "--out", str(out)] + (["--block", "64"] if "block" in case else [])
+    args = ["texture", ex, "--mesh", str(mesh), "--out", str(out)] + (["--block", "64"] if "block" in case else []) \
+        + (["--seams", "poisson"] if "seam" in case else [])
     assert cli.main(args) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and key in err[0] and text in err[0], err

@@ -263,3 +263,34 @@ def test_poisson_blend_removes_most_of_the_gradient_jump_of_a_tiled_liver():
     tiled, blended, seamless = (seam_jump(x, 16, reference=ex) for x in (v, u, ex))
     assert tiled > 5 * blended and blended < 3 * seamless
     assert histogram_distance(u, ex) < 1.5 * histogram_distance(v, ex) + 0.005
+
+
+def test_solid_texture_blend_reads_the_blended_volume_from_then_on():
+    """``SolidTexture.blend``: lookups = the Poisson-blended materialised texture (nearest: exactly;
+    trilinear: one 3-D ``grid_sample`` of it), the report's measures = seam_jump / histogram_distance."""
+    import torch.nn.functional as F
+
+    from torchdeform.texture import SolidTexture, liver_exemplar
+    from torchdeform.texture.seams import histogram_distance, poisson_blend_3d, poisson_blend_slices, seam_jump
+    from torchdeform.volume import to_grid_sample
+    ex = liver_exemplar(32, seed=2)
+    tiled = SolidTexture(ex, block=16, extent=(40, 32, 24), seed=3).materialise()
+    for method, blend in (("3d", poisson_blend_3d), ("slices", poisson_blend_slices)):
+        tex = SolidTexture(ex, block=16, extent=(40, 32, 24), seed=3)
+        report = tex.blend(method)
+        want = blend(tiled, 16).clamp(0, 1)
+        assert torch.equal(tex.materialise(), want)
+        gen = torch.Generator().manual_seed(0)
+        P = torch.rand(300, 3, generator=gen) * torch.tensor([42.0, 34, 26]) - 1
+        grid = to_grid_sample(P.T.reshape(1, 3, -1, 1, 1), want.shape[1:], align_corners=True)
+        ref = F.grid_sample(want[None], grid, mode="bilinear", padding_mode="border", align_corners=True)
+        torch.testing.assert_close(tex.colour(P), ref.reshape(3, -1).T, atol=1e-4, rtol=0)
+        assert report["seam_before"] == pytest.approx(seam_jump(tiled, 16, reference=ex))
+        assert report["seam_after"] == pytest.approx(seam_jump(blend(tiled, 16), 16, reference=ex))
+        assert report["histogram_after"] == pytest.approx(histogram_distance(blend(tiled, 16), ex))
+    assert report["seam_after"] < report["seam_before"]
+    tex = SolidTexture(ex, block=16, extent=(40, 32, 24), seed=3)
+    assert tex.blend("none")["seam_after"] == tex.blend("none")["seam_before"] and tex.volume is None
+    assert torch.equal(tex.materialise(), tiled)
+    with pytest.raises(ConfigError, match="texture.seams"):
+        tex.blend("poisson")

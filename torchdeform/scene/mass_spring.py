@@ -391,6 +391,7 @@ def mass_spring_scene(src: Source, data: dict, base: Path, name: str = "scene") 
                         "view": vt.text("view", "an axis view d, h, w, -d, -h, -w", "h",
                                         ("d", "h", "w", "-d", "-h", "-w")), "base": str(base)}
     if "texture" in data:
+        from ..texture.synthesis import SEAM_METHODS
         tt = Table(src, "texture", data["texture"], SECTIONS["texture"])
         exemplar = tt.text("exemplar", 'liver, liver:N or an exemplar file (.npy, .npz, a folder of slices)', "liver:64")
         if not exemplar.startswith("liver"):
@@ -404,7 +405,8 @@ def mass_spring_scene(src: Source, data: dict, base: Path, name: str = "scene") 
                           block)
         spacing = min(scene.grid.spacing)
         scene.texture = {"exemplar": ex, "block": block, "seed": tt.integer("seed", "an integer >= 0", 0),
-                         "voxel": tt.num("voxel", "a positive voxel size (m)", spacing / 4, lo=0, lo_open=True)}
+                         "voxel": tt.num("voxel", "a positive voxel size (m)", spacing / 4, lo=0, lo_open=True),
+                         "seams": tt.text("seams", " or ".join(f'"{m}"' for m in SEAM_METHODS), "none", SEAM_METHODS)}
     scene.build("cpu")
     return scene
 

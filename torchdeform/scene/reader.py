@@ -60,7 +60,7 @@ SECTIONS = {
     "coagulate": ("at", "box", "sphere", "viscosity_factor"),
     "output": ("record_every", "name", "palpation", "surfaces"),
     "volume": ("file", "tf", "mode", "view"),
-    "texture": ("exemplar", "block", "seed", "voxel"),
+    "texture": ("exemplar", "block", "seed", "voxel", "seams"),
     "chainmail": ("method", "compression", "stretch", "shear", "tissue", "reference_stress", "frames",
                   "relax_steps", "relax_mode", "relax_moved_only", "on_blocked"),
 }

@@ -400,7 +400,8 @@ def scene_texture_outputs(spec: dict, grid, x, labels, out_dir) -> dict:
     coordinates, so cut faces show the interior (:func:`~torchdeform.texture.render_textured`).
 
     Args:
-        spec: ``{"exemplar": (3, E, E, E), "block", "seed", "voxel"}``.
+        spec: ``{"exemplar": (3, E, E, E), "block", "seed", "voxel", "seams"}`` (``seams``: a method of
+            :meth:`~torchdeform.texture.SolidTexture.blend`, reported in the summary).
         grid: the grid.
         x: final positions ``(1, 3, D, H, W)`` (m).
         labels: pieces ``(D, H, W)`` (negative outside the body).
@@ -419,8 +420,9 @@ def scene_texture_outputs(spec: dict, grid, x, labels, out_dir) -> dict:
     extent = [int((h - l + 2 * pad) / spec["voxel"]) + 2 for l, h in zip(lo.tolist(), hi.tolist())]
     tex = SolidTexture(spec["exemplar"], block=spec["block"], extent=extent, seed=spec["seed"], voxel=spec["voxel"],
                        origin=tuple((lo - pad).tolist()))
+    seams = tex.blend(spec["seams"]) if spec.get("seams", "none") != "none" else None
     pieces = cut_surfaces(grid, x.detach().double().cpu(), labels.cpu())
     camera = framing_camera(torch.cat([torch.as_tensor(p.vertices) for p in pieces]), (1.3, -1.1, 0.9), 38.0)
     save_png(Path(out_dir) / "textured.png", render_textured(pieces, tex, camera, light=(1.0, -0.5, 0.6))["image"])
     return {"exemplar_voxels": list(spec["exemplar"].shape[1:]), "block": spec["block"], "blocks": list(tex.blocks),
-            "voxel_m": spec["voxel"], "pieces": len(pieces), "outputs": ["textured.png"]}
+            "voxel_m": spec["voxel"], "seams": seams, "pieces": len(pieces), "outputs": ["textured.png"]}

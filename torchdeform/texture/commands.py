@@ -2,7 +2,7 @@
 
 Colours any closed triangle mesh with a solid texture: the mesh's own coordinates are its
 material coordinates. Bad input (an exemplar that is not RGB, slice images of different sizes, a
-block larger than the exemplar, a mesh that is not closed, an unknown output type) is a
+block larger than the exemplar, a mesh that is not closed, an unknown output type or seam method) is a
 :class:`~torchdeform.errors.ConfigError`: one line on stderr and exit status 2.
 """
 from __future__ import annotations
@@ -28,6 +28,8 @@ def add_arguments(p) -> None:
                    help="texture voxel size in metres (default: the mesh's largest extent / 128)")
     p.add_argument("--block", type=int, default=None, help="block size in voxels (default: half the exemplar)")
     p.add_argument("--seed", type=int, default=0, help="seed of the block offsets (and of a procedural exemplar)")
+    p.add_argument("--seams", default="none", help="blend the block seams: none (default), 3d (3-D Poisson) or "
+                                                   "slices (Chen & He's per-slice 2-D Poisson)")
     p.add_argument("--image", default=None, help="also write a PNG view of the textured mesh")
 
 
@@ -45,10 +47,12 @@ def exemplar_from(spec: str, seed: int = 0) -> torch.Tensor:
 def command(args) -> int:
     """``torchdeform texture``: colour a closed mesh with a solid texture; returns the exit status."""
     from ..mesh import load_mesh
-    from .synthesis import SolidTexture
+    from .synthesis import SEAM_METHODS, SolidTexture
     out = Path(args.out)
     if out.suffix.lower() not in (".ply", ".glb", ".obj"):
         raise ConfigError("--out", "a .ply, .glb or .obj file", str(out))
+    if args.seams not in SEAM_METHODS:
+        raise ConfigError("--seams", " or ".join(SEAM_METHODS), args.seams)
     vertices, faces = load_mesh(args.mesh, args.scale, key="--mesh")
     ex = exemplar_from(args.exemplar, args.seed)
     lo, hi = vertices.min(0), vertices.max(0)
@@ -58,6 +62,11 @@ def command(args) -> int:
     block = args.block or min(ex.shape[1:]) // 2
     extent = [int((h - l) / voxel) + 2 for l, h in zip(lo, hi)]
     tex = SolidTexture(ex, block=block, extent=extent, seed=args.seed, voxel=voxel, origin=tuple(lo))
+    seams = ""
+    if args.seams != "none":
+        r = tex.blend(args.seams)
+        seams = (f"; seams ({args.seams} Poisson, {r['seconds']:.1f} s): jump {r['seam_before']:.2f} -> "
+                 f"{r['seam_after']:.2f}, histogram distance {r['histogram_before']:.4f} -> {r['histogram_after']:.4f}")
     t0 = time.perf_counter()
     from .atlas import export_textured
     export_textured(out, vertices, faces, vertices, tex)
@@ -66,7 +75,7 @@ def command(args) -> int:
         _image(args.image, vertices, faces, tex)
     print(f"textured {args.mesh} ({len(vertices)} vertices, {len(faces)} faces) with {args.exemplar} "
           f"({'x'.join(map(str, ex.shape[1:]))} voxels, {block}^3 blocks, {'x'.join(map(str, tex.blocks))} of them, "
-          f"{voxel * 1e3:.3g} mm voxels) in {took:.2f} s -> {out}" + (f", {args.image}" if args.image else ""))
+          f"{voxel * 1e3:.3g} mm voxels) in {took:.2f} s -> {out}" + (f", {args.image}" if args.image else "") + seams)
     return 0
 
 

@@ -13,6 +13,11 @@ cover the body's bounding box. Trilinear samples near a block's far face read th
 voxel past the block (clamped at the exemplar's border): within a block the texture is the
 exemplar's own continuous field.
 
+**Seams.** :meth:`SolidTexture.blend` removes the block seams by Poisson blending (3-D, or Chen
+& He's per slice; :mod:`torchdeform.texture.seams`): it materialises the texture over its extent
+once (``3 D H W`` values: 150 MB in float32 for Chen & He's 256 x 256 x 192 voxels), and lookups
+read the blended volume from then on (trilinear, clamped at its border).
+
 Material coordinates (metres) map to texture voxels by ``(X - origin) / voxel``: a point of the
 tissue keeps its colour however the body moves or is cut (:meth:`SolidTexture.at_material`).
 
@@ -36,7 +41,10 @@ from ..errors import ConfigError
 from ..volume.deform import to_grid_sample
 from .exemplar import as_exemplar
 
-__all__ = ["SolidTexture"]
+__all__ = ["SolidTexture", "SEAM_METHODS"]
+
+#: seam methods of :meth:`SolidTexture.blend` (and of a scene's ``[texture] seams``, ``torchdeform texture --seams``)
+SEAM_METHODS = ("none", "3d", "slices")
 
 
 class SolidTexture:
@@ -53,6 +61,7 @@ class SolidTexture:
     Attributes:
         offsets: int64 ``(n_d, n_h, n_w, 3)``: each block's start in the exemplar.
         blocks: ``(n_d, n_h, n_w)`` = ``ceil(extent / b)``.
+        volume: None, or after :meth:`blend` the blended texture ``(3, D, H, W)`` the lookups read.
     """
 
     def __init__(self, exemplar, block: int = 64, extent=(64, 64, 64), seed: int = 0, voxel: float = 1.0,
@@ -75,27 +84,84 @@ class SolidTexture:
         gen = torch.Generator().manual_seed(int(seed))
         high = torch.tensor([s - block + 1 for s in size])                       # offsets in [0, E - b]
         self.offsets = (torch.rand(*self.blocks, 3, generator=gen) * high).long().clamp_(max=high - 1)
+        self.volume: torch.Tensor | None = None
+
+    def blend(self, method: str = "3d", *, region: str = "seams", margin: int = 4, iters: int = 2000,
+              tol: float = 1e-6) -> dict:
+        """Blend the block seams; later lookups read the blended volume (see the module docstring).
+
+        Args:
+            method: ``"3d"`` (:func:`~torchdeform.texture.seams.poisson_blend_3d`), ``"slices"``
+                (Chen & He's per-slice 2-D blend, slices normal to ``D``) or ``"none"``.
+            region: ``"seams"`` (only a band about the faces changes) or ``"all"``, as in
+                :func:`~torchdeform.texture.seams.poisson_blend_3d`.
+            margin: the band's half-width in voxels (``region="seams"``).
+            iters: maximum conjugate-gradient iterations.
+            tol: CG's relative residual.
+
+        Returns:
+            a report: ``method``, ``seam_before`` and ``seam_after`` (the seam measure
+            :func:`~torchdeform.texture.seams.seam_jump` against the exemplar's mean gradient),
+            ``histogram_before`` and ``histogram_after`` (Wasserstein-1 distance of the colour
+            histograms to the exemplar's, colour units), ``iterations``, ``seconds``. With
+            ``"none"`` (or a single block) the texture is left as it is and ``seam_after`` equals
+            ``seam_before``.
+
+        Example:
+            >>> from torchdeform.texture import liver_exemplar
+            >>> tex = SolidTexture(liver_exemplar(32), block=16, extent=(32, 32, 32), seed=0)
+            >>> r = tex.blend("3d")
+            >>> r["seam_after"] < r["seam_before"] / 3, tex.volume.shape
+            (True, torch.Size([3, 32, 32, 32]))
+        """
+        import time
+
+        from .seams import histogram_distance, poisson_blend_3d, poisson_blend_slices, seam_jump
+        if method not in SEAM_METHODS:
+            raise ConfigError("texture.seams", " or ".join(f'"{m}"' for m in SEAM_METHODS), method)
+        t0 = time.perf_counter()
+        self._set_volume(None)
+        v = self.materialise()
+        multi = any(n > 1 for n in self.blocks)
+        before = seam_jump(v, self.block, reference=self.exemplar) if multi else 0.0
+        report = dict(method=method, seam_before=before, seam_after=before, iterations=0,
+                      histogram_before=histogram_distance(v, self.exemplar))
+        if method != "none" and multi:
+            blend = poisson_blend_3d if method == "3d" else poisson_blend_slices
+            v, report["iterations"], _ = blend(v, self.block, region=region, margin=margin, iters=iters, tol=tol,
+                                               return_info=True)
+            report["seam_after"] = seam_jump(v, self.block, reference=self.exemplar)
+            self._set_volume(v.clamp(0, 1))
+        report["histogram_after"] = histogram_distance(v, self.exemplar)
+        report["seconds"] = time.perf_counter() - t0
+        return report
+
+    def _set_volume(self, volume) -> None:
+        """Read ``volume`` (or, with None, the exemplar through the offsets) from now on."""
+        self.volume = volume
+        self.__dict__.pop("_by_dtype", None)
+        self.__dict__.pop("_atlas_by_dtype", None)
 
     # ------------------------------------------------------------------ lookup
-    def _exemplar(self, dtype) -> torch.Tensor:
-        """The exemplar in ``dtype``, converted once (a 128^3 float64 copy is 50 MB)."""
-        cache = self.__dict__.setdefault("_by_dtype", {self.exemplar.dtype: self.exemplar})
+    def _source(self, dtype) -> torch.Tensor:
+        """The volume lookups read, in ``dtype`` (converted once): the exemplar, or the blended texture."""
+        cache = self.__dict__.setdefault("_by_dtype", {})
         if dtype not in cache:
-            cache[dtype] = self.exemplar.to(dtype)
+            cache[dtype] = (self.exemplar if self.volume is None else self.volume).to(dtype)
         return cache[dtype]
 
     def _slice_atlas(self, dtype) -> tuple[torch.Tensor, int]:
-        """The exemplar's ``E_d`` slices tiled side by side in one image ``(3, rows (E_h + 1), cols (E_w + 1))``.
+        """The ``d`` slices of :meth:`_source` ``(3, d, h, w)`` tiled side by side in one image.
 
-        Tile ``s`` (row ``s // cols``, column ``s % cols``, ``cols = ceil(sqrt(E_d))``) holds slice
+        Tile ``s`` (row ``s // cols``, column ``s % cols``, ``cols = ceil(sqrt(d))``) holds slice
         ``s`` plus one replicated row and column, so a bilinear read never reaches a neighbour tile.
-        Square tiling keeps the image's coordinates small (about ``sqrt(E_d) E_h``), hence the
-        float32 rounding of ``grid_sample``'s normalised coordinates near 1e-4 voxel. Returns the
-        image and ``cols``; built once per dtype.
+        Square tiling keeps the image's coordinates small (about ``sqrt(d) h``), hence the float32
+        rounding of ``grid_sample``'s normalised coordinates near 1e-4 voxel. Returns the image
+        ``(1, 3, rows (h + 1), cols (w + 1))`` and ``cols``; built once per dtype.
         """
         cache = self.__dict__.setdefault("_atlas_by_dtype", {})
         if dtype not in cache:
-            ex = self._exemplar(dtype)
+            ex = self._source(dtype)
             d, h, w = ex.shape[1:]
             cols = math.ceil(math.sqrt(d))
             rows = math.ceil(d / cols)
@@ -118,26 +184,27 @@ class SolidTexture:
     def colour(self, points: torch.Tensor, mode: str = "trilinear") -> torch.Tensor:
         """Colours ``(N, 3)`` at texture points ``(N, 3)`` (voxels); ``mode`` ``"trilinear"`` or ``"nearest"``.
 
-        ``"nearest"`` is one 3-D ``grid_sample`` (the exemplar voxel nearest to each point, exactly).
-        ``"trilinear"`` interpolates the exemplar (clamped at its border) as a blend along ``D`` of
+        Lookups read the exemplar at :meth:`exemplar_points` or, after :meth:`blend`, the blended
+        volume at ``points``. ``"nearest"`` is one 3-D ``grid_sample`` (the voxel nearest to each
+        point, exactly). ``"trilinear"`` interpolates (clamped at the volume's border) as a blend along ``D`` of
         two bilinear lookups in adjacent slices of :meth:`_slice_atlas`: on the CPU the 2-D kernel
         is vectorised where the 3-D one is not (about 2x), and the points are split into one batch
         element per thread (``grid_sample`` shares out batch elements, not points).
         """
         if mode not in ("trilinear", "nearest"):
             raise ConfigError("texture.mode", '"trilinear" or "nearest"', mode)
-        q = self.exemplar_points(points)
+        q = self.exemplar_points(points) if self.volume is None else points
         if mode == "nearest":
-            ex = self._exemplar(points.dtype)
+            ex = self._source(points.dtype)
             grid = to_grid_sample(q.T.reshape(1, 3, -1, 1, 1), ex.shape[1:], align_corners=True)
             out = F.grid_sample(ex[None], grid, mode="nearest", padding_mode="border", align_corners=True)
             return out.reshape(3, -1).T
         return self._trilinear(q)
 
     def _trilinear(self, q: torch.Tensor) -> torch.Tensor:
-        """Trilinear exemplar colours ``(N, 3)`` at exemplar voxel coordinates ``q`` ``(N, 3)`` (see :meth:`colour`)."""
+        """Trilinear colours ``(N, 3)`` at voxel coordinates ``q`` ``(N, 3)`` of :meth:`_source` (see :meth:`colour`)."""
         image, cols = self._slice_atlas(q.dtype)
-        d, h, w = self.exemplar.shape[1:]
+        d, h, w = self._source(q.dtype).shape[1:]
         lim = torch.tensor([d - 1, h - 1, w - 1], dtype=q.dtype, device=q.device)
         q = torch.minimum(q.clamp(min=0), lim)                                   # padding "border"
         d0 = q[:, 0].floor().clamp_(max=max(d - 2, 0))
