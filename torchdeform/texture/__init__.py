@@ -1,9 +1,10 @@
-"""Solid texture (Chen & He 2015) on deforming and cut tissue (work in progress: the texture issue).
+"""Solid texture (Chen & He 2015) on deforming and cut tissue.
 
 =====================  ===========================================================================
 :mod:`.exemplar`       3-D RGB exemplars: .npy/.npz files, folders of slice images, a procedural liver
 :mod:`.synthesis`      the indirection texture: blocks of the exemplar at random offsets, looked up
                        with ``grid_sample`` at texture or material coordinates, never materialised
+                       unless the seams are blended (``SolidTexture.blend``)
 :mod:`.atlas`          Chen & He's triangle-interior sampling (about one sample per voxel), packed
                        into a texture atlas; textured export (.ply vertex colours, .glb/.obj atlas)
 :mod:`.commands`       ``torchdeform texture EXEMPLAR --mesh MESH --out OUT``
@@ -17,8 +18,8 @@ from .atlas import TextureAtlas, TriangleSamples, build_atlas, export_textured, 
 from .exemplar import as_exemplar, liver_exemplar, load_exemplar
 from .mapping import render_textured, vertex_colours
 from .seams import histogram_distance, poisson_blend_3d, poisson_blend_slices, seam_jump, seam_measure
-from .synthesis import SolidTexture
+from .synthesis import SEAM_METHODS, SolidTexture
 
 __all__ = ["as_exemplar", "liver_exemplar", "load_exemplar", "SolidTexture", "seam_measure", "seam_jump", "poisson_blend_3d",
            "poisson_blend_slices", "histogram_distance", "vertex_colours", "render_textured",
-           "TextureAtlas", "TriangleSamples", "build_atlas", "export_textured", "sample_triangles"]
+           "TextureAtlas", "TriangleSamples", "build_atlas", "export_textured", "sample_triangles", "SEAM_METHODS"]
