@@ -100,6 +100,9 @@ class Scene:
     #: optional :class:`~torchdeform.scene.topology.TopologySet` (``[[cuts]]``, ``[[cautery]]``, ``[tear]``,
     #: ``[[coagulate]]``, ``[output] surfaces``): ``run_scene`` applies them between steps on a copy of the model
     topology: TopologySet | None = None
+    #: optional file name (``"animation.gif"`` for ``[output] animation = true``): ``run_scene`` then writes
+    #: an animated GIF of the run there (:func:`torchdeform.view.animation.animate`)
+    animation: str | None = None
     _models: dict = field(default_factory=dict, init=False, repr=False)
 
     def build(self, device=None) -> Model:
@@ -383,6 +386,10 @@ def mass_spring_scene(src: Source, data: dict, base: Path, name: str = "scene") 
     scene = Scene(grid, model_args, **run, source=src,
                   record_every=out.integer("record_every", "an integer >= 1 (steps between frames)", None, lo=1),
                   name=out.text("name", "a string", name), tools=tools, topology=topology)
+    animation = out.data.get("animation", False)
+    if not isinstance(animation, bool):
+        raise out.fail("animation", "true or false (write animation.gif)", animation)
+    scene.animation = "animation.gif" if animation else None
     if "volume" in data:
         vt = Table(src, "volume", data["volume"], SECTIONS["volume"])
         scene.volume = {"file": vt.text("file", 'a volume file or "phantom:N"'),
@@ -419,15 +426,16 @@ def demo_scene() -> Scene:
     density 1000 kg/m^3, k = 3 N/m, i.e. E of roughly 8 kPa), its base fixed, sagging under
     gravity (along -D), its top centre node dragged 2 mm up and 1 mm sideways within 50 ms
     and then held; symplectic Euler at dt = 0.1 ms (below the bound of about 0.12 ms) for
-    0.15 s, with global drag so it settles.
+    0.15 s, with global drag so it settles. ``run_scene`` also writes ``demo.gif``, the animation of
+    the run (the textured surface beside the deformed phantom, time and drag force written on it).
 
     Examples:
         >>> import torchdeform as td
         >>> scene = td.demo_scene()
         >>> scene.grid.shape, scene.integrator.name, scene.dt, scene.steps
         ((11, 11, 11), 'symplectic', 0.0001, 1500)
-        >>> len(scene.model_args["drags"]), scene.volume["file"]
-        (1, 'phantom:64')
+        >>> len(scene.model_args["drags"]), scene.volume["file"], scene.animation
+        (1, 'phantom:64', 'demo.gif')
     """
     grid = Grid((11, 11, 11), spacing=0.001, topology=26)
     top_centre = Drag(grid.index_mask([(10, 5, 5)]), [(0.0, (0.0, 0.0, 0.0)), (0.05, (0.002, 0.001, 0.0))])
@@ -436,5 +444,5 @@ def demo_scene() -> Scene:
     # the procedural CT phantom fills the cube; run_scene also writes its before/after renders
     volume = {"file": "phantom:64", "tf": "ct-soft", "mode": "dvr", "view": "h"}
     return Scene(grid, model_args, SymplecticEuler(), dt=1e-4, steps=1500, record_every=15, name="demo",
-                 volume=volume)
+                 volume=volume, animation="demo.gif")
 

@@ -58,7 +58,7 @@ SECTIONS = {
     "cautery": ("tool", "at", "every", "start", "stop"),
     "tear": ("max_strain", "max_force", "one_per_step", "start"),
     "coagulate": ("at", "box", "sphere", "viscosity_factor"),
-    "output": ("record_every", "name", "palpation", "surfaces"),
+    "output": ("record_every", "name", "palpation", "surfaces", "animation"),
     "volume": ("file", "tf", "mode", "view"),
     "texture": ("exemplar", "block", "seed", "voxel", "seams"),
     "chainmail": ("method", "compression", "stretch", "shear", "tissue", "reference_stress", "frames",

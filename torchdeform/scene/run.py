@@ -29,7 +29,7 @@ from .reader import read
 from .tools import ToolRecorder, support_series, tool_outputs
 
 __all__ = ["load_scene", "run_scene", "energy_series", "plot_energy", "one_line_warnings", "report",
-           "scene_volume_outputs", "scene_texture_outputs"]
+           "scene_volume_outputs", "scene_texture_outputs", "scene_animation", "tool_forces_at"]
 
 
 def load_scene(path) -> Scene | ChainMailScene:
@@ -294,9 +294,15 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
         labels = events.pieces() if events is not None else torch.where(grid.nodes(), 0, -1)
         summary["texture"] = scene_texture_outputs(scene.texture, grid, final.x[:1], labels, out)
     if scene.volume:
-        v = dict(scene.volume)
+        spec = dict(scene.volume)
         cut = None if events is None else (grid, events.pieces())          # a cut body: a carved render
-        summary["volume"] = scene_volume_outputs(v.pop("file"), final.x[:1], model.X, grid.spacing, out, cut=cut, **v)
+        summary["volume"] = scene_volume_outputs(spec.pop("file"), final.x[:1], model.X, grid.spacing, out, cut=cut,
+                                                 **spec)
+    if scene.animation:
+        labels = events.pieces() if events is not None else None
+        tools = None if recorder is None else recorder.series()
+        summary["animation"] = scene_animation(scene, model, t, x, v, out, labels=labels, tools=tools,
+                                               progress=progress)
     text = json.dumps(summary, indent=2)
     if "tools" in summary:                # each series (lists of numbers, lists of those) on one line
         text = re.sub(r"\[\s+([-+\d.eE,\s]+?)\s+\]", lambda m: "[" + ", ".join(re.split(r",\s*", m.group(1))) + "]",
@@ -328,6 +334,8 @@ def report(summary: dict, out_dir) -> str:
         files += ["tools.npz", "forces.png"]
         tools = ", max tool force " + ", ".join(f"{name} {entry['max_force_N']:.3g} N"
                                                 for name, entry in summary["tools"].items())
+    if "animation" in summary:
+        files.append(summary["animation"]["file"])
     if "topology" in summary:
         topo = summary["topology"]
         files += topo["outputs"]
@@ -426,3 +434,79 @@ def scene_texture_outputs(spec: dict, grid, x, labels, out_dir) -> dict:
     save_png(Path(out_dir) / "textured.png", render_textured(pieces, tex, camera, light=(1.0, -0.5, 0.6))["image"])
     return {"exemplar_voxels": list(spec["exemplar"].shape[1:]), "block": spec["block"], "blocks": list(tex.blocks),
             "voxel_m": spec["voxel"], "seams": seams, "pieces": len(pieces), "outputs": ["textured.png"]}
+
+
+def tool_forces_at(series: dict, names, t: np.ndarray) -> dict:
+    """The tools' forces at recorded frame times, from the per-step series of :class:`ToolRecorder`.
+
+    Args:
+        series: :meth:`ToolRecorder.series` (``"t"`` ``(steps,)``, ``"<name>.force"`` ``(steps, 3)``).
+        names: the tools' names.
+        t: frame times ``(T,)`` (s).
+
+    Returns:
+        ``{name: (T, 3)}`` (N): the reading of the step nearest each frame (zero before the first step).
+
+    Examples:
+        >>> import numpy as np
+        >>> series = {"t": np.array([0.1, 0.2, 0.3]), "probe.force": np.array([[1.0, 0, 0], [2, 0, 0], [3, 0, 0]])}
+        >>> tool_forces_at(series, ["probe"], np.array([0.0, 0.2, 0.3]))["probe"][:, 0].tolist()
+        [0.0, 2.0, 3.0]
+    """
+    st = np.asarray(series["t"], dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64)
+    if not len(st):
+        return {name: np.zeros((len(t), 3)) for name in names}
+    k = np.clip(np.searchsorted(st, t), 0, len(st) - 1)
+    prev = np.clip(k - 1, 0, len(st) - 1)
+    k = np.where(np.abs(st[prev] - t) < np.abs(st[k] - t), prev, k)
+    before = t < st[0] / 2                                              # the start frame: no step yet
+    return {name: np.where(before[:, None], 0.0, np.asarray(series[f"{name}.force"])[k]) for name in names}
+
+
+def scene_animation(scene: Scene, model: Model, t: np.ndarray, x: torch.Tensor, v: torch.Tensor, out_dir,
+                    labels=None, tools: dict | None = None, progress: bool = False) -> dict:
+    """Write ``scene.animation`` (a GIF): the run's textured surface beside its deformed volume render.
+
+    See :func:`torchdeform.view.animation.animate`. The volume is the scene's ``[volume]`` (else the
+    procedural phantom, ``phantom:64``), the texture its ``[texture]`` (else the procedural liver). The
+    caption shows the time and the force of every tool (``tools``) and, for a scene with drags, the
+    force the drags exert to hold their nodes (:func:`~torchdeform.view.animation.drag_forces`).
+    A cut body is drawn as the final pieces (``labels``) in every frame, its volume uncarved.
+
+    Args:
+        scene: the :class:`Scene`.
+        model: the model of the run.
+        t: frame times ``(T,)`` (s).
+        x: positions ``(T, 3, D, H, W)`` (m).
+        v: velocities ``(T, 3, D, H, W)`` (m/s).
+        out_dir: the output folder.
+        labels: pieces ``(D, H, W)`` (negative outside), or None (the whole body).
+        tools: :meth:`ToolRecorder.series` of the run, or None.
+        progress: show a progress bar.
+
+    Returns:
+        a summary dict for ``summary.json``: ``file``, ``frames``, ``size`` ``[height, width]``, ``panel``,
+        ``bytes``, ``wall_time_s``.
+    """
+    from ..view.animation import animate, body_texture, drag_forces
+    start = time.perf_counter()
+    grid = model.grid
+    forces = {}
+    if tools is not None:
+        forces.update(tool_forces_at(tools, scene.tools.names, t))
+    if model.drags:
+        forces["drag" if len(model.drags) == 1 else "drags"] = drag_forces(model, x, v, t)
+    texture = None
+    if scene.texture:
+        spec = scene.texture
+        texture = body_texture(grid, spec["exemplar"], spec["block"], spec["seed"], spec["voxel"])
+        if spec.get("seams", "none") != "none":
+            texture.blend(spec["seams"])
+    volume = dict(scene.volume or {"file": "phantom:64"})
+    name, base = str(volume.pop("file")), volume.pop("base", None)
+    path = name if name.startswith("phantom") or base is None else str(Path(base) / name)
+    info = animate(grid, t, x, Path(out_dir) / scene.animation, labels=labels, texture=texture, volume=path,
+                   forces=forces, progress=progress, **volume)
+    return {k: info[k] for k in ("file", "frames", "size", "panel", "bytes")} | {
+        "wall_time_s": time.perf_counter() - start}

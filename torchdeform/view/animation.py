@@ -1,0 +1,409 @@
+"""Animated GIFs of a run: the textured, shaded surface beside the deformed volume render.
+
+Each frame of :func:`animate` has two square panels of ``size`` pixels and a caption band under
+them:
+
+* **left**, the body's closed surface (:func:`~torchdeform.topology.cut_surfaces` of the recorded
+  node positions) coloured by a solid texture at its material coordinates and Lambert shaded
+  (:func:`~torchdeform.texture.render_textured`), seen by one perspective camera that frames every
+  shown frame (:func:`surface_camera`), so the motion of the body is seen against a fixed view;
+* **right**, the volume (a file or the procedural phantom) filling the node grid's bounding box,
+  deformed by the frame's node offsets and rendered along an axis
+  (:func:`~torchdeform.volume.render` through :func:`~torchdeform.volume.node_offsets`, the same
+  render as ``volume_after.png``), fitted to the panel at its physical aspect ratio;
+* the **caption**: the simulated time and the force of every tool or drag at that frame
+  (:func:`caption`).
+
+The force a drag shows (:func:`drag_forces`) is the force it exerts to hold its nodes on their
+path: minus the sum of the model's forces (springs, gravity, loads, contacts) on the dragged nodes,
+the inertia of the dragged nodes left out (their path is piecewise linear: no acceleration between
+waypoints).
+
+Only the mesh, texture, topology, volume and sim layers are imported (the scene runner imports this
+module inside the function that writes the animation). Pillow writes the GIF and the text.
+
+Example:
+    >>> import torch
+    >>> import torchdeform as td
+    >>> from torchdeform.view.animation import animate
+    >>> grid = td.Grid((3, 3, 3), spacing=0.01)
+    >>> X = grid.rest_positions(torch.float32)[0]
+    >>> x = torch.stack([X, X + 0.002])                   # two frames: the body moves 2 mm along each axis
+    >>> out = getfixture("tmp_path") / "a.gif"
+    >>> info = animate(grid, [0.0, 0.1], x, out, volume=torch.rand(8, 8, 8) * 1000, size=64,
+    ...                texture={"exemplar": "liver:16", "block": 8},
+    ...                forces={"drag": [[0.0, 0.0, 0.0], [0.0, 0.003, 0.004]]})
+    >>> info["frames"], info["size"], info["captions"][-1]
+    (2, [88, 128], 't = 0.100 s   drag 5.00 mN')
+    >>> from PIL import Image
+    >>> with Image.open(out) as gif:
+    ...     gif.n_frames, gif.size                         # (width, height): two 64-pixel panels, a caption band
+    (2, (128, 88))
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import ConfigError
+
+__all__ = ["animate", "frame_indices", "drag_forces", "body_texture", "surface_camera", "format_force", "caption",
+           "compose", "write_gif", "SURFACE_DIRECTION", "SURFACE_FOV", "LIGHT"]
+
+#: where the surface camera looks from, in units of the body's largest side from its centre
+SURFACE_DIRECTION = (1.3, -1.1, 0.9)
+#: the surface camera's vertical field of view (degrees)
+SURFACE_FOV = 38.0
+#: direction towards the light of the surface panel
+LIGHT = (1.0, -0.5, 0.6)
+#: image axes (rows, columns) of the volume renders of each axis view
+_VIEW_AXES = {"d": (1, 2), "h": (0, 2), "w": (0, 1)}
+
+
+def frame_indices(n: int, frames: int) -> list:
+    """``min(n, frames)`` indices spread evenly over ``n`` recorded frames, first and last included.
+
+    Args:
+        n: number of recorded frames (>= 1).
+        frames: the most frames to show (>= 1).
+
+    Returns:
+        increasing indices into the recorded frames.
+
+    Example:
+        >>> frame_indices(101, 5), frame_indices(3, 10), frame_indices(7, 1)
+        ([0, 25, 50, 75, 100], [0, 1, 2], [6])
+    """
+    n, frames = int(n), int(frames)
+    if n < 1 or frames < 1:
+        raise ConfigError("frames", "at least one recorded and one shown frame", (n, frames))
+    if frames == 1:
+        return [n - 1]
+    if frames >= n:
+        return list(range(n))
+    return sorted({round(i * (n - 1) / (frames - 1)) for i in range(frames)})
+
+
+def drag_forces(model, x, v, t) -> np.ndarray:
+    """The total force the model's drags exert to hold their nodes, at recorded frames.
+
+    Minus the sum of :meth:`~torchdeform.sim.model.Model.forces` (springs, gravity, loads, contacts)
+    over every dragged node: what the hand (or tool) holding them feels, pushing on the tissue. The
+    dragged nodes' own inertia is left out.
+
+    Args:
+        model: the :class:`~torchdeform.sim.model.Model` of the run (with ``drags``).
+        x: positions ``(T, 3, D, H, W)`` (m, any device; batch entry 0 of the recording).
+        v: velocities ``(T, 3, D, H, W)`` (m/s).
+        t: times ``(T,)`` (s).
+
+    Returns:
+        float64 numpy ``(T, 3)`` (N), zeros when the model has no drags.
+
+    Example:
+        >>> import torch
+        >>> import torchdeform as td
+        >>> grid = td.Grid((2, 1, 1), spacing=0.01)
+        >>> top = grid.index_mask([(1, 0, 0)])
+        >>> model = td.Model(grid, stiffness=10.0, density=1000.0, fixed=grid.face("bottom"),
+        ...                  drags=[td.Drag(top, offset=(0.001, 0.0, 0.0))], dtype=torch.float64)
+        >>> x = model.X.clone(); x[0, 0, 1] += 0.001             # the spring stretched by 1 mm
+        >>> drag_forces(model, x, torch.zeros_like(x), [0.0]).round(6).tolist()   # 10 N/m * 1 mm, upwards
+        [[0.01, 0.0, 0.0]]
+    """
+    T = len(x)
+    out = np.zeros((T, 3))
+    if not model.drags:
+        return out
+    mask = torch.zeros(model.grid.shape, dtype=torch.bool, device=model.device)
+    for m in model.drag_masks:
+        mask = mask | m[0, 0]
+    with torch.no_grad():
+        for i in range(T):
+            xi = x[i:i + 1].to(model.device, model.dtype)
+            vi = v[i:i + 1].to(model.device, model.dtype)
+            F = model.forces(xi, vi, float(t[i]))[0]                       # (3, D, H, W)
+            out[i] = (-F[:, mask].sum(1)).double().cpu().numpy() + 0.0             # no -0.0
+    return out
+
+
+def body_texture(grid, exemplar="liver:64", block=None, seed: int = 0, voxel=None):
+    """A :class:`~torchdeform.texture.SolidTexture` covering the grid's rest box (and two spacings around it).
+
+    The same box as ``textured.png`` of a scene's ``[texture]`` section.
+
+    Args:
+        grid: the :class:`~torchdeform.sim.grid.Grid`.
+        exemplar: ``(3, E, E, E)`` colours, or ``"liver"`` / ``"liver:N"`` (procedural) or a file.
+        block: block size in voxels (default: half the exemplar's smallest side).
+        seed: of the block choice (and of a procedural exemplar).
+        voxel: texture voxel size (m; default a quarter of the smallest spacing).
+
+    Returns:
+        the texture.
+    """
+    from ..texture import SolidTexture
+    if isinstance(exemplar, str):
+        from ..texture.commands import exemplar_from
+        exemplar = exemplar_from(exemplar, seed)
+    block = block or min(exemplar.shape[1:]) // 2
+    voxel = voxel or min(grid.spacing) / 4
+    X = grid.rest_positions(torch.float64)[0].reshape(3, -1)
+    lo, hi = X.min(1).values, X.max(1).values
+    pad = 2 * max(grid.spacing)                                   # the surfaces reach half a cell out
+    extent = [int((h - l + 2 * pad) / voxel) + 2 for l, h in zip(lo.tolist(), hi.tolist())]
+    return SolidTexture(exemplar, block=block, extent=extent, seed=seed, voxel=voxel,
+                        origin=tuple((lo - pad).tolist()))
+
+
+def surface_camera(grid, x, size: int = 320, direction=SURFACE_DIRECTION, fov_deg: float = SURFACE_FOV,
+                   fill: float = 0.9):
+    """The perspective camera of the surface panel: it frames the body in every frame of ``x``.
+
+    The box of all node positions, widened by half a spacing (the surfaces reach that far), is looked
+    at from its centre along ``direction`` (:func:`~torchdeform.texture.mapping.framing_camera`,
+    axis D up), from the distance at which the box's projected corners fill ``fill`` of the image
+    about its centre.
+
+    Args:
+        grid: the :class:`~torchdeform.sim.grid.Grid` (spacing).
+        x: node positions ``(T, 3, D, H, W)`` (m).
+        size: the square image's side (pixels).
+        direction: from the box centre towards the eye (its length is adjusted).
+        fov_deg: vertical field of view (degrees).
+        fill: the largest distance of a projected box corner from the image centre, in half image sides.
+
+    Returns:
+        a :class:`~torchdeform.mesh.Camera` of ``size x size`` pixels.
+
+    Example:
+        >>> import torch
+        >>> import torchdeform as td
+        >>> grid = td.Grid((3, 3, 3), spacing=0.01)
+        >>> cam = surface_camera(grid, grid.rest_positions(torch.float64), size=64)
+        >>> cam.size, [round(c, 4) for c in cam.target]
+        ((64, 64), [0.01, 0.01, 0.01])
+        >>> corners = torch.tensor([[a, b, c] for a in (-0.005, 0.025) for b in (-0.005, 0.025) for c in (-0.005, 0.025)])
+        >>> round(float((cam.project(corners)[0] - 32).abs().max() / 32), 2)
+        0.9
+    """
+    from ..texture.mapping import framing_camera
+    p = torch.as_tensor(x).detach().double().cpu().transpose(0, 1).reshape(3, -1)
+    half = torch.tensor(grid.spacing, dtype=torch.float64) / 2
+    lo, hi = p.min(1).values - half, p.max(1).values + half
+    corners = torch.stack([torch.where(torch.tensor([(c >> k) & 1 for k in range(3)], dtype=torch.bool), hi, lo)
+                           for c in range(8)])
+    d = torch.tensor(direction, dtype=torch.float64)
+    d = d / d.norm()
+    for _ in range(8):                                 # the projected size is about inverse to the distance
+        cam = framing_camera(corners, tuple(d.tolist()), fov_deg, size=(int(size), int(size)))
+        reach = float((cam.project(corners)[0] - size / 2).abs().max()) / (size / 2)
+        if abs(reach - fill) < 1e-3:
+            break
+        d = d * reach / fill
+    return cam
+
+
+def format_force(force) -> str:
+    """The magnitude of a force ``(3,)`` (N) with a unit that keeps it readable.
+
+    Example:
+        >>> format_force([0.0, 0.003, 0.004]), format_force([2.5, 0, 0]), format_force([0, 0, 2e-6])
+        ('5.00 mN', '2.50 N', '2.0 uN')
+    """
+    f = float(np.linalg.norm(np.asarray(force, dtype=np.float64)))
+    if f >= 1.0:
+        return f"{f:.2f} N"
+    if f >= 1e-3:
+        return f"{f * 1e3:.2f} mN"
+    return f"{f * 1e6:.1f} uN"                                        # the default font has no micro sign
+
+
+def caption(t: float, forces: dict | None = None) -> str:
+    """The caption of a frame: the simulated time and each named force's magnitude.
+
+    Args:
+        t: simulated time (s).
+        forces: ``{name: force (3,)}`` (N) of the tools or drags at that time, or None.
+
+    Returns:
+        one line, e.g. ``"t = 0.050 s   drag 2.31 mN"``.
+
+    Example:
+        >>> caption(0.05, {"drag": [0.0, 0.002, 0.0]}), caption(1.0)
+        ('t = 0.050 s   drag 2.00 mN', 't = 1.000 s   (no tool or drag)')
+    """
+    parts = ", ".join(f"{name} {format_force(f)}" for name, f in (forces or {}).items())
+    return f"t = {float(t):.3f} s   " + (parts or "(no tool or drag)")
+
+
+def _font(size: int):
+    from PIL import ImageFont
+    try:
+        return ImageFont.load_default(size=size)
+    except TypeError:                                                  # Pillow < 10.1: the bitmap font
+        return ImageFont.load_default()
+
+
+def compose(surface, volume, text: str, titles=("surface", "volume")) -> np.ndarray:
+    """One frame: two square panels side by side, a title on each and a caption band underneath.
+
+    Args:
+        surface: uint8 ``(S, S, 3)`` the left panel.
+        volume: uint8 ``(S, S, 3)`` the right panel.
+        text: the caption (:func:`caption`).
+        titles: the panels' titles (top left of each).
+
+    Returns:
+        uint8 ``(S + band, 2 S, 3)`` with ``band = max(24, S // 9)`` pixels of caption.
+
+    Example:
+        >>> import numpy as np
+        >>> compose(np.zeros((64, 64, 3), np.uint8), np.zeros((64, 64, 3), np.uint8), "t = 0 s").shape
+        (88, 128, 3)
+    """
+    from PIL import Image, ImageDraw
+    S = surface.shape[0]
+    band = max(24, S // 9)
+    canvas = Image.new("RGB", (2 * S, S + band), (255, 255, 255))
+    canvas.paste(Image.fromarray(np.ascontiguousarray(surface)), (0, 0))
+    canvas.paste(Image.fromarray(np.ascontiguousarray(volume)), (S, 0))
+    draw = ImageDraw.Draw(canvas)
+    small = _font(max(10, S // 24))
+    pad = max(3, S // 64)
+    draw.text((pad, pad), titles[0], fill=(40, 40, 40), font=small)
+    draw.text((S + pad, pad), titles[1], fill=(235, 235, 235), font=small)
+    draw.line([(S, 0), (S, S - 1)], fill=(255, 255, 255))
+    big = _font(max(10, int(band * 0.6)))
+    draw.text((pad, S + band // 2), text, fill=(20, 20, 20), font=big, anchor="lm")
+    return np.asarray(canvas)
+
+
+def write_gif(frames, path, fps: float = 12.0, hold: float = 1.0, colours: int = 256) -> int:
+    """Write uint8 ``(h, w, 3)`` frames as a looping GIF; the last frame stays ``hold`` seconds.
+
+    All frames share one palette of ``colours`` colours, taken from up to four frames spread over the
+    animation, without dithering: colours do not flicker between frames, and pixels that do not change
+    are identical, so each frame stores only the box that changed.
+
+    Args:
+        frames: a list of uint8 ``(h, w, 3)`` arrays of one size.
+        path: the ``.gif`` file.
+        fps: frames per second.
+        hold: seconds the last frame is shown before the loop starts again.
+        colours: size of the palette (2 to 256).
+
+    Returns:
+        the file's size in bytes.
+    """
+    from PIL import Image
+    ims = [Image.fromarray(np.ascontiguousarray(f)) for f in frames]
+    picks = [ims[i] for i in frame_indices(len(ims), 4)]
+    w, h = ims[0].size
+    montage = Image.new("RGB", (w, h * len(picks)))
+    for k, im in enumerate(picks):
+        montage.paste(im, (0, h * k))
+    palette = montage.quantize(colours, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE)
+    ims = [im.quantize(palette=palette, dither=Image.Dither.NONE) for im in ims]
+    step = int(round(1000 / fps))
+    durations = [step] * (len(ims) - 1) + [max(step, int(round(1000 * hold)))]
+    ims[0].save(str(path), save_all=True, append_images=ims[1:], duration=durations, loop=0)
+    return Path(path).stat().st_size
+
+
+def _volume_panel(vol, offsets, tf, mode, view, extent, size, render_scale) -> np.ndarray:
+    """The volume render fitted into a black ``size x size`` panel at its physical aspect ratio."""
+    from PIL import Image
+
+    from ..volume import render, to_image
+    rows, cols = _VIEW_AXES[view.lstrip("-")]
+    er, ec = extent[rows], extent[cols]
+    ph, pw = (size, max(1, round(size * ec / er))) if er >= ec else (max(1, round(size * er / ec)), size)
+    rh, rw = max(1, round(ph * render_scale)), max(1, round(pw * render_scale))
+    with torch.no_grad():
+        img = render(vol, tf, mode, view, offsets=offsets, size=(rh, rw))
+    rgb = to_image(img, flip_up=view.lstrip("-") in ("h", "w"))
+    im = Image.fromarray(rgb)
+    if (rh, rw) != (ph, pw):
+        im = im.resize((pw, ph), Image.Resampling.BICUBIC)
+    panel = Image.new("RGB", (size, size), (0, 0, 0))
+    panel.paste(im, ((size - pw) // 2, (size - ph) // 2))
+    return np.asarray(panel)
+
+
+def animate(grid, t, x, out_path, *, labels=None, texture=None, volume="phantom:64", tf: str = "ct-soft",
+            mode: str = "dvr", view: str = "h", forces: dict | None = None, frames: int = 48, size: int = 320,
+            fps: float = 12.0, render_scale: float = 0.4, progress: bool = False) -> dict:
+    """Write an animated GIF of recorded frames: textured surface | deformed volume, time and forces.
+
+    Args:
+        grid: the :class:`~torchdeform.sim.grid.Grid` of the run.
+        t: times ``(T,)`` (s) of the recorded frames.
+        x: node positions ``(T, 3, D, H, W)`` (m; batch entry 0 of the recording).
+        out_path: the ``.gif`` file (its folder must exist).
+        labels: int ``(D, H, W)`` pieces of the body (negative outside; default: the grid's nodes, one
+            piece), as :func:`~torchdeform.topology.cut_surfaces` takes them.
+        texture: a :class:`~torchdeform.texture.SolidTexture`, or the keyword arguments of
+            :func:`body_texture` (``exemplar``, ``block``, ``seed``, ``voxel``), or None (the
+            procedural liver).
+        volume: ``(D', H', W')`` values, a volume file, ``"phantom"`` or ``"phantom:N"``; it fills the
+            node grid's bounding box.
+        tf: transfer-function preset or file (``dvr``).
+        mode: ``"dvr"``, ``"mip"`` or ``"average"``.
+        view: the volume's axis view, ``"d"``, ``"h"``, ``"w"``, ``"-d"``, ``"-h"`` or ``"-w"``.
+        forces: ``{name: (T, 3)}`` forces (N) of tools or drags at the recorded frames, or None.
+        frames: the most frames shown (spread evenly over the recording, :func:`frame_indices`).
+        size: side of each square panel (pixels).
+        fps: frames per second of the GIF.
+        render_scale: the volume is rendered at this fraction of the panel's resolution and scaled up
+            (0.4 by default: a sixth of the rays, for speed).
+        progress: show a progress bar.
+
+    Returns:
+        dict: ``file`` (the GIF's name), ``frames``, ``size`` ``[height, width]`` of a frame (pixels),
+        ``panel`` (pixels), ``indices`` (the recorded frames shown), ``times_s``, ``captions``,
+        ``bytes``, and ``camera``, the surface panel's :class:`~torchdeform.mesh.Camera`.
+    """
+    from tqdm.auto import tqdm
+
+    from ..texture import render_textured
+    from ..topology import cut_surfaces
+    from ..volume import load_volume, node_offsets
+    t = np.asarray(t, dtype=np.float64).reshape(-1)
+    x = torch.as_tensor(x).detach().double().cpu()
+    if x.dim() != 5 or x.shape[1] != 3 or tuple(x.shape[2:]) != grid.shape or len(x) != len(t):
+        raise ConfigError("x", f"node positions (T, 3) + {grid.shape} with T = len(t) = {len(t)}", tuple(x.shape))
+    if view.lstrip("-") not in _VIEW_AXES or view.count("-") > 1:
+        raise ConfigError("view", "an axis view d, h, w, -d, -h, -w", view)
+    size = int(size)
+    idx = frame_indices(len(t), frames)
+    if labels is None:
+        labels = torch.where(grid.nodes(), 0, -1)
+    if texture is None or isinstance(texture, dict):
+        texture = body_texture(grid, **(texture or {}))
+    if isinstance(volume, (str, Path)):
+        volume = load_volume(str(volume), "volume.file")
+    vol = torch.as_tensor(np.asarray(volume) if not torch.is_tensor(volume) else volume).float()
+    X = grid.rest_positions(torch.float64)
+    extent = [(n - 1) * s for n, s in zip(grid.shape, grid.spacing)]
+    extent = [e if e > 0 else s for e, s in zip(extent, grid.spacing)]
+    camera = surface_camera(grid, x[idx], size)
+    forces = {k: np.asarray(f, dtype=np.float64).reshape(len(t), 3) for k, f in (forces or {}).items()}
+    titles = ("surface: solid texture, shaded", f"volume: {mode}, view {view}")
+    images, captions = [], []
+    for i in tqdm(idx, disable=not progress, desc="animate", unit="frame"):
+        pieces = cut_surfaces(grid, x[i:i + 1], labels)
+        surface = render_textured(pieces, texture, camera, light=LIGHT)["image"]
+        surface = (surface.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
+        offsets = node_offsets(x[i:i + 1], X, grid.spacing, tuple(vol.shape)).float()
+        right = _volume_panel(vol, offsets, tf, mode, view, extent, size, render_scale)
+        text = caption(t[i], {k: f[i] for k, f in forces.items()})
+        captions.append(text)
+        images.append(compose(surface, right, text, titles))
+    nbytes = write_gif(images, out_path, fps)
+    return {"file": Path(out_path).name, "frames": len(images), "size": list(images[0].shape[:2]), "panel": size,
+            "indices": idx, "times_s": [float(t[i]) for i in idx], "captions": captions, "bytes": nbytes,
+            "camera": camera}
+

@@ -1,0 +1,583 @@
+r"""The simulation a live viewer drives: play, pause, reset, drag, a sphere tool, cuts, tissue terms.
+
+:class:`ViewerSession` knows nothing of sockets or pages: a server calls :meth:`~ViewerSession.command`
+with each message from the page (a dict from JSON), :meth:`~ViewerSession.advance` from its loop,
+and sends :meth:`~ViewerSession.mesh` (after a topology change), :meth:`~ViewerSession.positions`
+(every frame) and :meth:`~ViewerSession.stats`. Every method takes one lock, so the server may
+step in one thread and answer messages in another.
+
+Model and time step
+    The scene's model (:meth:`~torchdeform.scene.Scene.build`) is copied and made editable
+    (:meth:`~torchdeform.scene.topology.TopologySet.prepare`), so cuts and stiffness changes write
+    into its tensors in place. The integrator is the scene's when it is symplectic Euler, damped
+    Verlet or RK4, and symplectic Euler otherwise (explicit Euler has no stable step without
+    damping; the implicit ones are too slow per step for a live view). The time step is
+    ``min(scene dt, safety * bound / sqrt(2))`` with ``bound`` from
+    :func:`~torchdeform.sim.stability.time_step_bound`: the factor ``1 / sqrt(2)`` leaves room for
+    the tool's penalty stiffness ``k_t = m_min G / 4`` (``G``: the Gershgorin bound on
+    ``omega_max^2``, at most about three times the true ``Lk``; ``m_min`` the lightest free node's
+    mass), whose own rate ``k_t / m`` stays below ``Lk``, so ``omega_max^2`` with the tool is at
+    most ``2 Lk``. A tissue-term change
+    recomputes both; a cut only removes stiffness and keeps them. A step that leaves a non-finite
+    value is undone and the time step halved (the body never blows up on screen).
+
+Surface
+    The page draws the closed surface of every piece (:func:`~torchdeform.topology.cut_surfaces`:
+    connected components, each split by the plane of every blade that cut something, so a cut's
+    faces show). Its vertices are a fixed linear function of the node positions: marching
+    tetrahedra puts each vertex at fractional node indices ``q``; the vertex is the trilinear
+    interpolation ``T`` at ``q`` of the piece's own positions ``x_L = X + E (x - X)``, where ``E``
+    extends the piece's displacement one layer beyond it (the linear extrapolation of
+    :func:`~torchdeform.topology.extend_displacement`, written out as a sparse matrix; every
+    cell a vertex reads lies within that layer). So
+    ``vertices = rest + (T E) (x - X)``, one sparse ``(V, N)`` product per frame, exactly the
+    vertices :func:`~torchdeform.topology.cut_surfaces` computes (to float32 rounding).
+
+Messages (JSON objects; any other key, type or value raises ``ValueError`` with one line, and
+nothing changes)
+    ``{"cmd": "play"}``, ``{"cmd": "pause"}``, ``{"cmd": "reset"}`` (rest state, the scene's
+    model, no tool, no drag, the initial terms); ``{"cmd": "drag", "vertex": i, "target": [d, h,
+    w]}``: the free node of vertex ``i``'s piece nearest to the vertex (rest positions) is held at
+    the target (m) from the next step on, ``{"cmd": "release"}`` lets it go; ``{"cmd": "tool",
+    "position": [d, h, w] | null}``: the sphere tool (radius :attr:`~ViewerSession.tool_radius`,
+    penalty contact) placed or removed; ``{"cmd": "cut", "origin": [..], "u": [..], "v": [..]}``:
+    a parallelogram blade (:class:`~torchdeform.topology.Blade`) cuts the springs it crosses at
+    the current positions; ``{"cmd": "term", "name": "consistency", "value": c}``, ``c`` in
+    ``[0, 10]``: the body's consistency, Young's modulus ``E(c)`` from the fuzzy tissue library
+    (:func:`~torchdeform.scene.mass_spring.tissue_moduli`), every spring's stiffness scaled by
+    ``E(c) / E_0`` (``E_0``: the scene's modulus, ``lattice_modulus * median k``; for a uniform
+    body ``k = E(c) / lattice_modulus``). Points must lie within twice the body's size of it.
+
+Shapes: node positions ``(1, 3, D, H, W)`` (m); vertex positions ``(V, 3)`` in the axis order
+``(D, H, W)``.
+"""
+from __future__ import annotations
+
+import math
+import threading
+import time
+import warnings
+
+import numpy as np
+import torch
+
+from ..interact import PenaltyContact, Sphere, Tool
+from ..interact.reactions import report_momentum
+from ..mesh.surfaces import marching_tetrahedra
+from ..scene.mass_spring import Scene, lattice_modulus, tissue_moduli
+from ..scene.topology import TopologySet
+from ..sim.integrators import SymplecticEuler
+from ..sim.stability import gershgorin_omega2, time_step_bound
+from ..topology import Blade, components, cut, sides
+from ..topology.masks import alive, full
+
+__all__ = ["ViewerSession", "TERM_RANGE"]
+
+#: the range of the ``consistency`` term (the input of the fuzzy tissue system)
+TERM_RANGE = (0.0, 10.0)
+#: the integrators the session keeps from a scene (others run with symplectic Euler)
+_KEPT = ("symplectic", "verlet", "rk4")
+_TOOL, _DRAG = "viewer_tool", "viewer_drag"
+_KEYS = {"play": (), "pause": (), "reset": (), "release": (), "drag": ("vertex", "target"), "tool": ("position",),
+         "cut": ("origin", "u", "v"), "term": ("name", "value")}
+
+
+# ------------------------------------------------------------------ the surface as a sparse map
+def _trilinear(q: np.ndarray, shape) -> tuple:
+    """COO ``(rows, cols, vals)`` of trilinear interpolation at fractional node indices ``q`` ``(V, 3)``.
+
+    The weights of :func:`torchdeform.mesh.body_surface` (linear extrapolation half a cell beyond
+    the grid: the cell index is clipped to the grid, the fraction is not).
+    """
+    i0 = [np.clip(np.floor(q[:, c]), 0, max(n - 2, 0)).astype(np.int64) for c, n in enumerate(shape)]
+    f = [q[:, c] - i0[c] if n > 1 else np.zeros(len(q)) for c, n in enumerate(shape)]
+    i1 = [np.minimum(i0[c] + 1, n - 1) for c, n in enumerate(shape)]
+    rows, cols, vals = [], [], []
+    V = np.arange(len(q))
+    for a in (0, 1):
+        for b in (0, 1):
+            for c in (0, 1):
+                w = (f[0] if a else 1 - f[0]) * (f[1] if b else 1 - f[1]) * (f[2] if c else 1 - f[2])
+                idx = ((i1 if a else i0)[0] * shape[1] + (i1 if b else i0)[1]) * shape[2] + (i1 if c else i0)[2]
+                rows.append(V)
+                cols.append(idx)
+                vals.append(w)
+    return np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
+
+
+def _extension(mask: np.ndarray) -> tuple:
+    """COO ``(rows, cols, vals)`` of the displacement extension of :func:`~torchdeform.topology.extend_displacement`.
+
+    Rows of the piece's nodes are the identity; a node of the first layer outside it takes
+    ``mean over e of (2 u[b - e] - u[b - 2e])`` over the 26 directions ``e`` with both nodes in
+    the piece, or, without such a pair, the mean of its neighbours in the piece. Nodes further
+    out get no row (no vertex reads them).
+    """
+    D, H, W = mask.shape
+    mp = np.pad(mask, 2)
+
+    def at(e):                                                   # mask at index - e, (D, H, W)
+        return mp[2 - e[0]:2 - e[0] + D, 2 - e[1]:2 - e[1] + H, 2 - e[2]:2 - e[2] + W]
+
+    dirs = [(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) != (0, 0, 0)]
+    lin_n = np.zeros(mask.shape)
+    near_n = np.zeros(mask.shape)
+    for e in dirs:
+        ma, mc = at(e), at(tuple(2 * c for c in e))
+        lin_n += ma & mc
+        near_n += ma
+    first = ~mask & (near_n > 0)
+    lin, near = first & (lin_n > 0), first & (lin_n == 0)
+    own = np.flatnonzero(mask)
+    rows, cols, vals = [own], [own], [np.ones(len(own))]
+    for e in dirs:
+        off = (e[0] * H + e[1]) * W + e[2]
+        ma, mc = at(e), at(tuple(2 * c for c in e))
+        b = np.flatnonzero(lin & ma & mc)
+        n = lin_n.reshape(-1)[b]
+        rows += [b, b]
+        cols += [b - off, b - 2 * off]
+        vals += [2 / n, -1 / n]
+        b = np.flatnonzero(near & ma)
+        rows.append(b)
+        cols.append(b - off)
+        vals.append(1 / near_n.reshape(-1)[b])
+    return np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
+
+
+def surface_map(grid, labels: np.ndarray) -> dict:
+    """The surfaces of the pieces ``labels == L`` as a linear map of the node positions.
+
+    Args:
+        grid: the :class:`~torchdeform.sim.grid.Grid`.
+        labels: int ``(D, H, W)``, a piece per value ``>= 0`` (as :func:`~torchdeform.topology.cut_surfaces`).
+
+    Returns:
+        dict: ``weights`` (scipy CSR ``(V, N)``, N = D H W in C order), ``rest`` ``(V, 3)`` float64
+        (the vertices at rest, m), ``faces`` ``(F, 3)`` int64 (pieces in increasing label order,
+        as :func:`~torchdeform.topology.cut_surfaces` returns them, indices into the stacked
+        vertices), ``label`` ``(V,)`` (each vertex's piece). The vertices at positions ``x`` are
+        ``rest + weights @ (x - X)`` (node-major ``(N, 3)``).
+    """
+    from scipy.sparse import coo_matrix, csr_matrix, vstack
+    shape = tuple(grid.shape)
+    N = math.prod(shape)
+    X = grid.rest_positions(torch.float64)[0].reshape(3, N).T.numpy()
+    blocks, rests, faces, owner, count = [], [], [], [], 0
+    for label in np.unique(labels[labels >= 0]):
+        mask = labels == label
+        q, f = marching_tetrahedra(mask.astype(np.float64), 0.5)
+        r, c, v = _trilinear(q, shape)
+        T = csr_matrix(coo_matrix((v, (r, c)), shape=(len(q), N)))
+        r, c, v = _extension(mask)
+        E = csr_matrix(coo_matrix((v, (r, c)), shape=(N, N)))
+        blocks.append(T @ E)
+        rests.append(T @ X)
+        faces.append(f + count)
+        owner.append(np.full(len(q), int(label)))
+        count += len(q)
+    if not blocks:
+        return {"weights": csr_matrix((0, N)), "rest": np.zeros((0, 3)), "faces": np.zeros((0, 3), np.int64),
+                "label": np.zeros(0, np.int64)}
+    return {"weights": vstack(blocks).tocsr(), "rest": np.concatenate(rests), "faces": np.concatenate(faces),
+            "label": np.concatenate(owner)}
+
+
+# ------------------------------------------------------------------ a node held at a target
+class _Hold:
+    """An interaction that puts one node at a target after every step (the viewer's drag).
+
+    Reports ``viewer_drag.force`` ``(B, 3)``: the force the tissue pulls the held node with (N).
+    """
+
+    eager_only = True
+
+    def __init__(self, node_mask: torch.Tensor, target: torch.Tensor):
+        self.mask, self.target = node_mask, target                  # (1, 1, D, H, W) bool, (1, 3, 1, 1, 1)
+
+    def force(self, model, x, v, t):
+        """Holding adds no force."""
+        return None
+
+    def project(self, model, x, v, t, dt, readings=None):
+        """The held node at the target, at rest; its velocity change reported as a force."""
+        x = torch.where(self.mask, self.target, x)
+        v1 = torch.where(self.mask, torch.zeros_like(v), v)
+        report_momentum(readings, _DRAG, model.mass, v1 - v, x, self.target, dt)
+        return x, v1
+
+
+# ------------------------------------------------------------------ checks of the messages
+def _fail(text: str):
+    raise ValueError(text)
+
+
+def _number(value, key: str, lo=-math.inf, hi=math.inf) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        _fail(f"{key}: expected a number, got {type(value).__name__}")
+    v = float(value)
+    if not math.isfinite(v):
+        _fail(f"{key}: expected a finite number, got {value!r}")
+    if not lo <= v <= hi:
+        _fail(f"{key}: expected a number in [{lo:g}, {hi:g}], got {v:g}")
+    return v
+
+
+def _point(value, key: str, lo, hi) -> tuple:
+    if not isinstance(value, (list, tuple)) or len(value) != 3:
+        _fail(f"{key}: expected three numbers [d, h, w] in metres, got {type(value).__name__}"
+              + (f" of length {len(value)}" if isinstance(value, (list, tuple)) else ""))
+    return tuple(_number(c, f"{key}[{i}]", lo[i], hi[i]) for i, c in enumerate(value))
+
+
+# ------------------------------------------------------------------ the session
+class ViewerSession:
+    """A mass-spring scene stepped live, with the viewer's drag, sphere tool, cuts and tissue slider.
+
+    See the module docstring for the messages, the time step and the surface.
+
+    Args:
+        scene: a mass-spring :class:`~torchdeform.scene.Scene` (:func:`~torchdeform.scene.load_scene`,
+            :func:`~torchdeform.demo_scene`).
+        device: where to simulate (default: the scene's, else the CPU).
+        max_nodes: refuse (``ValueError``) a grid with more nodes than this (None: any size).
+
+    Attributes:
+        model: the live :class:`~torchdeform.sim.model.Model` (editable: cuts and terms change it in place).
+        state: the live :class:`~torchdeform.sim.model.State` ``(1, 3, D, H, W)``.
+        mesh_version: incremented whenever the surface's topology changes (a cut, a reset after one).
+        playing: whether :meth:`advance` steps (True at the start).
+        dt: the time step (s).
+        tool_radius: the sphere tool's radius (m): three node spacings (the largest).
+        labels: int ``(D, H, W)``: the piece of every node whose surface is drawn (negative: none).
+
+    Examples:
+        >>> import torchdeform as td
+        >>> from torchdeform.view.session import ViewerSession
+        >>> s = ViewerSession(td.demo_scene())                       # an 11^3 cube, base fixed
+        >>> m = s.mesh()
+        >>> m["type"], len(m["faces"]) % 3, len(s.positions()) == 4 * 3 * m["vertices"]
+        ('mesh', 0, True)
+        >>> s.command({"cmd": "tool", "position": [0.011, 0.005, 0.005]})     # pressed into the top
+        >>> s.command({"cmd": "cut", "origin": [0.0055, -0.001, -0.001], "u": [0, 0.012, 0], "v": [0, 0, 0.006]})
+        >>> s.mesh_version, s.advance(0.0) >= 1, s.stats()["force"] > 0
+        (1, True, True)
+        >>> try:
+        ...     s.command({"cmd": "term", "name": "consistency", "value": 11})
+        ... except ValueError as e:
+        ...     print(e)
+        value: expected a number in [0, 10], got 11
+    """
+
+    def __init__(self, scene, device=None, max_nodes=None):
+        if not isinstance(scene, Scene):
+            _fail(f"scene: expected a mass-spring Scene, got {type(scene).__name__}")
+        grid = scene.grid
+        if max_nodes is not None and grid.num_nodes > int(max_nodes):
+            _fail(f"scene: the grid has {grid.num_nodes} nodes, more than max_nodes = {int(max_nodes)}")
+        self.scene, self.grid = scene, grid
+        self._lock = threading.Lock()
+        self._base = scene.build(device)
+        self.integrator = scene.integrator if scene.integrator.name in _KEPT else SymplecticEuler()
+        with torch.no_grad():
+            X = self._base.X[0]
+            nodes = grid.nodes().to(X.device)
+            pts = X[:, nodes]
+            self._lo, self._hi = pts.amin(1).tolist(), pts.amax(1).tolist()
+            size = max(max(h - lo for lo, h in zip(self._lo, self._hi)), max(grid.spacing))
+            self._reach = (tuple(lo - 2 * size for lo in self._lo), tuple(h + 2 * size for h in self._hi))
+            self._span = 4 * size
+            self.tool_radius = 3.0 * max(grid.spacing)
+            self._k0 = full(self._base, self._base.stiffness).clone()        # the scene's springs
+            k = self._k0[(self._k0 > 0) & grid.spring_mask(self._k0.device)]
+            self._lattice = lattice_modulus(grid)
+            self._E0 = float(k.double().median()) * self._lattice if k.numel() else 0.0
+        self._c0 = self._scene_consistency() if self._E0 > 0 else None
+        self._timing = None                                   # (dt, tool stiffness) of the scene's model
+        self._reset()
+        self._retime()
+        self._timing = (self.dt, self._tool_k)
+
+    # ---------------------------------------------------------- set-up
+    def _scene_consistency(self) -> float:
+        """The scene's consistency: its ``[material] tissue`` if it has one, else from its modulus."""
+        from ..fuzzy.presets import load_preset, tissues
+        try:
+            import tomllib
+        except ImportError:                                    # Python 3.10
+            import tomli as tomllib
+        try:
+            tissue = tomllib.loads(self.scene.source.text or "").get("material", {}).get("tissue")
+        except (tomllib.TOMLDecodeError, AttributeError):
+            tissue = None
+        if isinstance(tissue, (int, float)) and not isinstance(tissue, bool) and 0 <= tissue <= 10:
+            return float(tissue)
+        if isinstance(tissue, str):
+            library, var = tissues(), load_preset("tissue_si").inputs[0]
+            if tissue in library:
+                return float(library[tissue]["consistency"])
+            if tissue in var.term_names:
+                return float(var.terms[tissue].peak())
+        grid = np.linspace(*TERM_RANGE, 1001)                      # E(c) is non-decreasing: invert it
+        E = np.asarray(tissue_moduli(grid.tolist()))
+        i = int(np.searchsorted(E, self._E0))
+        if i == 0 or i == len(E):
+            return float(grid[min(i, len(E) - 1)])
+        a, b = E[i - 1], E[i]
+        return float(grid[i - 1] + (grid[i] - grid[i - 1]) * (self._E0 - a) / (b - a))
+
+    def _reset(self) -> None:
+        """The scene's model (a fresh editable copy, fresh scene tools), at rest; no tool, no drag."""
+        model = TopologySet(self.grid).prepare(self._base)
+        scene_tools = self.scene.tools.interactions() if self.scene.tools is not None else self._base.interactions
+        self._scene_interactions = list(scene_tools)
+        model.interactions = list(self._scene_interactions)
+        self.model = model
+        self.state = model.rest_state()
+        self.playing = True
+        self._tool = self._contact = self._hold = None
+        self._tool_pos = torch.zeros(3, dtype=model.dtype, device=model.device)
+        self._drag_node = None
+        self._blades = []
+        self._consistency = self._c0
+        self._rate = 0.0
+        self._springs = int(alive(model)[0].sum())
+        if self._timing is not None:
+            self.dt, self._tool_k = self._timing
+        self._build_surface()
+
+    def _retime(self) -> None:
+        """Time step and tool stiffness for the current springs (module docstring)."""
+        model = self.model
+        saved, model.interactions = model.interactions, list(self._scene_interactions)
+        try:
+            with torch.no_grad():
+                bound = time_step_bound(model, self.integrator)
+                lk = gershgorin_omega2(model) / 4
+        finally:
+            model.interactions = saved
+        shape = (1, 1, *self.grid.shape)
+        free = model.free.expand(shape) > 0 if model.free is not None else torch.ones(shape, dtype=torch.bool)
+        mass = model.mass.expand(shape)[free.to(model.mass.device)]
+        m_min = float(mass.min()) if mass.numel() else 1.0
+        self._tool_k = max(lk, 1e-30) * m_min
+        stable = self.scene.safety * bound / math.sqrt(2) if math.isfinite(bound) else math.inf
+        given = self.scene.dt if self.scene.dt != "auto" else math.inf
+        self.dt = float(min(given, stable))
+        if not (0 < self.dt < math.inf):
+            _fail("scene: no finite, positive stable time step for this body")
+        if self._contact is not None:
+            self._contact.stiffness = self._tool_k
+
+    def _pieces(self) -> torch.Tensor:
+        """Labels ``(D, H, W)``: the components, each split by the plane of every blade that cut (rest side)."""
+        labels, _ = components(self.model)
+        for blade in self._blades:
+            side = (sides(self.model.X, blade)[0, 0] > 0).to(labels.device)
+            split = torch.where(labels >= 0, labels * 2 + side, labels)
+            ids = torch.unique(split[split >= 0])
+            labels = torch.where(split >= 0, torch.searchsorted(ids, split), split)
+        return labels
+
+    def _build_surface(self) -> None:
+        self.labels = self._pieces().cpu()
+        surf = surface_map(self.grid, self.labels.numpy())
+        W = surf["weights"]
+        dev, dtype = self.model.device, self.model.dtype
+        with warnings.catch_warnings():                  # "sparse CSR support is in beta", once per build
+            warnings.simplefilter("ignore", UserWarning)
+            self._W = torch.sparse_csr_tensor(torch.as_tensor(W.indptr, dtype=torch.int64),
+                                              torch.as_tensor(W.indices, dtype=torch.int64),
+                                              torch.as_tensor(W.data, dtype=dtype), size=W.shape).to(dev)
+        self._rest_v = torch.as_tensor(surf["rest"], dtype=dtype, device=dev)
+        self._rest_np = surf["rest"]
+        self._faces = surf["faces"]
+        self._vlabel = surf["label"]
+        self.mesh_version = getattr(self, "mesh_version", -1) + 1
+
+    def _set_interactions(self) -> None:
+        extra = [c for c in (self._contact, self._hold) if c is not None]
+        self.model.interactions = self._scene_interactions + extra
+
+    # ---------------------------------------------------------- messages
+    def command(self, msg: dict) -> None:
+        """Apply one message from the page (module docstring); ``ValueError`` for anything invalid, nothing changed.
+
+        Args:
+            msg: the message, e.g. ``{"cmd": "drag", "vertex": 12, "target": [0.01, 0.005, 0.005]}``.
+        """
+        if not isinstance(msg, dict):
+            _fail(f"message: expected an object with a cmd, got {type(msg).__name__}")
+        cmd = msg.get("cmd")
+        if not isinstance(cmd, str) or cmd not in _KEYS:
+            _fail(f"cmd: expected one of {', '.join(_KEYS)}, got {cmd!r}"[:200])
+        extra = set(msg) - {"cmd", *_KEYS[cmd]}
+        missing = [k for k in _KEYS[cmd] if k not in msg]
+        if extra or missing:
+            _fail(f"{cmd}: expected the keys {', '.join(('cmd',) + _KEYS[cmd])}"
+                  + (f", unknown {', '.join(sorted(map(str, extra)))}" if extra else "")
+                  + (f", missing {', '.join(missing)}" if missing else ""))
+        with self._lock, torch.no_grad():
+            getattr(self, f"_cmd_{cmd}")(msg)
+
+    def _cmd_play(self, msg):
+        self.playing = True
+
+    def _cmd_pause(self, msg):
+        self.playing = False
+
+    def _cmd_reset(self, msg):
+        changed, version = bool(self._blades), self.mesh_version
+        self._reset()
+        self.mesh_version = version + 1 if changed else version
+
+    def _cmd_release(self, msg):
+        self._hold, self._drag_node = None, None
+        self._set_interactions()
+
+    def _cmd_drag(self, msg):
+        i = msg["vertex"]
+        V = len(self._rest_np)
+        if isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < V:
+            _fail(f"vertex: expected a vertex index in [0, {V}), got {i!r}"[:200])
+        target = _point(msg["target"], "target", *self._reach)
+        free = self.labels == int(self._vlabel[i])
+        if self.model.free is not None:
+            free = free & (self.model.free[0, 0].cpu() > 0)
+        if not bool(free.any()):
+            _fail(f"vertex: vertex {i} belongs to a piece with no free node")
+        X = self.model.X[0].cpu().double()
+        r = torch.as_tensor(self._rest_np[i]).view(3, 1, 1, 1)
+        d = ((X - r) ** 2).sum(0)
+        d = torch.where(free, d, torch.full_like(d, math.inf))
+        node = int(d.argmin())
+        mask = torch.zeros(self.grid.num_nodes, dtype=torch.bool)
+        mask[node] = True
+        dev, dtype = self.model.device, self.model.dtype
+        self._hold = _Hold(mask.view(1, 1, *self.grid.shape).to(dev),
+                           torch.tensor(target, dtype=dtype, device=dev).view(1, 3, 1, 1, 1))
+        self._drag_node = tuple(int(c) for c in np.unravel_index(node, self.grid.shape))
+        self._set_interactions()
+
+    def _cmd_tool(self, msg):
+        p = msg["position"]
+        if p is None:
+            self._tool = self._contact = None
+        else:
+            p = _point(p, "position", *self._reach)
+            self._tool_pos.copy_(torch.tensor(p, dtype=self._tool_pos.dtype))
+            if self._tool is None:
+                self._tool = Tool(Sphere(self.tool_radius), position=self._tool_pos, name=_TOOL)
+                self._contact = PenaltyContact(self._tool, stiffness=self._tool_k)
+        self._set_interactions()
+
+    def _cmd_cut(self, msg):
+        o = _point(msg["origin"], "origin", *self._reach)
+        span = (tuple(-self._span for _ in range(3)), tuple(self._span for _ in range(3)))
+        u, v = _point(msg["u"], "u", *span), _point(msg["v"], "v", *span)
+        try:
+            blade = Blade(o, u, v)
+        except ValueError as e:
+            _fail(f"cut: {e}".splitlines()[0])
+        n = cut(self.model, self.state.x, blade)
+        if n:
+            self._blades.append(blade)
+            self._springs -= n
+            self._build_surface()
+
+    def _cmd_term(self, msg):
+        name = msg["name"]
+        if name != "consistency" or self._c0 is None:
+            _fail(f"name: expected one of {', '.join(self._terms()) or 'no term (this body has no springs)'}, "
+                  f"got {name!r}"[:200])
+        value = _number(msg["value"], "value", *TERM_RANGE)
+        factor = tissue_moduli([value])[0] / self._E0
+        k = self.model.stiffness
+        new = torch.where(k != 0, self._k0 * factor, torch.zeros_like(k))
+        old, old_c = k.clone(), self._consistency
+        k.copy_(new)
+        try:
+            self._retime()
+        except ValueError:
+            k.copy_(old)
+            self._consistency = old_c
+            raise
+        self._consistency = value
+
+    def _terms(self) -> dict:
+        if self._c0 is None:
+            return {}
+        return {"consistency": {"value": self._consistency, "min": TERM_RANGE[0], "max": TERM_RANGE[1]}}
+
+    # ---------------------------------------------------------- stepping
+    def advance(self, seconds: float) -> int:
+        """If playing, step for about ``seconds`` of wall time (at least one step); the number of steps.
+
+        Args:
+            seconds: wall time to spend (s), >= 0.
+        """
+        seconds = _number(seconds, "seconds", 0.0)
+        start, steps = time.perf_counter(), 0
+        while True:
+            with self._lock, torch.no_grad():
+                if not self.playing:
+                    break
+                new = self.integrator.step(self.model, self.state, self.dt)
+                if bool(torch.isfinite(new.x).all()) and bool(torch.isfinite(new.v).all()):
+                    self.state = new
+                else:                                           # undo the step, halve dt
+                    self.dt *= 0.5
+            steps += 1
+            if time.perf_counter() - start >= seconds:
+                break
+        elapsed = time.perf_counter() - start
+        if steps:
+            rate = steps / max(elapsed, 1e-9)
+            self._rate = rate if not self._rate else 0.7 * self._rate + 0.3 * rate
+        return steps
+
+    # ---------------------------------------------------------- outputs
+    def mesh(self) -> dict:
+        """The surface to draw (after a topology change): counts, faces, rest bounds, terms, tool radius.
+
+        Returns:
+            ``{"type": "mesh", "version", "vertices" (V), "faces" (flat, 3 per triangle), "bounds"
+            ([[min d, h, w], [max d, h, w]] of the rest surface, m), "terms", "tool_radius" (m)}``.
+        """
+        with self._lock:
+            rest = self._rest_np
+            bounds = [rest.min(0).tolist(), rest.max(0).tolist()] if len(rest) else [self._lo, self._hi]
+            return {"type": "mesh", "version": self.mesh_version, "vertices": len(rest),
+                    "faces": self._faces.reshape(-1).tolist(), "bounds": bounds, "terms": self._terms(),
+                    "tool_radius": self.tool_radius}
+
+    def positions(self) -> bytes:
+        """The surface's vertex positions now: ``V * 3`` float32 little-endian values (m, axes D, H, W)."""
+        with self._lock, torch.no_grad():
+            u = (self.state.x[0] - self.model.X[0]).reshape(3, -1).T.contiguous()
+            v = self._rest_v + self._W @ u
+            return v.to(torch.float32).cpu().numpy().astype("<f4", copy=False).tobytes()
+
+    def vertices(self) -> torch.Tensor:
+        """The surface's vertex positions now, ``(V, 3)`` float32 (m): :meth:`positions` as a tensor."""
+        return torch.from_numpy(np.frombuffer(self.positions(), dtype="<f4").copy()).view(-1, 3)
+
+    def stats(self) -> dict:
+        """Time, speed, forces and state for the page.
+
+        Returns:
+            ``{"type": "stats", "t" (s), "sim_hz" (steps per wall second, recent; 0 while paused),
+            "force" (N, the sphere tool's reaction), "drag_force" (N), "springs" (alive),
+            "playing", "mesh_version"}``.
+        """
+        with self._lock:
+            readings = self.state.readings or {}
+
+            def magnitude(name):
+                f = readings.get(f"{name}.force")
+                return float(f[0].double().norm()) if f is not None else 0.0
+
+            return {"type": "stats", "t": float(self.state.t), "sim_hz": self._rate if self.playing else 0.0,
+                    "force": magnitude(_TOOL) if self._tool is not None else 0.0,
+                    "drag_force": magnitude(_DRAG) if self._hold is not None else 0.0,
+                    "springs": self._springs, "playing": self.playing, "mesh_version": self.mesh_version}
