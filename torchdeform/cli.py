@@ -10,6 +10,7 @@
     torchdeform data balloon --out FILE.npz              synthetic series for torchdeform.learn
     torchdeform warp VOLUME.npy OFFSETS.npy --out OUT.npy [--mode deform|carve|knoche] [--inverse-iters N]
     torchdeform render VOLUME --out IMAGE.png [--offsets FILE] [--mode mip|dvr|average] [--tf PRESET]
+    torchdeform view SCENE.toml [--host 127.0.0.1] [--port 0] [--token T] [--open]
 
 Errors that a user can cause print one line (``torchdeform: <file>: <key>: expected ...``) and
 exit with status 2, without a traceback.
@@ -35,6 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .learn import commands as learn
     from .scene import commands as scene
     from .texture import commands as texture
+    from .view import commands as view
     from .volume import commands as volume
 
     p = argparse.ArgumentParser(prog="torchdeform", description="Soft-tissue simulation on PyTorch.")
@@ -68,6 +70,9 @@ def build_parser() -> argparse.ArgumentParser:
     t = sub.add_parser("texture", help="colour a closed mesh with a solid texture (.ply, .glb, .obj)")
     texture.add_arguments(t)
     t.set_defaults(func=texture.command)
+    w = sub.add_parser("view", help="watch and touch a scene in the browser (local server, token in the URL)")
+    view.add_arguments(w)
+    w.set_defaults(func=view.command)
     return p
 
 

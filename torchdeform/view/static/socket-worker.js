@@ -1,0 +1,49 @@
+// torchdeform viewer: the WebSocket, in a worker so that big binary frames arrive while the page's
+// main thread renders. Text messages (mesh, stats) are passed on in order; of the binary frames
+// only the latest is kept, handed over (transferred, not copied) when the page asks for one.
+//
+// page -> worker: {type: "connect", url}, {type: "send", text}, {type: "want"}
+// worker -> page: {type: "open"}, {type: "close"}, {type: "text", text}, {type: "frame", buffer, received}
+let ws = null;
+let url = null;
+let latest = null;       // the newest frame not yet handed over (older ones are dropped: never stale)
+let wanted = false;      // the page asked for a frame and none was there
+let received = 0;
+
+function handOver() {
+  postMessage({ type: "frame", buffer: latest, received }, [latest]);
+  latest = null;
+  wanted = false;
+}
+
+function connect() {
+  ws = new WebSocket(url);
+  ws.binaryType = "arraybuffer";
+  ws.onopen = () => postMessage({ type: "open" });
+  ws.onmessage = (ev) => {
+    if (typeof ev.data === "string") {
+      postMessage({ type: "text", text: ev.data });
+      return;
+    }
+    received++;
+    latest = ev.data;
+    if (wanted) handOver();
+  };
+  ws.onclose = () => {
+    postMessage({ type: "close" });
+    setTimeout(connect, 1000);
+  };
+}
+
+onmessage = (ev) => {
+  const m = ev.data;
+  if (m.type === "connect" && url === null) {
+    url = m.url;
+    connect();
+  } else if (m.type === "send") {
+    if (ws && ws.readyState === WebSocket.OPEN) ws.send(m.text);
+  } else if (m.type === "want") {
+    if (latest) handOver();
+    else wanted = true;
+  }
+};

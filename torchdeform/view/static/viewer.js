@@ -1,0 +1,407 @@
+// torchdeform viewer: renders the body's surface with three.js, updated over a WebSocket.
+//
+// The socket lives in a worker (socket-worker.js): big frames arrive while this thread renders; each
+// animation frame asks it for the newest one.
+// Server -> page: a "mesh" JSON message (faces, bounds, tissue terms, tool radius), binary frames
+// (float32 little endian, V * 3 vertex positions in metres, axis order D, H, W) and "stats" JSON.
+// Page -> server: {"cmd": play|pause|reset|drag|release|tool|cut|term|fps, ...} JSON messages.
+// Library axes (D, H, W) are shown as three.js (y, z, x): D (gravity's axis) is up; the mapping is a
+// cyclic permutation (a rotation), so the triangles keep their winding.
+import * as THREE from "./three.module.min.js";
+
+const token = new URLSearchParams(location.search).get("token") || "";
+const $ = (id) => document.getElementById(id);
+const canvas = $("view");
+
+// ------------------------------------------------------------------ exposed for tests
+const stats = { fps: 0, framesReceived: 0, framesShown: 0, framesSkipped: 0, lastStats: null, meshVersion: null, vertices: 0,
+                connected: false, sent: 0, mode: "drag",
+                ms: { normals: 0, render: 0, frame: 0, message: 0 } };
+window.viewerStats = stats;
+
+// ------------------------------------------------------------------ scene
+const renderer = new THREE.WebGLRenderer({ canvas, antialias: false, preserveDrawingBuffer: true });
+renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
+renderer.setClearColor(0x1e2227, 1);
+const scene = new THREE.Scene();
+const camera = new THREE.PerspectiveCamera(40, 1, 1e-4, 100);
+scene.add(new THREE.HemisphereLight(0xffffff, 0x404048, 1.4));
+const sun = new THREE.DirectionalLight(0xffffff, 2.2);
+scene.add(sun);
+scene.add(sun.target);
+
+// library (d, h, w) -> three (x, y, z) = (w, d, h)
+const LIB_TO_WORLD = new THREE.Matrix4().set(0, 0, 1, 0,
+                                             1, 0, 0, 0,
+                                             0, 1, 0, 0,
+                                             0, 0, 0, 1);
+const toWorld = (p) => new THREE.Vector3(p[2], p[0], p[1]);
+const toLib = (v) => [v.y, v.z, v.x];
+
+const body = new THREE.Group();          // holds the surface in library coordinates
+body.matrixAutoUpdate = false;
+body.matrix.copy(LIB_TO_WORLD);
+scene.add(body);
+const material = new THREE.MeshLambertMaterial({ color: 0xc4736b, side: THREE.DoubleSide });
+let surface = null;                      // THREE.Mesh, geometry in library coordinates
+let positionsDirty = false;
+
+const toolMaterial = new THREE.MeshLambertMaterial({ color: 0x8fc1ff, transparent: true, opacity: 0.45,
+                                                     depthWrite: false });
+const toolSphere = new THREE.Mesh(new THREE.SphereGeometry(1, 24, 16), toolMaterial);
+toolSphere.visible = false;
+scene.add(toolSphere);
+const strokeGeometry = new THREE.BufferGeometry().setAttribute("position",
+  new THREE.BufferAttribute(new Float32Array(6), 3));
+const stroke = new THREE.Line(strokeGeometry, new THREE.LineBasicMaterial({ color: 0xffe066, depthTest: false }));
+stroke.visible = false;
+stroke.renderOrder = 10;
+scene.add(stroke);
+
+// orbit camera around `orbit.target`
+const orbit = { target: new THREE.Vector3(), radius: 0.1, theta: 0.7, phi: 1.1, size: 0.05 };
+let framed = false;
+
+function placeCamera() {
+  const { target, radius, theta, phi } = orbit;
+  camera.position.set(target.x + radius * Math.sin(phi) * Math.sin(theta), target.y + radius * Math.cos(phi),
+                      target.z + radius * Math.sin(phi) * Math.cos(theta));
+  camera.near = Math.max(radius / 1000, 1e-5);
+  camera.far = radius * 100;
+  camera.updateProjectionMatrix();
+  camera.lookAt(target);
+  sun.position.copy(camera.position).add(new THREE.Vector3(0, orbit.size * 2, 0));
+  sun.target.position.copy(target);
+}
+
+function resize() {
+  const w = window.innerWidth, h = window.innerHeight;
+  renderer.setSize(w, h, false);
+  camera.aspect = w / Math.max(h, 1);
+  camera.updateProjectionMatrix();
+}
+window.addEventListener("resize", resize);
+resize();
+placeCamera();
+
+// ------------------------------------------------------------------ messages from the server
+let toolRadius = 0.002;
+
+function onMesh(msg) {
+  const V = msg.vertices | 0;
+  const geometry = new THREE.BufferGeometry();
+  const old = surface ? surface.geometry.getAttribute("position") : null;
+  const pos = new Float32Array(V * 3);
+  if (old && old.count === V) pos.set(old.array);
+  geometry.setAttribute("position", new THREE.BufferAttribute(pos, 3).setUsage(THREE.DynamicDrawUsage));
+  geometry.setIndex(new THREE.BufferAttribute(Uint32Array.from(msg.faces), 1));
+  if (surface) {
+    body.remove(surface);
+    surface.geometry.dispose();
+  }
+  surface = new THREE.Mesh(geometry, material);
+  body.add(surface);
+  positionsDirty = !!(old && old.count === V);
+  stats.meshVersion = msg.version;
+  stats.vertices = V;
+  toolRadius = msg.tool_radius || toolRadius;
+  toolSphere.scale.setScalar(toolRadius);
+  const lo = toWorld(msg.bounds[0]), hi = toWorld(msg.bounds[1]);
+  const size = Math.max(hi.clone().sub(lo).length(), 1e-4);
+  if (!framed) {
+    orbit.target.copy(lo).add(hi).multiplyScalar(0.5);
+    orbit.size = size;
+    orbit.radius = 1.6 * size / Math.tan(THREE.MathUtils.degToRad(camera.fov / 2)) / 2;
+    framed = true;
+    placeCamera();
+  }
+  buildTerms(msg.terms || {});
+}
+
+function onFrame(buffer) {
+  if (!surface || buffer.byteLength !== 12 * stats.vertices) {     // a frame of an older mesh
+    stats.framesSkipped++;
+    return;
+  }
+  stats.framesShown++;
+  const t0 = performance.now();
+  surface.geometry.getAttribute("position").array.set(new Float32Array(buffer));
+  stats.ms.message = 0.9 * stats.ms.message + 0.1 * (performance.now() - t0);
+  positionsDirty = true;
+}
+
+const fmt = (v, digits) => (typeof v === "number" && isFinite(v) ? v.toFixed(digits) : "-");
+
+function onStats(msg) {
+  stats.lastStats = msg;
+  $("time").textContent = fmt(msg.t, 3);
+  $("simhz").textContent = fmt(msg.sim_hz, 0);
+  $("force").textContent = fmt(msg.force, 4);
+  $("springs").textContent = msg.springs ?? "-";
+  $("play").classList.toggle("active", !!msg.playing);
+  $("pause").classList.toggle("active", !msg.playing);
+}
+
+// ------------------------------------------------------------------ the socket (in a worker)
+const socket = new Worker("/static/socket-worker.js");
+let asked = false;       // a frame was asked of the worker and has not come yet
+
+function send(msg) {
+  if (stats.connected) {
+    socket.postMessage({ type: "send", text: JSON.stringify(msg) });
+    stats.sent++;
+  }
+}
+
+socket.onmessage = (ev) => {
+  const m = ev.data;
+  if (m.type === "frame") {
+    asked = false;
+    stats.framesReceived = m.received;
+    onFrame(m.buffer);
+  } else if (m.type === "text") {
+    let msg;
+    try { msg = JSON.parse(m.text); } catch (e) { return; }
+    if (msg.type === "mesh") onMesh(msg);
+    else if (msg.type === "stats") onStats(msg);
+  } else if (m.type === "open") {
+    stats.connected = true;
+    $("status").textContent = "";
+  } else if (m.type === "close") {
+    stats.connected = false;
+    $("status").textContent = "disconnected: retrying...";
+  }
+};
+const scheme = location.protocol === "https:" ? "wss" : "ws";
+socket.postMessage({ type: "connect", url: `${scheme}://${location.host}/ws?token=${encodeURIComponent(token)}` });
+
+// ------------------------------------------------------------------ controls
+$("play").onclick = () => send({ cmd: "play" });
+$("pause").onclick = () => send({ cmd: "pause" });
+$("reset").onclick = () => send({ cmd: "reset" });
+for (const mode of ["drag", "tool", "cut"]) {
+  $(`mode-${mode}`).onclick = () => {
+    stats.mode = mode;
+    for (const m of ["drag", "tool", "cut"]) $(`mode-${m}`).classList.toggle("active", m === mode);
+    toolSphere.visible = false;
+  };
+}
+
+let termsKey = "";
+function buildTerms(terms) {
+  const key = JSON.stringify(Object.keys(terms).map((k) => [k, terms[k].min, terms[k].max]));
+  if (key === termsKey) return;
+  termsKey = key;
+  const box = $("terms");
+  box.textContent = "";
+  for (const [name, t] of Object.entries(terms)) {
+    const label = document.createElement("label");
+    const value = document.createElement("span");
+    value.textContent = fmt(t.value, 2);
+    label.append(`${name} `, value);
+    const input = document.createElement("input");
+    Object.assign(input, { type: "range", id: `term-${name}`, min: t.min, max: t.max,
+                           step: (t.max - t.min) / 200, value: t.value });
+    input.oninput = () => {
+      value.textContent = fmt(Number(input.value), 2);
+      send({ cmd: "term", name, value: Number(input.value) });
+    };
+    label.append(input);
+    box.append(label);
+  }
+}
+
+// ------------------------------------------------------------------ the mouse
+const raycaster = new THREE.Raycaster();
+const ndc = new THREE.Vector2();
+
+function ray(ev) {
+  const r = canvas.getBoundingClientRect();
+  ndc.set(((ev.clientX - r.left) / r.width) * 2 - 1, -((ev.clientY - r.top) / r.height) * 2 + 1);
+  raycaster.setFromCamera(ndc, camera);
+  return raycaster.ray;
+}
+
+function pick(ev) {
+  if (!surface) return null;
+  ray(ev);
+  surface.geometry.computeBoundingSphere();
+  const hits = raycaster.intersectObject(surface, false);
+  return hits.length ? hits[0] : null;
+}
+
+function viewDirection() {
+  return camera.getWorldDirection(new THREE.Vector3());
+}
+
+function facingPlane(point) {
+  return new THREE.Plane().setFromNormalAndCoplanarPoint(viewDirection(), point);
+}
+
+function onPlane(ev, plane) {
+  return ray(ev).intersectPlane(plane, new THREE.Vector3());
+}
+
+function vertexWorld(i) {
+  const a = surface.geometry.getAttribute("position");
+  return new THREE.Vector3(a.getX(i), a.getY(i), a.getZ(i)).applyMatrix4(LIB_TO_WORLD);
+}
+
+let gesture = null;      // what the pressed mouse is doing
+let pending = null;      // the latest drag/tool command, sent once per animation frame
+
+canvas.addEventListener("contextmenu", (ev) => ev.preventDefault());
+canvas.addEventListener("pointerdown", (ev) => {
+  canvas.setPointerCapture(ev.pointerId);
+  if (ev.button === 2 || ev.shiftKey) {
+    gesture = { kind: "orbit", x: ev.clientX, y: ev.clientY };
+    return;
+  }
+  if (ev.button !== 0 || !surface) return;
+  if (stats.mode === "drag") {
+    const hit = pick(ev);
+    if (!hit) return;
+    const face = hit.face;
+    let best = face.a, bestD = Infinity;
+    for (const i of [face.a, face.b, face.c]) {
+      const d = vertexWorld(i).distanceToSquared(hit.point);
+      if (d < bestD) { bestD = d; best = i; }
+    }
+    gesture = { kind: "drag", vertex: best, start: hit.point.clone(), origin: vertexWorld(best),
+                plane: facingPlane(hit.point) };
+  } else if (stats.mode === "tool") {
+    const hit = pick(ev);
+    const point = hit ? hit.point.clone() : onPlane(ev, facingPlane(orbit.target));
+    if (!point) return;
+    gesture = { kind: "tool", plane: facingPlane(point), since: performance.now(), point };
+    toolAt(ev);
+  } else if (stats.mode === "cut") {
+    const hit = pick(ev);
+    const start = hit ? hit.point.clone() : onPlane(ev, facingPlane(orbit.target));
+    if (!start) return;
+    gesture = { kind: "cut", start, end: start.clone(), plane: facingPlane(start) };
+    strokeLine(start, start);
+    stroke.visible = true;
+  }
+});
+
+canvas.addEventListener("pointermove", (ev) => {
+  if (!gesture) {
+    if (stats.mode === "tool") hover(ev);
+    return;
+  }
+  if (gesture.kind === "orbit") {
+    orbit.theta -= (ev.clientX - gesture.x) * 0.01;
+    orbit.phi = Math.min(Math.max(orbit.phi - (ev.clientY - gesture.y) * 0.01, 0.05), Math.PI - 0.05);
+    gesture.x = ev.clientX;
+    gesture.y = ev.clientY;
+    placeCamera();
+  } else if (gesture.kind === "drag") {
+    const p = onPlane(ev, gesture.plane);
+    if (!p) return;
+    const target = gesture.origin.clone().add(p.sub(gesture.start));
+    pending = { cmd: "drag", vertex: gesture.vertex, target: toLib(target) };
+  } else if (gesture.kind === "tool") {
+    const p = onPlane(ev, gesture.plane);
+    if (p) gesture.point = p;
+    toolAt(ev);
+  } else if (gesture.kind === "cut") {
+    const p = onPlane(ev, gesture.plane);
+    if (p) gesture.end = p;
+    strokeLine(gesture.start, gesture.end);
+  }
+});
+
+function endGesture(ev) {
+  if (!gesture) return;
+  const g = gesture;
+  gesture = null;
+  if (g.kind === "drag") {
+    pending = null;
+    send({ cmd: "release" });
+  } else if (g.kind === "tool") {
+    pending = null;
+    toolSphere.visible = false;
+    send({ cmd: "tool", position: null });
+  } else if (g.kind === "cut") {
+    stroke.visible = false;
+    const u = g.end.clone().sub(g.start);
+    if (u.length() > 1e-6) {
+      const dir = viewDirection();
+      const depth = orbit.size;
+      const origin = g.start.clone().addScaledVector(dir, -depth);
+      send({ cmd: "cut", origin: toLib(origin), u: toLib(u), v: toLib(dir.multiplyScalar(2 * depth)) });
+    }
+  }
+}
+canvas.addEventListener("pointerup", endGesture);
+canvas.addEventListener("pointercancel", endGesture);
+
+canvas.addEventListener("wheel", (ev) => {
+  ev.preventDefault();
+  orbit.radius *= Math.exp(Math.sign(ev.deltaY) * 0.1);
+  placeCamera();
+}, { passive: false });
+
+// tool: hovering shows the sphere touching the surface; pressing pushes it in along the view,
+// one radius deeper over 0.4 s, while the mouse moves it on the plane through the pressed point
+function hover(ev) {
+  const hit = pick(ev);
+  toolSphere.visible = !!hit;
+  if (hit) toolSphere.position.copy(hit.point).addScaledVector(viewDirection(), -toolRadius);
+}
+
+function toolAt(ev) {
+  if (!gesture || gesture.kind !== "tool") return;
+  const push = Math.min((performance.now() - gesture.since) / 400, 1);
+  const centre = gesture.point.clone().addScaledVector(viewDirection(), toolRadius * (2 * push - 1));
+  toolSphere.position.copy(centre);
+  toolSphere.visible = true;
+  pending = { cmd: "tool", position: toLib(centre) };
+}
+
+function strokeLine(a, b) {
+  const arr = strokeGeometry.getAttribute("position");
+  arr.setXYZ(0, a.x, a.y, a.z);
+  arr.setXYZ(1, b.x, b.y, b.z);
+  arr.needsUpdate = true;
+  strokeGeometry.computeBoundingSphere();
+}
+
+// ------------------------------------------------------------------ the frame loop
+let counted = 0, since = performance.now(), lastNow = since;
+
+function frame(now) {
+  requestAnimationFrame(frame);
+  if (!asked) {
+    asked = true;
+    socket.postMessage({ type: "want" });
+  }
+  if (gesture && gesture.kind === "tool") toolAt(null);
+  if (pending) {
+    send(pending);
+    pending = null;
+  }
+  const t0 = performance.now();
+  if (surface && positionsDirty) {
+    surface.geometry.getAttribute("position").needsUpdate = true;
+    surface.geometry.computeVertexNormals();
+    positionsDirty = false;
+  }
+  const t1 = performance.now();
+  renderer.render(scene, camera);
+  const t2 = performance.now();
+  stats.ms.normals = 0.9 * stats.ms.normals + 0.1 * (t1 - t0);
+  stats.ms.render = 0.9 * stats.ms.render + 0.1 * (t2 - t1);
+  stats.ms.frame = 0.9 * stats.ms.frame + 0.1 * (now - lastNow);
+  lastNow = now;
+  counted++;
+  if (now - since >= 1000) {
+    stats.fps = (counted * 1000) / (now - since);
+    counted = 0;
+    since = now;
+    $("fps").textContent = stats.fps.toFixed(0);
+    send({ cmd: "fps", value: Math.round(stats.fps * 10) / 10 });
+  }
+}
+requestAnimationFrame(frame);
