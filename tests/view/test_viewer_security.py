@@ -74,21 +74,26 @@ def origin(v: Viewer) -> str:
     return f"http://127.0.0.1:{v.port}"
 
 
-def receive_mesh_and_frames(ws, frames: int = 3, timeout: float = 10.0):
-    """The first message (must be the mesh) and the sizes of the next binary frames."""
-    first = ws.recv(timeout=timeout)
-    assert isinstance(first, str)
-    mesh = json.loads(first)
-    assert mesh["type"] == "mesh"
+def frame_sizes(ws, frames: int = 3, timeout: float = 10.0, check_text: bool = True) -> list:
+    """The sizes of the next ``frames`` binary frames (text messages between them: stats or mesh)."""
     sizes = []
     end = time.monotonic() + timeout
     while len(sizes) < frames and time.monotonic() < end:
         msg = ws.recv(timeout=timeout)
         if isinstance(msg, bytes):
             sizes.append(len(msg))
-        else:
+        elif check_text:
             assert json.loads(msg)["type"] in ("stats", "mesh")
-    return mesh, sizes
+    return sizes
+
+
+def receive_mesh_and_frames(ws, frames: int = 3, timeout: float = 10.0):
+    """The first message (must be the mesh) and the sizes of the next binary frames."""
+    first = ws.recv(timeout=timeout)
+    assert isinstance(first, str)
+    mesh = json.loads(first)
+    assert mesh["type"] == "mesh"
+    return mesh, frame_sizes(ws, frames, timeout)
 
 
 # ------------------------------------------------------------------ HTTP
@@ -187,7 +192,7 @@ def test_malformed_messages_are_ignored(viewer, caplog):
             ws.send(msg)
         ws.send(json.dumps({"cmd": "fps", "value": 59.5}))
         # the connection is still open and still streams
-        _, sizes = receive_mesh_and_frames_after(ws)
+        sizes = frame_sizes(ws, check_text=False)
         assert sizes
     deadline = time.monotonic() + 10
     while viewer.ignored - before < 1000 and time.monotonic() < deadline:
@@ -211,15 +216,6 @@ def test_malformed_messages_are_ignored(viewer, caplog):
     assert torch.isfinite(session.state.x).all()
     assert viewer._thread.is_alive() and viewer._sim_thread.is_alive()
 
-
-def receive_mesh_and_frames_after(ws, frames: int = 3, timeout: float = 10.0):
-    sizes = []
-    end = time.monotonic() + timeout
-    while len(sizes) < frames and time.monotonic() < end:
-        msg = ws.recv(timeout=timeout)
-        if isinstance(msg, bytes):
-            sizes.append(len(msg))
-    return None, sizes
 
 
 def test_closing_the_page_leaves_the_server_serving(viewer):

@@ -157,17 +157,13 @@ def _seam_rows(blocks):
     ex = liver_exemplar(128, seed=0)
     extent = tuple(64 * n for n in blocks)
     rows, slices = [], {}
-    for method in ("none", "3d", "slices"):
+    for method, name in (("none", "tiled"), ("3d", "3-D Poisson"), ("slices", "per-slice 2-D (D)")):
         tex = SolidTexture(ex, block=64, extent=extent, seed=0)
-        r = tex.blend(method)
-        if method == "none":
-            rows.append(dict(method="tiled", seam_jump=r["seam_before"], reduction=1.0,
-                             histogram_w1=r["histogram_before"], iterations=None, seconds=None))
-        rows.append(dict(method={"none": None, "3d": "3-D Poisson", "slices": "per-slice 2-D (D)"}[method],
-                         seam_jump=r["seam_after"], reduction=r["seam_before"] / r["seam_after"],
-                         histogram_w1=r["histogram_after"], iterations=r["iterations"], seconds=r["seconds"]))
-        slices[rows[-1]["method"] or "tiled"] = tex.materialise()[:, :, extent[1] // 2 + 7].permute(1, 2, 0)
-    rows = [r for r in rows if r["method"]]
+        r = tex.blend(method)                    # "none": the tiled texture, after = before
+        rows.append(dict(method=name, seam_jump=r["seam_after"], reduction=r["seam_before"] / r["seam_after"],
+                         histogram_w1=r["histogram_after"], iterations=r["iterations"] if method != "none" else None,
+                         seconds=r["seconds"] if method != "none" else None))
+        slices[name] = tex.materialise()[:, :, extent[1] // 2 + 7].permute(1, 2, 0)
     floor = seam_jump(ex, 64, reference=ex)
     rows.append(dict(method="exemplar (floor)", seam_jump=floor, reduction=rows[0]["seam_jump"] / floor,
                      histogram_w1=histogram_distance(ex, ex), iterations=None, seconds=None))

@@ -32,9 +32,11 @@ from .surfaces import (
     load_mesh,
     marching_tetrahedra,
     save_surface,
+    trilinear_weights,
     volume_surface,
     voxelize,
 )
 
 __all__ = ["voxelize", "grid_from_mesh", "load_mesh", "inside_mask", "marching_tetrahedra", "body_surface",
+           "trilinear_weights",
            "volume_surface", "save_surface", "SURFACE_TOL", "SURFACE_SUFFIXES", "Camera", "rasterize", "save_png"]

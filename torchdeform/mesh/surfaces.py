@@ -320,25 +320,42 @@ def marching_tetrahedra(field, level: float = 0.5, pad: bool = True):
     return verts, faces
 
 
-def _interp_positions(x: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Trilinear interpolation of node positions ``x`` ``(3, D, H, W)`` at fractional node indices ``q`` ``(V, 3)``.
+def trilinear_weights(q: np.ndarray, shape) -> tuple:
+    """Trilinear interpolation at fractional node indices ``q`` ``(V, 3)`` as sparse weights.
 
-    Extrapolates linearly from the border cells (for vertices half a spacing outside the grid).
+    The cell index is clipped to the grid and the fraction is not, so points half a spacing
+    outside the grid extrapolate linearly from the border cells.
+
+    Args:
+        q: ``(V, 3)`` fractional node indices along ``(D, H, W)``.
+        shape: the grid's ``(D, H, W)``.
+
+    Returns:
+        ``(rows, cols, vals)``, COO entries of the ``(V, D H W)`` matrix (node index in C order),
+        8 per point.
+
+    Example:
+        >>> r, c, v = trilinear_weights(np.array([[0.5, 0.0, 0.0]]), (2, 2, 2))
+        >>> sorted(zip(c[v > 0].tolist(), v[v > 0].tolist()))
+        [(0, 0.5), (4, 0.5)]
     """
-    shape = x.shape[1:]
     i0 = [np.clip(np.floor(q[:, c]), 0, max(n - 2, 0)).astype(np.int64) for c, n in enumerate(shape)]
     f = [q[:, c] - i0[c] if n > 1 else np.zeros(len(q)) for c, n in enumerate(shape)]
     i1 = [np.minimum(i0[c] + 1, n - 1) for c, n in enumerate(shape)]
-    out = np.zeros((len(q), 3))
+    rows, cols, vals = [], [], []
     for a in (0, 1):
-        wa = f[0] if a else 1 - f[0]
         for b in (0, 1):
-            wb = f[1] if b else 1 - f[1]
             for c in (0, 1):
-                wc = f[2] if c else 1 - f[2]
-                idx = ((i1 if a else i0)[0], (i1 if b else i0)[1], (i1 if c else i0)[2])
-                out += (wa * wb * wc)[:, None] * x[:, idx[0], idx[1], idx[2]].T
-    return out
+                vals.append((f[0] if a else 1 - f[0]) * (f[1] if b else 1 - f[1]) * (f[2] if c else 1 - f[2]))
+                cols.append(((i1 if a else i0)[0] * shape[1] + (i1 if b else i0)[1]) * shape[2] + (i1 if c else i0)[2])
+                rows.append(np.arange(len(q)))
+    return np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
+
+
+def _interp_positions(x: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Node positions ``x`` ``(3, D, H, W)`` interpolated at fractional node indices ``q`` (:func:`trilinear_weights`)."""
+    _, cols, vals = trilinear_weights(q, x.shape[1:])               # 8 blocks of V entries, corner-major
+    return (vals * x.reshape(3, -1)[:, cols]).reshape(3, 8, len(q)).sum(1).T
 
 
 def body_surface(x, node_mask=None, level: float = 0.5):
@@ -425,4 +442,4 @@ def save_surface(path, vertices, faces, *, vertex_attributes=None) -> None:
     trimesh.Trimesh(vertices=v, faces=f, process=False, vertex_attributes=attrs).export(str(path))
 
 
-__all__ += ["marching_tetrahedra", "body_surface", "volume_surface", "save_surface"]
+__all__ += ["marching_tetrahedra", "trilinear_weights", "body_surface", "volume_surface", "save_surface"]

@@ -404,7 +404,7 @@ def mass_spring_scene(src: Source, data: dict, base: Path, name: str = "scene") 
         if not exemplar.startswith("liver"):
             exemplar = str(Path(base) / exemplar)
         with src.located(tt.key("exemplar")):
-            from ..texture.commands import exemplar_from
+            from ..texture.exemplar import exemplar_from
             ex = exemplar_from(exemplar, tt.integer("seed", "an integer >= 0", 0))
         block = tt.integer("block", "an integer block size >= 2 (voxels)", min(ex.shape[1:]) // 2, lo=2)
         if block > min(ex.shape[1:]):

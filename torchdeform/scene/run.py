@@ -29,7 +29,7 @@ from .reader import read
 from .tools import ToolRecorder, support_series, tool_outputs
 
 __all__ = ["load_scene", "run_scene", "energy_series", "plot_energy", "one_line_warnings", "report",
-           "scene_volume_outputs", "scene_texture_outputs", "scene_animation", "tool_forces_at"]
+           "scene_volume_outputs", "scene_texture", "scene_texture_outputs", "scene_animation", "tool_forces_at"]
 
 
 def load_scene(path) -> Scene | ChainMailScene:
@@ -290,9 +290,12 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
                                     f"{scene.name}: {integrator.name}, dt = {dt:.3g} s"))
     if events is not None:
         summary["topology"] = events.outputs(final, out, f"{scene.name}: {integrator.name}, dt = {dt:.3g} s")
+    texture = None
     if scene.texture:
+        texture, seams = scene_texture(scene.texture, grid)
         labels = events.pieces() if events is not None else torch.where(grid.nodes(), 0, -1)
-        summary["texture"] = scene_texture_outputs(scene.texture, grid, final.x[:1], labels, out)
+        summary["texture"] = scene_texture_outputs(texture, grid, final.x[:1], labels, out)
+        summary["texture"]["seams"] = seams
     if scene.volume:
         spec = dict(scene.volume)
         cut = None if events is None else (grid, events.pieces())          # a cut body: a carved render
@@ -302,7 +305,7 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
         labels = events.pieces() if events is not None else None
         tools = None if recorder is None else recorder.series()
         summary["animation"] = scene_animation(scene, model, t, x, v, out, labels=labels, tools=tools,
-                                               progress=progress)
+                                               texture=texture, progress=progress)
     text = json.dumps(summary, indent=2)
     if "tools" in summary:                # each series (lists of numbers, lists of those) on one line
         text = re.sub(r"\[\s+([-+\d.eE,\s]+?)\s+\]", lambda m: "[" + ", ".join(re.split(r",\s*", m.group(1))) + "]",
@@ -352,6 +355,11 @@ def report(summary: dict, out_dir) -> str:
             f"{summary['max_displacement_m'] * 1e3:.3g} mm{tools}; wrote {', '.join(files)} to {out_dir}")
 
 
+def _volume_path(name: str, base) -> str:
+    """A scene's ``[volume] file``: ``phantom[:N]`` as it is, a file name relative to the scene's folder ``base``."""
+    return name if name.startswith("phantom") or base is None else str(Path(base) / name)
+
+
 def scene_volume_outputs(volume, x, X, spacing, out_dir, tf: str = "ct-soft", mode: str = "dvr",
                          view: str = "h", base=None, cut=None) -> dict:
     """Deform a scene's volume by its final node positions and write its renders.
@@ -379,7 +387,7 @@ def scene_volume_outputs(volume, x, X, spacing, out_dir, tf: str = "ct-soft", mo
     """
     from ..volume import load_volume, node_offsets, render, save_png, save_volume, to_image, warp
     name = str(volume)
-    path = name if name.startswith("phantom") or base is None else str(Path(base) / name)
+    path = _volume_path(name, base)
     vol = torch.from_numpy(load_volume(path, "volume.file"))
     out = Path(out_dir)
     with torch.no_grad():
@@ -401,15 +409,34 @@ def scene_volume_outputs(volume, x, X, spacing, out_dir, tf: str = "ct-soft", mo
                                                             "volume_deformed.npy"]}
 
 
-def scene_texture_outputs(spec: dict, grid, x, labels, out_dir) -> dict:
-    """Write ``textured.png``: the final surfaces (one per piece) coloured by a solid texture.
+def scene_texture(spec: dict, grid):
+    """The solid texture of a scene's ``[texture]`` section, its seams blended as ``spec["seams"]`` asks.
 
-    The texture covers the body's rest box; colours are looked up at every pixel's material
-    coordinates, so cut faces show the interior (:func:`~torchdeform.texture.render_textured`).
+    Built once per run; ``textured.png`` and the animation both read it.
 
     Args:
         spec: ``{"exemplar": (3, E, E, E), "block", "seed", "voxel", "seams"}`` (``seams``: a method of
-            :meth:`~torchdeform.texture.SolidTexture.blend`, reported in the summary).
+            :meth:`~torchdeform.texture.SolidTexture.blend`).
+        grid: the grid (the texture covers its rest box, :func:`~torchdeform.texture.mapping.body_texture`).
+
+    Returns:
+        ``(texture, seams)``: the :class:`~torchdeform.texture.SolidTexture` and the blend's report
+        (None without blending).
+    """
+    from ..texture.mapping import body_texture
+    tex = body_texture(grid, spec["exemplar"], spec["block"], spec["seed"], spec["voxel"])
+    seams = tex.blend(spec["seams"]) if spec.get("seams", "none") != "none" else None
+    return tex, seams
+
+
+def scene_texture_outputs(tex, grid, x, labels, out_dir) -> dict:
+    """Write ``textured.png``: the final surfaces (one per piece) coloured by a solid texture.
+
+    Colours are looked up at every pixel's material coordinates, so cut faces show the interior
+    (:func:`~torchdeform.texture.render_textured`).
+
+    Args:
+        tex: the scene's texture (:func:`scene_texture`).
         grid: the grid.
         x: final positions ``(1, 3, D, H, W)`` (m).
         labels: pieces ``(D, H, W)`` (negative outside the body).
@@ -419,21 +446,14 @@ def scene_texture_outputs(spec: dict, grid, x, labels, out_dir) -> dict:
         a summary dict for ``summary.json``.
     """
     from ..mesh import save_png
-    from ..texture import SolidTexture, render_textured
+    from ..texture import render_textured
     from ..texture.mapping import framing_camera
     from ..topology import cut_surfaces
-    X = grid.rest_positions(torch.float64)[0].reshape(3, -1)
-    lo, hi = X.min(1).values, X.max(1).values
-    pad = 2 * max(grid.spacing)                                   # the surfaces reach half a cell out
-    extent = [int((h - l + 2 * pad) / spec["voxel"]) + 2 for l, h in zip(lo.tolist(), hi.tolist())]
-    tex = SolidTexture(spec["exemplar"], block=spec["block"], extent=extent, seed=spec["seed"], voxel=spec["voxel"],
-                       origin=tuple((lo - pad).tolist()))
-    seams = tex.blend(spec["seams"]) if spec.get("seams", "none") != "none" else None
     pieces = cut_surfaces(grid, x.detach().double().cpu(), labels.cpu())
     camera = framing_camera(torch.cat([torch.as_tensor(p.vertices) for p in pieces]), (1.3, -1.1, 0.9), 38.0)
     save_png(Path(out_dir) / "textured.png", render_textured(pieces, tex, camera, light=(1.0, -0.5, 0.6))["image"])
-    return {"exemplar_voxels": list(spec["exemplar"].shape[1:]), "block": spec["block"], "blocks": list(tex.blocks),
-            "voxel_m": spec["voxel"], "seams": seams, "pieces": len(pieces), "outputs": ["textured.png"]}
+    return {"exemplar_voxels": list(tex.exemplar.shape[1:]), "block": tex.block, "blocks": list(tex.blocks),
+            "voxel_m": tex.voxel, "pieces": len(pieces), "outputs": ["textured.png"]}
 
 
 def tool_forces_at(series: dict, names, t: np.ndarray) -> dict:
@@ -465,7 +485,7 @@ def tool_forces_at(series: dict, names, t: np.ndarray) -> dict:
 
 
 def scene_animation(scene: Scene, model: Model, t: np.ndarray, x: torch.Tensor, v: torch.Tensor, out_dir,
-                    labels=None, tools: dict | None = None, progress: bool = False) -> dict:
+                    labels=None, tools: dict | None = None, texture=None, progress: bool = False) -> dict:
     """Write ``scene.animation`` (a GIF): the run's textured surface beside its deformed volume render.
 
     See :func:`torchdeform.view.animation.animate`. The volume is the scene's ``[volume]`` (else the
@@ -483,13 +503,14 @@ def scene_animation(scene: Scene, model: Model, t: np.ndarray, x: torch.Tensor, 
         out_dir: the output folder.
         labels: pieces ``(D, H, W)`` (negative outside), or None (the whole body).
         tools: :meth:`ToolRecorder.series` of the run, or None.
+        texture: the scene's texture (:func:`scene_texture`), or None (the procedural liver).
         progress: show a progress bar.
 
     Returns:
         a summary dict for ``summary.json``: ``file``, ``frames``, ``size`` ``[height, width]``, ``panel``,
         ``bytes``, ``wall_time_s``.
     """
-    from ..view.animation import animate, body_texture, drag_forces
+    from ..view.animation import animate, drag_forces
     start = time.perf_counter()
     grid = model.grid
     forces = {}
@@ -497,15 +518,9 @@ def scene_animation(scene: Scene, model: Model, t: np.ndarray, x: torch.Tensor, 
         forces.update(tool_forces_at(tools, scene.tools.names, t))
     if model.drags:
         forces["drag" if len(model.drags) == 1 else "drags"] = drag_forces(model, x, v, t)
-    texture = None
-    if scene.texture:
-        spec = scene.texture
-        texture = body_texture(grid, spec["exemplar"], spec["block"], spec["seed"], spec["voxel"])
-        if spec.get("seams", "none") != "none":
-            texture.blend(spec["seams"])
     volume = dict(scene.volume or {"file": "phantom:64"})
     name, base = str(volume.pop("file")), volume.pop("base", None)
-    path = name if name.startswith("phantom") or base is None else str(Path(base) / name)
+    path = _volume_path(name, base)
     info = animate(grid, t, x, Path(out_dir) / scene.animation, labels=labels, texture=texture, volume=path,
                    forces=forces, progress=progress, **volume)
     return {k: info[k] for k in ("file", "frames", "size", "panel", "bytes")} | {

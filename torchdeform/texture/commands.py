@@ -10,11 +10,9 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import torch
-
 from ..errors import ConfigError
 
-__all__ = ["add_arguments", "command", "exemplar_from"]
+__all__ = ["add_arguments", "command"]
 
 
 def add_arguments(p) -> None:
@@ -33,20 +31,10 @@ def add_arguments(p) -> None:
     p.add_argument("--image", default=None, help="also write a PNG view of the textured mesh")
 
 
-def exemplar_from(spec: str, seed: int = 0) -> torch.Tensor:
-    """``liver`` / ``liver:N`` (procedural) or a file or folder (:func:`~torchdeform.texture.load_exemplar`)."""
-    from .exemplar import liver_exemplar, load_exemplar
-    if spec == "liver" or spec.startswith("liver:"):
-        size = spec.partition(":")[2] or "128"
-        if not size.isdigit():
-            raise ConfigError("exemplar", "liver or liver:N with N voxels per side", spec)
-        return liver_exemplar(int(size), seed=seed)
-    return load_exemplar(spec)
-
-
 def command(args) -> int:
     """``torchdeform texture``: colour a closed mesh with a solid texture; returns the exit status."""
     from ..mesh import load_mesh
+    from .exemplar import exemplar_from
     from .synthesis import SEAM_METHODS, SolidTexture
     out = Path(args.out)
     if out.suffix.lower() not in (".ply", ".glb", ".obj"):

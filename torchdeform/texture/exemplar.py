@@ -28,7 +28,7 @@ import torch.nn.functional as F
 
 from ..errors import ConfigError
 
-__all__ = ["load_exemplar", "liver_exemplar", "as_exemplar"]
+__all__ = ["load_exemplar", "liver_exemplar", "as_exemplar", "exemplar_from"]
 
 
 def as_exemplar(array, key: str = "exemplar") -> torch.Tensor:
@@ -159,3 +159,13 @@ def liver_exemplar(size: int = 128, seed: int = 0, lobule: float = 12.0, vessels
     colour = colour * (1 - tube) + wall * tube
     colour = colour * (1 - lumen) + blood * lumen
     return colour.clamp(0, 1).contiguous()
+
+
+def exemplar_from(spec: str, seed: int = 0) -> torch.Tensor:
+    """``liver`` / ``liver:N`` (procedural) or a file or folder (:func:`~torchdeform.texture.load_exemplar`)."""
+    if spec == "liver" or spec.startswith("liver:"):
+        size = spec.partition(":")[2] or "128"
+        if not size.isdigit():
+            raise ConfigError("exemplar", "liver or liver:N with N voxels per side", spec)
+        return liver_exemplar(int(size), seed=seed)
+    return load_exemplar(spec)

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["vertex_colours", "render_textured", "framing_camera"]
+__all__ = ["vertex_colours", "render_textured", "framing_camera", "body_texture"]
 
 
 def vertex_colours(texture, surface) -> torch.Tensor:
@@ -82,3 +82,32 @@ def render_textured(surfaces, texture, camera, *, light=None, ambient: float = 0
                          two_sided=True)
     return rasterize(v, f, camera, texture.at_material(r).to(v.dtype), light=light, ambient=ambient,
                      background=background, two_sided=True)
+
+
+def body_texture(grid, exemplar="liver:64", block=None, seed: int = 0, voxel=None):
+    """A :class:`~torchdeform.texture.SolidTexture` covering the grid's rest box (and two spacings around it).
+
+    The box of ``textured.png`` of a scene's ``[texture]`` section and of the animation's surface panel.
+
+    Args:
+        grid: the :class:`~torchdeform.sim.grid.Grid`.
+        exemplar: ``(3, E, E, E)`` colours, or ``"liver"`` / ``"liver:N"`` (procedural) or a file.
+        block: block size in voxels (default: half the exemplar's smallest side).
+        seed: of the block choice (and of a procedural exemplar).
+        voxel: texture voxel size (m; default a quarter of the smallest spacing).
+
+    Returns:
+        the texture.
+    """
+    if isinstance(exemplar, str):
+        from .exemplar import exemplar_from
+        exemplar = exemplar_from(exemplar, seed)
+    block = block or min(exemplar.shape[1:]) // 2
+    voxel = voxel or min(grid.spacing) / 4
+    X = grid.rest_positions(torch.float64)[0].reshape(3, -1)
+    lo, hi = X.min(1).values, X.max(1).values
+    pad = 2 * max(grid.spacing)                                   # the surfaces reach half a cell out
+    extent = [int((h - l + 2 * pad) / voxel) + 2 for l, h in zip(lo.tolist(), hi.tolist())]
+    from .synthesis import SolidTexture
+    return SolidTexture(exemplar, block=block, extent=extent, seed=seed, voxel=voxel,
+                        origin=tuple((lo - pad).tolist()))

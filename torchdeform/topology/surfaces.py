@@ -55,13 +55,13 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from ..errors import ConfigError
 from ..mesh import body_surface, save_surface
 from ..volume.deform import node_offsets
 
-__all__ = ["CutSurface", "cut_surfaces", "save_cut_surfaces", "extend_displacement", "cut_pieces"]
+__all__ = ["CutSurface", "cut_surfaces", "surface_map", "save_cut_surfaces", "extend_displacement",
+           "extension_weights", "cut_pieces"]
 
 
 class CutSurface(NamedTuple):
@@ -116,18 +116,63 @@ def _inputs(grid, x, labels, X):
 
 
 # ------------------------------------------------------------------ extension
-def _shifted(a: torch.Tensor, e, pad: int) -> torch.Tensor:
-    """``a`` padded by ``pad`` on its last three axes, read at ``index - e`` for every index of ``a``."""
-    D, H, W = (n - 2 * pad for n in a.shape[-3:])
-    return a[..., pad - e[0]:pad - e[0] + D, pad - e[1]:pad - e[1] + H, pad - e[2]:pad - e[2] + W]
+def extension_weights(mask: np.ndarray) -> tuple:
+    """The first-layer rule of :func:`extend_displacement` as a sparse ``(N, N)`` matrix (module docstring).
+
+    Rows of the piece's nodes are the identity. A node of the first layer outside the piece takes
+    ``mean over e of (2 u[b - e] - u[b - 2e])`` over the 26 directions ``e`` with both nodes in the
+    piece, or, where there is no such pair, the mean of its neighbours in the piece. Nodes further
+    out get no row.
+
+    Args:
+        mask: bool ``(D, H, W)``, the piece's nodes.
+
+    Returns:
+        ``(rows, cols, vals)``: COO entries over node indices in C order (``N = D H W``).
+
+    Example:
+        >>> r, c, v = extension_weights(np.array([True, True, False]).reshape(3, 1, 1))
+        >>> sorted(zip(r.tolist(), c.tolist(), v.tolist()))      # node 2 = 2 u_1 - u_0
+        [(0, 0, 1.0), (1, 1, 1.0), (2, 0, -1.0), (2, 1, 2.0)]
+    """
+    D, H, W = mask.shape
+    mp = np.pad(mask, 2)
+
+    def at(e):                                                   # the mask at index - e, (D, H, W)
+        return mp[2 - e[0]:2 - e[0] + D, 2 - e[1]:2 - e[1] + H, 2 - e[2]:2 - e[2] + W]
+
+    dirs = [(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) != (0, 0, 0)]
+    lin_n, near_n = np.zeros(mask.shape), np.zeros(mask.shape)
+    for e in dirs:
+        ma, mc = at(e), at(tuple(2 * c for c in e))
+        lin_n += ma & mc
+        near_n += ma
+    first = ~mask & (near_n > 0)
+    lin, near = first & (lin_n > 0), first & (lin_n == 0)
+    own = np.flatnonzero(mask)
+    rows, cols, vals = [own], [own], [np.ones(len(own))]
+    for e in dirs:
+        off = (e[0] * H + e[1]) * W + e[2]
+        ma, mc = at(e), at(tuple(2 * c for c in e))
+        b = np.flatnonzero(lin & ma & mc)
+        n = lin_n.reshape(-1)[b]
+        rows += [b, b]
+        cols += [b - off, b - 2 * off]
+        vals += [2 / n, -1 / n]
+        b = np.flatnonzero(near & ma)
+        rows.append(b)
+        cols.append(b - off)
+        vals.append(1 / near_n.reshape(-1)[b])
+    return np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
 
 
 def extend_displacement(u: torch.Tensor, mask: torch.Tensor, spacing=(1.0, 1.0, 1.0)) -> torch.Tensor:
     """A piece's node displacements extended over the whole grid (module docstring, "Surfaces").
 
     The first layer around the piece is linearly extrapolated along the 26 lattice directions
-    (exact for an affine ``u``; a rigid shift where the piece is one node thin), every node
-    further out takes the value of the nearest node filled so far (distances in rest space).
+    (exact for an affine ``u``; a rigid shift where the piece is one node thin;
+    :func:`extension_weights`), every node further out takes the value of the nearest node filled
+    so far (distances in rest space).
 
     Args:
         u: displacements ``(C, D, H, W)`` (e.g. ``x - X``, C = 3).
@@ -148,19 +193,14 @@ def extend_displacement(u: torch.Tensor, mask: torch.Tensor, spacing=(1.0, 1.0, 
         raise ConfigError("u", "displacements (C, D, H, W) and a mask (D, H, W)", (tuple(u.shape), tuple(mask.shape)))
     if not bool(mask.any()):
         raise ConfigError("mask", "a piece with at least one node", "an empty mask", show_got=True)
-    m = F.pad(mask.to(u.dtype)[None], (2,) * 6)[0]
-    up = F.pad(u, (2,) * 6)
-    zero = torch.zeros_like(u)
-    lin_sum, lin_n, near_sum, near_n = zero, torch.zeros_like(m[2:-2, 2:-2, 2:-2]), zero, 0
-    for e in [(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) != (0, 0, 0)]:
-        ma, mc = _shifted(m, e, 2), _shifted(m, tuple(2 * c for c in e), 2)
-        ua, uc = _shifted(up, e, 2), _shifted(up, tuple(2 * c for c in e), 2)
-        both = ma * mc
-        lin_sum, lin_n = lin_sum + both * (2 * ua - uc), lin_n + both
-        near_sum, near_n = near_sum + ma * ua, near_n + ma
-    first = torch.where(lin_n > 0, lin_sum / lin_n.clamp(min=1), near_sum / near_n.clamp(min=1))
-    filled = mask | (near_n > 0)
-    out = torch.where(mask, u, torch.where(filled, first, zero))
+    C, N = u.shape[0], mask.numel()
+    rows, cols, vals = (torch.as_tensor(a, device=u.device) for a in extension_weights(mask.cpu().numpy()))
+    E = torch.sparse_coo_tensor(torch.stack([rows, cols]), vals.to(u.dtype), (N, N), check_invariants=False)
+    out = (E @ u.reshape(C, N).T).T.reshape(u.shape)
+    out = torch.where(mask, u, out)                                  # the piece exactly as it is
+    filled = torch.zeros(N, dtype=torch.bool, device=u.device)
+    filled[rows] = True
+    filled = filled.view(mask.shape)
     if not bool(filled.all()):
         from scipy.ndimage import distance_transform_edt
         idx = distance_transform_edt(~filled.cpu().numpy(), sampling=tuple(float(s) for s in spacing),
@@ -170,7 +210,6 @@ def extend_displacement(u: torch.Tensor, mask: torch.Tensor, spacing=(1.0, 1.0, 
     return out
 
 
-# ------------------------------------------------------------------ surfaces
 def cut_surfaces(grid, x, labels, X=None) -> list[CutSurface]:
     """The closed surface of every piece ``labels == L``, ``L >= 0``, on the deformed lattice.
 
@@ -216,6 +255,55 @@ def cut_surfaces(grid, x, labels, X=None) -> list[CutSurface]:
         rest, _ = body_surface(X, mask)
         out.append(CutSurface(int(label), vertices, faces, rest))
     return out
+
+
+def surface_map(grid, labels: np.ndarray) -> dict:
+    """The surfaces of :func:`cut_surfaces` as one linear map of the node positions.
+
+    Each vertex is the trilinear interpolation (:func:`~torchdeform.mesh.trilinear_weights`) of its
+    piece's extended positions (:func:`extension_weights`), so a whole frame is one sparse product.
+
+    Args:
+        grid: the :class:`~torchdeform.sim.grid.Grid`.
+        labels: int ``(D, H, W)``, a piece per value ``>= 0`` (as :func:`cut_surfaces`).
+
+    Returns:
+        dict: ``weights`` (scipy CSR ``(V, N)``, N = D H W in C order), ``rest`` ``(V, 3)`` float64
+        (the vertices at rest, m), ``faces`` ``(F, 3)`` int64 (pieces in increasing label order, as
+        :func:`cut_surfaces` returns them, indices into the stacked vertices), ``label`` ``(V,)``
+        (each vertex's piece). The vertices at positions ``x`` are ``rest + weights @ (x - X)``
+        (node-major ``(N, 3)``).
+
+    Example:
+        >>> import torchdeform as td
+        >>> grid = td.Grid((3, 3, 3), spacing=1.0, topology=26)
+        >>> m = surface_map(grid, np.zeros((3, 3, 3), dtype=np.int64))
+        >>> m["weights"].shape[1], float(m["rest"][:, 0].min()), float(m["rest"][:, 0].max())
+        (27, -0.5, 2.5)
+    """
+    from scipy.sparse import coo_matrix, csr_matrix, vstack
+
+    from ..mesh import marching_tetrahedra, trilinear_weights
+    shape = tuple(grid.shape)
+    N = int(np.prod(shape))
+    X = grid.rest_positions(torch.float64)[0].reshape(3, N).T.numpy()
+    blocks, rests, faces, owner, count = [], [], [], [], 0
+    for label in np.unique(labels[labels >= 0]):
+        mask = labels == label
+        q, f = marching_tetrahedra(mask.astype(np.float64), 0.5)
+        r, c, v = trilinear_weights(q, shape)
+        T = csr_matrix(coo_matrix((v, (r, c)), shape=(len(q), N)))
+        r, c, v = extension_weights(mask)
+        blocks.append(T @ csr_matrix(coo_matrix((v, (r, c)), shape=(N, N))))
+        rests.append(T @ X)
+        faces.append(f + count)
+        owner.append(np.full(len(q), int(label)))
+        count += len(q)
+    if not blocks:
+        return {"weights": csr_matrix((0, N)), "rest": np.zeros((0, 3)), "faces": np.zeros((0, 3), np.int64),
+                "label": np.zeros(0, np.int64)}
+    return {"weights": vstack(blocks).tocsr(), "rest": np.concatenate(rests), "faces": np.concatenate(faces),
+            "label": np.concatenate(owner)}
 
 
 def save_cut_surfaces(directory, surfaces, stem: str = "piece") -> list[Path]:

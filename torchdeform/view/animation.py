@@ -48,6 +48,7 @@ import numpy as np
 import torch
 
 from ..errors import ConfigError
+from ..texture.mapping import body_texture
 
 __all__ = ["animate", "frame_indices", "drag_forces", "body_texture", "surface_camera", "format_force", "caption",
            "compose", "write_gif", "SURFACE_DIRECTION", "SURFACE_FOV", "LIGHT"]
@@ -127,35 +128,6 @@ def drag_forces(model, x, v, t) -> np.ndarray:
             F = model.forces(xi, vi, float(t[i]))[0]                       # (3, D, H, W)
             out[i] = (-F[:, mask].sum(1)).double().cpu().numpy() + 0.0             # no -0.0
     return out
-
-
-def body_texture(grid, exemplar="liver:64", block=None, seed: int = 0, voxel=None):
-    """A :class:`~torchdeform.texture.SolidTexture` covering the grid's rest box (and two spacings around it).
-
-    The same box as ``textured.png`` of a scene's ``[texture]`` section.
-
-    Args:
-        grid: the :class:`~torchdeform.sim.grid.Grid`.
-        exemplar: ``(3, E, E, E)`` colours, or ``"liver"`` / ``"liver:N"`` (procedural) or a file.
-        block: block size in voxels (default: half the exemplar's smallest side).
-        seed: of the block choice (and of a procedural exemplar).
-        voxel: texture voxel size (m; default a quarter of the smallest spacing).
-
-    Returns:
-        the texture.
-    """
-    from ..texture import SolidTexture
-    if isinstance(exemplar, str):
-        from ..texture.commands import exemplar_from
-        exemplar = exemplar_from(exemplar, seed)
-    block = block or min(exemplar.shape[1:]) // 2
-    voxel = voxel or min(grid.spacing) / 4
-    X = grid.rest_positions(torch.float64)[0].reshape(3, -1)
-    lo, hi = X.min(1).values, X.max(1).values
-    pad = 2 * max(grid.spacing)                                   # the surfaces reach half a cell out
-    extent = [int((h - l + 2 * pad) / voxel) + 2 for l, h in zip(lo.tolist(), hi.tolist())]
-    return SolidTexture(exemplar, block=block, extent=extent, seed=seed, voxel=voxel,
-                        origin=tuple((lo - pad).tolist()))
 
 
 def surface_camera(grid, x, size: int = 320, direction=SURFACE_DIRECTION, fov_deg: float = SURFACE_FOV,

@@ -53,6 +53,8 @@ from pathlib import Path
 from typing import Any, Callable
 from urllib.parse import parse_qs, urlsplit
 
+from .session import _number, _point
+
 __all__ = ["Viewer", "serve", "validate", "check_token", "allowed_origins", "STATIC_FILES", "MAX_MESSAGE"]
 
 logger = logging.getLogger("torchdeform.view")
@@ -120,19 +122,9 @@ def allowed_origins(host: str, port: int, request_host: str | None = None) -> se
 
 
 # ------------------------------------------------------------------ messages from the page
-def _number(value: Any, key: str, lo: float = -math.inf, hi: float = math.inf) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ValueError(f"{key}: expected a number, got {type(value).__name__}")
-    value = float(value)
-    if not (math.isfinite(value) and lo <= value <= hi):
-        raise ValueError(f"{key}: expected a finite number in [{lo:g}, {hi:g}], got {value!r}")
-    return value
-
-
 def _vector(value: Any, key: str) -> list[float]:
-    if not isinstance(value, list) or len(value) != 3:
-        raise ValueError(f"{key}: expected [x, y, z] (m)")
-    return [_number(v, f"{key}[{i}]", -MAX_COORDINATE, MAX_COORDINATE) for i, v in enumerate(value)]
+    """Three finite coordinates within ``MAX_COORDINATE`` m (the session's own point check)."""
+    return list(_point(value, key, (-MAX_COORDINATE,) * 3, (MAX_COORDINATE,) * 3))
 
 
 def validate(msg: Any, vertices: int | None = None) -> dict:

@@ -28,10 +28,10 @@ Surface
     tetrahedra puts each vertex at fractional node indices ``q``; the vertex is the trilinear
     interpolation ``T`` at ``q`` of the piece's own positions ``x_L = X + E (x - X)``, where ``E``
     extends the piece's displacement one layer beyond it (the linear extrapolation of
-    :func:`~torchdeform.topology.extend_displacement`, written out as a sparse matrix; every
-    cell a vertex reads lies within that layer). So
-    ``vertices = rest + (T E) (x - X)``, one sparse ``(V, N)`` product per frame, exactly the
-    vertices :func:`~torchdeform.topology.cut_surfaces` computes (to float32 rounding).
+    :func:`~torchdeform.topology.extend_displacement`; every cell a vertex reads lies within
+    that layer). So ``vertices = rest + (T E) (x - X)`` (:func:`~torchdeform.topology.surfaces.surface_map`),
+    one sparse ``(V, N)`` product per frame, exactly the vertices
+    :func:`~torchdeform.topology.cut_surfaces` computes (to float32 rounding).
 
 Messages (JSON objects; any other key, type or value raises ``ValueError`` with one line, and
 nothing changes)
@@ -63,13 +63,13 @@ import torch
 
 from ..interact import PenaltyContact, Sphere, Tool
 from ..interact.reactions import report_momentum
-from ..mesh.surfaces import marching_tetrahedra
 from ..scene.mass_spring import Scene, lattice_modulus, tissue_moduli
 from ..scene.topology import TopologySet
 from ..sim.integrators import SymplecticEuler
 from ..sim.stability import gershgorin_omega2, time_step_bound
 from ..topology import Blade, components, cut, sides
 from ..topology.masks import alive, full
+from ..topology.surfaces import surface_map
 
 __all__ = ["ViewerSession", "TERM_RANGE"]
 
@@ -80,107 +80,6 @@ _KEPT = ("symplectic", "verlet", "rk4")
 _TOOL, _DRAG = "viewer_tool", "viewer_drag"
 _KEYS = {"play": (), "pause": (), "reset": (), "release": (), "drag": ("vertex", "target"), "tool": ("position",),
          "cut": ("origin", "u", "v"), "term": ("name", "value")}
-
-
-# ------------------------------------------------------------------ the surface as a sparse map
-def _trilinear(q: np.ndarray, shape) -> tuple:
-    """COO ``(rows, cols, vals)`` of trilinear interpolation at fractional node indices ``q`` ``(V, 3)``.
-
-    The weights of :func:`torchdeform.mesh.body_surface` (linear extrapolation half a cell beyond
-    the grid: the cell index is clipped to the grid, the fraction is not).
-    """
-    i0 = [np.clip(np.floor(q[:, c]), 0, max(n - 2, 0)).astype(np.int64) for c, n in enumerate(shape)]
-    f = [q[:, c] - i0[c] if n > 1 else np.zeros(len(q)) for c, n in enumerate(shape)]
-    i1 = [np.minimum(i0[c] + 1, n - 1) for c, n in enumerate(shape)]
-    rows, cols, vals = [], [], []
-    V = np.arange(len(q))
-    for a in (0, 1):
-        for b in (0, 1):
-            for c in (0, 1):
-                w = (f[0] if a else 1 - f[0]) * (f[1] if b else 1 - f[1]) * (f[2] if c else 1 - f[2])
-                idx = ((i1 if a else i0)[0] * shape[1] + (i1 if b else i0)[1]) * shape[2] + (i1 if c else i0)[2]
-                rows.append(V)
-                cols.append(idx)
-                vals.append(w)
-    return np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
-
-
-def _extension(mask: np.ndarray) -> tuple:
-    """COO ``(rows, cols, vals)`` of the displacement extension of :func:`~torchdeform.topology.extend_displacement`.
-
-    Rows of the piece's nodes are the identity; a node of the first layer outside it takes
-    ``mean over e of (2 u[b - e] - u[b - 2e])`` over the 26 directions ``e`` with both nodes in
-    the piece, or, without such a pair, the mean of its neighbours in the piece. Nodes further
-    out get no row (no vertex reads them).
-    """
-    D, H, W = mask.shape
-    mp = np.pad(mask, 2)
-
-    def at(e):                                                   # mask at index - e, (D, H, W)
-        return mp[2 - e[0]:2 - e[0] + D, 2 - e[1]:2 - e[1] + H, 2 - e[2]:2 - e[2] + W]
-
-    dirs = [(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) != (0, 0, 0)]
-    lin_n = np.zeros(mask.shape)
-    near_n = np.zeros(mask.shape)
-    for e in dirs:
-        ma, mc = at(e), at(tuple(2 * c for c in e))
-        lin_n += ma & mc
-        near_n += ma
-    first = ~mask & (near_n > 0)
-    lin, near = first & (lin_n > 0), first & (lin_n == 0)
-    own = np.flatnonzero(mask)
-    rows, cols, vals = [own], [own], [np.ones(len(own))]
-    for e in dirs:
-        off = (e[0] * H + e[1]) * W + e[2]
-        ma, mc = at(e), at(tuple(2 * c for c in e))
-        b = np.flatnonzero(lin & ma & mc)
-        n = lin_n.reshape(-1)[b]
-        rows += [b, b]
-        cols += [b - off, b - 2 * off]
-        vals += [2 / n, -1 / n]
-        b = np.flatnonzero(near & ma)
-        rows.append(b)
-        cols.append(b - off)
-        vals.append(1 / near_n.reshape(-1)[b])
-    return np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
-
-
-def surface_map(grid, labels: np.ndarray) -> dict:
-    """The surfaces of the pieces ``labels == L`` as a linear map of the node positions.
-
-    Args:
-        grid: the :class:`~torchdeform.sim.grid.Grid`.
-        labels: int ``(D, H, W)``, a piece per value ``>= 0`` (as :func:`~torchdeform.topology.cut_surfaces`).
-
-    Returns:
-        dict: ``weights`` (scipy CSR ``(V, N)``, N = D H W in C order), ``rest`` ``(V, 3)`` float64
-        (the vertices at rest, m), ``faces`` ``(F, 3)`` int64 (pieces in increasing label order,
-        as :func:`~torchdeform.topology.cut_surfaces` returns them, indices into the stacked
-        vertices), ``label`` ``(V,)`` (each vertex's piece). The vertices at positions ``x`` are
-        ``rest + weights @ (x - X)`` (node-major ``(N, 3)``).
-    """
-    from scipy.sparse import coo_matrix, csr_matrix, vstack
-    shape = tuple(grid.shape)
-    N = math.prod(shape)
-    X = grid.rest_positions(torch.float64)[0].reshape(3, N).T.numpy()
-    blocks, rests, faces, owner, count = [], [], [], [], 0
-    for label in np.unique(labels[labels >= 0]):
-        mask = labels == label
-        q, f = marching_tetrahedra(mask.astype(np.float64), 0.5)
-        r, c, v = _trilinear(q, shape)
-        T = csr_matrix(coo_matrix((v, (r, c)), shape=(len(q), N)))
-        r, c, v = _extension(mask)
-        E = csr_matrix(coo_matrix((v, (r, c)), shape=(N, N)))
-        blocks.append(T @ E)
-        rests.append(T @ X)
-        faces.append(f + count)
-        owner.append(np.full(len(q), int(label)))
-        count += len(q)
-    if not blocks:
-        return {"weights": csr_matrix((0, N)), "rest": np.zeros((0, 3)), "faces": np.zeros((0, 3), np.int64),
-                "label": np.zeros(0, np.int64)}
-    return {"weights": vstack(blocks).tocsr(), "rest": np.concatenate(rests), "faces": np.concatenate(faces),
-            "label": np.concatenate(owner)}
 
 
 # ------------------------------------------------------------------ a node held at a target
