@@ -144,6 +144,40 @@ def test_socket_accepted_sends_mesh_then_frames(viewer, host):
     assert sizes and all(s == 12 * V for s in sizes)
 
 
+def test_a_pulling_page_gets_only_the_frames_it_asks_for(viewer):
+    """After {"cmd": "next"} a page is sent frames only when it asks: silence between requests."""
+    def frames(seconds):
+        return [m for m in iter_messages(ws, seconds) if isinstance(m, bytes)]
+
+    with connect(ws_url(viewer, viewer.token), origin=origin(viewer), open_timeout=10) as ws:
+        mesh, _ = receive_mesh_and_frames(ws, frames=1)
+        pushed = frames(0.5)
+        ws.send(json.dumps({"cmd": "next"}))
+        first = frames(0.5)                  # the one asked for (and perhaps one pushed before)
+        unasked = frames(1.0)
+        for _ in range(3):
+            ws.send(json.dumps({"cmd": "next"}))
+        asked = frames(1.0)
+        after = frames(0.5)
+    print(f"\npushed in 0.5 s: {len(pushed)}; pulled: {len(first)}, then {len(unasked)} unasked in 1 s, "
+          f"{len(asked)} for 3 requests")
+    assert len(pushed) >= 5                  # the simulation runs: a pushing page gets a stream
+    assert 1 <= len(first) <= 2
+    assert unasked == [] and after == []
+    assert 1 <= len(asked) <= 3              # two ahead at most, and only fresh frames
+    assert all(len(m) == 12 * mesh["vertices"] for m in first + asked)
+
+
+def iter_messages(ws, seconds: float):
+    """Every message received within ``seconds``."""
+    end = time.monotonic() + seconds
+    while (left := end - time.monotonic()) > 0:
+        try:
+            yield ws.recv(timeout=left)
+        except TimeoutError:
+            return
+
+
 def malformed_messages(n: int = 1000):
     """n messages the server must ignore: bad JSON, non-objects, unknown commands, bad values."""
     fixed = ["", "{", "nul", "[1, 2", '{"cmd": }', "NaN", "[]", "[1, 2, 3]", '"play"', "42", "null", "true",

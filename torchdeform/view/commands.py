@@ -6,9 +6,16 @@ the page's URL. Ctrl-C stops it (exit status 0). A bad scene file is a
 """
 from __future__ import annotations
 
+import os
+
 from ..errors import ConfigError
 
-__all__ = ["add_arguments", "command"]
+__all__ = ["add_arguments", "command", "default_threads"]
+
+
+def default_threads() -> int:
+    """Torch threads for the simulation: all cores but one, which the browser needs to draw (>= 1)."""
+    return max(1, (os.cpu_count() or 1) - 1)
 
 
 def add_arguments(p) -> None:
@@ -24,6 +31,8 @@ def add_arguments(p) -> None:
     p.add_argument("--token", default=None, help="the URL's secret (default: a random one)")
     p.add_argument("--device", default=None, help="cpu or cuda (default: the scene's, else cpu)")
     p.add_argument("--open", action="store_true", help="open the page in a browser")
+    p.add_argument("--threads", type=int, default=None,
+                   help="CPU threads for the simulation (default: all cores but one, left to the browser)")
 
 
 def command(args) -> int:
@@ -41,13 +50,18 @@ def command(args) -> int:
                                        and all(c.isalnum() or c in "-_.~" for c in args.token)):
         raise ConfigError("--token", "8 to 256 URL-safe characters (letters, digits, - _ . ~)", args.token,
                           show_got=False)
+    if args.threads is not None and args.threads < 1:
+        raise ConfigError("--threads", "a thread count >= 1", args.threads)
     try:
         import websockets  # noqa: F401 - only to say what is missing
     except ImportError:
         raise ConfigError("view", "the websockets library (pip install 'torchdeform[viewer]')",
                           show_got=False) from None
+    import torch
+
     from ..scene.run import load_scene, one_line_warnings
     from .server import serve
+    torch.set_num_threads(args.threads or default_threads())
     from .session import ViewerSession
     with one_line_warnings():
         scene = load_scene(args.scene)

@@ -7,7 +7,9 @@ own rate; an asyncio loop serves the page and, to every connected page, sends
   session's ``mesh_version`` changes (a cut);
 * a binary message per frame (up to ``frame_rate`` Hz): the surface vertex positions, float32
   little endian, ``V * 3`` values in metres, axis order (D, H, W). Only the latest frame is ever
-  sent: a slow page skips frames, it never receives stale ones from a queue;
+  sent: a slow page skips frames, it never receives stale ones from a queue. A page that sends
+  ``{"cmd": "next"}`` is sent frames only when it asks (at most two ahead): the bundled page asks
+  once per frame it draws, so no frame is encoded, sent and dropped for nothing;
 * a ``"stats"`` JSON text message about ``stats_rate`` times a second (simulated time, sim rate,
   tool force, springs, the page's frame rate as ``page_fps``).
 
@@ -72,7 +74,7 @@ MAX_MESSAGE = 16 * 1024
 #: The largest coordinate (m) accepted in a command: the viewer's bodies are centimetres to a metre.
 MAX_COORDINATE = 1e3
 LOOPBACK = {"127.0.0.1", "localhost", "::1"}
-COMMANDS = ("play", "pause", "reset", "drag", "release", "tool", "cut", "term", "fps")
+COMMANDS = ("play", "pause", "reset", "drag", "release", "tool", "cut", "term", "fps", "next")
 _PAGE_HEADERS = {
     "Content-Security-Policy": "default-src 'self'; connect-src 'self'; style-src 'self' 'unsafe-inline'; "
                                "img-src 'self' data:; frame-ancestors 'none'; base-uri 'none'; form-action 'none'",
@@ -147,7 +149,7 @@ def validate(msg: Any, vertices: int | None = None) -> dict:
     cmd = msg.get("cmd")
     if not isinstance(cmd, str) or cmd not in COMMANDS:
         raise ValueError(f"cmd: expected one of {', '.join(COMMANDS)}, got {str(cmd)[:40]!r}")
-    if cmd in ("play", "pause", "reset", "release"):
+    if cmd in ("play", "pause", "reset", "release", "next"):
         return {"cmd": cmd}
     if cmd == "drag":
         vertex = msg.get("vertex")
@@ -201,6 +203,14 @@ class _Page:
         self.wake = asyncio.Event()
         self.sent_frames = 0
         self.primed = False             # has been posted a frame of the current body
+        self.pull = False               # the page asks for each frame ("next"): none sent unasked
+        self.credit = 0                 # frames it asked for and has not been sent
+
+    def ask(self) -> None:
+        """The page asked for a frame ("next"): from now on frames go only when asked, at most 2 ahead."""
+        self.pull = True
+        self.credit = min(self.credit + 1, 2)
+        self.wake.set()
 
     def post(self, mesh: str | None = None, stats: str | None = None, frame: bytes | None = None) -> None:
         if mesh is not None:
@@ -218,12 +228,13 @@ class _Page:
             self.wake.clear()
             for name in ("mesh", "stats", "frame"):
                 data = getattr(self, name)
-                if data is None:
-                    continue
+                if data is None or (name == "frame" and self.pull and self.credit <= 0):
+                    continue                        # a pulling page gets the newest frame when it asks
                 setattr(self, name, None)
                 await self.ws.send(data)            # waits while the page is slow; newer data replaces
                 if name == "frame":
                     self.sent_frames += 1
+                    self.credit -= self.pull
 
 
 # ------------------------------------------------------------------ the server
@@ -338,7 +349,7 @@ class Viewer:
         sender = asyncio.create_task(page.send_loop())
         try:
             async for raw in ws:
-                await self._on_message(raw)
+                await self._on_message(raw, page)
         except Exception as e:      # a broken or oversized message closes this page only
             logger.info("page connection closed: %s", e)
         finally:
@@ -350,7 +361,7 @@ class Viewer:
         self.ignored += 1
         logger.warning("ignored message %s: %s", _short(raw), why)
 
-    async def _on_message(self, raw) -> None:
+    async def _on_message(self, raw, page: _Page | None = None) -> None:
         if not isinstance(raw, str):
             return self._ignore(raw, "expected a JSON text message, got binary")
         try:
@@ -363,6 +374,10 @@ class Viewer:
             return self._ignore(raw, str(e))
         if msg["cmd"] == "fps":
             self.page_fps = msg["value"]
+            return
+        if msg["cmd"] == "next":
+            if page is not None:
+                page.ask()
             return
         try:
             await asyncio.to_thread(self.session.command, msg)

@@ -1,6 +1,8 @@
 // torchdeform viewer: the WebSocket, in a worker so that big binary frames arrive while the page's
 // main thread renders. Text messages (mesh, stats) are passed on in order; of the binary frames
 // only the latest is kept, handed over (transferred, not copied) when the page asks for one.
+// Frames are pulled: the worker asks the server for one ({"cmd": "next"}) on opening and each time
+// it hands one to the page, so the server sends about as many frames as the page draws.
 //
 // page -> worker: {type: "connect", url}, {type: "send", text}, {type: "want"}
 // worker -> page: {type: "open"}, {type: "close"}, {type: "text", text}, {type: "frame", buffer, received}
@@ -10,16 +12,22 @@ let latest = null;       // the newest frame not yet handed over (older ones are
 let wanted = false;      // the page asked for a frame and none was there
 let received = 0;
 
+const NEXT = JSON.stringify({ cmd: "next" });
+
 function handOver() {
   postMessage({ type: "frame", buffer: latest, received }, [latest]);
   latest = null;
   wanted = false;
+  if (ws && ws.readyState === WebSocket.OPEN) ws.send(NEXT);
 }
 
 function connect() {
   ws = new WebSocket(url);
   ws.binaryType = "arraybuffer";
-  ws.onopen = () => postMessage({ type: "open" });
+  ws.onopen = () => {
+    postMessage({ type: "open" });
+    ws.send(NEXT);
+  };
   ws.onmessage = (ev) => {
     if (typeof ev.data === "string") {
       postMessage({ type: "text", text: ev.data });
