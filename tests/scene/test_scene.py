@@ -86,6 +86,7 @@ def assert_same_scene(a: Scene, b: Scene):
         (b.dt, b.steps, b.frames_every, b.name, b.dtype, b.safety)
     volume = [{k: v for k, v in (s.volume or {}).items() if k != "base"} for s in (a, b)]
     assert volume[0] == volume[1]
+    assert bool(a.animation) == bool(b.animation)
 
 
 # ------------------------------------------------------------------ loading

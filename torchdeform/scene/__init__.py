@@ -100,6 +100,9 @@ Keys
     ``surfaces = [t1, t2, ...]``  times (s) at which the closed surface of every connected piece is
     written as ``surface_<ms>ms_<label>.ply`` (with topology changes also ``topology.png`` and a
     ``"topology"`` part of ``summary.json``)
+    ``animation``  ``true``: write ``animation.gif``, the textured surface beside the deformed
+    volume render with the time and the tools' forces (as ``torchdeform run --animation``; see
+    :func:`torchdeform.view.animation.animate`)
 ``[volume]`` (optional): a volume filling the grid's bounding box, deformed by the final state;
     the run also writes ``volume_before.png``, ``volume_after.png``, ``volume_deformed.npy``
     ``file``  a volume file (.npy, .npz, .nii, .nrrd; relative to the scene file) or ``"phantom:N"``
