@@ -6,7 +6,10 @@ Oracles written here, sharing no code with ``torchdeform.chainmail``:
   a plain Bellman-Ford loop over the grid's links (an element must come within every link's
   limits of the picked elements' targets; everything else stays);
 * :func:`plain_violation`: the limits checked link by link in Python loops;
-* a single chain (1-D grid) pulled against a fixed end, solved by hand.
+* a single chain (1-D grid) pulled against a fixed end, solved by hand;
+* :func:`whole_grid_sweeps`: the tensor version's Jacobi sponsor-front sweeps done the plain way,
+  in numpy over the whole grid every sweep (and its depth by a breadth-first search in Python),
+  the reference of the active-box sweeps of :func:`tensor_chainmail`.
 """
 from __future__ import annotations
 
@@ -22,12 +25,14 @@ from torchdeform.chainmail import (
     Limits,
     crease_measure,
     limit_violation,
+    link_mask,
     relax,
     relax_energy,
     tensor_chainmail,
     tissue_limits,
 )
 from torchdeform.errors import ConfigError
+from torchdeform.topology import Blade, unlink
 
 F64 = torch.float64
 
@@ -64,6 +69,84 @@ def reference_move(x, mn, mx, sh, picks, delta):
     def bounds(p, a, c):
         return (mn[a][p], mx[a][p]) if c == a else (-sh[a][p], sh[a][p])
     return least_motion(x, x.shape[1:], list(_links(x.shape[1:])), bounds, picks, delta)
+
+
+def _side(a, part):
+    """Index of the first (``part`` 0) or second (1) endpoints of the links along axis ``a``."""
+    idx = [slice(None)] * 3
+    idx[a] = slice(0, -1) if part == 0 else slice(1, None)
+    return (slice(None), *idx)
+
+
+def whole_grid_sweeps(x, grid, lim, pick, d, fixed=None, links=None):
+    """Jacobi sponsor-front sweeps over the whole grid, numpy; returns what :class:`SweepResult` holds.
+
+    ``x`` ``(B, 3, D, H, W)``, ``pick``/``fixed`` ``(B, D, H, W)``, ``d`` ``(B, 3)``, ``links``
+    ``(B, 3, D, H, W)`` or None. Each sweep every free element takes the max (pull) or min (push)
+    of its offset and the bounds its moved, linked face neighbours set, all from the previous
+    sweep; until nothing changes. Depth: a breadth-first search through nodes and links.
+    """
+    B, shape = x.shape[0], grid.shape
+    X = grid.rest_positions(F64).numpy()
+    h = np.array(grid.spacing).reshape(3, 1, 1, 1)
+    mn, mx, sh = (t.numpy() for t in lim.per_link())
+    lo_l, hi_l = mn - h, mx - h                                  # bounds on u_q - u_p along the link
+    nodes = grid.nodes().numpy()
+    lk = np.ones((B, 3) + shape, bool) if links is None else np.broadcast_to(links.numpy(), (B, 3) + shape)
+    pick = pick.numpy() & nodes
+    fix = np.zeros_like(pick) if fixed is None else fixed.numpy() & nodes
+    d = d.numpy()
+    u = x.numpy() - X
+    u = np.where(pick[:, None], u + d[:, :, None, None, None], u)
+    moved, free = pick.copy(), nodes & ~pick & ~fix
+    limit = 2 * sum(shape) if links is None else max(2 * sum(shape), int(nodes.sum()))
+    sweeps = 0
+    for _ in range(limit):
+        lo = np.full(u.shape, -np.inf)
+        hi = np.full(u.shape, np.inf)
+        for a in range(3):
+            if shape[a] < 2:
+                continue
+            p, q = _side(a, 0), _side(a, 1)
+            link = lk[:, a][p]
+            for c in range(3):
+                l_, h_ = (lo_l[a][p[1:]], hi_l[a][p[1:]]) if c == a else (-sh[a][p[1:]], sh[a][p[1:]])
+                up, uq = u[:, c][p], u[:, c][q]
+                ok_p, ok_q = moved[p] & link, moved[q] & link    # p bounds q, q bounds p
+                lo[:, c][q] = np.maximum(lo[:, c][q], np.where(ok_p, up + l_, -np.inf))
+                hi[:, c][q] = np.minimum(hi[:, c][q], np.where(ok_p, up + h_, np.inf))
+                lo[:, c][p] = np.maximum(lo[:, c][p], np.where(ok_q, uq - h_, -np.inf))
+                hi[:, c][p] = np.minimum(hi[:, c][p], np.where(ok_q, uq - l_, np.inf))
+        s = np.sign(d)[:, :, None, None, None]
+        step = np.where(s > 0, np.maximum(u, lo), np.where(s < 0, np.minimum(u, hi), u))
+        new = np.where(free[:, None], step, u)
+        changed = (new != u).any(1)
+        if not changed.any():
+            break
+        sweeps += 1
+        moved |= changed
+        u = new
+    depth = []
+    for b in range(B):                                           # breadth-first search, plain Python
+        dist = {tuple(int(v) for v in ijk): 0 for ijk in np.argwhere(pick[b])}
+        front = list(dist)
+        while front:
+            nxt = []
+            for e in front:
+                for a in range(3):
+                    for step_ in (1, -1):
+                        f = list(e)
+                        f[a] += step_
+                        f = tuple(f)
+                        if not 0 <= f[a] < shape[a] or not nodes[f] or f in dist:
+                            continue
+                        if not lk[b, a][e if step_ > 0 else f]:
+                            continue
+                        dist[f] = dist[e] + 1
+                        nxt.append(f)
+            front = nxt
+        depth.append(max(dist.get(tuple(int(v) for v in ijk), 0) for ijk in np.argwhere(moved[b])))
+    return torch.from_numpy(X + u), torch.from_numpy(moved), sweeps, depth
 
 
 def _np_limits(lim):
@@ -260,6 +343,107 @@ def test_tensor_reports_a_blocked_move_and_keeps_fixed_elements():
     r = tensor_chainmail(g.rest_positions(F64), g, lim, pick, torch.tensor([2.0, 0, 0], dtype=F64), fixed=fixed)
     assert float(r.positions[0, 0, 0, 0, 0]) == 0.0
     assert float(r.violation[0]) == pytest.approx(1.0)          # 2 m asked, 5 links x 0.2 m possible
+
+
+def _bounding_box_of(moved, shape):
+    """Bounding box of ``moved`` ``(B, D, H, W)`` over the batch dilated by one, clipped: by argwhere."""
+    ijk = np.argwhere(moved.numpy().any(0))
+    return tuple((max(int(ijk[:, a].min()) - 1, 0), min(int(ijk[:, a].max()) + 2, n)) for a, n in enumerate(shape))
+
+
+def _box_case(name):
+    """``(x, grid, lim, pick, d, kwargs)`` of one active-box comparison case."""
+    rng = np.random.default_rng(sum(map(ord, name)))
+    shape = (12, 11, 13)
+    mask = None
+    if name == "masked":                                           # an L-shaped body with a hole
+        mask = torch.ones(shape, dtype=torch.bool)
+        mask[6:, :5] = False
+        mask[3:5, 3:6, 4:6] = False
+    grid = td.Grid(shape, spacing=(1.0, 0.9, 1.1), node_mask=mask)
+    lim = _hetero_limits(grid, rng) if name in ("hetero", "cut") else Limits.from_material(grid, 0.8, 1.2, 0.2)
+    B = 2 if name in ("random", "cut") else 3
+    nodes = grid.nodes()
+    inside = nodes.nonzero().tolist()
+    pick = torch.zeros((B,) + shape, dtype=torch.bool)
+    # "random": picks anywhere (the box soon covers the grid); else near one element (a local box),
+    # "border": near a corner (the box is clipped)
+    middle = [ijk for ijk in inside if all(3 <= v <= n - 4 for v, n in zip(ijk, shape))]
+    centre = np.array((1, 0, 1) if name == "border" else middle[int(rng.integers(len(middle)))])
+    for b in range(B):
+        for _ in range(int(rng.integers(1, 3))):
+            ijk = inside[int(rng.integers(len(inside)))] if name == "random" else \
+                np.clip(centre + rng.integers(-1, 2, 3), 0, np.array(shape) - 1).tolist()
+            pick[(b, *ijk)] = bool(nodes[tuple(ijk)])
+        if not pick[b].any():
+            pick[(b, *centre.tolist())] = True
+    d = torch.tensor(rng.normal(size=(B, 3)) * (1.6 if name == "random" else 0.6), dtype=F64)  # random: all over
+    kwargs = {}
+    if name == "fixed":
+        kwargs["fixed"] = (torch.from_numpy(rng.random(shape) < 0.05) | grid.face("bottom")) & ~pick.any(0)
+    if name == "cut":                                               # one blade per body, plus random cuts
+        x0 = grid.rest_positions(F64)
+        links = torch.stack([unlink(link_mask(grid), x0, Blade((5.5, -1.0, -1.0), (0.0, 7.0, 0.0), (0.0, 0.0, 15.0))),
+                             unlink(link_mask(grid), x0, Blade((-1.0, 4.5, -1.0), (14.0, 0.0, 0.0), (0.0, 0.0, 8.0)))])
+        kwargs["links"] = links & torch.from_numpy(rng.random(links.shape) < 0.9)
+    x = grid.rest_positions(F64).repeat(B, 1, 1, 1, 1)
+    return x, grid, lim, pick, d, kwargs
+
+
+@pytest.mark.parametrize("name", ["random", "hetero", "fixed", "cut", "border", "masked"])
+def test_tensor_active_box_equals_whole_grid_sweeps(name):
+    x, grid, lim, pick, d, kwargs = _box_case(name)
+    r = tensor_chainmail(x, grid, lim, pick, d, **kwargs)
+    pos, moved, sweeps, depth = whole_grid_sweeps(x, grid, lim, pick, d, kwargs.get("fixed"), kwargs.get("links"))
+    assert torch.equal(r.positions, pos)                           # bit for bit
+    assert torch.equal(r.moved, moved)
+    assert r.sweeps == sweeps and r.depth.tolist() == depth
+    # every link the pull changed lies in the box: the box's violation is the whole grid's
+    assert torch.equal(r.violation, limit_violation(r.positions, grid, lim, links=kwargs.get("links")))
+    assert r.box == _bounding_box_of(r.moved, grid.shape)
+    assert len(set(d.flatten().tolist())) == d.numel()             # the bodies really differ
+
+
+def test_whole_grid_reference_agrees_with_least_motion_oracle():
+    x, grid, lim, pick, d, _ = _box_case("hetero")
+    pos, *_ = whole_grid_sweeps(x, grid, lim, pick, d)
+    mn, mx, sh = _np_limits(lim)
+    for b in range(x.shape[0]):
+        picks = [tuple(int(v) for v in p) for p in pick[b].nonzero()]
+        ref = reference_move(x[b].numpy(), mn, mx, sh, picks, d[b].numpy())
+        np.testing.assert_allclose(pos[b].numpy(), ref, rtol=0, atol=1e-12)
+
+
+def test_tensor_second_pull_keeps_unmoved_elements_bit_for_bit():
+    x, grid, lim, pick, d, _ = _box_case("random")
+    first = tensor_chainmail(x, grid, lim, pick, d)
+    pick2 = torch.zeros_like(pick)
+    pick2[:, 2, 7, 1] = True
+    d2 = torch.tensor([[-0.7, 0.4, 1.1], [0.9, -1.2, 0.3]], dtype=F64)
+    r = tensor_chainmail(first.positions, grid, lim, pick2, d2)
+    pos, moved, sweeps, depth = whole_grid_sweeps(first.positions, grid, lim, pick2, d2)
+    m = r.moved.unsqueeze(1).expand_as(pos)
+    assert torch.equal(r.moved, moved) and r.sweeps == sweeps and r.depth.tolist() == depth
+    assert torch.equal(r.positions[m], pos[m])                     # moved: as the whole-grid sweeps
+    assert torch.equal(r.positions[~m], first.positions[~m])       # the rest: untouched, no X + (x - X)
+    torch.testing.assert_close(r.violation, limit_violation(r.positions, grid, lim), rtol=0, atol=1e-14)
+
+
+def test_tensor_sweeps_visit_only_the_active_box():
+    n = 48
+    g = td.Grid((n, n, n), spacing=1e-3)
+    lim = Limits.from_material(g, 0.8, 1.2, 0.2)
+    pick = torch.zeros(g.shape, dtype=torch.bool)
+    pick[30, 20, 24] = True
+    r = tensor_chainmail(g.rest_positions(F64), g, lim, pick, torch.tensor([2e-3, 1e-3, 0.0], dtype=F64))
+    moved = int(r.moved.sum())
+    assert 1000 <= moved <= 2000
+    assert r.box == _bounding_box_of(r.moved, g.shape)
+    volume = int(np.prod([hi - lo for lo, hi in r.box]))
+    assert volume < n ** 3 / 8                                     # the box is the pull's, not the grid's
+    # the box only grows: each sweep (the last, unchanged one included) visits at most its final volume
+    assert 27 * (r.sweeps + 1) < r.checked <= (r.sweeps + 1) * volume
+    assert r.checked < (r.sweeps + 1) * n ** 3 / 8
 
 
 # ------------------------------------------------------------------ relaxation

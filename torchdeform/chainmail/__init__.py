@@ -28,9 +28,9 @@ unlinks elements (:func:`torchdeform.topology.unlink`); no mask costs nothing.
   ``"enhanced"``       one priority queue per moving coordinate, largest violation first
                        (Schill); per-link limits for heterogeneous tissue; each element is
                        corrected at most once per coordinate.
-:func:`tensor_chainmail`  sponsor-front Jacobi sweeps over the whole grid with torch ops, batched
-                       over bodies, any device: an element is bounded only by neighbours that
-                       have moved; about one sweep per lattice hop.
+:func:`tensor_chainmail`  sponsor-front Jacobi sweeps with torch ops on the active box only (the
+                       moved elements plus one hop), batched over bodies, any device: an element
+                       is bounded only by neighbours that have moved; about one sweep per hop.
 :func:`relax`          red-black projected relaxation of the offsets towards the centroid of the
                        neighbours (Knoche) or towards Gibson's goal positions, within the limits.
 :func:`limit_violation`  the independent vectorised checker.
