@@ -28,6 +28,7 @@ from .sim import (
                   DampedVerlet,
                   DivergenceMonitor,
                   Drag,
+                  Engine,
                   ExplicitEuler,
                   FieldForce,
                   Grid,
@@ -55,7 +56,7 @@ __version__ = "0.1.0"
 __all__ = [
     "ConfigError", "DivergenceError", "StabilityWarning", "TorchdeformError", "Drag", "PointForce",
     "SurfaceForce", "FieldForce", "Grid", "INTEGRATORS", "RK4", "DampedVerlet", "ExplicitEuler", "ImplicitEuler",
-    "Integrator", "KnocheRelaxation", "SymplecticEuler", "conjugate_gradient", "simulate", "Model", "State",
+    "Integrator", "KnocheRelaxation", "SymplecticEuler", "conjugate_gradient", "simulate", "Engine", "Model", "State",
     "lumped_mass", "DivergenceMonitor", "gershgorin_omega2", "power_omega2", "suggest_dt", "check_dt",
     "time_step_bound", "Scene", "demo_scene", "load_scene", "run_scene",
     "ChainMail", "Limits", "limit_violation", "tensor_chainmail", "warp", "render",

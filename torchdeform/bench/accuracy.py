@@ -35,7 +35,7 @@ explicit integrator's own bound, the symplectic Euler bound for implicit Euler (
 is infinite). The step is then shrunk so that a whole number of steps lands on every output
 time; ``dt_bound`` is the step actually used over the bound.
 
-Wall time: ``time.perf_counter`` around the run (:func:`~torchdeform.sim.integrators.simulate`
+Wall time: ``time.perf_counter`` around the run (:func:`~torchdeform.sim.engine.simulate`
 with its divergence checks), after one untimed warm-up step; the median of ``--repeats`` runs
 (default 3; runs slower than 0.5 s are timed once), 1 with ``--quick``. A run that raises
 :class:`~torchdeform.errors.DivergenceError`, ends non-finite, or ends with an error above 10 or
@@ -81,9 +81,10 @@ from typing import Callable
 import torch
 
 from ..errors import ConfigError, DivergenceError
+from ..sim.engine import simulate
 from ..sim.forces import Drag, SurfaceForce
 from ..sim.grid import Grid
-from ..sim.integrators import INTEGRATORS, RK4, DampedVerlet, ImplicitEuler, simulate
+from ..sim.integrators import INTEGRATORS, RK4, DampedVerlet, ImplicitEuler
 from ..sim.model import Model, State
 from ..sim.stability import time_step_bound
 from .common import add_common, device_sync, emit, machine_info, progress

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from ..errors import ConfigError
+from ..sim.engine import ENGINES
 from .mass_spring import Scene, demo_scene
 from .run import load_scene, one_line_warnings, report, run_scene
 
@@ -17,6 +18,9 @@ def add_run_arguments(p) -> None:
     p.add_argument("--animation", action="store_true",
                    help="also write animation.gif: the textured surface beside the deformed volume, time and forces "
                         "(mass-spring scenes; as [output] animation = true)")
+    p.add_argument("--engine", choices=ENGINES, default=None,
+                   help="auto: compiled steps when the run repays the compile (the default); eager; compiled "
+                        "(overrides [integrator] engine; the summary says which ran and why)")
 
 
 def add_demo_arguments(p) -> None:
@@ -36,6 +40,10 @@ def run_command(args) -> int:
                 raise ConfigError("--animation", "a mass-spring scene (ChainMail scenes write no animation)",
                                   "chainmail")
             scene.animation = scene.animation or "animation.gif"
+        if getattr(args, "engine", None):
+            if not isinstance(scene, Scene):
+                raise ConfigError("--engine", "a mass-spring scene (ChainMail scenes have no engine)", "chainmail")
+            scene.engine = args.engine
         summary = run_scene(scene, args.out, progress=not args.quiet, device=args.device)
     print(report(summary, args.out))
     return 0

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import torch
 
+from ..sim.engine import ENGINES
 from ..sim.forces import Drag, PointForce, SurfaceForce
 from ..sim.grid import FACES, Grid
 from ..sim.integrators import INTEGRATORS, Integrator, SymplecticEuler
@@ -61,6 +62,8 @@ class Scene:
         safety: fraction of the stability bound used by ``dt = "auto"``.
         threads: CPU threads ``run_scene`` simulates with (None: torch's setting). Small bodies run
             faster on one thread, and much faster than on two when another process holds a core.
+        engine: ``"auto"`` (default: compiled steps when the run is long enough to repay the
+            compile), ``"eager"`` or ``"compiled"`` (:class:`~torchdeform.sim.engine.Engine`).
         source: the scene file (:class:`Source`) for error messages, or None.
 
     Examples:
@@ -87,6 +90,7 @@ class Scene:
     device: str | None = None
     safety: float = 0.9
     threads: int | None = None
+    engine: str = "auto"
     source: Source = field(default_factory=Source)
     #: optional ``{"file": .., "tf": .., "mode": .., "view": ..}``: a volume (file or ``"phantom:N"``)
     #: deformed by the final state; ``run_scene`` then writes before/after renders and the deformed volume
@@ -336,7 +340,9 @@ def _integrator(t: Table, grid: Grid) -> dict:
                 safety=t.num("safety", "a number in (0, 1]", 0.9, lo=0, hi=1, lo_open=True),
                 steps=t.integer("steps", "an integer >= 0 (number of steps)"),
                 dtype=DTYPES[t.text("dtype", '"float32" or "float64"', "float32", DTYPES)], device=device,
-                threads=t.integer("threads", "an integer >= 1 (CPU threads of the run)", None, lo=1))
+                threads=t.integer("threads", "an integer >= 1 (CPU threads of the run)", None, lo=1),
+                engine=t.text("engine", f'one of {", ".join(ENGINES)} (auto: compiled when the run repays it)',
+                              "auto", ENGINES))
 
 
 def mass_spring_scene(src: Source, data: dict, base: Path, name: str = "scene") -> Scene:

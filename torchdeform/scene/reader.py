@@ -49,7 +49,7 @@ SECTIONS = {
     "boundary": ("fixed", "fixed_nodes", "home", "anchors", "decay", "gravity"),
     "loads": ("node", "force", "face", "traction", "start", "ramp"),
     "drags": ("nodes", "face", "box", "path"),
-    "integrator": ("name", "dt", "safety", "steps", "dtype", "device", "threads"),
+    "integrator": ("name", "dt", "safety", "steps", "dtype", "device", "threads", "engine"),
     "tools": ("name", "shape", "radius", "half_length", "axis", "half_extents", "normal", "file", "resolution",
               "position", "orientation", "path", "contact", "friction", "direction", "hold", "haptic_gain",
               "stiffness", "damping", "grasp"),

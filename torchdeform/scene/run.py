@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from ..errors import ConfigError
-from ..sim.integrators import simulate
+from ..sim.engine import Engine, simulate
 from ..sim.model import Model, State
 from ..sim.stability import check_dt, time_step_bound
 from .chainmail import ChainMailScene, chainmail_scene
@@ -216,6 +216,14 @@ def run_scene(scene: Scene, out_dir, progress: bool = True, device=None) -> dict
         torch.set_num_threads(threads)
 
 
+def _engine(scene: Scene, topology: bool) -> Engine:
+    """The scene's :class:`~torchdeform.sim.engine.Engine`; topology changes between steps run eagerly."""
+    if topology and scene.engine == "compiled":
+        raise scene.source.error("integrator.engine", '"auto" or "eager" for a scene with topology changes '
+                                 "(they edit the model between steps, which the eager step reads)", "compiled")
+    return Engine(scene.engine, blocked="topology changes between steps run in the eager step" if topology else None)
+
+
 def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
     """:func:`run_scene` of a mass-spring scene, with the scene's threads set."""
     model = scene.build(device)
@@ -239,11 +247,12 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
         events = scene.topology.events(model, dt, scene.steps * dt, out)
         callback = _chain(recorder, events)
 
+    engine = _engine(scene, events is not None)
     start = time.perf_counter()
     if events is not None:
         events.begin(state)
     final, rec = simulate(model, state, dt, scene.steps, integrator, record_every=scene.frames_every,
-                          progress=progress, warn=False, callback=callback)
+                          progress=progress, warn=False, callback=callback, engine=engine)
     wall = time.perf_counter() - start
 
     t, x, v = rec["t"].numpy(), rec["x"][:, 0], rec["v"][:, 0]
@@ -271,6 +280,7 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
         "stability_bound_method": _bound_method(integrator.name),
         "wall_time_s": wall,
         "steps_per_s": scene.steps / wall if wall > 0 else None,
+        "engine": engine.summary(),
         "nodes": grid.num_nodes,
         "springs": grid.num_springs,
         "grid": {"shape": list(grid.shape), "spacing": list(grid.spacing), "origin": list(grid.origin),
@@ -337,6 +347,8 @@ def report(summary: dict, out_dir) -> str:
         files += ["tools.npz", "forces.png"]
         tools = ", max tool force " + ", ".join(f"{name} {entry['max_force_N']:.3g} N"
                                                 for name, entry in summary["tools"].items())
+    for part in ("texture", "volume"):
+        files += (summary.get(part) or {}).get("outputs", [])
     if "animation" in summary:
         files.append(summary["animation"]["file"])
     if "topology" in summary:
@@ -350,8 +362,13 @@ def report(summary: dict, out_dir) -> str:
     if stiffest:
         tools += (f", stiffest press at {stiffest['along_m'] * 1e3:.3g} mm along the line "
                   f"({stiffest['peak_force_N']:.3g} N)")
+    engine = summary.get("engine") or {}
+    ran = f" ({engine['ran']}" if engine.get("ran") else ""
+    if ran and engine.get("compile_s") is not None:
+        ran += f", compile {engine['compile_s']:.1f} s"
+    ran += ")" if ran else ""
     return (f"{summary['name']}: {summary['steps']} {summary['integrator']['name']} steps of "
-            f"{summary['dt_s']:.3g} s{bound} in {summary['wall_time_s']:.2f} s, max displacement "
+            f"{summary['dt_s']:.3g} s{bound} in {summary['wall_time_s']:.2f} s{ran}, max displacement "
             f"{summary['max_displacement_m'] * 1e3:.3g} mm{tools}; wrote {', '.join(files)} to {out_dir}")
 
 

@@ -329,6 +329,8 @@ class ToolRecorder:
 
     #: channels of the buffer: force (3), contacts, grasped
     CHANNELS = ("force", "contacts", "grasped")
+    #: it reads a state's ``t`` and ``readings`` only: a compiled run need not unpack positions for it
+    reads_positions = False
 
     def __init__(self, names, steps: int, device, dtype):
         self.names = list(names)

@@ -14,10 +14,11 @@ and the compiled fast path.
 :mod:`.stability`      time-step bounds, :func:`suggest_dt`, divergence monitoring
 :mod:`.packed`         the padded, flattened layout of the fast path
 :mod:`.compiled`       :func:`compiled_step`: one integrator step under ``torch.compile``
+:mod:`.engine`         :func:`simulate` and its :class:`Engine`: eager, compiled or chosen per run
 =====================  ===========================================================================
 
-Imports point downwards in that order; :mod:`.compiled` is imported only by code that asks for
-the fast path.
+Imports point downwards in that order; :mod:`.compiled` is imported only when a compiled step
+is asked for.
 
 Examples:
     >>> import torch
@@ -29,6 +30,7 @@ Examples:
     >>> state.x.shape, state.t
     (torch.Size([1, 3, 4, 4, 4]), 0.001)
 """
+from .engine import ENGINES, Engine, simulate
 from .forces import Drag, FieldForce, PointForce, SurfaceForce
 from .grid import Grid
 from .integrators import (
@@ -41,12 +43,11 @@ from .integrators import (
                           KnocheRelaxation,
                           SymplecticEuler,
                           conjugate_gradient,
-                          simulate,
 )
 from .model import Model, State, lumped_mass
 from .stability import DivergenceMonitor, check_dt, gershgorin_omega2, power_omega2, suggest_dt, time_step_bound
 
 __all__ = ["Grid", "Model", "State", "lumped_mass", "Drag", "PointForce", "SurfaceForce", "FieldForce",
            "INTEGRATORS", "Integrator", "ExplicitEuler", "SymplecticEuler", "DampedVerlet", "RK4", "ImplicitEuler",
-           "KnocheRelaxation", "conjugate_gradient", "simulate", "DivergenceMonitor", "check_dt", "gershgorin_omega2",
+           "KnocheRelaxation", "conjugate_gradient", "simulate", "Engine", "ENGINES", "DivergenceMonitor", "check_dt", "gershgorin_omega2",
            "power_omega2", "suggest_dt", "time_step_bound"]

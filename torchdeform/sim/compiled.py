@@ -168,7 +168,7 @@ class CompiledStep:
 
         ``callback(i, packed_state)`` (optional) is called after every step; unpack with
         ``self.packed.unpack_state``. Dragged nodes start on their path, as in
-        :func:`~torchdeform.sim.integrators.simulate`.
+        :func:`~torchdeform.sim.engine.simulate`.
         """
         if self.model.drags:
             state = State(*self.model.constrain(state.x, state.v, state.t), state.t, state.readings)

@@ -36,12 +36,11 @@ from __future__ import annotations
 import math
 
 import torch
-from tqdm.auto import tqdm
 
 from ..errors import ConfigError
 from .model import Model, State
 from .springs import accumulate
-from .stability import DivergenceMonitor, check_dt, time_step_bound
+from .stability import time_step_bound
 
 
 def positive_dt(dt) -> float:
@@ -473,75 +472,6 @@ INTEGRATORS = {cls.name: cls for cls in (ExplicitEuler, SymplecticEuler, DampedV
                                           KnocheRelaxation)}
 
 
-def simulate(model: Model, state: State, dt: float, steps: int, integrator: Integrator | None = None,
-             loads=None, record_every: int | None = None, check_every: int = 10, progress: bool = False,
-             warn: bool = True, callback=None):
-    """Run ``steps`` steps with divergence detection.
-
-    Args:
-        model: the :class:`~torchdeform.sim.model.Model`.
-        state: the start state, positions and velocities ``(B, 3, D, H, W)``.
-        dt: time step (s), > 0.
-        steps: number of steps (>= 0).
-        integrator: default :class:`SymplecticEuler`.
-        loads: extra node forces as for :meth:`Integrator.step`, or None.
-        record_every: keep every k-th state (positions and velocities) on the CPU, or None.
-        check_every: check for non-finite values and runaway energy every k steps (and at the end).
-        progress: show a tqdm progress bar.
-        warn: warn when an explicit ``dt`` exceeds the stability bound.
-        callback: ``callback(step, state)`` after every step, or None.
-
-    Returns:
-        ``(final state, record)`` where record is a dict with ``t`` ``(T,)``, ``x`` and ``v``
-        ``(T, B, 3, D, H, W)`` (empty if nothing was recorded).
-
-    Raises:
-        DivergenceError: naming the step, the quantity and a safe dt.
-
-    Examples:
-        >>> import torchdeform as td
-        >>> grid = td.Grid((4, 4, 4), spacing=0.01)
-        >>> model = td.Model(grid, stiffness=50.0, damping=0.1, density=1000.0, gravity=(-9.81, 0, 0),
-        ...                  fixed=grid.face("bottom"))
-        >>> dt = td.suggest_dt(model)
-        >>> state, record = td.simulate(model, model.rest_state(), dt, steps=50, record_every=10)
-        >>> record["x"].shape, len(record["t"]), round(state.t / dt)
-        (torch.Size([6, 1, 3, 4, 4, 4]), 6, 50)
-        >>> bool(state.x[0, 0, -1].mean() < model.X[0, 0, -1].mean())        # the top sags
-        True
-    """
-    integrator = integrator or SymplecticEuler()
-    dt = positive_dt(dt)
-    if int(steps) < 0:
-        raise ConfigError("steps", "an integer >= 0", steps)
-    if warn and integrator.name not in ("implicit", "knoche"):
-        check_dt(model, dt, integrator)
-    monitor = DivergenceMonitor(model, dt, integrator)
-    if model.drags:                                   # dragged nodes start on their path
-        state = State(*model.constrain(state.x, state.v, state.t), state.t)
-    ts, xs, vs = [], [], []
-
-    def record(st):
-        ts.append(st.t)
-        xs.append(st.x.detach().cpu())
-        vs.append(st.v.detach().cpu())
-
-    if record_every:
-        record(state)
-    for i in tqdm(range(1, int(steps) + 1), disable=not progress, desc="simulate", unit="step"):
-        state = integrator.step(model, state, dt, loads)
-        if i % check_every == 0 or i == steps:
-            monitor.check(state, i)
-        if record_every and i % record_every == 0:
-            record(state)
-        if callback is not None:
-            callback(i, state)
-    rec = {}
-    if xs:
-        rec = {"t": torch.tensor(ts, dtype=torch.float64), "x": torch.stack(xs), "v": torch.stack(vs)}
-    return state, rec
-
-
 __all__ = ["Integrator", "ExplicitEuler", "SymplecticEuler", "DampedVerlet", "RK4", "ImplicitEuler",
-           "KnocheRelaxation", "conjugate_gradient", "cg_start", "cg_iteration", "simulate", "INTEGRATORS",
+           "KnocheRelaxation", "conjugate_gradient", "cg_start", "cg_iteration", "INTEGRATORS",
            "time_step_bound", "positive_dt"]

@@ -323,8 +323,14 @@ class PackedModel(Model):
         return self.trace.keep(F.pad(sums, (self.G, self.G)), store)
 
     # ------------------------------------------------------------------ springs
+    #: how :meth:`spring_forces` sums the springs: ``"reduction"`` (one sum over the ``2 S``
+    #: directions, as the CG products) or ``"gather"`` (the ``2 S`` terms unrolled)
+    force_form = "reduction"
+
     def spring_forces(self, x, v, impl: str = "fast") -> torch.Tensor:
         """Forces of the grid springs, ``(B, 3, P)`` (``impl`` is ignored: one layout, one path)."""
+        if self.force_form == "reduction":
+            return self._spring_forces_reduced(x, v)
         k, l0, c, projected = self.stiffness, self.rest_length, self.damping, self.projected
 
         def fn(s, sign, mask, dx, dv=None):
@@ -339,6 +345,32 @@ class PackedModel(Model):
             return [alpha * d + beta * w for d, w in zip(dx, dv)]
 
         return self.gather(fn, x) if c is None else self.gather(fn, x, v)
+
+    def _spring_forces_reduced(self, x, v) -> torch.Tensor:
+        """:meth:`spring_forces` as one sum over the ``2 S`` directions per node (see :meth:`ends`)."""
+        k, l0, c = self.directed(self.stiffness), self.directed(self.rest_length), self.damping
+        x = self.trace.operand(x)
+        dx = self.ends(x) - self.blocks(x).unsqueeze(2)                             # (B, 3, 2S, N, L)
+        sq = dx[:, 0] * dx[:, 0] + dx[:, 1] * dx[:, 1] + dx[:, 2] * dx[:, 2]      # (B, 2S, N, L)
+        dv = dxdv = None
+        if c is not None:
+            c = self.directed(c)
+            v = self.trace.operand(v)
+            dv = self.ends(v) - self.blocks(v).unsqueeze(2)
+            dxdv = dx[:, 0] * dv[:, 0] + dx[:, 1] * dv[:, 1] + dx[:, 2] * dv[:, 2]
+        alpha, beta = spring_law(sq, dxdv, k, l0, c, self.projected)
+        # the spring exists where both ends are inside: read like a position (a neighbour of a node
+        # is in cache), not as a stored (2 S, N) mask streamed from memory
+        exists = self.ends(self.inside.view(1, 1, -1))[:, 0] * self.blocks(self.inside).unsqueeze(0)
+        alpha = alpha * exists
+        if beta is None:
+            terms = [alpha * dx[:, a] for a in range(3)]
+        else:
+            beta = beta * exists
+            terms = [alpha * dx[:, a] + beta * dv[:, a] for a in range(3)]
+        # channels apart, each sum keeping its direction axis: one loop writes the (B, 3, N, L) buffer
+        sums = torch.cat([t.sum(1, keepdim=True) for t in terms], 1)
+        return self.spread(sums.flatten(-2), self.trace.store_sums)
 
     def spring_sums(self, p: torch.Tensor) -> torch.Tensor:
         """``sum_j p_ij`` per node, ``(Bp, 1, P)``."""

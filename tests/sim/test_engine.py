@@ -1,0 +1,144 @@
+"""simulate's engines (torchdeform.sim.engine): eager, compiled, auto.
+
+The compiled engine runs its packed loop with the uncompiled packed step (``Engine(compile=False)``):
+the same code path without a 10-60 s compile; the eager grid-layout step is the oracle.
+"""
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchdeform as td
+from torchdeform.errors import ConfigError
+from torchdeform.sim.engine import Engine, gradient_needed
+
+
+def body(n=4, dtype=torch.float64, drags=True):
+    grid = td.Grid((n, n, n), spacing=0.01, topology=26)
+    drag = [td.Drag(grid.index_mask([(n - 1, n // 2, n // 2)]), [(0.0, (0.0, 0.0, 0.0)), (0.02, (0.004, 0.002, 0.0))])]
+    return td.Model(grid, stiffness=50.0, damping=0.05, density=1000.0, gravity=(-9.81, 0, 0),
+                    fixed=grid.face("bottom"), drags=drags and drag or [], decay=5.0, dtype=dtype)
+
+
+def run(model, engine, steps=30, integrator=None, **kw):
+    dt = 0.5 * td.suggest_dt(model)
+    return td.simulate(model, model.rest_state(), dt, steps, integrator, record_every=7, engine=engine, warn=False,
+                       **kw)
+
+
+@pytest.mark.parametrize("integrator", [td.SymplecticEuler(), td.RK4(), td.ImplicitEuler(cg_iters=15)],
+                         ids=["symplectic", "rk4", "implicit"])
+def test_compiled_engine_equals_eager(integrator):
+    model = body()
+    ref, rec_ref = run(model, "eager", integrator=integrator)
+    engine = Engine("compiled", compile=False)
+    out, rec = run(model, engine, integrator=integrator)
+    assert engine.ran == "compiled" and engine.reason == "asked for"
+    assert out.x.shape == ref.x.shape and out.x.is_contiguous()
+    assert torch.allclose(out.x, ref.x, atol=1e-12, rtol=0) and torch.allclose(out.v, ref.v, atol=1e-10, rtol=0)
+    assert out.t == pytest.approx(ref.t, abs=1e-15)
+    assert torch.equal(rec["t"], rec_ref["t"]) and rec["x"].shape == rec_ref["x"].shape
+    assert torch.allclose(rec["x"], rec_ref["x"], atol=1e-12, rtol=0)
+
+
+def test_auto_stays_eager_on_a_short_run():
+    engine = Engine("auto")
+    run(body(), engine, steps=40)
+    assert engine.ran == "eager" and engine.reason.startswith("auto: ")
+    assert "<=" in engine.reason and engine.eager_ms > 0
+    assert engine.summary()["requested"] == "auto" and engine.summary()["compile_s"] is None
+
+
+def test_auto_switches_after_its_probe_when_the_run_repays_the_compile():
+    model = body()
+    ref, rec_ref = run(model, "eager", steps=40)
+    engine = Engine("auto", probe_steps=4, compile_s={"explicit": 0.0}, compile=False)
+    out, rec = run(model, engine, steps=40)
+    assert engine.ran == "compiled" and ">" in engine.reason and engine.compile_s is not None
+    assert torch.allclose(out.x, ref.x, atol=1e-12, rtol=0)
+    assert torch.allclose(rec["x"], rec_ref["x"], atol=1e-12, rtol=0)
+
+
+def test_auto_and_compiled_with_a_gradient():
+    model = body(n=4, drags=False)
+    k = torch.tensor(50.0, dtype=torch.float64, requires_grad=True)
+    model.stiffness = model.stiffness * k / 50.0
+    assert gradient_needed(model, model.rest_state())
+    engine = Engine("auto", compile_s={"explicit": 0.0}, compile=False)
+    out, _ = run(model, engine, steps=20)
+    assert engine.ran == "eager" and "gradient" in engine.reason
+    out.x.sum().backward()
+    assert k.grad is not None and torch.isfinite(k.grad)
+    with pytest.raises(ConfigError, match="gradient"):
+        run(model, Engine("compiled", compile=False), steps=5)
+    with torch.no_grad():
+        assert not gradient_needed(model, model.rest_state())
+
+
+def test_callable_loads_and_unknown_engine():
+    model = body(n=4, drags=False)
+    engine = Engine("auto", compile_s={"explicit": 0.0}, compile=False)
+    run(model, engine, steps=20, loads=lambda t: torch.zeros(1, 3, 4, 4, 4, dtype=torch.float64))
+    assert engine.ran == "eager" and "callable loads" in engine.reason
+    with pytest.raises(ConfigError, match="engine"):
+        Engine("fast")
+
+
+def test_a_callback_that_reads_no_positions_gets_the_packed_state():
+    model = body(n=4)
+    seen = []
+
+    class Readings:
+        reads_positions = False
+
+        def __call__(self, step, state):
+            seen.append((step, tuple(state.x.shape), state.t))
+
+    class Positions:
+        def __call__(self, step, state):
+            seen.append((step, tuple(state.x.shape), state.t))
+
+    run(model, Engine("compiled", compile=False), steps=12, callback=Readings())
+    shapes = {s for _, s, _ in seen}
+    grid = (1, 3, 4, 4, 4)
+    assert any(len(s) == 3 for s in shapes)                  # packed (B, 3, P) between the looks
+    assert grid in shapes                                     # unpacked where the run looks (step 7, 10, 12)
+    assert [s for s, _, _ in seen] == list(range(1, 13))
+    seen.clear()
+    run(model, Engine("compiled", compile=False), steps=12, callback=Positions())
+    assert {s for _, s, _ in seen} == {grid}
+
+
+def test_scene_engine_key_and_summary(tmp_path):
+    import json
+
+    from torchdeform.scene.run import load_scene, run_scene
+    text = """
+[grid]
+shape = [4, 4, 4]
+spacing = 0.01
+[material]
+stiffness = 50.0
+damping = 0.1
+[mass]
+density = 1000.0
+[boundary]
+fixed = "bottom"
+gravity = [-9.81, 0.0, 0.0]
+[integrator]
+name = "symplectic"
+dt = "auto"
+steps = 30
+engine = "{engine}"
+"""
+    path = tmp_path / "cube.toml"
+    path.write_text(text.format(engine="eager"))
+    summary = run_scene(load_scene(path), tmp_path / "out", progress=False)
+    assert summary["engine"]["requested"] == "eager" and summary["engine"]["ran"] == "eager"
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["engine"]["ran"] == "eager"
+    path.write_text(text.format(engine="auto"))
+    assert run_scene(load_scene(path), tmp_path / "out2", progress=False)["engine"]["ran"] == "eager"
+    path.write_text(text.format(engine="turbo"))
+    with pytest.raises(ConfigError) as e:
+        load_scene(path)
+    assert "integrator.engine" in str(e.value) and "cube.toml" in str(e.value) and "cube.toml:17:" in str(e.value)
