@@ -29,6 +29,8 @@ BENCHES = {
                  "the analytic count, cut time, step time before and after, recompilations", "topology"),
     "texture": ("solid texture on meshes of Chen & He's model sizes: node colouring and triangle interiors "
                 "against their GPU times, and a fresh cut face", "texture"),
+    "frame": ("interactive frames per second: one 26-neighbour step + the deformed surface (and optionally a "
+              "volume render) on Punak's grid sizes, against his GeForce 8800 GTS rates", "frame"),
 }
 
 
