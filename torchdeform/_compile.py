@@ -61,20 +61,21 @@ INDUCTOR_OPTIONS = {"realize_opcount_threshold": 10_000, "realize_reads_threshol
                     "realize_acc_reads_threshold": 1_000}
 
 
-def inductor_options(options: dict | None = None) -> dict:
-    """``options`` plus the current torch thread count as inductor's ``cpp.threads``.
+def inductor_options(options: dict | None = None, threads: int | None = None) -> dict:
+    """``options`` plus a thread count (default: torch's current one) as inductor's ``cpp.threads``.
 
     Inductor chooses serial or OpenMP loops from the thread count at code generation, but its
     on-disk cache key does not include it: code compiled once under ``torch.set_num_threads(1)``
     would be handed, serial, to every later 2-thread run (measured: the implicit beam at 10.5 ms
-    per step instead of 5.8). Naming the count makes it part of the key.
+    per step instead of 5.8). Naming the count makes it part of the key. The generated code runs
+    on that many OpenMP threads whatever torch's setting is later (1: serial loops, no OpenMP).
 
     Examples:
         >>> import torch
         >>> inductor_options({"size_asserts": False})["cpp.threads"] == torch.get_num_threads()
         True
     """
-    return dict(options or {}, **{"cpp.threads": torch.get_num_threads()})
+    return dict(options or {}, **{"cpp.threads": int(threads or torch.get_num_threads())})
 
 
 @torch.library.custom_op("torchdeform::stored", mutates_args=())

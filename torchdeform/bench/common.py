@@ -20,7 +20,27 @@ from ..sim.grid import Grid
 from ..sim.model import Model, State
 
 __all__ = ["int_list", "add_common", "machine_info", "device_sync", "progress", "emit", "format_table", "speed_cube",
-           "axes", "save_figure"]
+           "axes", "save_figure", "busy_neighbour"]
+
+
+class busy_neighbour:
+    """A context: another process spinning on a core (``python -c "while True: pass"``) while it is open.
+
+    What a user's machine often has beside a simulation: a browser, a build, another job. The
+    process starts on entry (after a short pause, so that it is running) and is killed on exit.
+    """
+
+    def __enter__(self):
+        import subprocess
+        import time
+        self.proc = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+        time.sleep(0.2)
+        return self
+
+    def __exit__(self, *exc):
+        self.proc.kill()
+        self.proc.wait()
+        return False
 
 
 def int_list(key):

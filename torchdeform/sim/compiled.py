@@ -53,7 +53,8 @@ from .integrators import ImplicitEuler, cg_iteration, cg_start, positive_dt
 from .model import State
 from .packed import PackedLinearisation, PackedModel, TraceContext
 
-__all__ = ["CompileFallbackWarning", "CompiledStep", "ImplicitGraph", "compiled_step", "IMPLICIT_OPTIONS"]
+__all__ = ["CompileFallbackWarning", "CompiledStep", "ImplicitGraph", "compiled_step", "step_threads", "SERIAL_NODES",
+           "IMPLICIT_OPTIONS"]
 
 
 #: Extra options for the implicit step, whose CG loop body runs ``cg_iters`` times per step:
@@ -79,9 +80,11 @@ class CompiledStep:
     """
 
     def __init__(self, integrator, model, dt: float, loads=None, *, mode: str | None = None,
-                 enable: bool = True, options: dict | None = None, editable=False):
+                 enable: bool = True, options: dict | None = None, editable=False, threads: int | None = None):
         self.integrator, self.model, self.loads = integrator, model, loads
         self.dt = positive_dt(dt)
+        #: the OpenMP threads the code is compiled for (see :func:`step_threads`)
+        self.threads = int(threads) if threads else step_threads(model, integrator)
         self.compile_error = None
         self.packed = pm = PackedModel(model, share=editable)
         self._loads = None if loads is None or callable(loads) else pm.pack(torch.as_tensor(
@@ -91,7 +94,7 @@ class CompiledStep:
         #: the compile-time context of this step's graph; its packed kernels see it through a view
         #: of the packed model (the model itself carries no compile flags)
         self.trace = ctx = TraceContext(realize)
-        pmc = pm.traced(ctx)
+        pmc = pm.traced(ctx, self.threads)
 
         # t enters as a 0-d tensor: ramps and drag paths are evaluated inside the compiled code
         # without branches, and a new t never triggers a recompilation.
@@ -113,9 +116,9 @@ class CompiledStep:
                 implicit = isinstance(integrator, ImplicitEuler)
                 opts = dict(options or INDUCTOR_OPTIONS, **(IMPLICIT_OPTIONS if implicit else {}))
                 compile_ = functools.partial(torch.compile, dynamic=False, mode=mode, fullgraph=implicit,
-                                             options=None if mode else inductor_options(opts))
+                                             options=None if mode else inductor_options(opts, self.threads))
                 if implicit:
-                    self._fn = ImplicitGraph(integrator, pm, self.dt, loads_p, compile_)
+                    self._fn = ImplicitGraph(integrator, pm, self.dt, loads_p, compile_, self.threads)
                 else:
                     self._fn = compile_(fresh(step))
             except Exception as e:                          # noqa: BLE001 (any failure -> eager)
@@ -198,9 +201,10 @@ class ImplicitGraph:
         loads: packed extra forces ``(B, 3, P)`` or None.
         compile_: ``fn -> compiled fn`` (``torch.compile`` with options), or None to run the graph
             eagerly (``while_loop`` then runs as a Python loop: the tested reference of the graph).
+        threads: the thread count the graph is compiled for (default torch's).
     """
 
-    def __init__(self, integ, pm, dt, loads, compile_=None):
+    def __init__(self, integ, pm, dt, loads, compile_=None, threads: int | None = None):
         loop = while_loop()
         if loop is None:                                                # pragma: no cover
             raise RuntimeError("this torch has no while_loop for the compiled implicit solve")
@@ -208,7 +212,7 @@ class ImplicitGraph:
         self.integ = integ
         #: the compile-time context of this graph (see :class:`~torchdeform.sim.packed.TraceContext`)
         self.trace = ctx = TraceContext(realize if compile_ is not None else None)
-        pm = pm.traced(ctx)
+        pm = pm.traced(ctx, threads)
 
         def step(x, v, t):
             vcur = v
@@ -246,8 +250,35 @@ class ImplicitGraph:
         return x, v, readings
 
 
+#: Below these node counts a compiled step runs on one thread (:func:`step_threads`). An explicit
+#: step has one or two parallel loops: two threads already pay at 8^3. The implicit step's graph
+#: (CG iterations in a while loop, about 5 parallel loops each) is slower on two threads at every
+#: size measured (2 idle cores, 20 CG iterations): the 40 x 10 x 10 beam 3.1 ms per step on one
+#: thread, 13.7 ms on two; 32^3 25.5 ms against 137 ms. So it is always compiled serial.
+SERIAL_NODES = {"explicit": 512, "implicit": None}
+
+
+def step_threads(model, integrator, available: int | None = None) -> int:
+    """The threads a compiled step of ``integrator`` on ``model`` is compiled for.
+
+    One below :data:`SERIAL_NODES` (None: always; small problems: thread barriers cost more than
+    they share, and a busy core beside does not stall the step), else ``available`` (default
+    torch's setting).
+
+    Examples:
+        >>> import torch
+        >>> import torchdeform as td
+        >>> beam = td.Model(td.Grid((10, 10, 40), 0.1, 26), stiffness=1.0, mass=1.0)
+        >>> step_threads(beam, td.ImplicitEuler(), available=2), step_threads(beam, td.SymplecticEuler(), available=2)
+        (1, 2)
+    """
+    available = int(available or torch.get_num_threads())
+    below = SERIAL_NODES["implicit" if isinstance(integrator, ImplicitEuler) else "explicit"]
+    return 1 if below is None or model.grid.num_nodes < below else available
+
+
 def compiled_step(integrator, model, dt: float, loads=None, *, mode: str | None = None,
-                  enable: bool = True, editable=False) -> CompiledStep:
+                  enable: bool = True, editable=False, threads: int | None = None) -> CompiledStep:
     """Wrap one integrator step on one model in ``torch.compile`` (the no-grad fast path).
 
     Args:
@@ -266,6 +297,8 @@ def compiled_step(integrator, model, dt: float, loads=None, *, mode: str | None 
             stiffness per spring (cuts, tears, cautery); a tuple of spring fields adds
             ``"rest_length"`` (coagulation, gaping cuts) and ``"damping"`` (coagulation's
             viscosity rise); each per-spring field costs memory traffic in every step.
+        threads: OpenMP threads of the compiled code (default :func:`step_threads`: one for small
+            problems, else torch's setting).
 
     Returns:
         a :class:`CompiledStep`, ``step(state) -> State``. It runs the compiled code under
@@ -273,4 +306,4 @@ def compiled_step(integrator, model, dt: float, loads=None, *, mode: str | None 
         parameters require grad) it calls the eager step. If compilation fails it warns once
         (:class:`CompileFallbackWarning`) and uses the eager step from then on.
     """
-    return CompiledStep(integrator, model, dt, loads, mode=mode, enable=enable, editable=editable)
+    return CompiledStep(integrator, model, dt, loads, mode=mode, enable=enable, editable=editable, threads=threads)
