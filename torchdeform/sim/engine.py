@@ -78,6 +78,17 @@ class Engine:
         eager_ms: the median eager step time measured by ``"auto"`` (ms), or None.
         compile_s: the time of the first compiled step less one step (s), or None.
         step: the :class:`~torchdeform.sim.compiled.CompiledStep` of a compiled run, or None.
+
+    Examples:
+        >>> import torch
+        >>> import torchdeform as td
+        >>> model = td.Model(td.Grid((3, 3, 3), 0.01), stiffness=10.0, mass=1e-3)
+        >>> k = torch.tensor(10.0, requires_grad=True)
+        >>> model.stiffness = model.stiffness * k / 10.0            # a learned parameter
+        >>> engine = td.Engine("auto")
+        >>> _ = td.simulate(model, model.rest_state(), 1e-4, 5, engine=engine, warn=False)
+        >>> engine.ran, engine.reason
+        ('eager', 'auto: a gradient is needed (the compiled step runs without autograd)')
     """
 
     #: expected cold compile time (s) on 2 cores: the explicit steps in their reduction form, the
