@@ -42,37 +42,28 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="torchdeform", description="Soft-tissue simulation on PyTorch.")
     sub = p.add_subparsers(dest="command", required=True)
 
-    r = sub.add_parser("run", help="run a scene file (TOML)")
-    scene.add_run_arguments(r)
-    r.set_defaults(func=scene.run_command)
-    d = sub.add_parser("demo", help="run the built-in demo: a soft cube, fixed base, top centre dragged")
-    scene.add_demo_arguments(d)
-    d.set_defaults(func=scene.demo_command)
-
-    b = sub.add_parser("bench", help="benchmarks")
-    bench.add_arguments(b)
-    b.set_defaults(func=bench.main)
-
-    f = sub.add_parser("fuzzy", help="Mamdani rule files: show, evaluate, plot")
-    fuzzy.add_arguments(f)
-    f.set_defaults(func=fuzzy.main)
-
-    s = sub.add_parser("data", help="generate synthetic time series (.npz): data cube|balloon --out FILE")
-    learn.add_arguments(s)
-    s.set_defaults(func=learn.command)
-
-    w = sub.add_parser("warp", help="warp a volume by node offsets (3, n_d, n_h, n_w) in voxels")
-    volume.add_warp_arguments(w)
-    w.set_defaults(func=volume.warp_command)
-    v = sub.add_parser("render", help="render a volume (MIP, DVR, average), optionally deformed by node offsets")
-    volume.add_render_arguments(v)
-    v.set_defaults(func=volume.render_command)
-    t = sub.add_parser("texture", help="colour a closed mesh with a solid texture (.ply, .glb, .obj)")
-    texture.add_arguments(t)
-    t.set_defaults(func=texture.command)
-    w = sub.add_parser("view", help="watch and touch a scene in the browser (local server, token in the URL)")
-    view.add_arguments(w)
-    w.set_defaults(func=view.command)
+    # name, help line, adds the arguments, runs the command
+    commands = [
+        ("run", "run a scene file (TOML)", scene.add_run_arguments, scene.run_command),
+        ("demo", "run the built-in demo: a soft cube, fixed base, top centre dragged", scene.add_demo_arguments,
+         scene.demo_command),
+        ("bench", "benchmarks", bench.add_arguments, bench.main),
+        ("fuzzy", "Mamdani rule files: show, evaluate, plot", fuzzy.add_arguments, fuzzy.main),
+        ("data", "generate synthetic time series (.npz): data cube|balloon --out FILE", learn.add_arguments,
+         learn.command),
+        ("warp", "warp a volume by node offsets (3, n_d, n_h, n_w) in voxels", volume.add_warp_arguments,
+         volume.warp_command),
+        ("render", "render a volume (MIP, DVR, average), optionally deformed by node offsets",
+         volume.add_render_arguments, volume.render_command),
+        ("texture", "colour a closed mesh with a solid texture (.ply, .glb, .obj)", texture.add_arguments,
+         texture.command),
+        ("view", "watch and touch a scene in the browser (local server, token in the URL)", view.add_arguments,
+         view.command),
+    ]
+    for name, help_, add_arguments, func in commands:
+        c = sub.add_parser(name, help=help_)
+        add_arguments(c)
+        c.set_defaults(func=func)
     return p
 
 

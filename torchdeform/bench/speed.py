@@ -190,9 +190,7 @@ def speed_row(n: int, topology: int, mode: str, *, dtype=torch.float32, device="
     if device.startswith("cuda"):
         row["peak_rss_mb"] = torch.cuda.max_memory_allocated() / 2**20
     if contention:
-        with busy_neighbour():
-            busy = retime()
-        row["_busy"] = dict(row, **rates(busy), contention=True, vs_idle=sec / busy, compile_s=None)
+        row["_busy"] = _busy_row(row, retime, sec, rates)
     row["_first"] = first
     return row
 
@@ -216,12 +214,16 @@ def beam_row(mode: str, *, dtype=torch.float32, device="cpu", cg_iters: int = 20
     row.update(threads=threads, steps=steps, repeats=repeats, ms_per_step=sec * 1e3, steps_per_s=1.0 / sec,
                compile_s=compile_s, max_abs_diff=diff, fallback=fallback, contention=False)
     if contention:
-        with busy_neighbour():
-            busy = retime()
-        row["_busy"] = dict(row, ms_per_step=busy * 1e3, steps_per_s=1.0 / busy, contention=True,
-                            vs_idle=sec / busy, compile_s=None)
+        row["_busy"] = _busy_row(row, retime, sec, lambda t: dict(ms_per_step=t * 1e3, steps_per_s=1.0 / t))
     row["_first"] = first
     return row
+
+
+def _busy_row(row: dict, retime, sec: float, rates) -> dict:
+    """``row`` timed again (``retime()``) beside a busy process: ``contention: true``, ``vs_idle``."""
+    with busy_neighbour():
+        busy = retime()
+    return dict(row, **rates(busy), contention=True, vs_idle=sec / busy, compile_s=None)
 
 
 def _warp_row(n, topology, dtype, steps, repeats, target_s, reference):

@@ -75,14 +75,6 @@ def _box_grid(grid: Grid, box, node_mask: bool = False) -> Grid:
     return Grid(_extent(box), grid.spacing, 6, node_mask=mask)
 
 
-def _box_rest(grid: Grid, box, dtype, device) -> torch.Tensor:
-    """``grid.rest_positions(dtype, device)[..., box]`` (bit for bit) without the whole grid."""
-    axes = [torch.arange(lo, hi, dtype=torch.float64) * s + o
-            for (lo, hi), s, o in zip(box, grid.spacing, grid.origin)]
-    X = torch.stack(torch.meshgrid(*axes, indexing="ij"))
-    return X.unsqueeze(0).to(dtype=dtype, device=device)
-
-
 def _bounding_box(m: torch.Tensor, shape, pad: int = 1) -> tuple:
     """Bounding box of the True entries of ``m`` ``(..., D, H, W)`` over all leading dims.
 
@@ -281,7 +273,7 @@ def tensor_chainmail(positions: torch.Tensor, grid: Grid, limits: Limits, picked
     # the active box: everything below is box-local (offsets u, rest positions X, masks, limits)
     moved = torch.zeros((B, 1) + shape, dtype=torch.bool, device=dev)
     moved[_index(box)] = pick[_index(box)]
-    X = _box_rest(grid, box, dt, dev)
+    X = grid.rest_positions(dt, dev, box)
     u = x[_index(box)] - X
     u = torch.where(pick[_index(box)], u + d.view(-1, 3, 1, 1, 1), u)
 
@@ -309,7 +301,7 @@ def tensor_chainmail(positions: torch.Tensor, grid: Grid, limits: Limits, picked
         u = new
         if any(flags[1:]):                                       # the front reached a side: grow
             bigger = _grown(box, flags[1:])
-            X = _box_rest(grid, bigger, dt, dev)
+            X = grid.rest_positions(dt, dev, bigger)
             fresh = x[_index(bigger)] - X
             fresh[_inner(box, bigger)] = u
             u, box = fresh, bigger

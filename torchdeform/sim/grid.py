@@ -170,10 +170,15 @@ class Grid:
         return int(self.spring_mask().sum())
 
     # ------------------------------------------------------------------ nodes
-    def rest_positions(self, dtype=torch.float32, device=None) -> torch.Tensor:
-        """Rest positions ``X``, shape ``(1, 3, D, H, W)``; channel c varies along axis c."""
-        axes = [torch.arange(n, dtype=torch.float64) * s + o
-                for n, s, o in zip(self.shape, self.spacing, self.origin)]
+    def rest_positions(self, dtype=torch.float32, device=None, box=None) -> torch.Tensor:
+        """Rest positions ``X``, shape ``(1, 3, D, H, W)``; channel c varies along axis c.
+
+        ``box``: ``((d0, d1), (h0, h1), (w0, w1))`` (ends exclusive) gives only those nodes, the
+        same values as slicing the whole grid's, without building it.
+        """
+        box = box or tuple((0, n) for n in self.shape)
+        axes = [torch.arange(lo, hi, dtype=torch.float64) * s + o
+                for (lo, hi), s, o in zip(box, self.spacing, self.origin)]
         X = torch.stack(torch.meshgrid(*axes, indexing="ij"))
         return X.unsqueeze(0).to(dtype=dtype, device=device)
 

@@ -150,7 +150,7 @@ class PackedModel(Model):
         self.rest_length = self._spring(model.rest_length)
         self.damping = None if model.damping is None else self._spring(model.damping)
         #: ``(2 S, N, BLOCK)``: 1 where the spring along each direction from each core node exists
-        self.spring_exists = self.blocks(self.inside) * self.ends(self.inside.view(1, 1, -1))[0, 0]
+        self.spring_exists = self.exists()[0]
         #: the compile-time context (:class:`TraceContext`): inert here; a compiled step traces a
         #: view of this model bound to its own context (:meth:`traced`)
         self.trace = TraceContext()
@@ -261,6 +261,18 @@ class PackedModel(Model):
                             (t.stride(0), t.stride(1), plane, row, 1, 1))
         return self.blocks(cube[:, :, self._dir_index[0], self._dir_index[1], self._dir_index[2]])
 
+    def differences(self, t: torch.Tensor) -> torch.Tensor:
+        """``t`` at the far end of each spring less ``t`` at its node: ``(B, C, P) -> (B, C, 2 S, N, BLOCK)``."""
+        return self.ends(t) - self.blocks(t).unsqueeze(2)
+
+    def exists(self) -> torch.Tensor:
+        """``(1, 2 S, N, BLOCK)``: 1 where the spring along each direction from each core node exists.
+
+        Both ends inside, the far one read like a neighbour's position (in cache while a step
+        reads positions), not streamed from a stored per-spring mask.
+        """
+        return self.ends(self.inside.view(1, 1, -1))[:, 0] * self.blocks(self.inside).unsqueeze(0)
+
     def blocks(self, t: torch.Tensor) -> torch.Tensor:
         """A core-range field ``(..., P_core)`` as ``(..., N, BLOCK)``.
 
@@ -357,18 +369,16 @@ class PackedModel(Model):
         """:meth:`spring_forces` as one sum over the ``2 S`` directions per node (see :meth:`ends`)."""
         k, l0, c = self.directed(self.stiffness), self.directed(self.rest_length), self.damping
         x = self.trace.operand(x)
-        dx = self.ends(x) - self.blocks(x).unsqueeze(2)                             # (B, 3, 2S, N, L)
+        dx = self.differences(x)                                                   # (B, 3, 2S, N, L)
         sq = dx[:, 0] * dx[:, 0] + dx[:, 1] * dx[:, 1] + dx[:, 2] * dx[:, 2]      # (B, 2S, N, L)
         dv = dxdv = None
         if c is not None:
             c = self.directed(c)
             v = self.trace.operand(v)
-            dv = self.ends(v) - self.blocks(v).unsqueeze(2)
+            dv = self.differences(v)
             dxdv = dx[:, 0] * dv[:, 0] + dx[:, 1] * dv[:, 1] + dx[:, 2] * dv[:, 2]
         alpha, beta = spring_law(sq, dxdv, k, l0, c, self.projected)
-        # the spring exists where both ends are inside: read like a position (a neighbour of a node
-        # is in cache), not as a stored (2 S, N) mask streamed from memory
-        exists = self.ends(self.inside.view(1, 1, -1))[:, 0] * self.blocks(self.inside).unsqueeze(0)
+        exists = self.exists()
         alpha = alpha * exists
         if beta is None:
             terms = [alpha * dx[:, a] for a in range(3)]
@@ -419,7 +429,7 @@ class PackedLinearisation:
                  combined: bool = False):
         self.pm, self.combined = pm, combined
         if fields is None:
-            dx = pm.ends(x) - pm.blocks(x).unsqueeze(2)                          # (B, 3, 2S, N, L)
+            dx = pm.differences(x)                                               # (B, 3, 2S, N, L)
             sq = dx[:, 0] * dx[:, 0] + dx[:, 1] * dx[:, 1] + dx[:, 2] * dx[:, 2]  # (B, 2S, N, L)
             k = pm.directed(pm.stiffness)
             a, _ = spring_law(sq, None, k, pm.directed(pm.rest_length), None, True)
@@ -469,7 +479,7 @@ class PackedLinearisation:
         """
         pm = self.pm
         u = pm.trace.operand(u)
-        du = pm.ends(u) - pm.blocks(u).unsqueeze(2)                              # (B, 3, 2S, N, L)
+        du = pm.differences(u)                                                   # (B, 3, 2S, N, L)
         if self.combined:                                  # m (= sqrt(beta) n), alpha
             if not (alpha_scale == 1 and c is None):
                 raise ValueError("a combined operator (PackedLinearisation.scaled) takes no scales")
