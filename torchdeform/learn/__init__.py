@@ -55,7 +55,7 @@ Example:
     (10.0, 0.1)
 """
 from .commands import run_script
-from .loss import WindowLoss
+from .loss import LOSS_ENGINES, WindowLoss
 from .parameters import (
                          SHARING,
                          TRANSFORMS,
@@ -88,13 +88,14 @@ from .synthetic import (
                          inclusion_regions,
                          indentation,
                          layered_regions,
+                         per_spring_start,
                          radetzky_cube,
 )
 from .trainer import Record, Trainer
 
-__all__ = ["Series", "load_series", "FORMAT", "radetzky_cube", "cube_series", "balloon_series", "cube_grid",
+__all__ = ["Series", "load_series", "FORMAT", "radetzky_cube", "per_spring_start", "cube_series", "balloon_series", "cube_grid",
            "indentation", "layered_regions", "inclusion_regions", "SPRING_SETS", "Positive", "SpringParameter",
            "NodeParameter", "FuzzySprings", "Parameters", "to_raw", "from_raw", "node_to_springs",
-           "expand_spring_param", "TRANSFORMS", "SHARING", "WindowLoss", "Trainer", "Record", "active_springs",
+           "expand_spring_param", "TRANSFORMS", "SHARING", "WindowLoss", "LOSS_ENGINES", "Trainer", "Record", "active_springs",
            "relative_error", "spread_report", "curvature_report", "plot_history", "plot_scan", "plot_spread",
            "history_dicts", "run_script"]

@@ -35,10 +35,10 @@ import torch
 from ..errors import ConfigError, positive_number
 from ..sim.forces import Drag, FieldForce, PointForce
 from ..sim.grid import Grid
-from .parameters import expand_spring_param
+from .parameters import NodeParameter, Parameters, SpringParameter, expand_spring_param
 from .series import Series
 
-__all__ = ["radetzky_cube", "cube_series", "balloon_series", "cube_grid", "indentation", "layered_regions",
+__all__ = ["radetzky_cube", "per_spring_start", "cube_series", "balloon_series", "cube_grid", "indentation", "layered_regions",
            "inclusion_regions", "SPRING_SETS"]
 
 #: Radetzky's cube spring sets: number of springs -> (topology, kept half-directions or None).
@@ -171,6 +171,44 @@ def radetzky_cube(springs: int = 70, stiffness=10.0, damping=0.1, mass=0.01, for
                                     f"constant force {tuple(force)} N on the top-centre node",
                      "truth": _truth_meta(stiffness, damping, mass)})
     return _finish(s, stiffness, damping, mass, noise, every, observe, seed, steps)
+
+
+def per_spring_start(series: Series, seed: int = 0, with_mass: bool = False, spread=(0.2, 5.0)):
+    """Radetzky's per-spring start: every spring's stiffness and damping at ``U[lo, hi]`` x truth.
+
+    The factors are log-uniform between ``spread`` (Radetzky's runs 1 and 2: 0.2 and 5), drawn
+    from a generator seeded with ``seed``: stiffness first, then damping, then (``with_mass``)
+    one mass per node.
+
+    Returns:
+        ``(params, truth)``: the :class:`Parameters` (per-spring stiffness and damping, per-node
+        masses when ``with_mass``, otherwise the true masses), and the true values in the same
+        order as the learned ones: ``{"stiffness": (n,), "damping": (n,)[, "mass": (D, H, W)]}``.
+
+    Example:
+        >>> from torchdeform import learn
+        >>> series = learn.radetzky_cube(springs=70, steps=20)
+        >>> params, truth = learn.per_spring_start(series, seed=1)
+        >>> ratio = params.learned["stiffness"].values().detach() / truth["stiffness"]
+        >>> len(ratio), bool(((ratio >= 0.2) & (ratio <= 5.0)).all())
+        (70, True)
+    """
+    lo, hi = (float(v) for v in spread)
+    g = torch.Generator().manual_seed(int(seed))
+
+    def factors(n):
+        return torch.exp(torch.empty(n, dtype=torch.float64).uniform_(np.log(lo), np.log(hi), generator=g))
+
+    probe = SpringParameter.like(series, 1.0, "spring")
+    truth = {key: probe.per_spring(torch.as_tensor(series.truth[key])) for key in ("stiffness", "damping")}
+    n = len(truth["stiffness"])
+    k = SpringParameter.like(series, truth["stiffness"] * factors(n), "spring")
+    c = SpringParameter.like(series, truth["damping"] * factors(n), "spring")
+    mass = series.truth["mass"]
+    if with_mass:
+        truth["mass"] = torch.as_tensor(mass, dtype=torch.float64).expand(series.grid.shape)[series.grid.nodes()]
+        mass = NodeParameter(series.grid, truth["mass"] * factors(len(truth["mass"])), "node")
+    return Parameters(series, k, c, mass), truth
 
 
 def _finish(s: Series, stiffness, damping, mass, noise, every, observe, seed, steps) -> Series:

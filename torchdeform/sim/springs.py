@@ -102,16 +102,34 @@ def accumulate(grid: Grid, fn: Callable, *fields: torch.Tensor, channels: int | 
     ref = fields[0]
     shape = (ref.shape[0], channels or ref.shape[1]) + grid.shape
     out = torch.zeros(shape, dtype=ref.dtype, device=ref.device)
+    traced = torch.compiler.is_compiling()
     for s, (src, dst) in enumerate(grid.stencil):
         deltas = [f[(..., *dst)] - f[(..., *src)] for f in fields]
         res = fn(s, src, *deltas)
         a, b = res if isinstance(res, tuple) else (res, None)
+        if traced:
+            # Under torch.compile, sums of zero-padded terms: in-place slice updates become a chain of
+            # full-field copies (slice_scatter) that takes minutes to compile with their backward.
+            # The additions happen in the same order, so the result is the same to the bit.
+            out = out + _padded(a, src, grid.shape)
+            out = out - _padded(a, dst, grid.shape) if b is None else out + _padded(b, dst, grid.shape)
+            continue
         out[(..., *src)] += a
         if b is None:
             out[(..., *dst)] -= a
         else:
             out[(..., *dst)] += b
     return out
+
+
+def _padded(t: torch.Tensor, region, shape) -> torch.Tensor:
+    """``t`` over ``region`` (three slices) of a ``shape`` grid, zero elsewhere."""
+    t = t.expand(*t.shape[:-3], *[r.stop - r.start for r in region]) if t.shape[-3:] != tuple(
+        r.stop - r.start for r in region) else t
+    pad = []
+    for r, n in zip(reversed(region), reversed(shape)):
+        pad += [r.start, n - r.stop]
+    return torch.nn.functional.pad(t, pad)
 
 
 def difference(x: torch.Tensor, grid: Grid) -> torch.Tensor:
