@@ -59,6 +59,24 @@ def test_auto_switches_after_its_probe_when_the_run_repays_the_compile():
     assert torch.allclose(rec["x"], rec_ref["x"], atol=1e-12, rtol=0)
 
 
+def test_auto_picks_the_gather_form_only_when_the_steps_to_come_repay_its_compile():
+    """Break-even by hand: gather saves eager_ms / 20 per step and costs 40 - 15 = 25 s more compile,
+    paid back twice: 50 s / (30 ms / 20) = 33,333 steps."""
+    eager_s = [0.05, 0.03, 0.03]                          # the first step is a warm-up
+    for remaining, threads, form in [(2_000, 2, "reduction"), (33_000, 2, "reduction"), (34_000, 2, "gather"),
+                                     (200_000, 1, None)]:
+        engine = Engine("auto")
+        assert engine.decide(td.SymplecticEuler(), eager_s, remaining, threads)
+        assert engine.eager_ms == pytest.approx(30.0) and engine.force_form == form, (remaining, threads)
+    engine = Engine("auto")
+    assert engine.decide(td.ImplicitEuler(), eager_s, 200_000, threads=2) and engine.force_form is None
+    engine = Engine("auto", compile_s={"explicit": 0.0}, compile=False)
+    engine.decide(td.SymplecticEuler(), eager_s, 2_000, threads=2)
+    model = body()
+    engine._compile(model, td.SymplecticEuler(), 1e-4, None)
+    assert engine.step.packed.force_form == "reduction"
+
+
 def test_auto_and_compiled_with_a_gradient():
     model = body(n=4, drags=False)
     k = torch.tensor(50.0, dtype=torch.float64, requires_grad=True)

@@ -11,7 +11,6 @@ import numpy as np
 import torch
 from torch.utils.checkpoint import checkpoint as _checkpoint
 
-from .._compile import fresh, warn_fallback
 from ..errors import ConfigError
 from ..sim.integrators import INTEGRATORS
 from ..sim.model import State
@@ -64,6 +63,8 @@ class WindowLoss:
         self.engine = engine
         self._compiled = None
         if engine == "compiled":
+            # imported here: it loads inductor, which would add 2 s to every import of torchdeform
+            from .._compile import fresh
             # its own code object: dynamo keeps compiled graphs (and its recompile limit) per code object
             self._compiled = torch.compile(fresh(type(self)._advance).__get__(self), dynamic=False, fullgraph=True,
                                            backend=backend)
@@ -190,6 +191,7 @@ class WindowLoss:
             try:
                 return self._compiled(model, x, v, n)
             except Exception as e:                          # noqa: BLE001 (any failure -> eager)
+                from .._compile import warn_fallback
                 self._compiled = None
                 first = (str(e).strip().splitlines() or [""])[0][:160]
                 warn_fallback(f"{type(e).__name__}: {first}", "the eager rollout")

@@ -80,13 +80,17 @@ class CompiledStep:
     """
 
     def __init__(self, integrator, model, dt: float, loads=None, *, mode: str | None = None,
-                 enable: bool = True, options: dict | None = None, editable=False, threads: int | None = None):
+                 enable: bool = True, options: dict | None = None, editable=False, threads: int | None = None,
+                 force_form: str | None = None):
+        if force_form not in (None, "gather", "reduction"):
+            raise ValueError(f"force_form: None, 'gather' or 'reduction', not {force_form!r}")
         self.integrator, self.model, self.loads = integrator, model, loads
         self.dt = positive_dt(dt)
         #: the OpenMP threads the code is compiled for (see :func:`step_threads`)
         self.threads = int(threads) if threads else step_threads(model, integrator)
         self.compile_error = None
         self.packed = pm = PackedModel(model, share=editable)
+        pm.force_form = force_form
         self._loads = None if loads is None or callable(loads) else pm.pack(torch.as_tensor(
             loads, dtype=model.dtype, device=model.device).expand(-1, 3, *model.grid.shape))
         dt_, loads_p = self.dt, self._loads
@@ -278,7 +282,8 @@ def step_threads(model, integrator, available: int | None = None) -> int:
 
 
 def compiled_step(integrator, model, dt: float, loads=None, *, mode: str | None = None,
-                  enable: bool = True, editable=False, threads: int | None = None) -> CompiledStep:
+                  enable: bool = True, editable=False, threads: int | None = None,
+                  force_form: str | None = None) -> CompiledStep:
     """Wrap one integrator step on one model in ``torch.compile`` (the no-grad fast path).
 
     Args:
@@ -299,6 +304,8 @@ def compiled_step(integrator, model, dt: float, loads=None, *, mode: str | None 
             viscosity rise); each per-spring field costs memory traffic in every step.
         threads: OpenMP threads of the compiled code (default :func:`step_threads`: one for small
             problems, else torch's setting).
+        force_form: how the springs are summed (:attr:`~torchdeform.sim.packed.PackedModel.force_form`):
+            ``"gather"``, ``"reduction"`` or None (gather on several threads, else reduction).
 
     Returns:
         a :class:`CompiledStep`, ``step(state) -> State``. It runs the compiled code under
@@ -306,4 +313,5 @@ def compiled_step(integrator, model, dt: float, loads=None, *, mode: str | None 
         parameters require grad) it calls the eager step. If compilation fails it warns once
         (:class:`CompileFallbackWarning`) and uses the eager step from then on.
     """
-    return CompiledStep(integrator, model, dt, loads, mode=mode, enable=enable, editable=editable, threads=threads)
+    return CompiledStep(integrator, model, dt, loads, mode=mode, enable=enable, editable=editable, threads=threads,
+                        force_form=force_form)

@@ -91,9 +91,15 @@ class Engine:
         ('eager', 'auto: a gradient is needed (the compiled step runs without autograd)')
     """
 
-    #: expected cold compile time (s) on 2 cores: the explicit steps in their reduction form, the
-    #: implicit step's one graph with its CG loop
-    COMPILE_S = {"explicit": 20.0, "implicit": 60.0}
+    #: expected cold compile time (s) on 2 cores: the explicit steps in their reduction form
+    #: (64^3, 26 neighbours: 7 s, 13 s on a machine's first compile, which also builds inductor's
+    #: precompiled header), in their unrolled gather form (24-37 s), and the implicit step's one
+    #: graph with its CG loop
+    COMPILE_S = {"explicit": 15.0, "gather": 40.0, "implicit": 60.0}
+    #: what the gather form saves per step against the reduction form, as a fraction of an eager
+    #: step, when compiled for several threads (64^3, 26 neighbours, 2 cores: eager 27 ms,
+    #: reduction 3.6 ms, gather 2.45 ms)
+    GATHER_SAVES = 1 / 20
 
     def __init__(self, mode: str = "auto", probe_steps: int = 3, payback: float = 2.0,
                  compile_s: dict | None = None, editable=False, blocked: str | None = None,
@@ -108,6 +114,9 @@ class Engine:
         self.eager_ms: float | None = None
         self.compile_s: float | None = None
         self.step = None
+        #: the spring sum ``"auto"`` chose for an explicit compiled step (``"gather"`` or
+        #: ``"reduction"``), or None (the compiled step's own default)
+        self.force_form: str | None = None
 
     # -------------------------------------------------------------- deciding
     def blocker(self, model: Model, integrator: Integrator, state: State, loads) -> str | None:
@@ -129,24 +138,39 @@ class Engine:
         """The compile time :meth:`decide` expects for ``integrator`` (s)."""
         return self.expected["implicit" if isinstance(integrator, ImplicitEuler) else "explicit"]
 
-    def decide(self, integrator: Integrator, eager_s: list, remaining: int) -> bool:
-        """``"auto"`` after its probe: compile for the ``remaining`` steps? Sets :attr:`reason`."""
+    def decide(self, integrator: Integrator, eager_s: list, remaining: int, threads: int = 1) -> bool:
+        """``"auto"`` after its probe: compile for the ``remaining`` steps? Sets :attr:`reason`.
+
+        An explicit step compiled for several ``threads`` also gets its spring sum: the unrolled
+        gather form, faster per step but slower to compile, only when the steps to come repay its
+        extra compile (:attr:`GATHER_SAVES`); otherwise the reduction form (:attr:`force_form`).
+        """
         self.eager_ms = 1e3 * statistics.median(eager_s[1:] if len(eager_s) > 1 else eager_s)
         to_come = remaining * self.eager_ms / 1e3
         expected = self.expected_compile_s(integrator)
         worth = to_come > self.payback * expected
         self.reason = (f"auto: {remaining:,} steps x {self.eager_ms:.3g} ms eager = {to_come:.3g} s "
                        f"{'>' if worth else '<='} {self.payback:g} x ~{expected:g} s compile")
+        if worth and threads > 1 and not isinstance(integrator, ImplicitEuler):
+            extra = self.expected["gather"] - self.expected["explicit"]
+            gather = to_come * self.GATHER_SAVES > self.payback * extra
+            self.force_form = "gather" if gather else "reduction"
+            self.reason += (f"; {self.force_form} form ({to_come * self.GATHER_SAVES:.3g} s saved "
+                            f"{'>' if gather else '<='} {self.payback:g} x ~{extra:g} s more compile)")
         return worth
 
     def summary(self) -> dict:
-        """``{"requested", "ran", "why", "eager_ms_per_step", "compile_s"}`` for a run's summary."""
+        """``{"requested", "ran", "why", "eager_ms_per_step", "compile_s", "force_form"}`` for a run's summary."""
+        form = None
+        if self.step is not None and self.ran == "compiled":
+            form = self.force_form or ("gather" if self.step.threads > 1 else "reduction")
         return {"requested": self.mode, "ran": self.ran, "why": self.reason,
-                "eager_ms_per_step": self.eager_ms, "compile_s": self.compile_s}
+                "eager_ms_per_step": self.eager_ms, "compile_s": self.compile_s, "force_form": form}
 
     def _compile(self, model, integrator, dt, loads):
         from .compiled import compiled_step
-        self.step = compiled_step(integrator, model, dt, loads, editable=self.editable, enable=self.enable)
+        self.step = compiled_step(integrator, model, dt, loads, editable=self.editable, enable=self.enable,
+                                  force_form=self.force_form)
         return self.step
 
 
@@ -235,7 +259,8 @@ def simulate(model: Model, state: State, dt: float, steps: int, integrator: Inte
                 eager_s.append(time.perf_counter() - t0)
                 if len(eager_s) == engine.probe_steps:
                     probing = False
-                    if engine.decide(integrator, eager_s, steps - i):
+                    from .compiled import step_threads
+                    if engine.decide(integrator, eager_s, steps - i, step_threads(model, integrator)):
                         engine.ran = "compiled"
                         compiled = engine._compile(model, integrator, dt, loads)
         else:
