@@ -25,6 +25,7 @@ from .scene import Scene, demo_scene, load_scene, run_scene
 from .sim import (
                   INTEGRATORS,
                   RK4,
+                  Adaptive,
                   DampedVerlet,
                   DivergenceMonitor,
                   Drag,
@@ -38,6 +39,7 @@ from .sim import (
                   Model,
                   PointForce,
                   State,
+                  StepSizeError,
                   SurfaceForce,
                   SymplecticEuler,
                   check_dt,
@@ -58,7 +60,7 @@ __all__ = [
     "SurfaceForce", "FieldForce", "Grid", "INTEGRATORS", "RK4", "DampedVerlet", "ExplicitEuler", "ImplicitEuler",
     "Integrator", "KnocheRelaxation", "SymplecticEuler", "conjugate_gradient", "simulate", "Engine", "Model", "State",
     "lumped_mass", "DivergenceMonitor", "gershgorin_omega2", "power_omega2", "suggest_dt", "check_dt",
-    "time_step_bound", "Scene", "demo_scene", "load_scene", "run_scene",
+    "time_step_bound", "Adaptive", "StepSizeError", "Scene", "demo_scene", "load_scene", "run_scene",
     "ChainMail", "Limits", "limit_violation", "tensor_chainmail", "warp", "render",
     "sim", "chainmail", "learn", "volume", "scene", "interact", "topology",
 ]

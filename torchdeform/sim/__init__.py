@@ -12,6 +12,7 @@ and the compiled fast path.
 :mod:`.integrators`    explicit/symplectic Euler, damped Verlet, RK4, implicit Euler, Knoche
                        relaxation; :func:`simulate`
 :mod:`.stability`      time-step bounds, :func:`suggest_dt`, divergence monitoring
+:mod:`.adaptive`       :class:`Adaptive`: embedded Runge-Kutta pairs with error control (``rtol``)
 :mod:`.packed`         the padded, flattened layout of the fast path
 :mod:`.compiled`       :func:`compiled_step`: one integrator step under ``torch.compile``
 :mod:`.engine`         :func:`simulate` and its :class:`Engine`: eager, compiled or chosen per run
@@ -30,6 +31,7 @@ Examples:
     >>> state.x.shape, state.t
     (torch.Size([1, 3, 4, 4, 4]), 0.001)
 """
+from .adaptive import PAIRS, Adaptive, StepSizeError
 from .engine import ENGINES, Engine, simulate
 from .forces import Drag, FieldForce, PointForce, SurfaceForce
 from .grid import Grid
@@ -50,4 +52,4 @@ from .stability import DivergenceMonitor, check_dt, gershgorin_omega2, power_ome
 __all__ = ["Grid", "Model", "State", "lumped_mass", "Drag", "PointForce", "SurfaceForce", "FieldForce",
            "INTEGRATORS", "Integrator", "ExplicitEuler", "SymplecticEuler", "DampedVerlet", "RK4", "ImplicitEuler",
            "KnocheRelaxation", "conjugate_gradient", "simulate", "Engine", "ENGINES", "DivergenceMonitor", "check_dt", "gershgorin_omega2",
-           "power_omega2", "suggest_dt", "time_step_bound"]
+           "power_omega2", "suggest_dt", "time_step_bound", "Adaptive", "PAIRS", "StepSizeError"]

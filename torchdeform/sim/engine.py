@@ -132,6 +132,8 @@ class Engine:
             return f"{', '.join(eager_only)} runs in the eager step"
         if getattr(integrator, "name", "") == "knoche":
             return "Knoche's relaxation runs in the eager step"
+        if getattr(integrator, "name", "") == "adaptive":
+            return "adaptive steps run in the eager step"
         return None
 
     def expected_compile_s(self, integrator: Integrator) -> float:
@@ -180,7 +182,7 @@ def _reads_positions(callback) -> bool:
 
 def simulate(model: Model, state: State, dt: float, steps: int, integrator: Integrator | None = None,
              loads=None, record_every: int | None = None, check_every: int = 10, progress: bool = False,
-             warn: bool = True, callback=None, engine: Engine | str = "eager"):
+             warn: bool = True, callback=None, engine: Engine | str = "eager", rtol: float | None = None):
     """Run ``steps`` steps with divergence detection.
 
     Args:
@@ -199,6 +201,11 @@ def simulate(model: Model, state: State, dt: float, steps: int, integrator: Inte
             the compiled engine's packed state as it is, without unpacking positions every step.
         engine: an :class:`Engine` (read its :attr:`~Engine.ran` and :attr:`~Engine.reason`
             afterwards) or its mode, ``"eager"`` (default), ``"compiled"`` or ``"auto"``.
+        rtol: ask for an accuracy instead of a step: ``dt`` becomes the interval between the
+            returned states, each covered by the internal steps of
+            :class:`~torchdeform.sim.adaptive.Adaptive` (``rtol``, default pair) that the
+            tolerance needs. Give no ``integrator`` with it (or an ``Adaptive``, which then keeps
+            its own tolerance).
 
     Returns:
         ``(final state, record)`` where record is a dict with ``t`` ``(T,)``, ``x`` and ``v``
@@ -220,13 +227,20 @@ def simulate(model: Model, state: State, dt: float, steps: int, integrator: Inte
         >>> bool(state.x[0, 0, -1].mean() < model.X[0, 0, -1].mean())        # the top sags
         True
     """
+    if rtol is not None:
+        from .adaptive import Adaptive
+        if integrator is None:
+            integrator = Adaptive(rtol=rtol)
+        elif not isinstance(integrator, Adaptive):
+            raise ConfigError("rtol", f"no integrator, or an Adaptive one (the {integrator.name} integrator "
+                                      f"takes a fixed dt)", rtol)
     integrator = integrator or SymplecticEuler()
     engine = engine if isinstance(engine, Engine) else Engine(engine)
     dt = positive_dt(dt)
     steps = int(steps)
     if steps < 0:
         raise ConfigError("steps", "an integer >= 0", steps)
-    if warn and integrator.name not in ("implicit", "knoche"):
+    if warn and integrator.name not in ("implicit", "knoche", "adaptive"):
         check_dt(model, dt, integrator)
     monitor = DivergenceMonitor(model, dt, integrator)
     if model.drags:                                   # dragged nodes start on their path

@@ -182,6 +182,19 @@ class DampedVerlet(Integrator):
         return state.x + dt * v, v
 
 
+def rates(model: Model, loads=None):
+    """The state's time derivative as a function ``f(t, x, v) -> (dx/dt, dv/dt) = (v, a)``.
+
+    Dragged nodes are put on their path at time ``t`` first (Runge-Kutta stages of :class:`RK4`
+    and :mod:`torchdeform.sim.adaptive`).
+    """
+    def f(t, x, v):
+        if model.drags:
+            x, v = model.constrain(x, v, t)
+        return v, model.acceleration(x, v, t, loads)
+    return f
+
+
 class RK4(Integrator):
     """Classic fourth-order Runge-Kutta on ``(x, v)``.
 
@@ -206,12 +219,7 @@ class RK4(Integrator):
     def advance(self, model, state, dt, loads):
         """Four force evaluations at ``t``, ``t + h/2`` (twice) and ``t + h``."""
         t0, x0, v0 = state.t, state.x, state.v
-
-        def f(t, x, v):
-            if model.drags:
-                x, v = model.constrain(x, v, t)
-            return v, model.acceleration(x, v, t, loads)
-
+        f = rates(model, loads)
         k1x, k1v = f(t0, x0, v0)
         k2x, k2v = f(t0 + dt / 2, x0 + dt / 2 * k1x, v0 + dt / 2 * k1v)
         k3x, k3v = f(t0 + dt / 2, x0 + dt / 2 * k2x, v0 + dt / 2 * k2v)
@@ -472,6 +480,6 @@ INTEGRATORS = {cls.name: cls for cls in (ExplicitEuler, SymplecticEuler, DampedV
                                           KnocheRelaxation)}
 
 
-__all__ = ["Integrator", "ExplicitEuler", "SymplecticEuler", "DampedVerlet", "RK4", "ImplicitEuler",
+__all__ = ["Integrator", "rates", "ExplicitEuler", "SymplecticEuler", "DampedVerlet", "RK4", "ImplicitEuler",
            "KnocheRelaxation", "conjugate_gradient", "cg_start", "cg_iteration", "INTEGRATORS",
            "time_step_bound", "positive_dt"]
