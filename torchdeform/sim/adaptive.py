@@ -145,7 +145,15 @@ def stability_limits(pair: Pair, resolution: float = 1e-4) -> tuple:
 
 
 class StepSizeError(DivergenceError):
-    """An adaptive run needed a step below its ``min_step`` to keep its error within the tolerance."""
+    """An adaptive run needed a step below its ``min_step`` to keep its error within the tolerance.
+
+    Examples:
+        >>> e = StepSizeError(t=0.05, h=1e-9, min_step=1e-8, rtol=1e-6, pair="bogacki_shampine")
+        >>> str(e).split(":")[0]
+        'adaptive step (bogacki_shampine, rtol 1e-06) fell to 1e-09 s at t = 0.05 s, below min_step 1e-08 s'
+        >>> e.t, isinstance(e, DivergenceError)
+        (0.05, True)
+    """
 
     def __init__(self, t: float, h: float, min_step: float, rtol: float, pair: str):
         self.step, self.quantity, self.value, self.dt, self.safe_dt = None, "step size", h, h, None
@@ -168,6 +176,17 @@ class Adaptive(Integrator):
 
     Attributes:
         stats: ``{"accepted", "rejected", "evaluations", "min_h", "max_h"}`` since construction.
+
+    Examples:
+        >>> import torch
+        >>> import torchdeform as td
+        >>> grid = td.Grid((4, 4, 4), spacing=0.01, topology=26)
+        >>> model = td.Model(grid, stiffness=50.0, damping=0.02, mass=1e-3, fixed=grid.face("bottom"),
+        ...                  loads=[td.PointForce((3, 1, 1), (-0.05, 0.0, 0.0), ramp=0.02)], dtype=torch.float64)
+        >>> adaptive = td.Adaptive(rtol=1e-4)
+        >>> state = adaptive.step(model, model.rest_state(), dt=0.01)    # 10 ms in as many steps as needed
+        >>> round(state.t, 12), adaptive.stats["accepted"] > 1
+        (0.01, True)
     """
 
     name = "adaptive"
