@@ -17,7 +17,7 @@ state, packed once before the timed loop; ``--no-compile`` (and ``--quick``) use
 eagerly. The first call's wall time is ``compile_s``; ``engine`` says ``eager`` when the
 wrapper fell back.
 
-**Surface** (:class:`FrameSurface`). :func:`~torchdeform.topology.surfaces.surface_map` is built
+**Surface** (:class:`~torchdeform.topology.surfaces.FrameSurface`). :func:`~torchdeform.topology.surfaces.surface_map` is built
 once at rest (not timed); per frame the vertices are ``rest + W (x - X)`` (a sparse CSR product
 over the surface nodes only, read straight from the packed state: nothing else is unpacked), then
 the area-weighted face normals summed per vertex and normalised (compiled with the step: each
@@ -44,11 +44,11 @@ from __future__ import annotations
 import math
 import statistics
 import time
-import warnings
 
 import torch
 
 from ..errors import ConfigError
+from ..topology.surfaces import FrameSurface
 from .common import add_common, axes, device_sync, emit, machine_info, progress, save_figure
 
 __all__ = ["COLUMNS", "PUNAK", "KD", "TARGET_RATIO", "FrameSurface", "parse_sizes", "frame_body", "add_arguments",
@@ -91,133 +91,6 @@ def parse_sizes(text) -> list:
 
 def _name(shape) -> str:
     return f"{shape[0]}^3" if len(set(shape)) == 1 else "x".join(map(str, shape))
-
-
-class FrameSurface:
-    """The deformed surface of a grid body, per frame: vertices and normals from the node positions.
-
-    Built once at rest from :func:`~torchdeform.topology.surfaces.surface_map`: its ``(V, N)``
-    weights are restricted to the nodes they read (the body's outer layers) and their columns
-    point straight into the positions' storage, so a frame gathers only those nodes from the
-    (packed or grid-layout) state, with no unpacking.
-
-    Args:
-        grid: the :class:`~torchdeform.sim.grid.Grid`.
-        labels: int ``(D, H, W)`` pieces (as :func:`~torchdeform.topology.cut_surfaces`; default: the
-            whole body, one piece).
-        packed: a :class:`~torchdeform.sim.packed.PackedModel` of the body: positions come packed
-            ``(1, 3, P)``; None: grid layout ``(1, 3, D, H, W)`` (or ``(3, D, H, W)``).
-        dtype, device: of the positions and of the results.
-
-    Attributes:
-        faces: ``(F, 3)`` int64 triangles (outward), fixed over the run.
-        rest: ``(V, 3)`` rest (texture) coordinates of the vertices.
-    """
-
-    def __init__(self, grid, labels=None, *, packed=None, dtype=torch.float32, device="cpu", compile: bool = False):
-        import numpy as np
-
-        from ..topology.surfaces import surface_map
-        shape = tuple(grid.shape)
-        labels = np.zeros(shape, np.int64) if labels is None else np.asarray(labels, dtype=np.int64)
-        m = surface_map(grid, labels)
-        W = m["weights"].tocsr()
-        W.sum_duplicates()
-        used, cols = np.unique(W.indices, return_inverse=True)       # the nodes the surface reads
-        D, H, W_ = shape
-        d, h, w = np.unravel_index(used, shape)
-        if packed is None:
-            where, stride = used, int(np.prod(shape))
-        else:
-            where = (d + 1) * (H + 2) * (W_ + 2) + (h + 1) * (W_ + 2) + (w + 1)
-            stride = int(packed.P)
-        self.stride = stride
-        #: (M, 3) flat index of each used node's three coordinates in the positions' storage
-        self.index = torch.as_tensor(where[:, None] + stride * np.arange(3)[None, :], device=device)
-        X = grid.rest_positions(torch.float64)[0].reshape(3, -1).T.numpy()[used]         # (M, 3)
-        self.X = torch.as_tensor(X, dtype=dtype, device=device)
-        V, M = W.shape[0], len(used)
-        with warnings.catch_warnings():                              # "sparse CSR support is in beta"
-            warnings.simplefilter("ignore", UserWarning)
-            self.weights = torch.sparse_csr_tensor(torch.as_tensor(W.indptr, dtype=torch.int64),
-                                                   torch.as_tensor(cols.reshape(-1), dtype=torch.int64),
-                                                   torch.as_tensor(W.data), (V, M), dtype=dtype, device=device,
-                                                   check_invariants=False)
-        self.rest = torch.as_tensor(m["rest"], dtype=dtype, device=device)
-        self.faces = torch.as_tensor(m["faces"], dtype=torch.int64, device=device)
-        self._corners = self.faces.T.contiguous()                    # (3, F)
-        self._flat = self.faces.reshape(-1)
-        # the faces around each vertex, padded with face F (a zero row): (V, K), K = the largest valence
-        F_ = int(self.faces.shape[0])
-        owner = self._flat.cpu()
-        count = torch.bincount(owner, minlength=V)
-        order = torch.argsort(owner, stable=True)
-        start = torch.cumsum(count, 0) - count
-        slot = torch.arange(int(count.max()) if V else 0)[None]
-        face_of = torch.arange(F_).repeat_interleave(3)[order]
-        self._incident = torch.where(slot < count[:, None], face_of[(start[:, None] + slot).clamp_max(max(3 * F_ - 1, 0))],
-                                     F_).to(device)
-        self.compile_error = None
-        self._compiled = None
-        if compile:
-            from .._compile import INDUCTOR_OPTIONS, inductor_options
-            self._compiled = torch.compile(self._gather_normals, dynamic=False,
-                                           options=inductor_options(INDUCTOR_OPTIONS))
-
-    @property
-    def num_vertices(self) -> int:
-        """V, the number of surface vertices."""
-        return int(self.rest.shape[0])
-
-    def vertices(self, x: torch.Tensor) -> torch.Tensor:
-        """``(V, 3)`` deformed vertices from node positions (packed ``(1, 3, P)`` or grid layout)."""
-        u = x.reshape(-1)[self.index] - self.X                       # (M, 3): only the surface nodes
-        return torch.addmm(self.rest, self.weights, u)
-
-    def normals(self, v: torch.Tensor) -> torch.Tensor:
-        """``(V, 3)`` unit vertex normals: area-weighted face normals summed per vertex.
-
-        Compiled (``compile=True``): :meth:`_gather_normals` under ``torch.compile``; otherwise (or
-        after a failed compilation, with one warning) :meth:`_scatter_normals`, the faster of the
-        two eagerly. Both give the same sums up to rounding.
-        """
-        if self._compiled is not None:
-            try:
-                with torch.no_grad():
-                    return self._compiled(v)
-            except Exception as e:                                   # noqa: BLE001 (any failure -> eager)
-                from .._compile import warn_fallback
-                self._compiled = None
-                self.compile_error = f"{type(e).__name__}: {(str(e).strip().splitlines() or [''])[0][:160]}"
-                warn_fallback(self.compile_error, "the eager surface normals")
-        return self._scatter_normals(v)
-
-    def _face_normals(self, v):
-        p = v[self._flat].view(-1, 3, 3)                             # (F, corner, xyz)
-        return torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=1)   # 2 x area x unit normal
-
-    @staticmethod
-    def _unit(n):
-        return n / n.norm(dim=1, keepdim=True).clamp_min(torch.finfo(n.dtype).tiny)
-
-    def _scatter_normals(self, v):
-        """Face normals added into their three corners (``index_add_``): the eager path."""
-        fn = self._face_normals(v)
-        n = torch.zeros_like(v)
-        for c in range(3):
-            n.index_add_(0, self._corners[c], fn)
-        return self._unit(n)
-
-    def _gather_normals(self, v):
-        """Each vertex sums the face normals of its incident faces (no scatter): the compiled path."""
-        fn = self._face_normals(v)
-        fn = torch.cat([fn, fn.new_zeros(1, 3)])                     # face F: the padding
-        return self._unit(fn[self._incident].sum(1))
-
-    def __call__(self, x: torch.Tensor):
-        """``(vertices, normals)``, each ``(V, 3)``."""
-        v = self.vertices(x)
-        return v, self.normals(v)
 
 
 def frame_body(shape, dtype=torch.float32, device="cpu", seed: int = 0):

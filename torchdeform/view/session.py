@@ -56,7 +56,6 @@ from __future__ import annotations
 import math
 import threading
 import time
-import warnings
 
 import numpy as np
 import torch
@@ -69,7 +68,7 @@ from ..sim.integrators import SymplecticEuler
 from ..sim.stability import gershgorin_omega2, time_step_bound
 from ..topology import Blade, components, cut, sides
 from ..topology.masks import alive, full
-from ..topology.surfaces import surface_map
+from ..topology.surfaces import FrameSurface
 
 __all__ = ["ViewerSession", "TERM_RANGE"]
 
@@ -280,15 +279,8 @@ class ViewerSession:
 
     def _build_surface(self) -> None:
         self.labels = self._pieces().cpu()
-        surf = surface_map(self.grid, self.labels.numpy())
-        W = surf["weights"]
-        dev, dtype = self.model.device, self.model.dtype
-        with warnings.catch_warnings():                  # "sparse CSR support is in beta", once per build
-            warnings.simplefilter("ignore", UserWarning)
-            self._W = torch.sparse_csr_tensor(torch.as_tensor(W.indptr, dtype=torch.int64),
-                                              torch.as_tensor(W.indices, dtype=torch.int64),
-                                              torch.as_tensor(W.data, dtype=dtype), size=W.shape).to(dev)
-        self._rest_v = torch.as_tensor(surf["rest"], dtype=dtype, device=dev)
+        self._surface = FrameSurface(self.grid, self.labels.numpy(), dtype=self.model.dtype, device=self.model.device)
+        surf = self._surface.source
         self._rest_np = surf["rest"]
         self._faces = surf["faces"]
         self._vlabel = surf["label"]
@@ -453,8 +445,7 @@ class ViewerSession:
     def positions(self) -> bytes:
         """The surface's vertex positions now: ``V * 3`` float32 little-endian values (m, axes D, H, W)."""
         with self._lock, torch.no_grad():
-            u = (self.state.x[0] - self.model.X[0]).reshape(3, -1).T.contiguous()
-            v = self._rest_v + self._W @ u
+            v = self._surface.vertices(self.state.x[0])
             return v.to(torch.float32).cpu().numpy().astype("<f4", copy=False).tobytes()
 
     def vertices(self) -> torch.Tensor:
