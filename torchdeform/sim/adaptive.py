@@ -299,9 +299,3 @@ class Adaptive(Integrator):
                 raise StepSizeError(state.t, h, min_step, self.rtol, self.pair.name)
         self._h = h
         return state
-
-    def advance(self, model, state, dt, loads):
-        """One internal try of size ``dt`` without control: the propagated ``(x, v)``."""
-        self._prepare(model)
-        x, v, _, _ = self._try(rates(model, loads), state.t, state.x, state.v, dt)
-        return x, v

@@ -49,6 +49,7 @@ from .._compile import (
     warn_fallback,
     while_loop,
 )
+from ..errors import ConfigError
 from .integrators import ImplicitEuler, cg_iteration, cg_start, positive_dt
 from .model import State
 from .packed import PackedLinearisation, PackedModel, TraceContext
@@ -83,7 +84,7 @@ class CompiledStep:
                  enable: bool = True, options: dict | None = None, editable=False, threads: int | None = None,
                  force_form: str | None = None):
         if force_form not in (None, "gather", "reduction"):
-            raise ValueError(f"force_form: None, 'gather' or 'reduction', not {force_form!r}")
+            raise ConfigError("force_form", "None, 'gather' or 'reduction'", force_form)
         self.integrator, self.model, self.loads = integrator, model, loads
         self.dt = positive_dt(dt)
         #: the OpenMP threads the code is compiled for (see :func:`step_threads`)
@@ -99,6 +100,8 @@ class CompiledStep:
         #: of the packed model (the model itself carries no compile flags)
         self.trace = ctx = TraceContext(realize)
         pmc = pm.traced(ctx, self.threads)
+        #: how this step sums the springs, ``"gather"`` or ``"reduction"`` (decided by the traced view)
+        self.force_form = pmc.force_form
 
         # t enters as a 0-d tensor: ramps and drag paths are evaluated inside the compiled code
         # without branches, and a new t never triggers a recompilation.

@@ -163,9 +163,7 @@ class Engine:
 
     def summary(self) -> dict:
         """``{"requested", "ran", "why", "eager_ms_per_step", "compile_s", "force_form"}`` for a run's summary."""
-        form = None
-        if self.step is not None and self.ran == "compiled":
-            form = self.force_form or ("gather" if self.step.threads > 1 else "reduction")
+        form = self.step.force_form if self.step is not None and self.ran == "compiled" else None
         return {"requested": self.mode, "ran": self.ran, "why": self.reason,
                 "eager_ms_per_step": self.eager_ms, "compile_s": self.compile_s, "force_form": form}
 

@@ -124,8 +124,7 @@ def accumulate(grid: Grid, fn: Callable, *fields: torch.Tensor, channels: int | 
 
 def _padded(t: torch.Tensor, region, shape) -> torch.Tensor:
     """``t`` over ``region`` (three slices) of a ``shape`` grid, zero elsewhere."""
-    t = t.expand(*t.shape[:-3], *[r.stop - r.start for r in region]) if t.shape[-3:] != tuple(
-        r.stop - r.start for r in region) else t
+    t = t.expand(*t.shape[:-3], *[r.stop - r.start for r in region])
     pad = []
     for r, n in zip(reversed(region), reversed(shape)):
         pad += [r.start, n - r.stop]
