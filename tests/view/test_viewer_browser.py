@@ -62,9 +62,9 @@ def small(tmp_path_factory):
 def open_page(driver, viewer: Viewer, frames: int = 5, timeout: float = 30):
     driver.get(viewer.url)
     WebDriverWait(driver, timeout).until(
-        lambda d: d.execute_script("return window.viewerStats && window.viewerStats.framesReceived") >= frames)
+        lambda d: d.execute_script("return (window.viewerStats && window.viewerStats.framesReceived) || 0") >= frames)
     WebDriverWait(driver, timeout).until(
-        lambda d: d.execute_script("return window.viewerStats.lastStats") is not None)
+        lambda d: d.execute_script("return window.viewerStats && window.viewerStats.lastStats") is not None)
 
 
 def js(driver, expr: str):
