@@ -178,6 +178,40 @@ class EdgeList:
         np.add.at(F, self.b, -f)
         return F
 
+    def law_forces(self, x, tension):
+        """Spring forces ``(N, 3)`` of a nonlinear law (explicit loop over springs).
+
+        ``tension(l, l0, s)`` is the force magnitude of spring ``s`` at length ``l`` (positive when
+        stretched); on endpoint ``a`` the force is ``-tension n`` with ``n = (x_a - x_b) / l``.
+        """
+        F = np.zeros_like(x)
+        for s, (a, b, _) in enumerate(self.springs):
+            d = x[a] - x[b]
+            l = np.sqrt(d @ d)
+            f = -tension(l, self.l0[s], s) * d / l
+            F[a] += f
+            F[b] -= f
+        return F
+
+    def law_hessian(self, x, tension, slope, clamp=False):
+        """Hessian ``(3N, 3N)`` of a nonlinear law's energy: blocks ``(f / l)(I - n n^T) + f' n n^T``.
+
+        ``tension(l, l0, s)`` and ``slope(l, l0, s)`` (its derivative in ``l``) per spring; with
+        ``clamp`` the factor ``f / l`` is replaced by ``max(f / l, 0)``.
+        """
+        H = np.zeros((3 * self.N, 3 * self.N))
+        I = np.eye(3)
+        for s, (a, b, _) in enumerate(self.springs):
+            d = x[a] - x[b]
+            l = np.sqrt(d @ d)
+            n = d / l
+            t = tension(l, self.l0[s], s) / l
+            t = max(t, 0.0) if clamp else t
+            blk = t * (I - np.outer(n, n)) + slope(l, self.l0[s], s) * np.outer(n, n)
+            for p, q, sg in ((a, a, 1), (b, b, 1), (a, b, -1), (b, a, -1)):
+                H[3 * p:3 * p + 3, 3 * q:3 * q + 3] += sg * blk
+        return H
+
     def energy(self, x, k=1.0):
         d = x[self.a] - x[self.b]
         l = np.linalg.norm(d, axis=1)

@@ -31,6 +31,9 @@ Keys
     ``damping``  dashpot along each spring in N s/m (divided by l0 too with ``modulus``);
     a number or a class table (default: none)
     ``damping_mode``  ``"projected"`` (default) or ``"unprojected"`` (Radetzky)
+    ``law``  ``"hooke"`` (default), ``"exponential"`` (``stiffening`` b) or ``"polynomial"``
+    (``quadratic`` c2, ``cubic`` c3): strain-stiffening springs (:mod:`torchdeform.sim.laws`) whose
+    small-strain stiffness is ``stiffness``; each parameter a number >= 0 or a class table (default 0)
     ``tissue``  instead of ``stiffness``: words of the fuzzy tissue library (:mod:`torchdeform.fuzzy`):
     a tissue (``"liver"``, ``"fat"``, ...), a consistency term (``"very_soft"`` ... ``"hard"``) or
     a consistency number 0..10; its Young's modulus E becomes ``k = E / lattice_modulus(grid)``

@@ -18,6 +18,7 @@ from ..sim.engine import ENGINES
 from ..sim.forces import Drag, PointForce, SurfaceForce
 from ..sim.grid import FACES, Grid
 from ..sim.integrators import INTEGRATORS, Integrator, SymplecticEuler
+from ..sim.laws import LAWS
 from ..sim.model import Model
 from .reader import SECTIONS, Source, Table, drags_section, faces, grid_section, is_number, node_list, region_mask
 from .tools import ToolSet, palpation_option, strain_limit_section
@@ -215,6 +216,14 @@ def _material(t: Table, grid: Grid) -> dict:
         args["damping"] = t.per_class("damping", "N s/m")
     args["damping_mode"] = t.text("damping_mode", '"projected" or "unprojected"', "projected",
                                  ("projected", "unprojected"))
+    laws = ("hooke",) + tuple(LAWS)
+    name = t.text("law", "one of " + ", ".join(f'"{n}"' for n in laws), "hooke", laws)
+    own = () if name == "hooke" else LAWS[name].params
+    for key in ("stiffening", "quadratic", "cubic"):
+        if key not in own:
+            t.only_with(key, f'law = "{name}"')
+    if name != "hooke":
+        args["law"] = LAWS[name](*(t.per_class(key, "dimensionless") if t.has(key) else 0.0 for key in own))
     return args
 
 

@@ -43,7 +43,8 @@ __all__ = ["Source", "Table", "read", "is_number", "grid_section", "faces", "nod
 
 SECTIONS = {
     "grid": ("shape", "mesh", "spacing", "topology", "origin", "padding", "scale"),
-    "material": ("stiffness", "modulus", "tissue", "damping", "damping_mode"),
+    "material": ("stiffness", "modulus", "tissue", "damping", "damping_mode", "law", "stiffening", "quadratic",
+                 "cubic"),
     "regions": ("sphere", "box", "stiffness", "tissue"),
     "mass": ("mass", "density"),
     "boundary": ("fixed", "fixed_nodes", "home", "anchors", "decay", "gravity"),

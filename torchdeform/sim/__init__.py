@@ -7,6 +7,7 @@ and the compiled fast path.
 :mod:`.grid`           :class:`Grid`: node counts, spacing, topology (6/14/18/26 neighbours), masks
 :mod:`.springs`        the one spring operator: stencil differences and their adjoint (slices and
                        ``conv3d`` reference), the spring law, energies, linearisations
+:mod:`.laws`           strain-stiffening spring laws (:class:`Exponential`, :class:`Polynomial`)
 :mod:`.forces`         loads (point, surface, field), drags, home springs: the one load vocabulary
 :mod:`.model`          :class:`Model` (what a step reads) and :class:`State` (``x``, ``v``, ``t``)
 :mod:`.integrators`    explicit/symplectic Euler, damped Verlet, RK4, implicit Euler, Knoche
@@ -46,10 +47,12 @@ from .integrators import (
                           SymplecticEuler,
                           conjugate_gradient,
 )
+from .laws import LAWS, Exponential, Polynomial, SpringLaw
 from .model import Model, State, lumped_mass
 from .stability import DivergenceMonitor, check_dt, gershgorin_omega2, power_omega2, suggest_dt, time_step_bound
 
 __all__ = ["Grid", "Model", "State", "lumped_mass", "Drag", "PointForce", "SurfaceForce", "FieldForce",
            "INTEGRATORS", "Integrator", "ExplicitEuler", "SymplecticEuler", "DampedVerlet", "RK4", "ImplicitEuler",
            "KnocheRelaxation", "conjugate_gradient", "simulate", "Engine", "ENGINES", "DivergenceMonitor", "check_dt", "gershgorin_omega2",
-           "power_omega2", "suggest_dt", "time_step_bound", "Adaptive", "PAIRS", "StepSizeError"]
+           "power_omega2", "suggest_dt", "time_step_bound", "Adaptive", "PAIRS", "StepSizeError",
+           "SpringLaw", "Exponential", "Polynomial", "LAWS"]

@@ -20,6 +20,7 @@ import torch
 from ..errors import ConfigError
 from .forces import as_vec3, home_force
 from .grid import CLASSES, Grid
+from .laws import as_law
 from .springs import Linearisation, node_sums, spring_energy, spring_forces, spring_forces_conv
 
 
@@ -149,6 +150,10 @@ class Model:
         damping: spring damping (N s/m) like ``stiffness`` (``/ l0`` too when normalised), or None.
         damping_mode: ``"projected"`` (dashpot along the spring) or ``"unprojected"``
             (Radetzky: ``-d (v_i - v_j)``, which also damps rigid rotation of a pair).
+        law: None (Hooke's law, ``f = k (l - l0)``), a strain-stiffening law
+            (:class:`~torchdeform.sim.laws.Exponential`, :class:`~torchdeform.sim.laws.Polynomial`)
+            or its name. ``stiffness`` is then the small-strain stiffness, and the law's
+            parameters are spring parameters like it (stored in :attr:`law_params`).
         mass: node mass (kg): a number, ``(D, H, W)`` or ``(B, 1, D, H, W)``; or
         density: kg/m^3, lumped from cell volumes (:func:`lumped_mass`). Exactly one of the two.
         gravity: acceleration ``(gd, gh, gw)`` m/s^2, or None.
@@ -180,7 +185,7 @@ class Model:
         (torch.Size([2, 3, 4, 4, 4]), -9.81, True)
     """
 
-    def __init__(self, grid: Grid, stiffness, damping=None, *, damping_mode="projected", normalize=False,
+    def __init__(self, grid: Grid, stiffness, damping=None, *, damping_mode="projected", law=None, normalize=False,
                  mass=None, density=None, gravity=None, fixed=None, drags=None, home=None, anchors=None,
                  decay=None, loads=None, interactions=None, spring_mask=None, dtype=torch.float32, device=None):
         self.grid, self.dtype, self.device = grid, dtype, torch.device(device or "cpu")
@@ -211,6 +216,11 @@ class Model:
         if c is not None and not bool((c != 0).any()):
             c = None
         self.stiffness, self.damping = k, c
+        #: the spring law (:mod:`torchdeform.sim.laws`), or None for Hooke's law
+        self.law = as_law(law)
+        #: the law's parameters as spring fields ``(Bp, S, 1|D, 1|H, 1|W)``, in ``law.params`` order
+        self.law_params = () if self.law is None else tuple(
+            spring_param(value, grid, f"law.{name}", dtype, dev) for name, value in zip(self.law.params, self.law.values))
 
         # masses
         if (mass is None) == (density is None):
@@ -341,7 +351,8 @@ class Model:
     def spring_forces(self, x, v, impl: str = "fast") -> torch.Tensor:
         """Forces of the grid springs alone, ``(B, 3, D, H, W)``; ``impl`` as in :meth:`forces`."""
         fn = spring_forces if impl == "fast" else spring_forces_conv
-        return fn(x, v, self.grid, self.stiffness, self.rest_length, self.damping, self.projected)
+        return fn(x, v, self.grid, self.stiffness, self.rest_length, self.damping, self.projected,
+                  self.law, self.law_params)
 
     def spring_sums(self, p: torch.Tensor) -> torch.Tensor:
         """``sum_j p_ij`` over the springs at each node, ``(Bp, 1, D, H, W)``.
@@ -357,7 +368,7 @@ class Model:
 
     def linearise(self, x, clamp=True) -> Linearisation:
         """Springs linearised at ``x`` for stiffness products (implicit Euler, bounds)."""
-        return Linearisation(x, self.grid, self.stiffness, self.rest_length, clamp)
+        return Linearisation(x, self.grid, self.stiffness, self.rest_length, clamp, self.law, self.law_params)
 
     # --------------------------------------------------------------- energy
     def energy(self, state: State) -> dict:
@@ -368,7 +379,7 @@ class Model:
         """
         x, v = state.x, state.v
         ke = 0.5 * (self.mass * v * v).flatten(1).sum(1)
-        el = spring_energy(x, self.grid, self.stiffness, self.rest_length)
+        el = spring_energy(x, self.grid, self.stiffness, self.rest_length, self.law, self.law_params)
         if self.k_home is not None:
             el = el + 0.5 * (self.k_home * (x - self.X) ** 2).flatten(1).sum(1)
         out = {"kinetic": ke, "elastic": el}

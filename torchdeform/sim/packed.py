@@ -149,6 +149,7 @@ class PackedModel(Model):
         self.stiffness = self._spring(model.stiffness)
         self.rest_length = self._spring(model.rest_length)
         self.damping = None if model.damping is None else self._spring(model.damping)
+        self.law_params = tuple(self._spring(p) for p in model.law_params)
         #: ``(2 S, N, BLOCK)``: 1 where the spring along each direction from each core node exists
         self.spring_exists = self.exists()[0]
         #: the compile-time context (:class:`TraceContext`): inert here; a compiled step traces a
@@ -356,7 +357,8 @@ class PackedModel(Model):
             sq = dx[0] * dx[0] + dx[1] * dx[1] + dx[2] * dx[2]
             dxdv = None if dv is None else dx[0] * dv[0] + dx[1] * dv[1] + dx[2] * dv[2]
             alpha, beta = spring_law(sq, dxdv, self.param(k, s, sign), self.param(l0, s, sign),
-                                     None if c is None else self.param(c, s, sign), projected)
+                                     None if c is None else self.param(c, s, sign), projected,
+                                     self.law, tuple(self.param(p, s, sign) for p in self.law_params))
             alpha = alpha * mask
             if beta is None:
                 return [alpha * d for d in dx]
@@ -377,7 +379,8 @@ class PackedModel(Model):
             v = self.trace.operand(v)
             dv = self.differences(v)
             dxdv = dx[:, 0] * dv[:, 0] + dx[:, 1] * dv[:, 1] + dx[:, 2] * dv[:, 2]
-        alpha, beta = spring_law(sq, dxdv, k, l0, c, self.projected)
+        alpha, beta = spring_law(sq, dxdv, k, l0, c, self.projected, self.law,
+                                 tuple(self.directed(p) for p in self.law_params))
         exists = self.exists()
         alpha = alpha * exists
         if beta is None:
@@ -409,7 +412,8 @@ class PackedLinearisation:
 
     The springs are linearised along each of the ``2 S`` directions from each core node (so every
     spring twice, once from each end): :attr:`fields` are the unit direction ``n``
-    ``(B, 3, 2 S, N, BLOCK)`` and the coefficients ``a = k max(1 - l0 / l, 0)`` and ``b = k - a``
+    ``(B, 3, 2 S, N, BLOCK)`` and the coefficients ``a = max(f / l, 0)`` and ``b = df/dl - a`` (Hooke:
+    ``a = k max(1 - l0 / l, 0)``, ``b = k - a``)
     ``(B, 2 S, N, BLOCK)``. A product is one sum over the directions per node (:meth:`apply`), which
     ``torch.compile`` turns into one loop over the nodes with the directions as its inner
     reduction. Under ``torch.compile`` these fields are not stored: their few readers recompute
@@ -431,12 +435,15 @@ class PackedLinearisation:
         if fields is None:
             dx = pm.differences(x)                                               # (B, 3, 2S, N, L)
             sq = dx[:, 0] * dx[:, 0] + dx[:, 1] * dx[:, 1] + dx[:, 2] * dx[:, 2]  # (B, 2S, N, L)
-            k = pm.directed(pm.stiffness)
-            a, _ = spring_law(sq, None, k, pm.directed(pm.rest_length), None, True)
+            k, l0 = pm.directed(pm.stiffness), pm.directed(pm.rest_length)
+            lp = tuple(pm.directed(p) for p in pm.law_params)
+            a, _ = spring_law(sq, None, k, l0, None, True, pm.law, lp)
             if clamp:
                 a = a.clamp_min(0)
-            n = dx / sq.clamp_min(torch.finfo(sq.dtype).tiny).sqrt().unsqueeze(1)
-            fields = (n, a, k - a)
+            l = sq.clamp_min(torch.finfo(sq.dtype).tiny).sqrt()
+            n = dx / l.unsqueeze(1)
+            slope = k if pm.law is None else pm.law.slope(l, l0, k, *lp)
+            fields = (n, a, slope - a)
         self.fields = tuple(fields)
 
     def scaled(self, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> "PackedLinearisation":

@@ -177,14 +177,15 @@ def _length(delta: torch.Tensor) -> torch.Tensor:
     return sq.clamp_min(torch.finfo(delta.dtype).tiny).sqrt()
 
 
-def spring_law(sq, dxdv, k, l0, c, projected: bool):
+def spring_law(sq, dxdv, k, l0, c, projected: bool, law=None, lp=()):
     """The spring law, as coefficients.
 
     The force on a spring's endpoint ``i`` is ``alpha (x_j - x_i) + beta (v_j - v_i)``, with
-    ``alpha = k (l - l0) / l + c ((v_j - v_i) . delta) / l^2`` for projected damping (a dashpot
-    along the spring), ``beta = c`` for Radetzky's unprojected damping. ``l`` is kept ``>= sqrt(tiny)``
-    so coincident nodes give finite values. Every spring force in torchdeform (the slice path,
-    the packed fast path) comes from here.
+    ``alpha = f(l) / l + c ((v_j - v_i) . delta) / l^2`` for projected damping (a dashpot
+    along the spring), ``beta = c`` for Radetzky's unprojected damping. The tension ``f`` is Hooke's
+    ``k (l - l0)`` or that of a strain-stiffening ``law`` (:mod:`torchdeform.sim.laws`). ``l`` is kept
+    ``>= sqrt(tiny)`` so coincident nodes give finite values. Every spring force in torchdeform
+    (the slice path, the packed fast path) comes from here.
 
     Args:
         sq: ``|x_j - x_i|^2``.
@@ -194,13 +195,16 @@ def spring_law(sq, dxdv, k, l0, c, projected: bool):
         c: damping, broadcastable, or None.
         projected: damping along the spring (in ``alpha``) if True, else Radetzky's unprojected
             damping (``beta = c``).
+        law: a :class:`~torchdeform.sim.laws.SpringLaw`, or None for Hooke's law.
+        lp: the law's parameters, broadcastable like ``k``.
 
     Returns:
         ``(alpha, beta)``; ``beta`` is None unless the damping is unprojected.
     """
     l = sq.clamp_min(torch.finfo(sq.dtype).tiny).sqrt()
     inv_l = 1.0 / l
-    alpha = k * (l - l0) * inv_l           # exactly 0 at rest length
+    # exactly 0 at rest length
+    alpha = k * (l - l0) * inv_l if law is None else law.tension(l, l0, k, *lp) * inv_l
     if c is None:
         return alpha, None
     if _needs_gate(k, c):
@@ -210,8 +214,8 @@ def spring_law(sq, dxdv, k, l0, c, projected: bool):
     return alpha, c
 
 
-def tension(delta, dv, k, l0, c, projected: bool) -> torch.Tensor:
-    """Tension vector of springs: ``k (l - l0) n`` plus damping (:func:`spring_law`).
+def tension(delta, dv, k, l0, c, projected: bool, law=None, lp=()) -> torch.Tensor:
+    """Tension vector of springs: ``k (l - l0) n`` (or a ``law``'s) plus damping (:func:`spring_law`).
 
     Args:
         delta: ``x_j - x_i``, ``(B, 3, ...)``.
@@ -221,18 +225,20 @@ def tension(delta, dv, k, l0, c, projected: bool) -> torch.Tensor:
         c: damping, broadcastable to ``(B, 1, ...)``, or ``None`` (no damping, no cost).
         projected: damping along the spring ``c ((dv . n) n)`` if True, else Radetzky's
             unprojected relative-velocity damping ``c dv``.
+        law: a strain-stiffening law (:func:`spring_law`), or None.
+        lp: the law's parameters, broadcastable like ``k``.
 
     Returns:
         ``(B, 3, ...)``: the force on ``i`` (its negative acts on ``j``).
     """
     sq = (delta * delta).sum(1, keepdim=True)
     dxdv = (delta * dv).sum(1, keepdim=True) if c is not None and projected else None
-    alpha, beta = spring_law(sq, dxdv, k, l0, c, projected)
+    alpha, beta = spring_law(sq, dxdv, k, l0, c, projected, law, lp)
     f = alpha * delta
     return f if beta is None else f + beta * dv
 
 
-def spring_forces(x, v, grid, k, l0, c=None, projected=True) -> torch.Tensor:
+def spring_forces(x, v, grid, k, l0, c=None, projected=True, law=None, lp=()) -> torch.Tensor:
     """Node forces of all springs (fast path).
 
     Args:
@@ -243,18 +249,22 @@ def spring_forces(x, v, grid, k, l0, c=None, projected=True) -> torch.Tensor:
         l0: rest length, same convention.
         c: damping like ``k`` or ``None``.
         projected: damping along the spring if True, else unprojected (see :func:`tension`).
+        law: a strain-stiffening law (:mod:`torchdeform.sim.laws`) or None (Hooke).
+        lp: the law's parameters, each like ``k``.
 
     Returns:
         forces ``(B, 3, D, H, W)``.
     """
+    def lps(s, src):
+        return tuple(take(p, s, src) for p in lp)
     if c is None:
         return accumulate(grid, lambda s, src, dx: tension(dx, None, take(k, s, src), take(l0, s, src),
-                                                            None, projected), x)
+                                                            None, projected, law, lps(s, src)), x)
     return accumulate(grid, lambda s, src, dx, dv: tension(dx, dv, take(k, s, src), take(l0, s, src),
-                                                           take(c, s, src), projected), x, v)
+                                                           take(c, s, src), projected, law, lps(s, src)), x, v)
 
 
-def spring_forces_conv(x, v, grid, k, l0, c=None, projected=True) -> torch.Tensor:
+def spring_forces_conv(x, v, grid, k, l0, c=None, projected=True, law=None, lp=()) -> torch.Tensor:
     """Node forces of all springs through the ``conv3d`` reference.
 
     Same arguments as :func:`spring_forces`.
@@ -262,17 +272,21 @@ def spring_forces_conv(x, v, grid, k, l0, c=None, projected=True) -> torch.Tenso
     delta = difference_conv(x, grid).movedim(2, 1)            # (B, 3, S, D, H, W)
     dv = difference_conv(v, grid).movedim(2, 1) if c is not None else None
     unsq = (lambda p: None if p is None else p.unsqueeze(1))   # (Bk, 1, S, ...)
-    f = tension(delta, dv, unsq(k), unsq(l0), unsq(c), projected)
+    f = tension(delta, dv, unsq(k), unsq(l0), unsq(c), projected, law, tuple(map(unsq, lp)))
     return -adjoint_conv(f.movedim(1, 2), grid)
 
 
-def spring_energy(x, grid, k, l0) -> torch.Tensor:
-    """Elastic energy ``sum 1/2 k (l - l0)^2`` per batch entry, ``(B,)``."""
+def spring_energy(x, grid, k, l0, law=None, lp=()) -> torch.Tensor:
+    """Elastic energy ``sum 1/2 k (l - l0)^2`` (or a ``law``'s) per batch entry, ``(B,)``."""
     B = x.shape[0]
     total = x.new_zeros(B)
     for s, (src, dst) in enumerate(grid.stencil):
         l = _length(x[(..., *dst)] - x[(..., *src)])
-        e = 0.5 * take(k, s, src) * (l - take(l0, s, src)) ** 2
+        ks, l0s = take(k, s, src), take(l0, s, src)
+        if law is None:
+            e = 0.5 * ks * (l - l0s) ** 2
+        else:
+            e = law.energy(l, l0s, ks, *(take(p, s, src) for p in lp))
         total = total + e.expand(B, *e.shape[1:]).reshape(B, -1).sum(1)
     return total
 
@@ -293,17 +307,20 @@ def node_sums(grid, p) -> torch.Tensor:
 class Linearisation:
     """Springs linearised at a state, for stiffness products ``K u`` without a matrix.
 
-    Per spring, ``-dF/dx`` acts as ``D^T [a Du + (k - a) n (n . Du)]`` with
-    ``a = k max(1 - l0 / l, 0)``: the compressive part is clamped to zero (only in this matrix,
-    never in the force) so the operator stays positive semi-definite.
+    Per spring, ``-dF/dx`` acts as ``D^T [a Du + (f' - a) n (n . Du)]`` with ``a = max(f / l, 0)``
+    and ``f' = df/dl`` (Hooke: ``a = k max(1 - l0 / l, 0)``, ``f' = k``): the exact Jacobian, except
+    that the compressive part is clamped to zero (only in this matrix, never in the force) so the
+    operator stays positive semi-definite.
 
     Args:
         x: positions ``(B, 3, D, H, W)`` to linearise at.
         grid, k, l0: as in :func:`spring_forces`.
         clamp: clamp the compressive term (default True).
+        law: a strain-stiffening law (:func:`spring_forces`), or None.
+        lp: the law's parameters, broadcastable like ``k``.
     """
 
-    def __init__(self, x, grid, k, l0, clamp=True):
+    def __init__(self, x, grid, k, l0, clamp=True, law=None, lp=()):
         self.grid = grid
         self.parts = []
         #: stiffness per spring: damping given per direction is gated by it (see :func:`gate_damping`)
@@ -311,11 +328,15 @@ class Linearisation:
         for s, (src, dst) in enumerate(grid.stencil):
             delta = x[(..., *dst)] - x[(..., *src)]
             l = _length(delta)
-            ks = take(k, s, src)
-            a = ks * (1 - take(l0, s, src) / l)
+            ks, l0s = take(k, s, src), take(l0, s, src)
+            if law is None:
+                a, slope = ks * (1 - l0s / l), ks
+            else:
+                ps = tuple(take(p, s, src) for p in lp)
+                a, slope = law.tension(l, l0s, ks, *ps) / l, law.slope(l, l0s, ks, *ps)
             if clamp:
                 a = a.clamp_min(0)
-            self.parts.append((delta / l, a, ks - a))
+            self.parts.append((delta / l, a, slope - a))
 
     #: True for the operator of :meth:`scaled` (coefficients already combined).
     combined = False
@@ -339,7 +360,7 @@ class Linearisation:
         if c is None:
             return None
         cs = take(c, s, src)
-        return gate_damping(cs, a + b) if self.gated and cs.shape[-3:] == (1, 1, 1) else cs  # a + b = k
+        return gate_damping(cs, a + b) if self.gated and cs.shape[-3:] == (1, 1, 1) else cs  # a + b = f' = 0 iff k = 0
 
     def apply(self, u: torch.Tensor, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> torch.Tensor:
         """``(h2 K + h C) u`` as a node field ``(B, 3, D, H, W)``.
