@@ -10,6 +10,7 @@ and the compiled fast path.
 :mod:`.laws`           strain-stiffening spring laws (:class:`Exponential`, :class:`Polynomial`)
 :mod:`.forces`         loads (point, surface, field), drags, home springs: the one load vocabulary
 :mod:`.model`          :class:`Model` (what a step reads) and :class:`State` (``x``, ``v``, ``t``)
+:mod:`.adjoint`        adjoint (implicit-function) gradients of linear solves, for implicit Euler
 :mod:`.integrators`    explicit/symplectic Euler, damped Verlet, RK4, implicit Euler, Knoche
                        relaxation; :func:`simulate`
 :mod:`.stability`      time-step bounds, :func:`suggest_dt`, divergence monitoring

@@ -33,11 +33,14 @@ Examples:
 """
 from __future__ import annotations
 
+import contextlib
+import copy
 import math
 
 import torch
 
 from ..errors import ConfigError
+from .adjoint import adjoint_solve
 from .model import Model, State
 from .springs import accumulate
 from .stability import time_step_bound
@@ -324,10 +327,18 @@ class ImplicitEuler(Integrator):
         cg_tol: relative residual to stop at (``0``: always exactly ``cg_iters``, as SOFA's
             fixed-count benchmarks and compiled code do).
         newton_iters: extra Newton iterations (0 = one linearised step).
+        gradient: how autograd differentiates the solves: ``"unrolled"`` (through every CG
+            iteration; memory grows with ``cg_iters``) or ``"adjoint"`` (implicit function
+            theorem, :mod:`~torchdeform.sim.adjoint`: the forward CG runs without a graph, the
+            backward solves ``A lambda = dL/du`` with CG; memory of one operator product per
+            solve, exact when both solves converge). The forward values are the same to the bit.
+        adjoint_iters: maximum CG iterations of each backward solve (default ``cg_iters``).
+        adjoint_tol: relative residual of each backward solve (default ``cg_tol``).
 
     Attributes:
         last_cg: ``(iterations, relative residual)`` of the last solve (the residual is a 0-d
             tensor when ``cg_tol = 0``).
+        last_adjoint_cg: the same for the last backward solve (``gradient="adjoint"``), or None.
 
     Examples:
         >>> import torch
@@ -341,12 +352,38 @@ class ImplicitEuler(Integrator):
         >>> s = implicit.step(model, s, dt=100.0)                   # stable far beyond the bound
         >>> abs(float(s.x[0, 2, 0, 0, 1]) - 1.0) < 1e-3, implicit.last_cg[0]
         (True, 1)
+
+        Adjoint gradients (one operator product kept per solve, whatever ``cg_iters``):
+
+        >>> k = torch.tensor(1.0, dtype=torch.float64, requires_grad=True)
+        >>> model = td.Model(grid, stiffness=k, mass=1.0, fixed=grid.index_mask([(0, 0, 0)]),
+        ...                  dtype=torch.float64)
+        >>> s = model.rest_state()
+        >>> s.x[0, 2, 0, 0, 1] += 0.1
+        >>> adjoint = td.ImplicitEuler(cg_tol=1e-12, gradient="adjoint")
+        >>> s = adjoint.step(model, s, dt=1.0)              # x' = 1 + 0.1 / (1 + k) (linear here)
+        >>> s.x[0, 2, 0, 0, 1].backward()                   # dx'/dk = -0.1 / (1 + k)^2
+        >>> round(float(k.grad), 12), adjoint.last_adjoint_cg[0]
+        (-0.025, 1)
     """
     name = "implicit"
+    #: the values of ``gradient``
+    GRADIENTS = ("unrolled", "adjoint")
 
-    def __init__(self, cg_iters: int = 100, cg_tol: float = 1e-6, newton_iters: int = 0):
+    def __init__(self, cg_iters: int = 100, cg_tol: float = 1e-6, newton_iters: int = 0, *,
+                 gradient: str = "unrolled", adjoint_iters: int | None = None, adjoint_tol: float | None = None):
         self.cg_iters, self.cg_tol, self.newton_iters = int(cg_iters), float(cg_tol), int(newton_iters)
+        if gradient not in self.GRADIENTS:
+            raise ConfigError("implicit.gradient", '"unrolled" or "adjoint"', gradient)
+        if adjoint_iters is not None and (isinstance(adjoint_iters, bool) or not isinstance(adjoint_iters, int)
+                                          or adjoint_iters < 1):
+            raise ConfigError("implicit.adjoint_iters", "a whole number >= 1", adjoint_iters)
+        if adjoint_tol is not None and not (isinstance(adjoint_tol, (int, float)) and 0 <= adjoint_tol < math.inf):
+            raise ConfigError("implicit.adjoint_tol", "a number >= 0", adjoint_tol)
+        self.gradient, self.adjoint_iters = gradient, adjoint_iters
+        self.adjoint_tol = None if adjoint_tol is None else float(adjoint_tol)
         self.last_cg = (0, 0.0)
+        self.last_adjoint_cg = None
 
     def preconditioner(self, model, h: float) -> torch.Tensor:
         """Jacobi preconditioner ``1 / diag(M + h C + h^2 K)``.
@@ -404,14 +441,38 @@ class ImplicitEuler(Integrator):
 
     def advance(self, model, state, dt, loads):
         """``1 + newton_iters`` linear solves for the new velocity; ``x' = x + h v'``."""
-        precond = self.preconditioner(model, dt)
+        adjoint = self.gradient == "adjoint" and torch.is_grad_enabled()
+        with torch.no_grad() if adjoint else contextlib.nullcontext():
+            precond = self.preconditioner(model, dt)
         v = state.v
         for it in range(1 + self.newton_iters):
-            _, apply_A, rhs, delta_c = self.system(model, state, v, it, dt, loads)
-            delta, n_it, rel = conjugate_gradient(apply_A, rhs, precond, model.free, self.cg_iters, self.cg_tol)
+            x_lin, apply_A, rhs, delta_c = self.system(model, state, v, it, dt, loads)
+            if adjoint:        # (the state's x is the caller's: the backward keeps a copy)
+                x_keep = x_lin.detach().clone() if x_lin is state.x else x_lin
+                delta, n_it, rel = self._adjoint_solve(model, x_keep, apply_A, rhs, precond, dt)
+            else:
+                delta, n_it, rel = conjugate_gradient(apply_A, rhs, precond, model.free, self.cg_iters, self.cg_tol)
             self.last_cg = (n_it, rel)
             v = v + delta if delta_c is None else v + delta + delta_c
         return state.x + dt * v, v
+
+    def _adjoint_solve(self, model, x_lin, apply_A, rhs, precond, h):
+        """One solve with the adjoint gradient (:func:`~torchdeform.sim.adjoint.adjoint_solve`).
+
+        The backward rebuilds the operator from ``x_lin`` and the model's tensors as they are
+        now (a shallow copy: a later cut that replaces ``model.stiffness`` does not change it).
+        """
+        frozen = copy.copy(model)
+
+        def operator(x_lin, precond):
+            return self.operator(frozen, x_lin, h)[1], precond
+
+        def record(n_it, rel):
+            self.last_adjoint_cg = (n_it, rel)
+        return adjoint_solve(apply_A, rhs, conjugate_gradient, precond=precond, mask=model.free,
+                             iters=self.cg_iters, tol=self.cg_tol, adjoint_iters=self.adjoint_iters,
+                             adjoint_tol=self.adjoint_tol, adjoint_operator=operator, saved=(x_lin, precond),
+                             on_backward=record)
 
 
 class KnocheRelaxation(Integrator):
