@@ -91,7 +91,7 @@ def cube_grid(n: int = 3, spacing: float = 0.01, springs: int | None = None, top
 
 
 def _simulate_truth(series: Series, stiffness, damping, mass, noise: float, every: int, observe, seed: int,
-                    dtype=torch.float64) -> Series:
+                    dtype=torch.float64, integrator=None) -> Series:
     """Fill ``series.positions/steps/mask/truth`` by simulating the true model."""
     grid = series.grid
     smask = series.spring_mask_tensor()
@@ -102,7 +102,7 @@ def _simulate_truth(series: Series, stiffness, damping, mass, noise: float, ever
     series.truth.update({"stiffness": k.numpy(), "damping": c.numpy(), "mass": m.numpy()})
     with torch.no_grad():
         model = series.model(k, c, m, dtype)
-        xs = series.simulate(model)[:, 0].to(torch.float64).numpy()        # (N + 1, 3, D, H, W)
+        xs = series.simulate(model, integrator=integrator)[:, 0].to(torch.float64).numpy()        # (N + 1, 3, D, H, W)
     N = xs.shape[0] - 1
     steps = np.arange(0, N + 1, int(every))
     clean = xs[steps]
@@ -134,7 +134,7 @@ def _truth_meta(stiffness, damping, mass) -> dict:
 
 def radetzky_cube(springs: int = 70, stiffness=10.0, damping=0.1, mass=0.01, force=(-0.05, 0.0, 0.0),
                   steps: int = 250, dt: float = 0.005, spacing: float = 0.01, noise: float = 0.0, every: int = 1,
-                  observe=None, seed: int = 0, damping_mode: str = "unprojected") -> Series:
+                  observe=None, seed: int = 0, damping_mode: str = "unprojected", integrator=None) -> Series:
     """Radetzky's cube experiment: 3 x 3 x 3 nodes, lower 9 fixed, a constant force on the top-centre node.
 
     The force acts for all ``steps`` steps. The thesis gives neither the parameters, the force,
@@ -158,6 +158,9 @@ def radetzky_cube(springs: int = 70, stiffness=10.0, damping=0.1, mass=0.01, for
         observe: as in :func:`cube_series`.
         seed: as in :func:`cube_series`.
         damping_mode: ``"unprojected"`` (Radetzky's eq. 2.21) or ``"projected"`` (along the spring).
+        integrator: the integrator that makes the truth (an instance, e.g. a tight
+            ``ImplicitEuler(cg_tol=1e-12)`` for a stiff cube at a large ``dt``), or None: symplectic
+            Euler. The series records its name.
 
     Returns:
         a :class:`Series`.
@@ -170,7 +173,9 @@ def radetzky_cube(springs: int = 70, stiffness=10.0, damping=0.1, mass=0.01, for
                      "description": f"Radetzky's cube, {springs} springs, lower 9 nodes fixed, "
                                     f"constant force {tuple(force)} N on the top-centre node",
                      "truth": _truth_meta(stiffness, damping, mass)})
-    return _finish(s, stiffness, damping, mass, noise, every, observe, seed, steps)
+    if integrator is not None:
+        s.integrator = integrator.name
+    return _finish(s, stiffness, damping, mass, noise, every, observe, seed, steps, integrator)
 
 
 def per_spring_start(series: Series, seed: int = 0, with_mass: bool = False, spread=(0.2, 5.0)):
@@ -211,7 +216,7 @@ def per_spring_start(series: Series, seed: int = 0, with_mass: bool = False, spr
     return Parameters(series, k, c, mass), truth
 
 
-def _finish(s: Series, stiffness, damping, mass, noise, every, observe, seed, steps) -> Series:
+def _finish(s: Series, stiffness, damping, mass, noise, every, observe, seed, steps, integrator=None) -> Series:
     if int(steps) < 1:
         raise ConfigError("steps", "an integer >= 1", steps)
     if int(every) < 1 or int(steps) % int(every):
@@ -220,7 +225,8 @@ def _finish(s: Series, stiffness, damping, mass, noise, every, observe, seed, st
         raise ConfigError("noise", "a relative noise level in [0, 1)", noise)
     s.steps = np.array([0, int(steps)])                         # num_steps for the tables
     s.meta["num_steps"] = int(steps)
-    return _simulate_truth(s, stiffness, damping, mass, float(noise), int(every), observe, int(seed))
+    return _simulate_truth(s, stiffness, damping, mass, float(noise), int(every), observe, int(seed),
+                           integrator=integrator)
 
 
 def layered_regions(grid: Grid, layers: int = 2) -> np.ndarray:
