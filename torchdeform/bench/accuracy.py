@@ -81,6 +81,7 @@ from typing import Callable
 import torch
 
 from ..errors import ConfigError, DivergenceError
+from ..sim.adaptive import PAIRS, Adaptive
 from ..sim.engine import simulate
 from ..sim.forces import Drag, SurfaceForce
 from ..sim.grid import Grid
@@ -168,6 +169,25 @@ def _stiff(n, T):
     return cube(n, 5e5, 4e-5, 20.0, loads=[SurfaceForce("top", (-100.0, 100.0, 0.0), ramp=T)])
 
 
+def _inclusion(n, T):
+    """The load cube with a bone-like inclusion: springs inside a central ball 1000x stiffer.
+
+    The ball (radius a quarter of the side, and at least the central nodes) has 1000x the modulus and the same relaxation time
+    ``tau`` (so 1000x the dashpots); a spring between the ball and the tissue is the two in
+    series (harmonic mean of its ends' factors).
+    """
+    from ..sim.springs import harmonic_mean_of_ends
+    grid, kw = cube(n, 5e3, 4e-4, 20.0, loads=[SurfaceForce("top", (-100.0, 100.0, 0.0))])
+    idx = torch.arange(n, dtype=torch.float64) - (n - 1) / 2
+    r2 = idx.view(-1, 1, 1) ** 2 + idx.view(1, -1, 1) ** 2 + idx.view(1, 1, -1) ** 2
+    radius2 = max(((n - 1) / 4) ** 2, 0.75)                  # at least the central node(s)
+    factor = torch.where(r2 <= radius2 + 1e-9, 1000.0, 1.0).to(torch.float64)
+    per_spring = harmonic_mean_of_ends(factor[None], grid)[0]
+    kw["stiffness"] = kw["stiffness"] * per_spring
+    kw["damping"] = kw["damping"] * per_spring
+    return grid, kw
+
+
 def _drag(n, T):
     grid, kw = cube(n, 5e3, 4e-4, 20.0)
     c, r = (n - 1) / 2, (n - 1) / 4
@@ -218,6 +238,11 @@ SCENES = {
                            multiples={"explicit": _STIFF_EULER, "symplectic": _STIFF, "verlet": _STIFF,
                                       "rk4": _STIFF, "implicit": ((5, 10, 20, 50), (4,))},
                            ref_div=5),
+    "inclusion": AccuracyScene("inclusion", "the load cube with a central bone-like ball (radius 1 cm) 1000x "
+                               "stiffer than the tissue around it", _inclusion, 0.045, 0.015,
+                               multiples={"explicit": _STIFF_EULER, "symplectic": _STIFF, "verlet": _STIFF,
+                                          "rk4": _STIFF, "implicit": ((1, 5, 20, 100, 300), (20,))},
+                               ref_div=5),
     "drag": AccuracyScene("drag", "bottom fixed, central top patch dragged 4 mm sideways over T/2, "
                           "then held", _drag, 0.045, 0.03),
     "supports": AccuracyScene("supports", "released under gravity onto 4 fixed support nodes of its "
@@ -456,6 +481,62 @@ def _verlet_note(ctx, dt):
     return f"kd {1.0 - math.exp(-decay * dt):.2g}" if decay else "kd 0 (= symplectic Euler)"
 
 
+class AdaptiveTolerance(Method):
+    """:class:`~torchdeform.sim.adaptive.Adaptive` steps at a requested tolerance ``rtol`` (the parameter).
+
+    The run asks for the output times only (``dt = T / 4``, four intervals) and the error control
+    chooses the steps. The row's ``dt`` is the mean step taken, ``dt_bound`` that over the RK4
+    bound, ``steps`` the tries (accepted and rejected); its note gives both counts and the
+    smallest step.
+
+    Args:
+        pair: the embedded pair (:data:`~torchdeform.sim.adaptive.PAIRS`).
+        tolerances, quick_tolerances: the ``rtol`` values of the default and ``--quick`` runs.
+    """
+
+    def __init__(self, pair="bogacki_shampine", tolerances=(1e-2, 1e-3, 1e-4, 1e-5, 1e-6),
+                 quick_tolerances=(1e-2, 1e-4)):
+        self.pair, self.tolerances, self.quick_tolerances = pair, tolerances, quick_tolerances
+        self.name = "adaptive" if pair == "bogacki_shampine" else f"adaptive-{pair}"
+        p = PAIRS[pair]
+        self.description = (f"embedded Runge-Kutta pair {pair} (order {p.order}, error estimate of order "
+                            f"{p.error_order}) at a requested tolerance rtol; it chooses its own steps")
+
+    def applies(self, scene):
+        """Dynamic scenes only."""
+        return not scene.static
+
+    def params(self, ctx):
+        """The tolerances (``ctx.quick``: the short list)."""
+        return list(self.quick_tolerances if ctx.quick else self.tolerances)
+
+    def label(self, param):
+        """``"rtol 1e-03"``."""
+        return f"rtol {param:.0e}"
+
+    def prepare(self, ctx, param):
+        """A :class:`Job` running the scene with ``Adaptive(rtol=param)`` between the output times."""
+        model, bound = ctx.model, ctx.bound("rk4")
+        interval = ctx.duration / N_OUT
+        state0 = model.rest_state()
+        info = dict(n=ctx.n, dt=None, bound_s=bound, bound_of="rk4", dt_bound=None, steps=None, note=None)
+
+        def run():
+            adaptive = Adaptive(rtol=param, pair=self.pair)
+            _, rec = simulate(model, state0, interval, N_OUT, adaptive, record_every=1, warn=False)
+            st = adaptive.stats
+            mean = ctx.duration / max(st["accepted"], 1)
+            info.update(dt=mean, dt_bound=mean / bound, steps=st["accepted"] + st["rejected"],
+                        note=f"{st['accepted']} accepted, {st['rejected']} rejected, smallest step "
+                             f"{st['min_h'] / bound:.2g}x the bound")
+            return rec["x"][1:], rec["v"][1:]
+
+        def warmup():
+            Adaptive(rtol=param, pair=self.pair).step(model, state0, interval / 1000)
+
+        return Job(run, warmup, info)
+
+
 class StaticResolution(Method):
     """Static equilibrium of a ``static`` scene at grid size ``n`` (the parameter).
 
@@ -571,6 +652,7 @@ def _methods() -> dict:
             make = _verlet if name == "verlet" else _plain(cls)
             note = _verlet_note if name == "verlet" else None
             out[name] = TimeStepping(name, make, bound_of, mult, quick, description, note)
+    out["adaptive"] = AdaptiveTolerance()
     out["static"] = StaticResolution()
     return out
 

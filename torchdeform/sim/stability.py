@@ -29,6 +29,7 @@ __all__ = ["gershgorin_omega2", "damping_rate_bound", "power_omega2", "time_step
            "DivergenceMonitor"]
 
 
+@torch.no_grad()
 def gershgorin_omega2(model) -> float:
     """Upper bound on ``omega_max^2 = lambda_max(M^-1 K)`` at rest (Gershgorin).
 
@@ -47,6 +48,7 @@ def gershgorin_omega2(model) -> float:
     return float((model.inv_mass * ksum).max())
 
 
+@torch.no_grad()
 def damping_rate_bound(model) -> float:
     """Upper bound on ``lambda_max(M^-1 C)`` of the spring dashpots (Gershgorin); 0 if undamped."""
     if model.damping is None:
@@ -59,6 +61,7 @@ def _stiffness_product(model, lin, u):
     return y if model.k_home is None else y + model.k_home * u
 
 
+@torch.no_grad()
 def power_omega2(model, x=None, iters: int = 60, seed: int = 0) -> float:
     """``lambda_max(M^-1 K)`` by power iteration on ``M^-1/2 K M^-1/2`` (free nodes only).
 
@@ -100,6 +103,7 @@ def _name(integrator) -> str:
     return integrator if isinstance(integrator, str) else integrator.name
 
 
+@torch.no_grad()
 def time_step_bound(model, integrator="symplectic", method: str = "power", x=None) -> float:
     """Largest stable time step (s) of an explicit integrator for this model.
 
