@@ -230,6 +230,7 @@ class AccuracyScene:
 # The stiff scene is the expensive one for explicit methods: fewer small steps there.
 _STIFF = ((0.45, 0.9, 2), (0.9, 2))
 _STIFF_EULER = ((0.9, 10), (0.9, 10))
+_INCLUSION = ((0.9, 2), (0.9,))
 SCENES = {
     "load": AccuracyScene("load", "bottom fixed, top traction (-100, 100, 0) Pa from t=0, E 5 kPa, "
                           "dashpots tau 0.4 ms, drag 20/s", _load, 0.045, 0.03),
@@ -239,9 +240,10 @@ SCENES = {
                                       "rk4": _STIFF, "implicit": ((5, 10, 20, 50), (4,))},
                            ref_div=5),
     "inclusion": AccuracyScene("inclusion", "the load cube with a central bone-like ball (radius 1 cm) 1000x "
-                               "stiffer than the tissue around it", _inclusion, 0.045, 0.015,
-                               multiples={"explicit": _STIFF_EULER, "symplectic": _STIFF, "verlet": _STIFF,
-                                          "rk4": _STIFF, "implicit": ((1, 5, 20, 100, 300), (20,))},
+                               "stiffer than the tissue around it", _inclusion, 0.015, 0.005,
+                               multiples={"explicit": _STIFF_EULER, "symplectic": _INCLUSION, "verlet": _INCLUSION,
+                                          "rk4": _INCLUSION, "implicit": ((5, 20, 100, 300), (20,)),
+                                          "adaptive": ((1e-2, 1e-4), (1e-2,))},
                                ref_div=5),
     "drag": AccuracyScene("drag", "bottom fixed, central top patch dragged 4 mm sideways over T/2, "
                           "then held", _drag, 0.045, 0.03),
@@ -507,8 +509,9 @@ class AdaptiveTolerance(Method):
         return not scene.static
 
     def params(self, ctx):
-        """The tolerances (``ctx.quick``: the short list)."""
-        return list(self.quick_tolerances if ctx.quick else self.tolerances)
+        """The tolerances (``ctx.quick``: the short list; a scene may set its own)."""
+        default, fast = ctx.scene.multiples.get(self.name, (self.tolerances, self.quick_tolerances))
+        return list(fast if ctx.quick else default)
 
     def label(self, param):
         """``"rtol 1e-03"``."""

@@ -19,7 +19,10 @@ Dragged nodes follow their path exactly (they are put on it after every step and
 force evaluation); global drag (``model.decay``) is applied after the step as
 ``v <- v exp(-c h)``: exact for the drag alone, but after a symplectic or Verlet update it lowers
 the stable step (to ``1/sqrt(2)`` of the undamped bound for a strong drag), which
-:func:`~torchdeform.sim.stability.time_step_bound` accounts for.
+:func:`~torchdeform.sim.stability.time_step_bound` accounts for. That splitting is first order,
+so the higher-order methods (:class:`RK4`, :class:`~torchdeform.sim.adaptive.Adaptive`) take the
+drag as the force ``-c m v`` inside their stages instead (:attr:`Integrator.drag_in_rates`,
+:func:`rates`) and keep their order.
 
 :data:`INTEGRATORS` maps each class's ``name`` (the ``[integrator] name`` of scene files) to the
 class.
@@ -99,12 +102,16 @@ class Integrator:
         x, v = self.advance(model, state, dt, loads)
         return self.finish(model, state, x, v, dt)
 
-    @staticmethod
-    def finish(model: Model, state: State, x, v, dt: float) -> State:
+    #: True where :meth:`advance` integrates the global drag itself (:func:`rates`), so that
+    #: :meth:`finish` does not apply it again
+    drag_in_rates = False
+
+    def finish(self, model: Model, state: State, x, v, dt: float) -> State:
         """End of a step: dragged nodes onto their path, interactions, then global drag.
 
         Interactions (tool contact, grasp, strain limits) see the time ``t + dt``; what they
-        measure is the new state's ``readings`` (None without interactions).
+        measure is the new state's ``readings`` (None without interactions). The global drag is
+        left out where the integrator's stages included it (:attr:`drag_in_rates`).
         """
         t1 = state.t + dt
         if model.drags:
@@ -112,7 +119,7 @@ class Integrator:
         readings = {} if model.interactions else None
         for interaction in model.interactions:
             x, v = interaction.project(model, x, v, t1, dt, readings)
-        if model.decay is not None:
+        if model.decay is not None and not self.drag_in_rates:
             v = v * math.exp(-model.decay * dt)
         return State(x, v, t1, readings or None)
 
@@ -189,12 +196,17 @@ def rates(model: Model, loads=None):
     """The state's time derivative as a function ``f(t, x, v) -> (dx/dt, dv/dt) = (v, a)``.
 
     Dragged nodes are put on their path at time ``t`` first (Runge-Kutta stages of :class:`RK4`
-    and :mod:`torchdeform.sim.adaptive`).
+    and :mod:`torchdeform.sim.adaptive`). The global drag is part of ``a`` (``-c v`` at free
+    nodes), so the stages integrate it to their own order.
     """
     def f(t, x, v):
         if model.drags:
             x, v = model.constrain(x, v, t)
-        return v, model.acceleration(x, v, t, loads)
+        a = model.acceleration(x, v, t, loads)
+        if model.decay is not None:
+            drag = model.decay * v
+            a = a - (drag if model.free is None else model.free * drag)
+        return v, a
     return f
 
 
@@ -218,6 +230,7 @@ class RK4(Integrator):
         (0.05403, 0.05403)
     """
     name = "rk4"
+    drag_in_rates = True
 
     def advance(self, model, state, dt, loads):
         """Four force evaluations at ``t``, ``t + h/2`` (twice) and ``t + h``."""

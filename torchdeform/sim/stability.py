@@ -137,7 +137,9 @@ def time_step_bound(model, integrator="symplectic", method: str = "power", x=Non
         if lc == 0 or lk == 0:
             return 0.0 if lk > 0 else (2 / lc if lc else math.inf)
         # stiffness-proportional dashpots: gamma / omega^2 = c / k for every mode
-        ratio = float((model.damping / model.stiffness.clamp_min(1e-300)).min())
+        # (over the springs that exist: a removed or masked spring has k = 0)
+        k, c = torch.broadcast_tensors(model.stiffness, model.damping)
+        ratio = float(torch.where(k > 0, c / k.clamp_min(1e-300), torch.full_like(k, math.inf)).min())
         return min(ratio, 2 / lc)
     if name == "rk4":
         h = 2 * math.sqrt(2) / math.sqrt(lk) if lk > 0 else math.inf
