@@ -40,6 +40,7 @@ from .sim import (
                   Model,
                   PointForce,
                   Polynomial,
+                  ProjectiveDynamics,
                   State,
                   StepSizeError,
                   SurfaceForce,
@@ -62,7 +63,7 @@ __all__ = [
     "SurfaceForce", "FieldForce", "Grid", "INTEGRATORS", "RK4", "DampedVerlet", "ExplicitEuler", "ImplicitEuler",
     "Integrator", "KnocheRelaxation", "SymplecticEuler", "conjugate_gradient", "simulate", "Engine", "Model", "State",
     "lumped_mass", "DivergenceMonitor", "gershgorin_omega2", "power_omega2", "suggest_dt", "check_dt",
-    "time_step_bound", "Adaptive", "StepSizeError", "Exponential", "Polynomial", "Scene", "demo_scene", "load_scene", "run_scene",
+    "time_step_bound", "Adaptive", "StepSizeError", "Exponential", "Polynomial", "ProjectiveDynamics", "Scene", "demo_scene", "load_scene", "run_scene",
     "ChainMail", "Limits", "limit_violation", "tensor_chainmail", "warp", "render",
     "sim", "chainmail", "learn", "volume", "scene", "interact", "topology",
 ]

@@ -82,11 +82,13 @@ import torch
 
 from ..errors import ConfigError, DivergenceError
 from ..sim.adaptive import PAIRS, Adaptive
+from ..sim.catalog import INTEGRATORS
 from ..sim.engine import simulate
 from ..sim.forces import Drag, SurfaceForce
 from ..sim.grid import Grid
-from ..sim.integrators import INTEGRATORS, RK4, DampedVerlet, ImplicitEuler
+from ..sim.integrators import RK4, DampedVerlet, ImplicitEuler
 from ..sim.model import Model, State
+from ..sim.projective import ProjectiveDynamics
 from ..sim.stability import time_step_bound
 from .common import add_common, device_sync, emit, machine_info, progress
 
@@ -243,7 +245,8 @@ SCENES = {
                                "stiffer than the tissue around it", _inclusion, 0.015, 0.005,
                                multiples={"explicit": _STIFF_EULER, "symplectic": _INCLUSION, "verlet": _INCLUSION,
                                           "rk4": _INCLUSION, "implicit": ((5, 20, 100, 300), (20,)),
-                                          "adaptive": ((1e-2, 1e-4), (1e-2,))},
+                                          "adaptive": ((1e-2, 1e-4), (1e-2,)),
+                                          "projective": (((20, 10), (100, 10), (300, 10), (100, 30)), ((100, 10),))},
                                ref_div=5),
     "drag": AccuracyScene("drag", "bottom fixed, central top patch dragged 4 mm sideways over T/2, "
                           "then held", _drag, 0.045, 0.03),
@@ -483,6 +486,38 @@ def _verlet_note(ctx, dt):
     return f"kd {1.0 - math.exp(-decay * dt):.2g}" if decay else "kd 0 (= symplectic Euler)"
 
 
+class ProjectiveIterations(TimeStepping):
+    """Projective dynamics at a multiple of the symplectic Euler bound and an iteration count.
+
+    The parameter is ``(multiple, iterations)``; the solver is ``"auto"`` (a pre-factored
+    Cholesky on these small grids).
+    """
+
+    def __init__(self, multiples, quick_multiples):
+        super().__init__("projective", None, "symplectic", multiples, quick_multiples,
+                         "projective dynamics (Liu et al. 2013: local/global iterations, constant matrix "
+                         "pre-factored); param = multiple of the symplectic Euler bound / iterations per step")
+        self._iterations = 10
+        self.make = lambda ctx, dt: (ProjectiveDynamics(iterations=self._iterations), ctx.model)
+
+    def steps(self, ctx, param):
+        """``(steps, dt)`` for the multiple (``param`` or ``param[0]``)."""
+        return super().steps(ctx, param[0] if isinstance(param, tuple) else param)
+
+    def skip(self, ctx, param):
+        """As :meth:`TimeStepping.skip`, for the multiple."""
+        return super().skip(ctx, param[0])
+
+    def label(self, param):
+        """``"20x/10it"``."""
+        return f"{param[0]:g}x/{param[1]}it"
+
+    def prepare(self, ctx, param):
+        """A :class:`Job` at the multiple's ``dt`` with ``param[1]`` iterations per step."""
+        self._iterations = param[1]
+        return super().prepare(ctx, param)
+
+
 class AdaptiveTolerance(Method):
     """:class:`~torchdeform.sim.adaptive.Adaptive` steps at a requested tolerance ``rtol`` (the parameter).
 
@@ -655,6 +690,7 @@ def _methods() -> dict:
             make = _verlet if name == "verlet" else _plain(cls)
             note = _verlet_note if name == "verlet" else None
             out[name] = TimeStepping(name, make, bound_of, mult, quick, description, note)
+    out["projective"] = ProjectiveIterations(((5, 3), (5, 10), (5, 30), (20, 10), (50, 10)), ((5, 10),))
     out["adaptive"] = AdaptiveTolerance()
     out["static"] = StaticResolution()
     return out

@@ -12,7 +12,7 @@ import torch
 from torch.utils.checkpoint import checkpoint as _checkpoint
 
 from ..errors import ConfigError
-from ..sim.integrators import INTEGRATORS
+from ..sim.catalog import INTEGRATORS
 from ..sim.model import State
 from .parameters import Parameters, _check
 from .series import Series

@@ -49,9 +49,9 @@ import numpy as np
 import torch
 
 from ..errors import ConfigError
+from ..sim.catalog import INTEGRATORS
 from ..sim.forces import Drag, FieldForce, PointForce, SurfaceForce
 from ..sim.grid import FACES, Grid
-from ..sim.integrators import INTEGRATORS
 from ..sim.model import Model, State
 
 __all__ = ["Series", "load_series", "FORMAT", "PROFILES", "LOAD_KINDS", "load_to_json", "load_from_json"]

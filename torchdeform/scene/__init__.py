@@ -85,7 +85,7 @@ Keys
     (as in ``[[regions]]``) whose shape sets ``at`` a time, its damping times ``viscosity_factor``
 ``[integrator]`` (required)
     ``name``  ``"explicit"``, ``"symplectic"`` (default), ``"verlet"``, ``"rk4"``,
-    ``"implicit"`` or ``"knoche"``
+    ``"implicit"``, ``"projective"``, ``"adaptive"`` or ``"knoche"``
     ``dt``  seconds > 0, or ``"auto"`` (explicit integrators: ``safety`` x the stability bound)
     ``safety``  fraction of the bound used by ``dt = "auto"`` (default 0.9)
     ``steps``  number of steps >= 0 (required)
@@ -93,6 +93,11 @@ Keys
     ``threads``  CPU threads of the run (default: torch's; small bodies run faster on one)
     options of ``verlet``: ``kd`` (per-step damping in [0, 1), default 0);
     of ``implicit``: ``cg_iters`` (100), ``cg_tol`` (1e-6), ``newton_iters`` (0);
+    of ``projective``: ``iterations`` (10), ``tol`` (0), ``solver`` (``"auto"``, ``"cholesky"``,
+    ``"cg"``, ``"jacobi"``), ``rho`` (0.95), ``relaxation`` (0.9), ``delay`` (1), ``cg_iters`` (50),
+    ``cg_tol`` (1e-6);
+    of ``adaptive`` (``dt``: the interval between recorded states; the steps are its own):
+    ``rtol`` (1e-3), ``pair`` (``"bogacki_shampine"``), ``min_step``, ``max_step``;
     of ``knoche`` (needs ``topology = 6``): ``material`` (w in [0, 1], a number or a
     ``[D][H][W]`` array), ``eps`` (1e-3), ``gain`` (default 3 / D)
 ``[output]`` (optional)

@@ -14,12 +14,15 @@ from pathlib import Path
 
 import torch
 
+from ..sim.adaptive import PAIRS
+from ..sim.catalog import INTEGRATORS
 from ..sim.engine import ENGINES
 from ..sim.forces import Drag, PointForce, SurfaceForce
 from ..sim.grid import FACES, Grid
-from ..sim.integrators import INTEGRATORS, Integrator, SymplecticEuler
+from ..sim.integrators import Integrator, SymplecticEuler
 from ..sim.laws import LAWS
 from ..sim.model import Model
+from ..sim.projective import SOLVERS
 from .reader import SECTIONS, Source, Table, drags_section, faces, grid_section, is_number, node_list, region_mask
 from .tools import ToolSet, palpation_option, strain_limit_section
 from .topology import TOPOLOGY, TopologySet, tools_with_cutters, topology_section
@@ -34,7 +37,16 @@ INTEGRATOR_OPTIONS = {
     "implicit": {"cg_iters": "an integer >= 1", "cg_tol": "a positive number", "newton_iters": "an integer >= 0"},
     "knoche": {"material": "a number in [0, 1] or a [D][H][W] array of them", "eps": "a positive number",
                "gain": "a positive number"},
+    "adaptive": {"rtol": "a positive number", "pair": "one of " + ", ".join(f'"{p}"' for p in PAIRS),
+                 "min_step": "a positive number of seconds", "max_step": "a positive number of seconds"},
+    "projective": {"iterations": "an integer >= 1", "tol": "a number >= 0",
+                   "solver": "one of " + ", ".join(f'"{p}"' for p in SOLVERS), "rho": "a number in [0, 1)",
+                   "relaxation": "a number in (0, 1]", "delay": "an integer >= 0", "cg_iters": "an integer >= 1",
+                   "cg_tol": "a number >= 0"},
 }
+#: integer options and their least values; text options and their choices
+_INTEGER_OPTIONS = {"cg_iters": 1, "newton_iters": 0, "iterations": 1, "delay": 0}
+_TEXT_OPTIONS = {"pair": tuple(PAIRS), "solver": SOLVERS}
 EXPLICIT = ("explicit", "symplectic", "verlet", "rk4")
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 #: Model keyword -> scene key, to locate errors raised by the core.
@@ -309,10 +321,16 @@ def _integrator(t: Table, grid: Grid) -> dict:
     for k, expected in options.items():
         if not t.has(k):
             continue
-        if k in ("cg_iters", "newton_iters"):
-            kwargs[k] = t.integer(k, expected, lo=1 if k == "cg_iters" else 0)
-        elif k == "kd":
+        if k in _INTEGER_OPTIONS:
+            kwargs[k] = t.integer(k, expected, lo=_INTEGER_OPTIONS[k])
+        elif k in _TEXT_OPTIONS:
+            kwargs[k] = t.text(k, expected, choices=_TEXT_OPTIONS[k])
+        elif k in ("kd", "rho"):
             kwargs[k] = t.num(k, expected, lo=0, hi=1, hi_open=True)
+        elif k == "relaxation":
+            kwargs[k] = t.num(k, expected, lo=0, lo_open=True, hi=1)
+        elif k in ("tol", "cg_tol") and name == "projective":
+            kwargs[k] = t.num(k, expected, lo=0)
         elif k == "material":
             v = t.data[k]
             try:

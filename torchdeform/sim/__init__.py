@@ -15,6 +15,8 @@ and the compiled fast path.
                        relaxation; :func:`simulate`
 :mod:`.stability`      time-step bounds, :func:`suggest_dt`, divergence monitoring
 :mod:`.adaptive`       :class:`Adaptive`: embedded Runge-Kutta pairs with error control (``rtol``)
+:mod:`.projective`     :class:`ProjectiveDynamics`: implicit Euler by local/global iterations
+:mod:`.catalog`        :data:`INTEGRATORS`: every integrator by its scene-file name
 :mod:`.packed`         the padded, flattened layout of the fast path
 :mod:`.compiled`       :func:`compiled_step`: one integrator step under ``torch.compile``
 :mod:`.engine`         :func:`simulate` and its :class:`Engine`: eager, compiled or chosen per run
@@ -34,11 +36,11 @@ Examples:
     (torch.Size([1, 3, 4, 4, 4]), 0.001)
 """
 from .adaptive import PAIRS, Adaptive, StepSizeError
+from .catalog import INTEGRATORS
 from .engine import ENGINES, Engine, simulate
 from .forces import Drag, FieldForce, PointForce, SurfaceForce
 from .grid import Grid
 from .integrators import (
-                          INTEGRATORS,
                           RK4,
                           DampedVerlet,
                           ExplicitEuler,
@@ -50,10 +52,12 @@ from .integrators import (
 )
 from .laws import LAWS, Exponential, Polynomial, SpringLaw
 from .model import Model, State, lumped_mass
+from .projective import ProjectiveDynamics
 from .stability import DivergenceMonitor, check_dt, gershgorin_omega2, power_omega2, suggest_dt, time_step_bound
 
 __all__ = ["Grid", "Model", "State", "lumped_mass", "Drag", "PointForce", "SurfaceForce", "FieldForce",
            "INTEGRATORS", "Integrator", "ExplicitEuler", "SymplecticEuler", "DampedVerlet", "RK4", "ImplicitEuler",
            "KnocheRelaxation", "conjugate_gradient", "simulate", "Engine", "ENGINES", "DivergenceMonitor", "check_dt", "gershgorin_omega2",
            "power_omega2", "suggest_dt", "time_step_bound", "Adaptive", "PAIRS", "StepSizeError",
-           "SpringLaw", "Exponential", "Polynomial", "LAWS"]
+           "SpringLaw", "Exponential", "Polynomial", "LAWS",
+           "ProjectiveDynamics"]

@@ -191,6 +191,7 @@ class Adaptive(Integrator):
 
     name = "adaptive"
     drag_in_rates = True          # the error control then sees the global drag too
+    eager_reason = "adaptive steps run in the eager step"
 
     def __init__(self, rtol: float = 1e-3, atol=None, pair: str = "bogacki_shampine", min_step: float | None = None,
                  max_step: float | None = None):

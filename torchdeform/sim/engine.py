@@ -130,11 +130,7 @@ class Engine:
         eager_only = [type(c).__name__ for c in model.interactions if getattr(c, "eager_only", False)]
         if eager_only:
             return f"{', '.join(eager_only)} runs in the eager step"
-        if getattr(integrator, "name", "") == "knoche":
-            return "Knoche's relaxation runs in the eager step"
-        if getattr(integrator, "name", "") == "adaptive":
-            return "adaptive steps run in the eager step"
-        return None
+        return getattr(integrator, "eager_reason", None)
 
     def expected_compile_s(self, integrator: Integrator) -> float:
         """The compile time :meth:`decide` expects for ``integrator`` (s)."""
@@ -238,7 +234,7 @@ def simulate(model: Model, state: State, dt: float, steps: int, integrator: Inte
     steps = int(steps)
     if steps < 0:
         raise ConfigError("steps", "an integer >= 0", steps)
-    if warn and integrator.name not in ("implicit", "knoche", "adaptive"):
+    if warn and integrator.name not in ("implicit", "knoche", "adaptive", "projective"):
         check_dt(model, dt, integrator)
     monitor = DivergenceMonitor(model, dt, integrator)
     if model.drags:                                   # dragged nodes start on their path

@@ -129,7 +129,7 @@ def time_step_bound(model, integrator="symplectic", method: str = "power", x=Non
         (1.414214, inf)
     """
     name = _name(integrator)
-    if name in ("implicit", "knoche"):
+    if name in ("implicit", "knoche", "projective"):
         return math.inf
     lk = power_omega2(model, x) if method == "power" else gershgorin_omega2(model)
     lc = damping_rate_bound(model)
@@ -240,7 +240,7 @@ class DivergenceMonitor:
     def _fail(self, step, quantity, value):
         name = _name(self.integrator)
         try:
-            safe = suggest_dt(self.model, name) if name not in ("implicit", "knoche") else None
+            safe = suggest_dt(self.model, name) if name not in ("implicit", "knoche", "projective") else None
         except Exception:                                                # pragma: no cover
             safe = None
         raise DivergenceError(step, quantity, value, self.dt, safe if safe and math.isfinite(safe) else None)
