@@ -220,17 +220,6 @@ class EdgeList:
     def hessian(self, x, k=1.0, clamp=False):
         """Exact Hessian of the elastic energy ``(3N, 3N)``, assembled from ``3 x 3`` spring
         blocks ``k [(1 - l0/l)(I - n n^T) + n n^T]``; with ``clamp`` the factor ``1 - l0/l``
-        is replaced by ``max(1 - l0/l, 0)``."""
+        is replaced by ``max(1 - l0/l, 0)``. Hooke's law in :meth:`law_hessian`."""
         k = np.broadcast_to(np.asarray(k, dtype=np.float64), (len(self.springs),))
-        H = np.zeros((3 * self.N, 3 * self.N))
-        I = np.eye(3)
-        for s, (a, b, _) in enumerate(self.springs):
-            d = x[a] - x[b]
-            l = np.sqrt(d @ d)
-            n = d / l
-            t = 1 - self.l0[s] / l
-            t = max(t, 0.0) if clamp else t
-            blk = k[s] * (t * (I - np.outer(n, n)) + np.outer(n, n))
-            for p, q, sg in ((a, a, 1), (b, b, 1), (a, b, -1), (b, a, -1)):
-                H[3 * p:3 * p + 3, 3 * q:3 * q + 3] += sg * blk
-        return H
+        return self.law_hessian(x, lambda l, l0, s: k[s] * (l - l0), lambda l, l0, s: k[s], clamp)
