@@ -60,7 +60,7 @@ import numpy as np
 import torch
 
 from ..errors import ConfigError, DivergenceError
-from .integrators import Integrator, positive_dt, rates
+from .integrators import Integrator, positive_dt, rates, stage_time
 from .model import Model, State
 from .stability import damping_rate_bound, power_omega2
 
@@ -244,7 +244,7 @@ class Adaptive(Integrator):
             for aij, (dx, dv) in zip(p.a[i], zip(kx, kv)):
                 if aij:
                     xi, vi = xi + h * aij * dx, vi + h * aij * dv
-            rx, rv = f(t + ci * h, xi, vi)
+            rx, rv = f(stage_time(t, h, ci), xi, vi)
             kx.append(rx)
             kv.append(rv)
         self.stats["evaluations"] += len(p.c)

@@ -195,6 +195,30 @@ class DampedVerlet(Integrator):
         return state.x + dt * v, v
 
 
+def just_before(t1):
+    """A time a hair before ``t1`` (a float or a 0-d tensor), where a step ending at ``t1`` reads drags.
+
+    See :func:`stage_time`.
+    """
+    return t1 - 1e-12 * (1.0 + abs(t1))
+
+
+def stage_time(t0, h, c):
+    """The time of a Runge-Kutta stage at ``t0 + c h``, seen from inside the step.
+
+    A drag's velocity at a waypoint is that of the segment that starts there, and a step's clock
+    drifts from the waypoint by rounding (after many steps ``t0`` is a hair below or above it). So
+    the first stage (``c = 0``) reads drags a hair after ``t0`` and the last (``c = 1``) a hair
+    before ``t0 + h``: every stage sees the path segment of its own step, and a kink on a step
+    boundary costs no order of accuracy.
+    """
+    if c == 0:
+        return t0 + 1e-12 * (1.0 + abs(t0))
+    if c == 1:
+        return just_before(t0 + h)
+    return t0 + c * h
+
+
 def rates(model: Model, loads=None):
     """The state's time derivative as a function ``f(t, x, v) -> (dx/dt, dv/dt) = (v, a)``.
 
@@ -239,10 +263,10 @@ class RK4(Integrator):
         """Four force evaluations at ``t``, ``t + h/2`` (twice) and ``t + h``."""
         t0, x0, v0 = state.t, state.x, state.v
         f = rates(model, loads)
-        k1x, k1v = f(t0, x0, v0)
+        k1x, k1v = f(stage_time(t0, dt, 0), x0, v0)
         k2x, k2v = f(t0 + dt / 2, x0 + dt / 2 * k1x, v0 + dt / 2 * k1v)
         k3x, k3v = f(t0 + dt / 2, x0 + dt / 2 * k2x, v0 + dt / 2 * k2v)
-        k4x, k4v = f(t0 + dt, x0 + dt * k3x, v0 + dt * k3v)
+        k4x, k4v = f(stage_time(t0, dt, 1), x0 + dt * k3x, v0 + dt * k3v)
         return (x0 + dt / 6 * (k1x + 2 * k2x + 2 * k3x + k4x),
                 v0 + dt / 6 * (k1v + 2 * k2v + 2 * k3v + k4v))
 
@@ -450,7 +474,7 @@ class ImplicitEuler(Integrator):
             rhs = h * F - model.mass * (v - v0)
         delta_c = None
         if model.drags:      # prescribed velocities of dragged nodes over the step
-            _, v_target = model.constrain(x0, v0, t1 - 1e-12 * (1.0 + abs(t1)))
+            _, v_target = model.constrain(x0, v0, just_before(t1))
             delta_c = torch.where(model.constrained[None, None], v_target - v, torch.zeros_like(v))
             rhs = rhs - apply_A(delta_c)
         return x_lin, apply_A, rhs, delta_c
@@ -555,5 +579,5 @@ class KnocheRelaxation(Integrator):
 
 
 __all__ = ["Integrator", "rates", "ExplicitEuler", "SymplecticEuler", "DampedVerlet", "RK4", "ImplicitEuler",
-           "KnocheRelaxation", "conjugate_gradient", "cg_start", "cg_iteration",
+           "KnocheRelaxation", "conjugate_gradient", "cg_start", "cg_iteration", "just_before", "stage_time",
            "time_step_bound", "positive_dt"]
