@@ -45,7 +45,7 @@ import torch
 from ..errors import ConfigError
 from .adjoint import adjoint_solve
 from .model import Model, State
-from .springs import accumulate
+from .springs import accumulate, gated_damping
 from .stability import time_step_bound
 
 
@@ -352,6 +352,24 @@ def conjugate_gradient(apply_A, b, precond=None, mask=None, iters: int = 100, to
     return u, iters, (float(rel) if tol > 0 else rel)
 
 
+def inverse_diagonal(model, h: float) -> torch.Tensor:
+    """``1 / (m + h^2 (sum_j k_ij + k_home) + h sum_j c_ij)`` per node, ``(Bp, 1, D, H, W)`` (packed ``(Bp, 1, P)``).
+
+    The Jacobi preconditioner of implicit Euler's ``M + h C + h^2 K`` (``K``'s diagonal bounded by
+    the spring sums) and the exact inverse diagonal of projective dynamics' ``M + h^2 L + h L_c``;
+    zero on empty rows (nodes outside a node mask, the packed halo). A removed spring's damping
+    does not count (:func:`~torchdeform.sim.springs.gated_damping`).
+    """
+    diag = model.mass + h * h * model.spring_sums(model.stiffness)
+    if model.k_home is not None:
+        diag = diag + h * h * model.k_home
+    c = gated_damping(model.damping, model.stiffness)
+    if c is not None:
+        diag = diag + h * model.spring_sums(c)
+    ok = diag > 0
+    return torch.where(ok, 1.0 / torch.where(ok, diag, torch.ones_like(diag)), torch.zeros_like(diag))
+
+
 class ImplicitEuler(Integrator):
     """Implicit (backward) Euler, Baraff-Witkin style, matrix-free.
 
@@ -426,18 +444,8 @@ class ImplicitEuler(Integrator):
         self.last_adjoint_cg = None
 
     def preconditioner(self, model, h: float) -> torch.Tensor:
-        """Jacobi preconditioner ``1 / diag(M + h C + h^2 K)``.
-
-        ``K``'s diagonal is bounded by the spring sums; the preconditioner is zero on empty rows
-        (nodes outside a node mask, the packed halo).
-        """
-        diag = model.mass + h * h * model.spring_sums(model.stiffness)
-        if model.k_home is not None:
-            diag = diag + h * h * model.k_home
-        if model.damping is not None:
-            diag = diag + h * model.spring_sums(model.damping)
-        ok = diag > 0
-        return torch.where(ok, 1.0 / torch.where(ok, diag, torch.ones_like(diag)), torch.zeros_like(diag))
+        """Jacobi preconditioner ``1 / diag(M + h C + h^2 K)`` (:func:`inverse_diagonal`)."""
+        return inverse_diagonal(model, h)
 
     def operator(self, model, x_lin, h: float):
         """``(linearisation, apply_A)`` with ``A u = M u + h C u + h^2 K(x_lin) u``.
@@ -579,5 +587,5 @@ class KnocheRelaxation(Integrator):
 
 
 __all__ = ["Integrator", "rates", "ExplicitEuler", "SymplecticEuler", "DampedVerlet", "RK4", "ImplicitEuler",
-           "KnocheRelaxation", "conjugate_gradient", "cg_start", "cg_iteration", "just_before", "stage_time",
+           "KnocheRelaxation", "conjugate_gradient", "cg_start", "cg_iteration", "just_before", "stage_time", "inverse_diagonal",
            "time_step_bound", "positive_dt"]

@@ -91,8 +91,8 @@ import torch
 
 from .._compile import while_loop
 from ..errors import ConfigError
-from .integrators import Integrator, conjugate_gradient
-from .springs import gate_damping
+from .integrators import Integrator, conjugate_gradient, inverse_diagonal
+from .springs import gated_damping
 
 __all__ = ["ProjectiveDynamics", "SOLVERS", "CHOLESKY_NODES"]
 
@@ -357,12 +357,11 @@ class ProjectiveDynamics(Integrator):
 
     def _factor(self, model, h, cholespy):
         """The factors of ``A`` (one per parameter batch entry) and the flat indices of the free nodes."""
-        mats, index = system_matrices(model, h)
+        mats, index = self.matrix(model, h)
         use64 = model.dtype == torch.float64
         cls, dtype = (cholespy.CholeskySolverD, torch.float64) if use64 else (cholespy.CholeskySolverF, torch.float32)
         factors = []
         for A in mats:
-            A = A.tocsr()
             dev = model.device
             factors.append((cls(A.shape[0], torch.as_tensor(A.indptr, dtype=torch.int32, device=dev),
                                 torch.as_tensor(A.indices, dtype=torch.int32, device=dev),
@@ -411,14 +410,6 @@ def _fingerprint(model, h):
     return (float(h), bool(getattr(model, "projected", True)), tuple(fields))
 
 
-def _damping(model):
-    """The damping coefficients, gated by the stiffness (a cut spring damps nothing), or None."""
-    c, k = model.damping, model.stiffness
-    if c is None:
-        return None
-    return gate_damping(c, k) if k.numel() > c.numel() else c
-
-
 def jacobi_inverse_diagonal(model, h: float) -> torch.Tensor:
     """``1 / diag(A)``, ``A = M + h^2 (L_k + K_home) + h L_c``, zero at constrained nodes.
 
@@ -427,16 +418,10 @@ def jacobi_inverse_diagonal(model, h: float) -> torch.Tensor:
         h: time step (s).
 
     Returns:
-        ``(Bp, 1, D, H, W)`` (packed ``(Bp, 1, P)``).
+        ``(Bp, 1, D, H, W)`` (packed ``(Bp, 1, P)``): :func:`~torchdeform.sim.integrators.inverse_diagonal`
+        (the same diagonal as implicit Euler's preconditioner), masked to the free nodes.
     """
-    diag = model.mass + (h * h) * model.spring_sums(model.stiffness)
-    if model.k_home is not None:
-        diag = diag + (h * h) * model.k_home
-    c = _damping(model)
-    if c is not None:
-        diag = diag + h * model.spring_sums(c)
-    ok = diag > 0
-    inv = torch.where(ok, 1.0 / torch.where(ok, diag, torch.ones_like(diag)), torch.zeros_like(diag))
+    inv = inverse_diagonal(model, h)
     return inv if model.free is None else inv * model.free
 
 
@@ -488,7 +473,7 @@ def system_matrices(model, h: float):
     index = ids[free].numpy()
     pos = np.full(N, -1, dtype=np.int64)
     pos[index] = np.arange(len(index))
-    k, c = model.stiffness.detach(), _damping(model)
+    k, c = model.stiffness.detach(), gated_damping(model.damping, model.stiffness)
     c = None if c is None else c.detach()
     mass = model.mass.detach()
     k_home = None if model.k_home is None else model.k_home.detach()

@@ -23,7 +23,7 @@ from .grid import Grid
 
 __all__ = ["stencil_weights", "difference_conv", "adjoint_conv", "take", "accumulate", "difference",
            "harmonic_mean_of_ends", "adjoint", "spring_law", "tension", "spring_forces", "spring_forces_conv",
-           "spring_energy", "node_sums", "Linearisation", "combine_coefficients", "gate_damping"]
+           "spring_energy", "node_sums", "Linearisation", "combine_coefficients", "gate_damping", "gated_damping"]
 
 
 # ------------------------------------------------------------------ reference path
@@ -207,8 +207,7 @@ def spring_law(sq, dxdv, k, l0, c, projected: bool, law=None, lp=()):
     alpha = k * (l - l0) * inv_l if law is None else law.tension(l, l0, k, *lp) * inv_l
     if c is None:
         return alpha, None
-    if _needs_gate(k, c):
-        c = gate_damping(c, k)
+    c = gated_damping(c, k)
     if projected:
         return alpha + c * dxdv * (inv_l * inv_l), None
     return alpha, c
@@ -382,6 +381,15 @@ def _times(scale, t):
 def _needs_gate(k, c) -> bool:
     """Stiffness per spring, damping not: a removed spring's damping must be gated out."""
     return torch.is_tensor(k) and torch.is_tensor(c) and k.numel() > c.numel()
+
+
+def gated_damping(c, k):
+    """The damping ``c`` that springs of stiffness ``k`` apply (``c`` may be None).
+
+    Gated (:func:`gate_damping`) where the stiffness is per spring and the damping is not, else
+    ``c`` itself.
+    """
+    return gate_damping(c, k) if c is not None and _needs_gate(k, c) else c
 
 
 def gate_damping(c, k):
