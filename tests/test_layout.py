@@ -172,10 +172,21 @@ def _loaded_heavy(statement: str) -> list:
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
+def _loaded_compiler(statement: str) -> list:
+    """The torch compiler modules (dynamo, inductor: ~1.7 s to import) loaded by ``statement``."""
+    code = (f"import json, sys\n{statement}\n"
+            "print(json.dumps(sorted(m for m in sys.modules if m.startswith(('torch._inductor', 'torch._dynamo', '"
+            "torchdeform._compile')))))")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert res.returncode == 0, res.stderr
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
 @pytest.mark.parametrize("statement", ["import torchdeform",
                                        "from torchdeform.cli import build_parser; build_parser()"])
 def test_heavy_libraries_are_not_loaded(statement):
     assert _loaded_heavy(statement) == []
+    assert _loaded_compiler(statement) == []           # every command's start-up would pay for it
 
 
 def test_heavy_library_check_can_fail():

@@ -240,3 +240,99 @@ def test_implicit_solve_of_a_dense_system():
     # u @ A reads A_ij as row i, column j of A^T u: dL/dA_ij = -u_i lambda_j
     assert torch.allclose(A.grad, -torch.outer(u_ref, lam), rtol=1e-10, atol=1e-14)
     assert not ImplicitSolve.apply(b.detach() - b.detach(), u.detach(), None).requires_grad
+
+
+# ---------------------------------------------------------------- projective dynamics
+def _projective(solver, gradient, **kw):
+    """Projective dynamics run to convergence (so unrolled and adjoint differentiate the same step)."""
+    kw = {"iterations": 3000, "tol": 1e-14, "adjoint_iters": 5000, "adjoint_tol": 1e-14,
+          **({"cg_iters": 200, "cg_tol": 1e-9} if solver == "cg" else {}), **kw}
+    return td.ProjectiveDynamics(solver=solver, gradient=gradient, **kw)
+
+
+def test_projective_adjoint_equals_unrolled_gradients():
+    """Per-spring stiffness and damping (projected dashpots: a non-symmetric Jacobian), masses,
+    x0, v0, a drag and home springs: converged steps at 20 x the explicit bound. The adjoint
+    gradients of every global-step solver (cholesky, cg, jacobi) equal the unrolled gradient
+    (through jacobi's iterations) to 1e-8; jacobi's forward values are the same to the bit.
+    (cg, slow in eager code on a small body, takes one step, the others three.)"""
+    loss, params = _body(per_spring=True, damping=True, drag=True, home=True)
+    reference = {}
+    for steps in (1, 3):
+        unrolled = _projective("jacobi", "unrolled")
+        L = loss(unrolled, steps)
+        reference[steps] = L.detach(), torch.autograd.grad(L, list(params.values()))
+        assert unrolled.last_adjoint is None
+    for solver, steps in (("jacobi", 3), ("cholesky", 3), ("cg", 1)):
+        integ = _projective(solver, "adjoint")
+        La = loss(integ, steps)
+        grads = torch.autograd.grad(La, list(params.values()))
+        L, ref = reference[steps]
+        print(f"\n{solver}: {integ.last_iterations} iterations forward, {integ.last_adjoint[0]} adjoint")
+        assert integ.last_residual <= 1e-14 and integ.last_adjoint[1] <= 1e-14
+        if solver == "jacobi":
+            assert torch.equal(La.detach(), L)
+        assert abs(float(La.detach() - L)) <= 1e-12 * abs(float(L))
+        for name, gu, ga in zip(params, ref, grads):
+            assert float(gu.norm()) > 0, name
+            assert float((ga - gu).norm()) <= 1e-8 * float(gu.norm()), (solver, name)
+
+
+def test_projective_cholesky_adjoint_equals_central_differences():
+    """The cholesky solver's steps (no unrolled gradient: ``gradient="auto"`` takes the adjoint)
+    against central differences along random directions of each parameter, to 1e-6."""
+    loss, params = _body(per_spring=False, damping=True, drag=True, shape=(3, 3, 4), seed=1)
+    integ = _projective("cholesky", "auto", tol=1e-12, adjoint_tol=1e-12)
+    L = loss(integ, 2)
+    grads = dict(zip(params, torch.autograd.grad(L, list(params.values()))))
+    assert integ.last_adjoint[1] <= 1e-12
+    gen = torch.Generator().manual_seed(2)
+    scales = {"k": 50.0, "c": 0.05, "m": 1e-3, "x0": 1e-3, "v0": 0.01}
+    eps = 1e-4
+    with torch.no_grad():
+        for name, p in params.items():
+            d = scales[name] * torch.randn(p.shape, generator=gen, dtype=F64)
+            fd = float(loss(integ, 2, **{name: p + eps * d}) - loss(integ, 2, **{name: p - eps * d})) / (2 * eps)
+            ad = float((grads[name] * d).sum())
+            assert abs(fd - ad) <= 1e-6 * abs(ad), (name, fd, ad)
+
+
+def test_projective_adjoint_memory_does_not_grow_with_iterations():
+    """What autograd keeps for a projective step with the adjoint is the same for 5 and 40
+    iterations (one residual's graph); the unrolled gradient keeps about one per iteration."""
+    held = {}
+    for gradient in ("adjoint", "unrolled"):
+        for iterations in (5, 40):
+            grid = td.Grid((4, 4, 4), spacing=0.01, topology=26)
+            k = torch.tensor(50.0, dtype=F64, requires_grad=True)
+            model = td.Model(grid, stiffness=k, damping=0.05, density=1000.0, gravity=(-9.81, 0, 0),
+                             fixed=grid.face("bottom"), dtype=F64)
+            integ = td.ProjectiveDynamics(iterations=iterations, solver="jacobi", gradient=gradient, adjoint_iters=7,
+                                          adjoint_tol=0.0)
+
+            def run():
+                s = model.rest_state()
+                for _ in range(2):
+                    s = integ.step(model, s, 0.02)
+                return (s.x * s.x).sum()
+            L, held[gradient, iterations], _ = _held_for_backward(run)
+            torch.autograd.grad(L, k)
+            assert integ.last_iterations == iterations
+            assert integ.last_adjoint == ((7, integ.last_adjoint[1]) if gradient == "adjoint" else None)
+    print(f"\nbytes held: {held}")
+    assert held["adjoint", 5] == held["adjoint", 40]
+    assert held["unrolled", 40] >= 5 * held["unrolled", 5] > 5 * held["adjoint", 5]
+
+
+def test_projective_gradient_options():
+    assert td.ProjectiveDynamics().gradient == "auto"
+    for kw in ({"gradient": "adjont"}, {"adjoint_iters": 0}, {"adjoint_tol": -1.0}):
+        with pytest.raises(td.ConfigError, match="projective"):
+            td.ProjectiveDynamics(**kw)
+    pd = td.ProjectiveDynamics()
+    assert [pd.gradient_for(s) for s in ("cholesky", "cg", "jacobi")] == ["adjoint", "unrolled", "unrolled"]
+    loss, _ = _body(shape=(3, 3, 3))
+    with pytest.raises(td.ConfigError, match="projective.gradient"):     # a cholesky solve has no unrolled gradient
+        loss(td.ProjectiveDynamics(solver="cholesky", gradient="unrolled"), 1)
+    with torch.no_grad():                                                 # nothing to differentiate: fine
+        loss(td.ProjectiveDynamics(solver="cholesky", gradient="unrolled"), 1)

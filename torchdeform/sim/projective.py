@@ -80,6 +80,20 @@ bound of their Hessian and the constant-matrix solvers may not converge: ``chole
 raise a :class:`~torchdeform.errors.ConfigError`; ``jacobi`` runs (its ``D`` uses the small-strain
 stiffness; a strongly stiffening law may need more iterations or a smaller step).
 
+**Gradients** (``gradient=``). ``"unrolled"``: autograd through every iteration (and every CG
+iteration of the cg solver); its memory grows with ``iterations``, and it is the gradient of the
+iterates actually computed. ``"adjoint"``: the implicit function theorem at the converged step
+(DiffPD, Du et al. 2021, does the same): the forward iterates without a graph, and the backward
+solves ``J^T lambda = g`` with ``J = -dr/dx`` at the step's result, by the forward's own
+iteration run on the transposed system, ``lambda <- lambda + S (g - J^T lambda)`` (``S`` the
+global-step solve or the Jacobi sweep; the products ``J^T lambda`` by autograd of ``r``, so
+projected dashpots, laws and loads are exact). It converges as the forward does and keeps one
+residual's graph per step, whatever ``iterations``. It is the gradient of the *converged* step:
+it equals the unrolled gradient when the forward runs to convergence (``tol``), and is the
+better gradient of implicit Euler when it does not. The cholesky solves have no unrolled
+gradient (cholespy is not differentiable): ``"auto"`` (the default) takes the adjoint there.
+In compiled code the step is unrolled.
+
 Shapes: positions and velocities ``(B, 3, D, H, W)`` (packed ``(B, 3, P)`` on the fast path).
 """
 from __future__ import annotations
@@ -89,15 +103,17 @@ import math
 
 import torch
 
-from .._compile import while_loop
 from ..errors import ConfigError
+from .adjoint import ImplicitSolve
 from .integrators import Integrator, conjugate_gradient, inverse_diagonal
 from .springs import gated_damping
 
-__all__ = ["ProjectiveDynamics", "SOLVERS", "CHOLESKY_NODES"]
+__all__ = ["ProjectiveDynamics", "SOLVERS", "GRADIENTS", "CHOLESKY_NODES"]
 
 #: the global-step solvers, by name
 SOLVERS = ("auto", "cholesky", "cg", "jacobi")
+#: the values of ``gradient``
+GRADIENTS = ("auto", "unrolled", "adjoint")
 #: ``solver="auto"`` factors bodies up to this many free nodes (about 32^3): the factor of a 3-D
 #: 27-point stencil fills in like ``N^(4/3)``: at 64^3 (262,144 nodes) it took 274 s and 2.9 GB.
 CHOLESKY_NODES = 32768
@@ -145,12 +161,19 @@ class ProjectiveDynamics(Integrator):
         delay: plain (relaxed) Jacobi iterations before the Chebyshev weights start (jacobi only).
         cg_iters: maximum CG iterations per global step (cg only).
         cg_tol: relative residual at which a global CG solve stops (cg only; 0: always ``cg_iters``).
+        gradient: how autograd differentiates a step (see "Gradients" in the module docstring):
+            ``"unrolled"`` (through every iteration), ``"adjoint"`` (implicit function theorem at
+            the converged step: memory independent of ``iterations``) or ``"auto"`` (default:
+            adjoint for the cholesky solver, whose solves have no unrolled gradient, else unrolled).
+        adjoint_iters: the most adjoint iterations per step (backward), >= 1.
+        adjoint_tol: the adjoint iteration stops at this relative change (0: always ``adjoint_iters``).
 
     Attributes:
         last_iterations: iterations done in the last step.
         last_residual: relative change of the last iteration (see ``tol``); a 0-d tensor when
             ``tol = 0``, a float otherwise.
         last_cg: ``(iterations, relative residual)`` of the last CG solve (cg only).
+        last_adjoint: ``(iterations, relative change)`` of the last adjoint solve (backward), or None.
 
     Examples:
         >>> import torch
@@ -173,7 +196,8 @@ class ProjectiveDynamics(Integrator):
     name = "projective"
 
     def __init__(self, iterations: int = 10, tol: float = 0.0, solver: str = "auto", *, rho: float = 0.95,
-                 relaxation: float = 0.9, delay: int = 1, cg_iters: int = 50, cg_tol: float = 1e-6):
+                 relaxation: float = 0.9, delay: int = 1, cg_iters: int = 50, cg_tol: float = 1e-6,
+                 gradient: str = "auto", adjoint_iters: int = 500, adjoint_tol: float = 1e-10):
         self.iterations = _count(iterations, "projective.iterations", 1)
         self.tol = _number(tol, "projective.tol", "a number >= 0", lambda v: v >= 0)
         if solver not in SOLVERS:
@@ -184,7 +208,12 @@ class ProjectiveDynamics(Integrator):
         self.delay = _count(delay, "projective.delay", 0)
         self.cg_iters = _count(cg_iters, "projective.cg_iters", 1)
         self.cg_tol = _number(cg_tol, "projective.cg_tol", "a number >= 0", lambda v: v >= 0)
-        self.last_iterations, self.last_residual, self.last_cg = 0, 0.0, (0, 0.0)
+        if gradient not in GRADIENTS:
+            raise ConfigError("projective.gradient", " or ".join(map(repr, GRADIENTS)), gradient)
+        self.gradient = gradient
+        self.adjoint_iters = _count(adjoint_iters, "projective.adjoint_iters", 1)
+        self.adjoint_tol = _number(adjoint_tol, "projective.adjoint_tol", "a number >= 0", lambda v: v >= 0)
+        self.last_iterations, self.last_residual, self.last_cg, self.last_adjoint = 0, 0.0, (0, 0.0), None
         self._cache = None          # (key, value): the factor (cholesky) or the operator (cg)
 
     def solver_for(self, model) -> str:
@@ -247,13 +276,64 @@ class ProjectiveDynamics(Integrator):
             r = model.mass * (xp - x) + (h * h) * model.forces(x, (x - x0) / h, t1, loads)
             return r if free is None else r * free
 
-        if solver == "jacobi":
-            x, n_it, rel = self._jacobi(model, x, x0, h, residual)
+        if self.gradient_for(solver) == "adjoint" and torch.is_grad_enabled() and not torch.compiler.is_compiling():
+            with torch.no_grad():                         # no graph through the iterations
+                x_star, n_it, rel = self._solve(solver, model, x.detach(), x0, h, residual, self.iterations, self.tol)
+            x = self._adjoint(model, solver, h, x, x_star, residual)
         else:
-            solve = self._cholesky_solve(model, h) if solver == "cholesky" else self._cg_solve(model, h)
-            x, n_it, rel = self._iterate(x, x0, lambda x: solve(residual(x)))
+            x, n_it, rel = self._solve(solver, model, x, x0, h, residual, self.iterations, self.tol)
         self.last_iterations, self.last_residual = n_it, rel
         return x, (x - x0) / h
+
+    def gradient_for(self, solver: str) -> str:
+        """The gradient used with the global-step ``solver`` (``"auto"`` resolved: see ``gradient``)."""
+        if self.gradient != "auto":
+            return self.gradient
+        return "adjoint" if solver == "cholesky" else "unrolled"
+
+    def _solve(self, solver, model, x, x0, h, residual, iterations, tol):
+        """Iterate ``x <- x + S residual(x)`` from ``x`` with the global-step ``solver``: ``(x, iterations, change)``.
+
+        ``S`` approximates the inverse of the residual's Jacobian: ``A^-1`` (cholesky, cg) or the
+        Chebyshev-accelerated Jacobi sweeps. The adjoint solve runs the same iteration.
+        """
+        if solver == "jacobi":
+            return self._jacobi(model, x, x0, h, residual, iterations, tol)
+        solve = self._cholesky_solve(model, h) if solver == "cholesky" else self._cg_solve(model, h)
+        return self._iterate(x, x0, lambda x: solve(residual(x)), iterations, tol)
+
+    def _adjoint(self, model, solver, h, x_init, x_star, residual):
+        """The converged step ``x_star`` made differentiable by the implicit function theorem.
+
+        ``x_star`` solves ``r(x, theta) = 0`` at the free nodes (``theta``: the model's parameters,
+        the state, the loads); the constrained nodes are ``x_init``'s, with its graph. With
+        ``J = -dr/dx`` (for Hooke springs and unprojected damping, ``M + h^2 K + h C``) and a loss
+        gradient ``g``, ``dL/dtheta = lambda^T dr/dtheta`` where ``J^T lambda = g``. The backward
+        finds ``lambda`` with the forward's own iteration, ``lambda <- lambda + S (g - J^T lambda)``
+        (products ``J^T lambda`` by autograd of ``r``): it converges as the forward does. What it
+        keeps per step is the graph of one residual ``r(x_star)``.
+        """
+        free = model.free
+        x_star = x_star.detach()
+        with torch.no_grad():
+            fixed = x_star if free is None else x_star * free + x_init.detach() * (1 - free)
+        if not residual(fixed if free is None else x_star * free + x_init * (1 - free)).requires_grad:
+            return fixed                                  # nothing to differentiate
+        x_var = x_star.clone().requires_grad_()           # the graph's handle for J^T lambda
+        x_mix = x_var if free is None else x_var * free + x_init * (1 - free)
+        r = residual(x_mix)
+        zero = torch.zeros_like(x_star)
+
+        def adjoint(g):
+            def rhs(lam):                                 # g - J^T lambda = g + (dr/dx)^T lambda
+                return g + torch.autograd.grad(r, x_var, lam, retain_graph=True)[0]
+            g = g if free is None else g * free
+            lam, n_it, rel = self._solve(solver, model, zero, zero, h, rhs, self.adjoint_iters, self.adjoint_tol)
+            self.last_adjoint = (n_it, float(rel))
+            return lam
+
+        x = ImplicitSolve.apply(r, x_star, adjoint)
+        return x if free is None else x * free + x_init * (1 - free)
 
     def _advance_unpacked(self, model, state, dt, loads):
         """The Cholesky step of a packed model, done on its grid-layout source model (eager)."""
@@ -263,21 +343,22 @@ class ProjectiveDynamics(Integrator):
         x, v = self.advance(src, model.unpack_state(state), dt, loads)
         return model.pack(x), model.pack(v)
 
-    def _iterate(self, x, x0, step):
+    @staticmethod
+    def _iterate(x, x0, step, iterations, tol):
         """``x <- x + step(x)`` up to ``iterations`` times: ``(x, iterations, relative change)``."""
         rel = x.new_zeros(())
-        for it in range(1, self.iterations + 1):
+        for it in range(1, iterations + 1):
             dx = step(x)
             x = x + dx
             rel = _relative(dx, x - x0)
-            if self.tol > 0:
+            if tol > 0:
                 rel = float(rel)
-                if rel <= self.tol:
+                if rel <= tol:
                     return x, it, rel
-        return x, self.iterations, rel
+        return x, iterations, rel
 
     # ------------------------------------------------------------------ jacobi
-    def _jacobi(self, model, x, x0, h, residual):
+    def _jacobi(self, model, x, x0, h, residual, iterations, tol):
         """Chebyshev-accelerated Jacobi sweeps (Wang 2015): ``(x, iterations, relative change)``.
 
         One iteration is one function of tensors, run by a Python loop, or, while ``torch.compile``
@@ -305,22 +386,25 @@ class ProjectiveDynamics(Integrator):
 
         carry = (torch.zeros((), dtype=torch.int64, device=x.device), x, x,
                  torch.ones((), dtype=x.dtype, device=x.device), x.new_zeros(()))
-        loop = while_loop() if self.tol <= 0 and torch.compiler.is_compiling() else None
+        loop = None
+        if tol <= 0 and torch.compiler.is_compiling():
+            from .._compile import while_loop  # (lazy: importing it loads inductor, ~1.7 s)
+            loop = while_loop()
         if loop is not None:
-            n = self.iterations
+            n = iterations
             def looped(*c):                       # a loop body may not return its inputs
                 i, x_new, x_prev, omega, rel = body(*c)
                 return i, x_new, x_prev.clone(), omega if accelerate else omega.clone(), rel
             carry = (carry[0], carry[1], carry[2].clone(), *carry[3:])        # nor alias each other
             _, x, _, _, rel = loop(lambda i, *_: i < n, looped, carry)
-            return x, self.iterations, rel
-        for it in range(1, self.iterations + 1):
+            return x, iterations, rel
+        for it in range(1, iterations + 1):
             carry = body(*carry)
-            if self.tol > 0:
+            if tol > 0:
                 rel = float(carry[4])
-                if rel <= self.tol:
+                if rel <= tol:
                     return carry[1], it, rel
-        return carry[1], self.iterations, (float(carry[4]) if self.tol > 0 else carry[4])
+        return carry[1], iterations, (float(carry[4]) if tol > 0 else carry[4])
 
     # ------------------------------------------------------------------ cholesky
     def _cached(self, model, h, make):
@@ -343,6 +427,9 @@ class ProjectiveDynamics(Integrator):
         factors, index = self._cached(model, h, lambda: self._factor(model, h, cholespy))
 
         def solve(r):
+            if r.requires_grad:
+                raise ConfigError("projective.gradient", "'adjoint' or 'auto' with solver='cholesky' (its solves "
+                                                         "have no unrolled gradient)", self.gradient)
             B = r.shape[0]
             flat = r.reshape(B, 3, -1)
             out = torch.zeros_like(flat)
