@@ -45,14 +45,16 @@ def test_converges_to_implicit_euler(solver):
     s = stretched(model)
     dt = 10 * td.time_step_bound(model, "symplectic")           # well beyond the explicit bound
     ref = newton(model, s, dt)
-    counts = (1, 2, 5, 10, 20, 50, 100, 200, 500) + ((1000,) if solver == "jacobi" else ())
+    counts = {"jacobi": (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000),
+              "cg": (1, 5, 50, 500)}.get(solver, (1, 2, 5, 10, 20, 50, 100, 200, 500))    # (cg: cholesky's, slower)
     kw = EXACT.get(solver, {})
     errs = [rel_error(ProjectiveDynamics(iterations=n, solver=solver, **kw).step(model, s, dt), ref, s) for n in counts]
     print(f"\n{solver}: relative error vs Newton implicit Euler, dt = 10x explicit bound")
     for n, e in zip(counts, errs):
         print(f"  {n:4d} iterations  {e:.2e}")
     assert errs[-1] < 1e-8
-    assert all(b < a for a, b in zip(errs[2:], errs[3:]))      # decreasing from 5 iterations on
+    tail = [e for n, e in zip(counts, errs) if n >= 5]
+    assert all(b < a for a, b in zip(tail, tail[1:]))          # decreasing from 5 iterations on
     assert errs[0] < 1.0 if solver != "jacobi" else errs[0] <= 1.0
 
 

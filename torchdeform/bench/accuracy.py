@@ -242,7 +242,7 @@ SCENES = {
                                       "rk4": _STIFF, "implicit": ((5, 10, 20, 50), (4,))},
                            ref_div=5),
     "inclusion": AccuracyScene("inclusion", "the load cube with a central bone-like ball (radius 1 cm) 1000x "
-                               "stiffer than the tissue around it", _inclusion, 0.015, 0.005,
+                               "stiffer than the tissue around it", _inclusion, 0.015, 0.0015,
                                multiples={"explicit": _STIFF_EULER, "symplectic": _INCLUSION, "verlet": _INCLUSION,
                                           "rk4": _INCLUSION, "implicit": ((5, 20, 100, 300), (20,)),
                                           "adaptive": ((1e-2, 1e-4), (1e-2,)),

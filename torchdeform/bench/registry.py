@@ -31,6 +31,8 @@ BENCHES = {
                 "against their GPU times, and a fresh cut face", "texture"),
     "frame": ("interactive frames per second: one 26-neighbour step + the deformed surface (and optionally a "
               "volume render) on Punak's grid sizes, against his GeForce 8800 GTS rates", "frame"),
+    "viewer": ("the browser viewer's page in headless chromium: frames drawn and received per second on a 16^3 "
+               "and a 32^3 body, optionally beside a busy process", "viewer"),
     "learn": ("a training iteration of Radetzky's per-spring run, eager and compiled: seconds, speed-up, and how "
               "far the learned values agree after each iteration", "learn"),
 }
