@@ -11,6 +11,7 @@
     torchdeform warp VOLUME.npy OFFSETS.npy --out OUT.npy [--mode deform|carve|knoche] [--inverse-iters N]
     torchdeform render VOLUME --out IMAGE.png [--offsets FILE] [--mode mip|dvr|average] [--tf PRESET]
     torchdeform view SCENE.toml [--host 127.0.0.1] [--port 0] [--token T] [--open]
+    torchdeform sweep SCENE.toml --set KEY=V1,V2 [--set ...] --out DIR   (torchrun ... -m torchdeform sweep ...)
 
 Errors that a user can cause print one line (``torchdeform: <file>: <key>: expected ...``) and
 exit with status 2, without a traceback.
@@ -32,6 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     imported when a command runs.
     """
     from .bench import commands as bench
+    from .distributed import commands as distributed
     from .fuzzy import commands as fuzzy
     from .learn import commands as learn
     from .scene import commands as scene
@@ -59,6 +61,8 @@ def build_parser() -> argparse.ArgumentParser:
          texture.command),
         ("view", "watch and touch a scene in the browser (local server, token in the URL)", view.add_arguments,
          view.command),
+        ("sweep", "sweep scene keys over values (--set KEY=V1,V2): one row per point; spread over ranks under "
+                  "torchrun", distributed.add_arguments, distributed.command),
     ]
     for name, help_, add_arguments, func in commands:
         c = sub.add_parser(name, help=help_)

@@ -29,7 +29,8 @@ from .reader import read
 from .tools import ToolRecorder, support_series, tool_outputs
 
 __all__ = ["load_scene", "run_scene", "energy_series", "plot_energy", "one_line_warnings", "report",
-           "scene_volume_outputs", "scene_texture", "scene_texture_outputs", "scene_animation", "tool_forces_at"]
+           "scene_volume_outputs", "scene_texture", "scene_texture_outputs", "scene_animation", "tool_forces_at",
+           "scene_engine"]
 
 
 def load_scene(path) -> Scene | ChainMailScene:
@@ -216,7 +217,7 @@ def run_scene(scene: Scene, out_dir, progress: bool = True, device=None) -> dict
         torch.set_num_threads(threads)
 
 
-def _engine(scene: Scene, topology: bool) -> Engine:
+def scene_engine(scene: Scene, topology: bool) -> Engine:
     """The scene's :class:`~torchdeform.sim.engine.Engine`; topology changes between steps run eagerly."""
     if topology and scene.engine == "compiled":
         raise scene.source.error("integrator.engine", '"auto" or "eager" for a scene with topology changes '
@@ -247,7 +248,7 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
         events = scene.topology.events(model, dt, scene.steps * dt, out)
         callback = _chain(recorder, events)
 
-    engine = _engine(scene, events is not None)
+    engine = scene_engine(scene, events is not None)
     start = time.perf_counter()
     if events is not None:
         events.begin(state)

@@ -1,0 +1,232 @@
+"""Parameter sweeps over a scene file: the Cartesian product of ``--set`` values, one row per point.
+
+A *point* sets some dotted scene keys (``material.stiffness``, ``integrator.dt``, ...) to values;
+every other key is the scene file's. Each point's scene is built (and so checked) before any
+runs, then simulated; its row holds the values, the summary figures of the run and its wall
+time. Finished points are recorded as they finish (one JSON line each in ``DIR/records/``), so a
+rerun of the same sweep into the same folder runs only the missing ones (after a crash or a
+pre-empted job).
+
+Under ``torchrun`` the points are spread over the ranks (point ``i`` on rank ``i mod N``); the
+rows are gathered to rank 0 with ``torch.distributed`` (gloo), which writes the table
+(``sweep.csv``) and the plot (``sweep.png``). Each rank writes its own record file, so ``DIR``
+must be on storage every rank sees for a resume across machines.
+
+Figures per point: ``max_displacement_m`` (largest node displacement at the end),
+``peak_displacement_m`` (largest over the recorded frames), ``max_free_displacement_m``,
+``kinetic_J`` and ``total_J`` (final energies), ``steps``, ``dt_s``, ``engine``, ``wall_s`` and
+``status`` (``ok`` or the one-line divergence message).
+
+Scenes with tools or topology changes are not swept yet (a clear error names them).
+
+Examples:
+    >>> from torchdeform.distributed.sweep import parse_set, product
+    >>> parse_set("material.stiffness=1,2.5,4e3")
+    ('material.stiffness', [1, 2.5, 4000.0])
+    >>> product([("material.stiffness", [1, 2]), ("integrator.dt", [1e-4, 2e-4])])[1]
+    {'material.stiffness': 1, 'integrator.dt': 0.0002}
+"""
+from __future__ import annotations
+
+import copy
+import csv
+import itertools
+import json
+import time
+from pathlib import Path
+
+import tomllib
+
+from ..errors import ConfigError, DivergenceError
+
+__all__ = ["parse_set", "parse_value", "product", "read_points", "check_key", "point_scene", "run_point",
+           "point_id", "done_points", "record", "write_table", "FIGURES"]
+
+#: the summary figures of a point's row, after its values
+FIGURES = ("status", "max_displacement_m", "peak_displacement_m", "max_free_displacement_m", "kinetic_J", "total_J",
+           "steps", "dt_s", "engine", "wall_s")
+#: sections a sweep key may name (the array-of-tables sections hold lists, not keys)
+_LISTS = ("loads", "drags", "regions", "tools", "cuts", "cautery", "coagulate")
+
+
+def parse_value(text: str):
+    """A TOML scalar (``1`` int, ``2.5`` float, ``true``, ``"name"``), else the text as a string."""
+    text = text.strip()
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def parse_set(text: str) -> tuple[str, list]:
+    """``KEY=V1,V2,...`` (``--set``) -> ``(key, [values])``; values as :func:`parse_value`."""
+    key, sep, values = str(text).partition("=")
+    key = key.strip()
+    if not sep or not key or not values.strip():
+        raise ConfigError("--set", "KEY=V1,V2,... (e.g. material.stiffness=1,2,4)", text)
+    return key, [parse_value(v) for v in values.split(",")]
+
+
+def product(sets: list) -> list:
+    """The Cartesian product of ``[(key, values), ...]``: one dict per point, the last key varying fastest."""
+    keys = [k for k, _ in sets]
+    return [dict(zip(keys, combo)) for combo in itertools.product(*(v for _, v in sets))]
+
+
+def read_points(path) -> list:
+    """A list file of points: CSV, a header of dotted keys, one point per row (values as :func:`parse_value`)."""
+    path = Path(path)
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            rows = list(csv.reader(fh))
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError("--points", "a readable UTF-8 CSV file", f"{path} ({e})") from None
+    rows = [r for r in rows if any(c.strip() for c in r)]
+    if len(rows) < 2:
+        raise ConfigError("--points", "a header of scene keys and at least one row", str(path))
+    keys = [k.strip() for k in rows[0]]
+    points = []
+    for n, row in enumerate(rows[1:], start=2):
+        if len(row) != len(keys):
+            raise ConfigError(f"--points line {n}", f"{len(keys)} values (one per key of the header)", ",".join(row))
+        points.append({k: parse_value(v) for k, v in zip(keys, row)})
+    return points
+
+
+def check_key(key: str) -> None:
+    """Raise a :class:`ConfigError` unless ``key`` is ``section.key`` of a mass-spring scene file."""
+    from ..scene.mass_spring import INTEGRATOR_OPTIONS
+    from ..scene.reader import SECTIONS
+    section, _, name = key.partition(".")
+    known = SECTIONS.get(section, ())
+    if section == "integrator":
+        known = known + tuple(k for opts in INTEGRATOR_OPTIONS.values() for k in opts)
+    if section in _LISTS or name not in known or "." in name:
+        sections = ", ".join(s for s in SECTIONS if s not in _LISTS)
+        raise ConfigError("--set", f"SECTION.KEY of a scene file (sections {sections}; "
+                                   f"{section}: {', '.join(known) or 'no such section'})", key)
+
+
+def point_id(values: dict) -> str:
+    """The identity of a point: its values as canonical JSON (what resumes match on)."""
+    return json.dumps(values, sort_keys=True)
+
+
+def point_scene(src, data: dict, base: Path, name: str, values: dict):
+    """The :class:`~torchdeform.scene.Scene` of ``data`` with ``values`` set (built, so checked).
+
+    A bad value raises a :class:`ConfigError` naming ``--set KEY`` and the value.
+    """
+    from ..scene.mass_spring import mass_spring_scene
+    from ..scene.reader import Source
+    data = copy.deepcopy(data)
+    for key, value in values.items():
+        section, _, k = key.partition(".")
+        data.setdefault(section, {})[k] = value
+    try:
+        scene = mass_spring_scene(Source(), data, base, name)
+    except ConfigError as e:
+        if e.key in values:
+            raise ConfigError(f"--set {e.key}", e.expected, values[e.key]) from None
+        raise ConfigError(e.key, e.expected, e.got if e.show_got else None, file=src.path, show_got=e.show_got,
+                          line=src.line_of(e.key)) from None
+    if scene.tools is not None or scene.topology is not None:
+        raise ConfigError("sweep", "a scene without [[tools]], [strain_limit] or topology sections (not swept yet)",
+                          src.path)
+    return scene
+
+
+def run_point(scene, device=None) -> dict:
+    """Simulate ``scene`` (no files written): the figures of :data:`FIGURES`."""
+    import torch
+
+    from ..scene.run import energy_series, scene_engine
+    from ..sim.engine import simulate
+    from ..sim.stability import time_step_bound
+    model = scene.build(device)
+    bound = time_step_bound(model, scene.integrator)
+    dt = scene.time_step(bound)
+    engine = scene_engine(scene, False)
+    row = dict.fromkeys(FIGURES)
+    row.update(steps=scene.steps, dt_s=dt)
+    start = time.perf_counter()
+    try:
+        final, rec = simulate(model, model.rest_state(), dt, scene.steps, scene.integrator,
+                              record_every=scene.frames_every, progress=False, warn=False, engine=engine)
+    except DivergenceError as e:
+        row.update(status=f"diverged: {str(e).splitlines()[0]}", wall_s=time.perf_counter() - start)
+        return row
+    row["wall_s"] = time.perf_counter() - start
+    x = torch.cat([rec["x"][:, 0], final.x[:1].detach().cpu()])
+    v = torch.cat([rec["v"][:, 0], final.v[:1].detach().cpu()])
+    series = energy_series(model, x, v)
+    row.update(status="ok", max_displacement_m=float(series["max_displacement"][-1]),
+               peak_displacement_m=float(series["max_displacement"].max()),
+               max_free_displacement_m=float(series["max_free_displacement"][-1]),
+               kinetic_J=float(series["kinetic"][-1]), total_J=float(series["total"][-1]),
+               engine=engine.ran)
+    return row
+
+
+def done_points(out: Path) -> dict:
+    """The recorded points of a sweep folder: ``{point id: row}`` (every rank's record file)."""
+    done = {}
+    for path in sorted((out / "records").glob("rank*.jsonl")):
+        for line in path.read_text(encoding="utf-8").splitlines():
+            try:
+                row = json.loads(line)
+            except json.JSONDecodeError:          # a line cut by a crash: that point runs again
+                continue
+            done[row["id"]] = row["row"]
+    return done
+
+
+def record(out: Path, rank: int, pid: str, row: dict) -> None:
+    """Append one finished point to this rank's record file (flushed: a crash loses at most that line)."""
+    path = out / "records" / f"rank{rank}.jsonl"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a", encoding="utf-8") as fh:
+        fh.write(json.dumps({"id": pid, "row": row}) + "\n")
+        fh.flush()
+
+
+def write_table(out: Path, keys: list, rows: list) -> Path:
+    """``out/sweep.csv``: one row per point (its values, then :data:`FIGURES`), written atomically."""
+    path = out / "sweep.csv"
+    tmp = path.with_suffix(".csv.tmp")
+    with open(tmp, "w", newline="", encoding="utf-8") as fh:
+        w = csv.DictWriter(fh, fieldnames=["point", *keys, *FIGURES])
+        w.writeheader()
+        for i, row in enumerate(rows):
+            w.writerow({"point": i, **row})
+    tmp.replace(path)
+    return path
+
+
+def plot(out: Path, keys: list, rows: list) -> Path | None:
+    """``out/sweep.png``: the final displacement against the first numeric key (one line per other combination)."""
+    numeric = [k for k in keys if all(isinstance(r[k], (int, float)) and not isinstance(r[k], bool) for r in rows)]
+    if not numeric or not rows:
+        return None
+    from ..bench.common import axes, save_figure
+    xkey, others = numeric[0], [k for k in keys if k != numeric[0]]
+    fig, ax = axes((6.5, 4.5))
+    groups = {}
+    for r in rows:
+        groups.setdefault(tuple(r[k] for k in others), []).append(r)
+    for combo, sel in groups.items():
+        sel = sorted((r for r in sel if r["status"] == "ok"), key=lambda r: r[xkey])
+        label = ", ".join(f"{k} = {v}" for k, v in zip(others, combo)) or None
+        ax.plot([r[xkey] for r in sel], [r["max_displacement_m"] * 1e3 for r in sel], marker="o", label=label)
+    positive = all(r[xkey] > 0 for r in rows)
+    if positive and max(r[xkey] for r in rows) > 10 * min(r[xkey] for r in rows):
+        ax.set_xscale("log")
+    ax.set_xlabel(xkey)
+    ax.set_ylabel("final max displacement (mm)")
+    ax.set_title(f"sweep: {len(rows)} points")
+    ax.grid(True, which="both", alpha=0.3)
+    if groups and any(c for c in groups):
+        ax.legend(fontsize=7)
+    save_figure(fig, out, "sweep.png")
+    return out / "sweep.png"
+
