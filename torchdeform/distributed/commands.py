@@ -26,6 +26,8 @@ def add_arguments(p) -> None:
     p.add_argument("--points", default=None, help="a CSV list of points instead (header: scene keys)")
     p.add_argument("--out", required=True, help="output folder (sweep.csv, sweep.png, records/)")
     p.add_argument("--device", default=None, help="cpu or cuda (default: the scene's; cuda:<local rank> under torchrun)")
+    p.add_argument("--batch", type=int, default=32, help="points simulated together when they differ only in "
+                                                         "material.stiffness/damping (default 32; 1: one by one)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -70,7 +72,9 @@ def _sweep(args, rank: int, world: int) -> int:
 
     from ..errors import ConfigError
     from ..scene.reader import read
-    from .sweep import done_points, plot, point_id, point_scene, record, run_point, write_table
+    from .sweep import batches, done_points, plot, point_id, point_scene, record, run_batch, write_table
+    if args.batch < 1:
+        raise ConfigError("--batch", "a whole number >= 1", args.batch)
     keys, points = _points(args)
     src, data = read(args.scene)
     if data.get("model", "mass-spring") != "mass-spring":
@@ -87,23 +91,26 @@ def _sweep(args, rank: int, world: int) -> int:
     if device is None and world > 1 and torch.cuda.is_available():
         device = f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}"
     done = done_points(out) if out.is_dir() else {}
-    mine = [i for i in range(len(points)) if i % world == rank and ids[i] not in done]
+    todo = [i for i in range(len(points)) if ids[i] not in done]
+    work = batches([points[i] for i in todo], [scenes[i] for i in todo], args.batch)
+    mine = [[todo[j] for j in batch] for n, batch in enumerate(work) if n % world == rank]
     group = _init(world)
     try:
         if rank == 0:
             skipped = sum(i in done for i in ids)
-            print(f"sweep: {len(points)} points over {world} rank{'s' if world > 1 else ''}"
+            print(f"sweep: {len(points)} points in {len(work)} batch{'es' if len(work) != 1 else ''} over {world} "
+                  f"rank{'s' if world > 1 else ''}"
                   + (f", {skipped} already done (records in {out / 'records'})" if skipped else ""), file=sys.stderr)
         out.mkdir(parents=True, exist_ok=True)
         rows = {}
         from tqdm.auto import tqdm
-        with tqdm(total=len(mine), desc=f"sweep (rank {rank})" if world > 1 else "sweep", unit="point",
+        with tqdm(total=sum(map(len, mine)), desc=f"sweep (rank {rank})" if world > 1 else "sweep", unit="point",
                   disable=args.quiet or rank != 0 or None, file=sys.stderr) as bar:
-            for i in mine:
-                row = run_point(scenes[i], device)
-                record(out, rank, ids[i], row)
-                rows[ids[i]] = row
-                bar.update(1)
+            for batch in mine:
+                for i, row in zip(batch, run_batch([scenes[i] for i in batch], device)):
+                    record(out, rank, ids[i], row)
+                    rows[ids[i]] = row
+                bar.update(len(batch))
         if group:
             gathered = [None] * world
             torch.distributed.all_gather_object(gathered, rows)

@@ -7,15 +7,21 @@ time. Finished points are recorded as they finish (one JSON line each in ``DIR/r
 rerun of the same sweep into the same folder runs only the missing ones (after a crash or a
 pre-empted job).
 
-Under ``torchrun`` the points are spread over the ranks (point ``i`` on rank ``i mod N``); the
+**Batches.** Points whose scenes differ only in ``material.stiffness`` and ``material.damping``
+(with a fixed ``integrator.dt``: ``"auto"`` follows the stiffness) run as one batched model: the
+parameters stacked along the leading batch axis, one simulation for the batch (:func:`batches`,
+at most ``batch`` points each). A batch that diverges runs again point by point, so that each
+row says which point diverged. ``wall_s`` is the batch's wall time shared among its points.
+
+Under ``torchrun`` the batches are spread over the ranks (batch ``j`` on rank ``j mod N``); the
 rows are gathered to rank 0 with ``torch.distributed`` (gloo), which writes the table
 (``sweep.csv``) and the plot (``sweep.png``). Each rank writes its own record file, so ``DIR``
 must be on storage every rank sees for a resume across machines.
 
 Figures per point: ``max_displacement_m`` (largest node displacement at the end),
 ``peak_displacement_m`` (largest over the recorded frames), ``max_free_displacement_m``,
-``kinetic_J`` and ``total_J`` (final energies), ``steps``, ``dt_s``, ``engine``, ``wall_s`` and
-``status`` (``ok`` or the one-line divergence message).
+``kinetic_J`` and ``total_J`` (final energies), ``steps``, ``dt_s``, ``engine``, ``batch`` (the
+points simulated together), ``wall_s`` and ``status`` (``ok`` or the one-line divergence message).
 
 Scenes with tools or topology changes are not swept yet (a clear error names them).
 
@@ -40,11 +46,13 @@ import tomllib
 from ..errors import ConfigError, DivergenceError
 
 __all__ = ["parse_set", "parse_value", "product", "read_points", "check_key", "point_scene", "run_point",
-           "point_id", "done_points", "record", "write_table", "FIGURES"]
+           "run_batch", "batches", "point_id", "done_points", "record", "write_table", "FIGURES", "BATCHED"]
 
 #: the summary figures of a point's row, after its values
 FIGURES = ("status", "max_displacement_m", "peak_displacement_m", "max_free_displacement_m", "kinetic_J", "total_J",
-           "steps", "dt_s", "engine", "wall_s")
+           "steps", "dt_s", "engine", "batch", "wall_s")
+#: the keys whose points run batched (stacked along the models' batch axis)
+BATCHED = ("material.stiffness", "material.damping")
 #: sections a sweep key may name (the array-of-tables sections hold lists, not keys)
 _LISTS = ("loads", "drags", "regions", "tools", "cuts", "cautery", "coagulate")
 
@@ -138,9 +146,7 @@ def point_scene(src, data: dict, base: Path, name: str, values: dict):
 
 def run_point(scene, device=None) -> dict:
     """Simulate ``scene`` (no files written): the figures of :data:`FIGURES`."""
-    import torch
-
-    from ..scene.run import energy_series, scene_engine
+    from ..scene.run import scene_engine
     from ..sim.engine import simulate
     from ..sim.stability import time_step_bound
     model = scene.build(device)
@@ -148,7 +154,7 @@ def run_point(scene, device=None) -> dict:
     dt = scene.time_step(bound)
     engine = scene_engine(scene, False)
     row = dict.fromkeys(FIGURES)
-    row.update(steps=scene.steps, dt_s=dt)
+    row.update(steps=scene.steps, dt_s=dt, batch=1)
     start = time.perf_counter()
     try:
         final, rec = simulate(model, model.rest_state(), dt, scene.steps, scene.integrator,
@@ -157,15 +163,82 @@ def run_point(scene, device=None) -> dict:
         row.update(status=f"diverged: {str(e).splitlines()[0]}", wall_s=time.perf_counter() - start)
         return row
     row["wall_s"] = time.perf_counter() - start
-    x = torch.cat([rec["x"][:, 0], final.x[:1].detach().cpu()])
-    v = torch.cat([rec["v"][:, 0], final.v[:1].detach().cpu()])
-    series = energy_series(model, x, v)
-    row.update(status="ok", max_displacement_m=float(series["max_displacement"][-1]),
-               peak_displacement_m=float(series["max_displacement"].max()),
-               max_free_displacement_m=float(series["max_free_displacement"][-1]),
-               kinetic_J=float(series["kinetic"][-1]), total_J=float(series["total"][-1]),
-               engine=engine.ran)
+    row.update(_figures(model, rec, final, 0), engine=engine.ran)
     return row
+
+
+def _figures(model, rec, final, b: int) -> dict:
+    """The figures of batch entry ``b`` of a run of ``model`` (that entry's own, unbatched model)."""
+    import torch
+
+    from ..scene.run import energy_series
+    x = torch.cat([rec["x"][:, b], final.x[b:b + 1].detach().cpu()])
+    v = torch.cat([rec["v"][:, b], final.v[b:b + 1].detach().cpu()])
+    series = energy_series(model, x, v)
+    return dict(status="ok", max_displacement_m=float(series["max_displacement"][-1]),
+                peak_displacement_m=float(series["max_displacement"].max()),
+                max_free_displacement_m=float(series["max_free_displacement"][-1]),
+                kinetic_J=float(series["kinetic"][-1]), total_J=float(series["total"][-1]))
+
+
+def batches(points: list, scenes: list, size: int) -> list:
+    """Group point indices into batches of at most ``size``.
+
+    A batch holds points equal but for :data:`BATCHED` keys, with a numeric ``dt``, in the order of
+    their first point; every other point is a batch of its own.
+    """
+    groups, order = {}, []
+    for i, (p, scene) in enumerate(zip(points, scenes)):
+        if size > 1 and scene.dt != "auto":
+            key = point_id({k: v for k, v in p.items() if k not in BATCHED})
+        else:
+            key = ("alone", i)
+        if key not in groups or len(groups[key][-1]) >= size:
+            groups.setdefault(key, []).append([])
+            order.append(groups[key][-1])
+        groups[key][-1].append(i)
+    return order
+
+
+def run_batch(scenes: list, device=None) -> list:
+    """Simulate scenes that differ only in spring stiffness and damping as one batched model.
+
+    Returns one row per scene (:data:`FIGURES`); a batch that diverges runs point by point.
+    """
+    import copy
+
+    import torch
+
+    from ..scene.run import scene_engine
+    from ..sim.engine import simulate
+    from ..sim.stability import time_step_bound
+    if len(scenes) == 1:
+        return [run_point(scenes[0], device)]
+    models = [s.build(device) for s in scenes]
+    batched = copy.copy(models[0])
+    shape = torch.broadcast_shapes(*(m.stiffness.shape for m in models))
+    batched.stiffness = torch.cat([m.stiffness.expand(shape) for m in models])
+    if any(m.damping is not None for m in models):
+        batched.damping = torch.cat([(torch.zeros_like(m.stiffness) if m.damping is None else m.damping).expand(shape)
+                                     for m in models])
+    scene = scenes[0]
+    bound = min(time_step_bound(m, scene.integrator) for m in models)
+    dt = scene.time_step(bound)
+    engine = scene_engine(scene, False)
+    start = time.perf_counter()
+    try:
+        final, rec = simulate(batched, batched.rest_state(len(models)), dt, scene.steps, scene.integrator,
+                              record_every=scene.frames_every, progress=False, warn=False, engine=engine)
+    except DivergenceError:
+        return [run_point(s, device) for s in scenes]
+    wall = (time.perf_counter() - start) / len(models)
+    rows = []
+    for b, m in enumerate(models):
+        row = dict.fromkeys(FIGURES)
+        row.update(_figures(m, rec, final, b), steps=scene.steps, dt_s=dt, engine=engine.ran, wall_s=wall,
+                   batch=len(models))
+        rows.append(row)
+    return rows
 
 
 def done_points(out: Path) -> dict:
