@@ -123,7 +123,8 @@ def _sweep(args, rank: int, world: int) -> int:
             bad = sum(r["status"] != "ok" for r in table)
             print(f"wrote {path} ({len(table)} points" + (f", {bad} diverged" if bad else "") + ")", file=sys.stderr)
     finally:
-        if group:
+        if group:                     # leave together: a rank that tears down early can abort its peers
+            torch.distributed.barrier()
             torch.distributed.destroy_process_group()
     return 0
 
