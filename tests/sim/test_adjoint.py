@@ -95,7 +95,13 @@ def test_adjoint_equals_central_differences():
     the adjoint gradient equals central differences to 1e-6 (drag, damping, one Newton iteration)."""
     loss, params = _body(per_spring=False, damping=True, drag=True, shape=(3, 3, 4), seed=1)
     integ = _implicit("adjoint", newton_iters=1, cg_tol=1e-15, cg_iters=300)
-    L = loss(integ, 3)
+    _check_central_differences(loss, params, integ, 3)
+
+
+def _check_central_differences(loss, params, integ, steps):
+    """The gradient of ``loss(integ, steps)`` against central differences along a random direction
+    of each parameter (relative steps of 1e-4), to 1e-6."""
+    L = loss(integ, steps)
     grads = dict(zip(params, torch.autograd.grad(L, list(params.values()))))
     gen = torch.Generator().manual_seed(2)
     scales = {"k": 50.0, "c": 0.05, "m": 1e-3, "x0": 1e-3, "v0": 0.01}
@@ -103,8 +109,8 @@ def test_adjoint_equals_central_differences():
     with torch.no_grad():
         for name, p in params.items():
             d = scales[name] * torch.randn(p.shape, generator=gen, dtype=F64)
-            plus = loss(integ, 3, **{name: p + eps * d})
-            minus = loss(integ, 3, **{name: p - eps * d})
+            plus = loss(integ, steps, **{name: p + eps * d})
+            minus = loss(integ, steps, **{name: p - eps * d})
             fd = float(plus - minus) / (2 * eps)
             ad = float((grads[name] * d).sum())
             assert abs(fd - ad) <= 1e-6 * abs(ad), (name, fd, ad)
@@ -289,18 +295,8 @@ def test_projective_cholesky_adjoint_equals_central_differences():
     against central differences along random directions of each parameter, to 1e-6."""
     loss, params = _body(per_spring=False, damping=True, drag=True, shape=(3, 3, 4), seed=1)
     integ = _projective("cholesky", "auto", tol=1e-12, adjoint_tol=1e-12)
-    L = loss(integ, 2)
-    grads = dict(zip(params, torch.autograd.grad(L, list(params.values()))))
+    _check_central_differences(loss, params, integ, 2)
     assert integ.last_adjoint[1] <= 1e-12
-    gen = torch.Generator().manual_seed(2)
-    scales = {"k": 50.0, "c": 0.05, "m": 1e-3, "x0": 1e-3, "v0": 0.01}
-    eps = 1e-4
-    with torch.no_grad():
-        for name, p in params.items():
-            d = scales[name] * torch.randn(p.shape, generator=gen, dtype=F64)
-            fd = float(loss(integ, 2, **{name: p + eps * d}) - loss(integ, 2, **{name: p - eps * d})) / (2 * eps)
-            ad = float((grads[name] * d).sum())
-            assert abs(fd - ad) <= 1e-6 * abs(ad), (name, fd, ad)
 
 
 def test_projective_adjoint_memory_does_not_grow_with_iterations():

@@ -40,7 +40,7 @@ def driver(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def small(tmp_path_factory):
-    v = Viewer(make_session(tmp_path_factory.mktemp("small"), n=16)).start()
+    v = Viewer(make_session(n=16)).start()
     yield v
     v.stop()
 

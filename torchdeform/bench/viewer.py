@@ -25,6 +25,7 @@ Example:
 """
 from __future__ import annotations
 
+import contextlib
 import tempfile
 
 import torch
@@ -113,13 +114,9 @@ def run(args) -> int:
             try:
                 with progress(len(cases), "bench viewer") as bar:
                     for n, busy in cases:
-                        if busy:
-                            with busy_neighbour():
-                                rows.append(_row(n, driver, windows=windows, seconds=args.seconds, settle=settle,
-                                                 busy=True))
-                        else:
+                        with busy_neighbour() if busy else contextlib.nullcontext():
                             rows.append(_row(n, driver, windows=windows, seconds=args.seconds, settle=settle,
-                                             busy=False))
+                                             busy=busy))
                         bar.update(1)
             finally:
                 driver.quit()

@@ -90,7 +90,7 @@ def _sweep(args, rank: int, world: int) -> int:
     device = args.device
     if device is None and world > 1 and torch.cuda.is_available():
         device = f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}"
-    done = done_points(out) if out.is_dir() else {}
+    done = done_points(out)
     todo = [i for i in range(len(points)) if ids[i] not in done]
     work = batches([points[i] for i in todo], [scenes[i] for i in todo], args.batch)
     mine = [[todo[j] for j in batch] for n, batch in enumerate(work) if n % world == rank]

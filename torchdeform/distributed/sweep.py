@@ -145,26 +145,8 @@ def point_scene(src, data: dict, base: Path, name: str, values: dict):
 
 
 def run_point(scene, device=None) -> dict:
-    """Simulate ``scene`` (no files written): the figures of :data:`FIGURES`."""
-    from ..scene.run import scene_engine
-    from ..sim.engine import simulate
-    from ..sim.stability import time_step_bound
-    model = scene.build(device)
-    bound = time_step_bound(model, scene.integrator)
-    dt = scene.time_step(bound)
-    engine = scene_engine(scene, False)
-    row = dict.fromkeys(FIGURES)
-    row.update(steps=scene.steps, dt_s=dt, batch=1)
-    start = time.perf_counter()
-    try:
-        final, rec = simulate(model, model.rest_state(), dt, scene.steps, scene.integrator,
-                              record_every=scene.frames_every, progress=False, warn=False, engine=engine)
-    except DivergenceError as e:
-        row.update(status=f"diverged: {str(e).splitlines()[0]}", wall_s=time.perf_counter() - start)
-        return row
-    row["wall_s"] = time.perf_counter() - start
-    row.update(_figures(model, rec, final, 0), engine=engine.ran)
-    return row
+    """Simulate ``scene`` (no files written): the figures of :data:`FIGURES` (a batch of one)."""
+    return run_batch([scene], device)[0]
 
 
 def _figures(model, rec, final, b: int) -> dict:
@@ -212,25 +194,29 @@ def run_batch(scenes: list, device=None) -> list:
     from ..scene.run import scene_engine
     from ..sim.engine import simulate
     from ..sim.stability import time_step_bound
-    if len(scenes) == 1:
-        return [run_point(scenes[0], device)]
     models = [s.build(device) for s in scenes]
-    batched = copy.copy(models[0])
-    shape = torch.broadcast_shapes(*(m.stiffness.shape for m in models))
-    batched.stiffness = torch.cat([m.stiffness.expand(shape) for m in models])
-    if any(m.damping is not None for m in models):
-        batched.damping = torch.cat([(torch.zeros_like(m.stiffness) if m.damping is None else m.damping).expand(shape)
-                                     for m in models])
+    model = models[0]
+    if len(models) > 1:                   # the spring parameters stacked along the batch axis
+        model = copy.copy(model)
+        shape = torch.broadcast_shapes(*(m.stiffness.shape for m in models))
+        model.stiffness = torch.cat([m.stiffness.expand(shape) for m in models])
+        if any(m.damping is not None for m in models):
+            model.damping = torch.cat([(torch.zeros_like(m.stiffness) if m.damping is None else m.damping)
+                                       .expand(shape) for m in models])
     scene = scenes[0]
-    bound = min(time_step_bound(m, scene.integrator) for m in models)
-    dt = scene.time_step(bound)
+    dt = scene.time_step(min(time_step_bound(m, scene.integrator) for m in models))
     engine = scene_engine(scene, False)
     start = time.perf_counter()
     try:
-        final, rec = simulate(batched, batched.rest_state(len(models)), dt, scene.steps, scene.integrator,
+        final, rec = simulate(model, model.rest_state(len(models)), dt, scene.steps, scene.integrator,
                               record_every=scene.frames_every, progress=False, warn=False, engine=engine)
-    except DivergenceError:
-        return [run_point(s, device) for s in scenes]
+    except DivergenceError as e:
+        if len(scenes) > 1:
+            return [run_point(s, device) for s in scenes]
+        row = dict.fromkeys(FIGURES)
+        row.update(status=f"diverged: {str(e).splitlines()[0]}", steps=scene.steps, dt_s=dt, batch=1,
+                   wall_s=time.perf_counter() - start)
+        return [row]
     wall = (time.perf_counter() - start) / len(models)
     rows = []
     for b, m in enumerate(models):

@@ -314,14 +314,14 @@ class ProjectiveDynamics(Integrator):
         keeps per step is the graph of one residual ``r(x_star)``.
         """
         free = model.free
+
+        def mixed(x):                                     # free nodes from x, constrained ones from x_init
+            return x if free is None else x * free + x_init * (1 - free)
         x_star = x_star.detach()
-        with torch.no_grad():
-            fixed = x_star if free is None else x_star * free + x_init.detach() * (1 - free)
-        if not residual(fixed if free is None else x_star * free + x_init * (1 - free)).requires_grad:
-            return fixed                                  # nothing to differentiate
+        if not residual(mixed(x_star)).requires_grad:
+            return mixed(x_star)                          # nothing to differentiate
         x_var = x_star.clone().requires_grad_()           # the graph's handle for J^T lambda
-        x_mix = x_var if free is None else x_var * free + x_init * (1 - free)
-        r = residual(x_mix)
+        r = residual(mixed(x_var))
         zero = torch.zeros_like(x_star)
 
         def adjoint(g):
@@ -332,8 +332,7 @@ class ProjectiveDynamics(Integrator):
             self.last_adjoint = (n_it, float(rel))
             return lam
 
-        x = ImplicitSolve.apply(r, x_star, adjoint)
-        return x if free is None else x * free + x_init * (1 - free)
+        return mixed(ImplicitSolve.apply(r, x_star, adjoint))
 
     def _advance_unpacked(self, model, state, dt, loads):
         """The Cholesky step of a packed model, done on its grid-layout source model (eager)."""
