@@ -272,25 +272,21 @@ class RK4(Integrator):
 
 
 def _dot(a, b):
-    """Per-batch-entry inner product, shaped to broadcast against ``a``.
-
-    (Summed over the axes as they are: a flattened sum would index ``i % P`` under
-    ``torch.compile`` and run scalar.)
-    """
+    """Per-batch-entry inner product, shaped to broadcast against ``a`` (:meth:`Model.inner`)."""
     return (a * b).sum(tuple(range(1, a.dim())), keepdim=True)
 
 
-def cg_start(b, precond=None, mask=None):
+def cg_start(b, precond=None, mask=None, dot=_dot):
     """Initial conjugate-gradient state ``(u, r, p, rz)`` for ``A u = b``.
 
     See :func:`conjugate_gradient`; ``u = 0``, ``r`` the filtered ``b``.
     """
     r = b if mask is None else b * mask
     z = r if precond is None else precond * r
-    return torch.zeros_like(r), r, z, _dot(r, z)
+    return torch.zeros_like(r), r, z, dot(r, z)
 
 
-def cg_iteration(apply_A, u, r, p, rz, precond=None, mask=None):
+def cg_iteration(apply_A, u, r, p, rz, precond=None, mask=None, dot=_dot):
     """One preconditioned conjugate-gradient iteration: ``(u, r, p, rz) -> (u, r, p, rz)``.
 
     Guarded so that an exactly solved system (``p^T A p = 0`` or ``r^T z = 0``) stays put
@@ -299,17 +295,17 @@ def cg_iteration(apply_A, u, r, p, rz, precond=None, mask=None):
     Ap = apply_A(p)
     if mask is not None:
         Ap = Ap * mask
-    pAp = _dot(p, Ap)
+    pAp = dot(p, Ap)
     alpha = torch.where(pAp > 0, rz / torch.where(pAp > 0, pAp, 1.0), 0.0)
     u = u + alpha * p
     r = r - alpha * Ap
     z = r if precond is None else precond * r
-    rz_new = _dot(r, z)
+    rz_new = dot(r, z)
     p = z + torch.where(rz > 0, rz_new / torch.where(rz > 0, rz, 1.0), 0.0) * p
     return u, r, p, rz_new
 
 
-def conjugate_gradient(apply_A, b, precond=None, mask=None, iters: int = 100, tol: float = 1e-8):
+def conjugate_gradient(apply_A, b, precond=None, mask=None, iters: int = 100, tol: float = 1e-8, dot=None):
     """Solve ``A u = b`` for symmetric positive definite ``A`` given as a function.
 
     Batched over the leading dimension; entries where ``mask`` is 0 are held at 0 (Baraff-Witkin
@@ -323,6 +319,9 @@ def conjugate_gradient(apply_A, b, precond=None, mask=None, iters: int = 100, to
         iters: maximum iterations.
         tol: stop when ``|r| <= tol |b|`` for every batch entry. ``tol <= 0`` runs exactly
             ``iters`` iterations without reading the residual on the host (no synchronisation).
+        dot: the inner product ``(a, b) -> (B, 1, ...)`` of the iterations and the residual norms
+            (a model's :meth:`~torchdeform.sim.model.Model.inner`; a domain-decomposed model sums
+            over ranks), or None for the plain per-entry sum.
 
     Returns:
         ``(u, iterations used, relative residual)`` (the residual is a 0-d tensor when ``tol <= 0``).
@@ -340,15 +339,21 @@ def conjugate_gradient(apply_A, b, precond=None, mask=None, iters: int = 100, to
         >>> float(u[..., 0, 0, 0].abs().max()), float(u[..., 1, 1, 1].min())
         (0.0, 0.25)
     """
-    u, r, p, rz = cg_start(b, precond, mask)
-    bnorm = r.detach().flatten(1).norm(dim=1).clamp_min(1e-300)
+    if dot is None:
+        dot, norm = _dot, (lambda r: r.detach().flatten(1).norm(dim=1))
+    else:
+        def norm(r):
+            r = r.detach()
+            return dot(r, r).flatten(1)[:, 0].sqrt()
+    u, r, p, rz = cg_start(b, precond, mask, dot)
+    bnorm = norm(r).clamp_min(1e-300)
     for it in range(1, iters + 1):
-        u, r, p, rz = cg_iteration(apply_A, u, r, p, rz, precond, mask)
+        u, r, p, rz = cg_iteration(apply_A, u, r, p, rz, precond, mask, dot)
         if tol > 0:
-            rel = float((r.detach().flatten(1).norm(dim=1) / bnorm).max())
+            rel = float((norm(r) / bnorm).max())
             if rel <= tol:
                 return u, it, rel
-    rel = (r.detach().flatten(1).norm(dim=1) / bnorm).max()
+    rel = (norm(r) / bnorm).max()
     return u, iters, (float(rel) if tol > 0 else rel)
 
 
@@ -499,7 +504,8 @@ class ImplicitEuler(Integrator):
                 x_keep = x_lin.detach().clone() if x_lin is state.x else x_lin
                 delta, n_it, rel = self._adjoint_solve(model, x_keep, apply_A, rhs, precond, dt)
             else:
-                delta, n_it, rel = conjugate_gradient(apply_A, rhs, precond, model.free, self.cg_iters, self.cg_tol)
+                delta, n_it, rel = conjugate_gradient(apply_A, rhs, precond, model.free, self.cg_iters, self.cg_tol,
+                                                      model.inner)
             self.last_cg = (n_it, rel)
             v = v + delta if delta_c is None else v + delta + delta_c
         return state.x + dt * v, v

@@ -362,6 +362,16 @@ class Model:
         """
         return node_sums(self.grid, p)
 
+    def inner(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        """Inner product of two node fields per batch entry, ``(B, 1, 1, ...)`` broadcasting against ``a``.
+
+        Conjugate gradients read their inner products here: a domain-decomposed model
+        (:class:`~torchdeform.distributed.domain.SlabModel`) sums over the nodes it owns on every rank.
+        (Summed over the axes as they are: a flattened sum would index ``i % P`` under
+        ``torch.compile`` and run scalar.)
+        """
+        return (a * b).sum(tuple(range(1, a.dim())), keepdim=True)
+
     def acceleration(self, x, v, t: float = 0.0, loads=None) -> torch.Tensor:
         """``M^-1 F``, zero at constrained nodes, ``(B, 3, D, H, W)``."""
         return self.inv_mass * self.forces(x, v, t, loads)

@@ -1,0 +1,119 @@
+"""Domain decomposition: 2 and 3 ranks (torchrun, gloo on 127.0.0.1) against one process's
+``simulate`` (float64, 100 steps, fixed nodes, a drag across every slab, a blade cutting through the
+slab boundaries half way), explicit and implicit, 6 and 26 neighbours; the slab bookkeeping and bad
+input on one process."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import torchdeform as td
+from torchdeform.distributed.domain import decompose, decomposed_simulate, slab_rows
+from torchdeform.topology import cut
+
+from . import domain_cases as cases
+
+HERE = Path(__file__).parent
+
+
+def reference(name, with_cut=True):
+    """One process: ``simulate`` with the blade applied after the step that reaches its time."""
+    model, integrator, ((at, blade),) = cases.build(name)
+
+    def cut_once(i, state):
+        if with_cut and abs(state.t - at) < 1e-6 * cases.DT:
+            cut(model, state.x, blade)
+    _, rec = td.simulate(model, cases.start(model), cases.DT, cases.STEPS, integrator, record_every=10,
+                         callback=cut_once, warn=False)
+    return rec
+
+
+def launch(n, out, names):
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", str(n),
+           str(HERE / "domain_cases.py"), str(out), *names]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=240, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert done.returncode == 0, done.stderr[:3000] + "\n...\n" + done.stderr[-3000:]
+
+
+# 2 ranks: every case; 3 ranks (a middle slab with two halos): one explicit and one implicit case
+RUNS = {2: list(cases.CASES), 3: ["rk4_26", "implicit6"]}
+
+
+@pytest.mark.parametrize("ranks", sorted(RUNS))
+def test_ranks_follow_the_single_process_trajectory(tmp_path, ranks):
+    launch(ranks, tmp_path, RUNS[ranks])
+    for name in RUNS[ranks]:
+        rec = reference(name)
+        got = np.load(tmp_path / f"{name}.npz")
+        assert got["x"].shape == tuple(rec["x"].shape) == (11, 1, 3) + cases.SHAPE
+        np.testing.assert_array_equal(got["t"], rec["t"].numpy())
+        tol = 1e-12 if name.startswith("implicit") else 0.0    # explicit: the same bits; CG sums differ
+        assert np.abs(got["x"] - rec["x"].numpy()).max() <= tol, name
+        assert np.abs(got["v"] - rec["v"].numpy()).max() <= tol, name
+        # every exchange sent one layer each way per inner boundary: B x C x H x W doubles
+        layer = 3 * cases.SHAPE[1] * cases.SHAPE[2] * 8
+        assert int(got["bytes"]) % layer == 0 and int(got["bytes"]) >= int(got["exchanges"]) * layer
+
+
+def test_the_cases_exercise_the_cut_and_the_drag():
+    """The blade changes the trajectory (so the runs above compare a cut body), the drag moves the far face."""
+    for name in ("rk4_26", "implicit6"):
+        a, b = reference(name), reference(name, with_cut=False)
+        assert float((a["x"][-1] - b["x"][-1]).abs().max()) > 1e-5
+        assert float((a["x"][-1, 0, 2, 1:, :, -1] - a["x"][0, 0, 2, 1:, :, -1]).abs().min()) > 3e-3
+
+
+def test_slabs_cover_the_rows_and_refuse_more_ranks_than_rows():
+    for depth in (1, 2, 7, 96):
+        for world in range(1, min(depth, 5) + 1):
+            rows = slab_rows(depth, world)
+            assert rows[0][0] == 0 and rows[-1][1] == depth
+            assert all(a[1] == b[0] for a, b in zip(rows, rows[1:]))
+            sizes = [hi - lo for lo, hi in rows]
+            assert min(sizes) >= 1 and max(sizes) - min(sizes) <= 1
+    with pytest.raises(td.ConfigError, match="at most 4 ranks"):
+        slab_rows(4, 5)
+
+
+def test_a_slab_is_the_global_model_restricted_to_its_rows():
+    model, _, _ = cases.build("verlet26_law_mask")
+    for rank in range(3):
+        slab = decompose(model, rank, 3)
+        e_lo, e_hi = slab.extent
+        assert slab.grid.shape == (e_hi - e_lo,) + cases.SHAPE[1:]
+        assert torch.equal(slab.X, model.X[:, :, e_lo:e_hi])
+        assert torch.equal(slab.mass.expand(1, 1, *slab.grid.shape), model.mass[:, :, e_lo:e_hi])
+        assert torch.equal(slab.constrained, model.constrained[e_lo:e_hi])
+        assert torch.equal(slab.grid.nodes(), model.grid.nodes()[e_lo:e_hi])
+        # the forces on owned nodes equal the global forces when the halo holds the global values
+        x = model.X + 1e-3 * torch.randn(model.X.shape, generator=torch.Generator().manual_seed(rank),
+                                         dtype=torch.float64)
+        v = torch.randn(x.shape, generator=torch.Generator().manual_seed(9), dtype=torch.float64)
+        f = model.forces(x, v, 0.0)
+        lf = td.Model.forces(slab, x[:, :, e_lo:e_hi].clone(), v[:, :, e_lo:e_hi].clone(), 0.0)
+        assert torch.equal(lf[:, :, slab.owned], f[:, :, slab.rows[0]:slab.rows[1]])
+    from torchdeform.interact import StrainLimit
+    model.interactions = [StrainLimit()]
+    with pytest.raises(td.ConfigError, match="tool interactions"):
+        decompose(model, 0, 2)
+
+
+def test_one_process_is_simulate(tmp_path):
+    model, integrator, cuts = cases.build("implicit26")
+    run = decomposed_simulate(model, cases.start(model), cases.DT, 20, integrator, record_every=5)
+    model, integrator, _ = cases.build("implicit26")
+    final, rec = td.simulate(model, cases.start(model), cases.DT, 20, integrator, record_every=5, warn=False)
+    assert torch.equal(run.final.x, final.x) and torch.equal(run.record["x"], rec["x"])
+    assert run.comm_s == 0 and run.model.halo.exchanges == 0
+
+
+def test_unsupported_integrators_are_refused():
+    model, _, _ = cases.build("symplectic6")
+    with pytest.raises(td.ConfigError, match="domain-decomposed"):
+        decomposed_simulate(model, model.rest_state(), 1e-4, 2, td.ProjectiveDynamics())
