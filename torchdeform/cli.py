@@ -1,6 +1,6 @@
 """The ``torchdeform`` command.
 
-    torchdeform run SCENE.toml --out DIR     run a scene file
+    torchdeform run SCENE.toml --out DIR     run a scene file (torchrun ... -m torchdeform run: split over ranks)
     torchdeform demo --out DIR               run the built-in demo scene
     torchdeform bench speed [--quick] [--json]
     torchdeform fuzzy show FILE.fis                      variables, terms, rules
@@ -46,7 +46,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     # name, help line, adds the arguments, runs the command
     commands = [
-        ("run", "run a scene file (TOML)", scene.add_run_arguments, scene.run_command),
+        ("run", "run a scene file (TOML); under torchrun, its body split over the ranks", scene.add_run_arguments,
+         distributed.run_command),
         ("demo", "run the built-in demo: a soft cube, fixed base, top centre dragged", scene.add_demo_arguments,
          scene.demo_command),
         ("bench", "benchmarks", bench.add_arguments, bench.main),

@@ -117,3 +117,74 @@ def test_unsupported_integrators_are_refused():
     model, _, _ = cases.build("symplectic6")
     with pytest.raises(td.ConfigError, match="domain-decomposed"):
         decomposed_simulate(model, model.rest_state(), 1e-4, 2, td.ProjectiveDynamics())
+
+
+SCENE = """\
+[grid]
+shape = [6, 4, 5]
+spacing = 0.01
+topology = 26
+[material]
+stiffness = 300.0
+damping = 0.2
+[mass]
+density = 1000.0
+[boundary]
+fixed = "bottom"
+gravity = [-9.81, 0.0, 0.0]
+[[drags]]
+face = "w+"
+path = [[0.0, [0.0, 0.0, 0.0]], [0.02, [0.0, 0.0, 0.003]]]
+[[cuts]]
+origin = [-0.005, 0.015, -0.005]
+u = [0.08, 0.0, 0.0]
+v = [0.0, 0.0, 0.025]
+at = 0.01
+[integrator]
+name = "{name}"
+dt = 2e-4
+steps = 100
+[output]
+record_every = 20
+"""
+
+
+@pytest.mark.parametrize("integrator", ["rk4"])
+def test_the_same_scene_file_runs_on_two_ranks(tmp_path, integrator):
+    """``torchrun -m torchdeform run`` writes the one-process outputs (same trajectory, energies after the cut)."""
+    scene = tmp_path / "slab.toml"
+    scene.write_text(SCENE.replace("{name}", integrator))
+    from torchdeform import cli
+    assert cli.main(["run", str(scene), "--out", str(tmp_path / "one"), "--quiet"]) == 0
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", "-m", "torchdeform",
+           "run", str(scene), "--out", str(tmp_path / "two"), "--quiet"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "domain-decomposed" not in done.stderr
+    one, two = np.load(tmp_path / "one" / "trajectory.npz"), np.load(tmp_path / "two" / "trajectory.npz")
+    for key in ("t", "x", "v", "kinetic", "elastic", "total"):
+        np.testing.assert_array_equal(one[key], two[key], err_msg=key)
+    import json
+    summary = json.loads((tmp_path / "two" / "summary.json").read_text())
+    assert summary["domain"]["ranks"] == 2 and [p["rows"] for p in summary["domain"]["per_rank"]] == [[0, 3], [3, 6]]
+    assert all(p["exchanges"] == 4 * 100 + 1 for p in summary["domain"]["per_rank"])     # RK4: 4 per step, 1 cut
+
+
+@pytest.mark.parametrize("ranks,edit,match", [
+    (3, ("shape = [6, 4, 5]", "shape = [2, 4, 5]"), "at most 2 ranks"),
+    (2, ("[output]", "[[cautery]]\ntool = \"probe\"\nat = 0.0\n[[tools]]\nname = \"probe\"\nshape = \"sphere\"\n"
+                     "radius = 0.002\ncontact = \"none\"\npath = [[0.0, [0.05, 0.02, 0.02]]]\n[output]"), "tools"),
+])
+def test_bad_input_stops_every_rank_with_one_line(tmp_path, ranks, edit, match):
+    text = SCENE.replace("{name}", "rk4")
+    if edit:
+        text = text.replace(*edit)
+    scene = tmp_path / "bad.toml"
+    scene.write_text(text)
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", str(ranks), "-m",
+           "torchdeform", "run", str(scene), "--out", str(tmp_path / "out"), "--quiet"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert done.returncode != 0
+    ours = [line for line in done.stderr.splitlines() if line.startswith("torchdeform:")]
+    assert len(ours) == 1 and match in ours[0], done.stderr[-2000:]
+    assert "exitcode  : 2" in done.stderr and not (tmp_path / "out").exists()     # (then torchrun's own report)

@@ -1,8 +1,12 @@
-"""``torchdeform sweep``: a parameter sweep over a scene file, on one process or spread over ranks.
+"""``torchdeform sweep`` over ranks, and ``torchdeform run`` of one body split over ranks.
 
     torchdeform sweep SCENE.toml --set material.stiffness=1,2,4 --set integrator.dt=1e-4,2e-4 --out DIR
     torchdeform sweep SCENE.toml --points POINTS.csv --out DIR
     torchrun --nproc-per-node 4 -m torchdeform sweep SCENE.toml --set ... --out DIR
+    torchrun --nproc-per-node 2 -m torchdeform run SCENE.toml --out DIR      (slabs along D, one halo layer)
+
+Under ``torchrun``, ``run`` decomposes the scene's body (:mod:`torchdeform.distributed.domain`);
+rank 0 writes the same outputs as one process, plus a ``"domain"`` part in ``summary.json``.
 
 Every rank checks every point's scene before any collective call, so bad input (a key that does
 not exist, a value of the wrong type) ends every rank with exit status 2 and one line, printed
@@ -15,7 +19,7 @@ import os
 import sys
 from pathlib import Path
 
-__all__ = ["add_arguments", "command", "rank_and_world"]
+__all__ = ["add_arguments", "command", "rank_and_world", "run_command"]
 
 
 def add_arguments(p) -> None:
@@ -46,6 +50,108 @@ def command(args) -> int:
         if rank == 0:
             print(f"torchdeform: {e}", file=sys.stderr)
         return 2
+
+
+def run_command(args) -> int:
+    """``torchdeform run``: one process as usual; under ``torchrun`` (2 or more ranks) the body split over ranks."""
+    rank, world = rank_and_world()
+    if world <= 1:
+        from ..scene.commands import run_command as run_one
+        return run_one(args)
+    from ..errors import TorchdeformError
+    try:
+        return _run_decomposed(args, rank, world)
+    except TorchdeformError as e:
+        if rank == 0:
+            print(f"torchdeform: {e}", file=sys.stderr)
+        return 2
+
+
+def scene_cuts(scene) -> list:
+    """``[(time, blade), ...]`` of a scene's ``[[cuts]]`` blades; anything else a decomposed run cannot do is refused."""
+    from ..errors import ConfigError
+    topo = scene.topology
+    if scene.tools is not None and (scene.tools.tools or getattr(scene.tools, "strain_limit", None)):
+        raise ConfigError("tools", "no [[tools]] or [strain_limit] in a domain-decomposed run (they need the whole "
+                                   "body); run it on one rank", "tools")
+    if topo is None:
+        return []
+    for key, items in (("cautery", topo.cautery), ("tear", topo.tear), ("coagulate", topo.coagulate),
+                       ("output.surfaces", topo.surfaces)):
+        if items:
+            raise scene.source.error(key, "only [[cuts]] blades in a domain-decomposed run; run it on one rank",
+                                     key)
+    out = []
+    for c in topo.cuts:
+        if "blade" not in c:
+            raise scene.source.error(c["key"] + ".tool", "a blade (origin/u/v, triangle, edges) in a "
+                                     "domain-decomposed run, not a scalpel", c.get("tool"))
+        if c.get("gape"):
+            raise scene.source.error(c["key"] + ".gape", "0 in a domain-decomposed run (pre-tension reaches "
+                                     "springs beyond the one-layer halo)", c["gape"])
+        out.append((c["at"], c["blade"]))
+    return out
+
+
+def _run_decomposed(args, rank: int, world: int) -> int:
+    import torch
+
+    from ..errors import ConfigError
+    from ..scene.mass_spring import EXPLICIT, Scene
+    from ..scene.run import finish_outputs, load_scene, one_line_warnings, report, run_outputs
+    from ..sim.stability import check_dt, time_step_bound
+    from .domain import SUPPORTED_INTEGRATORS, decomposed_simulate, slab_rows
+    with one_line_warnings():
+        scene = load_scene(args.scene)
+        if not isinstance(scene, Scene):
+            raise ConfigError("model", "a mass-spring scene in a domain-decomposed run", "chainmail")
+        if getattr(args, "animation", False) or scene.animation or scene.volume or scene.texture:
+            raise ConfigError("run", "no animation, [volume] or [texture] in a domain-decomposed run (yet); "
+                                     "run it on one rank", "torchrun")
+        integrator = scene.integrator
+        if integrator.name not in SUPPORTED_INTEGRATORS:
+            raise scene.source.error("integrator.name", f"one of {', '.join(SUPPORTED_INTEGRATORS)} in a "
+                                     "domain-decomposed run", integrator.name)
+        cuts = scene_cuts(scene)
+        slab_rows(scene.grid.shape[0], world)                      # more ranks than rows: refused before any work
+        device = args.device
+        if device is None and (scene.device or "cpu").startswith("cuda"):
+            device = f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}"
+        model = scene.build(device)
+        bound = time_step_bound(model, integrator)
+        dt = scene.time_step(bound)
+        if scene.topology is not None and scene.topology.checked_end is None:
+            scene.topology.check(scene.steps * dt)
+        if integrator.name in EXPLICIT and rank == 0:
+            check_dt(model, dt, integrator, bound)
+        out = Path(args.out)
+        if out.exists() and not out.is_dir():
+            raise ConfigError("--out", "a folder", str(out))
+        import torch.distributed as dist
+        if not dist.is_initialized():
+            dist.init_process_group("nccl" if model.device.type == "cuda" else "gloo")
+        if model.device.type == "cuda":
+            torch.cuda.set_device(model.device)
+        try:
+            run = decomposed_simulate(model, model.rest_state(), dt, scene.steps, integrator,
+                                      record_every=scene.frames_every, progress=not args.quiet, cuts=cuts)
+            parts = [None] * world
+            dist.all_gather_object(parts, run.summary())
+            if rank == 0:
+                out.mkdir(parents=True, exist_ok=True)
+                engine = {"requested": scene.engine, "ran": "eager", "why": f"domain-decomposed over {world} ranks",
+                          "eager_ms_per_step": None, "compile_s": None, "force_form": None}
+                summary, (t, _, _, series) = run_outputs(scene, run.whole, integrator, dt, bound, run.final,
+                                                         run.record, run.wall_s, engine, out)
+                summary["domain"] = {"ranks": world, "axis": "D", "halo_rows": 1, "per_rank": parts,
+                                     "comm_share": max(p["comm_share"] for p in parts)}
+                finish_outputs(summary, out, t, series,
+                               f"{scene.name}: {integrator.name}, dt = {dt:.3g} s, {world} ranks")
+                print(report(summary, args.out))
+        finally:
+            dist.barrier()
+            dist.destroy_process_group()
+    return 0
 
 
 def _points(args) -> tuple[list, list]:

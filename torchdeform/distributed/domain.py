@@ -249,6 +249,8 @@ class DecomposedRun:
         final: the global final state on rank 0 (gathered), None on other ranks.
         record: on rank 0, ``{"t": (T,), "x": (T, B, 3, D, H, W), "v": ...}`` of the recorded
             steps (empty without ``record_every``); empty on other ranks.
+        whole: on rank 0, the global model with the spring fields the run edited (cuts) gathered
+            from the slabs (its energies then count only the springs left); None elsewhere.
         local: this rank's final slab state (with its halo rows).
         model: this rank's :class:`SlabModel`.
         wall_s: wall time of the steps (s).
@@ -257,6 +259,7 @@ class DecomposedRun:
     """
     final: State | None
     record: dict
+    whole: Model | None
     local: State
     model: SlabModel
     wall_s: float
@@ -355,21 +358,28 @@ def decomposed_simulate(model: Model, state: State, dt: float, steps: int, integ
                     raise DivergenceError(i, "position or velocity", math.nan, dt, None)
             if record_every and i % record_every == 0:
                 keep(st)
-    final, rec = _gather(local, st, ts, xs, vs, rank, world, group)
-    return DecomposedRun(final, rec, st, local, wall, local.halo.seconds, steps)
+    final, rec, whole = _gather(local, st, ts, xs, vs, rank, world, group)
+    return DecomposedRun(final, rec, whole, st, local, wall, local.halo.seconds, steps)
+
+
+#: the spring fields a run may edit (cuts), stored at each spring's first node
+EDITED = ("stiffness", "damping", "rest_length")
 
 
 def _gather(local: SlabModel, st: State, ts, xs, vs, rank: int, world: int, group):
-    """The final state and the records, gathered to rank 0 (None and ``{}`` elsewhere)."""
+    """The final state, the records and the edited global model, gathered to rank 0 (None elsewhere)."""
     own = local.owned
+    shape = local.grid.shape
+    edited = {name: getattr(local, name)[..., own, :, :].cpu() for name in EDITED
+              if torch.is_tensor(getattr(local, name)) and tuple(getattr(local, name).shape[-3:]) == shape}
     mine = (st.x[:, :, own].detach().cpu(), st.v[:, :, own].detach().cpu(),
-            torch.stack(xs) if xs else None, torch.stack(vs) if vs else None)
+            torch.stack(xs) if xs else None, torch.stack(vs) if vs else None, edited)
     if world > 1:
         import torch.distributed as dist
         parts = [None] * world if rank == 0 else None
         dist.gather_object(mine, parts, dst=0, group=group)
         if rank != 0:
-            return None, {}
+            return None, {}, None
     else:
         parts = [mine]
     dev = st.x.device
@@ -378,4 +388,7 @@ def _gather(local: SlabModel, st: State, ts, xs, vs, rank: int, world: int, grou
     if xs:
         rec = {"t": torch.tensor(ts, dtype=torch.float64), "x": torch.cat([p[2] for p in parts], 3),
                "v": torch.cat([p[3] for p in parts], 3)}
-    return final, rec
+    whole = copy.copy(local.whole)
+    for name in parts[0][4]:
+        setattr(whole, name, torch.cat([p[4][name] for p in parts], -3).to(dev))
+    return final, rec, whole

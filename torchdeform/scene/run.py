@@ -256,6 +256,53 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
                           progress=progress, warn=False, callback=callback, engine=engine)
     wall = time.perf_counter() - start
 
+    summary, (t, x, v, series) = run_outputs(scene, model, integrator, dt, bound, final, rec, wall, engine.summary(),
+                                             out)
+    grid = model.grid
+    if recorder is not None:
+        summary.update(tool_outputs(scene.tools, recorder.series(), (t, support_series(model, t, x, v)), out,
+                                    f"{scene.name}: {integrator.name}, dt = {dt:.3g} s"))
+    if events is not None:
+        summary["topology"] = events.outputs(final, out, f"{scene.name}: {integrator.name}, dt = {dt:.3g} s")
+    texture = None
+    if scene.texture:
+        texture, seams = scene_texture(scene.texture, grid)
+        labels = events.pieces() if events is not None else torch.where(grid.nodes(), 0, -1)
+        summary["texture"] = scene_texture_outputs(texture, grid, final.x[:1], labels, out)
+        summary["texture"]["seams"] = seams
+    if scene.volume:
+        spec = dict(scene.volume)
+        cut = None if events is None else (grid, events.pieces())          # a cut body: a carved render
+        summary["volume"] = scene_volume_outputs(spec.pop("file"), final.x[:1], model.X, grid.spacing, out, cut=cut,
+                                                 **spec)
+    if scene.animation:
+        labels = events.pieces() if events is not None else None
+        tools = None if recorder is None else recorder.series()
+        summary["animation"] = scene_animation(scene, model, t, x, v, out, labels=labels, tools=tools,
+                                               texture=texture, progress=progress)
+    finish_outputs(summary, out, t, series, f"{scene.name}: {integrator.name}, dt = {dt:.3g} s")
+    return summary
+
+
+def finish_outputs(summary: dict, out: Path, t: np.ndarray, series: dict, title: str) -> None:
+    """Write ``summary.json`` (series on one line each) and ``energy.png`` (:func:`plot_energy`)."""
+    text = json.dumps(summary, indent=2)
+    if "tools" in summary:                # each series (lists of numbers, lists of those) on one line
+        text = re.sub(r"\[\s+([-+\d.eE,\s]+?)\s+\]", lambda m: "[" + ", ".join(re.split(r",\s*", m.group(1))) + "]",
+                      text)
+        text = re.sub(r"\[\s+(\[[^\[\]]*\](?:,\s+\[[^\[\]]*\])*)\s+\]",
+                      lambda m: "[" + ", ".join(re.split(r"(?<=\]),\s+", m.group(1))) + "]", text)
+    (out / "summary.json").write_text(text + "\n")
+    plot_energy(out / "energy.png", t, series, title)
+
+
+def run_outputs(scene: Scene, model: Model, integrator, dt: float, bound: float, final, rec: dict, wall: float,
+                engine_summary: dict, out: Path) -> tuple:
+    """Write ``trajectory.npz`` of a run; return the summary's common part and ``(t, x, v, series)``.
+
+    ``rec`` is :func:`~torchdeform.sim.engine.simulate`'s record of the whole body (the last frame
+    is appended when the run did not end on one); ``series`` that of :func:`energy_series`.
+    """
     t, x, v = rec["t"].numpy(), rec["x"][:, 0], rec["v"][:, 0]
     if scene.steps % scene.frames_every:
         t = np.append(t, final.t)
@@ -281,7 +328,7 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
         "stability_bound_method": _bound_method(integrator.name),
         "wall_time_s": wall,
         "steps_per_s": scene.steps / wall if wall > 0 else None,
-        "engine": engine.summary(),
+        "engine": engine_summary,
         "nodes": grid.num_nodes,
         "springs": grid.num_springs,
         "grid": {"shape": list(grid.shape), "spacing": list(grid.spacing), "origin": list(grid.origin),
@@ -296,36 +343,7 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
         "peak_displacement_m": float(series["max_displacement"].max()),
         "max_free_displacement_m": float(series["max_free_displacement"][-1]),
     }
-    if recorder is not None:
-        summary.update(tool_outputs(scene.tools, recorder.series(), (t, support_series(model, t, x, v)), out,
-                                    f"{scene.name}: {integrator.name}, dt = {dt:.3g} s"))
-    if events is not None:
-        summary["topology"] = events.outputs(final, out, f"{scene.name}: {integrator.name}, dt = {dt:.3g} s")
-    texture = None
-    if scene.texture:
-        texture, seams = scene_texture(scene.texture, grid)
-        labels = events.pieces() if events is not None else torch.where(grid.nodes(), 0, -1)
-        summary["texture"] = scene_texture_outputs(texture, grid, final.x[:1], labels, out)
-        summary["texture"]["seams"] = seams
-    if scene.volume:
-        spec = dict(scene.volume)
-        cut = None if events is None else (grid, events.pieces())          # a cut body: a carved render
-        summary["volume"] = scene_volume_outputs(spec.pop("file"), final.x[:1], model.X, grid.spacing, out, cut=cut,
-                                                 **spec)
-    if scene.animation:
-        labels = events.pieces() if events is not None else None
-        tools = None if recorder is None else recorder.series()
-        summary["animation"] = scene_animation(scene, model, t, x, v, out, labels=labels, tools=tools,
-                                               texture=texture, progress=progress)
-    text = json.dumps(summary, indent=2)
-    if "tools" in summary:                # each series (lists of numbers, lists of those) on one line
-        text = re.sub(r"\[\s+([-+\d.eE,\s]+?)\s+\]", lambda m: "[" + ", ".join(re.split(r",\s*", m.group(1))) + "]",
-                      text)
-        text = re.sub(r"\[\s+(\[[^\[\]]*\](?:,\s+\[[^\[\]]*\])*)\s+\]",
-                      lambda m: "[" + ", ".join(re.split(r"(?<=\]),\s+", m.group(1))) + "]", text)
-    (out / "summary.json").write_text(text + "\n")
-    plot_energy(out / "energy.png", t, series, f"{scene.name}: {integrator.name}, dt = {dt:.3g} s")
-    return summary
+    return summary, (t, x, v, series)
 
 
 def _chain(*callbacks):
