@@ -33,6 +33,8 @@ BENCHES = {
               "volume render) on Punak's grid sizes, against his GeForce 8800 GTS rates", "frame"),
     "viewer": ("the browser viewer's page in headless chromium: frames drawn and received per second on a 16^3 "
                "and a 32^3 body, optionally beside a busy process", "viewer"),
+    "distributed": ("a 64-point sweep and a 96^3 body split into slabs, on 1 and 2 ranks (torchrun, gloo): wall "
+                    "time, ms per step, communication share, halo bytes", "distributed"),
     "learn": ("a training iteration of Radetzky's per-spring run, eager and compiled: seconds, speed-up, and how "
               "far the learned values agree after each iteration", "learn"),
 }
