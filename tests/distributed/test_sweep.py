@@ -14,26 +14,10 @@ import pytest
 
 import torchdeform as td
 from torchdeform import cli
+from torchdeform.bench.distributed import SWEEP_SCENE
 from torchdeform.distributed.sweep import parse_set, product, read_points
 
-SCENE = """\
-[grid]
-shape = [4, 4, 5]
-spacing = 0.01
-topology = 26
-[material]
-stiffness = 50.0
-damping = 0.05
-[mass]
-density = 1000.0
-[boundary]
-fixed = "bottom"
-gravity = [-9.81, 0.0, 0.0]
-[integrator]
-name = "symplectic"
-dt = 1e-4
-steps = {steps}
-"""
+SCENE = SWEEP_SCENE                      # the cube the bench sweeps too
 SETS = ["material.stiffness=25,50,100", "integrator.dt=1e-4,2e-4"]
 
 

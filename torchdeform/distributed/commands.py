@@ -42,25 +42,23 @@ def rank_and_world() -> tuple[int, int]:
 
 def command(args) -> int:
     """Run the sweep; on rank 0 write the table and the plot. Returns the exit status."""
-    from ..errors import TorchdeformError
-    rank, world = rank_and_world()
-    try:
-        return _sweep(args, rank, world)
-    except TorchdeformError as e:
-        if rank == 0:
-            print(f"torchdeform: {e}", file=sys.stderr)
-        return 2
+    return _on_every_rank(_sweep, args)
 
 
 def run_command(args) -> int:
     """``torchdeform run``: one process as usual; under ``torchrun`` (2 or more ranks) the body split over ranks."""
-    rank, world = rank_and_world()
-    if world <= 1:
+    if rank_and_world()[1] <= 1:
         from ..scene.commands import run_command as run_one
         return run_one(args)
+    return _on_every_rank(_run_decomposed, args)
+
+
+def _on_every_rank(work, args) -> int:
+    """``work(args, rank, world)``; a user's mistake is exit status 2 on every rank and one line, from rank 0."""
     from ..errors import TorchdeformError
+    rank, world = rank_and_world()
     try:
-        return _run_decomposed(args, rank, world)
+        return work(args, rank, world)
     except TorchdeformError as e:
         if rank == 0:
             print(f"torchdeform: {e}", file=sys.stderr)

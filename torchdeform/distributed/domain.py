@@ -350,8 +350,8 @@ def decomposed_simulate(model: Model, state: State, dt: float, steps: int, integ
             st = integrator.step(local, st, dt)
             wall += time.perf_counter() - t0
             if i % check_every == 0 or i == steps:
-                ok = torch.tensor([float(bool(torch.isfinite(st.x[:, :, own]).all())
-                                         and bool(torch.isfinite(st.v[:, :, own]).all()))])
+                ok = (torch.isfinite(st.x[:, :, own]).all() & torch.isfinite(st.v[:, :, own]).all()).to(
+                    st.x.dtype).reshape(1)                         # on the state's device (NCCL reduces there)
                 if world > 1:
                     dist.all_reduce(ok, op=dist.ReduceOp.MIN, group=group)
                 if ok.item() < 1:
