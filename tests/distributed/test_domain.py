@@ -170,21 +170,27 @@ def test_the_same_scene_file_runs_on_two_ranks(tmp_path, integrator):
     assert all(p["exchanges"] == 4 * 100 + 1 for p in summary["domain"]["per_rank"])     # RK4: 4 per step, 1 cut
 
 
-@pytest.mark.parametrize("ranks,edit,match", [
-    (3, ("shape = [6, 4, 5]", "shape = [2, 4, 5]"), "at most 2 ranks"),
-    (2, ("[output]", "[[cautery]]\ntool = \"probe\"\nat = 0.0\n[[tools]]\nname = \"probe\"\nshape = \"sphere\"\n"
-                     "radius = 0.002\ncontact = \"none\"\npath = [[0.0, [0.05, 0.02, 0.02]]]\n[output]"), "tools"),
-])
-def test_bad_input_stops_every_rank_with_one_line(tmp_path, ranks, edit, match):
-    text = SCENE.replace("{name}", "rk4")
-    if edit:
-        text = text.replace(*edit)
+def test_more_ranks_than_rows_stops_every_rank_with_one_line(tmp_path):
     scene = tmp_path / "bad.toml"
-    scene.write_text(text)
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", str(ranks), "-m",
+    scene.write_text(SCENE.replace("{name}", "rk4").replace("shape = [6, 4, 5]", "shape = [2, 4, 5]"))
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "3", "-m",
            "torchdeform", "run", str(scene), "--out", str(tmp_path / "out"), "--quiet"]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert done.returncode != 0
     ours = [line for line in done.stderr.splitlines() if line.startswith("torchdeform:")]
-    assert len(ours) == 1 and match in ours[0], done.stderr[-2000:]
-    assert "exitcode  : 2" in done.stderr and not (tmp_path / "out").exists()     # (then torchrun's own report)
+    assert len(ours) == 1 and "at most 2 ranks" in ours[0], done.stderr[-2000:]
+    assert "exitcode  : 2" in done.stderr and not (tmp_path / "out").exists()   # (then torchrun's report)
+
+
+@pytest.mark.parametrize("edit,match", [
+    (("[output]", "[[cautery]]\ntool = \"probe\"\nat = 0.0\n[[tools]]\nname = \"probe\"\nshape = \"sphere\"\n"
+                  "radius = 0.002\ncontact = \"none\"\npath = [[0.0, [0.05, 0.02, 0.02]]]\n[output]"), "tools"),
+    (("at = 0.01", "at = 0.01\ngape = 0.2"), "gape"),
+    (("[output]", "[tear]\nmax_strain = 0.5\n[output]"), "tear"),
+])
+def test_what_a_decomposed_run_cannot_do_is_refused(tmp_path, edit, match):
+    from torchdeform.distributed.commands import scene_cuts
+    scene = tmp_path / "bad.toml"
+    scene.write_text(SCENE.replace("{name}", "rk4").replace(*edit))
+    with pytest.raises(td.ConfigError, match=match):
+        scene_cuts(td.load_scene(scene))
