@@ -17,6 +17,12 @@ Examples:
     python training/fit_cube.py --long 2000 --checkpoint 100 --out runs/long   # BPTT memory
     python training/fit_cube.py --runs 2 --engine compiled --out runs/cube-compiled
     python training/fit_cube.py --integrator implicit --runs 3 --out runs/cube-stiff   # stiff cube, dt 50x bound
+    torchrun --standalone --nproc-per-node 2 training/fit_cube.py --runs 3 --out runs/cube-2ranks
+
+Under ``torchrun`` the teacher-forcing windows are shared out over the ranks (data-parallel,
+gloo; torchdeform.distributed.data_parallel): each rank simulates its block of windows, losses
+and gradients are summed over the ranks, and the fit equals the one-process fit to rounding.
+Rank 0 writes the results and plots. Without torchrun the script is one process.
 
 With ``--integrator implicit`` the cube is 1000x stiffer (k = 1e4 N/m, d = 3.16 N s/m: the same
 damping ratio) and stepped by implicit Euler at ``--dt-factor`` (default 50) times the explicit
@@ -38,6 +44,7 @@ import torch
 
 import torchdeform as td
 from torchdeform import learn
+from torchdeform.distributed import data_parallel
 
 
 def parse_args(argv=None):
@@ -97,11 +104,12 @@ def train(params, loss, args, iterations, name, out):
         first = float(loss(params))
     it = iterations if args.iterations is None else args.iterations
     trainer = learn.Trainer(params, loss, optimizer=args.optimizer, lr=args.lr, iterations=it,
-                            patience=5 if args.optimizer == "lbfgs" else 50, tol=1e-26, progress=not args.quiet)
+                            patience=5 if args.optimizer == "lbfgs" else 50, tol=1e-26, progress=progress(args))
     trainer.run()
     final = trainer.final_loss()
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    learn.plot_history(trainer.history, out / f"{name}_loss.png", title=f"{name}: loss")
+    if data_parallel.is_main():
+        learn.plot_history(trainer.history, out / f"{name}_loss.png", title=f"{name}: loss")
     return {"initial_loss": first, "final_loss": final, "loss_drop": first / max(final, 1e-300),
             "iterations": trainer.iteration, "stopped": trainer.stopped or "iteration limit",
             "wall_seconds": wall, "cpu_seconds": cpu, "history": learn.history_dicts(trainer.history)}
@@ -141,13 +149,20 @@ def stiff_cube(args):
     return series
 
 
+def progress(args) -> bool:
+    """Progress bars: unless --quiet, and on rank 0 only."""
+    return not args.quiet and data_parallel.is_main()
+
+
 def make_loss(series, args):
+    """The window loss of the fit, shared out over the ranks under torchrun."""
     noisy = series.meta.get("noise", 0.0) > 0
     window = args.window if args.window is not None else (50 if noisy else 10)
     smooth = args.smooth if args.smooth is not None else (10 if noisy else 0)
     integrator = implicit_integrator(args) if args.integrator == "implicit" else None
-    return learn.WindowLoss(series, window=None if window == 0 else window, smooth=smooth,
-                            checkpoint=args.checkpoint or None, engine=args.engine, integrator=integrator)
+    return data_parallel.parallel_loss(
+        learn.WindowLoss(series, window=None if window == 0 else window, smooth=smooth,
+                         checkpoint=args.checkpoint or None, engine=args.engine, integrator=integrator))
 
 
 def per_spring_run(series, args, out, with_mass: bool) -> dict:
@@ -163,12 +178,14 @@ def per_spring_run(series, args, out, with_mass: bool) -> dict:
     for key, mod, true in (("stiffness", k, tk), ("damping", c, tc)):
         v = mod.values().detach()
         spread[key] = learn.spread_report(v[active], true[active])
-        learn.plot_spread(v[active], true[active], out / f"{name}_spread_{key}.png", f"{name}: {key}")
+        if data_parallel.is_main():
+            learn.plot_spread(v[active], true[active], out / f"{name}_spread_{key}.png", f"{name}: {key}")
     if with_mass:
         free = torch.as_tensor(~series.constrained())[series.grid.nodes()]
         v, tm = params.learned["mass"].values().detach(), truth["mass"]
         spread["mass"] = learn.spread_report(v[free], tm[free])
-        learn.plot_spread(v[free], tm[free], out / f"{name}_spread_mass.png", f"{name}: mass (free nodes)")
+        if data_parallel.is_main():
+            learn.plot_spread(v[free], tm[free], out / f"{name}_spread_mass.png", f"{name}: mass (free nodes)")
     res.update({"spread": spread, "springs": n, "inactive_springs": int((~active).sum()),
                 "note": "springs between two fixed nodes never move and are left out of the spread"})
     if not args.no_curvature:
@@ -184,11 +201,12 @@ def long_run(args, out) -> dict:
     kt, ct = series.meta["truth"]["stiffness"], series.meta["truth"]["damping"]
     params = learn.Parameters(series, learn.SpringParameter.like(series, kt * 2.0),
                               learn.SpringParameter.like(series, ct * 0.5), series.truth["mass"])
-    loss = learn.WindowLoss(series, window=None, checkpoint=args.checkpoint or None, engine=args.engine)
+    loss = data_parallel.parallel_loss(learn.WindowLoss(series, window=None, checkpoint=args.checkpoint or None,
+                                                        engine=args.engine))     # one window: rank 0 runs it
     before = current_rss_mb()
     t0, c0 = time.perf_counter(), time.process_time()
     trainer = learn.Trainer(params, loss, optimizer="adam", lr=args.lr or 0.05,
-                            iterations=args.iterations or 3, patience=100, progress=not args.quiet)
+                            iterations=args.iterations or 3, patience=100, progress=progress(args))
     trainer.run()
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     losses = [r.loss for r in trainer.history]
@@ -201,7 +219,9 @@ def long_run(args, out) -> dict:
 
 
 def main(argv=None) -> int:
-    return learn.run_script("fit_cube.py", parse_args(argv), fit, summary)
+    args = parse_args(argv)
+    with data_parallel.process_group():            # under torchrun: gloo over the ranks; else nothing
+        return learn.run_script("fit_cube.py", args, fit, summary)
 
 
 def fit(args, out) -> dict:
@@ -220,7 +240,8 @@ def fit(args, out) -> dict:
         result = {"series": {k: v for k, v in series.meta.items() if k != "loads"},
                   "optimizer": args.optimizer, "runs": {}}
         for r in runs:
-            print(f"run {r} ...", file=sys.stderr)
+            if data_parallel.is_main():
+                print(f"run {r} ...", file=sys.stderr)
             result["runs"][str(r)] = shared_run(series, args, out) if r == 3 else \
                 per_spring_run(series, args, out, with_mass=(r == 1))
     return result

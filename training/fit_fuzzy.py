@@ -17,6 +17,10 @@ values the system gives at the target slider value; training starts from another
 Examples:
     python training/fit_fuzzy.py --out runs/fuzzy                         # slider, SUSILAP-G
     python training/fit_fuzzy.py --learn membership --init 7.0 --out runs/fuzzy-mf
+    torchrun --standalone --nproc-per-node 2 training/fit_fuzzy.py --out runs/fuzzy-2ranks
+
+Under ``torchrun`` the cube's teacher-forcing windows are shared out over the ranks (data-parallel)
+and rank 0 writes the results.
 
 Writes DIR/result.json (target and learned stiffness/viscosity, slider values, relative errors,
 loss history, wall and CPU time) and DIR/loss.png, DIR/scan.png.
@@ -30,6 +34,7 @@ import numpy as np
 import torch
 
 from torchdeform import fuzzy, learn
+from torchdeform.distributed import data_parallel
 
 
 def parse_args(argv=None):
@@ -52,7 +57,9 @@ def parse_args(argv=None):
 
 
 def main(argv=None) -> int:
-    return learn.run_script("fit_fuzzy.py", parse_args(argv), fit, summary)
+    args = parse_args(argv)
+    with data_parallel.process_group():            # under torchrun: gloo over the ranks; else nothing
+        return learn.run_script("fit_fuzzy.py", args, fit, summary)
 
 
 def fit(args, out) -> dict:
@@ -66,7 +73,8 @@ def fit(args, out) -> dict:
     fs = learn.FuzzySprings(fuzzy.load_preset(args.preset), {name: args.init}, grid=series.grid,
                             spring_mask=series.spring_mask_tensor(), learn=args.learn)
     params = learn.Parameters(series, fs.part("stiffness"), fs.part("damping"), series.truth["mass"])
-    loss = learn.WindowLoss(series, window=10)
+    loss = data_parallel.parallel_loss(learn.WindowLoss(series, window=10))
+    main = data_parallel.is_main()
     result = {"preset": args.preset, "learn": args.learn, "input": name, "target_slider": args.target,
               "initial_slider": args.init, "target": {"stiffness": kt, "damping": ct},
               "initial": {k: float(v.detach()) for k, v in fs().items()}}
@@ -84,7 +92,9 @@ def fit(args, out) -> dict:
         minima = [i for i in range(len(ls)) if ls[i] <= ls[max(i - 1, 0)] and ls[i] <= ls[min(i + 1, len(ls) - 1)]]
         starts = [float(grid[i]) for i in sorted(minima, key=lambda i: ls[i])[:3]]
         result["scan"] = {"values": grid.tolist(), "losses": losses, "starts": starts}
-        learn.plot_scan(grid, losses, args.target, out / "scan.png", xlabel=name, marker="target", title="slider scan")
+        if main:
+            learn.plot_scan(grid, losses, args.target, out / "scan.png", xlabel=name, marker="target",
+                            title="slider scan")
     best = None
     for start in starts:                          # refine each start; keep the lowest loss
         set_slider(fs, start)
@@ -92,10 +102,10 @@ def fit(args, out) -> dict:
             first = float(loss(params))
         if args.learn == "inputs":
             trainer = learn.Trainer(params, loss, optimizer="lbfgs", iterations=its, patience=5, tol=1e-26,
-                                    progress=not args.quiet)
+                                    progress=not args.quiet and main)
         else:       # small Adam steps: big quasi-Newton steps collapse trapezoids (zero gradient)
             trainer = learn.Trainer(params, loss, optimizer="adam", lr=args.lr, iterations=its, patience=50,
-                                    tol=1e-26, clip=None, progress=not args.quiet)
+                                    tol=1e-26, clip=None, progress=not args.quiet and main)
         trainer.run()
         final = trainer.final_loss()
         if best is None or final < best[0]:
@@ -114,7 +124,8 @@ def fit(args, out) -> dict:
     if args.learn == "membership":
         result["membership"] = {v.name: {t: [float(x) for x in mf.params.detach()] for t, mf in v.terms.items()}
                                 for v in fs.fis.outputs}
-    learn.plot_history(trainer.history, out / "loss.png", title=f"fuzzy fit ({args.learn})")
+    if main:
+        learn.plot_history(trainer.history, out / "loss.png", title=f"fuzzy fit ({args.learn})")
     return result
 
 

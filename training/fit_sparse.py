@@ -16,6 +16,11 @@ refines the best with L-BFGS.
 Examples:
     python training/fit_sparse.py --out runs/balloon
     python training/fit_sparse.py --noise 0.01 --velocity zero --out runs/balloon-noise
+    torchrun --standalone --nproc-per-node 2 training/fit_sparse.py --velocity zero --out runs/balloon-2ranks
+
+Under ``torchrun`` the windows (one per snapshot interval) are shared out over the ranks and rank 0
+writes the results. With ``--velocity carry`` the windows run in sequence, so every rank still
+simulates the whole series (same result, no speed-up); ``--velocity zero`` divides the work.
 
 Writes DIR/result.json (true, initial and learned stiffness, relative error, equilibrium
 volume error, loss history, wall and CPU time), DIR/loss.png and DIR/scan.png.
@@ -29,6 +34,7 @@ import numpy as np
 import torch
 
 from torchdeform import learn
+from torchdeform.distributed import data_parallel
 
 
 def parse_args(argv=None):
@@ -60,7 +66,9 @@ def volume(points: np.ndarray) -> float:
 
 
 def main(argv=None) -> int:
-    return learn.run_script("fit_sparse.py", parse_args(argv), fit, summary)
+    args = parse_args(argv)
+    with data_parallel.process_group():            # under torchrun: gloo over the ranks; else nothing
+        return learn.run_script("fit_sparse.py", args, fit, summary)
 
 
 def fit(args, out) -> dict:
@@ -72,7 +80,8 @@ def fit(args, out) -> dict:
     init = args.init if args.init is not None else kt * float(np.exp(g.uniform(np.log(0.2), np.log(5.0))))
     k = learn.SpringParameter.like(series, init)
     params = learn.Parameters(series, k, series.truth["damping"], series.truth["mass"])
-    loss = learn.WindowLoss(series, window=1, velocity=args.velocity)
+    loss = data_parallel.parallel_loss(learn.WindowLoss(series, window=1, velocity=args.velocity))
+    main = data_parallel.is_main()
     result = {"series": {key: v for key, v in series.meta.items() if key != "loads"},
               "nodes": series.grid.num_nodes, "springs": series.grid.num_springs,
               "true": {"stiffness": kt}, "initial": {"stiffness": init}, "velocity": args.velocity}
@@ -87,12 +96,13 @@ def fit(args, out) -> dict:
         start = float(values[int(np.nanargmin(losses))])
         k.value.raw.data.fill_(float(np.log(start)))
         result["scan"] = {"values": values.tolist(), "losses": losses, "best": start}
-        learn.plot_scan(values, losses, kt, out / "scan.png", xlabel="stiffness (N/m)", marker="true stiffness",
-                        title="stiffness scan", logx=True)
+        if main:
+            learn.plot_scan(values, losses, kt, out / "scan.png", xlabel="stiffness (N/m)", marker="true stiffness",
+                            title="stiffness scan", logx=True)
     with torch.no_grad():
         first = float(loss(params))
     trainer = learn.Trainer(params, loss, optimizer="lbfgs", iterations=args.iterations, patience=4, tol=1e-26,
-                            progress=not args.quiet)
+                            progress=not args.quiet and main)
     trainer.run()
     got = params.summary()["stiffness"]
     # equilibrium check (Radetzky: volume within 5 %): final snapshot volume, learned vs true model
@@ -108,7 +118,8 @@ def fit(args, out) -> dict:
                    "final_volume": {"true": vt, "learned": vl, "relative_error": abs(vl - vt) / vt},
                    "initial_loss": first, "final_loss": trainer.final_loss(), "iterations": trainer.iteration,
                    "stopped": trainer.stopped or "iteration limit", "history": learn.history_dicts(trainer.history)})
-    learn.plot_history(trainer.history, out / "loss.png", title="balloon: stiffness from 5 snapshots")
+    if main:
+        learn.plot_history(trainer.history, out / "loss.png", title="balloon: stiffness from 5 snapshots")
     return result
 
 

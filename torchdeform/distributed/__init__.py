@@ -1,4 +1,6 @@
-"""Beyond one process: parameter sweeps over ranks (``torchdeform sweep``) on ``torch.distributed``.
+"""Beyond one process on ``torch.distributed``: sweeps, data-parallel learning.
 
-Launched with ``torchrun`` (gloo on CPU); one process without it.
+Parameter sweeps over ranks (``torchdeform sweep``) and data-parallel learning
+(:mod:`.data_parallel`: the windows of a loss shared out over ranks). Launched with ``torchrun``
+(gloo on CPU); one process without it.
 """

@@ -112,8 +112,8 @@ def _run_decomposed(args, rank: int, world: int) -> int:
                                      "domain-decomposed run", integrator.name)
         cuts = scene_cuts(scene)
         slab_rows(scene.grid.shape[0], world)                      # more ranks than rows: refused before any work
-        device = args.device
-        if device is None and (scene.device or "cpu").startswith("cuda"):
+        device = args.device or scene.device or "cpu"
+        if str(device) == "cuda":                                  # one GPU per rank on each machine
             device = f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}"
         model = scene.build(device)
         bound = time_step_bound(model, integrator)
@@ -237,6 +237,10 @@ def _init(world: int) -> bool:
     """Join torchrun's process group (gloo: rows are Python objects) when there are several ranks."""
     if world <= 1:
         return False
+    # imported before the group exists: torch._dynamo (which a compiled sweep step imports) keeps
+    # references to the groups alive at its import, and a rank could abort at exit (see
+    # torchdeform.distributed.data_parallel.process_group)
+    import torch._dynamo  # noqa: F401
     import torch.distributed as dist
     if not dist.is_initialized():
         dist.init_process_group("gloo")

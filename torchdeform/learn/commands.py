@@ -90,9 +90,16 @@ def run_script(name: str, args, fit, summary) -> int:
     and one line on stderr (exit status 2) for a :class:`~torchdeform.errors.TorchdeformError`.
 
     ``fit(args, out) -> dict`` does the work and returns the result; ``summary(result) -> str``
-    is printed at the end (the result then also holds ``wall_seconds``, ``cpu_seconds`` and
-    ``threads``). Returns the exit status.
+    is printed at the end (the result then also holds ``wall_seconds``, ``cpu_seconds`` (this
+    process's), ``threads`` and ``ranks``). Returns the exit status.
+
+    In a ``torch.distributed`` process group (a script under ``torchrun``, see
+    :func:`torchdeform.distributed.data_parallel.process_group`) every rank runs ``fit``; rank 0
+    alone writes ``result.json`` and prints.
     """
+    import torch.distributed as dist
+    joined = dist.is_available() and dist.is_initialized()
+    main = not joined or dist.get_rank() == 0
     torch.set_num_threads(args.threads)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -100,9 +107,12 @@ def run_script(name: str, args, fit, summary) -> int:
     try:
         result = fit(args, out)
     except TorchdeformError as e:
-        print(f"{name}: {e}", file=sys.stderr)
+        if main:
+            print(f"{name}: {e}", file=sys.stderr)
         return 2
-    result.update(wall_seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0, threads=args.threads)
-    (out / "result.json").write_text(json.dumps(result, indent=1))
-    print(summary(result))
+    result.update(wall_seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0, threads=args.threads,
+                  ranks=dist.get_world_size() if joined else 1)
+    if main:
+        (out / "result.json").write_text(json.dumps(result, indent=1))
+        print(summary(result))
     return 0

@@ -37,7 +37,8 @@ class Trainer:
     """Optimise :class:`Parameters` against a :class:`WindowLoss`.
 
     Args:
-        params, loss: what to learn, and from what.
+        params, loss: what to learn, and from what (a :class:`WindowLoss`, or any loss with its call
+            interface and ``num_windows``).
         optimizer: ``"adam"`` or ``"lbfgs"`` (strong-Wolfe line search; one iteration is one
             ``LBFGS.step`` of up to ``lbfgs_inner`` inner iterations).
         lr: learning rate (Adam default 0.05 on the transformed values; L-BFGS default 1).
@@ -50,6 +51,12 @@ class Trainer:
         seed: seed of the window sampling.
         checkpoint_path, checkpoint_every: save a resumable checkpoint every k iterations.
         progress: tqdm bar.
+
+    Data-parallel (``torchrun``): with a loss shared out over ranks
+    (:class:`~torchdeform.distributed.data_parallel.ShardedLoss`, whose values and gradients are
+    global on every rank) the same trainer runs on every rank, in step; checkpoints are written by
+    rank 0 only (the loss's ``rank``) and every rank waits until they are (the loss's ``barrier``),
+    so :meth:`save` and :meth:`run` are called on every rank, and every rank can :meth:`load`.
     """
 
     def __init__(self, params: Parameters, loss: WindowLoss, optimizer: str = "adam", lr: float | None = None,
@@ -179,12 +186,19 @@ class Trainer:
                 "history": [[r.iteration, r.loss, r.grad_norm, r.seconds] for r in self.history]}
 
     def save(self, path) -> Path:
-        """Write a resumable checkpoint (parameters, optimizer, sampling RNG, history)."""
+        """Write a resumable checkpoint (parameters, optimizer, sampling RNG, history).
+
+        With a loss shared out over ranks: rank 0 writes, every rank returns once it is written.
+        """
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(path.suffix + ".tmp")
-        torch.save(self.state_dict(), tmp)
-        tmp.replace(path)
+        if getattr(self.loss, "rank", 0) == 0:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(path.suffix + ".tmp")
+            torch.save(self.state_dict(), tmp)
+            tmp.replace(path)
+        wait = getattr(self.loss, "barrier", None)
+        if wait is not None:
+            wait()
         return path
 
     def load(self, path) -> "Trainer":
