@@ -235,9 +235,12 @@ def test_malformed_messages_are_ignored(viewer, caplog):
     before = viewer.ignored
     with connect(ws_url(viewer, viewer.token), origin=origin(viewer), open_timeout=10) as ws:
         receive_mesh_and_frames(ws, frames=1)
-        ws.send(json.dumps({"cmd": "play"}))
+        # paused while they arrive: a playing body's thread takes the GIL for up to the 5 ms switch
+        # interval per message, which makes 1,000 messages take about 8 s to read, not 0.1 s
+        ws.send(json.dumps({"cmd": "pause"}))
         for msg in malformed_messages(1000):
             ws.send(msg)
+        ws.send(json.dumps({"cmd": "play"}))
         ws.send(json.dumps({"cmd": "fps", "value": 59.5}))
         # the connection is still open and still streams
         sizes = frame_sizes(ws, check_text=False)
