@@ -14,14 +14,14 @@
     torchdeform sweep SCENE.toml --set KEY=V1,V2 [--set ...] --out DIR   (torchrun ... -m torchdeform sweep ...)
 
 Errors that a user can cause print one line (``torchdeform: <file>: <key>: expected ...``) and
-exit with status 2, without a traceback.
+exit with status 2, without a traceback; the whole contract is in :mod:`torchdeform.options`.
 """
 from __future__ import annotations
 
 import argparse
 import sys
 
-from .errors import TorchdeformError
+from .options import Parser, guarded
 
 __all__ = ["build_parser", "main"]
 
@@ -41,7 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .view import commands as view
     from .volume import commands as volume
 
-    p = argparse.ArgumentParser(prog="torchdeform", description="Soft-tissue simulation on PyTorch.")
+    p = Parser(prog="torchdeform", description="Soft-tissue simulation on PyTorch.")
     sub = p.add_subparsers(dest="command", required=True)
 
     # name, help line, adds the arguments, runs the command
@@ -73,16 +73,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    """Run the ``torchdeform`` command; returns the exit status (2 for a user's mistake)."""
+    """Run the ``torchdeform`` command; returns the exit status (:func:`torchdeform.options.guarded`).
+
+    ``0`` done, ``2`` a user's mistake or an environment that cannot do it (one line on stderr),
+    ``130`` interrupted, ``1`` a bug (a traceback and a line asking for a report).
+    """
     args = build_parser().parse_args(argv)
-    try:
-        return args.func(args)
-    except TorchdeformError as e:
-        print(f"torchdeform: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("torchdeform: interrupted", file=sys.stderr)
-        return 130
+    return guarded("torchdeform", args.func, args)
 
 
 if __name__ == "__main__":

@@ -387,9 +387,20 @@ def test_bad_scene_subprocess_has_no_traceback(tmp_path):
     assert proc.stderr.startswith(f"torchdeform: {path}:{line}: integrator.steps: expected an integer >= 0")
 
 
-@pytest.mark.parametrize("device", ["foo", "cuda:99"])
+@pytest.mark.parametrize("device", ["foo", "cuda:99", "meta", "xpu"])
 def test_cli_bad_device_is_one_line(device, tmp_path, capsys):
+    """A --device that torch names but cannot use (meta, xpu) is refused as --device, not as a scene line."""
     path = write(tmp_path, TINY)
     assert cli.main(["run", str(path), "--out", str(tmp_path / "out"), "--device", device, "--quiet"]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "integrator.device" in err and str(path) in err
+    assert err.count("\n") == 1 and err.startswith("torchdeform: --device: expected") and str(path) not in err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("device", ["foo", "meta", "xpu"])
+def test_scene_device_that_cannot_compute_names_its_line(device, tmp_path, capsys):
+    path = write(tmp_path, TINY.replace('[integrator]\n', f'[integrator]\ndevice = "{device}"\n'))
+    assert cli.main(["run", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    line = line_containing(path.read_text(), "device =")
+    assert err.count("\n") == 1 and err.startswith(f"torchdeform: {path}:{line}: integrator.device: expected")

@@ -94,61 +94,64 @@ def scene_cuts(scene) -> list:
 def _run_decomposed(args, rank: int, world: int) -> int:
     import torch
 
+    from ..checks import usable_device
     from ..errors import ConfigError
+    from ..outputs import RunFolder
     from ..scene.mass_spring import EXPLICIT, Scene
-    from ..scene.run import finish_outputs, load_scene, one_line_warnings, report, run_outputs
+    from ..scene.run import finish_outputs, load_scene, report, run_outputs
     from ..sim.stability import check_dt, time_step_bound
     from .domain import SUPPORTED_INTEGRATORS, decomposed_simulate, slab_rows
-    with one_line_warnings():
-        scene = load_scene(args.scene)
-        if not isinstance(scene, Scene):
-            raise ConfigError("model", "a mass-spring scene in a domain-decomposed run", "chainmail")
-        if getattr(args, "animation", False) or scene.animation or scene.volume or scene.texture:
-            raise ConfigError("run", "no animation, [volume] or [texture] in a domain-decomposed run (yet); "
-                                     "run it on one rank", "torchrun")
-        integrator = scene.integrator
-        if integrator.name not in SUPPORTED_INTEGRATORS:
-            raise scene.source.error("integrator.name", f"one of {', '.join(SUPPORTED_INTEGRATORS)} in a "
-                                     "domain-decomposed run", integrator.name)
-        cuts = scene_cuts(scene)
-        slab_rows(scene.grid.shape[0], world)                      # more ranks than rows: refused before any work
-        device = args.device or scene.device or "cpu"
-        if str(device) == "cuda":                                  # one GPU per rank on each machine
-            device = f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}"
-        model = scene.build(device)
-        bound = time_step_bound(model, integrator)
-        dt = scene.time_step(bound)
-        if scene.topology is not None and scene.topology.checked_end is None:
-            scene.topology.check(scene.steps * dt)
-        if integrator.name in EXPLICIT and rank == 0:
-            check_dt(model, dt, integrator, bound)
-        out = Path(args.out)
-        if out.exists() and not out.is_dir():
-            raise ConfigError("--out", "a folder", str(out))
-        import torch.distributed as dist
-        if not dist.is_initialized():
-            dist.init_process_group("nccl" if model.device.type == "cuda" else "gloo")
-        if model.device.type == "cuda":
-            torch.cuda.set_device(model.device)
-        try:
-            run = decomposed_simulate(model, model.rest_state(), dt, scene.steps, integrator,
-                                      record_every=scene.frames_every, progress=not args.quiet, cuts=cuts)
-            parts = [None] * world
-            dist.all_gather_object(parts, run.summary())
-            if rank == 0:
-                out.mkdir(parents=True, exist_ok=True)
-                engine = {"requested": scene.engine, "ran": "eager", "why": f"domain-decomposed over {world} ranks",
-                          "eager_ms_per_step": None, "compile_s": None, "force_form": None}
+    if args.device is not None:
+        usable_device(args.device.replace("cuda", f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}")
+                      if args.device == "cuda" else args.device, "--device")
+    folder = RunFolder(args.out, args.force)
+    folder.check()                                             # every rank, before any collective
+    scene = load_scene(args.scene)
+    if not isinstance(scene, Scene):
+        raise ConfigError("model", "a mass-spring scene in a domain-decomposed run", "chainmail")
+    if getattr(args, "animation", False) or scene.animation or scene.volume or scene.texture:
+        raise ConfigError("run", "no animation, [volume] or [texture] in a domain-decomposed run (yet); "
+                                 "run it on one rank", "torchrun")
+    integrator = scene.integrator
+    if integrator.name not in SUPPORTED_INTEGRATORS:
+        raise scene.source.error("integrator.name", f"one of {', '.join(SUPPORTED_INTEGRATORS)} in a "
+                                 "domain-decomposed run", integrator.name)
+    cuts = scene_cuts(scene)
+    slab_rows(scene.grid.shape[0], world)                      # more ranks than rows: refused before any work
+    device = args.device or scene.device or "cpu"
+    if str(device) == "cuda":                                  # one GPU per rank on each machine
+        device = f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}"
+    model = scene.build(device)
+    bound = time_step_bound(model, integrator)
+    dt = scene.time_step(bound)
+    if scene.topology is not None and scene.topology.checked_end is None:
+        scene.topology.check(scene.steps * dt)
+    if integrator.name in EXPLICIT and rank == 0:
+        check_dt(model, dt, integrator, bound)
+    import torch.distributed as dist
+    if not dist.is_initialized():
+        dist.init_process_group("nccl" if model.device.type == "cuda" else "gloo")
+    if model.device.type == "cuda":
+        torch.cuda.set_device(model.device)
+    try:
+        run = decomposed_simulate(model, model.rest_state(), dt, scene.steps, integrator,
+                                  record_every=scene.frames_every, progress=not args.quiet, cuts=cuts)
+        parts = [None] * world
+        dist.all_gather_object(parts, run.summary())
+        if rank == 0:
+            engine = {"requested": scene.engine, "ran": "eager", "why": f"domain-decomposed over {world} ranks",
+                      "eager_ms_per_step": None, "compile_s": None, "force_form": None}
+            with folder as out:
                 summary, (t, _, _, series) = run_outputs(scene, run.whole, integrator, dt, bound, run.final,
                                                          run.record, run.wall_s, engine, out)
                 summary["domain"] = {"ranks": world, "axis": "D", "halo_rows": 1, "per_rank": parts,
                                      "comm_share": max(p["comm_share"] for p in parts)}
                 finish_outputs(summary, out, t, series,
                                f"{scene.name}: {integrator.name}, dt = {dt:.3g} s, {world} ranks")
-                print(report(summary, args.out))
-        finally:
-            dist.barrier()
-            dist.destroy_process_group()
+            print(report(summary, args.out))
+    finally:
+        dist.barrier()
+        dist.destroy_process_group()
     return 0
 
 

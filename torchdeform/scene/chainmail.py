@@ -16,6 +16,7 @@ import torch
 from tqdm.auto import tqdm
 
 from ..chainmail import METHODS, RELAX_MODES, ChainMail, Limits, limit_violation, relax_energy, tissue_limits
+from ..outputs import manifest
 from ..sim.grid import Grid
 from .reader import SECTIONS, Table, drags_section, faces, grid_section, node_list
 
@@ -102,8 +103,9 @@ class ChainMailScene:
             "max_violation_m": float(max(violation)), "blocked_frames": int(sum(f < 1.0 for f in fraction)),
             "final_relax_energy_m2": energy[-1],
         }
-        (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
         _plot_scene(out / "energy.png", times, energy, disp, f"{self.name}: ChainMail ({self.method})")
+        summary["outputs"] = manifest(out)
+        (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
         return summary
 
 

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import torch
 
+from ..checks import usable_device
+from ..errors import ConfigError
 from ..sim.adaptive import PAIRS
 from ..sim.catalog import INTEGRATORS
 from ..sim.engine import ENGINES
@@ -124,16 +126,13 @@ class Scene:
 
     def build(self, device=None) -> Model:
         """The :class:`Model` on ``device`` (default: the scene's, else CPU); built once per device."""
-        try:
-            dev = torch.device(device or self.device or "cpu")
-        except (RuntimeError, ValueError):
-            raise self.source.error("integrator.device", 'a device name such as "cpu" or "cuda"',
-                                    device or self.device) from None
-        if dev.type == "cuda" and not torch.cuda.is_available():
-            raise self.source.error("integrator.device", '"cpu" (CUDA is not available here)', str(dev))
-        if dev.type == "cuda" and (dev.index or 0) >= torch.cuda.device_count():
-            raise self.source.error("integrator.device", f"one of the {torch.cuda.device_count()} CUDA devices",
-                                    str(dev))
+        if device is None and self.device is not None:           # the scene's: its line in the file
+            try:
+                dev = usable_device(self.device, "integrator.device")
+            except ConfigError as e:
+                raise self.source.error("integrator.device", e.expected, self.device) from None
+        else:
+            dev = usable_device(device, "device")
         if str(dev) not in self._models:
             with self.source.located("material", MODEL_KEYS):
                 self._models[str(dev)] = Model(self.grid, **self.model_args, dtype=self.dtype, device=dev)
@@ -358,11 +357,11 @@ def _integrator(t: Table, grid: Grid) -> dict:
     if t.has("safety") and dt != "auto":
         raise t.fail("safety", 'no safety unless dt = "auto"', t.data["safety"])
     device = t.text("device", 'a device name such as "cpu" or "cuda"', None)
-    if device is not None:
+    if device is not None:                         # tried once: torch accepts names it cannot use ("meta", "xpu")
         try:
-            torch.device(device)
-        except (RuntimeError, ValueError):
-            raise t.fail("device", 'a device name such as "cpu" or "cuda"', device) from None
+            usable_device(device, "device")
+        except ConfigError as e:
+            raise t.fail("device", e.expected, device) from None
     return dict(integrator=integrator, dt=dt if dt == "auto" else float(dt),
                 safety=t.num("safety", "a number in (0, 1]", 0.9, lo=0, hi=1, lo_open=True),
                 steps=t.integer("steps", "an integer >= 0 (number of steps)"),

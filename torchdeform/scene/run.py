@@ -10,16 +10,14 @@ import copy
 import json
 import math
 import re
-import sys
 import time
-import warnings
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from ..errors import ConfigError
+from ..options import one_line_warnings  # noqa: F401  (re-exported: torchdeform.scene.one_line_warnings)
+from ..outputs import RunFolder, manifest
 from ..sim.engine import Engine, simulate
 from ..sim.model import Model, State
 from ..sim.stability import check_dt, time_step_bound
@@ -82,14 +80,6 @@ def load_scene(path) -> Scene | ChainMailScene:
     return mass_spring_scene(src, data, base, name)
 
 
-@contextmanager
-def one_line_warnings(prefix: str = "torchdeform: warning: "):
-    """Show warnings (e.g. :class:`StabilityWarning`) as one line on stderr, for the CLI."""
-    with warnings.catch_warnings():
-        warnings.showwarning = lambda message, *args, **kw: print(f"{prefix}{message}", file=sys.stderr)
-        yield
-
-
 def energy_series(model: Model, x: torch.Tensor, v: torch.Tensor, chunk: int = 1) -> dict:
     """Energies and largest displacement of recorded frames.
 
@@ -145,15 +135,6 @@ def plot_energy(path, t: np.ndarray, series: dict, title: str = "") -> None:
     fig.savefig(path, dpi=100)
 
 
-def _out_dir(out_dir) -> Path:
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise ConfigError("--out", f"a folder that can be created ({e.strerror})", str(out)) from None
-    return out
-
-
 def _bound_method(name: str) -> str:
     if name == "implicit":
         return "none: implicit Euler is unconditionally stable"
@@ -162,8 +143,13 @@ def _bound_method(name: str) -> str:
     return "power iteration on the spring stencil (linearised at rest)"
 
 
-def run_scene(scene: Scene, out_dir, progress: bool = True, device=None) -> dict:
+def run_scene(scene: Scene, out_dir, progress: bool = True, device=None, force: bool = False) -> dict:
     """Run a scene and write ``trajectory.npz``, ``summary.json`` and ``energy.png`` to ``out_dir``.
+
+    The outputs are written whole or not at all (:class:`~torchdeform.outputs.RunFolder`): they are
+    staged and moved into ``out_dir`` when the run ends well; ``summary.json`` lists them
+    (``"outputs"``), and files of an earlier run into the same folder that this run did not write
+    are removed. A run that fails (bad input, divergence, a full disk) leaves ``out_dir`` as it was.
 
     ``trajectory.npz``: ``t`` ``(T,)`` s (float64), ``x``, ``v`` ``(T, 3, D, H, W)`` (float32),
     rest positions ``X`` ``(3, D, H, W)``, ``node_mask`` ``(D, H, W)``, ``shape``, ``spacing``,
@@ -181,9 +167,11 @@ def run_scene(scene: Scene, out_dir, progress: bool = True, device=None) -> dict
 
     Args:
         scene: a :class:`Scene` (:func:`load_scene`, :func:`demo_scene` or your own).
-        out_dir: output folder (created).
+        out_dir: output folder (created). It must be empty, hold an earlier run's outputs, or
+            ``force`` must be set.
         progress: show a progress bar.
         device: run on this device instead of the scene's.
+        force: write into a folder that holds other files (they are left alone).
 
     Returns:
         the summary (also written to ``summary.json``).
@@ -203,16 +191,20 @@ def run_scene(scene: Scene, out_dir, progress: bool = True, device=None) -> dict
         (40, 5, 64, True)
         >>> sorted(p.name for p in out.iterdir())
         ['energy.png', 'summary.json', 'trajectory.npz']
+        >>> json.loads((out / "summary.json").read_text())["outputs"]
+        ['energy.png', 'summary.json', 'trajectory.npz']
         >>> json.loads((out / "summary.json").read_text())["name"]
         'cube'
     """
     if not isinstance(scene, Scene):                          # a ChainMail scene runs itself
-        return scene.run(_out_dir(out_dir), progress=progress, device=device)
+        with RunFolder(out_dir, force) as stage:
+            return scene.run(stage, progress=progress, device=device)
     threads = torch.get_num_threads()
     if scene.threads:
         torch.set_num_threads(scene.threads)
     try:
-        return _run(scene, _out_dir(out_dir), progress, device)
+        with RunFolder(out_dir, force) as stage:
+            return _run(scene, stage, progress, device)
     finally:
         torch.set_num_threads(threads)
 
@@ -285,7 +277,12 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
 
 
 def finish_outputs(summary: dict, out: Path, t: np.ndarray, series: dict, title: str) -> None:
-    """Write ``summary.json`` (series on one line each) and ``energy.png`` (:func:`plot_energy`)."""
+    """Write ``energy.png`` (:func:`plot_energy`) and, last, ``summary.json`` (series on one line each).
+
+    ``summary["outputs"]`` becomes the list of files in ``out`` (the run's manifest).
+    """
+    plot_energy(out / "energy.png", t, series, title)
+    summary["outputs"] = manifest(out)
     text = json.dumps(summary, indent=2)
     if "tools" in summary:                # each series (lists of numbers, lists of those) on one line
         text = re.sub(r"\[\s+([-+\d.eE,\s]+?)\s+\]", lambda m: "[" + ", ".join(re.split(r",\s*", m.group(1))) + "]",
@@ -293,7 +290,6 @@ def finish_outputs(summary: dict, out: Path, t: np.ndarray, series: dict, title:
         text = re.sub(r"\[\s+(\[[^\[\]]*\](?:,\s+\[[^\[\]]*\])*)\s+\]",
                       lambda m: "[" + ", ".join(re.split(r"(?<=\]),\s+", m.group(1))) + "]", text)
     (out / "summary.json").write_text(text + "\n")
-    plot_energy(out / "energy.png", t, series, title)
 
 
 def run_outputs(scene: Scene, model: Model, integrator, dt: float, bound: float, final, rec: dict, wall: float,
@@ -360,24 +356,16 @@ def report(summary: dict, out_dir) -> str:
     """One line for the CLI: what ran, how fast, and where the outputs are."""
     bound = summary["time_step_bound_s"]
     bound = f" (bound {bound:.3g} s)" if bound else ""
-    files = ["trajectory.npz", "summary.json", "energy.png"]
+    files = summary.get("outputs") or ["trajectory.npz", "summary.json", "energy.png"]
     tools = ""
     if "tools" in summary:
-        files += ["tools.npz", "forces.png"]
         tools = ", max tool force " + ", ".join(f"{name} {entry['max_force_N']:.3g} N"
                                                 for name, entry in summary["tools"].items())
-    for part in ("texture", "volume"):
-        files += (summary.get(part) or {}).get("outputs", [])
-    if "animation" in summary:
-        files.append(summary["animation"]["file"])
     if "topology" in summary:
         topo = summary["topology"]
-        files += topo["outputs"]
         tools += (f", {topo['springs_removed_by_cuts'] + topo['springs_removed_by_tear']} springs cut or torn, "
                   f"{topo['cautery_nodes_removed']} nodes burnt, {topo['components']} piece(s)")
     stiffest = (summary.get("palpation") or {}).get("stiffest")
-    if "palpation" in summary:
-        files.append("palpation.png")
     if stiffest:
         tools += (f", stiffest press at {stiffest['along_m'] * 1e3:.3g} mm along the line "
                   f"({stiffest['peak_force_N']:.3g} N)")

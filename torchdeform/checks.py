@@ -1,0 +1,141 @@
+"""Checks at the boundary, before work starts: a device that works, and memory that suffices.
+
+* :func:`usable_device`: a device name torch accepts is not always one it can use (``meta`` holds
+  no values, ``xpu`` or ``cuda`` may be missing from this build): try it once and say what is
+  missing.
+* :func:`check_memory`: refuse a grid, volume, image or recording that cannot fit, naming the key
+  and the bytes it would take, instead of failing inside an allocation.
+"""
+from __future__ import annotations
+
+import functools
+import os
+
+import torch
+
+from .errors import ConfigError
+
+__all__ = ["usable_device", "available_memory", "check_memory", "format_bytes"]
+
+
+@functools.lru_cache(maxsize=16)
+def _try_device(name: str) -> str | None:
+    """None if a small computation on device ``name`` works and comes back, else why not."""
+    try:
+        dev = torch.device(name)
+        if dev.type == "meta":
+            return "meta tensors hold no values"
+        if dev.type == "cuda" and not torch.cuda.is_available():
+            return "this torch sees no CUDA device (torch.cuda.is_available() is False)"
+        if dev.type == "cuda" and (dev.index or 0) >= torch.cuda.device_count():
+            return f"this machine has {torch.cuda.device_count()} CUDA device(s)"
+        x = torch.arange(4.0, device=dev)
+        if float((x * 2).sum().cpu()) != 12.0:
+            return "a test sum came back wrong"
+    except Exception as e:                     # whatever the backend raises: it cannot be used here
+        text = " ".join(str(e).split()) or type(e).__name__
+        return text[:160]
+    return None
+
+
+def usable_device(device, key: str = "--device", file=None, line=None) -> torch.device:
+    """``device`` as a :class:`torch.device` that works here, or a :class:`ConfigError` saying why not.
+
+    Args:
+        device: a name (``"cpu"``, ``"cuda"``, ``"cuda:1"``) or a :class:`torch.device`; None = CPU.
+        key: the option or scene key named in the error.
+        file: the scene file, when the device came from one.
+        line: its line.
+
+    Examples:
+        >>> usable_device("cpu")
+        device(type='cpu')
+        >>> usable_device("meta", "integrator.device")
+        Traceback (most recent call last):
+        ...
+        torchdeform.errors.ConfigError: integrator.device: expected a device this torch can compute on ("cpu"...
+        >>> usable_device("abc")
+        Traceback (most recent call last):
+        ...
+        torchdeform.errors.ConfigError: --device: expected a device name such as "cpu", "cuda" or "cuda:1", got 'abc'
+    """
+    if device is None:
+        return torch.device("cpu")
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError, ValueError):
+        raise ConfigError(key, 'a device name such as "cpu", "cuda" or "cuda:1"', device, file=file,
+                          line=line) from None
+    why = _try_device(str(dev))
+    if why is not None:
+        raise ConfigError(key, f'a device this torch can compute on ("cpu"{_others()}); {dev}: {why}', file=file,
+                          line=line)
+    return dev
+
+
+def _others() -> str:
+    n = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    return "" if n == 0 else (', "cuda"' if n == 1 else f', "cuda:0" ... "cuda:{n - 1}"')
+
+
+def format_bytes(n: float) -> str:
+    """``1.5 GiB`` style.
+
+    Examples:
+        >>> format_bytes(3 * 2**30), format_bytes(512)
+        ('3 GiB', '512 B')
+    """
+    for unit, size in (("PiB", 2**50), ("TiB", 2**40), ("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+        if n >= size:
+            return f"{n / size:.3g} {unit}"
+    return f"{int(n)} B"
+
+
+def available_memory(device=None) -> int | None:
+    """Bytes that can still be allocated on ``device`` (CPU: ``MemAvailable``), or None if unknown."""
+    dev = torch.device(device or "cpu")
+    if dev.type == "cuda":
+        try:
+            return int(torch.cuda.mem_get_info(dev)[0])
+        except Exception:
+            return None
+    if dev.type != "cpu":
+        return None
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def check_memory(key: str, nbytes: float, what: str, device=None, got=None, file=None, line=None) -> None:
+    """Refuse (``ConfigError`` naming ``key``) when ``nbytes`` exceed what ``device`` has available.
+
+    Args:
+        key: the scene key or option that sets the size (``"grid.shape"``, ``"--size"``).
+        nbytes: an estimate of what the work needs (a lower bound: refusals are certain).
+        what: the thing, e.g. ``"a grid of 2000 x 2000 x 2000 nodes"``.
+        device: where it would live (None = CPU).
+        got: the value shown in the error.
+        file: the scene file, when the size came from one.
+        line: its line.
+
+    Examples:
+        >>> check_memory("grid.shape", 1e3, "a grid of 4 x 4 x 4 nodes")
+        >>> check_memory("grid.shape", 1e18, "a grid of 1e6 x 1e6 x 1e6 nodes", got=[10**6] * 3)
+        Traceback (most recent call last):
+        ...
+        torchdeform.errors.ConfigError: grid.shape: expected a size that fits in memory: a grid of 1e6 x 1e6 x 1e6 nodes needs at least 888 PiB...
+    """
+    avail = available_memory(device)
+    if avail is None or nbytes <= avail:
+        return
+    raise ConfigError(key, f"a size that fits in memory: {what} needs at least {format_bytes(nbytes)}, and "
+                      f"{format_bytes(avail)} is available on {torch.device(device or 'cpu')}", got, file=file,
+                      line=line)
