@@ -26,7 +26,7 @@ import traceback
 import warnings
 from contextlib import contextmanager
 
-__all__ = ["Parser", "integer", "number", "int_list", "guarded", "one_line_warnings", "REPORT"]
+__all__ = ["Parser", "integer", "number", "int_list", "number_list", "guarded", "one_line_warnings", "REPORT"]
 
 #: what the bug line asks for
 REPORT = ("this is a bug in torchdeform: please report it with the command line, the input files and the "
@@ -149,6 +149,33 @@ def int_list(lo=None, hi=None):
     return parse
 
 
+def number_list(count: int | None = None, lo=None, *, lo_open: bool = False):
+    """An ``argparse`` type: comma-separated finite numbers (exactly ``count`` of them, if given).
+
+    Examples:
+        >>> number_list(2, lo=0, lo_open=True)("3,0.4")
+        [3.0, 0.4]
+        >>> number_list(2, lo=0, lo_open=True)("3")
+        Traceback (most recent call last):
+        ...
+        argparse.ArgumentTypeError: expected 2 comma-separated finite numbers > 0, got '3'
+    """
+    bounds = _bounds(lo, None, lo_open, False)
+    expected = (f"{count} " if count else "") + "comma-separated finite numbers" + (f" {bounds}" if bounds else "")
+    one = number(lo, lo_open=lo_open)
+
+    def parse(text):
+        try:
+            values = [one(v) for v in str(text).split(",") if v.strip()]
+        except argparse.ArgumentTypeError:
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
+        if not values or (count is not None and len(values) != count):
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
+        return values
+    parse.__name__ = "number_list"
+    return parse
+
+
 @contextmanager
 def one_line_warnings(prefix: str = "torchdeform: warning: "):
     """Show every warning raised inside as one line on stderr (no source line), each once."""
@@ -176,7 +203,7 @@ def _closed_stdout() -> None:
         pass
 
 
-def guarded(prog: str, func, *args) -> int:
+def guarded(prog: str, func, *args, echo: bool = True) -> int:
     r"""Run ``func(*args)`` and return an exit status; a user's problem becomes one line on stderr.
 
     * ``0`` (or what ``func`` returns): done. A closed stdout (``| head -5``) also ends with 0,
@@ -187,7 +214,8 @@ def guarded(prog: str, func, *args) -> int:
     * ``130``: interrupted.
     * ``1``: anything else is a bug: the traceback and a line asking for a report.
 
-    Warnings raised meanwhile are shown as one line each (:func:`one_line_warnings`).
+    Warnings raised meanwhile are shown as one line each (:func:`one_line_warnings`). With
+    ``echo=False`` (ranks other than 0) nothing is printed, only the status returned.
 
     Examples:
         >>> from torchdeform.errors import ConfigError
@@ -205,7 +233,8 @@ def guarded(prog: str, func, *args) -> int:
     from .errors import TorchdeformError
 
     def say(text: str) -> None:
-        print(f"{prog}: {' '.join(str(text).split())}", file=sys.stderr)
+        if echo:
+            print(f"{prog}: {' '.join(str(text).split())}", file=sys.stderr)
 
     try:
         with one_line_warnings(f"{prog}: warning: "):
@@ -232,7 +261,8 @@ def guarded(prog: str, func, *args) -> int:
             where = f"{e.filename}: " if e.filename is not None else ""
             say(f"{where}{e.strerror or e}")
             return 2
-        traceback.print_exc()
+        if echo:
+            traceback.print_exc()
         say(REPORT)
         return 1
     return 2

@@ -45,28 +45,29 @@ import torch
 import torchdeform as td
 from torchdeform import learn
 from torchdeform.distributed import data_parallel
+from torchdeform.options import Parser, integer, number, number_list
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+    p = Parser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__[__doc__.index("Examples"):])
     p.add_argument("--out", required=True, help="output folder (result.json, plots)")
     p.add_argument("--runs", default="1,2,3", help="comma-separated runs to do (default 1,2,3)")
     p.add_argument("--data", default=None, help="a series file (.npz) instead of generating Radetzky's cube")
     p.add_argument("--springs", type=int, default=70, choices=sorted(learn.SPRING_SETS), help="spring set (default 70)")
-    p.add_argument("--noise", type=float, default=0.0, help="relative observation noise (0.01 = 1%%)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the noise and of random initial values")
-    p.add_argument("--offset", default="3,0.4", help="run 3 initial factors for stiffness,damping (default 3,0.4)")
+    p.add_argument("--noise", type=number(lo=0), default=0.0, help="relative observation noise (0.01 = 1%%)")
+    p.add_argument("--seed", type=integer(lo=0), default=0, help="seed of the noise and of random initial values")
+    p.add_argument("--offset", type=number_list(2, lo=0, lo_open=True), default=[3.0, 0.4], help="run 3 initial factors for stiffness,damping (default 3,0.4)")
     p.add_argument("--optimizer", default="lbfgs", choices=["lbfgs", "adam"])
-    p.add_argument("--iterations", type=int, default=None, help="iterations (default: 30 L-BFGS / 400 Adam "
+    p.add_argument("--iterations", type=integer(lo=1), default=None, help="iterations (default: 30 L-BFGS / 400 Adam "
                                                                 "for run 3, 10 / 300 per-spring)")
-    p.add_argument("--lr", type=float, default=None, help="learning rate (default 1 L-BFGS, 0.05 Adam)")
-    p.add_argument("--window", type=int, default=None,
+    p.add_argument("--lr", type=number(lo=0, lo_open=True), default=None, help="learning rate (default 1 L-BFGS, 0.05 Adam)")
+    p.add_argument("--window", type=integer(lo=0), default=None,
                    help="teacher forcing every k observations (default 10, Radetzky; 50 with noise); 0 = full BPTT")
-    p.add_argument("--smooth", type=int, default=None,
+    p.add_argument("--smooth", type=integer(lo=0), default=None,
                    help="half-width of the start-state smoothing (default 0; 10 with noise)")
-    p.add_argument("--checkpoint", type=int, default=0, help="gradient checkpoint segment in steps (0 = off)")
-    p.add_argument("--long", type=int, default=0,
+    p.add_argument("--checkpoint", type=integer(lo=0), default=0, help="gradient checkpoint segment in steps (0 = off)")
+    p.add_argument("--long", type=integer(lo=0), default=0,
                    help="instead of the runs: train shared k, d on one full rollout of this many steps "
                         "(a 4^3 cube under a sinusoidal drag) and report memory")
     p.add_argument("--no-curvature", action="store_true", help="skip the Hessian eigenvalues of per-spring runs")
@@ -76,11 +77,11 @@ def parse_args(argv=None):
     p.add_argument("--integrator", default="symplectic", choices=["symplectic", "implicit"],
                    help="symplectic: Radetzky's cube as published; implicit: a 1000x stiffer cube stepped by "
                         "implicit Euler far above the explicit bound")
-    p.add_argument("--dt-factor", type=float, default=50.0,
+    p.add_argument("--dt-factor", type=number(lo=0, lo_open=True), default=50.0,
                    help="implicit: the time step over the explicit stability bound (default 50)")
     p.add_argument("--gradient", default="adjoint", choices=["adjoint", "unrolled"],
                    help="implicit: gradients by adjoint solves (default) or through every CG iteration")
-    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1: fastest for tiny bodies)")
+    p.add_argument("--threads", type=integer(lo=1), default=1, help="torch threads (default 1: fastest for tiny bodies)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     return p.parse_args(argv)
 
@@ -117,7 +118,11 @@ def train(params, loss, args, iterations, name, out):
 
 def shared_run(series, args, out) -> dict:
     kt, ct = series.meta["truth"]["stiffness"], series.meta["truth"]["damping"]
-    fk, fc = (float(v) for v in args.offset.split(","))
+    if not all(isinstance(v, (int, float)) for v in (kt, ct)):
+        raise td.ConfigError("--runs", "1,2 for a series whose truth is not one shared stiffness and damping "
+                             f"(run 3 fits one of each; {args.data or 'this series'} has per-region values "
+                             f"stiffness {kt}, damping {ct})", args.runs)
+    fk, fc = args.offset
     params = learn.Parameters(series, learn.SpringParameter.like(series, kt * fk),
                               learn.SpringParameter.like(series, ct * fc), series.truth["mass"])
     loss = make_loss(series, args)
@@ -234,9 +239,12 @@ def fit(args, out) -> dict:
             series = stiff_cube(args)
         else:
             series = learn.radetzky_cube(springs=args.springs, noise=args.noise, seed=args.seed)
-        runs = [int(r) for r in args.runs.split(",") if r.strip()]
-        if any(r not in (1, 2, 3) for r in runs):
-            raise SystemExit("fit_cube.py: --runs takes numbers among 1, 2, 3")
+        try:
+            runs = [int(r) for r in args.runs.split(",") if r.strip()]
+        except ValueError:
+            runs = [0]
+        if not runs or any(r not in (1, 2, 3) for r in runs):
+            raise td.ConfigError("--runs", "comma-separated runs among 1, 2, 3", args.runs)
         result = {"series": {k: v for k, v in series.meta.items() if k != "loads"},
                   "optimizer": args.optimizer, "runs": {}}
         for r in runs:

@@ -33,25 +33,27 @@ import sys
 import numpy as np
 import torch
 
+import torchdeform as td
 from torchdeform import fuzzy, learn
 from torchdeform.distributed import data_parallel
+from torchdeform.options import Parser, integer, number
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+    p = Parser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__[__doc__.index("  --learn"):])
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--preset", default="susilap_g", help="fuzzy preset with one input (default susilap_g)")
     p.add_argument("--learn", default="inputs", choices=["inputs", "membership"])
-    p.add_argument("--target", type=float, default=5.5, help="slider value that produced the data (default 5.5, "
+    p.add_argument("--target", type=number(), default=5.5, help="slider value that produced the data (default 5.5, "
                                                              "the Fallopian tube)")
-    p.add_argument("--init", type=float, default=7.0, help="initial slider value (default 7.0, the bowel)")
-    p.add_argument("--scan", type=int, default=61, help="slider scan points before refining (inputs; 0 = off)")
-    p.add_argument("--mass", type=float, default=0.2, help="node mass (kg; default 0.2)")
-    p.add_argument("--iterations", type=int, default=None, help="iterations (default 20 L-BFGS for inputs, "
+    p.add_argument("--init", type=number(), default=7.0, help="initial slider value (default 7.0, the bowel)")
+    p.add_argument("--scan", type=integer(lo=0), default=61, help="slider scan points before refining (inputs; 0 = off)")
+    p.add_argument("--mass", type=number(lo=0, lo_open=True, unit="kg"), default=0.2, help="node mass (kg; default 0.2)")
+    p.add_argument("--iterations", type=integer(lo=1), default=None, help="iterations (default 20 L-BFGS for inputs, "
                                                                 "600 Adam for membership)")
-    p.add_argument("--lr", type=float, default=0.05, help="Adam learning rate of membership corners (default 0.05)")
-    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--lr", type=number(lo=0, lo_open=True), default=0.05, help="Adam learning rate of membership corners (default 0.05)")
+    p.add_argument("--threads", type=integer(lo=1), default=1)
     p.add_argument("--quiet", action="store_true")
     return p.parse_args(argv)
 
@@ -65,7 +67,7 @@ def main(argv=None) -> int:
 def fit(args, out) -> dict:
     ref = fuzzy.load_preset(args.preset).double()
     if len(ref.inputs) != 1:
-        raise SystemExit("fit_fuzzy.py: --preset must have one input (the slider)")
+        raise td.ConfigError("--preset", "a fuzzy system with one input (the slider)", args.preset)
     name = ref.input_names()[0]
     target = {k: float(v) for k, v in ref.evaluate({name: args.target}).items()}
     kt, ct = target["spring_const"], target["viscosity"]

@@ -35,27 +35,28 @@ import torch
 
 from torchdeform import learn
 from torchdeform.distributed import data_parallel
+from torchdeform.options import Parser, integer, number
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+    p = Parser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
                                 epilog=__doc__[__doc__.index("Examples"):])
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--mesh", default=None, help="closed mesh file (default: icosphere)")
-    p.add_argument("--subdivisions", type=int, default=1, help="icosphere subdivisions (default 1)")
-    p.add_argument("--radius", type=float, default=0.05, help="icosphere radius, m (default 0.05)")
-    p.add_argument("--spacing", type=float, default=None, help="grid spacing, m (default radius/2)")
-    p.add_argument("--snapshots", type=int, default=5)
-    p.add_argument("--interval", type=float, default=1.0, help="seconds between snapshots")
-    p.add_argument("--dt", type=float, default=0.02)
-    p.add_argument("--noise", type=float, default=0.0, help="relative observation noise")
-    p.add_argument("--seed", type=int, default=0, help="seed of the random initial value and the noise")
-    p.add_argument("--init", type=float, default=None, help="initial stiffness (default: U[0.2, 5] x truth)")
-    p.add_argument("--scan", type=int, default=13, help="scan points before refining (0 = off)")
+    p.add_argument("--subdivisions", type=integer(lo=0, hi=6), default=1, help="icosphere subdivisions (default 1)")
+    p.add_argument("--radius", type=number(lo=0, lo_open=True, unit="m"), default=0.05, help="icosphere radius, m (default 0.05)")
+    p.add_argument("--spacing", type=number(lo=0, lo_open=True, unit="m"), default=None, help="grid spacing, m (default radius/2)")
+    p.add_argument("--snapshots", type=integer(lo=2), default=5)
+    p.add_argument("--interval", type=number(lo=0, lo_open=True, unit="s"), default=1.0, help="seconds between snapshots")
+    p.add_argument("--dt", type=number(lo=0, lo_open=True, unit="s"), default=0.02)
+    p.add_argument("--noise", type=number(lo=0), default=0.0, help="relative observation noise")
+    p.add_argument("--seed", type=integer(lo=0), default=0, help="seed of the random initial value and the noise")
+    p.add_argument("--init", type=number(lo=0, lo_open=True), default=None, help="initial stiffness (default: U[0.2, 5] x truth)")
+    p.add_argument("--scan", type=integer(lo=0), default=13, help="scan points before refining (0 = off)")
     p.add_argument("--velocity", default="carry", choices=["carry", "zero"])
-    p.add_argument("--iterations", type=int, default=15)
-    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--iterations", type=integer(lo=1), default=15)
+    p.add_argument("--threads", type=integer(lo=1), default=1)
     p.add_argument("--quiet", action="store_true")
     return p.parse_args(argv)
 

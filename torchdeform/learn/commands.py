@@ -6,13 +6,15 @@ training script in ``training/`` shares.
 from __future__ import annotations
 
 import json
-import sys
+import math
 import time
 from pathlib import Path
 
 import torch
 
-from ..errors import ConfigError, TorchdeformError
+from ..errors import ConfigError
+from ..options import guarded, integer, number
+from ..outputs import NonFiniteOutputError, atomic_path
 from .synthetic import balloon_series, cube_grid, cube_series, inclusion_regions, layered_regions, radetzky_cube
 
 __all__ = ["add_arguments", "command", "run_script"]
@@ -23,27 +25,27 @@ def add_arguments(parser) -> None:
     sub = parser.add_subparsers(dest="data_command", required=True)
     c = sub.add_parser("cube", help="a cube series: Radetzky's cube (--springs) or an n^3 cube (--n)")
     c.add_argument("--out", required=True, help="output file (.npz)")
-    c.add_argument("--springs", type=int, default=None, help="Radetzky's cube with 54, 70, 86 or 126 springs")
-    c.add_argument("--n", type=int, default=None, help="nodes per edge of an n^3 cube (instead of --springs)")
-    c.add_argument("--topology", type=int, default=26, help="neighbours of the n^3 cube (6, 14, 18, 26)")
+    c.add_argument("--springs", type=integer(), default=None, help="Radetzky's cube with 54, 70, 86 or 126 springs")
+    c.add_argument("--n", type=integer(lo=2), default=None, help="nodes per edge of an n^3 cube (instead of --springs)")
+    c.add_argument("--topology", type=integer(), default=26, help="neighbours of the n^3 cube (6, 14, 18, 26)")
     c.add_argument("--load", default="constant", help="n^3 cube load: constant, ramp, sine, indent")
-    c.add_argument("--amplitude", type=float, default=None, help="force (N) or displacement (m) of the load")
+    c.add_argument("--amplitude", type=number(), default=None, help="force (N) or displacement (m) of the load")
     c.add_argument("--regions", default=None, help="heterogeneous material: 'layers' or 'inclusion' (n^3 cube)")
     c.add_argument("--stiffness", default="10", help="true stiffness N/m; comma-separated per region")
     c.add_argument("--damping", default="0.1", help="true damping N s/m; comma-separated per region")
-    c.add_argument("--mass", type=float, default=0.01, help="node mass, kg")
-    c.add_argument("--steps", type=int, default=250)
-    c.add_argument("--dt", type=float, default=0.005)
-    c.add_argument("--noise", type=float, default=0.0, help="relative observation noise (0.01 = 1%%)")
-    c.add_argument("--every", type=int, default=1, help="observe every k-th step")
-    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--mass", type=number(lo=0, lo_open=True, unit="kg"), default=0.01, help="node mass, kg")
+    c.add_argument("--steps", type=integer(lo=1), default=250)
+    c.add_argument("--dt", type=number(lo=0, lo_open=True, unit="s"), default=0.005)
+    c.add_argument("--noise", type=number(lo=0), default=0.0, help="relative observation noise (0.01 = 1%%)")
+    c.add_argument("--every", type=integer(lo=1), default=1, help="observe every k-th step")
+    c.add_argument("--seed", type=integer(lo=0), default=0)
     b = sub.add_parser("balloon", help="a voxelised icosphere inflated by pressure, seen in a few snapshots")
     b.add_argument("--out", required=True, help="output file (.npz)")
-    b.add_argument("--snapshots", type=int, default=5)
-    b.add_argument("--interval", type=float, default=1.0)
-    b.add_argument("--dt", type=float, default=0.02)
-    b.add_argument("--noise", type=float, default=0.0)
-    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--snapshots", type=integer(lo=1), default=5)
+    b.add_argument("--interval", type=number(lo=0, lo_open=True, unit="s"), default=1.0)
+    b.add_argument("--dt", type=number(lo=0, lo_open=True, unit="s"), default=0.02)
+    b.add_argument("--noise", type=number(lo=0), default=0.0)
+    b.add_argument("--seed", type=integer(lo=0), default=0)
 
 
 def _numbers(text, key):
@@ -51,6 +53,8 @@ def _numbers(text, key):
         vals = [float(v) for v in str(text).split(",")]
     except ValueError:
         raise ConfigError(key, "a number or comma-separated numbers", text) from None
+    if not all(math.isfinite(v) and v >= 0 for v in vals):
+        raise ConfigError(key, "finite numbers >= 0", text)
     return vals[0] if len(vals) == 1 else vals
 
 
@@ -86,8 +90,9 @@ def command(args) -> int:
 def run_script(name: str, args, fit, summary) -> int:
     """The frame every training script shares.
 
-    ``args.threads`` torch threads, the ``args.out`` folder, wall and CPU time, ``result.json``,
-    and one line on stderr (exit status 2) for a :class:`~torchdeform.errors.TorchdeformError`.
+    ``args.threads`` torch threads, the ``args.out`` folder, wall and CPU time, ``result.json``
+    (written whole, and refused if it would hold NaN or inf), and the exit statuses of
+    :func:`torchdeform.options.guarded`: one line on stderr and status 2 for a user's problem.
 
     ``fit(args, out) -> dict`` does the work and returns the result; ``summary(result) -> str``
     is printed at the end (the result then also holds ``wall_seconds``, ``cpu_seconds`` (this
@@ -100,19 +105,39 @@ def run_script(name: str, args, fit, summary) -> int:
     import torch.distributed as dist
     joined = dist.is_available() and dist.is_initialized()
     main = not joined or dist.get_rank() == 0
-    torch.set_num_threads(args.threads)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    t0, c0 = time.perf_counter(), time.process_time()
-    try:
+
+    def work() -> int:
+        torch.set_num_threads(args.threads)
+        out = Path(args.out)
+        if out.exists() and not out.is_dir():
+            raise ConfigError("--out", "a folder (this path is a file)", str(out))
+        out.mkdir(parents=True, exist_ok=True)
+        t0, c0 = time.perf_counter(), time.process_time()
         result = fit(args, out)
-    except TorchdeformError as e:
+        result.update(wall_seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0,
+                      threads=args.threads, ranks=dist.get_world_size() if joined else 1)
         if main:
-            print(f"{name}: {e}", file=sys.stderr)
-        return 2
-    result.update(wall_seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0, threads=args.threads,
-                  ranks=dist.get_world_size() if joined else 1)
-    if main:
-        (out / "result.json").write_text(json.dumps(result, indent=1))
-        print(summary(result))
-    return 0
+            try:
+                text = json.dumps(result, indent=1, allow_nan=False)
+            except ValueError:
+                raise NonFiniteOutputError(f"refusing to write {out / 'result.json'}: it would hold NaN or inf "
+                                           f"({', '.join(_non_finite(result))})") from None
+            with atomic_path(out / "result.json") as tmp:
+                tmp.write_text(text)
+            print(summary(result))
+        return 0
+    return guarded(name, work, echo=main)
+
+
+def _non_finite(tree, path: str = "") -> list:
+    """The dotted keys of the non-finite numbers in a JSON-like tree (at most 5)."""
+    found = []
+    if isinstance(tree, dict):
+        for k, v in tree.items():
+            found += _non_finite(v, f"{path}.{k}" if path else str(k))
+    elif isinstance(tree, (list, tuple)):
+        for i, v in enumerate(tree):
+            found += _non_finite(v, f"{path}[{i}]")
+    elif isinstance(tree, float) and not math.isfinite(tree):
+        found.append(f"{path} = {tree}")
+    return found[:5]

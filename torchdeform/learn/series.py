@@ -49,6 +49,7 @@ import numpy as np
 import torch
 
 from ..errors import ConfigError
+from ..outputs import atomic_path, require_finite
 from ..sim.catalog import INTEGRATORS
 from ..sim.forces import Drag, FieldForce, PointForce, SurfaceForce
 from ..sim.grid import FACES, Grid
@@ -343,8 +344,12 @@ class Series:
         if g.node_mask is not None:
             arrays["node_mask"] = g.node_mask.numpy()
         arrays["meta"] = np.array(json.dumps(meta))
+        for k, a in arrays.items():
+            require_finite(f"{path.name}: {k}", a, "observation, axis, d, h, w" if k == "positions" else "",
+                           "the simulated body diverged (a load or amplitude too large for its time step?)"
+                           if k == "positions" else "")
         path.parent.mkdir(parents=True, exist_ok=True)
-        with open(path, "wb") as fh:
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
             np.savez_compressed(fh, **arrays)
         return path
 

@@ -8,20 +8,37 @@ from __future__ import annotations
 import math
 import pickle
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 from tqdm.auto import tqdm
 
-from ..errors import ConfigError
+from ..errors import ConfigError, TorchdeformError
 from .loss import WindowLoss
 from .parameters import Parameters, _check
 
-__all__ = ["Trainer", "Record"]
+__all__ = ["Trainer", "Record", "NonFiniteLossError"]
 
 
 _BLOWUP = 1e30            # the loss L-BFGS sees at trial points where the simulation diverged
+
+
+class NonFiniteLossError(TorchdeformError, FloatingPointError):
+    """Training cannot start: the loss (or a parameter) is not finite at the start values."""
+
+
+def _start_values(params) -> str:
+    """The learned start values, briefly (a float, or the range of a list)."""
+    parts = []
+    for name, v in params.summary().items():
+        if isinstance(v, list):
+            flat = [float(x) for x in torch.as_tensor(v).reshape(-1)]
+            parts.append(f"{name} {min(flat):.3g}..{max(flat):.3g}")
+        else:
+            parts.append(f"{name} {v:.3g}")
+    return ", ".join(parts)
 
 # ------------------------------------------------------------------- training
 @dataclass
@@ -156,7 +173,17 @@ class Trainer:
                 with torch.no_grad():                       # keep the last finite values
                     for p, s in zip(self._learnable, snapshot):
                         p.copy_(s)
+                what = "the loss" if not math.isfinite(loss) else "a parameter"
+                if not any(math.isfinite(r.loss) for r in self.history):
+                    self.history.pop()
+                    self.iteration -= 1
+                    raise NonFiniteLossError(
+                        f"training cannot start: {what} is not finite at the start values ({_start_values(self.params)}): "
+                        "the rollout diverges there; start closer to the data's values, or use a smaller time step or "
+                        "an implicit integrator")
                 self.stopped = "non-finite loss"
+                warnings.warn(f"training stopped at iteration {self.iteration}: {what} went non-finite; the last "
+                              "finite parameters are kept", UserWarning, stacklevel=2)
                 break
             if loss < self.best * (1 - self.min_delta):
                 self.best, self.since_best = loss, 0
