@@ -65,6 +65,7 @@ class DivergenceError(TorchdeformError, FloatingPointError):
         value: the offending value (may be ``nan`` or ``inf``).
         dt: the time step in use.
         safe_dt: a time step that the stability bound allows, or None.
+        cause: the likely cause when it is not the time step (shown instead of the safe dt), or None.
 
     Examples:
         >>> import torchdeform as td
@@ -75,9 +76,13 @@ class DivergenceError(TorchdeformError, FloatingPointError):
         (0.0002, True)
     """
 
-    def __init__(self, step: int, quantity: str, value: float, dt: float, safe_dt: float | None):
+    def __init__(self, step: int, quantity: str, value: float, dt: float, safe_dt: float | None,
+                 cause: str | None = None):
         self.step, self.quantity, self.value, self.dt, self.safe_dt = step, quantity, value, dt, safe_dt
+        self.cause = cause
         hint = f"; a safe time step for this model is about {safe_dt:.3g} s" if safe_dt else ""
+        if cause:
+            hint = f"; {cause}"
         super().__init__(
             f"simulation diverged at step {step}: {quantity} is {value:.3g} with dt = {dt:.3g} s{hint}"
         )

@@ -326,8 +326,7 @@ def decomposed_simulate(model: Model, state: State, dt: float, steps: int, integ
     local = decompose(model, rank, world, group)
     e_lo, e_hi = local.extent
     own = local.owned
-    if model.drags:
-        state = State(*model.constrain(state.x, state.v, state.t), state.t)
+    state = model.start(state)                        # fixed nodes at rest, dragged nodes on their path
     st = State(state.x[:, :, e_lo:e_hi].clone(), state.v[:, :, e_lo:e_hi].clone(), state.t)
     pending = sorted(((float(at), blade) for at, blade in cuts), key=lambda c: c[0])
     ts, xs, vs = [], [], []

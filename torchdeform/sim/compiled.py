@@ -177,11 +177,10 @@ class CompiledStep:
         """``steps`` steps from a grid-layout state, packed once; returns a grid-layout state.
 
         ``callback(i, packed_state)`` (optional) is called after every step; unpack with
-        ``self.packed.unpack_state``. Dragged nodes start on their path, as in
+        ``self.packed.unpack_state``. Fixed nodes start at rest and dragged nodes on their path, as in
         :func:`~torchdeform.sim.engine.simulate`.
         """
-        if self.model.drags:
-            state = State(*self.model.constrain(state.x, state.v, state.t), state.t, state.readings)
+        state = self.model.start(state)
         ps = self.packed.pack_state(state)
         for i in range(int(steps)):
             ps = self.step_packed(ps)

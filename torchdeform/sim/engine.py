@@ -237,8 +237,7 @@ def simulate(model: Model, state: State, dt: float, steps: int, integrator: Inte
     if warn and integrator.name not in ("implicit", "knoche", "adaptive", "projective"):
         check_dt(model, dt, integrator)
     monitor = DivergenceMonitor(model, dt, integrator)
-    if model.drags:                                   # dragged nodes start on their path
-        state = State(*model.constrain(state.x, state.v, state.t), state.t)
+    state = model.start(state)                        # fixed nodes at rest, dragged nodes on their path
     ts, xs, vs = [], [], []
 
     def record(st):

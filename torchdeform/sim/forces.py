@@ -230,7 +230,12 @@ class Waypoints:
     def __init__(self, path, key: str = "path"):
         if not path:
             raise ConfigError(key, "at least one waypoint [t, [a, b, c]]", path)
-        times = [float(p[0]) for p in path]
+        try:
+            times = [float(p[0]) for p in path]
+        except (TypeError, ValueError, IndexError):
+            raise ConfigError(key, "waypoints [t, [a, b, c]] with a number t (s)", path) from None
+        if not all(math.isfinite(t) for t in times):
+            raise ConfigError(key, "finite waypoint times (s)", times)
         if any(b <= a for a, b in zip(times, times[1:])):
             raise ConfigError(key, "waypoint times strictly increasing", times)
         self.times, self.values = times, [as_vec3(p[1], f"{key} value") for p in path]

@@ -296,6 +296,29 @@ class Model:
         """A 3-vector as ``(1, 3, 1, ...)`` broadcasting against node fields like ``like``."""
         return torch.as_tensor(value, dtype=self.dtype, device=self.device).view(1, 3, *[1] * (like.dim() - 2))
 
+    def start(self, state):
+        """The state a run starts from: fixed nodes at rest, dragged nodes on their path at ``state.t``.
+
+        Fixed nodes never move: a start velocity given to them is dropped (every integrator then
+        agrees). :func:`~torchdeform.sim.engine.simulate` and the other runners call this first.
+
+        Examples:
+            >>> import torch
+            >>> import torchdeform as td
+            >>> grid = td.Grid((3, 3, 3), spacing=0.01)
+            >>> model = td.Model(grid, stiffness=10.0, mass=1e-3, fixed=grid.face("bottom"))
+            >>> s = model.rest_state()
+            >>> moving = td.State(s.x, torch.full_like(s.v, 0.1))
+            >>> v = model.start(moving).v
+            >>> float(v[0, :, 0].abs().max()), round(float(v[0, :, 1:].min()), 6)    # fixed base at rest
+            (0.0, 0.1)
+        """
+        if self.free is None:
+            return state
+        v = state.v * self.free
+        x, v = self.constrain(state.x, v, state.t) if self.drags else (state.x, v)
+        return State(x, v, state.t, getattr(state, "readings", None))
+
     def constrain(self, x: torch.Tensor, v: torch.Tensor, t):
         """Put dragged nodes on their path at time ``t`` (positions and velocities)."""
         for d, m in zip(self.drags, self.drag_masks):

@@ -91,7 +91,9 @@ def power_omega2(model, x=None, iters: int = 60, seed: int = 0) -> float:
     lam = torch.zeros(B, dtype=model.dtype, device=model.device)
     with torch.no_grad():
         for _ in range(iters):
-            norm = u.flatten(1).norm(dim=1).clamp_min(1e-300).view(-1, 1, 1, 1, 1)
+            # (the dtype's tiny, not 1e-300, which is 0 in float32: no springs or no free node gives
+            # u = 0 and lambda = 0, hence no bound, instead of 0 / 0)
+            norm = u.flatten(1).norm(dim=1).clamp_min(torch.finfo(u.dtype).tiny).view(-1, 1, 1, 1, 1)
             u = u / norm
             y = s * _stiffness_product(model, lin, s * u)
             lam = (u * y).flatten(1).sum(1)
@@ -193,10 +195,13 @@ def check_dt(model, dt: float, integrator, bound: float | None = None) -> float:
         (2.0, ['StabilityWarning'])
     """
     bound = time_step_bound(model, integrator) if bound is None else bound
-    if dt > bound:
-        what = "is unstable for every dt without damping" if bound == 0 else f"bound is {bound:.3g} s"
-        warnings.warn(f"dt = {dt:.3g} s exceeds the stability bound of {_name(integrator)}: the {what}; "
-                      f"use dt <= {0.9 * bound:.3g} s or an implicit integrator", StabilityWarning,
+    if dt > bound and bound == 0:
+        warnings.warn(f"dt = {dt:.3g} s: {_name(integrator)} is unstable at every time step for this model (springs "
+                      "without damping); add damping, or use the symplectic, verlet, rk4 or an implicit integrator",
+                      StabilityWarning, stacklevel=3)
+    elif dt > bound:
+        warnings.warn(f"dt = {dt:.3g} s exceeds the stability bound of {_name(integrator)}: the bound is "
+                      f"{bound:.3g} s; use dt <= {0.9 * bound:.3g} s or an implicit integrator", StabilityWarning,
                       stacklevel=3)
     return bound
 
@@ -239,11 +244,20 @@ class DivergenceMonitor:
 
     def _fail(self, step, quantity, value):
         name = _name(self.integrator)
+        implicit = name in ("implicit", "knoche", "projective")
         try:
-            safe = suggest_dt(self.model, name) if name not in ("implicit", "knoche", "projective") else None
+            bound = math.inf if implicit else time_step_bound(self.model, name)
         except Exception:                                                # pragma: no cover
+            bound = math.nan
+        safe = 0.9 * bound if math.isfinite(bound) and bound > 0 else None
+        cause = None
+        if implicit or (math.isfinite(bound) and self.dt <= bound) or bound == math.inf:
+            # the linear stability bound holds (or there is none): the time step is not what diverged
+            within = "an implicit integrator" if implicit else f"dt within the stability bound ({bound:.3g} s)"
+            cause = (f"with {within} the time step is not the cause: look for a load, drag, gravity or start "
+                     "state too large for this body, or a spring law that stiffens without limit")
             safe = None
-        raise DivergenceError(step, quantity, value, self.dt, safe if safe and math.isfinite(safe) else None)
+        raise DivergenceError(step, quantity, value, self.dt, safe, cause=cause)
 
     def check(self, state, step: int):
         """Raise :class:`DivergenceError` if ``state`` is non-finite or runaway."""
