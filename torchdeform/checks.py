@@ -3,6 +3,8 @@
 * :func:`usable_device`: a device name torch accepts is not always one it can use (``meta`` holds
   no values, ``xpu`` or ``cuda`` may be missing from this build): try it once and say what is
   missing.
+* :func:`read_text`: an input text file (scene, rule file, CSV, transfer function) as UTF-8, or one
+  located line saying what is wrong (missing, a folder, not UTF-8 at line n).
 * :func:`check_memory`: refuse a grid, volume, image or recording that cannot fit, naming the key
   and the bytes it would take, instead of failing inside an allocation.
 """
@@ -10,12 +12,13 @@ from __future__ import annotations
 
 import functools
 import os
+from pathlib import Path
 
 import torch
 
 from .errors import ConfigError
 
-__all__ = ["usable_device", "available_memory", "check_memory", "format_bytes"]
+__all__ = ["usable_device", "read_text", "available_memory", "check_memory", "format_bytes"]
 
 
 @functools.lru_cache(maxsize=16)
@@ -139,3 +142,40 @@ def check_memory(key: str, nbytes: float, what: str, device=None, got=None, file
     raise ConfigError(key, f"a size that fits in memory: {what} needs at least {format_bytes(nbytes)}, and "
                       f"{format_bytes(avail)} is available on {torch.device(device or 'cpu')}", got, file=file,
                       line=line)
+
+
+def read_text(path, key: str, what: str = "file") -> str:
+    r"""The UTF-8 text of an input file, or a :class:`ConfigError` naming ``key`` (and the line of a bad byte).
+
+    Args:
+        path: the file.
+        key: the option or key that named it (``"--inputs"``, ``"scene"``).
+        what: what the file should be, e.g. ``"CSV file"``.
+
+    Examples:
+        >>> p = getfixture("tmp_path") / "bad.csv"
+        >>> _ = p.write_bytes(b"a,b\n1,2\n\xff,3\n")
+        >>> read_text(p, "--inputs", "CSV file")
+        Traceback (most recent call last):
+        ...
+        torchdeform.errors.ConfigError: ...bad.csv:3: --inputs: expected a UTF-8 text CSV file, got 'byte 0xff that is not UTF-8'
+        >>> read_text(p.parent, "--inputs", "CSV file")
+        Traceback (most recent call last):
+        ...
+        torchdeform.errors.ConfigError: --inputs: expected a CSV file, not a folder, got '...'
+    """
+    p = Path(path)
+    if p.is_dir():
+        raise ConfigError(key, f"a {what}, not a folder", str(p))
+    try:
+        data = p.read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(key, f"an existing {what}", str(p)) from None
+    except OSError as e:
+        raise ConfigError(key, f"a readable {what} ({e.strerror})", str(p)) from None
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        line = data[:e.start].count(b"\n") + 1
+        raise ConfigError(key, f"a UTF-8 text {what}", f"byte 0x{data[e.start]:02x} that is not UTF-8", file=str(p),
+                          line=line, show_got=True) from None

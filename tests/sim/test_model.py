@@ -219,7 +219,7 @@ def test_bad_grid_shape_is_rejected(shape):
 
 def test_explicit_euler_without_damping_warns():
     g, m = cube()
-    with pytest.warns(td.StabilityWarning, match="unstable for every dt"):
+    with pytest.warns(td.StabilityWarning, match="unstable at every time step"):
         td.simulate(m, m.rest_state(), 1e-5, 1, integrator=td.ExplicitEuler())
 
 

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import copy
 import csv
+import io
 import itertools
 import json
 import time
@@ -43,6 +44,7 @@ from pathlib import Path
 
 import tomllib
 
+from ..checks import read_text
 from ..errors import ConfigError, DivergenceError
 
 __all__ = ["parse_set", "parse_value", "product", "read_points", "check_key", "point_scene", "run_point",
@@ -84,11 +86,8 @@ def product(sets: list) -> list:
 def read_points(path) -> list:
     """A list file of points: CSV, a header of dotted keys, one point per row (values as :func:`parse_value`)."""
     path = Path(path)
-    try:
-        with open(path, newline="", encoding="utf-8") as fh:
-            rows = list(csv.reader(fh))
-    except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError("--points", "a readable UTF-8 CSV file", f"{path} ({e})") from None
+    with io.StringIO(read_text(path, "--points", "CSV file"), newline="") as fh:
+        rows = list(csv.reader(fh))
     rows = [r for r in rows if any(c.strip() for c in r)]
     if len(rows) < 2:
         raise ConfigError("--points", "a header of scene keys and at least one row", str(path))

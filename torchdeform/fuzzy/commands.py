@@ -10,12 +10,14 @@
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 from pathlib import Path
 
 import torch
 
+from ..checks import read_text
 from ..errors import ConfigError
 from .fis import read_fis
 from .system import MamdaniSystem
@@ -85,11 +87,7 @@ def read_inputs_csv(fis: MamdaniSystem, path) -> torch.Tensor:
     Extra columns are ignored; blank lines are skipped.
     """
     p = Path(path)
-    try:
-        f = p.open(newline="", encoding="utf-8")
-    except OSError:
-        raise ConfigError("--inputs", "an existing CSV file", str(p)) from None
-    with f:
+    with io.StringIO(read_text(p, "--inputs", "CSV file"), newline="") as f:
         reader = csv.reader(f)
         header = [h.strip() for h in next(reader, [])]
         missing = [n for n in fis.input_names() if n not in header]

@@ -63,6 +63,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..checks import read_text
 from ..errors import ConfigError
 from .membership import Bell, Gaussian, Sigmoid, Singleton, Trapezoid, Triangle
 from .rules import Clause, Rule, Variable
@@ -318,12 +319,7 @@ def parse_fis(text: str, path="<string>") -> MamdaniSystem:
 def read_fis(path) -> MamdaniSystem:
     """Read a MATLAB ``.fis`` file into a :class:`MamdaniSystem`."""
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError("file", "an existing .fis file", str(p)) from None
-    except UnicodeDecodeError as e:
-        raise ConfigError("file", "UTF-8 text", f"undecodable byte at offset {e.start}", file=str(p)) from None
+    text = read_text(p, "file", ".fis file")
     return parse_fis(text, p)
 
 

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import torch
 
+from ..checks import read_text
 from ..errors import ConfigError
 from ..sim.forces import Drag
 from ..sim.grid import CLASSES, FACES, TOPOLOGIES, Grid
@@ -246,12 +247,7 @@ def read(path) -> tuple[Source, dict]:
             unknown model or section, or a required section missing.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError("scene", "an existing scene file (.toml)", str(path)) from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError("scene", "a readable UTF-8 text file", f"{path} ({e})") from None
+    text = read_text(path, "scene", "scene file (.toml)")
     src = Source(path, text)
     try:
         data = tomllib.loads(text)

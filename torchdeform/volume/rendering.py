@@ -61,6 +61,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
+from ..checks import read_text
 from ..errors import ConfigError
 from .deform import DisplacementField, as_offsets, as_volume, axis_weights_at, sample
 
@@ -197,11 +198,10 @@ def load_tf(path, resolution: int = 4096) -> TransferFunction:
         ConfigError: naming the file and line.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError):
-        raise ConfigError("transfer function", "a readable transfer-function file or a preset (" +
-                          ", ".join(PRESETS) + ")", str(path)) from None
+    if not path.exists():
+        raise ConfigError("transfer function", "a transfer-function file or a preset (" + ", ".join(PRESETS) + ")",
+                          str(path))
+    text = read_text(path, "transfer function", "transfer-function file")
     rows, relative, where = [], False, []
     for n, line in enumerate(text.splitlines(), 1):
         line = line.split("#")[0].strip()
