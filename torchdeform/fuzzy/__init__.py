@@ -22,10 +22,11 @@ from .system import (
                      OR_METHODS,
                      EmptyOutputWarning,
                      MamdaniSystem,
+                     ResolutionWarning,
                      defuzzify,
 )
 
 __all__ = ["HEDGES", "KINDS", "Bell", "Gaussian", "MembershipFunction", "Sigmoid", "Singleton", "Trapezoid",
            "Triangle", "Clause", "Rule", "Variable", "AGGREGATIONS", "AND_METHODS", "DEFUZZIFIERS",
-           "IMPLICATIONS", "OR_METHODS", "EmptyOutputWarning", "MamdaniSystem", "defuzzify",
+           "IMPLICATIONS", "OR_METHODS", "EmptyOutputWarning", "ResolutionWarning", "MamdaniSystem", "defuzzify",
            "list_presets", "load_preset", "tissue_parameters", "tissues"]

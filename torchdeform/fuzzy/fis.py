@@ -66,7 +66,7 @@ import torch
 from ..checks import read_text
 from ..errors import ConfigError
 from .membership import Bell, Gaussian, Sigmoid, Singleton, Trapezoid, Triangle
-from .rules import Clause, Rule, Variable
+from .rules import LIMIT, RANGE_TEXT, Clause, Rule, Variable
 from .system import AGGREGATIONS, AND_METHODS, DEFUZZIFIERS, IMPLICATIONS, OR_METHODS, MamdaniSystem
 
 __all__ = ["parse_fis", "read_fis", "fis_text", "write_fis"]
@@ -191,6 +191,8 @@ def _variable(sec, path, output: bool) -> Variable:
     rng = _numbers(m.group(1), path, n, f"[{sec.name}] Range", "[lo hi] with two numbers") if m else None
     if rng is None or len(rng) != 2 or not rng[0] < rng[1] or not all(map(math.isfinite, rng)):
         raise _err(path, n, f"[{sec.name}] Range", "[lo hi] with two finite numbers lo < hi", text)
+    if max(map(abs, rng)) > LIMIT:
+        raise _err(path, n, f"[{sec.name}] Range", f"[lo hi] with {RANGE_TEXT[4:]}", text)
     num = _int(sec, "NumMFs", path)
     keys = sorted((k for k in sec.items if re.fullmatch(r"MF\d+", k)), key=lambda k: int(k[2:]))
     if [int(k[2:]) for k in keys] != list(range(1, num + 1)):
@@ -209,6 +211,9 @@ def _variable(sec, path, output: bool) -> Variable:
         values = _numbers(params, path, n, f"[{sec.name}] {k}", f"numeric parameters for {kind}")
         if len(values) != len(order):
             raise _err(path, n, f"[{sec.name}] {k}", f"{len(order)} parameters for {kind}", f"[{params}]")
+        if not all(math.isfinite(v) and abs(v) <= LIMIT for v in values):
+            raise _err(path, n, f"[{sec.name}] {k}", "finite parameters of magnitude <= 1e30 (float32 arithmetic)",
+                       f"[{params}]")
         if term in terms:
             raise _err(path, n, f"[{sec.name}] {k}", "distinct term names", term)
         ours = [values[order.index(j)] for j in range(len(order))]
@@ -313,7 +318,9 @@ def parse_fis(text: str, path="<string>") -> MamdaniSystem:
     try:
         return MamdaniSystem(name, inputs, outputs, rules, **methods)
     except ConfigError as e:
-        raise _err(path, sysec.line, e.key, e.expected, e.got, e.show_got) from None
+        line = sysec.items["Resolution"][1] if e.key == "resolution" and "Resolution" in sysec.items else sysec.line
+        raise _err(path, line, "[System] Resolution" if e.key == "resolution" else e.key, e.expected, e.got,
+                   e.show_got) from None
 
 
 def read_fis(path) -> MamdaniSystem:

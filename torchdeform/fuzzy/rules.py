@@ -35,6 +35,12 @@ def check_name(name: str, key: str) -> str:
     return name
 
 
+#: the largest magnitude of a range end or a membership parameter: float32 holds up to 3.4e38, and
+#: the centroid sums membership times value over the output cells (resolution 1000 by default)
+LIMIT = 1e30
+RANGE_TEXT = "two numbers lo < hi of magnitude <= 1e30 (float32 sums over the output cells stay finite)"
+
+
 class Variable(nn.Module):
     """A linguistic variable: a name, a range and named terms (membership functions).
 
@@ -58,6 +64,8 @@ class Variable(nn.Module):
             raise ConfigError(f"{name}.range", "two numbers lo < hi", range) from None
         if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
             raise ConfigError(f"{name}.range", "two finite numbers lo < hi", (lo, hi))
+        if max(abs(lo), abs(hi)) > LIMIT:
+            raise ConfigError(f"{name}.range", RANGE_TEXT, (lo, hi))
         self.range = (lo, hi)
         # the range as a buffer follows .to()/.double() like the parameters, so a system built in
         # float32 clips inputs to the same rounded ends as its float32 corner points

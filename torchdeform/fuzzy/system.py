@@ -43,12 +43,13 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from ..checks import check_memory
 from ..errors import ConfigError, NoRuleFiredError
 from .membership import apply_hedges
 from .rules import Rule
 
 __all__ = ["AND_METHODS", "OR_METHODS", "IMPLICATIONS", "AGGREGATIONS", "DEFUZZIFIERS", "ON_EMPTY",
-           "EmptyOutputWarning", "MamdaniSystem", "defuzzify"]
+           "EmptyOutputWarning", "ResolutionWarning", "MamdaniSystem", "defuzzify"]
 
 AND_METHODS = ("min", "prod")
 OR_METHODS = ("max", "probor")
@@ -60,6 +61,10 @@ ON_EMPTY = ("default", "warn", "error")
 
 class EmptyOutputWarning(UserWarning):
     """No rule fired for some input rows; their output took the variable's default."""
+
+
+class ResolutionWarning(UserWarning):
+    """An output term narrower than the defuzzification cells: sampled there it counts little or nothing."""
 
 
 def _tnorm(a, b, method):
@@ -136,7 +141,30 @@ class MamdaniSystem(nn.Module):
         self.rules = [r if isinstance(r, Rule) else Rule.parse(r) for r in rules]
         if not self.rules:
             raise ConfigError("rules", "at least one rule", [])
+        # one input row needs its aggregate and every consequent group's set over the cells
+        check_memory("resolution", 4.0 * self.resolution * (2 + len(self.rules)), f"{self.resolution} output cells",
+                     got=self.resolution)
         self._compile_rules()
+        self._check_cells()
+
+    def _check_cells(self) -> None:
+        """Warn about output terms that the defuzzification cells sample too coarsely to count."""
+        for v in self.outputs:
+            mfs = v.terms
+            if next(iter(mfs.values())).is_singleton or self.resolution > 10**6:     # fine enough for any term
+                continue
+            lo, hi = v.range
+            h = (hi - lo) / self.resolution
+            y = lo + h * (torch.arange(self.resolution, dtype=torch.float64) + 0.5)
+            for name, mf in mfs.items():
+                with torch.no_grad():
+                    peak = float(mf(y.to(self.dtype)).max())
+                if peak < 0.5:
+                    warnings.warn(f"{self.name}: output {v.name}'s term {name} is narrower than the defuzzification "
+                                  f"cells ({h:.3g} wide at resolution {self.resolution}): sampled there its "
+                                  f"membership peaks at {peak:.2g}, so it adds "
+                                  f"{'nothing' if peak == 0 else 'too little'} to {v.name}; raise the resolution",
+                                  ResolutionWarning, stacklevel=3)
 
     # ------------------------------------------------------------ structure
 
