@@ -22,7 +22,7 @@ import numpy as np
 
 from .errors import ConfigError, TorchdeformError
 
-__all__ = ["atomic_path", "RunFolder", "manifest", "require_finite", "NonFiniteOutputError", "OutputError", "STAGING"]
+__all__ = ["atomic_path", "save_figure", "RunFolder", "manifest", "require_finite", "NonFiniteOutputError", "OutputError", "STAGING"]
 
 #: prefix of the staging folders and temporary files (hidden; removed when their process is gone)
 STAGING = ".torchdeform-partial-"
@@ -86,6 +86,12 @@ def atomic_path(path, key: str = "--out"):
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def save_figure(fig, path, dpi: int = 100) -> None:
+    """Write a matplotlib figure to ``path`` (format by suffix) whole or not at all (:func:`atomic_path`)."""
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi)
 
 
 def manifest(folder, also=("summary.json",)) -> list:

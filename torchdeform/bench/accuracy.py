@@ -81,6 +81,7 @@ from typing import Callable
 import torch
 
 from ..errors import ConfigError, DivergenceError
+from ..outputs import save_figure
 from ..sim.adaptive import PAIRS, Adaptive
 from ..sim.catalog import INTEGRATORS
 from ..sim.engine import simulate
@@ -1215,7 +1216,7 @@ def plot(rows: list, path: Path, references: dict | None = None) -> None:
     fig.legend(list(handles.values()), list(handles), loc="lower right" if len(scenes) % cols else "upper right",
                fontsize=9, frameon=True)
     fig.tight_layout()
-    fig.savefig(path, dpi=80)
+    save_figure(fig, path, dpi=80)
     plt.close(fig)
 
 

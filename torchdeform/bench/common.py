@@ -16,6 +16,7 @@ from pathlib import Path
 import torch
 
 from ..errors import ConfigError
+from ..outputs import save_figure as write_figure
 from ..sim.grid import Grid
 from ..sim.model import Model, State
 
@@ -149,6 +150,6 @@ def save_figure(fig, out_dir, name: str) -> None:
     fig.tight_layout()
     path = Path(out_dir) / name
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    write_figure(fig, path, dpi=110)
     plt.close(fig)
     print(f"wrote {path}", file=sys.stderr)

@@ -16,6 +16,7 @@ from pathlib import Path
 import torch
 
 from ..errors import ConfigError
+from ..outputs import save_figure
 from ..sim.grid import Grid
 from ..sim.integrators import ImplicitEuler, SymplecticEuler
 from ..sim.model import Model
@@ -401,5 +402,5 @@ def _speed_plot(rows, path: Path, machine: dict) -> None:
     axes[0][-1].legend(fontsize=7)
     fig.suptitle(f"spring-step throughput, symplectic Euler ({machine['device']}, torch {machine['torch']})")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)

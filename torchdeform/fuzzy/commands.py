@@ -19,6 +19,7 @@ import torch
 
 from ..checks import read_text
 from ..errors import ConfigError
+from ..outputs import save_figure
 from .fis import read_fis
 from .system import MamdaniSystem
 
@@ -159,7 +160,7 @@ def plot(fis: MamdaniSystem, out_dir, points: int = 401) -> list:
             ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.0, 0.5))
             fig.tight_layout()
             path = out / f"mf_{v.name}.png"
-            fig.savefig(path, dpi=110)
+            save_figure(fig, path, dpi=110)
             plt.close(fig)
             written.append(path)
         mid = torch.tensor([0.5 * (v.range[0] + v.range[1]) for v in fis.inputs], dtype=torch.float64)
@@ -175,7 +176,7 @@ def plot(fis: MamdaniSystem, out_dir, points: int = 401) -> list:
                 ax.grid(alpha=0.3)
                 fig.tight_layout()
                 path = out / f"curve_{v.name}_{w.name}.png"
-                fig.savefig(path, dpi=110)
+                save_figure(fig, path, dpi=110)
                 plt.close(fig)
                 written.append(path)
     return written

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..outputs import save_figure
 from ..sim.springs import difference
 from .parameters import Parameters
 from .series import Series
@@ -119,7 +120,7 @@ def plot_history(history, path, title: str = "learning curve", extra: dict | Non
     ax.legend()
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     plt.close(fig)
     return path
 
@@ -141,7 +142,7 @@ def plot_scan(values, losses, marker_at, path, xlabel: str, marker: str = "true 
     ax.set_title(title)
     ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     plt.close(fig)
     return Path(path)
 
@@ -163,7 +164,7 @@ def plot_spread(learned, truth, path, title: str = "per-spring recovery") -> Pat
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     plt.close(fig)
     return path
 

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from ..errors import ConfigError
+from ..outputs import atomic_path
 from ..sim.grid import Grid
 
 #: Relative distance (in units of the smallest spacing) within which a node counts as on the
@@ -439,7 +440,8 @@ def save_surface(path, vertices, faces, *, vertex_attributes=None) -> None:
     if any(a.shape != (len(v),) for a in attrs.values()):
         raise ConfigError("vertex_attributes", f"one value per vertex ({len(v)},) for each name",
                           {k: a.shape for k, a in attrs.items()})
-    trimesh.Trimesh(vertices=v, faces=f, process=False, vertex_attributes=attrs).export(str(path))
+    with atomic_path(path) as tmp:
+        trimesh.Trimesh(vertices=v, faces=f, process=False, vertex_attributes=attrs).export(str(tmp))
 
 
 __all__ += ["marching_tetrahedra", "trilinear_weights", "body_surface", "volume_surface", "save_surface"]

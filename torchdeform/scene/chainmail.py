@@ -16,7 +16,7 @@ import torch
 from tqdm.auto import tqdm
 
 from ..chainmail import METHODS, RELAX_MODES, ChainMail, Limits, limit_violation, relax_energy, tissue_limits
-from ..outputs import manifest
+from ..outputs import manifest, save_figure
 from ..sim.grid import Grid
 from .reader import SECTIONS, Table, drags_section, faces, grid_section, node_list
 
@@ -123,7 +123,7 @@ def _plot_scene(path, t, energy, disp, title):
     bottom.set_ylabel("max displacement (mm)")
     bottom.set_xlabel("time (s)")
     bottom.grid(alpha=0.3)
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
 
 
 def chainmail_scene(src, data: dict, base, name: str = "chainmail") -> ChainMailScene:

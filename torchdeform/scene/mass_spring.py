@@ -429,6 +429,13 @@ def mass_spring_scene(src: Source, data: dict, base: Path, name: str = "scene") 
                         "mode": vt.text("mode", '"dvr", "mip" or "average"', "dvr", ("dvr", "mip", "average")),
                         "view": vt.text("view", "an axis view d, h, w, -d, -h, -w", "h",
                                         ("d", "h", "w", "-d", "-h", "-w")), "base": str(base)}
+        from ..volume.io import check_volume_source
+        from ..volume.rendering import get_tf
+        name = scene.volume["file"]                       # checked now, not after the simulation
+        with src.located("volume.file", {"volume": "volume.file", "volume.file": "volume.file"}):
+            check_volume_source(name if name.startswith("phantom") else Path(base) / name, "volume.file")
+        with src.located("volume.tf", {"transfer function": "volume.tf", "control point": "volume.tf"}):
+            get_tf(scene.volume["tf"])
     if "texture" in data:
         from ..texture.synthesis import SEAM_METHODS
         tt = Table(src, "texture", data["texture"], SECTIONS["texture"])

@@ -349,6 +349,11 @@ def drags_section(src: Source, items, grid: Grid) -> list:
                 isinstance(p, list) and len(p) == 2 and is_number(p[0]) and isinstance(p[1], list)
                 and len(p[1]) == 3 and all(is_number(c) for c in p[1]) for p in path)):
             raise t.fail("path", expected, path)
+        size = max(n * h for n, h in zip(grid.shape, grid.spacing))
+        far = max(math.sqrt(sum(c * c for c in p[1])) for p in path)
+        if far > 1000 * size:
+            raise t.fail("path", f"offsets within 1000 body sizes ({1000 * size:.3g} m here; farther, float32 positions "
+                         "no longer resolve the node spacing)", path)
         with src.located(t.key("path")):
             drags.append(Drag(nodes, [(float(p[0]), tuple(float(c) for c in p[1])) for p in path]))
     return drags

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from ..options import one_line_warnings  # noqa: F401  (re-exported: torchdeform.scene.one_line_warnings)
-from ..outputs import RunFolder, manifest
+from ..outputs import RunFolder, manifest, save_figure
 from ..sim.engine import Engine, simulate
 from ..sim.model import Model, State
 from ..sim.stability import check_dt, time_step_bound
@@ -132,7 +132,7 @@ def plot_energy(path, t: np.ndarray, series: dict, title: str = "") -> None:
     bottom.set_ylabel("max displacement (mm)")
     bottom.set_xlabel("time (s)")
     bottom.grid(alpha=0.3)
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
 
 
 def _bound_method(name: str) -> str:

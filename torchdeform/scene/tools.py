@@ -68,6 +68,7 @@ from ..interact.grasp import Grasp
 from ..interact.reactions import support_reaction
 from ..interact.strain import StrainLimit
 from ..interact.tools import Box, Capsule, HalfSpace, Sphere, Tool
+from ..outputs import save_figure
 from ..sim.model import State
 from .reader import SECTIONS, Source, Table, is_number
 
@@ -625,7 +626,7 @@ def plot_forces(path, curves: dict, frames: tuple, title: str = "") -> None:
             ax.legend(loc="best", fontsize="small")
     if title:
         fig.suptitle(title)
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
 
 
 def plot_palpation(path, result: dict, title: str = "") -> None:
@@ -671,7 +672,7 @@ def plot_palpation(path, result: dict, title: str = "") -> None:
     right.grid(alpha=0.3)
     if title:
         fig.suptitle(title)
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
 
 
 def support_series(model, t: np.ndarray, x: torch.Tensor, v: torch.Tensor) -> np.ndarray:

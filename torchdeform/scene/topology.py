@@ -74,6 +74,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..outputs import save_figure
 from ..sim.model import State
 from ..topology import (
     Blade,
@@ -580,7 +581,7 @@ def plot_topology(path, history: np.ndarray, x: np.ndarray, labels: np.ndarray, 
         ax.set_title(f"final nodes by component ({len(ids)}): {name}", fontsize="small")
     if title:
         fig.suptitle(title)
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
 
 
 def _surface_panel(ax, surfaces) -> None:

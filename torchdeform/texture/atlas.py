@@ -47,6 +47,7 @@ import numpy as np
 import torch
 
 from ..errors import ConfigError
+from ..outputs import atomic_path
 
 __all__ = ["TriangleSamples", "TextureAtlas", "sample_triangles", "build_atlas", "export_textured",
            "TEXTURED_SUFFIXES"]
@@ -308,11 +309,16 @@ def export_textured(path, vertices, faces, rest, texture, kind: str | None = Non
         _, _, _, _, _ = _triangles(X, f, texture, density)                 # validates faces
         rgb = (texture.at_material(X).double().clamp(0, 1) * 255).round().to(torch.uint8).numpy()
         colours = np.concatenate([rgb, np.full((len(rgb), 1), 255, np.uint8)], 1)
-        trimesh.Trimesh(vertices=v, faces=f, vertex_colors=colours, process=False).export(str(path), file_type="ply")
+        with atomic_path(path) as tmp:
+            trimesh.Trimesh(vertices=v, faces=f, vertex_colors=colours, process=False).export(str(tmp), file_type="ply")
         return None
     atlas = build_atlas(X, f, texture, density)
     corners = np.arange(3 * len(f)).reshape(-1, 3)
     visual = trimesh.visual.TextureVisuals(uv=atlas.uv.reshape(-1, 2).numpy(), image=atlas.to_pil())
     mesh = trimesh.Trimesh(vertices=v[f.reshape(-1)], faces=corners, visual=visual, process=False)
-    mesh.export(str(path), file_type=k)
+    if k == "obj":                                  # the .mtl and texture image it names are written beside it
+        mesh.export(str(path), file_type=k)
+    else:
+        with atomic_path(path) as tmp:
+            mesh.export(str(tmp), file_type=k)
     return atlas

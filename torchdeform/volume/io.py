@@ -20,7 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..checks import check_memory
 from ..errors import ConfigError
+from ..outputs import atomic_path, require_finite
 
 SUFFIXES = (".npy", ".npz", ".nii", ".nii.gz", ".nrrd", ".nhdr")
 _EXTRA = {"nibabel": "NIfTI files need nibabel: pip install nibabel (or torchdeform[volume])",
@@ -97,15 +99,39 @@ def load_volume(path, key: str = "volume") -> np.ndarray:
     text = str(path)
     if text == "phantom" or text.startswith("phantom:"):
         from .phantoms import phantom
-        try:
-            n = int(text.split(":", 1)[1]) if ":" in text else 128
-        except ValueError:
-            n = 0
-        if n < 8:
-            raise ConfigError(key, "phantom or phantom:N with N >= 8 voxels", text)
-        return phantom((n, n, n)).numpy()
+        return phantom((_phantom_side(text, key),) * 3).numpy()
     arr = check_array(read_array(path, key), key, path)
     return np.ascontiguousarray(arr, dtype=np.float32)
+
+
+def _phantom_side(text: str, key: str) -> int:
+    """N of ``phantom:N`` (128 for ``phantom``), checked: >= 8, and its renders fit in memory."""
+    try:
+        n = int(text.split(":", 1)[1]) if ":" in text else 128
+    except ValueError:
+        n = 0
+    if n < 8:
+        raise ConfigError(key, "phantom or phantom:N with N >= 8 voxels", text)
+    # the volume, its warped copy and the render's sample buffers: about 6 float32 copies
+    check_memory(key, 24.0 * n ** 3, f"a phantom of {n}^3 voxels", got=text)
+    return n
+
+
+def check_volume_source(path, key: str = "volume") -> None:
+    """Refuse, before any work, a volume that :func:`load_volume` would refuse (reads a file once).
+
+    Examples:
+        >>> check_volume_source("phantom:64")
+        >>> check_volume_source("phantom:4", "volume.file")
+        Traceback (most recent call last):
+        ...
+        torchdeform.errors.ConfigError: volume.file: expected phantom or phantom:N with N >= 8 voxels, got 'phantom:4'
+    """
+    text = str(path)
+    if text == "phantom" or text.startswith("phantom:"):
+        _phantom_side(text, key)
+    else:
+        load_volume(path, key)
 
 
 def save_volume(path, volume, spacing=(1.0, 1.0, 1.0), key: str = "--out") -> None:
@@ -117,16 +143,21 @@ def save_volume(path, volume, spacing=(1.0, 1.0, 1.0), key: str = "--out") -> No
         raise ConfigError(key, "an output file ending in .npy, .npz, .nii, .nii.gz or .nrrd", str(path))
     if path.parent and not path.parent.exists():
         raise ConfigError(key, "a file in an existing folder", str(path))
-    if suffix == ".npy":
-        np.save(path, arr)
-    elif suffix == ".npz":
-        np.savez_compressed(path, volume=arr)
-    elif suffix in (".nii", ".nii.gz"):
-        nib = _optional("nibabel", key, path)
-        nib.save(nib.Nifti1Image(arr, np.diag([*map(float, spacing), 1.0])), str(path))
-    else:
-        nrrd = _optional("nrrd", key, path)
-        nrrd.write(str(path), arr, {"spacings": [float(s) for s in spacing]}, index_order="C")
+    require_finite(f"{path.name}: volume", arr, "d, h, w")
+    module = None
+    if suffix in (".nii", ".nii.gz"):
+        module = _optional("nibabel", key, path)
+    elif suffix == ".nrrd":
+        module = _optional("nrrd", key, path)
+    with atomic_path(path, key) as tmp:            # a failed write leaves an earlier file whole
+        if suffix == ".npy":
+            np.save(tmp, arr)
+        elif suffix == ".npz":
+            np.savez_compressed(tmp, volume=arr)
+        elif suffix in (".nii", ".nii.gz"):
+            module.save(module.Nifti1Image(arr, np.diag([*map(float, spacing), 1.0])), str(tmp))
+        else:
+            module.write(str(tmp), arr, {"spacings": [float(s) for s in spacing]}, index_order="C")
 
 
 __all__ = ["load_volume", "save_volume", "read_array", "check_array", "SUFFIXES"]

@@ -63,6 +63,7 @@ import torch.nn.functional as F
 
 from ..checks import read_text
 from ..errors import ConfigError
+from ..outputs import atomic_path
 from .deform import DisplacementField, as_offsets, as_volume, axis_weights_at, sample
 
 RENDER_MODES = ("dvr", "mip", "average")
@@ -960,14 +961,16 @@ def to_image(image: torch.Tensor, window=None, background=(0.0, 0.0, 0.0), flip_
 def save_png(path, rgb) -> None:
     """Write a uint8 ``(h, w, 3)`` array as PNG."""
     from PIL import Image
-    Image.fromarray(rgb).save(str(path))
+    with atomic_path(path) as tmp:                 # a failed write leaves an earlier image whole
+        Image.fromarray(rgb).save(str(tmp))
 
 
 def save_gif(path, frames, fps: float = 12.0) -> None:
     """Write uint8 ``(h, w, 3)`` frames as a looping GIF."""
     from PIL import Image
     ims = [Image.fromarray(f) for f in frames]
-    ims[0].save(str(path), save_all=True, append_images=ims[1:], duration=int(1000 / fps), loop=0)
+    with atomic_path(path) as tmp:
+        ims[0].save(str(tmp), save_all=True, append_images=ims[1:], duration=int(1000 / fps), loop=0)
 
 
 def orbit_frames(volume, frames: int = 24, elevation: float = 20.0, size=(256, 256), **kw) -> list:
