@@ -18,7 +18,7 @@ import torch
 
 from .errors import ConfigError
 
-__all__ = ["usable_device", "read_text", "available_memory", "check_memory", "format_bytes"]
+__all__ = ["usable_device", "read_text", "available_memory", "check_memory", "check_grid", "format_bytes"]
 
 
 @functools.lru_cache(maxsize=16)
@@ -179,3 +179,33 @@ def read_text(path, key: str, what: str = "file") -> str:
         line = data[:e.start].count(b"\n") + 1
         raise ConfigError(key, f"a UTF-8 text {what}", f"byte 0x{data[e.start]:02x} that is not UTF-8", file=str(p),
                           line=line, show_got=True) from None
+
+
+def check_grid(key: str, shape, topology: int = 26, itemsize: int = 4, device=None, file=None, line=None) -> None:
+    """Refuse a node grid whose model cannot fit in memory (:func:`check_memory`).
+
+    The estimate (a lower bound): state, rest positions, masses, forces and the integrator's
+    work fields (about 30 values per node), and the spring fields (``topology`` per node).
+
+    Args:
+        key: the scene key or option of the size.
+        shape: the node counts ``(D, H, W)``.
+        topology: neighbours per node.
+        itemsize: bytes per value (4: float32).
+        device: where the model would live (None = CPU).
+        file: the scene file, if any.
+        line: its line.
+
+    Examples:
+        >>> check_grid("grid.shape", (64, 64, 64))
+        >>> check_grid("grid.shape", (100000, 100000, 100000))
+        Traceback (most recent call last):
+        ...
+        torchdeform.errors.ConfigError: grid.shape: expected a size that fits in memory: a grid of 100000 x 100000 x 100000 nodes...
+    """
+    nodes = 1
+    for n in shape:
+        nodes *= int(n)
+    check_memory(key, float(nodes) * itemsize * (30 + int(topology)),
+                 f"a grid of {' x '.join(str(int(n)) for n in shape)} nodes ({topology} neighbours)", device,
+                 got=list(shape), file=file, line=line)

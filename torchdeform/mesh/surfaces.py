@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..checks import check_grid
 from ..errors import ConfigError
 from ..outputs import atomic_path
 from ..sim.grid import Grid
@@ -172,6 +173,7 @@ def voxelize(mesh_or_path, spacing, padding: int = 0, scale: float = 1.0):
     vertices, faces = load_mesh(mesh_or_path, scale)
     lo, hi = vertices.min(0), vertices.max(0)
     shape = tuple(int(math.ceil((h - l) / s - 1e-9)) + 1 + 2 * int(padding) for l, h, s in zip(lo, hi, sp))
+    check_grid("spacing", shape)                   # a spacing far too fine for the mesh: refused, not allocated
     origin = tuple(float((l + h) / 2 - (n - 1) * s / 2) for l, h, n, s in zip(lo, hi, shape, sp))
     axes = [o + s * np.arange(n) for o, s, n in zip(origin, sp, shape)]
     mask = inside_mask(vertices, faces, *axes, tol=SURFACE_TOL * min(sp))

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import torch
 
-from ..checks import usable_device
+from ..checks import check_memory, usable_device
 from ..errors import ConfigError
 from ..sim.adaptive import PAIRS
 from ..sim.catalog import INTEGRATORS
@@ -418,6 +418,11 @@ def mass_spring_scene(src: Source, data: dict, base: Path, name: str = "scene") 
     scene = Scene(grid, model_args, **run, source=src,
                   record_every=out.integer("record_every", "an integer >= 1 (steps between frames)", None, lo=1),
                   name=out.text("name", "a string", name), tools=tools, topology=topology)
+    frames = scene.steps // scene.frames_every + 2      # recorded positions and velocities, kept on the CPU
+    key = "output.record_every" if scene.record_every else "integrator.steps"
+    with src.located(key, {key: key}):
+        check_memory(key, 6.0 * frames * grid.num_nodes * scene.dtype.itemsize,
+                     f"{frames} recorded frames of {grid.num_nodes} nodes", got=scene.record_every or scene.steps)
     animation = out.data.get("animation", False)
     if not isinstance(animation, bool):
         raise out.fail("animation", "true or false (write animation.gif)", animation)

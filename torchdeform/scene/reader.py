@@ -29,7 +29,7 @@ from pathlib import Path
 
 import torch
 
-from ..checks import read_text
+from ..checks import check_grid, read_text
 from ..errors import ConfigError
 from ..sim.forces import Drag
 from ..sim.grid import CLASSES, FACES, TOPOLOGIES, Grid
@@ -296,6 +296,8 @@ def grid_section(t: Table, base: Path) -> Grid:
                                                                  for n in shape)) or min(shape) < 1:
         raise t.fail("shape", "three node counts [D, H, W], each >= 1", shape)
     origin = t.vec("origin", "three numbers [od, oh, ow] in metres", (0.0, 0.0, 0.0))
+    with t.src.located(t.key("shape"), {"grid.shape": t.key("shape")}):
+        check_grid("grid.shape", shape, topology)
     with t.src.located(t.name):
         return Grid(tuple(shape), spacing, topology, origin=origin)
 
