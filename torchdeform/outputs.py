@@ -79,8 +79,8 @@ def atomic_path(path, key: str = "--out"):
             raise FileNotFoundError(2, "the writer wrote nothing", str(tmp))
         os.replace(tmp, path)
     except OSError as e:
-        if e.strerror and (e.filename is None or str(e.filename) == str(tmp)):
-            raise OutputError(f"{path}: writing failed ({e.strerror}); "
+        if not isinstance(e, TorchdeformError) and (e.filename is None or str(e.filename) == str(tmp)):
+            raise OutputError(f"{path}: writing failed ({e.strerror or e}); "
                               + ("the earlier file is kept" if path.exists() else "nothing was written")) from e
         raise
     finally:
@@ -210,9 +210,9 @@ class RunFolder:
                 self.commit()
         finally:
             shutil.rmtree(self.stage, ignore_errors=True)
-        if isinstance(value, OSError) and value.strerror and value.filename is None:
-            raise OutputError(f"{self.out}: writing the outputs failed ({value.strerror}); the folder keeps what it "
-                              "held before") from value
+        if isinstance(value, OSError) and not isinstance(value, TorchdeformError) and value.filename is None:
+            raise OutputError(f"{self.out}: writing the outputs failed ({value.strerror or value}); the folder keeps "
+                              "what it held before") from value
         return False
 
     def commit(self) -> list:

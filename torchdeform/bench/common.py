@@ -15,7 +15,8 @@ from pathlib import Path
 
 import torch
 
-from ..errors import ConfigError
+from .. import options
+from ..options import integer
 from ..outputs import save_figure as write_figure
 from ..sim.grid import Grid
 from ..sim.model import Model, State
@@ -44,17 +45,9 @@ class busy_neighbour:
         return False
 
 
-def int_list(key):
-    """An ``argparse`` type: comma-separated integers (a located error for ``key`` otherwise)."""
-    def parse(text):
-        try:
-            values = [int(v) for v in str(text).split(",") if v.strip()]
-        except ValueError:
-            raise ConfigError(key, "comma-separated integers, e.g. 16,32,64", text) from None
-        if not values:
-            raise ConfigError(key, "at least one integer", text)
-        return values
-    return parse
+def int_list(key, lo: int = 1):
+    """An ``argparse`` type: comma-separated integers >= ``lo`` (argparse names the option ``key``)."""
+    return options.int_list(lo=lo)
 
 
 def add_common(p) -> None:
@@ -62,7 +55,7 @@ def add_common(p) -> None:
     p.add_argument("--quick", action="store_true", help="tiny sizes, few steps: a smoke run in seconds")
     p.add_argument("--json", action="store_true", help="print one JSON document on stdout, nothing else")
     p.add_argument("--out", default=None, help="folder for the CSV and the plot")
-    p.add_argument("--threads", type=int, default=None, help="CPU threads (default: torch's current)")
+    p.add_argument("--threads", type=integer(lo=1), default=None, help="CPU threads (default: torch's current)")
     p.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
     p.add_argument("--dtype", choices=("float32", "float64"), default="float32")
 

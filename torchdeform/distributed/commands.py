@@ -19,6 +19,8 @@ import os
 import sys
 from pathlib import Path
 
+from ..options import integer
+
 __all__ = ["add_arguments", "command", "rank_and_world", "run_command"]
 
 
@@ -30,7 +32,7 @@ def add_arguments(p) -> None:
     p.add_argument("--points", default=None, help="a CSV list of points instead (header: scene keys)")
     p.add_argument("--out", required=True, help="output folder (sweep.csv, sweep.png, records/)")
     p.add_argument("--device", default=None, help="cpu or cuda (default: the scene's; cuda:<local rank> under torchrun)")
-    p.add_argument("--batch", type=int, default=32, help="points simulated together when they differ only in "
+    p.add_argument("--batch", type=integer(lo=1), default=32, help="points simulated together when they differ only in "
                                                          "material.stiffness/damping (default 32; 1: one by one)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from ..errors import ConfigError
+from ..options import integer, number
 from .deform import as_offsets, warp
 from .io import load_volume, read_array, save_volume
 from .rendering import AXIS_VIEWS, OrbitCamera, get_tf, orbit_frames, render, save_gif, save_png, to_image
@@ -24,10 +25,10 @@ def add_warp_arguments(p) -> None:
     p.add_argument("offsets", help="node offsets .npy/.npz, shape (3, n_d, n_h, n_w), voxels, channels (D, H, W)")
     p.add_argument("--out", required=True, help="output volume (.npy, .npz, .nii, .nii.gz, .nrrd)")
     p.add_argument("--mode", choices=("deform", "carve", "knoche"), default="deform")
-    p.add_argument("--inverse-iters", type=int, default=0, help="fixed-point inverse iterations (default 0)")
+    p.add_argument("--inverse-iters", type=integer(lo=0), default=0, help="fixed-point inverse iterations (default 0)")
     p.add_argument("--order", choices=("linear", "bspline"), default="linear", help="offset texture")
     p.add_argument("--padding", choices=("border", "zeros"), default="border")
-    p.add_argument("--fill", type=float, default=0.0, help="value outside the volume / of removed material")
+    p.add_argument("--fill", type=number(), default=0.0, help="value outside the volume / of removed material")
 
 
 def load_offsets(path, volume_shape=None):
@@ -66,12 +67,12 @@ def add_render_arguments(p) -> None:
     p.add_argument("--mode", choices=("mip", "dvr", "average"), default="dvr")
     p.add_argument("--tf", default="ct-soft", help="transfer-function preset (ct-bone, ct-soft, grey) or file")
     p.add_argument("--view", default="h", help="axis view d, h, w, -d, -h, -w, or orbit (default h)")
-    p.add_argument("--azimuth", type=float, default=30.0, help="orbit view: degrees (default 30)")
-    p.add_argument("--elevation", type=float, default=20.0, help="orbit view: degrees (default 20)")
-    p.add_argument("--size", type=int, default=256, help="orbit image size in pixels (default 256)")
-    p.add_argument("--frames", type=int, default=24, help="GIF orbit frames (default 24)")
-    p.add_argument("--step", type=float, default=1.0, help="sample spacing along rays in voxels")
-    p.add_argument("--inverse-iters", type=int, default=0)
+    p.add_argument("--azimuth", type=number(), default=30.0, help="orbit view: degrees (default 30)")
+    p.add_argument("--elevation", type=number(), default=20.0, help="orbit view: degrees (default 20)")
+    p.add_argument("--size", type=integer(lo=8, hi=16384), default=256, help="orbit image size in pixels (default 256)")
+    p.add_argument("--frames", type=integer(lo=1, hi=3600), default=24, help="GIF orbit frames (default 24)")
+    p.add_argument("--step", type=number(lo=0.05), default=1.0, help="sample spacing along rays in voxels")
+    p.add_argument("--inverse-iters", type=integer(lo=0), default=0)
     p.add_argument("--engine", choices=("grid_sample", "eager", "compiled"), default="grid_sample",
                    help="axis views through --offsets: grid_sample (default), or the fused fast path, "
                         "compiled (~10x faster per frame, 30-60 s to compile once) or eager")

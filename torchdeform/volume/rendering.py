@@ -61,7 +61,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from ..checks import read_text
+from ..checks import check_memory, read_text
 from ..errors import ConfigError
 from ..outputs import atomic_path
 from .deform import DisplacementField, as_offsets, as_volume, axis_weights_at, sample
@@ -259,6 +259,9 @@ class OrbitCamera:
     fov: float = 40.0
     size: tuple = (256, 256)
 
+    def __post_init__(self):
+        self.size = _check_size(self.size)
+
     def rays(self, shape, dtype=torch.float32, device=None):
         """Origins ``(3,)`` and unit directions ``(3, h, w)`` in voxel coordinates ``(D, H, W)``."""
         centre = torch.tensor([(n - 1) / 2 for n in shape], dtype=torch.float64)
@@ -292,6 +295,8 @@ def _check_size(size):
         s = ()
     if len(s) != 2 or min(s) < 1:
         raise ConfigError("size", "an image size (height, width) of positive integers", size)
+    # the image, its accumulators and one slab of samples: a few dozen float32 values per pixel
+    check_memory("size", 128.0 * s[0] * s[1], f"an image of {s[0]} x {s[1]} pixels", got=s)
     return s
 
 
