@@ -17,6 +17,7 @@ import torch
 
 from .. import options
 from ..options import integer
+from ..outputs import atomic_path
 from ..outputs import save_figure as write_figure
 from ..sim.grid import Grid
 from ..sim.model import Model, State
@@ -90,7 +91,7 @@ def emit(name: str, args, rows: list, columns: list, extra: dict | None = None, 
     if args.out:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        with open(out / f"{name}.csv", "w", newline="") as fh:
+        with atomic_path(out / f"{name}.csv") as tmp, open(tmp, "w", newline="") as fh:
             keys = list(dict.fromkeys(k for r in rows for k in r)) or [c[0] for c in columns]
             w = csv.DictWriter(fh, fieldnames=keys)              # rows may differ (compile_s ...)
             w.writeheader()

@@ -182,8 +182,6 @@ def _sweep(args, rank: int, world: int) -> int:
     from ..errors import ConfigError
     from ..scene.reader import read
     from .sweep import batches, done_points, plot, point_id, point_scene, record, run_batch, write_table
-    if args.batch < 1:
-        raise ConfigError("--batch", "a whole number >= 1", args.batch)
     keys, points = _points(args)
     src, data = read(args.scene)
     if data.get("model", "mass-spring") != "mass-spring":

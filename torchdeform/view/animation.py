@@ -48,6 +48,7 @@ import numpy as np
 import torch
 
 from ..errors import ConfigError
+from ..outputs import atomic_path
 from ..texture.mapping import body_texture
 
 __all__ = ["animate", "frame_indices", "drag_forces", "body_texture", "surface_camera", "format_force", "caption",
@@ -281,7 +282,8 @@ def write_gif(frames, path, fps: float = 12.0, hold: float = 1.0, colours: int =
     ims = [im.quantize(palette=palette, dither=Image.Dither.NONE) for im in ims]
     step = int(round(1000 / fps))
     durations = [step] * (len(ims) - 1) + [max(step, int(round(1000 * hold)))]
-    ims[0].save(str(path), save_all=True, append_images=ims[1:], duration=durations, loop=0)
+    with atomic_path(path) as tmp:
+        ims[0].save(str(tmp), save_all=True, append_images=ims[1:], duration=durations, loop=0)
     return Path(path).stat().st_size
 
 

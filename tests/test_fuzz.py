@@ -1,0 +1,383 @@
+"""Fuzzing the contract with hypothesis: mutated scene files, ``.fis`` files, CSVs, series and
+volumes from valid seeds, and random command-line values.
+
+Every generated case must end in exit status 0 with whole, finite outputs, or exit status 2 with
+one line on stderr (warnings, one line each, may come before it), never a traceback, and never a
+staging file left behind. The commands run in-process (``torchdeform.cli.main``), so a case costs
+milliseconds to a few tenths of a second; ``CASES`` per family (about 1,100 in all) run in well
+under three minutes on 2 cores.
+"""
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import math
+import shutil
+import tempfile
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from torchdeform import cli
+from torchdeform.errors import TorchdeformError
+from torchdeform.learn import load_series
+from torchdeform.outputs import STAGING
+
+ROOT = Path(__file__).resolve().parents[1]
+#: generated cases per family
+CASES = {"scene": 250, "fis": 250, "csv": 150, "series": 150, "volume": 120, "cli": 200}
+
+
+def fuzz(family: str):
+    return settings(max_examples=CASES[family], deadline=None, derandomize=True, database=None,
+                    suppress_health_check=list(HealthCheck))
+
+
+def call(argv) -> tuple[int, str, str]:
+    """``torchdeform ARGV`` in-process: (exit status, stdout, stderr)."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            status = cli.main([str(a) for a in argv])
+        except SystemExit as e:                           # argparse: usage errors and --help
+            status = e.code
+    return status, out.getvalue(), err.getvalue()
+
+
+def holds(status, err: str, folder: Path | None = None) -> None:
+    """The contract: 0, or 2 with one error line (warning lines may precede it); no traceback."""
+    assert status in (0, 2), (status, err)
+    assert "Traceback" not in err, err
+    lines = [x for x in err.splitlines() if x.strip()]
+    errors = [x for x in lines if ": warning: " not in x]
+    if status == 2:
+        assert len(errors) == 1, err
+    else:
+        assert not errors, err
+    if folder is not None and folder.exists():
+        assert not [p for p in folder.rglob(STAGING + "*")], list(folder.rglob("*"))
+
+
+def finite_npz(path: Path) -> None:
+    with np.load(path, allow_pickle=False) as z:
+        for k in z.files:
+            a = z[k]
+            if a.dtype.kind == "f":
+                assert np.isfinite(a).all(), (path, k)
+
+
+# ------------------------------------------------------------------ values a mutation puts in
+WILD = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.sampled_from([0, -1, 1, 2, 3, 1e-300, 1e300, -1e-9, 0.5, 1e9, 10 ** 12, 26, 6, 7]),
+    st.integers(-10 ** 6, 10 ** 6),
+    st.text(max_size=12),
+    st.booleans(),
+    st.lists(st.sampled_from([0, 1, -1, 2.5, 1e300, "a", None, 3]), max_size=4),
+)
+
+
+def toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float):
+        return "nan" if math.isnan(v) else ("inf" if v == math.inf else "-inf" if v == -math.inf else repr(v))
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, list):
+        return "[" + ", ".join(toml_value(x) if x is not None else '"none"' for x in v) + "]"
+    return json.dumps(str(v))
+
+
+# ------------------------------------------------------------------ scene files
+SCENE = textwrap.dedent("""\
+    [grid]
+    shape = [3, 3, 4]
+    spacing = 0.01
+    topology = 18
+
+    [material]
+    stiffness = 40.0
+    damping = 0.05
+
+    [mass]
+    density = 1000.0
+
+    [boundary]
+    fixed = ["bottom"]
+    gravity = [-9.81, 0.0, 0.0]
+
+    [[loads]]
+    node = [2, 1, 3]
+    force = [-0.01, 0.0, 0.0]
+    ramp = 0.001
+
+    [[drags]]
+    face = "top"
+    path = [[0.0, [0.0, 0.0, 0.0]], [0.002, [0.0, 0.0, 0.001]]]
+
+    [integrator]
+    name = "symplectic"
+    dt = 1e-4
+    steps = 30
+
+    [output]
+    record_every = 10
+    """)
+KEYS = [i for i, line in enumerate(SCENE.splitlines()) if "=" in line]
+INTEGRATORS = ["explicit", "symplectic", "verlet", "rk4", "implicit", "knoche", "projective", "adaptive", "nope"]
+
+
+@st.composite
+def scenes(draw):
+    lines = SCENE.splitlines()
+    for _ in range(draw(st.integers(1, 3))):
+        i = draw(st.sampled_from(KEYS))
+        key = lines[i].split("=")[0].strip()
+        kind = draw(st.sampled_from(["value", "value", "drop", "unknown", "integrator"]))
+        if kind == "value":
+            lines[i] = f"{key} = {toml_value(draw(WILD))}"
+        elif kind == "drop":
+            lines[i] = ""
+        elif kind == "unknown":
+            lines[i] += f"\n{draw(st.sampled_from(['colour', 'spacingg', 'dt2']))} = 1"
+        else:
+            lines = [f'name = "{draw(st.sampled_from(INTEGRATORS))}"' if x.startswith("name =") else x for x in lines]
+    if draw(st.booleans()) and draw(st.booleans()):
+        header = draw(st.sampled_from(["[mass]", "[integrator]", "[material]", "[grid]"]))
+        lines = [x for x in lines if x != header]                    # a section lost: its keys join another
+    return "\n".join(lines) + "\n"
+
+
+def _small(text: str) -> bool:
+    """Cheap enough to run here: at most ~100 nodes x 2,000 steps (others are only loaded)."""
+    from torchdeform.scene import load_scene
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "s.toml"
+        path.write_text(text)
+        try:
+            s = load_scene(path)
+        except TorchdeformError:
+            return True                                # refused while loading: running is cheap too
+        steps = getattr(s, "steps", None) or getattr(s, "frames", 1)
+        return s.grid.num_nodes <= 200 and steps <= 2000
+
+
+@fuzz("scene")
+@given(scenes())
+def test_fuzzed_scene_files(text):
+    d = Path(tempfile.mkdtemp())
+    try:
+        path = d / "s.toml"
+        path.write_text(text)
+        if not _small(text):
+            from torchdeform.scene import load_scene
+            load_scene(path)                           # loads without a traceback; too long to run here
+            return
+        out = d / "out"
+        status, _, err = call(["run", path, "--out", out, "--quiet"])
+        holds(status, err, out)
+        if status == 0:
+            assert json.loads((out / "summary.json").read_text())["outputs"] == sorted(
+                p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file())
+            finite_npz(out / "trajectory.npz")
+        else:
+            assert not out.exists() or not any(out.iterdir())
+    finally:
+        shutil.rmtree(d, ignore_errors=True)
+
+
+# ------------------------------------------------------------------ .fis files
+FIS = (ROOT / "fuzzy" / "susilap_g.fis").read_text().splitlines()
+FIS_LINES = [i for i, line in enumerate(FIS) if line and not line.startswith("%")]
+
+
+@st.composite
+def fis_files(draw):
+    lines = list(FIS)
+    for _ in range(draw(st.integers(1, 3))):
+        i = draw(st.sampled_from(FIS_LINES))
+        kind = draw(st.sampled_from(["number", "number", "drop", "dup", "garble", "value"]))
+        if kind == "number":
+            import re
+            nums = list(re.finditer(r"-?\d+(\.\d+)?(e-?\d+)?", lines[i]))
+            if nums:
+                m = draw(st.sampled_from(nums))
+                new = toml_value(draw(st.one_of(st.floats(allow_nan=True, allow_infinity=True),
+                                                st.sampled_from([0, -1, 1e40, 1e-40, 5, 1000000]))))
+                lines[i] = lines[i][:m.start()] + new + lines[i][m.end():]
+        elif kind == "drop":
+            lines[i] = ""
+        elif kind == "dup":
+            lines.insert(i, lines[i])
+        elif kind == "garble":
+            lines[i] = draw(st.text(max_size=20))
+        else:
+            key = lines[i].split("=")[0] if "=" in lines[i] else lines[i]
+            lines[i] = f"{key}={draw(st.text(max_size=10))}"
+    return "\n".join(lines) + "\n"
+
+
+@fuzz("fis")
+@given(fis_files(), st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.sampled_from([0.0, 5.5, 12.0])))
+def test_fuzzed_fis_files(text, value):
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "r.fis"
+        path.write_bytes(text.encode("utf-8", "replace"))
+        status, out, err = call(["fuzzy", "eval", path, f"consistency={value}", "--json"])
+        holds(status, err)
+        if status == 0:
+            doc = json.loads(out)
+            assert all(math.isfinite(v) for row in (doc if isinstance(doc, list) else [doc])
+                       for v in (row.values() if isinstance(row, dict) else [row]) if isinstance(v, float))
+
+
+# ------------------------------------------------------------------ CSV inputs
+@fuzz("csv")
+@given(st.one_of(
+    st.binary(max_size=200),
+    st.lists(st.lists(st.one_of(st.sampled_from(["consistency", "x", "", "nan", "inf", "-1", "5.5", "1e400",
+                                                 "\"", ";"]), st.text(max_size=6)), max_size=4), max_size=8)
+    .map(lambda rows: "\n".join(",".join(r) for r in rows).encode("utf-8", "replace"))))
+def test_fuzzed_csv_inputs(data):
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "in.csv"
+        path.write_bytes(data)
+        status, out, err = call(["fuzzy", "eval", ROOT / "fuzzy" / "susilap_g.fis", "--inputs", path])
+        holds(status, err)
+        if status == 0:
+            for line in out.splitlines()[1:]:
+                assert all(math.isfinite(float(v)) for v in line.split(",")), line
+
+
+# ------------------------------------------------------------------ series files
+_SERIES = {}
+
+
+def _seed_series() -> dict:
+    if not _SERIES:
+        with np.load(ROOT / "data" / "radetzky_cube_54.npz", allow_pickle=False) as z:
+            _SERIES.update({k: z[k] for k in z.files})
+    return _SERIES
+
+
+@st.composite
+def series_files(draw):
+    arrays = {k: v.copy() for k, v in _seed_series().items()}
+    for _ in range(draw(st.integers(1, 3))):
+        key = draw(st.sampled_from(sorted(arrays)))
+        kind = draw(st.sampled_from(["drop", "nan", "shape", "dtype", "meta", "scale"]))
+        a = arrays[key]
+        if kind == "drop":
+            arrays.pop(key)
+        elif kind == "nan" and a.dtype.kind == "f" and a.size:
+            a = a.copy()
+            a.flat[draw(st.integers(0, a.size - 1))] = draw(st.sampled_from([np.nan, np.inf, 1e300]))
+            arrays[key] = a
+        elif kind == "shape" and a.ndim:
+            arrays[key] = a.reshape(-1)[: max(0, a.size - draw(st.integers(1, 3)))]
+        elif kind == "dtype":
+            arrays[key] = a.astype(draw(st.sampled_from([np.int8, np.float16, np.bool_, np.complex64])))
+        elif kind == "meta":
+            meta = json.loads(str(arrays.get("meta", np.array("{}"))))
+            if meta:
+                k = draw(st.sampled_from(sorted(meta)))
+                meta[k] = draw(st.one_of(st.none(), st.integers(-5, 5), st.text(max_size=5), st.floats()))
+            arrays["meta"] = np.array(json.dumps(meta))
+        elif kind == "scale" and a.dtype.kind == "f":
+            arrays[key] = a * draw(st.sampled_from([-1.0, 0.0, 1e30]))
+        if not arrays:
+            break
+    return arrays
+
+
+@fuzz("series")
+@given(series_files())
+def test_fuzzed_series_files(arrays):
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "s.npz"
+        np.savez(path, **arrays)
+        try:
+            s = load_series(path)
+        except TorchdeformError as e:
+            assert "\n" not in str(e)
+            return
+        assert np.isfinite(np.asarray(s.positions)).all()
+
+
+# ------------------------------------------------------------------ volumes
+@st.composite
+def volumes(draw):
+    shape = draw(st.lists(st.integers(0, 9), min_size=1, max_size=4))
+    dtype = draw(st.sampled_from([np.float32, np.float64, np.uint8, np.int16, np.bool_, np.complex64]))
+    a = np.asarray(draw(st.floats(-1e3, 1e3)) * np.random.default_rng(len(shape)).random(shape)).astype(dtype)
+    if a.size and a.dtype.kind == "f" and draw(st.booleans()):
+        a.flat[0] = draw(st.sampled_from([np.nan, np.inf, -np.inf, 1e38]))
+    return a
+
+
+@fuzz("volume")
+@given(volumes(), st.sampled_from(["mip", "dvr", "average"]), st.sampled_from(["h", "d", "-w", "orbit", "x"]))
+def test_fuzzed_volumes(arr, mode, view):
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "v.npy"
+        np.save(path, arr)
+        out = Path(d) / "img.png"
+        status, _, err = call(["render", path, "--out", out, "--mode", mode, "--view", view, "--size", "16"])
+        holds(status, err, Path(d))
+        if status == 0:
+            from PIL import Image
+            with Image.open(out) as im:
+                im.load()
+        else:
+            assert not out.exists()
+
+
+# ------------------------------------------------------------------ command-line values
+NUMBER = st.one_of(st.floats(allow_nan=True, allow_infinity=True).map(repr),
+                   st.sampled_from(["0", "-1", "1e-12", "1e308", "abc", "", "3", "nan", "inf", "0x10"]))
+COUNT = st.one_of(st.integers(-3, 6).map(str), st.sampled_from(["0", "-1", "2.5", "x", "1e3"]))
+
+
+@st.composite
+def data_cube_argv(draw):
+    argv = ["data", "cube", "--n", draw(st.sampled_from(["2", "3", "0", "1", "x"])), "--steps", draw(COUNT)]
+    for option in draw(st.lists(st.sampled_from(["--dt", "--amplitude", "--noise", "--mass", "--stiffness",
+                                                 "--damping", "--every", "--load", "--topology"]), max_size=3,
+                                unique=True)):
+        value = draw(COUNT if option in ("--every", "--topology") else NUMBER)
+        if option == "--load":
+            value = draw(st.sampled_from(["constant", "ramp", "sine", "indent", "boom"]))
+        argv += [option, value]
+    return argv
+
+
+@fuzz("cli")
+@given(data_cube_argv())
+def test_fuzzed_command_line_values(argv):
+    with tempfile.TemporaryDirectory() as d:
+        out = Path(d) / "c.npz"
+        status, _, err = call([*argv, "--out", out])
+        holds(status, err, Path(d))
+        if status == 0:
+            finite_npz(out)
+        else:
+            assert not out.exists()
+
+
+def test_the_families_add_up_to_at_least_1000_cases():
+    assert sum(CASES.values()) >= 1000 and set(CASES) == {"scene", "fis", "csv", "series", "volume", "cli"}
+
+
+@pytest.fixture(autouse=True)
+def _no_stray_files():
+    before = set(Path(tempfile.gettempdir()).glob(STAGING + "*"))
+    yield
+    assert set(Path(tempfile.gettempdir()).glob(STAGING + "*")) <= before
