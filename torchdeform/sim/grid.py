@@ -54,6 +54,23 @@ def _slices(step: int, n: int) -> tuple[slice, slice]:
     return slice(0, n), slice(0, n)
 
 
+def _numbers(values, kind) -> tuple | None:
+    """``values`` as a tuple of ``kind`` (int or float, no bools or strings), or None."""
+    if isinstance(values, (str, bytes)) or not hasattr(values, "__len__"):
+        return None
+    try:
+        out = []
+        for v in values:
+            if isinstance(v, (bool, str, bytes)):
+                return None
+            if kind is int and float(v) != int(v):
+                return None
+            out.append(kind(v))
+        return tuple(out)
+    except (TypeError, ValueError, OverflowError):
+        return None
+
+
 @dataclass(frozen=True, eq=False)
 class Grid:
     """A regular grid of nodes with a spring topology.
@@ -83,18 +100,21 @@ class Grid:
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     def __post_init__(self):
-        shape = tuple(int(n) for n in self.shape) if hasattr(self.shape, "__len__") else ()
-        if len(shape) != 3 or min(shape) < 1:
+        shape = _numbers(self.shape, int)
+        if shape is None or len(shape) != 3 or min(shape) < 1:
             raise ConfigError("grid.shape", "three node counts D, H, W, each >= 1", self.shape)
-        spacing = self.spacing
-        spacing = (float(spacing),) * 3 if isinstance(spacing, (int, float)) else tuple(map(float, spacing))
-        if len(spacing) != 3 or not all(math.isfinite(s) and s > 0 for s in spacing):
+        spacing = (self.spacing,) * 3 if isinstance(self.spacing, (int, float)) else self.spacing
+        spacing = _numbers(spacing, float)
+        if spacing is None or len(spacing) != 3 or not all(math.isfinite(s) and s > 0 for s in spacing):
             raise ConfigError("grid.spacing", "one positive number or three (sd, sh, sw)", self.spacing)
-        if self.topology not in TOPOLOGIES:
+        if isinstance(self.topology, bool) or self.topology not in TOPOLOGIES:
             raise ConfigError("grid.topology", "6, 14, 18 or 26", self.topology)
+        origin = _numbers(self.origin, float)
+        if origin is None or len(origin) != 3 or not all(math.isfinite(o) for o in origin):
+            raise ConfigError("grid.origin", "three finite numbers (od, oh, ow) in metres", self.origin)
         object.__setattr__(self, "shape", shape)
         object.__setattr__(self, "spacing", spacing)
-        object.__setattr__(self, "origin", tuple(map(float, self.origin)))
+        object.__setattr__(self, "origin", origin)
         if self.node_mask is not None:
             mask = torch.as_tensor(self.node_mask, dtype=torch.bool, device="cpu")
             if tuple(mask.shape) != shape:
