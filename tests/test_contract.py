@@ -423,3 +423,14 @@ def test_warnings_are_one_line_each(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err and all(x.startswith("torchdeform: ") for x in err.splitlines()), err
     assert sum("warning: dt = 0.0003 s exceeds the stability bound" in x for x in err.splitlines()) == 1
+
+
+def test_a_rollout_that_cannot_fit_is_refused_before_training(monkeypatch):
+    """The autograd graph of a loss evaluation is estimated first; checkpointing is suggested."""
+    from torchdeform import checks, learn
+    series = learn.radetzky_cube(springs=54, steps=40)
+    learn.WindowLoss(series, window=None)                              # fits in the real memory
+    monkeypatch.setattr(checks, "available_memory", lambda device=None: 10_000)
+    with pytest.raises(td.ConfigError, match=r"^window: expected a size that fits in memory: the autograd graph "
+                                             r"of 40 steps .* \(set checkpoint to keep fewer\)"):
+        learn.WindowLoss(series, window=None)

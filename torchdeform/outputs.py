@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 from contextlib import contextmanager
@@ -22,7 +23,7 @@ import numpy as np
 
 from .errors import ConfigError, TorchdeformError
 
-__all__ = ["atomic_path", "save_figure", "RunFolder", "manifest", "require_finite", "NonFiniteOutputError", "OutputError", "STAGING"]
+__all__ = ["atomic_path", "save_figure", "RunFolder", "manifest", "require_finite", "non_finite_keys", "NonFiniteOutputError", "OutputError", "STAGING"]
 
 #: prefix of the staging folders and temporary files (hidden; removed when their process is gone)
 STAGING = ".torchdeform-partial-"
@@ -271,3 +272,22 @@ def require_finite(name: str, value, what: str = "", cause: str = "") -> None:
     reason = f"; {cause}" if cause else ""
     raise NonFiniteOutputError(f"refusing to write {name} is {arr[first] if first else arr.item()}{at} "
                                f"({int(bad.sum())} of {arr.size} values are not finite){reason}")
+
+
+def non_finite_keys(tree, path: str = "", limit: int = 5) -> list:
+    """The dotted keys of the NaN or inf numbers in a JSON-like tree (at most ``limit``).
+
+    Examples:
+        >>> non_finite_keys({"a": 1.0, "b": [0.0, float("nan")], "c": {"d": float("inf")}})
+        ['b[1] = nan', 'c.d = inf']
+    """
+    found = []
+    if isinstance(tree, dict):
+        for k, v in tree.items():
+            found += non_finite_keys(v, f"{path}.{k}" if path else str(k), limit)
+    elif isinstance(tree, (list, tuple)):
+        for i, v in enumerate(tree):
+            found += non_finite_keys(v, f"{path}[{i}]", limit)
+    elif isinstance(tree, float) and not math.isfinite(tree):
+        found.append(f"{path} = {tree}")
+    return found[:limit]

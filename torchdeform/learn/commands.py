@@ -14,7 +14,7 @@ import torch
 
 from ..errors import ConfigError
 from ..options import guarded, integer, number
-from ..outputs import NonFiniteOutputError, atomic_path
+from ..outputs import NonFiniteOutputError, atomic_path, non_finite_keys
 from .synthetic import balloon_series, cube_grid, cube_series, inclusion_regions, layered_regions, radetzky_cube
 
 __all__ = ["add_arguments", "command", "run_script"]
@@ -121,23 +121,9 @@ def run_script(name: str, args, fit, summary) -> int:
                 text = json.dumps(result, indent=1, allow_nan=False)
             except ValueError:
                 raise NonFiniteOutputError(f"refusing to write {out / 'result.json'}: it would hold NaN or inf "
-                                           f"({', '.join(_non_finite(result))})") from None
+                                           f"({', '.join(non_finite_keys(result))})") from None
             with atomic_path(out / "result.json") as tmp:
                 tmp.write_text(text)
             print(summary(result))
         return 0
     return guarded(name, work, echo=main)
-
-
-def _non_finite(tree, path: str = "") -> list:
-    """The dotted keys of the non-finite numbers in a JSON-like tree (at most 5)."""
-    found = []
-    if isinstance(tree, dict):
-        for k, v in tree.items():
-            found += _non_finite(v, f"{path}.{k}" if path else str(k))
-    elif isinstance(tree, (list, tuple)):
-        for i, v in enumerate(tree):
-            found += _non_finite(v, f"{path}[{i}]")
-    elif isinstance(tree, float) and not math.isfinite(tree):
-        found.append(f"{path} = {tree}")
-    return found[:5]

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 from torch.utils.checkpoint import checkpoint as _checkpoint
 
+from ..checks import check_memory
 from ..errors import ConfigError
 from ..sim.catalog import INTEGRATORS
 from ..sim.model import State
@@ -94,6 +95,15 @@ class WindowLoss:
             raise ConfigError("series.mask", "at least one observed free node", "none", show_got=True)
         self.ref = math.sqrt(max(float(disp) / self.count, 1e-300))
         self.starts = list(range(0, T - 1, self.K))                               # window start observations
+        # the autograd graph of one evaluation: every step of every window keeps its node fields (state,
+        # forces, spring terms); a checkpoint keeps one segment and the segment ends
+        steps = (T - 1) * E
+        held = steps if self.checkpoint is None else self.checkpoint + steps // self.checkpoint
+        g = series.grid
+        check_memory("checkpoint" if checkpoint is not None else "window",
+                     float(held) * g.num_nodes * torch.finfo(dtype).bits / 8 * (30 + 3 * g.S),
+                     f"the autograd graph of {held} steps of {g.num_nodes} nodes (set checkpoint to keep fewer)",
+                     got=checkpoint if checkpoint is not None else window)
         if int(smooth) < 0:
             raise ConfigError("smooth", "an integer >= 0 (half-width in observations)", smooth)
         self.smooth = int(smooth)

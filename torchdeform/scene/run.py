@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from ..options import one_line_warnings  # noqa: F401  (re-exported: torchdeform.scene.one_line_warnings)
-from ..outputs import RunFolder, manifest, save_figure
+from ..outputs import NonFiniteOutputError, RunFolder, manifest, non_finite_keys, require_finite, save_figure
 from ..sim.engine import Engine, simulate
 from ..sim.model import Model, State
 from ..sim.stability import check_dt, time_step_bound
@@ -283,7 +283,11 @@ def finish_outputs(summary: dict, out: Path, t: np.ndarray, series: dict, title:
     """
     plot_energy(out / "energy.png", t, series, title)
     summary["outputs"] = manifest(out)
-    text = json.dumps(summary, indent=2)
+    try:
+        text = json.dumps(summary, indent=2, allow_nan=False)
+    except ValueError:
+        raise NonFiniteOutputError("refusing to write summary.json: a figure of the run is NaN or inf "
+                                   f"({', '.join(non_finite_keys(summary))})") from None
     if "tools" in summary:                # each series (lists of numbers, lists of those) on one line
         text = re.sub(r"\[\s+([-+\d.eE,\s]+?)\s+\]", lambda m: "[" + ", ".join(re.split(r",\s*", m.group(1))) + "]",
                       text)
@@ -305,6 +309,9 @@ def run_outputs(scene: Scene, model: Model, integrator, dt: float, bound: float,
         x = torch.cat([x, final.x[:1].detach().cpu()])
         v = torch.cat([v, final.v[:1].detach().cpu()])
     series = energy_series(model, x, v)
+    cause = "the run diverged between two divergence checks"
+    for name, value in (("x", x), ("v", v), *series.items()):
+        require_finite(f"trajectory.npz: {name}", value, "frame, ..." if name in "xv" else "frame", cause)
     grid = model.grid
     np.savez(out / "trajectory.npz", t=t, x=x.float().numpy(), v=v.float().numpy(),
              X=model.X[0].float().cpu().numpy(), node_mask=grid.nodes().numpy(),
