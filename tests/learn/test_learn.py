@@ -248,7 +248,8 @@ def test_divergence_stops_with_finite_parameters():
     p = shared(s, 10.0, 0.1)
     tr = learn.Trainer(p, learn.WindowLoss(s, window=None), optimizer="adam", lr=40.0, iterations=10, clip=None,
                        progress=False)
-    tr.run()
+    with pytest.warns(UserWarning, match=r"training stopped at iteration \d+: the loss went non-finite"):
+        tr.run()
     assert tr.stopped == "non-finite loss"
     assert all(bool(torch.isfinite(q).all()) for q in p.parameters())
 
