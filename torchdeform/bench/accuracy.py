@@ -81,6 +81,7 @@ from typing import Callable
 import torch
 
 from ..errors import ConfigError, DivergenceError
+from ..options import integer, number
 from ..outputs import save_figure
 from ..sim.adaptive import PAIRS, Adaptive
 from ..sim.catalog import INTEGRATORS
@@ -917,15 +918,15 @@ def add_arguments(p) -> None:
                    help="comma-separated subset of " + ",".join(SCENES) + " (default all)")
     p.add_argument("--methods", default=None,
                    help="comma-separated subset of " + ",".join(METHODS) + " (default all)")
-    p.add_argument("--n", type=int, default=None,
+    p.add_argument("--n", type=integer(lo=2), default=None,
                    help="grid size of the dynamic scenes, n^3 nodes (default 5; quick 4)")
     p.add_argument("--resolutions", default=None,
                    help="grid sizes of the resolution sweep (default 3,5,9; quick 2,3)")
-    p.add_argument("--ref-n", type=int, default=None,
+    p.add_argument("--ref-n", type=integer(lo=2), default=None,
                    help="grid size of the sweep's reference (default 17; quick 5); n-1 must divide ref-n - 1")
-    p.add_argument("--ref-div", type=float, default=None,
+    p.add_argument("--ref-div", type=number(lo=1), default=None,
                    help="reference step = RK4 bound / REF_DIV (default 20, 5 for the stiff scene; quick 5)")
-    p.add_argument("--repeats", type=int, default=None,
+    p.add_argument("--repeats", type=integer(lo=1), default=None,
                    help=f"timed repeats, the median is kept (default 3; quick 1); runs slower than "
                         f"{REPEAT_LIMIT_S:g} s are timed once")
     p.add_argument("--targets", default=None,

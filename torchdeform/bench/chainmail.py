@@ -35,6 +35,7 @@ import time
 import torch
 
 from ..errors import ConfigError
+from ..options import integer
 from .common import add_common, axes, emit, int_list, machine_info, progress, save_figure
 
 __all__ = ["COLUMNS", "SPACING", "PULLS", "add_arguments", "run"]
@@ -55,7 +56,7 @@ def add_arguments(p) -> None:
                    help="grid sizes n (n^3 elements), comma-separated (default 32,64,100,128; quick 16,24)")
     p.add_argument("--tensor-sizes", type=int_list("--tensor-sizes"), default=None,
                    help="sizes that also get tensor rows, for the middle pull (default 32,64,100; quick 16,24)")
-    p.add_argument("--repeats", type=int, default=None, help="timed pulls per row, the median is kept (default 5)")
+    p.add_argument("--repeats", type=integer(lo=1), default=None, help="timed pulls per row, the median is kept (default 5)")
 
 
 def _median_ms(fn, reset, repeats):

@@ -33,6 +33,7 @@ import time
 from pathlib import Path
 
 from ..errors import ConfigError
+from ..options import integer, number
 from .common import add_common, axes, emit, int_list, machine_info, progress, save_figure
 
 __all__ = ["COLUMNS", "SWEEP_SCENE", "add_arguments", "run", "worker"]
@@ -67,14 +68,14 @@ def add_arguments(p) -> None:
     """The options of ``torchdeform bench distributed``."""
     add_common(p)
     p.add_argument("--ranks", type=int_list("--ranks"), default=None, help="rank counts (default 1,2)")
-    p.add_argument("--n", type=int, default=None, help="body of n^3 nodes for the step rows (default 96; quick 24)")
-    p.add_argument("--steps", type=int, default=None, help="timed steps per run (default 5; quick 2)")
-    p.add_argument("--repeats", type=int, default=None, help="timed runs, median kept (default 3; quick 1)")
-    p.add_argument("--cg-iters", type=int, default=10, help="CG iterations of the implicit step (default 10)")
-    p.add_argument("--points", type=int, default=None, help="sweep points, a square (default 64; quick 16)")
+    p.add_argument("--n", type=integer(lo=2), default=None, help="body of n^3 nodes for the step rows (default 96; quick 24)")
+    p.add_argument("--steps", type=integer(lo=1), default=None, help="timed steps per run (default 5; quick 2)")
+    p.add_argument("--repeats", type=integer(lo=1), default=None, help="timed runs, median kept (default 3; quick 1)")
+    p.add_argument("--cg-iters", type=integer(lo=1), default=10, help="CG iterations of the implicit step (default 10)")
+    p.add_argument("--points", type=integer(lo=1), default=None, help="sweep points, a square (default 64; quick 16)")
     p.add_argument("--cases", default="sweep,explicit,implicit",
                    help="rows to run, comma-separated: sweep, explicit, implicit (default all)")
-    p.add_argument("--timeout", type=float, default=600, help="seconds each launch may take (default 600)")
+    p.add_argument("--timeout", type=number(lo=0, lo_open=True), default=600, help="seconds each launch may take (default 600)")
 
 
 def _launch(ranks: int, threads: int, args: list, timeout: float) -> tuple:

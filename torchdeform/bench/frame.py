@@ -48,6 +48,7 @@ import time
 import torch
 
 from ..errors import ConfigError
+from ..options import integer
 from ..topology.surfaces import FrameSurface
 from .common import add_common, axes, device_sync, emit, machine_info, progress, save_figure
 
@@ -114,12 +115,12 @@ def add_arguments(p) -> None:
     p.add_argument("--sizes", type=parse_sizes, default=None,
                    help="grids, n (n^3 nodes) or DxHxW, comma-separated (default Punak's 16,32,40x60x20,64,100; "
                         "quick 16,32)")
-    p.add_argument("--repeats", type=int, default=None, help="timed runs of --frames frames, median kept "
+    p.add_argument("--repeats", type=integer(lo=1), default=None, help="timed runs of --frames frames, median kept "
                                                              "(default 5; quick 2)")
-    p.add_argument("--frames", type=int, default=None, help="frames per timed run (default: about 0.3 s; quick 2)")
+    p.add_argument("--frames", type=integer(lo=1), default=None, help="frames per timed run (default: about 0.3 s; quick 2)")
     p.add_argument("--volume", action="store_true", help="also render the phantom deformed with the body "
                                                          "(volume_ms; not part of the target)")
-    p.add_argument("--volume-size", type=int, default=128, help="--volume: phantom side in voxels = image side "
+    p.add_argument("--volume-size", type=integer(lo=8), default=128, help="--volume: phantom side in voxels = image side "
                                                                 "(default 128)")
     p.add_argument("--no-compile", action="store_true", help="eager step and normals (no torch.compile; --quick implies it)")
 

@@ -20,6 +20,7 @@ import time
 import torch
 
 from ..errors import ConfigError
+from ..options import integer
 from .common import add_common, emit, machine_info
 
 __all__ = ["COLUMNS", "add_arguments", "to_skfuzzy", "run"]
@@ -34,9 +35,9 @@ def add_arguments(p) -> None:
     """The options of ``torchdeform bench fuzzy``."""
     add_common(p)
     p.add_argument("--system", default="susilap_g", help="preset name or .fis file (default susilap_g)")
-    p.add_argument("--inputs", type=int, default=None, help="input rows for torchdeform (default 2,000,000)")
-    p.add_argument("--skfuzzy-inputs", type=int, default=None, help="rows for scikit-fuzzy (default 300)")
-    p.add_argument("--repeats", type=int, default=3, help="timed repeats; the median is reported")
+    p.add_argument("--inputs", type=integer(lo=1), default=None, help="input rows for torchdeform (default 2,000,000)")
+    p.add_argument("--skfuzzy-inputs", type=integer(lo=1), default=None, help="rows for scikit-fuzzy (default 300)")
+    p.add_argument("--repeats", type=integer(lo=1), default=3, help="timed repeats; the median is reported")
     p.add_argument("--no-compile", action="store_true", help="skip the compiled row")
 
 

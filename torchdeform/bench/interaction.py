@@ -31,6 +31,7 @@ import time
 import torch
 
 from ..errors import ConfigError
+from ..options import integer, number
 from .common import add_common, axes, emit, int_list, machine_info, progress, save_figure
 
 __all__ = ["COLUMNS", "add_arguments", "run", "pressing_scene"]
@@ -46,9 +47,9 @@ def add_arguments(p) -> None:
     add_common(p)
     p.add_argument("--sizes", type=int_list("--sizes"), default=None,
                    help="body sizes n (n^3 nodes) of the step rows (default 8,16,24,32,48; quick 8,16)")
-    p.add_argument("--haptic-size", type=int, default=None, help="n of the haptic row (default 64; quick 24)")
-    p.add_argument("--seconds", type=float, default=None, help="haptic run time (default 3; quick 1)")
-    p.add_argument("--steps", type=int, default=None, help="timed steps per repeat (default 300; quick 100)")
+    p.add_argument("--haptic-size", type=integer(lo=2), default=None, help="n of the haptic row (default 64; quick 24)")
+    p.add_argument("--seconds", type=number(lo=0, lo_open=True), default=None, help="haptic run time (default 3; quick 1)")
+    p.add_argument("--steps", type=integer(lo=1), default=None, help="timed steps per repeat (default 300; quick 100)")
     p.add_argument("--eager", action="store_true", help="also time the eager step")
     p.add_argument("--no-compile", action="store_true", help="eager only (no torch.compile: a smoke run)")
 

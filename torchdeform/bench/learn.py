@@ -32,6 +32,7 @@ import time
 import torch
 
 from ..errors import ConfigError
+from ..options import integer
 from .common import add_common, axes, emit, machine_info, save_figure
 
 __all__ = ["COLUMNS", "TARGET_SPEEDUP", "TOLERANCE", "PERTURBATION", "add_arguments", "run"]
@@ -51,8 +52,8 @@ COLUMNS = [("engine", "engine", None), ("threads", "threads", None), ("compile_s
 def add_arguments(p) -> None:
     """The options of ``bench learn``."""
     add_common(p)
-    p.add_argument("--iterations", type=int, default=None, help="L-BFGS iterations (default 10; --quick: 2)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the per-spring start (default 0)")
+    p.add_argument("--iterations", type=integer(lo=1), default=None, help="L-BFGS iterations (default 10; --quick: 2)")
+    p.add_argument("--seed", type=integer(lo=0), default=0, help="seed of the per-spring start (default 0)")
     p.add_argument("--no-compile", action="store_true", help="the eager engine only (as --quick)")
 
 

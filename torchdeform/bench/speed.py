@@ -16,6 +16,7 @@ from pathlib import Path
 import torch
 
 from ..errors import ConfigError
+from ..options import integer
 from ..outputs import save_figure
 from ..sim.grid import Grid
 from ..sim.integrators import ImplicitEuler, SymplecticEuler
@@ -58,9 +59,9 @@ def add_arguments(p) -> None:
     p.add_argument("--no-compile", action="store_true", help="eager rows only")
     p.add_argument("--no-warp", action="store_true", help="skip the NVIDIA Warp rows")
     p.add_argument("--no-beam", action="store_true", help="skip the implicit-Euler beam")
-    p.add_argument("--steps", type=int, default=None,
+    p.add_argument("--steps", type=integer(lo=1), default=None,
                    help="steps per timed repeat (default: enough for ~0.2 s, 3..200)")
-    p.add_argument("--repeats", type=int, default=None, help="timed repeats, the median is kept (default 5; quick 3)")
+    p.add_argument("--repeats", type=integer(lo=1), default=None, help="timed repeats, the median is kept (default 5; quick 3)")
 
 
 def beam_scene(dtype=torch.float32, device="cpu"):

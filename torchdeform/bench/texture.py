@@ -44,6 +44,7 @@ import time
 import numpy as np
 import torch
 
+from ..options import integer
 from .common import add_common, axes, emit, format_table, machine_info, progress, save_figure
 
 __all__ = ["COLUMNS", "add_arguments", "run", "MODELS", "hull_mesh"]
@@ -64,7 +65,7 @@ SEAM_COLUMNS = [("method", "seams", None), ("seam_jump", "seam measure", "{:.2f}
 def add_arguments(p) -> None:
     """The options of ``torchdeform bench texture``."""
     add_common(p)
-    p.add_argument("--repeats", type=int, default=None, help="timing repeats (default 7; quick 3)")
+    p.add_argument("--repeats", type=integer(lo=1), default=None, help="timing repeats (default 7; quick 3)")
     p.add_argument("--seam-blocks", default="2,2,2", help="blocks of 64 per axis (D,H,W) of the seam test box "
                                                           "(default 2,2,2; Chen & He's box is 4,4,3)")
 

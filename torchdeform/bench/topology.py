@@ -31,6 +31,7 @@ import time
 import torch
 
 from ..errors import ConfigError
+from ..options import integer
 from .common import add_common, axes, emit, int_list, machine_info, progress, save_figure, speed_cube
 
 __all__ = ["COLUMNS", "add_arguments", "run", "expected_count"]
@@ -53,8 +54,8 @@ def add_arguments(p) -> None:
     add_common(p)
     p.add_argument("--sizes", type=int_list("--sizes"), default=None, help="n (n^3 nodes; default 8,16,32,64; quick 8,16)")
     p.add_argument("--topologies", type=int_list("--topologies"), default=None, help="default 6,18,26")
-    p.add_argument("--steps", type=int, default=None, help="timed steps per repeat (default 100; quick 10)")
-    p.add_argument("--repeats", type=int, default=None, help="repeats of each timing (default 9; quick 3)")
+    p.add_argument("--steps", type=integer(lo=1), default=None, help="timed steps per repeat (default 100; quick 10)")
+    p.add_argument("--repeats", type=integer(lo=1), default=None, help="repeats of each timing (default 9; quick 3)")
     p.add_argument("--no-compile", action="store_true", help="eager only (no torch.compile: a smoke run)")
 
 

@@ -31,6 +31,7 @@ import tempfile
 import torch
 
 from ..errors import ConfigError
+from ..options import integer, number
 from .common import add_common, axes, busy_neighbour, emit, int_list, machine_info, progress, save_figure
 
 __all__ = ["COLUMNS", "TARGET_FPS", "TARGET_SIZE", "viewer_cube", "add_arguments", "run"]
@@ -60,9 +61,9 @@ def add_arguments(p) -> None:
     add_common(p)
     p.add_argument("--sizes", type=int_list("--sizes"), default=None,
                    help="cube sizes n (n^3 nodes), comma-separated (default 16,32; quick 16)")
-    p.add_argument("--windows", type=int, default=None, help="measuring windows, median kept (default 3; quick 1)")
-    p.add_argument("--seconds", type=float, default=2.0, help="length of a window (default 2 s)")
-    p.add_argument("--settle", type=float, default=None, help="seconds before the first window (default 3; quick 1)")
+    p.add_argument("--windows", type=integer(lo=1), default=None, help="measuring windows, median kept (default 3; quick 1)")
+    p.add_argument("--seconds", type=number(lo=0, lo_open=True), default=2.0, help="length of a window (default 2 s)")
+    p.add_argument("--settle", type=number(lo=0), default=None, help="seconds before the first window (default 3; quick 1)")
     p.add_argument("--busy", action="store_true", help="also measure with a busy process beside the viewer")
 
 

@@ -33,6 +33,7 @@ import time
 import torch
 
 from ..errors import ConfigError
+from ..options import integer, number
 from .common import add_common, emit, machine_info, progress
 
 __all__ = ["COLUMNS", "PATHS", "add_arguments", "bench_volume", "run"]
@@ -47,10 +48,10 @@ PATHS = ("naive", "grid_sample", "eager", "compiled")
 def add_arguments(p) -> None:
     """The options of ``torchdeform bench volume``."""
     add_common(p)
-    p.add_argument("--size", type=int, default=None, help="volume side in voxels (default 256; quick 64)")
-    p.add_argument("--nodes", type=int, default=9, help="node grid side (default 9)")
-    p.add_argument("--amplitude", type=float, default=3.0, help="largest node offset in voxels (default 3)")
-    p.add_argument("--repeats", type=int, default=None, help="timed repeats, median kept (default 5; quick 2)")
+    p.add_argument("--size", type=integer(lo=2), default=None, help="volume side in voxels (default 256; quick 64)")
+    p.add_argument("--nodes", type=integer(lo=2), default=9, help="node grid side (default 9)")
+    p.add_argument("--amplitude", type=number(lo=0), default=3.0, help="largest node offset in voxels (default 3)")
+    p.add_argument("--repeats", type=integer(lo=1), default=None, help="timed repeats, median kept (default 5; quick 2)")
     p.add_argument("--modes", default="mip,dvr", help="render modes (default mip,dvr)")
     p.add_argument("--paths", default=None, help="comma list of " + ", ".join(PATHS) + " (default all; quick: "
                    "no compiled)")

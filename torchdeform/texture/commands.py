@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 from ..errors import ConfigError
+from ..options import integer, number
 
 __all__ = ["add_arguments", "command"]
 
@@ -21,11 +22,11 @@ def add_arguments(p) -> None:
                                     "folder of slice images")
     p.add_argument("--mesh", required=True, help="a closed triangle mesh (.stl, .obj, .ply, .off, ...)")
     p.add_argument("--out", required=True, help="output: .ply (vertex colours), .glb or .obj (texture atlas)")
-    p.add_argument("--scale", type=float, default=1.0, help="metres per mesh unit (default 1)")
-    p.add_argument("--voxel", type=float, default=None,
+    p.add_argument("--scale", type=number(lo=0, lo_open=True), default=1.0, help="metres per mesh unit (default 1)")
+    p.add_argument("--voxel", type=number(lo=0, lo_open=True), default=None,
                    help="texture voxel size in metres (default: the mesh's largest extent / 128)")
-    p.add_argument("--block", type=int, default=None, help="block size in voxels (default: half the exemplar)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the block offsets (and of a procedural exemplar)")
+    p.add_argument("--block", type=integer(lo=1), default=None, help="block size in voxels (default: half the exemplar)")
+    p.add_argument("--seed", type=integer(lo=0), default=0, help="seed of the block offsets (and of a procedural exemplar)")
     p.add_argument("--seams", default="none", help="blend the block seams: none (default), 3d (3-D Poisson) or "
                                                    "slices (Chen & He's per-slice 2-D Poisson)")
     p.add_argument("--image", default=None, help="also write a PNG view of the textured mesh")

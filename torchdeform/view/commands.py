@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 
 from ..errors import ConfigError
+from ..options import integer
 
 __all__ = ["add_arguments", "command", "default_threads"]
 
@@ -27,11 +28,11 @@ def add_arguments(p) -> None:
     p.add_argument("scene", help="scene file (.toml)")
     p.add_argument("--host", default="127.0.0.1",
                    help="interface to listen on (default 127.0.0.1: this machine only)")
-    p.add_argument("--port", type=int, default=0, help="port (default 0: a free one)")
+    p.add_argument("--port", type=integer(lo=0, hi=65535), default=0, help="port (default 0: a free one)")
     p.add_argument("--token", default=None, help="the URL's secret (default: a random one)")
     p.add_argument("--device", default=None, help="cpu or cuda (default: the scene's, else cpu)")
     p.add_argument("--open", action="store_true", help="open the page in a browser")
-    p.add_argument("--threads", type=int, default=None,
+    p.add_argument("--threads", type=integer(lo=1), default=None,
                    help="CPU threads for the simulation (default: all cores but one, left to the browser)")
 
 
