@@ -309,3 +309,20 @@ def test_fit_cube_recovers_a_stiff_cube_through_implicit_euler(tmp_path):
     run = res["runs"]["3"]
     assert run["true"] == pytest.approx({"stiffness": 1e4, "damping": 0.1 * 1000 ** 0.5})
     assert run["relative_error"]["stiffness"] < 1e-3 and run["relative_error"]["damping"] < 1e-3
+
+
+def test_checkpointed_loss_with_a_scalar_mass_equals_the_whole_graph():
+    """A scalar mass goes through the checkpoint's model rebuild (it once failed there)."""
+    s = learn.radetzky_cube(springs=54, steps=40)
+
+    def value_and_grads(checkpoint):
+        p = learn.Parameters(s, learn.SpringParameter.like(s, 12.0), learn.SpringParameter.like(s, 0.1), 0.01)
+        loss = learn.WindowLoss(s, window=None, checkpoint=checkpoint)(p)
+        loss.backward()
+        return loss.detach(), [q.grad.clone() for q in p.parameters() if q.grad is not None]
+
+    whole, g_whole = value_and_grads(None)
+    ckpt, g_ckpt = value_and_grads(10)
+    assert torch.allclose(ckpt, whole, rtol=1e-12) and len(g_ckpt) == len(g_whole) > 0
+    for a, b in zip(g_ckpt, g_whole):
+        assert torch.allclose(a, b, rtol=1e-10, atol=1e-14)

@@ -97,14 +97,15 @@ def spring_param(value, grid: Grid, key: str, dtype, device, allow_zero=True) ->
 def node_param(value, grid: Grid, key: str, dtype, device) -> torch.Tensor:
     """Normalise a per-node parameter to ``(Bp, 1, 1|D, 1|H, 1|W)``.
 
-    Accepts a number, ``(D, H, W)`` or ``(B, 1, D, H, W)``.
+    Accepts a number, ``(D, H, W)``, ``(B, 1, D, H, W)``, or its own result (each of the last three
+    axes 1 or the grid's), so that a model rebuilt from another model's parameters works.
     """
     t = _as_tensor(value, key, dtype, device)
     if t.dim() == 0:
         return t.view(1, 1, 1, 1, 1)
     if tuple(t.shape) == grid.shape:
         return t.view(1, 1, *grid.shape)
-    if t.dim() == 5 and tuple(t.shape[1:]) == (1,) + grid.shape:
+    if t.dim() == 5 and t.shape[1] == 1 and all(n in (1, g) for n, g in zip(t.shape[2:], grid.shape)):
         return t
     raise ConfigError(key, f"a number, (D, H, W) or (B, 1, D, H, W) with grid {grid.shape}", tuple(t.shape))
 
