@@ -272,10 +272,17 @@ def plot(out: Path, keys: list, rows: list) -> Path | None:
     groups = {}
     for r in rows:
         groups.setdefault(tuple(r[k] for k in others), []).append(r)
-    for combo, sel in groups.items():
+    # more lines than the 10 colours of the cycle: the colours come from a colormap in the order of the
+    # combinations (similar combinations, similar colours), and the marker changes too
+    import matplotlib
+    cmap = matplotlib.colormaps["viridis" if len(groups) > 10 else "tab10"]
+    markers = "osD^v<>ph*"
+    for n, (combo, sel) in enumerate(groups.items()):              # in the order of the points
         sel = sorted((r for r in sel if r["status"] == "ok"), key=lambda r: r[xkey])
         label = ", ".join(f"{k} = {v}" for k, v in zip(others, combo)) or None
-        ax.plot([r[xkey] for r in sel], [r["max_displacement_m"] * 1e3 for r in sel], marker="o", label=label)
+        colour = cmap(n / max(1, len(groups) - 1)) if len(groups) > 10 else cmap(n % 10)
+        ax.plot([r[xkey] for r in sel], [r["max_displacement_m"] * 1e3 for r in sel], marker=markers[n % len(markers)],
+                color=colour, label=label)
     positive = all(r[xkey] > 0 for r in rows)
     if positive and max(r[xkey] for r in rows) > 10 * min(r[xkey] for r in rows):
         ax.set_xscale("log")
@@ -284,7 +291,11 @@ def plot(out: Path, keys: list, rows: list) -> Path | None:
     ax.set_title(f"sweep: {len(rows)} points")
     ax.grid(True, which="both", alpha=0.3)
     if groups and any(c for c in groups):
-        ax.legend(fontsize=7)
+        if len(groups) > 4:                              # beside the plot, not over the lines
+            fig.set_size_inches(6.5 + 3.2 * (1 + len(groups) // 24), 4.5)
+            ax.legend(fontsize=7, ncol=1 + len(groups) // 24, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+        else:
+            ax.legend(fontsize=7)
     save_figure(fig, out, "sweep.png")
     return out / "sweep.png"
 
