@@ -113,6 +113,22 @@ def test_one_process_is_simulate(tmp_path):
     assert run.comm_s == 0 and run.model.halo.exchanges == 0
 
 
+@pytest.mark.parametrize("factor", [3.0, 0.5])
+def test_a_divergence_stops_as_simulate_does(factor):
+    """Above the bound a runaway names a safe dt; within it, a 1e30 N load is not blamed on dt."""
+    g = td.Grid((6, 3, 3), 0.01, topology=6)
+    loads = [] if factor > 1 else [td.PointForce((5, 1, 1), (1e30, 0.0, 0.0))]
+    model = td.Model(g, stiffness=50.0, mass=1e-3, fixed=g.face("bottom"), gravity=(-9.81, 0.0, 0.0), loads=loads,
+                     dtype=torch.float64)
+    dt = factor * td.time_step_bound(model)
+    with pytest.raises(td.DivergenceError) as one:
+        td.simulate(model, model.rest_state(), dt, 400, warn=False)
+    with pytest.raises(td.DivergenceError) as slabs:
+        decomposed_simulate(model, model.rest_state(), dt, 400)
+    assert slabs.value.step == one.value.step and slabs.value.safe_dt == one.value.safe_dt
+    assert (slabs.value.safe_dt is None) == (factor < 1) and (slabs.value.cause is None) == (factor > 1)
+
+
 def test_unsupported_integrators_are_refused():
     model, _, _ = cases.build("symplectic6")
     with pytest.raises(td.ConfigError, match="domain-decomposed"):

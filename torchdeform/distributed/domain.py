@@ -43,11 +43,12 @@ from dataclasses import dataclass, field
 
 import torch
 
-from ..errors import ConfigError, DivergenceError
+from ..errors import ConfigError
 from ..sim.grid import Grid
 from ..sim.integrators import SymplecticEuler
 from ..sim.model import Model, State
 from ..sim.springs import Linearisation
+from ..sim.stability import DivergenceMonitor
 
 __all__ = ["slab_rows", "Halo", "SlabModel", "decompose", "DecomposedRun", "decomposed_simulate",
            "SUPPORTED_INTEGRATORS"]
@@ -304,7 +305,9 @@ def decomposed_simulate(model: Model, state: State, dt: float, steps: int, integ
         steps: number of steps.
         integrator: one of :data:`SUPPORTED_INTEGRATORS` (default symplectic Euler).
         record_every: gather every k-th state to rank 0, or None.
-        check_every: steps between checks for non-finite values (all ranks stop together).
+        check_every: steps between checks for non-finite values and runaway kinetic energy, summed over
+            the slabs (all ranks stop together, with the message of
+            :class:`~torchdeform.sim.stability.DivergenceMonitor`).
         progress: a progress bar on rank 0.
         cuts: ``[(time, blade), ...]``: each :class:`~torchdeform.topology.Blade` cuts the springs it
             crosses at the first state whose time reaches ``time`` (before that step).
@@ -327,6 +330,7 @@ def decomposed_simulate(model: Model, state: State, dt: float, steps: int, integ
     e_lo, e_hi = local.extent
     own = local.owned
     state = model.start(state)                        # fixed nodes at rest, dragged nodes on their path
+    monitor = DivergenceMonitor(model, dt, integrator)      # the whole body's energy scale and safe dt
     st = State(state.x[:, :, e_lo:e_hi].clone(), state.v[:, :, e_lo:e_hi].clone(), state.t)
     pending = sorted(((float(at), blade) for at, blade in cuts), key=lambda c: c[0])
     ts, xs, vs = [], [], []
@@ -349,12 +353,19 @@ def decomposed_simulate(model: Model, state: State, dt: float, steps: int, integ
             st = integrator.step(local, st, dt)
             wall += time.perf_counter() - t0
             if i % check_every == 0 or i == steps:
-                ok = (torch.isfinite(st.x[:, :, own]).all() & torch.isfinite(st.v[:, :, own]).all()).to(
-                    st.x.dtype).reshape(1)                         # on the state's device (NCCL reduces there)
+                # one collective: non-finite values and the kinetic energy of each batch entry, summed over
+                # the slabs (on the state's device: NCCL reduces there); then the checks of one process
+                x_own, v_own = st.x[:, :, own], st.v[:, :, own]
+                bad = (~torch.isfinite(x_own)).sum() + (~torch.isfinite(v_own)).sum()
+                mass = local.mass if local.mass.shape[2] == 1 else local.mass[:, :, own]    # uniform: (1, 1, 1, 1, 1)
+                ke = (0.5 * mass * v_own * v_own).flatten(1).sum(1)
+                sums = torch.cat([bad.to(ke.dtype).reshape(1), torch.nan_to_num(ke, nan=0.0, posinf=0.0)])
                 if world > 1:
-                    dist.all_reduce(ok, op=dist.ReduceOp.MIN, group=group)
-                if ok.item() < 1:
-                    raise DivergenceError(i, "position or velocity", math.nan, dt, None)
+                    dist.all_reduce(sums, op=dist.ReduceOp.SUM, group=group)
+                if sums[0].item() > 0:
+                    monitor.fail(i, "position or velocity", math.nan)
+                if float(sums[1:].max()) > monitor.limit:
+                    monitor.fail(i, "kinetic energy (runaway)", float(sums[1:].max()))
             if record_every and i % record_every == 0:
                 keep(st)
     final, rec, whole = _gather(local, st, ts, xs, vs, rank, world, group)

@@ -242,7 +242,11 @@ class DivergenceMonitor:
             e_grav = float(model.mass.expand(-1, -1, *model.grid.shape).sum()) * g * size
         self.limit = factor * max(e_springs + e_grav, 1e-30)
 
-    def _fail(self, step, quantity, value):
+    def fail(self, step: int, quantity: str, value: float):
+        """Raise the :class:`DivergenceError` of ``quantity`` at ``step`` (runners that check their own way).
+
+        Above the stability bound it names a safe dt; within it, the likely cause (loads, start state).
+        """
         name = _name(self.integrator)
         implicit = name in ("implicit", "knoche", "projective")
         try:
@@ -265,7 +269,7 @@ class DivergenceMonitor:
             for quantity, t in (("position", state.x), ("velocity", state.v)):
                 if not bool(torch.isfinite(t).all()):
                     bad = t[~torch.isfinite(t)]
-                    self._fail(step, quantity, float(bad[0]))
+                    self.fail(step, quantity, float(bad[0]))
             ke = float((0.5 * self.model.mass * state.v * state.v).flatten(1).sum(1).max())
             if ke > self.limit:
-                self._fail(step, "kinetic energy (runaway)", ke)
+                self.fail(step, "kinetic energy (runaway)", ke)
