@@ -13,10 +13,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import trimesh
 
 from torchdeform import cli
-from torchdeform.scene import load_scene, run_scene
+from torchdeform.scene import energy_series, load_scene, run_scene
 
 SCENES = Path(__file__).resolve().parents[2] / "scenes"
 
@@ -342,3 +343,22 @@ def test_time_after_the_end_with_auto_dt_is_found_when_the_run_starts(bad_dir, c
     assert err.startswith(f"torchdeform: {path}:{text[:text.index('at = 5.0')].count(chr(10)) + 1}: cuts[0].at: "
                           "expected a time in [0, "), err
     assert not (bad_dir / "out" / "summary.json").exists()
+
+
+def test_energies_of_each_frame_use_the_springs_of_that_frame(tmp_path):
+    """Frames before the cut: the uncut model's energies; after it, the cut springs store less energy."""
+    text = body((4, 3, 4), 26, gravity=-30.0) + BLADE.replace("at = 0.002", "at = 0.004") + run_part(steps=40)
+    summary, out = run(tmp_path, text)
+    rec = np.load(out / "trajectory.npz")
+    scene = load_scene(write(tmp_path, text, "again.toml"))
+    uncut = scene.build()                                       # a fresh model: no spring cut
+    x, v = torch.from_numpy(rec["x"]), torch.from_numpy(rec["v"])
+    oracle = energy_series(uncut, x, v)
+    before = rec["t"] < 0.004 - 1e-9
+    after = rec["t"] > 0.004 + 1e-9
+    assert before.sum() >= 2 and after.sum() >= 2
+    for key in ("kinetic", "elastic", "gravity", "total"):
+        np.testing.assert_allclose(rec[key][before], oracle[key][before], rtol=1e-5, atol=1e-12)
+    # after the cut the removed springs hold no energy: less elastic energy than the uncut model gives
+    assert (rec["elastic"][after] < oracle["elastic"][after] - 1e-9).all()
+    assert summary["final_energy_J"]["elastic"] == pytest.approx(float(rec["elastic"][-1]))

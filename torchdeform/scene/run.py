@@ -238,18 +238,30 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
             scene.topology.check(scene.steps * dt)
         model = scene.topology.prepare(model)
         events = scene.topology.events(model, dt, scene.steps * dt, out)
-        callback = _chain(recorder, events)
 
     engine = scene_engine(scene, events is not None)
     start = time.perf_counter()
+    energies = None
     if events is not None:
         events.begin(state)
+        # the springs change during the run: each frame's energies with the springs it was stepped with
+        energies = [energy_series(model, state.x[:1], state.v[:1])]
+
+        def frame_energy(step, st):
+            if step % scene.frames_every == 0:
+                energies.append(energy_series(model, st.x[:1], st.v[:1]))
+        callback = _chain(recorder, frame_energy, events)
     final, rec = simulate(model, state, dt, scene.steps, integrator, record_every=scene.frames_every,
                           progress=progress, warn=False, callback=callback, engine=engine)
     wall = time.perf_counter() - start
+    series = None
+    if energies is not None:
+        if scene.steps % scene.frames_every:                  # the final frame, appended by run_outputs
+            energies.append(energy_series(model, final.x[:1], final.v[:1]))
+        series = {k: np.concatenate([e[k] for e in energies]) for k in energies[0]}
 
     summary, (t, x, v, series) = run_outputs(scene, model, integrator, dt, bound, final, rec, wall, engine.summary(),
-                                             out)
+                                             out, series)
     grid = model.grid
     if recorder is not None:
         summary.update(tool_outputs(scene.tools, recorder.series(), (t, support_series(model, t, x, v)), out,
@@ -297,18 +309,20 @@ def finish_outputs(summary: dict, out: Path, t: np.ndarray, series: dict, title:
 
 
 def run_outputs(scene: Scene, model: Model, integrator, dt: float, bound: float, final, rec: dict, wall: float,
-                engine_summary: dict, out: Path) -> tuple:
+                engine_summary: dict, out: Path, series: dict | None = None) -> tuple:
     """Write ``trajectory.npz`` of a run; return the summary's common part and ``(t, x, v, series)``.
 
     ``rec`` is :func:`~torchdeform.sim.engine.simulate`'s record of the whole body (the last frame
-    is appended when the run did not end on one); ``series`` that of :func:`energy_series`.
+    is appended when the run did not end on one); ``series`` that of :func:`energy_series`, computed
+    here with ``model`` unless given (a run whose springs changed gives each frame's own).
     """
     t, x, v = rec["t"].numpy(), rec["x"][:, 0], rec["v"][:, 0]
     if scene.steps % scene.frames_every:
         t = np.append(t, final.t)
         x = torch.cat([x, final.x[:1].detach().cpu()])
         v = torch.cat([v, final.v[:1].detach().cpu()])
-    series = energy_series(model, x, v)
+    if series is None:
+        series = energy_series(model, x, v)
     cause = "the run diverged between two divergence checks"
     for name, value in (("x", x), ("v", v), *series.items()):
         require_finite(f"trajectory.npz: {name}", value, "frame, ..." if name in "xv" else "frame", cause)
