@@ -146,8 +146,11 @@ def _run_decomposed(args, rank: int, world: int) -> int:
             with folder as out:
                 summary, (t, _, _, series) = run_outputs(scene, run.whole, integrator, dt, bound, run.final,
                                                          run.record, run.wall_s, engine, out)
+                # (spring energies of every frame use the final springs here: before a cut they differ
+                # from a one-process run, which records each frame's own)
                 summary["domain"] = {"ranks": world, "axis": "D", "halo_rows": 1, "per_rank": parts,
-                                     "comm_share": max(p["comm_share"] for p in parts)}
+                                     "comm_share": max(p["comm_share"] for p in parts),
+                                     "spring_energies": "final springs" if cuts else "as one process"}
                 finish_outputs(summary, out, t, series,
                                f"{scene.name}: {integrator.name}, dt = {dt:.3g} s, {world} ranks")
             print(report(summary, args.out))

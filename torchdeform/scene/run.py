@@ -245,7 +245,8 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
     if events is not None:
         events.begin(state)
         # the springs change during the run: each frame's energies with the springs it was stepped with
-        energies = [energy_series(model, state.x[:1], state.v[:1])]
+        first = model.start(state)                            # the recorded start: dragged nodes moving
+        energies = [energy_series(model, first.x[:1], first.v[:1])]
 
         def frame_energy(step, st):
             if step % scene.frames_every == 0:
