@@ -6,7 +6,9 @@
     torchrun --nproc-per-node 2 -m torchdeform run SCENE.toml --out DIR      (slabs along D, one halo layer)
 
 Under ``torchrun``, ``run`` decomposes the scene's body (:mod:`torchdeform.distributed.domain`);
-rank 0 writes the same outputs as one process, plus a ``"domain"`` part in ``summary.json``.
+rank 0 writes the same outputs as one process, plus a ``"domain"`` part in ``summary.json`` (one
+difference: with ``[[cuts]]``, the spring energies of frames before a cut are computed with the
+final springs, where one process uses each frame's own).
 
 Every rank checks every point's scene before any collective call, so bad input (a key that does
 not exist, a value of the wrong type) ends every rank with exit status 2 and one line, printed
