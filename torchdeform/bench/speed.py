@@ -161,6 +161,8 @@ def _time_mode(integ, model, state, dt, mode, *, steps, repeats, target_s, sync,
     def retime() -> float:                      # the same step timed again (under other conditions)
         with torch.no_grad():
             return _time_steps(step, start, steps, repeats, sync)
+    #: the compiled step's thread governor (it may take fewer threads beside a busy process)
+    retime.governor = None if mode == "eager" else cs.governor
     return first, sec, compile_s, steps, fallback, diff, threads, retime
 
 
@@ -223,9 +225,13 @@ def beam_row(mode: str, *, dtype=torch.float32, device="cpu", cg_iters: int = 20
 
 def _busy_row(row: dict, retime, sec: float, rates) -> dict:
     """``row`` timed again (``retime()``) beside a busy process: ``contention: true``, ``vs_idle``."""
+    gov = getattr(retime, "governor", None)
+    before = dict(gov.steps) if gov is not None else {}
     with busy_neighbour():
         busy = retime()
-    return dict(row, **rates(busy), contention=True, vs_idle=sec / busy, compile_s=None)
+    # steps per thread count while busy (a compiled step's governor may drop threads)
+    used = {n: k - before.get(n, 0) for n, k in gov.steps.items() if k > before.get(n, 0)} if gov else None
+    return dict(row, **rates(busy), contention=True, vs_idle=sec / busy, compile_s=None, threads_busy=used)
 
 
 def _warp_row(n, topology, dtype, steps, repeats, target_s, reference):
@@ -328,7 +334,7 @@ def run(args) -> int:
         _speed_plot(rows, Path(args.out) / "speed.png", machine)
     display = [dict(r, node_steps_per_s=f"{r['node_steps_per_s'] / 1e6:.2f}",
                     mode=r["mode"] + (" (eager fallback)" if r.get("fallback") else "")
-                    + (" busy" if r.get("contention") else "")) for r in rows]
+                    + (" busy" if r.get("contention") else "") + _threads_note(r)) for r in rows]
     beam_display = [dict(r, mode=r["mode"] + (" busy" if r.get("contention") else "")) for r in beam_rows]
     if not args.json:
         print(f"symplectic Euler on a damped n^3 cube, {device}, torch {machine['torch']}")
@@ -347,6 +353,15 @@ def run(args) -> int:
         if args.out:
             print(f"wrote {Path(args.out) / 'speed.csv'} and {Path(args.out) / 'speed.png'}")
     return 0
+
+
+def _threads_note(row) -> str:
+    """`` (1 thread 93%)``: the thread count a busy row's governor ran most steps on, when not the row's."""
+    used = row.get("threads_busy")
+    if not used:
+        return ""
+    n, k = max(used.items(), key=lambda item: item[1])
+    return "" if n == row["threads"] else f" ({n} thread{'s' if n > 1 else ''} {100 * k / sum(used.values()):.0f}%)"
 
 
 #: issue targets on 2 cores: the implicit beam (SOFA about 110 on a desktop CPU) and 64^3 explicit

@@ -35,6 +35,7 @@ Example:
 from __future__ import annotations
 
 import functools
+import time
 
 import torch
 
@@ -53,6 +54,7 @@ from ..errors import ConfigError
 from .integrators import ImplicitEuler, cg_iteration, cg_start, positive_dt
 from .model import State
 from .packed import PackedLinearisation, PackedModel, TraceContext
+from .threads import ThreadGovernor, omp_threads
 
 __all__ = ["CompileFallbackWarning", "CompiledStep", "ImplicitGraph", "compiled_step", "step_threads", "SERIAL_NODES",
            "IMPLICIT_OPTIONS"]
@@ -90,6 +92,11 @@ class CompiledStep:
         #: the OpenMP threads the code is compiled for (see :func:`step_threads`)
         self.threads = int(threads) if threads else step_threads(model, integrator)
         self.compile_error = None
+        implicit = isinstance(integrator, ImplicitEuler)
+        #: picks the threads of each step from the step times (:mod:`~torchdeform.sim.threads`):
+        #: an explicit step compiled for several threads on a CPU, else None
+        self.governor = (ThreadGovernor(self.threads) if enable and not implicit and self.threads > 1
+                         and model.device.type == "cpu" and mode is None else None)
         self.packed = pm = PackedModel(model, share=editable)
         pm.force_form = force_form
         self._loads = None if loads is None or callable(loads) else pm.pack(torch.as_tensor(
@@ -111,7 +118,7 @@ class CompiledStep:
             out = integrator.finish(pmc, state, *integrator.advance(pmc, state, dt_, loads_p), dt_)
             return out.x, out.v, out.readings or {}
 
-        self._fn, self._compiled_for = None, None
+        self._fn, self._compiled_for = None, set()
         self.compiled = bool(enable)
         eager_only = [type(c).__name__ for c in model.interactions if getattr(c, "eager_only", False)]
         if enable and callable(loads):
@@ -120,8 +127,9 @@ class CompiledStep:
             self._fallback(TypeError(f"{', '.join(eager_only)} runs in the eager step"))
         elif enable:
             try:
-                implicit = isinstance(integrator, ImplicitEuler)
                 opts = dict(options or INDUCTOR_OPTIONS, **(IMPLICIT_OPTIONS if implicit else {}))
+                if self.governor is not None:       # the thread count is read when the code runs
+                    opts["cpp.dynamic_threads"] = True
                 compile_ = functools.partial(torch.compile, dynamic=False, mode=mode, fullgraph=implicit,
                                              options=None if mode else inductor_options(opts, self.threads))
                 if implicit:
@@ -150,16 +158,21 @@ class CompiledStep:
             try:
                 x, v = state.x, state.v
                 t = torch.scalar_tensor(float(state.t), dtype=self.model.dtype, device=self.model.device)
-                signature = [(a.shape, a.stride(), a.dtype, a.device) for a in (x, v)]
-                if signature == self._compiled_for:
-                    # Same shapes as the compiled call, and the model is baked in: dynamo's guards
-                    # (one check per model tensor, ~0.15 ms per call on the beam) cannot fail.
-                    with torch.no_grad(), skip_guards():
-                        x, v, readings = self._fn(x, v, t)
-                else:
-                    with torch.no_grad(), no_autograd_cache():
-                        x, v, readings = self._fn(x, v, t)
-                    self._compiled_for = signature
+                n = self.governor.choose() if self.governor is not None else torch.get_num_threads()
+                signature = (tuple((a.shape, a.stride(), a.dtype, a.device) for a in (x, v)), n)
+                t0 = time.perf_counter()
+                with omp_threads(n):
+                    if signature in self._compiled_for:
+                        # Shapes and threads of a compiled call, and the model is baked in: dynamo's
+                        # guards (one check per model tensor, ~0.15 ms per call on the beam) cannot fail.
+                        with torch.no_grad(), skip_guards():
+                            x, v, readings = self._fn(x, v, t)
+                    else:                       # compiles; on another thread count, traces again
+                        with torch.no_grad(), no_autograd_cache():
+                            x, v, readings = self._fn(x, v, t)
+                        self._compiled_for.add(signature)
+                if self.governor is not None:
+                    self.governor.record(n, time.perf_counter() - t0)
                 return State(x, v, state.t + self.dt, readings or None)
             except Exception as e:                          # noqa: BLE001 (any failure -> eager)
                 self._fallback(e)

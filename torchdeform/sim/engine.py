@@ -158,10 +158,17 @@ class Engine:
         return worth
 
     def summary(self) -> dict:
-        """``{"requested", "ran", "why", "eager_ms_per_step", "compile_s", "force_form"}`` for a run's summary."""
-        form = self.step.force_form if self.step is not None and self.ran == "compiled" else None
+        """``{"requested", "ran", "why", "eager_ms_per_step", "compile_s", "force_form", "threads"}`` for a run's summary.
+
+        ``threads``: the compiled step's thread governor (:meth:`~torchdeform.sim.threads.ThreadGovernor.summary`:
+        the count it ended on, steps per count, switches), or None.
+        """
+        compiled = self.step is not None and self.ran == "compiled"
+        gov = self.step.governor if compiled else None
         return {"requested": self.mode, "ran": self.ran, "why": self.reason,
-                "eager_ms_per_step": self.eager_ms, "compile_s": self.compile_s, "force_form": form}
+                "eager_ms_per_step": self.eager_ms, "compile_s": self.compile_s,
+                "force_form": self.step.force_form if compiled else None,
+                "threads": gov.summary() if gov is not None else None}
 
     def _compile(self, model, integrator, dt, loads):
         from .compiled import compiled_step

@@ -1,0 +1,205 @@
+"""How many threads each compiled step runs on: a governor that watches step times.
+
+A compiled explicit step on several OpenMP threads is fast on an idle machine, but when another
+process holds a core, the thread sharing that core holds up the others at every barrier: at 64^3
+on 2 cores a step took 2.6 ms idle and 5-8 ms beside a busy process, slower than one thread alone
+(about 5 ms, on the free core). The compiled code is therefore generated for a thread count
+chosen at run time (inductor's ``cpp.dynamic_threads``), and :class:`ThreadGovernor` picks that
+count step by step:
+
+* It stays on its current count while the step times hold. When the median of the last
+  ``window`` steps jumps above ``jump`` times the best median seen at that count (a process
+  started beside it), or when the first window finds other processes busy on the machine
+  (:func:`others_busy`, from ``/proc/stat``), it probes: ``probe`` steps on the next smaller
+  count.
+* It moves to the probed count when that is faster by the ``margin``; otherwise it goes back.
+* Away from the full count it probes the full count again every ``period`` steps, the period
+  doubling up to ``max_period`` while the probes lose, so it returns when the machine is free.
+
+On an idle machine nothing jumps and nothing is probed: the governor costs one clock read per
+step. The first step on a new count makes dynamo trace the step again (its guards include the
+thread count; about 1 s, the generated code comes from inductor's cache), and that step is not
+counted as a probe sample.
+
+Example (a made-up machine: 2.6 ms per step on 2 threads when idle, 7 ms beside a busy
+process, 5 ms on one thread either way):
+
+    >>> def step_ms(n, busy):
+    ...     return 5.0 if n == 1 else (7.0 if busy else 2.6)
+    >>> gov = ThreadGovernor(2, busy_cores=None)  # busy_cores=None: no look at /proc/stat
+    >>> def run(steps, busy):
+    ...     for _ in range(steps):
+    ...         n = gov.choose()
+    ...         gov.record(n, step_ms(n, busy) / 1e3)
+    >>> run(50, busy=False); gov.current
+    2
+    >>> run(50, busy=True); gov.current      # the times jumped: one thread probed, and kept
+    1
+    >>> run(100, busy=False); gov.current    # the full count is probed again now and then
+    2
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import statistics
+import time
+from collections import Counter, deque
+
+import torch
+
+__all__ = ["ThreadGovernor", "others_busy", "omp_threads"]
+
+
+def _machine_jiffies():
+    """``(busy, total)`` CPU jiffies of the whole machine from ``/proc/stat``, or None elsewhere."""
+    try:
+        with open("/proc/stat", encoding="ascii") as f:
+            vals = [int(v) for v in f.readline().split()[1:9]]
+    except (OSError, ValueError):
+        return None
+    idle = vals[3] + vals[4]
+    return sum(vals) - idle, sum(vals)
+
+
+class _Sampler:
+    """CPU use of the machine and of this process between two readings (see :func:`others_busy`)."""
+
+    def __init__(self):
+        self.start = (_machine_jiffies(), time.process_time(), time.perf_counter())
+
+    def others(self) -> float | None:
+        """Cores kept busy by other processes since construction, or None (no ``/proc/stat``, too short)."""
+        (m0, p0, w0), m1 = self.start, _machine_jiffies()
+        wall = time.perf_counter() - w0
+        if m0 is None or m1 is None or m1[1] - m0[1] < 10 * (os.cpu_count() or 1) or wall <= 0:
+            return None
+        cores = (os.cpu_count() or 1) * (m1[0] - m0[0]) / (m1[1] - m0[1])
+        return cores - (time.process_time() - p0) / wall
+
+
+def others_busy(seconds: float = 0.2) -> float | None:
+    """Cores that other processes kept busy during ``seconds`` (Linux ``/proc/stat``), or None.
+
+    Examples:
+        >>> busy = others_busy(0.1)
+        >>> busy is None or busy > -1.0
+        True
+    """
+    s = _Sampler()
+    time.sleep(seconds)
+    return s.others()
+
+
+@contextlib.contextmanager
+def omp_threads(n: int):
+    """Run the block with ``n`` OpenMP threads in the calling thread, then restore torch's setting."""
+    before = torch.get_num_threads()
+    if n == before:
+        yield
+        return
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+class ThreadGovernor:
+    """Chooses the thread count of every compiled step from the step times (module docstring).
+
+    Use: ``n = gov.choose()``, run the step on ``n`` threads (:func:`omp_threads`), then
+    ``gov.record(n, seconds)``.
+
+    Args:
+        threads: the full thread count (the first choice).
+        window: steps whose median is the current step time.
+        probe: steps timed on another count before deciding.
+        jump: a window median above ``jump`` x the best one at this count starts a probe.
+        margin: move to the probed count when its median is below ``margin`` x the current one.
+        period, max_period: away from the full count, probe it again after ``period`` steps,
+            doubling after every lost probe up to ``max_period``.
+        busy_cores: other processes keeping this many cores busy (:func:`others_busy`, checked
+            once, when the first window is full) start a probe; None: no check.
+
+    Attributes:
+        current: the count steps run on (outside probes).
+        steps: ``Counter`` of steps per thread count.
+        switches: how many times :attr:`current` changed.
+    """
+
+    def __init__(self, threads: int, *, window: int = 8, probe: int = 3, jump: float = 1.5, margin: float = 0.9,
+                 period: int = 32, max_period: int = 512, busy_cores: float = 0.5):
+        self.full = self.current = max(1, int(threads))
+        self.options = sorted({self.full, max(1, self.full // 2), 1}, reverse=True)
+        self.window, self.probe_steps, self.jump, self.margin = int(window), int(probe), float(jump), float(margin)
+        self.base_period, self.max_period, self.busy_cores = int(period), int(max_period), busy_cores
+        self.recent: deque = deque(maxlen=self.window)
+        self.best = float("inf")
+        self.period = self.countdown = self.base_period
+        self.probing: int | None = None
+        self.probe_times: list = []
+        self.seen = {self.full}
+        self.steps: Counter = Counter()
+        self.switches = 0
+        self._sampler = _Sampler() if self.full > 1 and busy_cores is not None else None
+
+    def choose(self) -> int:
+        """The thread count of the next step."""
+        return self.probing if self.probing is not None else self.current
+
+    def record(self, threads: int, seconds: float) -> None:
+        """Account one step of ``seconds`` on ``threads`` threads (the count :meth:`choose` gave)."""
+        self.steps[threads] += 1
+        if threads not in self.seen:                 # the first step on a count traces it again
+            self.seen.add(threads)
+            return
+        if self.probing is not None:
+            self.probe_times.append(seconds)
+            if len(self.probe_times) >= self.probe_steps:
+                self._conclude()
+            return
+        self.recent.append(seconds)
+        if len(self.recent) < self.window or len(self.options) == 1:
+            return
+        now = statistics.median(self.recent)
+        if self._sampler is not None:                # once: is the machine busy from the start?
+            others, self._sampler = self._sampler.others(), None
+            if others is not None and others > self.busy_cores and self.current == self.full:
+                return self._start(self._smaller())
+        if now <= self.best:
+            self.best = now
+        elif now > self.jump * self.best and self.current != self.options[-1]:
+            return self._start(self._smaller())
+        if self.current != self.full:
+            self.countdown -= 1
+            if self.countdown <= 0:
+                self._start(self.full)
+
+    def _smaller(self) -> int:
+        return next(n for n in self.options if n < self.current)
+
+    def _start(self, n: int) -> None:
+        self.probing, self.probe_times = n, []
+
+    def _conclude(self) -> None:
+        # against the latest steps on the current count (the window may still hold older ones)
+        now = statistics.median(list(self.recent)[-self.probe_steps:])
+        probed = statistics.median(self.probe_times)
+        if probed < self.margin * now:
+            self.current, self.switches = self.probing, self.switches + 1
+            self.recent.clear()
+            self.recent.extend(self.probe_times)
+            self.best = probed
+            self.period = self.base_period
+        else:                                        # the probe lost: this is the new normal
+            self.best = now
+            if self.current != self.full:
+                self.period = min(2 * self.period, self.max_period)
+        self.countdown = self.period
+        self.probing = None
+
+    def summary(self) -> dict:
+        """``{"threads": current, "steps_per_threads": {n: steps}, "switches": k}``."""
+        return {"threads": self.current, "steps_per_threads": dict(sorted(self.steps.items())),
+                "switches": self.switches}
