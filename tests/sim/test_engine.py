@@ -160,3 +160,30 @@ engine = "{engine}"
     with pytest.raises(ConfigError) as e:
         load_scene(path)
     assert "integrator.engine" in str(e.value) and "cube.toml" in str(e.value) and "cube.toml:17:" in str(e.value)
+
+
+@pytest.mark.parametrize("where", ["x", "v"])
+def test_the_compiled_engine_checks_its_packed_state_for_non_finite_values(where):
+    model = body(drags=False)
+    # a non-finite load on one free node: the packed run must stop at the first check, naming it
+    loads = torch.zeros(1, 3, *model.grid.shape, dtype=model.dtype)
+    loads[0, 1, 2, 2, 2] = float("inf") if where == "v" else float("nan")
+    with pytest.raises(td.DivergenceError, match="velocity|position") as err:
+        run(model, Engine("compiled", compile=False), steps=30, loads=loads)
+    assert err.value.step == 10                                 # check_every = 10, on the packed state
+
+
+def test_a_packed_check_sees_the_kinetic_energy_of_the_unpacked_state():
+    from torchdeform.sim.compiled import compiled_step
+    from torchdeform.sim.stability import DivergenceMonitor
+    model = body(drags=False)
+    step = compiled_step(td.SymplecticEuler(), model, 1e-4, enable=False)
+    state = model.rest_state()
+    state = td.State(state.x, torch.randn_like(state.v), 0.0)
+    monitor = DivergenceMonitor(model, 1e-4, td.SymplecticEuler())
+    ke = float((0.5 * model.mass * state.v * state.v).sum())         # the oracle: grid layout
+    monitor.limit = 1.001 * ke
+    monitor.check(step.packed.pack_state(state), 1, mass=step.packed.mass)       # just under: passes
+    monitor.limit = 0.999 * ke
+    with pytest.raises(td.DivergenceError, match="kinetic energy"):
+        monitor.check(step.packed.pack_state(state), 1, mass=step.packed.mass)

@@ -291,11 +291,11 @@ def simulate(model: Model, state: State, dt: float, steps: int, integrator: Inte
                     engine.compile_s = spent
                 else:
                     engine.compile_s = max(0.0, engine.compile_s - spent)
-            look = i % check_every == 0 or i == steps or (record_every and i % record_every == 0) \
-                or _reads_positions(callback)
+            look = i == steps or (record_every and i % record_every == 0) or _reads_positions(callback)
             state = compiled.packed.unpack_state(packed) if look else packed
         if i % check_every == 0 or i == steps:
-            monitor.check(state, i)
+            # a packed state is checked as it is (its halo has no mass), not unpacked for it
+            monitor.check(state, i, mass=compiled.packed.mass if state is packed else None)
         if record_every and i % record_every == 0:
             record(state)
         if callback is not None:

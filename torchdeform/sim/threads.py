@@ -120,7 +120,7 @@ class ThreadGovernor:
         period, max_period: away from the full count, probe it again after ``period`` steps,
             doubling after every lost probe up to ``max_period``.
         busy_cores: other processes keeping this many cores busy (:func:`others_busy`, checked
-            once, when the first window is full) start a probe; None: no check.
+            once, over the first ~0.1 s of steps) start a probe; None: no check.
 
     Attributes:
         current: the count steps run on (outside probes).
@@ -142,7 +142,9 @@ class ThreadGovernor:
         self.seen = {self.full}
         self.steps: Counter = Counter()
         self.switches = 0
-        self._sampler = _Sampler() if self.full > 1 and busy_cores is not None else None
+        #: started at the first recorded step (not during the compile, whose compiler runs beside it)
+        self._sampler = None
+        self._sample = self.full > 1 and busy_cores is not None
 
     def choose(self) -> int:
         """The thread count of the next step."""
@@ -151,6 +153,8 @@ class ThreadGovernor:
     def record(self, threads: int, seconds: float) -> None:
         """Account one step of ``seconds`` on ``threads`` threads (the count :meth:`choose` gave)."""
         self.steps[threads] += 1
+        if self._sample and self._sampler is None:
+            self._sampler = _Sampler()
         if threads not in self.seen:                 # the first step on a count traces it again
             self.seen.add(threads)
             return
@@ -163,10 +167,12 @@ class ThreadGovernor:
         if len(self.recent) < self.window or len(self.options) == 1:
             return
         now = statistics.median(self.recent)
-        if self._sampler is not None:                # once: is the machine busy from the start?
-            others, self._sampler = self._sampler.others(), None
-            if others is not None and others > self.busy_cores and self.current == self.full:
-                return self._start(self._smaller())
+        if self._sample:                # once (after ~0.1 s of steps): is the machine busy from the start?
+            others = self._sampler.others()
+            if others is not None:
+                self._sample = False
+                if others > self.busy_cores and self.current == self.full:
+                    return self._start(self._smaller())
         if now <= self.best:
             self.best = now
         elif now > self.jump * self.best and self.current != self.options[-1]:
