@@ -8,8 +8,8 @@ chosen at run time (inductor's ``cpp.dynamic_threads``), and :class:`ThreadGover
 count step by step:
 
 * It stays on its current count while the step times hold. When the median of the last
-  ``window`` steps jumps above ``jump`` times the best median seen at that count (a process
-  started beside it), or when the first window finds other processes busy on the machine
+  ``window`` steps stays above ``jump`` times the best median seen at that count for another
+  ``window`` steps (a process started beside it, not a hiccup), or when the first window finds other processes busy on the machine
   (:func:`others_busy`, from ``/proc/stat``), it probes: ``probe`` steps on the next smaller
   count.
 * It moves to the probed count when that is faster by the ``margin``; otherwise it goes back.
@@ -142,6 +142,7 @@ class ThreadGovernor:
         self.seen = {self.full}
         self.steps: Counter = Counter()
         self.switches = 0
+        self.slow = 0                                # steps in a row whose window is above jump x best
         #: started at the first recorded step (not during the compile, whose compiler runs beside it)
         self._sampler = None
         self._sample = self.full > 1 and busy_cores is not None
@@ -175,8 +176,14 @@ class ThreadGovernor:
                     return self._start(self._smaller())
         if now <= self.best:
             self.best = now
-        elif now > self.jump * self.best and self.current != self.options[-1]:
-            return self._start(self._smaller())
+        if now > self.jump * self.best and self.current != self.options[-1]:
+            # a jump that lasts a whole window (not one hiccup of the host): probe, which on a
+            # new count costs a trace
+            self.slow += 1
+            if self.slow > self.window:
+                return self._start(self._smaller())
+        else:
+            self.slow = 0
         if self.current != self.full:
             self.countdown -= 1
             if self.countdown <= 0:
@@ -186,7 +193,7 @@ class ThreadGovernor:
         return next(n for n in self.options if n < self.current)
 
     def _start(self, n: int) -> None:
-        self.probing, self.probe_times = n, []
+        self.probing, self.probe_times, self.slow = n, [], 0
 
     def _conclude(self) -> None:
         # against the latest steps on the current count (the window may still hold older ones)
