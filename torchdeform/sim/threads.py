@@ -139,7 +139,7 @@ class ThreadGovernor:
         self.period = self.countdown = self.base_period
         self.probing: int | None = None
         self.probe_times: list = []
-        self.seen = {self.full}
+        self.seen: set = set()                       # counts run so far (a first step traces: not timed)
         self.steps: Counter = Counter()
         self.switches = 0
         self.slow = 0                                # steps in a row whose window is above jump x best
