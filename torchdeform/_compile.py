@@ -75,6 +75,7 @@ def inductor_options(options: dict | None = None, threads: int | None = None) ->
         >>> inductor_options({"size_asserts": False})["cpp.threads"] == torch.get_num_threads()
         True
     """
+    _register_realize_lowering()                   # every torch.compile here takes its options from this
     return dict(options or {}, **{"cpp.threads": int(threads or torch.get_num_threads())})
 
 
@@ -93,13 +94,21 @@ def _(x):
     return x.new_empty(x.shape)
 
 
+_lowered: list = []
+
+
 def _register_realize_lowering() -> None:
-    """Lower :func:`realize` inside inductor as a stored buffer.
+    """Lower :func:`realize` inside inductor as a stored buffer (once, on the first compile).
 
     The buffer is computed by the fused loop that produces it, instead of an external ``clone``
     call: each external call costs ~50-90 us of dispatch on these CPUs, several times per CG
     iteration. Without the private lowering API the op still works, as the external call.
+    Registered when a compile is first asked for (:func:`inductor_options`), not on import:
+    importing inductor takes ~3 s, which a run that compiles nothing should not pay.
     """
+    if _lowered:
+        return
+    _lowered.append(True)
     try:
         from torch._inductor import lowering
     except ImportError:                                                 # pragma: no cover
@@ -111,8 +120,6 @@ def _register_realize_lowering() -> None:
         y.realize()
         return y
 
-
-_register_realize_lowering()
 
 
 def no_autograd_cache():

@@ -1,7 +1,7 @@
-"""simulate's engines (torchdeform.sim.engine): eager, compiled, auto.
+"""simulate's engines (torchdeform.sim.engine): eager, native, compiled, auto.
 
 The compiled engine runs its packed loop with the uncompiled packed step (``Engine(compile=False)``):
-the same code path without a 10-60 s compile; the eager grid-layout step is the oracle.
+the same code path without a 3-60 s compile; the eager grid-layout step is the oracle.
 """
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import torch
 
 import torchdeform as td
 from torchdeform.errors import ConfigError
+from torchdeform.sim import native
 from torchdeform.sim.engine import Engine, gradient_needed
 
 
@@ -49,14 +50,59 @@ def test_auto_stays_eager_on_a_short_run():
     assert engine.summary()["requested"] == "auto" and engine.summary()["compile_s"] is None
 
 
-def test_auto_switches_after_its_probe_when_the_run_repays_the_compile():
+needs_cc = pytest.mark.skipif(native.unavailable() is not None, reason=f"no C kernel here: {native.unavailable()}")
+
+
+@needs_cc
+def test_auto_goes_native_then_compiled_when_the_run_repays_each():
+    """Eager probe -> native (the C kernel) -> native probe -> compiled, the state carried over."""
     model = body()
     ref, rec_ref = run(model, "eager", steps=40)
-    engine = Engine("auto", probe_steps=4, compile_s={"explicit": 0.0}, compile=False)
+    engine = Engine("auto", probe_steps=4, compile_s={"native": 0.0, "explicit": 0.0}, compile=False)
     out, rec = run(model, engine, steps=40)
-    assert engine.ran == "compiled" and ">" in engine.reason and engine.compile_s is not None
+    assert engine.ran == "compiled" and "; native;" in engine.reason and ": compiled" in engine.reason
+    assert engine.native_ms > 0 and engine.compile_s is not None
     assert torch.allclose(out.x, ref.x, atol=1e-12, rtol=0)
     assert torch.allclose(rec["x"], rec_ref["x"], atol=1e-12, rtol=0)
+
+
+@needs_cc
+@pytest.mark.parametrize("drags", [True, False], ids=["kernel forces", "fused step"])
+def test_auto_stays_native_when_a_compile_would_not_pay(drags):
+    model = body(drags=drags)
+    ref, rec_ref = run(model, "eager", steps=40)
+    engine = Engine("auto", probe_steps=4, compile_s={"native": 0.0}, compile=False)
+    out, rec = run(model, engine, steps=40)
+    assert engine.ran == "native" and engine.summary()["ran"] == "native" and "<= 2 x ~8 s compile" in engine.reason
+    assert (engine.step.fused is None) == drags                   # drags keep the update in torch
+    assert torch.allclose(out.x, ref.x, atol=1e-12, rtol=0) and torch.allclose(out.v, ref.v, atol=1e-10, rtol=0)
+    assert torch.allclose(rec["x"], rec_ref["x"], atol=1e-12, rtol=0)
+    engine = Engine("native")
+    out, _ = run(model, engine, steps=40)
+    assert engine.ran == "native" and engine.reason == "asked for" and torch.allclose(out.x, ref.x, atol=1e-12, rtol=0)
+
+
+def test_native_engine_refuses_what_it_cannot_run():
+    with pytest.raises(ConfigError, match="implicit step"):
+        run(body(), "native", steps=5, integrator=td.ImplicitEuler(cg_iters=5))
+
+
+@needs_cc
+def test_auto_decides_native_then_compiled_by_hand():
+    """With a model the kernel can run: native when the eager time to come exceeds 2 x 2 s of
+    kernel build; compiled when a quarter of the native time to come exceeds 2 x 8 s of compile:
+    6 ms native steps -> 16 s / 1.5 ms = 10,667 steps."""
+    model = body()
+    engine = Engine("auto")
+    assert not engine.decide(td.SymplecticEuler(), [0.05, 0.03, 0.03], 100, threads=2, model=model)
+    assert engine.choice is None and "<= 2 x ~2 s C kernel build" in engine.reason
+    assert engine.decide(td.SymplecticEuler(), [0.05, 0.03, 0.03], 200, threads=2, model=model)
+    assert engine.choice == "native" and engine.force_form is None
+    assert not engine.decide_compiled([0.01, 0.006, 0.006], 10_000)
+    assert engine.decide_compiled([0.01, 0.006, 0.006], 11_000) and engine.native_ms == pytest.approx(6.0)
+    engine = Engine("auto")                                      # an implicit step compiles directly
+    assert engine.decide(td.ImplicitEuler(), [0.05, 0.03, 0.03], 200_000, threads=2, model=model)
+    assert engine.choice == "compiled"
 
 
 def test_auto_picks_the_gather_form_only_when_the_steps_to_come_repay_its_compile():

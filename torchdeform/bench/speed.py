@@ -1,7 +1,7 @@
 """``torchdeform bench speed``: spring-step throughput of symplectic Euler on a damped cube.
 
-Msprings/s, node-steps/s and ms/step for n^3 grids, topologies, eager and compiled, dtypes and
-thread counts, against NVIDIA Warp's CPU backend (:mod:`.warp_baseline`), and implicit Euler on a
+Msprings/s, node-steps/s and ms/step for n^3 grids, topologies, eager, native (the C kernel's
+packed step) and compiled, dtypes and thread counts, against NVIDIA Warp's CPU backend (:mod:`.warp_baseline`), and implicit Euler on a
 40 x 10 x 10 beam shaped like SOFA's spring-beam benchmark.
 """
 from __future__ import annotations
@@ -145,13 +145,20 @@ def _time_mode(integ, model, state, dt, mode, *, steps, repeats, target_s, sync,
         if mode == "eager":
             step, start = (lambda s: integ.step(model, s, dt)), state
         else:
-            cs = CompiledStep(integ, model, dt)
+            t0 = time.perf_counter()
+            cs = (CompiledStep(integ, model, dt, enable=False, force_form="native") if mode == "native"
+                  else CompiledStep(integ, model, dt))
             step, start, threads = cs.step_packed, cs.packed.pack_state(state), cs.threads
+            if mode == "native":
+                step(start)                                 # builds (or loads) the kernel
+                built_s = time.perf_counter() - t0
         first, sec, compile_s, steps = _measure(step, start, steps=steps, repeats=repeats, target_s=target_s,
                                                 sync=sync, max_steps=max_steps)
         if mode != "eager":
             first = cs.packed.unpack_state(first)
-            fallback = not cs.compiled
+            fallback = not cs.compiled and mode == "compiled"
+            if mode == "native":
+                compile_s = built_s                          # the kernel's build or load
         else:
             compile_s = None
         diff = None
@@ -170,9 +177,11 @@ def speed_row(n: int, topology: int, mode: str, *, dtype=torch.float32, device="
               repeats: int = 5, target_s: float = 0.2, reference=None, contention: bool = False) -> dict:
     """Time symplectic Euler steps on :func:`speed_cube`; one row of the speed table.
 
-    ``mode`` is ``"eager"`` (``SymplecticEuler.step``, shifted slices) or ``"compiled"`` (the
-    packed fast path, :class:`~torchdeform.sim.compiled.CompiledStep`, state kept packed between
-    steps). ``reference``: the eager state after one step, to report ``max_abs_diff``. Warm-up
+    ``mode`` is ``"eager"`` (``SymplecticEuler.step``, shifted slices), ``"native"`` (the packed
+    step uncompiled, one C kernel per step: :func:`~torchdeform.sim.native.symplectic_step`;
+    ``compile_s`` is the kernel's build, or its load from the disk cache) or ``"compiled"`` (the
+    packed fast path under ``torch.compile``, :class:`~torchdeform.sim.compiled.CompiledStep`);
+    the packed modes keep the state packed between steps. ``reference``: the eager state after one step, to report ``max_abs_diff``. Warm-up
     and compilation are excluded from the timing; ``compile_s`` is the first call's wall time.
     ``peak_rss_mb`` is the process's peak resident memory during the row (Linux), torch included.
     """
@@ -265,7 +274,10 @@ def run(args) -> int:
         raise ConfigError("--steps", "an integer >= 1", args.steps)
     repeats = args.repeats or (3 if args.quick else 5)
     target_s = 0.02 if args.quick else 0.2
+    from ..sim import native
     modes = ["eager"] if args.no_compile else ["eager", "compiled"]
+    # the C kernel's packed step, uncompiled (the "native" engine): where a C compiler works
+    torch_modes = modes if args.no_compile or native.unavailable() else ["eager", "native", "compiled"]
     warp_ok, warp_why = (False, "--no-warp") if args.no_warp else (False, "Warp runs on the CPU rows only")
     if not args.no_warp and device == "cpu":
         from .warp_baseline import warp_available
@@ -273,7 +285,7 @@ def run(args) -> int:
     # --quick compiles one shape only (the smallest grid, first topology): compilation costs
     # 10-60 s per shape on 2 cores, the smoke run must stay well under a minute.
     tasks = [("torch", n, t, d, th, m) for d in dtypes for th in threads for t in topologies for n in sizes
-             for m in modes if not (m == "compiled" and args.quick and (n, t) != (min(sizes), topologies[0]))]
+             for m in torch_modes if not (m != "eager" and args.quick and (n, t) != (min(sizes), topologies[0]))]
     if warp_ok:
         tasks += [("warp", n, t, d, 1, "warp") for d in dtypes for t in topologies for n in sizes
                   if not (args.quick and (n, t) != (min(sizes), topologies[-1]))]
@@ -407,7 +419,7 @@ def _speed_plot(rows, path: Path, machine: dict) -> None:
         for mode, dt, th in keys:
             pts = sorted((r["nodes"], r["msprings_per_s"]) for r in rows
                          if (r["topology"], r["mode"], r["dtype"], r["threads"]) == (topo, mode, dt, th))
-            style = {"compiled": "-", "eager": "--"}.get(mode, ":")
+            style = {"compiled": "-", "native": "-.", "eager": "--"}.get(mode, ":")
             ax.plot(*zip(*pts), marker="o", ls=style, label=f"{mode} {dt} {th} thr")
         ax.set_xscale("log")
         ax.set_yscale("log")

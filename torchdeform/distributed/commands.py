@@ -144,7 +144,7 @@ def _run_decomposed(args, rank: int, world: int) -> int:
         dist.all_gather_object(parts, run.summary())
         if rank == 0:
             engine = {"requested": scene.engine, "ran": "eager", "why": f"domain-decomposed over {world} ranks",
-                      "eager_ms_per_step": None, "compile_s": None, "force_form": None, "threads": None}
+                      "eager_ms_per_step": None, "native_ms_per_step": None, "compile_s": None, "force_form": None, "threads": None}
             with folder as out:
                 summary, (t, _, _, series) = run_outputs(scene, run.whole, integrator, dt, bound, run.final,
                                                          run.record, run.wall_s, engine, out)

@@ -77,8 +77,9 @@ class Scene:
         safety: fraction of the stability bound used by ``dt = "auto"``.
         threads: CPU threads ``run_scene`` simulates with (None: torch's setting). Small bodies run
             faster on one thread, and much faster than on two when another process holds a core.
-        engine: ``"auto"`` (default: compiled steps when the run is long enough to repay the
-            compile), ``"eager"`` or ``"compiled"`` (:class:`~torchdeform.sim.engine.Engine`).
+        engine: ``"auto"`` (default: the C-kernel or compiled steps when the run is long enough to
+            repay their start-up), ``"eager"``, ``"native"`` or ``"compiled"``
+            (:class:`~torchdeform.sim.engine.Engine`).
         source: the scene file (:class:`Source`) for error messages, or None.
 
     Examples:
@@ -367,7 +368,7 @@ def _integrator(t: Table, grid: Grid) -> dict:
                 steps=t.integer("steps", "an integer >= 0 (number of steps)"),
                 dtype=DTYPES[t.text("dtype", '"float32" or "float64"', "float32", DTYPES)], device=device,
                 threads=t.integer("threads", "an integer >= 1 (CPU threads of the run)", None, lo=1),
-                engine=t.text("engine", f'one of {", ".join(ENGINES)} (auto: compiled when the run repays it)',
+                engine=t.text("engine", f'one of {", ".join(ENGINES)} (auto: native or compiled when the run repays it)',
                               "auto", ENGINES))
 
 

@@ -211,7 +211,7 @@ def run_scene(scene: Scene, out_dir, progress: bool = True, device=None, force: 
 
 def scene_engine(scene: Scene, topology: bool) -> Engine:
     """The scene's :class:`~torchdeform.sim.engine.Engine`; topology changes between steps run eagerly."""
-    if topology and scene.engine == "compiled":
+    if topology and scene.engine in ("native", "compiled"):
         raise scene.source.error("integrator.engine", '"auto" or "eager" for a scene with topology changes '
                                  "(they edit the model between steps, which the eager step reads)", "compiled")
     return Engine(scene.engine, blocked="topology changes between steps run in the eager step" if topology else None)
@@ -394,7 +394,7 @@ def report(summary: dict, out_dir) -> str:
     engine = summary.get("engine") or {}
     ran = f" ({engine['ran']}" if engine.get("ran") else ""
     if ran and engine.get("compile_s") is not None:
-        ran += f", compile {engine['compile_s']:.1f} s"
+        ran += f", {'C kernel' if engine['ran'] == 'native' else 'compile'} {engine['compile_s']:.1f} s"
     ran += ")" if ran else ""
     return (f"{summary['name']}: {summary['steps']} {summary['integrator']['name']} steps of "
             f"{summary['dt_s']:.3g} s{bound} in {summary['wall_time_s']:.2f} s{ran}, max displacement "

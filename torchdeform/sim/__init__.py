@@ -17,9 +17,12 @@ and the compiled fast path.
 :mod:`.adaptive`       :class:`Adaptive`: embedded Runge-Kutta pairs with error control (``rtol``)
 :mod:`.projective`     :class:`ProjectiveDynamics`: implicit Euler by local/global iterations
 :mod:`.catalog`        :data:`INTEGRATORS`: every integrator by its scene-file name
+:mod:`.native`         the packed spring forces (and a whole symplectic step) as a C kernel
 :mod:`.packed`         the padded, flattened layout of the fast path
+:mod:`.threads`        the governor that picks a packed step's thread count from its step times
 :mod:`.compiled`       :func:`compiled_step`: one integrator step under ``torch.compile``
-:mod:`.engine`         :func:`simulate` and its :class:`Engine`: eager, compiled or chosen per run
+:mod:`.engine`         :func:`simulate` and its :class:`Engine`: eager, native, compiled or chosen
+                       per run
 =====================  ===========================================================================
 
 Imports point downwards in that order; :mod:`.compiled` is imported only when a compiled step

@@ -1,21 +1,28 @@
 """The compiled fast path: an integrator step under ``torch.compile``, without gradients.
 
 :func:`compiled_step` runs ``integrator.advance`` and ``finish`` on the packed layout of
-:class:`~torchdeform.sim.packed.PackedModel` (every node gathers its springs; forces and update fuse
-into one vectorised loop) and compiles it, for one model and one time step. Every integrator of
-:mod:`torchdeform.sim.integrators` runs unchanged on the packed model; implicit Euler's CG iterations
-run as a loop inside the one compiled graph (:class:`ImplicitGraph`). Time enters as a 0-d
-tensor, so ramped loads and drag paths never trigger a recompilation.
+:class:`~torchdeform.sim.packed.PackedModel` and compiles it, for one model and one time step. An
+explicit step sums its springs with the C kernel of :mod:`~torchdeform.sim.native` where that
+kernel can run (one external call in the graph), else with inductor's unrolled gather form (every
+node gathers its springs; forces and update fuse into one vectorised loop) or its reduction form
+(:attr:`~torchdeform.sim.packed.PackedModel.force_form`). Every integrator of
+:mod:`torchdeform.sim.integrators` runs unchanged on the packed model; implicit Euler's CG
+iterations run as a loop inside the one compiled graph (:class:`ImplicitGraph`). Time enters as a
+0-d tensor, so ramped loads and drag paths never trigger a recompilation.
 
 The eager :meth:`~torchdeform.sim.integrators.Integrator.step` stays the default and the path for
 autograd: the wrapper calls it whenever a gradient is needed, and it falls back to it for good,
-with one warning line, when compilation is unavailable or fails.
+with one warning line, when compilation is unavailable or fails. ``enable=False`` gives the same
+packed step uncompiled (with ``force_form="native"``: the ``"native"`` engine of
+:mod:`~torchdeform.sim.engine`).
 
-Compilation happens on the first call and costs 20-60 s per grid shape on a 2-core CPU;
-inductor caches it on disk, except the implicit step, whose loop graph inductor will not cache
-("Can't cache HigherOrderOperator: while_loop") and compiles again in every new process (45-60 s
-on the 40 x 10 x 10 beam). Unrolling its CG iterations instead would be cacheable but took over
-14 minutes to compile for 20 iterations.
+Compilation happens on the first call. Measured on a 2-core CPU, 64^3, 26 neighbours: around the
+C kernel 3 s per grid shape once the kernel is built (6.7 s with empty caches: the kernel's build
+1.3 s, inductor's C++ header); without it 15-60 s per grid shape. Inductor caches it on disk,
+except the implicit step, whose loop graph inductor will not cache ("Can't cache
+HigherOrderOperator: while_loop") and compiles again in every new process (30-60 s on the 40 x 10
+x 10 beam). Unrolling its CG iterations instead would be cacheable but took over 14 minutes to
+compile for 20 iterations.
 
 Example:
     >>> import torch
@@ -34,6 +41,7 @@ Example:
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import time
 
@@ -51,6 +59,7 @@ from .._compile import (
     while_loop,
 )
 from ..errors import ConfigError
+from . import native
 from .integrators import ImplicitEuler, cg_iteration, cg_start, positive_dt
 from .model import State
 from .packed import PackedLinearisation, PackedModel, TraceContext
@@ -85,8 +94,8 @@ class CompiledStep:
     def __init__(self, integrator, model, dt: float, loads=None, *, mode: str | None = None,
                  enable: bool = True, options: dict | None = None, editable=False, threads: int | None = None,
                  force_form: str | None = None):
-        if force_form not in (None, "gather", "reduction"):
-            raise ConfigError("force_form", "None, 'gather' or 'reduction'", force_form)
+        if force_form not in (None, "native", "gather", "reduction"):
+            raise ConfigError("force_form", "None, 'native', 'gather' or 'reduction'", force_form)
         self.integrator, self.model, self.loads = integrator, model, loads
         self.dt = positive_dt(dt)
         #: the OpenMP threads the code is compiled for (see :func:`step_threads`)
@@ -94,9 +103,9 @@ class CompiledStep:
         self.compile_error = None
         implicit = isinstance(integrator, ImplicitEuler)
         #: picks the threads of each step from the step times (:mod:`~torchdeform.sim.threads`):
-        #: an explicit step compiled for several threads on a CPU, else None
-        self.governor = (ThreadGovernor(self.threads) if enable and not implicit and self.threads > 1
-                         and model.device.type == "cpu" and mode is None else None)
+        #: an explicit step on several threads on a CPU, compiled or with the C spring kernel, else None
+        self.governor = (ThreadGovernor(self.threads) if (enable or force_form == "native") and not implicit
+                         and self.threads > 1 and model.device.type == "cpu" and mode is None else None)
         self.packed = pm = PackedModel(model, share=editable)
         pm.force_form = force_form
         self._loads = None if loads is None or callable(loads) else pm.pack(torch.as_tensor(
@@ -106,9 +115,14 @@ class CompiledStep:
         #: the compile-time context of this step's graph; its packed kernels see it through a view
         #: of the packed model (the model itself carries no compile flags)
         self.trace = ctx = TraceContext(realize)
-        pmc = pm.traced(ctx, self.threads)
-        #: how this step sums the springs, ``"gather"`` or ``"reduction"`` (decided by the traced view)
+        pmc = pm.traced(ctx, self.threads, native_ok=not implicit, build=enable)
+        #: how this step sums the springs, ``"native"``, ``"gather"`` or ``"reduction"`` (decided by the traced view)
         self.force_form = pmc.force_form
+        #: uncompiled with the C kernel, a symplectic step that one kernel makes whole
+        #: (:func:`~torchdeform.sim.native.symplectic_step`): that kernel's name, else None
+        self.fused = None
+        if not enable and self.force_form == "native" and native.fused_blocker(pm, integrator, loads) is None:
+            self.fused = native.kernel(dataclasses.replace(native.variant_of(pm), update=True))
 
         # t enters as a 0-d tensor: ramps and drag paths are evaluated inside the compiled code
         # without branches, and a new t never triggers a recompilation.
@@ -177,8 +191,20 @@ class CompiledStep:
             except Exception as e:                          # noqa: BLE001 (any failure -> eager)
                 self._fallback(e)
         with torch.no_grad():
-            return self.integrator.step(self.packed, state, self.dt, self._loads if self._loads is not None
-                                        else self.loads)
+            if self.governor is None:
+                return self._eager_step(state)
+            n = self.governor.choose()
+            t0 = time.perf_counter()
+            with omp_threads(n):
+                out = self._eager_step(state)
+            self.governor.record(n, time.perf_counter() - t0)
+            return out
+
+    def _eager_step(self, state: State) -> State:
+        if self.fused is not None:
+            x, v = native.symplectic_step(self.packed, state.x, state.v, self.dt, self.fused)
+            return State(x, v, state.t + self.dt, None)
+        return self.integrator.step(self.packed, state, self.dt, self._loads if self._loads is not None else self.loads)
 
     def __call__(self, state: State) -> State:
         """One step on a grid-layout state (``(B, 3, D, H, W)``); eager when a gradient is needed."""
@@ -231,7 +257,7 @@ class ImplicitGraph:
         self.integ = integ
         #: the compile-time context of this graph (see :class:`~torchdeform.sim.packed.TraceContext`)
         self.trace = ctx = TraceContext(realize if compile_ is not None else None)
-        pm = pm.traced(ctx, threads)
+        pm = pm.traced(ctx, threads, native_ok=False)
 
         def step(x, v, t):
             vcur = v
@@ -320,7 +346,10 @@ def compiled_step(integrator, model, dt: float, loads=None, *, mode: str | None 
         threads: OpenMP threads of the compiled code (default :func:`step_threads`: one for small
             problems, else torch's setting).
         force_form: how the springs are summed (:attr:`~torchdeform.sim.packed.PackedModel.force_form`):
-            ``"gather"``, ``"reduction"`` or None (gather on several threads, else reduction).
+            ``"native"`` (the C kernel; :class:`~torchdeform.sim.native.NativeBuildError` where it
+            cannot run), ``"gather"``, ``"reduction"`` or None (for an explicit step the C kernel
+            where it can run, else gather on several threads, else reduction; an implicit step
+            reduction).
 
     Returns:
         a :class:`CompiledStep`, ``step(state) -> State``. It runs the compiled code under

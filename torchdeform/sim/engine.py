@@ -1,20 +1,29 @@
-"""Running many steps: :func:`simulate` and the :class:`Engine` that chooses eager or compiled steps.
+"""Running many steps: :func:`simulate` and the :class:`Engine` that chooses how each step runs.
 
 An engine runs a simulation's steps as
 
 * ``"eager"``: :meth:`~torchdeform.sim.integrators.Integrator.step` on the grid layout, the path
   for autograd and the tested reference;
-* ``"compiled"``: :func:`~torchdeform.sim.compiled.compiled_step` on the packed layout (about 5-10x
-  faster per step on a CPU, after a compile of 15-60 s per grid shape that inductor caches on
-  disk); the state is unpacked only where someone looks at it (records, divergence checks,
-  callbacks that read positions);
-* ``"auto"``: eager steps first; after :attr:`Engine.probe_steps` of them it switches to compiled
-  steps when the eager time still to come is worth more than :attr:`Engine.payback` times the
-  expected compile time, and when the compiled step can run the simulation at all (no gradient
-  needed, no callable loads, no interaction that runs eagerly, no topology change between steps).
+* ``"native"``: the same integrator, eagerly, on the packed layout with the spring forces from a
+  small C kernel (:mod:`~torchdeform.sim.native`; built in 1-3 s once per kind of model and cached
+  on disk): about 5x faster than eager at 64^3 with nothing to compile per grid shape; explicit
+  integrators, Hooke springs on a CPU with a C compiler;
+* ``"compiled"``: :func:`~torchdeform.sim.compiled.compiled_step` on the packed layout, the whole
+  step under ``torch.compile`` (for explicit steps around the C kernel: about 3 s per grid shape
+  plus ~3 s to load inductor; an implicit step 30-60 s; without the kernel 15-60 s); a quarter
+  faster than ``"native"`` per explicit step at 64^3;
+* ``"auto"``: eager steps first; after :attr:`Engine.probe_steps` of them it moves on when the
+  eager time still to come is worth more than :attr:`Engine.payback` times the expected cost of
+  the next engine: to ``"native"`` where it can run, and from there, after timing as many native
+  steps, to ``"compiled"`` when what compiling saves repays its compile; straight to
+  ``"compiled"`` where the kernel cannot run. It stays eager when no faster engine can run the
+  simulation at all (a gradient needed, callable loads, an interaction that runs eagerly, a
+  topology change between steps).
 
-After a run, :attr:`Engine.ran` says which engine ran, :attr:`Engine.reason` why, and
-:meth:`Engine.summary` gives both with the measured eager step time and the compile time.
+In the packed engines the state is unpacked only where someone looks at it (records, callbacks
+that read positions). After a run, :attr:`Engine.ran` says which engine ran last,
+:attr:`Engine.reason` why, and :meth:`Engine.summary` gives both with the measured step times
+and the compile time.
 
 Example:
     >>> import torchdeform as td
@@ -35,6 +44,7 @@ import torch
 from tqdm.auto import tqdm
 
 from ..errors import ConfigError
+from . import native
 from .integrators import ImplicitEuler, Integrator, SymplecticEuler, positive_dt
 from .model import Model, State
 from .stability import DivergenceMonitor, check_dt
@@ -42,7 +52,7 @@ from .stability import DivergenceMonitor, check_dt
 __all__ = ["ENGINES", "Engine", "simulate", "gradient_needed"]
 
 #: the engine names of ``[integrator] engine`` and ``--engine``
-ENGINES = ("auto", "eager", "compiled")
+ENGINES = ("auto", "eager", "native", "compiled")
 
 
 def gradient_needed(model: Model, state: State) -> bool:
@@ -55,29 +65,30 @@ def gradient_needed(model: Model, state: State) -> bool:
 
 
 class Engine:
-    """Which step runs a simulation: ``"eager"``, ``"compiled"`` or ``"auto"`` (see the module docstring).
+    """How a simulation's steps run: ``"eager"``, ``"native"``, ``"compiled"`` or ``"auto"`` (module docstring).
 
     Args:
-        mode: ``"auto"`` (default), ``"eager"`` or ``"compiled"``.
-        probe_steps: eager steps timed by ``"auto"`` before it decides (the first is a warm-up).
-        payback: ``"auto"`` compiles when the eager time still to come exceeds ``payback`` times
-            the expected compile time.
-        compile_s: expected cold compile time (s) per integrator kind, ``{"explicit": .., "implicit": ..}``
-            (default :attr:`COMPILE_S`: measured on 2 cores).
+        mode: ``"auto"`` (default), ``"eager"``, ``"native"`` or ``"compiled"``.
+        probe_steps: steps timed by ``"auto"`` on each engine before it decides (the first is a warm-up).
+        payback: ``"auto"`` moves to a faster engine when what it saves exceeds ``payback``
+            times its expected start-up cost (:attr:`COMPILE_S`).
+        compile_s: expected start-up costs (s), updating :attr:`COMPILE_S`.
         editable: passed to :func:`~torchdeform.sim.compiled.compiled_step` (a model edited in
             place between steps).
-        blocked: a reason the compiled step cannot run this simulation, known to the caller (for
+        blocked: a reason the packed engines cannot run this simulation, known to the caller (for
             example topology changes between steps), or None.
         compile: False runs the compiled engine's packed loop with the uncompiled packed step
             (``compiled_step(..., enable=False)``): the same code path without the compile, for
             tests and debugging.
 
     Attributes:
-        ran: ``"eager"`` or ``"compiled"`` once a run has decided (None before).
+        ran: ``"eager"``, ``"native"`` or ``"compiled"`` once a run has decided (None before): the
+            engine of the run's last steps.
         reason: one line: why.
-        eager_ms: the median eager step time measured by ``"auto"`` (ms), or None.
-        compile_s: the time of the first compiled step less one step (s), or None.
-        step: the :class:`~torchdeform.sim.compiled.CompiledStep` of a compiled run, or None.
+        eager_ms, native_ms: the median step times measured by ``"auto"`` (ms), or None.
+        compile_s: the start-up of the engine that ran: the C kernel's build or load for
+            ``"native"``, the first compiled step less one step for ``"compiled"`` (s), or None.
+        step: the :class:`~torchdeform.sim.compiled.CompiledStep` of a packed run, or None.
 
     Examples:
         >>> import torch
@@ -88,18 +99,24 @@ class Engine:
         >>> engine = td.Engine("auto")
         >>> _ = td.simulate(model, model.rest_state(), 1e-4, 5, engine=engine, warn=False)
         >>> engine.ran, engine.reason
-        ('eager', 'auto: a gradient is needed (the compiled step runs without autograd)')
+        ('eager', 'auto: a gradient is needed (the packed engines run without autograd)')
     """
 
-    #: expected cold compile time (s) on 2 cores: the explicit steps in their reduction form
-    #: (64^3, 26 neighbours: 7 s, 13 s on a machine's first compile, which also builds inductor's
-    #: precompiled header), in their unrolled gather form (24-37 s), and the implicit step's one
-    #: graph with its CG loop
-    COMPILE_S = {"explicit": 15.0, "gather": 40.0, "implicit": 60.0}
+    #: expected start-up costs (s) on 2 cores: ``"native"``, building the C spring kernel (1-3 s,
+    #: nothing once it is in the disk cache); ``"explicit"``, compiling an explicit step around
+    #: that kernel (64^3, 26 neighbours: 3 s per grid shape, 6.7 s with empty caches, plus ~3 s
+    #: to import inductor); where the kernel cannot run, ``"reduction"`` and ``"gather"``, the
+    #: explicit step in inductor's two spring sums (7-14 s and 24-60 s); ``"implicit"``, the
+    #: implicit step's one graph with its CG loop
+    COMPILE_S = {"native": 2.0, "explicit": 8.0, "reduction": 15.0, "gather": 40.0, "implicit": 60.0}
     #: what the gather form saves per step against the reduction form, as a fraction of an eager
     #: step, when compiled for several threads (64^3, 26 neighbours, 2 cores: eager 27 ms,
     #: reduction 3.6 ms, gather 2.45 ms)
     GATHER_SAVES = 1 / 20
+    #: what the compiled step saves per step against the native one, as a fraction of a native
+    #: step (64^3, 26 neighbours, float32, 2 cores: native 6.3 ms, compiled 4.7 ms; the eager
+    #: update of the native engine is ~8 passes over the nodes, the compiled one fused into one)
+    COMPILED_SAVES = 1 / 4
 
     def __init__(self, mode: str = "auto", probe_steps: int = 3, payback: float = 2.0,
                  compile_s: dict | None = None, editable=False, blocked: str | None = None,
@@ -112,6 +129,9 @@ class Engine:
         self.ran: str | None = None
         self.reason = ""
         self.eager_ms: float | None = None
+        self.native_ms: float | None = None
+        #: the engine ``"auto"`` chose after its eager probe (``"native"`` or ``"compiled"``), or None
+        self.choice: str | None = None
         self.compile_s: float | None = None
         self.step = None
         #: the spring sum ``"auto"`` chose for an explicit compiled step (``"gather"`` or
@@ -120,11 +140,11 @@ class Engine:
 
     # -------------------------------------------------------------- deciding
     def blocker(self, model: Model, integrator: Integrator, state: State, loads) -> str | None:
-        """Why the compiled step cannot run this simulation, or None."""
+        """Why the packed engines cannot run this simulation, or None."""
         if self.blocked:
             return self.blocked
         if gradient_needed(model, state):
-            return "a gradient is needed (the compiled step runs without autograd)"
+            return "a gradient is needed (the packed engines run without autograd)"
         if callable(loads):
             return "callable loads run in the eager step"
         eager_only = [type(c).__name__ for c in model.interactions if getattr(c, "eager_only", False)]
@@ -132,48 +152,93 @@ class Engine:
             return f"{', '.join(eager_only)} runs in the eager step"
         return getattr(integrator, "eager_reason", None)
 
-    def expected_compile_s(self, integrator: Integrator) -> float:
-        """The compile time :meth:`decide` expects for ``integrator`` (s)."""
-        return self.expected["implicit" if isinstance(integrator, ImplicitEuler) else "explicit"]
+    @staticmethod
+    def native_blocker(model: Model, integrator: Integrator) -> str | None:
+        """Why the ``"native"`` engine cannot run this step (beyond :meth:`blocker`), or None."""
+        if isinstance(integrator, ImplicitEuler):
+            return "an implicit step is compiled as one graph (its CG products have no C kernel)"
+        return native.supports(model)
 
-    def decide(self, integrator: Integrator, eager_s: list, remaining: int, threads: int = 1) -> bool:
-        """``"auto"`` after its probe: compile for the ``remaining`` steps? Sets :attr:`reason`.
+    def expected_compile_s(self, integrator: Integrator, model: Model | None = None) -> float:
+        """The compile time :meth:`decide` expects for ``integrator`` on ``model`` (s).
 
-        An explicit step compiled for several ``threads`` also gets its spring sum: the unrolled
-        gather form, faster per step but slower to compile, only when the steps to come repay its
-        extra compile (:attr:`GATHER_SAVES`); otherwise the reduction form (:attr:`force_form`).
+        An explicit step around the C kernel (:func:`.native.supports`; unknown without ``model``)
+        expects :attr:`COMPILE_S` ``["explicit"]``, one without it ``["reduction"]``.
+        """
+        if isinstance(integrator, ImplicitEuler):
+            return self.expected["implicit"]
+        return self.expected["explicit" if model is not None and native.supports(model) is None else "reduction"]
+
+    def decide(self, integrator: Integrator, eager_s: list, remaining: int, threads: int = 1,
+               model: Model | None = None) -> bool:
+        """``"auto"`` after its eager probe: leave the eager step for the ``remaining`` steps?
+
+        Sets :attr:`choice` (``"native"`` where :meth:`native_blocker` allows it and the eager time to
+        come repays the kernel's build, else ``"compiled"`` where it repays the compile) and
+        :attr:`reason`. An explicit step compiled without the C kernel for several ``threads`` also
+        gets its spring sum: the unrolled gather form, faster per step but slower to compile, only
+        when the steps to come repay its extra compile (:attr:`GATHER_SAVES`); otherwise the
+        reduction form (:attr:`force_form`).
         """
         self.eager_ms = 1e3 * statistics.median(eager_s[1:] if len(eager_s) > 1 else eager_s)
         to_come = remaining * self.eager_ms / 1e3
-        expected = self.expected_compile_s(integrator)
+        why_not = "no model given" if model is None else self.native_blocker(model, integrator)
+        self.choice = "native" if why_not is None else "compiled"
+        expected = self.expected["native"] if why_not is None else self.expected_compile_s(integrator, model)
         worth = to_come > self.payback * expected
         self.reason = (f"auto: {remaining:,} steps x {self.eager_ms:.3g} ms eager = {to_come:.3g} s "
-                       f"{'>' if worth else '<='} {self.payback:g} x ~{expected:g} s compile")
-        if worth and threads > 1 and not isinstance(integrator, ImplicitEuler):
-            extra = self.expected["gather"] - self.expected["explicit"]
+                       f"{'>' if worth else '<='} {self.payback:g} x ~{expected:g} s "
+                       f"{'C kernel build' if why_not is None else 'compile'}")
+        if not worth:
+            self.choice = None
+        elif why_not is None:
+            self.reason += "; native"
+        elif threads > 1 and not isinstance(integrator, ImplicitEuler):
+            extra = self.expected["gather"] - self.expected["reduction"]
             gather = to_come * self.GATHER_SAVES > self.payback * extra
             self.force_form = "gather" if gather else "reduction"
-            self.reason += (f"; {self.force_form} form ({to_come * self.GATHER_SAVES:.3g} s saved "
+            self.reason += (f"; compiled, {self.force_form} form ({to_come * self.GATHER_SAVES:.3g} s saved "
                             f"{'>' if gather else '<='} {self.payback:g} x ~{extra:g} s more compile)")
+        else:
+            self.reason += "; compiled"
+        return worth
+
+    def decide_compiled(self, native_s: list, remaining: int) -> bool:
+        """``"auto"`` after its native probe: compile for the ``remaining`` steps? Extends :attr:`reason`.
+
+        Compiles when the time the compiled step saves (:attr:`COMPILED_SAVES` of a native step)
+        over the steps to come exceeds :attr:`payback` times the expected compile
+        (:attr:`COMPILE_S` ``["explicit"]``).
+        """
+        self.native_ms = 1e3 * statistics.median(native_s[1:] if len(native_s) > 1 else native_s)
+        saved = remaining * self.native_ms / 1e3 * self.COMPILED_SAVES
+        expected = self.expected["explicit"]
+        worth = saved > self.payback * expected
+        self.reason += (f"; {self.native_ms:.3g} ms per native step, compiling would save ~{saved:.3g} s "
+                        f"{'>' if worth else '<='} {self.payback:g} x ~{expected:g} s compile"
+                        f"{': compiled' if worth else ''}")
         return worth
 
     def summary(self) -> dict:
-        """``{"requested", "ran", "why", "eager_ms_per_step", "compile_s", "force_form", "threads"}`` for a run's summary.
+        """A run's summary: ``{"requested", "ran", "why", "eager_ms_per_step", "native_ms_per_step", "compile_s", "force_form", "threads"}``.
 
         ``threads``: the compiled step's thread governor (:meth:`~torchdeform.sim.threads.ThreadGovernor.summary`:
         the count it ended on, steps per count, switches), or None.
         """
-        compiled = self.step is not None and self.ran == "compiled"
-        gov = self.step.governor if compiled else None
+        packed = self.step is not None and self.ran in ("native", "compiled")
+        gov = self.step.governor if packed else None
         return {"requested": self.mode, "ran": self.ran, "why": self.reason,
-                "eager_ms_per_step": self.eager_ms, "compile_s": self.compile_s,
-                "force_form": self.step.force_form if compiled else None,
+                "eager_ms_per_step": self.eager_ms, "native_ms_per_step": self.native_ms,
+                "compile_s": self.compile_s, "force_form": self.step.force_form if packed else None,
                 "threads": gov.summary() if gov is not None else None}
 
-    def _compile(self, model, integrator, dt, loads):
+    def _compile(self, model, integrator, dt, loads, how: str = "compiled"):
+        """The packed step of engine ``how`` (``"native"``: uncompiled, with the C kernel)."""
         from .compiled import compiled_step
-        self.step = compiled_step(integrator, model, dt, loads, editable=self.editable, enable=self.enable,
-                                  force_form=self.force_form)
+        native_only = how == "native"
+        self.step = compiled_step(integrator, model, dt, loads, editable=self.editable,
+                                  enable=self.enable and not native_only,
+                                  force_form="native" if native_only else self.force_form)
         return self.step
 
 
@@ -201,7 +266,7 @@ def simulate(model: Model, state: State, dt: float, steps: int, integrator: Inte
             attribute ``reads_positions = False`` (it reads only ``t`` and ``readings``) is handed
             the compiled engine's packed state as it is, without unpacking positions every step.
         engine: an :class:`Engine` (read its :attr:`~Engine.ran` and :attr:`~Engine.reason`
-            afterwards) or its mode, ``"eager"`` (default), ``"compiled"`` or ``"auto"``.
+            afterwards) or its mode, ``"eager"`` (default), ``"native"``, ``"compiled"`` or ``"auto"``.
         rtol: ask for an accuracy instead of a step: ``dt`` becomes the interval between the
             returned states, each covered by the internal steps of
             :class:`~torchdeform.sim.adaptive.Adaptive` (``rtol``, default pair) that the
@@ -214,7 +279,7 @@ def simulate(model: Model, state: State, dt: float, steps: int, integrator: Inte
 
     Raises:
         DivergenceError: naming the step, the quantity and a safe dt.
-        ConfigError: ``engine = "compiled"`` for a simulation the compiled step cannot run.
+        ConfigError: ``engine = "native"`` or ``"compiled"`` for a simulation that engine cannot run.
 
     Examples:
         >>> import torchdeform as td
@@ -253,16 +318,28 @@ def simulate(model: Model, state: State, dt: float, steps: int, integrator: Inte
         vs.append(st.v.detach().cpu())
 
     blocker = engine.blocker(model, integrator, state, loads) if engine.mode != "eager" else None
-    if engine.mode == "compiled" and blocker:
-        raise ConfigError("engine", f"a simulation the compiled step can run; here {blocker}", "compiled")
+    if engine.mode == "native" and blocker is None:
+        blocker = engine.native_blocker(model, integrator)
+    if engine.mode in ("native", "compiled") and blocker:
+        raise ConfigError("engine", f"a simulation the {engine.mode} engine can run; here {blocker}", engine.mode)
     engine.ran, engine.reason = "eager", ("asked for" if engine.mode == "eager" else f"auto: {blocker}")
-    probing = engine.mode == "auto" and blocker is None
-    if engine.mode == "compiled":
-        engine.ran, engine.reason = "compiled", "asked for"
-    compiled = engine._compile(model, integrator, dt, loads) if engine.mode == "compiled" else None
+    # the engine "auto" is timing ("eager", then "native"), or None
+    probing = "eager" if engine.mode == "auto" and blocker is None else None
+
+    def start(how):
+        t0 = time.perf_counter()
+        step = engine._compile(model, integrator, dt, loads, how)
+        if how == "native":                             # the C kernel's build (or load from the disk cache)
+            engine.compile_s = time.perf_counter() - t0
+        return step
+
+    compiled = None
+    if engine.mode in ("native", "compiled"):
+        engine.ran, engine.reason = engine.mode, "asked for"
+        compiled = start(engine.mode)
     if probing and steps <= engine.probe_steps:
-        probing, engine.reason = False, f"auto: {steps} steps are too few to repay a compile"
-    packed, eager_s, timing = None, [], 0
+        probing, engine.reason = None, f"auto: {steps} steps are too few to repay a compile"
+    packed, samples, timing = None, [], 0
     if record_every:
         record(state)
     for i in tqdm(range(1, steps + 1), disable=not progress, desc="simulate", unit="step"):
@@ -270,20 +347,22 @@ def simulate(model: Model, state: State, dt: float, steps: int, integrator: Inte
             t0 = time.perf_counter()
             state = integrator.step(model, state, dt, loads)
             if probing:
-                eager_s.append(time.perf_counter() - t0)
-                if len(eager_s) == engine.probe_steps:
-                    probing = False
+                samples.append(time.perf_counter() - t0)
+                if len(samples) == engine.probe_steps:
+                    probing = None
                     from .compiled import step_threads
-                    if engine.decide(integrator, eager_s, steps - i, step_threads(model, integrator)):
-                        engine.ran = "compiled"
-                        compiled = engine._compile(model, integrator, dt, loads)
+                    if engine.decide(integrator, samples, steps - i, step_threads(model, integrator), model):
+                        engine.ran = engine.choice
+                        compiled = start(engine.choice)
+                        probing, samples = ("native", []) if engine.choice == "native" else (None, samples)
         else:
             if packed is None:
                 packed = compiled.packed.pack_state(state)
             t0 = time.perf_counter()
             packed = compiled.step_packed(packed)
-            if timing < 2:                                  # compile time: first call less the second
-                spent, timing = time.perf_counter() - t0, timing + 1
+            spent = time.perf_counter() - t0
+            if engine.ran == "compiled" and timing < 2:     # compile time: first call less the second
+                timing += 1
                 if not compiled.compiled and engine.enable:  # compilation failed: eager from now on
                     engine.ran, engine.reason = "eager", f"{engine.reason}; compile failed: {compiled.compile_error}"
                     timing = 2
@@ -291,6 +370,13 @@ def simulate(model: Model, state: State, dt: float, steps: int, integrator: Inte
                     engine.compile_s = spent
                 else:
                     engine.compile_s = max(0.0, engine.compile_s - spent)
+            if probing == "native":
+                samples.append(spent)
+                if len(samples) == engine.probe_steps:
+                    probing = None
+                    if engine.decide_compiled(samples, steps - i):
+                        engine.ran, timing = "compiled", 0
+                        compiled = start("compiled")        # the same packed layout: the state carries over
             look = i == steps or (record_every and i % record_every == 0) or _reads_positions(callback)
             state = compiled.packed.unpack_state(packed) if look else packed
         if i % check_every == 0 or i == steps:

@@ -37,6 +37,7 @@ import copy
 import torch
 import torch.nn.functional as F
 
+from . import native
 from .model import Model, State
 from .springs import combine_coefficients, gate_damping, spring_law
 
@@ -130,6 +131,8 @@ class PackedModel(Model):
         self._P_grid = (D + 2) * plane
         self.P = self._P_grid + (2 * self.G - self._P_grid) % BLOCK
         self.offsets = [dd * plane + dh * row + dw for dd, dh, dw in grid.directions]
+        #: the offsets as an int64 tensor on the CPU (the C kernel's argument, :mod:`.native`)
+        self.offset_table = torch.tensor(self.offsets, dtype=torch.int64)
         #: (dd + 1, dh + 1, dw + 1) of all ``2 S`` directions (the ``S`` half-directions, then their
         #: opposites), as three ``(2 S,)`` index tensors; see :meth:`ends`
         both = list(grid.directions) + [tuple(-a for a in d) for d in grid.directions]
@@ -199,15 +202,31 @@ class PackedModel(Model):
         """``field`` stored in memory under ``torch.compile`` (see :meth:`TraceContext.keep`)."""
         return self.trace.keep(field)
 
-    def traced(self, ctx: TraceContext, threads: int | None = None) -> "PackedModel":
+    def traced(self, ctx: TraceContext, threads: int | None = None, native_ok: bool = True,
+               build: bool = True) -> "PackedModel":
         """A view of this model (same tensors) whose kernels follow the compile-time context ``ctx``.
 
         ``threads``: the thread count the code is compiled for (default torch's), which chooses
-        :attr:`force_form` when it is None. This model itself is not changed.
+        :attr:`force_form` when it is None; ``native_ok``: the C kernel may be chosen then (an
+        implicit step's graph is dominated by its CG loop and gains nothing from it); ``build``:
+        build that kernel now (traced code must not), else on its first call. This model itself
+        is not changed.
         """
         view = copy.copy(self)
         view.trace = ctx
-        if view.force_form is None:         # chosen here, outside the traced code (see force_form)
+        # chosen (and a C kernel built) here, outside the traced code (see force_form)
+        wanted = self.force_form == "native" or (self.force_form is None and native_ok and ctx.store is not None)
+        view.native_why = native.supports(self) if wanted else None
+        if wanted and view.native_why is None:
+            try:
+                var = native.variant_of(self)
+                view.native_kernel = native.kernel(var) if build else native.name_of(var)
+                view.force_form = "native"
+            except native.NativeBuildError as e:
+                view.native_why = str(e)
+        if view.force_form == "native" and view.native_kernel is None:
+            raise native.NativeBuildError(f"force_form='native': {view.native_why}")
+        if view.force_form is None:
             threads = threads or torch.get_num_threads()
             view.force_form = "gather" if ctx.store is not None and threads > 1 else "reduction"
         return view
@@ -340,16 +359,26 @@ class PackedModel(Model):
         return self.trace.keep(F.pad(sums, (self.G, self.G)), store)
 
     # ------------------------------------------------------------------ springs
-    #: how :meth:`spring_forces` sums the springs: ``"reduction"`` (one sum over the ``2 S``
-    #: directions, as the CG products), ``"gather"`` (the ``2 S`` terms unrolled) or None: gather
-    #: when compiled for several threads, else reduction (decided by :meth:`traced`). Measured at 64^3, 26 neighbours,
-    #: symplectic with dashpots, float32, 2 idle cores: gather 2.7 ms per step on 2 threads and
-    #: 5.1 on one, compiled in 37 s; reduction 5.0 and 5.2 ms (it does not scale), compiled in 13 s.
+    #: how :meth:`spring_forces` sums the springs: ``"native"`` (the gather loop as a C kernel,
+    #: :mod:`.native`), ``"reduction"`` (one sum over the ``2 S`` directions, as the CG products),
+    #: ``"gather"`` (the ``2 S`` terms unrolled for inductor) or None: decided by :meth:`traced`
+    #: for a compiled step (native where :func:`.native.supports` the model, else gather when
+    #: compiled for several threads, else reduction); reduction for eager steps. Measured at 64^3,
+    #: 26 neighbours, symplectic with dashpots, float32, 2 idle cores: gather 2.7 ms per step on 2
+    #: threads and 5.1 on one, compiled in 37 s; reduction 5.0 and 5.2 ms (it does not scale),
+    #: compiled in 13 s.
     force_form: str | None = None
+    #: the C kernel's name (:func:`.native.kernel`) when :attr:`force_form` is ``"native"``
+    native_kernel: str | None = None
+    #: why a compiled step could not use the C kernel (None: it could, or it was not asked)
+    native_why: str | None = None
 
     def spring_forces(self, x, v, impl: str = "fast") -> torch.Tensor:
         """Forces of the grid springs, ``(B, 3, P)`` (``impl`` is ignored: one layout, one path)."""
-        if (self.force_form or "reduction") == "reduction":
+        form = self.force_form or "reduction"
+        if form == "native":
+            return native.spring_forces(self, x, v, self.native_kernel)
+        if form == "reduction":
             return self._spring_forces_reduced(x, v)
         k, l0, c, projected = self.stiffness, self.rest_length, self.damping, self.projected
 

@@ -1,0 +1,192 @@
+"""The C spring kernel (torchdeform.sim.native) against the grid-layout model's shifted-slice springs.
+
+The oracle is :meth:`Model.spring_forces` (shifted slices, itself tested against the numpy edge
+list in test_stencil / test_physics) and :meth:`SymplecticEuler.step` on the grid layout. Kernels
+are built by the system C compiler; without one the tests that need a kernel are skipped with
+the reason, and the fall-back is tested instead.
+"""
+import pytest
+import torch
+
+import torchdeform as td
+from torchdeform.sim import native
+from torchdeform.sim.compiled import CompiledStep
+from torchdeform.sim.packed import PackedModel
+
+F64 = torch.float64
+needs_cc = pytest.mark.skipif(native.unavailable() is not None, reason=f"no C kernel here: {native.unavailable()}")
+
+
+def _body(topology=26, damping=0.05, mode="projected", dtype=F64, batch=1, per_spring=False, decay=None, box=False):
+    node_mask = torch.ones(6, 5, 7, dtype=torch.bool)
+    if not box:
+        node_mask[4:, 3:, :3] = False                               # an L-shaped body: holes in `inside`
+    grid = td.Grid((6, 5, 7), spacing=(0.01, 0.011, 0.012), topology=topology, node_mask=node_mask)
+    g = torch.Generator().manual_seed(topology + batch)
+    k = 40 * (1 + torch.rand(((batch,) if per_spring else ()) + (grid.S,) + grid.shape, generator=g, dtype=F64))
+    if not per_spring:
+        k = 40.0
+    model = td.Model(grid, stiffness=k, damping=damping, damping_mode=mode, density=1000.0, gravity=(-9.81, 0, 0),
+                     fixed=grid.face("bottom") & grid.nodes(), decay=decay, dtype=dtype)
+    x = model.X + 2e-4 * torch.randn((batch, 3) + grid.shape, generator=g, dtype=F64).to(dtype)
+    v = 1e-2 * torch.randn((batch, 3) + grid.shape, generator=g, dtype=F64).to(dtype)
+    return model, td.State(x * grid.nodes(), v * grid.nodes(), 0.0)
+
+
+def _close(a, b, dtype):
+    tol = 1e-12 if dtype == F64 else 2e-6
+    return torch.allclose(a, b, rtol=tol, atol=tol * float(b.abs().max()))
+
+
+@needs_cc
+@pytest.mark.parametrize("topology", [6, 14, 18, 26])
+@pytest.mark.parametrize("damping,mode", [(None, "projected"), (0.05, "projected"), (0.05, "unprojected")])
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_kernel_forces_equal_the_grid_springs(topology, damping, mode, dtype):
+    model, state = _body(topology, damping, mode, dtype, batch=2)
+    pm = PackedModel(model)
+    ps = pm.pack_state(state)
+    f = native.spring_forces(pm, ps.x, ps.v)
+    assert f.shape == ps.x.shape
+    assert _close(pm.unpack(f), model.spring_forces(state.x, state.v), dtype)
+    # zero on the halo and outside the core range, as every packed field
+    assert torch.equal(f, pm.pack(pm.unpack(f)))
+
+
+@needs_cc
+@pytest.mark.parametrize("share", [True, ("stiffness", "rest_length", "damping")])
+@pytest.mark.parametrize("mode", ["projected", "unprojected"])
+def test_kernel_with_fields_per_spring_and_per_batch_entry(share, mode):
+    """Stiffness per spring and per batch entry (``Bp = B = 2``), cut springs (stiffness 0: their
+    damping gated out where the damping is per direction), rest lengths per spring. A box: on an
+    L-shaped body every spring field is per spring already (the missing springs masked)."""
+    model, state = _body(26, 0.05, mode, F64, batch=2, per_spring=True, box=True)
+    model.stiffness[:, 3, 2, 1:4] = 0.0                              # cut springs
+    pm = PackedModel(model, share=share)                            # model's fields: views of pm's
+    if "rest_length" in pm.source.shared:
+        model.rest_length.mul_(1.02)                                # in place: the packed field sees it
+    var = native.variant_of(pm)
+    # gated where the stiffness has more values than the damping (per spring and batch against per direction,
+    # or per spring and batch against per spring)
+    assert var.k_per_spring and var.gate and var.l0_per_spring == (share is not True)
+    ps = pm.pack_state(state)
+    assert _close(pm.unpack(native.spring_forces(pm, ps.x, ps.v)), model.spring_forces(state.x, state.v), F64)
+
+
+@needs_cc
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_kernel_is_the_same_on_any_thread_count(threads):
+    """Threads split the core range (each its own ring warm-up): the sums are the same bit for bit."""
+    model, state = _body(26, 0.05, "projected", torch.float32)
+    pm = PackedModel(model)
+    ps = pm.pack_state(state)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = native.spring_forces(pm, ps.x, ps.v)
+        torch.set_num_threads(threads)
+        assert torch.equal(native.spring_forces(pm, ps.x, ps.v), one)
+    finally:
+        torch.set_num_threads(before)
+
+
+@needs_cc
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+@pytest.mark.parametrize("damping", [None, 0.05])
+def test_fused_symplectic_step_equals_the_eager_step(dtype, damping):
+    model, state = _body(26, damping, "projected", dtype, batch=2, decay=50.0)
+    state = model.start(state)
+    pm = PackedModel(model)
+    assert native.fused_blocker(pm, td.SymplecticEuler()) is None
+    ps = pm.pack_state(state)
+    x, v = native.symplectic_step(pm, ps.x, ps.v, 2e-4)
+    ref = td.SymplecticEuler().step(model, state, 2e-4)
+    assert _close(pm.unpack(x), ref.x, dtype) and _close(pm.unpack(v), ref.v, dtype)
+    # halo nodes stay where they are
+    assert torch.equal(x, pm.pack(pm.unpack(x)) + (ps.x - pm.pack(pm.unpack(ps.x))))
+
+
+def test_fused_step_is_only_for_what_it_computes():
+    model, _ = _body(6)
+    pm = PackedModel(model)
+    assert "rk4" in native.fused_blocker(pm, td.RK4())
+    assert native.fused_blocker(pm, td.SymplecticEuler(), loads=torch.zeros(1)) == "loads"
+    law = td.Model(model.grid, stiffness=40.0, mass=1e-3, law=td.Exponential(stiffening=5.0))
+    assert "Exponential law" in native.supports(PackedModel(law))
+
+
+@needs_cc
+def test_a_nan_reaches_the_neighbours():
+    model, state = _body(26, 0.05, "unprojected", torch.float32)
+    state.x[0, 1, 2, 2, 3] = float("nan")
+    pm = PackedModel(model)
+    ps = pm.pack_state(state)
+    f = pm.unpack(native.spring_forces(pm, ps.x, ps.v))
+    assert not torch.isfinite(f[0, :, 2, 2, 3]).all() and not torch.isfinite(f[0, :, 1, 1, 2]).all()
+    assert torch.isfinite(f[0, :, 5, 0, 6]).all()                    # far away: untouched
+
+
+@needs_cc
+def test_kernels_are_cached_on_disk(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCHDEFORM_CACHE_DIR", str(tmp_path))
+    var = native.Variant(S=3, dtype="double", damping=2, l0_per_spring=True)
+    native._kernels.pop(native.name_of(var), None)
+    native.kernel(var)
+    built = sorted(native.cache_dir().glob("springs-*.so"))
+    assert len(built) == 1
+    native._kernels.pop(native.name_of(var))
+    stamp = built[0].stat().st_mtime_ns
+    native.kernel(var)                                                 # loaded, not built again
+    assert sorted(native.cache_dir().glob("springs-*.so")) == built and built[0].stat().st_mtime_ns == stamp
+
+
+def test_no_compiler_says_why_and_the_compiled_step_uses_inductors_forms(monkeypatch):
+    monkeypatch.setenv("TORCHDEFORM_NATIVE", "0")
+    native.unavailable.cache_clear()
+    try:
+        assert native.unavailable() == "TORCHDEFORM_NATIVE=0"
+        model, _ = _body(6)
+        step = CompiledStep(td.SymplecticEuler(), model, 1e-4, enable=False)
+        assert step.force_form in ("gather", "reduction") and "TORCHDEFORM_NATIVE=0" in step.packed.traced(
+            step.trace).native_why
+        with pytest.raises(native.NativeBuildError, match="TORCHDEFORM_NATIVE=0"):
+            CompiledStep(td.SymplecticEuler(), model, 1e-4, enable=False, force_form="native")
+        with pytest.raises(td.ConfigError, match="native"):
+            td.simulate(model, model.rest_state(), 1e-4, 3, engine="native")
+    finally:
+        monkeypatch.delenv("TORCHDEFORM_NATIVE")
+        native.unavailable.cache_clear()
+
+
+def test_source_is_one_block_per_spring_and_direction():
+    for S in (3, 7, 9, 13):
+        src = native.source(native.Variant(S=S, dtype="float", damping=1, update=True))
+        assert src.count("{ /* forward */") == S and src.count("{ /* backward */") == S
+        assert "sqrtf(" in src and "U0[i] = u0 * keep" in src
+
+
+@needs_cc
+def test_compiled_module_imports_without_inductor():
+    """The native engine needs no torch.compile: importing the compiled-step module must not load
+    inductor (3 s); the first compile loads it."""
+    import subprocess
+    import sys
+    code = ("import sys, torchdeform.sim.compiled, torchdeform.sim.engine; "
+            "print('torch._inductor.lowering' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"
+
+
+@pytest.mark.slow
+@needs_cc
+def test_compiled_step_around_the_kernel_equals_the_eager_step():
+    """torch.compile of an explicit step with the kernel as one external call (a few seconds)."""
+    model, state = _body(26, 0.05, "projected", F64, batch=1, decay=20.0)
+    state = model.start(state)
+    step = CompiledStep(td.SymplecticEuler(), model, 1e-4)
+    assert step.force_form == "native" and step.compiled
+    out = step.run(state, 5)
+    ref = state
+    for _ in range(5):
+        ref = td.SymplecticEuler().step(model, ref, 1e-4)
+    assert step.compiled and _close(out.x, ref.x, F64) and _close(out.v, ref.v, F64)

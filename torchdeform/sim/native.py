@@ -1,0 +1,509 @@
+"""Spring forces of the packed layout as a small C kernel: the compiled explicit step's force sum.
+
+``torch.compile`` turns the unrolled gather form of :meth:`~torchdeform.sim.packed.PackedModel.spring_forces`
+into one fast vectorised loop, but building it takes inductor 20-60 s per grid shape on a 2-core
+CPU (almost all of it in inductor's own Python code generation for a loop body of ~1,100
+operations; the C++ compiler takes 3 s). The same loop, written out here as C source with the
+spring law of :func:`~torchdeform.sim.springs.spring_law`, compiles in 1-3 s with the system C
+compiler and serves every grid shape (the stencil offsets are arguments). The compiled step calls
+it through the custom op ``torchdeform::native_springs`` (inductor keeps it as one external call
+and compiles the rest of the step, a few pointwise loops, in a few seconds).
+
+Each kernel is specialised on what changes its loop body (:class:`Variant`): the number of
+half-directions ``S``, float or double, the damping (none, projected, Radetzky's unprojected),
+and which of stiffness, rest length and damping are stored per spring. Hooke's law only: a
+strain-stiffening law (:mod:`torchdeform.sim.laws`) keeps inductor's forms.
+
+Built kernels are cached on disk (:func:`cache_dir`), keyed by their source, the compiler and the
+CPU (they are built with ``-march=native``). Where no C compiler works, :func:`unavailable` says
+why and the compiled step uses inductor's forms instead.
+
+The loop: every core node sums the ``2 S`` springs it sees, in the order of the gather form (half
+direction ``s`` forward, then backward), as ``alpha (x_j - x_i) + beta (v_j - v_i)`` times the
+far end's ``inside`` mask, then times its own. Threads split the core range into blocks of 16
+nodes; each thread's block is one ``#pragma omp simd`` loop.
+
+Example:
+    >>> import torch
+    >>> import torchdeform as td
+    >>> from torchdeform.sim import native
+    >>> from torchdeform.sim.packed import PackedModel
+    >>> pm = PackedModel(td.Model(td.Grid((5, 6, 7), 0.01, 26), stiffness=50.0, damping=0.1, mass=1e-3))
+    >>> s = pm.rest_state()
+    >>> x = s.x + 1e-4 * torch.randn_like(s.x)
+    >>> f = native.spring_forces(pm, x, s.v) if native.supports(pm) is None else pm.spring_forces(x, s.v)
+    >>> f.shape, bool(torch.allclose(f, pm.spring_forces(x, s.v), atol=1e-5))
+    (torch.Size([1, 3, 508]), True)
+"""
+from __future__ import annotations
+
+import ctypes
+import dataclasses
+import functools
+import hashlib
+import math
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+__all__ = ["Variant", "source", "unavailable", "supports", "variant_of", "kernel", "spring_forces", "cache_dir",
+           "NativeBuildError", "fused_blocker", "symplectic_step", "BLOCK_NODES", "name_of"]
+
+#: bump when the generated source changes meaning (part of every cache key through the source)
+KERNEL_VERSION = 1
+
+_CTYPE = {torch.float32: "float", torch.float64: "double"}
+
+#: nodes per block of the kernel's loops (see :func:`source`)
+BLOCK_NODES = 32
+
+
+class NativeBuildError(RuntimeError):
+    """The C kernel could not be built or loaded (the message has the compiler's words)."""
+
+
+@dataclass(frozen=True)
+class Variant:
+    """What a spring-force kernel is specialised on.
+
+    Attributes:
+        S: half-directions of the stencil (3, 7, 9 or 13).
+        dtype: ``"float"`` or ``"double"``.
+        damping: 0 none, 1 projected (a dashpot along the spring), 2 unprojected (Radetzky).
+        k_per_spring, l0_per_spring, c_per_spring: the field is stored per spring ``(Bp, S, P)``,
+            not per direction ``(Bp, S, 1)``.
+        gate: damping only where the stiffness is not zero (stiffness per spring, damping not:
+            :func:`~torchdeform.sim.springs.gate_damping`).
+        update: the kernel also makes the symplectic Euler update (:func:`symplectic_step`)
+            instead of writing the forces.
+    """
+
+    S: int
+    dtype: str
+    damping: int
+    k_per_spring: bool = False
+    l0_per_spring: bool = False
+    c_per_spring: bool = False
+    gate: bool = False
+    update: bool = False
+
+
+def source(var: Variant) -> str:
+    """The C source of the kernel ``var``: ``springs(x, v, f, inside, k, l0, c, off, B, P, G, kb, lb, cb, nt, tiny)``.
+
+    ``x, v, f``: ``(B, 3, P)``; ``inside``: ``(P,)``; ``k, l0, c``: per direction ``(Bp, S)`` or per
+    spring ``(Bp, S, P)`` with batch strides ``kb, lb, cb`` (0 when shared); ``off``: the ``S``
+    linear offsets (all positive, at most ``G``); ``G``: the core range's margin; ``nt``: threads;
+    ``tiny``: the clamp of ``|x_j - x_i|^2`` (a run-time value, so that the compiler does not fold
+    ``sqrt(tiny)`` into a branch that stops it vectorising). Returns 0, or 1 when a thread could
+    not allocate its ring.
+
+    Every spring is evaluated once, at its first endpoint ``i`` (the ``S`` forward directions): its
+    coefficient ``a`` (times both endpoints' ``inside``) is added as ``a (x_j - x_i)`` to ``i`` and
+    kept in a per-thread ring of the last ``R >= G + 2 BLK`` nodes, from which its second endpoint
+    ``j = i + o`` takes it, ``o`` nodes later, as ``a (x_i - x_j)``. Nodes go in blocks of
+    :data:`BLOCK_NODES`: the forward pass of a block (one ``omp simd`` loop) before its backward
+    pass (another), since a spring of offset 1 ends in the same block. A thread first runs the
+    forward pass over the ``G`` nodes before its range (its ring's warm-up).
+
+    Examples:
+        >>> src = source(Variant(S=3, dtype="double", damping=1))
+        >>> src.count("{ /* forward */"), src.count("{ /* backward */"), "sqrt(" in src
+        (3, 3, True)
+    """
+    T, S, damp = var.dtype, var.S, var.damping
+    sqrt = "sqrtf" if T == "float" else "sqrt"
+    # the update's operands: new velocities U (F holds the new positions), 1 / m and m, g, dt, the drag factor
+    upd = (f", {T}* restrict U, const {T}* restrict IM, const {T}* restrict MS, {T} g0, {T} g1, {T} g2, "
+           f"{T} dt, {T} keep") if var.update else ""
+    rings = 2 if damp == 2 else 1                    # a; and b (Radetzky's damping, per spring)
+    lines = [f"/* torchdeform spring forces, kernel version {KERNEL_VERSION}: {var} */",
+             "#include <stdint.h>", "#include <stdlib.h>", "#include <string.h>", "#include <math.h>",
+             "#ifdef _OPENMP", "#include <omp.h>", "#endif", f"#define BLK {BLOCK_NODES}", "",
+             f"static __thread {T}* ring_buf = 0;", "static __thread int64_t ring_len = 0;", "",
+             f"static {T}* ring(int64_t n) {{",
+             "  if (n > ring_len) {",
+             f"    free(ring_buf); ring_buf = ({T}*)malloc(n * sizeof({T})); ring_len = ring_buf ? n : 0;",
+             "  }",
+             "  return ring_buf;",
+             "}", "",
+             f"static __attribute__((noinline)) int core(const {T}* restrict X, const {T}* restrict V, "
+             f"{T}* restrict F, const {T}* restrict inside,",
+             f"    const {T}* restrict kq, const {T}* restrict lq, const {T}* restrict cq, "
+             f"const int64_t* restrict off, int64_t P, int64_t G, int64_t lo, int64_t hi, {T} tiny{upd}) {{",
+             f"  const {T} *X0 = X, *X1 = X + P, *X2 = X + 2 * P;",
+             f"  {T} *F0 = F, *F1 = F + P, *F2 = F + 2 * P;"]
+    w = lines.append
+    if damp or var.update:
+        w(f"  const {T} *V0 = V, *V1 = V + P, *V2 = V + 2 * P;")
+    if var.update:
+        w(f"  {T} *U0 = U, *U1 = U + P, *U2 = U + 2 * P;")
+    for s in range(S):
+        w(f"  const int64_t o{s} = off[{s}];")
+    w("  int64_t R = BLK;")
+    w("  while (R < G + 2 * BLK) R <<= 1;")
+    w("  const int64_t RS = R + BLK, M = R - 1;         /* a ring per direction, BLK mirrored at its end */")
+    w(f"  {T}* restrict A = ring({rings * S} * RS);")
+    w("  if (!A) return 1;")
+    if rings == 2:
+        w(f"  {T}* restrict Bc = A + {S} * RS;")
+    w(f"  {T} fa[BLK], fb[BLK], fc[BLK];")
+    w("  const int64_t base = lo - G > 0 ? lo - G : 0;")
+    w("  for (int64_t i0 = base; i0 < hi; i0 += BLK) {")
+    w("    const int64_t n = hi - i0 < BLK ? hi - i0 : BLK, p0 = (i0 - base) & M;")
+    w("    #pragma omp simd")
+    w("    for (int64_t k = 0; k < n; k++) {")
+    w("      const int64_t i = i0 + k;")
+    w(f"      const {T} x0 = X0[i], x1 = X1[i], x2 = X2[i], own = inside[i];")
+    if damp:
+        w(f"      const {T} v0 = V0[i], v1 = V1[i], v2 = V2[i];")
+    w(f"      {T} f0 = 0, f1 = 0, f2 = 0;")
+    for s in range(S):
+        w("      { /* forward */")
+        w(f"        const int64_t j = i + o{s};")
+        w(f"        const {T} ks = " + (f"kq[{s} * P + i];" if var.k_per_spring else f"kq[{s}];"))
+        w(f"        const {T} ls = " + (f"lq[{s} * P + i];" if var.l0_per_spring else f"lq[{s}];"))
+        w(f"        const {T} d0 = X0[j] - x0, d1 = X1[j] - x1, d2 = X2[j] - x2;")
+        w(f"        const {T} sq = d0 * d0 + d1 * d1 + d2 * d2;")
+        w(f"        const {T} l = {sqrt}(sq > tiny ? sq : tiny);")
+        w(f"        const {T} il = 1 / l, m = own * inside[j];")
+        w(f"        {T} a = ks * (l - ls) * il;")
+        if damp:
+            w(f"        {T} cs = " + (f"cq[{s} * P + i];" if var.c_per_spring else f"cq[{s}];"))
+            if var.gate:
+                w("        cs = ks != 0 ? cs : 0;")
+            w(f"        const {T} w0 = V0[j] - v0, w1 = V1[j] - v1, w2 = V2[j] - v2;")
+        if damp == 1:
+            w("        a = a + cs * (d0 * w0 + d1 * w1 + d2 * w2) * (il * il);")
+        w("        a = a * m;")
+        w(f"        A[{s} * RS + p0 + k] = a;")
+        if damp == 2:
+            w(f"        const {T} b = cs * m;")
+            w(f"        Bc[{s} * RS + p0 + k] = b;")
+            w("        f0 += a * d0 + b * w0; f1 += a * d1 + b * w1; f2 += a * d2 + b * w2;")
+        else:
+            w("        f0 += a * d0; f1 += a * d1; f2 += a * d2;")
+        w("      }")
+    w("      fa[k] = f0; fb[k] = f1; fc[k] = f2;")
+    w("    }")
+    w("    if (p0 == 0) {                                 /* the ring's first block, mirrored past its end */")
+    w(f"      for (int r = 0; r < {rings * S}; r++) memcpy(A + r * RS + R, A + r * RS, n * sizeof({T}));")
+    w("    }")
+    w("    if (i0 + n <= lo) continue;                     /* warm-up: springs only */")
+    w("    const int64_t k0 = lo > i0 ? lo - i0 : 0;")
+    for s in range(S):
+        w(f"    const int64_t q{s} = (i0 + k0 - o{s} - base) & M;")
+    w("    #pragma omp simd")
+    w("    for (int64_t k = k0; k < n; k++) {")
+    w("      const int64_t i = i0 + k;")
+    w(f"      const {T} x0 = X0[i], x1 = X1[i], x2 = X2[i];")
+    if damp == 2:
+        w(f"      const {T} v0 = V0[i], v1 = V1[i], v2 = V2[i];")
+    w(f"      {T} f0 = fa[k], f1 = fb[k], f2 = fc[k];")
+    for s in range(S):
+        w("      { /* backward */")
+        w(f"        const int64_t j = i - o{s}, r = q{s} + k - k0;")
+        w(f"        const {T} a = A[{s} * RS + r];")
+        if damp == 2:
+            w(f"        const {T} b = Bc[{s} * RS + r];")
+            w("        f0 += a * (X0[j] - x0) + b * (V0[j] - v0); f1 += a * (X1[j] - x1) + b * (V1[j] - v1);"
+              " f2 += a * (X2[j] - x2) + b * (V2[j] - v2);")
+        else:
+            w("        f0 += a * (X0[j] - x0); f1 += a * (X1[j] - x1); f2 += a * (X2[j] - x2);")
+        w("      }")
+    w("      F0[i] = f0; F1[i] = f1; F2[i] = f2;") if not var.update else _update_lines(w, T, "      ")
+    w("    }")
+    w("  }")
+    w("  return 0;")
+    w("}")
+    w("")
+    w(f"int springs(const {T}* x, const {T}* v, {T}* f, const {T}* inside, const {T}* k, const {T}* l0,")
+    w(f"    const {T}* c, const int64_t* off, int64_t B, int64_t P, int64_t G, int64_t kb, int64_t lb,")
+    if var.update:
+        w(f"    int64_t cb, int nt, {T} tiny, {T}* u, const {T}* im, const {T}* ms, int64_t mb, "
+          f"{T} g0, {T} g1, {T} g2, {T} dt, {T} keep) {{")
+    else:
+        w(f"    int64_t cb, int nt, {T} tiny) {{")
+    w("  int failed = 0;")
+    w("  for (int64_t b = 0; b < B; b++) {")
+    w(f"    const {T}* X = x + b * 3 * P; const {T}* V = v + b * 3 * P; {T}* F = f + b * 3 * P;")
+    w(f"    const {T}* kq = k + b * kb; const {T}* lq = l0 + b * lb; const {T}* cq = c + b * cb;")
+    if var.update:
+        w(f"    {T}* U = u + b * 3 * P; const {T}* IM = im + b * mb; const {T}* MS = ms + b * mb;")
+        w(f"    const {T} *X0 = X, *X1 = X + P, *X2 = X + 2 * P, *V0 = V, *V1 = V + P, *V2 = V + 2 * P;")
+        w(f"    {T} *F0 = F, *F1 = F + P, *F2 = F + 2 * P, *U0 = U, *U1 = U + P, *U2 = U + 2 * P;")
+        w("    for (int part = 0; part < 2; part++) {            /* outside the core range: no springs */")
+        w("      for (int64_t i = part ? P - G : 0; i < (part ? P : G); i++) {")
+        w(f"        const {T} x0 = X0[i], x1 = X1[i], x2 = X2[i], f0 = 0, f1 = 0, f2 = 0;")
+        _update_lines(w, T, "        ")
+        w("      }")
+        w("    }")
+        extra = ", U, IM, MS, g0, g1, g2, dt, keep"
+    else:
+        w("    for (int a = 0; a < 3; a++) {                          /* zero outside the core range */")
+        w(f"      memset(F + a * P, 0, G * sizeof({T})); memset(F + a * P + P - G, 0, G * sizeof({T}));")
+        w("    }")
+        extra = ""
+    w("#ifdef _OPENMP")
+    w("    if (nt > 1) {")
+    w("      #pragma omp parallel num_threads(nt) reduction(|:failed)")
+    w("      {")
+    w("        const int64_t n = P - 2 * G, t = omp_get_thread_num(), m = omp_get_num_threads();")
+    w("        const int64_t lo = G + ((n * t / m) & ~(int64_t)15);")
+    w("        const int64_t hi = t == m - 1 ? P - G : G + ((n * (t + 1) / m) & ~(int64_t)15);")
+    w("        failed |= core(X, V, F, inside, kq, lq, cq, off, P, G, lo, hi, tiny" + extra + ");")
+    w("      }")
+    w("      continue;")
+    w("    }")
+    w("#endif")
+    w("    failed |= core(X, V, F, inside, kq, lq, cq, off, P, G, G, P - G, tiny" + extra + ");")
+    w("  }")
+    w("  return failed;")
+    w("}")
+    return "\n".join(lines) + "\n"
+
+
+def _update_lines(w, T: str, ind: str) -> None:
+    """The symplectic Euler update of node ``i`` from its spring forces ``f0..f2``, in torch's order.
+
+    ``a = (1/m) (f + m g)``, ``u = v + dt a``, ``x' = x + dt u`` (into ``F``), ``v' = keep u`` (into
+    ``U``; ``keep`` the global drag's ``exp(-decay dt)``), as :class:`~torchdeform.sim.integrators.SymplecticEuler`.
+    """
+    w(f"{ind}const {T} im = IM[i], ms = MS[i];")
+    w(f"{ind}const {T} u0 = V0[i] + dt * (im * (f0 + ms * g0)), u1 = V1[i] + dt * (im * (f1 + ms * g1)), "
+      f"u2 = V2[i] + dt * (im * (f2 + ms * g2));")
+    w(f"{ind}F0[i] = x0 + dt * u0; F1[i] = x1 + dt * u1; F2[i] = x2 + dt * u2;")
+    w(f"{ind}U0[i] = u0 * keep; U1[i] = u1 * keep; U2[i] = u2 * keep;")
+
+
+# ------------------------------------------------------------------------------ building
+def cache_dir() -> Path:
+    """Where built kernels are kept: ``$TORCHDEFORM_CACHE_DIR/kernels``, else ``~/.cache/torchdeform/kernels``."""
+    root = os.environ.get("TORCHDEFORM_CACHE_DIR") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "torchdeform")
+    return Path(root) / "kernels"
+
+
+#: compiler flags, tried in this order until one set works (GCC's RTL combiner spends 70% of a
+#: 3 s build on the one long basic block of 2 S springs and changes nothing measurable: 1.3 s
+#: without it; then no -march=native, then no OpenMP)
+FLAG_SETS = (["-O3", "-march=native", "-fno-math-errno", "-fopenmp", "-fdisable-rtl-combine"],
+             ["-O3", "-march=native", "-fno-math-errno", "-fopenmp"],
+             ["-O3", "-fno-math-errno", "-fopenmp"],
+             ["-O3", "-fno-math-errno"])
+
+
+@functools.lru_cache(maxsize=None)
+def _compiler() -> tuple:
+    """``(command, version line, cpu identity)``; command None when there is no C compiler."""
+    cmd = os.environ.get("CC") or next((c for c in ("cc", "gcc", "clang") if shutil.which(c)), None)
+    if cmd is None or shutil.which(cmd) is None:
+        return None, "", ""
+    try:
+        version = subprocess.run([cmd, "--version"], capture_output=True, text=True, timeout=30).stdout
+    except (OSError, subprocess.SubprocessError):
+        return None, "", ""
+    cpu = platform.machine() + " " + platform.processor()
+    try:
+        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as f:
+            cpu += "".join(ln for ln in f if ln.startswith(("model name", "flags")))[:4000]
+    except OSError:
+        pass
+    return cmd, version.splitlines()[0] if version else "", cpu
+
+
+@functools.lru_cache(maxsize=None)
+def unavailable() -> str | None:
+    """Why no kernel can be built here (no C compiler, not a POSIX system), or None."""
+    if os.name != "posix":
+        return f"native spring kernels need a POSIX system (this is {os.name})"
+    if os.environ.get("TORCHDEFORM_NATIVE", "1") == "0":
+        return "TORCHDEFORM_NATIVE=0"
+    if _compiler()[0] is None:
+        return "no C compiler found (set CC)"
+    return None
+
+
+_kernels: dict = {}                 # loaded functions by the custom op's ``kernel`` argument (:func:`kernel`)
+
+
+def _build(var: Variant):
+    cmd, version, cpu = _compiler()
+    src = source(var)
+    last = ""
+    for flags in FLAG_SETS:
+        key = hashlib.sha256("\n".join([src, cmd, version, cpu, " ".join(flags)]).encode()).hexdigest()[:20]
+        so = cache_dir() / f"springs-{key}.so"
+        if not so.exists():
+            so.parent.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryDirectory(dir=so.parent) as tmp:
+                c_file, out = Path(tmp) / "springs.c", Path(tmp) / "springs.so"
+                c_file.write_text(src)
+                r = subprocess.run([cmd, *flags, "-fPIC", "-shared", str(c_file), "-o", str(out), "-lm"],
+                                   capture_output=True, text=True)
+                if r.returncode != 0:
+                    last = f"{cmd} {' '.join(flags)}: {r.stderr.strip()[-800:]}"
+                    continue
+                os.replace(out, so)                         # atomic: concurrent builders agree
+        try:
+            lib = ctypes.CDLL(str(so))
+        except OSError as e:
+            last = str(e)
+            continue
+        T = ctypes.c_float if var.dtype == "float" else ctypes.c_double
+        fn = lib.springs
+        i64, ptr = ctypes.c_int64, ctypes.c_void_p
+        fn.argtypes = [ptr] * 8 + [i64] * 6 + [ctypes.c_int, T] + ([ptr] * 3 + [i64] + [T] * 5 if var.update else [])
+        fn.restype = ctypes.c_int
+        return fn
+    raise NativeBuildError(f"could not build the spring kernel {var}: {last}")
+
+
+def name_of(var: Variant) -> str:
+    """The name of kernel ``var`` (the variant in short), as the custom op ``torchdeform::native_springs`` takes it.
+
+    The same in every process, so a compiled graph names its kernel the same way everywhere; the
+    kernel is built on its first call (:func:`kernel` builds it now).
+
+    Examples:
+        >>> name_of(Variant(S=13, dtype="float", damping=1))
+        'S13-float-d1-k0-l0-c0-g0'
+    """
+    name = (f"S{var.S}-{var.dtype}-d{var.damping}-k{var.k_per_spring:d}-l{var.l0_per_spring:d}"
+            f"-c{var.c_per_spring:d}-g{var.gate:d}" + ("-step" if var.update else ""))
+    _variants[name] = var
+    return name
+
+
+_variants: dict = {}
+
+
+def kernel(var: Variant) -> str:
+    """:func:`name_of` ``var``, the kernel built (or taken from the disk cache) and loaded now.
+
+    Raises:
+        NativeBuildError: no compiler, or the build failed.
+    """
+    name = name_of(var)
+    _function(name)
+    return name
+
+
+def _function(name: str):
+    if name not in _kernels:
+        why = unavailable()
+        if why:
+            raise NativeBuildError(why)
+        _kernels[name] = _build(_variants[name])
+    return _kernels[name]
+
+
+# ------------------------------------------------------------------------------ the model side
+def variant_of(pm) -> Variant:
+    """The kernel :class:`Variant` of a :class:`~torchdeform.sim.packed.PackedModel`."""
+    per = [p is not None and p.shape[-1] != 1 for p in (pm.stiffness, pm.rest_length, pm.damping)]
+    damping = 0 if pm.damping is None else (1 if pm.projected else 2)
+    # gated as spring_law gates it: where the stiffness has more values than the damping
+    gate = bool(damping) and pm.stiffness.numel() > pm.damping.numel()
+    return Variant(S=len(pm.offsets), dtype=_CTYPE[pm.dtype], damping=damping, k_per_spring=per[0],
+                   l0_per_spring=per[1], c_per_spring=per[2] and bool(damping), gate=gate)
+
+
+def supports(pm) -> str | None:
+    """Why the C kernel cannot compute this packed model's forces, or None when it can."""
+    if pm.law is not None:
+        return f"the {type(pm.law).__name__} law runs in inductor's forms"
+    if pm.device.type != "cpu":
+        return f"the C kernel runs on the CPU (the model is on {pm.device.type})"
+    if pm.dtype not in _CTYPE:
+        return f"the C kernel takes float32 or float64 (the model is {pm.dtype})"
+    return unavailable()
+
+
+def spring_forces(pm, x: torch.Tensor, v: torch.Tensor, name: str | None = None) -> torch.Tensor:
+    """:meth:`~torchdeform.sim.packed.PackedModel.spring_forces` by the C kernel: ``(B, 3, P)``.
+
+    No gradient (the kernel is not differentiable). ``name``: the kernel's name from :func:`kernel`
+    (default: built or loaded here, which traced code must not do: a compiled step names it
+    before tracing).
+    """
+    name = name or kernel(variant_of(pm))
+    return native_springs(x, v, pm.inside, pm.stiffness, pm.rest_length, pm.damping, pm.offset_table, name, pm.G)
+
+
+def fused_blocker(pm, integrator, loads=None) -> str | None:
+    """Why :func:`symplectic_step` cannot make this packed step, or None.
+
+    It makes the whole step of :class:`~torchdeform.sim.integrators.SymplecticEuler` for Hooke
+    springs, gravity, fixed nodes and the global drag; home springs, loads, drags along paths and
+    interactions keep the step in torch around the force kernel.
+    """
+    from .integrators import SymplecticEuler
+    if type(integrator) is not SymplecticEuler:
+        return f"the {integrator.name} integrator"
+    extras = [name for name, present in (("home springs", pm.k_home is not None), ("loads", bool(pm.loads) or loads is not None),
+                                         ("drags", bool(pm.drags)), ("interactions", bool(pm.interactions)))
+              if present]
+    if extras:
+        return ", ".join(extras)
+    return supports(pm)
+
+
+def symplectic_step(pm, x: torch.Tensor, v: torch.Tensor, dt: float, name: str | None = None):
+    """One :class:`~torchdeform.sim.integrators.SymplecticEuler` step of a packed model in one kernel.
+
+    The springs, ``a = (f + m g) / m`` (zero at fixed nodes), ``v' = v + dt a``, ``x' = x + dt v'``
+    and the global drag ``v' exp(-decay dt)``, in one pass over the nodes (:func:`fused_blocker`
+    says where it applies). No gradient. ``name``: the kernel's name from :func:`kernel` (a variant
+    with ``update``), default built or loaded here.
+
+    Returns:
+        ``(x', v')``, each ``(B, 3, P)``.
+    """
+    name = name or kernel(dataclasses.replace(variant_of(pm), update=True))
+    x, v = x.contiguous(), v.contiguous()
+    k, l0 = pm.stiffness.contiguous(), pm.rest_length.contiguous()
+    c = k if pm.damping is None else pm.damping.contiguous()
+    im, ms = pm.inv_mass.contiguous(), pm.mass.contiguous()
+    if im.shape[0] != ms.shape[0]:
+        im, ms = (t.expand(max(im.shape[0], ms.shape[0]), *t.shape[1:]).contiguous() for t in (im, ms))
+    xo, vo = torch.empty_like(x), torch.empty_like(v)
+    g = (0.0, 0.0, 0.0) if pm.gravity is None else tuple(float(a) for a in pm.gravity.flatten())
+    keep = 1.0 if pm.decay is None else math.exp(-pm.decay * dt)
+    B, _, P = x.shape
+    ptr = [t.data_ptr() for t in (x, v, xo, pm.inside, k, l0, c, pm.offset_table)]
+    if _function(name)(*ptr, B, P, pm.G, _batch_stride(k), _batch_stride(l0), _batch_stride(c),
+                      torch.get_num_threads(), torch.finfo(x.dtype).tiny, vo.data_ptr(), im.data_ptr(),
+                      ms.data_ptr(), _batch_stride(im), *g, dt, keep):
+        raise MemoryError(f"native spring kernel {name}: a thread could not allocate its ring of springs")
+    return xo, vo
+
+
+def _batch_stride(p: torch.Tensor) -> int:
+    return 0 if p.shape[0] == 1 else p.stride(0)
+
+
+@torch.library.custom_op("torchdeform::native_springs", mutates_args=())
+def native_springs(x: torch.Tensor, v: torch.Tensor, inside: torch.Tensor, k: torch.Tensor, l0: torch.Tensor,
+                   c: torch.Tensor | None, offsets: torch.Tensor, kernel: str, G: int) -> torch.Tensor:
+    """Spring forces ``(B, 3, P)`` by the loaded C kernel named ``kernel`` (see :func:`spring_forces`)."""
+    x, v, inside, k, l0 = (t.contiguous() for t in (x, v, inside, k, l0))
+    c = k if c is None else c.contiguous()               # not read by an undamped kernel
+    f = torch.empty_like(x)
+    B, _, P = x.shape
+    ptr = [t.data_ptr() for t in (x, v, f, inside, k, l0, c, offsets)]
+    if _function(kernel)(*ptr, B, P, G, _batch_stride(k), _batch_stride(l0), _batch_stride(c),
+                         torch.get_num_threads(), torch.finfo(x.dtype).tiny):
+        raise MemoryError(f"native spring kernel {kernel}: a thread could not allocate its ring of springs")
+    return f
+
+
+@native_springs.register_fake
+def _(x, v, inside, k, l0, c, offsets, kernel, G):
+    return torch.empty_like(x)
