@@ -100,6 +100,8 @@ def test_auto_decides_native_then_compiled_by_hand():
     assert engine.choice == "native" and engine.force_form is None
     assert not engine.decide_compiled([0.01, 0.006, 0.006], 10_000)
     assert engine.decide_compiled([0.01, 0.006, 0.006], 11_000) and engine.native_ms == pytest.approx(6.0)
+    assert not engine.decide_compiled([0.01, 0.006, 0.006], 10**9, fused=True)     # nothing left to compile
+    assert "one fused kernel" in engine.reason
     engine = Engine("auto")                                      # an implicit step compiles directly
     assert engine.decide(td.ImplicitEuler(), [0.05, 0.03, 0.03], 200_000, threads=2, model=model)
     assert engine.choice == "compiled"

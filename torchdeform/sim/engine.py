@@ -11,11 +11,13 @@ An engine runs a simulation's steps as
 * ``"compiled"``: :func:`~torchdeform.sim.compiled.compiled_step` on the packed layout, the whole
   step under ``torch.compile`` (for explicit steps around the C kernel: about 3 s per grid shape
   plus ~3 s to load inductor; an implicit step 30-60 s; without the kernel 15-60 s); a quarter
-  faster than ``"native"`` per explicit step at 64^3;
+  faster than ``"native"`` per explicit step whose update ``"native"`` leaves to torch;
 * ``"auto"``: eager steps first; after :attr:`Engine.probe_steps` of them it moves on when the
   eager time still to come is worth more than :attr:`Engine.payback` times the expected cost of
   the next engine: to ``"native"`` where it can run, and from there, after timing as many native
-  steps, to ``"compiled"`` when what compiling saves repays its compile; straight to
+  steps, to ``"compiled"`` when what compiling saves repays its compile (never for a native step
+  that one fused kernel makes whole: symplectic Euler with Hooke springs, gravity, fixed nodes and
+  the global drag, faster than its compiled form); straight to
   ``"compiled"`` where the kernel cannot run. It stays eager when no faster engine can run the
   simulation at all (a gradient needed, callable loads, an interaction that runs eagerly, a
   topology change between steps).
@@ -113,9 +115,10 @@ class Engine:
     #: step, when compiled for several threads (64^3, 26 neighbours, 2 cores: eager 27 ms,
     #: reduction 3.6 ms, gather 2.45 ms)
     GATHER_SAVES = 1 / 20
-    #: what the compiled step saves per step against the native one, as a fraction of a native
-    #: step (64^3, 26 neighbours, float32, 2 cores: native 6.3 ms, compiled 4.7 ms; the eager
-    #: update of the native engine is ~8 passes over the nodes, the compiled one fused into one)
+    #: what the compiled step saves per step against a native one whose update runs in torch (drags,
+    #: loads, other integrators), as a fraction of the native step (64^3, 26 neighbours, float32,
+    #: 2 cores: native 6.3 ms, compiled 4.7 ms; the eager update is ~8 passes over the nodes, the
+    #: compiled one a single loop). A native step that one fused kernel makes whole is not compiled.
     COMPILED_SAVES = 1 / 4
 
     def __init__(self, mode: str = "auto", probe_steps: int = 3, payback: float = 2.0,
@@ -203,14 +206,18 @@ class Engine:
             self.reason += "; compiled"
         return worth
 
-    def decide_compiled(self, native_s: list, remaining: int) -> bool:
+    def decide_compiled(self, native_s: list, remaining: int, fused: bool = False) -> bool:
         """``"auto"`` after its native probe: compile for the ``remaining`` steps? Extends :attr:`reason`.
 
-        Compiles when the time the compiled step saves (:attr:`COMPILED_SAVES` of a native step)
-        over the steps to come exceeds :attr:`payback` times the expected compile
-        (:attr:`COMPILE_S` ``["explicit"]``).
+        Never when the native step is ``fused`` (one C kernel makes the whole step: the compiled
+        step, the force kernel plus a fused update, is slower). Otherwise compiles when the time
+        the compiled step saves (:attr:`COMPILED_SAVES` of a native step) over the steps to come
+        exceeds :attr:`payback` times the expected compile (:attr:`COMPILE_S` ``["explicit"]``).
         """
         self.native_ms = 1e3 * statistics.median(native_s[1:] if len(native_s) > 1 else native_s)
+        if fused:
+            self.reason += f"; {self.native_ms:.3g} ms per native step, one fused kernel (nothing to compile)"
+            return False
         saved = remaining * self.native_ms / 1e3 * self.COMPILED_SAVES
         expected = self.expected["explicit"]
         worth = saved > self.payback * expected
@@ -374,7 +381,7 @@ def simulate(model: Model, state: State, dt: float, steps: int, integrator: Inte
                 samples.append(spent)
                 if len(samples) == engine.probe_steps:
                     probing = None
-                    if engine.decide_compiled(samples, steps - i):
+                    if engine.decide_compiled(samples, steps - i, fused=compiled.fused is not None):
                         engine.ran, timing = "compiled", 0
                         compiled = start("compiled")        # the same packed layout: the state carries over
             look = i == steps or (record_every and i % record_every == 0) or _reads_positions(callback)

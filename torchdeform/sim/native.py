@@ -56,7 +56,7 @@ __all__ = ["Variant", "source", "unavailable", "supports", "variant_of", "kernel
            "NativeBuildError", "fused_blocker", "symplectic_step", "BLOCK_NODES", "name_of"]
 
 #: bump when the generated source changes meaning (part of every cache key through the source)
-KERNEL_VERSION = 1
+KERNEL_VERSION = 2
 
 _CTYPE = {torch.float32: "float", torch.float64: "double"}
 
@@ -173,15 +173,15 @@ def source(var: Variant) -> str:
         w(f"        const {T} sq = d0 * d0 + d1 * d1 + d2 * d2;")
         w(f"        const {T} l = {sqrt}(sq > tiny ? sq : tiny);")
         w(f"        const {T} il = 1 / l, m = own * inside[j];")
-        w(f"        {T} a = ks * (l - ls) * il;")
         if damp:
             w(f"        {T} cs = " + (f"cq[{s} * P + i];" if var.c_per_spring else f"cq[{s}];"))
             if var.gate:
                 w("        cs = ks != 0 ? cs : 0;")
             w(f"        const {T} w0 = V0[j] - v0, w1 = V1[j] - v1, w2 = V2[j] - v2;")
-        if damp == 1:
-            w("        a = a + cs * (d0 * w0 + d1 * w1 + d2 * w2) * (il * il);")
-        w("        a = a * m;")
+        if damp == 1:      # (k (l - l0) + c (d . w) / l) / l, masked
+            w(f"        const {T} a = (ks * (l - ls) + cs * (d0 * w0 + d1 * w1 + d2 * w2) * il) * (il * m);")
+        else:
+            w(f"        const {T} a = ks * (l - ls) * (il * m);")
         w(f"        A[{s} * RS + p0 + k] = a;")
         if damp == 2:
             w(f"        const {T} b = cs * m;")
