@@ -73,7 +73,8 @@ def test_auto_stays_native_when_a_compile_would_not_pay(drags):
     ref, rec_ref = run(model, "eager", steps=40)
     engine = Engine("auto", probe_steps=4, compile_s={"native": 0.0}, compile=False)
     out, rec = run(model, engine, steps=40)
-    assert engine.ran == "native" and engine.summary()["ran"] == "native" and "<= 2 x ~8 s compile" in engine.reason
+    assert engine.ran == "native" and engine.summary()["ran"] == "native"
+    assert ("<= 2 x ~8 s compile" if drags else "one fused kernel (nothing to compile)") in engine.reason
     assert (engine.step.fused is None) == drags                   # drags keep the update in torch
     assert torch.allclose(out.x, ref.x, atol=1e-12, rtol=0) and torch.allclose(out.v, ref.v, atol=1e-10, rtol=0)
     assert torch.allclose(rec["x"], rec_ref["x"], atol=1e-12, rtol=0)
