@@ -1,27 +1,31 @@
-"""Spring forces of the packed layout as a small C kernel: the compiled explicit step's force sum.
+"""Spring forces of the packed layout as a small C kernel, and a whole symplectic step as one.
 
 ``torch.compile`` turns the unrolled gather form of :meth:`~torchdeform.sim.packed.PackedModel.spring_forces`
 into one fast vectorised loop, but building it takes inductor 20-60 s per grid shape on a 2-core
 CPU (almost all of it in inductor's own Python code generation for a loop body of ~1,100
-operations; the C++ compiler takes 3 s). The same loop, written out here as C source with the
-spring law of :func:`~torchdeform.sim.springs.spring_law`, compiles in 1-3 s with the system C
-compiler and serves every grid shape (the stencil offsets are arguments). The compiled step calls
-it through the custom op ``torchdeform::native_springs`` (inductor keeps it as one external call
-and compiles the rest of the step, a few pointwise loops, in a few seconds).
+operations; the C++ compiler takes 3 s). Here the force sum is written out as C source with the
+spring law of :func:`~torchdeform.sim.springs.spring_law` (Hooke); the system C compiler builds
+it in 1-2 s, and it serves every grid shape (the stencil offsets are arguments). The compiled
+step calls it through the custom op ``torchdeform::native_springs`` (inductor keeps it as one
+external call and compiles the rest of the step, a few pointwise loops, in a few seconds); the
+``"native"`` engine (:mod:`~torchdeform.sim.engine`) calls it, or :func:`symplectic_step`, without
+``torch.compile`` at all.
 
 Each kernel is specialised on what changes its loop body (:class:`Variant`): the number of
 half-directions ``S``, float or double, the damping (none, projected, Radetzky's unprojected),
-and which of stiffness, rest length and damping are stored per spring. Hooke's law only: a
-strain-stiffening law (:mod:`torchdeform.sim.laws`) keeps inductor's forms.
+which of stiffness, rest length and damping are stored per spring, and whether it also makes
+the symplectic Euler update. Hooke's law only: a strain-stiffening law (:mod:`torchdeform.sim.laws`)
+keeps inductor's forms.
 
 Built kernels are cached on disk (:func:`cache_dir`), keyed by their source, the compiler and the
 CPU (they are built with ``-march=native``). Where no C compiler works, :func:`unavailable` says
 why and the compiled step uses inductor's forms instead.
 
-The loop: every core node sums the ``2 S`` springs it sees, in the order of the gather form (half
-direction ``s`` forward, then backward), as ``alpha (x_j - x_i) + beta (v_j - v_i)`` times the
-far end's ``inside`` mask, then times its own. Threads split the core range into blocks of 16
-nodes; each thread's block is one ``#pragma omp simd`` loop.
+The loop (:func:`source`): every spring is evaluated once, at its first node, and its
+coefficient is handed to its second node through a per-thread ring; the sums are those of the
+gather form up to rounding (forward directions first, then backward ones). Threads split the
+core range; each thread runs blocks of :data:`BLOCK_NODES` nodes, two ``#pragma omp simd`` loops
+per block. The thread count is torch's when the kernel runs (the thread governor sets it).
 
 Example:
     >>> import torch
@@ -56,12 +60,14 @@ __all__ = ["Variant", "source", "unavailable", "supports", "variant_of", "kernel
            "NativeBuildError", "fused_blocker", "symplectic_step", "BLOCK_NODES", "name_of"]
 
 #: bump when the generated source changes meaning (part of every cache key through the source)
-KERNEL_VERSION = 2
+KERNEL_VERSION = 3
 
 _CTYPE = {torch.float32: "float", torch.float64: "double"}
 
-#: nodes per block of the kernel's loops (see :func:`source`)
-BLOCK_NODES = 32
+#: nodes per block of the kernel's loops (see :func:`source`). Measured at 64^3, 26 neighbours,
+#: float32, one and two threads: 32 nodes 17-21 and 10-13 ns per node, 128 about 15.5 and 8-11,
+#: 256 about 15 and 10 (and 7.4 against 17.5 at 128^3): long loops amortise each block's set-up
+BLOCK_NODES = 256
 
 
 class NativeBuildError(RuntimeError):
