@@ -172,33 +172,35 @@ class CompiledStep:
             try:
                 x, v = state.x, state.v
                 t = torch.scalar_tensor(float(state.t), dtype=self.model.dtype, device=self.model.device)
-                n = self.governor.choose() if self.governor is not None else torch.get_num_threads()
-                signature = (tuple((a.shape, a.stride(), a.dtype, a.device) for a in (x, v)), n)
-                t0 = time.perf_counter()
-                with omp_threads(n):
-                    if signature in self._compiled_for:
-                        # Shapes and threads of a compiled call, and the model is baked in: dynamo's
-                        # guards (one check per model tensor, ~0.15 ms per call on the beam) cannot fail.
-                        with torch.no_grad(), skip_guards():
-                            x, v, readings = self._fn(x, v, t)
-                    else:                       # compiles; on another thread count, traces again
-                        with torch.no_grad(), no_autograd_cache():
-                            x, v, readings = self._fn(x, v, t)
-                        self._compiled_for.add(signature)
-                if self.governor is not None:
-                    self.governor.record(n, time.perf_counter() - t0)
+                x, v, readings = self._governed(lambda n: self._compiled_call(x, v, t, n))
                 return State(x, v, state.t + self.dt, readings or None)
             except Exception as e:                          # noqa: BLE001 (any failure -> eager)
                 self._fallback(e)
         with torch.no_grad():
-            if self.governor is None:
-                return self._eager_step(state)
-            n = self.governor.choose()
-            t0 = time.perf_counter()
-            with omp_threads(n):
-                out = self._eager_step(state)
-            self.governor.record(n, time.perf_counter() - t0)
-            return out
+            return self._governed(lambda n: self._eager_step(state))
+
+    def _governed(self, run):
+        """``run(n)`` on the ``n`` threads the governor picks (torch's setting without one), timed for it."""
+        if self.governor is None:
+            return run(torch.get_num_threads())
+        n = self.governor.choose()
+        t0 = time.perf_counter()
+        with omp_threads(n):
+            out = run(n)
+        self.governor.record(n, time.perf_counter() - t0)
+        return out
+
+    def _compiled_call(self, x, v, t, n: int):
+        signature = (tuple((a.shape, a.stride(), a.dtype, a.device) for a in (x, v)), n)
+        if signature in self._compiled_for:
+            # Shapes and threads of a compiled call, and the model is baked in: dynamo's guards
+            # (one check per model tensor, ~0.15 ms per call on the beam) cannot fail.
+            with torch.no_grad(), skip_guards():
+                return self._fn(x, v, t)
+        with torch.no_grad(), no_autograd_cache():      # compiles; on another thread count, traces again
+            out = self._fn(x, v, t)
+        self._compiled_for.add(signature)
+        return out
 
     def _eager_step(self, state: State) -> State:
         if self.fused is not None:

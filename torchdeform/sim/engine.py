@@ -183,7 +183,7 @@ class Engine:
         when the steps to come repay its extra compile (:attr:`GATHER_SAVES`); otherwise the
         reduction form (:attr:`force_form`).
         """
-        self.eager_ms = 1e3 * statistics.median(eager_s[1:] if len(eager_s) > 1 else eager_s)
+        self.eager_ms = _median_ms(eager_s)
         to_come = remaining * self.eager_ms / 1e3
         why_not = "no model given" if model is None else self.native_blocker(model, integrator)
         self.choice = "native" if why_not is None else "compiled"
@@ -214,7 +214,7 @@ class Engine:
         the compiled step saves (:attr:`COMPILED_SAVES` of a native step) over the steps to come
         exceeds :attr:`payback` times the expected compile (:attr:`COMPILE_S` ``["explicit"]``).
         """
-        self.native_ms = 1e3 * statistics.median(native_s[1:] if len(native_s) > 1 else native_s)
+        self.native_ms = _median_ms(native_s)
         if fused:
             self.reason += f"; {self.native_ms:.3g} ms per native step, one fused kernel (nothing to compile)"
             return False
@@ -247,6 +247,11 @@ class Engine:
                                   enable=self.enable and not native_only,
                                   force_form="native" if native_only else self.force_form)
         return self.step
+
+
+def _median_ms(samples: list) -> float:
+    """Median step time (ms) of a probe, its first step (a warm-up) left out."""
+    return 1e3 * statistics.median(samples[1:] if len(samples) > 1 else samples)
 
 
 def _reads_positions(callback) -> bool:

@@ -56,6 +56,8 @@ from pathlib import Path
 
 import torch
 
+from .springs import _needs_gate
+
 __all__ = ["Variant", "source", "unavailable", "supports", "variant_of", "kernel", "spring_forces", "cache_dir",
            "NativeBuildError", "fused_blocker", "symplectic_step", "BLOCK_NODES", "name_of"]
 
@@ -415,8 +417,7 @@ def variant_of(pm) -> Variant:
     """The kernel :class:`Variant` of a :class:`~torchdeform.sim.packed.PackedModel`."""
     per = [p is not None and p.shape[-1] != 1 for p in (pm.stiffness, pm.rest_length, pm.damping)]
     damping = 0 if pm.damping is None else (1 if pm.projected else 2)
-    # gated as spring_law gates it: where the stiffness has more values than the damping
-    gate = bool(damping) and pm.stiffness.numel() > pm.damping.numel()
+    gate = bool(damping) and _needs_gate(pm.stiffness, pm.damping)      # as spring_law gates it
     return Variant(S=len(pm.offsets), dtype=_CTYPE[pm.dtype], damping=damping, k_per_spring=per[0],
                    l0_per_spring=per[1], c_per_spring=per[2] and bool(damping), gate=gate)
 
@@ -474,20 +475,14 @@ def symplectic_step(pm, x: torch.Tensor, v: torch.Tensor, dt: float, name: str |
     """
     name = name or kernel(dataclasses.replace(variant_of(pm), update=True))
     x, v = x.contiguous(), v.contiguous()
-    k, l0 = pm.stiffness.contiguous(), pm.rest_length.contiguous()
-    c = k if pm.damping is None else pm.damping.contiguous()
     im, ms = pm.inv_mass.contiguous(), pm.mass.contiguous()
     if im.shape[0] != ms.shape[0]:
         im, ms = (t.expand(max(im.shape[0], ms.shape[0]), *t.shape[1:]).contiguous() for t in (im, ms))
     xo, vo = torch.empty_like(x), torch.empty_like(v)
     g = (0.0, 0.0, 0.0) if pm.gravity is None else tuple(float(a) for a in pm.gravity.flatten())
     keep = 1.0 if pm.decay is None else math.exp(-pm.decay * dt)
-    B, _, P = x.shape
-    ptr = [t.data_ptr() for t in (x, v, xo, pm.inside, k, l0, c, pm.offset_table)]
-    if _function(name)(*ptr, B, P, pm.G, _batch_stride(k), _batch_stride(l0), _batch_stride(c),
-                      torch.get_num_threads(), torch.finfo(x.dtype).tiny, vo.data_ptr(), im.data_ptr(),
-                      ms.data_ptr(), _batch_stride(im), *g, dt, keep):
-        raise MemoryError(f"native spring kernel {name}: a thread could not allocate its ring of springs")
+    _call(name, x, v, xo, pm.inside, pm.stiffness, pm.rest_length, pm.damping, pm.offset_table, pm.G,
+          vo.data_ptr(), im.data_ptr(), ms.data_ptr(), _batch_stride(im), *g, dt, keep)
     return xo, vo
 
 
@@ -495,18 +490,24 @@ def _batch_stride(p: torch.Tensor) -> int:
     return 0 if p.shape[0] == 1 else p.stride(0)
 
 
+def _call(name: str, x, v, out, inside, k, l0, c, offsets, G: int, *update) -> None:
+    """Run kernel ``name`` into ``out`` (the spring operands made contiguous; ``update``: the fused step's)."""
+    x, v, inside, k, l0 = (t.contiguous() for t in (x, v, inside, k, l0))
+    c = k if c is None else c.contiguous()               # not read by an undamped kernel
+    B, _, P = x.shape
+    ptr = [t.data_ptr() for t in (x, v, out, inside, k, l0, c, offsets)]
+    if _function(name)(*ptr, B, P, G, _batch_stride(k), _batch_stride(l0), _batch_stride(c),
+                       torch.get_num_threads(), torch.finfo(x.dtype).tiny, *update):
+        raise MemoryError(f"native spring kernel {name}: a thread could not allocate its ring of springs")
+
+
 @torch.library.custom_op("torchdeform::native_springs", mutates_args=())
 def native_springs(x: torch.Tensor, v: torch.Tensor, inside: torch.Tensor, k: torch.Tensor, l0: torch.Tensor,
                    c: torch.Tensor | None, offsets: torch.Tensor, kernel: str, G: int) -> torch.Tensor:
     """Spring forces ``(B, 3, P)`` by the loaded C kernel named ``kernel`` (see :func:`spring_forces`)."""
-    x, v, inside, k, l0 = (t.contiguous() for t in (x, v, inside, k, l0))
-    c = k if c is None else c.contiguous()               # not read by an undamped kernel
+    x = x.contiguous()
     f = torch.empty_like(x)
-    B, _, P = x.shape
-    ptr = [t.data_ptr() for t in (x, v, f, inside, k, l0, c, offsets)]
-    if _function(kernel)(*ptr, B, P, G, _batch_stride(k), _batch_stride(l0), _batch_stride(c),
-                         torch.get_num_threads(), torch.finfo(x.dtype).tiny):
-        raise MemoryError(f"native spring kernel {kernel}: a thread could not allocate its ring of springs")
+    _call(kernel, x, v, f, inside, k, l0, c, offsets, G)
     return f
 
 

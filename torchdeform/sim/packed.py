@@ -359,7 +359,7 @@ class PackedModel(Model):
         return self.trace.keep(F.pad(sums, (self.G, self.G)), store)
 
     # ------------------------------------------------------------------ springs
-    #: how :meth:`spring_forces` sums the springs: ``"native"`` (the gather loop as a C kernel,
+    #: how :meth:`spring_forces` sums the springs: ``"native"`` (each spring once, in a C kernel,
     #: :mod:`.native`), ``"reduction"`` (one sum over the ``2 S`` directions, as the CG products),
     #: ``"gather"`` (the ``2 S`` terms unrolled for inductor) or None: decided by :meth:`traced`
     #: for a compiled step (native where :func:`.native.supports` the model, else gather when
