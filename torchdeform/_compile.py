@@ -14,8 +14,11 @@ Nothing here knows about springs or volumes; it sits on the ground floor next to
   once instead of being recomputed inside every loop that reads it.
 * :func:`fresh`: a copy of a function with its own code object, so that dynamo keeps a cache (and a
   recompilation limit) per wrapper.
-* :func:`no_autograd_cache`, :func:`skip_guards`, :func:`while_loop`: the private torch switches
-  the fast paths rely on, each with a harmless fallback where this torch lacks it.
+* :func:`no_autograd_cache`, :func:`skip_guards`, :func:`while_loop`, :func:`loop_cache_options`:
+  the private torch switches the fast paths rely on, each with a harmless fallback where this
+  torch lacks it.
+* :func:`graph_cache_counts`: inductor's on-disk graph cache hits and misses so far (benchmarks
+  say whether a compile was loaded or built).
 * :class:`CompileFallbackWarning` and :func:`warn_fallback`: one warning line when compilation is
   unavailable and the eager code runs instead.
 """
@@ -28,7 +31,8 @@ import warnings
 import torch
 
 __all__ = ["CompileFallbackWarning", "INDUCTOR_OPTIONS", "inductor_options", "realize", "fresh",
-           "no_autograd_cache", "skip_guards", "while_loop", "warn_fallback"]
+           "no_autograd_cache", "skip_guards", "while_loop", "loop_cache_options", "graph_cache_counts",
+           "warn_fallback"]
 
 
 class CompileFallbackWarning(UserWarning):
@@ -177,3 +181,51 @@ def while_loop():
     except ImportError:                                                 # pragma: no cover
         return None
     return loop
+
+
+#: the value :func:`loop_cache_options` gives the loop's name; it is part of inductor's cache key
+#: (raise it if the graphs this package builds around a loop ever need to miss old entries)
+LOOP_CACHE_KEY = "torchdeform-loop-1"
+
+
+def loop_cache_options() -> dict:
+    """Inductor options that let its on-disk FX-graph cache keep graphs holding a ``while_loop``.
+
+    Inductor bypasses that cache for every graph with a higher-order operator not marked
+    cacheable, and torch 2.13 does not mark ``while_loop``: the compiled implicit step (its CG
+    iterations in one loop) was built again in every process, 20-30 s on 2 cores. The mark
+    (``unsafe_marked_cacheable_functions``, torch's opt-in) is sound for these graphs: the cache key
+    pickles the whole graph module, the loop's condition and body subgraphs with their code, so
+    a graph that differs only inside the loop gets another key (``tests/test_compile.py`` checks
+    both a hit and that miss). Empty where this torch lacks the loop or the option.
+
+    Examples:
+        >>> opts = loop_cache_options()
+        >>> opts == {} or list(opts["unsafe_marked_cacheable_functions"].values()) == [LOOP_CACHE_KEY]
+        True
+    """
+    try:
+        from torch._higher_order_ops.while_loop import while_loop_op
+        from torch._inductor import config
+    except ImportError:                                                 # pragma: no cover
+        return {}
+    if not hasattr(config, "unsafe_marked_cacheable_functions"):        # pragma: no cover
+        return {}
+    return {"unsafe_marked_cacheable_functions": {f"{while_loop_op.__module__}.{while_loop_op.__name__}":
+                                                  LOOP_CACHE_KEY}}
+
+
+def graph_cache_counts() -> tuple[int, int]:
+    """``(hits, misses)`` of inductor's on-disk FX-graph cache so far in this process.
+
+    Take the difference around a first call to tell a compile loaded from the cache (a hit) from
+    one built (a miss); neither changes when the graph bypassed the cache or nothing compiled.
+
+    Examples:
+        >>> hits, misses = graph_cache_counts()
+        >>> hits >= 0 and misses >= 0
+        True
+    """
+    from torch._dynamo.utils import counters
+    c = counters["inductor"]
+    return int(c["fxgraph_cache_hit"]), int(c["fxgraph_cache_miss"])

@@ -7,6 +7,7 @@ packed step) and compiled, dtypes and thread counts, against NVIDIA Warp's CPU b
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import statistics
 import sys
@@ -31,12 +32,12 @@ SPEED_COLUMNS = [("grid", "grid", None), ("topology", "topo", None), ("mode", "m
                  ("springs", "springs", "{:,}"), ("steps", "steps", None), ("ms_per_step", "ms/step", "{:.3f}"),
                  ("msprings_per_s", "Msprings/s", "{:.1f}"), ("node_steps_per_s", "Mnode-steps/s", None),
                  ("vs_warp", "x Warp", "{:.2f}"), ("peak_rss_mb", "peak MB", "{:.0f}"),
-                 ("compile_s", "compile s", "{:.1f}"), ("max_abs_diff", "max|diff|", "{:.1e}"),
-                 ("vs_idle", "busy/idle", "{:.2f}")]
+                 ("compile_s", "compile s", "{:.1f}"), ("compile_cache", "compile", None),
+                 ("max_abs_diff", "max|diff|", "{:.1e}"), ("vs_idle", "busy/idle", "{:.2f}")]
 BEAM_COLUMNS = [("scene", "scene", None), ("mode", "mode", None), ("dtype", "dtype", None), ("threads", "thr", None),
                 ("cg_iters", "CG iters", None), ("steps", "steps", None), ("ms_per_step", "ms/step", "{:.2f}"),
                 ("steps_per_s", "steps/s", "{:.0f}"), ("compile_s", "compile s", "{:.1f}"),
-                ("max_abs_diff", "max|diff|", "{:.1e}"), ("vs_idle", "busy/idle", "{:.2f}")]
+                ("compile_cache", "compile", None), ("max_abs_diff", "max|diff|", "{:.1e}"), ("vs_idle", "busy/idle", "{:.2f}")]
 
 
 def add_arguments(p) -> None:
@@ -132,16 +133,29 @@ def _measure(step, state, *, steps, repeats, target_s, sync, max_steps=200):
     return first, _time_steps(step, state, steps, repeats, sync), first_s, steps
 
 
-def _time_mode(integ, model, state, dt, mode, *, steps, repeats, target_s, sync, reference=None, max_steps=200):
-    """Time ``integ`` on ``model`` from ``state``, eager (grid layout) or compiled (packed state kept between steps).
+@dataclasses.dataclass
+class _Timed:
+    """One timed mode (:func:`_time_mode`)."""
+    first: object            # the state after one step, grid layout
+    sec: float               # median seconds per step
+    fields: dict             # row fields: threads, steps, compile_s, compile_cache, max_abs_diff, fallback
+    retime: object           # () -> seconds per step, the same step timed again (under other conditions)
+    governor: object = None  # the compiled step's thread governor (it may take fewer threads beside a busy process)
 
-    Without gradients. Returns ``(first_state, s_per_step, compile_s, steps, fallback,
-    max_abs_diff)``; ``compile_s`` is None for eager, ``max_abs_diff`` compares the first step with
-    ``reference`` (or None).
+
+def _time_mode(integ, model, state, dt, mode, *, steps, repeats, target_s, sync, reference=None,
+               max_steps=200) -> _Timed:
+    """Time ``integ`` on ``model`` from ``state``, eager (grid layout) or packed (the state kept packed between steps).
+
+    Without gradients. ``compile_s`` is None for eager, the C kernel's build (or load) for
+    ``"native"``, the first call's wall time for ``"compiled"``, whose ``compile_cache`` says
+    whether inductor ``"built"`` the graph or ``"loaded"`` it from its disk cache (another
+    process compiled it before). ``max_abs_diff`` compares the first step with ``reference`` (or None).
     """
-    from ..sim.compiled import CompiledStep  # the fast path, only when timed
+    from .._compile import graph_cache_counts  # the fast path, only when timed
+    from ..sim.compiled import CompiledStep
     with torch.no_grad():
-        compile_s, fallback, threads = None, False, torch.get_num_threads()
+        fallback, threads, cs, built_s, cache = False, torch.get_num_threads(), None, None, None
         if mode == "eager":
             step, start = (lambda s: integ.step(model, s, dt)), state
         else:
@@ -152,25 +166,25 @@ def _time_mode(integ, model, state, dt, mode, *, steps, repeats, target_s, sync,
             if mode == "native":
                 step(start)                                 # builds (or loads) the kernel
                 built_s = time.perf_counter() - t0
-        first, sec, compile_s, steps = _measure(step, start, steps=steps, repeats=repeats, target_s=target_s,
-                                                sync=sync, max_steps=max_steps)
-        if mode != "eager":
+        counts = graph_cache_counts() if mode == "compiled" else None
+        first, sec, first_s, steps = _measure(step, start, steps=steps, repeats=repeats, target_s=target_s,
+                                              sync=sync, max_steps=max_steps)
+        if cs is not None:
             first = cs.packed.unpack_state(first)
             fallback = not cs.compiled and mode == "compiled"
-            if mode == "native":
-                compile_s = built_s                          # the kernel's build or load
-        else:
-            compile_s = None
+        if mode == "compiled":
+            hits, misses = (a - b for a, b in zip(graph_cache_counts(), counts))
+            cache = "loaded" if hits and not misses else "built" if misses else None
         diff = None
         if reference is not None:
             diff = max(float((first.x - reference.x).abs().max()), float((first.v - reference.v).abs().max()))
 
-    def retime() -> float:                      # the same step timed again (under other conditions)
+    def retime() -> float:
         with torch.no_grad():
             return _time_steps(step, start, steps, repeats, sync)
-    #: the compiled step's thread governor (it may take fewer threads beside a busy process)
-    retime.governor = None if mode == "eager" else cs.governor
-    return first, sec, compile_s, steps, fallback, diff, threads, retime
+    compile_s = {"eager": None, "native": built_s}.get(mode, first_s)
+    return _Timed(first, sec, dict(threads=threads, steps=steps, compile_s=compile_s, compile_cache=cache,
+                                   max_abs_diff=diff, fallback=fallback), retime, cs.governor if cs else None)
 
 
 def speed_row(n: int, topology: int, mode: str, *, dtype=torch.float32, device="cpu", steps=None,
@@ -192,19 +206,18 @@ def speed_row(n: int, topology: int, mode: str, *, dtype=torch.float32, device="
     row = {"grid": f"{n}^3", "n": n, "topology": topology, "mode": mode, "dtype": str(dtype).replace("torch.", ""),
            "threads": torch.get_num_threads(), "device": device, "nodes": model.grid.num_nodes,
            "springs": model.grid.num_springs}
-    first, sec, compile_s, steps, fallback, diff, threads, retime = _time_mode(
-        integ, model, state, dt, mode, steps=steps, repeats=repeats, target_s=target_s, sync=sync,
-        reference=reference)
+    timed = _time_mode(integ, model, state, dt, mode, steps=steps, repeats=repeats, target_s=target_s, sync=sync,
+                       reference=reference)
 
     def rates(sec):
         return dict(ms_per_step=sec * 1e3, msprings_per_s=row["springs"] / sec / 1e6, node_steps_per_s=row["nodes"] / sec)
-    row.update(threads=threads, steps=steps, repeats=repeats, **rates(sec), compile_s=compile_s, max_abs_diff=diff,
-               fallback=fallback, peak_rss_mb=_peak_rss_mb() if reset and device == "cpu" else None, contention=False)
+    row.update(timed.fields, repeats=repeats, **rates(timed.sec),
+               peak_rss_mb=_peak_rss_mb() if reset and device == "cpu" else None, contention=False)
     if device.startswith("cuda"):
         row["peak_rss_mb"] = torch.cuda.max_memory_allocated() / 2**20
     if contention:
-        row["_busy"] = _busy_row(row, retime, sec, rates)
-    row["_first"] = first
+        row["_busy"] = _busy_row(row, timed, rates)
+    row["_first"] = timed.first
     return row
 
 
@@ -221,26 +234,28 @@ def beam_row(mode: str, *, dtype=torch.float32, device="cpu", cg_iters: int = 20
     row = {"scene": "beam 40x10x10", "mode": mode, "dtype": str(dtype).replace("torch.", ""),
            "threads": torch.get_num_threads(), "device": device, "nodes": model.grid.num_nodes,
            "springs": model.grid.num_springs, "dt": dt, "cg_iters": cg_iters}
-    first, sec, compile_s, steps, fallback, diff, threads, retime = _time_mode(
-        integ, model, state, dt, mode, steps=steps, repeats=repeats, target_s=target_s, sync=sync,
-        reference=reference, max_steps=100 if mode == "eager" else 500)
-    row.update(threads=threads, steps=steps, repeats=repeats, ms_per_step=sec * 1e3, steps_per_s=1.0 / sec,
-               compile_s=compile_s, max_abs_diff=diff, fallback=fallback, contention=False)
+    timed = _time_mode(integ, model, state, dt, mode, steps=steps, repeats=repeats, target_s=target_s, sync=sync,
+                       reference=reference, max_steps=100 if mode == "eager" else 500)
+
+    def rates(sec):
+        return dict(ms_per_step=sec * 1e3, steps_per_s=1.0 / sec)
+    row.update(timed.fields, repeats=repeats, **rates(timed.sec), contention=False)
     if contention:
-        row["_busy"] = _busy_row(row, retime, sec, lambda t: dict(ms_per_step=t * 1e3, steps_per_s=1.0 / t))
-    row["_first"] = first
+        row["_busy"] = _busy_row(row, timed, rates)
+    row["_first"] = timed.first
     return row
 
 
-def _busy_row(row: dict, retime, sec: float, rates) -> dict:
-    """``row`` timed again (``retime()``) beside a busy process: ``contention: true``, ``vs_idle``."""
-    gov = getattr(retime, "governor", None)
+def _busy_row(row: dict, timed: _Timed, rates) -> dict:
+    """``row`` timed again (``timed.retime()``) beside a busy process: ``contention: true``, ``vs_idle``."""
+    gov = timed.governor
     before = dict(gov.steps) if gov is not None else {}
     with busy_neighbour():
-        busy = retime()
+        busy = timed.retime()
     # steps per thread count while busy (a compiled step's governor may drop threads)
     used = {n: k - before.get(n, 0) for n, k in gov.steps.items() if k > before.get(n, 0)} if gov else None
-    return dict(row, **rates(busy), contention=True, vs_idle=sec / busy, compile_s=None, threads_busy=used)
+    return dict(row, **rates(busy), contention=True, vs_idle=timed.sec / busy, compile_s=None, compile_cache=None,
+                threads_busy=used)
 
 
 def _warp_row(n, topology, dtype, steps, repeats, target_s, reference):

@@ -52,6 +52,7 @@ from .._compile import (
     CompileFallbackWarning,
     fresh,
     inductor_options,
+    loop_cache_options,
     no_autograd_cache,
     realize,
     skip_guards,
@@ -66,7 +67,7 @@ from .packed import PackedLinearisation, PackedModel, TraceContext
 from .threads import ThreadGovernor, omp_threads
 
 __all__ = ["CompileFallbackWarning", "CompiledStep", "ImplicitGraph", "compiled_step", "step_threads", "SERIAL_NODES",
-           "IMPLICIT_OPTIONS"]
+           "IMPLICIT_OPTIONS", "STEP_OPTIONS"]
 
 
 #: Extra options for the implicit step, whose CG loop body runs ``cg_iters`` times per step:
@@ -76,6 +77,14 @@ __all__ = ["CompileFallbackWarning", "CompiledStep", "ImplicitGraph", "compiled_
 #: with the earlier per-direction spring kernel, variants interleaved in one process: 5.09 ms per
 #: step with both, 5.55 without the C++ wrapper, 5.63 with neither (medians of 30).
 IMPLICIT_OPTIONS = {"cpp_wrapper": True, "size_asserts": False, "alignment_asserts": False}
+
+#: Options of every compiled spring step, under the caller's. Inductor unrolls a reduction of at
+#: most 8 terms into one expression; the reduction form's sum over the ``2 S = 6`` directions of a
+#: 6-neighbour grid, unrolled, gave kernels so large that generating them took minutes. Measured
+#: on 2 idle cores, one process per figure: the 6-neighbour 40 x 10 x 10 implicit beam compiled in
+#: 199 s and stepped in 4.4 ms unrolled, in 32 s and 2.1 ms as a loop; the explicit 32^3 step (one
+#: thread) in 69 s and 0.77 ms against 11 s and 0.51 ms. Other grids sum 14 to 26 terms: unchanged.
+STEP_OPTIONS = {"unroll_reductions_threshold": 1}
 
 
 class CompiledStep:
@@ -141,7 +150,9 @@ class CompiledStep:
             self._fallback(TypeError(f"{', '.join(eager_only)} runs in the eager step"))
         elif enable:
             try:
-                opts = dict(options or INDUCTOR_OPTIONS, **(IMPLICIT_OPTIONS if implicit else {}))
+                opts = dict(STEP_OPTIONS, **(options or INDUCTOR_OPTIONS))
+                if implicit:                        # its while_loop graph kept in the on-disk cache too
+                    opts.update(IMPLICIT_OPTIONS, **loop_cache_options())
                 if self.governor is not None:       # the thread count is read when the code runs
                     opts["cpp.dynamic_threads"] = True
                 compile_ = functools.partial(torch.compile, dynamic=False, mode=mode, fullgraph=implicit,
