@@ -109,7 +109,9 @@ class Engine:
     #: that kernel (64^3, 26 neighbours: 3 s per grid shape, 6.7 s with empty caches, plus ~3 s
     #: to import inductor); where the kernel cannot run, ``"reduction"`` and ``"gather"``, the
     #: explicit step in inductor's two spring sums (7-14 s and 24-60 s); ``"implicit"``, the
-    #: implicit step's one graph with its CG loop
+    #: implicit step's one graph with its CG loop (the 40 x 10 x 10 beam: 27-34 s to build, 2-7 s
+    #: when inductor's disk cache holds it from an earlier process; a Newton iteration doubles the
+    #: graph, and this cost has no way to know beforehand which case it is)
     COMPILE_S = {"native": 2.0, "explicit": 8.0, "reduction": 15.0, "gather": 40.0, "implicit": 60.0}
     #: what the gather form saves per step against the reduction form, as a fraction of an eager
     #: step, when compiled for several threads (64^3, 26 neighbours, 2 cores: eager 27 ms,
