@@ -18,11 +18,10 @@ packed step uncompiled (with ``force_form="native"``: the ``"native"`` engine of
 
 Compilation happens on the first call. Measured on a 2-core CPU, 64^3, 26 neighbours: around the
 C kernel 3 s per grid shape once the kernel is built (6.7 s with empty caches: the kernel's build
-1.3 s, inductor's C++ header); without it 15-60 s per grid shape. Inductor caches it on disk,
-except the implicit step, whose loop graph inductor will not cache ("Can't cache
-HigherOrderOperator: while_loop") and compiles again in every new process (30-60 s on the 40 x 10
-x 10 beam). Unrolling its CG iterations instead would be cacheable but took over 14 minutes to
-compile for 20 iterations.
+1.3 s, inductor's C++ header); without it 10-60 s per grid shape. Inductor caches it on disk for
+later processes, the implicit step's loop graph too (:func:`~torchdeform._compile.loop_cache_options`
+marks the ``while_loop`` cacheable): the 40 x 10 x 10 beam compiles in 27-34 s, then loads in
+2-7 s. Unrolling its CG iterations instead took over 14 minutes to compile for 20 iterations.
 
 Example:
     >>> import torch

@@ -10,7 +10,8 @@ An engine runs a simulation's steps as
   integrators, Hooke springs on a CPU with a C compiler;
 * ``"compiled"``: :func:`~torchdeform.sim.compiled.compiled_step` on the packed layout, the whole
   step under ``torch.compile`` (for explicit steps around the C kernel: about 3 s per grid shape
-  plus ~3 s to load inductor; an implicit step 30-60 s; without the kernel 15-60 s); a quarter
+  plus ~3 s to load inductor; an implicit step 27-34 s, 2-7 s once inductor's disk cache holds
+  it; without the kernel 10-60 s); a quarter
   faster than ``"native"`` per explicit step whose update ``"native"`` leaves to torch;
 * ``"auto"``: eager steps first; after :attr:`Engine.probe_steps` of them it moves on when the
   eager time still to come is worth more than :attr:`Engine.payback` times the expected cost of
