@@ -1,11 +1,12 @@
 """Fixtures shared by every test (the independent oracles live in :mod:`tests.oracles`)."""
+
 import os
 
 import numpy as np
 import pytest
 import torch
 
-if os.environ.get("PYTEST_XDIST_WORKER"):      # two workers on two cores: one thread each, no spinning
+if os.environ.get("PYTEST_XDIST_WORKER"):  # two workers on two cores: one thread each, no spinning
     torch.set_num_threads(1)
 
 

@@ -4,6 +4,7 @@ The examples themselves run as doctests (``--doctest-modules`` in the test comma
 checks that none is missing: a function, class or subpackage needs ``>>>`` lines in its own
 docstring, a constant (``INTEGRATORS``) in the docstring of the module that defines it.
 """
+
 from __future__ import annotations
 
 import inspect
@@ -18,10 +19,14 @@ def _docstring(name: str) -> str:
     obj = getattr(td, name)
     if inspect.ismodule(obj) or inspect.isclass(obj) or inspect.isroutine(obj):
         return inspect.getdoc(obj) or ""
-    owners = [m for m in list(sys.modules.values())
-              if getattr(m, "__name__", "").startswith("torchdeform.") and getattr(m, name, None) is obj
-              and name in getattr(m, "__all__", ())]
-    owner = max(owners, key=lambda m: m.__name__.count("."))            # the defining module, not a re-export
+    owners = [
+        m
+        for m in list(sys.modules.values())
+        if getattr(m, "__name__", "").startswith("torchdeform.")
+        and getattr(m, name, None) is obj
+        and name in getattr(m, "__all__", ())
+    ]
+    owner = max(owners, key=lambda m: m.__name__.count("."))  # the defining module, not a re-export
     return owner.__doc__ or ""
 
 

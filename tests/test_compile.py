@@ -5,6 +5,7 @@ processes on a fresh cache folder: a second process must load what the first one
 hit, the same numbers), and a graph that differs only inside the loop body must not be served
 another graph's code (a miss, its own numbers).
 """
+
 import json
 import os
 import subprocess
@@ -20,8 +21,13 @@ import torchdeform as td
 def _run(script: str, cache, *args) -> dict:
     """``script`` in a fresh interpreter with inductor's cache in ``cache``; its last stdout line as JSON."""
     env = dict(os.environ, TORCHINDUCTOR_CACHE_DIR=str(cache), TORCHDEFORM_CACHE_DIR=str(cache / "kernels"))
-    out = subprocess.run([sys.executable, "-c", textwrap.dedent(script), *map(str, args)], env=env,
-                         capture_output=True, text=True, timeout=600)
+    out = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(script), *map(str, args)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert out.returncode == 0, out.stderr[-3000:]
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -68,9 +74,9 @@ def test_a_second_process_loads_the_compiled_implicit_step_and_a_changed_loop_mi
     ``while_loop``) built by the first is loaded by the second and steps the same, equal to the
     eager step; two small loops differing only in their body constant each get their own entry."""
     first = _run(SCRIPT, tmp_path, 2.0, 3.0)
-    second = _run(SCRIPT, tmp_path, 3.0, 2.0)              # the same graphs, in another order
+    second = _run(SCRIPT, tmp_path, 3.0, 2.0)  # the same graphs, in another order
     for loop in first["loops"]:
-        assert (loop["hits"], loop["misses"]) == (0, 1)    # 3.0 is not served 2.0's code
+        assert (loop["hits"], loop["misses"]) == (0, 1)  # 3.0 is not served 2.0's code
     for loop in first["loops"] + second["loops"]:
         assert loop["y"] == [loop["factor"] ** 5] * 4
     for loop in second["loops"]:
@@ -80,10 +86,17 @@ def test_a_second_process_loads_the_compiled_implicit_step_and_a_changed_loop_mi
     assert (a["hits"], a["misses"]) == (0, 1) and (b["hits"], b["misses"]) == (1, 0)
     assert a["x"] == b["x"] and a["v"] == b["v"]
     grid = td.Grid((3, 4, 5), 0.01, 6)
-    model = td.Model(grid, stiffness=50.0, damping=0.1, mass=1e-3, gravity=(-9.81, 0, 0),
-                     fixed=grid.face("bottom") & grid.nodes(), dtype=torch.float64)
+    model = td.Model(
+        grid,
+        stiffness=50.0,
+        damping=0.1,
+        mass=1e-3,
+        gravity=(-9.81, 0, 0),
+        fixed=grid.face("bottom") & grid.nodes(),
+        dtype=torch.float64,
+    )
     ref = td.ImplicitEuler(cg_iters=8, cg_tol=0).step(model, model.rest_state(), 1e-3)
     x, v = (torch.tensor(a[k], dtype=torch.float64).view_as(ref.x) for k in ("x", "v"))
     assert torch.allclose(x, ref.x, rtol=0, atol=1e-12)
     assert torch.allclose(v, ref.v, rtol=0, atol=1e-9)
-    assert float(ref.v.abs().max()) > 1e-3                 # gravity moved the body: not a trivial step
+    assert float(ref.v.abs().max()) > 1e-3  # gravity moved the body: not a trivial step

@@ -5,6 +5,7 @@ One regression test per example of bad or extreme input that once ended in a tra
 NaN, a lost file or a misleading message. The oracle is the contract itself: the exit status, the
 number of lines on stderr, the absence of a traceback, the files on disk before and after.
 """
+
 from __future__ import annotations
 
 import json
@@ -64,8 +65,9 @@ def one_line(capsys, start="torchdeform: ") -> str:
 
 
 def run_cli(*argv, **kw) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "torchdeform", *map(str, argv)], capture_output=True, text=True,
-                          timeout=120, **kw)
+    return subprocess.run(
+        [sys.executable, "-m", "torchdeform", *map(str, argv)], capture_output=True, text=True, timeout=120, **kw
+    )
 
 
 def listing(folder: Path) -> list:
@@ -74,24 +76,32 @@ def listing(folder: Path) -> list:
 
 # ------------------------------------------------------------------ tracebacks that are now one line
 def test_knoche_scene_without_material(tmp_path, capsys):
-    path = scene(tmp_path, TINY.replace("[material]\nstiffness = 50.0\ndamping = 0.1\n", "")
-                 .replace('name = "symplectic"', 'name = "knoche"'))
+    path = scene(
+        tmp_path,
+        TINY.replace("[material]\nstiffness = 50.0\ndamping = 0.1\n", "").replace(
+            'name = "symplectic"', 'name = "knoche"'
+        ),
+    )
     assert cli.main(["run", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
     assert "material" in one_line(capsys)
 
 
-@pytest.mark.parametrize("argv, key", [
-    (["run", "{huge}", "--out", "{out}"], "grid.shape"),
-    (["render", "phantom:100000", "--out", "{out}.png"], "volume"),
-    (["render", "phantom:16", "--out", "{out}.png", "--view", "orbit", "--size", "16384"], "size"),
-])
+@pytest.mark.parametrize(
+    "argv, key",
+    [
+        (["run", "{huge}", "--out", "{out}"], "grid.shape"),
+        (["render", "phantom:100000", "--out", "{out}.png"], "volume"),
+        (["render", "phantom:16", "--out", "{out}.png", "--view", "orbit", "--size", "16384"], "size"),
+    ],
+)
 def test_sizes_beyond_memory_are_refused_with_the_key_and_the_bytes(tmp_path, capsys, argv, key):
     huge = scene(tmp_path, TINY.replace("shape = [3, 3, 3]", "shape = [100000, 100000, 100000]"))
     argv = [a.format(huge=huge, out=tmp_path / "out") for a in argv]
-    if "--size" in argv:          # 16384 is within --size's range: lower the ceiling the check compares with
+    if "--size" in argv:  # 16384 is within --size's range: lower the ceiling the check compares with
         from torchdeform import checks
+
         avail = checks.available_memory
-        checks.available_memory = lambda device=None: 2 ** 30
+        checks.available_memory = lambda device=None: 2**30
         try:
             assert cli.main(argv) == 2
         finally:
@@ -131,24 +141,28 @@ def test_non_utf8_csv_names_the_line(tmp_path, capsys, where):
 
 def test_output_paths_that_are_files_missing_folders_or_unwritable(tmp_path, capsys):
     path = scene(tmp_path)
-    assert cli.main(["run", str(path), "--out", str(path), "--quiet"]) == 2               # a file
+    assert cli.main(["run", str(path), "--out", str(path), "--quiet"]) == 2  # a file
     assert "this path is a file" in one_line(capsys)
-    assert cli.main(["data", "cube", "--out", str(tmp_path / "no" / "such" / "x.npz"), "--n", "3",
-                     "--steps", "5"]) == 0                                                 # folders are made
+    assert (
+        cli.main(["data", "cube", "--out", str(tmp_path / "no" / "such" / "x.npz"), "--n", "3", "--steps", "5"]) == 0
+    )  # folders are made
     assert cli.main(["warp", "phantom:16", str(tmp_path / "x.npy"), "--out", str(tmp_path / "missing" / "w.npy")]) == 2
     one_line(capsys)
-    assert cli.main(["run", str(path), "--out", "/proc/torchdeform-test/out", "--quiet"]) == 2   # cannot be made
+    assert cli.main(["run", str(path), "--out", "/proc/torchdeform-test/out", "--quiet"]) == 2  # cannot be made
     assert "--out" in one_line(capsys)
 
 
-@pytest.mark.parametrize("argv, option", [
-    (["data", "cube", "--out", "x.npz", "--dt", "nan"], "--dt"),
-    (["data", "cube", "--out", "x.npz", "--dt", "0"], "--dt"),
-    (["data", "balloon", "--out", "x.npz", "--dt", "-1"], "--dt"),
-    (["bench", "speed", "--quick", "--threads", "0"], "--threads"),
-    (["render", "phantom:16", "--out", "x.png", "--size", "0"], "--size"),
-    (["sweep", "s.toml", "--set", "material.stiffness=1", "--out", "o", "--batch", "0"], "--batch"),
-])
+@pytest.mark.parametrize(
+    "argv, option",
+    [
+        (["data", "cube", "--out", "x.npz", "--dt", "nan"], "--dt"),
+        (["data", "cube", "--out", "x.npz", "--dt", "0"], "--dt"),
+        (["data", "balloon", "--out", "x.npz", "--dt", "-1"], "--dt"),
+        (["bench", "speed", "--quick", "--threads", "0"], "--threads"),
+        (["render", "phantom:16", "--out", "x.png", "--size", "0"], "--size"),
+        (["sweep", "s.toml", "--set", "material.stiffness=1", "--out", "o", "--batch", "0"], "--batch"),
+    ],
+)
 def test_cli_numbers_are_checked_while_parsing(capsys, argv, option):
     with pytest.raises(SystemExit) as e:
         cli.main(argv)
@@ -158,9 +172,22 @@ def test_cli_numbers_are_checked_while_parsing(capsys, argv, option):
 
 
 def test_fit_cube_on_the_shipped_layered_series_is_one_line(tmp_path):
-    proc = subprocess.run([sys.executable, str(ROOT / "training" / "fit_cube.py"), "--data",
-                           str(ROOT / "data" / "cube4_sine_layers.npz"), "--runs", "3", "--out", str(tmp_path),
-                           "--quiet"], capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "training" / "fit_cube.py"),
+            "--data",
+            str(ROOT / "data" / "cube4_sine_layers.npz"),
+            "--runs",
+            "3",
+            "--out",
+            str(tmp_path),
+            "--quiet",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     lines = [x for x in proc.stderr.splitlines() if not x.startswith("run ")]
     assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in proc.stderr
     assert lines[0].startswith("fit_cube.py: --runs:") and "per-region" in lines[0]
@@ -168,8 +195,12 @@ def test_fit_cube_on_the_shipped_layered_series_is_one_line(tmp_path):
 
 @pytest.mark.parametrize("argv", [["--runs", "x"], ["--threads", "0"], ["--offset", "3"], ["--noise", "nan"]])
 def test_training_scripts_exit_2_on_bad_options(tmp_path, argv):
-    proc = subprocess.run([sys.executable, str(ROOT / "training" / "fit_cube.py"), "--out", str(tmp_path), *argv],
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "training" / "fit_cube.py"), "--out", str(tmp_path), *argv],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
 
 
@@ -177,8 +208,10 @@ def test_a_closed_stdout_is_quiet(tmp_path):
     """``torchdeform fuzzy show susilap_g | head -5``: the reader goes away before the writer is done."""
     csv = tmp_path / "many.csv"
     csv.write_text("consistency\n" + "\n".join(f"{v:.4f}" for v in np.linspace(0, 12, 20000)) + "\n")
-    for argv in (["fuzzy", "show", "susilap_g"],
-                 ["fuzzy", "eval", str(ROOT / "fuzzy" / "susilap_g.fis"), "--inputs", str(csv)]):
+    for argv in (
+        ["fuzzy", "show", "susilap_g"],
+        ["fuzzy", "eval", str(ROOT / "fuzzy" / "susilap_g.fis"), "--inputs", str(csv)],
+    ):
         shell = " ".join([sys.executable, "-m", "torchdeform", *argv]) + " | head -5"
         proc = subprocess.run(["bash", "-o", "pipefail", "-c", shell], capture_output=True, text=True, timeout=120)
         assert proc.returncode == 0, proc.stderr
@@ -198,7 +231,8 @@ def test_fuzzy_ranges_beyond_float32_are_refused(tmp_path, capsys):
 
 def test_output_term_narrower_than_a_cell_warns(tmp_path, capsys):
     path = tmp_path / "narrow.fis"
-    path.write_text(textwrap.dedent("""\
+    path.write_text(
+        textwrap.dedent("""\
         [System]
         Name='narrow'
         NumInputs=1
@@ -219,7 +253,8 @@ def test_output_term_narrower_than_a_cell_warns(tmp_path, capsys):
         [Rules]
         1, 1 (1) : 1
         2, 2 (1) : 1
-        """))
+        """)
+    )
     assert cli.main(["fuzzy", "eval", str(path), "x=10"]) == 0
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("torchdeform: warning: narrow: output y's term hi is narrower")
@@ -228,7 +263,7 @@ def test_output_term_narrower_than_a_cell_warns(tmp_path, capsys):
         with pytest.raises(td.fuzzy.ResolutionWarning):
             read_fis(path)
     text = path.read_text().replace("NumRules=2\n", "NumRules=2\nResolution=100000\n")
-    path.write_text(text)                       # fine enough cells: no warning, and 'hi' now counts
+    path.write_text(text)  # fine enough cells: no warning, and 'hi' now counts
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         fis = read_fis(path)
@@ -250,7 +285,9 @@ def test_data_cube_never_writes_non_finite_series(tmp_path, capsys, amplitude, c
 
 
 def test_chainmail_drag_of_1e300_m_is_refused(tmp_path, capsys):
-    path = scene(tmp_path, """
+    path = scene(
+        tmp_path,
+        """
         model = "chainmail"
         [grid]
         shape = [5, 5, 5]
@@ -266,15 +303,30 @@ def test_chainmail_drag_of_1e300_m_is_refused(tmp_path, capsys):
         [[drags]]
         face = "top"
         path = [[0.0, [0.0, 0.0, 0.0]], [1.0, [1e300, 0.0, 0.0]]]
-        """)
+        """,
+    )
     assert cli.main(["run", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
     err = one_line(capsys)
     assert f"{path}:16: drags[0].path: expected offsets within 1000 body sizes" in err
 
 
 def test_training_from_a_diverging_start_stops_with_one_line(tmp_path):
-    proc = subprocess.run([sys.executable, str(ROOT / "training" / "fit_cube.py"), "--runs", "3", "--offset",
-                           "1e9,0.4", "--out", str(tmp_path), "--quiet"], capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "training" / "fit_cube.py"),
+            "--runs",
+            "3",
+            "--offset",
+            "1e9,0.4",
+            "--out",
+            str(tmp_path),
+            "--quiet",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     lines = [x for x in proc.stderr.splitlines() if not x.startswith("run ")]
     assert proc.returncode == 2 and len(lines) == 1 and "training cannot start: the loss is not finite" in lines[0]
     assert not (tmp_path / "result.json").exists()
@@ -283,15 +335,18 @@ def test_training_from_a_diverging_start_stops_with_one_line(tmp_path):
 @pytest.mark.parametrize("case", ["no stiffness", "every node fixed"])
 def test_time_step_bound_without_springs_or_free_nodes_is_inf(case):
     g = td.Grid((3, 3, 3), 0.01)
-    kw = dict(stiffness=0.0) if case == "no stiffness" else dict(stiffness=10.0, fixed=torch.ones(3, 3, 3,
-                                                                                                   dtype=torch.bool))
+    kw = (
+        dict(stiffness=0.0)
+        if case == "no stiffness"
+        else dict(stiffness=10.0, fixed=torch.ones(3, 3, 3, dtype=torch.bool))
+    )
     model = td.Model(g, mass=1e-3, **kw)
     for name in ("explicit", "symplectic", "verlet", "rk4"):
         assert td.time_step_bound(model, name) == math.inf
     assert td.time_step_bound(model, method="gershgorin") == math.inf
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        td.check_dt(model, 1.0, "symplectic")                   # any dt is stable: no warning
+        td.check_dt(model, 1.0, "symplectic")  # any dt is stable: no warning
 
 
 def test_simulate_zero_steps_returns_the_start():
@@ -330,6 +385,7 @@ def test_fixed_nodes_never_move_even_with_a_start_velocity():
 def _limited(limit_bytes: int):
     def set_limit():
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
+
     return set_limit
 
 
@@ -339,9 +395,9 @@ def test_a_write_failure_during_a_rerun_keeps_the_previous_run(tmp_path):
     assert run_cli("run", path, "--out", out, "--quiet").returncode == 0
     before = {p: (out / p).read_bytes() for p in listing(out)}
     assert (out / "trajectory.npz").stat().st_size > 40_000
-    proc = run_cli("run", path, "--out", out, "--quiet", preexec_fn=_limited(20_000))        # ulimit -f
+    proc = run_cli("run", path, "--out", out, "--quiet", preexec_fn=_limited(20_000))  # ulimit -f
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "File too large" in proc.stderr
-    assert {p: (out / p).read_bytes() for p in listing(out)} == before            # the previous run, untouched
+    assert {p: (out / p).read_bytes() for p in listing(out)} == before  # the previous run, untouched
     np.load(out / "trajectory.npz")["x"]
 
 
@@ -350,8 +406,11 @@ def test_single_file_commands_leave_an_earlier_file_whole(tmp_path, command):
     offsets = tmp_path / "offsets.npy"
     np.save(offsets, np.zeros((3, 4, 4, 4), np.float32))
     target = tmp_path / {"data": "c.npz", "warp": "w.npy", "render": "r.png"}[command]
-    argv = {"data": ["data", "cube", "--n", "4", "--steps", "400", "--noise", "0.01"],
-            "warp": ["warp", "phantom:64", offsets], "render": ["render", "phantom:64", "--size", "512"]}[command]
+    argv = {
+        "data": ["data", "cube", "--n", "4", "--steps", "400", "--noise", "0.01"],
+        "warp": ["warp", "phantom:64", offsets],
+        "render": ["render", "phantom:64", "--size", "512"],
+    }[command]
     assert run_cli(*argv, "--out", target).returncode == 0
     good = target.read_bytes()
     proc = run_cli(*argv, "--out", target, preexec_fn=_limited(len(good) // 3))
@@ -362,6 +421,7 @@ def test_single_file_commands_leave_an_earlier_file_whole(tmp_path, command):
 def test_volume_section_is_checked_before_the_simulation(tmp_path, capsys, monkeypatch):
     path = scene(tmp_path, TINY + '\n[volume]\nfile = "missing.npy"\n')
     import torchdeform.scene.run as run_module
+
     monkeypatch.setattr(run_module, "simulate", lambda *a, **k: pytest.fail("the simulation ran"))
     assert cli.main(["run", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
     assert f"{path}:23: volume.file" in one_line(capsys)
@@ -382,7 +442,7 @@ def test_a_rerun_leaves_exactly_its_own_outputs(tmp_path, capsys):
 
 def test_a_folder_with_other_files_needs_force(tmp_path, capsys):
     path = scene(tmp_path)
-    assert cli.main(["run", str(path), "--out", str(tmp_path), "--quiet"]) == 2      # holds scene.toml
+    assert cli.main(["run", str(path), "--out", str(tmp_path), "--quiet"]) == 2  # holds scene.toml
     assert "--force" in one_line(capsys) and listing(tmp_path) == ["scene.toml"]
     assert cli.main(["run", str(path), "--out", str(tmp_path), "--quiet", "--force"]) == 0
     capsys.readouterr()
@@ -392,8 +452,9 @@ def test_a_folder_with_other_files_needs_force(tmp_path, capsys):
 # ------------------------------------------------------------------ misleading messages
 def test_divergence_under_a_huge_load_does_not_blame_dt():
     g = td.Grid((3, 3, 3), 0.01)
-    model = td.Model(g, stiffness=10.0, mass=1e-3, fixed=g.face("bottom"), loads=[td.PointForce((2, 1, 1),
-                                                                                                  (1e300, 0, 0))])
+    model = td.Model(
+        g, stiffness=10.0, mass=1e-3, fixed=g.face("bottom"), loads=[td.PointForce((2, 1, 1), (1e300, 0, 0))]
+    )
     with pytest.raises(td.DivergenceError) as e:
         td.simulate(model, model.rest_state(), 1e-4, 100)
     assert "the time step is not the cause" in str(e.value) and "safe time step" not in str(e.value)
@@ -418,7 +479,7 @@ def test_stability_warning_with_a_zero_bound_reads(capsys, tmp_path):
 
 
 def test_warnings_are_one_line_each(tmp_path, capsys):
-    path = scene(tmp_path, TINY.replace("dt = 1e-4", "dt = 3e-4"))          # above the bound: a StabilityWarning
+    path = scene(tmp_path, TINY.replace("dt = 1e-4", "dt = 3e-4"))  # above the bound: a StabilityWarning
     cli.main(["run", str(path), "--out", str(tmp_path / "out"), "--quiet"])
     err = capsys.readouterr().err
     assert err and all(x.startswith("torchdeform: ") for x in err.splitlines()), err
@@ -428,9 +489,13 @@ def test_warnings_are_one_line_each(tmp_path, capsys):
 def test_a_rollout_that_cannot_fit_is_refused_before_training(monkeypatch):
     """The autograd graph of a loss evaluation is estimated first; checkpointing is suggested."""
     from torchdeform import checks, learn
+
     series = learn.radetzky_cube(springs=54, steps=40)
-    learn.WindowLoss(series, window=None)                              # fits in the real memory
+    learn.WindowLoss(series, window=None)  # fits in the real memory
     monkeypatch.setattr(checks, "available_memory", lambda device=None: 10_000)
-    with pytest.raises(td.ConfigError, match=r"^window: expected a size that fits in memory: the autograd graph "
-                                             r"of 40 steps .* \(set checkpoint to keep fewer\)"):
+    with pytest.raises(
+        td.ConfigError,
+        match=r"^window: expected a size that fits in memory: the autograd graph "
+        r"of 40 steps .* \(set checkpoint to keep fewer\)",
+    ):
         learn.WindowLoss(series, window=None)

@@ -8,6 +8,7 @@ staging file left behind. The commands run in-process (``torchdeform.cli.main``)
 milliseconds to a few tenths of a second; ``CASES`` per family (1,270 in all) run in about
 50 s on 2 cores.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -36,8 +37,13 @@ CASES = {"scene": 250, "fis": 250, "csv": 150, "series": 150, "volume": 120, "cl
 
 
 def fuzz(family: str):
-    return settings(max_examples=CASES[family], deadline=None, derandomize=True, database=None,
-                    suppress_health_check=list(HealthCheck))
+    return settings(
+        max_examples=CASES[family],
+        deadline=None,
+        derandomize=True,
+        database=None,
+        suppress_health_check=list(HealthCheck),
+    )
 
 
 def call(argv) -> tuple[int, str, str]:
@@ -46,7 +52,7 @@ def call(argv) -> tuple[int, str, str]:
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         try:
             status = cli.main([str(a) for a in argv])
-        except SystemExit as e:                           # argparse: usage errors and --help
+        except SystemExit as e:  # argparse: usage errors and --help
             status = e.code
     return status, out.getvalue(), err.getvalue()
 
@@ -77,8 +83,8 @@ def finite_npz(path: Path) -> None:
 # ------------------------------------------------------------------ values a mutation puts in
 WILD = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True),
-    st.sampled_from([0, -1, 1, 2, 3, 1e-300, 1e300, -1e-9, 0.5, 1e9, 10 ** 12, 26, 6, 7]),
-    st.integers(-10 ** 6, 10 ** 6),
+    st.sampled_from([0, -1, 1, 2, 3, 1e-300, 1e300, -1e-9, 0.5, 1e9, 10**12, 26, 6, 7]),
+    st.integers(-(10**6), 10**6),
     st.text(max_size=12),
     st.booleans(),
     st.lists(st.sampled_from([0, 1, -1, 2.5, 1e300, "a", None, 3]), max_size=4),
@@ -143,17 +149,17 @@ def scenes(draw):
     lines = SCENE.splitlines()
     for _ in range(draw(st.integers(1, 3))):
         i = draw(st.sampled_from(KEYS))
-        if "=" not in lines[i]:                          # dropped by an earlier mutation
+        if "=" not in lines[i]:  # dropped by an earlier mutation
             continue
         key = lines[i].split("=")[0].strip()
         kind = draw(st.sampled_from(["value", "value", "fair", "fair", "drop", "unknown", "integrator"]))
         if kind == "value":
             lines[i] = f"{key} = {toml_value(draw(WILD))}"
-        elif kind == "fair":                             # a plausible value of the right kind: runs mostly
+        elif kind == "fair":  # a plausible value of the right kind: runs mostly
             old = lines[i].split("=", 1)[1].strip()
             try:
                 float(old)
-            except ValueError:                           # a list, string, bool, nan ...: left as it is
+            except ValueError:  # a list, string, bool, nan ...: left as it is
                 continue
             factor = draw(st.sampled_from([0.5, 2.0, 10.0, 0.1, 3.0]))
             lines[i] = f"{key} = {max(1, int(float(old) * factor)) if old.isdigit() else float(old) * factor!r}"
@@ -165,20 +171,21 @@ def scenes(draw):
             lines = [f'name = "{draw(st.sampled_from(INTEGRATORS))}"' if x.startswith("name =") else x for x in lines]
     if draw(st.booleans()) and draw(st.booleans()):
         header = draw(st.sampled_from(["[mass]", "[integrator]", "[material]", "[grid]"]))
-        lines = [x for x in lines if x != header]                    # a section lost: its keys join another
+        lines = [x for x in lines if x != header]  # a section lost: its keys join another
     return "\n".join(lines) + "\n"
 
 
 def _small(text: str) -> bool:
     """Cheap enough to run here: at most ~100 nodes x 2,000 steps (others are only loaded)."""
     from torchdeform.scene import load_scene
+
     with tempfile.TemporaryDirectory() as d:
         path = Path(d) / "s.toml"
         path.write_text(text)
         try:
             s = load_scene(path)
         except TorchdeformError:
-            return True                                # refused while loading: running is cheap too
+            return True  # refused while loading: running is cheap too
         steps = getattr(s, "steps", None) or getattr(s, "frames", 1)
         return s.grid.num_nodes <= 200 and steps <= 2000
 
@@ -192,7 +199,8 @@ def test_fuzzed_scene_files(text):
         path.write_text(text)
         if not _small(text):
             from torchdeform.scene import load_scene
-            load_scene(path)                           # loads without a traceback; too long to run here
+
+            load_scene(path)  # loads without a traceback; too long to run here
             event("loaded only (too long to run here)")
             return
         out = d / "out"
@@ -200,7 +208,8 @@ def test_fuzzed_scene_files(text):
         holds(status, err, out)
         if status == 0:
             assert json.loads((out / "summary.json").read_text())["outputs"] == sorted(
-                p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file())
+                p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()
+            )
             finite_npz(out / "trajectory.npz")
         else:
             assert not out.exists() or not any(out.iterdir())
@@ -221,12 +230,19 @@ def fis_files(draw):
         kind = draw(st.sampled_from(["number", "number", "drop", "dup", "garble", "value"]))
         if kind == "number":
             import re
+
             nums = list(re.finditer(r"-?\d+(\.\d+)?(e-?\d+)?", lines[i]))
             if nums:
                 m = draw(st.sampled_from(nums))
-                new = toml_value(draw(st.one_of(st.floats(allow_nan=True, allow_infinity=True),
-                                                st.sampled_from([0, -1, 1e40, 1e-40, 5, 1000000]))))
-                lines[i] = lines[i][:m.start()] + new + lines[i][m.end():]
+                new = toml_value(
+                    draw(
+                        st.one_of(
+                            st.floats(allow_nan=True, allow_infinity=True),
+                            st.sampled_from([0, -1, 1e40, 1e-40, 5, 1000000]),
+                        )
+                    )
+                )
+                lines[i] = lines[i][: m.start()] + new + lines[i][m.end() :]
         elif kind == "drop":
             lines[i] = ""
         elif kind == "dup":
@@ -249,25 +265,42 @@ def test_fuzzed_fis_files(text, value):
         holds(status, err)
         if status == 0:
             doc = json.loads(out)
-            assert all(math.isfinite(v) for row in (doc if isinstance(doc, list) else [doc])
-                       for v in (row.values() if isinstance(row, dict) else [row]) if isinstance(v, float))
+            assert all(
+                math.isfinite(v)
+                for row in (doc if isinstance(doc, list) else [doc])
+                for v in (row.values() if isinstance(row, dict) else [row])
+                if isinstance(v, float)
+            )
 
 
 # ------------------------------------------------------------------ CSV inputs
-CELL = st.one_of(st.floats(-20, 20).map(lambda v: f"{v:.3f}"), st.sampled_from(["5.5", "0", "12", "-1", "1e400",
-                                                                                   "nan", "inf", "", "x", "\""]))
+CELL = st.one_of(
+    st.floats(-20, 20).map(lambda v: f"{v:.3f}"),
+    st.sampled_from(["5.5", "0", "12", "-1", "1e400", "nan", "inf", "", "x", '"']),
+)
 ROWS = st.lists(st.lists(CELL, min_size=1, max_size=3).map(",".join), min_size=1, max_size=10)
 
 
 @fuzz("csv")
-@given(st.one_of(
-    st.binary(max_size=200),
-    st.tuples(st.sampled_from(["consistency", "consistency,extra", "extra,consistency", " consistency ", "x"]),
-              ROWS).map(lambda hr: ("\n".join([hr[0], *hr[1]]) + "\n").encode()),
-    st.tuples(st.just("consistency"), ROWS).map(lambda hr: ("\n".join([hr[0], *hr[1]]) + "\n").encode()),
-    st.lists(st.lists(st.one_of(st.sampled_from(["consistency", "x", "", "nan", "inf", "-1", "5.5", "1e400",
-                                                 "\"", ";"]), st.text(max_size=6)), max_size=4), max_size=8)
-    .map(lambda rows: "\n".join(",".join(r) for r in rows).encode("utf-8", "replace"))))
+@given(
+    st.one_of(
+        st.binary(max_size=200),
+        st.tuples(
+            st.sampled_from(["consistency", "consistency,extra", "extra,consistency", " consistency ", "x"]), ROWS
+        ).map(lambda hr: ("\n".join([hr[0], *hr[1]]) + "\n").encode()),
+        st.tuples(st.just("consistency"), ROWS).map(lambda hr: ("\n".join([hr[0], *hr[1]]) + "\n").encode()),
+        st.lists(
+            st.lists(
+                st.one_of(
+                    st.sampled_from(["consistency", "x", "", "nan", "inf", "-1", "5.5", "1e400", '"', ";"]),
+                    st.text(max_size=6),
+                ),
+                max_size=4,
+            ),
+            max_size=8,
+        ).map(lambda rows: "\n".join(",".join(r) for r in rows).encode("utf-8", "replace")),
+    )
+)
 def test_fuzzed_csv_inputs(data):
     with tempfile.TemporaryDirectory() as d:
         path = Path(d) / "in.csv"
@@ -341,9 +374,12 @@ def test_fuzzed_series_files(arrays):
 # ------------------------------------------------------------------ volumes
 @st.composite
 def volumes(draw):
-    odd = draw(st.integers(0, 3)) == 0                        # a quarter: any shape; else a volume (D, H, W)
-    shape = draw(st.lists(st.integers(0, 9), min_size=1, max_size=4) if odd else
-                 st.lists(st.integers(1, 12), min_size=3, max_size=3))
+    odd = draw(st.integers(0, 3)) == 0  # a quarter: any shape; else a volume (D, H, W)
+    shape = draw(
+        st.lists(st.integers(0, 9), min_size=1, max_size=4)
+        if odd
+        else st.lists(st.integers(1, 12), min_size=3, max_size=3)
+    )
     dtype = draw(st.sampled_from([np.float32, np.float32, np.float64, np.uint8, np.int16, np.bool_, np.complex64]))
     a = np.asarray(draw(st.floats(-1e3, 1e3)) * np.random.default_rng(len(shape)).random(shape)).astype(dtype)
     if a.size and a.dtype.kind == "f" and draw(st.integers(0, 3)) == 0:
@@ -362,6 +398,7 @@ def test_fuzzed_volumes(arr, mode, view):
         holds(status, err, Path(d))
         if status == 0:
             from PIL import Image
+
             with Image.open(out) as im:
                 im.load()
         else:
@@ -369,17 +406,35 @@ def test_fuzzed_volumes(arr, mode, view):
 
 
 # ------------------------------------------------------------------ command-line values
-NUMBER = st.one_of(st.floats(allow_nan=True, allow_infinity=True).map(repr),
-                   st.sampled_from(["0", "-1", "1e-12", "1e308", "abc", "", "3", "nan", "inf", "0x10"]))
+NUMBER = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True).map(repr),
+    st.sampled_from(["0", "-1", "1e-12", "1e308", "abc", "", "3", "nan", "inf", "0x10"]),
+)
 COUNT = st.one_of(st.integers(-3, 6).map(str), st.integers(1, 8).map(str), st.sampled_from(["0", "-1", "2.5", "x"]))
 
 
 @st.composite
 def data_cube_argv(draw):
     argv = ["data", "cube", "--n", draw(st.sampled_from(["2", "3", "3", "3", "0", "1", "x"])), "--steps", draw(COUNT)]
-    for option in draw(st.lists(st.sampled_from(["--dt", "--amplitude", "--noise", "--mass", "--stiffness",
-                                                 "--damping", "--every", "--load", "--topology"]), max_size=3,
-                                unique=True)):
+    for option in draw(
+        st.lists(
+            st.sampled_from(
+                [
+                    "--dt",
+                    "--amplitude",
+                    "--noise",
+                    "--mass",
+                    "--stiffness",
+                    "--damping",
+                    "--every",
+                    "--load",
+                    "--topology",
+                ]
+            ),
+            max_size=3,
+            unique=True,
+        )
+    ):
         value = draw(COUNT if option in ("--every", "--topology") else NUMBER)
         if option == "--load":
             value = draw(st.sampled_from(["constant", "ramp", "sine", "indent", "boom"]))
@@ -407,14 +462,18 @@ def _options():
 
     def walk(p, words):
         subs = [a for a in p._actions if a.__class__.__name__ == "_SubParsersAction"]
-        options = [a.option_strings[-1] for a in p._actions if a.option_strings and a.nargs is None
-                   and a.__class__.__name__ == "_StoreAction"]
+        options = [
+            a.option_strings[-1]
+            for a in p._actions
+            if a.option_strings and a.nargs is None and a.__class__.__name__ == "_StoreAction"
+        ]
         positionals = [a for a in p._actions if not a.option_strings and a.__class__.__name__ == "_StoreAction"]
         if options:
             found.append((tuple(words), len(positionals), tuple(options)))
         for sub in subs:
             for name, child in sub.choices.items():
                 walk(child, [*words, name])
+
     walk(parser, [])
     return found
 
@@ -446,7 +505,7 @@ def test_fuzzed_option_values_parse_or_refuse_in_one_line(argv):
 
 
 def test_the_families_add_up_to_at_least_1000_cases():
-    assert len(OPTIONS) >= 15                            # every command with options is reached
+    assert len(OPTIONS) >= 15  # every command with options is reached
     assert sum(CASES.values()) >= 1000 and set(CASES) == {"scene", "fis", "csv", "series", "volume", "cli", "options"}
 
 

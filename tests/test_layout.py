@@ -9,6 +9,7 @@
 
 Imports by computed name (``importlib.import_module`` in the bench registry) are not seen here.
 """
+
 from __future__ import annotations
 
 import ast
@@ -45,7 +46,7 @@ def _resolve(importer: str, level: int, module: str | None) -> str:
     package = importer.split(".") if _is_package(importer) else importer.split(".")[:-1]
     if level - 1 >= len(package):
         raise AssertionError(f"{importer}: relative import beyond the top-level package")
-    base = package[:len(package) - (level - 1)]
+    base = package[: len(package) - (level - 1)]
     return ".".join(base + ([module] if module else []))
 
 
@@ -81,7 +82,7 @@ GRAPH = {name: sorted({target for target, _, _ in found}) for name, found in IMP
 
 def find_cycle(graph: dict) -> list | None:
     """One cycle ``[a, b, ..., a]`` of a directed graph ``{node: [successors]}``, or ``None``."""
-    colour = dict.fromkeys(graph, 0)                    # 0 unseen, 1 on the current path, 2 done
+    colour = dict.fromkeys(graph, 0)  # 0 unseen, 1 on the current path, 2 done
     path = []
 
     def visit(node):
@@ -89,7 +90,7 @@ def find_cycle(graph: dict) -> list | None:
         path.append(node)
         for nxt in graph.get(node, ()):
             if colour.get(nxt, 0) == 1:
-                return path[path.index(nxt):] + [nxt]
+                return path[path.index(nxt) :] + [nxt]
             if colour.get(nxt, 0) == 0:
                 found = visit(nxt)
                 if found:
@@ -133,7 +134,9 @@ def private_imports() -> list:
 
 # ------------------------------------------------------------------ tests
 def test_graph_sees_the_package():
-    assert {"torchdeform", "torchdeform.sim", "torchdeform.sim.springs", "torchdeform.cli", GROUND_FLOOR} <= set(MODULES)
+    assert {"torchdeform", "torchdeform.sim", "torchdeform.sim.springs", "torchdeform.cli", GROUND_FLOOR} <= set(
+        MODULES
+    )
     assert "torchdeform.sim" in GRAPH["torchdeform"]
     unknown = [(m, t) for m, found in IMPORTS.items() for t, _, _ in found if t not in MODULES]
     assert not unknown, f"imports that resolve to no module of the package: {unknown}"
@@ -165,8 +168,10 @@ def test_no_private_imports_across_subpackages():
 
 
 def _loaded_heavy(statement: str) -> list:
-    code = (f"import json, sys\n{statement}\n"
-            f"print(json.dumps(sorted(m for m in sys.modules if m.split('.')[0] in {HEAVY!r})))")
+    code = (
+        f"import json, sys\n{statement}\n"
+        f"print(json.dumps(sorted(m for m in sys.modules if m.split('.')[0] in {HEAVY!r})))"
+    )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert res.returncode == 0, res.stderr
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -174,19 +179,22 @@ def _loaded_heavy(statement: str) -> list:
 
 def _loaded_compiler(statement: str) -> list:
     """The torch compiler modules (dynamo, inductor: ~1.7 s to import) loaded by ``statement``."""
-    code = (f"import json, sys\n{statement}\n"
-            "print(json.dumps(sorted(m for m in sys.modules if m.startswith(('torch._inductor', 'torch._dynamo', '"
-            "torchdeform._compile')))))")
+    code = (
+        f"import json, sys\n{statement}\n"
+        "print(json.dumps(sorted(m for m in sys.modules if m.startswith(('torch._inductor', 'torch._dynamo', '"
+        "torchdeform._compile')))))"
+    )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert res.returncode == 0, res.stderr
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
-@pytest.mark.parametrize("statement", ["import torchdeform",
-                                       "from torchdeform.cli import build_parser; build_parser()"])
+@pytest.mark.parametrize(
+    "statement", ["import torchdeform", "from torchdeform.cli import build_parser; build_parser()"]
+)
 def test_heavy_libraries_are_not_loaded(statement):
     assert _loaded_heavy(statement) == []
-    assert _loaded_compiler(statement) == []           # every command's start-up would pay for it
+    assert _loaded_compiler(statement) == []  # every command's start-up would pay for it
 
 
 def test_heavy_library_check_can_fail():

@@ -7,6 +7,7 @@ relative to the repository root, as users type them, and whatever a block writes
 ``view.png``, ``body.stl``) lands in the temporary folder. Blocks must be fast (a few seconds on
 2 cores) and must not compile: code that calls ``torch.compile`` belongs in the prose.
 """
+
 from __future__ import annotations
 
 import os
@@ -42,32 +43,43 @@ def test_readme_has_python_blocks():
     assert BLOCKS, f"no ```python blocks found in {README}"
 
 
-@pytest.mark.parametrize("index, source", list(enumerate(BLOCKS)),
-                         ids=[block_id(i, b) for i, b in enumerate(BLOCKS)])
+@pytest.mark.parametrize("index, source", list(enumerate(BLOCKS)), ids=[block_id(i, b) for i, b in enumerate(BLOCKS)])
 def test_readme_block_runs(index, source, tmp_path):
     assert not COMPILES.search(source), (
         f"README python block {index} compiles (torch.compile costs 20-60 s per shape): "
-        "show compiling code in the prose, not in a ```python block")
+        "show compiling code in the prose, not in a ```python block"
+    )
     work = tmp_path / "work"
     work.mkdir()
-    for entry in ROOT.iterdir():                # data/, tests/, scenes/, ...: README paths from the root
-        if entry.is_dir() and not entry.name.startswith((".", "_")) and entry.name != PACKAGE.name \
-                and not entry.name.endswith(".egg-info"):
+    for entry in ROOT.iterdir():  # data/, tests/, scenes/, ...: README paths from the root
+        if (
+            entry.is_dir()
+            and not entry.name.startswith((".", "_"))
+            and entry.name != PACKAGE.name
+            and not entry.name.endswith(".egg-info")
+        ):
             (work / entry.name).symlink_to(entry, target_is_directory=True)
-    script = tmp_path / f"readme_block_{index}.py"   # outside the working folder: a clean sys.path[0]
+    script = tmp_path / f"readme_block_{index}.py"  # outside the working folder: a clean sys.path[0]
     script.write_text(source, encoding="utf-8")
-    env = dict(os.environ, MPLBACKEND="Agg",
-               PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
+    env = dict(
+        os.environ,
+        MPLBACKEND="Agg",
+        PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
+    )
     try:
-        proc = subprocess.run([sys.executable, str(script)], cwd=work, env=env, capture_output=True,
-                              text=True, timeout=TIMEOUT_S)
-    except subprocess.TimeoutExpired as e:             # captured output is bytes here, whatever text= says
+        proc = subprocess.run(
+            [sys.executable, str(script)], cwd=work, env=env, capture_output=True, text=True, timeout=TIMEOUT_S
+        )
+    except subprocess.TimeoutExpired as e:  # captured output is bytes here, whatever text= says
         err = e.stderr.decode(errors="replace") if isinstance(e.stderr, bytes) else e.stderr or ""
-        pytest.fail(f"README python block {index} ran longer than {TIMEOUT_S} s (blocks must take a few "
-                    f"seconds)\n--- block ---\n{source}\n--- stderr ---\n{err[-4000:]}")
+        pytest.fail(
+            f"README python block {index} ran longer than {TIMEOUT_S} s (blocks must take a few "
+            f"seconds)\n--- block ---\n{source}\n--- stderr ---\n{err[-4000:]}"
+        )
     assert proc.returncode == 0, (
         f"README python block {index} failed with exit status {proc.returncode}\n"
-        f"--- block ---\n{source}\n--- stdout ---\n{proc.stdout[-2000:]}\n--- stderr ---\n{proc.stderr[-6000:]}")
+        f"--- block ---\n{source}\n--- stdout ---\n{proc.stdout[-2000:]}\n--- stderr ---\n{proc.stderr[-6000:]}"
+    )
 
 
 def where_things_are() -> str:
@@ -87,11 +99,14 @@ def test_where_things_are_lists_every_subpackage():
 
 def test_where_things_are_names_every_module():
     section = where_things_are()
-    bullets = {m.group(1): m.group(2) for m in re.finditer(r"^- `torchdeform/(\w+)/`(.*?)(?=^- |\Z)", section, re.M | re.S)}
+    bullets = {
+        m.group(1): m.group(2) for m in re.finditer(r"^- `torchdeform/(\w+)/`(.*?)(?=^- |\Z)", section, re.M | re.S)
+    }
     missing = {}
     for name, bullet in bullets.items():
-        absent = sorted(f.stem for f in (PACKAGE / name).glob("*.py")
-                        if not f.stem.startswith("__") and f"`{f.stem}`" not in bullet)
+        absent = sorted(
+            f.stem for f in (PACKAGE / name).glob("*.py") if not f.stem.startswith("__") and f"`{f.stem}`" not in bullet
+        )
         if absent:
             missing[name] = absent
     assert not missing, f"'Where things are' in README.md does not name these modules: {missing}"

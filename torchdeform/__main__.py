@@ -1,4 +1,5 @@
 """``python -m torchdeform``: the ``torchdeform`` command (:func:`torchdeform.cli.main`)."""
+
 import sys
 
 from .cli import main

@@ -22,6 +22,7 @@ Nothing here knows about springs or volumes; it sits on the ground floor next to
 * :class:`CompileFallbackWarning` and :func:`warn_fallback`: one warning line when compilation is
   unavailable and the eager code runs instead.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -30,9 +31,19 @@ import warnings
 
 import torch
 
-__all__ = ["CompileFallbackWarning", "INDUCTOR_OPTIONS", "inductor_options", "realize", "fresh",
-           "no_autograd_cache", "skip_guards", "while_loop", "loop_cache_options", "graph_cache_counts",
-           "warn_fallback"]
+__all__ = [
+    "CompileFallbackWarning",
+    "INDUCTOR_OPTIONS",
+    "inductor_options",
+    "realize",
+    "fresh",
+    "no_autograd_cache",
+    "skip_guards",
+    "while_loop",
+    "loop_cache_options",
+    "graph_cache_counts",
+    "warn_fallback",
+]
 
 
 class CompileFallbackWarning(UserWarning):
@@ -51,8 +62,11 @@ def warn_fallback(reason: str, what: str = "the eager step", stacklevel: int = 3
     if key in _warned:
         return
     _warned.add(key)
-    warnings.warn(f"torchdeform: torch.compile unavailable ({reason}); using {what}",
-                  CompileFallbackWarning, stacklevel=stacklevel)
+    warnings.warn(
+        f"torchdeform: torch.compile unavailable ({reason}); using {what}",
+        CompileFallbackWarning,
+        stacklevel=stacklevel,
+    )
 
 
 #: Inductor options of the packed spring step. By default inductor stores ("realises") every
@@ -61,8 +75,11 @@ def warn_fallback(reason: str, what: str = "the eager step", stacklevel: int = 3
 #: (64^3, 26 neighbours: ~100 Msprings/s). Raising the thresholds keeps the whole force sum and
 #: the update in registers, one parallel vectorised loop (~600 Msprings/s, same machine). Fields
 #: that really must be stored (RK4 stages, CG directions) go through :func:`realize`.
-INDUCTOR_OPTIONS = {"realize_opcount_threshold": 10_000, "realize_reads_threshold": 1_000,
-                    "realize_acc_reads_threshold": 1_000}
+INDUCTOR_OPTIONS = {
+    "realize_opcount_threshold": 10_000,
+    "realize_reads_threshold": 1_000,
+    "realize_acc_reads_threshold": 1_000,
+}
 
 
 def inductor_options(options: dict | None = None, threads: int | None = None) -> dict:
@@ -79,7 +96,7 @@ def inductor_options(options: dict | None = None, threads: int | None = None) ->
         >>> inductor_options({"size_asserts": False})["cpp.threads"] == torch.get_num_threads()
         True
     """
-    _register_realize_lowering()                   # every torch.compile here takes its options from this
+    _register_realize_lowering()  # every torch.compile here takes its options from this
     return dict(options or {}, **{"cpp.threads": int(threads or torch.get_num_threads())})
 
 
@@ -115,7 +132,7 @@ def _register_realize_lowering() -> None:
     _lowered.append(True)
     try:
         from torch._inductor import lowering
-    except ImportError:                                                 # pragma: no cover
+    except ImportError:  # pragma: no cover
         return
 
     @lowering.register_lowering(torch.ops.torchdeform.stored.default, type_promotion_kind=None)
@@ -123,7 +140,6 @@ def _register_realize_lowering() -> None:
         y = lowering.clone(x)
         y.realize()
         return y
-
 
 
 def no_autograd_cache():
@@ -135,9 +151,10 @@ def no_autograd_cache():
     """
     try:
         from torch._functorch import config
+
         if hasattr(config, "enable_autograd_cache"):
             return config.patch(enable_autograd_cache=False)
-    except ImportError:                                             # pragma: no cover
+    except ImportError:  # pragma: no cover
         pass
     return contextlib.nullcontext()
 
@@ -150,7 +167,7 @@ def skip_guards():
     """
     try:
         return torch.compiler.set_stance(skip_guard_eval_unsafe=True)
-    except (AttributeError, TypeError):                                 # pragma: no cover
+    except (AttributeError, TypeError):  # pragma: no cover
         return contextlib.nullcontext()
 
 
@@ -167,8 +184,7 @@ def fresh(fn):
         >>> g(1), g.__code__ is f.__code__
         (2, False)
     """
-    return types.FunctionType(fn.__code__.replace(), fn.__globals__, fn.__name__, fn.__defaults__,
-                              fn.__closure__)
+    return types.FunctionType(fn.__code__.replace(), fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
 
 
 def while_loop():
@@ -178,7 +194,7 @@ def while_loop():
     """
     try:
         from torch._higher_order_ops.while_loop import while_loop as loop
-    except ImportError:                                                 # pragma: no cover
+    except ImportError:  # pragma: no cover
         return None
     return loop
 
@@ -207,12 +223,13 @@ def loop_cache_options() -> dict:
     try:
         from torch._higher_order_ops.while_loop import while_loop_op
         from torch._inductor import config
-    except ImportError:                                                 # pragma: no cover
+    except ImportError:  # pragma: no cover
         return {}
-    if not hasattr(config, "unsafe_marked_cacheable_functions"):        # pragma: no cover
+    if not hasattr(config, "unsafe_marked_cacheable_functions"):  # pragma: no cover
         return {}
-    return {"unsafe_marked_cacheable_functions": {f"{while_loop_op.__module__}.{while_loop_op.__name__}":
-                                                  LOOP_CACHE_KEY}}
+    return {
+        "unsafe_marked_cacheable_functions": {f"{while_loop_op.__module__}.{while_loop_op.__name__}": LOOP_CACHE_KEY}
+    }
 
 
 def graph_cache_counts() -> tuple[int, int]:
@@ -227,5 +244,6 @@ def graph_cache_counts() -> tuple[int, int]:
         True
     """
     from torch._dynamo.utils import counters
+
     c = counters["inductor"]
     return int(c["fxgraph_cache_hit"]), int(c["fxgraph_cache_miss"])

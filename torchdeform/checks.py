@@ -8,6 +8,7 @@
 * :func:`check_memory`: refuse a grid, volume, image or recording that cannot fit, naming the key
   and the bytes it would take, instead of failing inside an allocation.
 """
+
 from __future__ import annotations
 
 import functools
@@ -35,7 +36,7 @@ def _try_device(name: str) -> str | None:
         x = torch.arange(4.0, device=dev)
         if float((x * 2).sum().cpu()) != 12.0:
             return "a test sum came back wrong"
-    except Exception as e:                     # whatever the backend raises: it cannot be used here
+    except Exception as e:  # whatever the backend raises: it cannot be used here
         text = " ".join(str(e).split()) or type(e).__name__
         return text[:160]
     return None
@@ -67,12 +68,14 @@ def usable_device(device, key: str = "--device", file=None, line=None) -> torch.
     try:
         dev = torch.device(device)
     except (RuntimeError, TypeError, ValueError):
-        raise ConfigError(key, 'a device name such as "cpu", "cuda" or "cuda:1"', device, file=file,
-                          line=line) from None
+        raise ConfigError(
+            key, 'a device name such as "cpu", "cuda" or "cuda:1"', device, file=file, line=line
+        ) from None
     why = _try_device(str(dev))
     if why is not None:
-        raise ConfigError(key, f'a device this torch can compute on ("cpu"{_others()}); {dev}: {why}', file=file,
-                          line=line)
+        raise ConfigError(
+            key, f'a device this torch can compute on ("cpu"{_others()}); {dev}: {why}', file=file, line=line
+        )
     return dev
 
 
@@ -139,9 +142,14 @@ def check_memory(key: str, nbytes: float, what: str, device=None, got=None, file
     avail = available_memory(device)
     if avail is None or nbytes <= avail:
         return
-    raise ConfigError(key, f"a size that fits in memory: {what} needs at least {format_bytes(nbytes)}, and "
-                      f"{format_bytes(avail)} is available on {torch.device(device or 'cpu')}", got, file=file,
-                      line=line)
+    raise ConfigError(
+        key,
+        f"a size that fits in memory: {what} needs at least {format_bytes(nbytes)}, and "
+        f"{format_bytes(avail)} is available on {torch.device(device or 'cpu')}",
+        got,
+        file=file,
+        line=line,
+    )
 
 
 def read_text(path, key: str, what: str = "file") -> str:
@@ -176,9 +184,15 @@ def read_text(path, key: str, what: str = "file") -> str:
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError as e:
-        line = data[:e.start].count(b"\n") + 1
-        raise ConfigError(key, f"a UTF-8 text {what}", f"byte 0x{data[e.start]:02x} that is not UTF-8", file=str(p),
-                          line=line, show_got=True) from None
+        line = data[: e.start].count(b"\n") + 1
+        raise ConfigError(
+            key,
+            f"a UTF-8 text {what}",
+            f"byte 0x{data[e.start]:02x} that is not UTF-8",
+            file=str(p),
+            line=line,
+            show_got=True,
+        ) from None
 
 
 def check_grid(key: str, shape, topology: int = 26, itemsize: int = 4, device=None, file=None, line=None) -> None:
@@ -206,6 +220,12 @@ def check_grid(key: str, shape, topology: int = 26, itemsize: int = 4, device=No
     nodes = 1
     for n in shape:
         nodes *= int(n)
-    check_memory(key, float(nodes) * itemsize * (30 + int(topology)),
-                 f"a grid of {' x '.join(str(int(n)) for n in shape)} nodes ({topology} neighbours)", device,
-                 got=list(shape), file=file, line=line)
+    check_memory(
+        key,
+        float(nodes) * itemsize * (30 + int(topology)),
+        f"a grid of {' x '.join(str(int(n)) for n in shape)} nodes ({topology} neighbours)",
+        device,
+        got=list(shape),
+        file=file,
+        line=line,
+    )

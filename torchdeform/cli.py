@@ -16,6 +16,7 @@
 Errors that a user can cause print one line (``torchdeform: <file>: <key>: expected ...``) and
 exit with status 2, without a traceback; the whole contract is in :mod:`torchdeform.options`.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -46,24 +47,56 @@ def build_parser() -> argparse.ArgumentParser:
 
     # name, help line, adds the arguments, runs the command
     commands = [
-        ("run", "run a scene file (TOML); under torchrun, its body split over the ranks", scene.add_run_arguments,
-         distributed.run_command),
-        ("demo", "run the built-in demo: a soft cube, fixed base, top centre dragged", scene.add_demo_arguments,
-         scene.demo_command),
+        (
+            "run",
+            "run a scene file (TOML); under torchrun, its body split over the ranks",
+            scene.add_run_arguments,
+            distributed.run_command,
+        ),
+        (
+            "demo",
+            "run the built-in demo: a soft cube, fixed base, top centre dragged",
+            scene.add_demo_arguments,
+            scene.demo_command,
+        ),
         ("bench", "benchmarks", bench.add_arguments, bench.main),
         ("fuzzy", "Mamdani rule files: show, evaluate, plot", fuzzy.add_arguments, fuzzy.main),
-        ("data", "generate synthetic time series (.npz): data cube|balloon --out FILE", learn.add_arguments,
-         learn.command),
-        ("warp", "warp a volume by node offsets (3, n_d, n_h, n_w) in voxels", volume.add_warp_arguments,
-         volume.warp_command),
-        ("render", "render a volume (MIP, DVR, average), optionally deformed by node offsets",
-         volume.add_render_arguments, volume.render_command),
-        ("texture", "colour a closed mesh with a solid texture (.ply, .glb, .obj)", texture.add_arguments,
-         texture.command),
-        ("view", "watch and touch a scene in the browser (local server, token in the URL)", view.add_arguments,
-         view.command),
-        ("sweep", "sweep scene keys over values (--set KEY=V1,V2): one row per point; spread over ranks under "
-                  "torchrun", distributed.add_arguments, distributed.command),
+        (
+            "data",
+            "generate synthetic time series (.npz): data cube|balloon --out FILE",
+            learn.add_arguments,
+            learn.command,
+        ),
+        (
+            "warp",
+            "warp a volume by node offsets (3, n_d, n_h, n_w) in voxels",
+            volume.add_warp_arguments,
+            volume.warp_command,
+        ),
+        (
+            "render",
+            "render a volume (MIP, DVR, average), optionally deformed by node offsets",
+            volume.add_render_arguments,
+            volume.render_command,
+        ),
+        (
+            "texture",
+            "colour a closed mesh with a solid texture (.ply, .glb, .obj)",
+            texture.add_arguments,
+            texture.command,
+        ),
+        (
+            "view",
+            "watch and touch a scene in the browser (local server, token in the URL)",
+            view.add_arguments,
+            view.command,
+        ),
+        (
+            "sweep",
+            "sweep scene keys over values (--set KEY=V1,V2): one row per point; spread over ranks under torchrun",
+            distributed.add_arguments,
+            distributed.command,
+        ),
     ]
     for name, help_, add_arguments, func in commands:
         c = sub.add_parser(name, help=help_)

@@ -3,12 +3,19 @@
 Every problem a user can cause ends in one of these, with one sentence that names what was
 wrong (file, key, parameter, node or step) and what was expected.
 """
+
 from __future__ import annotations
 
 import math
 
-__all__ = ["TorchdeformError", "ConfigError", "DivergenceError", "NoRuleFiredError", "StabilityWarning",
-           "positive_number"]
+__all__ = [
+    "TorchdeformError",
+    "ConfigError",
+    "DivergenceError",
+    "NoRuleFiredError",
+    "StabilityWarning",
+    "positive_number",
+]
 
 
 class TorchdeformError(Exception):
@@ -76,16 +83,15 @@ class DivergenceError(TorchdeformError, FloatingPointError):
         (0.0002, True)
     """
 
-    def __init__(self, step: int, quantity: str, value: float, dt: float, safe_dt: float | None,
-                 cause: str | None = None):
+    def __init__(
+        self, step: int, quantity: str, value: float, dt: float, safe_dt: float | None, cause: str | None = None
+    ):
         self.step, self.quantity, self.value, self.dt, self.safe_dt = step, quantity, value, dt, safe_dt
         self.cause = cause
         hint = f"; a safe time step for this model is about {safe_dt:.3g} s" if safe_dt else ""
         if cause:
             hint = f"; {cause}"
-        super().__init__(
-            f"simulation diverged at step {step}: {quantity} is {value:.3g} with dt = {dt:.3g} s{hint}"
-        )
+        super().__init__(f"simulation diverged at step {step}: {quantity} is {value:.3g} with dt = {dt:.3g} s{hint}")
 
 
 class NoRuleFiredError(TorchdeformError, ValueError):

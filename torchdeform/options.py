@@ -16,6 +16,7 @@ The pieces:
 * :func:`guarded`: runs a command and turns what a user can cause into one line and exit status 2
   (also used by the training scripts), with warnings shown as one line each.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -29,8 +30,7 @@ from contextlib import contextmanager
 __all__ = ["Parser", "integer", "number", "int_list", "number_list", "guarded", "one_line_warnings", "REPORT"]
 
 #: what the bug line asks for
-REPORT = ("this is a bug in torchdeform: please report it with the command line, the input files and the "
-          "traceback above")
+REPORT = "this is a bug in torchdeform: please report it with the command line, the input files and the traceback above"
 
 
 class Parser(argparse.ArgumentParser):
@@ -89,10 +89,14 @@ def number(lo=None, hi=None, *, lo_open: bool = False, hi_open: bool = False, un
             v = float(text)
         except (TypeError, ValueError):
             raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
-        if (not math.isfinite(v) or (lo is not None and (v < lo or (lo_open and v == lo)))
-                or (hi is not None and (v > hi or (hi_open and v == hi)))):
+        if (
+            not math.isfinite(v)
+            or (lo is not None and (v < lo or (lo_open and v == lo)))
+            or (hi is not None and (v > hi or (hi_open and v == hi)))
+        ):
             raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
         return v
+
     parse.__name__ = "number"
     return parse
 
@@ -119,6 +123,7 @@ def integer(lo=None, hi=None):
         if (lo is not None and v < lo) or (hi is not None and v > hi):
             raise argparse.ArgumentTypeError(f"expected {expected}, got {v}")
         return v
+
     parse.__name__ = "integer"
     return parse
 
@@ -145,6 +150,7 @@ def int_list(lo=None, hi=None):
         if not values or any((lo is not None and v < lo) or (hi is not None and v > hi) for v in values):
             raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
         return values
+
     parse.__name__ = "int_list"
     return parse
 
@@ -172,6 +178,7 @@ def number_list(count: int | None = None, lo=None, *, lo_open: bool = False):
         if not values or (count is not None and len(values) != count):
             raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
         return values
+
     parse.__name__ = "number_list"
     return parse
 
@@ -251,8 +258,10 @@ def guarded(prog: str, func, *args, echo: bool = True) -> int:
         return 0
     except (MemoryError, getattr(torch, "OutOfMemoryError", MemoryError)) as e:
         detail = str(e).split("\n")[0][:200]
-        say(f"out of memory ({type(e).__name__}{': ' + detail if detail else ''}); a smaller grid, volume, image "
-            "or fewer recorded frames would fit")
+        say(
+            f"out of memory ({type(e).__name__}{': ' + detail if detail else ''}); a smaller grid, volume, image "
+            "or fewer recorded frames would fit"
+        )
     except KeyboardInterrupt:
         say("interrupted")
         return 130

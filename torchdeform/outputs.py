@@ -10,6 +10,7 @@
 * :func:`require_finite`: the guard every writer calls: a NaN or inf in an output is refused
   with the quantity, where it went non-finite and a likely cause.
 """
+
 from __future__ import annotations
 
 import json
@@ -23,7 +24,17 @@ import numpy as np
 
 from .errors import ConfigError, TorchdeformError
 
-__all__ = ["atomic_path", "save_figure", "RunFolder", "manifest", "require_finite", "non_finite_keys", "NonFiniteOutputError", "OutputError", "STAGING"]
+__all__ = [
+    "atomic_path",
+    "save_figure",
+    "RunFolder",
+    "manifest",
+    "require_finite",
+    "non_finite_keys",
+    "NonFiniteOutputError",
+    "OutputError",
+    "STAGING",
+]
 
 #: prefix of the staging folders and temporary files (hidden; removed when their process is gone)
 STAGING = ".torchdeform-partial-"
@@ -72,7 +83,7 @@ def atomic_path(path, key: str = "--out"):
         what = "is not a folder" if parent.exists() else "does not exist"
         raise ConfigError(key, f"a path in an existing folder ({parent} {what})", str(path))
     suffix = _suffixes(path)
-    stem = path.name[:len(path.name) - len(suffix)] if suffix else path.name
+    stem = path.name[: len(path.name) - len(suffix)] if suffix else path.name
     tmp = parent / f"{STAGING}{os.getpid()}-{stem}{suffix}"
     try:
         yield tmp
@@ -81,8 +92,10 @@ def atomic_path(path, key: str = "--out"):
         os.replace(tmp, path)
     except OSError as e:
         if not isinstance(e, TorchdeformError) and (e.filename is None or str(e.filename) == str(tmp)):
-            raise OutputError(f"{path}: writing failed ({e.strerror or e}); "
-                              + ("the earlier file is kept" if path.exists() else "nothing was written")) from e
+            raise OutputError(
+                f"{path}: writing failed ({e.strerror or e}); "
+                + ("the earlier file is kept" if path.exists() else "nothing was written")
+            ) from e
         raise
     finally:
         if tmp.exists():
@@ -115,7 +128,7 @@ def _alive(pid: int) -> bool:
 def _remove_orphans(folder: Path) -> None:
     """Staging folders and temporary files left by processes that are gone (a killed run)."""
     for p in folder.glob(STAGING + "*"):
-        pid = p.name[len(STAGING):].split("-")[0]
+        pid = p.name[len(STAGING) :].split("-")[0]
         if pid.isdigit() and not _alive(int(pid)):
             shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
 
@@ -188,9 +201,13 @@ class RunFolder:
             others = sorted(p.name for p in out.iterdir() if not p.name.startswith(STAGING))
             if others:
                 shown = ", ".join(others[:3]) + (", ..." if len(others) > 3 else "")
-                raise ConfigError(self.key, f"an empty folder or the folder of an earlier run (one with summary.json); "
-                                  f"it holds {len(others)} other entries ({shown}): choose another folder or add "
-                                  "--force to write beside them", str(out))
+                raise ConfigError(
+                    self.key,
+                    f"an empty folder or the folder of an earlier run (one with summary.json); "
+                    f"it holds {len(others)} other entries ({shown}): choose another folder or add "
+                    "--force to write beside them",
+                    str(out),
+                )
 
     def __enter__(self) -> Path:
         self.check()
@@ -212,8 +229,10 @@ class RunFolder:
         finally:
             shutil.rmtree(self.stage, ignore_errors=True)
         if isinstance(value, OSError) and not isinstance(value, TorchdeformError) and value.filename is None:
-            raise OutputError(f"{self.out}: writing the outputs failed ({value.strerror or value}); the folder keeps "
-                              "what it held before") from value
+            raise OutputError(
+                f"{self.out}: writing the outputs failed ({value.strerror or value}); the folder keeps "
+                "what it held before"
+            ) from value
         return False
 
     def commit(self) -> list:
@@ -270,8 +289,10 @@ def require_finite(name: str, value, what: str = "", cause: str = "") -> None:
     first = tuple(int(i) for i in np.argwhere(bad)[0]) if arr.ndim else ()
     at = f" at {what or 'index'} {first}" if first else ""
     reason = f"; {cause}" if cause else ""
-    raise NonFiniteOutputError(f"refusing to write {name} is {arr[first] if first else arr.item()}{at} "
-                               f"({int(bad.sum())} of {arr.size} values are not finite){reason}")
+    raise NonFiniteOutputError(
+        f"refusing to write {name} is {arr[first] if first else arr.item()}{at} "
+        f"({int(bad.sum())} of {arr.size} values are not finite){reason}"
+    )
 
 
 def non_finite_keys(tree, path: str = "", limit: int = 5) -> list:

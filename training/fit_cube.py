@@ -32,6 +32,7 @@ goes through the adjoint solves (``--gradient``, see ``ImplicitEuler``).
 Writes DIR/result.json (learned and true values, relative errors, loss histories, wall and
 CPU time) and DIR/run<k>_loss.png, DIR/run<k>_spread_*.png.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -49,39 +50,83 @@ from torchdeform.options import Parser, integer, number, number_list
 
 
 def parse_args(argv=None):
-    p = Parser(description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__[__doc__.index("Examples"):])
+    p = Parser(
+        description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=__doc__[__doc__.index("Examples") :],
+    )
     p.add_argument("--out", required=True, help="output folder (result.json, plots)")
     p.add_argument("--runs", default="1,2,3", help="comma-separated runs to do (default 1,2,3)")
     p.add_argument("--data", default=None, help="a series file (.npz) instead of generating Radetzky's cube")
     p.add_argument("--springs", type=int, default=70, choices=sorted(learn.SPRING_SETS), help="spring set (default 70)")
     p.add_argument("--noise", type=number(lo=0), default=0.0, help="relative observation noise (0.01 = 1%%)")
     p.add_argument("--seed", type=integer(lo=0), default=0, help="seed of the noise and of random initial values")
-    p.add_argument("--offset", type=number_list(2, lo=0, lo_open=True), default=[3.0, 0.4], help="run 3 initial factors for stiffness,damping (default 3,0.4)")
+    p.add_argument(
+        "--offset",
+        type=number_list(2, lo=0, lo_open=True),
+        default=[3.0, 0.4],
+        help="run 3 initial factors for stiffness,damping (default 3,0.4)",
+    )
     p.add_argument("--optimizer", default="lbfgs", choices=["lbfgs", "adam"])
-    p.add_argument("--iterations", type=integer(lo=1), default=None, help="iterations (default: 30 L-BFGS / 400 Adam "
-                                                                "for run 3, 10 / 300 per-spring)")
-    p.add_argument("--lr", type=number(lo=0, lo_open=True), default=None, help="learning rate (default 1 L-BFGS, 0.05 Adam)")
-    p.add_argument("--window", type=integer(lo=0), default=None,
-                   help="teacher forcing every k observations (default 10, Radetzky; 50 with noise); 0 = full BPTT")
-    p.add_argument("--smooth", type=integer(lo=0), default=None,
-                   help="half-width of the start-state smoothing (default 0; 10 with noise)")
+    p.add_argument(
+        "--iterations",
+        type=integer(lo=1),
+        default=None,
+        help="iterations (default: 30 L-BFGS / 400 Adam for run 3, 10 / 300 per-spring)",
+    )
+    p.add_argument(
+        "--lr", type=number(lo=0, lo_open=True), default=None, help="learning rate (default 1 L-BFGS, 0.05 Adam)"
+    )
+    p.add_argument(
+        "--window",
+        type=integer(lo=0),
+        default=None,
+        help="teacher forcing every k observations (default 10, Radetzky; 50 with noise); 0 = full BPTT",
+    )
+    p.add_argument(
+        "--smooth",
+        type=integer(lo=0),
+        default=None,
+        help="half-width of the start-state smoothing (default 0; 10 with noise)",
+    )
     p.add_argument("--checkpoint", type=integer(lo=0), default=0, help="gradient checkpoint segment in steps (0 = off)")
-    p.add_argument("--long", type=integer(lo=0), default=0,
-                   help="instead of the runs: train shared k, d on one full rollout of this many steps "
-                        "(a 4^3 cube under a sinusoidal drag) and report memory")
+    p.add_argument(
+        "--long",
+        type=integer(lo=0),
+        default=0,
+        help="instead of the runs: train shared k, d on one full rollout of this many steps "
+        "(a 4^3 cube under a sinusoidal drag) and report memory",
+    )
     p.add_argument("--no-curvature", action="store_true", help="skip the Hessian eigenvalues of per-spring runs")
-    p.add_argument("--engine", default="eager", choices=learn.LOSS_ENGINES,
-                   help="rollouts eager (the reference) or compiled (each step one torch.compile graph, "
-                        "forward and backward; ~35 s to compile once, then ~5x faster per iteration)")
-    p.add_argument("--integrator", default="symplectic", choices=["symplectic", "implicit"],
-                   help="symplectic: Radetzky's cube as published; implicit: a 1000x stiffer cube stepped by "
-                        "implicit Euler far above the explicit bound")
-    p.add_argument("--dt-factor", type=number(lo=0, lo_open=True), default=50.0,
-                   help="implicit: the time step over the explicit stability bound (default 50)")
-    p.add_argument("--gradient", default="adjoint", choices=["adjoint", "unrolled"],
-                   help="implicit: gradients by adjoint solves (default) or through every CG iteration")
-    p.add_argument("--threads", type=integer(lo=1), default=1, help="torch threads (default 1: fastest for tiny bodies)")
+    p.add_argument(
+        "--engine",
+        default="eager",
+        choices=learn.LOSS_ENGINES,
+        help="rollouts eager (the reference) or compiled (each step one torch.compile graph, "
+        "forward and backward; ~35 s to compile once, then ~5x faster per iteration)",
+    )
+    p.add_argument(
+        "--integrator",
+        default="symplectic",
+        choices=["symplectic", "implicit"],
+        help="symplectic: Radetzky's cube as published; implicit: a 1000x stiffer cube stepped by "
+        "implicit Euler far above the explicit bound",
+    )
+    p.add_argument(
+        "--dt-factor",
+        type=number(lo=0, lo_open=True),
+        default=50.0,
+        help="implicit: the time step over the explicit stability bound (default 50)",
+    )
+    p.add_argument(
+        "--gradient",
+        default="adjoint",
+        choices=["adjoint", "unrolled"],
+        help="implicit: gradients by adjoint solves (default) or through every CG iteration",
+    )
+    p.add_argument(
+        "--threads", type=integer(lo=1), default=1, help="torch threads (default 1: fastest for tiny bodies)"
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     return p.parse_args(argv)
 
@@ -94,7 +139,7 @@ def rss_mb() -> float:
 def current_rss_mb() -> float:
     try:
         with open("/proc/self/statm") as fh:
-            return int(fh.read().split()[1]) * resource.getpagesize() / 2 ** 20
+            return int(fh.read().split()[1]) * resource.getpagesize() / 2**20
     except OSError:
         return float("nan")
 
@@ -104,39 +149,69 @@ def train(params, loss, args, iterations, name, out):
     with torch.no_grad():
         first = float(loss(params))
     it = iterations if args.iterations is None else args.iterations
-    trainer = learn.Trainer(params, loss, optimizer=args.optimizer, lr=args.lr, iterations=it,
-                            patience=5 if args.optimizer == "lbfgs" else 50, tol=1e-26, progress=progress(args))
+    trainer = learn.Trainer(
+        params,
+        loss,
+        optimizer=args.optimizer,
+        lr=args.lr,
+        iterations=it,
+        patience=5 if args.optimizer == "lbfgs" else 50,
+        tol=1e-26,
+        progress=progress(args),
+    )
     trainer.run()
     final = trainer.final_loss()
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     if data_parallel.is_main():
         learn.plot_history(trainer.history, out / f"{name}_loss.png", title=f"{name}: loss")
-    return {"initial_loss": first, "final_loss": final, "loss_drop": first / max(final, 1e-300),
-            "iterations": trainer.iteration, "stopped": trainer.stopped or "iteration limit",
-            "wall_seconds": wall, "cpu_seconds": cpu, "history": learn.history_dicts(trainer.history)}
+    return {
+        "initial_loss": first,
+        "final_loss": final,
+        "loss_drop": first / max(final, 1e-300),
+        "iterations": trainer.iteration,
+        "stopped": trainer.stopped or "iteration limit",
+        "wall_seconds": wall,
+        "cpu_seconds": cpu,
+        "history": learn.history_dicts(trainer.history),
+    }
 
 
 def shared_run(series, args, out) -> dict:
     kt, ct = series.meta["truth"]["stiffness"], series.meta["truth"]["damping"]
     if not all(isinstance(v, (int, float)) for v in (kt, ct)):
-        raise td.ConfigError("--runs", "1,2 for a series whose truth is not one shared stiffness and damping "
-                             f"(run 3 fits one of each; {args.data or 'this series'} has per-region values "
-                             f"stiffness {kt}, damping {ct})", args.runs)
+        raise td.ConfigError(
+            "--runs",
+            "1,2 for a series whose truth is not one shared stiffness and damping "
+            f"(run 3 fits one of each; {args.data or 'this series'} has per-region values "
+            f"stiffness {kt}, damping {ct})",
+            args.runs,
+        )
     fk, fc = args.offset
-    params = learn.Parameters(series, learn.SpringParameter.like(series, kt * fk),
-                              learn.SpringParameter.like(series, ct * fc), series.truth["mass"])
+    params = learn.Parameters(
+        series,
+        learn.SpringParameter.like(series, kt * fk),
+        learn.SpringParameter.like(series, ct * fc),
+        series.truth["mass"],
+    )
     loss = make_loss(series, args)
     res = train(params, loss, args, 30 if args.optimizer == "lbfgs" else 400, "run3", out)
     got = params.summary()
-    res.update({"learned": got, "true": {"stiffness": kt, "damping": ct},
-                "initial": {"stiffness": kt * fk, "damping": ct * fc},
-                "relative_error": {"stiffness": learn.relative_error(got["stiffness"], kt),
-                                   "damping": learn.relative_error(got["damping"], ct)}})
+    res.update(
+        {
+            "learned": got,
+            "true": {"stiffness": kt, "damping": ct},
+            "initial": {"stiffness": kt * fk, "damping": ct * fc},
+            "relative_error": {
+                "stiffness": learn.relative_error(got["stiffness"], kt),
+                "damping": learn.relative_error(got["damping"], ct),
+            },
+        }
+    )
     return res
 
 
 #: the stiff cube of ``--integrator implicit``: 1000x Radetzky's stiffness, the same damping ratio
-STIFF = {"stiffness": 1e4, "damping": 0.1 * 1000 ** 0.5}
+STIFF = {"stiffness": 1e4, "damping": 0.1 * 1000**0.5}
 
 
 def implicit_integrator(args):
@@ -148,8 +223,14 @@ def stiff_cube(args):
     """Radetzky's cube 1000x stiffer, stepped by implicit Euler at ``args.dt_factor`` x the explicit bound."""
     probe = learn.radetzky_cube(springs=args.springs, steps=1, **STIFF)
     bound = td.time_step_bound(probe.true_model(), "symplectic")
-    series = learn.radetzky_cube(springs=args.springs, noise=args.noise, seed=args.seed, dt=args.dt_factor * bound,
-                                 integrator=implicit_integrator(args), **STIFF)
+    series = learn.radetzky_cube(
+        springs=args.springs,
+        noise=args.noise,
+        seed=args.seed,
+        dt=args.dt_factor * bound,
+        integrator=implicit_integrator(args),
+        **STIFF,
+    )
     series.meta.update(explicit_bound=bound, dt_over_bound=args.dt_factor)
     return series
 
@@ -166,8 +247,15 @@ def make_loss(series, args):
     smooth = args.smooth if args.smooth is not None else (10 if noisy else 0)
     integrator = implicit_integrator(args) if args.integrator == "implicit" else None
     return data_parallel.parallel_loss(
-        learn.WindowLoss(series, window=None if window == 0 else window, smooth=smooth,
-                         checkpoint=args.checkpoint or None, engine=args.engine, integrator=integrator))
+        learn.WindowLoss(
+            series,
+            window=None if window == 0 else window,
+            smooth=smooth,
+            checkpoint=args.checkpoint or None,
+            engine=args.engine,
+            integrator=integrator,
+        )
+    )
 
 
 def per_spring_run(series, args, out, with_mass: bool) -> dict:
@@ -191,8 +279,14 @@ def per_spring_run(series, args, out, with_mass: bool) -> dict:
         spread["mass"] = learn.spread_report(v[free], tm[free])
         if data_parallel.is_main():
             learn.plot_spread(v[free], tm[free], out / f"{name}_spread_mass.png", f"{name}: mass (free nodes)")
-    res.update({"spread": spread, "springs": n, "inactive_springs": int((~active).sum()),
-                "note": "springs between two fixed nodes never move and are left out of the spread"})
+    res.update(
+        {
+            "spread": spread,
+            "springs": n,
+            "inactive_springs": int((~active).sum()),
+            "note": "springs between two fixed nodes never move and are left out of the spread",
+        }
+    )
     if not args.no_curvature:
         res["curvature"] = learn.curvature_report(params, loss)
         res["curvature"]["eigenvalues"] = [float(f"{e:.4g}") for e in res["curvature"]["eigenvalues"]]
@@ -204,28 +298,50 @@ def long_run(args, out) -> dict:
     """Full BPTT over one long rollout: shared k, d of a 4^3 cube dragged sinusoidally."""
     series = learn.cube_series(n=4, topology=26, load="sine", steps=args.long, dt=0.005, period=1.0)
     kt, ct = series.meta["truth"]["stiffness"], series.meta["truth"]["damping"]
-    params = learn.Parameters(series, learn.SpringParameter.like(series, kt * 2.0),
-                              learn.SpringParameter.like(series, ct * 0.5), series.truth["mass"])
-    loss = data_parallel.parallel_loss(learn.WindowLoss(series, window=None, checkpoint=args.checkpoint or None,
-                                                        engine=args.engine))     # one window: rank 0 runs it
+    params = learn.Parameters(
+        series,
+        learn.SpringParameter.like(series, kt * 2.0),
+        learn.SpringParameter.like(series, ct * 0.5),
+        series.truth["mass"],
+    )
+    loss = data_parallel.parallel_loss(
+        learn.WindowLoss(series, window=None, checkpoint=args.checkpoint or None, engine=args.engine)
+    )  # one window: rank 0 runs it
     before = current_rss_mb()
     t0, c0 = time.perf_counter(), time.process_time()
-    trainer = learn.Trainer(params, loss, optimizer="adam", lr=args.lr or 0.05,
-                            iterations=args.iterations or 3, patience=100, progress=progress(args))
+    trainer = learn.Trainer(
+        params,
+        loss,
+        optimizer="adam",
+        lr=args.lr or 0.05,
+        iterations=args.iterations or 3,
+        patience=100,
+        progress=progress(args),
+    )
     trainer.run()
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     losses = [r.loss for r in trainer.history]
-    return {"steps": args.long, "nodes": series.grid.num_nodes, "springs": series.grid.num_springs,
-            "checkpoint_segment": args.checkpoint or None, "iterations": trainer.iteration,
-            "losses": losses, "finite": bool(np.isfinite(losses).all()), "learned": params.summary(),
-            "true": {"stiffness": kt, "damping": ct}, "rss_before_mb": before, "peak_rss_mb": rss_mb(),
-            "peak_growth_mb": rss_mb() - before,
-            "wall_seconds": wall, "cpu_seconds": cpu}
+    return {
+        "steps": args.long,
+        "nodes": series.grid.num_nodes,
+        "springs": series.grid.num_springs,
+        "checkpoint_segment": args.checkpoint or None,
+        "iterations": trainer.iteration,
+        "losses": losses,
+        "finite": bool(np.isfinite(losses).all()),
+        "learned": params.summary(),
+        "true": {"stiffness": kt, "damping": ct},
+        "rss_before_mb": before,
+        "peak_rss_mb": rss_mb(),
+        "peak_growth_mb": rss_mb() - before,
+        "wall_seconds": wall,
+        "cpu_seconds": cpu,
+    }
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    with data_parallel.process_group():            # under torchrun: gloo over the ranks; else nothing
+    with data_parallel.process_group():  # under torchrun: gloo over the ranks; else nothing
         return learn.run_script("fit_cube.py", args, fit, summary)
 
 
@@ -245,13 +361,17 @@ def fit(args, out) -> dict:
             runs = [0]
         if not runs or any(r not in (1, 2, 3) for r in runs):
             raise td.ConfigError("--runs", "comma-separated runs among 1, 2, 3", args.runs)
-        result = {"series": {k: v for k, v in series.meta.items() if k != "loads"},
-                  "optimizer": args.optimizer, "runs": {}}
+        result = {
+            "series": {k: v for k, v in series.meta.items() if k != "loads"},
+            "optimizer": args.optimizer,
+            "runs": {},
+        }
         for r in runs:
             if data_parallel.is_main():
                 print(f"run {r} ...", file=sys.stderr)
-            result["runs"][str(r)] = shared_run(series, args, out) if r == 3 else \
-                per_spring_run(series, args, out, with_mass=(r == 1))
+            result["runs"][str(r)] = (
+                shared_run(series, args, out) if r == 3 else per_spring_run(series, args, out, with_mass=(r == 1))
+            )
     return result
 
 
@@ -259,21 +379,29 @@ def summary(result) -> str:
     lines = []
     if "long_rollout" in result:
         r = result["long_rollout"]
-        return (f"long rollout: {r['steps']} steps, checkpoint {r['checkpoint_segment']}, losses {r['losses']}, "
-                f"peak RSS {r['peak_rss_mb']:.0f} MB (before training {r['rss_before_mb']:.0f} MB), "
-                f"{r['wall_seconds']:.1f} s wall, {r['cpu_seconds']:.1f} s CPU")
+        return (
+            f"long rollout: {r['steps']} steps, checkpoint {r['checkpoint_segment']}, losses {r['losses']}, "
+            f"peak RSS {r['peak_rss_mb']:.0f} MB (before training {r['rss_before_mb']:.0f} MB), "
+            f"{r['wall_seconds']:.1f} s wall, {r['cpu_seconds']:.1f} s CPU"
+        )
     for name, r in result["runs"].items():
-        line = (f"run {name}: loss {r['initial_loss']:.3e} -> {r['final_loss']:.3e} "
-                f"({r['loss_drop']:.3g}-fold) in {r['iterations']} it, {r['wall_seconds']:.1f} s wall, "
-                f"{r['cpu_seconds']:.1f} s CPU")
+        line = (
+            f"run {name}: loss {r['initial_loss']:.3e} -> {r['final_loss']:.3e} "
+            f"({r['loss_drop']:.3g}-fold) in {r['iterations']} it, {r['wall_seconds']:.1f} s wall, "
+            f"{r['cpu_seconds']:.1f} s CPU"
+        )
         if "relative_error" in r:
-            line += "; " + ", ".join(f"{k} {r['learned'][k]:.6g} (true {r['true'][k]:.6g}, rel err {e:.2e})"
-                                     for k, e in r["relative_error"].items())
+            line += "; " + ", ".join(
+                f"{k} {r['learned'][k]:.6g} (true {r['true'][k]:.6g}, rel err {e:.2e})"
+                for k, e in r["relative_error"].items()
+            )
         if "spread" in r:
             for k, s in r["spread"].items():
                 q = s["ratio"]
-                line += (f"\n   {k}: learned/true p05 {q['p05']:.3f} median {q['median']:.3f} p95 {q['p95']:.3f}, "
-                         f"{100 * s['within_10pct']:.0f}% within 10% -> {s['verdict']}")
+                line += (
+                    f"\n   {k}: learned/true p05 {q['p05']:.3f} median {q['median']:.3f} p95 {q['p95']:.3f}, "
+                    f"{100 * s['within_10pct']:.0f}% within 10% -> {s['verdict']}"
+                )
             if "curvature" in r and "undetermined" in r["curvature"]:
                 c = r["curvature"]
                 line += f"\n   Hessian: {c['undetermined']} of {c['n']} directions undetermined (< {c['threshold']:g} x max)"

@@ -4,6 +4,7 @@ cores) checked for real behaviour, and the Pareto front against a brute-force ch
 Works whether or not ``accuracy`` is registered in ``torchdeform.bench.BENCHES`` yet: the
 module fixture adds the entry for the duration of the run when it is missing.
 """
+
 import contextlib
 import csv
 import io
@@ -20,7 +21,7 @@ from torchdeform.bench import accuracy as ba
 from torchdeform.bench import registry as bench
 
 EXPLICIT = ("explicit", "symplectic", "verlet", "rk4")
-SMOOTH = ("load", "supports")          # the drag path has kinks, which cap the observed order
+SMOOTH = ("load", "supports")  # the drag path has kinks, which cap the observed order
 
 
 def _main(argv):
@@ -39,14 +40,16 @@ def quick(tmp_path_factory):
     path = tmp_path_factory.mktemp("accuracy")
     threads = torch.get_num_threads()
     rc, out = _main(["--quick", "--json", "--out", str(path)])
-    assert torch.get_num_threads() == threads         # the bench restores the thread count
+    assert torch.get_num_threads() == threads  # the bench restores the thread count
     assert rc == 0
-    return json.loads(out), path                        # exactly one JSON document on stdout
+    return json.loads(out), path  # exactly one JSON document on stdout
 
 
 def _ok(rows, scene, method):
-    return sorted((r for r in rows if r["scene"] == scene and r["method"] == method and r["status"] == "ok"),
-                  key=lambda r: (r["dt"] or 0, r["n"]))
+    return sorted(
+        (r for r in rows if r["scene"] == scene and r["method"] == method and r["status"] == "ok"),
+        key=lambda r: (r["dt"] or 0, r["n"]),
+    )
 
 
 def test_quick_json_rows_and_references(quick):
@@ -73,7 +76,7 @@ def test_quick_json_rows_and_references(quick):
             assert ref["method"] == "static" and ref["n"] == 5
         else:
             assert ref["method"] == "rk4" and ref["dt_bound"] <= 0.25
-            assert ref["halving_diff"] < 1e-2            # halving the reference step changes little
+            assert ref["halving_diff"] < 1e-2  # halving the reference step changes little
 
 
 def test_quick_orders_and_stability(quick):
@@ -85,8 +88,8 @@ def test_quick_orders_and_stability(quick):
             ok = [r for r in _ok(rows, scene, method) if r["dt_bound"] < 1]
             assert len(ok) >= 2, (scene, method)
             for a, b in zip(ok, ok[1:]):
-                assert a["error"] < b["error"], (scene, method)            # error grows with dt
-                assert a["error"] > 10 * refs[scene]["error_estimate"]     # above the reference's own error
+                assert a["error"] < b["error"], (scene, method)  # error grows with dt
+                assert a["error"] > 10 * refs[scene]["error_estimate"]  # above the reference's own error
             if scene == "load" or method == "symplectic":
                 a, b = ok[0], ok[-1]
                 order = math.log(b["error"] / a["error"]) / math.log(b["dt"] / a["dt"])
@@ -117,8 +120,12 @@ def test_quick_pareto_and_recommendation(quick):
     for scene in {r["scene"] for r in rows}:
         ok = [r for r in rows if r["scene"] == scene and r["status"] == "ok"]
         for p in ok:
-            dominated = any(q["error"] <= p["error"] and q["wall_s"] <= p["wall_s"]
-                            and (q["error"] < p["error"] or q["wall_s"] < p["wall_s"]) for q in ok)
+            dominated = any(
+                q["error"] <= p["error"]
+                and q["wall_s"] <= p["wall_s"]
+                and (q["error"] < p["error"] or q["wall_s"] < p["wall_s"])
+                for q in ok
+            )
             assert p["pareto"] == (not dominated), (scene, p["method"], p["param"])
         assert any(p["pareto"] for p in ok)
     assert not any(r["pareto"] for r in rows if r["status"] != "ok")
@@ -130,8 +137,9 @@ def test_quick_pareto_and_recommendation(quick):
         else:
             best = min(r["wall_s"] for r in reach)
             assert rec["wall_s"] == best and rec["error"] <= rec["target"]
-            assert any(r["method"] == rec["method"] and r["param"] == rec["param"] and r["wall_s"] == best
-                       for r in reach)
+            assert any(
+                r["method"] == rec["method"] and r["param"] == rec["param"] and r["wall_s"] == best for r in reach
+            )
 
 
 def test_quick_files(quick):
@@ -148,8 +156,13 @@ def test_pareto_front_brute_force():
     for trial in range(200):
         n = rng.randint(0, 30)
         # few distinct values, so that ties in one or both coordinates are common
-        pts = [(rng.choice([0.1, 0.2, 0.3, 0.5, 1.0, 2.0]) if rng.random() > 0.05 else None,
-                rng.choice([1, 2, 3, 4, 5, math.inf]) if trial % 2 else rng.random()) for _ in range(n)]
+        pts = [
+            (
+                rng.choice([0.1, 0.2, 0.3, 0.5, 1.0, 2.0]) if rng.random() > 0.05 else None,
+                rng.choice([1, 2, 3, 4, 5, math.inf]) if trial % 2 else rng.random(),
+            )
+            for _ in range(n)
+        ]
         got = ba.pareto_front(pts)
         valid = [p[0] is not None and math.isfinite(p[0]) and math.isfinite(p[1]) for p in pts]
         want = []
@@ -157,8 +170,12 @@ def test_pareto_front_brute_force():
             if not valid[i]:
                 want.append(False)
                 continue
-            want.append(not any(valid[j] and q[0] <= p[0] and q[1] <= p[1] and (q[0] < p[0] or q[1] < p[1])
-                                for j, q in enumerate(pts)))
+            want.append(
+                not any(
+                    valid[j] and q[0] <= p[0] and q[1] <= p[1] and (q[0] < p[0] or q[1] < p[1])
+                    for j, q in enumerate(pts)
+                )
+            )
         assert got == want, pts
 
 
@@ -166,26 +183,30 @@ def test_cell_share_and_scaling():
     grid = td.Grid((3, 3, 3), topology=26)
     s = ba.cell_share(grid)
     axis_d = grid.directions.index((1, 0, 0))
-    assert s[axis_d, 0, 1, 1] == 1.0            # interior edge: 4 cells
-    assert s[axis_d, 0, 0, 1] == 0.5            # in a face of the box: 2 cells
-    assert s[axis_d, 0, 0, 0] == 0.25           # along an edge of the box: 1 cell
+    assert s[axis_d, 0, 1, 1] == 1.0  # interior edge: 4 cells
+    assert s[axis_d, 0, 0, 1] == 0.5  # in a face of the box: 2 cells
+    assert s[axis_d, 0, 0, 0] == 0.25  # along an edge of the box: 1 cell
     body = grid.directions.index((1, 1, 1))
-    assert bool((s[body] == 1).all())            # a body diagonal lies in one cell
+    assert bool((s[body] == 1).all())  # a body diagonal lies in one cell
     # k = E h s: the same cube at two resolutions has the same total spring "modulus" per volume
     g3, kw3 = ba.cube(3, 5e3, 4e-4, None)
     g5, kw5 = ba.cube(5, 5e3, 4e-4, None)
     m3 = td.Model(g3, **kw3, dtype=torch.float64)
     m5 = td.Model(g5, **kw5, dtype=torch.float64)
-    assert float(m3.mass.sum()) == pytest.approx(float(m5.mass.sum()))   # rho * volume
+    assert float(m3.mass.sum()) == pytest.approx(float(m5.mass.sum()))  # rho * volume
     # sum over springs of k l0^2 (~ E * volume for a lattice) does not depend on the spacing
-    ksum = [float((m.stiffness * m.rest_length ** 2 * g.spring_mask()).sum()) for m, g in ((m3, g3), (m5, g5))]
+    ksum = [float((m.stiffness * m.rest_length**2 * g.spring_mask()).sum()) for m, g in ((m3, g3), (m5, g5))]
     assert ksum[0] == pytest.approx(ksum[1], rel=1e-12)
-    assert ksum[0] == pytest.approx(27 * 5e3 * ba.SIDE ** 3, rel=1e-12)   # 3 + 6*2 + 4*3 per cell volume
+    assert ksum[0] == pytest.approx(27 * 5e3 * ba.SIDE**3, rel=1e-12)  # 3 + 6*2 + 4*3 per cell volume
 
 
 def test_bad_options_are_one_line(capsys):
-    cases = ((["--scenes", "load,nope"], "--scenes"), (["--resolutions", "4", "--ref-n", "17"], "--resolutions"),
-             (["--targets", "0.1,x"], "--targets"), (["--methods", "static", "--scenes", "drag"], "--methods"))
+    cases = (
+        (["--scenes", "load,nope"], "--scenes"),
+        (["--resolutions", "4", "--ref-n", "17"], "--resolutions"),
+        (["--targets", "0.1,x"], "--targets"),
+        (["--methods", "static", "--scenes", "drag"], "--methods"),
+    )
     for argv, key in cases:
         rc, out = _main(argv)
         err = capsys.readouterr().err

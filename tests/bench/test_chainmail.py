@@ -1,4 +1,5 @@
 """`torchdeform bench chainmail`: the quick JSON run (rows, variants, files)."""
+
 import json
 
 from torchdeform import cli
@@ -17,5 +18,5 @@ def test_bench_chainmail_quick_json(capsys, tmp_path):
     assert all(r["sweeps"] >= r["depth"] for r in tensor)
     # checked: the elements the sweeps visited (active boxes), at most the whole grid per sweep
     assert all(0 < r["checked"] <= (r["sweeps"] + 1) * r["n"] ** 3 for r in tensor)
-    assert "pull_100" in doc and "tensor_pull_100" in doc         # None here: no 100^3 grid in --quick
+    assert "pull_100" in doc and "tensor_pull_100" in doc  # None here: no 100^3 grid in --quick
     assert (tmp_path / "chainmail.csv").is_file() and (tmp_path / "chainmail.png").is_file()

@@ -1,5 +1,6 @@
 """``torchdeform bench distributed``: a smoke run of one step row on two ranks, its halo bytes
 against the analytic size of one layer, and bad options."""
+
 from __future__ import annotations
 
 import json
@@ -11,8 +12,28 @@ from torchdeform import cli
 
 def test_a_step_row_on_two_ranks(tmp_path, capsys):
     n = 8
-    assert cli.main(["bench", "distributed", "--cases", "explicit", "--ranks", "2", "--n", str(n), "--steps", "2",
-                     "--repeats", "1", "--json", "--out", str(tmp_path)]) == 0
+    assert (
+        cli.main(
+            [
+                "bench",
+                "distributed",
+                "--cases",
+                "explicit",
+                "--ranks",
+                "2",
+                "--n",
+                str(n),
+                "--steps",
+                "2",
+                "--repeats",
+                "1",
+                "--json",
+                "--out",
+                str(tmp_path),
+            ]
+        )
+        == 0
+    )
     doc = json.loads(capsys.readouterr().out)
     (row,) = doc["rows"]
     assert row["case"] == "explicit" and row["ranks"] == 2 and row["ms_per_step"] > 0

@@ -1,4 +1,5 @@
 """`torchdeform bench frame`: the quick JSON run, and the per-frame surface against the slow reference."""
+
 import json
 
 import numpy as np
@@ -23,22 +24,38 @@ def test_bench_frame_quick_json(capsys, tmp_path):
     assert [r["grid"] for r in rows] == ["16^3", "32^3"]
     punak = {"16^3": 90.0, "32^3": 28.0}
     for r in rows:
-        assert {"grid", "fps", "punak_fps", "ratio", "step_ms", "surface_ms", "threads", "engine", "vertices",
-                "faces", "compile_s"} <= set(r)
-        assert r["engine"] == "eager" and r["compile_s"] is None           # --quick: no torch.compile
+        assert {
+            "grid",
+            "fps",
+            "punak_fps",
+            "ratio",
+            "step_ms",
+            "surface_ms",
+            "threads",
+            "engine",
+            "vertices",
+            "faces",
+            "compile_s",
+        } <= set(r)
+        assert r["engine"] == "eager" and r["compile_s"] is None  # --quick: no torch.compile
         assert r["step_ms"] > 0 and r["surface_ms"] > 0 and r["threads"] >= 1
         assert r["fps"] == pytest.approx(1000.0 / (r["step_ms"] + r["surface_ms"]), rel=1e-9)
         assert r["punak_fps"] == punak[r["grid"]]
         assert r["ratio"] == pytest.approx(r["fps"] / r["punak_fps"], rel=1e-9)
-        assert r["faces"] == 2 * r["vertices"] - 4                          # one closed genus-0 surface
+        assert r["faces"] == 2 * r["vertices"] - 4  # one closed genus-0 surface
         assert "volume_ms" not in r
     assert doc["met"] == all(r["ratio"] >= 2 for r in rows)
     assert (tmp_path / "frame.csv").is_file() and (tmp_path / "frame.png").is_file()
 
 
 def test_punak_table_and_sizes():
-    assert PUNAK == {(16, 16, 16): 90.0, (32, 32, 32): 28.0, (40, 60, 20): 21.0, (64, 64, 64): 6.1,
-                     (100, 100, 100): 2.0}
+    assert PUNAK == {
+        (16, 16, 16): 90.0,
+        (32, 32, 32): 28.0,
+        (40, 60, 20): 21.0,
+        (64, 64, 64): 6.1,
+        (100, 100, 100): 2.0,
+    }
     assert parse_sizes("16, 40x60x20") == [(16, 16, 16), (40, 60, 20)]
     with pytest.raises(ConfigError):
         parse_sizes("16,4x4")
@@ -47,7 +64,7 @@ def test_punak_table_and_sizes():
 def _brute_normals(v, faces):
     n = np.zeros_like(v)
     for a, b, c in faces:
-        fn = np.cross(v[b] - v[a], v[c] - v[a])            # twice the area times the unit normal
+        fn = np.cross(v[b] - v[a], v[c] - v[a])  # twice the area times the unit normal
         for i in (a, b, c):
             n[i] += fn
     return n / np.linalg.norm(n, axis=1, keepdims=True)
@@ -67,7 +84,7 @@ def test_frame_surface_matches_cut_surfaces(two_pieces):
     X, x = _deformed(grid)
     labels = np.zeros(grid.shape, np.int64)
     if two_pieces:
-        labels[3:] = 1                                      # two sides of a cut between layers 2 and 3
+        labels[3:] = 1  # two sides of a cut between layers 2 and 3
     ref = cut_surfaces(grid, x, torch.as_tensor(labels))
     ref_v = np.concatenate([s.vertices for s in ref])
     ref_f = np.concatenate([s.faces + sum(len(p.vertices) for p in ref[:i]) for i, s in enumerate(ref)])
@@ -101,12 +118,27 @@ def test_frame_surface_rest_and_float32():
 
 
 def test_bench_frame_volume_row(capsys):
-    rc = cli.main(["bench", "frame", "--quick", "--json", "--sizes", "16", "--volume", "--volume-size", "16",
-                   "--repeats", "1", "--frames", "1"])
+    rc = cli.main(
+        [
+            "bench",
+            "frame",
+            "--quick",
+            "--json",
+            "--sizes",
+            "16",
+            "--volume",
+            "--volume-size",
+            "16",
+            "--repeats",
+            "1",
+            "--frames",
+            "1",
+        ]
+    )
     assert rc == 0
     doc = json.loads(capsys.readouterr().out)
     (r,) = doc["rows"]
     assert r["volume_ms"] > 0 and r["image"] == "16^2"
     assert r["fps"] == pytest.approx(1000.0 / (r["step_ms"] + r["surface_ms"] + r["volume_ms"]), rel=1e-9)
     assert r["surface_fps"] == pytest.approx(1000.0 / (r["step_ms"] + r["surface_ms"]), rel=1e-9)
-    assert doc["met"] == (r["surface_ratio"] >= 2)                       # the volume is not part of the target
+    assert doc["met"] == (r["surface_ratio"] >= 2)  # the volume is not part of the target

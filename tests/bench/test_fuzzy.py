@@ -1,4 +1,5 @@
 """`torchdeform bench fuzzy`: the quick JSON run on MATLAB's tipper against scikit-fuzzy."""
+
 import json
 import subprocess
 import sys

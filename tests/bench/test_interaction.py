@@ -1,5 +1,6 @@
 """`torchdeform bench interaction`: an eager smoke run (rows, JSON fields, files) and its force figure
 against a plain simulation of the same scene (grid layout, an independent path to the packed step)."""
+
 import json
 
 import torch
@@ -10,8 +11,27 @@ from torchdeform.bench.interaction import pressing_scene
 
 
 def test_bench_interaction_eager_json(capsys, tmp_path):
-    rc = cli.main(["bench", "interaction", "--quick", "--no-compile", "--json", "--sizes", "5", "--haptic-size", "5",
-                   "--seconds", "0.2", "--steps", "20", "--dtype", "float64", "--out", str(tmp_path)])
+    rc = cli.main(
+        [
+            "bench",
+            "interaction",
+            "--quick",
+            "--no-compile",
+            "--json",
+            "--sizes",
+            "5",
+            "--haptic-size",
+            "5",
+            "--seconds",
+            "0.2",
+            "--steps",
+            "20",
+            "--dtype",
+            "float64",
+            "--out",
+            str(tmp_path),
+        ]
+    )
     assert rc == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["bench"] == "interaction" and {"machine", "haptic", "step_24"} <= set(doc)
@@ -22,7 +42,7 @@ def test_bench_interaction_eager_json(capsys, tmp_path):
     assert step["mode"] == "step" and haptic["mode"] == "haptic" and haptic["body_hz"] > 0
     # the step row's force: the same scene stepped on the grid layout (press to t >= 0.1 s, then 3 x 20 steps)
     model, _, dt = pressing_scene(5, torch.float64)
-    t, steps = dt, 1                                   # the first (compiling) step, then on to t >= 0.1 s
+    t, steps = dt, 1  # the first (compiling) step, then on to t >= 0.1 s
     while t < 0.1:
         t, steps = t + dt, steps + 1
     steps += 60

@@ -1,4 +1,5 @@
 """`torchdeform bench learn`: the quick JSON run (eager engine, and the rounding-sensitivity trainer)."""
+
 import json
 
 from torchdeform import cli
@@ -9,7 +10,7 @@ def test_bench_learn_quick_json(capsys, tmp_path):
     rc = cli.main(["bench", "learn", "--quick", "--json", "--out", str(tmp_path)])
     assert rc == 0
     doc = json.loads(capsys.readouterr().out)
-    assert doc["bench"] == "learn" and doc["met"] is None            # --quick: no compiled engine to judge
+    assert doc["bench"] == "learn" and doc["met"] is None  # --quick: no compiled engine to judge
     (row,) = doc["rows"]
     assert row["engine"] == "eager" and row["compile_s"] is None and row["threads"] == 1
     assert row["iterations"] == 2 and row["s_per_iteration"] > 0 and row["speedup"] == 1.0
@@ -25,5 +26,6 @@ def test_bench_learn_quick_json(capsys, tmp_path):
 def test_bench_learn_refuses_one_iteration(capsys):
     assert cli.main(["bench", "learn", "--iterations", "1", "--json"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["torchdeform: --iterations: expected at least 2 (the first compiled iteration includes the "
-                   "compile), got 1"]
+    assert err == [
+        "torchdeform: --iterations: expected at least 2 (the first compiled iteration includes the compile), got 1"
+    ]

@@ -3,6 +3,7 @@
 Speed targets live in the benchmark, not here: this checks the command runs, prints exactly
 one JSON document, its arithmetic, and that the compiled step equals the eager one.
 """
+
 import json
 
 import pytest
@@ -15,19 +16,20 @@ def test_bench_speed_quick_json(capsys, tmp_path):
     rc = cli.main(["bench", "speed", "--quick", "--json", "--threads", "2", "--out", str(tmp_path)])
     assert rc == 0
     captured = capsys.readouterr()
-    assert "recompile_limit" not in captured.err      # one compilation per shape, not per step
-    doc = json.loads(captured.out)                        # stdout holds exactly one JSON document
+    assert "recompile_limit" not in captured.err  # one compilation per shape, not per step
+    doc = json.loads(captured.out)  # stdout holds exactly one JSON document
     assert doc["bench"] == "speed"
     assert doc["machine"]["torch"] and doc["machine"]["device"] == "cpu"
     rows = [r for r in doc["rows"] if not r["mode"].startswith("warp")]
     warp = [r for r in doc["rows"] if r["mode"].startswith("warp")]
     assert {r["topology"] for r in rows} == {6, 26}
-    assert "ratio_vs_warp" in doc and doc["ratio_vs_warp"] is None     # no 64^3 row in --quick
+    assert "ratio_vs_warp" in doc and doc["ratio_vs_warp"] is None  # no 64^3 row in --quick
     from torchdeform.bench.warp_baseline import warp_available
+
     if warp_available()[0]:
         assert doc["warp"] == "measured" and len(warp) == 1
         w = warp[0]
-        assert w["threads"] == 1 and w["max_abs_diff"] <= 1e-6       # Warp computes the same step
+        assert w["threads"] == 1 and w["max_abs_diff"] <= 1e-6  # Warp computes the same step
         eager = next(r for r in rows if (r["n"], r["topology"], r["mode"]) == (w["n"], w["topology"], "eager"))
         assert eager["vs_warp"] == pytest.approx(eager["msprings_per_s"] / w["msprings_per_s"])
     else:
@@ -35,8 +37,18 @@ def test_bench_speed_quick_json(capsys, tmp_path):
     beam = doc["beam"]
     assert [b["mode"] for b in beam] == ["eager"] and beam[0]["cg_iters"] == 20
     assert beam[0]["steps_per_s"] == pytest.approx(1e3 / beam[0]["ms_per_step"])
-    keys = {"grid", "topology", "mode", "dtype", "threads", "msprings_per_s", "node_steps_per_s",
-            "ms_per_step", "compile_s", "max_abs_diff"}
+    keys = {
+        "grid",
+        "topology",
+        "mode",
+        "dtype",
+        "threads",
+        "msprings_per_s",
+        "node_steps_per_s",
+        "ms_per_step",
+        "compile_s",
+        "max_abs_diff",
+    }
     for r in rows:
         assert keys <= set(r)
         assert r["dtype"] == "float32" and r["threads"] == 2
@@ -49,17 +61,36 @@ def test_bench_speed_quick_json(capsys, tmp_path):
     for topology in (6, 26):
         assert any(r["mode"] == "eager" and r["topology"] == topology for r in rows)
     compiled = [r for r in rows if r["mode"] == "compiled"]
-    assert len(compiled) == 1                    # --quick compiles one tiny shape only
+    assert len(compiled) == 1  # --quick compiles one tiny shape only
     c = compiled[0]
     assert not c["fallback"], "torch.compile fell back to eager"
-    assert c["compile_s"] > 0 and c["compile_cache"] in ("built", "loaded")   # inductor's disk cache took it
+    assert c["compile_s"] > 0 and c["compile_cache"] in ("built", "loaded")  # inductor's disk cache took it
     assert c["max_abs_diff"] is not None and c["max_abs_diff"] <= 1e-5
     assert (tmp_path / "speed.csv").is_file() and (tmp_path / "speed.png").is_file()
 
 
 def test_bench_speed_table_eager_only(capsys):
-    assert cli.main(["bench", "speed", "--quick", "--no-compile", "--no-warp", "--no-beam", "--sizes", "4",
-                     "--topologies", "6", "--steps", "2", "--repeats", "1"]) == 0
+    assert (
+        cli.main(
+            [
+                "bench",
+                "speed",
+                "--quick",
+                "--no-compile",
+                "--no-warp",
+                "--no-beam",
+                "--sizes",
+                "4",
+                "--topologies",
+                "6",
+                "--steps",
+                "2",
+                "--repeats",
+                "1",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "Msprings/s" in out and "4^3" in out and "compiled" not in out
 

@@ -1,4 +1,5 @@
 """`torchdeform bench texture`: a smoke run (rows, JSON fields, files) and its meshes against trimesh."""
+
 import json
 
 import trimesh
@@ -15,8 +16,23 @@ def test_hull_meshes_are_closed_with_chen_and_he_counts():
 
 
 def test_bench_texture_json(capsys, tmp_path):
-    assert cli.main(["bench", "texture", "--quick", "--json", "--repeats", "1", "--out", str(tmp_path),
-                     "--seam-blocks", "2,1,1"]) == 0
+    assert (
+        cli.main(
+            [
+                "bench",
+                "texture",
+                "--quick",
+                "--json",
+                "--repeats",
+                "1",
+                "--out",
+                str(tmp_path),
+                "--seam-blocks",
+                "2,1,1",
+            ]
+        )
+        == 0
+    )
     doc = json.loads(capsys.readouterr().out)
     assert doc["bench"] == "texture" and {"machine", "met", "target_speedup"} <= set(doc)
     rows = {r["model"]: r for r in doc["rows"]}

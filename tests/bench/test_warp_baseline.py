@@ -4,6 +4,7 @@ The Warp steps must be torchdeform's step (same springs, same integrator): both 
 compared with the eager ``SymplecticEuler`` after 1 and 20 steps. The missing-Warp path and the
 edge list run without Warp; everything that launches a kernel skips when warp-lang is absent.
 """
+
 import subprocess
 import sys
 
@@ -40,7 +41,7 @@ def test_import_does_not_import_warp():
 
 
 def test_warp_missing(monkeypatch):
-    monkeypatch.setitem(sys.modules, "warp", None)           # import warp -> ImportError
+    monkeypatch.setitem(sys.modules, "warp", None)  # import warp -> ImportError
     ok, why = bench_warp.warp_available()
     assert ok is False
     assert why == bench_warp.INSTALL_HINT and "pip install warp-lang" in why
@@ -56,7 +57,7 @@ def test_edge_list_is_the_grid(topology):
     """Every spring once, as the independent oracle lists them; rest lengths from the coordinates."""
     shape = (3, 4, 5)
     mask = torch.ones(shape, dtype=torch.bool)
-    mask[0, 0, :2] = False                                   # a node mask removes springs too
+    mask[0, 0, :2] = False  # a node mask removes springs too
     grid = td.Grid(shape, spacing=(0.01, 0.02, 0.015), topology=topology, node_mask=mask)
     model = td.Model(grid, stiffness=100.0, damping=0.05, mass=1e-3, dtype=torch.float64)
     e = bench_warp.edge_list(model)
@@ -88,7 +89,7 @@ def test_warp_step_is_the_eager_step(wp, variant, topology, dtype):
         assert got.t == pytest.approx(want.t)
         dx, dv = float((got.x - want.x).abs().max()), float((got.v - want.v).abs().max())
         assert dx < tol_x and dv < tol_v, (variant, steps, dx, dv)
-        assert float((want.x - state.x).abs().max()) > 10 * dx           # it moved, and the same way
+        assert float((want.x - state.x).abs().max()) > 10 * dx  # it moved, and the same way
 
 
 @pytest.mark.parametrize("variant", bench_warp.VARIANTS)
@@ -122,8 +123,25 @@ def test_unsupported_model(wp):
 @pytest.mark.parametrize("variant", bench_warp.VARIANTS)
 def test_warp_speed_row(wp, variant):
     row = bench_warp.warp_speed_row(6, 26, variant, steps=3, repeats=2)
-    keys = {"grid", "n", "topology", "mode", "dtype", "threads", "device", "nodes", "springs", "steps",
-            "repeats", "ms_per_step", "msprings_per_s", "node_steps_per_s", "compile_s", "max_abs_diff", "fallback"}
+    keys = {
+        "grid",
+        "n",
+        "topology",
+        "mode",
+        "dtype",
+        "threads",
+        "device",
+        "nodes",
+        "springs",
+        "steps",
+        "repeats",
+        "ms_per_step",
+        "msprings_per_s",
+        "node_steps_per_s",
+        "compile_s",
+        "max_abs_diff",
+        "fallback",
+    }
     assert set(row) == keys
     grid = td.Grid((6, 6, 6), topology=26)
     assert row["springs"] == grid.num_springs and row["nodes"] == grid.num_nodes == 216
@@ -137,5 +155,6 @@ def test_warp_speed_row(wp, variant):
     model, state, dt = speed_cube(6, 26)
     ref = _eager(model, state, dt, 1)
     bad = td.State(ref.x + 1e-3, ref.v, ref.t)
-    assert bench_warp.warp_speed_row(6, 26, variant, steps=1, repeats=1, reference=bad)["max_abs_diff"] \
-        == pytest.approx(1e-3, rel=1e-3)
+    assert bench_warp.warp_speed_row(6, 26, variant, steps=1, repeats=1, reference=bad)[
+        "max_abs_diff"
+    ] == pytest.approx(1e-3, rel=1e-3)

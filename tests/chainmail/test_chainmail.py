@@ -11,6 +11,7 @@ Oracles written here, sharing no code with ``torchdeform.chainmail``:
   in numpy over the whole grid every sweep (and its depth by a breadth-first search in Python),
   the reference of the active-box sweeps of :func:`tensor_chainmail`.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -56,8 +57,7 @@ def plain_violation(x, mn, mx, sh):
     worst = 0.0
     for p, q, a in _links(x.shape[1:]):
         d = [x[c][q] - x[c][p] for c in range(3)]
-        worst = max(worst, mn[a][p] - d[a], d[a] - mx[a][p],
-                    *[abs(d[c]) - sh[a][p] for c in range(3) if c != a])
+        worst = max(worst, mn[a][p] - d[a], d[a] - mx[a][p], *[abs(d[c]) - sh[a][p] for c in range(3) if c != a])
     return worst
 
 
@@ -66,8 +66,10 @@ def reference_move(x, mn, mx, sh, picks, delta):
 
     A link along axis ``a`` allows ``[min, max]`` of ``x_q - x_p`` along ``a`` and the shear
     ``[-sh, sh]`` across it, per link."""
+
     def bounds(p, a, c):
         return (mn[a][p], mx[a][p]) if c == a else (-sh[a][p], sh[a][p])
+
     return least_motion(x, x.shape[1:], list(_links(x.shape[1:])), bounds, picks, delta)
 
 
@@ -90,7 +92,7 @@ def whole_grid_sweeps(x, grid, lim, pick, d, fixed=None, links=None):
     X = grid.rest_positions(F64).numpy()
     h = np.array(grid.spacing).reshape(3, 1, 1, 1)
     mn, mx, sh = (t.numpy() for t in lim.per_link())
-    lo_l, hi_l = mn - h, mx - h                                  # bounds on u_q - u_p along the link
+    lo_l, hi_l = mn - h, mx - h  # bounds on u_q - u_p along the link
     nodes = grid.nodes().numpy()
     lk = np.ones((B, 3) + shape, bool) if links is None else np.broadcast_to(links.numpy(), (B, 3) + shape)
     pick = pick.numpy() & nodes
@@ -112,7 +114,7 @@ def whole_grid_sweeps(x, grid, lim, pick, d, fixed=None, links=None):
             for c in range(3):
                 l_, h_ = (lo_l[a][p[1:]], hi_l[a][p[1:]]) if c == a else (-sh[a][p[1:]], sh[a][p[1:]])
                 up, uq = u[:, c][p], u[:, c][q]
-                ok_p, ok_q = moved[p] & link, moved[q] & link    # p bounds q, q bounds p
+                ok_p, ok_q = moved[p] & link, moved[q] & link  # p bounds q, q bounds p
                 lo[:, c][q] = np.maximum(lo[:, c][q], np.where(ok_p, up + l_, -np.inf))
                 hi[:, c][q] = np.minimum(hi[:, c][q], np.where(ok_p, up + h_, np.inf))
                 lo[:, c][p] = np.maximum(lo[:, c][p], np.where(ok_q, uq - h_, -np.inf))
@@ -127,7 +129,7 @@ def whole_grid_sweeps(x, grid, lim, pick, d, fixed=None, links=None):
         moved |= changed
         u = new
     depth = []
-    for b in range(B):                                           # breadth-first search, plain Python
+    for b in range(B):  # breadth-first search, plain Python
         dist = {tuple(int(v) for v in ijk): 0 for ijk in np.argwhere(pick[b])}
         front = list(dist)
         while front:
@@ -157,8 +159,10 @@ def _random_moves(rng, shape, count, most=3, scale=1.5):
     out = []
     for _ in range(count):
         base = np.array([rng.integers(0, n) for n in shape])
-        picks = {tuple(int(v) for v in np.minimum(base + rng.integers(0, 2, 3), np.array(shape) - 1))
-                 for _ in range(int(rng.integers(1, most + 1)))}
+        picks = {
+            tuple(int(v) for v in np.minimum(base + rng.integers(0, 2, 3), np.array(shape) - 1))
+            for _ in range(int(rng.integers(1, most + 1)))
+        }
         out.append((sorted(picks), rng.normal(size=3) * scale))
     return out
 
@@ -189,14 +193,13 @@ def test_sequential_matches_reference_homogeneous(method):
             np.testing.assert_allclose(after, reference_move(before, mn, mx, sh, picks, d), rtol=0, atol=1e-12)
             assert plain_violation(after, mn, mx, sh) <= 1e-12
             assert float(limit_violation(cm.positions(), GRID, lim)[0]) <= 1e-12
-            assert r.max_touches == 1                              # each element at most once per pass
+            assert r.max_touches == 1  # each element at most once per pass
             for p in r.passes:
                 assert np.bincount(p, minlength=1).max() <= 1
             moved = np.flatnonzero(np.abs(after - before).max(0).reshape(-1) > 0)
             assert set(moved) <= set(r.moved_nodes.tolist())
-            for p in picks:                                          # picked elements move rigidly
-                np.testing.assert_allclose(after[:, p[0], p[1], p[2]] - before[:, p[0], p[1], p[2]], d,
-                                           atol=1e-12)
+            for p in picks:  # picked elements move rigidly
+                np.testing.assert_allclose(after[:, p[0], p[1], p[2]] - before[:, p[0], p[1], p[2]], d, atol=1e-12)
 
 
 def test_gibson_single_pull_one_pass_touches_each_element_once():
@@ -205,7 +208,7 @@ def test_gibson_single_pull_one_pass_touches_each_element_once():
     r = cm.move([(6, 6, 6)], (2.0, -1.0, 0.5))
     assert len(r.passes) == 1 and r.checked == len(r.passes[0])
     assert np.bincount(r.passes[0]).max() == 1
-    assert r.moved > 100 and r.checked < 6 * r.moved             # only the moved region and its rim
+    assert r.moved > 100 and r.checked < 6 * r.moved  # only the moved region and its rim
 
 
 def test_enhanced_matches_reference_heterogeneous():
@@ -237,28 +240,32 @@ def test_single_chain_analytic_and_blocked_by_fixed_end():
         # element 10 - k follows by max(0, 1.1 - 0.2 k) along d; sideways by max(0, 0.3 - 0.2 k)
         k = np.arange(10, -1, -1)
         np.testing.assert_allclose(u, np.maximum(0, 1.1 - 0.2 * k), atol=1e-12)
-        np.testing.assert_allclose(cm.displacement(F64)[0, 1, :, 0, 0].numpy(), np.maximum(0, 0.3 - 0.2 * k),
-                                   atol=1e-12)
+        np.testing.assert_allclose(
+            cm.displacement(F64)[0, 1, :, 0, 0].numpy(), np.maximum(0, 0.3 - 0.2 * k), atol=1e-12
+        )
         assert r.moved == 6 and not r.blocked
         # 3 m more needs 4.1 m of stretch in all, the chain has 10 * 0.2 = 2 m: 0.9 / 3 is carried out
         r = cm.move([(10, 0, 0)], (3.0, 0.0, 0.0))
-        assert r.blocked and r.fraction == pytest.approx(0.3, abs=2 ** -11)
-        assert float(cm.displacement(F64)[0, 0, 0, 0, 0]) == 0.0            # the fixed end stays
+        assert r.blocked and r.fraction == pytest.approx(0.3, abs=2**-11)
+        assert float(cm.displacement(F64)[0, 0, 0, 0, 0]) == 0.0  # the fixed end stays
         assert float(limit_violation(cm.positions(), g, lim)[0]) <= 1e-12
         before = cm.positions()
         with pytest.raises(BlockedMoveError):
             cm.move([(10, 0, 0)], (5.0, 0.0, 0.0), on_blocked="error")
-        assert torch.equal(cm.positions(), before)                           # nothing moved
+        assert torch.equal(cm.positions(), before)  # nothing moved
 
 
 def test_limits_hold_after_every_move_with_fixed_faces_and_node_mask():
     rng = np.random.default_rng(2)
     mask = torch.ones(7, 6, 6, dtype=torch.bool)
-    mask[4:, :3, :3] = False                                                 # an L-shaped body
+    mask[4:, :3, :3] = False  # an L-shaped body
     g = td.Grid((7, 6, 6), spacing=0.01, node_mask=mask)
     box = td.Grid(g.shape, spacing=0.01)
-    for method, g, mask in (("gibson", box, torch.ones_like(mask)), ("enhanced", box, torch.ones_like(mask)),
-                            ("enhanced", g, mask)):
+    for method, g, mask in (
+        ("gibson", box, torch.ones_like(mask)),
+        ("enhanced", box, torch.ones_like(mask)),
+        ("enhanced", g, mask),
+    ):
         lim = Limits.from_material(g, 0.85, 1.15, 0.1)
         fixed = g.face("bottom")
         cm = ChainMail(g, lim, fixed=fixed, method=method)
@@ -269,8 +276,8 @@ def test_limits_hold_after_every_move_with_fixed_faces_and_node_mask():
             r = cm.move(picks, rng.normal(size=3) * 0.02)
             after = cm.positions()
             assert float(limit_violation(after, g, lim)[0]) <= 1e-12
-            assert torch.equal(after[0][:, fixed], before[0][:, fixed])          # fixed elements stay
-            assert not cm.displacement(F64)[0][:, ~mask].any()                  # outside the body: nothing
+            assert torch.equal(after[0][:, fixed], before[0][:, fixed])  # fixed elements stay
+            assert not cm.displacement(F64)[0][:, ~mask].any()  # outside the body: nothing
             assert 0.0 <= r.fraction <= 1.0
 
 
@@ -294,7 +301,7 @@ def test_locality_same_work_on_small_and_large_grids():
         cm = ChainMail(g, Limits.from_material(g, 0.8, 1.2, 0.2))
         r = cm.move([(n // 2, n // 2, n // 2)], (0.002, 0.001, 0.0))
         counts.append((r.moved, r.checked))
-    assert counts[0] == counts[1] and 1000 <= counts[0][0] <= 2000   # a ~1,300-element pull, same work
+    assert counts[0] == counts[1] and 1000 <= counts[0][0] <= 2000  # a ~1,300-element pull, same work
 
 
 # ------------------------------------------------------------------ tensor version
@@ -342,7 +349,7 @@ def test_tensor_reports_a_blocked_move_and_keeps_fixed_elements():
     pick[5] = True
     r = tensor_chainmail(g.rest_positions(F64), g, lim, pick, torch.tensor([2.0, 0, 0], dtype=F64), fixed=fixed)
     assert float(r.positions[0, 0, 0, 0, 0]) == 0.0
-    assert float(r.violation[0]) == pytest.approx(1.0)          # 2 m asked, 5 links x 0.2 m possible
+    assert float(r.violation[0]) == pytest.approx(1.0)  # 2 m asked, 5 links x 0.2 m possible
 
 
 def _bounding_box_of(moved, shape):
@@ -356,7 +363,7 @@ def _box_case(name):
     rng = np.random.default_rng(sum(map(ord, name)))
     shape = (12, 11, 13)
     mask = None
-    if name == "masked":                                           # an L-shaped body with a hole
+    if name == "masked":  # an L-shaped body with a hole
         mask = torch.ones(shape, dtype=torch.bool)
         mask[6:, :5] = False
         mask[3:5, 3:6, 4:6] = False
@@ -372,8 +379,11 @@ def _box_case(name):
     centre = np.array((1, 0, 1) if name == "border" else middle[int(rng.integers(len(middle)))])
     for b in range(B):
         for _ in range(int(rng.integers(1, 3))):
-            ijk = inside[int(rng.integers(len(inside)))] if name == "random" else \
-                np.clip(centre + rng.integers(-1, 2, 3), 0, np.array(shape) - 1).tolist()
+            ijk = (
+                inside[int(rng.integers(len(inside)))]
+                if name == "random"
+                else np.clip(centre + rng.integers(-1, 2, 3), 0, np.array(shape) - 1).tolist()
+            )
             pick[(b, *ijk)] = bool(nodes[tuple(ijk)])
         if not pick[b].any():
             pick[(b, *centre.tolist())] = True
@@ -381,10 +391,14 @@ def _box_case(name):
     kwargs = {}
     if name == "fixed":
         kwargs["fixed"] = (torch.from_numpy(rng.random(shape) < 0.05) | grid.face("bottom")) & ~pick.any(0)
-    if name == "cut":                                               # one blade per body, plus random cuts
+    if name == "cut":  # one blade per body, plus random cuts
         x0 = grid.rest_positions(F64)
-        links = torch.stack([unlink(link_mask(grid), x0, Blade((5.5, -1.0, -1.0), (0.0, 7.0, 0.0), (0.0, 0.0, 15.0))),
-                             unlink(link_mask(grid), x0, Blade((-1.0, 4.5, -1.0), (14.0, 0.0, 0.0), (0.0, 0.0, 8.0)))])
+        links = torch.stack(
+            [
+                unlink(link_mask(grid), x0, Blade((5.5, -1.0, -1.0), (0.0, 7.0, 0.0), (0.0, 0.0, 15.0))),
+                unlink(link_mask(grid), x0, Blade((-1.0, 4.5, -1.0), (14.0, 0.0, 0.0), (0.0, 0.0, 8.0))),
+            ]
+        )
         kwargs["links"] = links & torch.from_numpy(rng.random(links.shape) < 0.9)
     x = grid.rest_positions(F64).repeat(B, 1, 1, 1, 1)
     return x, grid, lim, pick, d, kwargs
@@ -395,13 +409,13 @@ def test_tensor_active_box_equals_whole_grid_sweeps(name):
     x, grid, lim, pick, d, kwargs = _box_case(name)
     r = tensor_chainmail(x, grid, lim, pick, d, **kwargs)
     pos, moved, sweeps, depth = whole_grid_sweeps(x, grid, lim, pick, d, kwargs.get("fixed"), kwargs.get("links"))
-    assert torch.equal(r.positions, pos)                           # bit for bit
+    assert torch.equal(r.positions, pos)  # bit for bit
     assert torch.equal(r.moved, moved)
     assert r.sweeps == sweeps and r.depth.tolist() == depth
     # every link the pull changed lies in the box: the box's violation is the whole grid's
     assert torch.equal(r.violation, limit_violation(r.positions, grid, lim, links=kwargs.get("links")))
     assert r.box == _bounding_box_of(r.moved, grid.shape)
-    assert len(set(d.flatten().tolist())) == d.numel()             # the bodies really differ
+    assert len(set(d.flatten().tolist())) == d.numel()  # the bodies really differ
 
 
 def test_whole_grid_reference_agrees_with_least_motion_oracle():
@@ -424,8 +438,8 @@ def test_tensor_second_pull_keeps_unmoved_elements_bit_for_bit():
     pos, moved, sweeps, depth = whole_grid_sweeps(first.positions, grid, lim, pick2, d2)
     m = r.moved.unsqueeze(1).expand_as(pos)
     assert torch.equal(r.moved, moved) and r.sweeps == sweeps and r.depth.tolist() == depth
-    assert torch.equal(r.positions[m], pos[m])                     # moved: as the whole-grid sweeps
-    assert torch.equal(r.positions[~m], first.positions[~m])       # the rest: untouched, no X + (x - X)
+    assert torch.equal(r.positions[m], pos[m])  # moved: as the whole-grid sweeps
+    assert torch.equal(r.positions[~m], first.positions[~m])  # the rest: untouched, no X + (x - X)
     torch.testing.assert_close(r.violation, limit_violation(r.positions, grid, lim), rtol=0, atol=1e-14)
 
 
@@ -440,10 +454,10 @@ def test_tensor_sweeps_visit_only_the_active_box():
     assert 1000 <= moved <= 2000
     assert r.box == _bounding_box_of(r.moved, g.shape)
     volume = int(np.prod([hi - lo for lo, hi in r.box]))
-    assert volume < n ** 3 / 8                                     # the box is the pull's, not the grid's
+    assert volume < n**3 / 8  # the box is the pull's, not the grid's
     # the box only grows: each sweep (the last, unchanged one included) visits at most its final volume
     assert 27 * (r.sweeps + 1) < r.checked <= (r.sweeps + 1) * volume
-    assert r.checked < (r.sweeps + 1) * n ** 3 / 8
+    assert r.checked < (r.sweeps + 1) * n**3 / 8
 
 
 # ------------------------------------------------------------------ relaxation
@@ -474,12 +488,12 @@ def test_relaxation_lowers_energy_monotonically_and_removes_creases():
     assert c1 < 0.7 * c0 and c4 < c1
     for x in (x1, x4):
         assert float(limit_violation(x, g, lim)[0]) <= 1e-12
-        assert torch.equal(x[0][:, ~free], x0[0][:, ~free])       # fixed and held elements stay
+        assert torch.equal(x[0][:, ~free], x0[0][:, ~free])  # fixed and held elements stay
 
 
 def test_relaxation_goal_mode_and_only_moved():
     g = td.Grid((12, 12, 12), spacing=1.0)
-    lim = Limits.from_material(g, 0.9, 1.5, 0.3)                # goal distance 1.2 m, not the spacing
+    lim = Limits.from_material(g, 0.9, 1.5, 0.3)  # goal distance 1.2 m, not the spacing
     cm = ChainMail(g, lim, method="enhanced")
     cm.move([(6, 6, 6)], (2.0, 0.0, 1.0))
     moved = cm.moved_mask()
@@ -489,7 +503,7 @@ def test_relaxation_goal_mode_and_only_moved():
     assert all(b <= a * (1 + 1e-12) for a, b in zip(energies, energies[1:])) and energies[-1] < energies[0]
     assert energies[0] == pytest.approx(float(relax_energy(before, g, lim, "goal")[0]))
     assert torch.equal(after[0][:, ~moved], before[0][:, ~moved])
-    assert torch.equal(after[0][:, 6, 6, 6], before[0][:, 6, 6, 6])   # the picked element is held
+    assert torch.equal(after[0][:, 6, 6, 6], before[0][:, 6, 6, 6])  # the picked element is held
     assert float(limit_violation(after, g, lim)[0]) <= 1e-12
 
 
@@ -502,8 +516,8 @@ def test_displacement_field_and_mass_spring_state():
     torch.testing.assert_close(state.x, g.rest_positions(F64) + cm.displacement(F64))
     model = td.Model(g, stiffness=10.0, mass=1e-3, fixed=g.face("bottom"), dtype=F64)
     nxt = td.SymplecticEuler().step(model, state, dt=1e-4)
-    assert torch.isfinite(nxt.x).all() and float(nxt.v.abs().max()) > 0     # springs pull it back
-    cm2 = ChainMail(g, lim, positions=state.x)                             # and back into ChainMail
+    assert torch.isfinite(nxt.x).all() and float(nxt.v.abs().max()) > 0  # springs pull it back
+    cm2 = ChainMail(g, lim, positions=state.x)  # and back into ChainMail
     torch.testing.assert_close(cm2.positions(), cm.positions(), rtol=0, atol=1e-12)
 
 
@@ -514,6 +528,7 @@ def test_limits_from_material_and_tissues():
     np.testing.assert_allclose(lim.max.numpy(), [0.00125, 0.0025, 0.00375])
     np.testing.assert_allclose(lim.shear.numpy(), [0.0001, 0.0002, 0.0003])
     from torchdeform.fuzzy.presets import tissue_parameters
+
     liver = tissue_limits(g, "liver")
     eps = 300.0 / tissue_parameters("liver")["youngs_modulus"]
     np.testing.assert_allclose(liver.max.numpy(), (1 + eps) * np.array(g.spacing), rtol=1e-9)
@@ -523,30 +538,42 @@ def test_limits_from_material_and_tissues():
     assert not mixed.uniform
     e_b = 300.0 / tissue_parameters("brain")["youngs_modulus"]
     e_c = 300.0 / tissue_parameters("liver_cirrhotic")["youngs_modulus"]
-    assert mixed.shear[0, 0, 0, 0] == pytest.approx(e_b * 0.001)             # brain-brain link
+    assert mixed.shear[0, 0, 0, 0] == pytest.approx(e_b * 0.001)  # brain-brain link
     assert mixed.shear[0, 1, 0, 0] == pytest.approx(0.5 * (e_b + e_c) * 0.001)  # brain-cirrhotic: mean
     assert mixed.shear[0, 2, 0, 0] == pytest.approx(e_c * 0.001)
-    assert e_b > e_c                                                         # softer tissue, wider limits
+    assert e_b > e_c  # softer tissue, wider limits
 
 
-@pytest.mark.parametrize("make, message", [
-    (lambda g: Limits(g, min=1.2, max=0.8, shear=0.1), "min <= max"),
-    (lambda g: Limits(g, min=0.8, max=1.2, shear=-0.1), "shear limits >= 0"),
-    (lambda g: Limits.from_material(g, 0.9, 1.1, -0.2), "ratio >= 0"),
-    (lambda g: ChainMail(g, Limits.from_material(g, 0.9, 1.1, 0.1), fixed=g.face("top")).move(
-        [(3, 1, 1)], (1, 0, 0)), "fixed and cannot be moved"),
-    (lambda g: ChainMail(g, Limits.from_material(g, 0.9, 1.1, 0.1)).move([(4, 1, 1)], (1, 0, 0)),
-     "outside the grid"),
-    (lambda g: ChainMail(g, Limits.from_material(g, 0.9, 1.1, 0.1)).move([(-1, 1, 1)], (1, 0, 0)),
-     "outside the grid"),
-    (lambda g: ChainMail(g, Limits.from_material(g, 0.9, 1.1, 0.1)).move([(1, 1, 1)], (1, 0)),
-     "displacement"),
-    (lambda g: ChainMail(g, Limits.from_material(g, torch.full(g.shape, 0.9), 1.1, 0.1)), "enhanced"),
-    (lambda g: ChainMail(g, Limits.from_material(g, 1.05, 1.2, 0.1)), "satisfy the ChainMail limits"),
-    (lambda g: ChainMail(g, Limits.from_material(g, 0.9, 1.1, 0.1), method="fast"), "gibson"),
-    (lambda g: ChainMail(td.Grid(g.shape, 1.0, node_mask=g.face("top")), Limits.from_material(g, 0.9, 1.1, 0.1)),
-     "node mask"),
-])
+@pytest.mark.parametrize(
+    "make, message",
+    [
+        (lambda g: Limits(g, min=1.2, max=0.8, shear=0.1), "min <= max"),
+        (lambda g: Limits(g, min=0.8, max=1.2, shear=-0.1), "shear limits >= 0"),
+        (lambda g: Limits.from_material(g, 0.9, 1.1, -0.2), "ratio >= 0"),
+        (
+            lambda g: ChainMail(g, Limits.from_material(g, 0.9, 1.1, 0.1), fixed=g.face("top")).move(
+                [(3, 1, 1)], (1, 0, 0)
+            ),
+            "fixed and cannot be moved",
+        ),
+        (
+            lambda g: ChainMail(g, Limits.from_material(g, 0.9, 1.1, 0.1)).move([(4, 1, 1)], (1, 0, 0)),
+            "outside the grid",
+        ),
+        (
+            lambda g: ChainMail(g, Limits.from_material(g, 0.9, 1.1, 0.1)).move([(-1, 1, 1)], (1, 0, 0)),
+            "outside the grid",
+        ),
+        (lambda g: ChainMail(g, Limits.from_material(g, 0.9, 1.1, 0.1)).move([(1, 1, 1)], (1, 0)), "displacement"),
+        (lambda g: ChainMail(g, Limits.from_material(g, torch.full(g.shape, 0.9), 1.1, 0.1)), "enhanced"),
+        (lambda g: ChainMail(g, Limits.from_material(g, 1.05, 1.2, 0.1)), "satisfy the ChainMail limits"),
+        (lambda g: ChainMail(g, Limits.from_material(g, 0.9, 1.1, 0.1), method="fast"), "gibson"),
+        (
+            lambda g: ChainMail(td.Grid(g.shape, 1.0, node_mask=g.face("top")), Limits.from_material(g, 0.9, 1.1, 0.1)),
+            "node mask",
+        ),
+    ],
+)
 def test_bad_input_gives_one_clear_error(make, message):
     g = td.Grid((4, 3, 3), spacing=1.0)
     with pytest.raises(ConfigError, match=message):

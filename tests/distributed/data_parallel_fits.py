@@ -6,6 +6,7 @@ runs every case with :class:`ShardedLoss` over the ranks; rank 0 writes the lear
 and the error every rank saw from a rollout that failed on one rank only. The test runs the same
 cases in its own process with plain :class:`WindowLoss` objects (:func:`reference`).
 """
+
 from __future__ import annotations
 
 import json
@@ -22,8 +23,9 @@ CASES = ("lbfgs", "adam")
 
 
 def shared(series, k, c):
-    return learn.Parameters(series, learn.SpringParameter.like(series, k), learn.SpringParameter.like(series, c),
-                            series.truth["mass"])
+    return learn.Parameters(
+        series, learn.SpringParameter.like(series, k), learn.SpringParameter.like(series, c), series.truth["mass"]
+    )
 
 
 class SumOfLosses:
@@ -56,8 +58,11 @@ def adam_case():
     a = learn.radetzky_cube(springs=70, steps=100)
     b = learn.radetzky_cube(springs=70, steps=70, noise=0.01, seed=3)
     p = shared(a, 20.0, 0.05)
-    return p, [learn.WindowLoss(a, window=10), learn.WindowLoss(b, window=10)], \
-        dict(optimizer="adam", iterations=10, windows_per_step=5, seed=11, lr=0.1)
+    return (
+        p,
+        [learn.WindowLoss(a, window=10), learn.WindowLoss(b, window=10)],
+        dict(optimizer="adam", iterations=10, windows_per_step=5, seed=11, lr=0.1),
+    )
 
 
 def learned(params) -> dict:
@@ -76,6 +81,7 @@ def reference(case: str) -> dict:
 def sharded(case: str, tmp: Path) -> dict:
     """The case over the ranks; Adam stops half-way, checkpoints (rank 0) and resumes on every rank."""
     from torchdeform.distributed.data_parallel import ShardedLoss
+
     params, losses, kw = {"lbfgs": lbfgs_case, "adam": adam_case}[case]()
     loss = ShardedLoss(losses)
     trainer = learn.Trainer(params, loss, progress=False, patience=100, **kw)
@@ -101,7 +107,8 @@ def main(out: str) -> int:
     import torch.distributed as dist
 
     from torchdeform.distributed.data_parallel import ShardedLoss, process_group
-    signal.alarm(120)                     # a rank that hangs ends itself (the test bounds torchrun too)
+
+    signal.alarm(120)  # a rank that hangs ends itself (the test bounds torchrun too)
     torch.set_num_threads(1)
     saves = []
     plain_save = torch.save
@@ -109,6 +116,7 @@ def main(out: str) -> int:
     def counting_save(*a, **k):
         saves.append(1)
         return plain_save(*a, **k)
+
     torch.save = counting_save
     with process_group() as (rank, world):
         result = {"world": world}
@@ -119,8 +127,7 @@ def main(out: str) -> int:
         p = shared(s, 12.0, 0.08)
         value = ShardedLoss(learn.WindowLoss(s, window=10))(p)
         value.backward()
-        result["few"] = {"value": float(value.detach()).hex(),
-                         "grad": [float(q.grad).hex() for q in p.parameters()]}
+        result["few"] = {"value": float(value.detach()).hex(), "grad": [float(q.grad).hex() for q in p.parameters()]}
         # a failure in one rank's rollouts is raised on every rank (no rank left waiting)
         try:
             ShardedLoss([learn.WindowLoss(s, window=10), FailsOnLastWindow()])(p)

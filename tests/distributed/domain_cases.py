@@ -5,6 +5,7 @@ process) and by each rank of a ``torchrun`` launch of this file.
 
 writes ``OUT_DIR/<case>.npz`` (float64 records, final state, communication figures) from rank 0.
 """
+
 from __future__ import annotations
 
 import sys
@@ -16,7 +17,7 @@ import torch
 import torchdeform as td
 from torchdeform.topology import Blade
 
-SHAPE = (7, 4, 5)                 # 3 ranks: slabs of 3, 2 and 2 rows
+SHAPE = (7, 4, 5)  # 3 ranks: slabs of 3, 2 and 2 rows
 H = 0.01
 DT = 2e-4
 STEPS = 100
@@ -34,21 +35,35 @@ def build(name: str):
     law, home = None, None
     if name == "verlet26_law_mask":
         mask = torch.ones(SHAPE, dtype=torch.bool)
-        mask[3:5, 0, 0] = False                      # a notch across a slab boundary
+        mask[3:5, 0, 0] = False  # a notch across a slab boundary
         law, home = "exponential", 5.0
     grid = td.Grid(SHAPE, spacing=H, topology=topology, node_mask=mask)
     side = torch.zeros(SHAPE, dtype=torch.bool)
-    side[1:, :, -1] = True                            # the far w face, over every slab, dragged sideways
+    side[1:, :, -1] = True  # the far w face, over every slab, dragged sideways
     drag = td.Drag(side, [(0.0, (0.0, 0.0, 0.0)), (STEPS * DT, (0.0, 0.0, 0.004))])
     stiffness = {6: 400.0, 26: 200.0}[topology]
-    model = td.Model(grid, stiffness=stiffness, damping=0.2, density=1000.0, gravity=(-9.81, 0.0, 0.0),
-                     fixed=grid.face("bottom"), drags=[drag], law=law, home=home, dtype=torch.float64)
+    model = td.Model(
+        grid,
+        stiffness=stiffness,
+        damping=0.2,
+        density=1000.0,
+        gravity=(-9.81, 0.0, 0.0),
+        fixed=grid.face("bottom"),
+        drags=[drag],
+        law=law,
+        home=home,
+        dtype=torch.float64,
+    )
     # half way through, a blade between layers h = 1 and 2 cuts the lower half of w through every slab
     blade = Blade((-0.005, 0.015, -0.005), (0.08, 0.0, 0.0), (0.0, 0.0, 0.025))
-    integrator = {"symplectic6": td.SymplecticEuler(), "rk4_26": td.RK4(), "verlet26_law_mask": td.DampedVerlet(),
-                  # a fixed count of CG iterations: no residual norm to reduce over ranks each iteration
-                  "implicit6": td.ImplicitEuler(cg_iters=16, cg_tol=0.0),
-                  "implicit26": td.ImplicitEuler(cg_iters=16, cg_tol=0.0)}[name]
+    integrator = {
+        "symplectic6": td.SymplecticEuler(),
+        "rk4_26": td.RK4(),
+        "verlet26_law_mask": td.DampedVerlet(),
+        # a fixed count of CG iterations: no residual norm to reduce over ranks each iteration
+        "implicit6": td.ImplicitEuler(cg_iters=16, cg_tol=0.0),
+        "implicit26": td.ImplicitEuler(cg_iters=16, cg_tol=0.0),
+    }[name]
     return model, integrator, [(CUT_AT, blade)]
 
 
@@ -56,7 +71,9 @@ def start(model):
     """A start state with some motion, so every term is exercised from the first step."""
     s = model.rest_state()
     g = torch.Generator().manual_seed(0)
-    x = s.x + 1e-4 * torch.randn(s.x.shape, generator=g, dtype=s.x.dtype) * (model.free if model.free is not None else 1)
+    x = s.x + 1e-4 * torch.randn(s.x.shape, generator=g, dtype=s.x.dtype) * (
+        model.free if model.free is not None else 1
+    )
     return td.State(x, s.v, 0.0)
 
 
@@ -64,6 +81,7 @@ def main(out: Path, names: list) -> None:
     import torch.distributed as dist
 
     from torchdeform.distributed.domain import decomposed_simulate
+
     dist.init_process_group("gloo")
     torch.set_num_threads(1)
     try:
@@ -71,9 +89,16 @@ def main(out: Path, names: list) -> None:
             model, integrator, cuts = build(name)
             run = decomposed_simulate(model, start(model), DT, STEPS, integrator, record_every=10, cuts=cuts)
             if dist.get_rank() == 0:
-                np.savez(out / f"{name}.npz", x=run.record["x"].numpy(), v=run.record["v"].numpy(),
-                         t=run.record["t"].numpy(), exchanges=run.model.halo.exchanges,
-                         bytes=run.model.halo.bytes, wall_s=run.wall_s, comm_s=run.comm_s)
+                np.savez(
+                    out / f"{name}.npz",
+                    x=run.record["x"].numpy(),
+                    v=run.record["v"].numpy(),
+                    t=run.record["t"].numpy(),
+                    exchanges=run.model.halo.exchanges,
+                    bytes=run.model.halo.bytes,
+                    wall_s=run.wall_s,
+                    comm_s=run.comm_s,
+                )
     finally:
         dist.barrier()
         dist.destroy_process_group()

@@ -1,6 +1,7 @@
 """Data-parallel learning (torchdeform.distributed.data_parallel): the window split, a sharded
 loss against the plain loss in one process, and fits over 2 and 3 ranks (torchrun, gloo on this
 machine) against the same fits in one process with plain window losses, to 1e-12 in float64."""
+
 from __future__ import annotations
 
 import importlib.util
@@ -82,10 +83,10 @@ def test_split_covers_every_window_exactly_once():
     for n in range(0, 30):
         for world in range(1, 6):
             blocks = [list(shard(n, r, world)) for r in range(world)]
-            assert sum(blocks, []) == list(range(n))                  # in order, each once
+            assert sum(blocks, []) == list(range(n))  # in order, each once
             sizes = [len(b) for b in blocks]
             assert max(sizes) - min(sizes) <= 1
-    s = cube(100)                                                    # 10 windows
+    s = cube(100)  # 10 windows
     loss = learn.WindowLoss(s, window=10)
     subset = [7, 2, 9, 0, 4]
     got = [ShardedLoss(loss, rank=r, world=3).windows(subset) for r in range(3)]
@@ -171,7 +172,7 @@ def test_data_parallel_fits_equal_the_single_process_fits(tmp_path, ranks, singl
         losses = [float.fromhex(x) for x in got[case]["losses"]]
         assert losses == pytest.approx([float.fromhex(x) for x in want["losses"]], rel=1e-12, abs=0)
     assert got["same_on_all_ranks"]
-    assert got["saves"] == [1] + [0] * (ranks - 1)                  # the checkpoint: rank 0 only
+    assert got["saves"] == [1] + [0] * (ranks - 1)  # the checkpoint: rank 0 only
     # a rollout that fails on the last rank only: every rank raises the same error (none hangs)
     assert len(set(got["seen"])) == 1 and got["seen"][0].startswith("ConfigError: rollout")
     # 2 windows over 3 ranks: a rank without windows adds zero, to value and gradient

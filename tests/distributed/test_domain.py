@@ -2,6 +2,7 @@
 ``simulate`` (float64, 100 steps, fixed nodes, a drag across every slab, a blade cutting through the
 slab boundaries half way), explicit and implicit, 6 and 26 neighbours; the slab bookkeeping and bad
 input on one process."""
+
 from __future__ import annotations
 
 import os
@@ -29,14 +30,25 @@ def reference(name, with_cut=True):
     def cut_once(i, state):
         if with_cut and abs(state.t - at) < 1e-6 * cases.DT:
             cut(model, state.x, blade)
-    _, rec = td.simulate(model, cases.start(model), cases.DT, cases.STEPS, integrator, record_every=10,
-                         callback=cut_once, warn=False)
+
+    _, rec = td.simulate(
+        model, cases.start(model), cases.DT, cases.STEPS, integrator, record_every=10, callback=cut_once, warn=False
+    )
     return rec
 
 
 def launch(n, out, names):
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", str(n),
-           str(HERE / "domain_cases.py"), str(out), *names]
+    cmd = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc-per-node",
+        str(n),
+        str(HERE / "domain_cases.py"),
+        str(out),
+        *names,
+    ]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=240, env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert done.returncode == 0, done.stderr[:3000] + "\n...\n" + done.stderr[-3000:]
 
@@ -53,7 +65,7 @@ def test_ranks_follow_the_single_process_trajectory(tmp_path, ranks):
         got = np.load(tmp_path / f"{name}.npz")
         assert got["x"].shape == tuple(rec["x"].shape) == (11, 1, 3) + cases.SHAPE
         np.testing.assert_array_equal(got["t"], rec["t"].numpy())
-        tol = 1e-12 if name.startswith("implicit") else 0.0    # explicit: the same bits; CG sums differ
+        tol = 1e-12 if name.startswith("implicit") else 0.0  # explicit: the same bits; CG sums differ
         assert np.abs(got["x"] - rec["x"].numpy()).max() <= tol, name
         assert np.abs(got["v"] - rec["v"].numpy()).max() <= tol, name
         # every exchange sent one layer each way per inner boundary: B x C x H x W doubles
@@ -92,13 +104,15 @@ def test_a_slab_is_the_global_model_restricted_to_its_rows():
         assert torch.equal(slab.constrained, model.constrained[e_lo:e_hi])
         assert torch.equal(slab.grid.nodes(), model.grid.nodes()[e_lo:e_hi])
         # the forces on owned nodes equal the global forces when the halo holds the global values
-        x = model.X + 1e-3 * torch.randn(model.X.shape, generator=torch.Generator().manual_seed(rank),
-                                         dtype=torch.float64)
+        x = model.X + 1e-3 * torch.randn(
+            model.X.shape, generator=torch.Generator().manual_seed(rank), dtype=torch.float64
+        )
         v = torch.randn(x.shape, generator=torch.Generator().manual_seed(9), dtype=torch.float64)
         f = model.forces(x, v, 0.0)
         lf = td.Model.forces(slab, x[:, :, e_lo:e_hi].clone(), v[:, :, e_lo:e_hi].clone(), 0.0)
-        assert torch.equal(lf[:, :, slab.owned], f[:, :, slab.rows[0]:slab.rows[1]])
+        assert torch.equal(lf[:, :, slab.owned], f[:, :, slab.rows[0] : slab.rows[1]])
     from torchdeform.interact import StrainLimit
+
     model.interactions = [StrainLimit()]
     with pytest.raises(td.ConfigError, match="tool interactions"):
         decompose(model, 0, 2)
@@ -118,8 +132,15 @@ def test_a_divergence_stops_as_simulate_does(factor):
     """Above the bound a runaway names a safe dt; within it, a 1e30 N load is not blamed on dt."""
     g = td.Grid((6, 3, 3), 0.01, topology=6)
     loads = [] if factor > 1 else [td.PointForce((5, 1, 1), (1e30, 0.0, 0.0))]
-    model = td.Model(g, stiffness=50.0, mass=1e-3, fixed=g.face("bottom"), gravity=(-9.81, 0.0, 0.0), loads=loads,
-                     dtype=torch.float64)
+    model = td.Model(
+        g,
+        stiffness=50.0,
+        mass=1e-3,
+        fixed=g.face("bottom"),
+        gravity=(-9.81, 0.0, 0.0),
+        loads=loads,
+        dtype=torch.float64,
+    )
     dt = factor * td.time_step_bound(model)
     with pytest.raises(td.DivergenceError) as one:
         td.simulate(model, model.rest_state(), dt, 400, warn=False)
@@ -171,9 +192,23 @@ def test_the_same_scene_file_runs_on_two_ranks(tmp_path, integrator):
     scene = tmp_path / "slab.toml"
     scene.write_text(SCENE.replace("{name}", integrator))
     from torchdeform import cli
+
     assert cli.main(["run", str(scene), "--out", str(tmp_path / "one"), "--quiet"]) == 0
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", "-m", "torchdeform",
-           "run", str(scene), "--out", str(tmp_path / "two"), "--quiet"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc-per-node",
+        "2",
+        "-m",
+        "torchdeform",
+        "run",
+        str(scene),
+        "--out",
+        str(tmp_path / "two"),
+        "--quiet",
+    ]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert done.returncode == 0, done.stderr[-3000:]
     assert "domain-decomposed" not in done.stderr
@@ -186,31 +221,55 @@ def test_the_same_scene_file_runs_on_two_ranks(tmp_path, integrator):
     for key in ("elastic", "total"):
         np.testing.assert_array_equal(one[key][cut], two[key][cut], err_msg=key)
     import json
+
     summary = json.loads((tmp_path / "two" / "summary.json").read_text())
     assert summary["domain"]["ranks"] == 2 and [p["rows"] for p in summary["domain"]["per_rank"]] == [[0, 3], [3, 6]]
-    assert all(p["exchanges"] == 4 * 100 + 1 for p in summary["domain"]["per_rank"])     # RK4: 4 per step, 1 cut
+    assert all(p["exchanges"] == 4 * 100 + 1 for p in summary["domain"]["per_rank"])  # RK4: 4 per step, 1 cut
 
 
 def test_more_ranks_than_rows_stops_every_rank_with_one_line(tmp_path):
     scene = tmp_path / "bad.toml"
     scene.write_text(SCENE.replace("{name}", "rk4").replace("shape = [6, 4, 5]", "shape = [2, 4, 5]"))
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "3", "-m",
-           "torchdeform", "run", str(scene), "--out", str(tmp_path / "out"), "--quiet"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc-per-node",
+        "3",
+        "-m",
+        "torchdeform",
+        "run",
+        str(scene),
+        "--out",
+        str(tmp_path / "out"),
+        "--quiet",
+    ]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert done.returncode != 0
     ours = [line for line in done.stderr.splitlines() if line.startswith("torchdeform:")]
     assert len(ours) == 1 and "at most 2 ranks" in ours[0], done.stderr[-2000:]
-    assert "exitcode  : 2" in done.stderr and not (tmp_path / "out").exists()   # (then torchrun's report)
+    assert "exitcode  : 2" in done.stderr and not (tmp_path / "out").exists()  # (then torchrun's report)
 
 
-@pytest.mark.parametrize("edit,match", [
-    (("[output]", "[[cautery]]\ntool = \"probe\"\nat = 0.0\n[[tools]]\nname = \"probe\"\nshape = \"sphere\"\n"
-                  "radius = 0.002\ncontact = \"none\"\npath = [[0.0, [0.05, 0.02, 0.02]]]\n[output]"), "tools"),
-    (("at = 0.01", "at = 0.01\ngape = 0.2"), "gape"),
-    (("[output]", "[tear]\nmax_strain = 0.5\n[output]"), "tear"),
-])
+@pytest.mark.parametrize(
+    "edit,match",
+    [
+        (
+            (
+                "[output]",
+                '[[cautery]]\ntool = "probe"\nat = 0.0\n[[tools]]\nname = "probe"\nshape = "sphere"\n'
+                'radius = 0.002\ncontact = "none"\npath = [[0.0, [0.05, 0.02, 0.02]]]\n[output]',
+            ),
+            "tools",
+        ),
+        (("at = 0.01", "at = 0.01\ngape = 0.2"), "gape"),
+        (("[output]", "[tear]\nmax_strain = 0.5\n[output]"), "tear"),
+    ],
+)
 def test_what_a_decomposed_run_cannot_do_is_refused(tmp_path, edit, match):
     from torchdeform.distributed.commands import scene_cuts
+
     scene = tmp_path / "bad.toml"
     scene.write_text(SCENE.replace("{name}", "rk4").replace(*edit))
     with pytest.raises(td.ConfigError, match=match):

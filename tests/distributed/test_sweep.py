@@ -1,5 +1,6 @@
 """``torchdeform sweep``: the table against runs of edited scene files, over 1, 2 and 3 ranks
 (torchrun, gloo on 127.0.0.1), a killed sweep resumed, and bad input."""
+
 from __future__ import annotations
 
 import csv
@@ -17,7 +18,7 @@ from torchdeform import cli
 from torchdeform.bench.distributed import SWEEP_SCENE
 from torchdeform.distributed.sweep import parse_set, product, read_points
 
-SCENE = SWEEP_SCENE                      # the cube the bench sweeps too
+SCENE = SWEEP_SCENE  # the cube the bench sweeps too
 SETS = ["material.stiffness=25,50,100", "integrator.dt=1e-4,2e-4"]
 
 
@@ -45,14 +46,25 @@ def sweep_cli(*argv):
 
 def torchrun(n, *argv, timeout=120):
     """``torchrun --standalone --nproc-per-node n -m torchdeform sweep ...`` (a free port on this machine), bounded in time."""
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", str(n),
-           "-m", "torchdeform", "sweep", *map(str, argv), "--quiet"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc-per-node",
+        str(n),
+        "-m",
+        "torchdeform",
+        "sweep",
+        *map(str, argv),
+        "--quiet",
+    ]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
 
 
 def test_parse_and_product():
-    assert parse_set("integrator.name=\"rk4\",symplectic") == ("integrator.name", ["rk4", "symplectic"])
+    assert parse_set('integrator.name="rk4",symplectic') == ("integrator.name", ["rk4", "symplectic"])
     assert parse_set("a.b=1, 2.0 ,true") == ("a.b", [1, 2.0, True])
     pts = product([("a.x", [1, 2]), ("b.y", [3, 4, 5])])
     assert len(pts) == 6 and pts[0] == {"a.x": 1, "b.y": 3} and pts[-1] == {"a.x": 2, "b.y": 5}
@@ -66,11 +78,15 @@ def test_table_equals_runs_of_edited_scene_files(tmp_path):
     path = scene_file(tmp_path)
     assert sweep_cli(path, "--set", SETS[0], "--set", SETS[1], "--out", tmp_path / "out") == 0
     rows = table(tmp_path / "out")
-    assert [(float(r["material.stiffness"]), float(r["integrator.dt"])) for r in rows] == \
-        [(k, dt) for k in (25, 50, 100) for dt in (1e-4, 2e-4)]
+    assert [(float(r["material.stiffness"]), float(r["integrator.dt"])) for r in rows] == [
+        (k, dt) for k in (25, 50, 100) for dt in (1e-4, 2e-4)
+    ]
     for r in rows:
-        text = SCENE.format(steps=60).replace("stiffness = 50.0", f"stiffness = {r['material.stiffness']}") \
-                                     .replace("dt = 1e-4", f"dt = {r['integrator.dt']}")
+        text = (
+            SCENE.format(steps=60)
+            .replace("stiffness = 50.0", f"stiffness = {r['material.stiffness']}")
+            .replace("dt = 1e-4", f"dt = {r['integrator.dt']}")
+        )
         edited = tmp_path / f"p{r['point']}.toml"
         edited.write_text(text)
         summary = td.run_scene(td.load_scene(edited), tmp_path / f"run{r['point']}", progress=False)
@@ -80,8 +96,10 @@ def test_table_equals_runs_of_edited_scene_files(tmp_path):
         np.testing.assert_allclose(float(r["kinetic_J"]), summary["final_energy_J"]["kinetic"], rtol=1e-5)
     assert (tmp_path / "out" / "sweep.png").stat().st_size > 0
     # a list file of points gives the same rows
-    (tmp_path / "points.csv").write_text("material.stiffness,integrator.dt\n" + "".join(
-        f"{r['material.stiffness']},{r['integrator.dt']}\n" for r in rows))
+    (tmp_path / "points.csv").write_text(
+        "material.stiffness,integrator.dt\n"
+        + "".join(f"{r['material.stiffness']},{r['integrator.dt']}\n" for r in rows)
+    )
     assert read_points(tmp_path / "points.csv")[1] == {"material.stiffness": 25, "integrator.dt": 2e-4}
     assert sweep_cli(path, "--points", tmp_path / "points.csv", "--out", tmp_path / "list") == 0
     same_rows(table(tmp_path / "list"), rows)
@@ -94,7 +112,7 @@ def test_ranks_gather_the_single_process_table(tmp_path, ranks):
     res = torchrun(ranks, path, "--set", SETS[0], "--set", SETS[1], "--out", tmp_path / "many")
     assert res.returncode == 0, res.stderr[:4000] + " ... " + res.stderr[-1500:]
     same_rows(table(tmp_path / "many"), table(tmp_path / "one"))
-    assert 1 < len(list((tmp_path / "many" / "records").glob("rank*.jsonl"))) <= ranks     # a rank per batch at most
+    assert 1 < len(list((tmp_path / "many" / "records").glob("rank*.jsonl"))) <= ranks  # a rank per batch at most
     assert f"over {ranks} ranks" in res.stderr
 
 
@@ -103,8 +121,10 @@ def test_batched_points_equal_one_by_one(tmp_path):
     the same rows as one point at a time. A point that diverges (k = 1e6 N/m, 10x past its
     bound) sends its batch back to one by one, and only its row says so."""
     path = scene_file(tmp_path)
-    (tmp_path / "points.csv").write_text("material.stiffness,material.damping,integrator.dt\n"
-                                         "25,0.02,1e-4\n50,0.05,1e-4\n25,0.05,1e-4\n25,0.02,2e-4\n1e6,0.02,2e-4\n")
+    (tmp_path / "points.csv").write_text(
+        "material.stiffness,material.damping,integrator.dt\n"
+        "25,0.02,1e-4\n50,0.05,1e-4\n25,0.05,1e-4\n25,0.02,2e-4\n1e6,0.02,2e-4\n"
+    )
     assert sweep_cli(path, "--points", tmp_path / "points.csv", "--out", tmp_path / "batched") == 0
     assert sweep_cli(path, "--points", tmp_path / "points.csv", "--batch", "1", "--out", tmp_path / "single") == 0
     batched, single = table(tmp_path / "batched"), table(tmp_path / "single")
@@ -120,8 +140,20 @@ def test_batched_points_equal_one_by_one(tmp_path):
 
 def test_a_killed_sweep_reruns_only_the_missing_points(tmp_path):
     path = scene_file(tmp_path, steps=300)
-    argv = [sys.executable, "-m", "torchdeform", "sweep", str(path), "--set", "material.stiffness=20,30,40,50,60,70",
-            "--batch", "1", "--out", str(tmp_path / "out"), "--quiet"]
+    argv = [
+        sys.executable,
+        "-m",
+        "torchdeform",
+        "sweep",
+        str(path),
+        "--set",
+        "material.stiffness=20,30,40,50,60,70",
+        "--batch",
+        "1",
+        "--out",
+        str(tmp_path / "out"),
+        "--quiet",
+    ]
     proc = subprocess.Popen(argv, stderr=subprocess.PIPE, text=True)
     records = tmp_path / "out" / "records" / "rank0.jsonl"
     end = time.monotonic() + 60
@@ -134,25 +166,30 @@ def test_a_killed_sweep_reruns_only_the_missing_points(tmp_path):
     res = subprocess.run(argv, capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr[:4000] + " ... " + res.stderr[-1500:]
     assert f"{first} already done" in res.stderr
-    assert len(records.read_text().splitlines()) == 6                   # each point ran once in all
-    assert sweep_cli(path, "--set", "material.stiffness=20,30,40,50,60,70", "--batch", "1", "--out",
-                     tmp_path / "fresh") == 0
+    assert len(records.read_text().splitlines()) == 6  # each point ran once in all
+    assert (
+        sweep_cli(path, "--set", "material.stiffness=20,30,40,50,60,70", "--batch", "1", "--out", tmp_path / "fresh")
+        == 0
+    )
     same_rows(table(tmp_path / "out"), table(tmp_path / "fresh"))
 
 
-@pytest.mark.parametrize("argv,message", [
-    (["--set", "material.stiffnes=1,2"], "--set: expected SECTION.KEY"),
-    (["--set", "material.stiffness=1,abc"], "--set material.stiffness: expected a number"),
-    (["--set", "integrator.dt=1e-4,-1"], "--set integrator.dt: expected"),
-    (["--set", "loads.force=1"], "--set: expected SECTION.KEY"),
-    ([], "--set KEY=V1,V2,... (repeatable) or --points"),
-])
+@pytest.mark.parametrize(
+    "argv,message",
+    [
+        (["--set", "material.stiffnes=1,2"], "--set: expected SECTION.KEY"),
+        (["--set", "material.stiffness=1,abc"], "--set material.stiffness: expected a number"),
+        (["--set", "integrator.dt=1e-4,-1"], "--set integrator.dt: expected"),
+        (["--set", "loads.force=1"], "--set: expected SECTION.KEY"),
+        ([], "--set KEY=V1,V2,... (repeatable) or --points"),
+    ],
+)
 def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, argv, message):
     path = scene_file(tmp_path)
     assert sweep_cli(path, *argv, "--out", tmp_path / "out") == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("torchdeform: ") and "\n" not in err and message in err, err
-    assert not (tmp_path / "out").exists()                              # checked before any work
+    assert not (tmp_path / "out").exists()  # checked before any work
 
 
 def test_bad_input_on_two_ranks_stops_every_rank(tmp_path):

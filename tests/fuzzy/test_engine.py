@@ -26,6 +26,7 @@ precision (``tests.oracles.fuzzy.ambiguous_maximum``). mom over several separate
 compared with the length-weighted mean of the maximising stretches instead of scikit-fuzzy's
 point average, with the cell-counting error of the torchdeform grid added to the tolerance.
 """
+
 from __future__ import annotations
 
 import math
@@ -78,7 +79,7 @@ from torchdeform.fuzzy.system import defuzzify
 F64 = torch.float64
 METHODS = ("centroid", "bisector", "mom", "som", "lom")
 MAX_METHODS = ("mom", "som", "lom")
-TOL = 1e-3                     # of the output range
+TOL = 1e-3  # of the output range
 
 
 # =================================================================== 1. random systems vs skfuzzy
@@ -93,15 +94,15 @@ class Agreement:
 
     systems: int = 0
     points: int = 0
-    compared: Counter = field(default_factory=Counter)        # method -> (point, output) pairs
+    compared: Counter = field(default_factory=Counter)  # method -> (point, output) pairs
     max_err: dict = field(default_factory=lambda: defaultdict(float))
     failures: dict = field(default_factory=lambda: defaultdict(list))
-    empty: int = 0                                             # (point, output) with no rule firing
+    empty: int = 0  # (point, output) with no rule firing
     empty_mismatch: list = field(default_factory=list)
-    ambiguous: int = 0                                         # skipped for mom/som/lom
-    faint: int = 0                                             # skipped: firing below 1e-9
-    mom_ties: int = 0                                          # mom over separate maxima, see below
-    max_ratio: float = 0.0                                     # their error / widened tolerance
+    ambiguous: int = 0  # skipped for mom/som/lom
+    faint: int = 0  # skipped: firing below 1e-9
+    mom_ties: int = 0  # mom over separate maxima, see below
+    max_ratio: float = 0.0  # their error / widened tolerance
     seconds: float = 0.0
 
     def record(self, method, err, context, tol=TOL):
@@ -111,15 +112,18 @@ class Agreement:
         else:
             self.max_ratio = max(self.max_ratio, err / tol)
         if not err <= tol and len(self.failures[method]) < 3:
-            self.failures[method].append(f"{method}: |error| = {err:.3g} of the range (tolerance {tol:.3g})\n"
-                                         f"{context()}")
+            self.failures[method].append(
+                f"{method}: |error| = {err:.3g} of the range (tolerance {tol:.3g})\n{context()}"
+            )
 
     def summary(self, title) -> str:
         per = ", ".join(f"{m} {self.compared[m]} pts max {self.max_err[m]:.2e}" for m in METHODS)
-        return (f"{title}: {self.systems} systems, {self.points} input points, {self.empty} output-points with "
-                f"no rule firing, {self.faint} with firing below 1e-9, {self.ambiguous} ambiguous maxima skipped, "
-                f"{self.mom_ties} mom over separate maxima (error/tolerance up to {self.max_ratio:.2f}); {per}; "
-                f"{self.seconds:.1f} s")
+        return (
+            f"{title}: {self.systems} systems, {self.points} input points, {self.empty} output-points with "
+            f"no rule firing, {self.faint} with firing below 1e-9, {self.ambiguous} ambiguous maxima skipped, "
+            f"{self.mom_ties} mom over separate maxima (error/tolerance up to {self.max_ratio:.2f}); {per}; "
+            f"{self.seconds:.1f} s"
+        )
 
 
 def _context(spec, x, out, values):
@@ -127,6 +131,7 @@ def _context(spec, x, out, values):
         pt = ", ".join(f"{v.name}={xi!r}" for v, xi in zip(spec.inputs, x))
         vals = ", ".join(f"{k}={v!r}" for k, v in values.items())
         return f"{spec.describe()}\nat {pt}, output {out}: {vals}"
+
     return text
 
 
@@ -167,14 +172,14 @@ def skfuzzy_random():
             sim.compute()
             for o, v in enumerate(spec.outputs):
                 got = skfuzzy_outputs(sim, cons[v.name], METHODS)
-                if got is None:                               # no rule fired: scikit-fuzzy drops it
+                if got is None:  # no rule fired: scikit-fuzzy drops it
                     res.empty += 1
                     mine = {m: float(ours[m][p, o]) for m in METHODS}
                     if any(g != v.fallback for g in mine.values()):
                         res.empty_mismatch.append(_context(spec, x, v.name, {"default": v.fallback, **mine})())
                     continue
                 u, mf, theirs = got
-                if mf.max() < 1e-9:   # scikit-fuzzy divides by max(area, 2.2e-16): its centroid -> 0
+                if mf.max() < 1e-9:  # scikit-fuzzy divides by max(area, 2.2e-16): its centroid -> 0
                     res.faint += 1
                     continue
                 ambiguous = ambiguous_maximum(u, mf)
@@ -198,8 +203,12 @@ def skfuzzy_random():
                     if m in MAX_METHODS and ambiguous:
                         continue
                     a, b = float(ours[m][p, o]), theirs[m]
-                    res.record(m, abs(a - b) / v.width,
-                               _context(spec, x, v.name, {"torchdeform": a, "scikit-fuzzy": b}), tol[m])
+                    res.record(
+                        m,
+                        abs(a - b) / v.width,
+                        _context(spec, x, v.name, {"torchdeform": a, "scikit-fuzzy": b}),
+                        tol[m],
+                    )
     res.seconds = time.perf_counter() - t0
     print("\n" + res.summary("scikit-fuzzy, random systems"))
     return res
@@ -255,25 +264,29 @@ def test_skfuzzy_outputs_helper_is_the_control_api():
 def test_ambiguity_detector():
     """The skip rule for mom/som/lom: only separate near-maxima count, not flat peaks."""
     u = np.linspace(0, 1, 11)
-    assert not ambiguous_maximum(u, np.array([0, .2, .5, .5, .5, .2, 0, 0, .1, 0, 0]))
-    assert not ambiguous_maximum(u, np.array([0, .2, .5, .5, .2, 0, .5, .5, .1, 0, 0]))     # exact tie
-    assert ambiguous_maximum(u, np.array([0, .2, .5, .5, .2, 0, .49999, .49999, .1, 0, 0]))
-    assert not ambiguous_maximum(u, np.array([0, .2, .5, .49999, .2, 0, .3, .1, .1, 0, 0]))
+    assert not ambiguous_maximum(u, np.array([0, 0.2, 0.5, 0.5, 0.5, 0.2, 0, 0, 0.1, 0, 0]))
+    assert not ambiguous_maximum(u, np.array([0, 0.2, 0.5, 0.5, 0.2, 0, 0.5, 0.5, 0.1, 0, 0]))  # exact tie
+    assert ambiguous_maximum(u, np.array([0, 0.2, 0.5, 0.5, 0.2, 0, 0.49999, 0.49999, 0.1, 0, 0]))
+    assert not ambiguous_maximum(u, np.array([0, 0.2, 0.5, 0.49999, 0.2, 0, 0.3, 0.1, 0.1, 0, 0]))
 
 
 # =================================================================== 2. the tipping problem
 
+
 def _tipping_torch(**kw):
-    def abc(lo, hi):        # skfuzzy's automf(3): poor / average / good
+    def abc(lo, hi):  # skfuzzy's automf(3): poor / average / good
         m = 0.5 * (lo + hi)
         return {"poor": Triangle(lo, lo, m), "average": Triangle(lo, m, hi), "good": Triangle(m, hi, hi)}
 
     quality, service = Variable("quality", (0, 10), abc(0, 10)), Variable("service", (0, 10), abc(0, 10))
-    tip = Variable("tip", (0, 25), {"low": Triangle(0, 0, 13), "medium": Triangle(0, 13, 25),
-                                    "high": Triangle(13, 25, 25)})
-    rules = ["IF quality IS poor OR service IS poor THEN tip IS low",
-             "IF service IS average THEN tip IS medium",
-             "IF service IS good OR quality IS good THEN tip IS high"]
+    tip = Variable(
+        "tip", (0, 25), {"low": Triangle(0, 0, 13), "medium": Triangle(0, 13, 25), "high": Triangle(13, 25, 25)}
+    )
+    rules = [
+        "IF quality IS poor OR service IS poor THEN tip IS low",
+        "IF service IS average THEN tip IS medium",
+        "IF service IS good OR quality IS good THEN tip IS high",
+    ]
     return MamdaniSystem("tipper", [quality, service], [tip], rules, **kw).double()
 
 
@@ -289,9 +302,11 @@ def _tipping_skfuzzy(fine: bool):
     tip["low"] = fuzz.trimf(tip.universe, [0, 0, 13])
     tip["medium"] = fuzz.trimf(tip.universe, [0, 13, 25])
     tip["high"] = fuzz.trimf(tip.universe, [13, 25, 25])
-    rules = [ctrl.Rule(quality["poor"] | service["poor"], tip["low"]),
-             ctrl.Rule(service["average"], tip["medium"]),
-             ctrl.Rule(service["good"] | quality["good"], tip["high"])]
+    rules = [
+        ctrl.Rule(quality["poor"] | service["poor"], tip["low"]),
+        ctrl.Rule(service["average"], tip["medium"]),
+        ctrl.Rule(service["good"] | quality["good"], tip["high"]),
+    ]
     return ctrl.ControlSystemSimulation(ctrl.ControlSystem(rules)), tip
 
 
@@ -310,6 +325,7 @@ def test_tipping_tutorial_value():
     19.857759... The tutorial prints 19.847607: on its integer tip universe scikit-fuzzy inserts the
     cut points of each term but not the crossing of 'high' with the 0.04 plateau (13.48), and
     interpolates linearly over [13, 14]; that error (4e-4 of the range) is within the tolerance."""
+
     def tip(y):
         med = min(y / 13, (25 - y) / 12) if 0 <= y <= 25 else 0.0
         high = max(0.0, (y - 13) / 12)
@@ -321,7 +337,7 @@ def test_tipping_tutorial_value():
     sim.input["quality"], sim.input["service"] = 6.5, 9.8
     sim.compute()
     assert sim.output["tip"] == pytest.approx(19.847607361963192, abs=1e-9)
-    ours = float(_tipping_torch().evaluate(quality=6.5, service=9.8)["tip"])       # default 1000 cells
+    ours = float(_tipping_torch().evaluate(quality=6.5, service=9.8)["tip"])  # default 1000 cells
     assert abs(ours - exact) <= 1e-5 * 25
     assert abs(ours - sim.output["tip"]) <= TOL * 25
 
@@ -401,8 +417,21 @@ def test_operators_match_numpy_oracle(combo):
 
 # =================================================================== 4. hedges
 
+
 def test_hedges_match_formulas():
-    m = np.r_[0.0, 1e-12, 0.1, 0.25, 0.5 - 1e-12, 0.5, 0.5 + 1e-12, 0.7, 0.99, 1.0, np.random.default_rng(0).uniform(0, 1, 200)]
+    m = np.r_[
+        0.0,
+        1e-12,
+        0.1,
+        0.25,
+        0.5 - 1e-12,
+        0.5,
+        0.5 + 1e-12,
+        0.7,
+        0.99,
+        1.0,
+        np.random.default_rng(0).uniform(0, 1, 200),
+    ]
     t = torch.tensor(m, dtype=F64)
     for h in ("very", "somewhat", "extremely", "seldom", "not", "any"):
         np.testing.assert_allclose(apply_hedges(t, (h,)).numpy(), hedge(m, (h,)), rtol=0, atol=1e-14, err_msg=h)
@@ -420,15 +449,26 @@ def test_hedges_in_rules_and_finite_gradients():
     gradients at degrees 0 and 1."""
     x = Variable("x", (0, 10), {"low": Trapezoid(0, 0, 2, 6), "high": Triangle(4, 10, 10)})
     y = Variable("y", (0, 1), {"a": Triangle(0, 0.5, 1)})
-    hedges = [(), ("very",), ("somewhat",), ("extremely",), ("seldom",), ("not",), ("not", "very"),
-              ("very", "very"), ("somewhat", "not")]
+    hedges = [
+        (),
+        ("very",),
+        ("somewhat",),
+        ("extremely",),
+        ("seldom",),
+        ("not",),
+        ("not", "very"),
+        ("very", "very"),
+        ("somewhat", "not"),
+    ]
     rules = [f"IF x IS {' '.join(h + ('low',))} THEN y IS a" for h in hedges]
     rules += [f"IF x IS {' '.join(h + ('high',))} THEN y IS a" for h in hedges]
     fis = MamdaniSystem("hedges", [x], [y], rules).double().requires_grad_()
     X = torch.tensor(np.r_[np.linspace(-1, 11, 61), 0, 2, 4, 6, 10], dtype=F64)[:, None].requires_grad_()
     fire = fis.firing(X)
-    low, high = sk_membership("trapezoid", (0, 0, 2, 6), np.clip(X.detach().numpy()[:, 0], 0, 10)), \
-        sk_membership("triangle", (4, 10, 10), np.clip(X.detach().numpy()[:, 0], 0, 10))
+    low, high = (
+        sk_membership("trapezoid", (0, 0, 2, 6), np.clip(X.detach().numpy()[:, 0], 0, 10)),
+        sk_membership("triangle", (4, 10, 10), np.clip(X.detach().numpy()[:, 0], 0, 10)),
+    )
     want = np.stack([hedge(low, h) for h in hedges] + [hedge(high, h) for h in hedges], 1)
     np.testing.assert_allclose(fire.detach().numpy(), want, atol=1e-14)
     fire.sum().backward()
@@ -438,21 +478,39 @@ def test_hedges_in_rules_and_finite_gradients():
 
 # =================================================================== 5. membership functions
 
+
 def _points(rng, corners, lo=-12.0, hi=12.0):
     c = np.asarray(corners, dtype=np.float64)
     return np.r_[rng.uniform(lo, hi, 300), c, np.nextafter(c, -np.inf), np.nextafter(c, np.inf), c - 1e-9, c + 1e-9]
 
 
-@pytest.mark.parametrize("case", [
-    ("trapezoid", (-3.0, -1.0, 2.0, 5.0)), ("trapezoid", (-3.0, -3.0, 2.0, 5.0)),      # left shoulder a == b
-    ("trapezoid", (-3.0, -1.0, 5.0, 5.0)), ("trapezoid", (-3.0, -3.0, 5.0, 5.0)),       # right shoulder, both
-    ("trapezoid", (-3.0, 1.0, 1.0, 5.0)), ("trapezoid", (2.0, 2.0, 2.0, 2.0)),
-    ("triangle", (-4.0, 0.5, 6.0)), ("triangle", (-4.0, -4.0, 6.0)), ("triangle", (-4.0, 6.0, 6.0)),
-    ("triangle", (1.0, 1.0, 1.0)), ("triangle", (-10.5, -10.0, 11.0)),
-    ("gaussian", (1.5, 2.5)), ("gaussian", (-7.0, 0.3)), ("gaussian", (2.0, -1.5)),      # sigma sign ignored
-    ("bell", (2.0, 3.0, 1.0)), ("bell", (0.5, 1.0, -4.0)), ("bell", (4.0, 0.6, 0.0)), ("bell", (-2.0, 2.0, 1.0)),
-    ("sigmoid", (1.0, 2.0)), ("sigmoid", (-3.0, -0.7)), ("sigmoid", (0.0, 25.0)),
-], ids=str)
+@pytest.mark.parametrize(
+    "case",
+    [
+        ("trapezoid", (-3.0, -1.0, 2.0, 5.0)),
+        ("trapezoid", (-3.0, -3.0, 2.0, 5.0)),  # left shoulder a == b
+        ("trapezoid", (-3.0, -1.0, 5.0, 5.0)),
+        ("trapezoid", (-3.0, -3.0, 5.0, 5.0)),  # right shoulder, both
+        ("trapezoid", (-3.0, 1.0, 1.0, 5.0)),
+        ("trapezoid", (2.0, 2.0, 2.0, 2.0)),
+        ("triangle", (-4.0, 0.5, 6.0)),
+        ("triangle", (-4.0, -4.0, 6.0)),
+        ("triangle", (-4.0, 6.0, 6.0)),
+        ("triangle", (1.0, 1.0, 1.0)),
+        ("triangle", (-10.5, -10.0, 11.0)),
+        ("gaussian", (1.5, 2.5)),
+        ("gaussian", (-7.0, 0.3)),
+        ("gaussian", (2.0, -1.5)),  # sigma sign ignored
+        ("bell", (2.0, 3.0, 1.0)),
+        ("bell", (0.5, 1.0, -4.0)),
+        ("bell", (4.0, 0.6, 0.0)),
+        ("bell", (-2.0, 2.0, 1.0)),
+        ("sigmoid", (1.0, 2.0)),
+        ("sigmoid", (-3.0, -0.7)),
+        ("sigmoid", (0.0, 25.0)),
+    ],
+    ids=str,
+)
 def test_membership_matches_skfuzzy(case):
     kind, params = case
     cls = {"trapezoid": Trapezoid, "triangle": Triangle, "gaussian": Gaussian, "bell": Bell, "sigmoid": Sigmoid}[kind]
@@ -480,16 +538,27 @@ def test_membership_random_parameters_match_skfuzzy():
         with default_dtype(F64):
             mf = cls[str(kind)](*p)
         x = _points(rng, p if kind in ("trapezoid", "triangle") else [])
-        np.testing.assert_allclose(mf(torch.tensor(x, dtype=F64)).numpy(), sk_membership(str(kind), p, x),
-                                   rtol=0, atol=1e-12, err_msg=f"{kind}{tuple(p)}")
+        np.testing.assert_allclose(
+            mf(torch.tensor(x, dtype=F64)).numpy(),
+            sk_membership(str(kind), p, x),
+            rtol=0,
+            atol=1e-12,
+            err_msg=f"{kind}{tuple(p)}",
+        )
 
 
 def test_membership_keeps_shape_and_rejects_bad_parameters():
     mf = Trapezoid(0.0, 2.0, 4.0, 6.0)
     assert mf(torch.zeros(2, 3, 4)).shape == (2, 3, 4)
     np.testing.assert_allclose(mf(torch.tensor([1.0, 3.0, 5.5])).numpy(), [0.5, 1.0, 0.25])
-    for bad in (lambda: Trapezoid(0, 2, 1, 3), lambda: Triangle(3, 2, 1), lambda: Gaussian(0, 0),
-                lambda: Bell(0, 1, 1), lambda: Trapezoid(0, 1, 2), lambda: Gaussian(0, math.nan)):
+    for bad in (
+        lambda: Trapezoid(0, 2, 1, 3),
+        lambda: Triangle(3, 2, 1),
+        lambda: Gaussian(0, 0),
+        lambda: Bell(0, 1, 1),
+        lambda: Trapezoid(0, 1, 2),
+        lambda: Gaussian(0, math.nan),
+    ):
         with pytest.raises(ConfigError):
             bad()
 
@@ -500,11 +569,17 @@ def test_singleton_outputs(aggregation, method):
     """Outputs made of singletons: centroid = weighted mean of the positions (weights: the
     aggregated degree of each singleton); mom/som/lom over the positions of largest weight."""
     x = Variable("x", (0, 10), {"lo": Trapezoid(0, 0, 2, 6), "mid": Triangle(2, 5, 8), "hi": Trapezoid(4, 8, 10, 10)})
-    pos = {"large": 90.0, "small": 10.0, "medium": 45.0}                   # deliberately unsorted
+    pos = {"large": 90.0, "small": 10.0, "medium": 45.0}  # deliberately unsorted
     y = Variable("y", (0, 100), {k: Singleton(v) for k, v in pos.items()})
     rules = [("lo", "small", 1.0), ("mid", "medium", 1.0), ("hi", "large", 1.0), ("mid", "small", 0.5)]
-    fis = MamdaniSystem("sing", [x], [y], [f"IF x IS {a} THEN y IS {b} WITH {w}" for a, b, w in rules],
-                        aggregation=aggregation, defuzzification=method).double()
+    fis = MamdaniSystem(
+        "sing",
+        [x],
+        [y],
+        [f"IF x IS {a} THEN y IS {b} WITH {w}" for a, b, w in rules],
+        aggregation=aggregation,
+        defuzzification=method,
+    ).double()
     X = np.r_[np.linspace(0, 10, 41), 3.3, 6.9]
     got = fis(torch.tensor(X, dtype=F64)[:, None])[:, 0].numpy()
     for xv, g in zip(X, got):
@@ -523,27 +598,31 @@ def test_singleton_outputs(aggregation, method):
 
 # =================================================================== 6. no rule fires
 
+
 def _sparse(default=3.25, **kw):
     x = Variable("x", (0, 10), {"mid": Trapezoid(2, 3, 4, 5), "top": Gaussian(9.5, 3.0)})
     y = Variable("y", (0, 20), {"low": Triangle(0, 5, 10), "high": Triangle(10, 15, 20)}, default=default)
-    z = Variable("z", (-4, 0), {"neg": Gaussian(-3, 1)})           # 'top' never vanishes: z always fires
+    z = Variable("z", (-4, 0), {"neg": Gaussian(-3, 1)})  # 'top' never vanishes: z always fires
     return MamdaniSystem("sparse", [x], [y, z], ["IF x IS mid THEN y IS high", "IF x IS top THEN z IS neg"], **kw)
 
 
 @pytest.mark.parametrize("method", METHODS)
-@pytest.mark.parametrize("ops", [{}, dict(and_method="prod", implication="prod", aggregation="sum"),
-                                 dict(aggregation="probor")], ids=["minmax", "prodsum", "probor"])
+@pytest.mark.parametrize(
+    "ops",
+    [{}, dict(and_method="prod", implication="prod", aggregation="sum"), dict(aggregation="probor")],
+    ids=["minmax", "prodsum", "probor"],
+)
 def test_no_rule_fires_default_and_finite_gradients(method, ops):
     fis = _sparse(defuzzification=method, **ops).double().requires_grad_()
     X = torch.tensor([[8.0], [3.5], [0.0], [11.0]], dtype=F64, requires_grad=True)
     out = fis(X)
-    assert out[0, 0] == 3.25 and out[2, 0] == 3.25 and out[3, 0] == 3.25      # y: explicit default
-    assert float(out[1, 0].detach()) == pytest.approx(15.0, abs=1e-3 * 20)           # symmetric term 'high' (clip 1)
+    assert out[0, 0] == 3.25 and out[2, 0] == 3.25 and out[3, 0] == 3.25  # y: explicit default
+    assert float(out[1, 0].detach()) == pytest.approx(15.0, abs=1e-3 * 20)  # symmetric term 'high' (clip 1)
     assert torch.isfinite(out).all()
-    if method in MAX_METHODS:                     # piecewise constant: no graph at all
+    if method in MAX_METHODS:  # piecewise constant: no graph at all
         assert not out.requires_grad
         return
-    gx, = torch.autograd.grad(out[:, 0].sum(), X, retain_graph=True)   # y alone: no gradient where empty
+    (gx,) = torch.autograd.grad(out[:, 0].sum(), X, retain_graph=True)  # y alone: no gradient where empty
     assert gx[0, 0] == 0 and gx[2, 0] == 0 and gx[3, 0] == 0
     out.sum().backward()
     assert torch.isfinite(X.grad).all()
@@ -564,7 +643,7 @@ def test_no_rule_fires_warn_and_error():
     assert isinstance(info.value, TorchdeformError)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        _sparse(on_empty="warn")(torch.tensor([[3.5]]))                         # y fires; z ...
+        _sparse(on_empty="warn")(torch.tensor([[3.5]]))  # y fires; z ...
     with pytest.raises(ConfigError):
         _sparse(on_empty="ignore")
 
@@ -583,6 +662,7 @@ def test_firing_mass_is_the_area():
 
 # =================================================================== 7. gradients
 
+
 def _smooth(**kw):
     """Gaussian and bell terms only: with prod/probor/sum operators the outputs are smooth in the
     inputs and in every parameter (min/max have kinks where two degrees tie; trapezoids at their
@@ -591,17 +671,21 @@ def _smooth(**kw):
     x1 = Variable("x1", (-1, 1), {"neg": Bell(0.6, 2.0, -1.0), "pos": Gaussian(0.8, 0.5)})
     y = Variable("y", (0, 50), {"small": Gaussian(10, 6), "medium": Bell(8, 1.5, 25), "large": Gaussian(40, 7)})
     z = Variable("z", (-5, 5), {"down": Bell(2, 1.2, -3), "up": Gaussian(3, 2)})
-    rules = ["IF x0 IS low AND x1 IS neg THEN y IS small AND z IS down",
-             "IF x0 IS mid OR x1 IS pos THEN y IS medium",
-             "IF x0 IS very high THEN y IS large AND z IS up WITH 0.7",
-             "IF x1 IS not neg AND x0 IS somewhat mid THEN z IS up"]
+    rules = [
+        "IF x0 IS low AND x1 IS neg THEN y IS small AND z IS down",
+        "IF x0 IS mid OR x1 IS pos THEN y IS medium",
+        "IF x0 IS very high THEN y IS large AND z IS up WITH 0.7",
+        "IF x1 IS not neg AND x0 IS somewhat mid THEN z IS up",
+    ]
     kw.setdefault("resolution", 400)
     return MamdaniSystem("smooth", [x0, x1], [y, z], rules, **kw).double()
 
 
-SMOOTH_OPS = [dict(and_method="prod", or_method="probor", implication="prod", aggregation="sum"),
-              dict(and_method="prod", or_method="probor", implication="prod", aggregation="probor"),
-              dict(and_method="min", or_method="max", implication="min", aggregation="max")]
+SMOOTH_OPS = [
+    dict(and_method="prod", or_method="probor", implication="prod", aggregation="sum"),
+    dict(and_method="prod", or_method="probor", implication="prod", aggregation="probor"),
+    dict(and_method="min", or_method="max", implication="min", aggregation="max"),
+]
 
 
 @pytest.mark.parametrize("method", ["centroid", "bisector"])
@@ -612,8 +696,9 @@ def test_gradcheck_inputs_and_parameters(method, ops):
     the clipped sets between cell midpoints far more than the step 1e-6."""
     fis = _smooth(defuzzification=method, **ops)
     g = torch.Generator().manual_seed(3)
-    X = torch.stack([0.5 + 9 * torch.rand(3, generator=g, dtype=F64),
-                     -0.9 + 1.8 * torch.rand(3, generator=g, dtype=F64)], 1).requires_grad_()
+    X = torch.stack(
+        [0.5 + 9 * torch.rand(3, generator=g, dtype=F64), -0.9 + 1.8 * torch.rand(3, generator=g, dtype=F64)], 1
+    ).requires_grad_()
     assert torch.autograd.gradcheck(fis, (X,), eps=1e-6, atol=1e-5, rtol=1e-4)
     names = [n for n, _ in fis.named_parameters()]
     params = tuple(p.detach().clone().requires_grad_() for _, p in fis.named_parameters())
@@ -668,6 +753,7 @@ def test_corner_points_stay_ordered_for_any_raw():
 
 # =================================================================== 8. batching and dtypes
 
+
 def _spec_with(n_in, n_out, start=0):
     seed = start
     while True:
@@ -686,7 +772,7 @@ def test_batch_shapes_and_chunks(method):
     assert out.shape == (24, 2)
     assert torch.equal(fis(X.reshape(2, 3, 4, 2)), out.reshape(2, 3, 4, 2))
     assert fis(X[0]).shape == (2,)
-    rows = torch.cat([fis(X[i:i + 1]) for i in range(24)])
+    rows = torch.cat([fis(X[i : i + 1]) for i in range(24)])
     torch.testing.assert_close(rows, out, rtol=0, atol=1e-12)
     chunked = build_torch(spec, defuzzification=method, resolution=500, chunk=5).double()
     torch.testing.assert_close(chunked(X), out, rtol=0, atol=1e-12)
@@ -710,7 +796,7 @@ def test_sparsity_plan_gives_the_dense_result(method, ops):
         fis = build_torch(spec, defuzzification=method, resolution=400, **ops).double()
         plan = fis.sparsity_plan()
         for runs in plan:
-            assert runs[0][0] == 0 and runs[-1][1] == 400                          # the runs tile the grid
+            assert runs[0][0] == 0 and runs[-1][1] == 400  # the runs tile the grid
             assert all(a[1] == b[0] for a, b in zip(runs, runs[1:]))
             planned += sum((b - a) * len(g) for a, b, g in runs)
         X = torch.tensor(random_points(spec, seed, 64), dtype=F64)
@@ -726,8 +812,9 @@ def test_sparsity_plan_skips_disjoint_terms():
     lives, two where two overlap, none where no term does."""
     x = Variable("x", (0, 1), {"a": Triangle(0, 0, 1), "b": Triangle(0, 1, 1)})
     y = Variable("y", (0, 10), {"lo": Trapezoid(0, 0, 2, 4), "mid": Trapezoid(3, 4, 5, 6), "hi": Trapezoid(5, 7, 8, 9)})
-    fis = MamdaniSystem("s", [x], [y], ["IF x IS a THEN y IS lo", "IF x IS b THEN y IS mid",
-                                        "IF x IS b THEN y IS hi"], resolution=10).double()
+    fis = MamdaniSystem(
+        "s", [x], [y], ["IF x IS a THEN y IS lo", "IF x IS b THEN y IS mid", "IF x IS b THEN y IS hi"], resolution=10
+    ).double()
     (runs,) = fis.sparsity_plan()
     lo, mid, hi = (next(g for g, c in enumerate(fis._cons[0]) if c.term == y.index(t, "")) for t in ("lo", "mid", "hi"))
     # cell midpoints 0.5, 1.5, ..., 9.5
@@ -746,7 +833,7 @@ def test_compiled_rebuilds_the_plan_when_parameters_change(monkeypatch):
     X = torch.linspace(0, 1, 21, dtype=F64)[:, None]
     torch.testing.assert_close(f(X), fis(X), rtol=0, atol=1e-9)
     with torch.no_grad():
-        y.terms["lo"].raw.copy_(torch.tensor([0.0, 1.0, 6.0, 8.0]))     # 'lo' now reaches cells it did not
+        y.terms["lo"].raw.copy_(torch.tensor([0.0, 1.0, 6.0, 8.0]))  # 'lo' now reaches cells it did not
     torch.testing.assert_close(f(X), fis(X), rtol=0, atol=1e-9)
 
 
@@ -763,8 +850,12 @@ def test_float32_matches_float64(method):
     strongest rules differ by less than 1e-5 (a tie in float32, not in float64)."""
     worst, compared, skipped = 0.0, 0, 0
     for seed in range(20, 32):
-        spec = random_system(seed, output_kinds=("trapezoid", "triangle") if method in MAX_METHODS
-                             else ("trapezoid", "triangle", "gaussian", "bell"))
+        spec = random_system(
+            seed,
+            output_kinds=("trapezoid", "triangle")
+            if method in MAX_METHODS
+            else ("trapezoid", "triangle", "gaussian", "bell"),
+        )
         fis32 = build_torch(spec, torch.float32, defuzzification=method, resolution=1000)
         fis64 = build_torch(spec, torch.float64, defuzzification=method, resolution=1000)
         X = torch.tensor(random_points(spec, seed, 40), dtype=torch.float32)
@@ -773,7 +864,7 @@ def test_float32_matches_float64(method):
         for o, v in enumerate(spec.outputs):
             feeding = [k for k, r in enumerate(spec.rules) if any(c.var == v.name for c in r.cons)]
             ok = fire[:, feeding].amax(dim=1) >= 1e-5
-            if method in MAX_METHODS:      # and near-ties of the two strongest rules: float32 merges them
+            if method in MAX_METHODS:  # and near-ties of the two strongest rules: float32 merges them
                 top2 = fire[:, feeding].topk(min(2, len(feeding)), dim=1).values
                 gap = top2[:, 0] - top2[:, -1]
                 ok &= (gap == 0) | (gap > 1e-5)
@@ -792,8 +883,7 @@ def test_dtype_changes_keep_range_end_shoulders():
     is fed float64 inputs: the clip bounds follow the corners' dtype. (Clipping to the exact
     11.16 > d dropped the degree to 0.)"""
     with default_dtype(torch.float32):
-        x = Variable("x", (-0.3, 11.16), {"low": Trapezoid(-0.3, -0.3, 2, 5),
-                                          "high": Trapezoid(7, 10, 11.16, 11.16)})
+        x = Variable("x", (-0.3, 11.16), {"low": Trapezoid(-0.3, -0.3, 2, 5), "high": Trapezoid(7, 10, 11.16, 11.16)})
         y = Variable("y", (0, 1), {"a": Triangle(0, 0.5, 1)})
         fis = MamdaniSystem("shoulder", [x], [y], ["IF x IS high THEN y IS a", "IF x IS low THEN y IS a"])
     X = [[11.16], [20.0], [-0.3], [-5.0]]
@@ -806,6 +896,7 @@ def test_dtype_changes_keep_range_end_shoulders():
 
 
 # =================================================================== 9. rule sentences
+
 
 def test_parse_fields():
     r = Rule.parse("IF a IS very low OR b IS not somewhat high THEN y IS big AND z IS small WITH 0.25")
@@ -825,25 +916,42 @@ def test_parse_round_trip():
         for r, text in zip(spec.rules, spec.sentences()):
             rule = Rule.parse(text)
             assert Rule.parse(str(rule)) == rule, text
-            assert [(c.variable, c.term, c.hedges) for c in rule.antecedent] == \
-                [(c.var, c.term, c.hedges) for c in r.ante]
+            assert [(c.variable, c.term, c.hedges) for c in rule.antecedent] == [
+                (c.var, c.term, c.hedges) for c in r.ante
+            ]
             assert rule.weight == r.weight
             assert len(r.ante) == 1 or rule.connective == r.connective
             weird = Rule(rule.antecedent, rule.consequent, rule.connective, float(rng.uniform(0, 1)))
-            assert Rule.parse(str(weird)) == weird, str(weird)                 # any weight survives
+            assert Rule.parse(str(weird)) == weird, str(weird)  # any weight survives
             n += 1
     assert n > 200
 
 
-@pytest.mark.parametrize("text", [
-    "", "x IS low THEN y IS big", "IF x IS low", "IF x low THEN y IS big", "IF x IS THEN y IS big",
-    "IF x IS low THEN", "IF x IS low AND THEN y IS big", "IF x IS low THEN y IS big OR z IS small",
-    "IF a IS low AND b IS high OR c IS mid THEN y IS big", "IF x IS bogus low THEN y IS big",
-    "IF x IS low THEN y IS big WITH", "IF x IS low THEN y IS big WITH abc", "IF x IS low WITH 0.5 THEN y IS big",
-    "IF x IS low THEN y IS big WITH 0.5 extra", "IF x IS low THEN y IS big WITH 1.5",
-    "IF x IS low THEN y IS big WITH -0.1", "IF x IS low THEN y IS big WITH nan",
-    "IF x IS low THEN y IS big AND y IS small", "IF x IS very THEN y IS big", "IF IF x IS low THEN y IS big",
-])
+@pytest.mark.parametrize(
+    "text",
+    [
+        "",
+        "x IS low THEN y IS big",
+        "IF x IS low",
+        "IF x low THEN y IS big",
+        "IF x IS THEN y IS big",
+        "IF x IS low THEN",
+        "IF x IS low AND THEN y IS big",
+        "IF x IS low THEN y IS big OR z IS small",
+        "IF a IS low AND b IS high OR c IS mid THEN y IS big",
+        "IF x IS bogus low THEN y IS big",
+        "IF x IS low THEN y IS big WITH",
+        "IF x IS low THEN y IS big WITH abc",
+        "IF x IS low WITH 0.5 THEN y IS big",
+        "IF x IS low THEN y IS big WITH 0.5 extra",
+        "IF x IS low THEN y IS big WITH 1.5",
+        "IF x IS low THEN y IS big WITH -0.1",
+        "IF x IS low THEN y IS big WITH nan",
+        "IF x IS low THEN y IS big AND y IS small",
+        "IF x IS very THEN y IS big",
+        "IF IF x IS low THEN y IS big",
+    ],
+)
 def test_parse_errors_name_the_rule(text):
     with pytest.raises(ConfigError) as info:
         Rule.parse(text)
@@ -853,8 +961,13 @@ def test_parse_errors_name_the_rule(text):
 def test_system_rejects_unknown_names_with_the_rule():
     x = Variable("x", (0, 1), {"low": Triangle(0, 0, 1)})
     y = Variable("y", (0, 1), {"big": Triangle(0, 1, 1)})
-    for bad in ("IF x IS high THEN y IS big", "IF w IS low THEN y IS big", "IF x IS low THEN q IS big",
-                "IF x IS low THEN y IS small", "IF y IS big THEN y IS big"):
+    for bad in (
+        "IF x IS high THEN y IS big",
+        "IF w IS low THEN y IS big",
+        "IF x IS low THEN q IS big",
+        "IF x IS low THEN y IS small",
+        "IF y IS big THEN y IS big",
+    ):
         with pytest.raises(ConfigError, match="rule 1") as info:
             MamdaniSystem("s", [x], [y], [bad])
         assert bad in str(info.value)

@@ -5,6 +5,7 @@ Oracles: scikit-fuzzy for the hand-written tipper file (and MATLAB's documented 
 it), the written-then-read system for the round trip (outputs must be identical), the line
 numbers written into each malformed file's first line, and a per-node loop for the coupling.
 """
+
 from __future__ import annotations
 
 import json
@@ -34,10 +35,12 @@ def _cli(*args):
 
 # ------------------------------------------------------------------ tipper
 
+
 def _skfuzzy_tipper(points):
     """MATLAB's tipper in scikit-fuzzy, written from the toolbox definitions (not from our file)."""
     skf = pytest.importorskip("skfuzzy")
     from skfuzzy import control as ctrl
+
     u10, u30 = np.linspace(0, 10, 2001), np.linspace(0, 30, 3001)
     service, food = ctrl.Antecedent(u10, "service"), ctrl.Antecedent(u10, "food")
     tip = ctrl.Consequent(u30, "tip")
@@ -45,9 +48,14 @@ def _skfuzzy_tipper(points):
         service[name] = skf.gaussmf(u10, c, 1.5)
     food["rancid"] = skf.trapmf(u10, [0, 0, 1, 3])
     food["delicious"] = skf.trapmf(u10, [7, 9, 10, 10])
-    tip["cheap"], tip["average"], tip["generous"] = (skf.trimf(u30, p) for p in ([0, 5, 10], [10, 15, 20], [20, 25, 30]))
-    rules = [ctrl.Rule(service["poor"] | food["rancid"], tip["cheap"]), ctrl.Rule(service["good"], tip["average"]),
-             ctrl.Rule(service["excellent"] | food["delicious"], tip["generous"])]
+    tip["cheap"], tip["average"], tip["generous"] = (
+        skf.trimf(u30, p) for p in ([0, 5, 10], [10, 15, 20], [20, 25, 30])
+    )
+    rules = [
+        ctrl.Rule(service["poor"] | food["rancid"], tip["cheap"]),
+        ctrl.Rule(service["good"], tip["average"]),
+        ctrl.Rule(service["excellent"] | food["delicious"], tip["generous"]),
+    ]
     sim = ctrl.ControlSystemSimulation(ctrl.ControlSystem(rules), cache=False)
     out = []
     for s, f in points:
@@ -69,6 +77,7 @@ def test_tipper_file_matches_skfuzzy_and_matlab():
 
 
 # ------------------------------------------------------------------ round trip
+
 
 def _random_system(seed: int) -> MamdaniSystem:
     g = torch.Generator().manual_seed(seed)
@@ -92,18 +101,27 @@ def _random_system(seed: int) -> MamdaniSystem:
         return Sigmoid(c, r(-3, 3) or 1.0)
 
     inputs = [Variable(f"in{i}", (0, 10), {f"t{k}": term(k + i, 0, 10) for k in range(3)}) for i in range(2)]
-    outputs = [Variable("y", (-5, 5), {f"o{k}": term(k, -5, 5) for k in range(4)}, default=1.25),
-               Variable("s", (0, 1), {f"p{k}": Singleton(r(0, 1)) for k in range(3)})]
+    outputs = [
+        Variable("y", (-5, 5), {f"o{k}": term(k, -5, 5) for k in range(4)}, default=1.25),
+        Variable("s", (0, 1), {f"p{k}": Singleton(r(0, 1)) for k in range(3)}),
+    ]
     hedge = ["", "very ", "not ", "somewhat ", "extremely ", "seldom ", "not very "]
     rules = []
     for k in range(6):
         i0, i1 = int(torch.randint(3, (), generator=g)), int(torch.randint(3, (), generator=g))
         conn = "AND" if k % 2 else "OR"
-        rules.append(f"IF in0 IS {hedge[k % 7]}t{i0} {conn} in1 IS {hedge[(k + 3) % 7]}t{i1} "
-                     f"THEN y IS {hedge[(k * 2) % 3]}o{k % 4} AND s IS p{k % 3} WITH {0.5 + 0.1 * k:g}")
-    methods = [dict(), dict(and_method="prod", or_method="probor", implication="prod", aggregation="sum"),
-               dict(aggregation="probor", defuzzification="bisector"), dict(defuzzification="mom"),
-               dict(defuzzification="som", resolution=500), dict(defuzzification="lom")][seed % 6]
+        rules.append(
+            f"IF in0 IS {hedge[k % 7]}t{i0} {conn} in1 IS {hedge[(k + 3) % 7]}t{i1} "
+            f"THEN y IS {hedge[(k * 2) % 3]}o{k % 4} AND s IS p{k % 3} WITH {0.5 + 0.1 * k:g}"
+        )
+    methods = [
+        dict(),
+        dict(and_method="prod", or_method="probor", implication="prod", aggregation="sum"),
+        dict(aggregation="probor", defuzzification="bisector"),
+        dict(defuzzification="mom"),
+        dict(defuzzification="som", resolution=500),
+        dict(defuzzification="lom"),
+    ][seed % 6]
     return MamdaniSystem(f"random{seed}", inputs, outputs, rules, **methods)
 
 
@@ -134,6 +152,7 @@ def test_comments_and_blank_lines_are_ignored():
 
 
 # ------------------------------------------------------------------ malformed files
+
 
 def test_at_least_fifteen_malformed_files():
     assert len(BAD) >= 15
@@ -170,11 +189,19 @@ def test_missing_file_is_a_clean_error():
 
 # ------------------------------------------------------------------ CLI
 
+
 def test_cli_show_lists_variables_terms_and_rules():
     res = _cli("fuzzy", "show", TIPPER)
     assert res.returncode == 0, res.stderr
-    for word in ("service", "food", "tip", "rancid", "gaussian", "mean=5 sigma=1.5",
-                 "IF service IS poor OR food IS rancid THEN tip IS cheap"):
+    for word in (
+        "service",
+        "food",
+        "tip",
+        "rancid",
+        "gaussian",
+        "mean=5 sigma=1.5",
+        "IF service IS poor OR food IS rancid THEN tip IS cheap",
+    ):
         assert word in res.stdout
 
 
@@ -195,12 +222,15 @@ def test_cli_eval_pairs_json_and_csv(tmp_path):
     assert res.stdout.splitlines()[0] == "service,food,tip" and len(res.stdout.splitlines()) == 4
 
 
-@pytest.mark.parametrize("args, needle", [
-    (["service=1"], "missing food"),
-    (["service=1", "food=abc"], "food: expected a number"),
-    (["service=1", "food=2", "drink=3"], "drink"),
-    (["service"], "NAME=VALUE"),
-])
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["service=1"], "missing food"),
+        (["service=1", "food=abc"], "food: expected a number"),
+        (["service=1", "food=2", "drink=3"], "drink"),
+        (["service"], "NAME=VALUE"),
+    ],
+)
 def test_cli_eval_bad_values(args, needle):
     res = _cli("fuzzy", "eval", TIPPER, *args)
     assert res.returncode == 2 and "Traceback" not in res.stderr and needle in res.stderr, res.stderr
@@ -220,12 +250,14 @@ def test_cli_plot_writes_pngs(tmp_path):
     res = _cli("fuzzy", "plot", TIPPER, "--out", tmp_path)
     assert res.returncode == 0, res.stderr
     names = sorted(p.name for p in tmp_path.glob("*.png"))
-    assert names == sorted(["mf_service.png", "mf_food.png", "mf_tip.png", "curve_service_tip.png",
-                            "curve_food_tip.png"])
+    assert names == sorted(
+        ["mf_service.png", "mf_food.png", "mf_tip.png", "curve_service_tip.png", "curve_food_tip.png"]
+    )
     assert all((tmp_path / n).stat().st_size > 5000 for n in names)
 
 
 # ------------------------------------------------------------------ coupling
+
 
 def test_spring_parameters_against_a_node_loop():
     fis = read_fis(TIPPER).double()
@@ -249,8 +281,18 @@ def test_spring_parameters_against_a_node_loop():
                         continue
                     vals = []
                     for p in (a, b):
-                        inside = float((((X[(slice(None), *p)] - torch.tensor(ell.center, dtype=torch.float64))
-                                         / torch.tensor(ell.radii, dtype=torch.float64)) ** 2).sum()) <= 1
+                        inside = (
+                            float(
+                                (
+                                    (
+                                        (X[(slice(None), *p)] - torch.tensor(ell.center, dtype=torch.float64))
+                                        / torch.tensor(ell.radii, dtype=torch.float64)
+                                    )
+                                    ** 2
+                                ).sum()
+                            )
+                            <= 1
+                        )
                         service = 8.0 if inside else 3.0
                         food = 9.5 if mask[p] else 4.0
                         vals.append(float(fis.evaluate(service=service, food=food)["tip"]))

@@ -8,6 +8,7 @@ bit-identical outputs to the system that was written. Systems with hedge combina
 format cannot encode (anything but an optional leading NOT followed by seldom, somewhat, very,
 extremely, very very or any) must be refused with a :class:`ConfigError`.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -23,13 +24,15 @@ from torchdeform.fuzzy.fis import fis_text, parse_fis, read_fis, write_fis
 #: What a .fis rule can say about a clause after an optional leading NOT (the file format's codes).
 ENCODABLE = {(), ("seldom",), ("somewhat",), ("very",), ("extremely",), ("very", "very"), ("any",)}
 
-METHODS = st.fixed_dictionaries({
-    "and_method": st.sampled_from(["min", "prod"]),
-    "or_method": st.sampled_from(["max", "probor"]),
-    "implication": st.sampled_from(["min", "prod"]),
-    "aggregation": st.sampled_from(["max", "sum", "probor"]),
-    "defuzzification": st.sampled_from(["centroid", "bisector", "mom", "som", "lom"]),
-})
+METHODS = st.fixed_dictionaries(
+    {
+        "and_method": st.sampled_from(["min", "prod"]),
+        "or_method": st.sampled_from(["max", "probor"]),
+        "implication": st.sampled_from(["min", "prod"]),
+        "aggregation": st.sampled_from(["max", "sum", "probor"]),
+        "defuzzification": st.sampled_from(["centroid", "bisector", "mom", "som", "lom"]),
+    }
+)
 
 
 def _encodable(spec) -> bool:
@@ -74,11 +77,12 @@ def _check_against_spec(back, spec, dtype):
         assert var.default == vs.fallback
     assert len(back.rules) == len(spec.rules)
     for rule, rs in zip(back.rules, spec.rules):
-        assert {(c.variable, c.term, tuple(c.hedges)) for c in rule.antecedent} == \
-            {(c.var, c.term, tuple(c.hedges)) for c in rs.ante}
+        assert {(c.variable, c.term, tuple(c.hedges)) for c in rule.antecedent} == {
+            (c.var, c.term, tuple(c.hedges)) for c in rs.ante
+        }
         assert {(c.variable, c.term) for c in rule.consequent} == {(c.var, c.term) for c in rs.cons}
         assert rule.weight == rs.weight
-        assert len(rs.ante) == 1 or rule.connective == rs.connective      # one clause: no connective
+        assert len(rs.ante) == 1 or rule.connective == rs.connective  # one clause: no connective
 
 
 HEDGES = sorted(ENCODABLE) + [("not",) + h for h in sorted(ENCODABLE)]
@@ -86,9 +90,14 @@ UNENCODABLE = [("somewhat", "very"), ("very", "not"), ("not", "not"), ("extremel
 
 
 @settings(max_examples=150, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1), hedges=st.sampled_from(["oracle", "encodable", "any"]), methods=METHODS,
-       resolution=st.sampled_from([300, 1000, 3000]), dtype=st.sampled_from([torch.float32, torch.float64]),
-       data=st.data())
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    hedges=st.sampled_from(["oracle", "encodable", "any"]),
+    methods=METHODS,
+    resolution=st.sampled_from([300, 1000, 3000]),
+    dtype=st.sampled_from([torch.float32, torch.float64]),
+    data=st.data(),
+)
 def test_fis_round_trip_gives_identical_outputs(seed, hedges, methods, resolution, dtype, data):
     """``hedges``: the oracle's own choice (a few NOTs), or hedges drawn here for every clause
     (outputs included) from the encodable set, or from it and some combinations that are not."""
@@ -104,12 +113,13 @@ def test_fis_round_trip_gives_identical_outputs(seed, hedges, methods, resolutio
             fis_text(system)
         return
     text = fis_text(system, comments=f"seed {seed}")
-    with default_dtype(dtype):                      # read the parameters in the system's dtype
+    with default_dtype(dtype):  # read the parameters in the system's dtype
         back = parse_fis(text, path=f"random{seed}.fis")
     _check_against_spec(back, spec, dtype)
     assert back.resolution == resolution
-    assert (back.and_method, back.or_method, back.implication, back.aggregation, back.defuzzification) == \
-        tuple(methods[k] for k in ("and_method", "or_method", "implication", "aggregation", "defuzzification"))
+    assert (back.and_method, back.or_method, back.implication, back.aggregation, back.defuzzification) == tuple(
+        methods[k] for k in ("and_method", "or_method", "implication", "aggregation", "defuzzification")
+    )
     assert fis_text(back, comments=f"seed {seed}") == text
     x = torch.tensor(random_points(spec, seed, 64), dtype=dtype)
     assert torch.equal(back(x), system(x))

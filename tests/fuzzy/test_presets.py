@@ -6,6 +6,7 @@
 - every Radetzky file says in its header that its membership functions are reconstructions;
 - the SI tissue library is consistent with its fuzzy system.
 """
+
 from __future__ import annotations
 
 import math
@@ -60,10 +61,10 @@ FIVE = {"very_small", "small", "medium", "large", "very_large"}
 
 #: (preset, inputs, spring_const, viscosity) from the text of appendix C
 GOLDEN = [
-    ("susilap_g", {"consistency": 5.5}, 16.2606, 2.87713),        # Fallopian tube
-    ("susilap_g", {"consistency": 2.5}, 2.41327, 10.6875),        # tube-background anchors
-    ("susilap_g", {"consistency": 10.1}, 81.3091, 6.0),           # uterus
-    ("susilap_g", {"consistency": 7.0}, 11.3536, 9.13015),        # bowel
+    ("susilap_g", {"consistency": 5.5}, 16.2606, 2.87713),  # Fallopian tube
+    ("susilap_g", {"consistency": 2.5}, 2.41327, 10.6875),  # tube-background anchors
+    ("susilap_g", {"consistency": 10.1}, 81.3091, 6.0),  # uterus
+    ("susilap_g", {"consistency": 7.0}, 11.3536, 9.13015),  # bowel
     ("robo_sim_ventricle", {"consistency": 7.3, "sensitiveness": 4.9, "shiftability": 3.0}, 45.4871, 72.8125),
 ]
 
@@ -80,8 +81,10 @@ def robo():
 
 # ---------------------------------------------------------------- golden values
 
-@pytest.mark.parametrize("name, inputs, spring, viscosity", GOLDEN,
-                         ids=[f"{g[0]}-{'-'.join(map(str, g[1].values()))}" for g in GOLDEN])
+
+@pytest.mark.parametrize(
+    "name, inputs, spring, viscosity", GOLDEN, ids=[f"{g[0]}-{'-'.join(map(str, g[1].values()))}" for g in GOLDEN]
+)
 def test_published_values(name, inputs, spring, viscosity):
     fis = presets.load_preset(name)
     out = fis.evaluate(**inputs)
@@ -103,12 +106,18 @@ def test_published_values_in_float64_and_batched():
 def test_presets_use_default_inference(susilap, robo):
     """The golden values hold for the engine's defaults, which the files must not override."""
     for fis in (susilap, robo):
-        assert (fis.and_method, fis.or_method, fis.implication, fis.aggregation, fis.defuzzification) == \
-            ("min", "max", "min", "max", "centroid")
+        assert (fis.and_method, fis.or_method, fis.implication, fis.aggregation, fis.defuzzification) == (
+            "min",
+            "max",
+            "min",
+            "max",
+            "centroid",
+        )
         assert fis.resolution == 1000
 
 
 # ---------------------------------------------------------------- rule tables exactly as published
+
 
 def _rules(fis):
     """Each rule as ((input, term), {output: term}), with checks that nothing else is in it."""
@@ -140,9 +149,13 @@ def test_robo_rule_table(robo):
     want = [((var, term), {"spring_const": s, **({"viscosity": v} if v else {})}) for var, term, s, v in TABLE_C2]
     assert _rules(robo) == want
     terms = {v.name: set(v.term_names) for v in (*robo.inputs, *robo.outputs)}
-    assert terms == {"consistency": {"solid", "hard", "soft", "wobbly", "doughy", "mushy"},
-                     "sensitiveness": FIVE, "shiftability": {"small", "medium", "large"},
-                     "spring_const": FIVE, "viscosity": FIVE}
+    assert terms == {
+        "consistency": {"solid", "hard", "soft", "wobbly", "doughy", "mushy"},
+        "sensitiveness": FIVE,
+        "shiftability": {"small", "medium", "large"},
+        "spring_const": FIVE,
+        "viscosity": FIVE,
+    }
 
 
 def test_robo_rules_1_to_3_have_no_viscosity_in_the_file():
@@ -167,7 +180,7 @@ def test_membership_functions_are_trapezoid_partitions(susilap, robo):
                 a, b, c, d = mf.values()
                 assert lo <= a <= b <= c <= d <= hi, (var.name, term, mf.values())
                 peaks.append(0.5 * (b + c))
-                assert float(mf(torch.tensor([0.5 * (b + c)]))[0]) == 1.0, (var.name, term)   # normal
+                assert float(mf(torch.tensor([0.5 * (b + c)]))[0]) == 1.0, (var.name, term)  # normal
             assert peaks == sorted(peaks), f"{var.name}: terms not in axis order"
             if is_input:
                 x = torch.linspace(lo, hi, 2001)
@@ -184,6 +197,7 @@ def test_susilap_viscosity_medium_is_symmetric_about_6(susilap):
 
 # ---------------------------------------------------------------- the reconstruction note
 
+
 def _header(name):
     text = FUZZY.joinpath(f"{name}.fis").read_text(encoding="utf-8")
     head = text.split("[System]")[0]
@@ -199,7 +213,7 @@ def test_reconstruction_note_in_header(name, table):
     assert "RECONSTRUCTION" in head and "NOT Radetzky's originals" in head
     assert "Figs. C.1-C.8 are lost" in head
     assert "Units: not given in the source" in head
-    for preset, inputs, spring, viscosity in GOLDEN:                # the pairs the corners were fitted to
+    for preset, inputs, spring, viscosity in GOLDEN:  # the pairs the corners were fitted to
         if preset == name:
             for number in (*inputs.values(), spring, viscosity):
                 assert f"{number}" in head, f"{number} not listed in the header of {name}.fis"
@@ -216,6 +230,7 @@ def test_headers_are_ignored_by_the_reader():
 
 
 # ---------------------------------------------------------------- presets API
+
 
 def test_list_and_load_presets():
     names = presets.list_presets()
@@ -249,10 +264,12 @@ def test_unknown_preset_names_it_and_lists_the_known_ones():
 def test_preset_dir_holds_the_repository_files():
     """Whatever install mode, the files torchdeform finds are the repository's fuzzy/ files."""
     for name in presets.list_presets():
-        assert presets.preset_path(name).read_text(encoding="utf-8") == \
-            FUZZY.joinpath(f"{name}.fis").read_text(encoding="utf-8")
-    assert presets.PRESET_DIR.joinpath("tissues.toml").read_text(encoding="utf-8") == \
-        FUZZY.joinpath("tissues.toml").read_text(encoding="utf-8")
+        assert presets.preset_path(name).read_text(encoding="utf-8") == FUZZY.joinpath(f"{name}.fis").read_text(
+            encoding="utf-8"
+        )
+    assert presets.PRESET_DIR.joinpath("tissues.toml").read_text(encoding="utf-8") == FUZZY.joinpath(
+        "tissues.toml"
+    ).read_text(encoding="utf-8")
 
 
 def test_pyproject_ships_the_rule_files():
@@ -267,18 +284,19 @@ def test_pyproject_ships_the_rule_files():
 
 # ---------------------------------------------------------------- SI tissue library
 
+
 def test_tissue_library_entries():
     lib = presets.tissues()
     assert {"liver", "fat", "muscle", "brain", "kidney"} <= set(lib)
     for name, t in lib.items():
         lo, hi = t["youngs_modulus_range"]
         assert 0 < lo < hi, name
-        assert 900 <= t["density"] <= 1100, name                     # soft tissue, kg/m^3
+        assert 900 <= t["density"] <= 1100, name  # soft tissue, kg/m^3
         assert isinstance(t["source"], str) and len(t["source"]) > 20, name
         assert 0 <= t["consistency"] <= 10, name
     liver = lib["liver"]["youngs_modulus_range"]
-    assert liver[0] <= 1000 and liver[1] >= 7000                    # healthy liver ~0.5-10 kPa
-    lib["liver"]["density"] = -1.0                                   # tissues() hands out a copy
+    assert liver[0] <= 1000 and liver[1] >= 7000  # healthy liver ~0.5-10 kPa
+    lib["liver"]["density"] = -1.0  # tissues() hands out a copy
     assert presets.tissues()["liver"]["density"] > 0
 
 

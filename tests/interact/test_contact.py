@@ -10,6 +10,7 @@
 * penalty contact passes gradcheck with respect to its stiffness and the tool's position;
 * the packed layout (the compiled path's) gives the same contact step as the grid layout.
 """
+
 from __future__ import annotations
 
 import math
@@ -62,7 +63,7 @@ def _surface_samples(shape, m=60):
     th, ph = np.meshgrid(np.linspace(0, 2 * np.pi, 2 * m), np.linspace(0, np.pi, m), indexing="ij")
     ball = np.stack([np.cos(th) * np.sin(ph), np.sin(th) * np.sin(ph), np.cos(ph)], -1).reshape(-1, 3) * R
     side = np.stack([np.cos(th[:, 0]), np.sin(th[:, 0])], -1) * R
-    pts = [ball[s * ball[:, a] >= 0] + s * L * np.eye(3)[a] for s in (-1, 1)]      # the outer half-balls
+    pts = [ball[s * ball[:, a] >= 0] + s * L * np.eye(3)[a] for s in (-1, 1)]  # the outer half-balls
     for z in np.linspace(-L, L, m):
         q = np.zeros((len(side), 3))
         q[:, [i for i in range(3) if i != a]] = side
@@ -80,15 +81,18 @@ def _inside(shape, p):
     return np.linalg.norm(p - q, axis=1) < shape.radius
 
 
-@pytest.mark.parametrize("shape", [Capsule(0.5, 0.8, axis=0), Capsule(0.3, 0.0, axis=2), Box((0.6, 0.9, 0.4))],
-                         ids=["capsule-d", "capsule-ball", "box"])
+@pytest.mark.parametrize(
+    "shape",
+    [Capsule(0.5, 0.8, axis=0), Capsule(0.3, 0.0, axis=2), Box((0.6, 0.9, 0.4))],
+    ids=["capsule-d", "capsule-ball", "box"],
+)
 def test_capsule_and_box_distances_match_brute_force(shape):
     p = _points(300, 1.6, seed=1)
     d, n = _sdf(shape, p)
     surf = _surface_samples(shape)
     brute = np.sqrt(((p[:, None] - surf[None]) ** 2).sum(-1)).min(1)
     sign = np.where(_inside(shape, p), -1.0, 1.0)
-    assert np.abs(d - sign * brute).max() < 0.03                     # surface sampled every ~0.03
+    assert np.abs(d - sign * brute).max() < 0.03  # surface sampled every ~0.03
     # the projected point lies on the surface, at distance |d| from p
     q = p - d[:, None] * n
     dq, _ = _sdf(shape, q)
@@ -96,8 +100,11 @@ def test_capsule_and_box_distances_match_brute_force(shape):
     assert np.allclose(np.linalg.norm(p - q, axis=1), np.abs(d), atol=1e-12)
 
 
-@pytest.mark.parametrize("shape", [Sphere(0.015), Capsule(0.008, 0.01, axis=1), Box((0.01, 0.02, 0.012)),
-                                   HalfSpace((1.0, 0.5, 0.0))], ids=["sphere", "capsule", "box", "half-space"])
+@pytest.mark.parametrize(
+    "shape",
+    [Sphere(0.015), Capsule(0.008, 0.01, axis=1), Box((0.01, 0.02, 0.012)), HalfSpace((1.0, 0.5, 0.0))],
+    ids=["sphere", "capsule", "box", "half-space"],
+)
 def test_projection_puts_penetrating_nodes_on_the_surface(shape):
     grid = td.Grid((6, 6, 6), spacing=0.005)
     tool = Tool(shape, position=(0.0125, 0.0125, 0.0125))
@@ -110,19 +117,19 @@ def test_projection_puts_penetrating_nodes_on_the_surface(shape):
     d1, _ = tool.sdf(x1, 0.0)
     inside = d0 < 0
     assert int(inside.sum()) > 5
-    assert float(d1[inside.expand_as(d1)].abs().max()) < 1e-12             # on the surface
+    assert float(d1[inside.expand_as(d1)].abs().max()) < 1e-12  # on the surface
     assert torch.equal(torch.where(inside, x, x1), x) and torch.equal(torch.where(inside, v, v1), v)
     vn = (v1 * n0).sum(1, keepdim=True)
-    assert float(vn[inside].min()) >= -1e-12                                # no approaching speed left
+    assert float(vn[inside].min()) >= -1e-12  # no approaching speed left
 
 
 def test_fixed_nodes_are_not_projected():
     grid = td.Grid((3, 3, 3), spacing=0.01)
     model = td.Model(grid, stiffness=1.0, mass=1e-3, fixed=grid.face("bottom"), dtype=torch.float64)
-    floor = Tool(HalfSpace((1.0, 0.0, 0.0)), position=(0.005, 0.0, 0.0))   # above the bottom layer
+    floor = Tool(HalfSpace((1.0, 0.0, 0.0)), position=(0.005, 0.0, 0.0))  # above the bottom layer
     x, _ = ProjectionContact(floor).project(model, model.X.clone(), torch.zeros_like(model.X), 0.0, 1e-3)
-    assert torch.equal(x[:, :, 0], model.X[:, :, 0])                      # fixed layer stays
-    assert torch.allclose(x[:, 0, 1:], model.X[:, 0, 1:])                  # the others were above already
+    assert torch.equal(x[:, :, 0], model.X[:, :, 0])  # fixed layer stays
+    assert torch.allclose(x[:, 0, 1:], model.X[:, 0, 1:])  # the others were above already
 
 
 def _energy(model, state):
@@ -131,9 +138,15 @@ def _energy(model, state):
 
 def test_body_dropped_on_a_floor_never_gains_energy():
     grid = td.Grid((2, 2, 2), spacing=0.01, topology=26)
-    floor = Tool(HalfSpace((1.0, 0.0, 0.0)), position=(-0.02, 0.0, 0.0))   # 2 cm below the body
-    model = td.Model(grid, stiffness=50.0, mass=1e-3, gravity=(-9.81, 0.0, 0.0),
-                     interactions=[ProjectionContact(floor)], dtype=torch.float64)
+    floor = Tool(HalfSpace((1.0, 0.0, 0.0)), position=(-0.02, 0.0, 0.0))  # 2 cm below the body
+    model = td.Model(
+        grid,
+        stiffness=50.0,
+        mass=1e-3,
+        gravity=(-9.81, 0.0, 0.0),
+        interactions=[ProjectionContact(floor)],
+        dtype=torch.float64,
+    )
     state = model.rest_state()
     e0 = _energy(model, state)
     energies, lowest = [], []
@@ -142,31 +155,37 @@ def test_body_dropped_on_a_floor_never_gains_energy():
         state = integ.step(model, state, 2e-4)
         energies.append(_energy(model, state))
         lowest.append(float(state.x[:, 0].min()))
-    assert min(lowest) >= -0.02 - 1e-12                                  # never below the floor
-    assert max(energies) <= e0 + 1e-12 * abs(e0)                         # never above the start
-    assert energies[-1] < e0 - 0.5 * 1e-3 * 8 * 9.81 * 0.01               # the inelastic impacts dissipated
+    assert min(lowest) >= -0.02 - 1e-12  # never below the floor
+    assert max(energies) <= e0 + 1e-12 * abs(e0)  # never above the start
+    assert energies[-1] < e0 - 0.5 * 1e-3 * 8 * 9.81 * 0.01  # the inelastic impacts dissipated
 
 
 @pytest.mark.parametrize("ratio", [0.8, 1.25])
 def test_incline_sticks_below_the_friction_angle_and_slides_above(ratio):
     theta = math.radians(25.0)
-    mu = math.tan(theta) / ratio                      # ratio < 1: mu > tan(theta) sticks; > 1 slides
+    mu = math.tan(theta) / ratio  # ratio < 1: mu > tan(theta) sticks; > 1 slides
     normal = (math.cos(theta), math.sin(theta), 0.0)
     grid = td.Grid((1, 1, 1), spacing=0.01)
-    floor = Tool(HalfSpace(normal), position=(0.0, 0.0, 0.0))          # the node rests on the plane
+    floor = Tool(HalfSpace(normal), position=(0.0, 0.0, 0.0))  # the node rests on the plane
     g = 9.81
-    model = td.Model(grid, stiffness=1.0, mass=1e-3, gravity=(-g, 0.0, 0.0),
-                     interactions=[ProjectionContact(floor, friction=mu)], dtype=torch.float64)
-    state, _ = td.simulate(model, model.rest_state(), dt=1e-4, steps=2000)      # 0.2 s
+    model = td.Model(
+        grid,
+        stiffness=1.0,
+        mass=1e-3,
+        gravity=(-g, 0.0, 0.0),
+        interactions=[ProjectionContact(floor, friction=mu)],
+        dtype=torch.float64,
+    )
+    state, _ = td.simulate(model, model.rest_state(), dt=1e-4, steps=2000)  # 0.2 s
     downhill = torch.tensor([-math.sin(theta), math.cos(theta), 0.0], dtype=torch.float64)
     s = float((state.x[0, :, 0, 0, 0] * downhill).sum())
     height = float((state.x[0, :, 0, 0, 0] * torch.tensor(normal, dtype=torch.float64)).sum())
-    assert abs(height) < 1e-12                                             # stays on the plane
+    assert abs(height) < 1e-12  # stays on the plane
     if ratio < 1:
         assert abs(s) < 1e-12
     else:
         a = g * (math.sin(theta) - mu * math.cos(theta))
-        assert s == pytest.approx(0.5 * a * 0.2 ** 2, rel=0.01)
+        assert s == pytest.approx(0.5 * a * 0.2**2, rel=0.01)
 
 
 def test_penalty_contact_gradcheck_stiffness_and_tool_position():
@@ -184,7 +203,7 @@ def test_penalty_contact_gradcheck_stiffness_and_tool_position():
     k = torch.tensor(40.0, dtype=torch.float64, requires_grad=True)
     centre = torch.tensor([0.0, 0.0, 0.003], dtype=torch.float64, requires_grad=True)
     d, _ = Sphere(0.008).sdf(X + 0.001 - centre.detach().view(1, 3, 1, 1, 1))
-    assert float(d.abs().min()) > 1e-4 and int((d < 0).sum()) >= 1           # away from contact onset
+    assert float(d.abs().min()) > 1e-4 and int((d < 0).sum()) >= 1  # away from contact onset
     assert torch.autograd.gradcheck(forces, (k, centre))
 
 
@@ -192,9 +211,18 @@ def test_packed_layout_gives_the_same_contact_step():
     grid = td.Grid((4, 5, 3), spacing=0.01, topology=26)
     probe = Tool(Sphere(0.012), path=[(0.0, (0.045, 0.02, 0.01)), (0.01, (0.035, 0.02, 0.01))])
     floor = Tool(HalfSpace((1.0, 0.0, 0.0)), position=(-0.001, 0.0, 0.0))
-    model = td.Model(grid, stiffness=30.0, damping=0.02, mass=1e-3, gravity=(-9.81, 0, 0),
-                     interactions=[ProjectionContact([probe, floor], friction=0.3),
-                               PenaltyContact(probe, stiffness=5.0, damping=0.01)], dtype=torch.float64)
+    model = td.Model(
+        grid,
+        stiffness=30.0,
+        damping=0.02,
+        mass=1e-3,
+        gravity=(-9.81, 0, 0),
+        interactions=[
+            ProjectionContact([probe, floor], friction=0.3),
+            PenaltyContact(probe, stiffness=5.0, damping=0.01),
+        ],
+        dtype=torch.float64,
+    )
     pm = PackedModel(model)
     state, packed = model.rest_state(), pm.rest_state()
     integ = td.SymplecticEuler()
@@ -205,19 +233,22 @@ def test_packed_layout_gives_the_same_contact_step():
     assert torch.allclose(pm.unpack_state(packed).v, state.v, atol=1e-11, rtol=0)
 
 
-@pytest.mark.parametrize("make, key", [
-    (lambda: Sphere(-1.0), "sphere.radius"),
-    (lambda: Capsule(0.1, -0.2), "capsule.half_length"),
-    (lambda: Capsule(0.1, 0.2, axis=3), "capsule.axis"),
-    (lambda: Box((0.1, 0.0, 0.1)), "box.half_extents"),
-    (lambda: HalfSpace((0.0, 0.0, 0.0)), "half_space.normal"),
-    (lambda: Tool(Sphere(0.1), path=[(0.0, (0, 0, 0)), (0.0, (1, 0, 0))]), "tool.path"),
-    (lambda: Tool(Sphere(0.1)), "tool"),
-    (lambda: Tool("sphere", position=(0, 0, 0)), "tool.shape"),
-    (lambda: ProjectionContact(Tool(Sphere(0.1), position=(0, 0, 0)), friction=-1.0), "contact.friction"),
-    (lambda: PenaltyContact(Tool(Sphere(0.1), position=(0, 0, 0)), stiffness=0.0), "contact.stiffness"),
-    (lambda: td.Model(td.Grid((2, 2, 2), 0.01), stiffness=1.0, mass=1.0, interactions=[object()]), "interactions"),
-])
+@pytest.mark.parametrize(
+    "make, key",
+    [
+        (lambda: Sphere(-1.0), "sphere.radius"),
+        (lambda: Capsule(0.1, -0.2), "capsule.half_length"),
+        (lambda: Capsule(0.1, 0.2, axis=3), "capsule.axis"),
+        (lambda: Box((0.1, 0.0, 0.1)), "box.half_extents"),
+        (lambda: HalfSpace((0.0, 0.0, 0.0)), "half_space.normal"),
+        (lambda: Tool(Sphere(0.1), path=[(0.0, (0, 0, 0)), (0.0, (1, 0, 0))]), "tool.path"),
+        (lambda: Tool(Sphere(0.1)), "tool"),
+        (lambda: Tool("sphere", position=(0, 0, 0)), "tool.shape"),
+        (lambda: ProjectionContact(Tool(Sphere(0.1), position=(0, 0, 0)), friction=-1.0), "contact.friction"),
+        (lambda: PenaltyContact(Tool(Sphere(0.1), position=(0, 0, 0)), stiffness=0.0), "contact.stiffness"),
+        (lambda: td.Model(td.Grid((2, 2, 2), 0.01), stiffness=1.0, mass=1.0, interactions=[object()]), "interactions"),
+    ],
+)
 def test_bad_tool_input_is_one_clear_error(make, key):
     with pytest.raises(ConfigError) as e:
         make()

@@ -41,6 +41,7 @@ Choices that matter:
 :func:`test_implicit_euler_stops_at_its_own_fixed_point` documents why implicit Euler with
 projection does not reach the equilibrium (an ``O(h^2)`` gap).
 """
+
 from __future__ import annotations
 
 import functools
@@ -64,20 +65,20 @@ from tests.oracles.contact_equilibrium import (
 from tests.oracles.edge_list import EdgeList
 from torchdeform.interact import HalfSpace, ProjectionContact, Sphere, Tool
 
-H = 0.01                      # spacing (m)
-K = 50.0                      # spring stiffness (N/m)
-G = (-9.81, 0.0, 0.0)         # gravity along -D
-RAMP, HOLD = 0.1, 0.3         # tool moves down for RAMP s, then is held for HOLD s
-LIFT = 0.0005                 # the tool starts this far above the top face
+H = 0.01  # spacing (m)
+K = 50.0  # spring stiffness (N/m)
+G = (-9.81, 0.0, 0.0)  # gravity along -D
+RAMP, HOLD = 0.1, 0.3  # tool moves down for RAMP s, then is held for HOLD s
+LIFT = 0.0005  # the tool starts this far above the top face
 
 
 @dataclass(frozen=True)
 class Case:
     topology: int
     shape: tuple
-    confined: bool            # side faces fixed too
-    tool: str                 # "sphere" or "plane"
-    depth: float              # final position: this far below the rest top face (m)
+    confined: bool  # side faces fixed too
+    tool: str  # "sphere" or "plane"
+    depth: float  # final position: this far below the rest top face (m)
     radius: float = 0.0
     centre_hw: tuple = (0.0, 0.0)
     min_contacts: int = 1
@@ -88,10 +89,10 @@ class Case:
 
 
 CASES = [
-    Case(26, (3, 3, 3), False, "sphere", 0.0025, 0.04, (0.01, 0.01), min_contacts=5),        # over the centre node
-    Case(26, (3, 4, 4), False, "sphere", 0.002, 0.03, (0.013, 0.016), min_contacts=4),       # off-centre
+    Case(26, (3, 3, 3), False, "sphere", 0.0025, 0.04, (0.01, 0.01), min_contacts=5),  # over the centre node
+    Case(26, (3, 4, 4), False, "sphere", 0.002, 0.03, (0.013, 0.016), min_contacts=4),  # off-centre
     Case(6, (3, 5, 5), True, "sphere", 0.0025, 0.04, (0.02, 0.02), min_contacts=5),
-    Case(6, (4, 5, 5), True, "sphere", 0.003, 0.05, (0.019, 0.022), min_contacts=6),         # off-centre
+    Case(6, (4, 5, 5), True, "sphere", 0.003, 0.05, (0.019, 0.022), min_contacts=6),  # off-centre
     Case(26, (3, 3, 3), False, "plane", 0.0015, min_contacts=9),
     Case(26, (3, 4, 4), False, "plane", 0.0015, min_contacts=16),
     Case(6, (3, 5, 5), True, "plane", 0.0015, min_contacts=9),
@@ -130,7 +131,7 @@ def _oracle(case):
     """``(edge list, fixed (N,), masses (N,), contact equilibrium, gravity-only equilibrium)``."""
     grid = td.Grid(case.shape, spacing=H, topology=case.topology)
     el = EdgeList(case.shape, (H,) * 3, case.topology)
-    fixed = _fixed(grid, case.confined).numpy().reshape(-1)      # C order = EdgeList's node order
+    fixed = _fixed(grid, case.confined).numpy().reshape(-1)  # C order = EdgeList's node order
     mass = _masses(case.shape).reshape(-1)
     _, obstacle = _tool_and_obstacle(case)
     edges = edges_from(el, K)
@@ -142,9 +143,17 @@ def _oracle(case):
 def _model(case, eq, mass):
     grid = td.Grid(case.shape, spacing=H, topology=case.topology)
     tool, _ = _tool_and_obstacle(case)
-    decay = 2 * math.sqrt(eq.reduced_hessian_min / mass.max())     # ~ critical for the slowest mode
-    model = td.Model(grid, stiffness=K, mass=_masses(case.shape), gravity=G, fixed=_fixed(grid, case.confined),
-                     decay=decay, interactions=[ProjectionContact(tool, friction=0.0)], dtype=torch.float64)
+    decay = 2 * math.sqrt(eq.reduced_hessian_min / mass.max())  # ~ critical for the slowest mode
+    model = td.Model(
+        grid,
+        stiffness=K,
+        mass=_masses(case.shape),
+        gravity=G,
+        fixed=_fixed(grid, case.confined),
+        decay=decay,
+        interactions=[ProjectionContact(tool, friction=0.0)],
+        dtype=torch.float64,
+    )
     return model, tool
 
 
@@ -164,22 +173,22 @@ def test_pressed_block_settles_at_the_constrained_equilibrium(case):
     assert active.sum() >= case.min_contacts and (eq.multipliers[active, 0] > 1e-3).all()
     below = free & ~active
     assert np.abs(eq.x[below] - free_fall.x[below]).max() > 1e-4
-    assert np.abs(eq.slsqp_x - eq.x).max() < 1e-6        # SLSQP alone (before the Newton polish) is close
+    assert np.abs(eq.slsqp_x - eq.x).max() < 1e-6  # SLSQP alone (before the Newton polish) is close
 
     model, tool = _model(case, eq, mass)
-    dt = td.suggest_dt(model) / math.sqrt(2)       # stable with the post-step decay (module docstring)
+    dt = td.suggest_dt(model) / math.sqrt(2)  # stable with the post-step decay (module docstring)
     state = _settle(model, dt)
     x = el.from_field(state.x[0])
     _, obstacle = _tool_and_obstacle(case)
 
     err = np.abs(x - eq.x).max()
     assert err < 1e-11, f"max |x_sim - x_oracle| = {err:.3g} m"
-    assert np.abs(obstacle.sdf(x[active])).max() < 1e-12           # contact nodes on the tool surface
+    assert np.abs(obstacle.sdf(x[active])).max() < 1e-12  # contact nodes on the tool surface
     d, _ = tool.sdf(state.x, state.t)
     d = el.from_field(d[0]).ravel()
-    assert d[free].min() >= -1e-12                                   # nothing inside the tool
-    assert np.array_equal(free & (d < 1e-12), active)                # same contact set as the oracle
-    assert float(state.v.abs().max()) < 1e-12                        # at rest
+    assert d[free].min() >= -1e-12  # nothing inside the tool
+    assert np.array_equal(free & (d < 1e-12), active)  # same contact set as the oracle
+    assert float(state.v.abs().max()) < 1e-12  # at rest
     # the forces the springs and gravity leave are the contact forces lambda n of the oracle
     f = el.from_field(model.forces(state.x, torch.zeros_like(state.x))[0])
     contact = eq.multipliers[:, :1] * obstacle.grad(x)
@@ -194,21 +203,21 @@ def test_six_neighbour_block_on_a_base_alone_buckles():
     edges = edges_from(el, K)
     free = np.flatnonzero(~fixed)
     idx = (3 * free[:, None] + np.arange(3)).ravel()
-    squeezed = el.X * np.array([0.95, 1.0, 1.0])                      # every vertical spring 5% short
+    squeezed = el.X * np.array([0.95, 1.0, 1.0])  # every vertical spring 5% short
     confined = fixed | (el.X[:, 1] == 0) | (el.X[:, 1] == 2 * H) | (el.X[:, 2] == 0) | (el.X[:, 2] == 2 * H)
     keep = (3 * np.flatnonzero(~confined)[:, None] + np.arange(3)).ravel()
     with one_blas_thread():
         lowest = np.linalg.eigvalsh(hessian(squeezed, edges)[np.ix_(idx, idx)]).min()
         stiff = np.linalg.eigvalsh(hessian(squeezed, edges)[np.ix_(keep, keep)]).min()
-    assert lowest < -1.0                                              # a shear mode with negative stiffness
-    assert stiff > 1.0                                                # walls give every free node stiffness
+    assert lowest < -1.0  # a shear mode with negative stiffness
+    assert stiff > 1.0  # walls give every free node stiffness
     # a flat press keeps every lateral force exactly zero, so SLSQP stays on the symmetric
     # equilibrium, and the oracle's second-order check refuses it
     with pytest.raises(RuntimeError, match="not a strict local minimum"):
         contact_equilibrium(el.X, edges, 1e-3, np.array(G), fixed, [half_space((2 * H - 0.0015, 0, 0), (-1, 0, 0))])
 
 
-IMPLICIT_DT = 1e-2              # (s) the gap below is largest, and the run short, at large steps
+IMPLICIT_DT = 1e-2  # (s) the gap below is largest, and the run short, at large steps
 
 
 @functools.lru_cache(maxsize=None)
@@ -242,9 +251,9 @@ def test_implicit_euler_stops_at_its_own_fixed_point():
     free = np.flatnonzero(~fixed)
     x = el.from_field(state.x[0])
     _, obstacle = _tool_and_obstacle(CASES[0])
-    active = np.abs(obstacle.sdf(x[free])) < 1e-12                    # the run's own contact set
+    active = np.abs(obstacle.sdf(x[free])) < 1e-12  # the run's own contact set
     assert active.sum() >= 3
-    assert float((after.x - state.x).abs().max()) < 1e-13 and float(state.v.abs().max()) < 1e-11   # at rest
+    assert float((after.x - state.x).abs().max()) < 1e-13 and float(state.v.abs().max()) < 1e-11  # at rest
     edges = edges_from(el, K)
     F = -gradient(x, edges, mass, np.array(G))[free].ravel()
     idx = (3 * free[:, None] + np.arange(3)).ravel()
@@ -253,8 +262,8 @@ def test_implicit_euler_stops_at_its_own_fixed_point():
         w = np.linalg.solve(A, F).reshape(-1, 3)
     n = obstacle.grad(x[free])
     scale = np.abs(w).max()
-    assert np.abs(w[~active]).max() < 1e-9 * scale                    # no push off the tool
+    assert np.abs(w[~active]).max() < 1e-9 * scale  # no push off the tool
     wt = w[active] - (w[active] * n[active]).sum(1, keepdims=True) * n[active]
-    assert np.abs(wt).max() < 1e-9 * scale                             # on it, along the normal only
-    assert np.abs(F.reshape(-1, 3)[~active]).max() > 1e-3              # unbalanced forces remain
-    assert np.abs(x - eq.x).max() > 1e-5                               # the O(h^2) gap (see above)
+    assert np.abs(wt).max() < 1e-9 * scale  # on it, along the normal only
+    assert np.abs(F.reshape(-1, 3)[~active]).max() > 1e-3  # unbalanced forces remain
+    assert np.abs(x - eq.x).max() > 1e-5  # the O(h^2) gap (see above)

@@ -10,6 +10,7 @@
 * a tool with one pose per batch entry equals separate runs;
 * the packed layout (compiled path's) reports the same readings.
 """
+
 from __future__ import annotations
 
 import math
@@ -40,19 +41,27 @@ def _weight(model):
     return (model.mass.expand(1, 1, *model.grid.shape) * model.gravity).flatten(2).sum(2)
 
 
-@pytest.mark.parametrize("topology, shape", [(26, Sphere(0.015)), (18, Sphere(0.015)),
-                                             (6, Box((0.015, 0.03, 0.03)))])
+@pytest.mark.parametrize("topology, shape", [(26, Sphere(0.015)), (18, Sphere(0.015)), (6, Box((0.015, 0.03, 0.03)))])
 def test_tool_force_balances_supports_and_gravity(topology, shape):
     """A flat punch on the 6-neighbour block (a sphere pushes its shear-free top layer aside)."""
     grid = td.Grid((3, 3, 3), spacing=0.01, topology=topology)
     r = 0.015
     probe = Tool(shape, path=[(0.0, (0.022 + r, 0.01, 0.01)), (0.05, (0.015 + r, 0.01, 0.01))], name="probe")
-    model = td.Model(grid, stiffness=30.0, damping=0.05, mass=1e-3, gravity=(-9.81, 0, 0), decay=100.0,
-                     fixed=grid.face("bottom"), interactions=[ProjectionContact(probe)], dtype=F64)
+    model = td.Model(
+        grid,
+        stiffness=30.0,
+        damping=0.05,
+        mass=1e-3,
+        gravity=(-9.81, 0, 0),
+        decay=100.0,
+        fixed=grid.face("bottom"),
+        interactions=[ProjectionContact(probe)],
+        dtype=F64,
+    )
     state, _ = td.simulate(model, model.rest_state(), dt=td.suggest_dt(model), steps=2000)
     felt = state.readings["probe.force"]
     balance = support_reaction(model, state) + _weight(model)
-    assert state.readings["probe.contacts"].item() >= 1 and felt[0, 0] > 0.05       # it pushes up on the hand
+    assert state.readings["probe.contacts"].item() >= 1 and felt[0, 0] > 0.05  # it pushes up on the hand
     assert torch.allclose(felt, balance, atol=1e-9, rtol=0)
     # torque about the tool centre: the contact lies straight below it
     assert state.readings["probe.torque"].abs().max() < 1e-12
@@ -110,7 +119,7 @@ def test_rotated_tool_distance_is_the_shape_distance_in_its_frame(shape):
     tool = Tool(shape, position=tuple(c), orientation=tuple(axis / np.linalg.norm(axis) * angle))
     p = rng.uniform(-1, 1, size=(500, 3))
     d, n = tool.sdf(torch.from_numpy(p.T.copy())[None], 0.0)
-    local = (p - c) @ R                                 # R^T (p - c), row-wise
+    local = (p - c) @ R  # R^T (p - c), row-wise
     d0, n0 = shape.sdf(torch.from_numpy(local.T.copy())[None])
     assert np.allclose(d[0, 0].numpy(), d0[0, 0].numpy(), atol=1e-14)
     assert np.allclose(n[0].numpy().T, n0[0].numpy().T @ R.T, atol=1e-14)
@@ -119,13 +128,18 @@ def test_rotated_tool_distance_is_the_shape_distance_in_its_frame(shape):
 def test_grasped_nodes_follow_the_tool_exactly_then_move_freely():
     grid = td.Grid((3, 3, 3), spacing=0.01)
     c0, c1 = np.array([0.02, 0.01, 0.01]), np.array([0.03, 0.012, 0.008])
-    turn = np.array([0.0, 0.0, 0.3])                          # radians about W while lifting
-    path = [(0.0, tuple(c0), (0.0, 0.0, 0.0)), (0.02, tuple(c0), (0.0, 0.0, 0.0)), (0.1, tuple(c1), tuple(turn)),
-            (0.2, tuple(c1), tuple(turn))]
-    jaws = Tool(Box((0.006, 0.011, 0.011)), path=path, name="forceps")   # the whole top layer
-    grasp = Grasp(jaws, close=0.005, open=0.08)                   # opens while still moving
-    model = td.Model(grid, stiffness=20.0, damping=0.05, mass=1e-3, fixed=grid.face("bottom"),
-                     interactions=[grasp], dtype=F64)
+    turn = np.array([0.0, 0.0, 0.3])  # radians about W while lifting
+    path = [
+        (0.0, tuple(c0), (0.0, 0.0, 0.0)),
+        (0.02, tuple(c0), (0.0, 0.0, 0.0)),
+        (0.1, tuple(c1), tuple(turn)),
+        (0.2, tuple(c1), tuple(turn)),
+    ]
+    jaws = Tool(Box((0.006, 0.011, 0.011)), path=path, name="forceps")  # the whole top layer
+    grasp = Grasp(jaws, close=0.005, open=0.08)  # opens while still moving
+    model = td.Model(
+        grid, stiffness=20.0, damping=0.05, mass=1e-3, fixed=grid.face("bottom"), interactions=[grasp], dtype=F64
+    )
     dt = 5e-4
     states = {}
 
@@ -133,9 +147,9 @@ def test_grasped_nodes_follow_the_tool_exactly_then_move_freely():
         states[i] = s
 
     td.simulate(model, model.rest_state(), dt=dt, steps=260, callback=keep)
-    top = model.X[0, :, 2].reshape(3, -1).T.numpy()               # rest = positions when grasped (tool still)
+    top = model.X[0, :, 2].reshape(3, -1).T.numpy()  # rest = positions when grasped (tool still)
     assert states[20].readings["forceps.grasped"].item() == 9
-    for i in (40, 120, 159):                                       # closed: x = c(t) + R(t) (x_grasp - c0)
+    for i in (40, 120, 159):  # closed: x = c(t) + R(t) (x_grasp - c0)
         t = i * dt
         a = min(max((t - 0.02) / 0.08, 0.0), 1.0)
         c, R = c0 + a * (c1 - c0), _rot((0, 0, 1), a * 0.3)
@@ -157,8 +171,12 @@ def test_grasped_nodes_follow_the_tool_exactly_then_move_freely():
 
 def test_grasp_times_are_checked():
     tool = Tool(Sphere(0.01), position=(0.0, 0.0, 0.0))
-    for kwargs, key in (({"close": 0.1}, "grasp"), ({"close": 0.2, "open": 0.1}, "grasp.open"),
-                        ({"close": -1.0, "open": 1.0}, "grasp.close"), ({"margin": -0.1}, "grasp.margin")):
+    for kwargs, key in (
+        ({"close": 0.1}, "grasp"),
+        ({"close": 0.2, "open": 0.1}, "grasp.open"),
+        ({"close": -1.0, "open": 1.0}, "grasp.close"),
+        ({"margin": -0.1}, "grasp.margin"),
+    ):
         with pytest.raises(ConfigError, match=key):
             Grasp(tool, **kwargs)
 
@@ -167,18 +185,25 @@ def test_hold_keeps_touched_nodes_on_the_tool_until_they_pull_away():
     grid = td.Grid((1, 1, 1), spacing=0.01)
     # a node falling onto a rising paddle sticks to it; when the paddle drops faster than the node
     # can fall, the node leaves it
-    paddle = Tool(HalfSpace((1.0, 0.0, 0.0)), path=[(0.0, (-0.005, 0.0, 0.0)), (0.05, (0.0, 0.0, 0.0)),
-                                                    (0.06, (-0.01, 0.0, 0.0))])
-    model = td.Model(grid, stiffness=1.0, mass=1e-3, gravity=(-9.81, 0, 0), dtype=F64,
-                     interactions=[ProjectionContact(paddle, hold=True)])
+    paddle = Tool(
+        HalfSpace((1.0, 0.0, 0.0)), path=[(0.0, (-0.005, 0.0, 0.0)), (0.05, (0.0, 0.0, 0.0)), (0.06, (-0.01, 0.0, 0.0))]
+    )
+    model = td.Model(
+        grid,
+        stiffness=1.0,
+        mass=1e-3,
+        gravity=(-9.81, 0, 0),
+        dtype=F64,
+        interactions=[ProjectionContact(paddle, hold=True)],
+    )
     c = model.interactions[0]
     st, _ = td.simulate(model, model.rest_state(), dt=1e-3, steps=40)
     assert c._held[0].count() == 1
-    assert abs(float(st.x[0, 0]) - paddle.position(st.t)[0]) < 1e-15    # riding the paddle up
+    assert abs(float(st.x[0, 0]) - paddle.position(st.t)[0]) < 1e-15  # riding the paddle up
     st, _ = td.simulate(model, st, dt=1e-3, steps=10)
-    assert c._held[0].count() == 1                                      # the paddle stopped: still on it
+    assert c._held[0].count() == 1  # the paddle stopped: still on it
     st, _ = td.simulate(model, st, dt=1e-3, steps=3)
-    assert c._held[0].count() == 0                                      # it drops at 1 m/s: released
+    assert c._held[0].count() == 0  # it drops at 1 m/s: released
     assert float(st.x[0, 0]) > paddle.position(st.t)[0] + 1e-3
 
 
@@ -187,23 +212,37 @@ def test_motion_direction_pushes_along_the_tool_motion():
     tool = Tool(Sphere(0.01), path=[(0.0, (0.0, 0.0, 0.0)), (1.0, (0.01, 0.0, 0.0))])
     model = td.Model(td.Grid((1, 1, 1), 1.0), stiffness=1.0, mass=1.0, dtype=F64)
     x = torch.tensor([0.009, 0.004, -0.003], dtype=F64).view(1, 3, 1, 1, 1)
-    t = 0.5                                                             # centre at D = 0.005
+    t = 0.5  # centre at D = 0.005
     x1, _ = ProjectionContact(tool, direction="motion").project(model, x, torch.zeros_like(x), t, 0.01)
     d, _ = tool.sdf(x1, t)
     assert abs(d.item()) < 1e-12
     assert x1[0, 1].item() == pytest.approx(0.004, abs=1e-15) and x1[0, 2].item() == pytest.approx(-0.003, abs=1e-15)
-    assert x1[0, 0].item() == pytest.approx(0.005 + math.sqrt(1e-4 - 0.004 ** 2 - 0.003 ** 2), abs=1e-12)
+    assert x1[0, 0].item() == pytest.approx(0.005 + math.sqrt(1e-4 - 0.004**2 - 0.003**2), abs=1e-12)
 
 
 def test_one_tool_pose_per_batch_entry_equals_separate_runs():
     grid = td.Grid((3, 3, 3), spacing=0.01)
     centres = torch.tensor([[0.035, 0.01, 0.01], [0.033, 0.0, 0.02]], dtype=F64)
-    batched = td.Model(grid, stiffness=20.0, damping=0.05, mass=1e-3, fixed=grid.face("bottom"), dtype=F64,
-                       interactions=[ProjectionContact(Tool(Sphere(0.01), position=centres))])
+    batched = td.Model(
+        grid,
+        stiffness=20.0,
+        damping=0.05,
+        mass=1e-3,
+        fixed=grid.face("bottom"),
+        dtype=F64,
+        interactions=[ProjectionContact(Tool(Sphere(0.01), position=centres))],
+    )
     sb, _ = td.simulate(batched, batched.rest_state(2), dt=5e-4, steps=50)
     for b in range(2):
-        single = td.Model(grid, stiffness=20.0, damping=0.05, mass=1e-3, fixed=grid.face("bottom"), dtype=F64,
-                          interactions=[ProjectionContact(Tool(Sphere(0.01), position=tuple(centres[b].tolist())))])
+        single = td.Model(
+            grid,
+            stiffness=20.0,
+            damping=0.05,
+            mass=1e-3,
+            fixed=grid.face("bottom"),
+            dtype=F64,
+            interactions=[ProjectionContact(Tool(Sphere(0.01), position=tuple(centres[b].tolist())))],
+        )
         s1, _ = td.simulate(single, single.rest_state(), dt=5e-4, steps=50)
         assert torch.allclose(sb.x[b], s1.x[0], atol=1e-15)
         assert torch.allclose(sb.readings["tool.force"][b], s1.readings["tool.force"][0], atol=1e-12)
@@ -212,8 +251,16 @@ def test_one_tool_pose_per_batch_entry_equals_separate_runs():
 def test_packed_layout_reports_the_same_forces():
     grid = td.Grid((4, 4, 4), spacing=0.01, topology=18)
     probe = Tool(Sphere(0.012), path=[(0.0, (0.045, 0.015, 0.012)), (0.01, (0.036, 0.015, 0.012))], name="probe")
-    model = td.Model(grid, stiffness=30.0, damping=0.05, mass=1e-3, gravity=(-9.81, 0, 0), fixed=grid.face("bottom"),
-                     interactions=[ProjectionContact(probe, friction=0.3, haptic_gain=10.0)], dtype=F64)
+    model = td.Model(
+        grid,
+        stiffness=30.0,
+        damping=0.05,
+        mass=1e-3,
+        gravity=(-9.81, 0, 0),
+        fixed=grid.face("bottom"),
+        interactions=[ProjectionContact(probe, friction=0.3, haptic_gain=10.0)],
+        dtype=F64,
+    )
     eager, _ = td.simulate(model, model.rest_state(), dt=2e-4, steps=40)
     packed = compiled_step(td.SymplecticEuler(), model, 2e-4, enable=False).run(model.rest_state(), 40)
     assert set(packed.readings) == {"probe.force", "probe.torque", "probe.contacts", "probe.haptic"}
@@ -225,13 +272,20 @@ def test_packed_layout_reports_the_same_forces():
 def test_compiled_step_runs_a_grasp_eagerly_without_trying_to_compile():
     grid = td.Grid((3, 3, 3), spacing=0.01)
     jaws = Tool(Box((0.004,) * 3), path=[(0.0, (0.02, 0.01, 0.01)), (0.2, (0.03, 0.01, 0.01))], name="forceps")
-    model = td.Model(grid, stiffness=20.0, damping=0.05, mass=1e-3, fixed=grid.face("bottom"), dtype=F64,
-                     interactions=[Grasp(jaws, close=0.0, open=1.0)])
+    model = td.Model(
+        grid,
+        stiffness=20.0,
+        damping=0.05,
+        mass=1e-3,
+        fixed=grid.face("bottom"),
+        dtype=F64,
+        interactions=[Grasp(jaws, close=0.0, open=1.0)],
+    )
     with pytest.warns(CompileFallbackWarning, match="Grasp runs in the eager step"):
         step = compiled_step(td.SymplecticEuler(), model, 5e-4)
     assert not step.compiled
-    state = step.run(model.rest_state(), 400)                     # t = 0.2: lifted (almost) 1 cm
-    model.interactions = [Grasp(jaws, close=0.0, open=1.0)]      # a fresh grasp for the grid-layout run
+    state = step.run(model.rest_state(), 400)  # t = 0.2: lifted (almost) 1 cm
+    model.interactions = [Grasp(jaws, close=0.0, open=1.0)]  # a fresh grasp for the grid-layout run
     ref, _ = td.simulate(model, model.rest_state(), dt=5e-4, steps=400)
     assert state.x[0, 0, 2, 1, 1].item() > 0.0299
     assert torch.allclose(state.x, ref.x, atol=1e-14) and state.readings["forceps.grasped"].tolist() == [1.0]

@@ -6,6 +6,7 @@
 * direct mode returns the force of a plain simulation of the same steps (grid layout, eager);
 * the loop keeps a fixed tick rate, and bad input is one clear error.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -27,7 +28,7 @@ def _body(n=5, topology=18):
 
 def test_local_model_stiffness_and_rendered_force():
     grid, model = _body()
-    r, c = 0.02, np.array([0.04 + 0.02 - 0.004, 0.02, 0.021])       # 4 mm into the top, a little off-centre
+    r, c = 0.02, np.array([0.04 + 0.02 - 0.004, 0.02, 0.021])  # 4 mm into the top, a little off-centre
     loop = HapticLoop(model, Sphere(r), start=tuple(c), dt=2e-4, mode="local", compiled=False)
     loop.advance()
     f_b, p_b, K = loop.local_model()
@@ -55,16 +56,22 @@ def test_local_model_stiffness_and_rendered_force():
 def test_direct_mode_equals_a_plain_simulation():
     grid, model = _body(4, 26)
     start = np.array([0.03 + 0.01 + 0.001, 0.01, 0.01])
-    loop = HapticLoop(model, Sphere(0.01), start=tuple(start), dt=2e-4, mode="direct", steps_per_tick=4,
-                      compiled=False)
+    loop = HapticLoop(model, Sphere(0.01), start=tuple(start), dt=2e-4, mode="direct", steps_per_tick=4, compiled=False)
     path = [start - np.array([0.004 * k / 20, 0.0, 0.0]) for k in range(20)]
     with loop:
         forces = [loop.tick(p) for p in path]
     # the same: the tool held at each tick's position for 4 steps, after the loop's 4 warm-up steps
     pos = torch.tensor(start, dtype=F64)
     tool = Tool(Sphere(0.01), position=pos, name="haptic")
-    plain = td.Model(grid, stiffness=40.0, damping=0.1, mass=1e-3, fixed=grid.face("bottom"), dtype=F64,
-                     interactions=[ProjectionContact(tool)])
+    plain = td.Model(
+        grid,
+        stiffness=40.0,
+        damping=0.1,
+        mass=1e-3,
+        fixed=grid.face("bottom"),
+        dtype=F64,
+        interactions=[ProjectionContact(tool)],
+    )
     state, _ = td.simulate(plain, plain.rest_state(), dt=2e-4, steps=4)
     for p, f in zip(path, forces):
         pos.copy_(torch.tensor(p))
@@ -75,8 +82,7 @@ def test_direct_mode_equals_a_plain_simulation():
 
 def test_tick_rate_and_stats():
     _, model = _body(3, 6)
-    loop = HapticLoop(model, Sphere(0.01), start=(0.05, 0.01, 0.01), dt=1e-4, rate=500.0, mode="local",
-                      compiled=False)
+    loop = HapticLoop(model, Sphere(0.01), start=(0.05, 0.01, 0.01), dt=1e-4, rate=500.0, mode="local", compiled=False)
     with loop:
         for _ in range(100):
             loop.tick((0.05, 0.01, 0.01))
@@ -85,8 +91,15 @@ def test_tick_rate_and_stats():
     assert 400 < s["force_hz"] <= 501
 
 
-@pytest.mark.parametrize("kwargs, key", [({"mode": "fast"}, "haptic.mode"), ({"rate": 0.0}, "haptic.rate"),
-                                         ({"dt": -1.0}, "haptic.dt"), ({"steps_per_tick": 0}, "haptic.steps_per_tick")])
+@pytest.mark.parametrize(
+    "kwargs, key",
+    [
+        ({"mode": "fast"}, "haptic.mode"),
+        ({"rate": 0.0}, "haptic.rate"),
+        ({"dt": -1.0}, "haptic.dt"),
+        ({"steps_per_tick": 0}, "haptic.steps_per_tick"),
+    ],
+)
 def test_bad_loop_options(kwargs, key):
     _, model = _body(3, 6)
     args = dict(dt=1e-4, compiled=False) | kwargs

@@ -11,6 +11,7 @@
 * as a tool in ProjectionContact: no node ends deeper than a spacing inside the mesh, and the
   packed model takes the same contact steps.
 """
+
 from __future__ import annotations
 
 import warnings
@@ -64,7 +65,7 @@ def test_icosphere_matches_the_analytic_ball(icosphere, ball):
     inradius = np.abs(np.einsum("fi,fi->f", icosphere.face_normals, tri[:, 0])).min()
     assert R - inradius < 0.01 * R < h
 
-    p = _points(4000, 1.5 * R)                                      # the box is +-1.2 r: some outside
+    p = _points(4000, 1.5 * R)  # the box is +-1.2 r: some outside
     r = np.linalg.norm(p, axis=1)
     d, n = _sdf(ball, p)
     err = np.abs(d - (r - R))
@@ -88,11 +89,11 @@ def test_box_mesh_matches_the_analytic_box():
     half = np.array([0.01, 0.006, 0.004])
     shape = MeshShape(trimesh.creation.box(extents=2 * half), resolution=32)
     h = shape.spacing
-    assert shape.shape[0] == 32 and shape.shape[0] > shape.shape[1] > shape.shape[2]    # mesh x, y, z = D, H, W
+    assert shape.shape[0] == 32 and shape.shape[0] > shape.shape[1] > shape.shape[2]  # mesh x, y, z = D, H, W
     p = _points(6000, 1.0, seed=1) * 1.3 * half
     d, n = _sdf(shape, p)
     d_ref, n_ref = _sdf(Box(tuple(half)), p)
-    q = np.abs(p) - half                                            # > 0 outside along that axis
+    q = np.abs(p) - half  # > 0 outside along that axis
     # a face's region, 3 spacings clear of every other face's: the distance is linear around it
     face = np.argmax(q, axis=1)
     others = np.sort(q, axis=1)[:, :2]
@@ -112,11 +113,11 @@ def test_torus_matches_trimesh_and_projection_lands_on_the_surface(torus):
     h = shape.spacing
     exact = trimesh.proximity.ProximityQuery(mesh)
     p = _points(600, 0.016, seed=2) * np.array([1.0, 1.0, 0.4])
-    ref = -exact.signed_distance(p)                                 # trimesh: positive inside
+    ref = -exact.signed_distance(p)  # trimesh: positive inside
     d, n = _sdf(shape, p)
     assert np.abs(d - ref).max() < h
     assert (np.sign(d) == np.sign(ref))[np.abs(ref) > h].all()
-    near = np.abs(ref) < 0.5 * 0.004                                # within half the tube radius
+    near = np.abs(ref) < 0.5 * 0.004  # within half the tube radius
     assert near.sum() > 100
     on = p[near] - d[near, None] * n[near]
     assert np.abs(exact.signed_distance(on)).max() < h
@@ -124,7 +125,7 @@ def test_torus_matches_trimesh_and_projection_lands_on_the_surface(torus):
 
 def test_packed_and_grid_layouts_agree_and_float32_works(ball):
     x = torch.from_numpy(_points(2 * 4 * 5 * 6, 1.3 * R, seed=3)).T.reshape(3, 2, 4, 5, 6).transpose(0, 1)
-    x = x.contiguous()                                              # (B, 3, D, H, W)
+    x = x.contiguous()  # (B, 3, D, H, W)
     d, n = ball.sdf(x)
     assert d.shape == (2, 1, 4, 5, 6) and n.shape == (2, 3, 4, 5, 6) and d.dtype == torch.float64
     dp, n_p = ball.sdf(x.reshape(2, 3, -1))
@@ -157,12 +158,15 @@ def test_a_mesh_file_gives_the_same_field(tmp_path, icosphere, ball):
         assert torch.allclose(s.field, ball.field, rtol=0, atol=0.25 * ball.spacing)
 
 
-@pytest.mark.parametrize("kwargs, key, words", [
-    ({"resolution": 2}, "mesh_shape.resolution", "integer >= 4"),
-    ({"resolution": 16.0}, "mesh_shape.resolution", "integer >= 4"),
-    ({"resolution": True}, "mesh_shape.resolution", "integer >= 4"),
-    ({"padding": -0.1}, "mesh_shape.padding", ">= 0"),
-])
+@pytest.mark.parametrize(
+    "kwargs, key, words",
+    [
+        ({"resolution": 2}, "mesh_shape.resolution", "integer >= 4"),
+        ({"resolution": 16.0}, "mesh_shape.resolution", "integer >= 4"),
+        ({"resolution": True}, "mesh_shape.resolution", "integer >= 4"),
+        ({"padding": -0.1}, "mesh_shape.padding", ">= 0"),
+    ],
+)
 def test_bad_parameters_raise(icosphere, kwargs, key, words):
     with pytest.raises(ConfigError) as e:
         MeshShape(icosphere, **kwargs)
@@ -171,7 +175,7 @@ def test_bad_parameters_raise(icosphere, kwargs, key, words):
 
 def test_bad_meshes_raise(tmp_path, icosphere):
     holed = icosphere.copy()
-    holed.update_faces(np.arange(len(holed.faces)) >= 3)           # three triangles removed
+    holed.update_faces(np.arange(len(holed.faces)) >= 3)  # three triangles removed
     with pytest.raises(ConfigError, match="closed") as e:
         MeshShape(holed)
     assert e.value.key == "mesh" and "open edges" in str(e.value)
@@ -189,7 +193,7 @@ def test_bad_meshes_raise(tmp_path, icosphere):
 
 
 def test_a_grid_too_coarse_for_a_thin_mesh_warns():
-    needle = trimesh.creation.cylinder(radius=0.0005, height=0.03, sections=16)      # along W
+    needle = trimesh.creation.cylinder(radius=0.0005, height=0.03, sections=16)  # along W
     with pytest.warns(UserWarning, match="raise resolution"):
         MeshShape(needle, resolution=16)
     with warnings.catch_warnings():
@@ -197,7 +201,7 @@ def test_a_grid_too_coarse_for_a_thin_mesh_warns():
         fine = MeshShape(needle, resolution=160)
     assert fine.shape[2] == 160 and fine.shape[0] == fine.shape[1] < 160
     d, _ = _sdf(fine, np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.01], [0.0015, 0.0, 0.0], [0.0, 0.0015, 0.01]]))
-    assert np.allclose(d[:2], -0.0005, atol=fine.spacing)         # the axis is a kink: within a spacing
+    assert np.allclose(d[:2], -0.0005, atol=fine.spacing)  # the axis is a kink: within a spacing
     assert np.allclose(d[2:], 0.001, atol=0.1 * fine.spacing)
 
 
@@ -205,14 +209,21 @@ def test_mesh_tool_in_projection_contact(icosphere, ball):
     grid = td.Grid((5, 5, 5), spacing=0.01)
     path = [(0.0, (0.05, 0.02, 0.02)), (0.1, (0.045, 0.02, 0.02))]
     probe = Tool(ball, path=path)
-    model = td.Model(grid, stiffness=20.0, damping=0.01, mass=1e-3, fixed=grid.face("bottom"),
-                     interactions=[ProjectionContact(probe)], dtype=torch.float64)
+    model = td.Model(
+        grid,
+        stiffness=20.0,
+        damping=0.01,
+        mass=1e-3,
+        fixed=grid.face("bottom"),
+        interactions=[ProjectionContact(probe)],
+        dtype=torch.float64,
+    )
     state, _ = td.simulate(model, model.rest_state(), dt=1e-3, steps=100)
     d, _ = probe.sdf(state.x, state.t)
-    assert float(d.min()) > -0.1 * ball.spacing                    # projected to the field's zero level
+    assert float(d.min()) > -0.1 * ball.spacing  # projected to the field's zero level
     centre = np.array(probe.position(state.t))
     x = state.x[0].reshape(3, -1).T.numpy() - centre
-    depth = trimesh.proximity.ProximityQuery(icosphere).signed_distance(x)     # > 0 inside
+    depth = trimesh.proximity.ProximityQuery(icosphere).signed_distance(x)  # > 0 inside
     assert depth.max() < ball.spacing
     # the top layer was pushed: the probe went 5 mm below it
     assert float(state.x[0, 0, -1].min()) < 0.04 - 0.002

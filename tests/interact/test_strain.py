@@ -6,6 +6,7 @@ stencil code but the rule itself (Provot's averaged corrections, REFERENCE §6.3
 violated only when its excess is above ``64 eps`` times its rest length). The packed layout of the
 compiled step (one sum over the ``2 S`` directions of every node) is held to the grid layout.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -48,9 +49,9 @@ def _stretched(shape=(3, 4, 3), topology=18, seed=0):
     grid = td.Grid(shape, spacing=(0.01, 0.012, 0.01), topology=topology)
     model = td.Model(grid, stiffness=1.0, mass=1e-3, fixed=grid.face("bottom"), dtype=torch.float64)
     g = torch.Generator().manual_seed(seed)
-    x = model.X * torch.tensor([1.6, 1.0, 0.7], dtype=torch.float64).view(1, 3, 1, 1, 1)   # stretch D, squeeze W
+    x = model.X * torch.tensor([1.6, 1.0, 0.7], dtype=torch.float64).view(1, 3, 1, 1, 1)  # stretch D, squeeze W
     x = x + 1e-3 * torch.randn(x.shape, generator=g, dtype=torch.float64)
-    x = torch.where(model.constrained[None, None], model.X, x)                              # fixed nodes at rest
+    x = torch.where(model.constrained[None, None], model.X, x)  # fixed nodes at rest
     return grid, model, x
 
 
@@ -77,14 +78,14 @@ def test_passes_bring_every_spring_within_its_bounds():
     limit = StrainLimit(0.9, 1.1, passes=300, update_velocity=False)
     x1, _ = limit.project(model, x, torch.zeros_like(x), 0.0, 1e-3)
     assert worst(x1) < 1e-6
-    assert torch.equal(x1[:, :, 0], x[:, :, 0])                                   # fixed nodes stay
+    assert torch.equal(x1[:, :, 0], x[:, :, 0])  # fixed nodes stay
 
 
 def test_no_op_within_bounds_and_velocity_follows():
     grid = td.Grid((3, 3, 3), spacing=0.01, topology=26)
     model = td.Model(grid, stiffness=1.0, mass=1e-3, dtype=torch.float64)
     g = torch.Generator().manual_seed(1)
-    x = model.X + 2e-4 * torch.randn(model.X.shape, generator=g, dtype=torch.float64)   # < 4 % strain
+    x = model.X + 2e-4 * torch.randn(model.X.shape, generator=g, dtype=torch.float64)  # < 4 % strain
     v = torch.randn(x.shape, generator=g, dtype=torch.float64)
     x1, v1 = StrainLimit(0.9, 1.1, passes=3).project(model, x, v, 0.0, 1e-3)
     assert torch.equal(x1, x) and torch.equal(v1, v)
@@ -95,21 +96,31 @@ def test_no_op_within_bounds_and_velocity_follows():
 
 def test_in_a_simulation_and_bad_input():
     grid = td.Grid((4, 3, 3), spacing=0.01, topology=26)
-    pull = td.Drag(grid.face("top"), [(0.0, (0, 0, 0)), (0.01, (0.004, 0, 0))])     # 4 mm up in 10 ms
+    pull = td.Drag(grid.face("top"), [(0.0, (0, 0, 0)), (0.01, (0.004, 0, 0))])  # 4 mm up in 10 ms
     edges = EdgeList(grid.shape, grid.spacing, 26)
 
     def largest_ratio(interactions):
-        model = td.Model(grid, stiffness=0.5, mass=1e-3, fixed=grid.face("bottom"), drags=[pull],
-                         interactions=interactions, dtype=torch.float64)
+        model = td.Model(
+            grid,
+            stiffness=0.5,
+            mass=1e-3,
+            fixed=grid.face("bottom"),
+            drags=[pull],
+            interactions=interactions,
+            dtype=torch.float64,
+        )
         state, _ = td.simulate(model, model.rest_state(), dt=1e-3, steps=10)
         p = edges.from_field(state.x[0])
         return (np.linalg.norm(p[edges.b] - p[edges.a], axis=1) / edges.l0).max(), model
 
     free_ratio, _ = largest_ratio(None)
     limited_ratio, model = largest_ratio([StrainLimit(0.9, 1.2, passes=200)])
-    assert free_ratio > 1.3 and limited_ratio < 1.2 + 1e-6          # the soft springs would stretch far more
-    for kwargs, key in (({"min_ratio": 1.2}, "strain_limit"), ({"passes": 0}, "strain_limit.passes"),
-                        ({"max_ratio": -1.0}, "strain_limit.max_ratio")):
+    assert free_ratio > 1.3 and limited_ratio < 1.2 + 1e-6  # the soft springs would stretch far more
+    for kwargs, key in (
+        ({"min_ratio": 1.2}, "strain_limit"),
+        ({"passes": 0}, "strain_limit.passes"),
+        ({"max_ratio": -1.0}, "strain_limit.max_ratio"),
+    ):
         with pytest.raises(ConfigError) as e:
             StrainLimit(**kwargs)
         assert e.value.key == key
@@ -120,7 +131,7 @@ def test_springs_on_their_bound_within_rounding_are_left_alone(ratio):
     """A body scaled onto a bound and a few ulps beyond it (rounding noise) is left exactly as it is."""
     grid = td.Grid((3, 4, 3), spacing=(0.01, 0.012, 0.007), topology=26)
     model = td.Model(grid, stiffness=1.0, mass=1e-3, fixed=grid.face("bottom"), dtype=torch.float64)
-    x = model.X * (ratio * (1 + np.sign(ratio - 1) * 2e-15))          # ~ 10 ulps outside the bound
+    x = model.X * (ratio * (1 + np.sign(ratio - 1) * 2e-15))  # ~ 10 ulps outside the bound
     edges = EdgeList(grid.shape, grid.spacing, 26)
     p = edges.from_field(x[0])
     length = np.linalg.norm(p[edges.b] - p[edges.a], axis=1)
@@ -142,34 +153,40 @@ def test_springs_on_their_bound_within_rounding_are_left_alone(ratio):
 def test_packed_layout_gives_the_same_projection(topology):
     """One ``project`` call on the packed layout (summed over all directions) equals the grid layout's."""
     nodes = torch.ones(4, 5, 3, dtype=torch.bool)
-    nodes[3, 4, :] = False                                                         # a body that is not a box
+    nodes[3, 4, :] = False  # a body that is not a box
     grid = td.Grid((4, 5, 3), spacing=(0.01, 0.012, 0.01), topology=topology, node_mask=nodes)
     g = torch.Generator().manual_seed(topology)
-    springs = torch.rand((grid.S,) + grid.shape, generator=g) > 0.25               # cut a quarter of them
+    springs = torch.rand((grid.S,) + grid.shape, generator=g) > 0.25  # cut a quarter of them
     fixed = torch.zeros(grid.shape, dtype=torch.bool)
     fixed[0, :2] = True
     limit = StrainLimit(0.9, 1.1, passes=2)
 
     def project(spring_mask):
-        model = td.Model(grid, stiffness=torch.rand(grid.S, generator=g, dtype=torch.float64) + 0.5, mass=1e-3,
-                         fixed=fixed, spring_mask=spring_mask, dtype=torch.float64)
+        model = td.Model(
+            grid,
+            stiffness=torch.rand(grid.S, generator=g, dtype=torch.float64) + 0.5,
+            mass=1e-3,
+            fixed=fixed,
+            spring_mask=spring_mask,
+            dtype=torch.float64,
+        )
         x = model.X * torch.tensor([1.5, 1.0, 0.75], dtype=torch.float64).view(1, 3, 1, 1, 1)
-        x = x + 2e-3 * torch.randn((2,) + x.shape[1:], generator=g, dtype=torch.float64)   # batch of 2
+        x = x + 2e-3 * torch.randn((2,) + x.shape[1:], generator=g, dtype=torch.float64)  # batch of 2
         x = torch.where(model.constrained[None, None], model.X, x)
         v = torch.randn(x.shape, generator=g, dtype=torch.float64)
         grid_out = limit.project(model, x, v, 0.0, 1e-3)
         pm = PackedModel(model)
         ps = pm.pack_state(td.State(x, v))
         packed_out = limit.project(pm, ps.x, ps.v, 0.0, 1e-3)
-        for a in packed_out:                                                        # halo and padding stay 0
+        for a in packed_out:  # halo and padding stay 0
             assert torch.equal(pm.pack(pm.unpack(a)), a)
         return x, grid_out, pm.unpack_state(td.State(*packed_out))
 
     x, (xg, vg), packed = project(springs)
-    assert (xg - x).abs().max() > 1e-3                                              # it did correct
+    assert (xg - x).abs().max() > 1e-3  # it did correct
     assert (packed.x - xg).abs().max() < 1e-12 and (packed.v - vg).abs().max() < 1e-12
     assert torch.equal(xg[..., ~nodes], x[..., ~nodes]) and torch.equal(xg[:, :, fixed], x[:, :, fixed])
-    _, (x_uncut, _), _ = project(None)                                              # the cut springs mattered
+    _, (x_uncut, _), _ = project(None)  # the cut springs mattered
     assert (x_uncut - xg).abs().max() > 1e-4
 
 
@@ -177,19 +194,40 @@ def test_compiled_step_wrapper_runs_strain_limits_like_simulate():
     """The eager packed path behind ``compiled_step`` (``enable=False``) equals ``td.simulate``."""
     grid = td.Grid((4, 3, 3), spacing=0.01, topology=26)
     pull = td.Drag(grid.face("top"), [(0.0, (0, 0, 0)), (0.01, (0.004, 0.001, 0))])
-    model = td.Model(grid, stiffness=0.5, damping=0.002, mass=1e-3, gravity=(-9.81, 0, 0),
-                     fixed=grid.face("bottom"), drags=[pull], interactions=[StrainLimit(0.9, 1.15, passes=5)],
-                     dtype=torch.float64)
+    model = td.Model(
+        grid,
+        stiffness=0.5,
+        damping=0.002,
+        mass=1e-3,
+        gravity=(-9.81, 0, 0),
+        fixed=grid.face("bottom"),
+        drags=[pull],
+        interactions=[StrainLimit(0.9, 1.15, passes=5)],
+        dtype=torch.float64,
+    )
     dt, steps = 5e-4, 20
     rest = model.rest_state(batch=2)
-    start = td.State(*model.constrain(rest.x, rest.v, 0.0), 0.0)   # dragged nodes on their path, as simulate
+    start = td.State(*model.constrain(rest.x, rest.v, 0.0), 0.0)  # dragged nodes on their path, as simulate
     step = compiled_step(td.SymplecticEuler(), model, dt, enable=False)
     assert not step.compiled
     got = step.run(start, steps)
     want, _ = td.simulate(model, start, dt=dt, steps=steps, warn=False)
-    free, _ = td.simulate(td.Model(grid, stiffness=0.5, damping=0.002, mass=1e-3, gravity=(-9.81, 0, 0),
-                                   fixed=grid.face("bottom"), drags=[pull], dtype=torch.float64),
-                          start, dt=dt, steps=steps, warn=False)
-    assert (free.x - want.x).abs().max() > 1e-4                                     # the limit was active
+    free, _ = td.simulate(
+        td.Model(
+            grid,
+            stiffness=0.5,
+            damping=0.002,
+            mass=1e-3,
+            gravity=(-9.81, 0, 0),
+            fixed=grid.face("bottom"),
+            drags=[pull],
+            dtype=torch.float64,
+        ),
+        start,
+        dt=dt,
+        steps=steps,
+        warn=False,
+    )
+    assert (free.x - want.x).abs().max() > 1e-4  # the limit was active
     assert (got.x - want.x).abs().max() < 1e-10 and (got.v - want.v).abs().max() < 1e-10
     assert got.t == pytest.approx(want.t)

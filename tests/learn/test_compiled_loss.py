@@ -4,6 +4,7 @@ The graphs are captured and differentiated with the ``aot_eager`` backend (dynam
 the same graphs inductor would turn into code, in seconds instead of ~40 s); ``bench learn``
 runs the inductor build and times it.
 """
+
 from __future__ import annotations
 
 import warnings
@@ -84,7 +85,7 @@ def test_traced_spring_sum_is_the_in_place_sum_to_the_bit():
     the same additions in the same order (forces and their gradient, float64)."""
     grid = td.Grid((3, 4, 5), 0.01, 26)
     g = torch.Generator().manual_seed(0)
-    x = (grid.rest_positions(torch.float64) + 1e-3 * torch.randn(1, 3, 3, 4, 5, generator=g, dtype=torch.float64))
+    x = grid.rest_positions(torch.float64) + 1e-3 * torch.randn(1, 3, 3, 4, 5, generator=g, dtype=torch.float64)
     v = torch.randn(1, 3, 3, 4, 5, generator=g, dtype=torch.float64)
     k = (1 + torch.rand(1, grid.S, 3, 4, 5, generator=g, dtype=torch.float64)).requires_grad_()
     c = torch.rand(1, grid.S, 3, 4, 5, generator=g, dtype=torch.float64)

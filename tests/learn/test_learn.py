@@ -1,6 +1,7 @@
 """Learning parameters from series (torchdeform.learn): transforms, parameter sharing, the
 window loss against hand-written losses and finite differences, recovery of known true
 parameters, identifiability report, checkpoint/resume (bitwise), the training scripts."""
+
 import importlib.util
 import json
 import math
@@ -31,8 +32,12 @@ def cube(steps=100, **kw):
 
 
 def shared(series, k, c, mass=None):
-    return learn.Parameters(series, learn.SpringParameter.like(series, k), learn.SpringParameter.like(series, c),
-                            series.truth["mass"] if mass is None else mass)
+    return learn.Parameters(
+        series,
+        learn.SpringParameter.like(series, k),
+        learn.SpringParameter.like(series, c),
+        series.truth["mass"] if mass is None else mass,
+    )
 
 
 # ------------------------------------------------------------------ parameters
@@ -129,7 +134,7 @@ def test_missing_data_is_ignored():
     s = cube(60, observe=observe)
     p = shared(s, 12.0, 0.08)
     before = float(learn.WindowLoss(s, window=None)(p).detach())
-    s.positions[:, :, 2, 0, 0] = 123.0                          # garbage where nothing was seen
+    s.positions[:, :, 2, 0, 0] = 123.0  # garbage where nothing was seen
     assert float(learn.WindowLoss(s, window=None)(p).detach()) == before
     # carrying the simulation through unobserved nodes still recovers the truth exactly
     assert float(learn.WindowLoss(s, window=10, velocity="carry")(shared(s, 10.0, 0.1)).detach()) < 1e-26
@@ -138,9 +143,10 @@ def test_missing_data_is_ignored():
 # ------------------------------------------------------------------ recovery
 def test_shared_recovery_from_offset_start():
     s = cube(150)
-    p = shared(s, 30.0, 0.04)                                   # 3x and 1/2.5x the truth
-    tr = learn.Trainer(p, learn.WindowLoss(s, window=10), optimizer="lbfgs", iterations=20, patience=3,
-                       tol=1e-24, progress=False)
+    p = shared(s, 30.0, 0.04)  # 3x and 1/2.5x the truth
+    tr = learn.Trainer(
+        p, learn.WindowLoss(s, window=10), optimizer="lbfgs", iterations=20, patience=3, tol=1e-24, progress=False
+    )
     tr.run()
     got = p.summary()
     assert learn.relative_error(got["stiffness"], 10.0) < 1e-3
@@ -150,8 +156,9 @@ def test_shared_recovery_from_offset_start():
 def test_shared_recovery_with_one_percent_noise():
     s = learn.radetzky_cube(springs=70, noise=0.01, seed=2)
     p = shared(s, 30.0, 0.04)
-    tr = learn.Trainer(p, learn.WindowLoss(s, window=50, smooth=10), optimizer="lbfgs", iterations=10, patience=3,
-                       progress=False)
+    tr = learn.Trainer(
+        p, learn.WindowLoss(s, window=50, smooth=10), optimizer="lbfgs", iterations=10, patience=3, progress=False
+    )
     tr.run()
     got = p.summary()
     assert learn.relative_error(got["stiffness"], 10.0) < 0.02
@@ -173,9 +180,9 @@ def test_per_spring_fit_loss_falls_and_report_flags_undetermined_springs():
     tr.run()
     assert tr.final_loss() < first / 100
     active = learn.active_springs(s)[k.mask]
-    assert int((~active).sum()) == 12                          # the 12 springs among the 9 fixed nodes
+    assert int((~active).sum()) == 12  # the 12 springs among the 9 fixed nodes
     v = k.values().detach()
-    assert torch.allclose(v[~active], init[~active], rtol=1e-14)   # no data ever touches them
+    assert torch.allclose(v[~active], init[~active], rtol=1e-14)  # no data ever touches them
     rep = learn.spread_report(v[active], true[active])
     assert rep["n"] == 42 and rep["ratio"]["min"] <= rep["ratio"]["median"] <= rep["ratio"]["max"]
     r = (v[active] / true[active]).numpy()
@@ -196,8 +203,9 @@ def test_sparse_snapshots_recover_stiffness():
     s = learn.balloon_series()
     k0 = s.meta["truth"]["stiffness"]
     p = learn.Parameters(s, learn.SpringParameter.like(s, k0 / 3), s.truth["damping"], s.truth["mass"])
-    tr = learn.Trainer(p, learn.WindowLoss(s, window=1, velocity="zero"), optimizer="lbfgs", iterations=5,
-                       patience=2, progress=False)
+    tr = learn.Trainer(
+        p, learn.WindowLoss(s, window=1, velocity="zero"), optimizer="lbfgs", iterations=5, patience=2, progress=False
+    )
     tr.run()
     assert learn.relative_error(p.summary()["stiffness"], k0) < 0.05
 
@@ -206,11 +214,11 @@ def test_fuzzy_slider_recovers_target_stiffness_and_viscosity():
     fis = fuzzy.load_preset("susilap_g").double()
     target = {k: float(v) for k, v in fis.evaluate(consistency=5.5).items()}
     s = cube(100, stiffness=target["spring_const"], damping=target["viscosity"], mass=0.2)
-    fs = learn.FuzzySprings(fuzzy.load_preset("susilap_g"), {"consistency": 5.1}, grid=s.grid,
-                            spring_mask=s.spring_mask_tensor())
+    fs = learn.FuzzySprings(
+        fuzzy.load_preset("susilap_g"), {"consistency": 5.1}, grid=s.grid, spring_mask=s.spring_mask_tensor()
+    )
     p = learn.Parameters(s, fs.part("stiffness"), fs.part("damping"), s.truth["mass"])
-    learn.Trainer(p, learn.WindowLoss(s, window=10), optimizer="lbfgs", iterations=10, patience=3,
-                  progress=False).run()
+    learn.Trainer(p, learn.WindowLoss(s, window=10), optimizer="lbfgs", iterations=10, patience=3, progress=False).run()
     got = {k: float(v.detach()) for k, v in fs().items()}
     assert learn.relative_error(got["stiffness"], target["spring_const"]) < 0.01
     assert learn.relative_error(got["damping"], target["viscosity"]) < 0.01
@@ -220,8 +228,16 @@ def test_fuzzy_slider_recovers_target_stiffness_and_viscosity():
 @pytest.mark.parametrize("optimizer", ["adam", "lbfgs"])
 def test_resume_is_bitwise_identical(tmp_path, optimizer):
     s = cube(60)
-    kw = dict(optimizer=optimizer, iterations=6, progress=False, patience=100, min_delta=0.0,
-              windows_per_step=2 if optimizer == "adam" else None, seed=7, lbfgs_inner=3)
+    kw = dict(
+        optimizer=optimizer,
+        iterations=6,
+        progress=False,
+        patience=100,
+        min_delta=0.0,
+        windows_per_step=2 if optimizer == "adam" else None,
+        seed=7,
+        lbfgs_inner=3,
+    )
 
     def fresh():
         p = shared(s, 25.0, 0.05)
@@ -246,8 +262,9 @@ def test_resume_is_bitwise_identical(tmp_path, optimizer):
 def test_divergence_stops_with_finite_parameters():
     s = cube(60)
     p = shared(s, 10.0, 0.1)
-    tr = learn.Trainer(p, learn.WindowLoss(s, window=None), optimizer="adam", lr=40.0, iterations=10, clip=None,
-                       progress=False)
+    tr = learn.Trainer(
+        p, learn.WindowLoss(s, window=None), optimizer="adam", lr=40.0, iterations=10, clip=None, progress=False
+    )
     with pytest.warns(UserWarning, match=r"training stopped at iteration \d+: the loss went non-finite"):
         tr.run()
     assert tr.stopped == "non-finite loss"
@@ -256,9 +273,10 @@ def test_divergence_stops_with_finite_parameters():
 
 def test_early_stopping_and_plot(tmp_path):
     s = cube(60)
-    p = shared(s, 10.0, 0.1)                                    # already at the optimum
-    tr = learn.Trainer(p, learn.WindowLoss(s, window=10), optimizer="adam", lr=1e-6, iterations=100, patience=4,
-                       progress=False)
+    p = shared(s, 10.0, 0.1)  # already at the optimum
+    tr = learn.Trainer(
+        p, learn.WindowLoss(s, window=10), optimizer="adam", lr=1e-6, iterations=100, patience=4, progress=False
+    )
     tr.run()
     assert tr.iteration < 100 and "no improvement" in tr.stopped
     png = learn.plot_history(tr.history, tmp_path / "curve.png")
@@ -271,7 +289,7 @@ def test_loss_argument_errors():
         learn.WindowLoss(s, window=0)
     with pytest.raises(ConfigError, match="velocity"):
         learn.WindowLoss(s, velocity="guess")
-    s.steps = np.array([0, 1, 3] + list(range(4, 21)))[:len(s.steps)]
+    s.steps = np.array([0, 1, 3] + list(range(4, 21)))[: len(s.steps)]
     with pytest.raises(ConfigError, match="evenly"):
         learn.WindowLoss(s)
 
@@ -279,8 +297,13 @@ def test_loss_argument_errors():
 # ------------------------------------------------------------------ scripts
 @pytest.mark.parametrize("script", ["fit_cube.py", "fit_fuzzy.py", "fit_sparse.py"])
 def test_scripts_have_help(script):
-    r = subprocess.run([sys.executable, str(ROOT / "training" / script), "--help"], capture_output=True, text=True,
-                       cwd=ROOT, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "training" / script), "--help"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"},
+    )
     assert r.returncode == 0 and "--out" in r.stdout
 
 
@@ -307,7 +330,7 @@ def test_fit_cube_recovers_a_stiff_cube_through_implicit_euler(tmp_path):
     res = json.loads((tmp_path / "result.json").read_text())
     assert res["series"]["dt_over_bound"] == 50 and res["series"]["explicit_bound"] > 0
     run = res["runs"]["3"]
-    assert run["true"] == pytest.approx({"stiffness": 1e4, "damping": 0.1 * 1000 ** 0.5})
+    assert run["true"] == pytest.approx({"stiffness": 1e4, "damping": 0.1 * 1000**0.5})
     assert run["relative_error"]["stiffness"] < 1e-3 and run["relative_error"]["damping"] < 1e-3
 
 

@@ -1,5 +1,6 @@
 """Synthetic series (torchdeform.learn.synthetic): spring sets, dynamics against a plain edge-list
 simulation, loads, noise, partial observation, files and their validation."""
+
 import itertools
 import json
 
@@ -79,11 +80,11 @@ def test_cube_reaches_equilibrium_in_250_steps():
 def test_sine_drag_and_indentation_follow_their_paths():
     s = learn.cube_series(n=4, topology=26, load="sine", steps=60, dt=0.005, period=0.2, amplitude=0.001)
     t = s.steps * s.dt
-    top = s.positions[:, 1, 3, 2, 1] - 2 * 0.01           # channel h of a top node, minus its rest position
+    top = s.positions[:, 1, 3, 2, 1] - 2 * 0.01  # channel h of a top node, minus its rest position
     assert np.allclose(top, 0.001 * np.sin(2 * np.pi * t / 0.2), atol=1e-15)
     s = learn.cube_series(n=4, load="indent", steps=100, dt=0.005, duration=0.25, amplitude=0.002)
     presc = s.prescribed()
-    assert presc.sum() >= 1 and presc[3].sum() == presc.sum()        # only top nodes
+    assert presc.sum() >= 1 and presc[3].sum() == presc.sum()  # only top nodes
     i = tuple(np.argwhere(presc)[0])
     depth = 0.03 - s.positions[:, 0][(slice(None),) + i]
     assert depth[-1] == pytest.approx(0.002) and depth[25] == pytest.approx(0.001)
@@ -95,13 +96,19 @@ def test_ramp_force_profile():
 
 
 def test_heterogeneous_springs_are_harmonic_means():
-    s = learn.cube_series(n=4, topology=6, stiffness=[10.0, 40.0], damping=0.1,
-                         regions=learn.layered_regions(learn.cube_grid(4)[0], 2), steps=5)
+    s = learn.cube_series(
+        n=4,
+        topology=6,
+        stiffness=[10.0, 40.0],
+        damping=0.1,
+        regions=learn.layered_regions(learn.cube_grid(4)[0], 2),
+        steps=5,
+    )
     k = s.truth["stiffness"]
     # axis-D spring from layer 0 (node row 1) to layer 1 (row 2): 2 * 10 * 40 / 50 = 16
     assert k[0, 1, 1, 1] == pytest.approx(16.0)
     assert k[0, 0, 1, 1] == pytest.approx(10.0) and k[0, 2, 1, 1] == pytest.approx(40.0)
-    assert k[0, 3, 1, 1] == 0.0                                  # no spring beyond the top
+    assert k[0, 3, 1, 1] == 0.0  # no spring beyond the top
 
 
 def test_noise_level_and_seed():
@@ -133,12 +140,13 @@ def test_balloon_series_snapshots_grow():
     nodes = s.grid.nodes().numpy()
     c = X[:, nodes].mean(1)[:, None]
     r = np.linalg.norm(s.positions[:, :, nodes] - c[None], axis=1).mean(1)
-    assert (np.diff(r) > 0).all()                     # the body inflates between snapshots
+    assert (np.diff(r) > 0).all()  # the body inflates between snapshots
 
 
 def test_save_load_roundtrip(tmp_path):
-    s = learn.cube_series(n=3, load="sine", steps=20, noise=0.01, regions=np.zeros((3, 3, 3), int),
-                         stiffness=[5.0], damping=[0.1])
+    s = learn.cube_series(
+        n=3, load="sine", steps=20, noise=0.01, regions=np.zeros((3, 3, 3), int), stiffness=[5.0], damping=[0.1]
+    )
     f = s.save(tmp_path / "s.npz")
     t = learn.load_series(f)
     assert np.array_equal(s.positions, t.positions) and np.array_equal(s.mask, t.mask)
@@ -218,8 +226,12 @@ def test_cli_generates_series(tmp_path, capsys):
     s = learn.load_series(out)
     assert s.grid.num_springs == 86 and s.steps[-1] == 20
     out2 = tmp_path / "n.npz"
-    assert cli_main(["data", "cube", "--n", "4", "--load", "indent", "--steps", "10", "--noise", "0.01",
-                     "--out", str(out2)]) == 0
+    assert (
+        cli_main(
+            ["data", "cube", "--n", "4", "--load", "indent", "--steps", "10", "--noise", "0.01", "--out", str(out2)]
+        )
+        == 0
+    )
     assert learn.load_series(out2).grid.shape == (4, 4, 4)
     assert cli_main(["data", "cube", "--springs", "60", "--out", str(out)]) == 2
     assert "springs" in capsys.readouterr().err

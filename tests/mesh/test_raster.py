@@ -8,6 +8,7 @@
   intersection computed here;
 * a sphere's silhouette: a disc of area ``pi r^2``.
 """
+
 from __future__ import annotations
 
 import math
@@ -30,7 +31,7 @@ def front_camera(H=40, W=50, **kw):
 
 def bary_oracle(tri_xy: np.ndarray, H: int, W: int) -> np.ndarray:
     """Barycentric coordinates ``(H, W, 3)`` of every pixel centre, by a 3x3 linear solve."""
-    A = np.vstack([tri_xy.T, np.ones(3)])                                 # rows x, y, 1
+    A = np.vstack([tri_xy.T, np.ones(3)])  # rows x, y, 1
     jj, ii = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
     rhs = np.stack([jj, ii, np.ones_like(jj)], -1).reshape(-1, 3).T
     return np.linalg.solve(A, rhs).T.reshape(H, W, 3)
@@ -38,7 +39,7 @@ def bary_oracle(tri_xy: np.ndarray, H: int, W: int) -> np.ndarray:
 
 # ------------------------------------------------------------------ (a) coverage
 @pytest.mark.parametrize("dtype", DTYPES)
-@pytest.mark.parametrize("order", [[0, 1, 2], [0, 2, 1]])                # both windings
+@pytest.mark.parametrize("order", [[0, 1, 2], [0, 2, 1]])  # both windings
 def test_coverage_of_one_triangle_equals_point_in_triangle(dtype, order):
     H, W = 40, 50
     world = np.array([[-17.3, -11.1, 0.0], [19.7, -3.3, 0.0], [-2.9, 16.45, 0.0]])
@@ -50,7 +51,7 @@ def test_coverage_of_one_triangle_equals_point_in_triangle(dtype, order):
     np.testing.assert_array_equal((out["face"] == -1).numpy(), ~expected)
     assert out["image"].dtype == dtype and out["depth"].dtype == dtype and out["face"].dtype == torch.int64
     assert torch.isinf(out["depth"][~torch.from_numpy(expected)]).all()
-    assert (out["image"][~torch.from_numpy(expected)] == 1).all()       # white background
+    assert (out["image"][~torch.from_numpy(expected)] == 1).all()  # white background
 
 
 # ------------------------------------------------------------------ (b) visibility
@@ -60,9 +61,10 @@ def _two_triangles(z_near, z_far):
     return torch.tensor(near + far, dtype=torch.float64)
 
 
-@pytest.mark.parametrize("camera", [front_camera(32, 32),
-                                    Camera((0.0, 0.0, 10.0), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov_deg=90.0,
-                                           size=(32, 32))])
+@pytest.mark.parametrize(
+    "camera",
+    [front_camera(32, 32), Camera((0.0, 0.0, 10.0), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov_deg=90.0, size=(32, 32))],
+)
 def test_nearer_triangle_wins_in_either_order(camera):
     v = _two_triangles(1.0, -1.0)
     a = rasterize(v, torch.tensor([[0, 1, 2], [3, 4, 5]]), camera)
@@ -74,10 +76,10 @@ def test_nearer_triangle_wins_in_either_order(camera):
     only_far = rasterize(v, torch.tensor([[3, 4, 5]]), camera)["face"] == 0
     overlap = only_near & only_far
     assert overlap.sum() > 30 and (only_far & ~only_near).sum() > 5
-    assert torch.equal(near_a, only_near) and torch.equal(near_b, only_near)     # nearer wins everywhere
+    assert torch.equal(near_a, only_near) and torch.equal(near_b, only_near)  # nearer wins everywhere
     assert torch.equal(far_a, only_far & ~only_near)
     assert torch.equal(a["depth"], b["depth"]) and torch.equal(a["image"], b["image"])
-    assert (a["depth"][overlap] < 9.5).all()                            # eye at z = 10, near plane z ~ 1
+    assert (a["depth"][overlap] < 9.5).all()  # eye at z = 10, near plane z ~ 1
 
 
 def test_exact_depth_tie_goes_to_lower_face_index():
@@ -91,7 +93,7 @@ def test_exact_depth_tie_goes_to_lower_face_index():
 @pytest.mark.parametrize("angle_deg", [0.0, 30.0, 60.0, 89.0, 120.0])
 def test_lambert_on_a_flat_square(dtype, angle_deg):
     v = torch.tensor([[-5.0, -5.0, 0.0], [5.0, -5.0, 0.0], [5.0, 5.0, 0.0], [-5.0, 5.0, 0.0]], dtype=dtype)
-    f = torch.tensor([[0, 1, 2], [0, 2, 3]])                            # counter-clockwise seen from +z
+    f = torch.tensor([[0, 1, 2], [0, 2, 3]])  # counter-clockwise seen from +z
     t = math.radians(angle_deg)
     light = (math.sin(t) * math.cos(0.7), math.sin(t) * math.sin(0.7), math.cos(t))
     colour = torch.tensor([0.9, 0.5, 0.25], dtype=dtype).expand(4, 3)
@@ -134,8 +136,14 @@ def _look_at(eye, target, up):
 def _perspective(fovy_deg, aspect, near, far):
     """gluPerspective as a 4x4 matrix."""
     g = 1 / math.tan(math.radians(fovy_deg) / 2)
-    return np.array([[g / aspect, 0, 0, 0], [0, g, 0, 0],
-                     [0, 0, (far + near) / (near - far), 2 * far * near / (near - far)], [0, 0, -1, 0]])
+    return np.array(
+        [
+            [g / aspect, 0, 0, 0],
+            [0, g, 0, 0],
+            [0, 0, (far + near) / (near - far), 2 * far * near / (near - far)],
+            [0, 0, -1, 0],
+        ]
+    )
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
@@ -147,10 +155,10 @@ def test_perspective_projection_equals_the_opengl_pinhole(dtype):
     pix, depth = cam.project(torch.tensor(pts, dtype=dtype))
     clip = (_perspective(fov, W / H, 0.1, 100.0) @ _look_at(eye, target, up) @ np.c_[pts, np.ones(20)].T).T
     ndc = clip[:, :3] / clip[:, 3:]
-    expected = np.stack([(ndc[:, 0] + 1) * W / 2, (1 - ndc[:, 1]) * H / 2], 1)   # NDC y up, rows down
+    expected = np.stack([(ndc[:, 0] + 1) * W / 2, (1 - ndc[:, 1]) * H / 2], 1)  # NDC y up, rows down
     tol = 1e-9 if dtype == torch.float64 else 1e-4
     np.testing.assert_allclose(pix.numpy(), expected, atol=tol * W, rtol=0)
-    np.testing.assert_allclose(depth.numpy(), clip[:, 3], atol=tol, rtol=0)       # w_clip = distance along view
+    np.testing.assert_allclose(depth.numpy(), clip[:, 3], atol=tol, rtol=0)  # w_clip = distance along view
     assert pix.dtype == dtype and depth.dtype == dtype
     # the target projects to the image centre
     c, _ = cam.project(torch.tensor([target], dtype=torch.float64))
@@ -169,8 +177,14 @@ def test_vertex_colours_interpolate_barycentrically_orthographic():
     H, W = 40, 50
     world = np.array([[-17.3, -11.1, 0.0], [19.7, -3.3, 2.0], [-2.9, 16.45, -1.0]])
     rgb = np.eye(3) * 0.8 + 0.1
-    out = rasterize(torch.tensor(world), torch.tensor([[0, 1, 2]]), front_camera(H, W), torch.tensor(rgb),
-                    ambient=0.0, light=np.cross(world[1] - world[0], world[2] - world[0]))   # shade 1
+    out = rasterize(
+        torch.tensor(world),
+        torch.tensor([[0, 1, 2]]),
+        front_camera(H, W),
+        torch.tensor(rgb),
+        ambient=0.0,
+        light=np.cross(world[1] - world[0], world[2] - world[0]),
+    )  # shade 1
     b = bary_oracle(np.stack([W / 2 + world[:, 0], H / 2 - world[:, 1]], 1), H, W)
     inside = (b > 0).all(-1)
     assert inside.sum() > 300
@@ -184,11 +198,12 @@ def test_perspective_correct_interpolation_from_the_ray(dtype):
     H, W, fov = 40, 40, 60.0
     eye = np.array([0.0, 0.0, 10.0])
     cam = Camera(tuple(eye), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov_deg=fov, size=(H, W))
-    world = np.array([[-6.0, -5.0, -6.0], [6.0, -4.0, 5.0], [0.5, 6.0, -1.0]])    # strongly tilted in depth
+    world = np.array([[-6.0, -5.0, -6.0], [6.0, -4.0, 5.0], [0.5, 6.0, -1.0]])  # strongly tilted in depth
     rgb = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
     n = np.cross(world[1] - world[0], world[2] - world[0])
-    out = rasterize(torch.tensor(world, dtype=dtype), torch.tensor([[0, 1, 2]]), cam, torch.tensor(rgb),
-                    ambient=0.0, light=n)
+    out = rasterize(
+        torch.tensor(world, dtype=dtype), torch.tensor([[0, 1, 2]]), cam, torch.tensor(rgb), ambient=0.0, light=n
+    )
     focal = (H / 2) / math.tan(math.radians(fov) / 2)
     tol = 1e-10 if dtype == torch.float64 else 2e-5
     checked = 0
@@ -203,14 +218,14 @@ def test_perspective_correct_interpolation_from_the_ray(dtype):
         checked += 1
         np.testing.assert_allclose(out["bary"][i, j].double().numpy(), lam, atol=tol)
         np.testing.assert_allclose(out["image"][i, j].double().numpy(), lam @ rgb, atol=tol)
-        np.testing.assert_allclose(out["depth"][i, j].item(), t, rtol=tol)       # forward component of t d is t
+        np.testing.assert_allclose(out["depth"][i, j].item(), t, rtol=tol)  # forward component of t d is t
     assert checked >= 40
 
 
 def test_colour_callable_is_a_solid_texture_at_texcoords():
     v = torch.tensor([[-5.0, -5.0, 0.0], [5.0, -5.0, 0.0], [5.0, 5.0, 0.0], [-5.0, 5.0, 0.0]], dtype=torch.float64)
     f = torch.tensor([[0, 1, 2], [0, 2, 3]])
-    rest = v * 0.1 + 0.5                                               # in [0, 1]^3
+    rest = v * 0.1 + 0.5  # in [0, 1]^3
 
     def texture(p):
         return torch.stack([p[:, 0], p[:, 1], torch.zeros_like(p[:, 0])], 1)
@@ -225,19 +240,19 @@ def test_colour_callable_is_a_solid_texture_at_texcoords():
 # ------------------------------------------------------------------ (f) sphere
 @pytest.mark.parametrize("perspective", [False, True])
 def test_sphere_silhouette_is_a_disc(perspective):
-    s = trimesh.creation.icosphere(subdivisions=4, radius=1.0)          # 5120 faces, closed
+    s = trimesh.creation.icosphere(subdivisions=4, radius=1.0)  # 5120 faces, closed
     H = W = 200
     if perspective:
         dist, fov = 6.0, 30.0
         cam = Camera((0.0, 0.0, dist), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov_deg=fov, size=(H, W))
         focal = (H / 2) / math.tan(math.radians(fov) / 2)
-        r_px = focal * math.tan(math.asin(1.0 / dist))                   # the cone tangent to the sphere
+        r_px = focal * math.tan(math.asin(1.0 / dist))  # the cone tangent to the sphere
     else:
         cam = Camera((0.0, 0.0, 5.0), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), ortho_height=2.5, size=(H, W))
         r_px = H / 2.5
     out = rasterize(torch.tensor(s.vertices, dtype=torch.float32), torch.tensor(s.faces), cam, chunk_pairs=20000)
     hit = out["face"] >= 0
-    assert abs(hit.sum().item() / (math.pi * r_px ** 2) - 1) < 0.02
+    assert abs(hit.sum().item() / (math.pi * r_px**2) - 1) < 0.02
     jj, ii = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
     rr = np.hypot(jj - W / 2, ii - H / 2)
     assert hit.numpy()[rr < 0.97 * r_px].all() and not hit.numpy()[rr > r_px + 0.5].any()
@@ -249,6 +264,7 @@ def test_sphere_silhouette_is_a_disc(perspective):
 # ------------------------------------------------------------------ files and errors
 def test_save_png_round_trip(tmp_path):
     from PIL import Image
+
     s = trimesh.creation.icosphere(subdivisions=2)
     cam = Camera((0.0, 0.0, 5.0), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), ortho_height=3.0, size=(12, 20))
     out = rasterize(torch.tensor(s.vertices), torch.tensor(s.faces), cam, background=(0.0, 0.0, 1.0))
@@ -259,10 +275,17 @@ def test_save_png_round_trip(tmp_path):
     assert tuple(back[0, 0]) == (0, 0, 255)
 
 
-@pytest.mark.parametrize("kwargs, key", [
-    (dict(fov_deg=None), "camera"), (dict(fov_deg=40.0, ortho_height=2.0), "camera"), (dict(fov_deg=180.0), "fov_deg"),
-    (dict(fov_deg=40.0, up=(0.0, 0.0, 2.0)), "up"), (dict(ortho_height=-1.0), "ortho_height"),
-    (dict(fov_deg=40.0, size=(0, 4)), "size")])
+@pytest.mark.parametrize(
+    "kwargs, key",
+    [
+        (dict(fov_deg=None), "camera"),
+        (dict(fov_deg=40.0, ortho_height=2.0), "camera"),
+        (dict(fov_deg=180.0), "fov_deg"),
+        (dict(fov_deg=40.0, up=(0.0, 0.0, 2.0)), "up"),
+        (dict(ortho_height=-1.0), "ortho_height"),
+        (dict(fov_deg=40.0, size=(0, 4)), "size"),
+    ],
+)
 def test_camera_errors(kwargs, key):
     with pytest.raises(ConfigError, match=key):
         Camera((0.0, 0.0, 1.0), (0.0, 0.0, 0.0), **kwargs)

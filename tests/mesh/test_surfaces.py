@@ -1,4 +1,5 @@
 """Surface extraction (marching tetrahedra) and export: analytic sphere, rigid moves, trimesh round trips."""
+
 from __future__ import annotations
 
 import math
@@ -24,19 +25,19 @@ def test_sphere_is_watertight_with_analytic_volume_and_area(R, n):
     v, f = marching_tetrahedra(sphere_field(n, R), 0.0)
     mesh = trimesh.Trimesh(v, f, process=False)
     assert mesh.is_watertight and mesh.is_winding_consistent
-    assert mesh.volume > 0                                                    # faces point outwards
+    assert mesh.volume > 0  # faces point outwards
     # linear interpolation on the tetrahedra: second-order error, < 1.5% at 6 voxels, < 0.6% at 10
     tol = 0.015 if R < 8 else 0.006
-    assert mesh.volume == pytest.approx(4 / 3 * math.pi * R ** 3, rel=tol)
-    assert mesh.area == pytest.approx(4 * math.pi * R ** 2, rel=tol)
+    assert mesh.volume == pytest.approx(4 / 3 * math.pi * R**3, rel=tol)
+    assert mesh.area == pytest.approx(4 * math.pi * R**2, rel=tol)
     r = np.linalg.norm(v - (n - 1) / 2, axis=1)
-    assert np.abs(r - R).max() < 0.1                                          # vertices on the sphere
+    assert np.abs(r - R).max() < 0.1  # vertices on the sphere
 
 
 def test_border_is_closed_and_nodes_on_the_level_keep_it_manifold():
-    m = np.ones((5, 6, 7))                                                    # touches every face of the grid
+    m = np.ones((5, 6, 7))  # touches every face of the grid
     v, f = marching_tetrahedra(m)
-    mesh = trimesh.Trimesh(v, f)                                              # process=True merges vertices
+    mesh = trimesh.Trimesh(v, f)  # process=True merges vertices
     assert mesh.is_watertight and mesh.volume > 0
     assert np.allclose(v.min(0), -0.5) and np.allclose(v.max(0), np.array(m.shape) - 0.5)
     # integer radius: grid nodes exactly on the level
@@ -63,7 +64,7 @@ def test_uniform_displacement_moves_the_body_surface():
 
 
 def test_warped_volume_surface_moves_by_the_offset():
-    vol = torch.tensor(sphere_field(24, 6.3, centre=(10.0, 11.0, 12.0)))      # no node exactly on the level
+    vol = torch.tensor(sphere_field(24, 6.3, centre=(10.0, 11.0, 12.0)))  # no node exactly on the level
     d = (2.0, -3.0, 1.0)
     offsets = torch.tensor(d, dtype=torch.float64).view(3, 1, 1, 1).expand(3, 4, 4, 4)
     v0, f0 = volume_surface(vol, 0.0)

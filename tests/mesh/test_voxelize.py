@@ -1,4 +1,5 @@
 """Voxelising closed triangle meshes: node counts against analytic inside tests."""
+
 from __future__ import annotations
 
 import subprocess
@@ -31,7 +32,7 @@ def test_box_with_nodes_on_its_faces_keeps_them():
     assert shape == (11, 11, 11)
     assert np.allclose(origin, (-0.005,) * 3)
     assert mask.dtype == torch.bool and tuple(mask.shape) == shape
-    assert int(mask.sum()) == 11 ** 3
+    assert int(mask.sum()) == 11**3
 
 
 def test_translated_anisotropic_box_matches_analytic_count():
@@ -42,7 +43,7 @@ def test_translated_anisotropic_box_matches_analytic_count():
     mask, origin, shape = voxelize(box, spacing)
     P = _nodes(origin, shape, spacing)
     expected = _in_box(P, lo, hi)
-    assert P[..., 0].min() <= lo[0] + 1e-12 and P[..., 0].max() >= hi[0] - 1e-12   # covers the box
+    assert P[..., 0].min() <= lo[0] + 1e-12 and P[..., 0].max() >= hi[0] - 1e-12  # covers the box
     assert np.array_equal(mask.numpy(), expected)
 
 
@@ -71,16 +72,16 @@ def test_hollow_box_two_shells():
     P = _nodes(origin, shape, 0.001)
     expected = _in_box(P, [-0.00525] * 3, [0.00525] * 3) & ~_in_box(P, [-0.00255] * 3, [0.00255] * 3)
     assert shape == (12, 12, 12)
-    assert int(mask.sum()) == int(expected.sum()) == 10 ** 3 - 6 ** 3
+    assert int(mask.sum()) == int(expected.sum()) == 10**3 - 6**3
     assert np.array_equal(mask.numpy(), expected)
 
 
 def test_padding_and_scale():
-    box = trimesh.creation.box((10.0, 10.0, 10.0))                     # millimetres
+    box = trimesh.creation.box((10.0, 10.0, 10.0))  # millimetres
     mask, origin, shape = voxelize(box, 0.001, padding=2, scale=1e-3)
     assert shape == (15, 15, 15)
     assert np.allclose(origin, (-0.007,) * 3)
-    assert int(mask.sum()) == 11 ** 3
+    assert int(mask.sum()) == 11**3
     assert not bool(mask[:2].any()) and not bool(mask[-2:].any())
 
 
@@ -118,7 +119,7 @@ def test_missing_file_is_config_error(tmp_path):
 
 def test_open_mesh_is_config_error(tmp_path):
     box = trimesh.creation.box((0.01, 0.01, 0.01))
-    open_box = trimesh.Trimesh(box.vertices, box.faces[:-2])            # one side missing
+    open_box = trimesh.Trimesh(box.vertices, box.faces[:-2])  # one side missing
     with pytest.raises(ConfigError, match=r"closed \(watertight\) triangle mesh.*4 open edges"):
         voxelize(open_box, 0.001)
     path = tmp_path / "open.stl"
@@ -138,16 +139,17 @@ def test_unreadable_file_and_bad_arguments(tmp_path):
     with pytest.raises(ConfigError, match="padding"):
         voxelize(box, 0.001, padding=-1)
     with pytest.raises(ConfigError, match="spacing small enough"):
-        voxelize(trimesh.creation.icosphere(radius=0.001), 0.05)        # no node falls inside
+        voxelize(trimesh.creation.icosphere(radius=0.001), 0.05)  # no node falls inside
 
 
 def test_agrees_with_trimesh_signed_distance():
     import rtree  # noqa: F401  (in the test extra; trimesh.contains needs it)
+
     mesh = trimesh.creation.annulus(r_min=0.003, r_max=0.008, height=0.004)
     mask, origin, shape = voxelize(mesh, 0.0007)
     P = _nodes(origin, shape, 0.0007).reshape(-1, 3)
     d = trimesh.proximity.signed_distance(mesh, P)
-    clear = np.abs(d) > 1e-9                                              # not on the surface
+    clear = np.abs(d) > 1e-9  # not on the surface
     assert np.array_equal(mask.numpy().reshape(-1)[clear], mesh.contains(P)[clear])
 
 

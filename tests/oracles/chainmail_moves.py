@@ -6,6 +6,7 @@ elements move by ``delta``, every other element moves the least that satisfies a
 pull, ``x_n = max(x_n, max over links of x_q + (bound on x_n - x_q))``, relaxed until nothing
 changes (Bellman-Ford on the constraint graph), and the mirror image for a push.
 """
+
 from __future__ import annotations
 
 import math
@@ -30,8 +31,8 @@ def least_motion(x, shape, links, bounds, picks, delta):
         adj = {n: [] for n in nodes}
         for p, q, a in links:
             lo, hi = bounds(p, a, c)
-            adj[q].append((p, lo, hi))                         # x_q - x_p in [lo, hi]
-            adj[p].append((q, -hi, -lo))                       # x_p - x_q in [-hi, -lo]
+            adj[q].append((p, lo, hi))  # x_q - x_p in [lo, hi]
+            adj[p].append((q, -hi, -lo))  # x_p - x_q in [-hi, -lo]
         env = {n: (-math.inf if pull else math.inf) for n in nodes}
         for p in picks:
             env[p] = x[c][p] + delta[c]
@@ -41,7 +42,7 @@ def least_motion(x, shape, links, bounds, picks, delta):
             for n in nodes:
                 if n in picks:
                     continue
-                for q, lo, hi in adj[n]:                       # x_n - x_q in [lo, hi]
+                for q, lo, hi in adj[n]:  # x_n - x_q in [lo, hi]
                     cand = env[q] + lo if pull else env[q] + hi
                     if (pull and cand > env[n]) or (not pull and cand < env[n]):
                         env[n], changed = cand, True

@@ -38,6 +38,7 @@ Examples:
     >>> round(float(eq.x[1, 0]), 12), round(float(eq.multipliers[1, 0]), 12)   # 9.81 - 10 * 0.5
     (-1.5, 4.81)
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -47,15 +48,28 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.optimize
 
-__all__ = ["Obstacle", "sphere", "half_space", "edges_from", "energy", "gradient", "hessian", "Equilibrium",
-           "contact_equilibrium", "check_kkt", "one_blas_thread"]
+__all__ = [
+    "Obstacle",
+    "sphere",
+    "half_space",
+    "edges_from",
+    "energy",
+    "gradient",
+    "hessian",
+    "Equilibrium",
+    "contact_equilibrium",
+    "check_kkt",
+    "one_blas_thread",
+]
 
 
 # ------------------------------------------------------------------------------------------- threads
-_BLAS_THREADS = [("scipy_openblas_get_num_threads64_", "scipy_openblas_set_num_threads64_"),
-                 ("scipy_openblas_get_num_threads", "scipy_openblas_set_num_threads"),
-                 ("openblas_get_num_threads64_", "openblas_set_num_threads64_"),
-                 ("openblas_get_num_threads", "openblas_set_num_threads")]
+_BLAS_THREADS = [
+    ("scipy_openblas_get_num_threads64_", "scipy_openblas_set_num_threads64_"),
+    ("scipy_openblas_get_num_threads", "scipy_openblas_set_num_threads"),
+    ("openblas_get_num_threads64_", "openblas_set_num_threads64_"),
+    ("openblas_get_num_threads", "openblas_set_num_threads"),
+]
 
 
 @contextlib.contextmanager
@@ -95,6 +109,7 @@ class Obstacle:
     ``sdf -> (M,)`` signed distance (positive outside), ``grad -> (M, 3)`` its gradient (the outward
     normal), ``hess -> (M, 3, 3)`` its Hessian.
     """
+
     sdf: object
     grad: object
     hess: object
@@ -127,10 +142,12 @@ def half_space(point, normal) -> Obstacle:
     p = np.asarray(point, dtype=np.float64)
     n = np.asarray(normal, dtype=np.float64)
     n = n / np.linalg.norm(n)
-    return Obstacle(lambda x: (x - p) @ n,
-                    lambda x: np.broadcast_to(n, x.shape).copy(),
-                    lambda x: np.zeros((len(x), 3, 3)),
-                    f"half_space(p={p.tolist()}, n={n.tolist()})")
+    return Obstacle(
+        lambda x: (x - p) @ n,
+        lambda x: np.broadcast_to(n, x.shape).copy(),
+        lambda x: np.zeros((len(x), 3, 3)),
+        f"half_space(p={p.tolist()}, n={n.tolist()})",
+    )
 
 
 # ------------------------------------------------------------------------------------------- springs
@@ -157,7 +174,7 @@ def gradient(x, edges, mass, gravity) -> np.ndarray:
     i, j, k, l0 = _edges(edges)
     d = x[i] - x[j]
     l = np.linalg.norm(d, axis=1)
-    f = (k * (l - l0) / l)[:, None] * d                     # dE/dx_i of each spring
+    f = (k * (l - l0) / l)[:, None] * d  # dE/dx_i of each spring
     g = np.zeros_like(x)
     np.add.at(g, i, f)
     np.add.at(g, j, -f)
@@ -198,6 +215,7 @@ class Equilibrium:
         slsqp: scipy's result object.
         energy: ``E(x)`` (J).
     """
+
     x: np.ndarray
     multipliers: np.ndarray
     active: np.ndarray
@@ -221,8 +239,20 @@ def _constraints(obstacles, y_nodes):
     return c, J
 
 
-def contact_equilibrium(X, edges, mass, gravity, fixed, obstacles, *, x0=None, ftol: float = 1e-9,
-                        maxiter: int = 2000, active_tol: float = 1e-7, rtol: float = 1e-11) -> Equilibrium:
+def contact_equilibrium(
+    X,
+    edges,
+    mass,
+    gravity,
+    fixed,
+    obstacles,
+    *,
+    x0=None,
+    ftol: float = 1e-9,
+    maxiter: int = 2000,
+    active_tol: float = 1e-7,
+    rtol: float = 1e-11,
+) -> Equilibrium:
     """Minimise the spring and gravity energy of the free nodes outside every obstacle.
 
     Args:
@@ -257,9 +287,9 @@ def _solve(X, edges, mass, gravity, fixed, obstacles, x0, ftol, maxiter, active_
     free = np.flatnonzero(~fixed)
     F, O = len(free), len(obstacles)
     i, j, k, l0 = _edges(edges)
-    L = float(np.mean(l0))                                     # length unit
+    L = float(np.mean(l0))  # length unit
     kref = float(np.mean(k))
-    Escale = kref * L * L                                      # energy unit
+    Escale = kref * L * L  # energy unit
     force_scale = max(float(np.max(k * l0)), float(np.max(np.abs(mass[:, None] * gravity[None]))))
     base = X.copy() if x0 is None else np.asarray(x0, dtype=np.float64).copy()
     base[fixed] = X[fixed]
@@ -282,9 +312,14 @@ def _solve(X, edges, mass, gravity, fixed, obstacles, x0, ftol, maxiter, active_
     def cjac(z):
         return _constraints(obstacles, full(z)[free])[1].reshape(O * F, 3 * F)
 
-    res = scipy.optimize.minimize(fun, np.zeros(3 * F), jac=jac, method="SLSQP",
-                                  constraints=[{"type": "ineq", "fun": cfun, "jac": cjac}] if O else [],
-                                  options={"ftol": ftol, "maxiter": maxiter})
+    res = scipy.optimize.minimize(
+        fun,
+        np.zeros(3 * F),
+        jac=jac,
+        method="SLSQP",
+        constraints=[{"type": "ineq", "fun": cfun, "jac": cjac}] if O else [],
+        options={"ftol": ftol, "maxiter": maxiter},
+    )
     if not res.success:
         raise RuntimeError(f"SLSQP failed: {res.message} (status {res.status}, {res.nit} iterations)")
     x_slsqp = full(res.x)
@@ -305,18 +340,26 @@ def _solve(X, edges, mass, gravity, fixed, obstacles, x0, ftol, maxiter, active_
         viol = ~active & (c < -rtol * L)
         if not neg.any() and not viol.any():
             break
-        if neg.any():                                          # drop the most negative multiplier
+        if neg.any():  # drop the most negative multiplier
             active[np.argmin(np.where(neg, lam, np.inf))] = False
-        else:                                                  # add the most violated constraint
+        else:  # add the most violated constraint
             active[np.argmin(np.where(viol, c, np.inf))] = True
     else:
         raise RuntimeError("active-set polish did not settle")
 
     # ---- 3. independent KKT check
-    out = Equilibrium(x=x, multipliers=np.zeros((N, O)), active=np.zeros((N, O), dtype=bool),
-                      sdf=np.full((N, O), np.inf), stationarity=np.nan, force_scale=force_scale,
-                      reduced_hessian_min=np.nan, slsqp_x=x_slsqp, slsqp=res,
-                      energy=energy(x, edges, mass, gravity))
+    out = Equilibrium(
+        x=x,
+        multipliers=np.zeros((N, O)),
+        active=np.zeros((N, O), dtype=bool),
+        sdf=np.full((N, O), np.inf),
+        stationarity=np.nan,
+        force_scale=force_scale,
+        reduced_hessian_min=np.nan,
+        slsqp_x=x_slsqp,
+        slsqp=res,
+        energy=energy(x, edges, mass, gravity),
+    )
     out.multipliers[free] = lam.reshape(O, F).T
     out.active[free] = active.reshape(O, F).T
     out.sdf[free] = np.stack([o.sdf(y) for o in obstacles], 1) if O else np.zeros((F, 0))
@@ -335,18 +378,21 @@ def _newton_kkt(y, active, free, X, edges, mass, gravity, obstacles, force_scale
         g = gradient(x, edges, mass, gravity)[free].ravel()
         c, J = _constraints(obstacles, y)
         J = J.reshape(O * F, 3 * F)[A]
-        if it == 0 and len(A):                                 # least-squares multipliers to start
+        if it == 0 and len(A):  # least-squares multipliers to start
             lam = np.linalg.lstsq(J.T, g, rcond=None)[0]
         r = np.concatenate([g - J.T @ lam, c[A]])
-        if it > 0 and np.max(np.abs(r[:3 * F])) < 1e-14 * force_scale and \
-                (not len(A) or np.max(np.abs(c[A])) < 1e-15 * L):
+        if (
+            it > 0
+            and np.max(np.abs(r[: 3 * F])) < 1e-14 * force_scale
+            and (not len(A) or np.max(np.abs(c[A])) < 1e-15 * L)
+        ):
             break
         H = hessian(x, edges).reshape(len(x), 3, len(x), 3)[free][:, :, free].reshape(3 * F, 3 * F)
         H = H - _constraint_hessian(obstacles, y, A, lam)
         K = np.block([[H, -J.T], [J, np.zeros((len(A), len(A)))]])
         step = np.linalg.solve(K, -r)
-        y = y + step[:3 * F].reshape(F, 3)
-        lam = lam + step[3 * F:]
+        y = y + step[: 3 * F].reshape(F, 3)
+        lam = lam + step[3 * F :]
     x[free] = y
     return y, lam
 
@@ -357,7 +403,7 @@ def _constraint_hessian(obstacles, y, A, lam):
     out = np.zeros((F, 3, F, 3))
     for a, la in zip(A, lam):
         o, node = divmod(int(a), F)
-        out[node, :, node, :] += la * obstacles[o].hess(y[node:node + 1])[0]
+        out[node, :, node, :] += la * obstacles[o].hess(y[node : node + 1])[0]
     return out.reshape(3 * F, 3 * F)
 
 
@@ -401,15 +447,15 @@ def check_kkt(eq: Equilibrium, X, edges, mass, gravity, fixed, obstacles, rtol: 
         nrm = obs.grad(x[free])
         hs = obs.hess(x[free])
         for a in np.flatnonzero(eq.active[free, o]):
-            H[3 * a:3 * a + 3, 3 * a:3 * a + 3] -= lam[a, o] * hs[a]
+            H[3 * a : 3 * a + 3, 3 * a : 3 * a + 3] -= lam[a, o] * hs[a]
             if lam[a, o] > rtol * eq.force_scale:
                 r = np.zeros(3 * F)
-                r[3 * a:3 * a + 3] = nrm[a]
+                r[3 * a : 3 * a + 3] = nrm[a]
                 rows.append(r)
     if rows:
         Jc = np.array(rows)
         _, s, vt = np.linalg.svd(Jc)
-        Z = vt[int(np.sum(s > 1e-12 * s.max())):].T            # null space of the active normals
+        Z = vt[int(np.sum(s > 1e-12 * s.max())) :].T  # null space of the active normals
     else:
         Z = np.eye(3 * F)
     eq.reduced_hessian_min = float(np.linalg.eigvalsh(Z.T @ H @ Z).min()) if Z.shape[1] else np.inf

@@ -5,6 +5,7 @@ node coordinates (every node, every neighbour offset of the topology), and force
 and stiffness matrices are computed in plain numpy. The tests import these helpers with
 ``from tests.oracles.edge_list import EdgeList, OFFSETS``.
 """
+
 from __future__ import annotations
 
 import itertools
@@ -48,9 +49,9 @@ class EdgeList:
         self.index = {ijk: a for a, ijk in enumerate(self.nodes)}
         self.X = np.array([np.array(ijk) * self.spacing for ijk in self.nodes], dtype=np.float64)
         springs = []
-        for ijk in self.nodes:                               # loop over every node ...
+        for ijk in self.nodes:  # loop over every node ...
             a = self.index[ijk]
-            for off in OFFSETS[topology]:                    # ... and every neighbour offset
+            for off in OFFSETS[topology]:  # ... and every neighbour offset
                 nb = tuple(p + o for p, o in zip(ijk, off))
                 if nb in self.index and self.index[nb] > a:  # list each unordered pair once
                     springs.append((a, self.index[nb], off))
@@ -89,7 +90,7 @@ class EdgeList:
                 if tuple(np.subtract(pa, pb)) == tuple(d):
                     out.append((s, pb, pa))
                     break
-            else:                                            # pragma: no cover
+            else:  # pragma: no cover
                 raise AssertionError("spring direction not in the stencil")
         return out
 
@@ -116,7 +117,7 @@ class EdgeList:
             n = d / np.sqrt(d @ d)
             blk = c[s] * (np.outer(n, n) if projected else np.eye(3))
             for p, q, sg in ((a, a, 1), (b, b, 1), (a, b, -1), (b, a, -1)):
-                C[3 * p:3 * p + 3, 3 * q:3 * q + 3] += sg * blk
+                C[3 * p : 3 * p + 3, 3 * q : 3 * q + 3] += sg * blk
         return C
 
     def per_spring_tensor(self, values, directions):
@@ -134,7 +135,7 @@ class EdgeList:
                 if tuple(pa - pb) == tuple(d):
                     out[(s,) + tuple(pb)] = val
                     break
-            else:                                            # pragma: no cover
+            else:  # pragma: no cover
                 raise AssertionError("spring direction not in the stencil")
         return out
 
@@ -209,7 +210,7 @@ class EdgeList:
             t = max(t, 0.0) if clamp else t
             blk = t * (I - np.outer(n, n)) + slope(l, self.l0[s], s) * np.outer(n, n)
             for p, q, sg in ((a, a, 1), (b, b, 1), (a, b, -1), (b, a, -1)):
-                H[3 * p:3 * p + 3, 3 * q:3 * q + 3] += sg * blk
+                H[3 * p : 3 * p + 3, 3 * q : 3 * q + 3] += sg * blk
         return H
 
     def energy(self, x, k=1.0):

@@ -20,6 +20,7 @@ scikit-fuzzy (linear interpolation of Gaussian and bell terms between grid point
 last maximum located on its grid) is below ``range / 2000`` in position and about ``1e-5`` in
 degree.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -32,12 +33,13 @@ import torch
 from skfuzzy import control as ctrl
 from skfuzzy.control.controlsystem import CrispValueCalculator
 
-GRID = 2001            # points of every scikit-fuzzy / numpy universe (step range / 2000)
-TORCH_RES = 3000       # torchdeform cells: their midpoints contain the odd points of GRID
+GRID = 2001  # points of every scikit-fuzzy / numpy universe (step range / 2000)
+TORCH_RES = 3000  # torchdeform cells: their midpoints contain the odd points of GRID
 KINDS_RANDOM = ("trapezoid", "triangle", "gaussian", "bell")
 
 
 # ------------------------------------------------------------------ descriptions
+
 
 @dataclass
 class TermSpec:
@@ -86,7 +88,7 @@ class VarSpec:
 class ClauseSpec:
     var: str
     term: str
-    hedges: tuple = ()           # outermost first, as in the sentence ("not", "very")
+    hedges: tuple = ()  # outermost first, as in the sentence ("not", "very")
 
     def sentence(self) -> str:
         return " ".join([self.var, "IS", *self.hedges, self.term])
@@ -95,13 +97,15 @@ class ClauseSpec:
 @dataclass
 class RuleSpec:
     ante: list
-    cons: list                   # [ClauseSpec] (no hedges on outputs here)
+    cons: list  # [ClauseSpec] (no hedges on outputs here)
     connective: str = "and"
     weight: float = 1.0
 
     def sentence(self) -> str:
-        s = (f"IF {f' {self.connective.upper()} '.join(c.sentence() for c in self.ante)} "
-             f"THEN {' AND '.join(c.sentence() for c in self.cons)}")
+        s = (
+            f"IF {f' {self.connective.upper()} '.join(c.sentence() for c in self.ante)} "
+            f"THEN {' AND '.join(c.sentence() for c in self.cons)}"
+        )
         return s + (f" WITH {self.weight!r}" if self.weight != 1.0 else "")
 
 
@@ -111,7 +115,7 @@ class SystemSpec:
     inputs: list
     outputs: list
     rules: list
-    methods: dict = field(default_factory=dict)    # and_method, or_method, implication, aggregation
+    methods: dict = field(default_factory=dict)  # and_method, or_method, implication, aggregation
 
     def var(self, name) -> VarSpec:
         return next(v for v in self.inputs + self.outputs if v.name == name)
@@ -130,6 +134,7 @@ class SystemSpec:
 
 # ------------------------------------------------------------------ membership (scikit-fuzzy)
 
+
 def sk_membership(kind: str, params, x) -> np.ndarray:
     """Degrees from ``skfuzzy.membership`` for a term given in torchdeform's parameter order."""
     x = np.atleast_1d(np.asarray(x, dtype=np.float64))
@@ -147,10 +152,10 @@ def sk_membership(kind: str, params, x) -> np.ndarray:
     raise ValueError(kind)
 
 
-HEDGE_FORMULAS = {   # REFERENCE.md 3.4 (fuzzylite's definitions), written out in numpy
-    "very": lambda m: m ** 2,
+HEDGE_FORMULAS = {  # REFERENCE.md 3.4 (fuzzylite's definitions), written out in numpy
+    "very": lambda m: m**2,
     "somewhat": np.sqrt,
-    "extremely": lambda m: np.where(m <= 0.5, 2 * m ** 2, 1 - 2 * (1 - m) ** 2),
+    "extremely": lambda m: np.where(m <= 0.5, 2 * m**2, 1 - 2 * (1 - m) ** 2),
     "seldom": lambda m: np.where(m <= 0.5, np.sqrt(m / 2), 1 - np.sqrt((1 - m) / 2)),
     "not": lambda m: 1 - m,
     "any": np.ones_like,
@@ -166,6 +171,7 @@ def hedge(m, hedges) -> np.ndarray:
 
 # ------------------------------------------------------------------ random systems
 
+
 def _odd(j: int) -> int:
     """Nearest odd grid index inside ``[1, GRID - 2]``."""
     j = int(min(max(j, 1), GRID - 2))
@@ -175,7 +181,7 @@ def _odd(j: int) -> int:
 def random_terms(rng, lo, hi, n, *, output: bool, kinds=KINDS_RANDOM) -> list:
     """``n`` terms spread over ``[lo, hi]``, corners on odd grid points (or the range ends)."""
     u = np.linspace(lo, hi, GRID)
-    spacing = (GRID - 1) / n                                  # in grid steps
+    spacing = (GRID - 1) / n  # in grid steps
     centres = np.sort(rng.uniform(0.05, 0.95, n)) * (GRID - 1)
     terms = []
     for i, c in enumerate(centres):
@@ -196,14 +202,14 @@ def random_terms(rng, lo, hi, n, *, output: bool, kinds=KINDS_RANDOM) -> list:
             a = min(a, u[jb])
             d = max(d, u[jc2])
             b, cc = u[jb], u[jc2]
-            if i == 0 and rng.uniform() < 0.4:                # left shoulder at the range end
+            if i == 0 and rng.uniform() < 0.4:  # left shoulder at the range end
                 a = b = u[0]
-            if i == n - 1 and rng.uniform() < 0.4:            # right shoulder at the range end
+            if i == n - 1 and rng.uniform() < 0.4:  # right shoulder at the range end
                 cc = d = u[-1]
             params = (a, b, cc, d)
         elif kind == "gaussian":
             params = (u[jc], (hi - lo) / n * rng.uniform(0.35, 0.9))
-        else:                                                  # bell: width, slope, centre
+        else:  # bell: width, slope, centre
             slope = rng.uniform(1.0, 2.0) if output else rng.uniform(1.0, 3.0)
             params = ((hi - lo) / n * rng.uniform(0.35, 0.9), slope, u[jc])
         terms.append(TermSpec(name, kind, tuple(float(p) for p in params)))
@@ -229,9 +235,15 @@ def random_system(seed: int, *, n_rules=(2, 9), hedges=False, methods=None, outp
     for o in range(n_out):
         lo, hi = random_range(rng)
         default = None if rng.uniform() < 0.5 else float(np.round(lo + (hi - lo) * rng.uniform(0, 1), 3))
-        outputs.append(VarSpec(f"y{o}", lo, hi, random_terms(rng, lo, hi, int(rng.integers(2, 8)), output=True,
-                                                                    kinds=output_kinds),
-                               default))
+        outputs.append(
+            VarSpec(
+                f"y{o}",
+                lo,
+                hi,
+                random_terms(rng, lo, hi, int(rng.integers(2, 8)), output=True, kinds=output_kinds),
+                default,
+            )
+        )
     rules = []
     for _ in range(int(rng.integers(*n_rules))):
         k = int(rng.integers(1, min(3, n_in) + 1))
@@ -239,16 +251,15 @@ def random_system(seed: int, *, n_rules=(2, 9), hedges=False, methods=None, outp
         for v in [inputs[j] for j in rng.permutation(n_in)[:k]]:
             h = ()
             if hedges:
-                h = tuple(rng.choice(["very", "somewhat", "extremely", "seldom", "not"],
-                                     size=int(rng.integers(0, 3))))
+                h = tuple(rng.choice(["very", "somewhat", "extremely", "seldom", "not"], size=int(rng.integers(0, 3))))
             elif rng.uniform() < 0.15:
                 h = ("not",)
             ante.append(ClauseSpec(v.name, v.terms[int(rng.integers(len(v.terms)))].name, h))
-        outs = [outputs[j] for j in rng.permutation(n_out)[:1 if n_out == 1 or rng.uniform() < 0.6 else 2]]
+        outs = [outputs[j] for j in rng.permutation(n_out)[: 1 if n_out == 1 or rng.uniform() < 0.6 else 2]]
         cons = [ClauseSpec(v.name, v.terms[int(rng.integers(len(v.terms)))].name) for v in outs]
         weight = 1.0 if rng.uniform() < 0.7 else float(np.round(rng.uniform(0.2, 0.95), 2))
         rules.append(RuleSpec(ante, cons, "or" if rng.uniform() < 0.4 else "and", weight))
-    for v in outputs:                                   # every output in at least one rule
+    for v in outputs:  # every output in at least one rule
         if not any(c.var == v.name for r in rules for c in r.cons):
             r = rules[int(rng.integers(len(rules)))]
             r.cons = [c for c in r.cons] + [ClauseSpec(v.name, v.terms[0].name)]
@@ -263,6 +274,7 @@ def random_points(spec: SystemSpec, seed: int, n: int) -> np.ndarray:
 
 
 # ------------------------------------------------------------------ builders
+
 
 @contextlib.contextmanager
 def default_dtype(dtype):
@@ -288,15 +300,20 @@ def build_torch(spec: SystemSpec, dtype=torch.float64, **kwargs):
     opts.setdefault("resolution", TORCH_RES)
     opts.update(kwargs)
     with default_dtype(dtype):
-        return MamdaniSystem(spec.name, [var(v) for v in spec.inputs], [var(v) for v in spec.outputs],
-                             spec.sentences(), **opts)
+        return MamdaniSystem(
+            spec.name, [var(v) for v in spec.inputs], [var(v) for v in spec.outputs], spec.sentences(), **opts
+        )
 
 
 def build_skfuzzy(spec: SystemSpec):
     """``(ControlSystemSimulation, {output name: Consequent}, used input names)``; min AND
     (fmin), max OR (fmax), min implication, max accumulation (scikit-fuzzy's defaults)."""
-    assert not spec.methods or spec.methods == {"and_method": "min", "or_method": "max",
-                                                "implication": "min", "aggregation": "max"}
+    assert not spec.methods or spec.methods == {
+        "and_method": "min",
+        "or_method": "max",
+        "implication": "min",
+        "aggregation": "max",
+    }
     used = {c.var for r in spec.rules for c in r.ante}
     ants = {}
     for v in spec.inputs:
@@ -307,7 +324,7 @@ def build_skfuzzy(spec: SystemSpec):
             ants[v.name] = a
     cons = {}
     for v in spec.outputs:
-        c = ctrl.Consequent(v.universe, v.name, defuzzify_method="mom")   # compute() defuzzifies: cheaply
+        c = ctrl.Consequent(v.universe, v.name, defuzzify_method="mom")  # compute() defuzzifies: cheaply
         for t in v.terms:
             c[t.name] = sk_membership(t.kind, t.params, c.universe)
         cons[v.name] = c
@@ -341,6 +358,7 @@ def skfuzzy_outputs(sim, consequent, methods):
 
 
 # ------------------------------------------------------------------ numpy Mamdani
+
 
 def _tnorm(a, b, method):
     return np.fmin(a, b) if method == "min" else a * b
@@ -389,6 +407,7 @@ def numpy_aggregate(spec: SystemSpec, x) -> dict:
 
 
 # ------------------------------------------------------------------ maxima
+
 
 def ambiguous_maximum(u, mf, rel: float = 1e-4, *, ties: bool = False, exact_rtol: float = 1e-14) -> bool:
     """True when mean/smallest/largest of maximum of the set ``mf`` on ``u`` are not well

@@ -1,4 +1,5 @@
 """Fixtures shared by the scene tests."""
+
 import pytest
 import trimesh
 

@@ -1,4 +1,5 @@
 """Scene files: loading, the demo, the runner's outputs, and bad files at the CLI."""
+
 from __future__ import annotations
 
 import json
@@ -68,7 +69,7 @@ def assert_same_model(a: td.Model, b: td.Model):
     assert a.projected == b.projected and a.decay == b.decay and a.dtype == b.dtype
     assert len(a.loads) == len(b.loads)
     for (la, da), (lb, db) in zip(a.loads, b.loads):
-        assert torch.equal(da, db) and [la.factor(t) for t in (0, .01, 1)] == [lb.factor(t) for t in (0, .01, 1)]
+        assert torch.equal(da, db) and [la.factor(t) for t in (0, 0.01, 1)] == [lb.factor(t) for t in (0, 0.01, 1)]
     assert len(a.drags) == len(b.drags)
     for da, db in zip(a.drags, b.drags):
         assert torch.equal(torch.as_tensor(da.nodes), torch.as_tensor(db.nodes))
@@ -82,8 +83,14 @@ def assert_same_scene(a: Scene, b: Scene):
     assert torch.equal(a.grid.nodes(), b.grid.nodes())
     assert_same_model(a.build(), b.build())
     assert type(a.integrator) is type(b.integrator) and vars(a.integrator) == vars(b.integrator)
-    assert (a.dt, a.steps, a.frames_every, a.name, a.dtype, a.safety) == \
-        (b.dt, b.steps, b.frames_every, b.name, b.dtype, b.safety)
+    assert (a.dt, a.steps, a.frames_every, a.name, a.dtype, a.safety) == (
+        b.dt,
+        b.steps,
+        b.frames_every,
+        b.name,
+        b.dtype,
+        b.safety,
+    )
     volume = [{k: v for k, v in (s.volume or {}).items() if k != "base"} for s in (a, b)]
     assert volume[0] == volume[1]
     assert bool(a.animation) == bool(b.animation)
@@ -110,9 +117,16 @@ def test_shipped_scenes_load_and_start(path, tmp_path):
 
 def test_python_api_builds_the_same_scene(tmp_path):
     grid = td.Grid((3, 3, 4), spacing=0.01, topology=18)
-    args = dict(stiffness={"axis": 40.0, "face": 20.0}, normalize=False, damping=0.01, damping_mode="projected",
-                density=1000.0, fixed=grid.face("bottom"), gravity=(-9.81, 0.0, 0.0),
-                loads=[td.PointForce((2, 1, 3), (0.0, 0.01, 0.0), start=0.0, ramp=0.01)])
+    args = dict(
+        stiffness={"axis": 40.0, "face": 20.0},
+        normalize=False,
+        damping=0.01,
+        damping_mode="projected",
+        density=1000.0,
+        fixed=grid.face("bottom"),
+        gravity=(-9.81, 0.0, 0.0),
+        loads=[td.PointForce((2, 1, 3), (0.0, 0.01, 0.0), start=0.0, ramp=0.01)],
+    )
     api = Scene(grid, args, td.SymplecticEuler(), dt="auto", steps=10, record_every=3, name="tiny")
     assert_same_scene(load_scene(write(tmp_path, TINY)), api)
 
@@ -167,24 +181,34 @@ def test_every_section_and_option(tmp_path):
     scene = load_scene(write(tmp_path, text))
     grid = scene.grid
     model = scene.build()
-    expected = td.Model(grid, stiffness={"axis": 1.0, "face": 0.5, "body": 0.25}, normalize=True, damping=0.001,
-                        damping_mode="unprojected", mass=0.002,
-                        fixed=grid.face("d-") | grid.face("w+") | grid.index_mask([(3, 0, 0)]),
-                        home=0.5, anchors=(2.0, 3), decay=1.5, gravity=(0, -9.81, 0),
-                        loads=[td.SurfaceForce("top", (1.0, 0, 0), start=0.01)],
-                        drags=[td.Drag(grid.box_mask((0.13, 0, -0.2), (0.13, 0.024, -0.2)),
-                                       [(0.0, (0, 0, 0)), (0.1, (0.001, 0, 0))]),
-                               td.Drag(grid.face("h+"), [(0.0, (0, 0, 0))])],
-                        dtype=torch.float64)
+    expected = td.Model(
+        grid,
+        stiffness={"axis": 1.0, "face": 0.5, "body": 0.25},
+        normalize=True,
+        damping=0.001,
+        damping_mode="unprojected",
+        mass=0.002,
+        fixed=grid.face("d-") | grid.face("w+") | grid.index_mask([(3, 0, 0)]),
+        home=0.5,
+        anchors=(2.0, 3),
+        decay=1.5,
+        gravity=(0, -9.81, 0),
+        loads=[td.SurfaceForce("top", (1.0, 0, 0), start=0.01)],
+        drags=[
+            td.Drag(grid.box_mask((0.13, 0, -0.2), (0.13, 0.024, -0.2)), [(0.0, (0, 0, 0)), (0.1, (0.001, 0, 0))]),
+            td.Drag(grid.face("h+"), [(0.0, (0, 0, 0))]),
+        ],
+        dtype=torch.float64,
+    )
     assert_same_model(model, expected)
-    assert int(model.drags[0].nodes.sum()) == 3                        # a line of 3 nodes along H
+    assert int(model.drags[0].nodes.sum()) == 3  # a line of 3 nodes along H
     assert isinstance(scene.integrator, td.ImplicitEuler)
     assert (scene.integrator.cg_iters, scene.integrator.cg_tol, scene.integrator.newton_iters) == (50, 1e-8, 1)
     assert scene.name == "scene" and scene.frames_every == 1
 
 
 def test_mesh_scene(tmp_path):
-    trimesh.creation.icosphere(subdivisions=2, radius=5.0).export(tmp_path / "ball.stl")   # millimetres
+    trimesh.creation.icosphere(subdivisions=2, radius=5.0).export(tmp_path / "ball.stl")  # millimetres
     text = """
     [grid]
     mesh = "ball.stl"
@@ -204,9 +228,9 @@ def test_mesh_scene(tmp_path):
     sub = tmp_path / "sub"
     sub.mkdir()
     (sub / "ball.stl").write_bytes((tmp_path / "ball.stl").read_bytes())
-    scene = load_scene(write(sub, text))                               # mesh path relative to the scene
+    scene = load_scene(write(sub, text))  # mesh path relative to the scene
     assert scene.grid.shape == (11, 11, 11) and scene.grid.node_mask is not None
-    assert 0 < scene.grid.num_nodes < 11 ** 3
+    assert 0 < scene.grid.num_nodes < 11**3
     assert isinstance(scene.integrator, td.KnocheRelaxation) and scene.integrator.material == 0.5
 
 
@@ -218,7 +242,7 @@ def test_run_scene_outputs(tmp_path):
     model = scene.build()
 
     data = np.load(out / "trajectory.npz")
-    T = 5                                                              # steps 0, 3, 6, 9 and the final 10
+    T = 5  # steps 0, 3, 6, 9 and the final 10
     assert data["x"].shape == data["v"].shape == (T, 3, 3, 3, 4)
     assert data["x"].dtype == np.float32 and data["t"].shape == (T,)
     bound = td.time_step_bound(model, "symplectic")
@@ -227,7 +251,7 @@ def test_run_scene_outputs(tmp_path):
     assert np.array_equal(data["X"], model.X[0].numpy())
     assert tuple(data["shape"]) == (3, 3, 4) and int(data["topology"]) == 18
     assert float(data["dt"]) == pytest.approx(dt) and str(data["integrator"]) == "symplectic"
-    assert np.array_equal(data["x"][0], data["X"])                     # starts at rest
+    assert np.array_equal(data["x"][0], data["X"])  # starts at rest
 
     on_disk = json.loads((out / "summary.json").read_text())
     assert on_disk == json.loads(json.dumps(summary))
@@ -243,7 +267,7 @@ def test_run_scene_outputs(tmp_path):
     disp = np.linalg.norm(data["x"] - data["X"], axis=1).reshape(T, -1).max(1)
     assert summary["max_displacement_m"] == pytest.approx(disp[-1], rel=1e-5)
     assert summary["peak_displacement_m"] == pytest.approx(disp.max(), rel=1e-5)
-    free_disp = np.linalg.norm(data["x"] - data["X"], axis=1)[:, 1:].reshape(T, -1).max(1)   # base fixed
+    free_disp = np.linalg.norm(data["x"] - data["X"], axis=1)[:, 1:].reshape(T, -1).max(1)  # base fixed
     assert summary["max_free_displacement_m"] == pytest.approx(free_disp[-1], rel=1e-5)
     assert np.allclose(data["max_free_displacement"], free_disp, rtol=1e-5)
     assert 0 < summary["max_displacement_m"] < 0.01 and summary["wall_time_s"] > 0
@@ -280,10 +304,11 @@ def test_cli_demo_wiring(tmp_path, capsys, monkeypatch):
         scene = demo_scene()
         scene.steps, scene.record_every = 20, 10
         return scene
+
     monkeypatch.setattr(scene_mod, "demo_scene", short_demo)
     assert cli.main(["demo", "--out", str(tmp_path), "--quiet"]) == 0
     summary = json.loads((tmp_path / "summary.json").read_text())
-    assert summary["name"] == "demo" and summary["steps"] == 20 and summary["nodes"] == 11 ** 3
+    assert summary["name"] == "demo" and summary["steps"] == 20 and summary["nodes"] == 11**3
 
 
 def test_cli_warning_and_divergence_are_single_lines(tmp_path, capsys):
@@ -309,38 +334,67 @@ BAD = {
     "unknown key": (_edit("damping = 0.01", "dampin = 0.01"), "material.dampin", "one of the keys", "dampin"),
     "unknown section": (GOOD + "\n[gird]\nshape = 1\n", "gird", "one of the sections", "[gird]"),
     "wrong type": (_edit("steps = 10", 'steps = "10"'), "integrator.steps", "an integer >= 0", "steps ="),
-    "wrong type in table": (_edit("face = 20.0}", 'face = "soft"}'), "material.stiffness", "a number >= 0",
-                            "stiffness ="),
+    "wrong type in table": (
+        _edit("face = 20.0}", 'face = "soft"}'),
+        "material.stiffness",
+        "a number >= 0",
+        "stiffness =",
+    ),
     "missing section": (_edit("[mass]\ndensity = 1000.0", ""), "mass", "a [mass] section (required)", None),
     "missing key": (_edit("steps = 10", ""), "integrator.steps", "(required)", "[integrator]"),
     "zero dt": (_edit('dt = "auto"', "dt = 0"), "integrator.dt", 'a positive number of seconds or "auto"', "dt ="),
     "negative dt": (_edit('dt = "auto"', "dt = -1e-4"), "integrator.dt", "a positive number", "dt ="),
     "negative steps": (_edit("steps = 10", "steps = -5"), "integrator.steps", "an integer >= 0", "steps ="),
     "zero-size grid": (_edit("shape = [3, 3, 4]", "shape = [0, 3, 4]"), "grid.shape", "each >= 1", "shape ="),
-    "shape and mesh": (_edit("spacing = 0.01", 'spacing = 0.01\nmesh = "a.stl"'), "grid.mesh", "exactly one of",
-                       "mesh ="),
-    "mesh not found": (_edit("shape = [3, 3, 4]", 'mesh = "organ.stl"'), "grid.mesh", "an existing mesh file",
-                       "mesh ="),
-    "mesh not closed": (_edit("shape = [3, 3, 4]", 'mesh = "open.stl"'), "grid.mesh", "closed (watertight)",
-                        "mesh ="),
+    "shape and mesh": (
+        _edit("spacing = 0.01", 'spacing = 0.01\nmesh = "a.stl"'),
+        "grid.mesh",
+        "exactly one of",
+        "mesh =",
+    ),
+    "mesh not found": (
+        _edit("shape = [3, 3, 4]", 'mesh = "organ.stl"'),
+        "grid.mesh",
+        "an existing mesh file",
+        "mesh =",
+    ),
+    "mesh not closed": (_edit("shape = [3, 3, 4]", 'mesh = "open.stl"'), "grid.mesh", "closed (watertight)", "mesh ="),
     "toml syntax": (_edit("steps = 10", "steps = = 10"), "toml", "valid TOML syntax", "steps ="),
     "bad face": (_edit('fixed = "bottom"', 'fixed = ["bottom", "side"]'), "boundary.fixed", '"w+"', "fixed ="),
-    "node outside grid": (_edit("node = [2, 1, 3]", "node = [2, 1, 4]"), "loads[0].node", "inside the grid",
-                          "node ="),
+    "node outside grid": (_edit("node = [2, 1, 3]", "node = [2, 1, 4]"), "loads[0].node", "inside the grid", "node ="),
     "bad integrator": (_edit('name = "symplectic"', 'name = "leapfrog"'), "integrator.name", '"rk4"', "leapfrog"),
-    "option of another integrator": (_edit("steps = 10", "steps = 10\ncg_iters = 5"), "integrator.cg_iters",
-                                     "options of symplectic: none", "cg_iters"),
-    "auto dt for implicit": (_edit('name = "symplectic"', 'name = "implicit"'), "integrator.dt",
-                             '"auto" needs an explicit integrator', "dt ="),
+    "option of another integrator": (
+        _edit("steps = 10", "steps = 10\ncg_iters = 5"),
+        "integrator.cg_iters",
+        "options of symplectic: none",
+        "cg_iters",
+    ),
+    "auto dt for implicit": (
+        _edit('name = "symplectic"', 'name = "implicit"'),
+        "integrator.dt",
+        '"auto" needs an explicit integrator',
+        "dt =",
+    ),
     "bad dtype": (_edit("steps = 10", 'steps = 10\ndtype = "float16"'), "integrator.dtype", '"float64"', "dtype"),
-    "negative stiffness": (_edit("axis = 40.0", "axis = -40.0"), "material.stiffness", "a number >= 0",
-                           "stiffness ="),
-    "both mass and density": (_edit("density = 1000.0", "density = 1000.0\nmass = 1.0"), "mass.density",
-                              "exactly one of mass or density", "density ="),
-    "drag path backwards": (GOOD + "\n[[drags]]\nnodes = [[2, 1, 1]]\npath = [[0.1, [0, 0, 0]], [0.0, [0, 0, 0]]]\n",
-                            "drags[0].path", "strictly increasing", "path ="),
-    "record_every zero": (_edit("record_every = 3", "record_every = 0"), "output.record_every", "an integer >= 1",
-                          "record_every"),
+    "negative stiffness": (_edit("axis = 40.0", "axis = -40.0"), "material.stiffness", "a number >= 0", "stiffness ="),
+    "both mass and density": (
+        _edit("density = 1000.0", "density = 1000.0\nmass = 1.0"),
+        "mass.density",
+        "exactly one of mass or density",
+        "density =",
+    ),
+    "drag path backwards": (
+        GOOD + "\n[[drags]]\nnodes = [[2, 1, 1]]\npath = [[0.1, [0, 0, 0]], [0.0, [0, 0, 0]]]\n",
+        "drags[0].path",
+        "strictly increasing",
+        "path =",
+    ),
+    "record_every zero": (
+        _edit("record_every = 3", "record_every = 0"),
+        "output.record_every",
+        "an integer >= 1",
+        "record_every",
+    ),
 }
 
 
@@ -374,13 +428,20 @@ def test_missing_scene_file(tmp_path, capsys):
 def test_load_scene_raises_config_error(tmp_path):
     with pytest.raises(ConfigError) as info:
         load_scene(write(tmp_path, _edit('dt = "auto"', "dt = 0")))
-    assert info.value.key == "integrator.dt" and info.value.line == line_containing(TINY, "dt =") and info.value.file.endswith("scene.toml")
+    assert (
+        info.value.key == "integrator.dt"
+        and info.value.line == line_containing(TINY, "dt =")
+        and info.value.file.endswith("scene.toml")
+    )
 
 
 def test_bad_scene_subprocess_has_no_traceback(tmp_path):
     path = write(tmp_path, _edit("steps = 10", "steps = 1.5"), "bad.toml")
-    proc = subprocess.run([sys.executable, "-m", "torchdeform", "run", str(path), "--out", str(tmp_path / "o")],
-                          capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, "-m", "torchdeform", "run", str(path), "--out", str(tmp_path / "o")],
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 2
     assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
     line = line_containing(TINY, "steps =")
@@ -399,7 +460,7 @@ def test_cli_bad_device_is_one_line(device, tmp_path, capsys):
 
 @pytest.mark.parametrize("device", ["foo", "meta", "xpu"])
 def test_scene_device_that_cannot_compute_names_its_line(device, tmp_path, capsys):
-    path = write(tmp_path, TINY.replace('[integrator]\n', f'[integrator]\ndevice = "{device}"\n'))
+    path = write(tmp_path, TINY.replace("[integrator]\n", f'[integrator]\ndevice = "{device}"\n'))
     assert cli.main(["run", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
     err = capsys.readouterr().err
     line = line_containing(path.read_text(), "device =")

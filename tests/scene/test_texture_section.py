@@ -1,4 +1,5 @@
 """The [texture] section: textured.png of the final surfaces; its block table; bad input is exit 2."""
+
 from __future__ import annotations
 
 import math
@@ -25,16 +26,22 @@ def test_texture_section_writes_a_textured_image(tmp_path):
     assert tex["blocks"] == [math.ceil(e / 8) for e in extent] and tex["pieces"] == 2
     assert tex["seams"]["method"] == "3d" and tex["seams"]["seam_after"] < tex["seams"]["seam_before"]
     from matplotlib.image import imread
+
     img = imread(out / "textured.png")[..., :3]
     body_px = (img < 0.98).any(2)
-    assert 0.05 < body_px.mean() < 0.9                                        # the body is drawn
-    assert img[body_px][:, 0].mean() > img[body_px][:, 1].mean()              # liver red
+    assert 0.05 < body_px.mean() < 0.9  # the body is drawn
+    assert img[body_px][:, 0].mean() > img[body_px][:, 1].mean()  # liver red
 
 
-@pytest.mark.parametrize("text, key", [('exemplar = "liver:16"\nblock = 32', "texture.block"),
-                                       ('exemplar = "missing.npy"', "exemplar"),
-                                       ('exemplar = "liver:16"\nvoxel = -1.0', "texture.voxel"),
-                                       ('exemplar = "liver:16"\nseams = "poisson"', "texture.seams")])
+@pytest.mark.parametrize(
+    "text, key",
+    [
+        ('exemplar = "liver:16"\nblock = 32', "texture.block"),
+        ('exemplar = "missing.npy"', "exemplar"),
+        ('exemplar = "liver:16"\nvoxel = -1.0', "texture.voxel"),
+        ('exemplar = "liver:16"\nseams = "poisson"', "texture.seams"),
+    ],
+)
 def test_bad_texture_sections(tmp_path, capsys, text, key):
     path = write(tmp_path, body() + f"\n[texture]\n{text}\n" + run_part(steps=2))
     assert cli.main(["run", str(path), "--out", str(tmp_path / "o")]) == 2

@@ -1,4 +1,5 @@
 """Scenes with a ``[volume]`` section: the volume is warped and rendered before and after."""
+
 import pytest
 
 from torchdeform.errors import ConfigError
@@ -6,6 +7,7 @@ from torchdeform.errors import ConfigError
 
 def test_scene_with_volume_writes_renders(tmp_path):
     from torchdeform.scene import load_scene, run_scene
+
     text = """
 [grid]
 shape = [3, 3, 3]

@@ -1,4 +1,5 @@
 """Adaptive steps (torchdeform.sim.adaptive) against analytic solutions and a tight reference run."""
+
 from __future__ import annotations
 
 import math
@@ -59,15 +60,19 @@ def test_rtol_gives_the_analytic_oscillation_to_the_tolerance():
         err = float((rec["x"][:, 0, 2, 0, 0, 1] - exact).abs().max()) / 0.1
         assert rtol / 10 <= err <= 10 * rtol, (rtol, err)
         assert out.t == pytest.approx(10.0, abs=1e-12)
-    assert adaptive.stats["max_h"] <= 0.9 * math.sqrt(3) / 1.0 + 1e-12      # the stability cap
+    assert adaptive.stats["max_h"] <= 0.9 * math.sqrt(3) / 1.0 + 1e-12  # the stability cap
 
 
 def body(drag: bool):
     grid = td.Grid((4, 4, 4), spacing=0.01, topology=26)
-    extra = ({"drags": [td.Drag(grid.index_mask([(3, 2, 2)]), offset=(0.004, 0.002, 0.0), period=0.1)]} if drag else
-             {"loads": [td.PointForce((3, 1, 1), (-0.05, 0.02, 0.0), ramp=0.02)]})
-    return td.Model(grid, stiffness=50.0, damping=0.02, mass=1e-3, fixed=grid.face("bottom"), dtype=torch.float64,
-                    **extra)
+    extra = (
+        {"drags": [td.Drag(grid.index_mask([(3, 2, 2)]), offset=(0.004, 0.002, 0.0), period=0.1)]}
+        if drag
+        else {"loads": [td.PointForce((3, 1, 1), (-0.05, 0.02, 0.0), ramp=0.02)]}
+    )
+    return td.Model(
+        grid, stiffness=50.0, damping=0.02, mass=1e-3, fixed=grid.face("bottom"), dtype=torch.float64, **extra
+    )
 
 
 @pytest.mark.parametrize("drag", [False, True], ids=["load", "drag"])
@@ -75,13 +80,21 @@ def test_global_error_follows_the_tolerance_on_the_load_and_drag_scenes(drag):
     """Positions every 10 ms over 0.1 s against Dormand-Prince at rtol 1e-10, relative to the largest
     displacement: Bogacki-Shampine's error stays within 10x of rtol, and steps get rejected on the way."""
     model = body(drag)
-    _, ref = td.simulate(model, model.rest_state(), 0.01, 10, integrator=td.Adaptive(rtol=1e-10, pair="dormand_prince"),
-                         record_every=1, warn=False)
+    _, ref = td.simulate(
+        model,
+        model.rest_state(),
+        0.01,
+        10,
+        integrator=td.Adaptive(rtol=1e-10, pair="dormand_prince"),
+        record_every=1,
+        warn=False,
+    )
     amp = float((ref["x"] - model.X).abs().max())
     for rtol in (1e-2, 1e-4, 1e-6):
         adaptive = td.Adaptive(rtol=rtol)
-        _, rec = td.simulate(model, model.rest_state(), 0.01, 10, rtol=None, integrator=adaptive, record_every=1,
-                             warn=False)
+        _, rec = td.simulate(
+            model, model.rest_state(), 0.01, 10, rtol=None, integrator=adaptive, record_every=1, warn=False
+        )
         err = float((rec["x"] - ref["x"]).abs().max()) / amp
         assert rtol / 10 <= err <= 10 * rtol, (rtol, err)
     assert adaptive.stats["accepted"] > 10

@@ -4,6 +4,7 @@ Oracles: the unrolled gradient (autograd through every CG iteration, CG run to c
 both are gradients of the same function), central finite differences, and the bytes autograd
 holds for the backward (saved-tensor hooks).
 """
+
 import weakref
 
 import pytest
@@ -35,8 +36,18 @@ def _body(per_spring=False, damping=True, drag=False, home=False, shape=(4, 4, 5
     drags = [td.Drag(grid.face("top"), offset=(0.002, 0.001, 0.0), ramp=0.05)] if drag else None
 
     def make(k, c, m):
-        return td.Model(grid, stiffness=k, damping=c, mass=m, gravity=(-9.81, 0, 0), fixed=grid.face("bottom"),
-                        drags=drags, home=20.0 if home else None, dtype=F64)
+        return td.Model(
+            grid,
+            stiffness=k,
+            damping=c,
+            mass=m,
+            gravity=(-9.81, 0, 0),
+            fixed=grid.face("bottom"),
+            drags=drags,
+            home=20.0 if home else None,
+            dtype=F64,
+        )
+
     with torch.no_grad():
         dt = 20 * td.time_step_bound(make(k, c, m), "symplectic")
 
@@ -46,6 +57,7 @@ def _body(per_spring=False, damping=True, drag=False, home=False, shape=(4, 4, 5
         for _ in range(steps):
             s = integrator.step(model, s, dt)
         return 1e3 * (P * (s.x - X)).sum() + (Q * s.v).sum()
+
     params = {"k": k, "c": c, "m": m, "x0": x0, "v0": v0}
     return loss, {n: p for n, p in params.items() if p is not None}
 
@@ -65,12 +77,16 @@ def test_gradient_option_is_validated():
         td.ImplicitEuler(gradient="adjoint", adjoint_tol=-1.0)
 
 
-@pytest.mark.parametrize("per_spring,damping,drag,home,newton_iters", [
-    (False, True, False, False, 0),
-    (False, False, True, False, 2),
-    (True, True, True, False, 0),
-    (True, True, False, True, 2),
-], ids=["per-direction-damped", "undamped-drag-newton2", "per-spring-drag", "per-spring-home-newton2"])
+@pytest.mark.parametrize(
+    "per_spring,damping,drag,home,newton_iters",
+    [
+        (False, True, False, False, 0),
+        (False, False, True, False, 2),
+        (True, True, True, False, 0),
+        (True, True, False, True, 2),
+    ],
+    ids=["per-direction-damped", "undamped-drag-newton2", "per-spring-drag", "per-spring-home-newton2"],
+)
 def test_adjoint_equals_unrolled_gradients(per_spring, damping, drag, home, newton_iters):
     """Stiffness and damping (per direction or per spring), node masses, x0 and v0: the adjoint
     gradient of a 4-step rollout at 20 x the explicit bound equals the unrolled one to 1e-8."""
@@ -121,8 +137,16 @@ def test_forward_is_the_same_to_the_bit():
     exactly the unrolled ones (newton_iters=2, a drag, damping)."""
     loss, params = _body(damping=True, drag=True)
     grid = td.Grid((4, 4, 5), spacing=0.01, topology=26)
-    model = td.Model(grid, stiffness=50.0, damping=0.05, mass=1e-3, gravity=(-9.81, 0, 0), fixed=grid.face("bottom"),
-                     drags=[td.Drag(grid.face("top"), offset=(0.002, 0, 0), ramp=0.05)], dtype=F64)
+    model = td.Model(
+        grid,
+        stiffness=50.0,
+        damping=0.05,
+        mass=1e-3,
+        gravity=(-9.81, 0, 0),
+        fixed=grid.face("bottom"),
+        drags=[td.Drag(grid.face("top"), offset=(0.002, 0, 0), ramp=0.05)],
+        dtype=F64,
+    )
     x0 = params["x0"].detach()
 
     def run(gradient, no_grad):
@@ -132,6 +156,7 @@ def test_forward_is_the_same_to_the_bit():
             for _ in range(3):
                 s = integ.step(model, s, 0.01)
         return s
+
     for no_grad in (True, False):
         a, b = run("unrolled", no_grad), run("adjoint", no_grad)
         assert not b.x.requires_grad
@@ -158,6 +183,7 @@ def _held_for_backward(fn):
         box = _Box(t)
         boxes.add(box)
         return box
+
     with torch.autograd.graph.saved_tensors_hooks(pack, lambda box: box.t):
         out = fn()
     storages = {}
@@ -171,8 +197,9 @@ def _rollout(gradient, steps, cg_iters, shape=(6, 6, 6), topology=6, **kw):
     grid = td.Grid(shape, spacing=0.01, topology=topology)
     k = torch.tensor(50.0, dtype=F64, requires_grad=True)
     c = torch.tensor(0.05, dtype=F64, requires_grad=True)
-    model = td.Model(grid, stiffness=k, damping=c, density=1000.0, gravity=(-9.81, 0, 0), fixed=grid.face("bottom"),
-                     dtype=F64)
+    model = td.Model(
+        grid, stiffness=k, damping=c, density=1000.0, gravity=(-9.81, 0, 0), fixed=grid.face("bottom"), dtype=F64
+    )
     with torch.no_grad():
         dt = 20 * td.time_step_bound(model, "symplectic")
     integ = td.ImplicitEuler(cg_iters=cg_iters, cg_tol=0.0, gradient=gradient, **kw)
@@ -182,6 +209,7 @@ def _rollout(gradient, steps, cg_iters, shape=(6, 6, 6), topology=6, **kw):
         for _ in range(steps):
             s = integ.step(model, s, dt)
         return (s.x * s.x).sum()
+
     return integ, (k, c), run
 
 
@@ -213,8 +241,10 @@ def test_adjoint_holds_five_times_less_for_the_backward():
             assert integ.last_cg[0] == 50
         per_step = (held[gradient, 50] - held[gradient, 25]) / 25
         held[gradient] = per_step
-        print(f"{gradient}: {held[gradient, 50] / 2**20:.1f} MiB saved for the backward of 50 steps "
-              f"({count} storages), {per_step / 2**20:.2f} MiB per step")
+        print(
+            f"{gradient}: {held[gradient, 50] / 2**20:.1f} MiB saved for the backward of 50 steps "
+            f"({count} storages), {per_step / 2**20:.2f} MiB per step"
+        )
     print(f"ratio {held['unrolled', 50] / held['adjoint', 50]:.1f}, per step {held['unrolled'] / held['adjoint']:.1f}")
     assert held["unrolled", 50] >= 5 * held["adjoint", 50]
     assert held["unrolled"] >= 5 * held["adjoint"] > 0
@@ -257,8 +287,14 @@ def test_implicit_solve_of_a_dense_system():
 # ---------------------------------------------------------------- projective dynamics
 def _projective(solver, gradient, **kw):
     """Projective dynamics run to convergence (so unrolled and adjoint differentiate the same step)."""
-    kw = {"iterations": 3000, "tol": 1e-14, "adjoint_iters": 5000, "adjoint_tol": 1e-14,
-          **({"cg_iters": 200, "cg_tol": 1e-9} if solver == "cg" else {}), **kw}
+    kw = {
+        "iterations": 3000,
+        "tol": 1e-14,
+        "adjoint_iters": 5000,
+        "adjoint_tol": 1e-14,
+        **({"cg_iters": 200, "cg_tol": 1e-9} if solver == "cg" else {}),
+        **kw,
+    }
     return td.ProjectiveDynamics(solver=solver, gradient=gradient, **kw)
 
 
@@ -307,16 +343,25 @@ def test_projective_adjoint_memory_does_not_grow_with_iterations():
         for iterations in (5, 40):
             grid = td.Grid((4, 4, 4), spacing=0.01, topology=26)
             k = torch.tensor(50.0, dtype=F64, requires_grad=True)
-            model = td.Model(grid, stiffness=k, damping=0.05, density=1000.0, gravity=(-9.81, 0, 0),
-                             fixed=grid.face("bottom"), dtype=F64)
-            integ = td.ProjectiveDynamics(iterations=iterations, solver="jacobi", gradient=gradient, adjoint_iters=7,
-                                          adjoint_tol=0.0)
+            model = td.Model(
+                grid,
+                stiffness=k,
+                damping=0.05,
+                density=1000.0,
+                gravity=(-9.81, 0, 0),
+                fixed=grid.face("bottom"),
+                dtype=F64,
+            )
+            integ = td.ProjectiveDynamics(
+                iterations=iterations, solver="jacobi", gradient=gradient, adjoint_iters=7, adjoint_tol=0.0
+            )
 
             def run():
                 s = model.rest_state()
                 for _ in range(2):
                     s = integ.step(model, s, 0.02)
                 return (s.x * s.x).sum()
+
             L, held[gradient, iterations], _ = _held_for_backward(run)
             torch.autograd.grad(L, k)
             assert integ.last_iterations == iterations
@@ -334,7 +379,7 @@ def test_projective_gradient_options():
     pd = td.ProjectiveDynamics()
     assert [pd.gradient_for(s) for s in ("cholesky", "cg", "jacobi")] == ["adjoint", "unrolled", "unrolled"]
     loss, _ = _body(shape=(3, 3, 3))
-    with pytest.raises(td.ConfigError, match="projective.gradient"):     # a cholesky solve has no unrolled gradient
+    with pytest.raises(td.ConfigError, match="projective.gradient"):  # a cholesky solve has no unrolled gradient
         loss(td.ProjectiveDynamics(solver="cholesky", gradient="unrolled"), 1)
-    with torch.no_grad():                                                 # nothing to differentiate: fine
+    with torch.no_grad():  # nothing to differentiate: fine
         loss(td.ProjectiveDynamics(solver="cholesky", gradient="unrolled"), 1)

@@ -3,6 +3,7 @@
 The compiled engine runs its packed loop with the uncompiled packed step (``Engine(compile=False)``):
 the same code path without a 3-60 s compile; the eager grid-layout step is the oracle.
 """
+
 from __future__ import annotations
 
 import pytest
@@ -17,18 +18,29 @@ from torchdeform.sim.engine import Engine, gradient_needed
 def body(n=4, dtype=torch.float64, drags=True):
     grid = td.Grid((n, n, n), spacing=0.01, topology=26)
     drag = [td.Drag(grid.index_mask([(n - 1, n // 2, n // 2)]), [(0.0, (0.0, 0.0, 0.0)), (0.02, (0.004, 0.002, 0.0))])]
-    return td.Model(grid, stiffness=50.0, damping=0.05, density=1000.0, gravity=(-9.81, 0, 0),
-                    fixed=grid.face("bottom"), drags=drags and drag or [], decay=5.0, dtype=dtype)
+    return td.Model(
+        grid,
+        stiffness=50.0,
+        damping=0.05,
+        density=1000.0,
+        gravity=(-9.81, 0, 0),
+        fixed=grid.face("bottom"),
+        drags=drags and drag or [],
+        decay=5.0,
+        dtype=dtype,
+    )
 
 
 def run(model, engine, steps=30, integrator=None, **kw):
     dt = 0.5 * td.suggest_dt(model)
-    return td.simulate(model, model.rest_state(), dt, steps, integrator, record_every=7, engine=engine, warn=False,
-                       **kw)
+    return td.simulate(
+        model, model.rest_state(), dt, steps, integrator, record_every=7, engine=engine, warn=False, **kw
+    )
 
 
-@pytest.mark.parametrize("integrator", [td.SymplecticEuler(), td.RK4(), td.ImplicitEuler(cg_iters=15)],
-                         ids=["symplectic", "rk4", "implicit"])
+@pytest.mark.parametrize(
+    "integrator", [td.SymplecticEuler(), td.RK4(), td.ImplicitEuler(cg_iters=15)], ids=["symplectic", "rk4", "implicit"]
+)
 def test_compiled_engine_equals_eager(integrator):
     model = body()
     ref, rec_ref = run(model, "eager", integrator=integrator)
@@ -75,7 +87,7 @@ def test_auto_stays_native_when_a_compile_would_not_pay(drags):
     out, rec = run(model, engine, steps=40)
     assert engine.ran == "native" and engine.summary()["ran"] == "native"
     assert ("<= 2 x ~8 s compile" if drags else "one fused kernel (nothing to compile)") in engine.reason
-    assert (engine.step.fused is None) == drags                   # drags keep the update in torch
+    assert (engine.step.fused is None) == drags  # drags keep the update in torch
     assert torch.allclose(out.x, ref.x, atol=1e-12, rtol=0) and torch.allclose(out.v, ref.v, atol=1e-10, rtol=0)
     assert torch.allclose(rec["x"], rec_ref["x"], atol=1e-12, rtol=0)
     engine = Engine("native")
@@ -101,9 +113,9 @@ def test_auto_decides_native_then_compiled_by_hand():
     assert engine.choice == "native" and engine.force_form is None
     assert not engine.decide_compiled([0.01, 0.006, 0.006], 10_000)
     assert engine.decide_compiled([0.01, 0.006, 0.006], 11_000) and engine.native_ms == pytest.approx(6.0)
-    assert not engine.decide_compiled([0.01, 0.006, 0.006], 10**9, fused=True)     # nothing left to compile
+    assert not engine.decide_compiled([0.01, 0.006, 0.006], 10**9, fused=True)  # nothing left to compile
     assert "one fused kernel" in engine.reason
-    engine = Engine("auto")                                      # an implicit step compiles directly
+    engine = Engine("auto")  # an implicit step compiles directly
     assert engine.decide(td.ImplicitEuler(), [0.05, 0.03, 0.03], 200_000, threads=2, model=model)
     assert engine.choice == "compiled"
 
@@ -111,9 +123,13 @@ def test_auto_decides_native_then_compiled_by_hand():
 def test_auto_picks_the_gather_form_only_when_the_steps_to_come_repay_its_compile():
     """Break-even by hand: gather saves eager_ms / 20 per step and costs 40 - 15 = 25 s more compile,
     paid back twice: 50 s / (30 ms / 20) = 33,333 steps."""
-    eager_s = [0.05, 0.03, 0.03]                          # the first step is a warm-up
-    for remaining, threads, form in [(2_000, 2, "reduction"), (33_000, 2, "reduction"), (34_000, 2, "gather"),
-                                     (200_000, 1, None)]:
+    eager_s = [0.05, 0.03, 0.03]  # the first step is a warm-up
+    for remaining, threads, form in [
+        (2_000, 2, "reduction"),
+        (33_000, 2, "reduction"),
+        (34_000, 2, "gather"),
+        (200_000, 1, None),
+    ]:
         engine = Engine("auto")
         assert engine.decide(td.SymplecticEuler(), eager_s, remaining, threads)
         assert engine.eager_ms == pytest.approx(30.0) and engine.force_form == form, (remaining, threads)
@@ -168,8 +184,8 @@ def test_a_callback_that_reads_no_positions_gets_the_packed_state():
     run(model, Engine("compiled", compile=False), steps=12, callback=Readings())
     shapes = {s for _, s, _ in seen}
     grid = (1, 3, 4, 4, 4)
-    assert any(len(s) == 3 for s in shapes)                  # packed (B, 3, P) between the looks
-    assert grid in shapes                                     # unpacked where the run looks (step 7, 10, 12)
+    assert any(len(s) == 3 for s in shapes)  # packed (B, 3, P) between the looks
+    assert grid in shapes  # unpacked where the run looks (step 7, 10, 12)
     assert [s for s, _, _ in seen] == list(range(1, 13))
     seen.clear()
     run(model, Engine("compiled", compile=False), steps=12, callback=Positions())
@@ -180,6 +196,7 @@ def test_scene_engine_key_and_summary(tmp_path):
     import json
 
     from torchdeform.scene.run import load_scene, run_scene
+
     text = """
 [grid]
 shape = [4, 4, 4]
@@ -219,20 +236,21 @@ def test_the_compiled_engine_checks_its_packed_state_for_non_finite_values(where
     loads[0, 1, 2, 2, 2] = float("inf") if where == "v" else float("nan")
     with pytest.raises(td.DivergenceError, match="velocity|position") as err:
         run(model, Engine("compiled", compile=False), steps=30, loads=loads)
-    assert err.value.step == 10                                 # check_every = 10, on the packed state
+    assert err.value.step == 10  # check_every = 10, on the packed state
 
 
 def test_a_packed_check_sees_the_kinetic_energy_of_the_unpacked_state():
     from torchdeform.sim.compiled import compiled_step
     from torchdeform.sim.stability import DivergenceMonitor
+
     model = body(drags=False)
     step = compiled_step(td.SymplecticEuler(), model, 1e-4, enable=False)
     state = model.rest_state()
     state = td.State(state.x, torch.randn_like(state.v), 0.0)
     monitor = DivergenceMonitor(model, 1e-4, td.SymplecticEuler())
-    ke = float((0.5 * model.mass * state.v * state.v).sum())         # the oracle: grid layout
+    ke = float((0.5 * model.mass * state.v * state.v).sum())  # the oracle: grid layout
     monitor.limit = 1.001 * ke
-    monitor.check(step.packed.pack_state(state), 1, mass=step.packed.mass)       # just under: passes
+    monitor.check(step.packed.pack_state(state), 1, mass=step.packed.mass)  # just under: passes
     monitor.limit = 0.999 * ke
     with pytest.raises(td.DivergenceError, match="kinetic energy"):
         monitor.check(step.packed.pack_state(state), 1, mass=step.packed.mass)

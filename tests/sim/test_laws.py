@@ -4,6 +4,7 @@ Oracles: :class:`tests.oracles.edge_list.EdgeList` loops over every spring with 
 here in numpy (not the library's formulas); central finite differences of the forces; the static
 equilibrium of a stretched bar found by scipy's trust-region Newton minimiser on that oracle energy.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -22,9 +23,12 @@ SHAPE, SPACING = (3, 4, 3), (0.010, 0.012, 0.009)
 # ------------------------------------------------------------------ numpy laws (independent)
 def np_law(name, params):
     """(tension, slope, energy) of law ``name`` in numpy; ``params[s]`` are spring ``s``'s parameters."""
+
     def strain(l, l0):
         return l / l0 - 1.0
+
     if name == "exponential":
+
         def tension(l, l0, s, k):
             b = params[s][0]
             return k[s] * l0 * (np.exp(b * strain(l, l0)) - 1.0) / b
@@ -34,12 +38,13 @@ def np_law(name, params):
 
         def energy(l, l0, s, k):
             b, e = params[s][0], strain(l, l0)
-            return k[s] * l0 * l0 * (np.exp(b * e) - 1.0 - b * e) / b ** 2
+            return k[s] * l0 * l0 * (np.exp(b * e) - 1.0 - b * e) / b**2
     else:
+
         def tension(l, l0, s, k):
             c2, c3 = params[s]
             e = strain(l, l0)
-            return k[s] * l0 * (e + c2 * e * abs(e) + c3 * e ** 3)
+            return k[s] * l0 * (e + c2 * e * abs(e) + c3 * e**3)
 
         def slope(l, l0, s, k):
             c2, c3 = params[s]
@@ -49,7 +54,8 @@ def np_law(name, params):
         def energy(l, l0, s, k):
             c2, c3 = params[s]
             e = strain(l, l0)
-            return k[s] * l0 * l0 * (e * e / 2.0 + c2 * abs(e) ** 3 / 3.0 + c3 * e ** 4 / 4.0)
+            return k[s] * l0 * l0 * (e * e / 2.0 + c2 * abs(e) ** 3 / 3.0 + c3 * e**4 / 4.0)
+
     return tension, slope, energy
 
 
@@ -64,14 +70,25 @@ def setup(name, seed=0, topology=26):
         params = rng.uniform(2.0, 20.0, (n, 1))
     else:
         params = rng.uniform(0.0, 30.0, (n, 2))
-    field = (lambda vals: torch.tensor(el.per_spring_tensor(vals, grid.directions)))
-    law = (td.Exponential(field(params[:, 0])) if name == "exponential"
-           else td.Polynomial(field(params[:, 0]), field(params[:, 1])))
+    field = lambda vals: torch.tensor(el.per_spring_tensor(vals, grid.directions))
+    law = (
+        td.Exponential(field(params[:, 0]))
+        if name == "exponential"
+        else td.Polynomial(field(params[:, 0]), field(params[:, 1]))
+    )
     model = td.Model(grid, stiffness=field(k), mass=1e-3, law=law, dtype=torch.float64)
     x = model.X + torch.tensor(rng.normal(0, 0.15, (1, 3) + SHAPE)) * torch.tensor(SPACING).view(1, 3, 1, 1, 1)
     tension, slope, energy = np_law(name, params)
-    return model, x, el, (lambda l, l0, s: tension(l, l0, s, k), lambda l, l0, s: slope(l, l0, s, k),
-                          lambda l, l0, s: energy(l, l0, s, k))
+    return (
+        model,
+        x,
+        el,
+        (
+            lambda l, l0, s: tension(l, l0, s, k),
+            lambda l, l0, s: slope(l, l0, s, k),
+            lambda l, l0, s: energy(l, l0, s, k),
+        ),
+    )
 
 
 def packed_forces(model, x, form):
@@ -87,9 +104,12 @@ def test_forces_equal_the_edge_list(name):
     model, x, el, (tension, _, _) = setup(name)
     ref = el.law_forces(el.from_field(x[0]), tension)
     scale = np.abs(ref).max()
-    for label, F in (("slices", model.spring_forces(x, None)), ("conv", model.spring_forces(x, None, "conv")),
-                     ("gather", packed_forces(model, x, "gather")),
-                     ("reduction", packed_forces(model, x, "reduction"))):
+    for label, F in (
+        ("slices", model.spring_forces(x, None)),
+        ("conv", model.spring_forces(x, None, "conv")),
+        ("gather", packed_forces(model, x, "gather")),
+        ("reduction", packed_forces(model, x, "reduction")),
+    ):
         err = np.abs(el.from_field(F[0]) - ref).max() / scale
         assert err < 1e-10, (label, err)
 
@@ -156,8 +176,11 @@ def test_law_parameters_are_differentiable():
         return m.spring_forces(x, None) + p.spring_forces(x, None)
 
     S = grid.S
-    args = (torch.full((S,), 100.0, dtype=torch.float64) + torch.arange(S), torch.linspace(1, 12, S, dtype=torch.float64),
-            torch.linspace(1, 40, S, dtype=torch.float64))
+    args = (
+        torch.full((S,), 100.0, dtype=torch.float64) + torch.arange(S),
+        torch.linspace(1, 12, S, dtype=torch.float64),
+        torch.linspace(1, 40, S, dtype=torch.float64),
+    )
     assert torch.autograd.gradcheck(forces, tuple(a.requires_grad_() for a in args), eps=1e-6, atol=1e-7)
 
 
@@ -174,8 +197,9 @@ def bar_energy_oracle(el, tension_energy, fixed, load):
     def f(y):
         x = full(y)
         d = x[el.a] - x[el.b]
-        return sum(energy(float(np.linalg.norm(d[s])), el.l0[s], s) for s in range(len(el.springs))) \
-            - float((load * x).sum())
+        return sum(energy(float(np.linalg.norm(d[s])), el.l0[s], s) for s in range(len(el.springs))) - float(
+            (load * x).sum()
+        )
 
     def g(y):
         return -(el.law_forces(full(y), tension) + load)[free].ravel()
@@ -184,6 +208,7 @@ def bar_energy_oracle(el, tension_energy, fixed, load):
         H = el.law_hessian(full(y), tension, slope)
         idx = (3 * free[:, None] + np.arange(3)).ravel()
         return H[np.ix_(idx, idx)]
+
     return f, g, h, free
 
 
@@ -195,6 +220,7 @@ def test_implicit_euler_with_newton_reaches_the_static_solution_of_a_stretched_b
     Newton iterations converge (error falls by orders of magnitude), and Hooke's law gives a
     clearly different bar."""
     from scipy.optimize import minimize
+
     shape, h = (2, 2, 8), 0.01
     grid = td.Grid(shape, h, 26)
     el = EdgeList(shape, (h, h, h), 26)
@@ -203,7 +229,7 @@ def test_implicit_euler_with_newton_reaches_the_static_solution_of_a_stretched_b
     law = td.Exponential(8.0) if name == "exponential" else td.Polynomial(2.0, 20.0)
     k = 100.0
     fixed_grid = grid.face("w-")
-    pull = 2.5 if name == "exponential" else 2.0          # N on the far face, in total
+    pull = 2.5 if name == "exponential" else 2.0  # N on the far face, in total
     end = grid.face("w+")
     load = torch.zeros((1, 3) + shape, dtype=torch.float64)
     load[0, 2][end] = pull / int(end.sum())
@@ -211,10 +237,16 @@ def test_implicit_euler_with_newton_reaches_the_static_solution_of_a_stretched_b
     fixed = np.array([bool(fixed_grid[ijk]) for ijk in el.nodes])
     tension, slope, energy = np_law(name, params)
     kk = np.full(n, k)
-    f, g, hess, free = bar_energy_oracle(el, (lambda l, l0, s: tension(l, l0, s, kk),
-                                              lambda l, l0, s: slope(l, l0, s, kk),
-                                              lambda l, l0, s: energy(l, l0, s, kk)),
-                                         fixed, el.from_field(load[0]))
+    f, g, hess, free = bar_energy_oracle(
+        el,
+        (
+            lambda l, l0, s: tension(l, l0, s, kk),
+            lambda l, l0, s: slope(l, l0, s, kk),
+            lambda l, l0, s: energy(l, l0, s, kk),
+        ),
+        fixed,
+        el.from_field(load[0]),
+    )
     res = minimize(f, el.X[free].ravel(), jac=g, hess=hess, method="trust-exact", options={"gtol": 1e-13})
     static = el.X.copy()
     static[free] = res.x.reshape(-1, 3)
@@ -226,17 +258,20 @@ def test_implicit_euler_with_newton_reaches_the_static_solution_of_a_stretched_b
         integ = td.ImplicitEuler(cg_iters=500, cg_tol=1e-13, newton_iters=newton)
         s = integ.step(model, model.rest_state(), dt=1000.0, loads=load)
         errors.append(np.abs(el.from_field(s.x[0]) - static).max() / (h * shape[2]))
-    print(f"\n{name}: bar strain {strain:.3f}; error / bar length after 1, 3, 6, 31 Newton solves: "
-          + ", ".join(f"{e:.1e}" for e in errors))
+    print(
+        f"\n{name}: bar strain {strain:.3f}; error / bar length after 1, 3, 6, 31 Newton solves: "
+        + ", ".join(f"{e:.1e}" for e in errors)
+    )
     assert errors[-1] < 1e-8
     assert errors[0] > 1e3 * errors[-1] and errors[2] < errors[1] < errors[0]
     hooke = td.Model(grid, stiffness=k, mass=1e-4, fixed=fixed_grid, dtype=torch.float64)
     s = td.ImplicitEuler(cg_iters=500, cg_tol=1e-13, newton_iters=30).step(hooke, hooke.rest_state(), 1000.0, load)
-    assert np.abs(el.from_field(s.x[0]) - static).max() / (h * shape[2]) > 0.01   # the law matters
+    assert np.abs(el.from_field(s.x[0]) - static).max() / (h * shape[2]) > 0.01  # the law matters
 
 
 def test_scene_keys_make_the_law(tmp_path):
     from torchdeform.scene.run import load_scene
+
     base = """
 [grid]
 shape = [3, 3, 3]
@@ -273,12 +308,20 @@ def test_compiled_step_runs_the_law():
     """The compiled fast path (packed layout, torch.compile) follows the law: 30 symplectic steps
     of a stretched, stiffening body agree with the eager grid-layout steps (float64)."""
     from torchdeform.sim.compiled import compiled_step
+
     grid = td.Grid((4, 4, 5), 0.01, 26)
-    model = td.Model(grid, stiffness=50.0, damping=0.02, mass=1e-3, law=td.Exponential(12.0),
-                     fixed=grid.face("w-"), dtype=torch.float64)
+    model = td.Model(
+        grid,
+        stiffness=50.0,
+        damping=0.02,
+        mass=1e-3,
+        law=td.Exponential(12.0),
+        fixed=grid.face("w-"),
+        dtype=torch.float64,
+    )
     s0 = model.rest_state()
-    s0.x[0, 2] *= 1.25                                               # 25 % stretch along W
-    dt = 0.5 * td.time_step_bound(model, "symplectic", x=s0.x)      # the bound at the stretched state
+    s0.x[0, 2] *= 1.25  # 25 % stretch along W
+    dt = 0.5 * td.time_step_bound(model, "symplectic", x=s0.x)  # the bound at the stretched state
     eager = s0
     for _ in range(30):
         eager = td.SymplecticEuler().step(model, eager, dt)
@@ -286,4 +329,4 @@ def test_compiled_step_runs_the_law():
     fast = step.run(s0, 30)
     assert step.compiled
     assert float((fast.x - eager.x).abs().max()) < 1e-12
-    assert float((eager.x - s0.x).abs().max()) > 1e-4                # it moved
+    assert float((eager.x - s0.x).abs().max()) > 1e-4  # it moved

@@ -1,4 +1,5 @@
 """Model terms, constraints, batching and the stiff/extreme cases, each with a defined outcome."""
+
 import math
 
 import pytest
@@ -19,13 +20,12 @@ def cube(n=3, topology=26, **kw):
 # ---------------------------------------------------------------- force terms
 def test_surface_force_total_is_traction_times_area():
     g = td.Grid((4, 5, 6), spacing=(0.01, 0.02, 0.03))
-    m = td.Model(g, stiffness=1.0, mass=1.0, dtype=f64,
-                 loads=[td.SurfaceForce("top", (-200.0, 0.0, 50.0))])
+    m = td.Model(g, stiffness=1.0, mass=1.0, dtype=f64, loads=[td.SurfaceForce("top", (-200.0, 0.0, 50.0))])
     F = m.external(0.0)
     area = (5 - 1) * 0.02 * (6 - 1) * 0.03
     assert F[0, 0].sum().item() == pytest.approx(-200.0 * area, rel=1e-12)
     assert F[0, 2].sum().item() == pytest.approx(50.0 * area, rel=1e-12)
-    assert bool((F[:, :, :-1] == 0).all())          # only the top layer is loaded
+    assert bool((F[:, :, :-1] == 0).all())  # only the top layer is loaded
 
 
 def test_point_force_ramp():
@@ -54,7 +54,7 @@ def test_home_and_anchor_springs_pull_back_to_rest():
     anchor = g.every_kth(3).to(f64)
     expected = -0.001 * (2.0 + 5.0 * anchor)
     assert torch.allclose(F, expected.expand_as(F), atol=1e-15)
-    assert int(anchor.sum()) == 9                         # (i+j+l) % 3 == 0 on 3^3
+    assert int(anchor.sum()) == 9  # (i+j+l) % 3 == 0 on 3^3
 
 
 def test_decay_is_exact_exponential_without_springs():
@@ -73,20 +73,30 @@ def test_free_fall_rk4_is_exact():
     s = m.rest_state()
     for _ in range(20):
         s = td.RK4().step(m, s, 0.005)
-    assert torch.allclose(s.x - m.X, torch.tensor([-0.5 * 9.81 * 0.1 ** 2, 0, 0], dtype=f64).view(1, 3, 1, 1, 1)
-                          .expand_as(s.x), atol=1e-14)
+    assert torch.allclose(
+        s.x - m.X, torch.tensor([-0.5 * 9.81 * 0.1**2, 0, 0], dtype=f64).view(1, 3, 1, 1, 1).expand_as(s.x), atol=1e-14
+    )
 
 
 # ---------------------------------------------------------------- constraints
-@pytest.mark.parametrize("integ", [td.ExplicitEuler(), td.SymplecticEuler(), td.DampedVerlet(0.1), td.RK4(),
-                                   td.ImplicitEuler()])
+@pytest.mark.parametrize(
+    "integ", [td.ExplicitEuler(), td.SymplecticEuler(), td.DampedVerlet(0.1), td.RK4(), td.ImplicitEuler()]
+)
 def test_fixed_nodes_stay_and_dragged_group_moves_rigidly(integ):
     g = td.Grid((4, 4, 4), spacing=0.01, topology=26)
     top = g.face("top")
-    grip = top & g.box_mask((0, 0.01, 0.01), (1, 0.02, 0.02))          # 4 top-centre nodes
+    grip = top & g.box_mask((0, 0.01, 0.01), (1, 0.02, 0.02))  # 4 top-centre nodes
     drag = td.Drag(grip, [(0.0, (0, 0, 0)), (0.01, (0.002, 0.001, 0.0)), (0.02, (0.002, 0.001, -0.001))])
-    m = td.Model(g, stiffness=20.0, damping=0.05, mass=1e-3, gravity=(-9.81, 0, 0),
-                 fixed=g.face("bottom"), drags=[drag], dtype=f64)
+    m = td.Model(
+        g,
+        stiffness=20.0,
+        damping=0.05,
+        mass=1e-3,
+        gravity=(-9.81, 0, 0),
+        fixed=g.face("bottom"),
+        drags=[drag],
+        dtype=f64,
+    )
     s = m.rest_state()
     dt = 0.2 * td.time_step_bound(m, "symplectic")
     n = int(0.015 / dt)
@@ -117,19 +127,21 @@ def test_batch_equals_separate_runs():
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_dtypes_run_and_agree(dtype):
     g = td.Grid((4, 4, 4), spacing=0.01)
-    m = td.Model(g, stiffness=20.0, damping=0.02, density=1000.0, gravity=(-9.81, 0, 0),
-                 fixed=g.face("bottom"), dtype=dtype)
+    m = td.Model(
+        g, stiffness=20.0, damping=0.02, density=1000.0, gravity=(-9.81, 0, 0), fixed=g.face("bottom"), dtype=dtype
+    )
     s, _ = td.simulate(m, m.rest_state(), td.suggest_dt(m), 50)
     assert s.x.dtype == dtype and bool(torch.isfinite(s.x).all())
-    m64 = td.Model(g, stiffness=20.0, damping=0.02, density=1000.0, gravity=(-9.81, 0, 0),
-                   fixed=g.face("bottom"), dtype=f64)
+    m64 = td.Model(
+        g, stiffness=20.0, damping=0.02, density=1000.0, gravity=(-9.81, 0, 0), fixed=g.face("bottom"), dtype=f64
+    )
     s64, _ = td.simulate(m64, m64.rest_state(), td.suggest_dt(m), 50)
     assert torch.allclose(s.x.double(), s64.x, atol=1e-6)
 
 
 def test_node_mask_body_outside_nodes_never_move():
     mask = torch.ones(4, 4, 4, dtype=torch.bool)
-    mask[2:, 2:, 2:] = False                       # an L-shaped body
+    mask[2:, 2:, 2:] = False  # an L-shaped body
     g = td.Grid((4, 4, 4), spacing=0.01, node_mask=mask)
     m = td.Model(g, stiffness=20.0, density=1000.0, gravity=(-9.81, 0, 0), fixed=g.face("bottom"), dtype=f64)
     assert g.num_springs < td.Grid((4, 4, 4)).num_springs
@@ -142,7 +154,7 @@ def test_node_mask_body_outside_nodes_never_move():
 def test_coincident_nodes_give_finite_forces_and_gradients():
     g, m = cube(damping=0.1)
     x = m.X.clone()
-    x[0, :, 1, 1, 1] = x[0, :, 1, 1, 2]            # two neighbours on top of each other
+    x[0, :, 1, 1, 1] = x[0, :, 1, 1, 2]  # two neighbours on top of each other
     x.requires_grad_(True)
     v = torch.zeros_like(x)
     F = m.forces(x, v)
@@ -158,12 +170,12 @@ def test_coincident_nodes_give_finite_forces_and_gradients():
 def test_inverted_cell_is_finite_and_implicit_solve_stays_definite():
     g, m = cube(n=3, stiffness=1e4, fixed=None)
     x = m.X.clone()
-    x[0, 0, 2, 1, 1] = m.X[0, 0, 0, 1, 1] - 0.005      # top-centre pushed through the bottom
+    x[0, 0, 2, 1, 1] = m.X[0, 0, 0, 1, 1] - 0.005  # top-centre pushed through the bottom
     s = td.State(x, torch.zeros_like(x))
     integ = td.ImplicitEuler(cg_iters=300, cg_tol=1e-10)
     for _ in range(20):
         s = integ.step(m, s, 1e-2)
-        assert integ.last_cg[1] <= 1e-10                # CG converged: the clamped matrix is SPD
+        assert integ.last_cg[1] <= 1e-10  # CG converged: the clamped matrix is SPD
     assert bool(torch.isfinite(s.x).all())
     e = m.energy(s)["total"].item()
     assert math.isfinite(e) and e <= m.energy(td.State(x, torch.zeros_like(x)))["total"].item()
@@ -233,8 +245,8 @@ def test_stiffness_per_direction_class():
 
 def test_density_gives_thin_masked_features_positive_mass():
     mask = torch.zeros(4, 4, 4, dtype=torch.bool)
-    mask[:, 1, 1] = True                                 # a one-node-thick rod
-    mask[0] = True                                       # on a plate
+    mask[:, 1, 1] = True  # a one-node-thick rod
+    mask[0] = True  # on a plate
     g = td.Grid((4, 4, 4), spacing=0.01, node_mask=mask)
     m = td.Model(g, stiffness=1.0, density=1000.0, fixed=g.face("bottom"), dtype=f64)
     assert bool((m.mass[0, 0][mask] > 0).all()) and bool((m.mass[0, 0][~mask] == 0).all())

@@ -5,6 +5,7 @@ list in test_stencil / test_physics) and :meth:`SymplecticEuler.step` on the gri
 are built by the system C compiler; without one the tests that need a kernel are skipped with
 the reason, and the fall-back is tested instead.
 """
+
 import pytest
 import torch
 
@@ -20,14 +21,23 @@ needs_cc = pytest.mark.skipif(native.unavailable() is not None, reason=f"no C ke
 def _body(topology=26, damping=0.05, mode="projected", dtype=F64, batch=1, per_spring=False, decay=None, box=False):
     node_mask = torch.ones(6, 5, 7, dtype=torch.bool)
     if not box:
-        node_mask[4:, 3:, :3] = False                               # an L-shaped body: holes in `inside`
+        node_mask[4:, 3:, :3] = False  # an L-shaped body: holes in `inside`
     grid = td.Grid((6, 5, 7), spacing=(0.01, 0.011, 0.012), topology=topology, node_mask=node_mask)
     g = torch.Generator().manual_seed(topology + batch)
     k = 40 * (1 + torch.rand(((batch,) if per_spring else ()) + (grid.S,) + grid.shape, generator=g, dtype=F64))
     if not per_spring:
         k = 40.0
-    model = td.Model(grid, stiffness=k, damping=damping, damping_mode=mode, density=1000.0, gravity=(-9.81, 0, 0),
-                     fixed=grid.face("bottom") & grid.nodes(), decay=decay, dtype=dtype)
+    model = td.Model(
+        grid,
+        stiffness=k,
+        damping=damping,
+        damping_mode=mode,
+        density=1000.0,
+        gravity=(-9.81, 0, 0),
+        fixed=grid.face("bottom") & grid.nodes(),
+        decay=decay,
+        dtype=dtype,
+    )
     x = model.X + 2e-4 * torch.randn((batch, 3) + grid.shape, generator=g, dtype=F64).to(dtype)
     v = 1e-2 * torch.randn((batch, 3) + grid.shape, generator=g, dtype=F64).to(dtype)
     return model, td.State(x * grid.nodes(), v * grid.nodes(), 0.0)
@@ -62,10 +72,10 @@ def test_kernel_with_fields_per_spring_and_per_batch_entry(share, mode):
     damping gated out where the damping is per direction), rest lengths per spring. A box: on an
     L-shaped body every spring field is per spring already (the missing springs masked)."""
     model, state = _body(26, 0.05, mode, F64, batch=2, per_spring=True, box=True)
-    model.stiffness[:, 3, 2, 1:4] = 0.0                              # cut springs
-    pm = PackedModel(model, share=share)                            # model's fields: views of pm's
+    model.stiffness[:, 3, 2, 1:4] = 0.0  # cut springs
+    pm = PackedModel(model, share=share)  # model's fields: views of pm's
     if "rest_length" in pm.source.shared:
-        model.rest_length.mul_(1.02)                                # in place: the packed field sees it
+        model.rest_length.mul_(1.02)  # in place: the packed field sees it
     var = native.variant_of(pm)
     # gated where the stiffness has more values than the damping (per spring and batch against per direction,
     # or per spring and batch against per spring)
@@ -124,7 +134,7 @@ def test_a_nan_reaches_the_neighbours():
     ps = pm.pack_state(state)
     f = pm.unpack(native.spring_forces(pm, ps.x, ps.v))
     assert not torch.isfinite(f[0, :, 2, 2, 3]).all() and not torch.isfinite(f[0, :, 1, 1, 2]).all()
-    assert torch.isfinite(f[0, :, 5, 0, 6]).all()                    # far away: untouched
+    assert torch.isfinite(f[0, :, 5, 0, 6]).all()  # far away: untouched
 
 
 @needs_cc
@@ -137,7 +147,7 @@ def test_kernels_are_cached_on_disk(tmp_path, monkeypatch):
     assert len(built) == 1
     native._kernels.pop(native.name_of(var))
     stamp = built[0].stat().st_mtime_ns
-    native.kernel(var)                                                 # loaded, not built again
+    native.kernel(var)  # loaded, not built again
     assert sorted(native.cache_dir().glob("springs-*.so")) == built and built[0].stat().st_mtime_ns == stamp
 
 
@@ -148,8 +158,10 @@ def test_no_compiler_says_why_and_the_compiled_step_uses_inductors_forms(monkeyp
         assert native.unavailable() == "TORCHDEFORM_NATIVE=0"
         model, _ = _body(6)
         step = CompiledStep(td.SymplecticEuler(), model, 1e-4, enable=False)
-        assert step.force_form in ("gather", "reduction") and "TORCHDEFORM_NATIVE=0" in step.packed.traced(
-            step.trace).native_why
+        assert (
+            step.force_form in ("gather", "reduction")
+            and "TORCHDEFORM_NATIVE=0" in step.packed.traced(step.trace).native_why
+        )
         with pytest.raises(native.NativeBuildError, match="TORCHDEFORM_NATIVE=0"):
             CompiledStep(td.SymplecticEuler(), model, 1e-4, enable=False, force_form="native")
         with pytest.raises(td.ConfigError, match="native"):
@@ -172,8 +184,10 @@ def test_compiled_module_imports_without_inductor():
     inductor (3 s); the first compile loads it."""
     import subprocess
     import sys
-    code = ("import sys, torchdeform.sim.compiled, torchdeform.sim.engine; "
-            "print('torch._inductor.lowering' in sys.modules)")
+
+    code = (
+        "import sys, torchdeform.sim.compiled, torchdeform.sim.engine; print('torch._inductor.lowering' in sys.modules)"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"
 

@@ -2,6 +2,7 @@
 numpy edge list in test_stencil / test_physics). No torch.compile here: the packed code is
 plain tensor code and runs eagerly; the compiled kernel is compared with the eager step by the
 ``bench speed --quick`` smoke test."""
+
 import pytest
 import torch
 
@@ -10,20 +11,37 @@ from torchdeform.sim.compiled import CompiledStep, ImplicitGraph
 from torchdeform.sim.packed import BLOCK, PackedModel
 
 F64 = torch.float64
-INTEGRATORS = [td.ExplicitEuler(), td.SymplecticEuler(), td.DampedVerlet(0.1), td.RK4(),
-               td.ImplicitEuler(cg_iters=60, cg_tol=1e-13), td.ImplicitEuler(cg_iters=20, cg_tol=0, newton_iters=1)]
+INTEGRATORS = [
+    td.ExplicitEuler(),
+    td.SymplecticEuler(),
+    td.DampedVerlet(0.1),
+    td.RK4(),
+    td.ImplicitEuler(cg_iters=60, cg_tol=1e-13),
+    td.ImplicitEuler(cg_iters=20, cg_tol=0, newton_iters=1),
+]
 
 
 def _scene(topology, mode="projected", batch=1):
     node_mask = torch.ones(5, 4, 6, dtype=torch.bool)
-    node_mask[3:, 2:, :3] = False                                   # an L-shaped body
+    node_mask[3:, 2:, :3] = False  # an L-shaped body
     grid = td.Grid((5, 4, 6), spacing=(0.01, 0.011, 0.012), topology=topology, node_mask=node_mask)
     g = torch.Generator().manual_seed(topology)
     k = 40 * (1 + torch.rand((grid.S,) + grid.shape, generator=g, dtype=F64))
     drag = td.Drag(grid.index_mask([(0, 0, 5)]), [(0.0, (0, 0, 0)), (0.004, (1e-3, 0, 0)), (0.01, (1e-3, 2e-3, 0))])
-    model = td.Model(grid, stiffness=k, damping=0.05, damping_mode=mode, density=1000.0, gravity=(-9.81, 0, 0),
-                     fixed=grid.face("bottom") & grid.nodes(), drags=[drag], decay=0.3, anchors=(5.0, 2),
-                     loads=[td.PointForce((4, 0, 2), (0.01, 0.0, -0.02), start=0.001, ramp=0.003)], dtype=F64)
+    model = td.Model(
+        grid,
+        stiffness=k,
+        damping=0.05,
+        damping_mode=mode,
+        density=1000.0,
+        gravity=(-9.81, 0, 0),
+        fixed=grid.face("bottom") & grid.nodes(),
+        drags=[drag],
+        decay=0.3,
+        anchors=(5.0, 2),
+        loads=[td.PointForce((4, 0, 2), (0.01, 0.0, -0.02), start=0.001, ramp=0.003)],
+        dtype=F64,
+    )
     x = model.X + 2e-4 * torch.randn((batch, 3) + grid.shape, generator=g, dtype=F64)
     v = 1e-2 * torch.randn((batch, 3) + grid.shape, generator=g, dtype=F64)
     x, v = model.constrain(x, v, 0.0)
@@ -86,8 +104,11 @@ def test_compiled_implicit_graph_equals_eager_step():
     here uncompiled, gives the eager step: a fixed iteration count, a tolerance (the loop
     condition reads the residual) and a Newton iteration."""
     model, state = _scene(18)
-    for integ in (td.ImplicitEuler(cg_iters=7, cg_tol=0), td.ImplicitEuler(cg_iters=40, cg_tol=1e-9),
-                  td.ImplicitEuler(cg_iters=9, cg_tol=0, newton_iters=1)):
+    for integ in (
+        td.ImplicitEuler(cg_iters=7, cg_tol=0),
+        td.ImplicitEuler(cg_iters=40, cg_tol=1e-9),
+        td.ImplicitEuler(cg_iters=9, cg_tol=0, newton_iters=1),
+    ):
         cs = CompiledStep(integ, model, 5e-4, enable=False)
         graph = ImplicitGraph(integ, cs.packed, 5e-4, None)
         ps = cs.packed.pack_state(state)
@@ -117,6 +138,7 @@ def test_spring_law_is_exactly_zero_at_rest_length():
     """``k (l - l0) / l`` is exactly 0 when ``|delta|`` rounds to ``l0``: a body at rest is an
     exact equilibrium (up to the rounding of the rest lengths themselves)."""
     from torchdeform.sim.springs import spring_law
+
     for dtype in (torch.float32, F64):
         delta = torch.tensor([[0.01, 0.013, 0.017], [0.0, 0.0, 0.02], [3.0, 4.0, 0.0]], dtype=dtype)
         sq = (delta * delta).sum(1)

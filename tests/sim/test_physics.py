@@ -14,6 +14,7 @@ Oracles used here (none of them produced by torchdeform):
 
 The edge-list helpers live in ``tests/oracles/edge_list.py``.
 """
+
 from __future__ import annotations
 
 import math
@@ -110,10 +111,10 @@ def test_chain_symplectic_euler_discrete_frequency():
     # the modal coordinate obeys q_{n+1} + q_{n-1} = (2 - omega^2 dt^2) q_n exactly: fit omega
     q = np.array(qs)
     lhs, rhs = q[2:] + q[:-2], q[1:-1]
-    w2 = (2 - (lhs @ rhs) / (rhs @ rhs)) / dt ** 2
+    w2 = (2 - (lhs @ rhs) / (rhs @ rhs)) / dt**2
     assert abs(math.sqrt(w2) / omega - 1) < 1e-9
     measured = 2 * math.pi / _period_from_zero_crossings(np.array(ts), q)
-    assert abs(measured / discrete - 1) < 5e-3   # zero-crossing interpolation at ~10 steps/period
+    assert abs(measured / discrete - 1) < 5e-3  # zero-crossing interpolation at ~10 steps/period
 
 
 @pytest.mark.parametrize("both_ends", [True, False])
@@ -152,9 +153,15 @@ def _static_problem():
 
 
 def _static_model(grid, k, load_scale):
-    return td.Model(grid, stiffness=k, density=1000.0, gravity=(-9.81 * load_scale, 0.0, 0.0),
-                    fixed=grid.face("bottom"), dtype=F64,
-                    loads=[td.PointForce((3, 1, 1), (0.0, 0.02 * load_scale, -0.01 * load_scale))])
+    return td.Model(
+        grid,
+        stiffness=k,
+        density=1000.0,
+        gravity=(-9.81 * load_scale, 0.0, 0.0),
+        fixed=grid.face("bottom"),
+        dtype=F64,
+        loads=[td.PointForce((3, 1, 1), (0.0, 0.02 * load_scale, -0.01 * load_scale))],
+    )
 
 
 def _edge_static(grid, k, model, load_scale):
@@ -202,7 +209,7 @@ def test_static_equilibrium_vs_dense_newton():
         x = x.reshape(-1, 3)
     assert np.abs(edges.forces_vec(x, ke) + fext)[free].max() < 1e-13
     u_ref = x - edges.X
-    assert np.abs(u_ref).max() > 1e-4                       # a visibly nonlinear sag (~5 % strain)
+    assert np.abs(u_ref).max() > 1e-4  # a visibly nonlinear sag (~5 % strain)
     state = _torchdeform_equilibrium(model)
     u_td = edges.from_field((state.x - model.X)[0])
     rel = np.abs(u_td - u_ref).max() / np.abs(u_ref).max()
@@ -223,10 +230,10 @@ def test_static_equilibrium_small_load_vs_linear_stiffness_solve():
         n = edges.X[a] - edges.X[b]
         n /= np.linalg.norm(n)
         blk = ke[s] * np.outer(n, n)
-        K[3 * a:3 * a + 3, 3 * a:3 * a + 3] += blk
-        K[3 * b:3 * b + 3, 3 * b:3 * b + 3] += blk
-        K[3 * a:3 * a + 3, 3 * b:3 * b + 3] -= blk
-        K[3 * b:3 * b + 3, 3 * a:3 * a + 3] -= blk
+        K[3 * a : 3 * a + 3, 3 * a : 3 * a + 3] += blk
+        K[3 * b : 3 * b + 3, 3 * b : 3 * b + 3] += blk
+        K[3 * a : 3 * a + 3, 3 * b : 3 * b + 3] -= blk
+        K[3 * b : 3 * b + 3, 3 * a : 3 * a + 3] -= blk
     u_lin = np.zeros(3 * edges.N)
     u_lin[dof] = sla.solve(K[np.ix_(dof, dof)], fext.ravel()[dof], assume_a="pos")
     state = _torchdeform_equilibrium(model)
@@ -244,8 +251,15 @@ def test_normalized_stiffness_gives_resolution_independent_stretch():
         grid = td.Grid((n_nodes, 1, 1), spacing=L / (n_nodes - 1), topology=6)
         fixed = torch.zeros(grid.shape, dtype=torch.bool)
         fixed[0] = True
-        model = td.Model(grid, stiffness=Y, normalize=True, mass=1e-3, fixed=fixed, dtype=F64,
-                         loads=[td.PointForce((n_nodes - 1, 0, 0), (F, 0.0, 0.0))])
+        model = td.Model(
+            grid,
+            stiffness=Y,
+            normalize=True,
+            mass=1e-3,
+            fixed=fixed,
+            dtype=F64,
+            loads=[td.PointForce((n_nodes - 1, 0, 0), (F, 0.0, 0.0))],
+        )
         state = _torchdeform_equilibrium(model)
         stretches.append(float(state.x[0, 0, -1, 0, 0] - model.X[0, 0, -1, 0, 0]))
     assert stretches[0] == pytest.approx(F * L / Y, rel=1e-9)
@@ -287,6 +301,7 @@ def test_symplectic_euler_energy_band_10000_steps():
     def cb(i, st):
         if i % 10 == 0:
             energies.append(float(model.energy(st)["total"]))
+
     td.simulate(model, state, dt, 10_000, callback=cb)
     E = np.array(energies)
     assert np.all(np.isfinite(E))
@@ -306,12 +321,14 @@ def test_symplectic_euler_conserves_momenta(damping):
     p1, L1 = _momenta(model, state)
     assert float((p1 - p0).norm()) <= 1e-10 * float(p0.norm())
     assert float((L1 - L0).norm()) <= 1e-10 * float(L0.norm())
-    assert float((state.x - model.X).abs().max()) > 1e-3     # the body did move
+    assert float((state.x - model.X).abs().max()) > 1e-3  # the body did move
 
 
-@pytest.mark.parametrize("integrator", [td.ExplicitEuler(), td.DampedVerlet(0.0), td.RK4(),
-                                        td.ImplicitEuler(cg_tol=1e-14, cg_iters=500)],
-                         ids=["explicit", "verlet", "rk4", "implicit"])
+@pytest.mark.parametrize(
+    "integrator",
+    [td.ExplicitEuler(), td.DampedVerlet(0.0), td.RK4(), td.ImplicitEuler(cg_tol=1e-14, cg_iters=500)],
+    ids=["explicit", "verlet", "rk4", "implicit"],
+)
 def test_linear_momentum_conserved_by_all_integrators(integrator):
     model, state = _free_body(damping=0.2)
     p0, _ = _momenta(model, state)
@@ -364,22 +381,27 @@ def order_reference():
     free = (~_field_mask(edges, fixed)).astype(np.float64)[:, None]
 
     def rhs(t, y):
-        x, v = y[:y.size // 2].reshape(-1, 3), y[y.size // 2:].reshape(-1, 3)
+        x, v = y[: y.size // 2].reshape(-1, 3), y[y.size // 2 :].reshape(-1, 3)
         a = (edges.forces_vec(x, k, v, c) / m[:, None] + g) * free
         return np.concatenate([(v * free).ravel(), a.ravel()])
+
     y0 = np.concatenate([edges.from_field(s0.x[0]).ravel(), edges.from_field(s0.v[0]).ravel()])
     sol = solve_ivp(rhs, (0.0, 1.0), y0, method="DOP853", rtol=1e-13, atol=1e-13)
     assert sol.success
-    return edges, sol.y[:y0.size // 2, -1].reshape(-1, 3)
+    return edges, sol.y[: y0.size // 2, -1].reshape(-1, 3)
 
 
-@pytest.mark.parametrize("integrator,steps,lo,hi", [
-    (td.ExplicitEuler(), (20, 40, 80, 160), 0.8, 1.3),
-    (td.SymplecticEuler(), (20, 40, 80, 160), 0.8, 1.3),
-    (td.DampedVerlet(0.0), (20, 40, 80, 160), 0.8, 1.3),
-    (td.ImplicitEuler(cg_iters=300, cg_tol=1e-12), (16, 32, 64, 128), 0.8, 1.3),
-    (td.RK4(), (10, 20, 40, 80), 3.5, 4.6),
-], ids=["explicit", "symplectic", "verlet", "implicit", "rk4"])
+@pytest.mark.parametrize(
+    "integrator,steps,lo,hi",
+    [
+        (td.ExplicitEuler(), (20, 40, 80, 160), 0.8, 1.3),
+        (td.SymplecticEuler(), (20, 40, 80, 160), 0.8, 1.3),
+        (td.DampedVerlet(0.0), (20, 40, 80, 160), 0.8, 1.3),
+        (td.ImplicitEuler(cg_iters=300, cg_tol=1e-12), (16, 32, 64, 128), 0.8, 1.3),
+        (td.RK4(), (10, 20, 40, 80), 3.5, 4.6),
+    ],
+    ids=["explicit", "symplectic", "verlet", "implicit", "rk4"],
+)
 def test_convergence_order(order_reference, integrator, steps, lo, hi):
     """Errors at T = 1 against the DOP853 edge-list reference over 4 step sizes: log-log slopes
     about 1 for the Euler variants and implicit Euler, about 4 for RK4 (damping, gravity and a
@@ -448,6 +470,7 @@ def test_symplectic_stable_just_below_bound():
     def cb(i, st):
         if i % 5 == 0:
             energies.append(float(model.energy(st)["total"]))
+
     with warnings.catch_warnings():
         warnings.simplefilter("error", td.StabilityWarning)
         state, _ = td.simulate(model, state, dt, 2000, callback=cb)
@@ -483,11 +506,11 @@ def test_check_dt_warns_only_above_bound():
     with pytest.warns(td.StabilityWarning):
         td.check_dt(model, 1.1 * bound, "symplectic")
     with pytest.warns(td.StabilityWarning):
-        td.check_dt(model, 1e-6, "explicit")               # undamped explicit Euler: always unstable
+        td.check_dt(model, 1e-6, "explicit")  # undamped explicit Euler: always unstable
     with warnings.catch_warnings():
         warnings.simplefilter("error", td.StabilityWarning)
         td.check_dt(model, 0.9 * bound, "symplectic")
-        td.check_dt(model, 1.2 * bound, "rk4")                # RK4 allows 2 sqrt 2 / omega
+        td.check_dt(model, 1.2 * bound, "rk4")  # RK4 allows 2 sqrt 2 / omega
         td.check_dt(model, 1e3 * bound, "implicit")
 
 
@@ -497,11 +520,12 @@ def test_implicit_euler_at_100x_bound(stiffness):
     deformation: finite, the total energy (kinetic + elastic + gravity) never exceeds its initial
     value, oscillations die out, and the sag approaches the static one (mg / k scale)."""
     grid = td.Grid((3, 3, 3), spacing=0.01, topology=26)
-    model = td.Model(grid, stiffness=stiffness, density=1000.0, gravity=(-9.81, 0, 0),
-                     fixed=grid.face("bottom"), dtype=F64)
+    model = td.Model(
+        grid, stiffness=stiffness, density=1000.0, gravity=(-9.81, 0, 0), fixed=grid.face("bottom"), dtype=F64
+    )
     dt = 100 * td.time_step_bound(model, "symplectic")
     gen = torch.Generator().manual_seed(4)
-    sag = float(model.mass.sum()) * 9.81 / stiffness               # a displacement scale
+    sag = float(model.mass.sum()) * 9.81 / stiffness  # a displacement scale
     x0 = model.X + 0.3 * sag * torch.randn(model.X.shape, generator=gen, dtype=F64) * model.free
     state = td.State(x0, torch.zeros_like(x0))
     E0 = float(model.energy(state)["total"])
@@ -512,6 +536,7 @@ def test_implicit_euler_at_100x_bound(stiffness):
         e = model.energy(st)
         energies.append(float(e["total"]))
         kinetic.append(float(e["kinetic"]))
+
     state, _ = td.simulate(model, state, dt, 20, integrator=td.ImplicitEuler(), callback=cb)
     assert bool(torch.isfinite(state.x).all() and torch.isfinite(state.v).all())
     assert max(energies) <= E0 + 1e-9 * scale
@@ -564,8 +589,24 @@ def test_knoche_converged_x_line():
         assert it < 20_000
     assert 3_000 < it < 8_000
     u = (state.x - model.X)[0]
-    ref = [0.00228, 0.00303, 0.00403, 0.00545, 0.00763, 0.01142, 0.01943, 0.04197, 0.1,
-           0.04196, 0.01940, 0.01138, 0.00758, 0.00539, 0.00396, 0.00295]
+    ref = [
+        0.00228,
+        0.00303,
+        0.00403,
+        0.00545,
+        0.00763,
+        0.01142,
+        0.01943,
+        0.04197,
+        0.1,
+        0.04196,
+        0.01940,
+        0.01138,
+        0.00758,
+        0.00539,
+        0.00396,
+        0.00295,
+    ]
     np.testing.assert_allclose(u[0, :, 8, 8].numpy(), ref, rtol=0, atol=6e-6)
     assert float(u[0, 9, 8, 8]) == pytest.approx(0.041959, abs=1e-6)
     assert float(u[0, 8, 9, 8]) == pytest.approx(0.041959, abs=1e-6)
@@ -583,7 +624,7 @@ def _knoche_shader(u, w, eps):
             for k in range(n):
                 wc = w[i, j, k]
                 if wc > 1.0 - eps:
-                    continue                                 # fixed: output = input
+                    continue  # fixed: output = input
                 force = np.zeros(3)
                 for di, dj, dk in ((-1, 0, 0), (1, 0, 0), (0, -1, 0), (0, 1, 0), (0, 0, -1), (0, 0, 1)):
                     a, b, c = i + di, j + dj, k + dk
@@ -603,9 +644,9 @@ def test_knoche_step_matches_shader_transcription(seed):
     n, eps = 6, 1e-3
     rng = np.random.default_rng(seed)
     w = rng.uniform(0, 1, (n, n, n))
-    w[rng.random((n, n, n)) < 0.15] = 0.0                   # "free" (w < eps) nodes
-    w[rng.random((n, n, n)) < 0.1] = 1.0                    # fixed nodes
-    w[0, 0, 0], w[1, 2, 3] = 5e-4, 1 - 5e-4                 # just inside the eps bands
+    w[rng.random((n, n, n)) < 0.15] = 0.0  # "free" (w < eps) nodes
+    w[rng.random((n, n, n)) < 0.1] = 1.0  # fixed nodes
+    w[0, 0, 0], w[1, 2, 3] = 5e-4, 1 - 5e-4  # just inside the eps bands
     u = rng.standard_normal((3, n, n, n))
     grid = td.Grid((n, n, n), spacing=(1.0, 0.5, 2.0), topology=6)
     model = td.Model(grid, stiffness=1.0, mass=1.0, dtype=F64)
@@ -633,6 +674,7 @@ def _rollout(integrator, steps, dt, per_direction=False):
         for _ in range(steps):
             s = integrator.step(model, s, dt)
         return torch.cat([P @ s.x.flatten(), P @ s.v.flatten()])
+
     return f
 
 
@@ -640,8 +682,9 @@ def _scalars():
     return tuple(torch.tensor(v, dtype=F64, requires_grad=True) for v in (20.0, 0.3, 0.05))
 
 
-@pytest.mark.parametrize("integrator,steps,dt", [(td.SymplecticEuler(), 8, 0.005), (td.RK4(), 3, 0.005)],
-                         ids=["symplectic", "rk4"])
+@pytest.mark.parametrize(
+    "integrator,steps,dt", [(td.SymplecticEuler(), 8, 0.005), (td.RK4(), 3, 0.005)], ids=["symplectic", "rk4"]
+)
 def test_gradcheck_rollout_scalar_parameters(integrator, steps, dt):
     assert torch.autograd.gradcheck(_rollout(integrator, steps, dt), _scalars())
 
@@ -667,14 +710,14 @@ def test_bound_with_global_drag_is_the_edge_of_stability(decay):
     spectral radius of the 2 x 2 update matrix of one spring, [[1 - h^2 w^2, h], [-d h w^2, d]]
     with d = e^{-c h}, computed by numpy: < 1 just below the bound, > 1 just above it."""
     grid = td.Grid((1, 1, 2), spacing=1.0, topology=6)
-    model = td.Model(grid, stiffness=1e4, mass=1.0, fixed=grid.index_mask([(0, 0, 0)]), decay=decay or None,
-                     dtype=F64)
+    model = td.Model(grid, stiffness=1e4, mass=1.0, fixed=grid.index_mask([(0, 0, 0)]), decay=decay or None, dtype=F64)
     w2 = 1e4
     h = td.time_step_bound(model)
 
     def radius(t):
         d = math.exp(-decay * t)
         return max(abs(np.linalg.eigvals([[1 - t * t * w2, t], [-d * t * w2, d]])))
-    assert radius(0.999 * h) <= 1 + 1e-12 < 1.001 < radius(1.001 * h)    # undamped: on the unit circle below
-    if decay >= 5000:                                     # a strong drag: down to 1/sqrt(2) of 2/w
+
+    assert radius(0.999 * h) <= 1 + 1e-12 < 1.001 < radius(1.001 * h)  # undamped: on the unit circle below
+    if decay >= 5000:  # a strong drag: down to 1/sqrt(2) of 2/w
         assert h < 0.75 * 2 / math.sqrt(w2)

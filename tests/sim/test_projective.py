@@ -1,4 +1,5 @@
 """Projective dynamics against independent oracles (float64): Newton's implicit Euler, a dense edge-list matrix."""
+
 import sys
 
 import numpy as np
@@ -11,7 +12,7 @@ from torchdeform.sim.projective import ProjectiveDynamics, jacobi_inverse_diagon
 
 F64 = torch.float64
 SOLVERS = ["cholesky", "cg", "jacobi"]
-EXACT = {"cholesky": {}, "cg": {"cg_tol": 1e-10, "cg_iters": 200}}      # exact global steps
+EXACT = {"cholesky": {}, "cg": {"cg_tol": 1e-10, "cg_iters": 200}}  # exact global steps
 
 
 def body(k=1e3, **kw):
@@ -43,10 +44,11 @@ def rel_error(out, ref, state):
 def test_converges_to_implicit_euler(solver):
     model = body()
     s = stretched(model)
-    dt = 10 * td.time_step_bound(model, "symplectic")           # well beyond the explicit bound
+    dt = 10 * td.time_step_bound(model, "symplectic")  # well beyond the explicit bound
     ref = newton(model, s, dt)
-    counts = {"jacobi": (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000),
-              "cg": (1, 5, 50, 500)}.get(solver, (1, 2, 5, 10, 20, 50, 100, 200, 500))    # (cg: cholesky's, slower)
+    counts = {"jacobi": (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000), "cg": (1, 5, 50, 500)}.get(
+        solver, (1, 2, 5, 10, 20, 50, 100, 200, 500)
+    )  # (cg: cholesky's, slower)
     kw = EXACT.get(solver, {})
     errs = [rel_error(ProjectiveDynamics(iterations=n, solver=solver, **kw).step(model, s, dt), ref, s) for n in counts]
     print(f"\n{solver}: relative error vs Newton implicit Euler, dt = 10x explicit bound")
@@ -54,7 +56,7 @@ def test_converges_to_implicit_euler(solver):
         print(f"  {n:4d} iterations  {e:.2e}")
     assert errs[-1] < 1e-8
     tail = [e for n, e in zip(counts, errs) if n >= 5]
-    assert all(b < a for a, b in zip(tail, tail[1:]))          # decreasing from 5 iterations on
+    assert all(b < a for a, b in zip(tail, tail[1:]))  # decreasing from 5 iterations on
     assert errs[0] < 1.0 if solver != "jacobi" else errs[0] <= 1.0
 
 
@@ -88,12 +90,21 @@ def test_matrix_equals_dense_edge_list_oracle():
     g = torch.Generator().manual_seed(0)
     k = 100 + 900 * torch.rand((grid.S,) + grid.shape, generator=g, dtype=F64)
     cut = torch.ones((grid.S,) + grid.shape, dtype=torch.bool)
-    cut[4, 1, 1, 0] = False                                          # one spring removed
+    cut[4, 1, 1, 0] = False  # one spring removed
     fixed = grid.index_mask([(0, 0, 0), (0, 1, 1)])
     home = 5 * torch.rand(grid.shape, generator=g, dtype=F64)
     mass = 1e-3 * (1 + torch.rand(grid.shape, generator=g, dtype=F64))
-    model = td.Model(grid, stiffness=k, damping=0.3, damping_mode="unprojected", mass=mass, home=home,
-                     fixed=fixed, spring_mask=cut, dtype=F64)
+    model = td.Model(
+        grid,
+        stiffness=k,
+        damping=0.3,
+        damping_mode="unprojected",
+        mass=mass,
+        home=home,
+        fixed=fixed,
+        spring_mask=cut,
+        dtype=F64,
+    )
     h = 2e-3
     N = grid.num_nodes
     flat = {idx: n for n, idx in enumerate(np.ndindex(*grid.shape))}
@@ -134,15 +145,15 @@ def test_stable_at_100x_explicit_bound(solver):
         assert bool(torch.isfinite(s.x).all() and torch.isfinite(s.v).all())
         energies.append(float(model.energy(s)["total"][0]))
     assert max(energies) <= e0 * (1 + 1e-9)
-    assert energies[-1] < 0.5 * e0                                  # and it does not ring forever
-    assert bool((s.x[:, :, 0] == model.X[:, :, 0]).all())           # the base stays fixed exactly
+    assert energies[-1] < 0.5 * e0  # and it does not ring forever
+    assert bool((s.x[:, :, 0] == model.X[:, :, 0]).all())  # the base stays fixed exactly
 
 
 @pytest.mark.parametrize("solver", SOLVERS)
 def test_fixed_nodes_stay_and_drag_moves_its_nodes(solver):
     grid = td.Grid((5, 4, 4), spacing=0.01, topology=26)
     top = grid.face("top")
-    drag = td.Drag(top, [(0.0, (0.0, 0.0, 0.0)), (1.0, (0.0, 0.05, 0.0))])      # 5 cm/s along H
+    drag = td.Drag(top, [(0.0, (0.0, 0.0, 0.0)), (1.0, (0.0, 0.05, 0.0))])  # 5 cm/s along H
     model = body(drags=[drag])
     s = model.rest_state()
     dt = 10 * td.time_step_bound(model, "symplectic")
@@ -152,9 +163,9 @@ def test_fixed_nodes_stay_and_drag_moves_its_nodes(solver):
     assert bool((out.x[:, :, 0] == model.X[:, :, 0]).all()) and float(out.v[:, :, 0].abs().max()) == 0.0
     np.testing.assert_allclose(out.x[0, 1][top].numpy(), model.X[0, 1][top].numpy() + 0.05 * dt, rtol=0, atol=1e-15)
     np.testing.assert_allclose(out.v[0, 1][top].numpy(), 0.05, rtol=1e-12)
-    assert float(out.x[0, 1, 2].mean() - model.X[0, 1, 2].mean()) > 0           # the middle follows
+    assert float(out.x[0, 1, 2].mean() - model.X[0, 1, 2].mean()) > 0  # the middle follows
     assert rel_error(out, ref, s) < 1e-8
-    for _ in range(3):                                                         # and keeps following
+    for _ in range(3):  # and keeps following
         out = ProjectiveDynamics(solver=solver).step(model, out, dt)
     np.testing.assert_allclose(out.x[0, 1][top].numpy(), model.X[0, 1][top].numpy() + 0.05 * 4 * dt, atol=1e-15)
 
@@ -174,14 +185,22 @@ def test_damping_matches_implicit_euler(mode, solver):
     assert rel_error(out, ref, s) < 1e-8
     plain = ProjectiveDynamics(iterations=3000, tol=1e-13, solver=solver, **EXACT.get(solver, {}))
     undamped = plain.step(body(home=20.0), s, dt)
-    assert rel_error(undamped, ref, s) > 1e-3                                # damping did something
+    assert rel_error(undamped, ref, s) > 1e-3  # damping did something
 
 
 def test_unprojected_damping_is_exact_in_one_cholesky_iteration_of_a_linear_system():
     """Springs at rest length with velocities along them only: unprojected damping enters ``A`` exactly."""
     grid = td.Grid((1, 1, 3), spacing=1.0, topology=6)
-    model = td.Model(grid, stiffness=0.0, damping=0.5, damping_mode="unprojected", mass=1.0, home=2.0,
-                     fixed=grid.index_mask([(0, 0, 0)]), dtype=F64)
+    model = td.Model(
+        grid,
+        stiffness=0.0,
+        damping=0.5,
+        damping_mode="unprojected",
+        mass=1.0,
+        home=2.0,
+        fixed=grid.index_mask([(0, 0, 0)]),
+        dtype=F64,
+    )
     s = model.rest_state()
     s.v[0, 2, 0, 0, 1:] = torch.tensor([1.0, -1.0], dtype=F64)
     pd = ProjectiveDynamics(iterations=1, solver="cholesky")
@@ -192,8 +211,15 @@ def test_unprojected_damping_is_exact_in_one_cholesky_iteration_of_a_linear_syst
 
 def test_spring_law_needs_jacobi():
     grid = td.Grid((5, 4, 4), spacing=0.01, topology=26)
-    model = td.Model(grid, stiffness=1e3, law=td.Exponential(stiffening=5.0), density=1000.0, gravity=(-9.81, 0, 0),
-                     fixed=grid.face("bottom"), dtype=F64)
+    model = td.Model(
+        grid,
+        stiffness=1e3,
+        law=td.Exponential(stiffening=5.0),
+        density=1000.0,
+        gravity=(-9.81, 0, 0),
+        fixed=grid.face("bottom"),
+        dtype=F64,
+    )
     s = stretched(model)
     dt = 3 * td.time_step_bound(model, "symplectic")
     for solver in ("cholesky", "cg"):
@@ -208,11 +234,11 @@ def test_options_and_missing_cholespy(monkeypatch):
         with pytest.raises(ConfigError):
             ProjectiveDynamics(**kw)
     model = body()
-    assert ProjectiveDynamics().solver_for(model) == "cholesky"          # auto: a small body, cholespy here
+    assert ProjectiveDynamics().solver_for(model) == "cholesky"  # auto: a small body, cholespy here
     monkeypatch.setitem(sys.modules, "cholespy", None)
     with pytest.raises(ConfigError, match="pip install cholespy"):
         ProjectiveDynamics(solver="cholesky").step(model, model.rest_state(), 1e-3)
-    assert ProjectiveDynamics().solver_for(model) == "jacobi"            # auto without cholespy
+    assert ProjectiveDynamics().solver_for(model) == "jacobi"  # auto without cholespy
     assert ProjectiveDynamics().solver_for(td.Model(td.Grid((40, 40, 40), 0.01), stiffness=1.0, mass=1.0)) == "jacobi"
 
 
@@ -223,9 +249,10 @@ def test_cholesky_refactors_after_an_in_place_cut_and_per_batch_parameters():
     pd = ProjectiveDynamics(solver="cholesky")
     pd.step(model, s, dt)
     with torch.no_grad():
-        model.stiffness[:, 3] = 0.0                                  # a direction cut in place
-    np.testing.assert_array_equal(pd.step(model, s, dt).x.numpy(),
-                                  ProjectiveDynamics(solver="cholesky").step(model, s, dt).x.numpy())
+        model.stiffness[:, 3] = 0.0  # a direction cut in place
+    np.testing.assert_array_equal(
+        pd.step(model, s, dt).x.numpy(), ProjectiveDynamics(solver="cholesky").step(model, s, dt).x.numpy()
+    )
     # per-batch stiffness: one factor per entry, each equal to its own single-entry model
     ks = torch.tensor([[1e3] * 13, [4e3] * 13], dtype=F64)
     batched = body(k=ks)
@@ -239,6 +266,7 @@ def test_cholesky_refactors_after_an_in_place_cut_and_per_batch_parameters():
 @pytest.mark.parametrize("solver", SOLVERS)
 def test_packed_model_equals_grid_model(solver):
     from torchdeform.sim.packed import PackedModel
+
     model = body(damping=1.0)
     pm = PackedModel(model)
     s = stretched(model)
@@ -252,9 +280,9 @@ def test_packed_model_equals_grid_model(solver):
 @pytest.mark.slow
 def test_compiled_jacobi_equals_eager():
     from torchdeform.sim.compiled import compiled_step
+
     grid = td.Grid((6, 5, 5), spacing=0.01, topology=26)
-    model = td.Model(grid, stiffness=1e3, damping=0.5, density=1000.0, gravity=(-9.81, 0, 0),
-                     fixed=grid.face("bottom"))
+    model = td.Model(grid, stiffness=1e3, damping=0.5, density=1000.0, gravity=(-9.81, 0, 0), fixed=grid.face("bottom"))
     dt = 100 * td.time_step_bound(model, "symplectic")
     pd = ProjectiveDynamics(solver="jacobi")
     step = compiled_step(pd, model, dt)

@@ -7,6 +7,7 @@ The conv3d reference (``difference_conv`` / ``adjoint_conv`` / ``spring_forces_c
 shifted-slice fast path (``difference`` / ``adjoint`` / ``accumulate`` / ``spring_forces``) must
 both equal it to 1e-12 (float64).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -18,8 +19,8 @@ from tests.oracles.edge_list import EdgeList
 from torchdeform.sim import springs
 
 TOPOLOGIES = (6, 14, 18, 26)
-SHAPE = (4, 3, 5)                       # non-cubic, so that axis mix-ups show
-SPACING = (0.9, 1.15, 1.3)              # anisotropic
+SHAPE = (4, 3, 5)  # non-cubic, so that axis mix-ups show
+SPACING = (0.9, 1.15, 1.3)  # anisotropic
 ATOL = 1e-12
 
 
@@ -59,8 +60,9 @@ def test_spring_count_formulas(n, topology):
 @pytest.mark.parametrize("topology", TOPOLOGIES)
 def test_spring_count_with_node_mask_and_box(topology):
     for shape, mask in (((2, 3, 5), None), ((4, 3, 5), _node_mask((4, 3, 5)))):
-        grid = td.Grid(shape, spacing=SPACING, topology=topology,
-                       node_mask=None if mask is None else torch.from_numpy(mask))
+        grid = td.Grid(
+            shape, spacing=SPACING, topology=topology, node_mask=None if mask is None else torch.from_numpy(mask)
+        )
         edges = EdgeList(shape, SPACING, topology, mask)
         assert grid.num_springs == len(edges.springs)
         assert int(grid.spring_mask().sum()) == len(edges.springs)
@@ -83,8 +85,9 @@ def test_difference_matches_edge_list(topology):
     x = torch.randn((2, 3) + SHAPE, dtype=torch.float64)
     ref = np.zeros((2, grid.S, 3) + SHAPE)
     for s, p, q in edges.locate(grid.directions):
-        ref[(slice(None), s, slice(None)) + p] = x.numpy()[(slice(None), slice(None)) + q] - \
-            x.numpy()[(slice(None), slice(None)) + p]
+        ref[(slice(None), s, slice(None)) + p] = (
+            x.numpy()[(slice(None), slice(None)) + q] - x.numpy()[(slice(None), slice(None)) + p]
+        )
     fast = springs.difference(x, grid).numpy()
     conv = springs.difference_conv(x, grid).numpy()
     np.testing.assert_allclose(fast, ref, rtol=0, atol=ATOL)
@@ -106,8 +109,9 @@ def test_adjoint_matches_edge_list(topology):
     np.testing.assert_allclose(springs.adjoint(f, grid).numpy(), ref, rtol=0, atol=ATOL)
     np.testing.assert_allclose(springs.adjoint_conv(f, grid).numpy(), ref, rtol=0, atol=ATOL)
     # accumulate with b = -a is -D^T a
-    acc = springs.accumulate(grid, lambda s, src, d: f[(slice(None), s, slice(None), *src)],
-                             torch.zeros((2, 3) + SHAPE, dtype=torch.float64))
+    acc = springs.accumulate(
+        grid, lambda s, src, d: f[(slice(None), s, slice(None), *src)], torch.zeros((2, 3) + SHAPE, dtype=torch.float64)
+    )
     np.testing.assert_allclose(acc.numpy(), -ref, rtol=0, atol=ATOL)
 
 
@@ -132,18 +136,24 @@ def test_spring_forces_match_edge_list(topology, use_mask, projected):
     """conv3d reference = fast path = edge list, with per-spring random stiffness and damping,
     anisotropic spacing, a node mask, random deformed states and velocities (batch of 2)."""
     mask = _node_mask(SHAPE) if use_mask else None
-    grid = td.Grid(SHAPE, spacing=SPACING, topology=topology,
-                   node_mask=None if mask is None else torch.from_numpy(mask))
+    grid = td.Grid(
+        SHAPE, spacing=SPACING, topology=topology, node_mask=None if mask is None else torch.from_numpy(mask)
+    )
     edges = EdgeList(SHAPE, SPACING, topology, mask)
     rng = np.random.default_rng(topology)
-    k_full = rng.uniform(0.5, 2.0, (grid.S,) + SHAPE)    # also on springs that do not exist
+    k_full = rng.uniform(0.5, 2.0, (grid.S,) + SHAPE)  # also on springs that do not exist
     c_full = rng.uniform(0.1, 0.7, (grid.S,) + SHAPE)
     loc = edges.locate(grid.directions)
     k_e = np.array([k_full[(s,) + p] for s, p, _ in loc])
     c_e = np.array([c_full[(s,) + p] for s, p, _ in loc])
-    model = td.Model(grid, stiffness=torch.from_numpy(k_full), damping=torch.from_numpy(c_full),
-                     damping_mode="projected" if projected else "unprojected", mass=1.0,
-                     dtype=torch.float64)
+    model = td.Model(
+        grid,
+        stiffness=torch.from_numpy(k_full),
+        damping=torch.from_numpy(c_full),
+        damping_mode="projected" if projected else "unprojected",
+        mass=1.0,
+        dtype=torch.float64,
+    )
     x, v = _deformed(grid)
     f_fast = model.forces(x, v, impl="fast")
     f_conv = model.forces(x, v, impl="conv")
@@ -168,8 +178,7 @@ def test_per_direction_class_stiffness(topology):
     values = {"axis": 1.3, "face": 0.7, "body": 0.4}
     classes = {1: "axis", 2: "face", 3: "body"}
     k_e = np.array([values[classes[sum(map(abs, off))]] for _, _, off in edges.springs])
-    model = td.Model(grid, stiffness={c: values[c] for c in set(grid.direction_class())}, mass=1.0,
-                     dtype=torch.float64)
+    model = td.Model(grid, stiffness={c: values[c] for c in set(grid.direction_class())}, mass=1.0, dtype=torch.float64)
     x, _ = _deformed(grid, B=1)
     ref = edges.to_field(edges.forces(edges.from_field(x[0]), k=k_e))
     np.testing.assert_allclose(model.forces(x, torch.zeros_like(x))[0].numpy(), ref, rtol=0, atol=ATOL)
@@ -202,8 +211,9 @@ def test_edge_list_oracle_is_consistent():
 @pytest.mark.parametrize("topology", TOPOLOGIES)
 def test_spring_energy_matches_edge_list(topology, use_mask):
     mask = _node_mask(SHAPE) if use_mask else None
-    grid = td.Grid(SHAPE, spacing=SPACING, topology=topology,
-                   node_mask=None if mask is None else torch.from_numpy(mask))
+    grid = td.Grid(
+        SHAPE, spacing=SPACING, topology=topology, node_mask=None if mask is None else torch.from_numpy(mask)
+    )
     edges = EdgeList(SHAPE, SPACING, topology, mask)
     k_full = np.random.default_rng(5).uniform(0.5, 2.0, (grid.S,) + SHAPE)
     k_e = np.array([k_full[(s,) + p] for s, p, _ in edges.locate(grid.directions)])
@@ -223,8 +233,7 @@ def test_forces_are_minus_energy_gradient(topology):
     grid = td.Grid(SHAPE, spacing=SPACING, topology=topology, node_mask=torch.from_numpy(mask))
     k_full = torch.from_numpy(np.random.default_rng(7).uniform(0.5, 2.0, (grid.S,) + SHAPE))
     mass = torch.from_numpy(np.random.default_rng(8).uniform(0.5, 2.0, SHAPE))
-    model = td.Model(grid, stiffness=k_full, mass=mass, gravity=(-9.81, 1.0, 0.5), home=0.3,
-                     dtype=torch.float64)
+    model = td.Model(grid, stiffness=k_full, mass=mass, gravity=(-9.81, 1.0, 0.5), home=0.3, dtype=torch.float64)
     x, v = _deformed(grid)
     x.requires_grad_(True)
     e = model.energy(td.State(x, torch.zeros_like(v)))
@@ -248,8 +257,14 @@ def test_linearisation_matches_assembled_matrices(topology, projected):
     loc = edges.locate(grid.directions)
     k_e = np.array([k_full[(s,) + p] for s, p, _ in loc])
     c_e = np.array([c_full[(s,) + p] for s, p, _ in loc])
-    model = td.Model(grid, stiffness=torch.from_numpy(k_full), damping=torch.from_numpy(c_full), mass=1.0,
-                     damping_mode="projected" if projected else "unprojected", dtype=torch.float64)
+    model = td.Model(
+        grid,
+        stiffness=torch.from_numpy(k_full),
+        damping=torch.from_numpy(c_full),
+        mass=1.0,
+        damping_mode="projected" if projected else "unprojected",
+        dtype=torch.float64,
+    )
     x, u = _deformed(grid, B=1, amp=0.15)
     xe, ue = edges.from_field(x[0]), edges.from_field(u[0]).ravel()
     for clamp in (False, True):
@@ -259,5 +274,4 @@ def test_linearisation_matches_assembled_matrices(topology, projected):
         h = 0.3
         C = edges.damping_matrix(xe, c_e, projected)
         got = lin.apply(u, h * h, model.damping, model.projected, h)
-        np.testing.assert_allclose(edges.from_field(got[0]).ravel(), (h * h * K + h * C) @ ue, rtol=0,
-                                   atol=1e-11)
+        np.testing.assert_allclose(edges.from_field(got[0]).ravel(), (h * h * K + h * C) @ ue, rtol=0, atol=1e-11)

@@ -4,6 +4,7 @@ The oracle is the machine model itself: the governor must end on the count that 
 not probe an idle machine at all, and come back to the full count when the machine frees up.
 One slow test compiles a small step with run-time threads and checks it against the eager step.
 """
+
 import random
 
 import pytest
@@ -49,18 +50,18 @@ def test_a_busy_neighbour_moves_the_step_to_one_thread_and_back():
     steps_before = dict(gov.steps)
     governed = _run(gov, machine, 600)
     assert gov.current == 1
-    assert gov.steps[1] - steps_before.get(1, 0) > 500          # most busy steps ran on one thread
-    fixed = sum(machine(2) for _ in range(600))                    # what 2 threads would have cost
+    assert gov.steps[1] - steps_before.get(1, 0) > 500  # most busy steps ran on one thread
+    fixed = sum(machine(2) for _ in range(600))  # what 2 threads would have cost
     assert governed < 0.85 * fixed
     machine.busy = False
     _run(gov, machine, 600)
-    assert gov.current == 2                                        # the full count won a later probe
+    assert gov.current == 2  # the full count won a later probe
 
 
 def test_a_machine_busy_from_the_start_is_noticed(monkeypatch):
-    monkeypatch.setattr(T._Sampler, "others", lambda self: 1.0)   # /proc/stat: one core busy elsewhere
+    monkeypatch.setattr(T._Sampler, "others", lambda self: 1.0)  # /proc/stat: one core busy elsewhere
     gov, machine = ThreadGovernor(2), Machine(2)
-    machine.busy = True                                            # no jump to see: it was busy all along
+    machine.busy = True  # no jump to see: it was busy all along
     _run(gov, machine, 200)
     assert gov.current == 1 and gov.switches == 1
 
@@ -70,7 +71,7 @@ def test_a_lost_probe_does_not_probe_again_at_every_step():
     gov = ThreadGovernor(2, busy_cores=None)
     _run(gov, lambda n: 2.6e-3 if n == 2 else 5e-3, 50)
     _run(gov, lambda n: 6e-3 if n == 2 else 9e-3, 1000)
-    assert gov.current == 2 and gov.steps[1] <= 4                  # one probe (its first step retraces)
+    assert gov.current == 2 and gov.steps[1] <= 4  # one probe (its first step retraces)
 
 
 def test_one_thread_has_no_choice():
@@ -91,23 +92,30 @@ def test_which_steps_get_a_governor():
     assert CompiledStep(td.SymplecticEuler(), model, 1e-4, threads=2).governor is not None
     assert CompiledStep(td.SymplecticEuler(), model, 1e-4, threads=1).governor is None
     assert CompiledStep(td.SymplecticEuler(), model, 1e-4, threads=2, enable=False).governor is None
-    assert CompiledStep(td.ImplicitEuler(), model, 1e-4, threads=2).governor is None   # always serial
+    assert CompiledStep(td.ImplicitEuler(), model, 1e-4, threads=2).governor is None  # always serial
 
 
 @pytest.mark.slow
 def test_a_compiled_step_on_either_thread_count_equals_the_eager_step():
     grid = td.Grid((8, 8, 8), 0.01, 26)
-    model = td.Model(grid, stiffness=20.0, damping=0.01, mass=1e-3, gravity=(-9.81, 0, 0),
-                     fixed=grid.face("bottom"), dtype=torch.float64)
+    model = td.Model(
+        grid,
+        stiffness=20.0,
+        damping=0.01,
+        mass=1e-3,
+        gravity=(-9.81, 0, 0),
+        fixed=grid.face("bottom"),
+        dtype=torch.float64,
+    )
     integ, dt = td.SymplecticEuler(), 1e-4
-    cs = CompiledStep(integ, model, dt, threads=2, force_form="reduction")   # the quicker compile
+    cs = CompiledStep(integ, model, dt, threads=2, force_form="reduction")  # the quicker compile
     ps, ref = cs.packed.pack_state(model.rest_state()), model.rest_state()
     for i in range(12):
-        if i == 6:                                   # as after a busy neighbour: one thread from now on
+        if i == 6:  # as after a busy neighbour: one thread from now on
             cs.governor.current = 1
         ps = cs.step_packed(ps)
         ref = integ.step(model, ref, dt)
     assert cs.compiled and cs.governor.steps == {2: 6, 1: 6}
     got = cs.packed.unpack_state(ps)
     assert torch.allclose(got.x, ref.x, rtol=0, atol=1e-12) and torch.allclose(got.v, ref.v, rtol=0, atol=1e-9)
-    assert float((ref.x - model.X).abs().max()) > 1e-9                   # it moved
+    assert float((ref.x - model.X).abs().max()) > 1e-9  # it moved

@@ -1,4 +1,5 @@
 """Triangle-interior samples, the 2-D atlas and textured files (texture.atlas) against independent oracles."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -32,18 +33,19 @@ def _sphere(subdivisions=2, radius=0.012, centre=0.016):
 @pytest.mark.parametrize("n", [1, 2, 3, 4, 7])
 @pytest.mark.parametrize("legs", ["axes", "rotated"])
 def test_a_right_triangle_with_legs_of_n_voxels_has_the_hand_counted_grid_points(n, legs):
-    hand = sum(1 for i in range(n + 1) for j in range(n + 1) if i + j <= n)           # (i/n, j/n), i + j <= n
+    hand = sum(1 for i in range(n + 1) for j in range(n + 1) if i + j <= n)  # (i/n, j/n), i + j <= n
     if legs == "axes":
         u, w = np.array([1.0, 0, 0]), np.array([0, 1.0, 0])
-    else:                                                                             # 3-4-5 legs: |AB| = |AC| = n
+    else:  # 3-4-5 legs: |AB| = |AC| = n
         u, w = np.array([0.6, 0.8, 0]), np.array([-0.8, 0.6, 0])
     A = np.array([2.3, 4.1, 5.7])
     rest = torch.from_numpy(np.stack([A, A + n * u, A + n * w]) * VOXEL)
     s = sample_triangles(rest, [[0, 1, 2]], _liver_texture())
     assert s.count == hand and s.per_face.tolist() == [hand]
     assert sorted(zip(s.i.tolist(), s.j.tolist())) == sorted(
-        (i, j) for i in range(n + 1) for j in range(n + 1) if i + j <= n)
-    s2 = sample_triangles(rest, [[0, 1, 2]], _liver_texture(), density=2.0)          # steps of half a voxel
+        (i, j) for i in range(n + 1) for j in range(n + 1) if i + j <= n
+    )
+    s2 = sample_triangles(rest, [[0, 1, 2]], _liver_texture(), density=2.0)  # steps of half a voxel
     assert s2.count == sum(1 for i in range(2 * n + 1) for j in range(2 * n + 1) if i + j <= 2 * n)
 
 
@@ -58,7 +60,7 @@ def test_sample_grid_matches_a_brute_force_enumeration_per_triangle():
         mine = s.face == f
         assert set(zip(s.i[mine].tolist(), s.j[mine].tolist())) == want
     assert int(s.per_face.sum()) == s.count == len(s.face)
-    assert bool((torch.diff(s.face) >= 0).all())                                     # contiguous per triangle
+    assert bool((torch.diff(s.face) >= 0).all())  # contiguous per triangle
 
 
 def test_every_sample_colour_is_the_texture_at_its_point():
@@ -84,19 +86,23 @@ def test_atlas_at_the_centroid_uv_shows_the_texture_at_the_centroid(w):
     atlas = build_atlas(rest, faces, tex)
     H, W, _ = atlas.image.shape
     wt = torch.tensor(w, dtype=torch.float64)
-    uv = (atlas.uv * wt[None, :, None]).sum(1)                            # UVs are affine in the barycentrics
+    uv = (atlas.uv * wt[None, :, None]).sum(1)  # UVs are affine in the barycentrics
     col = torch.floor(uv[:, 0] * W).long()
     row = torch.floor((1 - uv[:, 1]) * H).long()
-    got = atlas.image[row, col].double()                                  # nearest read
+    got = atlas.image[row, col].double()  # nearest read
     X = rest / VOXEL
     A, B, C = (X[faces[:, k]] for k in range(3))
     want = tex.colour((w[0] * A + w[1] * B + w[2] * C).float()).double()
     # nearest rounds (a, b) = (w1, w2) to the sample grid: at most half a step L_a = 1/|AB| along AB and
     # L_b = 1/|AC| along AC, i.e. half a voxel along each leg; for the affine texture with gradient g along
     # each axis that bounds channel c by g (|AB_c| / |AB| + |AC_c| / |AC|) / 2 (+ float32 rounding)
-    tol = 0.5 * g * ((B - A).abs() / (B - A).norm(dim=1, keepdim=True) + (C - A).abs() / (C - A).norm(dim=1, keepdim=True))
+    tol = (
+        0.5
+        * g
+        * ((B - A).abs() / (B - A).norm(dim=1, keepdim=True) + (C - A).abs() / (C - A).norm(dim=1, keepdim=True))
+    )
     assert bool(((got - want).abs() <= tol + 1e-5).all())
-    assert float((got - want).abs().max()) > 0                            # the bound is not vacuous
+    assert float((got - want).abs().max()) > 0  # the bound is not vacuous
 
 
 def test_atlas_cells_hold_their_samples_do_not_overlap_and_filter_inside_their_gutter():
@@ -109,11 +115,11 @@ def test_atlas_cells_hold_their_samples_do_not_overlap_and_filter_inside_their_g
     assert torch.equal(atlas.image[y0 + 1 + s.j.long(), x0 + 1 + s.i.long()], s.colour)
     owner = np.zeros((H, W), int)
     for (x, y), c in zip(atlas.corner.tolist(), atlas.cell.tolist()):
-        owner[y:y + c, x:x + c] += 1
+        owner[y : y + c, x : x + c] += 1
     assert owner.max() == 1
     assert bool(((atlas.uv > 0) & (atlas.uv < 1)).all())
     # bilinear footprint of every corner (hence of the whole convex triangle) stays in its own cell
-    px = torch.stack([atlas.uv[..., 0] * W, (1 - atlas.uv[..., 1]) * H], -1)        # (F, 3, 2) pixels
+    px = torch.stack([atlas.uv[..., 0] * W, (1 - atlas.uv[..., 1]) * H], -1)  # (F, 3, 2) pixels
     lo, hi = torch.floor(px - 0.5), torch.floor(px - 0.5) + 1
     corner = atlas.corner[:, None, :].double()
     assert bool((lo >= corner).all()) and bool((hi < corner + atlas.cell[:, None, None]).all())

@@ -1,4 +1,5 @@
 """`torchdeform texture`: a closed mesh coloured and written; bad input is one line and exit 2."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -11,21 +12,37 @@ from torchdeform import cli
 @pytest.fixture
 def sphere(tmp_path):
     path = tmp_path / "sphere.stl"
-    trimesh.creation.icosphere(subdivisions=2, radius=10.0).export(path)       # millimetres
+    trimesh.creation.icosphere(subdivisions=2, radius=10.0).export(path)  # millimetres
     return path
 
 
 def test_texture_command_writes_vertex_colours(tmp_path, sphere, capsys):
     out = tmp_path / "sphere.ply"
-    rc = cli.main(["texture", "liver:32", "--mesh", str(sphere), "--scale", "0.001", "--out", str(out),
-                   "--block", "16", "--image", str(tmp_path / "view.png"), "--seams", "3d"])
+    rc = cli.main(
+        [
+            "texture",
+            "liver:32",
+            "--mesh",
+            str(sphere),
+            "--scale",
+            "0.001",
+            "--out",
+            str(out),
+            "--block",
+            "16",
+            "--image",
+            str(tmp_path / "view.png"),
+            "--seams",
+            "3d",
+        ]
+    )
     assert rc == 0
     printed = capsys.readouterr().out
     assert "textured" in printed and "seams (3d Poisson" in printed
     mesh = trimesh.load(out)
     assert len(mesh.vertices) == 162 and mesh.is_watertight
     colours = np.asarray(mesh.visual.vertex_colors)[:, :3]
-    assert colours.std(0).min() > 2 and colours[:, 0].mean() > colours[:, 1].mean()    # textured, reddish
+    assert colours.std(0).min() > 2 and colours[:, 0].mean() > colours[:, 1].mean()  # textured, reddish
     assert (tmp_path / "view.png").stat().st_size > 1000
 
 
@@ -42,6 +59,7 @@ BAD = {
 @pytest.mark.parametrize("case", sorted(BAD))
 def test_bad_input_is_one_line_and_exit_2(case, tmp_path, sphere, capsys):
     import matplotlib.image as mpimg
+
     ex, key, text = BAD[case]
     np.save(tmp_path / "gray.npy", np.zeros((8, 8, 8), dtype=np.uint8))
     (tmp_path / "slices").mkdir()
@@ -55,8 +73,11 @@ def test_bad_input_is_one_line_and_exit_2(case, tmp_path, sphere, capsys):
         m.export(mesh)
     ex = str(tmp_path / ex) if not ex.startswith("liver") else ex
     out = tmp_path / ("x.txt" if case == "unknown output" else "x.ply")
-    args = ["texture", ex, "--mesh", str(mesh), "--out", str(out)] + (["--block", "64"] if "block" in case else []) \
+    args = (
+        ["texture", ex, "--mesh", str(mesh), "--out", str(out)]
+        + (["--block", "64"] if "block" in case else [])
         + (["--seams", "poisson"] if "seam" in case else [])
+    )
     assert cli.main(args) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and key in err[0] and text in err[0], err

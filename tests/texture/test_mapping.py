@@ -1,4 +1,5 @@
 """Colours on surfaces at material coordinates (texture.mapping) against direct texture lookups."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -24,9 +25,10 @@ def test_vertex_colours_are_texture_lookups_at_rest_coordinates():
 
 def test_every_pixel_shows_the_texture_at_its_material_point_however_the_surface_moved():
     tex = SolidTexture(liver_exemplar(16, seed=1).double(), block=8, extent=(24, 24, 24), voxel=0.0005)
-    moved = _square(shift=(0.0, 0.003, -0.002))                        # a translated surface, same material
-    cam = Camera(eye=(0.05, 0.008, 0.003), target=(0.0, 0.008, 0.003), up=(0.0, 0.0, 1.0), ortho_height=0.008,
-                 size=(32, 32))
+    moved = _square(shift=(0.0, 0.003, -0.002))  # a translated surface, same material
+    cam = Camera(
+        eye=(0.05, 0.008, 0.003), target=(0.0, 0.008, 0.003), up=(0.0, 0.0, 1.0), ortho_height=0.008, size=(32, 32)
+    )
     out = render_textured([moved], tex, cam, light=(1.0, 0.0, 0.0), ambient=0.0, background=(0.0, 0.0, 0.0))
     hit = out["face"] >= 0
     assert int(hit.sum()) > 500
@@ -38,5 +40,5 @@ def test_every_pixel_shows_the_texture_at_its_material_point_however_the_surface
     z = (H / 2 - rows.double() - 0.5) * (0.008 / H)
     world = torch.stack([torch.full_like(y, 0.0042), 0.008 + y, 0.003 + z], 1)
     material = world - torch.tensor([0.0, 0.003, -0.002], dtype=torch.float64)
-    expect = tex.at_material(material)                                 # light along the normal: shade 1
+    expect = tex.at_material(material)  # light along the normal: shade 1
     assert torch.allclose(out["image"][rows, cols].double(), expect, atol=1e-6)

@@ -4,6 +4,7 @@ Oracles: a tiled volume built here by plain numpy slicing from a smooth random e
 guided least-squares problem assembled edge by edge with scipy.sparse and solved by spsolve;
 quadratic fields, which the face guidance reproduces exactly; hand-counted seam ratios.
 """
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -21,8 +22,8 @@ from torchdeform.texture.seams import (
     seam_measure,
 )
 
-N, B = 48, 16          # exemplar and tiled volume 48^3, blocks of 16
-STD = 0.15             # colour standard deviation of the exemplar (mean 0.5)
+N, B = 48, 16  # exemplar and tiled volume 48^3, blocks of 16
+STD = 0.15  # colour standard deviation of the exemplar (mean 0.5)
 
 
 @pytest.fixture(scope="module")
@@ -36,8 +37,9 @@ def textures():
         for j in range(N // B):
             for k in range(N // B):
                 o = rng.integers(0, N - B + 1, 3)
-                vol[:, i * B:(i + 1) * B, j * B:(j + 1) * B, k * B:(k + 1) * B] = \
-                    ex[:, o[0]:o[0] + B, o[1]:o[1] + B, o[2]:o[2] + B]
+                vol[:, i * B : (i + 1) * B, j * B : (j + 1) * B, k * B : (k + 1) * B] = ex[
+                    :, o[0] : o[0] + B, o[1] : o[1] + B, o[2] : o[2] + B
+                ]
     return torch.tensor(ex, dtype=torch.float32), torch.tensor(vol, dtype=torch.float32)
 
 
@@ -98,7 +100,7 @@ def scipy_blend(v, block, guide, unknown=None):
     L = (D.T @ D).tocsc()
     rhs = D.T @ (guidance_oracle(vf, shape, block, guide) - D @ vf)
     w = np.zeros_like(vf)
-    if unknown is None:                       # anchor voxel 0, then restore the mean
+    if unknown is None:  # anchor voxel 0, then restore the mean
         w[1:] = spsolve(L[1:, 1:], rhs[1:])
         w -= w.mean()
     else:
@@ -112,18 +114,18 @@ def scipy_blend(v, block, guide, unknown=None):
 def test_3d_blend_removes_seams_and_keeps_colours(textures, region):
     ex, vol = textures
     before = seam_measure(vol, B)
-    assert before > 6.0                       # the tiling has clear seams (measured 8.18)
+    assert before > 6.0  # the tiling has clear seams (measured 8.18)
     u, iters, rel = poisson_blend_3d(vol, B, region=region, return_info=True)
     assert rel <= 1e-6 and iters < 2000
     after = seam_measure(u, B)
-    assert after < before / 5                 # measured 8.18 -> 1.16 (all), 1.21 (seams)
-    assert 0.8 < after < 1.5                  # about as rough as the inside of a block
+    assert after < before / 5  # measured 8.18 -> 1.16 (all), 1.21 (seams)
+    assert 0.8 < after < 1.5  # about as rough as the inside of a block
     # colours: W1 per channel (STD = 0.15); the tiling itself is 0.024 from the exemplar (27 blocks of it)
-    assert histogram_distance(u, vol) < 0.25 * STD         # measured 0.018 (all), 0.025 (seams)
-    assert histogram_distance(u, ex) < 0.3 * STD           # measured 0.027 (all), 0.033 (seams)
+    assert histogram_distance(u, vol) < 0.25 * STD  # measured 0.018 (all), 0.025 (seams)
+    assert histogram_distance(u, ex) < 0.3 * STD  # measured 0.027 (all), 0.033 (seams)
     if region == "all":
         torch.testing.assert_close(u.mean((1, 2, 3)), vol.mean((1, 2, 3)), atol=1e-6, rtol=0)
-    else:                                     # voxels outside the band are anchors
+    else:  # voxels outside the band are anchors
         outside = ~seam_band(vol.shape[1:], B, 4)
         assert torch.equal(u[:, outside], vol[:, outside])
         assert float((u.mean((1, 2, 3)) - vol.mean((1, 2, 3))).abs().max()) < 1e-3
@@ -131,7 +133,7 @@ def test_3d_blend_removes_seams_and_keeps_colours(textures, region):
 
 def test_seam_measure_reference_and_axis(textures):
     ex, vol = textures
-    assert seam_measure(ex[:, :32, :32, :32], B) < 1.3     # a crop of the exemplar has no seams
+    assert seam_measure(ex[:, :32, :32, :32], B) < 1.3  # a crop of the exemplar has no seams
     assert seam_measure(vol, B, reference=ex) == pytest.approx(seam_measure(vol, B), rel=0.1)
     per_axis = [seam_measure(vol, B, axis=a) for a in range(3)]
     assert min(per_axis) > 5.0
@@ -146,9 +148,9 @@ def test_slice_blend_cannot_fix_the_slicing_axis(textures, axis):
     after = [seam_measure(u, B, axis=a) for a in range(3)]
     for a in range(3):
         if a == axis:
-            assert after[a] > 0.8 * before[a]     # measured 7.8 -> 7.2 (axis 0), 8.4 -> 7.6 (axis 2)
+            assert after[a] > 0.8 * before[a]  # measured 7.8 -> 7.2 (axis 0), 8.4 -> 7.6 (axis 2)
         else:
-            assert after[a] < before[a] / 5       # measured ~8.3 -> 1.07-1.15
+            assert after[a] < before[a] / 5  # measured ~8.3 -> 1.07-1.15
     # each slice keeps its mean colour (region "seams": approximately)
     dims = tuple(d for d in (1, 2, 3) if d != axis + 1)
     assert float((u.mean(dims) - vol.mean(dims)).abs().max()) < 0.01
@@ -161,7 +163,7 @@ def test_single_block_is_unchanged(textures, blend):
     one = ex[:, :16, :16, :16]
     u, iters, _ = blend(one, 16, return_info=True)
     assert iters == 0 and torch.equal(u, one)
-    assert torch.equal(blend(ex[:, :20, :20, :20], 32), ex[:, :20, :20, :20])   # a block larger than the volume
+    assert torch.equal(blend(ex[:, :20, :20, :20], 32), ex[:, :20, :20, :20])  # a block larger than the volume
 
 
 @pytest.mark.parametrize("region", ["all", "seams"])
@@ -172,8 +174,18 @@ def test_quadratic_field_is_a_fixed_point(region):
     chans = []
     for _ in range(3):
         c = rng.normal(size=10) * np.array([1, 0.1, 0.1, 0.1, 1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-3])
-        chans.append(c[0] + c[1] * i + c[2] * j + c[3] * k + c[4] * i * i + c[5] * j * j + c[6] * k * k
-                     + c[7] * i * j + c[8] * j * k + c[9] * i * k)
+        chans.append(
+            c[0]
+            + c[1] * i
+            + c[2] * j
+            + c[3] * k
+            + c[4] * i * i
+            + c[5] * j * j
+            + c[6] * k * k
+            + c[7] * i * j
+            + c[8] * j * k
+            + c[9] * i * k
+        )
     v = torch.tensor(np.stack(chans))
     for blend in (poisson_blend_3d, poisson_blend_slices):
         u = blend(v, 8, region=region, tol=1e-10)
@@ -198,8 +210,8 @@ def test_slices_match_scipy_per_slice():
     u = poisson_blend_slices(torch.tensor(v), 3, axis=1, region="all", tol=1e-12).numpy()
     for c in range(2):
         for h in range(5):
-            ref = scipy_blend(v[c][:, h:h + 1, :], 3, "mean")
-            np.testing.assert_allclose(u[c][:, h:h + 1, :], ref, atol=1e-9)
+            ref = scipy_blend(v[c][:, h : h + 1, :], 3, "mean")
+            np.testing.assert_allclose(u[c][:, h : h + 1, :], ref, atol=1e-9)
 
 
 # --------------------------------------------------------------------------- small pieces
@@ -216,7 +228,7 @@ def test_histogram_distance_known_values():
     a = torch.linspace(0, 1, 1000).expand(3, 1000)
     assert histogram_distance(a, a) == 0.0
     assert histogram_distance(a, a + 0.25, bins=200) == pytest.approx(0.25, abs=0.01)
-    assert histogram_distance(a, a + 10.0, metric="l1") == 2.0      # disjoint
+    assert histogram_distance(a, a + 10.0, metric="l1") == 2.0  # disjoint
     assert histogram_distance(a.double(), a.float()) == pytest.approx(0.0, abs=1e-12)
 
 
@@ -225,7 +237,7 @@ def test_bad_arguments_raise_one_clear_error(textures):
     with pytest.raises(ConfigError, match="region"):
         poisson_blend_3d(vol, B, region="faces")
     with pytest.raises(ConfigError, match="block"):
-        seam_measure(vol, 64)                                          # no interior face
+        seam_measure(vol, 64)  # no interior face
     with pytest.raises(ConfigError, match="volume"):
         seam_measure(vol[0], B)
     with pytest.raises(ConfigError, match="axis"):
@@ -234,6 +246,7 @@ def test_bad_arguments_raise_one_clear_error(textures):
 
 def test_seam_jump_equals_a_numpy_loop_over_face_edges():
     from torchdeform.texture.seams import seam_jump
+
     rng = np.random.default_rng(7)
     v = rng.random((2, 7, 6, 9))
     b = 3
@@ -257,6 +270,7 @@ def test_poisson_blend_removes_most_of_the_gradient_jump_of_a_tiled_liver():
     """On the procedural liver the step measure cannot fall 5-fold (its floor is 1); the jump does."""
     from torchdeform.texture import SolidTexture, liver_exemplar
     from torchdeform.texture.seams import histogram_distance, poisson_blend_3d, seam_jump
+
     ex = liver_exemplar(48, seed=0)
     v = SolidTexture(ex, block=16, extent=(48, 48, 48), seed=1).materialise()
     u = poisson_blend_3d(v, 16)
@@ -273,6 +287,7 @@ def test_solid_texture_blend_reads_the_blended_volume_from_then_on():
     from torchdeform.texture import SolidTexture, liver_exemplar
     from torchdeform.texture.seams import histogram_distance, poisson_blend_3d, poisson_blend_slices, seam_jump
     from torchdeform.volume import to_grid_sample
+
     ex = liver_exemplar(32, seed=2)
     tiled = SolidTexture(ex, block=16, extent=(40, 32, 24), seed=3).materialise()
     for method, blend in (("3d", poisson_blend_3d), ("slices", poisson_blend_slices)):

@@ -7,6 +7,7 @@
 * colours at material coordinates do not change when the body moves rigidly (1e-6);
 * exemplars load from .npy, .npz and folders of PNG slices; bad input is one clear error.
 """
+
 from __future__ import annotations
 
 import math
@@ -39,8 +40,8 @@ def test_blocks_are_exemplar_copies_at_their_offsets(exemplar, extent, block):
                 o = tex.offsets[i, j, k].tolist()
                 lo = (i * block, j * block, k * block)
                 hi = tuple(min(a + block, e) for a, e in zip(lo, extent))
-                part = vol[:, lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
-                ref = ex[:, o[0]:o[0] + hi[0] - lo[0], o[1]:o[1] + hi[1] - lo[1], o[2]:o[2] + hi[2] - lo[2]]
+                part = vol[:, lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
+                ref = ex[:, o[0] : o[0] + hi[0] - lo[0], o[1] : o[1] + hi[1] - lo[1], o[2] : o[2] + hi[2] - lo[2]]
                 assert np.array_equal(part, ref)
 
 
@@ -75,7 +76,8 @@ def test_trilinear_slice_lookup_equals_3d_grid_sample(dtype, tol):
     import torch.nn.functional as F
 
     from torchdeform.volume import to_grid_sample
-    ex = liver_exemplar(24, seed=4)[:, :19, :, :21].to(dtype)                 # 19 slices: 5 x 4 tiles
+
+    ex = liver_exemplar(24, seed=4)[:, :19, :, :21].to(dtype)  # 19 slices: 5 x 4 tiles
     tex = SolidTexture(ex, block=8, extent=(16, 16, 16))
     gen = torch.Generator().manual_seed(1)
     q = torch.rand(20001, 3, generator=gen, dtype=dtype) * torch.tensor([23.0, 28, 25], dtype=dtype) - 2
@@ -93,32 +95,35 @@ def test_trilinear_slice_lookup_equals_3d_grid_sample(dtype, tol):
 def test_colours_of_a_surface_ignore_rigid_motion(exemplar):
     """The surface of a body moved rigidly carries the same rest coordinates, hence the same colours."""
     from torchdeform.topology import cut_surfaces
+
     grid = td.Grid((6, 5, 4), spacing=0.002, topology=26)
     X = grid.rest_positions(torch.float64)
     labels = torch.zeros(grid.shape, dtype=torch.int64)
     tex = SolidTexture(exemplar, block=8, extent=(30, 30, 30), seed=2, voxel=0.0005, origin=(-0.0013, -0.0021, -0.0017))
     angle = 0.7
-    R = torch.tensor([[1, 0, 0], [0, math.cos(angle), -math.sin(angle)], [0, math.sin(angle), math.cos(angle)]],
-                     dtype=torch.float64)
+    R = torch.tensor(
+        [[1, 0, 0], [0, math.cos(angle), -math.sin(angle)], [0, math.sin(angle), math.cos(angle)]], dtype=torch.float64
+    )
     t = torch.tensor([0.01, -0.02, 0.005], dtype=torch.float64)
-    moved = (torch.einsum("ij,bjdhw->bidhw", R, X) + t.view(1, 3, 1, 1, 1))
+    moved = torch.einsum("ij,bjdhw->bidhw", R, X) + t.view(1, 3, 1, 1, 1)
     (a,), (b,) = cut_surfaces(grid, X, labels), cut_surfaces(grid, moved, labels)
-    assert np.allclose(b.vertices, a.vertices @ R.numpy().T + t.numpy(), atol=1e-12)   # the surface moved
+    assert np.allclose(b.vertices, a.vertices @ R.numpy().T + t.numpy(), atol=1e-12)  # the surface moved
     ca = tex.at_material(torch.from_numpy(a.rest))
     cb = tex.at_material(torch.from_numpy(b.rest))
     assert torch.allclose(ca, cb, atol=1e-6)
-    assert float(ca.std(0).min()) > 0.005                                           # it is textured
+    assert float(ca.std(0).min()) > 0.005  # it is textured
 
 
 def test_liver_exemplar_is_seeded_and_rgb():
     a, b, c = liver_exemplar(16, seed=0), liver_exemplar(16, seed=0), liver_exemplar(16, seed=1)
     assert torch.equal(a, b) and not torch.equal(a, c)
     assert a.shape == (3, 16, 16, 16) and float(a.min()) >= 0 and float(a.max()) <= 1
-    assert float(a[0].mean()) > float(a[1].mean())                                  # reddish
+    assert float(a[0].mean()) > float(a[1].mean())  # reddish
 
 
 def test_exemplar_files(tmp_path):
     import matplotlib.image as mpimg
+
     vol = (np.random.default_rng(0).random((4, 6, 5, 3)) * 255).astype(np.uint8)
     np.save(tmp_path / "ex.npy", vol)
     np.savez(tmp_path / "ex.npz", exemplar=vol)

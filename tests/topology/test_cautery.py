@@ -6,6 +6,7 @@
   an independent construction path through Grid and Model), to 1e-12 over 300 steps;
 * removed nodes stay put, and the pieces a burn separates are counted.
 """
+
 from __future__ import annotations
 
 import pytest
@@ -22,8 +23,9 @@ H = 0.01
 
 def _body(node_mask=None):
     grid = td.Grid((5, 4, 4), spacing=H, topology=26, node_mask=node_mask)
-    return td.Model(grid, stiffness=20.0, damping=0.02, mass=1e-3, gravity=(-9.81, 0, 0),
-                    fixed=grid.face("bottom"), dtype=F64)
+    return td.Model(
+        grid, stiffness=20.0, damping=0.02, mass=1e-3, gravity=(-9.81, 0, 0), fixed=grid.face("bottom"), dtype=F64
+    )
 
 
 def test_removed_mass_and_momentum_are_accounted_for():
@@ -33,7 +35,7 @@ def test_removed_mass_and_momentum_are_accounted_for():
     p0 = (model.mass * state.v).flatten(2).sum(2)[0]
     v_before = state.v.clone()
     out = cauterize(model, state, Tool(Sphere(0.013), position=(0.04, 0.015, 0.015)))
-    assert out["nodes"] == 8                                      # the 4 top-centre nodes and 4 below them
+    assert out["nodes"] == 8  # the 4 top-centre nodes and 4 below them
     assert float(model.mass.sum()) + out["mass_kg"] == pytest.approx(m0, rel=1e-15)
     p1 = (model.mass * v_before).flatten(2).sum(2)[0]
     assert torch.allclose(p1 + torch.tensor(out["momentum"], dtype=F64), p0, rtol=0, atol=1e-18)
@@ -50,12 +52,12 @@ def test_cauterized_body_moves_like_one_built_without_those_nodes():
     b, _ = td.simulate(reference, reference.rest_state(), dt=2e-4, steps=300)
     body = ~model.removed
     assert (a.x[0][:, body] - b.x[0][:, body]).abs().max() < 1e-12
-    assert (a.x[0][:, model.removed] - model.X[0][:, model.removed]).abs().max() == 0    # removed: still
+    assert (a.x[0][:, model.removed] - model.X[0][:, model.removed]).abs().max() == 0  # removed: still
 
 
 def test_a_burn_through_the_body_leaves_two_pieces():
     model = _body()
-    wall = Tool(td.interact.Box((0.004, 0.05, 0.05)), position=(0.02, 0.015, 0.015))   # the middle layer
+    wall = Tool(td.interact.Box((0.004, 0.05, 0.05)), position=(0.02, 0.015, 0.015))  # the middle layer
     out = cauterize(model, model.rest_state(), wall)
     assert out["nodes"] == 16
     assert components(model)[1] == 2

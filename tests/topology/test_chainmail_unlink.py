@@ -16,6 +16,7 @@ partial blade through a deformed body; (c) across a partial cut the far side sti
 through the uncut links, and every solver (Gibson, Enhanced, tensor) equals the reference;
 (d) no mask and an all-true mask give bit-identical results.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -72,8 +73,10 @@ def reference_move(u0, shape, lo, hi, sh, links, picks, delta):
     shear); per coordinate ``c`` the offset difference ``u_q[c] - u_p[c]`` of link (p, q, a) lies in
     ``[lo_a, hi_a]`` when ``c == a``, else in ``[-sh_a, sh_a]``.
     """
+
     def bounds(p, a, c):
         return (lo[a], hi[a]) if c == a else (-sh[a], sh[a])
+
     return least_motion(u0, shape, links, bounds, picks, delta)
 
 
@@ -109,7 +112,7 @@ def test_full_cut_isolates_the_far_side_sequential(method):
     pick, delta = [(0, 2, 1)], (-2.5, 0.6, -0.4)
     whole = ChainMail(grid, lim, method=method)
     whole.move(pick, delta)
-    assert float(whole.displacement(F64)[0, :, 3:].abs().max()) > 0.1       # uncut: the top is dragged
+    assert float(whole.displacement(F64)[0, :, 3:].abs().max()) > 0.1  # uncut: the top is dragged
 
     cm = ChainMail(grid, lim, method=method)
     links = unlink(cm, None, _full_blade(grid, 2))
@@ -117,13 +120,13 @@ def test_full_cut_isolates_the_far_side_sequential(method):
     assert not bool(links[0, 2].any()) and bool(links[0, :2].all())
     r = cm.move(pick, delta)
     u = cm.displacement(F64)[0]
-    assert float(u[:, 3:].abs().max()) == 0.0                                 # exactly: nothing moved
+    assert float(u[:, 3:].abs().max()) == 0.0  # exactly: nothing moved
     assert r.fraction == 1.0 and r.moved > 1
     assert float(u[:, :3].abs().max()) > 0.1
     x = cm.positions()
     assert float(limit_violation(x, grid, lim, links=links)[0]) < 1e-12
-    assert float(limit_violation(x, grid, lim)[0]) > 0.1                     # the cut gapes
-    assert bool((r.moved_nodes < 3 * 5 * 4).all())                           # node indices: layers 0..2 only
+    assert float(limit_violation(x, grid, lim)[0]) > 0.1  # the cut gapes
+    assert bool((r.moved_nodes < 3 * 5 * 4).all())  # node indices: layers 0..2 only
     # relaxation respects the cut as well: the far side stays put
     cm.relax(steps=3)
     assert float(cm.displacement(F64)[0, :, 3:].abs().max()) == 0.0
@@ -143,7 +146,7 @@ def test_full_cut_isolates_the_far_side_tensor():
     assert float(u[:, :, 3:].abs().max()) == 0.0 and not bool(r.moved[:, 3:].any())
     assert bool((r.violation < 1e-12).all())
     near = (slice(None), slice(None), slice(0, 3))
-    assert float((r.positions[near] - full.positions[near]).abs().max()) < 1e-12   # the near side as before
+    assert float((r.positions[near] - full.positions[near]).abs().max()) < 1e-12  # the near side as before
     # the relaxation of the result keeps the far side at rest and every remaining limit holds
     xr, e = relax(r.positions, grid, lim, steps=2, free=~pick, links=links)
     assert float((xr - x)[:, :, 3:].abs().max()) == 0.0
@@ -157,7 +160,7 @@ def test_oblique_partial_blade_matches_brute_force():
     shape = grid.shape
     x = grid.rest_positions(F64)
     g = torch.Generator().manual_seed(3)
-    x = x + 0.05 * torch.rand(x.shape, generator=g, dtype=F64)              # a deformed body
+    x = x + 0.05 * torch.rand(x.shape, generator=g, dtype=F64)  # a deformed body
     # an oblique rectangle: edges u, v at right angles, covering part of the body only
     u = np.array([1.5, 3.0, 0.4])
     v = np.cross(u, np.array([-1.0, 0.3, 0.9]))
@@ -167,11 +170,14 @@ def test_oblique_partial_blade_matches_brute_force():
     links = lattice_links(shape)
     expect = brute_cut(x[0].numpy(), links, origin, u, v)
     n = np.cross(u, v)
-    planes = sum(1 for p, q, a in links                                        # crossing the plane at all
-                 if (float(n @ (x[0][(slice(None), *p)].numpy() - origin)) > 0)
-                 != (float(n @ (x[0][(slice(None), *q)].numpy() - origin)) > 0))
-    assert 10 < len(expect) < planes                                            # partial: some pass by
-    assert {a for *_, a in expect} == {0, 1, 2}                                 # oblique: links of every axis
+    planes = sum(
+        1
+        for p, q, a in links  # crossing the plane at all
+        if (float(n @ (x[0][(slice(None), *p)].numpy() - origin)) > 0)
+        != (float(n @ (x[0][(slice(None), *q)].numpy() - origin)) > 0)
+    )
+    assert 10 < len(expect) < planes  # partial: some pass by
+    assert {a for *_, a in expect} == {0, 1, 2}  # oblique: links of every axis
     got = link_mask(grid) & ~unlink(link_mask(grid), x, blade)
     assert torch.equal(got, _mask_from(expect, shape))
     assert torch.equal(link_crossing(x, blade, grid)[0], got)
@@ -184,11 +190,11 @@ def test_node_on_the_plane_counts_as_the_side_opposite_the_normal():
     grid, _ = _setup((5, 3, 3))
     x = grid.rest_positions(F64)
     h = grid.spacing
-    blade = Blade((2 * h[0], -1.0, -1.0), (0.0, 5.0, 0.0), (0.0, 0.0, 5.0))   # through layer 2, normal +d
+    blade = Blade((2 * h[0], -1.0, -1.0), (0.0, 5.0, 0.0), (0.0, 0.0, 5.0))  # through layer 2, normal +d
     cut_ = link_mask(grid) & ~unlink(link_mask(grid), x, blade)
     expect = brute_cut(x[0].numpy(), lattice_links(grid.shape), (2 * h[0], -1.0, -1.0), (0, 5.0, 0), (0, 0, 5.0))
     assert torch.equal(cut_, _mask_from(expect, grid.shape))
-    assert bool(cut_[0, 2].all()) and int(cut_.sum()) == 9                    # only 2 -> 3, never 1 -> 2
+    assert bool(cut_[0, 2].all()) and int(cut_.sum()) == 9  # only 2 -> 3, never 1 -> 2
 
 
 # ------------------------------------------------------------------ (c) partial cut
@@ -222,16 +228,16 @@ def test_far_side_follows_through_uncut_links(method):
         u = cm.displacement(F64)[0].numpy()
         assert float(limit_violation(cm.positions(), grid, lim, links=links)[0]) < 1e-12
     assert np.abs(u - ref).max() < 1e-12
-    far = u[:, 3:, :3]                                            # the far side behind the cut
-    assert np.abs(far).max() > 0.1                                # it follows, round the cut
-    assert np.abs(far - straight[:, 3:, :3]).max() > 0.1          # but less than without the cut
+    far = u[:, 3:, :3]  # the far side behind the cut
+    assert np.abs(far).max() > 0.1  # it follows, round the cut
+    assert np.abs(far - straight[:, 3:, :3]).max() > 0.1  # but less than without the cut
 
 
 # ------------------------------------------------------------------ (d) no mask == all-true mask
 @pytest.mark.parametrize("method", ["gibson", "enhanced"])
 def test_all_true_mask_is_bit_identical_sequential(method):
     grid, lim = _setup()
-    full = torch.ones((3,) + grid.shape, dtype=torch.bool)      # also True on links leaving the box
+    full = torch.ones((3,) + grid.shape, dtype=torch.bool)  # also True on links leaving the box
     a = ChainMail(grid, lim, method=method, fixed=grid.face("top"))
     b = ChainMail(grid, lim, method=method, fixed=grid.face("top"), links=full)
     for pick, d in (([(0, 2, 1)], (-1.7, 0.4, 0.3)), ([(2, 4, 3), (2, 3, 3)], (0.2, 1.3, -0.9))):
@@ -256,7 +262,9 @@ def test_all_true_mask_is_bit_identical_tensor():
     assert torch.equal(ra.positions, rb.positions) and torch.equal(ra.moved, rb.moved)
     assert ra.sweeps == rb.sweeps and torch.equal(ra.depth, rb.depth) and torch.equal(ra.violation, rb.violation)
     xa, ea = relax(ra.positions, grid, lim, steps=2, free=~pick)
-    xb, eb = relax(ra.positions, grid, lim, steps=2, free=~pick, links=torch.ones((2, 3) + grid.shape, dtype=torch.bool))
+    xb, eb = relax(
+        ra.positions, grid, lim, steps=2, free=~pick, links=torch.ones((2, 3) + grid.shape, dtype=torch.bool)
+    )
     assert torch.equal(xa, xb) and ea == eb
 
 
@@ -267,14 +275,13 @@ def test_bad_masks_and_relinking_are_refused():
     with pytest.raises(ConfigError):
         ChainMail(grid, lim, links=torch.ones(3, 2, 2, 2, dtype=torch.bool))
     with pytest.raises(ConfigError):
-        tensor_chainmail(grid.rest_positions(F64), grid, lim, grid.face("top"), (1.0, 0, 0),
-                         links=torch.ones(2, 2, 2))
+        tensor_chainmail(grid.rest_positions(F64), grid, lim, grid.face("top"), (1.0, 0, 0), links=torch.ones(2, 2, 2))
     with pytest.raises(ConfigError):
         unlink(link_mask(grid), None, _full_blade(grid, 2))
     unlink(cm, None, _full_blade(grid, 2))
     cm.move([(0, 2, 2)], (-3.0, 0.0, 0.0))
-    with pytest.raises(ConfigError):                         # the sides drifted apart: no relinking
+    with pytest.raises(ConfigError):  # the sides drifted apart: no relinking
         cm.set_links(None)
     cm.reset()
-    cm.set_links(None)                                       # at rest they may be linked again
+    cm.set_links(None)  # at rest they may be linked again
     assert torch.equal(cm.links, link_mask(grid))

@@ -3,6 +3,7 @@
 The oracle is the eager grid-layout step of an identical model cut the same way (a separate
 model object, not sharing storage).
 """
+
 import pytest
 import torch
 
@@ -17,8 +18,9 @@ H = 0.01
 
 def _model():
     grid = td.Grid((5, 4, 4), H, 26)
-    return td.Model(grid, stiffness=20.0, damping=0.01, mass=1e-3, gravity=(-9.81, 0, 0),
-                    fixed=grid.face("bottom"), dtype=F64)
+    return td.Model(
+        grid, stiffness=20.0, damping=0.01, mass=1e-3, gravity=(-9.81, 0, 0), fixed=grid.face("bottom"), dtype=F64
+    )
 
 
 def _run(step, model, state, blade, tool, n=30):
@@ -35,11 +37,11 @@ def _run(step, model, state, blade, tool, n=30):
 
 
 def _blade():
-    return Blade((2.5 * H, -H, -H), (0.0, 2.5 * H, 0.0), (0.0, 0.0, 6 * H))       # a partial cut
+    return Blade((2.5 * H, -H, -H), (0.0, 2.5 * H, 0.0), (0.0, 0.0, 6 * H))  # a partial cut
 
 
 def _tool():
-    return Tool(Sphere(0.6 * H), position=(4 * H, 3 * H, 3 * H))                 # burns one corner node
+    return Tool(Sphere(0.6 * H), position=(4 * H, 3 * H, 3 * H))  # burns one corner node
 
 
 def test_shared_fields_are_views_of_the_packed_ones():
@@ -52,8 +54,9 @@ def test_shared_fields_are_views_of_the_packed_ones():
     assert float(pm.unpack(pm.stiffness)[0, 3, 1, 1, 1]) == 0.0
 
 
-@pytest.mark.parametrize("integrator", [td.SymplecticEuler(), td.ImplicitEuler(cg_iters=30, cg_tol=0)],
-                         ids=["symplectic", "implicit"])
+@pytest.mark.parametrize(
+    "integrator", [td.SymplecticEuler(), td.ImplicitEuler(cg_iters=30, cg_tol=0)], ids=["symplectic", "implicit"]
+)
 def test_packed_step_after_cut_and_cautery_equals_eager_reference(integrator):
     ref_model = _model()
     ref = _run(lambda s: integrator.step(ref_model, s, 1e-4), ref_model, ref_model.rest_state(), _blade(), _tool())
@@ -67,7 +70,7 @@ def test_packed_step_after_cut_and_cautery_equals_eager_reference(integrator):
 
     out = _run(stepper, model, state, _blade(), _tool())
     assert torch.allclose(out.x, ref.x, atol=1e-12, rtol=0)
-    assert float((ref.x - ref_model.X).abs().max()) > 1e-4                      # it did move
+    assert float((ref.x - ref_model.X).abs().max()) > 1e-4  # it did move
 
 
 @pytest.mark.slow
@@ -80,11 +83,11 @@ def test_compiled_step_sees_a_cut_without_recompiling():
     ref = _run(lambda s: eager.step(ref_model, s, 1e-4), ref_model, ref, _blade(), _tool(), n=10)
     model = _model()
     step = compiled_step(td.SymplecticEuler(), model, 1e-4, editable=True)
-    state = step(model.rest_state())                                         # compiles here
+    state = step(model.rest_state())  # compiles here
     assert step.compiled
     graphs = counters["stats"]["unique_graphs"]
     state = _run(step, model, state, _blade(), _tool(), n=10)
-    assert counters["stats"]["unique_graphs"] == graphs                        # no recompilation
+    assert counters["stats"]["unique_graphs"] == graphs  # no recompilation
     assert step.compiled and step.compile_error is None
     assert torch.allclose(state.x, ref.x, atol=1e-12, rtol=0)
 
@@ -103,8 +106,9 @@ def test_coagulation_needs_shared_rest_lengths_and_then_matches_eager():
     ref_model = _model()
     ref = ref_model.rest_state()
     model = _model()
-    step = compiled_step(td.SymplecticEuler(), model, 1e-4, enable=False,
-                         editable=("stiffness", "rest_length", "damping"))
+    step = compiled_step(
+        td.SymplecticEuler(), model, 1e-4, enable=False, editable=("stiffness", "rest_length", "damping")
+    )
     state, packed = model.rest_state(), step.packed
     for i in range(60):
         if i == 30:

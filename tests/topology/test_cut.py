@@ -7,6 +7,7 @@
 * components equal scipy.sparse.csgraph.connected_components of the remaining edge list;
 * after a full cut the upper piece falls freely (acceleration g exactly, nothing holds it).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -29,9 +30,15 @@ def _model(n, topology, shape=None):
     return grid, td.Model(grid, stiffness=10.0, damping=0.01, mass=1e-3, dtype=F64)
 
 
-@pytest.mark.parametrize("topology, count", [(6, lambda n: n * n), (14, lambda n: n * n + 4 * (n - 1) ** 2),
-                                             (18, lambda n: n * n + 4 * n * (n - 1)),
-                                             (26, lambda n: (3 * n - 2) ** 2)])
+@pytest.mark.parametrize(
+    "topology, count",
+    [
+        (6, lambda n: n * n),
+        (14, lambda n: n * n + 4 * (n - 1) ** 2),
+        (18, lambda n: n * n + 4 * n * (n - 1)),
+        (26, lambda n: (3 * n - 2) ** 2),
+    ],
+)
 @pytest.mark.parametrize("n", [3, 5])
 def test_full_layer_cut_removes_the_analytic_count(topology, count, n):
     grid, model = _model(n, topology)
@@ -39,7 +46,7 @@ def test_full_layer_cut_removes_the_analytic_count(topology, count, n):
     assert cut(model, model.X, blade) == count(n)
     assert int(((model.stiffness != 0) & grid.spring_mask()).sum()) == grid.num_springs - count(n)
     assert components(model)[1] == 2
-    assert cut(model, model.X, blade) == 0                      # nothing left to cut there
+    assert cut(model, model.X, blade) == 0  # nothing left to cut there
 
 
 def _numpy_crossings(el, x, o, u, v):
@@ -101,8 +108,9 @@ def test_components_equal_scipy_on_random_removals():
 
 def test_cut_piece_falls_freely():
     grid = td.Grid((4, 3, 3), spacing=H, topology=26)
-    model = td.Model(grid, stiffness=20.0, damping=0.02, mass=1e-3, gravity=(-9.81, 0, 0), fixed=grid.face("bottom"),
-                     dtype=F64)
+    model = td.Model(
+        grid, stiffness=20.0, damping=0.02, mass=1e-3, gravity=(-9.81, 0, 0), fixed=grid.face("bottom"), dtype=F64
+    )
     blade = Blade((1.5 * H, -H, -H), (0.0, 5 * H, 0.0), (0.0, 0.0, 5 * H))
     cut(model, model.X, blade)
     state, _ = td.simulate(model, model.rest_state(), dt=1e-4, steps=200)

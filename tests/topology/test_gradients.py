@@ -3,6 +3,7 @@
 torch.autograd.gradcheck compares the autograd gradient of a short simulation with central finite
 differences (float64), for the gape of a cut (pretension) and the coagulated configuration.
 """
+
 from __future__ import annotations
 
 import torch
@@ -30,7 +31,7 @@ def test_gradcheck_through_the_gape_of_a_cut():
 
     def final(gape):
         model = td.Model(grid, stiffness=20.0, damping=0.02, mass=1e-3, fixed=grid.face("bottom"), dtype=F64)
-        cut(model, model.X, blade)                                  # a partial cut: the body stays one piece
+        cut(model, model.X, blade)  # a partial cut: the body stays one piece
         nodes = torch.zeros(grid.shape, dtype=torch.bool)
         nodes[1:3] = True
         model.rest_length = pretension(model, nodes, gape)

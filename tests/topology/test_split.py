@@ -1,4 +1,5 @@
 """Adding a node with Radetzky's eq. 4.14: mass and momentum conserved, against hand sums."""
+
 from __future__ import annotations
 
 import pytest
@@ -57,8 +58,8 @@ def test_burn_then_add_keeps_mass_and_momentum(topology):
     assert added["mass_kg"] == pytest.approx(sum(m_before.values()) / (k + 1), rel=1e-15)
     for j in nbrs:
         assert float(model.mass[(0, 0) + j]) == pytest.approx(m_before[j] * k / (k + 1), rel=1e-15)
-    assert mass2 == pytest.approx(mass1, rel=1e-15, abs=0)             # eq. 4.14: exact
-    assert torch.allclose(p2, p1, rtol=0, atol=1e-18)                  # the share carries its momentum
+    assert mass2 == pytest.approx(mass1, rel=1e-15, abs=0)  # eq. 4.14: exact
+    assert torch.allclose(p2, p1, rtol=0, atol=1e-18)  # the share carries its momentum
     assert not bool(model.removed[node]) and not bool(model.constrained[node])
 
 

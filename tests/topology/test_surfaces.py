@@ -14,6 +14,7 @@
   rows, each side showing its own translated content), while one interpolated field smears tissue
   into the gap; without motion the carved render equals the plain one (axis view and orbit camera).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -37,7 +38,7 @@ from torchdeform.topology import (
 from torchdeform.volume import OrbitCamera, TransferFunction, node_offsets, render
 
 F64 = torch.float64
-SPACING = (0.01, 0.012, 0.008)          # anisotropic, so the axes cannot be mixed up unnoticed
+SPACING = (0.01, 0.012, 0.008)  # anisotropic, so the axes cannot be mixed up unnoticed
 ORIGIN = (0.1, -0.2, 0.05)
 
 
@@ -46,8 +47,9 @@ def _cut_body(n, k, spacing=SPACING):
     grid = td.Grid((n, n, n), spacing, topology=26, origin=ORIGIN)
     model = td.Model(grid, stiffness=10.0, mass=1e-3, dtype=F64)
     sd, sh, sw = spacing
-    blade = Blade((ORIGIN[0] + (k + 0.5) * sd, ORIGIN[1] - sh, ORIGIN[2] - sw),
-                  (0.0, (n + 1) * sh, 0.0), (0.0, 0.0, (n + 1) * sw))
+    blade = Blade(
+        (ORIGIN[0] + (k + 0.5) * sd, ORIGIN[1] - sh, ORIGIN[2] - sw), (0.0, (n + 1) * sh, 0.0), (0.0, 0.0, (n + 1) * sw)
+    )
     assert cut(model, model.X, blade) == (3 * n - 2) ** 2
     labels, count = components(model)
     assert count == 2
@@ -75,7 +77,7 @@ def _kuhn_volume(mask: np.ndarray) -> float:
         c, k = [0, 0, 0], m[:-1, :-1, :-1].copy()
         for axis in order:
             c[axis] = 1
-            k += m[c[0]:D - 1 + c[0], c[1]:H - 1 + c[1], c[2]:W - 1 + c[2]]
+            k += m[c[0] : D - 1 + c[0], c[1] : H - 1 + c[1], c[2] : W - 1 + c[2]]
         total += KUHN_PART[k].sum()
     return total
 
@@ -103,12 +105,12 @@ def test_box_volume_formula_matches_the_tetrahedron_count(shape):
 def test_full_cut_sides_are_closed_boxes_and_part_when_pulled_apart(n, k):
     grid, model, labels = _cut_body(n, k)
     lower, upper = cut_surfaces(grid, model.X, labels)
-    assert (lower.label, upper.label) == (0, (k + 1) * n * n)             # smallest flat index per side
+    assert (lower.label, upper.label) == (0, (k + 1) * n * n)  # smallest flat index per side
     for s, layers in ((lower, k + 1), (upper, n - 1 - k)):
         mesh = _mesh(s)
         assert mesh.is_watertight and mesh.is_winding_consistent
-        assert mesh.volume == pytest.approx(_box(n, layers), rel=1e-9)       # > 0: faces point outwards
-        lo = np.array(ORIGIN) - 0.5 * np.array(SPACING)                          # the half-cell offset
+        assert mesh.volume == pytest.approx(_box(n, layers), rel=1e-9)  # > 0: faces point outwards
+        lo = np.array(ORIGIN) - 0.5 * np.array(SPACING)  # the half-cell offset
         np.testing.assert_allclose(mesh.bounds[1, 1:] - mesh.bounds[0, 1:], [n * SPACING[1], n * SPACING[2]])
         np.testing.assert_allclose(mesh.bounds[0, 1:], lo[1:], atol=1e-12)
     # at rest the two cut faces coincide, on the plane half-way between layers k and k + 1
@@ -119,7 +121,7 @@ def test_full_cut_sides_are_closed_boxes_and_part_when_pulled_apart(n, k):
     # pull the upper side away along the normal (and sideways): a rigid translation
     t = torch.tensor([0.4 * SPACING[0], 0.3 * SPACING[1], -0.2 * SPACING[2]], dtype=F64)
     x = model.X.clone()
-    up = (labels == upper.label)
+    up = labels == upper.label
     x[0] = torch.where(up, x[0] + t.view(3, 1, 1, 1), x[0])
     lower2, upper2 = cut_surfaces(grid, x, labels)
     for s, layers in ((lower2, k + 1), (upper2, n - 1 - k)):
@@ -178,8 +180,8 @@ def test_extension_is_linear_one_layer_out_and_nearest_beyond():
     u = torch.einsum("ij,jdhw->idhw", A - torch.eye(3, dtype=F64), X) * mask
     out = extend_displacement(u, mask)
     exact = torch.einsum("ij,jdhw->idhw", A - torch.eye(3, dtype=F64), X)
-    torch.testing.assert_close(out[:, :3], exact[:, :3], rtol=0, atol=1e-14)   # the piece + one layer out
-    for d in range(3, 6):                                                      # nearest filled: layer 2
+    torch.testing.assert_close(out[:, :3], exact[:, :3], rtol=0, atol=1e-14)  # the piece + one layer out
+    for d in range(3, 6):  # nearest filled: layer 2
         torch.testing.assert_close(out[:, d], exact[:, 2], rtol=0, atol=1e-14)
 
 
@@ -193,20 +195,20 @@ def test_ply_files_keep_rest_coordinates(tmp_path):
     for s, path in zip(surfaces, paths):
         mesh = trimesh.load(str(path), process=False)
         raw = mesh.metadata["_ply_raw"]["vertex"]["data"]
-        np.testing.assert_allclose(mesh.vertices, s.vertices, rtol=1e-6)          # float32 positions
+        np.testing.assert_allclose(mesh.vertices, s.vertices, rtol=1e-6)  # float32 positions
         np.testing.assert_array_equal(np.stack([raw["rest_x"], raw["rest_y"], raw["rest_z"]], 1), s.rest)
         np.testing.assert_array_equal(mesh.faces, s.faces)
         assert trimesh.Trimesh(mesh.vertices, mesh.faces).is_watertight
 
 
 # ------------------------------------------------------------------ carved render
-N_VOX, N_NODES, SHIFT = 13, 5, 4       # 3 voxels per node spacing; the cut half-way between nodes 1 and 2
+N_VOX, N_NODES, SHIFT = 13, 5, 4  # 3 voxels per node spacing; the cut half-way between nodes 1 and 2
 H = 0.01
 
 
 def _ramp_volume():
     d, _, w = torch.meshgrid(*[torch.arange(N_VOX, dtype=F64)] * 3, indexing="ij")
-    return 1.0 + d + 0.1 * w                                                  # constant along H
+    return 1.0 + d + 0.1 * w  # constant along H
 
 
 def _moved_apart():
@@ -238,7 +240,7 @@ def test_carved_render_shows_the_gap(view):
     img = render(vol, mode="mip", view=view, pieces=pieces)[0, 0].numpy()
     expected, gap = _expected_mip()
     assert gap.sum() == 4
-    if view == "-w":                              # rays along W: a MIP picks the largest w (= N_VOX - 1)
+    if view == "-w":  # rays along W: a MIP picks the largest w (= N_VOX - 1)
         expected = expected.max(1)[:, None] * np.ones((1, N_VOX))
     np.testing.assert_allclose(img, expected, atol=1e-12)
     # one interpolated field smears the tissue across the gap
@@ -264,8 +266,9 @@ def test_carved_render_without_motion_is_the_plain_render(view):
     vol = _ramp_volume()
     pieces = cut_pieces(grid, model.X, labels, vol.shape)
     for mode in ("mip", "average"):
-        torch.testing.assert_close(render(vol, mode=mode, view=view, pieces=pieces),
-                                   render(vol, mode=mode, view=view), rtol=0, atol=1e-12)
+        torch.testing.assert_close(
+            render(vol, mode=mode, view=view, pieces=pieces), render(vol, mode=mode, view=view), rtol=0, atol=1e-12
+        )
 
 
 def test_bad_inputs_are_config_errors():

@@ -4,6 +4,7 @@ The oracle lists every spring of the grid explicitly (tests.oracles.edge_list) a
 each segment with each triangle by Moller-Trumbore (its own triangulation of the swept surface:
 two triangles per interval), independently of torchdeform's plane-grouped search.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -75,7 +76,7 @@ def test_curved_swept_blade_matches_brute_force(topology):
     grid, model, x, el = _body(topology, seed=2)
     edges = _curved_edges()
     blade = Blade.swept(edges)
-    assert sum(tri for *_, tri in blade.patches) >= 2 and len(blade.planes()) > 2     # curved: many planes
+    assert sum(tri for *_, tri in blade.patches) >= 2 and len(blade.planes()) > 2  # curved: many planes
     triangles = []
     for k in range(len(edges) - 1):
         a0, b0, a1, b1 = edges[k, 0], edges[k, 1], edges[k + 1, 0], edges[k + 1, 1]
@@ -103,8 +104,9 @@ def test_progressive_cut_equals_one_cut_of_the_whole_sweep():
     assert torch.equal(model.stiffness != 0, ref.stiffness != 0)
     # a turning edge: the progressive cut follows the curved surface, matching the oracle
     grid, model, x, el = _body(18, seed=4)
-    tool = Tool(Sphere(0.001), path=[(0.0, (0.025, 0.0, 0.02), (0.0, 0.0, 0.0)),
-                                     (1.0, (0.025, 0.05, 0.02), (0.0, 0.8, 0.0))])
+    tool = Tool(
+        Sphere(0.001), path=[(0.0, (0.025, 0.0, 0.02), (0.0, 0.0, 0.0)), (1.0, (0.025, 0.05, 0.02), (0.0, 0.8, 0.0))]
+    )
     knife = Scalpel(tool, edge=((0.0, 0.0, -0.03), (0.0, 0.0, 0.03)), pieces=4)
     state = td.State(x.clone(), torch.zeros_like(x), 0.0)
     for i in range(11):
@@ -129,11 +131,11 @@ def test_gape_shortens_the_springs_at_the_cut_once_and_opens_it():
         model = td.Model(grid, stiffness=20.0, damping=0.05, mass=1e-3, fixed=grid.face("bottom"), dtype=F64)
         cut(model, model.X, blade, gape=gape)
         state, _ = td.simulate(model, model.rest_state(), dt=2e-4, steps=1500)
-        return model, float((state.x[0, 0, 3] - state.x[0, 0, 2]).mean())     # distance across the cut
+        return model, float((state.x[0, 0, 3] - state.x[0, 0, 2]).mean())  # distance across the cut
 
     model, gap = opened(0.2)
     _, gap0 = opened(0.0)
-    assert abs(gap0 - H) < 1e-9 and gap > H * 1.05                        # the cut gapes open
+    assert abs(gap0 - H) < 1e-9 and gap > H * 1.05  # the cut gapes open
     # exactly the springs left at the two layers of the cut are shortened, by 20 %
     l0 = grid.rest_lengths(F64).view(-1, 1, 1, 1).expand(-1, *grid.shape)
     ratio = model.rest_length[0] / l0

@@ -9,6 +9,7 @@
   without loads leave it to 1e-15), springs outside the region keep their rest lengths, and the
   damping there rises by the factor.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -71,11 +72,18 @@ def test_force_limit_is_strain_limit_over_k_l0():
 def test_pulled_chain_tears_at_its_softest_spring():
     grid = td.Grid((6, 1, 1), spacing=H, topology=6)
     k = torch.full((1, grid.S) + grid.shape, 50.0, dtype=F64)
-    k[0, 0, 3] = 20.0                                              # the spring between nodes 3 and 4
+    k[0, 0, 3] = 20.0  # the spring between nodes 3 and 4
     top = torch.zeros(grid.shape, dtype=torch.bool)
     top[-1] = True
-    model = td.Model(grid, stiffness=k, damping=0.05, mass=1e-3, fixed=grid.face("bottom"), dtype=F64,
-                     drags=[td.Drag(top, [(0.0, (0.0, 0.0, 0.0)), (0.5, (0.02, 0.0, 0.0))])])
+    model = td.Model(
+        grid,
+        stiffness=k,
+        damping=0.05,
+        mass=1e-3,
+        fixed=grid.face("bottom"),
+        dtype=F64,
+        drags=[td.Drag(top, [(0.0, (0.0, 0.0, 0.0)), (0.5, (0.02, 0.0, 0.0))])],
+    )
     state, torn = model.rest_state(), 0
     for _ in range(400):
         state, _ = td.simulate(model, state, dt=2e-4, steps=5)
@@ -95,29 +103,36 @@ def test_chain_tears_when_the_spring_force_reaches_k_l0_limit_and_not_before():
     """
     n, lim, l0 = 6, 0.3, H
     grid = td.Grid((n, 1, 1), spacing=H, topology=6)
-    ks = np.array([50.0, 50.0, 50.0, 20.0, 50.0])                   # spring i joins nodes i, i+1
+    ks = np.array([50.0, 50.0, 50.0, 20.0, 50.0])  # spring i joins nodes i, i+1
     k = torch.zeros((1, grid.S) + grid.shape, dtype=F64)
-    k[0, 0, :n - 1, 0, 0] = torch.tensor(ks)
+    k[0, 0, : n - 1, 0, 0] = torch.tensor(ks)
     top = torch.zeros(grid.shape, dtype=torch.bool)
     top[-1] = True
-    speed = 0.01                                                    # m/s: slow against the chain's ~14 Hz
-    model = td.Model(grid, stiffness=k, damping=0.02, mass=1e-3, fixed=grid.face("bottom"), dtype=F64,
-                     drags=[td.Drag(top, [(0.0, (0.0, 0.0, 0.0)), (10.0, (10 * speed, 0.0, 0.0))])])
+    speed = 0.01  # m/s: slow against the chain's ~14 Hz
+    model = td.Model(
+        grid,
+        stiffness=k,
+        damping=0.02,
+        mass=1e-3,
+        fixed=grid.face("bottom"),
+        dtype=F64,
+        drags=[td.Drag(top, [(0.0, (0.0, 0.0, 0.0)), (10.0, (10 * speed, 0.0, 0.0))])],
+    )
     state = model.rest_state()
-    limit = ks * l0 * lim                                           # N, per spring
+    limit = ks * l0 * lim  # N, per spring
     for _ in range(2000):
         x = state.x[0, 0, :, 0, 0].numpy()
         force = ks * (np.diff(x) - l0)
         torn = tear(model, state.x, lim)
         if torn:
             break
-        assert (force <= limit * (1 + 1e-12)).all()                 # not before
+        assert (force <= limit * (1 + 1e-12)).all()  # not before
         state, _ = td.simulate(model, state, dt=5e-4, steps=4)
     assert torn == 1 and float(model.stiffness[0, 0, 3, 0, 0]) == 0  # the soft spring
     assert force[3] >= limit[3] and (force[[0, 1, 2, 4]] < limit[[0, 1, 2, 4]]).all()
     delta = float(state.x[0, 0, -1, 0, 0] - model.X[0, 0, -1, 0, 0])
     expect = 20.0 * l0 * lim * float((1 / ks).sum())
-    assert abs(delta - expect) < 0.01 * expect                      # quasi-static (a check every 0.26 %)
+    assert abs(delta - expect) < 0.01 * expect  # quasi-static (a check every 0.26 %)
 
 
 def test_coagulated_shape_is_the_new_rest_shape():
@@ -135,12 +150,15 @@ def test_coagulated_shape_is_the_new_rest_shape():
     n = coagulate(part, x, region)
     p = x[0].numpy()
     count = 0
-    for si, d in enumerate(grid.directions):          # every spring slot, checked one by one in numpy
+    for si, d in enumerate(grid.directions):  # every spring slot, checked one by one in numpy
         for ijk in zip(*np.nonzero(grid.spring_mask()[si].numpy())):
             far = tuple(int(i) + c for i, c in zip(ijk, d))
             both = bool(region[ijk]) and bool(region[far])
-            expect = np.linalg.norm(p[(slice(None),) + far] - p[(slice(None),) + tuple(ijk)]) if both \
+            expect = (
+                np.linalg.norm(p[(slice(None),) + far] - p[(slice(None),) + tuple(ijk)])
+                if both
                 else H * np.linalg.norm(d)
+            )
             assert abs(float(part.rest_length[0, si][tuple(ijk)]) - expect) < 1e-15
             count += both
     assert n == count > 0

@@ -1,4 +1,5 @@
 """The animated demo: frames, panels, motion against the projected nodes, the force caption, the scene hooks."""
+
 from __future__ import annotations
 
 import itertools
@@ -31,9 +32,16 @@ def dragged_run(steps=60, every=20):
     """A small float64 body, base fixed, its top centre node dragged 1.5 mm along +W; recorded frames."""
     grid = td.Grid(SHAPE, spacing=SPACING, topology=26)
     top = grid.index_mask([(4, 2, 2)])
-    model = td.Model(grid, stiffness=K, density=1000.0, fixed=grid.face("bottom"), gravity=(-9.81, 0.0, 0.0),
-                     drags=[td.Drag(top, [(0.0, (0.0, 0.0, 0.0)), (0.01, (0.0, 0.0, 0.0015))])], decay=50.0,
-                     dtype=torch.float64)
+    model = td.Model(
+        grid,
+        stiffness=K,
+        density=1000.0,
+        fixed=grid.face("bottom"),
+        gravity=(-9.81, 0.0, 0.0),
+        drags=[td.Drag(top, [(0.0, (0.0, 0.0, 0.0)), (0.01, (0.0, 0.0, 0.0015))])],
+        decay=50.0,
+        dtype=torch.float64,
+    )
     _, rec = td.simulate(model, model.rest_state(), 1e-4, steps, record_every=every, warn=False)
     return model, rec["t"].numpy(), rec["x"][:, 0], rec["v"][:, 0]
 
@@ -56,19 +64,26 @@ def test_frames_panels_and_motion_follow_the_projected_nodes(tmp_path):
     shift = torch.zeros_like(x)
     shift[:, 2] = torch.linspace(0, 0.002, len(x), dtype=x.dtype).view(-1, 1, 1, 1)
     x = x + shift
-    info = animate(model.grid, t, x, tmp_path / "a.gif", volume="phantom:16", frames=4,
-                   texture={"exemplar": "liver:16", "block": 8})
+    info = animate(
+        model.grid,
+        t,
+        x,
+        tmp_path / "a.gif",
+        volume="phantom:16",
+        frames=4,
+        texture={"exemplar": "liver:16", "block": 8},
+    )
     frames = gif_frames(tmp_path / "a.gif")
     assert len(frames) == info["frames"] == 4 and info["indices"] == [0, 2, 4, 6]
     h, w, _ = frames[0].shape
-    assert w == 2 * 320 and h >= 320 and info["size"] == [h, w]                 # two panels of 320 x 320 at least
+    assert w == 2 * 320 and h >= 320 and info["size"] == [h, w]  # two panels of 320 x 320 at least
     first, last = frames[0].astype(int), frames[-1].astype(int)
-    assert np.abs(first[:320, :320] - last[:320, :320]).max() > 50             # the surface moved
-    assert np.abs(first[:320, 320:] - last[:320, 320:]).max() > 30             # the volume deformed
-    assert np.abs(first[320:] - last[320:]).max() > 100                        # the caption changed
+    assert np.abs(first[:320, :320] - last[:320, :320]).max() > 50  # the surface moved
+    assert np.abs(first[:320, 320:] - last[:320, 320:]).max() > 30  # the volume deformed
+    assert np.abs(first[320:] - last[320:]).max() > 100  # the caption changed
 
-    def body(frame):                                                           # non-white pixels of the surface
-        panel = frame[24:320, :320].astype(int)                                # below the title
+    def body(frame):  # non-white pixels of the surface
+        panel = frame[24:320, :320].astype(int)  # below the title
         rows, cols = np.nonzero((panel < 235).any(2))
         return np.array([cols.mean() + 0.5, rows.mean() + 24.5]), len(rows)
 
@@ -78,7 +93,7 @@ def test_frames_panels_and_motion_follow_the_projected_nodes(tmp_path):
     nodes = [x[i].reshape(3, -1).T.numpy() for i in (0, info["indices"][-1])]
     p0, p1 = (project(n, cam.eye, cam.target, cam.fov_deg, 320).mean(0) for n in nodes)
     moved, expected = c1 - c0, p1 - p0
-    assert np.linalg.norm(expected) > 10                                      # pixels
+    assert np.linalg.norm(expected) > 10  # pixels
     cos = moved @ expected / (np.linalg.norm(moved) * np.linalg.norm(expected))
     assert cos > 0.95 and 0.7 < np.linalg.norm(moved) / np.linalg.norm(expected) < 1.3, (moved, expected)
 
@@ -99,16 +114,27 @@ def oracle_drag_force(x, node, mass, gravity):
 
 def test_drag_force_and_caption_match_a_neighbour_loop(tmp_path):
     model, t, x, v = dragged_run()
-    forces = drag_forces(model, x, torch.zeros_like(v), t)                    # no damping: v does not matter
+    forces = drag_forces(model, x, torch.zeros_like(v), t)  # no damping: v does not matter
     mass = float(model.mass.expand(1, 1, *SHAPE)[0, 0, 4, 2, 2])
     oracle = np.stack([oracle_drag_force(xi.numpy(), (4, 2, 2), mass, (-9.81, 0, 0)) for xi in x])
     np.testing.assert_allclose(forces, oracle, rtol=1e-9, atol=1e-12)
-    assert oracle[-1, 2] > 1e-3                          # the drag pulls along its path (+W), against the springs
-    info = animate(model.grid, t, x, tmp_path / "a.gif", volume=torch.rand(8, 8, 8) * 1000, size=64,
-                   texture={"exemplar": "liver:16", "block": 8}, forces={"drag": forces})
-    assert info["captions"] == [f"t = {ti:.3f} s   drag {np.linalg.norm(f) * 1e3:.2f} mN" if np.linalg.norm(f) >= 1e-3
-                                else f"t = {ti:.3f} s   drag {np.linalg.norm(f) * 1e6:.1f} uN"
-                                for ti, f in zip(t, oracle)]
+    assert oracle[-1, 2] > 1e-3  # the drag pulls along its path (+W), against the springs
+    info = animate(
+        model.grid,
+        t,
+        x,
+        tmp_path / "a.gif",
+        volume=torch.rand(8, 8, 8) * 1000,
+        size=64,
+        texture={"exemplar": "liver:16", "block": 8},
+        forces={"drag": forces},
+    )
+    assert info["captions"] == [
+        f"t = {ti:.3f} s   drag {np.linalg.norm(f) * 1e3:.2f} mN"
+        if np.linalg.norm(f) >= 1e-3
+        else f"t = {ti:.3f} s   drag {np.linalg.norm(f) * 1e6:.1f} uN"
+        for ti, f in zip(t, oracle)
+    ]
 
 
 def test_frame_indices_spread_evenly():
@@ -157,7 +183,7 @@ def test_output_animation_true_writes_animation_gif(tmp_path):
     path = write(tmp_path, SCENE + "animation = true\n")
     summary = td.run_scene(td.load_scene(path), tmp_path / "out", progress=False)
     frames = gif_frames(tmp_path / "out" / "animation.gif")
-    assert len(frames) == 3 == summary["animation"]["frames"]                  # 20 steps, a frame every 10
+    assert len(frames) == 3 == summary["animation"]["frames"]  # 20 steps, a frame every 10
     assert json.loads((tmp_path / "out" / "summary.json").read_text())["animation"]["file"] == "animation.gif"
 
 
@@ -184,8 +210,9 @@ def test_demo_writes_demo_gif(tmp_path, monkeypatch):
     def short_demo():
         scene = td.demo_scene()
         scene.steps, scene.record_every = 20, 10
-        scene.volume = dict(scene.volume, file="phantom:16")                  # a smaller phantom: faster
+        scene.volume = dict(scene.volume, file="phantom:16")  # a smaller phantom: faster
         return scene
+
     monkeypatch.setattr(scene_mod, "demo_scene", short_demo)
     assert cli.main(["demo", "--out", str(tmp_path), "--quiet"]) == 0
     assert json.loads((tmp_path / "summary.json").read_text())["animation"]["file"] == "demo.gif"

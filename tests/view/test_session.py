@@ -6,6 +6,7 @@
 * term: stiffness equals ``tissue_moduli([c]) / lattice_modulus`` (uniform body);
 * malformed messages: ValueError and nothing changed.
 """
+
 import math
 import random
 import threading
@@ -20,15 +21,22 @@ from torchdeform.topology import cut_surfaces
 from torchdeform.topology.masks import alive
 from torchdeform.view.session import ViewerSession
 
-H = 0.002                                     # spacing (m)
-N = 6                                         # nodes per side
+H = 0.002  # spacing (m)
+N = 6  # nodes per side
 
 
 def _scene(consistency=5.0):
     grid = td.Grid((N, N, N), spacing=H, topology=26)
     k = tissue_moduli([consistency])[0] / lattice_modulus(grid)
-    args = dict(stiffness=k, normalize=False, damping=1e-3, density=1000.0, fixed=grid.face("bottom"),
-                gravity=(-9.81, 0.0, 0.0), decay=50.0)
+    args = dict(
+        stiffness=k,
+        normalize=False,
+        damping=1e-3,
+        density=1000.0,
+        fixed=grid.face("bottom"),
+        gravity=(-9.81, 0.0, 0.0),
+        decay=50.0,
+    )
     return td.Scene(grid, args, td.SymplecticEuler(), dt="auto", name="cube")
 
 
@@ -46,7 +54,8 @@ def _steps(s, n):
 def _oracle(s):
     pieces = cut_surfaces(s.grid, s.state.x.double(), s.labels)
     return np.concatenate([p.vertices for p in pieces]), np.concatenate(
-        [p.faces + off for p, off in zip(pieces, np.cumsum([0] + [len(p.vertices) for p in pieces])[:-1])])
+        [p.faces + off for p, off in zip(pieces, np.cumsum([0] + [len(p.vertices) for p in pieces])[:-1])]
+    )
 
 
 def _vertices(s):
@@ -78,7 +87,7 @@ def test_positions_match_cut_surfaces_at_rest_and_deformed(session):
     ref, _ = _oracle(s)
     np.testing.assert_allclose(_vertices(s), ref, atol=1e-5)
     err = np.abs(_vertices(s) - ref).max()
-    assert err < 1e-6                                           # float32 of positions of about 1 cm
+    assert err < 1e-6  # float32 of positions of about 1 cm
 
 
 # ------------------------------------------------------------------ drag
@@ -88,13 +97,13 @@ def test_drag_pulls_the_node_and_release_lets_go(session):
     target = [(N - 1) * H + 0.003, 0.005, 0.005]
     s.command({"cmd": "drag", "vertex": i, "target": target})
     d, h, w = s._drag_node
-    assert d == N - 1                                           # the node nearest to a top vertex
+    assert d == N - 1  # the node nearest to a top vertex
     rest = s.model.X[0, :, d, h, w].clone()
     _steps(s, 150)
     x = s.state.x[0, :, d, h, w]
-    np.testing.assert_allclose(x.tolist(), target, atol=1e-7)   # held exactly at the target
+    np.testing.assert_allclose(x.tolist(), target, atol=1e-7)  # held exactly at the target
     below = s.state.x[0, 0, d - 1, h, w] - s.model.X[0, 0, d - 1, h, w]
-    assert float(below) > 2e-4                                  # the body followed upwards
+    assert float(below) > 2e-4  # the body followed upwards
     assert s.stats()["drag_force"] > 0
     s.command({"cmd": "release"})
     assert s.stats()["drag_force"] == 0
@@ -108,12 +117,12 @@ def test_sphere_tool_presses_and_reports_force(session):
     r = s.tool_radius
     assert math.isclose(r, 3 * H)
     top = (N - 1) * H
-    s.command({"cmd": "tool", "position": [top + r - 0.002, top / 2, top / 2]})      # 2 mm deep
+    s.command({"cmd": "tool", "position": [top + r - 0.002, top / 2, top / 2]})  # 2 mm deep
     _steps(s, 200)
     st = s.stats()
     assert st["force"] > 0 and math.isfinite(st["force"])
     c = N // 2
-    assert float(s.state.x[0, 0, N - 1, c, c]) < top - 5e-4     # the top pushed down
+    assert float(s.state.x[0, 0, N - 1, c, c]) < top - 5e-4  # the top pushed down
     d, _ = s._tool.sdf(s.state.x, s.state.t)
     s.command({"cmd": "tool", "position": None})
     assert s.stats()["force"] == 0
@@ -123,7 +132,7 @@ def test_sphere_tool_presses_and_reports_force(session):
 # ------------------------------------------------------------------ cut
 def _brute_force_crossings(grid, x, origin, u, v, k):
     """Springs alive (k > 0) whose segment crosses the parallelogram o + a u + b v (plain loops in numpy)."""
-    x = x[0].double().numpy()                                   # (3, D, H, W)
+    x = x[0].double().numpy()  # (3, D, H, W)
     k = k[0].numpy()
     o, u, v = (np.asarray(p, dtype=np.float64) for p in (origin, u, v))
     n = np.cross(u, v)
@@ -150,13 +159,12 @@ def _brute_force_crossings(grid, x, origin, u, v, k):
 
 def test_cut_removes_the_crossing_springs_and_rebuilds_the_surface(session):
     s = session
-    _steps(s, 30)                                              # cut the deformed body
+    _steps(s, 30)  # cut the deformed body
     before = s.stats()["springs"]
     assert before == int(alive(s.model)[0].sum())
     V0, version = s.mesh()["vertices"], s.mesh_version
     blade = dict(origin=[0.0051, -0.001, -0.001], u=[0.0003, 0.013, 0.0], v=[0.0, 0.0, 0.007])
-    expected = _brute_force_crossings(s.grid, s.state.x, blade["origin"], blade["u"], blade["v"],
-                                      s.model.stiffness)
+    expected = _brute_force_crossings(s.grid, s.state.x, blade["origin"], blade["u"], blade["v"], s.model.stiffness)
     s.command({"cmd": "cut", **blade})
     after = s.stats()["springs"]
     assert expected > 0 and before - after == expected
@@ -165,7 +173,7 @@ def test_cut_removes_the_crossing_springs_and_rebuilds_the_surface(session):
     assert s.mesh()["vertices"] != V0 and len(torch.unique(s.labels[s.labels >= 0])) == 2
     _steps(s, 30)
     ref, _ = _oracle(s)
-    np.testing.assert_allclose(_vertices(s), ref, atol=1e-5)   # the cut faces follow too
+    np.testing.assert_allclose(_vertices(s), ref, atol=1e-5)  # the cut faces follow too
     s.command({"cmd": "reset"})
     assert s.mesh_version == version + 2 and s.stats()["springs"] == before
     assert s.mesh()["vertices"] == V0
@@ -176,7 +184,7 @@ def test_consistency_sets_the_stiffness_and_stays_stable(session):
     s = session
     L = lattice_modulus(s.grid)
     term = s.mesh()["terms"]["consistency"]
-    assert term["min"] == 0 and term["max"] == 10                  # derived from the modulus (E(c) has plateaus)
+    assert term["min"] == 0 and term["max"] == 10  # derived from the modulus (E(c) has plateaus)
     assert math.isclose(tissue_moduli([term["value"]])[0], tissue_moduli([5.0])[0], rel_tol=1e-3)
     live = alive(s.model)
     ks, dts = [], []
@@ -184,45 +192,60 @@ def test_consistency_sets_the_stiffness_and_stays_stable(session):
         s.command({"cmd": "term", "name": "consistency", "value": c})
         k = s.model.stiffness[live]
         np.testing.assert_allclose(k.double().numpy(), tissue_moduli([c])[0] / L, rtol=1e-5)
-        assert torch.equal(alive(s.model), live)                  # no spring revived or lost
+        assert torch.equal(alive(s.model), live)  # no spring revived or lost
         assert s.mesh()["terms"]["consistency"]["value"] == c
         ks.append(float(k.mean()))
         dts.append(s.dt)
     assert ks == sorted(ks) and ks[0] < ks[-1]
-    assert dts[-1] < dts[0]                                     # stiffer: a smaller step
+    assert dts[-1] < dts[0]  # stiffer: a smaller step
     assert s.dt <= 0.9 * td.time_step_bound(s.model) / math.sqrt(2) * (1 + 1e-9)
     top = (N - 1) * H
     s.command({"cmd": "tool", "position": [top + s.tool_radius - 0.001, top / 2, top / 2]})
     s.command({"cmd": "drag", "vertex": 0, "target": [0.0, -0.002, -0.002]})
     _steps(s, 600)
     assert bool(torch.isfinite(s.state.x).all()) and bool(torch.isfinite(s.state.v).all())
-    assert float((s.state.x - s.model.X).abs().max()) < 0.01   # nothing flew off
-    E = 0.5 * float((s.model.mass * s.state.v ** 2).sum())
+    assert float((s.state.x - s.model.X).abs().max()) < 0.01  # nothing flew off
+    E = 0.5 * float((s.model.mass * s.state.v**2).sum())
     assert E < 1e-3
 
 
 # ------------------------------------------------------------------ junk
 BAD_NUMBERS = [float("nan"), float("inf"), -float("inf"), 1e300, -1e300, "1", None, True, [], {}]
-BAD_POINTS = [[float("nan"), 0.0, 0.0], [0.0, float("inf"), 0.0], [1e3, 0.0, 0.0], [0.0, 0.0], [0.0] * 4, "abc",
-              5, {"a": 1}, [True, 0.0, 0.0], ["0", 0.0, 0.0], [None, 0.0, 0.0], [0.0, 0.0, -1e300]]
+BAD_POINTS = [
+    [float("nan"), 0.0, 0.0],
+    [0.0, float("inf"), 0.0],
+    [1e3, 0.0, 0.0],
+    [0.0, 0.0],
+    [0.0] * 4,
+    "abc",
+    5,
+    {"a": 1},
+    [True, 0.0, 0.0],
+    ["0", 0.0, 0.0],
+    [None, 0.0, 0.0],
+    [0.0, 0.0, -1e300],
+]
 
 
 def _junk(rng, V):
     kind = rng.randrange(9)
     if kind == 0:
-        return rng.choice([None, 3, "play", [], ["cmd", "play"], 1.5])          # not a dict
+        return rng.choice([None, 3, "play", [], ["cmd", "play"], 1.5])  # not a dict
     if kind == 1:
         return {"cmd": rng.choice(["jump", "", None, 5, "PLAY", ["play"], "cut!"])}
     if kind == 2:
         return {"cmd": rng.choice(["play", "pause", "reset", "release"]), rng.choice(["x", "value", "id"]): 1}
-    if kind == 3:                                               # drag: bad vertex or bad target
+    if kind == 3:  # drag: bad vertex or bad target
         if rng.random() < 0.5:
-            return {"cmd": "drag", "vertex": rng.choice([-1, V, 10 ** 12, 1.5, True, "0", None, [0]]),
-                    "target": [0.0, 0.0, 0.0]}
+            return {
+                "cmd": "drag",
+                "vertex": rng.choice([-1, V, 10**12, 1.5, True, "0", None, [0]]),
+                "target": [0.0, 0.0, 0.0],
+            }
         return {"cmd": "drag", "vertex": 0, "target": rng.choice(BAD_POINTS + [None])}
     if kind == 4:
         return {"cmd": "tool", "position": rng.choice(BAD_POINTS)}
-    if kind == 5:                                               # cut: a bad point, zero or parallel edges
+    if kind == 5:  # cut: a bad point, zero or parallel edges
         msg = {"cmd": "cut", "origin": [0.005, 0.0, 0.0], "u": [0.0, 0.01, 0.0], "v": [0.0, 0.0, 0.01]}
         which = rng.choice(["origin", "u", "v", "parallel", "zero", "missing"])
         if which == "parallel":
@@ -235,20 +258,34 @@ def _junk(rng, V):
             msg[which] = rng.choice(BAD_POINTS)
         return msg
     if kind == 6:
-        return {"cmd": "term", "name": "consistency",
-                "value": rng.choice([-0.1, 10.1, 1e9, float("nan"), float("inf"), "5", None, True, [5]])}
+        return {
+            "cmd": "term",
+            "name": "consistency",
+            "value": rng.choice([-0.1, 10.1, 1e9, float("nan"), float("inf"), "5", None, True, [5]]),
+        }
     if kind == 7:
         return {"cmd": "term", "name": rng.choice(["stiffness", "", None, 5, "Consistency"]), "value": 5.0}
-    msg = {"cmd": rng.choice(["drag", "tool", "cut", "term"])}                 # missing fields
+    msg = {"cmd": rng.choice(["drag", "tool", "cut", "term"])}  # missing fields
     if rng.random() < 0.5:
         msg[rng.choice(["vertex", "position", "origin", "name"])] = rng.choice(BAD_NUMBERS)
     return msg
 
 
 def _snapshot(s):
-    return dict(x=s.state.x.clone(), v=s.state.v.clone(), t=s.state.t, k=s.model.stiffness.clone(),
-                playing=s.playing, version=s.mesh_version, dt=s.dt, interactions=list(s.model.interactions),
-                drag=s._drag_node, mesh=s.mesh(), stats=s.stats(), pos=s.positions())
+    return dict(
+        x=s.state.x.clone(),
+        v=s.state.v.clone(),
+        t=s.state.t,
+        k=s.model.stiffness.clone(),
+        playing=s.playing,
+        version=s.mesh_version,
+        dt=s.dt,
+        interactions=list(s.model.interactions),
+        drag=s._drag_node,
+        mesh=s.mesh(),
+        stats=s.stats(),
+        pos=s.positions(),
+    )
 
 
 def test_malformed_messages_raise_and_change_nothing(session):
@@ -291,7 +328,7 @@ def test_play_pause_reset_and_threads(session):
         try:
             for _ in range(20):
                 s.advance(0.002)
-        except Exception as exc:                                # pragma: no cover
+        except Exception as exc:  # pragma: no cover
             errors.append(exc)
 
     thread = threading.Thread(target=loop)

@@ -3,6 +3,7 @@
 WebGL runs on SwiftShader (software). The page is checked for pixels, a mouse drag, the tool's
 force, a cut and its frame rates; ``pytest -s`` prints the measured rates.
 """
+
 from __future__ import annotations
 
 import base64
@@ -24,7 +25,7 @@ from selenium.webdriver.common.by import By  # noqa: E402
 
 from torchdeform.view.server import Viewer  # noqa: E402
 
-BACKGROUND = (0x1e, 0x22, 0x27)
+BACKGROUND = (0x1E, 0x22, 0x27)
 js = browser.js
 
 
@@ -32,7 +33,7 @@ js = browser.js
 def driver(tmp_path_factory):
     try:
         d = browser.start(tmp_path_factory.mktemp("chromium-profile"))
-    except Exception as e:          # a broken browser install is not a failure of the viewer
+    except Exception as e:  # a broken browser install is not a failure of the viewer
         pytest.skip(f"headless chromium did not start: {str(e).splitlines()[0]}")
     yield d
     d.quit()
@@ -51,6 +52,7 @@ def open_page(driver, viewer: Viewer, frames: int = 5, timeout: float = 30):
 
 def canvas_pixels(driver) -> np.ndarray:
     from PIL import Image
+
     url = js(driver, "document.getElementById('view').toDataURL('image/png')")
     data = base64.b64decode(url.split(",", 1)[1])
     return np.asarray(Image.open(io.BytesIO(data)).convert("RGB"))
@@ -105,7 +107,7 @@ def test_mouse_drag_moves_the_body(driver, small):
     spacing = 0.002
     print(f"\ndrag: largest displacement {before * 1e3:.3f} mm -> {during * 1e3:.3f} mm, drag force {held}")
     assert during > before + spacing, (before, during)
-    assert wait_for(lambda: displacement(session) < during, timeout=5)          # released: springs back
+    assert wait_for(lambda: displacement(session) < during, timeout=5)  # released: springs back
 
 
 def test_tool_press_shows_a_force(driver, small):
@@ -114,14 +116,19 @@ def test_tool_press_shows_a_force(driver, small):
     assert js(driver, "window.viewerStats.mode") == "tool"
     chain = centre_action(driver).move_by_offset(5, 5).click_and_hold()
     chain.move_by_offset(2, 0).pause(0.6).move_by_offset(2, 0).perform()
-    force = wait_for(lambda: (js(driver, "window.viewerStats.lastStats.force") or 0) > 0
-                     and js(driver, "window.viewerStats.lastStats.force"), timeout=5)
+    force = wait_for(
+        lambda: (
+            (js(driver, "window.viewerStats.lastStats.force") or 0) > 0
+            and js(driver, "window.viewerStats.lastStats.force")
+        ),
+        timeout=5,
+    )
     shown = driver.find_element(By.ID, "force").text
     ActionChains(driver).release().perform()
     print(f"\ntool: force {force} N (readout {shown})")
     assert force and force > 0
     assert float(shown) > 0
-    assert wait_for(lambda: small.session.stats()["force"] == 0.0, timeout=5)    # released: tool removed
+    assert wait_for(lambda: small.session.stats()["force"] == 0.0, timeout=5)  # released: tool removed
     driver.find_element(By.ID, "mode-drag").click()
 
 
@@ -130,7 +137,7 @@ def test_cut_stroke_removes_springs(driver, small):
     session = small.session
     springs, version = session.stats()["springs"], session.mesh_version
     driver.find_element(By.ID, "mode-cut").click()
-    chain = centre_action(driver).move_by_offset(-200, 60).click_and_hold()     # below the panel
+    chain = centre_action(driver).move_by_offset(-200, 60).click_and_hold()  # below the panel
     for _ in range(10):
         chain.move_by_offset(40, 0)
     chain.release().perform()
@@ -165,11 +172,12 @@ def test_bench_viewer_quick_json(capsys, tmp_path):
     from torchdeform import cli
     from torchdeform.bench.viewer import viewer_cube
     from torchdeform.view.session import ViewerSession
+
     threads = torch.get_num_threads()
     assert cli.main(["bench", "viewer", "--quick", "--json", "--out", str(tmp_path)]) == 0
-    assert torch.get_num_threads() == threads                            # restored
+    assert torch.get_num_threads() == threads  # restored
     doc = json.loads(capsys.readouterr().out)
-    assert doc["bench"] == "viewer" and doc["met"] is None               # no 32^3 row in the quick run
+    assert doc["bench"] == "viewer" and doc["met"] is None  # no 32^3 row in the quick run
     (row,) = doc["rows"]
     assert row["vertices"] == ViewerSession(viewer_cube(16)).mesh()["vertices"]
     assert row["fps"] > 0 and row["received"] > 0 and row["sim_hz"] > 0 and 0 < row["resolution"] <= 1

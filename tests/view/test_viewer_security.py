@@ -3,6 +3,7 @@
 The server runs in a background thread on a free loopback port with a small scene; the tests talk
 to it with plain HTTP (http.client) and the websockets client.
 """
+
 from __future__ import annotations
 
 import http.client
@@ -36,13 +37,14 @@ decay = 20.0
 name = "symplectic"
 dt = 1e-4
 steps = 100
-"""                                                   # the viewer bench's cube as a file, for the command line
+"""  # the viewer bench's cube as a file, for the command line
 
 
 def make_session(n: int = 6):
     """A viewer session of an n^3 cube of soft tissue (the viewer bench's: fixed base, gravity along -D)."""
     from torchdeform.bench.viewer import viewer_cube
     from torchdeform.view.session import ViewerSession
+
     return ViewerSession(viewer_cube(n))
 
 
@@ -101,7 +103,7 @@ def test_page_needs_the_token(viewer):
     assert get(viewer, "/?token=")[0] == 403
     status, headers, body = get(viewer, f"/?token={viewer.token}")
     assert status == 200 and headers["Content-Type"].startswith("text/html")
-    assert b"<canvas id=\"view\"" in body and b"/static/viewer.js" in body
+    assert b'<canvas id="view"' in body and b"/static/viewer.js" in body
     assert "frame-ancestors 'none'" in headers["Content-Security-Policy"]
     assert viewer.url == f"http://127.0.0.1:{viewer.port}/?token={viewer.token}"
 
@@ -110,20 +112,37 @@ def test_static_files_are_whitelisted(viewer):
     for name, kind in STATIC_FILES.items():
         status, headers, body = get(viewer, f"/static/{name}")
         assert status == 200 and headers["Content-Type"] == kind and body
-    for bad in ("/static/index.html/../server.py", "/static/../server.py", "/static/%2e%2e/server.py",
-                "/static/", "/static/nope.js", "/server.py", "/ws/../static/viewer.js"):
+    for bad in (
+        "/static/index.html/../server.py",
+        "/static/../server.py",
+        "/static/%2e%2e/server.py",
+        "/static/",
+        "/static/nope.js",
+        "/server.py",
+        "/ws/../static/viewer.js",
+    ):
         assert get(viewer, bad)[0] in (403, 404), bad
 
 
 def test_plain_http_on_the_socket_path_is_not_an_upgrade(viewer):
     status = get(viewer, f"/ws?token={viewer.token}", {"Origin": origin(viewer)})[0]
-    assert status == 426          # websockets: Upgrade Required
+    assert status == 426  # websockets: Upgrade Required
 
 
 # ------------------------------------------------------------------ the socket
-@pytest.mark.parametrize("token, org", [(None, "ok"), ("wrong", "ok"), ("", "ok"), ("s3cret-token-for-test", "ok"),
-                                        ("ok", "http://evil.example"), ("ok", None),
-                                        ("ok", "http://127.0.0.1:1"), ("ok", "https://127.0.0.1:{port}")])
+@pytest.mark.parametrize(
+    "token, org",
+    [
+        (None, "ok"),
+        ("wrong", "ok"),
+        ("", "ok"),
+        ("s3cret-token-for-test", "ok"),
+        ("ok", "http://evil.example"),
+        ("ok", None),
+        ("ok", "http://127.0.0.1:1"),
+        ("ok", "https://127.0.0.1:{port}"),
+    ],
+)
 def test_socket_refused(viewer, token, org):
     token = viewer.token if token == "ok" else token
     org = origin(viewer) if org == "ok" else (org.format(port=viewer.port) if org else None)
@@ -144,6 +163,7 @@ def test_socket_accepted_sends_mesh_then_frames(viewer, host):
 
 def test_a_pulling_page_gets_only_the_frames_it_asks_for(viewer):
     """After {"cmd": "next"} a page is sent frames only when it asks: silence between requests."""
+
     def frames(seconds):
         return [m for m in iter_messages(ws, seconds) if isinstance(m, bytes)]
 
@@ -167,18 +187,20 @@ def test_a_pulling_page_gets_only_the_frames_it_asks_for(viewer):
         mesh, _ = receive_mesh_and_frames(ws, frames=1)
         pushed = stream()
         ws.send(json.dumps({"cmd": "next"}))
-        first = answer()                     # the one asked for (and perhaps one pushed before)
+        first = answer()  # the one asked for (and perhaps one pushed before)
         unasked = frames(1.0)
         for _ in range(3):
             ws.send(json.dumps({"cmd": "next"}))
         asked = answer(settle=1.0)
         after = frames(0.5)
-    print(f"\npushed: {len(pushed)}; pulled: {len(first)}, then {len(unasked)} unasked in 1 s, "
-          f"{len(asked)} for 3 requests")
-    assert len(pushed) >= 5                  # the simulation runs: a pushing page gets a stream
+    print(
+        f"\npushed: {len(pushed)}; pulled: {len(first)}, then {len(unasked)} unasked in 1 s, "
+        f"{len(asked)} for 3 requests"
+    )
+    assert len(pushed) >= 5  # the simulation runs: a pushing page gets a stream
     assert 1 <= len(first) <= 2
     assert unasked == [] and after == []
-    assert 1 <= len(asked) <= 3              # two ahead at most, and only fresh frames
+    assert 1 <= len(asked) <= 3  # two ahead at most, and only fresh frames
     assert all(len(m) == 12 * mesh["vertices"] for m in first + asked)
 
 
@@ -194,32 +216,56 @@ def iter_messages(ws, seconds: float):
 
 def malformed_messages(n: int = 1000):
     """n messages the server must ignore: bad JSON, non-objects, unknown commands, bad values."""
-    fixed = ["", "{", "nul", "[1, 2", '{"cmd": }', "NaN", "[]", "[1, 2, 3]", '"play"', "42", "null", "true",
-             '{"cmd": "rm -rf"}', '{"cmd": null}', '{"cmd": 1}', '{"cmd": ["play"]}', '{"command": "play"}',
-             '{"cmd": "drag"}', '{"cmd": "drag", "vertex": -1, "target": [0, 0, 0]}',
-             '{"cmd": "drag", "vertex": 1e9, "target": [0, 0, 0]}',
-             '{"cmd": "drag", "vertex": 99999999, "target": [0, 0, 0]}',
-             '{"cmd": "drag", "vertex": true, "target": [0, 0, 0]}',
-             '{"cmd": "drag", "vertex": "3", "target": [0, 0, 0]}',
-             '{"cmd": "drag", "vertex": 0, "target": [0, 0]}',
-             '{"cmd": "drag", "vertex": 0, "target": [NaN, 0, 0]}',
-             '{"cmd": "drag", "vertex": 0, "target": [Infinity, 0, 0]}',
-             '{"cmd": "drag", "vertex": 0, "target": ["NaN", 0, 0]}',
-             '{"cmd": "drag", "vertex": 0, "target": [1e308, 0, 0]}',
-             '{"cmd": "drag", "vertex": 0, "target": [1e400, 0, 0]}',
-             '{"cmd": "drag", "vertex": 0, "target": {"x": 0}}',
-             '{"cmd": "tool", "position": [0, 0, "x"]}', '{"cmd": "tool", "position": 3}',
-             '{"cmd": "tool", "position": [1e30, 0, 0]}',
-             '{"cmd": "cut", "origin": [0, 0, 0], "u": [0, 0, 1]}',
-             '{"cmd": "cut", "origin": [0, 0, 0], "u": [0, 0, NaN], "v": [0, 1, 0]}',
-             '{"cmd": "term", "name": "consistency", "value": "high"}',
-             '{"cmd": "term", "name": "consistency", "value": 1e300}',
-             '{"cmd": "term", "name": "consistency", "value": -5}',
-             '{"cmd": "term", "name": "no-such-term", "value": 1}',
-             '{"cmd": "term", "name": 7, "value": 1}',
-             '{"cmd": "fps", "value": -1}', '{"cmd": "fps", "value": "60"}', '{"cmd": "fps", "value": 1e9}',
-             "[" * 5000 + "]" * 5000, '{"a": ' * 1500 + "1" + "}" * 1500, "\x00\xff", "\ud800"]
-    binary = [b"\x00\x01\x02", b"{\"cmd\": \"play\"}"]
+    fixed = [
+        "",
+        "{",
+        "nul",
+        "[1, 2",
+        '{"cmd": }',
+        "NaN",
+        "[]",
+        "[1, 2, 3]",
+        '"play"',
+        "42",
+        "null",
+        "true",
+        '{"cmd": "rm -rf"}',
+        '{"cmd": null}',
+        '{"cmd": 1}',
+        '{"cmd": ["play"]}',
+        '{"command": "play"}',
+        '{"cmd": "drag"}',
+        '{"cmd": "drag", "vertex": -1, "target": [0, 0, 0]}',
+        '{"cmd": "drag", "vertex": 1e9, "target": [0, 0, 0]}',
+        '{"cmd": "drag", "vertex": 99999999, "target": [0, 0, 0]}',
+        '{"cmd": "drag", "vertex": true, "target": [0, 0, 0]}',
+        '{"cmd": "drag", "vertex": "3", "target": [0, 0, 0]}',
+        '{"cmd": "drag", "vertex": 0, "target": [0, 0]}',
+        '{"cmd": "drag", "vertex": 0, "target": [NaN, 0, 0]}',
+        '{"cmd": "drag", "vertex": 0, "target": [Infinity, 0, 0]}',
+        '{"cmd": "drag", "vertex": 0, "target": ["NaN", 0, 0]}',
+        '{"cmd": "drag", "vertex": 0, "target": [1e308, 0, 0]}',
+        '{"cmd": "drag", "vertex": 0, "target": [1e400, 0, 0]}',
+        '{"cmd": "drag", "vertex": 0, "target": {"x": 0}}',
+        '{"cmd": "tool", "position": [0, 0, "x"]}',
+        '{"cmd": "tool", "position": 3}',
+        '{"cmd": "tool", "position": [1e30, 0, 0]}',
+        '{"cmd": "cut", "origin": [0, 0, 0], "u": [0, 0, 1]}',
+        '{"cmd": "cut", "origin": [0, 0, 0], "u": [0, 0, NaN], "v": [0, 1, 0]}',
+        '{"cmd": "term", "name": "consistency", "value": "high"}',
+        '{"cmd": "term", "name": "consistency", "value": 1e300}',
+        '{"cmd": "term", "name": "consistency", "value": -5}',
+        '{"cmd": "term", "name": "no-such-term", "value": 1}',
+        '{"cmd": "term", "name": 7, "value": 1}',
+        '{"cmd": "fps", "value": -1}',
+        '{"cmd": "fps", "value": "60"}',
+        '{"cmd": "fps", "value": 1e9}',
+        "[" * 5000 + "]" * 5000,
+        '{"a": ' * 1500 + "1" + "}" * 1500,
+        "\x00\xff",
+        "\ud800",
+    ]
+    binary = [b"\x00\x01\x02", b'{"cmd": "play"}']
     out = []
     for i in range(n):
         if i % 10 == 9:
@@ -269,14 +315,13 @@ def test_malformed_messages_are_ignored(viewer, caplog):
     assert viewer._thread.is_alive() and viewer._sim_thread.is_alive()
 
 
-
 def test_closing_the_page_leaves_the_server_serving(viewer):
     for _ in range(3):
         with connect(ws_url(viewer, viewer.token), origin=origin(viewer), open_timeout=10) as ws:
             receive_mesh_and_frames(ws, frames=1)
     with connect(ws_url(viewer, viewer.token), origin=origin(viewer), open_timeout=10, close_timeout=0.1) as ws:
         ws.recv(timeout=10)
-        ws.socket.close()                 # abruptly, without a closing handshake
+        ws.socket.close()  # abruptly, without a closing handshake
     assert get(viewer, f"/?token={viewer.token}")[0] == 200
     with connect(ws_url(viewer, viewer.token), origin=origin(viewer), open_timeout=10) as ws:
         assert receive_mesh_and_frames(ws, frames=1)[1]
@@ -290,8 +335,14 @@ def test_validate():
     assert validate({"cmd": "play", "extra": 1}) == {"cmd": "play"}
     assert validate({"cmd": "tool", "position": None}) == {"cmd": "tool", "position": None}
     assert validate({"cmd": "cut", "origin": [0, 0, 0], "u": [0, 0, 0.01], "v": [0.01, 0, 0]})["u"] == [0, 0, 0.01]
-    for bad in ([], "play", {"cmd": "exec"}, {"cmd": "drag", "vertex": 1.5, "target": [0, 0, 0]},
-                {"cmd": "term", "name": "", "value": 1}, {"cmd": "fps", "value": float("nan")}):
+    for bad in (
+        [],
+        "play",
+        {"cmd": "exec"},
+        {"cmd": "drag", "vertex": 1.5, "target": [0, 0, 0]},
+        {"cmd": "term", "name": "", "value": 1},
+        {"cmd": "fps", "value": float("nan")},
+    ):
         with pytest.raises(ValueError):
             validate(bad, vertices=10)
 
@@ -312,18 +363,29 @@ def test_command_line(tmp_path):
     import subprocess
     import sys
     from pathlib import Path
+
     root = Path(__file__).resolve().parents[2]
     bad = tmp_path / "bad.toml"
     bad.write_text("[grid]\nshape = 3\n")
     for scene in (bad, tmp_path / "missing.toml"):
-        r = subprocess.run([sys.executable, "-m", "torchdeform", "view", str(scene)], capture_output=True, text=True,
-                           cwd=root, timeout=120)
+        r = subprocess.run(
+            [sys.executable, "-m", "torchdeform", "view", str(scene)],
+            capture_output=True,
+            text=True,
+            cwd=root,
+            timeout=120,
+        )
         assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     good = tmp_path / "cube.toml"
     good.write_text(SCENE.format(n=4))
-    p = subprocess.Popen([sys.executable, "-m", "torchdeform", "view", str(good), "--token", "a-test-token-123"],
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=root,
-                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    p = subprocess.Popen(
+        [sys.executable, "-m", "torchdeform", "view", str(good), "--token", "a-test-token-123"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=root,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     try:
         url = p.stdout.readline().strip()
         assert url.startswith("http://127.0.0.1:") and url.endswith("/?token=a-test-token-123")
@@ -332,7 +394,7 @@ def test_command_line(tmp_path):
         c.request("GET", "/?token=a-test-token-123")
         assert c.getresponse().status == 200
         c.close()
-        p.send_signal(signal.SIGINT)                   # Ctrl-C: a clean stop, exit status 0
+        p.send_signal(signal.SIGINT)  # Ctrl-C: a clean stop, exit status 0
         out, err = p.communicate(timeout=30)
         assert p.returncode == 0, err
     finally:

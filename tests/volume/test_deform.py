@@ -1,4 +1,5 @@
 """Volume warping against independent oracles (scipy map_coordinates, a plain cell-centred lookup)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -83,8 +84,8 @@ def test_knoche_mode_equals_cell_centred_lookup():
     out = warp(torch.tensor(vol), torch.tensor(nodes), mode="knoche", check=False).numpy()
     ref = np.zeros(shape)
     for ijk in np.ndindex(*shape):
-        uvw = [(i + 0.5) / N for i, N in zip(ijk, shape)]                   # texture coordinates
-        node_pos = [t * k - 0.5 for t, k in zip(uvw, n)]                     # cell-centred node texels
+        uvw = [(i + 0.5) / N for i, N in zip(ijk, shape)]  # texture coordinates
+        node_pos = [t * k - 0.5 for t, k in zip(uvw, n)]  # cell-centred node texels
         u = [cell_centred_np(nodes[c], node_pos) for c in range(3)]
         ref[ijk] = cell_centred_np(vol, [i - uc for i, uc in zip(ijk, u)])
     assert np.abs(out - ref).max() < 1e-10
@@ -93,13 +94,13 @@ def test_knoche_mode_equals_cell_centred_lookup():
 def test_fixed_point_inverse_round_trip():
     rng = np.random.default_rng(2)
     shape = (33, 33, 33)
-    nodes = torch.tensor(rng.uniform(-1, 1, size=(3, 5, 5, 5)) * 0.3 * 8)   # 30% of the node spacing (8 voxels)
+    nodes = torch.tensor(rng.uniform(-1, 1, size=(3, 5, 5, 5)) * 0.3 * 8)  # 30% of the node spacing (8 voxels)
     field = DisplacementField(nodes, shape)
     p = torch.tensor(rng.uniform(2, 30, size=(1, 3, 500)))
     X0, _ = inverse_points(field, p, 0)
     X, info = inverse_points(field, p, 50, tol=1e-6)
     assert float(inverse_residual(field, X, p).max()) < 1e-3
-    assert float(inverse_residual(field, X0, p).max()) > 1e-2               # first order is visibly worse
+    assert float(inverse_residual(field, X0, p).max()) > 1e-2  # first order is visibly worse
     assert info["iterations"] < 50
 
 
@@ -115,7 +116,7 @@ def test_jacobian_of_linear_field_and_folding():
     small = (torch.rand(3, 9, 9, 9, generator=g) * 2 - 1) * 0.2 * spacing
     big = (torch.rand(3, 9, 9, 9, generator=g) * 2 - 1) * 1.0 * spacing
     assert folding_fraction(small, (64, 64, 64), samples=(64, 64, 64)) == 0.0
-    assert 0.05 < folding_fraction(big, (64, 64, 64), samples=(64, 64, 64)) < 0.3   # REFERENCE 5.3: 13.9%
+    assert 0.05 < folding_fraction(big, (64, 64, 64), samples=(64, 64, 64)) < 0.3  # REFERENCE 5.3: 13.9%
     with pytest.warns(FoldingWarning, match="folds"):
         warp(torch.zeros(64, 64, 64), big)
 
@@ -127,7 +128,7 @@ def test_bspline_texture_is_smooth_and_reproduces_constants():
     spike[0, 2, 2, 2] = 1.0
     lin = offset_texture(spike, (17, 17, 17))
     bs = offset_texture(spike, (17, 17, 17), order="bspline")
-    assert 0 < float(bs.max()) < float(lin.max())                           # approximating, smoother
+    assert 0 < float(bs.max()) < float(lin.max())  # approximating, smoother
 
 
 def test_carve_keeps_values_and_removes_material():
@@ -137,29 +138,32 @@ def test_carve_keeps_values_and_removes_material():
     out = warp(vol, torch.zeros(3, 2, 2, 2, dtype=torch.float64), mode="carve", material=mask, fill=-5.0)
     assert torch.equal(out[:, :, :6], vol[:, :, :6]) and bool((out[:, :, 6:] == -5.0).all())
     offsets = torch.zeros(3, 3, 3, 3, dtype=torch.float64)
-    offsets[2] = -2.0                                                       # body pushed 2 voxels towards w-
+    offsets[2] = -2.0  # body pushed 2 voxels towards w-
     out = warp(vol, offsets, mode="carve", fill=-5.0, check=False)
-    assert torch.allclose(out[:, :, :5], vol[:, :, :5])                     # values unchanged, not shifted
-    assert bool((out[:, :, 7] == -5.0).all())                               # uncovered material removed
+    assert torch.allclose(out[:, :, :5], vol[:, :, :5])  # values unchanged, not shifted
+    assert bool((out[:, :, 7] == -5.0).all())  # uncovered material removed
 
 
 def test_gradcheck_warp_wrt_offsets():
     torch.manual_seed(0)
     vol = torch.randn(5, 6, 7, dtype=torch.float64)
-    nodes = (torch.rand(1, 3, 3, 3, 3, dtype=torch.float64) * 0.8 + 0.13).requires_grad_()   # fractional
+    nodes = (torch.rand(1, 3, 3, 3, 3, dtype=torch.float64) * 0.8 + 0.13).requires_grad_()  # fractional
     assert torch.autograd.gradcheck(lambda u: warp(vol, u, check=False), (nodes,))
     assert torch.autograd.gradcheck(lambda u: warp(vol, u, check=False, inverse_iters=2, tol=0), (nodes,))
 
 
-@pytest.mark.parametrize("bad,match", [
-    (dict(volume=torch.zeros(4, 4)), "shape"),
-    (dict(volume=torch.full((4, 4, 4), float("nan"))), "finite"),
-    (dict(offsets=torch.zeros(2, 3, 3, 3)), "shape"),
-    (dict(offsets=torch.zeros(3, 9, 3, 3)), "no finer"),
-    (dict(offsets=torch.zeros(3, 3, 3, 3, dtype=torch.bool)), "real-valued"),
-    (dict(mode="melt"), "one of"),
-    (dict(volume=np.array([["a"]], dtype=object)), "numeric"),
-])
+@pytest.mark.parametrize(
+    "bad,match",
+    [
+        (dict(volume=torch.zeros(4, 4)), "shape"),
+        (dict(volume=torch.full((4, 4, 4), float("nan"))), "finite"),
+        (dict(offsets=torch.zeros(2, 3, 3, 3)), "shape"),
+        (dict(offsets=torch.zeros(3, 9, 3, 3)), "no finer"),
+        (dict(offsets=torch.zeros(3, 3, 3, 3, dtype=torch.bool)), "real-valued"),
+        (dict(mode="melt"), "one of"),
+        (dict(volume=np.array([["a"]], dtype=object)), "numeric"),
+    ],
+)
 def test_bad_input_is_one_line_config_error(bad, match):
     args = dict(volume=torch.zeros(4, 4, 4), offsets=torch.zeros(3, 2, 2, 2), mode="deform")
     args.update(bad)
@@ -192,13 +196,26 @@ def test_volume_files_bad(tmp_path):
 
 def test_cli_warp_matches_library_and_rejects_bad_input(tmp_path, capsys):
     from torchdeform import cli
+
     rng = np.random.default_rng(4)
     vol = rng.normal(size=(9, 9, 9)).astype(np.float32)
     offs = rng.normal(scale=0.5, size=(3, 3, 3, 3)).astype(np.float32)
     np.save(tmp_path / "v.npy", vol)
     np.save(tmp_path / "o.npy", offs)
-    assert cli.main(["warp", str(tmp_path / "v.npy"), str(tmp_path / "o.npy"), "--out", str(tmp_path / "w.npy"),
-                     "--inverse-iters", "3"]) == 0
+    assert (
+        cli.main(
+            [
+                "warp",
+                str(tmp_path / "v.npy"),
+                str(tmp_path / "o.npy"),
+                "--out",
+                str(tmp_path / "w.npy"),
+                "--inverse-iters",
+                "3",
+            ]
+        )
+        == 0
+    )
     ref = warp(torch.tensor(vol), torch.tensor(offs), inverse_iters=3).numpy()
     assert np.allclose(np.load(tmp_path / "w.npy"), ref, atol=1e-6)
     np.save(tmp_path / "bad.npy", offs[:2])

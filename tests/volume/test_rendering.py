@@ -1,5 +1,6 @@
 """Renderer: analytic slab transmittance, MIP of one voxel, rendering through offsets against the
 warped volume, gradients, transfer-function files, images and the CLI."""
+
 from __future__ import annotations
 
 import math
@@ -28,7 +29,7 @@ def test_homogeneous_slab_transmittance(view, step):
     img = render(vol, flat_tf(sigma), "dvr", view, step=step, stop=0)
     L = shape["dhw".index(view[-1])]
     assert torch.allclose(1 - img[0, 3], torch.tensor(math.exp(-sigma * L), dtype=F64), atol=1e-4, rtol=0)
-    assert torch.allclose(img[0, :3], img[0, 3:4].expand(3, -1, -1), atol=1e-12)   # white emission
+    assert torch.allclose(img[0, :3], img[0, 3:4].expand(3, -1, -1), atol=1e-12)  # white emission
 
 
 @pytest.mark.parametrize("steps", [0.5, 1.0, 2.0])
@@ -93,13 +94,14 @@ def test_early_termination_changes_little_and_stops():
 def test_gradcheck_wrt_offsets_and_transfer_function():
     torch.manual_seed(1)
     vol = torch.rand(5, 4, 6, dtype=F64) * 100
-    offsets = (torch.rand(1, 3, 2, 3, 3, dtype=F64) * 0.6 + 0.17).requires_grad_()   # fractional positions
+    offsets = (torch.rand(1, 3, 2, 3, 3, dtype=F64) * 0.6 + 0.17).requires_grad_()  # fractional positions
     colors = torch.rand(3, 3, dtype=F64, requires_grad=True)
     sigma = (torch.rand(3, dtype=F64) * 0.3 + 0.05).requires_grad_()
 
     def f(u, c, s):
         tf = TransferFunction([-10.0, 45.0, 110.0], c, s, resolution=64)
         return render(vol, tf, "dvr", "h", offsets=u, stop=0)
+
     assert torch.autograd.gradcheck(f, (offsets, colors, sigma))
     cam = OrbitCamera(azimuth=20.0, elevation=15.0, size=(4, 4))
     assert torch.autograd.gradcheck(lambda u: render(vol, mode="average", view=cam, offsets=u, step=0.7), (offsets,))
@@ -137,16 +139,32 @@ def test_images_and_cli_render(tmp_path, capsys):
 
     from torchdeform import cli
     from torchdeform.volume import phantom
+
     vol = phantom((24, 24, 24))
     np.save(tmp_path / "v.npy", vol.numpy())
     offsets = np.zeros((3, 3, 3, 3), np.float32)
     offsets[0, 2] = 3.0
     np.save(tmp_path / "o.npy", offsets)
     assert cli.main(["render", str(tmp_path / "v.npy"), "--out", str(tmp_path / "a.png"), "--mode", "mip"]) == 0
-    assert cli.main(["render", str(tmp_path / "v.npy"), "--out", str(tmp_path / "b.png"), "--offsets",
-                     str(tmp_path / "o.npy"), "--tf", "ct-bone"]) == 0
-    assert cli.main(["render", str(tmp_path / "v.npy"), "--out", str(tmp_path / "c.gif"), "--frames", "3",
-                     "--size", "16"]) == 0
+    assert (
+        cli.main(
+            [
+                "render",
+                str(tmp_path / "v.npy"),
+                "--out",
+                str(tmp_path / "b.png"),
+                "--offsets",
+                str(tmp_path / "o.npy"),
+                "--tf",
+                "ct-bone",
+            ]
+        )
+        == 0
+    )
+    assert (
+        cli.main(["render", str(tmp_path / "v.npy"), "--out", str(tmp_path / "c.gif"), "--frames", "3", "--size", "16"])
+        == 0
+    )
     assert Image.open(tmp_path / "a.png").size == (24, 24)
     assert Image.open(tmp_path / "c.gif").n_frames == 3
     img = to_image(render(vol, "ct-bone", "dvr", "d"))
@@ -165,8 +183,13 @@ def test_fast_engine_equals_grid_sample_path(mode):
     vol = torch.randn(9, 10, 11, dtype=F64) * 100
     offsets = torch.randn(3, 3, 4, 3, dtype=F64) * 1.3
     tf = TransferFunction([-300, 0, 300], [[0, 0, 1], [0, 1, 0], [1, 0, 0]], [0.01, 0.05, 0.2]).to(F64)
-    cases = [("d", {}), ("-h", dict(padding="zeros", fill=-50.0)), ("w", dict(warp_mode="knoche")),
-             ("-d", dict(step=0.7, size=(7, 9))), ("h", dict(chunk_points=30, stop=0.5))]
+    cases = [
+        ("d", {}),
+        ("-h", dict(padding="zeros", fill=-50.0)),
+        ("w", dict(warp_mode="knoche")),
+        ("-d", dict(step=0.7, size=(7, 9))),
+        ("h", dict(chunk_points=30, stop=0.5)),
+    ]
     for view, kw in cases:
         kw = dict(dict(stop=0), **kw)
         a = render(vol, tf, mode, view, offsets=offsets, engine="eager", **kw)
@@ -176,14 +199,22 @@ def test_fast_engine_equals_grid_sample_path(mode):
 
 def test_fast_engine_mip_equals_scipy_warp():
     from scipy.ndimage import map_coordinates
+
     rng = np.random.default_rng(5)
     shape = (8, 9, 10)
     vol = rng.normal(size=shape) * 50
     nodes = rng.normal(scale=1.2, size=(3, 3, 3, 4))
     # the offsets at every voxel (corner-aligned trilinear) and the warp, with scipy only
-    u = np.stack([map_coordinates(nodes[c], np.meshgrid(*[np.arange(N) * (k - 1) / (N - 1) for k, N in
-                                                          zip(nodes.shape[1:], shape)], indexing="ij"), order=1)
-                  for c in range(3)])
+    u = np.stack(
+        [
+            map_coordinates(
+                nodes[c],
+                np.meshgrid(*[np.arange(N) * (k - 1) / (N - 1) for k, N in zip(nodes.shape[1:], shape)], indexing="ij"),
+                order=1,
+            )
+            for c in range(3)
+        ]
+    )
     grid = np.stack(np.meshgrid(*[np.arange(N) for N in shape], indexing="ij"))
     warped = map_coordinates(vol, grid - u, order=1, mode="nearest")
     for view, axis in (("d", 0), ("w", 2)):
@@ -198,6 +229,7 @@ def test_trilinear_flat_equals_map_coordinates(padding, mode):
     from scipy.ndimage import map_coordinates
 
     from torchdeform.volume.rendering import trilinear_flat
+
     rng = np.random.default_rng(6)
     vol = rng.normal(size=(5, 6, 7))
     pts = rng.uniform(-2.5, 8.5, size=(3, 400))
@@ -209,8 +241,9 @@ def test_trilinear_flat_equals_map_coordinates(padding, mode):
 def test_fast_engine_skips_transparent_slabs_and_float32():
     from torchdeform.volume import DisplacementField
     from torchdeform.volume.rendering import _render_axis_fast
+
     vol = torch.full((40, 12, 12), -1000.0)
-    vol[25:30, 3:9, 3:9] = 800.0                                             # bone in a slab of air
+    vol[25:30, 3:9, 3:9] = 800.0  # bone in a slab of air
     offsets = torch.zeros(3, 5, 3, 3)
     offsets[0, 2] = 1.5
     tf = preset("ct-bone")
@@ -218,8 +251,23 @@ def test_fast_engine_skips_transparent_slabs_and_float32():
     b = render(vol, tf, "dvr", "d", offsets=offsets, chunk_points=144 * 4, stop=0)
     assert float(a[0, 3].max()) > 0.5 and torch.allclose(a, b, atol=1e-5)
     lo, hi = tf.range(vol)
-    _, info = _render_axis_fast(vol[None, None], DisplacementField(offsets, vol.shape), tf, "dvr", "d", "border",
-                                0.0, 1.0, None, 0, 144 * 4, lo, hi, tf.table(torch.float32), "eager")
-    assert info["skipped"] >= 6 and info["chunks"] <= 4                      # 10 chunks of 4 slabs, 2-3 hold bone
+    _, info = _render_axis_fast(
+        vol[None, None],
+        DisplacementField(offsets, vol.shape),
+        tf,
+        "dvr",
+        "d",
+        "border",
+        0.0,
+        1.0,
+        None,
+        0,
+        144 * 4,
+        lo,
+        hi,
+        tf.table(torch.float32),
+        "eager",
+    )
+    assert info["skipped"] >= 6 and info["chunks"] <= 4  # 10 chunks of 4 slabs, 2-3 hold bone
     with pytest.raises(ConfigError, match="engine"):
         render(vol, tf, engine="numba")

@@ -8,6 +8,7 @@
 * composition: warping by ``d1`` and then by ``d2`` equals the numpy shift by ``d1 + d2`` where
   both steps read inside the volume.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -54,14 +55,25 @@ def test_shifted_oracle():
 
 
 @settings(max_examples=60, deadline=None)
-@given(data=st.data(), mode=st.sampled_from(["deform", "knoche", "carve"]),
-       padding=st.sampled_from(["border", "zeros"]), order=st.sampled_from(["linear", "bspline"]),
-       inverse_iters=st.integers(0, 3), dtype=st.sampled_from([torch.float32, torch.float64]))
+@given(
+    data=st.data(),
+    mode=st.sampled_from(["deform", "knoche", "carve"]),
+    padding=st.sampled_from(["border", "zeros"]),
+    order=st.sampled_from(["linear", "bspline"]),
+    inverse_iters=st.integers(0, 3),
+    dtype=st.sampled_from([torch.float32, torch.float64]),
+)
 def test_zero_offsets_are_the_identity(data, mode, padding, order, inverse_iters, dtype):
     vol = torch.from_numpy(data.draw(volumes())).to(dtype)
     nodes = data.draw(node_shapes(vol.shape))
-    out = warp(vol, torch.zeros((3,) + nodes, dtype=dtype), mode=mode, padding=padding, order=order,
-               inverse_iters=inverse_iters)
+    out = warp(
+        vol,
+        torch.zeros((3,) + nodes, dtype=dtype),
+        mode=mode,
+        padding=padding,
+        order=order,
+        inverse_iters=inverse_iters,
+    )
     assert out.shape == vol.shape and out.dtype == vol.dtype
     assert torch.equal(out, vol)
 
@@ -80,8 +92,13 @@ OFFSET = st.tuples(*[st.integers(-3, 3)] * 3)
 
 
 @settings(max_examples=80, deadline=None)
-@given(data=st.data(), d=OFFSET, mode=st.sampled_from(["deform", "knoche"]),
-       padding=st.sampled_from(["border", "zeros"]), fill=st.floats(-5, 5))
+@given(
+    data=st.data(),
+    d=OFFSET,
+    mode=st.sampled_from(["deform", "knoche"]),
+    padding=st.sampled_from(["border", "zeros"]),
+    fill=st.floats(-5, 5),
+)
 def test_uniform_integer_offset_shifts_the_volume(data, d, mode, padding, fill):
     vol = data.draw(volumes())
     nodes = data.draw(node_shapes(vol.shape))
@@ -103,5 +120,5 @@ def test_two_uniform_shifts_compose(data, d1, d2, padding):
     ref, inside = shifted(vol, tuple(a + b for a, b in zip(d1, d2)))
     _, inside2 = shifted(vol, d2)
     _, inside1 = shifted(vol, d1)
-    both = inside & inside2 & shifted(inside1, d2)[0].astype(bool)      # p - d2 and p - d2 - d1 inside
+    both = inside & inside2 & shifted(inside1, d2)[0].astype(bool)  # p - d2 and p - d2 - d1 inside
     np.testing.assert_allclose(twice[both], ref[both], rtol=0, atol=1e-9 * (1 + np.abs(vol).max()))

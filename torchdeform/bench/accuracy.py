@@ -67,6 +67,7 @@ Example:
     torchdeform bench accuracy --out accuracy-out            # about 2 minutes on 2 cores
     torchdeform bench accuracy --scenes load,stiff --methods rk4,implicit --json
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -94,27 +95,53 @@ from ..sim.projective import ProjectiveDynamics
 from ..sim.stability import time_step_bound
 from .common import add_common, device_sync, emit, machine_info, progress
 
-HELP = ("error against wall time of every integrator on standard scenes (load, stiff, drag, "
-        "supports) and a resolution sweep; Pareto front and a computed recommendation")
+HELP = (
+    "error against wall time of every integrator on standard scenes (load, stiff, drag, "
+    "supports) and a resolution sweep; Pareto front and a computed recommendation"
+)
 
 #: Columns every row has (``None`` where a column does not apply).
-COLUMNS = ("scene", "method", "param", "n", "dt", "bound_s", "bound_of", "dt_bound", "steps", "error",
-           "wall_s", "repeats", "status", "pareto", "note")
+COLUMNS = (
+    "scene",
+    "method",
+    "param",
+    "n",
+    "dt",
+    "bound_s",
+    "bound_of",
+    "dt_bound",
+    "steps",
+    "error",
+    "wall_s",
+    "repeats",
+    "status",
+    "pareto",
+    "note",
+)
 
-TABLE = [("scene", "scene", None), ("method", "method", None), ("param", "param", None),
-         ("dt", "dt [s]", "{:.2e}"), ("dt_bound", "dt/bound", "{:.3g}"), ("steps", "steps", None),
-         ("error", "error", "{:.2e}"), ("wall_s", "wall [s]", "{:.3g}"), ("status", "status", None),
-         ("pareto", "pareto", None), ("note", "note", None)]
+TABLE = [
+    ("scene", "scene", None),
+    ("method", "method", None),
+    ("param", "param", None),
+    ("dt", "dt [s]", "{:.2e}"),
+    ("dt_bound", "dt/bound", "{:.3g}"),
+    ("steps", "steps", None),
+    ("error", "error", "{:.2e}"),
+    ("wall_s", "wall [s]", "{:.3g}"),
+    ("status", "status", None),
+    ("pareto", "pareto", None),
+    ("note", "note", None),
+]
 
 TARGETS = (1e-1, 1e-2, 1e-4)
-REPEAT_LIMIT_S = 0.5        # runs slower than this are timed once
-BLOWUP_ERROR = 10.0         # a finished run with a larger error has blown up ...
-N_OUT = 4                   # output times T/4, T/2, 3T/4, T
-MAX_DT_CHANGE = 0.3         # a multiple is not run if landing on the output times changes dt more
-BLOWUP_ENERGY = 100.0       # ... or a kinetic energy above this many times the reference's largest
-STATIC_DT = 1e4             # implicit Euler step that makes it Newton's method on F(x) = 0
-SIDE = 0.04                 # cube side (m)
-DENSITY = 1000.0            # kg/m^3
+REPEAT_LIMIT_S = 0.5  # runs slower than this are timed once
+BLOWUP_ERROR = 10.0  # a finished run with a larger error has blown up ...
+N_OUT = 4  # output times T/4, T/2, 3T/4, T
+MAX_DT_CHANGE = 0.3  # a multiple is not run if landing on the output times changes dt more
+BLOWUP_ENERGY = 100.0  # ... or a kinetic energy above this many times the reference's largest
+STATIC_DT = 1e4  # implicit Euler step that makes it Newton's method on F(x) = 0
+SIDE = 0.04  # cube side (m)
+DENSITY = 1000.0  # kg/m^3
 
 
 # ------------------------------------------------------------------------ scenes
@@ -181,10 +208,11 @@ def _inclusion(n, T):
     series (harmonic mean of its ends' factors).
     """
     from ..sim.springs import harmonic_mean_of_ends
+
     grid, kw = cube(n, 5e3, 4e-4, 20.0, loads=[SurfaceForce("top", (-100.0, 100.0, 0.0))])
     idx = torch.arange(n, dtype=torch.float64) - (n - 1) / 2
     r2 = idx.view(-1, 1, 1) ** 2 + idx.view(1, -1, 1) ** 2 + idx.view(1, 1, -1) ** 2
-    radius2 = max(((n - 1) / 4) ** 2, 0.75)                  # at least the central node(s)
+    radius2 = max(((n - 1) / 4) ** 2, 0.75)  # at least the central node(s)
     factor = torch.where(r2 <= radius2 + 1e-9, 1000.0, 1.0).to(torch.float64)
     per_spring = harmonic_mean_of_ends(factor[None], grid)[0]
     kw["stiffness"] = kw["stiffness"] * per_spring
@@ -221,6 +249,7 @@ class AccuracyScene:
         multiples: per-method overrides of the step multiples, ``{method: (default, quick)}``.
         ref_div: the reference step is the RK4 bound divided by this (``--ref-div`` overrides).
     """
+
     name: str
     help: str
     build: Callable
@@ -236,27 +265,59 @@ _STIFF = ((0.45, 0.9, 2), (0.9, 2))
 _STIFF_EULER = ((0.9, 10), (0.9, 10))
 _INCLUSION = ((0.9, 2), (0.9,))
 SCENES = {
-    "load": AccuracyScene("load", "bottom fixed, top traction (-100, 100, 0) Pa from t=0, E 5 kPa, "
-                          "dashpots tau 0.4 ms, drag 20/s", _load, 0.045, 0.03),
-    "stiff": AccuracyScene("stiff", "load scene 100x stiffer (E 500 kPa, tau 0.04 ms), traction ramped in "
-                           "over the whole run", _stiff, 0.03, 0.003,
-                           multiples={"explicit": _STIFF_EULER, "symplectic": _STIFF, "verlet": _STIFF,
-                                      "rk4": _STIFF, "implicit": ((5, 10, 20, 50), (4,))},
-                           ref_div=5),
-    "inclusion": AccuracyScene("inclusion", "the load cube with a central bone-like ball (radius 1 cm) 1000x "
-                               "stiffer than the tissue around it", _inclusion, 0.015, 0.0015,
-                               multiples={"explicit": _STIFF_EULER, "symplectic": _INCLUSION, "verlet": _INCLUSION,
-                                          "rk4": _INCLUSION, "implicit": ((5, 20, 100, 300), (20,)),
-                                          "adaptive": ((1e-2, 1e-4), (1e-2,)),
-                                          "projective": (((20, 10), (100, 10), (300, 10), (100, 30)), ((100, 10),))},
-                               ref_div=5),
-    "drag": AccuracyScene("drag", "bottom fixed, central top patch dragged 4 mm sideways over T/2, "
-                          "then held", _drag, 0.045, 0.03),
-    "supports": AccuracyScene("supports", "released under gravity onto 4 fixed support nodes of its "
-                              "bottom face (fixed nodes from t=0: smooth, no contact)", _supports,
-                              0.045, 0.03),
-    "load-static": AccuracyScene("load-static", "the load cube at equilibrium, resolution sweep against "
-                                 "a fine grid", _load, static=True),
+    "load": AccuracyScene(
+        "load",
+        "bottom fixed, top traction (-100, 100, 0) Pa from t=0, E 5 kPa, dashpots tau 0.4 ms, drag 20/s",
+        _load,
+        0.045,
+        0.03,
+    ),
+    "stiff": AccuracyScene(
+        "stiff",
+        "load scene 100x stiffer (E 500 kPa, tau 0.04 ms), traction ramped in over the whole run",
+        _stiff,
+        0.03,
+        0.003,
+        multiples={
+            "explicit": _STIFF_EULER,
+            "symplectic": _STIFF,
+            "verlet": _STIFF,
+            "rk4": _STIFF,
+            "implicit": ((5, 10, 20, 50), (4,)),
+        },
+        ref_div=5,
+    ),
+    "inclusion": AccuracyScene(
+        "inclusion",
+        "the load cube with a central bone-like ball (radius 1 cm) 1000x stiffer than the tissue around it",
+        _inclusion,
+        0.015,
+        0.0015,
+        multiples={
+            "explicit": _STIFF_EULER,
+            "symplectic": _INCLUSION,
+            "verlet": _INCLUSION,
+            "rk4": _INCLUSION,
+            "implicit": ((5, 20, 100, 300), (20,)),
+            "adaptive": ((1e-2, 1e-4), (1e-2,)),
+            "projective": (((20, 10), (100, 10), (300, 10), (100, 30)), ((100, 10),)),
+        },
+        ref_div=5,
+    ),
+    "drag": AccuracyScene(
+        "drag", "bottom fixed, central top patch dragged 4 mm sideways over T/2, then held", _drag, 0.045, 0.03
+    ),
+    "supports": AccuracyScene(
+        "supports",
+        "released under gravity onto 4 fixed support nodes of its "
+        "bottom face (fixed nodes from t=0: smooth, no contact)",
+        _supports,
+        0.045,
+        0.03,
+    ),
+    "load-static": AccuracyScene(
+        "load-static", "the load cube at equilibrium, resolution sweep against a fine grid", _load, static=True
+    ),
 }
 
 
@@ -270,6 +331,7 @@ class Reference:
         info: a JSON-able description (method, dt, steps, self-check).
         kinetic: largest kinetic energy at the output times (J), None for a static reference.
     """
+
     x: torch.Tensor
     scale: float
     info: dict
@@ -360,6 +422,7 @@ class Job:
         info: the row's ``n``, ``dt``, ``bound_s``, ``bound_of``, ``dt_bound``, ``steps``, ``note``.
         iters: iteration counts that ``run`` appends (they replace ``steps`` in the row), if any.
     """
+
     run: Callable
     warmup: Callable
     info: dict
@@ -376,11 +439,11 @@ class Method:
     name = "method"
     description = ""
 
-    def applies(self, scene: AccuracyScene) -> bool:                  # pragma: no cover
+    def applies(self, scene: AccuracyScene) -> bool:  # pragma: no cover
         """Whether this method runs on ``scene`` (dynamic or static scenes)."""
         raise NotImplementedError
 
-    def params(self, ctx: "Context") -> list:                         # pragma: no cover
+    def params(self, ctx: "Context") -> list:  # pragma: no cover
         """The parameters swept on this scene (``ctx.quick`` for the short list)."""
         raise NotImplementedError
 
@@ -392,7 +455,7 @@ class Method:
         """The row label of a parameter."""
         return str(param)
 
-    def prepare(self, ctx: Context, param) -> Job:                     # pragma: no cover
+    def prepare(self, ctx: Context, param) -> Job:  # pragma: no cover
         """The :class:`Job` that runs ``param`` on ``ctx``'s scene."""
         raise NotImplementedError
 
@@ -441,8 +504,10 @@ class TimeStepping(Method):
         want = param * ctx.bound(self.bound_of)
         dt = self.steps(ctx, param)[1]
         if abs(dt / want - 1) > MAX_DT_CHANGE:
-            return (f"no whole number of steps near dt = {want:.2g} s per output interval "
-                    f"T/{N_OUT} = {ctx.duration / N_OUT:.2g} s")
+            return (
+                f"no whole number of steps near dt = {want:.2g} s per output interval "
+                f"T/{N_OUT} = {ctx.duration / N_OUT:.2g} s"
+            )
         return None
 
     def label(self, param):
@@ -464,8 +529,7 @@ class TimeStepping(Method):
             integ.step(model, state0, dt)
 
         note = self.note(ctx, dt) if callable(self.note) else (self.note or None)
-        info = dict(n=ctx.n, dt=dt, bound_s=bound, bound_of=self.bound_of, dt_bound=dt / bound, steps=steps,
-                    note=note)
+        info = dict(n=ctx.n, dt=dt, bound_s=bound, bound_of=self.bound_of, dt_bound=dt / bound, steps=steps, note=note)
         return Job(run, warmup, info)
 
 
@@ -496,9 +560,15 @@ class ProjectiveIterations(TimeStepping):
     """
 
     def __init__(self, multiples, quick_multiples):
-        super().__init__("projective", None, "symplectic", multiples, quick_multiples,
-                         "projective dynamics (Liu et al. 2013: local/global iterations, constant matrix "
-                         "pre-factored); param = multiple of the symplectic Euler bound / iterations per step")
+        super().__init__(
+            "projective",
+            None,
+            "symplectic",
+            multiples,
+            quick_multiples,
+            "projective dynamics (Liu et al. 2013: local/global iterations, constant matrix "
+            "pre-factored); param = multiple of the symplectic Euler bound / iterations per step",
+        )
         self._iterations = 10
         self.make = lambda ctx, dt: (ProjectiveDynamics(iterations=self._iterations), ctx.model)
 
@@ -533,13 +603,16 @@ class AdaptiveTolerance(Method):
         tolerances, quick_tolerances: the ``rtol`` values of the default and ``--quick`` runs.
     """
 
-    def __init__(self, pair="bogacki_shampine", tolerances=(1e-2, 1e-3, 1e-4, 1e-5, 1e-6),
-                 quick_tolerances=(1e-2, 1e-4)):
+    def __init__(
+        self, pair="bogacki_shampine", tolerances=(1e-2, 1e-3, 1e-4, 1e-5, 1e-6), quick_tolerances=(1e-2, 1e-4)
+    ):
         self.pair, self.tolerances, self.quick_tolerances = pair, tolerances, quick_tolerances
         self.name = "adaptive" if pair == "bogacki_shampine" else f"adaptive-{pair}"
         p = PAIRS[pair]
-        self.description = (f"embedded Runge-Kutta pair {pair} (order {p.order}, error estimate of order "
-                            f"{p.error_order}) at a requested tolerance rtol; it chooses its own steps")
+        self.description = (
+            f"embedded Runge-Kutta pair {pair} (order {p.order}, error estimate of order "
+            f"{p.error_order}) at a requested tolerance rtol; it chooses its own steps"
+        )
 
     def applies(self, scene):
         """Dynamic scenes only."""
@@ -566,9 +639,13 @@ class AdaptiveTolerance(Method):
             _, rec = simulate(model, state0, interval, N_OUT, adaptive, record_every=1, warn=False)
             st = adaptive.stats
             mean = ctx.duration / max(st["accepted"], 1)
-            info.update(dt=mean, dt_bound=mean / bound, steps=st["accepted"] + st["rejected"],
-                        note=f"{st['accepted']} accepted, {st['rejected']} rejected, smallest step "
-                             f"{st['min_h'] / bound:.2g}x the bound")
+            info.update(
+                dt=mean,
+                dt_bound=mean / bound,
+                steps=st["accepted"] + st["rejected"],
+                note=f"{st['accepted']} accepted, {st['rejected']} rejected, smallest step "
+                f"{st['min_h'] / bound:.2g}x the bound",
+            )
             return rec["x"][1:], rec["v"][1:]
 
         def warmup():
@@ -586,8 +663,10 @@ class StaticResolution(Method):
     """
 
     name = "static"
-    description = ("static equilibrium at grid size n (implicit Euler at dt = 1e4 s = Newton, to 1e-8), "
-                   "against a fine grid at the coarse nodes; wall time of the solve")
+    description = (
+        "static equilibrium at grid size n (implicit Euler at dt = 1e4 s = Newton, to 1e-8), "
+        "against a fine grid at the coarse nodes; wall time of the solve"
+    )
 
     def __init__(self, resolutions=(3, 5, 9), quick_resolutions=(2, 3), tol: float = 1e-8, max_iters: int = 60):
         self.resolutions, self.quick_resolutions = tuple(resolutions), tuple(quick_resolutions)
@@ -666,22 +745,33 @@ _QUICK = (0.45, 0.9, 2)
 #: Explicit Euler's instability above its bound grows slowly (|1 + h lambda| only a little above 1),
 #: so its "well above" multiple is 10x.
 _SPECS = {
-    "explicit": ("explicit", ((0.1, 0.2, 0.45, 0.9, 10), (0.9, 10)),
-                 "explicit Euler; dt in multiples of its own bound (c/k of the dashpots)"),
+    "explicit": (
+        "explicit",
+        ((0.1, 0.2, 0.45, 0.9, 10), (0.9, 10)),
+        "explicit Euler; dt in multiples of its own bound (c/k of the dashpots)",
+    ),
     "symplectic": ("symplectic", (_EXPLICIT, _QUICK), "symplectic Euler; multiples of its own bound"),
-    "verlet": ("symplectic", (_EXPLICIT, (0.9, 2)),
-               "damped Verlet with kd = 1 - exp(-drag dt) in place of the model's global drag (the same "
-               "equations); multiples of the symplectic Euler bound (the same as its own)"),
+    "verlet": (
+        "symplectic",
+        (_EXPLICIT, (0.9, 2)),
+        "damped Verlet with kd = 1 - exp(-drag dt) in place of the model's global drag (the same "
+        "equations); multiples of the symplectic Euler bound (the same as its own)",
+    ),
     "rk4": ("rk4", (_EXPLICIT, _QUICK), "classic RK4; multiples of its own bound (2 sqrt 2 / omega_max)"),
-    "implicit": ("symplectic", ((0.5, 1, 2, 5, 10), (4,)),
-                 "implicit Euler (Baraff-Witkin, CG 100 iterations to 1e-6: the defaults); multiples of the "
-                 "symplectic Euler bound (its own is infinite)"),
+    "implicit": (
+        "symplectic",
+        ((0.5, 1, 2, 5, 10), (4,)),
+        "implicit Euler (Baraff-Witkin, CG 100 iterations to 1e-6: the defaults); multiples of the "
+        "symplectic Euler bound (its own is infinite)",
+    ),
 }
 
 #: Integrators of INTEGRATORS that have no rows, with the reason printed in the report.
-SKIPPED = {"knoche": "left out: Knoche relaxation is a first-order relaxation of offsets towards a harmonic "
-                     "interpolation of fixed nodes (no masses, forces or loads), not a time integrator of these "
-                     "dynamics nor a solver of this equilibrium"}
+SKIPPED = {
+    "knoche": "left out: Knoche relaxation is a first-order relaxation of offsets towards a harmonic "
+    "interpolation of fixed nodes (no masses, forces or loads), not a time integrator of these "
+    "dynamics nor a solver of this equilibrium"
+}
 
 
 def _methods() -> dict:
@@ -701,7 +791,7 @@ def _methods() -> dict:
 #: name -> :class:`Method`. A new row family is one more entry.
 METHODS = _methods()
 for _name in INTEGRATORS:
-    if _name not in METHODS and _name not in SKIPPED:      # a new integrator without a spec yet
+    if _name not in METHODS and _name not in SKIPPED:  # a new integrator without a spec yet
         SKIPPED[_name] = "left out: no accuracy settings for this integrator yet (add it to _SPECS)"
 
 
@@ -721,11 +811,21 @@ def dynamic_reference(ctx: Context, ref_div: float) -> Reference:
     scale = _displacement(x, model.X)
     kinetic = kinetic_energy(model.mass, rec["v"][1:])
     check = relative_error(rec2["x"][1:], x, scale)
-    info = dict(method="rk4", dt=dt, dt_bound=dt / bound, steps=steps, wall_s=wall, max_displacement_m=scale,
-                halving_diff=check, error_estimate=check / 15,
-                text=(f"RK4 at dt = {dt:.3g} s (rk4 bound / {bound / dt:.3g}), {steps} steps; halving check: "
-                      f"RK4 at 2 dt differs by {check:.2e} (relative), so the reference is good to about "
-                      f"{check / 15:.1e}; max displacement {scale * 1e3:.3g} mm"))
+    info = dict(
+        method="rk4",
+        dt=dt,
+        dt_bound=dt / bound,
+        steps=steps,
+        wall_s=wall,
+        max_displacement_m=scale,
+        halving_diff=check,
+        error_estimate=check / 15,
+        text=(
+            f"RK4 at dt = {dt:.3g} s (rk4 bound / {bound / dt:.3g}), {steps} steps; halving check: "
+            f"RK4 at 2 dt differs by {check:.2e} (relative), so the reference is good to about "
+            f"{check / 15:.1e}; max displacement {scale * 1e3:.3g} mm"
+        ),
+    )
     return Reference(x, scale, info, kinetic)
 
 
@@ -737,10 +837,18 @@ def static_reference(ctx: Context, method: StaticResolution) -> Reference:
     wall = time.perf_counter() - t0
     x = x.detach().cpu()[None]
     scale = _displacement(x, ctx.model.X)
-    info = dict(method="static", n=ctx.n, newton_iterations=it, wall_s=wall, max_displacement_m=scale,
-                text=(f"static equilibrium at n = {ctx.n} ({ctx.n ** 3} nodes), implicit Euler at dt = "
-                      f"{STATIC_DT:g} s = Newton, {it} iterations to {tol:.1g}; compared at the coarse nodes; "
-                      f"max displacement {scale * 1e3:.3g} mm"))
+    info = dict(
+        method="static",
+        n=ctx.n,
+        newton_iterations=it,
+        wall_s=wall,
+        max_displacement_m=scale,
+        text=(
+            f"static equilibrium at n = {ctx.n} ({ctx.n**3} nodes), implicit Euler at dt = "
+            f"{STATIC_DT:g} s = Newton, {it} iterations to {tol:.1g}; compared at the coarse nodes; "
+            f"max displacement {scale * 1e3:.3g} mm"
+        ),
+    )
     return Reference(x, scale, info)
 
 
@@ -777,8 +885,16 @@ def run_case(ctx: Context, method: Method, param, repeats: int, sync=lambda: Non
             info = dict(job.info)
             if info.get("steps") is not None:
                 info["steps"] = e.step
-            return _row(ctx.scene.name, method, param, info, wall_s=wall, repeats=1, status="diverged",
-                        note=f"DivergenceError at step {e.step}: {e.quantity}")
+            return _row(
+                ctx.scene.name,
+                method,
+                param,
+                info,
+                wall_s=wall,
+                repeats=1,
+                status="diverged",
+                note=f"DivergenceError at step {e.step}: {e.quantity}",
+            )
     info = dict(job.info)
     if job.iters:
         info["steps"] = job.iters[0]
@@ -796,8 +912,16 @@ def run_case(ctx: Context, method: Method, param, repeats: int, sync=lambda: Non
         if ratio > BLOWUP_ENERGY:
             why = f"kinetic energy {ratio:.2g}x the reference's"
     if why:
-        return _row(ctx.scene.name, method, param, info, error=err, status="diverged",
-                    note=why + ": blowing up, not yet caught by the monitor", **common)
+        return _row(
+            ctx.scene.name,
+            method,
+            param,
+            info,
+            error=err,
+            status="diverged",
+            note=why + ": blowing up, not yet caught by the monitor",
+            **common,
+        )
     return _row(ctx.scene.name, method, param, info, error=err, status="ok", **common)
 
 
@@ -813,17 +937,20 @@ def pareto_front(points) -> list[bool]:
     Returns:
         one bool per point, True on the front. ``O(P log P)``: sweep in order of time.
     """
-    pts = [(i, p[0], p[1]) for i, p in enumerate(points)
-           if p[0] is not None and p[1] is not None and math.isfinite(p[0]) and math.isfinite(p[1])]
+    pts = [
+        (i, p[0], p[1])
+        for i, p in enumerate(points)
+        if p[0] is not None and p[1] is not None and math.isfinite(p[0]) and math.isfinite(p[1])
+    ]
     pts.sort(key=lambda q: (q[2], q[1]))
     front = [False] * len(points)
-    best = math.inf                    # smallest error among strictly faster points
+    best = math.inf  # smallest error among strictly faster points
     i = 0
     while i < len(pts):
         j = i
         while j < len(pts) and pts[j][2] == pts[i][2]:
             j += 1
-        group_min = pts[i][1]          # the group is sorted by error
+        group_min = pts[i][1]  # the group is sorted by error
         if group_min < best:
             for idx, err, _ in pts[i:j]:
                 front[idx] = err == group_min
@@ -847,9 +974,18 @@ def recommend(rows: list, targets=TARGETS) -> list[dict]:
         for target in targets:
             ok = [r for r in rows if r["scene"] == scene and r["status"] == "ok" and r["error"] <= target]
             best = min(ok, key=lambda r: r["wall_s"]) if ok else None
-            out.append(dict(scene=scene, target=target, method=best and best["method"], param=best and best["param"],
-                            dt=best and best["dt"], steps=best and best["steps"], error=best and best["error"],
-                            wall_s=best and best["wall_s"]))
+            out.append(
+                dict(
+                    scene=scene,
+                    target=target,
+                    method=best and best["method"],
+                    param=best and best["param"],
+                    dt=best and best["dt"],
+                    steps=best and best["steps"],
+                    error=best and best["error"],
+                    wall_s=best and best["wall_s"],
+                )
+            )
     return out
 
 
@@ -879,8 +1015,9 @@ def recommendation_text(recs: list, targets=TARGETS) -> str:
             if r["target"] == target:
                 wins[r["method"]] = wins.get(r["method"], 0) + 1
         if wins:
-            ranked = ", ".join(f"{m} ({k} scene{'s' if k > 1 else ''})"
-                               for m, k in sorted(wins.items(), key=lambda kv: -kv[1]))
+            ranked = ", ".join(
+                f"{m} ({k} scene{'s' if k > 1 else ''})" for m, k in sorted(wins.items(), key=lambda kv: -kv[1])
+            )
             lines.append(f"  error <= {_fmt(target)}: fastest is {ranked}")
     return "\n".join(lines)
 
@@ -910,30 +1047,44 @@ def add_arguments(p) -> None:
     """Options of ``torchdeform bench accuracy`` (the common ones from :func:`bench.add_common`)."""
     add_common(p)
     p.set_defaults(dtype="float64", threads=1)
-    p.description = (HELP + ". Defaults differ from bench speed: float64 and 1 thread (the scenes are "
-                     "tiny; one thread is fastest). Knoche relaxation is left out (it does not integrate "
-                     "these dynamics); 'supports' stands for falling onto supports, with the supports as "
-                     "fixed nodes (smooth; contact with obstacles is torchdeform.interact's).")
-    p.add_argument("--scenes", default=None,
-                   help="comma-separated subset of " + ",".join(SCENES) + " (default all)")
-    p.add_argument("--methods", default=None,
-                   help="comma-separated subset of " + ",".join(METHODS) + " (default all)")
-    p.add_argument("--n", type=integer(lo=2), default=None,
-                   help="grid size of the dynamic scenes, n^3 nodes (default 5; quick 4)")
-    p.add_argument("--resolutions", default=None,
-                   help="grid sizes of the resolution sweep (default 3,5,9; quick 2,3)")
-    p.add_argument("--ref-n", type=integer(lo=2), default=None,
-                   help="grid size of the sweep's reference (default 17; quick 5); n-1 must divide ref-n - 1")
-    p.add_argument("--ref-div", type=number(lo=1), default=None,
-                   help="reference step = RK4 bound / REF_DIV (default 20, 5 for the stiff scene; quick 5)")
-    p.add_argument("--repeats", type=integer(lo=1), default=None,
-                   help=f"timed repeats, the median is kept (default 3; quick 1); runs slower than "
-                        f"{REPEAT_LIMIT_S:g} s are timed once")
-    p.add_argument("--targets", default=None,
-                   help="error targets of the recommendation (default 1e-1,1e-2,1e-4)")
-    p.add_argument("--inverse-warp", action="store_true",
-                   help="also rows of the fixed-point inverse warp (torchdeform.volume): round-trip error "
-                        "|X + u(X) - p| in voxels against iterations and wall time (scene 'inverse-warp')")
+    p.description = (
+        HELP + ". Defaults differ from bench speed: float64 and 1 thread (the scenes are "
+        "tiny; one thread is fastest). Knoche relaxation is left out (it does not integrate "
+        "these dynamics); 'supports' stands for falling onto supports, with the supports as "
+        "fixed nodes (smooth; contact with obstacles is torchdeform.interact's)."
+    )
+    p.add_argument("--scenes", default=None, help="comma-separated subset of " + ",".join(SCENES) + " (default all)")
+    p.add_argument("--methods", default=None, help="comma-separated subset of " + ",".join(METHODS) + " (default all)")
+    p.add_argument(
+        "--n", type=integer(lo=2), default=None, help="grid size of the dynamic scenes, n^3 nodes (default 5; quick 4)"
+    )
+    p.add_argument("--resolutions", default=None, help="grid sizes of the resolution sweep (default 3,5,9; quick 2,3)")
+    p.add_argument(
+        "--ref-n",
+        type=integer(lo=2),
+        default=None,
+        help="grid size of the sweep's reference (default 17; quick 5); n-1 must divide ref-n - 1",
+    )
+    p.add_argument(
+        "--ref-div",
+        type=number(lo=1),
+        default=None,
+        help="reference step = RK4 bound / REF_DIV (default 20, 5 for the stiff scene; quick 5)",
+    )
+    p.add_argument(
+        "--repeats",
+        type=integer(lo=1),
+        default=None,
+        help=f"timed repeats, the median is kept (default 3; quick 1); runs slower than "
+        f"{REPEAT_LIMIT_S:g} s are timed once",
+    )
+    p.add_argument("--targets", default=None, help="error targets of the recommendation (default 1e-1,1e-2,1e-4)")
+    p.add_argument(
+        "--inverse-warp",
+        action="store_true",
+        help="also rows of the fixed-point inverse warp (torchdeform.volume): round-trip error "
+        "|X + u(X) - p| in voxels against iterations and wall time (scene 'inverse-warp')",
+    )
 
 
 def _check_args(args):
@@ -954,14 +1105,16 @@ def _check_args(args):
     if n < 3:
         raise ConfigError("--n", "an integer >= 3", n)
     res = _list(args.resolutions, "--resolutions", int) or list(
-        StaticResolution().quick_resolutions if args.quick else StaticResolution().resolutions)
+        StaticResolution().quick_resolutions if args.quick else StaticResolution().resolutions
+    )
     ref_n = args.ref_n or (5 if args.quick else 17)
     if min(res) < 2 or ref_n < 3:
         raise ConfigError("--resolutions", "grid sizes >= 2 (and --ref-n >= 3)", res)
     for r in res:
         if r >= ref_n or (ref_n - 1) % (r - 1):
-            raise ConfigError("--resolutions", f"sizes n < ref-n = {ref_n} with n - 1 dividing {ref_n - 1} "
-                                               f"(e.g. 3, 5, 9 for 17)", r)
+            raise ConfigError(
+                "--resolutions", f"sizes n < ref-n = {ref_n} with n - 1 dividing {ref_n - 1} (e.g. 3, 5, 9 for 17)", r
+            )
     if args.ref_div is not None and not (math.isfinite(args.ref_div) and args.ref_div >= 2):
         raise ConfigError("--ref-div", "a number >= 2", args.ref_div)
     if args.repeats is not None and args.repeats < 1:
@@ -1007,8 +1160,11 @@ def _plan(args, device, dtype, n, resolutions, ref_n):
         if cases:
             plan.append((ctx, cases))
     if not plan:
-        raise ConfigError("--methods", "at least one method that applies to the chosen scenes",
-                          ",".join(args.methods or []) + " on " + ",".join(args.scenes or []))
+        raise ConfigError(
+            "--methods",
+            "at least one method that applies to the chosen scenes",
+            ",".join(args.methods or []) + " on " + ",".join(args.scenes or []),
+        )
     return plan, not_run
 
 
@@ -1029,8 +1185,9 @@ def _run(args, device, n, resolutions, ref_n) -> int:
                 else:
                     div = args.ref_div or min(sc.ref_div or 20, 5 if args.quick else math.inf)
                     ctx.reference = dynamic_reference(ctx, div)
-                references[sc.name] = dict(ctx.reference.info, duration_s=None if sc.static else ctx.duration,
-                                           description=sc.help)
+                references[sc.name] = dict(
+                    ctx.reference.info, duration_s=None if sc.static else ctx.duration, description=sc.help
+                )
                 bar.update(1)
                 for m, p in cases:
                     bar.set_postfix_str(f"{sc.name} {m.name} {m.label(p)}")
@@ -1040,27 +1197,42 @@ def _run(args, device, n, resolutions, ref_n) -> int:
     mark_pareto(rows)
     recs = recommend(rows, args.targets)
     used = list(dict.fromkeys(r["method"] for r in rows))
-    if getattr(args, "inverse_warp", False):          # after the recommendation: not an integrator
+    if getattr(args, "inverse_warp", False):  # after the recommendation: not an integrator
         inv_rows, references["inverse-warp"] = inverse_warp_rows(args.quick, dtype, repeats)
         rows += inv_rows
         mark_pareto(rows)
     machine = machine_info(device)
-    extra = {"machine": machine, "dtype": args.dtype, "quick": bool(args.quick), "references": references,
-             "methods": {k: METHODS[k].description for k in used}, "skipped": dict(SKIPPED), "not_run": not_run,
-             "error": ("max over the output times T/4, T/2, 3T/4, T and the nodes of |x - x_ref|, over the "
-                       "reference's max displacement; static rows: at the coarse nodes, against the fine grid"),
-             "wall_time": (f"perf_counter around the run after an untimed warm-up step; median of {repeats} "
-                           f"repeat(s), runs over {REPEAT_LIMIT_S:g} s timed once"),
-             "scaling": ("k = E h s (h spacing, s = share of the grid cells bordering the spring), c = tau k, "
-                         "masses from density"),
-             "targets": list(args.targets), "recommendations": recs}
+    extra = {
+        "machine": machine,
+        "dtype": args.dtype,
+        "quick": bool(args.quick),
+        "references": references,
+        "methods": {k: METHODS[k].description for k in used},
+        "skipped": dict(SKIPPED),
+        "not_run": not_run,
+        "error": (
+            "max over the output times T/4, T/2, 3T/4, T and the nodes of |x - x_ref|, over the "
+            "reference's max displacement; static rows: at the coarse nodes, against the fine grid"
+        ),
+        "wall_time": (
+            f"perf_counter around the run after an untimed warm-up step; median of {repeats} "
+            f"repeat(s), runs over {REPEAT_LIMIT_S:g} s timed once"
+        ),
+        "scaling": (
+            "k = E h s (h spacing, s = share of the grid cells bordering the spring), c = tau k, masses from density"
+        ),
+        "targets": list(args.targets),
+        "recommendations": recs,
+    }
     out = Path(args.out) if args.out else None
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
         plot(rows, out / "accuracy.png", references)
     if not args.json:
-        print(f"accuracy against wall time, {args.dtype}, {device}, {machine['threads']} thread(s), "
-              f"torch {machine['torch']}, median of {repeats} repeat(s) (runs over {REPEAT_LIMIT_S:g} s: 1)")
+        print(
+            f"accuracy against wall time, {args.dtype}, {device}, {machine['threads']} thread(s), "
+            f"torch {machine['torch']}, median of {repeats} repeat(s) (runs over {REPEAT_LIMIT_S:g} s: 1)"
+        )
     display = [dict(r, pareto="*" if r["pareto"] else "", note=r["note"] or "") for r in rows]
     emit("accuracy", args, rows, TABLE, extra, display)
     if not args.json:
@@ -1072,8 +1244,14 @@ def _run(args, device, n, resolutions, ref_n) -> int:
 
 def report(extra: dict) -> str:
     """The text after the table: references, methods, what was left out, the recommendation."""
-    lines = ["", "error: " + extra["error"] + ".", "pareto *: no other run of the scene is both faster and "
-             "more accurate.", "scaling: " + extra["scaling"] + ".", "", "references:"]
+    lines = [
+        "",
+        "error: " + extra["error"] + ".",
+        "pareto *: no other run of the scene is both faster and more accurate.",
+        "scaling: " + extra["scaling"] + ".",
+        "",
+        "references:",
+    ]
     lines += [f"  {name}: {ref['text']}" for name, ref in extra["references"].items()]
     lines.append("methods:")
     lines += [f"  {name}: {text}" for name, text in extra["methods"].items()]
@@ -1092,8 +1270,10 @@ def report(extra: dict) -> str:
 def _static_orders(rows: list) -> None:
     """Note the observed convergence order between successive resolutions of a static scene."""
     for scene in dict.fromkeys(r["scene"] for r in rows if r["method"] == "static"):
-        sub = sorted((r for r in rows if r["scene"] == scene and r["method"] == "static" and r["status"] == "ok"),
-                     key=lambda r: r["n"])
+        sub = sorted(
+            (r for r in rows if r["scene"] == scene and r["method"] == "static" and r["status"] == "ok"),
+            key=lambda r: r["n"],
+        )
         for a, b in zip(sub, sub[1:]):
             if a["error"] > 0 and b["error"] > 0:
                 order = math.log(a["error"] / b["error"]) / math.log((b["n"] - 1) / (a["n"] - 1))
@@ -1118,12 +1298,13 @@ def inverse_warp_rows(quick: bool, dtype=torch.float64, repeats: int = 3, seed: 
         ``fixed-point``, ``steps`` = iterations, ``n`` = nodes per axis) and a reference dict.
     """
     from ..volume import DisplacementField, identity_points, inverse_points, inverse_residual
+
     size, nodes = (32, 5) if quick else (64, 9)
-    AMP = 0.15                                          # noqa: N806 (node spacings)
+    AMP = 0.15  # noqa: N806 (node spacings)
     iters = (0, 1, 2, 4, 8) if quick else (0, 1, 2, 3, 4, 6, 8, 12, 16, 24)
     g = torch.Generator().manual_seed(seed)
     spacing = (size - 1) / (nodes - 1)
-    offsets = ((torch.rand(3, nodes, nodes, nodes, generator=g, dtype=torch.float64) * 2 - 1) * AMP * spacing)
+    offsets = (torch.rand(3, nodes, nodes, nodes, generator=g, dtype=torch.float64) * 2 - 1) * AMP * spacing
     field = DisplacementField(offsets.to(dtype), (size,) * 3)
     p = identity_points((size,) * 3, dtype)
     rows = []
@@ -1136,15 +1317,31 @@ def inverse_warp_rows(quick: bool, dtype=torch.float64, repeats: int = 3, seed: 
                 X, _ = inverse_points(field, p, k, tol=0.0)
                 times.append(time.perf_counter() - t0)
             err = float(inverse_residual(field, X, p).max())
-            rows.append(_row("inverse-warp", _InverseWarp, k, dict(info, steps=k), error=err,
-                             wall_s=statistics.median(times), repeats=len(times), status="ok",
-                             note="max |X + u(X) - p| [voxels]"))
+            rows.append(
+                _row(
+                    "inverse-warp",
+                    _InverseWarp,
+                    k,
+                    dict(info, steps=k),
+                    error=err,
+                    wall_s=statistics.median(times),
+                    repeats=len(times),
+                    status="ok",
+                    note="max |X + u(X) - p| [voxels]",
+                )
+            )
     reached = [r["steps"] for r in rows if r["error"] < 1e-3]
-    ref = dict(method="exact", n=nodes, max_displacement_m=None,
-               text=(f"fixed-point inverse warp X <- p - u(X) at all {size}^3 voxel centres, {nodes}^3 node offsets "
-                     f"up to {AMP:g} node spacings ({AMP * spacing:.2g} voxels), {str(dtype).replace('torch.', '')}; "
-                     f"error = max round-trip residual |X + u(X) - p| in voxels (exact inverse: 0); below 1e-3 "
-                     f"voxel from {min(reached) if reached else 'no'} iteration(s)"))
+    ref = dict(
+        method="exact",
+        n=nodes,
+        max_displacement_m=None,
+        text=(
+            f"fixed-point inverse warp X <- p - u(X) at all {size}^3 voxel centres, {nodes}^3 node offsets "
+            f"up to {AMP:g} node spacings ({AMP * spacing:.2g} voxels), {str(dtype).replace('torch.', '')}; "
+            f"error = max round-trip residual |X + u(X) - p| in voxels (exact inverse: 0); below 1e-3 "
+            f"voxel from {min(reached) if reached else 'no'} iteration(s)"
+        ),
+    )
     return rows, ref
 
 
@@ -1170,16 +1367,18 @@ def plot(rows: list, path: Path, references: dict | None = None) -> None:
     as returned by the bench; ``references`` names the reference in each panel's title.
     """
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.ticker import NullFormatter
+
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
     methods = list(dict.fromkeys(r["method"] for r in rows))
     colours = {m: plt.get_cmap("tab10")(i % 10) for i, m in enumerate(methods)}
     cols = min(3, max(1, len(scenes)))
     nrows = math.ceil(len(scenes) / cols)
     fig, axes = plt.subplots(nrows, cols, figsize=(4.6 * cols, 3.7 * nrows), squeeze=False)
-    for ax in axes.flat[len(scenes):]:
+    for ax in axes.flat[len(scenes) :]:
         ax.set_visible(False)
     handles = {}
     for ax, scene in zip(axes.flat, scenes):
@@ -1188,12 +1387,19 @@ def plot(rows: list, path: Path, references: dict | None = None) -> None:
         for m in methods:
             series = sorted((r for r in ok if r["method"] == m), key=lambda r: (r["dt"] or 0, r["n"] or 0))
             if series:
-                h, = ax.plot([r["wall_s"] for r in series], [r["error"] for r in series], marker="o", ms=4, lw=1,
-                             color=colours[m], label=m)
+                (h,) = ax.plot(
+                    [r["wall_s"] for r in series],
+                    [r["error"] for r in series],
+                    marker="o",
+                    ms=4,
+                    lw=1,
+                    color=colours[m],
+                    label=m,
+                )
                 handles[m] = h
         front = sorted((r["wall_s"], r["error"]) for r in ok if r["pareto"])
         if front:
-            h, = ax.step(*zip(*front), where="post", color="k", lw=1, ls="--", label="Pareto front")
+            (h,) = ax.step(*zip(*front), where="post", color="k", lw=1, ls="--", label="Pareto front")
             ax.scatter(*zip(*front), s=70, facecolors="none", edgecolors="k", zorder=3)
             handles["Pareto front"] = h
         ax.set_xscale("log")
@@ -1208,19 +1414,46 @@ def plot(rows: list, path: Path, references: dict | None = None) -> None:
             handles["diverged (drawn at the top)"] = ax.scatter([], [], marker="x", color="0.4")
             ax.set_ylim(top=top * 1.5)
         ref = (references or {}).get(scene, {})
-        title = scene if "method" not in ref else f"{scene}  (ref: {ref['method']}" + (
-            f", n={ref['n']})" if ref.get("n") else ")")
+        title = (
+            scene
+            if "method" not in ref
+            else f"{scene}  (ref: {ref['method']}" + (f", n={ref['n']})" if ref.get("n") else ")")
+        )
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("wall time [s]")
         ax.set_ylabel("max position error / max displacement")
         ax.grid(True, which="major", alpha=0.3)
-    fig.legend(list(handles.values()), list(handles), loc="lower right" if len(scenes) % cols else "upper right",
-               fontsize=9, frameon=True)
+    fig.legend(
+        list(handles.values()),
+        list(handles),
+        loc="lower right" if len(scenes) % cols else "upper right",
+        fontsize=9,
+        frameon=True,
+    )
     fig.tight_layout()
     save_figure(fig, path, dpi=80)
     plt.close(fig)
 
 
-__all__ = ["HELP", "add_arguments", "run", "SCENES", "METHODS", "SKIPPED", "AccuracyScene", "Method",
-           "TimeStepping", "StaticResolution", "Context", "Reference", "cube", "cell_share", "pareto_front",
-           "mark_pareto", "recommend", "relative_error", "run_case", "plot"]
+__all__ = [
+    "HELP",
+    "add_arguments",
+    "run",
+    "SCENES",
+    "METHODS",
+    "SKIPPED",
+    "AccuracyScene",
+    "Method",
+    "TimeStepping",
+    "StaticResolution",
+    "Context",
+    "Reference",
+    "cube",
+    "cell_share",
+    "pareto_front",
+    "mark_pareto",
+    "recommend",
+    "relative_error",
+    "run_case",
+    "plot",
+]

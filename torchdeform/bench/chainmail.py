@@ -27,6 +27,7 @@ Example:
     torchdeform bench chainmail --quick
     torchdeform bench chainmail --json --out bench-out
 """
+
 from __future__ import annotations
 
 import statistics
@@ -40,10 +41,18 @@ from .common import add_common, axes, emit, int_list, machine_info, progress, sa
 
 __all__ = ["COLUMNS", "SPACING", "PULLS", "add_arguments", "run"]
 
-COLUMNS = [("grid", "grid", None), ("variant", "variant", None), ("pull_mm", "pull mm", "{:.1f}"),
-           ("moved", "moved", "{:,}"), ("checked", "checked", "{:,}"), ("ms", "ms (median)", "{:.2f}"),
-           ("us_per_moved", "us/moved", "{:.2f}"), ("sweeps", "sweeps", None), ("depth", "depth", None),
-           ("max_violation_m", "max excess m", "{:.1e}")]
+COLUMNS = [
+    ("grid", "grid", None),
+    ("variant", "variant", None),
+    ("pull_mm", "pull mm", "{:.1f}"),
+    ("moved", "moved", "{:,}"),
+    ("checked", "checked", "{:,}"),
+    ("ms", "ms (median)", "{:.2f}"),
+    ("us_per_moved", "us/moved", "{:.2f}"),
+    ("sweeps", "sweeps", None),
+    ("depth", "depth", None),
+    ("max_violation_m", "max excess m", "{:.1e}"),
+]
 SPACING = 1e-3
 #: pull sizes (metres along d; half that along h): about 200, 1,300 and 9,000 moved elements
 PULLS = (1e-3, 2e-3, 4e-3)
@@ -52,15 +61,25 @@ PULLS = (1e-3, 2e-3, 4e-3)
 def add_arguments(p) -> None:
     """The options of ``torchdeform bench chainmail``."""
     add_common(p)
-    p.add_argument("--sizes", type=int_list("--sizes"), default=None,
-                   help="grid sizes n (n^3 elements), comma-separated (default 32,64,100,128; quick 16,24)")
-    p.add_argument("--tensor-sizes", type=int_list("--tensor-sizes"), default=None,
-                   help="sizes that also get tensor rows, for the middle pull (default 32,64,100; quick 16,24)")
-    p.add_argument("--repeats", type=integer(lo=1), default=None, help="timed pulls per row, the median is kept (default 5)")
+    p.add_argument(
+        "--sizes",
+        type=int_list("--sizes"),
+        default=None,
+        help="grid sizes n (n^3 elements), comma-separated (default 32,64,100,128; quick 16,24)",
+    )
+    p.add_argument(
+        "--tensor-sizes",
+        type=int_list("--tensor-sizes"),
+        default=None,
+        help="sizes that also get tensor rows, for the middle pull (default 32,64,100; quick 16,24)",
+    )
+    p.add_argument(
+        "--repeats", type=integer(lo=1), default=None, help="timed pulls per row, the median is kept (default 5)"
+    )
 
 
 def _median_ms(fn, reset, repeats):
-    fn()                                                   # warm-up (first touch of the arrays)
+    fn()  # warm-up (first touch of the arrays)
     reset()
     times = []
     for _ in range(repeats):
@@ -75,6 +94,7 @@ def run(args) -> int:
     """Run the bench: one row per grid size, pull and variant; returns the exit status."""
     from ..chainmail import ChainMail, Limits, limit_violation, tensor_chainmail
     from ..sim.grid import Grid
+
     if args.threads:
         torch.set_num_threads(args.threads)
     sizes = args.sizes or ([16, 24] if args.quick else [32, 64, 100, 128])
@@ -93,16 +113,29 @@ def run(args) -> int:
         for variant in ("gibson", "enhanced"):
             cm = ChainMail(grid, lim, method=variant)
             for pull in pulls:
-                if pull / (0.2 * SPACING) > n // 2 - 1:          # the pull would reach the border
+                if pull / (0.2 * SPACING) > n // 2 - 1:  # the pull would reach the border
                     bar.update(1)
                     continue
                 ms, r = _median_ms(lambda: cm.move([centre], (pull, pull / 2, 0.0)), cm.reset, repeats)
                 cm.move([centre], (pull, pull / 2, 0.0))
                 worst = float(limit_violation(cm.positions(), grid, lim)[0])
                 cm.reset()
-                rows.append(dict(grid=f"{n}^3", n=n, variant=variant, pull_mm=pull * 1e3, moved=r.moved,
-                                 checked=r.checked, ms=ms, us_per_moved=1e3 * ms / r.moved, sweeps=None,
-                                 depth=None, max_violation_m=worst, repeats=repeats))
+                rows.append(
+                    dict(
+                        grid=f"{n}^3",
+                        n=n,
+                        variant=variant,
+                        pull_mm=pull * 1e3,
+                        moved=r.moved,
+                        checked=r.checked,
+                        ms=ms,
+                        us_per_moved=1e3 * ms / r.moved,
+                        sweeps=None,
+                        depth=None,
+                        max_violation_m=worst,
+                        repeats=repeats,
+                    )
+                )
                 bar.update(1)
     pull = pulls[1]
     for n in tsizes:
@@ -121,26 +154,52 @@ def run(args) -> int:
             r = tensor_chainmail(x, grid, lim, pick, d)
             sync()
             return r
+
         ms, r = _median_ms(once, lambda: None, repeats)
         moved = int(r.moved.sum())
-        rows.append(dict(grid=f"{n}^3", n=n, variant="tensor", pull_mm=pull * 1e3, moved=moved, checked=r.checked,
-                         ms=ms, us_per_moved=1e3 * ms / moved, sweeps=r.sweeps, depth=int(r.depth[0]),
-                         max_violation_m=float(r.violation[0]), repeats=repeats, device=str(args.device)))
+        rows.append(
+            dict(
+                grid=f"{n}^3",
+                n=n,
+                variant="tensor",
+                pull_mm=pull * 1e3,
+                moved=moved,
+                checked=r.checked,
+                ms=ms,
+                us_per_moved=1e3 * ms / moved,
+                sweeps=r.sweeps,
+                depth=int(r.depth[0]),
+                max_violation_m=float(r.violation[0]),
+                repeats=repeats,
+                device=str(args.device),
+            )
+        )
         bar.update(1)
     bar.close()
 
     def find(n, variant, pull_mm):
-        return next((r for r in rows if r["n"] == n and r["variant"] == variant
-                     and abs(r["pull_mm"] - pull_mm) < 1e-9), None)
+        return next(
+            (r for r in rows if r["n"] == n and r["variant"] == variant and abs(r["pull_mm"] - pull_mm) < 1e-9), None
+        )
+
     extra = {"machine": machine_info(args.device), "spacing_m": SPACING, "limits": [0.8, 1.2, 0.2]}
     for key, variant in (("pull_100", "gibson"), ("tensor_pull_100", "tensor")):
         r100 = find(100, variant, 2.0)
-        extra[key] = None if r100 is None else {"moved": r100["moved"], "ms": r100["ms"],
-                                                "target_ms": 50.0, "met": r100["ms"] < 50.0}
+        extra[key] = (
+            None
+            if r100 is None
+            else {"moved": r100["moved"], "ms": r100["ms"], "target_ms": 50.0, "met": r100["ms"] < 50.0}
+        )
     small, large = find(32, "gibson", 2.0), find(128, "gibson", 2.0)
-    extra["locality_128_vs_32"] = None if not (small and large) else {
-        "moved": [small["moved"], large["moved"]], "ms": [small["ms"], large["ms"]],
-        "ratio": large["ms"] / small["ms"]}
+    extra["locality_128_vs_32"] = (
+        None
+        if not (small and large)
+        else {
+            "moved": [small["moved"], large["moved"]],
+            "ms": [small["ms"], large["ms"]],
+            "ratio": large["ms"] / small["ms"],
+        }
+    )
     if args.out:
         _plot(rows, args.out)
     emit("chainmail", args, rows, COLUMNS, extra)

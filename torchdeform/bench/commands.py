@@ -1,4 +1,5 @@
 """``torchdeform bench <name>``: one sub-command per entry of :data:`~.registry.BENCHES`."""
+
 from __future__ import annotations
 
 from .registry import BENCHES, module

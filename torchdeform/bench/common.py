@@ -4,6 +4,7 @@ The common options, machine information, progress bars, the output conventions (
 stdout, or exactly one JSON document with ``--json``; ``--out DIR`` writes ``<name>.csv``), and
 the speed scene that :mod:`.speed` and :mod:`.warp_baseline` both time.
 """
+
 from __future__ import annotations
 
 import csv
@@ -22,8 +23,19 @@ from ..outputs import save_figure as write_figure
 from ..sim.grid import Grid
 from ..sim.model import Model, State
 
-__all__ = ["int_list", "add_common", "machine_info", "device_sync", "progress", "emit", "format_table", "speed_cube",
-           "axes", "save_figure", "busy_neighbour"]
+__all__ = [
+    "int_list",
+    "add_common",
+    "machine_info",
+    "device_sync",
+    "progress",
+    "emit",
+    "format_table",
+    "speed_cube",
+    "axes",
+    "save_figure",
+    "busy_neighbour",
+]
 
 
 class busy_neighbour:
@@ -36,6 +48,7 @@ class busy_neighbour:
     def __enter__(self):
         import subprocess
         import time
+
         self.proc = subprocess.Popen([sys.executable, "-c", "while True: pass"])
         time.sleep(0.2)
         return self
@@ -63,8 +76,14 @@ def add_common(p) -> None:
 
 def machine_info(device: str) -> dict:
     """Torch and Python versions, thread and CPU counts, the device (and the GPU's name)."""
-    info = {"torch": torch.__version__, "python": platform.python_version(), "threads": torch.get_num_threads(),
-            "device": device, "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count()}
+    info = {
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+        "threads": torch.get_num_threads(),
+        "device": device,
+        "cpu": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+    }
     if device.startswith("cuda") and torch.cuda.is_available():
         info["gpu"] = torch.cuda.get_device_name(torch.device(device))
     return info
@@ -80,6 +99,7 @@ def device_sync(device: str):
 def progress(total: int, desc: str):
     """A tqdm bar on stderr (so stdout keeps exactly the table or the JSON document)."""
     from tqdm.auto import tqdm
+
     return tqdm(total=total, desc=desc, unit="row", file=sys.stderr, disable=None, leave=False)
 
 
@@ -93,7 +113,7 @@ def emit(name: str, args, rows: list, columns: list, extra: dict | None = None, 
         out.mkdir(parents=True, exist_ok=True)
         with atomic_path(out / f"{name}.csv") as tmp, open(tmp, "w", newline="") as fh:
             keys = list(dict.fromkeys(k for r in rows for k in r)) or [c[0] for c in columns]
-            w = csv.DictWriter(fh, fieldnames=keys)              # rows may differ (compile_s ...)
+            w = csv.DictWriter(fh, fieldnames=keys)  # rows may differ (compile_s ...)
             w.writeheader()
             w.writerows(rows)
     if args.json:
@@ -108,8 +128,7 @@ def format_table(rows: list, columns: list) -> str:
     """``columns``: ``(key, header, format)``; ``None`` values print as ``-``."""
     cells = [[h for _, h, _ in columns]]
     for r in rows:
-        cells.append(["-" if r.get(k) is None else (fmt.format(r[k]) if fmt else str(r[k]))
-                      for k, _, fmt in columns])
+        cells.append(["-" if r.get(k) is None else (fmt.format(r[k]) if fmt else str(r[k])) for k, _, fmt in columns])
     widths = [max(len(row[i]) for row in cells) for i in range(len(columns))]
     lines = ["  ".join(c.rjust(w) for c, w in zip(row, widths)) for row in cells]
     lines.insert(1, "  ".join("-" * w for w in widths))
@@ -127,20 +146,23 @@ def speed_cube(n: int, topology: int, dtype=torch.float32, device="cpu", seed: i
     g = torch.Generator().manual_seed(seed)
     x = model.X + (1e-4 * torch.randn(model.X.shape, generator=g, dtype=torch.float64)).to(dtype=dtype, device=device)
     v = (1e-3 * torch.randn(model.X.shape, generator=g, dtype=torch.float64)).to(dtype=dtype, device=device)
-    return model, State(x, v, 0.0), 1e-4       # dt well below the bound (~8e-4 s for 26 neighbours)
+    return model, State(x, v, 0.0), 1e-4  # dt well below the bound (~8e-4 s for 26 neighbours)
 
 
 def axes(figsize=(6.5, 4.5), ncols: int = 1):
     """A matplotlib figure and its axes (``ncols`` side by side) for a bench plot (Agg: no screen needed)."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     return plt.subplots(1, ncols, figsize=figsize)
 
 
 def save_figure(fig, out_dir, name: str) -> None:
     """Write ``fig`` as ``out_dir/name`` (110 dpi), close it and say so on stderr."""
     import matplotlib.pyplot as plt
+
     fig.tight_layout()
     path = Path(out_dir) / name
     path.parent.mkdir(parents=True, exist_ok=True)

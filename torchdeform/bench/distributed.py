@@ -21,6 +21,7 @@ Example:
     torchdeform bench distributed --quick
     torchdeform bench distributed --ranks 1,2 --json --out bench-out
 """
+
 from __future__ import annotations
 
 import json
@@ -38,10 +39,18 @@ from .common import add_common, axes, emit, int_list, machine_info, progress, sa
 
 __all__ = ["COLUMNS", "SWEEP_SCENE", "add_arguments", "run", "worker"]
 
-COLUMNS = [("case", "case", None), ("ranks", "ranks", None), ("threads", "thr/rank", None), ("grid", "grid", None),
-           ("wall_s", "wall s", "{:.2f}"), ("ms_per_step", "ms/step", "{:.1f}"), ("speedup", "speed-up", "{:.2f}x"),
-           ("comm_share", "comm", "{:.0%}"), ("exchanges_per_step", "exch/step", "{:.0f}"),
-           ("bytes_per_exchange", "bytes/exch", "{:,}")]
+COLUMNS = [
+    ("case", "case", None),
+    ("ranks", "ranks", None),
+    ("threads", "thr/rank", None),
+    ("grid", "grid", None),
+    ("wall_s", "wall s", "{:.2f}"),
+    ("ms_per_step", "ms/step", "{:.1f}"),
+    ("speedup", "speed-up", "{:.2f}x"),
+    ("comm_share", "comm", "{:.0%}"),
+    ("exchanges_per_step", "exch/step", "{:.0f}"),
+    ("bytes_per_exchange", "bytes/exch", "{:,}"),
+]
 
 #: the sweep's scene (``{steps}`` filled in)
 SWEEP_SCENE = """\
@@ -68,27 +77,47 @@ def add_arguments(p) -> None:
     """The options of ``torchdeform bench distributed``."""
     add_common(p)
     p.add_argument("--ranks", type=int_list("--ranks"), default=None, help="rank counts (default 1,2)")
-    p.add_argument("--n", type=integer(lo=2), default=None, help="body of n^3 nodes for the step rows (default 96; quick 24)")
+    p.add_argument(
+        "--n", type=integer(lo=2), default=None, help="body of n^3 nodes for the step rows (default 96; quick 24)"
+    )
     p.add_argument("--steps", type=integer(lo=1), default=None, help="timed steps per run (default 5; quick 2)")
     p.add_argument("--repeats", type=integer(lo=1), default=None, help="timed runs, median kept (default 3; quick 1)")
     p.add_argument("--cg-iters", type=integer(lo=1), default=10, help="CG iterations of the implicit step (default 10)")
     p.add_argument("--points", type=integer(lo=1), default=None, help="sweep points, a square (default 64; quick 16)")
-    p.add_argument("--cases", default="sweep,explicit,implicit",
-                   help="rows to run, comma-separated: sweep, explicit, implicit (default all)")
-    p.add_argument("--timeout", type=number(lo=0, lo_open=True), default=600, help="seconds each launch may take (default 600)")
+    p.add_argument(
+        "--cases",
+        default="sweep,explicit,implicit",
+        help="rows to run, comma-separated: sweep, explicit, implicit (default all)",
+    )
+    p.add_argument(
+        "--timeout", type=number(lo=0, lo_open=True), default=600, help="seconds each launch may take (default 600)"
+    )
 
 
 def _launch(ranks: int, threads: int, args: list, timeout: float) -> tuple:
     """Run ``python -m ARGS`` on one process or under torchrun; ``(wall seconds, completed process)``."""
     env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
-    cmd = [sys.executable, "-m", *args] if ranks == 1 else \
-        [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", str(ranks), "-m", *args]
+    cmd = (
+        [sys.executable, "-m", *args]
+        if ranks == 1
+        else [
+            sys.executable,
+            "-m",
+            "torch.distributed.run",
+            "--standalone",
+            "--nproc-per-node",
+            str(ranks),
+            "-m",
+            *args,
+        ]
+    )
     t = time.perf_counter()
     try:
         done = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
     except subprocess.TimeoutExpired:
-        raise ConfigError("--timeout", f"more seconds: {' '.join(args[:2])} on {ranks} ranks took longer", timeout) \
-            from None
+        raise ConfigError(
+            "--timeout", f"more seconds: {' '.join(args[:2])} on {ranks} ranks took longer", timeout
+        ) from None
     wall = time.perf_counter() - t
     if done.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{done.stderr[-3000:]}")
@@ -96,25 +125,59 @@ def _launch(ranks: int, threads: int, args: list, timeout: float) -> tuple:
 
 
 def _sweep_row(ranks: int, threads: int, points: int, steps: int, timeout: float) -> dict:
-    side = max(1, round(points ** 0.5))
-    k = ",".join(f"{25 * 1.25 ** i:.6g}" for i in range(side))
-    c = ",".join(f"{0.01 * 1.5 ** i:.6g}" for i in range(side))
+    side = max(1, round(points**0.5))
+    k = ",".join(f"{25 * 1.25**i:.6g}" for i in range(side))
+    c = ",".join(f"{0.01 * 1.5**i:.6g}" for i in range(side))
     with tempfile.TemporaryDirectory(prefix="torchdeform-bench-sweep-") as tmp:
         scene = Path(tmp) / "cube.toml"
         scene.write_text(SWEEP_SCENE.format(steps=steps))
-        wall, _ = _launch(ranks, threads, ["torchdeform", "sweep", str(scene), "--set", f"material.stiffness={k}",
-                                           "--set", f"material.damping={c}", "--out", str(Path(tmp) / "out"),
-                                           "--quiet"], timeout)
-    return {"case": "sweep", "ranks": ranks, "threads": threads, "grid": f"{side * side} points x 4x4x5",
-            "wall_s": wall}
+        wall, _ = _launch(
+            ranks,
+            threads,
+            [
+                "torchdeform",
+                "sweep",
+                str(scene),
+                "--set",
+                f"material.stiffness={k}",
+                "--set",
+                f"material.damping={c}",
+                "--out",
+                str(Path(tmp) / "out"),
+                "--quiet",
+            ],
+            timeout,
+        )
+    return {
+        "case": "sweep",
+        "ranks": ranks,
+        "threads": threads,
+        "grid": f"{side * side} points x 4x4x5",
+        "wall_s": wall,
+    }
 
 
-def _step_row(case: str, ranks: int, threads: int, n: int, steps: int, repeats: int, cg_iters: int, dtype: str,
-              timeout: float) -> dict:
+def _step_row(
+    case: str, ranks: int, threads: int, n: int, steps: int, repeats: int, cg_iters: int, dtype: str, timeout: float
+) -> dict:
     with tempfile.TemporaryDirectory(prefix="torchdeform-bench-domain-") as tmp:
         out = Path(tmp) / "step.json"
-        wall, _ = _launch(ranks, threads, ["torchdeform.bench.distributed", str(out), case, str(n), str(steps),
-                                           str(repeats), str(cg_iters), dtype, str(threads)], timeout)
+        wall, _ = _launch(
+            ranks,
+            threads,
+            [
+                "torchdeform.bench.distributed",
+                str(out),
+                case,
+                str(n),
+                str(steps),
+                str(repeats),
+                str(cg_iters),
+                dtype,
+                str(threads),
+            ],
+            timeout,
+        )
         got = json.loads(out.read_text())
     return {"case": case, "ranks": ranks, "threads": threads, "grid": f"{n}^3", "wall_s": wall, **got}
 
@@ -127,13 +190,14 @@ def worker(out: str, case: str, n: str, steps: str, repeats: str, cg_iters: str,
     from ..distributed.domain import decomposed_simulate
     from ..sim.integrators import ImplicitEuler, SymplecticEuler
     from .common import speed_cube
+
     world = int(os.environ.get("WORLD_SIZE", 1))
     if world > 1:
         dist.init_process_group("gloo")
     torch.set_num_threads(int(threads))
     model, state, dt = speed_cube(int(n), 26, getattr(torch, dtype))
     integrator = SymplecticEuler() if case == "explicit" else ImplicitEuler(cg_iters=int(cg_iters), cg_tol=0.0)
-    decomposed_simulate(model, state, dt, 1, integrator)                     # warm-up: allocations
+    decomposed_simulate(model, state, dt, 1, integrator)  # warm-up: allocations
     runs = [decomposed_simulate(model, state, dt, int(steps), integrator) for _ in range(int(repeats))]
     mine = [(r.wall_s, r.comm_s, r.model.halo.exchanges, r.model.halo.bytes) for r in runs]
     parts = [mine]
@@ -142,13 +206,19 @@ def worker(out: str, case: str, n: str, steps: str, repeats: str, cg_iters: str,
         dist.all_gather_object(parts, mine)
     if int(os.environ.get("RANK", 0)) == 0:
         k = int(steps)
-        walls = [max(p[i][0] for p in parts) for i in range(len(runs))]            # a step ends with its slowest rank
+        walls = [max(p[i][0] for p in parts) for i in range(len(runs))]  # a step ends with its slowest rank
         shares = [max(p[i][1] / p[i][0] for p in parts) for i in range(len(runs))]
         exch = parts[0][0][2]
-        Path(out).write_text(json.dumps({
-            "ms_per_step": 1e3 * statistics.median(walls) / k, "comm_share": statistics.median(shares),
-            "exchanges_per_step": exch / k,
-            "bytes_per_exchange": max(p[0][3] // p[0][2] if p[0][2] else 0 for p in parts)}))
+        Path(out).write_text(
+            json.dumps(
+                {
+                    "ms_per_step": 1e3 * statistics.median(walls) / k,
+                    "comm_share": statistics.median(shares),
+                    "exchanges_per_step": exch / k,
+                    "bytes_per_exchange": max(p[0][3] // p[0][2] if p[0][2] else 0 for p in parts),
+                }
+            )
+        )
     if world > 1:
         dist.barrier()
         dist.destroy_process_group()
@@ -162,9 +232,11 @@ def run(args) -> int:
     repeats = args.repeats or (1 if args.quick else 3)
     points = args.points or (16 if args.quick else 64)
     if min(ranks) < 1 or n < max(ranks) or steps < 1 or repeats < 1 or args.cg_iters < 1 or points < 1:
-        raise ConfigError("--ranks/--n/--steps/--repeats/--cg-iters/--points",
-                          "ranks >= 1, n >= the largest rank count, the others >= 1",
-                          (ranks, n, steps, repeats, args.cg_iters, points))
+        raise ConfigError(
+            "--ranks/--n/--steps/--repeats/--cg-iters/--points",
+            "ranks >= 1, n >= the largest rank count, the others >= 1",
+            (ranks, n, steps, repeats, args.cg_iters, points),
+        )
     chosen = [c.strip() for c in args.cases.split(",") if c.strip()]
     if not chosen or set(chosen) - {"sweep", "explicit", "implicit"}:
         raise ConfigError("--cases", "a comma-separated choice of sweep, explicit, implicit", args.cases)
@@ -185,10 +257,19 @@ def run(args) -> int:
         base = next(b for b in rows if b["case"] == row["case"] and b["ranks"] == min(ranks))
         key = "wall_s" if row["case"] == "sweep" else "ms_per_step"
         row["speedup"] = base[key] / row[key]
-    extra = {"machine": machine_info("cpu"), "cores_used": cores, "n": n, "steps": steps, "repeats": repeats,
-             "cg_iters": args.cg_iters, "dtype": args.dtype,
-             "setup": (f"gloo on this machine; {cores} core(s) shared by the ranks (threads per rank = cores / ranks); "
-                       f"step rows: {n}^3, 26 neighbours, {args.dtype}, median of {repeats} run(s) of {steps} step(s)")}
+    extra = {
+        "machine": machine_info("cpu"),
+        "cores_used": cores,
+        "n": n,
+        "steps": steps,
+        "repeats": repeats,
+        "cg_iters": args.cg_iters,
+        "dtype": args.dtype,
+        "setup": (
+            f"gloo on this machine; {cores} core(s) shared by the ranks (threads per rank = cores / ranks); "
+            f"step rows: {n}^3, 26 neighbours, {args.dtype}, median of {repeats} run(s) of {steps} step(s)"
+        ),
+    }
     if args.out:
         _plot(rows, args.out)
     if not args.json:
@@ -204,9 +285,13 @@ def _plot(rows, out_dir) -> None:
         if not sel:
             continue
         left.plot([r["ranks"] for r in sel], [r["ms_per_step"] for r in sel], marker=marker, label=f"{case} step")
-        left.bar([r["ranks"] + (0.1 if case == "implicit" else -0.1) for r in sel],
-                 [r["ms_per_step"] * r["comm_share"] for r in sel], width=0.18, alpha=0.35,
-                 label=f"{case}: communication")
+        left.bar(
+            [r["ranks"] + (0.1 if case == "implicit" else -0.1) for r in sel],
+            [r["ms_per_step"] * r["comm_share"] for r in sel],
+            width=0.18,
+            alpha=0.35,
+            label=f"{case}: communication",
+        )
     left.set_xlabel("ranks")
     left.set_ylabel("ms per step")
     left.set_title(f"one body split into slabs ({rows[-1]['grid']})" if rows[-1]["case"] != "sweep" else "")

@@ -39,6 +39,7 @@ Example:
     torchdeform bench frame --threads 2 --json --out bench-out
     torchdeform bench frame --sizes 32,40x60x20 --volume
 """
+
 from __future__ import annotations
 
 import math
@@ -52,8 +53,17 @@ from ..options import integer
 from ..topology.surfaces import FrameSurface
 from .common import add_common, axes, device_sync, emit, machine_info, progress, save_figure
 
-__all__ = ["COLUMNS", "PUNAK", "KD", "TARGET_RATIO", "FrameSurface", "parse_sizes", "frame_body", "add_arguments",
-           "run"]
+__all__ = [
+    "COLUMNS",
+    "PUNAK",
+    "KD",
+    "TARGET_RATIO",
+    "FrameSurface",
+    "parse_sizes",
+    "frame_body",
+    "add_arguments",
+    "run",
+]
 
 #: Punak's frame rates (REFERENCE §6.3, Fig. 5-2; GeForce 8800 GTS): grid shape -> fps
 PUNAK = {(16, 16, 16): 90.0, (32, 32, 32): 28.0, (40, 60, 20): 21.0, (64, 64, 64): 6.1, (100, 100, 100): 2.0}
@@ -61,12 +71,24 @@ PUNAK = {(16, 16, 16): 90.0, (32, 32, 32): 28.0, (40, 60, 20): 21.0, (64, 64, 64
 KD = 0.01
 TARGET_RATIO = 2.0
 SPACING = 0.01
-COLUMNS = [("grid", "grid", None), ("nodes", "nodes", "{:,}"), ("vertices", "vertices", "{:,}"),
-           ("faces", "faces", "{:,}"), ("step_ms", "step ms", "{:.2f}"), ("vertices_ms", "vert ms", "{:.2f}"),
-           ("normals_ms", "norm ms", "{:.2f}"), ("surface_ms", "surface ms", "{:.2f}"),
-           ("volume_ms", "volume ms", "{:.1f}"), ("cpu_ms", "cpu ms", "{:.1f}"), ("fps", "fps", "{:.1f}"), ("punak_fps", "Punak fps", "{:g}"),
-           ("ratio", "x Punak", "{:.1f}"), ("engine", "engine", None), ("compile_s", "compile s", "{:.1f}"),
-           ("threads", "thr", None)]
+COLUMNS = [
+    ("grid", "grid", None),
+    ("nodes", "nodes", "{:,}"),
+    ("vertices", "vertices", "{:,}"),
+    ("faces", "faces", "{:,}"),
+    ("step_ms", "step ms", "{:.2f}"),
+    ("vertices_ms", "vert ms", "{:.2f}"),
+    ("normals_ms", "norm ms", "{:.2f}"),
+    ("surface_ms", "surface ms", "{:.2f}"),
+    ("volume_ms", "volume ms", "{:.1f}"),
+    ("cpu_ms", "cpu ms", "{:.1f}"),
+    ("fps", "fps", "{:.1f}"),
+    ("punak_fps", "Punak fps", "{:g}"),
+    ("ratio", "x Punak", "{:.1f}"),
+    ("engine", "engine", None),
+    ("compile_s", "compile s", "{:.1f}"),
+    ("threads", "thr", None),
+]
 
 
 def parse_sizes(text) -> list:
@@ -99,9 +121,17 @@ def frame_body(shape, dtype=torch.float32, device="cpu", seed: int = 0):
     from ..sim.grid import Grid
     from ..sim.model import Model, State
     from ..sim.stability import suggest_dt
+
     grid = Grid(tuple(shape), spacing=SPACING, topology=26)
-    model = Model(grid, stiffness=100.0, mass=1e-3, fixed=grid.face("bottom"), gravity=(-9.81, 0.0, 0.0),
-                  dtype=dtype, device=device)
+    model = Model(
+        grid,
+        stiffness=100.0,
+        mass=1e-3,
+        fixed=grid.face("bottom"),
+        gravity=(-9.81, 0.0, 0.0),
+        dtype=dtype,
+        device=device,
+    )
     dt = suggest_dt(model, "verlet", safety=0.9, method="gershgorin")
     g = torch.Generator().manual_seed(seed)
     x = model.X + (1e-4 * torch.randn(model.X.shape, generator=g, dtype=torch.float64)).to(dtype=dtype, device=device)
@@ -112,23 +142,42 @@ def frame_body(shape, dtype=torch.float32, device="cpu", seed: int = 0):
 def add_arguments(p) -> None:
     """The options of ``torchdeform bench frame``."""
     add_common(p)
-    p.add_argument("--sizes", type=parse_sizes, default=None,
-                   help="grids, n (n^3 nodes) or DxHxW, comma-separated (default Punak's 16,32,40x60x20,64,100; "
-                        "quick 16,32)")
-    p.add_argument("--repeats", type=integer(lo=1), default=None, help="timed runs of --frames frames, median kept "
-                                                             "(default 5; quick 2)")
-    p.add_argument("--frames", type=integer(lo=1), default=None, help="frames per timed run (default: about 0.3 s; quick 2)")
-    p.add_argument("--volume", action="store_true", help="also render the phantom deformed with the body "
-                                                         "(volume_ms; not part of the target)")
-    p.add_argument("--volume-size", type=integer(lo=8), default=128, help="--volume: phantom side in voxels = image side "
-                                                                "(default 128)")
-    p.add_argument("--no-compile", action="store_true", help="eager step and normals (no torch.compile; --quick implies it)")
+    p.add_argument(
+        "--sizes",
+        type=parse_sizes,
+        default=None,
+        help="grids, n (n^3 nodes) or DxHxW, comma-separated (default Punak's 16,32,40x60x20,64,100; quick 16,32)",
+    )
+    p.add_argument(
+        "--repeats",
+        type=integer(lo=1),
+        default=None,
+        help="timed runs of --frames frames, median kept (default 5; quick 2)",
+    )
+    p.add_argument(
+        "--frames", type=integer(lo=1), default=None, help="frames per timed run (default: about 0.3 s; quick 2)"
+    )
+    p.add_argument(
+        "--volume",
+        action="store_true",
+        help="also render the phantom deformed with the body (volume_ms; not part of the target)",
+    )
+    p.add_argument(
+        "--volume-size",
+        type=integer(lo=8),
+        default=128,
+        help="--volume: phantom side in voxels = image side (default 128)",
+    )
+    p.add_argument(
+        "--no-compile", action="store_true", help="eager step and normals (no torch.compile; --quick implies it)"
+    )
 
 
 def _volume_fn(model, packed, size, compiled, dtype, device):
     """``frame(x_packed)``: node offsets from the frame's positions, then a DVR image (``size^2``)."""
     from ..volume import node_offsets, preset, render
     from .volume import bench_volume
+
     vol, _ = bench_volume(size, dtype=dtype)
     vol, tf = vol.to(device), preset("ct-bone")
     shape = (size,) * 3
@@ -137,26 +186,28 @@ def _volume_fn(model, packed, size, compiled, dtype, device):
         xg = packed.unpack(x)
         off = node_offsets(xg, model.X, model.grid.spacing, shape)[0]
         return render(vol, tf, "dvr", "h", offsets=off, stop=1e-3, engine="compiled" if compiled else "eager")
+
     return frame
 
 
 def _frame_row(shape, *, repeats, frames, compiled, volume_size, dtype, device, target_s=0.3) -> dict:
     from ..sim.compiled import compiled_step
     from ..sim.integrators import DampedVerlet
+
     sync = device_sync(device)
     model, state, dt = frame_body(shape, dtype, device)
     with torch.no_grad():
         step = compiled_step(DampedVerlet(kd=KD), model, dt, enable=compiled)
-        ps = step.packed.pack_state(state)                           # packed once, outside the timing
+        ps = step.packed.pack_state(state)  # packed once, outside the timing
         t0 = time.perf_counter()
-        ps = step.step_packed(ps)                                    # compiles (once per shape)
+        ps = step.step_packed(ps)  # compiles (once per shape)
         sync()
         first_s = time.perf_counter() - t0
         t0 = time.perf_counter()
         surf = FrameSurface(model.grid, packed=step.packed, dtype=dtype, device=device, compile=compiled)
         setup_s = time.perf_counter() - t0
         t0 = time.perf_counter()
-        surf(ps.x)                                                   # compiles the normals (once per shape)
+        surf(ps.x)  # compiles the normals (once per shape)
         sync()
         surface_first_s = time.perf_counter() - t0
         render_ = None
@@ -203,25 +254,48 @@ def _frame_row(shape, *, repeats, frames, compiled, volume_size, dtype, device, 
             cpu_t.append((time.process_time() - c0) / frames)
         if not bool(torch.isfinite(v).all() and torch.isfinite(n).all()):
             raise RuntimeError(f"bench frame {_name(shape)}: non-finite surface (the step diverged at dt = {dt:.3g} s)")
-    med = lambda t: 1e3 * statistics.median(t)                       # noqa: E731
+    med = lambda t: 1e3 * statistics.median(t)  # noqa: E731
     step_ms, vertices_ms, normals_ms = med(step_t), med(vert_t), med(norm_t)
     surface_ms = med([a + b for a, b in zip(vert_t, norm_t)])
     volume_ms = med(vol_t) if render_ is not None else None
     fps = 1e3 / (step_ms + surface_ms + (volume_ms or 0.0))
-    surface_fps = 1e3 / (step_ms + surface_ms)                       # the target's frame (no volume)
+    surface_fps = 1e3 / (step_ms + surface_ms)  # the target's frame (no volume)
     punak = PUNAK.get(tuple(shape))
     engine = "compiled" if step.compiled else "eager"
-    row = dict(grid=_name(shape), shape=list(shape), nodes=model.grid.num_nodes, springs=model.grid.num_springs,
-               vertices=surf.num_vertices, faces=int(surf.faces.shape[0]), step_ms=step_ms, vertices_ms=vertices_ms,
-               normals_ms=normals_ms, surface_ms=surface_ms, fps=fps, punak_fps=punak,
-               ratio=None if punak is None else fps / punak, surface_fps=surface_fps,
-               surface_ratio=None if punak is None else surface_fps / punak, engine=engine,
-               cpu_ms=med(cpu_t), compile_s=first_s if compiled and step.compiled else None, first_step_s=first_s,
-               surface_compile_s=surface_first_s if surf._compiled is not None else None, surface_setup_s=setup_s, threads=torch.get_num_threads(), dt=dt, kd=KD, frames=frames,
-               repeats=repeats, dtype=str(dtype).replace("torch.", ""), device=str(device))
+    row = dict(
+        grid=_name(shape),
+        shape=list(shape),
+        nodes=model.grid.num_nodes,
+        springs=model.grid.num_springs,
+        vertices=surf.num_vertices,
+        faces=int(surf.faces.shape[0]),
+        step_ms=step_ms,
+        vertices_ms=vertices_ms,
+        normals_ms=normals_ms,
+        surface_ms=surface_ms,
+        fps=fps,
+        punak_fps=punak,
+        ratio=None if punak is None else fps / punak,
+        surface_fps=surface_fps,
+        surface_ratio=None if punak is None else surface_fps / punak,
+        engine=engine,
+        cpu_ms=med(cpu_t),
+        compile_s=first_s if compiled and step.compiled else None,
+        first_step_s=first_s,
+        surface_compile_s=surface_first_s if surf._compiled is not None else None,
+        surface_setup_s=setup_s,
+        threads=torch.get_num_threads(),
+        dt=dt,
+        kd=KD,
+        frames=frames,
+        repeats=repeats,
+        dtype=str(dtype).replace("torch.", ""),
+        device=str(device),
+    )
     if render_ is not None:
-        row.update(volume_ms=volume_ms, volume=f"{volume_size}^3", image=f"{volume_size}^2",
-                   volume_compile_s=volume_compile_s)
+        row.update(
+            volume_ms=volume_ms, volume=f"{volume_size}^3", image=f"{volume_size}^2", volume_compile_s=volume_compile_s
+        )
     if compiled and not step.compiled:
         row["compile_error"] = step.compile_error
     if surf.compile_error:
@@ -247,36 +321,49 @@ def run(args) -> int:
     try:
         with progress(len(shapes), "bench frame") as bar:
             for shape in shapes:
-                rows.append(_frame_row(shape, repeats=repeats, frames=frames, compiled=compiled,
-                                       volume_size=args.volume_size if args.volume else None, dtype=dtype,
-                                       device=args.device))
+                rows.append(
+                    _frame_row(
+                        shape,
+                        repeats=repeats,
+                        frames=frames,
+                        compiled=compiled,
+                        volume_size=args.volume_size if args.volume else None,
+                        dtype=dtype,
+                        device=args.device,
+                    )
+                )
                 bar.update(1)
         threads = torch.get_num_threads()
     finally:
         torch.set_num_threads(saved)
     judged = [r for r in rows if r["surface_ratio"] is not None]
-    extra = {"machine": dict(machine_info(args.device), threads=threads),
-             "target_ratio": TARGET_RATIO,
-             "met": bool(judged) and all(r["surface_ratio"] >= TARGET_RATIO for r in judged),
-             "worst_ratio": min((r["surface_ratio"] for r in judged), default=None),
-             "target": "step + surface frame rate >= target_ratio x Punak's at every size with a Punak rate "
-                       "(surface_ratio; the volume render of --volume is not part of it)",
-             "punak": {_name(s): f for s, f in PUNAK.items()},
-             "setup": (f"one frame = one DampedVerlet step (kd {KD}, 26 neighbours, 1 cm, k 100 N/m, 1 g/node, bottom "
-                       f"fixed, gravity) + surface vertices and normals"
-                       + (f" + DVR of a {args.volume_size}^3 phantom to {args.volume_size}^2" if args.volume else "")
-                       + f"; {threads} thread{'s' if threads != 1 else ''}, {args.dtype}, {args.device}; "
-                       f"Punak: GeForce 8800 GTS")}
+    extra = {
+        "machine": dict(machine_info(args.device), threads=threads),
+        "target_ratio": TARGET_RATIO,
+        "met": bool(judged) and all(r["surface_ratio"] >= TARGET_RATIO for r in judged),
+        "worst_ratio": min((r["surface_ratio"] for r in judged), default=None),
+        "target": "step + surface frame rate >= target_ratio x Punak's at every size with a Punak rate "
+        "(surface_ratio; the volume render of --volume is not part of it)",
+        "punak": {_name(s): f for s, f in PUNAK.items()},
+        "setup": (
+            f"one frame = one DampedVerlet step (kd {KD}, 26 neighbours, 1 cm, k 100 N/m, 1 g/node, bottom "
+            f"fixed, gravity) + surface vertices and normals"
+            + (f" + DVR of a {args.volume_size}^3 phantom to {args.volume_size}^2" if args.volume else "")
+            + f"; {threads} thread{'s' if threads != 1 else ''}, {args.dtype}, {args.device}; "
+            f"Punak: GeForce 8800 GTS"
+        ),
+    }
     if args.out:
         _plot(rows, args.out, threads)
     if not args.json:
         engines = ", ".join(sorted({r["engine"] for r in rows}))
-        print(f"frames per second ({engines} step, {threads} thread{'s' if threads != 1 else ''}); "
-              + extra["setup"])
+        print(f"frames per second ({engines} step, {threads} thread{'s' if threads != 1 else ''}); " + extra["setup"])
     emit("frame", args, rows, COLUMNS, extra)
     if not args.json and judged:
-        print(f"step + surface >= {TARGET_RATIO:g}x Punak at every size: {'yes' if extra['met'] else 'no'} "
-              f"(worst {extra['worst_ratio']:.2f}x)")
+        print(
+            f"step + surface >= {TARGET_RATIO:g}x Punak at every size: {'yes' if extra['met'] else 'no'} "
+            f"(worst {extra['worst_ratio']:.2f}x)"
+        )
     return 0
 
 
@@ -290,8 +377,13 @@ def _plot(rows, out_dir, threads) -> None:
     pk = [(i, r["punak_fps"]) for i, r in enumerate(rows) if r["punak_fps"]]
     if pk:
         ax.plot(*zip(*pk), marker="s", ls="--", label="Punak, GeForce 8800 GTS")
-        ax.plot([i for i, _ in pk], [TARGET_RATIO * f for _, f in pk], ls=":", color="grey",
-                label=f"{TARGET_RATIO:g}x Punak (target)")
+        ax.plot(
+            [i for i, _ in pk],
+            [TARGET_RATIO * f for _, f in pk],
+            ls=":",
+            color="grey",
+            label=f"{TARGET_RATIO:g}x Punak (target)",
+        )
     ax.set_xticks(xs, [f"{r['grid']}\n{r['nodes']:,}" for r in rows], fontsize=8)
     ax.set_yscale("log")
     ax.set_xlabel("grid (nodes)")

@@ -11,6 +11,7 @@ Example:
     torchdeform bench fuzzy --quick
     torchdeform bench fuzzy --inputs 4000000 --threads 2 --json
 """
+
 from __future__ import annotations
 
 import statistics
@@ -25,10 +26,17 @@ from .common import add_common, emit, machine_info
 
 __all__ = ["COLUMNS", "add_arguments", "to_skfuzzy", "run"]
 
-COLUMNS = [("system", "system", None), ("mode", "mode", None), ("threads", "thr", None), ("inputs", "inputs", "{:,}"),
-           ("seconds", "s (median)", "{:.4f}"), ("inputs_per_s", "inputs/s", "{:,.0f}"),
-           ("vs_skfuzzy", "x skfuzzy", "{:,.0f}"), ("max_diff_of_range", "max|diff|/range", "{:.1e}"),
-           ("compile_s", "compile s", "{:.1f}")]
+COLUMNS = [
+    ("system", "system", None),
+    ("mode", "mode", None),
+    ("threads", "thr", None),
+    ("inputs", "inputs", "{:,}"),
+    ("seconds", "s (median)", "{:.4f}"),
+    ("inputs_per_s", "inputs/s", "{:,.0f}"),
+    ("vs_skfuzzy", "x skfuzzy", "{:,.0f}"),
+    ("max_diff_of_range", "max|diff|/range", "{:.1e}"),
+    ("compile_s", "compile s", "{:.1f}"),
+]
 
 
 def add_arguments(p) -> None:
@@ -51,14 +59,21 @@ def to_skfuzzy(fis, points: int = 2001):
     from skfuzzy import control as ctrl
 
     if (fis.and_method, fis.or_method, fis.implication, fis.aggregation) != ("min", "max", "min", "max"):
-        raise ConfigError("system", "min/max inference for the scikit-fuzzy comparison",
-                          (fis.and_method, fis.or_method, fis.implication, fis.aggregation))
+        raise ConfigError(
+            "system",
+            "min/max inference for the scikit-fuzzy comparison",
+            (fis.and_method, fis.or_method, fis.implication, fis.aggregation),
+        )
 
     def mf(u, m):
         p = m.values()
-        table = {"trapezoid": lambda: fz.trapmf(u, p), "triangle": lambda: fz.trimf(u, p),
-                 "gaussian": lambda: fz.gaussmf(u, p[0], p[1]), "bell": lambda: fz.gbellmf(u, *p),
-                 "sigmoid": lambda: fz.sigmf(u, p[0], p[1])}
+        table = {
+            "trapezoid": lambda: fz.trapmf(u, p),
+            "triangle": lambda: fz.trimf(u, p),
+            "gaussian": lambda: fz.gaussmf(u, p[0], p[1]),
+            "bell": lambda: fz.gbellmf(u, *p),
+            "sigmoid": lambda: fz.sigmf(u, p[0], p[1]),
+        }
         if m.kind not in table:
             raise ConfigError("system", "membership kinds scikit-fuzzy has", m.kind)
         return table[m.kind]()
@@ -95,6 +110,7 @@ def _time(fn, repeats):
 def run(args) -> int:
     """Run the bench: eager, compiled and scikit-fuzzy rows; returns the exit status."""
     from ..fuzzy.commands import load
+
     fis = load(args.system)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -122,13 +138,25 @@ def run(args) -> int:
             f(x[:chunk])
             compile_s = time.perf_counter() - t0
             sec, y = _time(lambda: f(x), args.repeats)
-            rows.append(dict(base, mode="compiled", inputs=n, seconds=sec, inputs_per_s=n / sec, compile_s=compile_s,
-                             max_diff_of_range=float(((y - ref).abs() / span).max())))
+            rows.append(
+                dict(
+                    base,
+                    mode="compiled",
+                    inputs=n,
+                    seconds=sec,
+                    inputs_per_s=n / sec,
+                    compile_s=compile_s,
+                    max_diff_of_range=float(((y - ref).abs() / span).max()),
+                )
+            )
     try:
         sim = to_skfuzzy(fis)
     except ImportError:
-        print("scikit-fuzzy rows skipped: scikit-fuzzy is not installed (pip install scikit-fuzzy packaging "
-              "networkx scipy)", file=sys.stderr)
+        print(
+            "scikit-fuzzy rows skipped: scikit-fuzzy is not installed (pip install scikit-fuzzy packaging "
+            "networkx scipy)",
+            file=sys.stderr,
+        )
         sim = None
     if sim is not None:
         xs = x[:n_sk].double().numpy()
@@ -145,8 +173,16 @@ def run(args) -> int:
         sec, ysk = _time(sk, max(1, min(args.repeats, 3)))
         ok = torch.isfinite(ysk).all(dim=1)
         diff = ((ysk[ok] - ref[:n_sk][ok].double()).abs() / span.double()).max() if bool(ok.any()) else None
-        rows.append(dict(base, mode="scikit-fuzzy", inputs=n_sk, seconds=sec, inputs_per_s=n_sk / sec,
-                         max_diff_of_range=None if diff is None else float(diff)))
+        rows.append(
+            dict(
+                base,
+                mode="scikit-fuzzy",
+                inputs=n_sk,
+                seconds=sec,
+                inputs_per_s=n_sk / sec,
+                max_diff_of_range=None if diff is None else float(diff),
+            )
+        )
         for r in rows:
             r["vs_skfuzzy"] = r["inputs_per_s"] / rows[-1]["inputs_per_s"]
     extra = {"machine": machine_info("cpu")}

@@ -23,6 +23,7 @@ Example:
     torchdeform bench interaction --quick
     torchdeform bench interaction --json --out bench-out
 """
+
 from __future__ import annotations
 
 import statistics
@@ -36,19 +37,33 @@ from .common import add_common, axes, emit, int_list, machine_info, progress, sa
 
 __all__ = ["COLUMNS", "add_arguments", "run", "pressing_scene"]
 
-COLUMNS = [("n", "n", None), ("topology", "topology", None), ("mode", "mode", None), ("engine", "engine", None),
-           ("hz", "Hz", "{:,.0f}"), ("body_hz", "body Hz", "{:,.0f}"), ("force_N", "force N", "{:.4f}"),
-           ("compile_s", "compile s", "{:.1f}"), ("threads", "threads", None)]
+COLUMNS = [
+    ("n", "n", None),
+    ("topology", "topology", None),
+    ("mode", "mode", None),
+    ("engine", "engine", None),
+    ("hz", "Hz", "{:,.0f}"),
+    ("body_hz", "body Hz", "{:,.0f}"),
+    ("force_N", "force N", "{:.4f}"),
+    ("compile_s", "compile s", "{:.1f}"),
+    ("threads", "threads", None),
+]
 SPACING = 0.01
 
 
 def add_arguments(p) -> None:
     """The options of ``torchdeform bench interaction``."""
     add_common(p)
-    p.add_argument("--sizes", type=int_list("--sizes"), default=None,
-                   help="body sizes n (n^3 nodes) of the step rows (default 8,16,24,32,48; quick 8,16)")
+    p.add_argument(
+        "--sizes",
+        type=int_list("--sizes"),
+        default=None,
+        help="body sizes n (n^3 nodes) of the step rows (default 8,16,24,32,48; quick 8,16)",
+    )
     p.add_argument("--haptic-size", type=integer(lo=2), default=None, help="n of the haptic row (default 64; quick 24)")
-    p.add_argument("--seconds", type=number(lo=0, lo_open=True), default=None, help="haptic run time (default 3; quick 1)")
+    p.add_argument(
+        "--seconds", type=number(lo=0, lo_open=True), default=None, help="haptic run time (default 3; quick 1)"
+    )
     p.add_argument("--steps", type=integer(lo=1), default=None, help="timed steps per repeat (default 300; quick 100)")
     p.add_argument("--eager", action="store_true", help="also time the eager step")
     p.add_argument("--no-compile", action="store_true", help="eager only (no torch.compile: a smoke run)")
@@ -64,6 +79,7 @@ def pressing_scene(n: int, dtype=torch.float32, device="cpu", path: bool = True)
     from ..sim.grid import Grid
     from ..sim.model import Model
     from ..sim.stability import time_step_bound
+
     grid = Grid((n, n, n), spacing=SPACING, topology=26)
     top, mid, r = (n - 1) * SPACING, (n - 1) * SPACING / 2, 3 * SPACING
     above = (top + r, mid, mid)
@@ -71,14 +87,23 @@ def pressing_scene(n: int, dtype=torch.float32, device="cpu", path: bool = True)
         tool = Tool(Sphere(r), path=[(0.0, above), (0.1, (top + r - 2 * SPACING, mid, mid))], name="probe")
     else:
         tool = Tool(Sphere(r), position=torch.tensor(above, dtype=torch.float64), name="probe")
-    model = Model(grid, stiffness=50.0, damping=0.1, mass=1e-3, fixed=grid.face("bottom"), dtype=dtype,
-                  device=device, interactions=[ProjectionContact(tool)])
+    model = Model(
+        grid,
+        stiffness=50.0,
+        damping=0.1,
+        mass=1e-3,
+        fixed=grid.face("bottom"),
+        dtype=dtype,
+        device=device,
+        interactions=[ProjectionContact(tool)],
+    )
     return model, tool, 0.9 * time_step_bound(model)
 
 
 def _step_row(n, engine, steps, repeats, dtype, device):
     from ..sim.compiled import compiled_step
     from ..sim.integrators import SymplecticEuler
+
     model, _, dt = pressing_scene(n, dtype, device)
     step = compiled_step(SymplecticEuler(), model, dt, enable=engine == "compiled")
     ps = step.packed.pack_state(model.rest_state())
@@ -95,29 +120,54 @@ def _step_row(n, engine, steps, repeats, dtype, device):
         t0 = time.perf_counter()
         for _ in range(steps):
             ps = step.step_packed(ps)
-        force = float(ps.readings["probe.force"][0, 0])         # reads the result: waits for the device
+        force = float(ps.readings["probe.force"][0, 0])  # reads the result: waits for the device
         rates.append(steps / (time.perf_counter() - t0))
-    return dict(n=n, topology=26, mode="step", engine=engine, hz=statistics.median(rates), body_hz=None,
-                force_N=force, contacts=int(ps.readings["probe.contacts"][0]), compile_s=compile_s,
-                threads=torch.get_num_threads(), steps=steps, repeats=repeats, dt_s=dt)
+    return dict(
+        n=n,
+        topology=26,
+        mode="step",
+        engine=engine,
+        hz=statistics.median(rates),
+        body_hz=None,
+        force_N=force,
+        contacts=int(ps.readings["probe.contacts"][0]),
+        compile_s=compile_s,
+        threads=torch.get_num_threads(),
+        steps=steps,
+        repeats=repeats,
+        dt_s=dt,
+    )
 
 
 def _haptic_row(n, seconds, dtype, device, compiled=True):
     from ..interact import HapticLoop, Sphere
+
     model, tool, dt = pressing_scene(n, dtype, device, path=False)
-    model.interactions = []                                     # the loop adds the device's tool
+    model.interactions = []  # the loop adds the device's tool
     start = tuple(float(c) for c in tool.position(0.0))
-    loop = HapticLoop(model, Sphere(3 * SPACING), start=start, dt=dt, rate=1000.0, mode="local", name="probe",
-                      compiled=compiled)
+    loop = HapticLoop(
+        model, Sphere(3 * SPACING), start=start, dt=dt, rate=1000.0, mode="local", name="probe", compiled=compiled
+    )
     ticks = int(seconds * 1000)
     with loop:
-        for k in range(ticks):                                  # press 2 spacings in, then hold
+        for k in range(ticks):  # press 2 spacings in, then hold
             depth = 2 * SPACING * min(1.0, 2.0 * k / ticks)
             force = loop.tick((start[0] - depth, start[1], start[2]))
         stats = loop.stats()
-    return dict(n=n, topology=26, mode="haptic", engine="compiled" if loop.step.compiled else "eager",
-                hz=stats["force_hz"], body_hz=stats["body_hz"], force_N=float(force[0]), compile_s=loop.compile_s,
-                threads=torch.get_num_threads(), ticks=stats["ticks"], body_steps=stats["body_steps"], dt_s=dt)
+    return dict(
+        n=n,
+        topology=26,
+        mode="haptic",
+        engine="compiled" if loop.step.compiled else "eager",
+        hz=stats["force_hz"],
+        body_hz=stats["body_hz"],
+        force_N=float(force[0]),
+        compile_s=loop.compile_s,
+        threads=torch.get_num_threads(),
+        ticks=stats["ticks"],
+        body_steps=stats["body_steps"],
+        dt_s=dt,
+    )
 
 
 def run(args) -> int:
@@ -128,8 +178,11 @@ def run(args) -> int:
     seconds = args.seconds or (1.0 if args.quick else 3.0)
     steps = args.steps or (100 if args.quick else 300)
     if min(sizes + [hn]) < 4 or steps < 1 or seconds <= 0:
-        raise ConfigError("--sizes/--haptic-size/--steps/--seconds", "sizes >= 4, steps >= 1, seconds > 0",
-                          (sizes, hn, steps, seconds))
+        raise ConfigError(
+            "--sizes/--haptic-size/--steps/--seconds",
+            "sizes >= 4, steps >= 1, seconds > 0",
+            (sizes, hn, steps, seconds),
+        )
     dtype = getattr(torch, args.dtype)
     engines = ["eager"] if args.no_compile else ["compiled"] + (["eager"] if args.eager else [])
     rows = []
@@ -143,10 +196,17 @@ def run(args) -> int:
     bar.close()
     r24 = next((r for r in rows if r["mode"] == "step" and r["engine"] == "compiled" and r["n"] == 24), None)
     hap = rows[-1]
-    extra = {"machine": machine_info(args.device),
-             "step_24": None if r24 is None else {"hz": r24["hz"], "target_hz": 1000.0, "met": r24["hz"] >= 1000.0},
-             "haptic": {"n": hn, "force_hz": hap["hz"], "body_hz": hap["body_hz"], "target_hz": 1000.0,
-                        "met": hap["hz"] >= 990.0}}
+    extra = {
+        "machine": machine_info(args.device),
+        "step_24": None if r24 is None else {"hz": r24["hz"], "target_hz": 1000.0, "met": r24["hz"] >= 1000.0},
+        "haptic": {
+            "n": hn,
+            "force_hz": hap["hz"],
+            "body_hz": hap["body_hz"],
+            "target_hz": 1000.0,
+            "met": hap["hz"] >= 990.0,
+        },
+    }
     if args.out:
         _plot(rows, args.out)
     emit("interaction", args, rows, COLUMNS, extra)

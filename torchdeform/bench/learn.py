@@ -23,6 +23,7 @@ Example:
     torchdeform bench learn --quick
     torchdeform bench learn --iterations 10 --json --out bench-out
 """
+
 from __future__ import annotations
 
 import statistics
@@ -44,9 +45,14 @@ TOLERANCE = 1e-10
 #: relative perturbation of the start of the sensitivity trainer
 PERTURBATION = 1e-15
 
-COLUMNS = [("engine", "engine", None), ("threads", "threads", None), ("compile_s", "compile s", "{:.1f}"),
-           ("s_per_iteration", "s / iteration", "{:.3f}"), ("speedup", "speed-up", "{:.2f}x"),
-           ("final_loss", "loss after", "{:.4e}")]
+COLUMNS = [
+    ("engine", "engine", None),
+    ("threads", "threads", None),
+    ("compile_s", "compile s", "{:.1f}"),
+    ("s_per_iteration", "s / iteration", "{:.3f}"),
+    ("speedup", "speed-up", "{:.2f}x"),
+    ("final_loss", "loss after", "{:.4e}"),
+]
 
 
 def add_arguments(p) -> None:
@@ -81,13 +87,12 @@ def run(args) -> int:
 
     iterations = args.iterations or (2 if args.quick else 10)
     if iterations < 2:
-        raise ConfigError("--iterations", "at least 2 (the first compiled iteration includes the compile)",
-                          iterations)
+        raise ConfigError("--iterations", "at least 2 (the first compiled iteration includes the compile)", iterations)
     if args.device != "cpu":
         raise ConfigError("--device", "cpu (the training rollouts of this bench run on the CPU)", args.device)
     compiled = not (args.no_compile or args.quick)
     saved = torch.get_num_threads()
-    torch.set_num_threads(args.threads or 1)           # a 27-node body: one thread is fastest
+    torch.set_num_threads(args.threads or 1)  # a 27-node body: one thread is fastest
     try:
         threads = torch.get_num_threads()
         series = learn.radetzky_cube(springs=70)
@@ -98,11 +103,21 @@ def run(args) -> int:
             if name == "perturbed":
                 with torch.no_grad():
                     for p in params.parameters():
-                        p.add_(torch.log1p(torch.tensor(PERTURBATION, dtype=p.dtype)))   # values x (1 + eps)
+                        p.add_(torch.log1p(torch.tensor(PERTURBATION, dtype=p.dtype)))  # values x (1 + eps)
             loss = learn.WindowLoss(series, window=10, engine="compiled" if name == "compiled" else "eager")
-            runs[name] = {"params": params, "loss": loss,
-                          "trainer": learn.Trainer(params, loss, optimizer="lbfgs", iterations=iterations,
-                                                   patience=iterations, tol=1e-26, progress=False)}
+            runs[name] = {
+                "params": params,
+                "loss": loss,
+                "trainer": learn.Trainer(
+                    params,
+                    loss,
+                    optimizer="lbfgs",
+                    iterations=iterations,
+                    patience=iterations,
+                    tol=1e-26,
+                    progress=False,
+                ),
+            }
         first = {name: _loss_and_grad(r["loss"], r["params"]) for name, r in runs.items() if name in engines}
         check = {}
         if compiled:
@@ -110,36 +125,55 @@ def run(args) -> int:
             check = {"loss_rel": _rel(lc.reshape(1), le.reshape(1)), "grad_rel": float((gc - ge).norm() / ge.norm())}
         agreement, seconds = [], {name: [] for name in runs}
         from tqdm.auto import tqdm
-        for it in tqdm(range(1, iterations + 1), desc="bench learn", unit="it", file=sys.stderr, disable=None,
-                       leave=False):
+
+        for it in tqdm(
+            range(1, iterations + 1), desc="bench learn", unit="it", file=sys.stderr, disable=None, leave=False
+        ):
             for name, r in runs.items():
                 before = r["trainer"].seconds
                 r["trainer"].run(it)
                 seconds[name].append(r["trainer"].seconds - before)
             ref = _values(runs["eager"]["params"])
-            agreement.append({"iteration": it,
-                              "compiled_vs_eager": _rel(_values(runs["compiled"]["params"]), ref) if compiled else None,
-                              "perturbed_vs_eager": _rel(_values(runs["perturbed"]["params"]), ref)})
+            agreement.append(
+                {
+                    "iteration": it,
+                    "compiled_vs_eager": _rel(_values(runs["compiled"]["params"]), ref) if compiled else None,
+                    "perturbed_vs_eager": _rel(_values(runs["perturbed"]["params"]), ref),
+                }
+            )
     finally:
         torch.set_num_threads(saved)
     eager_s = statistics.median(seconds["eager"])
     rows = []
     for name in engines:
         per_it = statistics.median(seconds[name][1:])
-        rows.append({"engine": name, "threads": threads, "iterations": iterations,
-                     "compile_s": compile_s if name == "compiled" else None,
-                     "s_per_iteration": per_it, "first_iteration_s": seconds[name][0],
-                     "speedup": eager_s / per_it if name == "compiled" else 1.0,
-                     "final_loss": runs[name]["trainer"].history[-1].loss})
+        rows.append(
+            {
+                "engine": name,
+                "threads": threads,
+                "iterations": iterations,
+                "compile_s": compile_s if name == "compiled" else None,
+                "s_per_iteration": per_it,
+                "first_iteration_s": seconds[name][0],
+                "speedup": eager_s / per_it if name == "compiled" else 1.0,
+                "final_loss": runs[name]["trainer"].history[-1].loss,
+            }
+        )
     one = agreement[0]["compiled_vs_eager"]
     met = None
     if compiled:
         met = bool(rows[1]["speedup"] >= TARGET_SPEEDUP and max(check.values()) <= TOLERANCE and one <= TOLERANCE)
-    extra = {"machine": dict(machine_info("cpu"), threads=threads), "target_speedup": TARGET_SPEEDUP,
-             "tolerance": TOLERANCE, "met": met, "start_check": check, "agreement": agreement,
-             "perturbation": PERTURBATION,
-             "setup": f"Radetzky's cube, 70 springs learned per spring (fit_cube.py --runs 2), 25 windows of 10 "
-                      f"steps, L-BFGS, float64, {threads} thread{'s' if threads != 1 else ''}"}
+    extra = {
+        "machine": dict(machine_info("cpu"), threads=threads),
+        "target_speedup": TARGET_SPEEDUP,
+        "tolerance": TOLERANCE,
+        "met": met,
+        "start_check": check,
+        "agreement": agreement,
+        "perturbation": PERTURBATION,
+        "setup": f"Radetzky's cube, 70 springs learned per spring (fit_cube.py --runs 2), 25 windows of 10 "
+        f"steps, L-BFGS, float64, {threads} thread{'s' if threads != 1 else ''}",
+    }
     if args.out:
         _plot(rows, agreement, args.out, threads)
     if not args.json:
@@ -150,24 +184,33 @@ def run(args) -> int:
             print(f"start: loss {check['loss_rel']:.1e}, gradient {check['grad_rel']:.1e} relative (compiled vs eager)")
         for a in agreement:
             c = "-" if a["compiled_vs_eager"] is None else f"{a['compiled_vs_eager']:.1e}"
-            print(f"after iteration {a['iteration']:>2}: learned values differ by {c} (compiled vs eager), "
-                  f"{a['perturbed_vs_eager']:.1e} (eager from a start x (1 + {PERTURBATION:g}))")
+            print(
+                f"after iteration {a['iteration']:>2}: learned values differ by {c} (compiled vs eager), "
+                f"{a['perturbed_vs_eager']:.1e} (eager from a start x (1 + {PERTURBATION:g}))"
+            )
         if compiled:
-            print(f">= {TARGET_SPEEDUP:g}x faster and one iteration the same to {TOLERANCE:g}: "
-                  f"{'yes' if met else 'no'} ({rows[1]['speedup']:.2f}x, {one:.1e})")
+            print(
+                f">= {TARGET_SPEEDUP:g}x faster and one iteration the same to {TOLERANCE:g}: "
+                f"{'yes' if met else 'no'} ({rows[1]['speedup']:.2f}x, {one:.1e})"
+            )
     return 0
 
 
 def _plot(rows, agreement, out_dir, threads) -> None:
     fig, (a1, a2) = axes((10, 4), ncols=2)
-    a1.bar([r["engine"] for r in rows], [r["s_per_iteration"] for r in rows], color=["C0", "C1"][:len(rows)])
+    a1.bar([r["engine"] for r in rows], [r["s_per_iteration"] for r in rows], color=["C0", "C1"][: len(rows)])
     a1.set_ylabel("seconds per L-BFGS iteration")
     a1.set_title(f"Per-spring run, {threads} thread{'s' if threads != 1 else ''}")
     its = [a["iteration"] for a in agreement]
     if agreement[0]["compiled_vs_eager"] is not None:
         a2.semilogy(its, [max(a["compiled_vs_eager"], 1e-17) for a in agreement], marker="o", label="compiled vs eager")
-    a2.semilogy(its, [max(a["perturbed_vs_eager"], 1e-17) for a in agreement], marker="s", ls="--",
-                label=f"eager from start x (1 + {PERTURBATION:g}) vs eager")
+    a2.semilogy(
+        its,
+        [max(a["perturbed_vs_eager"], 1e-17) for a in agreement],
+        marker="s",
+        ls="--",
+        label=f"eager from start x (1 + {PERTURBATION:g}) vs eager",
+    )
     a2.axhline(TOLERANCE, color="grey", ls=":", label=f"{TOLERANCE:g}")
     a2.set_xlabel("L-BFGS iteration")
     a2.set_ylabel("largest relative difference of learned values")

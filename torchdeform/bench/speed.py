@@ -4,6 +4,7 @@ Msprings/s, node-steps/s and ms/step for n^3 grids, topologies, eager, native (t
 packed step) and compiled, dtypes and thread counts, against NVIDIA Warp's CPU backend (:mod:`.warp_baseline`), and implicit Euler on a
 40 x 10 x 10 beam shaped like SOFA's spring-beam benchmark.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -27,17 +28,38 @@ from .common import busy_neighbour, device_sync, emit, format_table, int_list, m
 __all__ = ["add_arguments", "run", "speed_row", "beam_row", "beam_scene", "SPEED_COLUMNS", "BEAM_COLUMNS"]
 
 
-SPEED_COLUMNS = [("grid", "grid", None), ("topology", "topo", None), ("mode", "mode", None),
-                 ("dtype", "dtype", None), ("threads", "thr", None),
-                 ("springs", "springs", "{:,}"), ("steps", "steps", None), ("ms_per_step", "ms/step", "{:.3f}"),
-                 ("msprings_per_s", "Msprings/s", "{:.1f}"), ("node_steps_per_s", "Mnode-steps/s", None),
-                 ("vs_warp", "x Warp", "{:.2f}"), ("peak_rss_mb", "peak MB", "{:.0f}"),
-                 ("compile_s", "compile s", "{:.1f}"), ("compile_cache", "compile", None),
-                 ("max_abs_diff", "max|diff|", "{:.1e}"), ("vs_idle", "busy/idle", "{:.2f}")]
-BEAM_COLUMNS = [("scene", "scene", None), ("mode", "mode", None), ("dtype", "dtype", None), ("threads", "thr", None),
-                ("cg_iters", "CG iters", None), ("steps", "steps", None), ("ms_per_step", "ms/step", "{:.2f}"),
-                ("steps_per_s", "steps/s", "{:.0f}"), ("compile_s", "compile s", "{:.1f}"),
-                ("compile_cache", "compile", None), ("max_abs_diff", "max|diff|", "{:.1e}"), ("vs_idle", "busy/idle", "{:.2f}")]
+SPEED_COLUMNS = [
+    ("grid", "grid", None),
+    ("topology", "topo", None),
+    ("mode", "mode", None),
+    ("dtype", "dtype", None),
+    ("threads", "thr", None),
+    ("springs", "springs", "{:,}"),
+    ("steps", "steps", None),
+    ("ms_per_step", "ms/step", "{:.3f}"),
+    ("msprings_per_s", "Msprings/s", "{:.1f}"),
+    ("node_steps_per_s", "Mnode-steps/s", None),
+    ("vs_warp", "x Warp", "{:.2f}"),
+    ("peak_rss_mb", "peak MB", "{:.0f}"),
+    ("compile_s", "compile s", "{:.1f}"),
+    ("compile_cache", "compile", None),
+    ("max_abs_diff", "max|diff|", "{:.1e}"),
+    ("vs_idle", "busy/idle", "{:.2f}"),
+]
+BEAM_COLUMNS = [
+    ("scene", "scene", None),
+    ("mode", "mode", None),
+    ("dtype", "dtype", None),
+    ("threads", "thr", None),
+    ("cg_iters", "CG iters", None),
+    ("steps", "steps", None),
+    ("ms_per_step", "ms/step", "{:.2f}"),
+    ("steps_per_s", "steps/s", "{:.0f}"),
+    ("compile_s", "compile s", "{:.1f}"),
+    ("compile_cache", "compile", None),
+    ("max_abs_diff", "max|diff|", "{:.1e}"),
+    ("vs_idle", "busy/idle", "{:.2f}"),
+]
 
 
 def add_arguments(p) -> None:
@@ -46,23 +68,41 @@ def add_arguments(p) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON document on stdout, nothing else")
     p.add_argument("--out", default=None, help="folder for speed.csv and speed.png")
     p.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
-    p.add_argument("--sizes", type=int_list("--sizes"), default=None,
-                   help="grid sizes n (n^3 nodes), comma-separated (default 16,32,64,128; quick 8,12)")
-    p.add_argument("--topologies", type=int_list("--topologies"), default=None,
-                   help="neighbour counts, comma-separated (default 6,18,26; quick 6,26)")
+    p.add_argument(
+        "--sizes",
+        type=int_list("--sizes"),
+        default=None,
+        help="grid sizes n (n^3 nodes), comma-separated (default 16,32,64,128; quick 8,12)",
+    )
+    p.add_argument(
+        "--topologies",
+        type=int_list("--topologies"),
+        default=None,
+        help="neighbour counts, comma-separated (default 6,18,26; quick 6,26)",
+    )
     p.add_argument("--dtypes", default=None, help="float32,float64 (default both; quick float32)")
-    p.add_argument("--threads", type=int_list("--threads"), default=None,
-                   help="CPU thread counts, comma-separated (default: torch's setting, as users run it; a "
-                        "compiled step of a small problem then runs on one thread, see step_threads)")
-    p.add_argument("--contention", action="store_true",
-                   help="time every row twice: idle, and with a busy process beside it (rows with "
-                        "contention: true; the table shows busy/idle)")
+    p.add_argument(
+        "--threads",
+        type=int_list("--threads"),
+        default=None,
+        help="CPU thread counts, comma-separated (default: torch's setting, as users run it; a "
+        "compiled step of a small problem then runs on one thread, see step_threads)",
+    )
+    p.add_argument(
+        "--contention",
+        action="store_true",
+        help="time every row twice: idle, and with a busy process beside it (rows with "
+        "contention: true; the table shows busy/idle)",
+    )
     p.add_argument("--no-compile", action="store_true", help="eager rows only")
     p.add_argument("--no-warp", action="store_true", help="skip the NVIDIA Warp rows")
     p.add_argument("--no-beam", action="store_true", help="skip the implicit-Euler beam")
-    p.add_argument("--steps", type=integer(lo=1), default=None,
-                   help="steps per timed repeat (default: enough for ~0.2 s, 3..200)")
-    p.add_argument("--repeats", type=integer(lo=1), default=None, help="timed repeats, the median is kept (default 5; quick 3)")
+    p.add_argument(
+        "--steps", type=integer(lo=1), default=None, help="steps per timed repeat (default: enough for ~0.2 s, 3..200)"
+    )
+    p.add_argument(
+        "--repeats", type=integer(lo=1), default=None, help="timed repeats, the median is kept (default 5; quick 3)"
+    )
 
 
 def beam_scene(dtype=torch.float32, device="cpu"):
@@ -75,8 +115,17 @@ def beam_scene(dtype=torch.float32, device="cpu"):
     grid = Grid((10, 10, 40), spacing=(4 / 9, 4 / 9, 16 / 39), topology=26)
     fixed = torch.zeros(grid.shape, dtype=torch.bool)
     fixed[:, :, 0] = True
-    model = Model(grid, stiffness=100.0, damping=1.0, normalize=True, mass=20.0 / grid.num_nodes,
-                  gravity=(-9.81, 0, 0), fixed=fixed, dtype=dtype, device=device)
+    model = Model(
+        grid,
+        stiffness=100.0,
+        damping=1.0,
+        normalize=True,
+        mass=20.0 / grid.num_nodes,
+        gravity=(-9.81, 0, 0),
+        fixed=fixed,
+        dtype=dtype,
+        device=device,
+    )
     return model, model.rest_state(), 0.01
 
 
@@ -124,7 +173,7 @@ def _measure(step, state, *, steps, repeats, target_s, sync, max_steps=200):
     first = step(state)
     sync()
     first_s = time.perf_counter() - t0
-    t0 = time.perf_counter()                       # second warm-up call, also sizes the run
+    t0 = time.perf_counter()  # second warm-up call, also sizes the run
     step(state)
     sync()
     warm = max(time.perf_counter() - t0, 1e-7)
@@ -136,15 +185,17 @@ def _measure(step, state, *, steps, repeats, target_s, sync, max_steps=200):
 @dataclasses.dataclass
 class _Timed:
     """One timed mode (:func:`_time_mode`)."""
-    first: object            # the state after one step, grid layout
-    sec: float               # median seconds per step
-    fields: dict             # row fields: threads, steps, compile_s, compile_cache, max_abs_diff, fallback
-    retime: object           # () -> seconds per step, the same step timed again (under other conditions)
+
+    first: object  # the state after one step, grid layout
+    sec: float  # median seconds per step
+    fields: dict  # row fields: threads, steps, compile_s, compile_cache, max_abs_diff, fallback
+    retime: object  # () -> seconds per step, the same step timed again (under other conditions)
     governor: object = None  # the compiled step's thread governor (it may take fewer threads beside a busy process)
 
 
-def _time_mode(integ, model, state, dt, mode, *, steps, repeats, target_s, sync, reference=None,
-               max_steps=200) -> _Timed:
+def _time_mode(
+    integ, model, state, dt, mode, *, steps, repeats, target_s, sync, reference=None, max_steps=200
+) -> _Timed:
     """Time ``integ`` on ``model`` from ``state``, eager (grid layout) or packed (the state kept packed between steps).
 
     Without gradients. ``compile_s`` is None for eager, the C kernel's build (or load) for
@@ -154,21 +205,26 @@ def _time_mode(integ, model, state, dt, mode, *, steps, repeats, target_s, sync,
     """
     from .._compile import graph_cache_counts  # the fast path, only when timed
     from ..sim.compiled import CompiledStep
+
     with torch.no_grad():
         fallback, threads, cs, built_s, cache = False, torch.get_num_threads(), None, None, None
         if mode == "eager":
             step, start = (lambda s: integ.step(model, s, dt)), state
         else:
             t0 = time.perf_counter()
-            cs = (CompiledStep(integ, model, dt, enable=False, force_form="native") if mode == "native"
-                  else CompiledStep(integ, model, dt))
+            cs = (
+                CompiledStep(integ, model, dt, enable=False, force_form="native")
+                if mode == "native"
+                else CompiledStep(integ, model, dt)
+            )
             step, start, threads = cs.step_packed, cs.packed.pack_state(state), cs.threads
             if mode == "native":
-                step(start)                                 # builds (or loads) the kernel
+                step(start)  # builds (or loads) the kernel
                 built_s = time.perf_counter() - t0
         counts = graph_cache_counts() if mode == "compiled" else None
-        first, sec, first_s, steps = _measure(step, start, steps=steps, repeats=repeats, target_s=target_s,
-                                              sync=sync, max_steps=max_steps)
+        first, sec, first_s, steps = _measure(
+            step, start, steps=steps, repeats=repeats, target_s=target_s, sync=sync, max_steps=max_steps
+        )
         if cs is not None:
             first = cs.packed.unpack_state(first)
             fallback = not cs.compiled and mode == "compiled"
@@ -182,13 +238,32 @@ def _time_mode(integ, model, state, dt, mode, *, steps, repeats, target_s, sync,
     def retime() -> float:
         with torch.no_grad():
             return _time_steps(step, start, steps, repeats, sync)
+
     compile_s = {"eager": None, "native": built_s}.get(mode, first_s)
-    return _Timed(first, sec, dict(threads=threads, steps=steps, compile_s=compile_s, compile_cache=cache,
-                                   max_abs_diff=diff, fallback=fallback), retime, cs.governor if cs else None)
+    return _Timed(
+        first,
+        sec,
+        dict(
+            threads=threads, steps=steps, compile_s=compile_s, compile_cache=cache, max_abs_diff=diff, fallback=fallback
+        ),
+        retime,
+        cs.governor if cs else None,
+    )
 
 
-def speed_row(n: int, topology: int, mode: str, *, dtype=torch.float32, device="cpu", steps=None,
-              repeats: int = 5, target_s: float = 0.2, reference=None, contention: bool = False) -> dict:
+def speed_row(
+    n: int,
+    topology: int,
+    mode: str,
+    *,
+    dtype=torch.float32,
+    device="cpu",
+    steps=None,
+    repeats: int = 5,
+    target_s: float = 0.2,
+    reference=None,
+    contention: bool = False,
+) -> dict:
     """Time symplectic Euler steps on :func:`speed_cube`; one row of the speed table.
 
     ``mode`` is ``"eager"`` (``SymplecticEuler.step``, shifted slices), ``"native"`` (the packed
@@ -203,16 +278,33 @@ def speed_row(n: int, topology: int, mode: str, *, dtype=torch.float32, device="
     model, state, dt = speed_cube(n, topology, dtype, device)
     integ = SymplecticEuler()
     sync = device_sync(device)
-    row = {"grid": f"{n}^3", "n": n, "topology": topology, "mode": mode, "dtype": str(dtype).replace("torch.", ""),
-           "threads": torch.get_num_threads(), "device": device, "nodes": model.grid.num_nodes,
-           "springs": model.grid.num_springs}
-    timed = _time_mode(integ, model, state, dt, mode, steps=steps, repeats=repeats, target_s=target_s, sync=sync,
-                       reference=reference)
+    row = {
+        "grid": f"{n}^3",
+        "n": n,
+        "topology": topology,
+        "mode": mode,
+        "dtype": str(dtype).replace("torch.", ""),
+        "threads": torch.get_num_threads(),
+        "device": device,
+        "nodes": model.grid.num_nodes,
+        "springs": model.grid.num_springs,
+    }
+    timed = _time_mode(
+        integ, model, state, dt, mode, steps=steps, repeats=repeats, target_s=target_s, sync=sync, reference=reference
+    )
 
     def rates(sec):
-        return dict(ms_per_step=sec * 1e3, msprings_per_s=row["springs"] / sec / 1e6, node_steps_per_s=row["nodes"] / sec)
-    row.update(timed.fields, repeats=repeats, **rates(timed.sec),
-               peak_rss_mb=_peak_rss_mb() if reset and device == "cpu" else None, contention=False)
+        return dict(
+            ms_per_step=sec * 1e3, msprings_per_s=row["springs"] / sec / 1e6, node_steps_per_s=row["nodes"] / sec
+        )
+
+    row.update(
+        timed.fields,
+        repeats=repeats,
+        **rates(timed.sec),
+        peak_rss_mb=_peak_rss_mb() if reset and device == "cpu" else None,
+        contention=False,
+    )
     if device.startswith("cuda"):
         row["peak_rss_mb"] = torch.cuda.max_memory_allocated() / 2**20
     if contention:
@@ -221,8 +313,18 @@ def speed_row(n: int, topology: int, mode: str, *, dtype=torch.float32, device="
     return row
 
 
-def beam_row(mode: str, *, dtype=torch.float32, device="cpu", cg_iters: int = 20, steps=None, repeats: int = 5,
-             target_s: float = 0.5, reference=None, contention: bool = False) -> dict:
+def beam_row(
+    mode: str,
+    *,
+    dtype=torch.float32,
+    device="cpu",
+    cg_iters: int = 20,
+    steps=None,
+    repeats: int = 5,
+    target_s: float = 0.5,
+    reference=None,
+    contention: bool = False,
+) -> dict:
     """Implicit Euler steps per second on :func:`beam_scene`.
 
     ``cg_iters`` CG iterations, no tolerance: every step does exactly that many, as SOFA's
@@ -231,14 +333,34 @@ def beam_row(mode: str, *, dtype=torch.float32, device="cpu", cg_iters: int = 20
     model, state, dt = beam_scene(dtype, device)
     integ = ImplicitEuler(cg_iters=cg_iters, cg_tol=0)
     sync = device_sync(device)
-    row = {"scene": "beam 40x10x10", "mode": mode, "dtype": str(dtype).replace("torch.", ""),
-           "threads": torch.get_num_threads(), "device": device, "nodes": model.grid.num_nodes,
-           "springs": model.grid.num_springs, "dt": dt, "cg_iters": cg_iters}
-    timed = _time_mode(integ, model, state, dt, mode, steps=steps, repeats=repeats, target_s=target_s, sync=sync,
-                       reference=reference, max_steps=100 if mode == "eager" else 500)
+    row = {
+        "scene": "beam 40x10x10",
+        "mode": mode,
+        "dtype": str(dtype).replace("torch.", ""),
+        "threads": torch.get_num_threads(),
+        "device": device,
+        "nodes": model.grid.num_nodes,
+        "springs": model.grid.num_springs,
+        "dt": dt,
+        "cg_iters": cg_iters,
+    }
+    timed = _time_mode(
+        integ,
+        model,
+        state,
+        dt,
+        mode,
+        steps=steps,
+        repeats=repeats,
+        target_s=target_s,
+        sync=sync,
+        reference=reference,
+        max_steps=100 if mode == "eager" else 500,
+    )
 
     def rates(sec):
         return dict(ms_per_step=sec * 1e3, steps_per_s=1.0 / sec)
+
     row.update(timed.fields, repeats=repeats, **rates(timed.sec), contention=False)
     if contention:
         row["_busy"] = _busy_row(row, timed, rates)
@@ -254,14 +376,23 @@ def _busy_row(row: dict, timed: _Timed, rates) -> dict:
         busy = timed.retime()
     # steps per thread count while busy (a compiled step's governor may drop threads)
     used = {n: k - before.get(n, 0) for n, k in gov.steps.items() if k > before.get(n, 0)} if gov else None
-    return dict(row, **rates(busy), contention=True, vs_idle=timed.sec / busy, compile_s=None, compile_cache=None,
-                threads_busy=used)
+    return dict(
+        row,
+        **rates(busy),
+        contention=True,
+        vs_idle=timed.sec / busy,
+        compile_s=None,
+        compile_cache=None,
+        threads_busy=used,
+    )
 
 
 def _warp_row(n, topology, dtype, steps, repeats, target_s, reference):
     from .warp_baseline import warp_speed_row
-    row = warp_speed_row(n, topology, "atomic", dtype=dtype, steps=steps, repeats=repeats, target_s=target_s,
-                         reference=reference)
+
+    row = warp_speed_row(
+        n, topology, "atomic", dtype=dtype, steps=steps, repeats=repeats, target_s=target_s, reference=reference
+    )
     row.setdefault("peak_rss_mb", None)
     return row
 
@@ -290,23 +421,42 @@ def run(args) -> int:
     repeats = args.repeats or (3 if args.quick else 5)
     target_s = 0.02 if args.quick else 0.2
     from ..sim import native
+
     modes = ["eager"] if args.no_compile else ["eager", "compiled"]
     # the C kernel's packed step, uncompiled (the "native" engine): where a C compiler works
     torch_modes = modes if args.no_compile or native.unavailable() else ["eager", "native", "compiled"]
     warp_ok, warp_why = (False, "--no-warp") if args.no_warp else (False, "Warp runs on the CPU rows only")
     if not args.no_warp and device == "cpu":
         from .warp_baseline import warp_available
+
         warp_ok, warp_why = warp_available()
     # --quick compiles one shape only (the smallest grid, first topology): compilation costs
     # 10-60 s per shape on 2 cores, the smoke run must stay well under a minute.
-    tasks = [("torch", n, t, d, th, m) for d in dtypes for th in threads for t in topologies for n in sizes
-             for m in torch_modes if not (m != "eager" and args.quick and (n, t) != (min(sizes), topologies[0]))]
+    tasks = [
+        ("torch", n, t, d, th, m)
+        for d in dtypes
+        for th in threads
+        for t in topologies
+        for n in sizes
+        for m in torch_modes
+        if not (m != "eager" and args.quick and (n, t) != (min(sizes), topologies[0]))
+    ]
     if warp_ok:
-        tasks += [("warp", n, t, d, 1, "warp") for d in dtypes for t in topologies for n in sizes
-                  if not (args.quick and (n, t) != (min(sizes), topologies[-1]))]
+        tasks += [
+            ("warp", n, t, d, 1, "warp")
+            for d in dtypes
+            for t in topologies
+            for n in sizes
+            if not (args.quick and (n, t) != (min(sizes), topologies[-1]))
+        ]
     if not args.no_beam:
-        tasks += [("beam", None, None, d, th, m) for d in dtypes[:1] for th in threads for m in modes
-                  if not (args.quick and m == "compiled")]
+        tasks += [
+            ("beam", None, None, d, th, m)
+            for d in dtypes[:1]
+            for th in threads
+            for m in modes
+            if not (args.quick and m == "compiled")
+        ]
 
     rows, beam_rows, refs, beam_refs = [], [], {}, {}
     saved_threads = torch.get_num_threads()
@@ -320,9 +470,16 @@ def run(args) -> int:
                 if kind == "beam":
                     # ~1 s per repeat: a few-ms step timed over only ~60 steps is at the mercy
                     # of a busy host's hiccups.
-                    row = beam_row(m, dtype=dtype, device=device, steps=args.steps, repeats=repeats,
-                                   target_s=target_s if args.quick else 1.0, reference=beam_refs.get(d),
-                                   contention=args.contention)
+                    row = beam_row(
+                        m,
+                        dtype=dtype,
+                        device=device,
+                        steps=args.steps,
+                        repeats=repeats,
+                        target_s=target_s if args.quick else 1.0,
+                        reference=beam_refs.get(d),
+                        contention=args.contention,
+                    )
                     first = row.pop("_first")
                     beam_refs.setdefault(d, first)
                     beam_rows += [row] + ([row.pop("_busy")] if args.contention else [])
@@ -330,8 +487,18 @@ def run(args) -> int:
                     row = _warp_row(n, t, dtype, args.steps, repeats, target_s, refs.get((n, t, d)))
                     rows.append(row)
                 else:
-                    row = speed_row(n, t, m, dtype=dtype, device=device, steps=args.steps, repeats=repeats,
-                                    target_s=target_s, reference=refs.get((n, t, d)), contention=args.contention)
+                    row = speed_row(
+                        n,
+                        t,
+                        m,
+                        dtype=dtype,
+                        device=device,
+                        steps=args.steps,
+                        repeats=repeats,
+                        target_s=target_s,
+                        reference=refs.get((n, t, d)),
+                        contention=args.contention,
+                    )
                     first = row.pop("_first")
                     refs.setdefault((n, t, d), first)
                     rows += [row] + ([row.pop("_busy")] if args.contention else [])
@@ -339,29 +506,49 @@ def run(args) -> int:
     finally:
         torch.set_num_threads(saved_threads)
 
-    warp_by = {(r["n"], r["topology"], r["dtype"]): r["msprings_per_s"] for r in rows
-               if r["mode"].startswith("warp") and not r.get("contention")}
+    warp_by = {
+        (r["n"], r["topology"], r["dtype"]): r["msprings_per_s"]
+        for r in rows
+        if r["mode"].startswith("warp") and not r.get("contention")
+    }
     for r in rows:
         r["node_steps_per_s"] = float(r["node_steps_per_s"])
         w = warp_by.get((r["n"], r["topology"], r["dtype"]))
         r["vs_warp"] = r["msprings_per_s"] / w if w and not r["mode"].startswith("warp") else None
-    headline = [r for r in rows if (r["n"], r["topology"], r["dtype"], r["mode"]) == (64, 26, "float32", "compiled")
-                and not r.get("contention")]
+    headline = [
+        r
+        for r in rows
+        if (r["n"], r["topology"], r["dtype"], r["mode"]) == (64, 26, "float32", "compiled") and not r.get("contention")
+    ]
     headline = max(headline, key=lambda r: r["threads"]) if headline else None
     ratio = headline["vs_warp"] if headline else None
     machine = machine_info(device)
     machine.pop("threads")
-    extra = {"machine": machine, "scene": _SCENE, "ratio_vs_warp": ratio,
-             "ratio_vs_warp_case": "64^3, 26 neighbours, float32, symplectic Euler, compiled (most threads) "
-                                   "over Warp CPU (atomic edge list, 1 thread)",
-             "warp": "measured" if warp_ok else f"skipped: {warp_why}",
-             "beam_scene": _BEAM, "beam": beam_rows, "targets": _targets(rows, beam_rows)}
+    extra = {
+        "machine": machine,
+        "scene": _SCENE,
+        "ratio_vs_warp": ratio,
+        "ratio_vs_warp_case": "64^3, 26 neighbours, float32, symplectic Euler, compiled (most threads) "
+        "over Warp CPU (atomic edge list, 1 thread)",
+        "warp": "measured" if warp_ok else f"skipped: {warp_why}",
+        "beam_scene": _BEAM,
+        "beam": beam_rows,
+        "targets": _targets(rows, beam_rows),
+    }
     if args.out:
         Path(args.out).mkdir(parents=True, exist_ok=True)
         _speed_plot(rows, Path(args.out) / "speed.png", machine)
-    display = [dict(r, node_steps_per_s=f"{r['node_steps_per_s'] / 1e6:.2f}",
-                    mode=r["mode"] + (" (eager fallback)" if r.get("fallback") else "")
-                    + (" busy" if r.get("contention") else "") + _threads_note(r)) for r in rows]
+    display = [
+        dict(
+            r,
+            node_steps_per_s=f"{r['node_steps_per_s'] / 1e6:.2f}",
+            mode=r["mode"]
+            + (" (eager fallback)" if r.get("fallback") else "")
+            + (" busy" if r.get("contention") else "")
+            + _threads_note(r),
+        )
+        for r in rows
+    ]
     beam_display = [dict(r, mode=r["mode"] + (" busy" if r.get("contention") else "")) for r in beam_rows]
     if not args.json:
         print(f"symplectic Euler on a damped n^3 cube, {device}, torch {machine['torch']}")
@@ -373,10 +560,14 @@ def run(args) -> int:
             print(f"\nimplicit Euler: {_BEAM}")
             print(format_table(beam_display, BEAM_COLUMNS))
         if ratio is not None:
-            print(f"\nratio_vs_warp (64^3, 26 neighbours, float32, compiled, {headline['threads']} threads): {ratio:.1f}x")
+            print(
+                f"\nratio_vs_warp (64^3, 26 neighbours, float32, compiled, {headline['threads']} threads): {ratio:.1f}x"
+            )
         for name, t in extra["targets"].items():
-            print(f"{name}: {t['value']:.3g} (target {t['target']:g}{', busy/idle ' + format(t['busy_vs_idle'], '.2f') if t.get('busy_vs_idle') is not None else ''}): "
-                  f"{'met' if t['met'] else 'missed'}")
+            print(
+                f"{name}: {t['value']:.3g} (target {t['target']:g}{', busy/idle ' + format(t['busy_vs_idle'], '.2f') if t.get('busy_vs_idle') is not None else ''}): "
+                f"{'met' if t['met'] else 'missed'}"
+            )
         if args.out:
             print(f"wrote {Path(args.out) / 'speed.csv'} and {Path(args.out) / 'speed.png'}")
     return 0
@@ -404,10 +595,18 @@ def _targets(rows, beam_rows) -> dict:
     out = {}
 
     def pick(rs, **key):
-        return [r for r in rs if r["mode"] in ("compiled", "native") and r["dtype"] == "float32"
-                and all(r.get(k) == v for k, v in key.items())]
-    for name, rs, value in (("beam_steps_per_s", pick(beam_rows), "steps_per_s"),
-                            ("msprings_64", pick(rows, n=64, topology=26), "msprings_per_s")):
+        return [
+            r
+            for r in rs
+            if r["mode"] in ("compiled", "native")
+            and r["dtype"] == "float32"
+            and all(r.get(k) == v for k, v in key.items())
+        ]
+
+    for name, rs, value in (
+        ("beam_steps_per_s", pick(beam_rows), "steps_per_s"),
+        ("msprings_64", pick(rows, n=64, topology=26), "msprings_per_s"),
+    ):
         idle = [r for r in rs if not r.get("contention")]
         if not idle:
             continue
@@ -415,29 +614,44 @@ def _targets(rows, beam_rows) -> dict:
         busy = [r for r in rs if r.get("contention") and (r["threads"], r["mode"]) == (best["threads"], best["mode"])]
         ratio = busy[0]["vs_idle"] if busy else None
         met = best[value] >= TARGETS[name] and (ratio is None or ratio >= TARGETS["busy_vs_idle"])
-        out[name] = {"value": best[value], "target": TARGETS[name], "mode": best["mode"], "threads": best["threads"],
-                     "busy_vs_idle": ratio, "met": met}
+        out[name] = {
+            "value": best[value],
+            "target": TARGETS[name],
+            "mode": best["mode"],
+            "threads": best["threads"],
+            "busy_vs_idle": ratio,
+            "met": met,
+        }
     return out
 
 
-_SCENE = ("symplectic Euler, dt 1e-4 s, damped cube (1 cm spacing, k 100 N/m, c 0.05 N s/m, 1 g nodes), "
-          "no gravity; msprings_per_s = springs / (s per step) / 1e6, median over repeats, warm-up excluded; "
-          "peak_rss_mb: peak resident memory of the process during the row")
-_BEAM = ("40x10x10 nodes, 26 neighbours, k 100/l0, c 1/l0, 20 kg, one end fixed, gravity, dt 0.01 s, "
-         "exactly cg_iters CG iterations per step (SOFA's spring-beam benchmark shape)")
+_SCENE = (
+    "symplectic Euler, dt 1e-4 s, damped cube (1 cm spacing, k 100 N/m, c 0.05 N s/m, 1 g nodes), "
+    "no gravity; msprings_per_s = springs / (s per step) / 1e6, median over repeats, warm-up excluded; "
+    "peak_rss_mb: peak resident memory of the process during the row"
+)
+_BEAM = (
+    "40x10x10 nodes, 26 neighbours, k 100/l0, c 1/l0, 20 kg, one end fixed, gravity, dt 0.01 s, "
+    "exactly cg_iters CG iterations per step (SOFA's spring-beam benchmark shape)"
+)
 
 
 def _speed_plot(rows, path: Path, machine: dict) -> None:
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     topologies = sorted({r["topology"] for r in rows})
     fig, axes = plt.subplots(1, len(topologies), figsize=(4.5 * len(topologies), 4), sharey=True, squeeze=False)
     for ax, topo in zip(axes[0], topologies):
         keys = sorted({(r["mode"], r["dtype"], r["threads"]) for r in rows if r["topology"] == topo})
         for mode, dt, th in keys:
-            pts = sorted((r["nodes"], r["msprings_per_s"]) for r in rows
-                         if (r["topology"], r["mode"], r["dtype"], r["threads"]) == (topo, mode, dt, th))
+            pts = sorted(
+                (r["nodes"], r["msprings_per_s"])
+                for r in rows
+                if (r["topology"], r["mode"], r["dtype"], r["threads"]) == (topo, mode, dt, th)
+            )
             style = {"compiled": "-", "native": "-.", "eager": "--"}.get(mode, ":")
             ax.plot(*zip(*pts), marker="o", ls=style, label=f"{mode} {dt} {th} thr")
         ax.set_xscale("log")

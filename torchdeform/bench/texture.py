@@ -36,6 +36,7 @@ Example:
     torchdeform bench texture --json --out bench-out
     torchdeform bench texture --seam-blocks 4,4,3
 """
+
 from __future__ import annotations
 
 import statistics
@@ -50,24 +51,43 @@ from .common import add_common, axes, emit, format_table, machine_info, progress
 __all__ = ["COLUMNS", "add_arguments", "run", "MODELS", "hull_mesh"]
 
 #: Chen & He's models: (name, vertices, faces, node GPU s, triangle GPU s) (REFERENCE §7.2)
-MODELS = [("A", 1323, 2642, 0.236, 1.33), ("B", 1537, 3070, 0.254, 1.362), ("C", 2687, 5370, 0.285, 1.425),
-          ("D", 14663, 18676, 0.302, 2.687)]
-COLUMNS = [("model", "model", None), ("vertices", "vertices", "{:,}"), ("faces", "faces", "{:,}"),
-           ("samples", "samples", "{:,}"), ("node_ms", "node ms", "{:.2f}"), ("triangle_ms", "triangle ms", "{:.1f}"),
-           ("speedup_nodes", "x nodes", "{:.0f}"), ("speedup_triangles", "x triangles", "{:.0f}"),
-           ("threads", "threads", None)]
-BOX = (256, 256, 192)                      # texture voxels: Chen & He's 4 x 4 x 3 blocks of 64
-SEAM_COLUMNS = [("method", "seams", None), ("seam_jump", "seam measure", "{:.2f}"), ("reduction", "reduction", "{:.1f}x"),
-                ("histogram_w1", "histogram W1", "{:.4f}"), ("iterations", "CG iterations", None),
-                ("seconds", "seconds", "{:.1f}")]
+MODELS = [
+    ("A", 1323, 2642, 0.236, 1.33),
+    ("B", 1537, 3070, 0.254, 1.362),
+    ("C", 2687, 5370, 0.285, 1.425),
+    ("D", 14663, 18676, 0.302, 2.687),
+]
+COLUMNS = [
+    ("model", "model", None),
+    ("vertices", "vertices", "{:,}"),
+    ("faces", "faces", "{:,}"),
+    ("samples", "samples", "{:,}"),
+    ("node_ms", "node ms", "{:.2f}"),
+    ("triangle_ms", "triangle ms", "{:.1f}"),
+    ("speedup_nodes", "x nodes", "{:.0f}"),
+    ("speedup_triangles", "x triangles", "{:.0f}"),
+    ("threads", "threads", None),
+]
+BOX = (256, 256, 192)  # texture voxels: Chen & He's 4 x 4 x 3 blocks of 64
+SEAM_COLUMNS = [
+    ("method", "seams", None),
+    ("seam_jump", "seam measure", "{:.2f}"),
+    ("reduction", "reduction", "{:.1f}x"),
+    ("histogram_w1", "histogram W1", "{:.4f}"),
+    ("iterations", "CG iterations", None),
+    ("seconds", "seconds", "{:.1f}"),
+]
 
 
 def add_arguments(p) -> None:
     """The options of ``torchdeform bench texture``."""
     add_common(p)
     p.add_argument("--repeats", type=integer(lo=1), default=None, help="timing repeats (default 7; quick 3)")
-    p.add_argument("--seam-blocks", default="2,2,2", help="blocks of 64 per axis (D,H,W) of the seam test box "
-                                                          "(default 2,2,2; Chen & He's box is 4,4,3)")
+    p.add_argument(
+        "--seam-blocks",
+        default="2,2,2",
+        help="blocks of 64 per axis (D,H,W) of the seam test box (default 2,2,2; Chen & He's box is 4,4,3)",
+    )
 
 
 def hull_mesh(vertices: int, seed: int = 0):
@@ -81,6 +101,7 @@ def hull_mesh(vertices: int, seed: int = 0):
         ((100, 3), (196, 3))
     """
     from scipy.spatial import ConvexHull
+
     rng = np.random.default_rng(seed)
     p = rng.normal(size=(vertices, 3))
     p /= np.linalg.norm(p, axis=1, keepdims=True)
@@ -106,21 +127,35 @@ def _median_ms(fn, repeats):
 
 def _rows(repeats):
     from ..texture import SolidTexture, liver_exemplar, sample_triangles
+
     tex = SolidTexture(liver_exemplar(128, seed=0), block=64, extent=BOX, seed=0)
     rows = []
     for name, nv, nf, gpu_nodes, gpu_triangles in MODELS:
-        v_count = (nf + 4) // 2                              # closed: F = 2V - 4
+        v_count = (nf + 4) // 2  # closed: F = 2V - 4
         v, f = hull_mesh(v_count, seed=ord(name))
         X = torch.from_numpy(v).float()
         node_ms = _median_ms(lambda: tex.colour(X), repeats)
         count = []
         triangle_ms = _median_ms(lambda: count.append(sample_triangles(v, f, tex).count), repeats)
-        rows.append(dict(model=name, vertices=v_count, faces=len(f), samples=count[-1], node_ms=node_ms,
-                         triangle_ms=triangle_ms, speedup_nodes=gpu_nodes * 1e3 / node_ms,
-                         speedup_triangles=gpu_triangles * 1e3 / triangle_ms, gpu_node_s=gpu_nodes,
-                         gpu_triangle_s=gpu_triangles, paper_vertices=nv, threads=torch.get_num_threads(),
-                         note=None if v_count == nv else f"paper: {nv} vertices, impossible with {nf} faces "
-                                                         f"on a closed surface (F = 2V - 4); faces kept"))
+        rows.append(
+            dict(
+                model=name,
+                vertices=v_count,
+                faces=len(f),
+                samples=count[-1],
+                node_ms=node_ms,
+                triangle_ms=triangle_ms,
+                speedup_nodes=gpu_nodes * 1e3 / node_ms,
+                speedup_triangles=gpu_triangles * 1e3 / triangle_ms,
+                gpu_node_s=gpu_nodes,
+                gpu_triangle_s=gpu_triangles,
+                paper_vertices=nv,
+                threads=torch.get_num_threads(),
+                note=None
+                if v_count == nv
+                else f"paper: {nv} vertices, impossible with {nf} faces on a closed surface (F = 2V - 4); faces kept",
+            )
+        )
     return rows, tex
 
 
@@ -130,6 +165,7 @@ def _cut_face_row(tex, repeats):
 
     from ..texture import SolidTexture, sample_triangles
     from ..topology import Blade, cut, cut_surfaces
+
     n, h = 16, 0.0025
     grid = td.Grid((n, n, n), h, 26)
     model = td.Model(grid, stiffness=10.0, mass=1e-3, dtype=torch.float64)
@@ -138,36 +174,62 @@ def _cut_face_row(tex, repeats):
     pieces = cut_surfaces(grid, model.X, side)
     plane = (n / 2 - 0.5) * h
     faces, rest = [], []
-    for p in pieces:                                   # the triangles on the cut (within half a cell of it)
+    for p in pieces:  # the triangles on the cut (within half a cell of it)
         on = np.abs(p.rest[p.faces].mean(1)[:, 0] - plane) < 0.5 * h
         faces.append(p.faces[on] + sum(len(r) for r in rest))
         rest.append(p.rest)
-    f, r = np.concatenate(faces), np.concatenate(rest)                   # material coordinates (m)
-    fine = SolidTexture(tex.exemplar, block=64, extent=(96, 96, 96), seed=1, voxel=0.0005)   # 0.5 mm voxels
+    f, r = np.concatenate(faces), np.concatenate(rest)  # material coordinates (m)
+    fine = SolidTexture(tex.exemplar, block=64, extent=(96, 96, 96), seed=1, voxel=0.0005)  # 0.5 mm voxels
     count = []
     ms = _median_ms(lambda: count.append(sample_triangles(r, f, fine).count), repeats)
-    return dict(model="cut face", vertices=len(r), faces=len(f), samples=count[-1], node_ms=None, triangle_ms=ms,
-                speedup_nodes=None, speedup_triangles=None, threads=torch.get_num_threads(), target_ms=8.0,
-                note="a full cut through a 16^3 block (4 cm, 0.5 mm texture voxels): both new faces")
+    return dict(
+        model="cut face",
+        vertices=len(r),
+        faces=len(f),
+        samples=count[-1],
+        node_ms=None,
+        triangle_ms=ms,
+        speedup_nodes=None,
+        speedup_triangles=None,
+        threads=torch.get_num_threads(),
+        target_ms=8.0,
+        note="a full cut through a 16^3 block (4 cm, 0.5 mm texture voxels): both new faces",
+    )
 
 
 def _seam_rows(blocks):
     """Seam measure and histogram distance of the tiled texture, its 3-D and per-slice blends."""
     from ..texture import SolidTexture, liver_exemplar
     from ..texture.seams import histogram_distance, seam_jump
+
     ex = liver_exemplar(128, seed=0)
     extent = tuple(64 * n for n in blocks)
     rows, slices = [], {}
     for method, name in (("none", "tiled"), ("3d", "3-D Poisson"), ("slices", "per-slice 2-D (D)")):
         tex = SolidTexture(ex, block=64, extent=extent, seed=0)
-        r = tex.blend(method)                    # "none": the tiled texture, after = before
-        rows.append(dict(method=name, seam_jump=r["seam_after"], reduction=r["seam_before"] / r["seam_after"],
-                         histogram_w1=r["histogram_after"], iterations=r["iterations"] if method != "none" else None,
-                         seconds=r["seconds"] if method != "none" else None))
+        r = tex.blend(method)  # "none": the tiled texture, after = before
+        rows.append(
+            dict(
+                method=name,
+                seam_jump=r["seam_after"],
+                reduction=r["seam_before"] / r["seam_after"],
+                histogram_w1=r["histogram_after"],
+                iterations=r["iterations"] if method != "none" else None,
+                seconds=r["seconds"] if method != "none" else None,
+            )
+        )
         slices[name] = tex.materialise()[:, :, extent[1] // 2 + 7].permute(1, 2, 0)
     floor = seam_jump(ex, 64, reference=ex)
-    rows.append(dict(method="exemplar (floor)", seam_jump=floor, reduction=rows[0]["seam_jump"] / floor,
-                     histogram_w1=histogram_distance(ex, ex), iterations=None, seconds=None))
+    rows.append(
+        dict(
+            method="exemplar (floor)",
+            seam_jump=floor,
+            reduction=rows[0]["seam_jump"] / floor,
+            histogram_w1=histogram_distance(ex, ex),
+            iterations=None,
+            seconds=None,
+        )
+    )
     for r in rows:
         r.update(box=list(extent), block=64, exemplar=128, threads=torch.get_num_threads())
     return rows, slices
@@ -176,6 +238,7 @@ def _seam_rows(blocks):
 def run(args) -> int:
     """Run the bench; returns the exit status."""
     from ..errors import ConfigError
+
     torch.set_num_threads(args.threads or 2)
     repeats = args.repeats or (3 if args.quick else 7)
     try:
@@ -192,11 +255,17 @@ def run(args) -> int:
     bar.update(1)
     bar.close()
     models = [r for r in rows if r["model"] != "cut face"]
-    extra = {"machine": machine_info(args.device), "target_speedup": 30.0,
-             "met": {"nodes": all(r["speedup_nodes"] >= 30 for r in models),
-                     "triangles": all(r["speedup_triangles"] >= 30 for r in models),
-                     "cut_face": rows[-1]["triangle_ms"] < 8.0,
-                     "seams_3d_5x": seams[1]["reduction"] >= 5.0}, "seams": seams}
+    extra = {
+        "machine": machine_info(args.device),
+        "target_speedup": 30.0,
+        "met": {
+            "nodes": all(r["speedup_nodes"] >= 30 for r in models),
+            "triangles": all(r["speedup_triangles"] >= 30 for r in models),
+            "cut_face": rows[-1]["triangle_ms"] < 8.0,
+            "seams_3d_5x": seams[1]["reduction"] >= 5.0,
+        },
+        "seams": seams,
+    }
     if args.out:
         _plot(models, args.out)
         _plot_seams(seams, slices, args.out)
@@ -209,6 +278,7 @@ def run(args) -> int:
 
 def _plot_seams(rows, slices, out_dir) -> None:
     import matplotlib.pyplot as plt
+
     fig, axs = plt.subplots(1, 3, figsize=(10.5, 3.9))
     jump = {r["method"]: r["seam_jump"] for r in rows}
     for ax, name in zip(axs, ("tiled", "3-D Poisson", "per-slice 2-D (D)")):

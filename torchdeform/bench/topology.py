@@ -23,6 +23,7 @@ Example:
     torchdeform bench topology --quick
     torchdeform bench topology --json --out bench-out
 """
+
 from __future__ import annotations
 
 import statistics
@@ -36,12 +37,21 @@ from .common import add_common, axes, emit, int_list, machine_info, progress, sa
 
 __all__ = ["COLUMNS", "add_arguments", "run", "expected_count"]
 
-COLUMNS = [("topology", "topology", None), ("n", "n", None), ("springs_removed", "removed", "{:,}"),
-           ("expected", "expected", "{:,}"), ("components", "pieces", None), ("cut_ms", "cut ms", "{:.3f}"),
-           ("step_ms_before", "step ms before", "{:.3f}"), ("step_ms_after", "step ms after", "{:.3f}"),
-           ("recompiles", "recompiles", None), ("engine", "engine", None), ("threads", "threads", None)]
+COLUMNS = [
+    ("topology", "topology", None),
+    ("n", "n", None),
+    ("springs_removed", "removed", "{:,}"),
+    ("expected", "expected", "{:,}"),
+    ("components", "pieces", None),
+    ("cut_ms", "cut ms", "{:.3f}"),
+    ("step_ms_before", "step ms before", "{:.3f}"),
+    ("step_ms_after", "step ms after", "{:.3f}"),
+    ("recompiles", "recompiles", None),
+    ("engine", "engine", None),
+    ("threads", "threads", None),
+]
 SPACING = 0.01
-WARM = 5                  # untimed steps at the start of each timed phase
+WARM = 5  # untimed steps at the start of each timed phase
 
 
 def expected_count(topology: int, n: int) -> int:
@@ -52,7 +62,9 @@ def expected_count(topology: int, n: int) -> int:
 def add_arguments(p) -> None:
     """The options of ``torchdeform bench topology``."""
     add_common(p)
-    p.add_argument("--sizes", type=int_list("--sizes"), default=None, help="n (n^3 nodes; default 8,16,32,64; quick 8,16)")
+    p.add_argument(
+        "--sizes", type=int_list("--sizes"), default=None, help="n (n^3 nodes; default 8,16,32,64; quick 8,16)"
+    )
     p.add_argument("--topologies", type=int_list("--topologies"), default=None, help="default 6,18,26")
     p.add_argument("--steps", type=integer(lo=1), default=None, help="timed steps per repeat (default 100; quick 10)")
     p.add_argument("--repeats", type=integer(lo=1), default=None, help="repeats of each timing (default 9; quick 3)")
@@ -61,6 +73,7 @@ def add_arguments(p) -> None:
 
 def _graphs() -> int:
     from torch._dynamo.utils import counters
+
     return int(counters["stats"]["unique_graphs"])
 
 
@@ -70,7 +83,7 @@ def _step_ms(step, ps, steps, repeats):
         t0 = time.perf_counter()
         for _ in range(steps):
             ps = step.step_packed(ps)
-        float(ps.x[0, 0, step.packed.G])                         # reads the result: waits for the device
+        float(ps.x[0, 0, step.packed.G])  # reads the result: waits for the device
         times.append((time.perf_counter() - t0) / steps * 1e3)
     return statistics.median(times), ps
 
@@ -79,6 +92,7 @@ def _row(topology, n, steps, repeats, compiled, dtype, device):
     from ..sim.compiled import compiled_step
     from ..sim.integrators import SymplecticEuler
     from ..topology import Blade, components, cut
+
     model, state, dt = speed_cube(n, topology, dtype, device)
     step = compiled_step(SymplecticEuler(), model, dt, enable=compiled, editable=True)
     ps = step.packed.pack_state(state)
@@ -87,11 +101,11 @@ def _row(topology, n, steps, repeats, compiled, dtype, device):
     compile_s = time.perf_counter() - t0 if compiled else None
     if compiled and not step.compiled:
         raise RuntimeError(f"the step did not compile: {step.compile_error}")
-    _, ps = _step_ms(step, ps, steps, 1)                            # warm-up
+    _, ps = _step_ms(step, ps, steps, 1)  # warm-up
     graphs = _graphs()
     span = (n + 1) * SPACING
     blade = Blade(((n // 2 - 0.5) * SPACING, -SPACING, -SPACING), (0.0, span, 0.0), (0.0, 0.0, span))
-    k0 = model.stiffness.clone()                                    # a cut changes the stiffness alone
+    k0 = model.stiffness.clone()  # a cut changes the stiffness alone
     before, after, cuts = [], [], []
     for _ in range(repeats):
         # interleaved: the uncut body (restored in place), the cut, the cut body
@@ -111,13 +125,25 @@ def _row(topology, n, steps, repeats, compiled, dtype, device):
     t0 = time.perf_counter()
     _, count = components(model)
     comp_ms = (time.perf_counter() - t0) * 1e3
-    return dict(topology=topology, n=n, springs_removed=removed, expected=expected_count(topology, n),
-                components=count, cut_ms=statistics.median(cuts), cut_ms_min=min(cuts),
-                step_ms_before=statistics.median(before), step_ms_after=statistics.median(after),
-                step_ratio=statistics.median(a / b for a, b in zip(after, before)), recompiles=recompiles,
-                components_ms=comp_ms,
-                engine="compiled" if compiled else "eager", compile_s=compile_s, threads=torch.get_num_threads(),
-                steps=steps, repeats=repeats)
+    return dict(
+        topology=topology,
+        n=n,
+        springs_removed=removed,
+        expected=expected_count(topology, n),
+        components=count,
+        cut_ms=statistics.median(cuts),
+        cut_ms_min=min(cuts),
+        step_ms_before=statistics.median(before),
+        step_ms_after=statistics.median(after),
+        step_ratio=statistics.median(a / b for a, b in zip(after, before)),
+        recompiles=recompiles,
+        components_ms=comp_ms,
+        engine="compiled" if compiled else "eager",
+        compile_s=compile_s,
+        threads=torch.get_num_threads(),
+        steps=steps,
+        repeats=repeats,
+    )
 
 
 def run(args) -> int:
@@ -128,9 +154,11 @@ def run(args) -> int:
     steps = args.steps or (10 if args.quick else 100)
     repeats = args.repeats or (3 if args.quick else 9)
     if min(sizes) < 4 or steps < 1 or repeats < 1 or not set(topologies) <= {6, 14, 18, 26}:
-        raise ConfigError("--sizes/--topologies/--steps/--repeats",
-                          "sizes >= 4, topologies of 6, 14, 18, 26, steps >= 1, repeats >= 1",
-                          (sizes, topologies, steps, repeats))
+        raise ConfigError(
+            "--sizes/--topologies/--steps/--repeats",
+            "sizes >= 4, topologies of 6, 14, 18, 26, steps >= 1, repeats >= 1",
+            (sizes, topologies, steps, repeats),
+        )
     dtype = getattr(torch, args.dtype)
     rows = []
     bar = progress(len(sizes) * len(topologies), "bench topology")
@@ -140,12 +168,16 @@ def run(args) -> int:
             bar.update(1)
     bar.close()
     big = [r for r in rows if r["n"] == 64]
-    extra = {"machine": machine_info(args.device),
-             "targets": {"cut_ms_64": 1.0, "step_ratio_within": 0.05, "recompiles": 0},
-             "met": {"counts": all(r["springs_removed"] == r["expected"] and r["components"] == 2 for r in rows),
-                     "cut_64": None if not big else all(r["cut_ms"] < 1.0 for r in big),
-                     "step_time": all(abs(r["step_ratio"] - 1) <= 0.05 for r in rows),
-                     "no_recompile": all(r["recompiles"] == 0 for r in rows)}}
+    extra = {
+        "machine": machine_info(args.device),
+        "targets": {"cut_ms_64": 1.0, "step_ratio_within": 0.05, "recompiles": 0},
+        "met": {
+            "counts": all(r["springs_removed"] == r["expected"] and r["components"] == 2 for r in rows),
+            "cut_64": None if not big else all(r["cut_ms"] < 1.0 for r in big),
+            "step_time": all(abs(r["step_ratio"] - 1) <= 0.05 for r in rows),
+            "no_recompile": all(r["recompiles"] == 0 for r in rows),
+        },
+    }
     if args.out:
         _plot(rows, args.out)
     emit("topology", args, rows, COLUMNS, extra)

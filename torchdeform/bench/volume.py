@@ -25,6 +25,7 @@ Example:
     torchdeform bench volume --quick
     torchdeform bench volume --json --threads 2
 """
+
 from __future__ import annotations
 
 import statistics
@@ -38,10 +39,19 @@ from .common import add_common, emit, machine_info, progress
 
 __all__ = ["COLUMNS", "PATHS", "add_arguments", "bench_volume", "run"]
 
-COLUMNS = [("size", "volume", None), ("image", "image", None), ("mode", "mode", None), ("path", "path", None),
-           ("threads", "thr", None), ("ms_per_frame", "ms/frame", "{:.0f}"), ("fps", "fps", "{:.2f}"),
-           ("cpu_ms", "cpu ms", "{:.0f}"), ("speedup", "x naive", "{:.2f}"), ("max_abs_diff", "max|diff|", "{:.1e}"),
-           ("compile_s", "compile s", "{:.0f}")]
+COLUMNS = [
+    ("size", "volume", None),
+    ("image", "image", None),
+    ("mode", "mode", None),
+    ("path", "path", None),
+    ("threads", "thr", None),
+    ("ms_per_frame", "ms/frame", "{:.0f}"),
+    ("fps", "fps", "{:.2f}"),
+    ("cpu_ms", "cpu ms", "{:.0f}"),
+    ("speedup", "x naive", "{:.2f}"),
+    ("max_abs_diff", "max|diff|", "{:.1e}"),
+    ("compile_s", "compile s", "{:.0f}"),
+]
 PATHS = ("naive", "grid_sample", "eager", "compiled")
 
 
@@ -51,10 +61,13 @@ def add_arguments(p) -> None:
     p.add_argument("--size", type=integer(lo=2), default=None, help="volume side in voxels (default 256; quick 64)")
     p.add_argument("--nodes", type=integer(lo=2), default=9, help="node grid side (default 9)")
     p.add_argument("--amplitude", type=number(lo=0), default=3.0, help="largest node offset in voxels (default 3)")
-    p.add_argument("--repeats", type=integer(lo=1), default=None, help="timed repeats, median kept (default 5; quick 2)")
+    p.add_argument(
+        "--repeats", type=integer(lo=1), default=None, help="timed repeats, median kept (default 5; quick 2)"
+    )
     p.add_argument("--modes", default="mip,dvr", help="render modes (default mip,dvr)")
-    p.add_argument("--paths", default=None, help="comma list of " + ", ".join(PATHS) + " (default all; quick: "
-                   "no compiled)")
+    p.add_argument(
+        "--paths", default=None, help="comma list of " + ", ".join(PATHS) + " (default all; quick: no compiled)"
+    )
     p.add_argument("--no-compile", action="store_true", help="leave out the compiled path")
 
 
@@ -63,6 +76,7 @@ def bench_volume(size: int, nodes: int = 9, amplitude: float = 3.0, dtype=torch.
     import torch.nn.functional as F
 
     from ..volume import phantom
+
     half = max(8, size // 2)
     vol = phantom((half,) * 3, dtype=dtype)
     vol = F.interpolate(vol[None, None], size=(size,) * 3, mode="trilinear", align_corners=True)[0, 0]
@@ -86,12 +100,14 @@ def _time(fn, repeats):
 def run(args) -> int:
     """Run the bench: one row per mode and path; returns the exit status."""
     from ..volume import preset, render, warp
+
     size = args.size or (64 if args.quick else 256)
     repeats = args.repeats or (2 if args.quick else 5)
     modes = [m.strip() for m in args.modes.split(",") if m.strip()]
     if size < 8 or args.nodes < 2 or args.nodes > size or repeats < 1:
-        raise ConfigError("--size", "a volume side >= 8, 2 <= --nodes <= size, --repeats >= 1",
-                          (size, args.nodes, repeats))
+        raise ConfigError(
+            "--size", "a volume side >= 8, 2 <= --nodes <= size, --repeats >= 1", (size, args.nodes, repeats)
+        )
     for m in modes:
         if m not in ("mip", "dvr", "average"):
             raise ConfigError("--modes", "mip, dvr and/or average", args.modes)
@@ -99,8 +115,11 @@ def run(args) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     dtype = getattr(torch, args.dtype)
-    paths = [q.strip() for q in (args.paths or ("naive,grid_sample,eager" if args.quick else ",".join(PATHS)))
-             .split(",") if q.strip()]
+    paths = [
+        q.strip()
+        for q in (args.paths or ("naive,grid_sample,eager" if args.quick else ",".join(PATHS))).split(",")
+        if q.strip()
+    ]
     if args.no_compile:
         paths = [q for q in paths if q != "compiled"]
     for q in paths:
@@ -115,8 +134,15 @@ def run(args) -> int:
         with torch.no_grad(), progress(len(paths) * len(modes), "bench volume") as bar:
             for mode in modes:
                 t = tf if mode == "dvr" else None
-                base = dict(size=f"{size}^3", image=f"{size}^2", mode=mode, nodes=args.nodes, dtype=args.dtype,
-                            threads=torch.get_num_threads(), amplitude_vox=args.amplitude)
+                base = dict(
+                    size=f"{size}^3",
+                    image=f"{size}^2",
+                    mode=mode,
+                    nodes=args.nodes,
+                    dtype=args.dtype,
+                    threads=torch.get_num_threads(),
+                    amplitude_vox=args.amplitude,
+                )
                 ref = naive_s = None
                 for path in paths:
                     compile_s = None
@@ -126,22 +152,36 @@ def run(args) -> int:
                         fn = lambda e=path: render(vol, t, mode, "h", offsets=offsets, stop=1e-3, engine=e)  # noqa: E731
                     if path == "compiled":
                         t0 = time.perf_counter()
-                        fn()                                        # compiles (once per shape, view and mode)
+                        fn()  # compiles (once per shape, view and mode)
                         compile_s = time.perf_counter() - t0
                         compile_times[mode] = compile_s
                     wall, cpu, img = _time(fn, repeats)
                     bar.update(1)
                     if path == "naive":
                         ref, naive_s = img, wall
-                    rows.append(dict(base, path=path, seconds=wall, ms_per_frame=wall * 1e3, fps=1 / wall,
-                                     cpu_ms=cpu * 1e3, speedup=naive_s / wall,
-                                     max_abs_diff=float((img - ref).abs().max()), compile_s=compile_s))
+                    rows.append(
+                        dict(
+                            base,
+                            path=path,
+                            seconds=wall,
+                            ms_per_frame=wall * 1e3,
+                            fps=1 / wall,
+                            cpu_ms=cpu * 1e3,
+                            speedup=naive_s / wall,
+                            max_abs_diff=float((img - ref).abs().max()),
+                            compile_s=compile_s,
+                        )
+                    )
     finally:
         torch.set_num_threads(saved)
-    extra = {"machine": machine_info("cpu"),
-             "compile_s": compile_times,
-             "setup": (f"phantom {size}^3 (HU), {args.nodes}^3 node offsets up to {args.amplitude:g} voxels, axis view "
-                       f"H, one sample per voxel, image {size}x{size}; dvr: ct-bone, early termination at T < 1e-3")}
+    extra = {
+        "machine": machine_info("cpu"),
+        "compile_s": compile_times,
+        "setup": (
+            f"phantom {size}^3 (HU), {args.nodes}^3 node offsets up to {args.amplitude:g} voxels, axis view "
+            f"H, one sample per voxel, image {size}x{size}; dvr: ct-bone, early termination at T < 1e-3"
+        ),
+    }
     if not args.json:
         print("deform + render, " + extra["setup"])
     emit("volume", args, rows, COLUMNS, extra)

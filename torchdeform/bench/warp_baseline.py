@@ -36,6 +36,7 @@ Example:
     >>> ok, why = warp_available()
     >>> row = warp_speed_row(16, 26, "atomic") if ok else None   # doctest: +SKIP
 """
+
 import functools
 import math
 import statistics
@@ -56,6 +57,7 @@ _SCALARS = {torch.float32: "float32", torch.float64: "float64"}
 def _warp():
     """Import and initialise Warp (quietly the first time); raises ImportError without it."""
     import warp as wp
+
     if not getattr(_warp, "initialised", False):
         if wp.config.log_level < wp.LOG_WARNING:
             wp.config.log_level = wp.LOG_WARNING
@@ -75,7 +77,7 @@ def warp_available() -> tuple:
         wp = _warp()
     except ImportError:
         return False, INSTALL_HINT
-    except Exception as exc:                                 # broken install, native library missing ...
+    except Exception as exc:  # broken install, native library missing ...
         return False, f"warp-lang failed to initialise: {type(exc).__name__}: {exc}"
     try:
         devices = [str(d) for d in wp.get_devices()]
@@ -116,9 +118,16 @@ def _kernels(scalar_name: str) -> dict:
         return ((k * (l - l0) + c * wp.dot(vj - vi, d) * inv_l) * inv_l) * d
 
     @wp.kernel(enable_backward=False, module="unique")
-    def springs_atomic(x: wp.array(dtype=vec), v: wp.array(dtype=vec), ei: wp.array(dtype=wp.int32),
-                       ej: wp.array(dtype=wp.int32), l0: wp.array(dtype=scalar), k: wp.array(dtype=scalar),
-                       c: wp.array(dtype=scalar), f: wp.array(dtype=vec)):
+    def springs_atomic(
+        x: wp.array(dtype=vec),
+        v: wp.array(dtype=vec),
+        ei: wp.array(dtype=wp.int32),
+        ej: wp.array(dtype=wp.int32),
+        l0: wp.array(dtype=scalar),
+        k: wp.array(dtype=scalar),
+        c: wp.array(dtype=scalar),
+        f: wp.array(dtype=vec),
+    ):
         s = wp.tid()
         i = ei[s]
         j = ej[s]
@@ -127,19 +136,35 @@ def _kernels(scalar_name: str) -> dict:
         wp.atomic_sub(f, j, fs)
 
     @wp.kernel(enable_backward=False, module="unique")
-    def integrate(x: wp.array(dtype=vec), v: wp.array(dtype=vec), f: wp.array(dtype=vec),
-                  inv_mass: wp.array(dtype=scalar), dt: scalar):
+    def integrate(
+        x: wp.array(dtype=vec),
+        v: wp.array(dtype=vec),
+        f: wp.array(dtype=vec),
+        inv_mass: wp.array(dtype=scalar),
+        dt: scalar,
+    ):
         i = wp.tid()
         vi = v[i] + f[i] * (inv_mass[i] * dt)
         v[i] = vi
         x[i] = x[i] + vi * dt
-        f[i] = vec()                                         # cleared for the next step's atomics
+        f[i] = vec()  # cleared for the next step's atomics
 
     @wp.kernel(enable_backward=False, module="unique")
-    def gather_step(x: wp.array(dtype=vec), v: wp.array(dtype=vec), dirs: wp.array(dtype=wp.vec3i),
-                    l0: wp.array2d(dtype=scalar), k: wp.array2d(dtype=scalar), c: wp.array2d(dtype=scalar),
-                    inv_mass: wp.array(dtype=scalar), dt: scalar, nd: int, nh: int, nw: int,
-                    x_out: wp.array(dtype=vec), v_out: wp.array(dtype=vec)):
+    def gather_step(
+        x: wp.array(dtype=vec),
+        v: wp.array(dtype=vec),
+        dirs: wp.array(dtype=wp.vec3i),
+        l0: wp.array2d(dtype=scalar),
+        k: wp.array2d(dtype=scalar),
+        c: wp.array2d(dtype=scalar),
+        inv_mass: wp.array(dtype=scalar),
+        dt: scalar,
+        nd: int,
+        nh: int,
+        nw: int,
+        x_out: wp.array(dtype=vec),
+        v_out: wp.array(dtype=vec),
+    ):
         i = wp.tid()
         a = i // (nh * nw)
         b = (i // nw) % nh
@@ -167,22 +192,41 @@ def _kernels(scalar_name: str) -> dict:
         v_out[i] = vn
         x_out[i] = xi + vn * dt
 
-    return {"vec": vec, "scalar": scalar, "springs_atomic": springs_atomic, "integrate": integrate,
-            "gather_step": gather_step}
+    return {
+        "vec": vec,
+        "scalar": scalar,
+        "springs_atomic": springs_atomic,
+        "integrate": integrate,
+        "gather_step": gather_step,
+    }
 
 
 # ---------------------------------------------------------------- springs of a model
 def _check_model(model) -> None:
     """The Warp step covers springs (projected damping), masses and fixed nodes only."""
-    unsupported = [name for name, present in (
-        ("gravity", model.gravity is not None), ("home/anchor springs", model.k_home is not None),
-        ("loads", bool(model.loads)), ("drags", bool(model.drags)), ("decay", model.decay is not None),
-        ("unprojected damping", model.damping is not None and not model.projected),
-        ("batched parameters", model.stiffness.shape[0] != 1 or model.mass.shape[0] != 1
-         or (model.damping is not None and model.damping.shape[0] != 1))) if present]
+    unsupported = [
+        name
+        for name, present in (
+            ("gravity", model.gravity is not None),
+            ("home/anchor springs", model.k_home is not None),
+            ("loads", bool(model.loads)),
+            ("drags", bool(model.drags)),
+            ("decay", model.decay is not None),
+            ("unprojected damping", model.damping is not None and not model.projected),
+            (
+                "batched parameters",
+                model.stiffness.shape[0] != 1
+                or model.mass.shape[0] != 1
+                or (model.damping is not None and model.damping.shape[0] != 1),
+            ),
+        )
+        if present
+    ]
     if unsupported:
-        raise ValueError("the Warp baseline steps springs, masses and fixed nodes only; this model also has "
-                         + ", ".join(unsupported))
+        raise ValueError(
+            "the Warp baseline steps springs, masses and fixed nodes only; this model also has "
+            + ", ".join(unsupported)
+        )
     if model.dtype not in _SCALARS:
         raise ValueError(f"the Warp baseline runs float32 or float64, not {model.dtype}")
 
@@ -196,8 +240,11 @@ def _per_spring(model) -> tuple:
     full = (grid.S,) + grid.shape
     mask = grid.spring_mask().to(torch.float64)
     k = model.stiffness[0].to("cpu", torch.float64).expand(full) * mask
-    c = torch.zeros(full, dtype=torch.float64) if model.damping is None else \
-        model.damping[0].to("cpu", torch.float64).expand(full) * mask
+    c = (
+        torch.zeros(full, dtype=torch.float64)
+        if model.damping is None
+        else model.damping[0].to("cpu", torch.float64).expand(full) * mask
+    )
     l0 = model.rest_length[0].to("cpu", torch.float64).expand(full)
     return k, c, l0
 
@@ -275,8 +322,10 @@ class WarpSprings:
         else:
             k, c, l0 = _per_spring(model)
             flat = (grid.S, self.N)
-            self.params = {name: wp.array(p.reshape(flat).numpy().astype(self.np_dtype), device=dev)
-                           for name, p in (("l0", l0), ("k", k), ("c", c))}
+            self.params = {
+                name: wp.array(p.reshape(flat).numpy().astype(self.np_dtype), device=dev)
+                for name, p in (("l0", l0), ("k", k), ("c", c))
+            }
             self.dirs = wp.array(np.array(grid.directions, dtype=np.int32), dtype=wp.vec3i, device=dev)
             self.x2 = wp.zeros(self.N, dtype=vec, device=dev)
             self.v2 = wp.zeros(self.N, dtype=vec, device=dev)
@@ -303,7 +352,7 @@ class WarpSprings:
         for arr, t in ((self.x, state.x), (self.v, state.v)):
             arr.assign(np.ascontiguousarray(t.detach()[0].to("cpu").reshape(3, -1).T.numpy().astype(self.np_dtype)))
         self.t = float(state.t)
-        self._flip = False                                   # gather: which buffer holds the state
+        self._flip = False  # gather: which buffer holds the state
 
     def _commands(self, dt: float) -> list:
         """Recorded launches (``wp.launch(..., record_cmd=True)``) of one step for ``dt``.
@@ -315,17 +364,34 @@ class WarpSprings:
         wp, kern, sc = self.wp, self.kern, self.kern["scalar"]
         if self.variant == "atomic":
             e = self.edges
-            cmds = [wp.launch(kern["springs_atomic"], dim=len(e["i"]), device="cpu", record_cmd=True,
-                              inputs=[self.x, self.v, e["i"], e["j"], e["l0"], e["k"], e["c"], self.f]),
-                    wp.launch(kern["integrate"], dim=self.N, device="cpu", record_cmd=True,
-                              inputs=[self.x, self.v, self.f, self.inv_mass, sc(dt)])]
+            cmds = [
+                wp.launch(
+                    kern["springs_atomic"],
+                    dim=len(e["i"]),
+                    device="cpu",
+                    record_cmd=True,
+                    inputs=[self.x, self.v, e["i"], e["j"], e["l0"], e["k"], e["c"], self.f],
+                ),
+                wp.launch(
+                    kern["integrate"],
+                    dim=self.N,
+                    device="cpu",
+                    record_cmd=True,
+                    inputs=[self.x, self.v, self.f, self.inv_mass, sc(dt)],
+                ),
+            ]
         else:
             p, (nd, nh, nw) = self.params, self.model.grid.shape
 
             def rec(x, v, xo, vo):
-                return wp.launch(kern["gather_step"], dim=self.N, device="cpu", record_cmd=True,
-                                 inputs=[x, v, self.dirs, p["l0"], p["k"], p["c"], self.inv_mass, sc(dt),
-                                         nd, nh, nw, xo, vo])
+                return wp.launch(
+                    kern["gather_step"],
+                    dim=self.N,
+                    device="cpu",
+                    record_cmd=True,
+                    inputs=[x, v, self.dirs, p["l0"], p["k"], p["c"], self.inv_mass, sc(dt), nd, nh, nw, xo, vo],
+                )
+
             cmds = [rec(self.x, self.v, self.x2, self.v2), rec(self.x2, self.v2, self.x, self.v)]
         self._cmds, self._cmd_dt = cmds, dt
         return cmds
@@ -350,16 +416,26 @@ class WarpSprings:
         ``(1, 3, D, H, W)`` in the model's dtype, on the CPU.
         """
         from ..sim.model import State
+
         self.wp.synchronize()
         x, v = (self.x2, self.v2) if self._flip else (self.x, self.v)
         shape = (1, 3) + self.model.grid.shape
-        to_torch = (lambda a: torch.from_numpy(a.numpy().T.copy()).reshape(shape).to(self.model.dtype))
+        to_torch = lambda a: torch.from_numpy(a.numpy().T.copy()).reshape(shape).to(self.model.dtype)
         return State(to_torch(x), to_torch(v), self.t)
 
 
 # ------------------------------------------------------------------------ speed row
-def warp_speed_row(n: int, topology: int = 26, variant: str = "atomic", *, dtype=torch.float32, steps=None,
-                   repeats: int = 5, target_s: float = 0.2, reference=None) -> dict:
+def warp_speed_row(
+    n: int,
+    topology: int = 26,
+    variant: str = "atomic",
+    *,
+    dtype=torch.float32,
+    steps=None,
+    repeats: int = 5,
+    target_s: float = 0.2,
+    reference=None,
+) -> dict:
     """Time the Warp step on :func:`~torchdeform.bench.common.speed_cube`; one row of the speed table.
 
     Same keys as :func:`torchdeform.bench.speed.speed_row` (without its private ``_first``):
@@ -388,6 +464,7 @@ def warp_speed_row(n: int, topology: int = 26, variant: str = "atomic", *, dtype
     are excluded and ``wp.synchronize()`` brackets every timed block of steps.
     """
     from ..sim.integrators import SymplecticEuler
+
     if variant not in VARIANTS:
         raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
     wp = _require_warp()
@@ -396,17 +473,26 @@ def warp_speed_row(n: int, topology: int = 26, variant: str = "atomic", *, dtype
         with torch.no_grad():
             reference = SymplecticEuler().step(model, state, dt)
     sim = WarpSprings(model, state, variant)
-    row = {"grid": f"{n}^3", "n": n, "topology": topology, "mode": f"warp-{variant}",
-           "dtype": str(dtype).replace("torch.", ""), "threads": 1, "device": "cpu",
-           "nodes": model.grid.num_nodes, "springs": sim.num_springs}
+    row = {
+        "grid": f"{n}^3",
+        "n": n,
+        "topology": topology,
+        "mode": f"warp-{variant}",
+        "dtype": str(dtype).replace("torch.", ""),
+        "threads": 1,
+        "device": "cpu",
+        "nodes": model.grid.num_nodes,
+        "springs": sim.num_springs,
+    }
 
     compile_s = sim.load()
-    sim.step(dt)                                             # first step: the reference comparison
+    sim.step(dt)  # first step: the reference comparison
     first = sim.state()
-    diff = max(float((first.x - reference.x.to(first.x)).abs().max()),
-               float((first.v - reference.v.to(first.v)).abs().max()))
+    diff = max(
+        float((first.x - reference.x.to(first.x)).abs().max()), float((first.v - reference.v.to(first.v)).abs().max())
+    )
 
-    sim.set_state(state)                                     # second warm-up step, also sizes the run
+    sim.set_state(state)  # second warm-up step, also sizes the run
     wp.synchronize()
     t0 = time.perf_counter()
     sim.step(dt)
@@ -423,8 +509,16 @@ def warp_speed_row(n: int, topology: int = 26, variant: str = "atomic", *, dtype
         wp.synchronize()
         times.append((time.perf_counter() - t0) / steps)
     sec = statistics.median(times)
-    row.update(steps=steps, repeats=repeats, ms_per_step=sec * 1e3, msprings_per_s=row["springs"] / sec / 1e6,
-               node_steps_per_s=row["nodes"] / sec, compile_s=compile_s, max_abs_diff=diff, fallback=False)
+    row.update(
+        steps=steps,
+        repeats=repeats,
+        ms_per_step=sec * 1e3,
+        msprings_per_s=row["springs"] / sec / 1e6,
+        node_steps_per_s=row["nodes"] / sec,
+        compile_s=compile_s,
+        max_abs_diff=diff,
+        fallback=False,
+    )
     return row
 
 

@@ -72,22 +72,39 @@ Example:
     >>> u.shape, len(energies), energies[-1] <= energies[0]
     (torch.Size([1, 3, 20, 20, 20]), 5, True)
 """
+
 from .limits import (
-                     DIRECTIONS,
-                     GIBSON_SUCCESSORS,
-                     METHODS,
-                     RELAX_MODES,
-                     BlockedMoveError,
-                     Limits,
-                     limit_violation,
-                     link_mask,
-                     neighbour_boxes,
-                     tissue_limits,
+    DIRECTIONS,
+    GIBSON_SUCCESSORS,
+    METHODS,
+    RELAX_MODES,
+    BlockedMoveError,
+    Limits,
+    limit_violation,
+    link_mask,
+    neighbour_boxes,
+    tissue_limits,
 )
 from .relaxation import crease_measure, relax, relax_energy
 from .sequential import ChainMail, MoveResult
 from .tensor import SweepResult, tensor_chainmail
 
-__all__ = ["Limits", "ChainMail", "MoveResult", "BlockedMoveError", "tissue_limits", "limit_violation",
-           "link_mask", "tensor_chainmail", "SweepResult", "neighbour_boxes", "relax", "relax_energy", "crease_measure",
-           "DIRECTIONS", "GIBSON_SUCCESSORS", "METHODS", "RELAX_MODES"]
+__all__ = [
+    "Limits",
+    "ChainMail",
+    "MoveResult",
+    "BlockedMoveError",
+    "tissue_limits",
+    "limit_violation",
+    "link_mask",
+    "tensor_chainmail",
+    "SweepResult",
+    "neighbour_boxes",
+    "relax",
+    "relax_energy",
+    "crease_measure",
+    "DIRECTIONS",
+    "GIBSON_SUCCESSORS",
+    "METHODS",
+    "RELAX_MODES",
+]

@@ -15,6 +15,7 @@ per-spring tensors ``(S, D, H, W)``); a link whose entry is False does not exist
 limit (Knoche's unlinked elements after a cut, :func:`torchdeform.topology.unlink`). ``None``
 (the default) means every link exists and costs nothing.
 """
+
 from __future__ import annotations
 
 import math
@@ -25,8 +26,18 @@ import torch
 from ..errors import ConfigError, TorchdeformError
 from ..sim.grid import Grid
 
-__all__ = ["Limits", "BlockedMoveError", "tissue_limits", "limit_violation", "neighbour_boxes", "link_mask",
-           "DIRECTIONS", "GIBSON_SUCCESSORS", "METHODS", "RELAX_MODES"]
+__all__ = [
+    "Limits",
+    "BlockedMoveError",
+    "tissue_limits",
+    "limit_violation",
+    "neighbour_boxes",
+    "link_mask",
+    "DIRECTIONS",
+    "GIBSON_SUCCESSORS",
+    "METHODS",
+    "RELAX_MODES",
+]
 
 #: Directions of the six neighbour lists: (axis, sign) for +d, -d, +h, -h, +w, -w.
 DIRECTIONS = ((0, 1), (0, -1), (1, 1), (1, -1), (2, 1), (2, -1))
@@ -48,15 +59,19 @@ class BlockedMoveError(TorchdeformError):
 # ------------------------------------------------------------------------- limits
 def _limit_tensor(value, key, shape) -> torch.Tensor:
     try:
-        t = torch.as_tensor(value, dtype=torch.float64).detach().cpu() if not torch.is_tensor(value) \
+        t = (
+            torch.as_tensor(value, dtype=torch.float64).detach().cpu()
+            if not torch.is_tensor(value)
             else value.detach().to("cpu", torch.float64)
+        )
     except (TypeError, ValueError, RuntimeError):
         raise ConfigError(key, "a number, three numbers (d, h, w) or a (3, D, H, W) array", value) from None
     if t.dim() == 0:
         t = t.expand(3).clone()
     if tuple(t.shape) not in ((3,), (3,) + tuple(shape)):
-        raise ConfigError(key, f"a number, three numbers (d, h, w) or a (3, D, H, W) = {(3,) + tuple(shape)} "
-                               "array", tuple(t.shape))
+        raise ConfigError(
+            key, f"a number, three numbers (d, h, w) or a (3, D, H, W) = {(3,) + tuple(shape)} array", tuple(t.shape)
+        )
     if not bool(torch.isfinite(t).all()):
         raise ConfigError(key, "finite values", "non-finite values", show_got=True)
     return t
@@ -102,14 +117,18 @@ class Limits:
             raise ConfigError("limits.min", "distances >= 0 (no element may pass its neighbour)", float(lo.min()))
         if bool((sh < 0).any()):
             raise ConfigError("limits.shear", "shear limits >= 0", float(sh.min()))
-        per = (lambda t: t.view(3, 1, 1, 1) if t.dim() == 1 else t)
+        per = lambda t: t.view(3, 1, 1, 1) if t.dim() == 1 else t
         bad = per(lo) > per(hi)
         if bool(bad.any()):
             where = [int(v) for v in bad.nonzero()[0]]
             node = f" at node {tuple(where[1:])}" if lo.dim() > 1 or hi.dim() > 1 else ""
-            raise ConfigError("limits", f"min <= max on every link; axis {'dhw'[where[0]]}{node} has "
-                                        f"min {float(per(lo).expand_as(bad)[tuple(where)]):.4g} > "
-                                        f"max {float(per(hi).expand_as(bad)[tuple(where)]):.4g}", show_got=False)
+            raise ConfigError(
+                "limits",
+                f"min <= max on every link; axis {'dhw'[where[0]]}{node} has "
+                f"min {float(per(lo).expand_as(bad)[tuple(where)]):.4g} > "
+                f"max {float(per(hi).expand_as(bad)[tuple(where)]):.4g}",
+                show_got=False,
+            )
         for name, t in (("min", lo), ("max", hi), ("shear", sh)):
             object.__setattr__(self, name, t)
 
@@ -121,8 +140,7 @@ class Limits:
     def per_link(self) -> tuple:
         """``(min, max, shear)`` each as ``(3, D, H, W)`` float64."""
         shape = (3,) + self.grid.shape
-        return tuple(t.view(3, 1, 1, 1).expand(shape) if t.dim() == 1 else t
-                     for t in (self.min, self.max, self.shear))
+        return tuple(t.view(3, 1, 1, 1).expand(shape) if t.dim() == 1 else t for t in (self.min, self.max, self.shear))
 
     def offset_bounds(self, dtype=torch.float64, device=None) -> tuple:
         """Limits on offset differences ``u_j - u_i`` (``u = x - X``), as ``(lo, hi, shear)``.
@@ -160,8 +178,11 @@ class Limits:
 
         def ratio(value, key):
             try:
-                t = value.detach().to("cpu", torch.float64) if torch.is_tensor(value) \
+                t = (
+                    value.detach().to("cpu", torch.float64)
+                    if torch.is_tensor(value)
                     else torch.as_tensor(value, dtype=torch.float64)
+                )
             except (TypeError, ValueError, RuntimeError):
                 raise ConfigError(key, "a number, three numbers (d, h, w) or a (D, H, W) array", value) from None
             if not bool(torch.isfinite(t).all()):
@@ -170,7 +191,7 @@ class Limits:
                 return t * h
             if tuple(t.shape) == (3,):
                 return t * h
-            if tuple(t.shape) == shape:                                     # per element -> per link
+            if tuple(t.shape) == shape:  # per element -> per link
                 links = t.expand(3, *shape).clone()
                 for a in range(3):
                     n = shape[a]
@@ -180,15 +201,14 @@ class Limits:
                         lo[a], hi[a] = slice(0, n - 1), slice(1, n)
                         links[(a, *lo)] = 0.5 * (t[tuple(lo)] + t[tuple(hi)])
                 return links * h.view(3, 1, 1, 1)
-            raise ConfigError(key, f"a number, three numbers (d, h, w) or a (D, H, W) = {shape} array",
-                              tuple(t.shape))
+            raise ConfigError(key, f"a number, three numbers (d, h, w) or a (D, H, W) = {shape} array", tuple(t.shape))
+
         if bool((torch.as_tensor(shear, dtype=torch.float64) < 0).any()):
             raise ConfigError("shear", "a ratio >= 0", shear if not torch.is_tensor(shear) else float(shear.min()))
         return cls(grid, ratio(compression, "compression"), ratio(stretch, "stretch"), ratio(shear, "shear"))
 
 
-def tissue_limits(grid: Grid, tissue, labels=None, reference_stress: float = 300.0,
-                  slack_range=(0.005, 0.5)) -> Limits:
+def tissue_limits(grid: Grid, tissue, labels=None, reference_stress: float = 300.0, slack_range=(0.005, 0.5)) -> Limits:
     """Limits from the fuzzy tissue library (:mod:`torchdeform.fuzzy.presets`).
 
     Each tissue's Young's modulus ``E`` (the ``tissue_si`` Mamdani system evaluated at its
@@ -217,6 +237,7 @@ def tissue_limits(grid: Grid, tissue, labels=None, reference_stress: float = 300
         True
     """
     from ..fuzzy.presets import load_preset, tissue_parameters
+
     if not (isinstance(reference_stress, (int, float)) and reference_stress > 0):
         raise ConfigError("reference_stress", "a positive stress in Pa", reference_stress)
     items = list(tissue) if isinstance(tissue, (list, tuple)) else [tissue]
@@ -239,10 +260,12 @@ def tissue_limits(grid: Grid, tissue, labels=None, reference_stress: float = 300
         e = torch.tensor(eps[0], dtype=torch.float64)
     else:
         lab = torch.as_tensor(labels)
-        if tuple(lab.shape) != grid.shape or lab.is_floating_point() or \
-                bool(((lab < 0) | (lab >= len(eps))).any()):
-            raise ConfigError("labels", f"integers in [0, {len(eps) - 1}] of shape {grid.shape}",
-                              tuple(lab.shape) if tuple(lab.shape) != grid.shape else "values out of range")
+        if tuple(lab.shape) != grid.shape or lab.is_floating_point() or bool(((lab < 0) | (lab >= len(eps))).any()):
+            raise ConfigError(
+                "labels",
+                f"integers in [0, {len(eps) - 1}] of shape {grid.shape}",
+                tuple(lab.shape) if tuple(lab.shape) != grid.shape else "values out of range",
+            )
         e = torch.tensor(eps, dtype=torch.float64)[lab.long()]
     return Limits.from_material(grid, 1 - e, 1 + e, e)
 
@@ -273,15 +296,19 @@ def _as_links(links, grid: Grid, device, batch: int | None = None, key: str = "l
     if links is None:
         return None
     try:
-        m = links.to(device=device, dtype=torch.bool) if torch.is_tensor(links) \
+        m = (
+            links.to(device=device, dtype=torch.bool)
+            if torch.is_tensor(links)
             else torch.as_tensor(links, dtype=torch.bool, device=device)
+        )
     except (TypeError, ValueError, RuntimeError):
         raise ConfigError(key, "a bool (3, D, H, W) or (B, 3, D, H, W) link mask", type(links).__name__) from None
     if m.dim() == 4:
         m = m.unsqueeze(0)
     if m.dim() != 5 or tuple(m.shape[1:]) != (3,) + grid.shape or (batch is not None and m.shape[0] not in (1, batch)):
-        raise ConfigError(key, f"a bool (3, D, H, W) or (B, 3, D, H, W) link mask with grid {grid.shape}",
-                          tuple(m.shape))
+        raise ConfigError(
+            key, f"a bool (3, D, H, W) or (B, 3, D, H, W) link mask with grid {grid.shape}", tuple(m.shape)
+        )
     return m
 
 
@@ -330,7 +357,7 @@ def limit_violation(positions: torch.Tensor, grid: Grid, limits: Limits, per_lin
         second = [slice(None)] * 3
         first[a], second[a] = slice(0, n - 1), slice(1, n)
         first, second = tuple(first), tuple(second)
-        diff = x[(..., *second)] - x[(..., *first)]                   # (B, 3, region)
+        diff = x[(..., *second)] - x[(..., *first)]  # (B, 3, region)
         along = diff[:, a]
         excess = torch.maximum(mn[a][first] - along, along - mx[a][first])
         for b in range(3):
@@ -342,7 +369,6 @@ def limit_violation(positions: torch.Tensor, grid: Grid, limits: Limits, per_lin
         field_[(slice(None), a, *first)] = excess
     worst = field_.flatten(1).amax(1)
     return (worst, field_) if per_link else worst
-
 
 
 def _grid6(grid: Grid) -> Grid:

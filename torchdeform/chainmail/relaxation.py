@@ -7,6 +7,7 @@ Red-black projected Jacobi steps of the offsets towards the centroid of the neig
 With a link mask (``links``, see :mod:`.limits`) an unlinked neighbour is no neighbour: it is left
 out of the centroid, the limits' box and the energy, so the two sides of a cut relax apart.
 """
+
 from __future__ import annotations
 
 import torch
@@ -52,9 +53,11 @@ def _residual(u, grid6: Grid, goal, links=None):
     """
     masks = grid6.spring_mask(u.device)
     if links is None:
+
         def weight(s, src):
             return masks[s][src].to(u.dtype).view(1, 1, *masks[s][src].shape)
     else:
+
         def weight(s, src):
             return (masks[s][src] & links[(slice(None), s, *src)]).to(u.dtype).unsqueeze(1)
 
@@ -62,17 +65,25 @@ def _residual(u, grid6: Grid, goal, links=None):
         if goal is not None:
             du = du - _goal_vector(goal, s, src, du)
         return du * (masks[s][src].to(u.dtype) if links is None else weight(s, src))
+
     r = accumulate(grid6, fn, u)
     ones = torch.ones((1 if links is None else links.shape[0], 1) + grid6.shape, dtype=u.dtype, device=u.device)
 
     def count(s, src, _):
         m = weight(s, src)
         return m, m
+
     return r, accumulate(grid6, count, ones)
 
 
-def relax_energy(positions: torch.Tensor, grid: Grid, limits: Limits | None = None, mode: str = "centroid",
-                 offsets: bool = False, links=None) -> torch.Tensor:
+def relax_energy(
+    positions: torch.Tensor,
+    grid: Grid,
+    limits: Limits | None = None,
+    mode: str = "centroid",
+    offsets: bool = False,
+    links=None,
+) -> torch.Tensor:
     """The energy relaxation lowers, ``(B,)``.
 
     ``E(u) = 1/2 sum_links |u_j - u_i - b_ij|^2`` over the face-neighbour links, with
@@ -127,8 +138,17 @@ def crease_measure(positions: torch.Tensor, grid: Grid, free=None, offsets: bool
     return (dev.sum(1) * m).flatten(1).sum(1)
 
 
-def relax(positions: torch.Tensor, grid: Grid, limits: Limits, steps: int = 1, mode: str = "centroid",
-          free=None, omega: float = 1.0, offsets: bool = False, links=None):
+def relax(
+    positions: torch.Tensor,
+    grid: Grid,
+    limits: Limits,
+    steps: int = 1,
+    mode: str = "centroid",
+    free=None,
+    omega: float = 1.0,
+    offsets: bool = False,
+    links=None,
+):
     """Elastic relaxation within the ChainMail limits.
 
     Each step updates every free element once, red-black (the elements with even ``i + j + k``,

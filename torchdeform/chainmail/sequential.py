@@ -12,6 +12,7 @@ per element (d, then h, then w) may run through a cut link while a detour exists
 a Gibson move therefore checks the links of the elements it moved (cost proportional to them)
 and, if a limit is left violated, redoes the move in Enhanced ChainMail's order.
 """
+
 from __future__ import annotations
 
 import heapq
@@ -59,6 +60,7 @@ class MoveResult:
         moved_nodes: the indices of the elements that moved, sorted.
         attempts: number of propagation attempts (more than 1 when a blocked move was scaled).
     """
+
     requested: tuple
     fraction: float = 1.0
     blocked: bool = False
@@ -109,8 +111,7 @@ class ChainMail:
         (torch.Size([1, 3, 16, 16, 16]), 0.002, 0.0)
     """
 
-    def __init__(self, grid: Grid, limits: Limits, fixed=None, positions=None, method: str = "gibson",
-                 links=None):
+    def __init__(self, grid: Grid, limits: Limits, fixed=None, positions=None, method: str = "gibson", links=None):
         if not isinstance(grid, Grid):
             raise ConfigError("grid", "a torchdeform.Grid", type(grid).__name__)
         if not isinstance(limits, Limits) or limits.grid.shape != grid.shape:
@@ -118,11 +119,18 @@ class ChainMail:
         if method not in METHODS:
             raise ConfigError("method", '"gibson" or "enhanced"', method)
         if method == "gibson" and not limits.uniform:
-            raise ConfigError("method", '"enhanced" for per-link (heterogeneous) limits: Gibson\'s six lists '
-                                        "need one set of limits per axis", method)
+            raise ConfigError(
+                "method",
+                '"enhanced" for per-link (heterogeneous) limits: Gibson\'s six lists need one set of limits per axis',
+                method,
+            )
         if method == "gibson" and grid.node_mask is not None:
-            raise ConfigError("method", '"enhanced" for a body with a node mask: Gibson\'s one path per element '
-                                        "(d, then h, then w) needs a box", method)
+            raise ConfigError(
+                "method",
+                '"enhanced" for a body with a node mask: Gibson\'s one path per element '
+                "(d, then h, then w) needs a box",
+                method,
+            )
         self.grid, self.limits, self.method = grid, limits, method
         #: Excess (m) below which an element that cannot move (fixed, or picked earlier in the
         #: same move) is taken to satisfy its limits: rounding of positions on a limit's edge.
@@ -151,7 +159,7 @@ class ChainMail:
         if limits.uniform:
             self._bounds = tuple((float(lo[a]), float(hi[a]), float(sh[a])) for a in range(3))
             self._links = None
-        else:                                                   # per-link arrays, padded like _u
+        else:  # per-link arrays, padded like _u
             self._bounds = None
             arrays = np.zeros((3, 3, P), dtype=np.float64)
             for k, t in enumerate((lo, hi, sh)):
@@ -169,8 +177,7 @@ class ChainMail:
         """Store the link mask and build the per-direction reachability arrays ``_ok``."""
         lk = _as_links(links, self.grid, "cpu")
         if lk is not None and lk.shape[0] != 1:
-            raise ConfigError("links", f"a bool (3, D, H, W) link mask with grid {self.grid.shape}",
-                              tuple(lk.shape))
+            raise ConfigError("links", f"a bool (3, D, H, W) link mask with grid {self.grid.shape}", tuple(lk.shape))
         if lk is None:
             self._linkmask, self._cut = None, False
             self._okarr = (self._flag,) * 6
@@ -184,9 +191,9 @@ class ChainMail:
                 lp = lp.reshape(-1)
                 off = self._off[a]
                 ok = np.zeros_like(self._flag)
-                if sgn > 0:                         # n = e + off: the link is stored at e = n - off
+                if sgn > 0:  # n = e + off: the link is stored at e = n - off
                     ok[off:] = self._flag[off:] * lp[:-off]
-                else:                               # n = e - off: the link is stored at n
+                else:  # n = e - off: the link is stored at n
                     ok[:] = self._flag * lp
                 oks.append(ok)
             self._okarr = tuple(oks)
@@ -222,9 +229,12 @@ class ChainMail:
         worst, excess = limit_violation(self.positions(), self.grid, self.limits, per_link=True, links=lk)
         if float(worst) > 1e-12:
             a, i, j, k = (int(v) for v in np.unravel_index(int(excess[0].flatten().argmax()), excess[0].shape))
-            raise ConfigError("links", "links whose limits the current positions satisfy; the link from "
-                                       f"node {(i, j, k)} along {'dhw'[a]} exceeds them by {float(worst):.3g} m",
-                              show_got=False)
+            raise ConfigError(
+                "links",
+                "links whose limits the current positions satisfy; the link from "
+                f"node {(i, j, k)} along {'dhw'[a]} exceeds them by {float(worst):.3g} m",
+                show_got=False,
+            )
         self._install_links(links)
 
     # ------------------------------------------------------------ state in/out
@@ -243,14 +253,19 @@ class ChainMail:
         x = torch.as_tensor(positions).detach().to("cpu", torch.float64)
         x = x[0] if x.dim() == 5 else x
         if tuple(x.shape) != (3,) + self.grid.shape:
-            raise ConfigError("positions", f"(1, 3, D, H, W) or (3, D, H, W) with grid {self.grid.shape}",
-                              tuple(x.shape))
+            raise ConfigError(
+                "positions", f"(1, 3, D, H, W) or (3, D, H, W) with grid {self.grid.shape}", tuple(x.shape)
+            )
         worst, excess = limit_violation(x, self.grid, self.limits, per_link=True, links=self._linkmask)
         if float(worst) > 1e-12:
             a, i, j, k = (int(v) for v in np.unravel_index(int(excess[0].flatten().argmax()), excess[0].shape))
-            raise ConfigError("positions", "positions that satisfy the ChainMail limits (repair a mass-spring "
-                                           f"state first); the link from node {(i, j, k)} along {'dhw'[a]} "
-                                           f"exceeds them by {float(worst):.3g} m", show_got=False)
+            raise ConfigError(
+                "positions",
+                "positions that satisfy the ChainMail limits (repair a mass-spring "
+                f"state first); the link from node {(i, j, k)} along {'dhw'[a]} "
+                f"exceeds them by {float(worst):.3g} m",
+                show_got=False,
+            )
         u = (x - self.grid.rest_positions(torch.float64)[0]) * self.grid.nodes()
         self._interior(self._u)[...] = u.numpy()
 
@@ -273,6 +288,7 @@ class ChainMail:
     def state(self, dtype=torch.float32, device=None):
         """A :class:`~torchdeform.sim.model.State` (``x``, ``v = 0``) the mass-spring integrators continue from."""
         from ..sim.model import State
+
         x = self.positions(dtype, device)
         return State(x, torch.zeros_like(x), 0.0)
 
@@ -298,7 +314,12 @@ class ChainMail:
 
     def _picked(self, nodes) -> list:
         shape = self.grid.shape
-        if torch.is_tensor(nodes) and nodes.dtype == torch.bool or isinstance(nodes, np.ndarray) and nodes.dtype == bool:
+        if (
+            torch.is_tensor(nodes)
+            and nodes.dtype == torch.bool
+            or isinstance(nodes, np.ndarray)
+            and nodes.dtype == bool
+        ):
             m = torch.as_tensor(nodes).cpu()
             if tuple(m.shape) != shape:
                 raise ConfigError("nodes", f"a bool mask of shape {shape} or a list of [i, j, k]", tuple(m.shape))
@@ -313,8 +334,9 @@ class ChainMail:
         out = []
         for ijk in idx:
             if len(ijk) != 3 or not all(0 <= v < n for v, n in zip(ijk, shape)):
-                raise ConfigError("nodes", f"element indices inside the grid {shape} (a pull outside the grid)",
-                                  list(ijk))
+                raise ConfigError(
+                    "nodes", f"element indices inside the grid {shape} (a pull outside the grid)", list(ijk)
+                )
             p = ((ijk[0] + 1) * self._pshape[1] + ijk[1] + 1) * self._pshape[2] + ijk[2] + 1
             if self._flag[p] == _OUTSIDE:
                 raise ConfigError("nodes", "elements inside the body's node mask", list(ijk))
@@ -359,8 +381,9 @@ class ChainMail:
         if not ok:
             self._undo(log)
             if on_blocked == "error":
-                raise BlockedMoveError(f"moving {len(picked)} element(s) by {d} m would have to move a fixed "
-                                       "element; nothing was moved")
+                raise BlockedMoveError(
+                    f"moving {len(picked)} element(s) by {d} m would have to move a fixed element; nothing was moved"
+                )
             lo, hi = 0.0, 1.0
             for _ in range(bisections):
                 mid = 0.5 * (lo + hi)
@@ -371,15 +394,22 @@ class ChainMail:
             fraction = lo
             attempts += 1
             ok, log, passes, checked = self._attempt(start, d, lo)
-            if not ok:                                  # cannot happen for lo = 0 in a valid state
+            if not ok:  # cannot happen for lo = 0 in a valid state
                 self._undo(log)
                 raise BlockedMoveError("a scaled move was blocked too; nothing was moved")
         moved = np.unique(np.asarray(log[0::4], dtype=np.int64))
         self._moved[moved] = True
         self._held = np.asarray(picked, dtype=np.int64)
-        return MoveResult(requested=d, fraction=fraction, blocked=fraction < 1.0, moved=len(moved),
-                          checked=checked, passes=[self._node_index(p) for p in passes],
-                          moved_nodes=np.sort(self._node_index(moved)), attempts=attempts)
+        return MoveResult(
+            requested=d,
+            fraction=fraction,
+            blocked=fraction < 1.0,
+            moved=len(moved),
+            checked=checked,
+            passes=[self._node_index(p) for p in passes],
+            moved_nodes=np.sort(self._node_index(moved)),
+            attempts=attempts,
+        )
 
     def _undo(self, log: list) -> None:
         u = self._u
@@ -413,7 +443,7 @@ class ChainMail:
             if not ok:
                 return False, log, passes, checked
         if self._cut and not self._links_hold(np.unique(np.asarray(log[0::4], dtype=np.int64))):
-            self._undo(log)                          # a sponsor path ran through a cut: redo in order
+            self._undo(log)  # a sponsor path ran through a cut: redo in order
             log, passes = [], []
             self._gen += 1
             ok = self._enhanced(targets, [scale * v for v in d], log, passes)
@@ -457,8 +487,18 @@ class ChainMail:
             lo, hi, sh = self._bounds[a]
             b = [(-sh, sh)] * 3
             b[a] = (lo, hi) if s > 0 else (-hi, -lo)
-            boxes.append((doff[k], b[0][0], b[0][1], b[1][0], b[1][1], b[2][0], b[2][1],
-                          [(queues[q], doff[q], oks[q]) for q in GIBSON_SUCCESSORS[k]]))
+            boxes.append(
+                (
+                    doff[k],
+                    b[0][0],
+                    b[0][1],
+                    b[1][0],
+                    b[1][1],
+                    b[2][0],
+                    b[2][1],
+                    [(queues[q], doff[q], oks[q]) for q in GIBSON_SUCCESSORS[k]],
+                )
+            )
         append = touched.append
         tol = self.tol
         busy = True
@@ -470,7 +510,7 @@ class ChainMail:
                     continue
                 busy = True
                 off, l0, h0, l1, h1, l2, h2, succ = boxes[k]
-                for e in q:                      # the list grows while it is served (same direction)
+                for e in q:  # the list grows while it is served (same direction)
                     append(e)
                     s = e - off
                     changed = False
@@ -496,7 +536,7 @@ class ChainMail:
                         if flag[e] != _FREE or e in pinned:
                             if max(abs(v - ux[e]), abs(w - uy[e]), abs(z - uz[e])) > tol:
                                 return False
-                            continue                  # off by rounding only: it stays, as it may
+                            continue  # off by rounding only: it stays, as it may
                         log += (e, ux[e], uy[e], uz[e])
                         ux[e] = v
                         uy[e] = w
@@ -564,7 +604,7 @@ class ChainMail:
             heap = []
             todo = picks
             while True:
-                for e in todo:                               # queue e's violated, non-final neighbours
+                for e in todo:  # queue e's violated, non-final neighbours
                     ue = uc[e]
                     for off, arr, const, factor, at_e, ok in table:
                         n = e + off
@@ -576,14 +616,14 @@ class ChainMail:
                             if flag[n] == _FIXED:
                                 if v > tol:
                                     return False
-                                continue                     # off by rounding only
+                                continue  # off by rounding only
                             push(heap, (-v, n, bound))
                 e = -1
                 while heap:
                     _, e, bound = pop(heap)
                     if stamp[e] != gen:
                         break
-                    e = -1                                   # a stale entry: already final
+                    e = -1  # a stale entry: already final
                 if e < 0:
                     break
                 stamp[e] = gen
@@ -594,8 +634,9 @@ class ChainMail:
         return True
 
     # --------------------------------------------------------------- relaxing
-    def relax(self, steps: int = 1, mode: str = "centroid", only_moved: bool = False, omega: float = 1.0,
-              hold=None) -> list:
+    def relax(
+        self, steps: int = 1, mode: str = "centroid", only_moved: bool = False, omega: float = 1.0, hold=None
+    ) -> list:
         """Elastic relaxation of the current deformation (see :func:`relax`).
 
         Fixed elements and the elements picked by the last :meth:`move` stay where they are
@@ -616,7 +657,8 @@ class ChainMail:
         if only_moved:
             free &= self._interior(self._moved)
         u = self.offsets(torch.float64)
-        u, energies = relax(u, self.grid, self.limits, steps, mode, torch.from_numpy(free), omega, offsets=True,
-                            links=self._linkmask)
+        u, energies = relax(
+            u, self.grid, self.limits, steps, mode, torch.from_numpy(free), omega, offsets=True, links=self._linkmask
+        )
         self._interior(self._u)[...] = u[0].numpy()
         return energies

@@ -13,6 +13,7 @@ not the whole grid (a 1,300-element pull on 100^3 visits about 10^4 elements per
 of 10^6). The propagation depth (a breadth-first search) works the same way on the bounding box
 of its reach.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -46,6 +47,7 @@ class SweepResult:
         box: the final active box, ``((d0, d1), (h0, h1), (w0, w1))`` (end exclusive): the
             bounding box of ``moved`` over the batch dilated by one hop, clipped to the grid.
     """
+
     positions: torch.Tensor
     moved: torch.Tensor
     sweeps: int
@@ -80,7 +82,7 @@ def _bounding_box(m: torch.Tensor, shape, pad: int = 1) -> tuple:
 
     Dilated by ``pad`` and clipped to ``shape`` (one sync); ``m`` must have a True entry.
     """
-    any_ = m.reshape(-1, *shape).any(0)                     # contiguous reductions only (fast)
+    any_ = m.reshape(-1, *shape).any(0)  # contiguous reductions only (fast)
     hw = any_.any(0)
     ends = []
     for a, (n, prof) in enumerate(zip(shape, (any_.flatten(1).any(1), hw.any(1), hw.any(0)))):
@@ -156,6 +158,7 @@ def _hops(picked: torch.Tensor, grid: Grid, moved: torch.Tensor, links=None, box
         idx = _index(box)
         lk = None if links is None else links[(slice(None), slice(None), *idx[1:])]
         return nodes[idx], moved[idx], lk, _box_grid(grid, box)
+
     nodes_b, moved_b, lk_b, g = views(box)
     reach = picked[_index(box)].clone()
     depth = torch.zeros(picked.shape[0], dtype=torch.long, device=picked.device)
@@ -178,8 +181,16 @@ def _hops(picked: torch.Tensor, grid: Grid, moved: torch.Tensor, links=None, box
 
 
 # ------------------------------------------------------------------ sweeps
-def tensor_chainmail(positions: torch.Tensor, grid: Grid, limits: Limits, picked, displacement,
-                     fixed=None, max_sweeps: int | None = None, links=None) -> SweepResult:
+def tensor_chainmail(
+    positions: torch.Tensor,
+    grid: Grid,
+    limits: Limits,
+    picked,
+    displacement,
+    fixed=None,
+    max_sweeps: int | None = None,
+    links=None,
+) -> SweepResult:
     """Batched ChainMail by sponsor-front Jacobi sweeps (torch ops only, any device).
 
     The picked elements move rigidly by their body's displacement. Each sweep, every free
@@ -240,17 +251,20 @@ def tensor_chainmail(positions: torch.Tensor, grid: Grid, limits: Limits, picked
     dev, dt, B, shape = x.device, x.dtype, x.shape[0], grid.shape
 
     def mask(value, key):
-        m = torch.as_tensor(value, dtype=torch.bool, device=dev) if not torch.is_tensor(value) \
+        m = (
+            torch.as_tensor(value, dtype=torch.bool, device=dev)
+            if not torch.is_tensor(value)
             else value.to(device=dev, dtype=torch.bool)
+        )
         if tuple(m.shape) == shape:
             m = m.unsqueeze(0)
         if m.dim() != 4 or tuple(m.shape[1:]) != shape or m.shape[0] not in (1, B):
             raise ConfigError(key, f"a bool (D, H, W) or (B, D, H, W) mask with grid {shape}", tuple(m.shape))
-        return m.unsqueeze(1)                                    # (1|B, 1, D, H, W)
+        return m.unsqueeze(1)  # (1|B, 1, D, H, W)
 
     nodes = _exists(grid, dev).view(1, 1, *shape)
     pick = mask(picked, "picked") & nodes
-    box = _bounding_box(pick, shape) if bool(pick.any()) else None      # the active box (see below)
+    box = _bounding_box(pick, shape) if bool(pick.any()) else None  # the active box (see below)
     if box is None or not bool(pick[_index(box)].flatten(1).any(1).expand(B).all()):
         raise ConfigError("picked", "at least one element inside the body for every batch entry", "none")
     fix = mask(fixed, "fixed") & nodes if fixed is not None else None
@@ -267,7 +281,7 @@ def tensor_chainmail(positions: torch.Tensor, grid: Grid, limits: Limits, picked
     pull, push = sign > 0, sign < 0
     if max_sweeps is not None:
         limit = max_sweeps
-    else:                               # a path around a cut may be as long as the body has elements
+    else:  # a path around a cut may be as long as the body has elements
         limit = 2 * sum(shape) if lk is None else max(2 * sum(shape), grid.num_nodes)
 
     # the active box: everything below is box-local (offsets u, rest positions X, masks, limits)
@@ -285,6 +299,7 @@ def tensor_chainmail(positions: torch.Tensor, grid: Grid, limits: Limits, picked
         lkb = None if lk is None else lk[(slice(None), slice(None), *idx[1:])]
         bnd = tuple(t if t.dim() == 1 else t[(slice(None), *idx[1:])] for t in bounds)
         return moved[idx], free, lkb, bnd, _box_grid(grid, box)
+
     moved_b, free_b, lk_b, bounds_b, g = views(box)
     sweeps = checked = 0
     for _ in range(limit):
@@ -297,9 +312,9 @@ def tensor_chainmail(positions: torch.Tensor, grid: Grid, limits: Limits, picked
         if not flags[0]:
             break
         sweeps += 1
-        moved_b |= changed                                       # a view: writes into moved
+        moved_b |= changed  # a view: writes into moved
         u = new
-        if any(flags[1:]):                                       # the front reached a side: grow
+        if any(flags[1:]):  # the front reached a side: grow
             bigger = _grown(box, flags[1:])
             X = grid.rest_positions(dt, dev, bigger)
             fresh = x[_index(bigger)] - X
@@ -313,7 +328,8 @@ def tensor_chainmail(positions: torch.Tensor, grid: Grid, limits: Limits, picked
     depth = _hops(pick[:, 0].expand(B, *shape), grid, moved4, lk, box)
     # every link of a moved element lies in the box (the rest kept their start positions)
     g = _box_grid(grid, box, node_mask=True)
-    box_limits = Limits(g, *(t if t.dim() == 1 else t[(slice(None), *idx[1:])]
-                             for t in (limits.min, limits.max, limits.shear)))
+    box_limits = Limits(
+        g, *(t if t.dim() == 1 else t[(slice(None), *idx[1:])] for t in (limits.min, limits.max, limits.shear))
+    )
     violation = limit_violation(xn[idx], g, box_limits, links=lk_b)
     return SweepResult(xn, moved4, sweeps, depth, violation, checked, box)

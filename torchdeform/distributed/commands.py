@@ -15,6 +15,7 @@ not exist, a value of the wrong type) ends every rank with exit status 2 and one
 by rank 0 (``torchrun`` adds its own failure report after it). See
 :mod:`torchdeform.distributed.sweep` for the rows, the records and the resume.
 """
+
 from __future__ import annotations
 
 import os
@@ -29,13 +30,25 @@ __all__ = ["add_arguments", "command", "rank_and_world", "run_command"]
 def add_arguments(p) -> None:
     """The options of ``torchdeform sweep``."""
     p.add_argument("scene", help="the scene file (.toml, mass-spring)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=V1,V2,...",
-                   help="a scene key and its values (repeatable: the Cartesian product is swept)")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=V1,V2,...",
+        help="a scene key and its values (repeatable: the Cartesian product is swept)",
+    )
     p.add_argument("--points", default=None, help="a CSV list of points instead (header: scene keys)")
     p.add_argument("--out", required=True, help="output folder (sweep.csv, sweep.png, records/)")
-    p.add_argument("--device", default=None, help="cpu or cuda (default: the scene's; cuda:<local rank> under torchrun)")
-    p.add_argument("--batch", type=integer(lo=1), default=32, help="points simulated together when they differ only in "
-                                                         "material.stiffness/damping (default 32; 1: one by one)")
+    p.add_argument(
+        "--device", default=None, help="cpu or cuda (default: the scene's; cuda:<local rank> under torchrun)"
+    )
+    p.add_argument(
+        "--batch",
+        type=integer(lo=1),
+        default=32,
+        help="points simulated together when they differ only in "
+        "material.stiffness/damping (default 32; 1: one by one)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -53,6 +66,7 @@ def run_command(args) -> int:
     """``torchdeform run``: one process as usual; under ``torchrun`` (2 or more ranks) the body split over ranks."""
     if rank_and_world()[1] <= 1:
         from ..scene.commands import run_command as run_one
+
         return run_one(args)
     return _on_every_rank(_run_decomposed, args)
 
@@ -60,6 +74,7 @@ def run_command(args) -> int:
 def _on_every_rank(work, args) -> int:
     """``work(args, rank, world)``; a user's mistake is exit status 2 on every rank and one line, from rank 0."""
     from ..errors import TorchdeformError
+
     rank, world = rank_and_world()
     try:
         return work(args, rank, world)
@@ -72,25 +87,38 @@ def _on_every_rank(work, args) -> int:
 def scene_cuts(scene) -> list:
     """``[(time, blade), ...]`` of a scene's ``[[cuts]]`` blades; anything else a decomposed run cannot do is refused."""
     from ..errors import ConfigError
+
     topo = scene.topology
     if scene.tools is not None and (scene.tools.tools or getattr(scene.tools, "strain_limit", None)):
-        raise ConfigError("tools", "no [[tools]] or [strain_limit] in a domain-decomposed run (they need the whole "
-                                   "body); run it on one rank", "tools")
+        raise ConfigError(
+            "tools",
+            "no [[tools]] or [strain_limit] in a domain-decomposed run (they need the whole body); run it on one rank",
+            "tools",
+        )
     if topo is None:
         return []
-    for key, items in (("cautery", topo.cautery), ("tear", topo.tear), ("coagulate", topo.coagulate),
-                       ("output.surfaces", topo.surfaces)):
+    for key, items in (
+        ("cautery", topo.cautery),
+        ("tear", topo.tear),
+        ("coagulate", topo.coagulate),
+        ("output.surfaces", topo.surfaces),
+    ):
         if items:
-            raise scene.source.error(key, "only [[cuts]] blades in a domain-decomposed run; run it on one rank",
-                                     key)
+            raise scene.source.error(key, "only [[cuts]] blades in a domain-decomposed run; run it on one rank", key)
     out = []
     for c in topo.cuts:
         if "blade" not in c:
-            raise scene.source.error(c["key"] + ".tool", "a blade (origin/u/v, triangle, edges) in a "
-                                     "domain-decomposed run, not a scalpel", c.get("tool"))
+            raise scene.source.error(
+                c["key"] + ".tool",
+                "a blade (origin/u/v, triangle, edges) in a domain-decomposed run, not a scalpel",
+                c.get("tool"),
+            )
         if c.get("gape"):
-            raise scene.source.error(c["key"] + ".gape", "0 in a domain-decomposed run (pre-tension reaches "
-                                     "springs beyond the one-layer halo)", c["gape"])
+            raise scene.source.error(
+                c["key"] + ".gape",
+                "0 in a domain-decomposed run (pre-tension reaches springs beyond the one-layer halo)",
+                c["gape"],
+            )
         out.append((c["at"], c["blade"]))
     return out
 
@@ -105,25 +133,34 @@ def _run_decomposed(args, rank: int, world: int) -> int:
     from ..scene.run import finish_outputs, load_scene, report, run_outputs
     from ..sim.stability import check_dt, time_step_bound
     from .domain import SUPPORTED_INTEGRATORS, decomposed_simulate, slab_rows
+
     if args.device is not None:
-        usable_device(args.device.replace("cuda", f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}")
-                      if args.device == "cuda" else args.device, "--device")
+        usable_device(
+            args.device.replace("cuda", f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}")
+            if args.device == "cuda"
+            else args.device,
+            "--device",
+        )
     folder = RunFolder(args.out, args.force)
-    folder.check()                                             # every rank, before any collective
+    folder.check()  # every rank, before any collective
     scene = load_scene(args.scene)
     if not isinstance(scene, Scene):
         raise ConfigError("model", "a mass-spring scene in a domain-decomposed run", "chainmail")
     if getattr(args, "animation", False) or scene.animation or scene.volume or scene.texture:
-        raise ConfigError("run", "no animation, [volume] or [texture] in a domain-decomposed run (yet); "
-                                 "run it on one rank", "torchrun")
+        raise ConfigError(
+            "run",
+            "no animation, [volume] or [texture] in a domain-decomposed run (yet); run it on one rank",
+            "torchrun",
+        )
     integrator = scene.integrator
     if integrator.name not in SUPPORTED_INTEGRATORS:
-        raise scene.source.error("integrator.name", f"one of {', '.join(SUPPORTED_INTEGRATORS)} in a "
-                                 "domain-decomposed run", integrator.name)
+        raise scene.source.error(
+            "integrator.name", f"one of {', '.join(SUPPORTED_INTEGRATORS)} in a domain-decomposed run", integrator.name
+        )
     cuts = scene_cuts(scene)
-    slab_rows(scene.grid.shape[0], world)                      # more ranks than rows: refused before any work
+    slab_rows(scene.grid.shape[0], world)  # more ranks than rows: refused before any work
     device = args.device or scene.device or "cpu"
-    if str(device) == "cuda":                                  # one GPU per rank on each machine
+    if str(device) == "cuda":  # one GPU per rank on each machine
         device = f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}"
     model = scene.build(device)
     bound = time_step_bound(model, integrator)
@@ -133,28 +170,52 @@ def _run_decomposed(args, rank: int, world: int) -> int:
     if integrator.name in EXPLICIT and rank == 0:
         check_dt(model, dt, integrator, bound)
     import torch.distributed as dist
+
     if not dist.is_initialized():
         dist.init_process_group("nccl" if model.device.type == "cuda" else "gloo")
     if model.device.type == "cuda":
         torch.cuda.set_device(model.device)
     try:
-        run = decomposed_simulate(model, model.rest_state(), dt, scene.steps, integrator,
-                                  record_every=scene.frames_every, progress=not args.quiet, cuts=cuts)
+        run = decomposed_simulate(
+            model,
+            model.rest_state(),
+            dt,
+            scene.steps,
+            integrator,
+            record_every=scene.frames_every,
+            progress=not args.quiet,
+            cuts=cuts,
+        )
         parts = [None] * world
         dist.all_gather_object(parts, run.summary())
         if rank == 0:
-            engine = {"requested": scene.engine, "ran": "eager", "why": f"domain-decomposed over {world} ranks",
-                      "eager_ms_per_step": None, "native_ms_per_step": None, "compile_s": None, "force_form": None, "threads": None}
+            engine = {
+                "requested": scene.engine,
+                "ran": "eager",
+                "why": f"domain-decomposed over {world} ranks",
+                "eager_ms_per_step": None,
+                "native_ms_per_step": None,
+                "compile_s": None,
+                "force_form": None,
+                "threads": None,
+            }
             with folder as out:
-                summary, (t, _, _, series) = run_outputs(scene, run.whole, integrator, dt, bound, run.final,
-                                                         run.record, run.wall_s, engine, out)
+                summary, (t, _, _, series) = run_outputs(
+                    scene, run.whole, integrator, dt, bound, run.final, run.record, run.wall_s, engine, out
+                )
                 # (spring energies of every frame use the final springs here: before a cut they differ
                 # from a one-process run, which records each frame's own)
-                summary["domain"] = {"ranks": world, "axis": "D", "halo_rows": 1, "per_rank": parts,
-                                     "comm_share": max(p["comm_share"] for p in parts),
-                                     "spring_energies": "final springs" if cuts else "as one process"}
-                finish_outputs(summary, out, t, series,
-                               f"{scene.name}: {integrator.name}, dt = {dt:.3g} s, {world} ranks")
+                summary["domain"] = {
+                    "ranks": world,
+                    "axis": "D",
+                    "halo_rows": 1,
+                    "per_rank": parts,
+                    "comm_share": max(p["comm_share"] for p in parts),
+                    "spring_energies": "final springs" if cuts else "as one process",
+                }
+                finish_outputs(
+                    summary, out, t, series, f"{scene.name}: {integrator.name}, dt = {dt:.3g} s, {world} ranks"
+                )
             print(report(summary, args.out))
     finally:
         dist.barrier()
@@ -165,6 +226,7 @@ def _run_decomposed(args, rank: int, world: int) -> int:
 def _points(args) -> tuple[list, list]:
     from ..errors import ConfigError
     from .sweep import check_key, parse_set, product, read_points
+
     if bool(args.set) == bool(args.points):
         raise ConfigError("sweep", "--set KEY=V1,V2,... (repeatable) or --points FILE.csv, not both", None)
     if args.points:
@@ -187,12 +249,13 @@ def _sweep(args, rank: int, world: int) -> int:
     from ..errors import ConfigError
     from ..scene.reader import read
     from .sweep import batches, done_points, plot, point_id, point_scene, record, run_batch, write_table
+
     keys, points = _points(args)
     src, data = read(args.scene)
     if data.get("model", "mass-spring") != "mass-spring":
         raise ConfigError("sweep", "a mass-spring scene file", data.get("model"))
     base, name = Path(args.scene).parent, Path(args.scene).stem
-    scenes = [point_scene(src, data, base, name, p) for p in points]          # every point checked first
+    scenes = [point_scene(src, data, base, name, p) for p in points]  # every point checked first
     ids = [point_id(p) for p in points]
     if len(set(ids)) != len(ids):
         raise ConfigError("sweep", "distinct points", "a point given twice")
@@ -210,14 +273,23 @@ def _sweep(args, rank: int, world: int) -> int:
     try:
         if rank == 0:
             skipped = sum(i in done for i in ids)
-            print(f"sweep: {len(points)} points in {len(work)} batch{'es' if len(work) != 1 else ''} over {world} "
-                  f"rank{'s' if world > 1 else ''}"
-                  + (f", {skipped} already done (records in {out / 'records'})" if skipped else ""), file=sys.stderr)
+            print(
+                f"sweep: {len(points)} points in {len(work)} batch{'es' if len(work) != 1 else ''} over {world} "
+                f"rank{'s' if world > 1 else ''}"
+                + (f", {skipped} already done (records in {out / 'records'})" if skipped else ""),
+                file=sys.stderr,
+            )
         out.mkdir(parents=True, exist_ok=True)
         rows = {}
         from tqdm.auto import tqdm
-        with tqdm(total=sum(map(len, mine)), desc=f"sweep (rank {rank})" if world > 1 else "sweep", unit="point",
-                  disable=args.quiet or rank != 0 or None, file=sys.stderr) as bar:
+
+        with tqdm(
+            total=sum(map(len, mine)),
+            desc=f"sweep (rank {rank})" if world > 1 else "sweep",
+            unit="point",
+            disable=args.quiet or rank != 0 or None,
+            file=sys.stderr,
+        ) as bar:
             for batch in mine:
                 for i, row in zip(batch, run_batch([scenes[i] for i in batch], device)):
                     record(out, rank, ids[i], row)
@@ -235,7 +307,7 @@ def _sweep(args, rank: int, world: int) -> int:
             bad = sum(r["status"] != "ok" for r in table)
             print(f"wrote {path} ({len(table)} points" + (f", {bad} diverged" if bad else "") + ")", file=sys.stderr)
     finally:
-        if group:                     # leave together: a rank that tears down early can abort its peers
+        if group:  # leave together: a rank that tears down early can abort its peers
             torch.distributed.barrier()
             torch.distributed.destroy_process_group()
     return 0
@@ -250,6 +322,7 @@ def _init(world: int) -> bool:
     # torchdeform.distributed.data_parallel.process_group)
     import torch._dynamo  # noqa: F401
     import torch.distributed as dist
+
     if not dist.is_initialized():
         dist.init_process_group("gloo")
     return True

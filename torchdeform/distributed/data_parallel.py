@@ -70,6 +70,7 @@ communication):
     >>> abs((sum(parts) / loss(params)).item() - 1) < 1e-14
     True
 """
+
 from __future__ import annotations
 
 import pickle
@@ -105,6 +106,7 @@ def shard(n: int, rank: int, world: int) -> range:
 def _gather_sum(t: torch.Tensor, group, world: int) -> torch.Tensor:
     """Every rank's ``t`` added in rank order: the same bits on every rank (``(world,) + shape`` gathered)."""
     import torch.distributed as dist
+
     parts = [torch.empty_like(t) for _ in range(world)]
     dist.all_gather(parts, t.contiguous(), group=group)
     return torch.stack(parts).sum(0)
@@ -176,6 +178,7 @@ class ShardedLoss:
 
     def __init__(self, losses, *, rank: int | None = None, world: int | None = None, group=None):
         import torch.distributed as dist
+
         self.losses = list(losses) if isinstance(losses, (list, tuple)) else [losses]
         if not self.losses or not all(hasattr(x, "num_windows") and callable(x) for x in self.losses):
             raise ConfigError("losses", "a WindowLoss or a non-empty list of them", losses)
@@ -183,7 +186,7 @@ class ShardedLoss:
         self.group = group
         self.rank = int(rank if rank is not None else dist.get_rank(group) if joined else 0)
         self.world = int(world if world is not None else dist.get_world_size(group) if joined else 1)
-        shard(0, self.rank, self.world)                                   # checks rank and world
+        shard(0, self.rank, self.world)  # checks rank and world
         self.offsets = [0]
         for x in self.losses:
             self.offsets.append(self.offsets[-1] + int(x.num_windows))
@@ -229,9 +232,13 @@ class ShardedLoss:
         if self.world == 1:
             return self.partial(params, windows)
         import torch.distributed as dist
+
         if not (dist.is_available() and dist.is_initialized()):
-            raise ConfigError("ShardedLoss", f"an initialised torch.distributed process group for {self.world} "
-                                             "ranks (torchrun; see process_group)", None)
+            raise ConfigError(
+                "ShardedLoss",
+                f"an initialised torch.distributed process group for {self.world} ranks (torchrun; see process_group)",
+                None,
+            )
         shared = None
         failure = None
         try:
@@ -239,12 +246,16 @@ class ShardedLoss:
                 model, shared = self._shared_model(params)
             else:
                 model = params
-                if torch.is_grad_enabled() and any(torch.is_tensor(t) and t.requires_grad for t in
-                                                   (model.stiffness, model.damping, model.mass)):
-                    raise ConfigError("params", "a Parameters (a model's own tensors get no gradient from the "
-                                                "other ranks)", type(params).__name__)
+                if torch.is_grad_enabled() and any(
+                    torch.is_tensor(t) and t.requires_grad for t in (model.stiffness, model.damping, model.mass)
+                ):
+                    raise ConfigError(
+                        "params",
+                        "a Parameters (a model's own tensors get no gradient from the other ranks)",
+                        type(params).__name__,
+                    )
             local = self._local(model, windows)
-        except TorchdeformError as e:                     # flagged in the collective below: every rank raises
+        except TorchdeformError as e:  # flagged in the collective below: every rank raises
             failure, local = e, None
         if local is None:
             local = torch.zeros((), dtype=self.dtype) if shared is None else shared.sum() * 0
@@ -268,12 +279,13 @@ class ShardedLoss:
     def _raise(self, failure):
         """Raise on every rank the error of the first rank that failed (its own on that rank)."""
         import torch.distributed as dist
+
         info = None
         if failure is not None:
             info = (type(failure), failure.args, dict(vars(failure)))
             try:
                 pickle.dumps(info)
-            except Exception:                                         # noqa: BLE001 (unpicklable details)
+            except Exception:  # noqa: BLE001 (unpicklable details)
                 info = (TorchdeformError, (str(failure),), {})
         infos = [None] * self.world
         dist.all_gather_object(infos, info, group=self.group)
@@ -289,6 +301,7 @@ class ShardedLoss:
         """Wait for every rank (no-op on one)."""
         if self.world > 1:
             import torch.distributed as dist
+
             dist.barrier(group=self.group)
 
 
@@ -318,6 +331,7 @@ def is_main() -> bool:
         True
     """
     import torch.distributed as dist
+
     return not (dist.is_available() and dist.is_initialized()) or dist.get_rank() == 0
 
 
@@ -344,6 +358,7 @@ def process_group(backend: str = "gloo"):
         # three-rank runs of the tests). Imported before the group exists, it holds none.
         import torch._dynamo  # noqa: F401
         import torch.distributed as dist
+
         if not dist.is_initialized():
             dist.init_process_group(backend)
             started = True

@@ -34,6 +34,7 @@ launched with ``torchrun --nproc-per-node 2``, each rank runs half the body)::
     >>> run.final.x.shape, bool((run.final.x == final.x).all()), run.record["x"].shape
     (torch.Size([1, 3, 6, 4, 4]), True, torch.Size([3, 1, 3, 6, 4, 4]))
 """
+
 from __future__ import annotations
 
 import copy
@@ -50,8 +51,15 @@ from ..sim.model import Model, State
 from ..sim.springs import Linearisation
 from ..sim.stability import DivergenceMonitor
 
-__all__ = ["slab_rows", "Halo", "SlabModel", "decompose", "DecomposedRun", "decomposed_simulate",
-           "SUPPORTED_INTEGRATORS"]
+__all__ = [
+    "slab_rows",
+    "Halo",
+    "SlabModel",
+    "decompose",
+    "DecomposedRun",
+    "decomposed_simulate",
+    "SUPPORTED_INTEGRATORS",
+]
 
 #: the integrators a decomposed run takes (by ``name``)
 SUPPORTED_INTEGRATORS = ("explicit", "symplectic", "verlet", "rk4", "implicit")
@@ -66,8 +74,12 @@ def slab_rows(depth: int, world: int) -> list:
         ConfigError: more ranks than rows (each rank needs a slab of at least one row).
     """
     if world > depth:
-        raise ConfigError("ranks", f"at most {depth} ranks for a grid of {depth} rows along D (each rank "
-                                   f"simulates a slab of at least one row)", world)
+        raise ConfigError(
+            "ranks",
+            f"at most {depth} ranks for a grid of {depth} rows along D (each rank "
+            f"simulates a slab of at least one row)",
+            world,
+        )
     base, extra = divmod(depth, world)
     out, lo = [], 0
     for r in range(world):
@@ -89,6 +101,7 @@ class Halo:
         exchanges: exchanges so far.
         bytes: bytes this rank sent so far.
     """
+
     rank: int
     world: int
     below: bool
@@ -103,6 +116,7 @@ class Halo:
         if not (self.below or self.above):
             return
         import torch.distributed as dist
+
         t0 = time.perf_counter()
         ops, recv = [], []
         for side, (own, halo, peer) in (("below", (1, 0, self.rank - 1)), ("above", (-2, -1, self.rank + 1))):
@@ -118,7 +132,7 @@ class Halo:
         for halo, got in recv:
             c = 0
             for f in fields:
-                f[:, :, halo] = got[:, c:c + f.shape[1]]
+                f[:, :, halo] = got[:, c : c + f.shape[1]]
                 c += f.shape[1]
         self.exchanges += 1
         self.seconds += time.perf_counter() - t0
@@ -128,6 +142,7 @@ class Halo:
         if self.world == 1:
             return t
         import torch.distributed as dist
+
         t0 = time.perf_counter()
         dist.all_reduce(t, op=op or dist.ReduceOp.SUM, group=self.group)
         self.seconds += time.perf_counter() - t0
@@ -136,6 +151,7 @@ class Halo:
 
 class _SlabLinearisation(Linearisation):
     """A linearisation whose products first refresh the halo of their argument."""
+
     halo: Halo
 
     def scaled(self, *args, **kwargs):
@@ -213,8 +229,12 @@ def decompose(model: Model, rank: int, world: int, group=None) -> SlabModel:
         ConfigError: more ranks than rows, tool interactions, or a slab without any existing node.
     """
     if model.interactions:
-        raise ConfigError("interactions", "no tool interactions in a domain-decomposed run (contact and grasps "
-                                          "need the whole body); run it on one rank", len(model.interactions))
+        raise ConfigError(
+            "interactions",
+            "no tool interactions in a domain-decomposed run (contact and grasps "
+            "need the whole body); run it on one rank",
+            len(model.interactions),
+        )
     grid = model.grid
     lo, hi = slab_rows(grid.shape[0], world)[rank]
     below, above = rank > 0, rank < world - 1
@@ -222,14 +242,26 @@ def decompose(model: Model, rank: int, world: int, group=None) -> SlabModel:
     shape = grid.shape
     mask = None if grid.node_mask is None else grid.node_mask[e_lo:e_hi]
     if mask is not None and not bool(mask.any()):
-        raise ConfigError("ranks", f"fewer ranks: rank {rank}'s slab (rows {lo}..{hi - 1} along D) has no node of "
-                                   "the body", world)
+        raise ConfigError(
+            "ranks", f"fewer ranks: rank {rank}'s slab (rows {lo}..{hi - 1} along D) has no node of the body", world
+        )
     origin = (grid.origin[0] + e_lo * grid.spacing[0],) + tuple(grid.origin[1:])
     local = copy.copy(model)
     local.__class__ = SlabModel
     local.grid = Grid((e_hi - e_lo,) + shape[1:], grid.spacing, grid.topology, mask, origin)
-    for name in ("X", "stiffness", "damping", "rest_length", "mass", "inv_mass", "free", "k_home", "removed",
-                 "cut_nodes", "constrained"):
+    for name in (
+        "X",
+        "stiffness",
+        "damping",
+        "rest_length",
+        "mass",
+        "inv_mass",
+        "free",
+        "k_home",
+        "removed",
+        "cut_nodes",
+        "constrained",
+    ):
         setattr(local, name, _rows(getattr(model, name), e_lo, e_hi, shape))
     local.law_params = tuple(_rows(p, e_lo, e_hi, shape) for p in model.law_params)
     local.drag_masks = [_rows(m, e_lo, e_hi, shape) for m in model.drag_masks]
@@ -258,6 +290,7 @@ class DecomposedRun:
         comm_s: of which in halo exchanges and reductions (s).
         steps: steps run.
     """
+
     final: State | None
     record: dict
     whole: Model | None
@@ -277,22 +310,42 @@ class DecomposedRun:
         """The ``"domain"`` part of a run's summary: ranks, slabs, bytes and time communicating."""
         m = self.model
         halo = m.halo
-        return {"ranks": halo.world, "axis": "D", "rows": list(m.rows), "halo_rows": 1,
-                "exchanges": halo.exchanges, "bytes_sent": halo.bytes,
-                "bytes_per_exchange": halo.bytes // halo.exchanges if halo.exchanges else 0,
-                "comm_s": self.comm_s, "wall_s": self.wall_s, "comm_share": self.comm_share, **self.extra}
+        return {
+            "ranks": halo.world,
+            "axis": "D",
+            "rows": list(m.rows),
+            "halo_rows": 1,
+            "exchanges": halo.exchanges,
+            "bytes_sent": halo.bytes,
+            "bytes_per_exchange": halo.bytes // halo.exchanges if halo.exchanges else 0,
+            "comm_s": self.comm_s,
+            "wall_s": self.wall_s,
+            "comm_share": self.comm_share,
+            **self.extra,
+        }
 
 
 def _rank_and_world(group):
     import torch.distributed as dist
+
     if dist.is_available() and dist.is_initialized():
         return dist.get_rank(group), dist.get_world_size(group)
     return 0, 1
 
 
-def decomposed_simulate(model: Model, state: State, dt: float, steps: int, integrator=None, *,
-                        record_every: int | None = None, check_every: int = 10, progress: bool = False,
-                        cuts=(), group=None) -> DecomposedRun:
+def decomposed_simulate(
+    model: Model,
+    state: State,
+    dt: float,
+    steps: int,
+    integrator=None,
+    *,
+    record_every: int | None = None,
+    check_every: int = 10,
+    progress: bool = False,
+    cuts=(),
+    group=None,
+) -> DecomposedRun:
     """Run ``steps`` steps of ``model`` split over the ranks of ``group`` (one process: the whole body).
 
     Every rank calls it with the same global model and start state; rank 0 gets the gathered
@@ -318,10 +371,12 @@ def decomposed_simulate(model: Model, state: State, dt: float, steps: int, integ
     """
     import torch.distributed as dist
     from tqdm.auto import tqdm
+
     integrator = integrator or SymplecticEuler()
     if integrator.name not in SUPPORTED_INTEGRATORS:
-        raise ConfigError("integrator.name", f"one of {', '.join(SUPPORTED_INTEGRATORS)} in a domain-decomposed run",
-                          integrator.name)
+        raise ConfigError(
+            "integrator.name", f"one of {', '.join(SUPPORTED_INTEGRATORS)} in a domain-decomposed run", integrator.name
+        )
     steps = int(steps)
     if steps < 0:
         raise ConfigError("steps", "an integer >= 0", steps)
@@ -329,8 +384,8 @@ def decomposed_simulate(model: Model, state: State, dt: float, steps: int, integ
     local = decompose(model, rank, world, group)
     e_lo, e_hi = local.extent
     own = local.owned
-    state = model.start(state)                        # fixed nodes at rest, dragged nodes on their path
-    monitor = DivergenceMonitor(model, dt, integrator)      # the whole body's energy scale and safe dt
+    state = model.start(state)  # fixed nodes at rest, dragged nodes on their path
+    monitor = DivergenceMonitor(model, dt, integrator)  # the whole body's energy scale and safe dt
     st = State(state.x[:, :, e_lo:e_hi].clone(), state.v[:, :, e_lo:e_hi].clone(), state.t)
     pending = sorted(((float(at), blade) for at, blade in cuts), key=lambda c: c[0])
     ts, xs, vs = [], [], []
@@ -348,6 +403,7 @@ def decomposed_simulate(model: Model, state: State, dt: float, steps: int, integ
             t0 = time.perf_counter()
             while pending and st.t >= pending[0][0] - 1e-6 * dt:
                 from ..topology import cut
+
                 local.halo.exchange(st.x)
                 cut(local, st.x, pending.pop(0)[1])
             st = integrator.step(local, st, dt)
@@ -357,7 +413,7 @@ def decomposed_simulate(model: Model, state: State, dt: float, steps: int, integ
                 # the slabs (on the state's device: NCCL reduces there); then the checks of one process
                 x_own, v_own = st.x[:, :, own], st.v[:, :, own]
                 bad = (~torch.isfinite(x_own)).sum() + (~torch.isfinite(v_own)).sum()
-                mass = local.mass if local.mass.shape[2] == 1 else local.mass[:, :, own]    # uniform: (1, 1, 1, 1, 1)
+                mass = local.mass if local.mass.shape[2] == 1 else local.mass[:, :, own]  # uniform: (1, 1, 1, 1, 1)
                 ke = (0.5 * mass * v_own * v_own).flatten(1).sum(1)
                 sums = torch.cat([bad.to(ke.dtype).reshape(1), torch.nan_to_num(ke, nan=0.0, posinf=0.0)])
                 if world > 1:
@@ -380,12 +436,21 @@ def _gather(local: SlabModel, st: State, ts, xs, vs, rank: int, world: int, grou
     """The final state, the records and the edited global model, gathered to rank 0 (None elsewhere)."""
     own = local.owned
     shape = local.grid.shape
-    edited = {name: getattr(local, name)[..., own, :, :].cpu() for name in EDITED
-              if torch.is_tensor(getattr(local, name)) and tuple(getattr(local, name).shape[-3:]) == shape}
-    mine = (st.x[:, :, own].detach().cpu(), st.v[:, :, own].detach().cpu(),
-            torch.stack(xs) if xs else None, torch.stack(vs) if vs else None, edited)
+    edited = {
+        name: getattr(local, name)[..., own, :, :].cpu()
+        for name in EDITED
+        if torch.is_tensor(getattr(local, name)) and tuple(getattr(local, name).shape[-3:]) == shape
+    }
+    mine = (
+        st.x[:, :, own].detach().cpu(),
+        st.v[:, :, own].detach().cpu(),
+        torch.stack(xs) if xs else None,
+        torch.stack(vs) if vs else None,
+        edited,
+    )
     if world > 1:
         import torch.distributed as dist
+
         parts = [None] * world if rank == 0 else None
         dist.gather_object(mine, parts, dst=0, group=group)
         if rank != 0:
@@ -396,8 +461,11 @@ def _gather(local: SlabModel, st: State, ts, xs, vs, rank: int, world: int, grou
     final = State(torch.cat([p[0] for p in parts], 2).to(dev), torch.cat([p[1] for p in parts], 2).to(dev), st.t)
     rec = {}
     if xs:
-        rec = {"t": torch.tensor(ts, dtype=torch.float64), "x": torch.cat([p[2] for p in parts], 3),
-               "v": torch.cat([p[3] for p in parts], 3)}
+        rec = {
+            "t": torch.tensor(ts, dtype=torch.float64),
+            "x": torch.cat([p[2] for p in parts], 3),
+            "v": torch.cat([p[3] for p in parts], 3),
+        }
     whole = copy.copy(local.whole)
     for name in parts[0][4]:
         setattr(whole, name, torch.cat([p[4][name] for p in parts], -3).to(dev))

@@ -32,6 +32,7 @@ Examples:
     >>> product([("material.stiffness", [1, 2]), ("integrator.dt", [1e-4, 2e-4])])[1]
     {'material.stiffness': 1, 'integrator.dt': 0.0002}
 """
+
 from __future__ import annotations
 
 import copy
@@ -47,12 +48,38 @@ import tomllib
 from ..checks import read_text
 from ..errors import ConfigError, DivergenceError
 
-__all__ = ["parse_set", "parse_value", "product", "read_points", "check_key", "point_scene", "run_point",
-           "run_batch", "batches", "point_id", "done_points", "record", "write_table", "FIGURES", "BATCHED"]
+__all__ = [
+    "parse_set",
+    "parse_value",
+    "product",
+    "read_points",
+    "check_key",
+    "point_scene",
+    "run_point",
+    "run_batch",
+    "batches",
+    "point_id",
+    "done_points",
+    "record",
+    "write_table",
+    "FIGURES",
+    "BATCHED",
+]
 
 #: the summary figures of a point's row, after its values
-FIGURES = ("status", "max_displacement_m", "peak_displacement_m", "max_free_displacement_m", "kinetic_J", "total_J",
-           "steps", "dt_s", "engine", "batch", "wall_s")
+FIGURES = (
+    "status",
+    "max_displacement_m",
+    "peak_displacement_m",
+    "max_free_displacement_m",
+    "kinetic_J",
+    "total_J",
+    "steps",
+    "dt_s",
+    "engine",
+    "batch",
+    "wall_s",
+)
 #: the keys whose points run batched (stacked along the models' batch axis)
 BATCHED = ("material.stiffness", "material.damping")
 #: sections a sweep key may name (the array-of-tables sections hold lists, not keys)
@@ -104,14 +131,18 @@ def check_key(key: str) -> None:
     """Raise a :class:`ConfigError` unless ``key`` is ``section.key`` of a mass-spring scene file."""
     from ..scene.mass_spring import INTEGRATOR_OPTIONS
     from ..scene.reader import SECTIONS
+
     section, _, name = key.partition(".")
     known = SECTIONS.get(section, ())
     if section == "integrator":
         known = known + tuple(k for opts in INTEGRATOR_OPTIONS.values() for k in opts)
     if section in _LISTS or name not in known or "." in name:
         sections = ", ".join(s for s in SECTIONS if s not in _LISTS)
-        raise ConfigError("--set", f"SECTION.KEY of a scene file (sections {sections}; "
-                                   f"{section}: {', '.join(known) or 'no such section'})", key)
+        raise ConfigError(
+            "--set",
+            f"SECTION.KEY of a scene file (sections {sections}; {section}: {', '.join(known) or 'no such section'})",
+            key,
+        )
 
 
 def point_id(values: dict) -> str:
@@ -126,6 +157,7 @@ def point_scene(src, data: dict, base: Path, name: str, values: dict):
     """
     from ..scene.mass_spring import mass_spring_scene
     from ..scene.reader import Source
+
     data = copy.deepcopy(data)
     for key, value in values.items():
         section, _, k = key.partition(".")
@@ -135,11 +167,18 @@ def point_scene(src, data: dict, base: Path, name: str, values: dict):
     except ConfigError as e:
         if e.key in values:
             raise ConfigError(f"--set {e.key}", e.expected, values[e.key]) from None
-        raise ConfigError(e.key, e.expected, e.got if e.show_got else None, file=src.path, show_got=e.show_got,
-                          line=src.line_of(e.key)) from None
+        raise ConfigError(
+            e.key,
+            e.expected,
+            e.got if e.show_got else None,
+            file=src.path,
+            show_got=e.show_got,
+            line=src.line_of(e.key),
+        ) from None
     if scene.tools is not None or scene.topology is not None:
-        raise ConfigError("sweep", "a scene without [[tools]], [strain_limit] or topology sections (not swept yet)",
-                          src.path)
+        raise ConfigError(
+            "sweep", "a scene without [[tools]], [strain_limit] or topology sections (not swept yet)", src.path
+        )
     return scene
 
 
@@ -153,13 +192,18 @@ def _figures(model, rec, final, b: int) -> dict:
     import torch
 
     from ..scene.run import energy_series
-    x = torch.cat([rec["x"][:, b], final.x[b:b + 1].detach().cpu()])
-    v = torch.cat([rec["v"][:, b], final.v[b:b + 1].detach().cpu()])
+
+    x = torch.cat([rec["x"][:, b], final.x[b : b + 1].detach().cpu()])
+    v = torch.cat([rec["v"][:, b], final.v[b : b + 1].detach().cpu()])
     series = energy_series(model, x, v)
-    return dict(status="ok", max_displacement_m=float(series["max_displacement"][-1]),
-                peak_displacement_m=float(series["max_displacement"].max()),
-                max_free_displacement_m=float(series["max_free_displacement"][-1]),
-                kinetic_J=float(series["kinetic"][-1]), total_J=float(series["total"][-1]))
+    return dict(
+        status="ok",
+        max_displacement_m=float(series["max_displacement"][-1]),
+        peak_displacement_m=float(series["max_displacement"].max()),
+        max_free_displacement_m=float(series["max_free_displacement"][-1]),
+        kinetic_J=float(series["kinetic"][-1]),
+        total_J=float(series["total"][-1]),
+    )
 
 
 def batches(points: list, scenes: list, size: int) -> list:
@@ -193,35 +237,52 @@ def run_batch(scenes: list, device=None) -> list:
     from ..scene.run import scene_engine
     from ..sim.engine import simulate
     from ..sim.stability import time_step_bound
+
     models = [s.build(device) for s in scenes]
     model = models[0]
-    if len(models) > 1:                   # the spring parameters stacked along the batch axis
+    if len(models) > 1:  # the spring parameters stacked along the batch axis
         model = copy.copy(model)
         shape = torch.broadcast_shapes(*(m.stiffness.shape for m in models))
         model.stiffness = torch.cat([m.stiffness.expand(shape) for m in models])
         if any(m.damping is not None for m in models):
-            model.damping = torch.cat([(torch.zeros_like(m.stiffness) if m.damping is None else m.damping)
-                                       .expand(shape) for m in models])
+            model.damping = torch.cat(
+                [(torch.zeros_like(m.stiffness) if m.damping is None else m.damping).expand(shape) for m in models]
+            )
     scene = scenes[0]
     dt = scene.time_step(min(time_step_bound(m, scene.integrator) for m in models))
     engine = scene_engine(scene, False)
     start = time.perf_counter()
     try:
-        final, rec = simulate(model, model.rest_state(len(models)), dt, scene.steps, scene.integrator,
-                              record_every=scene.frames_every, progress=False, warn=False, engine=engine)
+        final, rec = simulate(
+            model,
+            model.rest_state(len(models)),
+            dt,
+            scene.steps,
+            scene.integrator,
+            record_every=scene.frames_every,
+            progress=False,
+            warn=False,
+            engine=engine,
+        )
     except DivergenceError as e:
         if len(scenes) > 1:
             return [run_point(s, device) for s in scenes]
         row = dict.fromkeys(FIGURES)
-        row.update(status=f"diverged: {str(e).splitlines()[0]}", steps=scene.steps, dt_s=dt, batch=1,
-                   wall_s=time.perf_counter() - start)
+        row.update(
+            status=f"diverged: {str(e).splitlines()[0]}",
+            steps=scene.steps,
+            dt_s=dt,
+            batch=1,
+            wall_s=time.perf_counter() - start,
+        )
         return [row]
     wall = (time.perf_counter() - start) / len(models)
     rows = []
     for b, m in enumerate(models):
         row = dict.fromkeys(FIGURES)
-        row.update(_figures(m, rec, final, b), steps=scene.steps, dt_s=dt, engine=engine.ran, wall_s=wall,
-                   batch=len(models))
+        row.update(
+            _figures(m, rec, final, b), steps=scene.steps, dt_s=dt, engine=engine.ran, wall_s=wall, batch=len(models)
+        )
         rows.append(row)
     return rows
 
@@ -233,7 +294,7 @@ def done_points(out: Path) -> dict:
         for line in path.read_text(encoding="utf-8").splitlines():
             try:
                 row = json.loads(line)
-            except json.JSONDecodeError:          # a line cut by a crash: that point runs again
+            except json.JSONDecodeError:  # a line cut by a crash: that point runs again
                 continue
             done[row["id"]] = row["row"]
     return done
@@ -267,6 +328,7 @@ def plot(out: Path, keys: list, rows: list) -> Path | None:
     if not numeric or not rows:
         return None
     from ..bench.common import axes, save_figure
+
     xkey, others = numeric[0], [k for k in keys if k != numeric[0]]
     fig, ax = axes((6.5, 4.5))
     groups = {}
@@ -275,14 +337,20 @@ def plot(out: Path, keys: list, rows: list) -> Path | None:
     # more lines than the 10 colours of the cycle: the colours come from a colormap in the order of the
     # combinations (similar combinations, similar colours), and the marker changes too
     import matplotlib
+
     cmap = matplotlib.colormaps["viridis" if len(groups) > 10 else "tab10"]
     markers = "osD^v<>ph*"
-    for n, (combo, sel) in enumerate(groups.items()):              # in the order of the points
+    for n, (combo, sel) in enumerate(groups.items()):  # in the order of the points
         sel = sorted((r for r in sel if r["status"] == "ok"), key=lambda r: r[xkey])
         label = ", ".join(f"{k} = {v}" for k, v in zip(others, combo)) or None
         colour = cmap(n / max(1, len(groups) - 1)) if len(groups) > 10 else cmap(n % 10)
-        ax.plot([r[xkey] for r in sel], [r["max_displacement_m"] * 1e3 for r in sel], marker=markers[n % len(markers)],
-                color=colour, label=label)
+        ax.plot(
+            [r[xkey] for r in sel],
+            [r["max_displacement_m"] * 1e3 for r in sel],
+            marker=markers[n % len(markers)],
+            color=colour,
+            label=label,
+        )
     positive = all(r[xkey] > 0 for r in rows)
     if positive and max(r[xkey] for r in rows) > 10 * min(r[xkey] for r in rows):
         ax.set_xscale("log")
@@ -291,11 +359,10 @@ def plot(out: Path, keys: list, rows: list) -> Path | None:
     ax.set_title(f"sweep: {len(rows)} points")
     ax.grid(True, which="both", alpha=0.3)
     if groups and any(c for c in groups):
-        if len(groups) > 4:                              # beside the plot, not over the lines
+        if len(groups) > 4:  # beside the plot, not over the lines
             fig.set_size_inches(6.5 + 3.2 * (1 + len(groups) // 24), 4.5)
             ax.legend(fontsize=7, ncol=1 + len(groups) // 24, loc="upper left", bbox_to_anchor=(1.01, 1.0))
         else:
             ax.legend(fontsize=7)
     save_figure(fig, out, "sweep.png")
     return out / "sweep.png"
-

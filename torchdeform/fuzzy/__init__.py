@@ -11,22 +11,46 @@ rule sentences), :mod:`.system` (inference, defuzzification), :mod:`.fis` (MATLA
 files), :mod:`.presets` (the shipped rule files), :mod:`.coupling` (per-node and per-region
 inputs to per-spring stiffness and damping).
 """
+
 from .membership import HEDGES, KINDS, Bell, Gaussian, MembershipFunction, Sigmoid, Singleton, Trapezoid, Triangle
 from .presets import list_presets, load_preset, tissue_parameters, tissues
 from .rules import Clause, Rule, Variable
 from .system import (
-                     AGGREGATIONS,
-                     AND_METHODS,
-                     DEFUZZIFIERS,
-                     IMPLICATIONS,
-                     OR_METHODS,
-                     EmptyOutputWarning,
-                     MamdaniSystem,
-                     ResolutionWarning,
-                     defuzzify,
+    AGGREGATIONS,
+    AND_METHODS,
+    DEFUZZIFIERS,
+    IMPLICATIONS,
+    OR_METHODS,
+    EmptyOutputWarning,
+    MamdaniSystem,
+    ResolutionWarning,
+    defuzzify,
 )
 
-__all__ = ["HEDGES", "KINDS", "Bell", "Gaussian", "MembershipFunction", "Sigmoid", "Singleton", "Trapezoid",
-           "Triangle", "Clause", "Rule", "Variable", "AGGREGATIONS", "AND_METHODS", "DEFUZZIFIERS",
-           "IMPLICATIONS", "OR_METHODS", "EmptyOutputWarning", "ResolutionWarning", "MamdaniSystem", "defuzzify",
-           "list_presets", "load_preset", "tissue_parameters", "tissues"]
+__all__ = [
+    "HEDGES",
+    "KINDS",
+    "Bell",
+    "Gaussian",
+    "MembershipFunction",
+    "Sigmoid",
+    "Singleton",
+    "Trapezoid",
+    "Triangle",
+    "Clause",
+    "Rule",
+    "Variable",
+    "AGGREGATIONS",
+    "AND_METHODS",
+    "DEFUZZIFIERS",
+    "IMPLICATIONS",
+    "OR_METHODS",
+    "EmptyOutputWarning",
+    "ResolutionWarning",
+    "MamdaniSystem",
+    "defuzzify",
+    "list_presets",
+    "load_preset",
+    "tissue_parameters",
+    "tissues",
+]

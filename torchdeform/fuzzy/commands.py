@@ -7,6 +7,7 @@
 
 ``FILE`` may also be the name of a shipped preset (``susilap_g``, ``robo_sim_ventricle`` ...).
 """
+
 from __future__ import annotations
 
 import csv
@@ -23,8 +24,17 @@ from ..outputs import save_figure
 from .fis import read_fis
 from .system import MamdaniSystem
 
-__all__ = ["load", "describe", "parse_assignments", "read_inputs_csv", "evaluate_rows", "format_rows", "plot", "main",
-           "add_arguments"]
+__all__ = [
+    "load",
+    "describe",
+    "parse_assignments",
+    "read_inputs_csv",
+    "evaluate_rows",
+    "format_rows",
+    "plot",
+    "main",
+    "add_arguments",
+]
 
 
 def load(name_or_path) -> MamdaniSystem:
@@ -34,17 +44,20 @@ def load(name_or_path) -> MamdaniSystem:
         return read_fis(p)
     try:
         from .presets import load_preset
-    except ImportError:                         # the preset library has not landed yet
+    except ImportError:  # the preset library has not landed yet
         raise ConfigError("file", "an existing .fis file (no presets are shipped yet)", str(name_or_path)) from None
     return load_preset(str(name_or_path))
 
 
 def describe(fis: MamdaniSystem) -> str:
     """A readable summary: methods, variables with ranges and terms, numbered rules."""
-    lines = [f"{fis.name}: Mamdani, {len(fis.inputs)} input(s), {len(fis.outputs)} output(s), {len(fis.rules)} rules",
-             f"  AND {fis.and_method}, OR {fis.or_method}, implication {fis.implication}, "
-             f"aggregation {fis.aggregation}, defuzzification {fis.defuzzification} "
-             f"({fis.resolution} cells)", ""]
+    lines = [
+        f"{fis.name}: Mamdani, {len(fis.inputs)} input(s), {len(fis.outputs)} output(s), {len(fis.rules)} rules",
+        f"  AND {fis.and_method}, OR {fis.or_method}, implication {fis.implication}, "
+        f"aggregation {fis.aggregation}, defuzzification {fis.defuzzification} "
+        f"({fis.resolution} cells)",
+        "",
+    ]
     for label, variables in (("input", fis.inputs), ("output", fis.outputs)):
         for v in variables:
             extra = f", default {v.default:g}" if label == "output" else ""
@@ -77,8 +90,12 @@ def parse_assignments(fis: MamdaniSystem, items) -> dict:
             raise ConfigError(name, "a finite number", text)
     missing = [n for n in fis.input_names() if n not in values]
     if missing:
-        raise ConfigError("inputs", f"a value for every input ({', '.join(fis.input_names())})",
-                          f"missing {', '.join(missing)}", show_got=True)
+        raise ConfigError(
+            "inputs",
+            f"a value for every input ({', '.join(fis.input_names())})",
+            f"missing {', '.join(missing)}",
+            show_got=True,
+        )
     return values
 
 
@@ -93,8 +110,13 @@ def read_inputs_csv(fis: MamdaniSystem, path) -> torch.Tensor:
         header = [h.strip() for h in next(reader, [])]
         missing = [n for n in fis.input_names() if n not in header]
         if missing:
-            raise ConfigError("header", f"columns for every input ({', '.join(fis.input_names())})",
-                              f"missing {', '.join(missing)}", file=str(p), line=1)
+            raise ConfigError(
+                "header",
+                f"columns for every input ({', '.join(fis.input_names())})",
+                f"missing {', '.join(missing)}",
+                file=str(p),
+                line=1,
+            )
         cols = [header.index(n) for n in fis.input_names()]
         rows = []
         for line, row in enumerate(reader, start=2):
@@ -103,8 +125,9 @@ def read_inputs_csv(fis: MamdaniSystem, path) -> torch.Tensor:
             try:
                 values = [float(row[c]) for c in cols]
             except (ValueError, IndexError):
-                raise ConfigError("row", f"numbers in columns {', '.join(fis.input_names())}", ",".join(row),
-                                  file=str(p), line=line) from None
+                raise ConfigError(
+                    "row", f"numbers in columns {', '.join(fis.input_names())}", ",".join(row), file=str(p), line=line
+                ) from None
             if not all(map(math.isfinite, values)):
                 raise ConfigError("row", "finite numbers", ",".join(row), file=str(p), line=line)
             rows.append(values)
@@ -140,6 +163,7 @@ def plot(fis: MamdaniSystem, out_dir, points: int = 401) -> list:
     Returns the paths written.
     """
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -190,8 +214,13 @@ def main(args) -> int:
     elif args.fuzzy_command == "eval":
         if args.inputs and args.values:
             raise ConfigError("eval", "either NAME=VALUE pairs or --inputs FILE.csv, not both", None, show_got=False)
-        x = (read_inputs_csv(fis, args.inputs) if args.inputs else
-             torch.tensor([[parse_assignments(fis, args.values)[n] for n in fis.input_names()]], dtype=torch.float64))
+        x = (
+            read_inputs_csv(fis, args.inputs)
+            if args.inputs
+            else torch.tensor(
+                [[parse_assignments(fis, args.values)[n] for n in fis.input_names()]], dtype=torch.float64
+            )
+        )
         print(format_rows(fis, evaluate_rows(fis, x), args.json))
     else:
         for path in plot(fis, args.out):

@@ -27,6 +27,7 @@ Example:
     (2, (13, 10, 10, 10))
     >>> model = Model(grid, stiffness=params["spring_const"], damping=params["viscosity"], density=1000.0)
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -54,8 +55,9 @@ class Ellipsoid:
     def mask(self, grid: Grid) -> torch.Tensor:
         """Bool ``(D, H, W)``: nodes whose rest position lies inside (boundary included)."""
         if len(self.center) != 3 or len(self.radii) != 3 or min(self.radii) <= 0:
-            raise ConfigError("ellipsoid", "center (3 numbers) and radii (3 positive numbers)",
-                              (self.center, self.radii))
+            raise ConfigError(
+                "ellipsoid", "center (3 numbers) and radii (3 positive numbers)", (self.center, self.radii)
+            )
         X = grid.rest_positions(torch.float64)[0]
         c = torch.tensor(self.center, dtype=torch.float64).view(3, 1, 1, 1)
         r = torch.tensor(self.radii, dtype=torch.float64).view(3, 1, 1, 1)
@@ -104,13 +106,14 @@ def spring_parameters(fis: MamdaniSystem, grid: Grid, inputs: torch.Tensor, dtyp
         were evaluated.
     """
     if inputs.dim() != 4 or inputs.shape[0] != len(fis.inputs) or tuple(inputs.shape[1:]) != grid.shape:
-        raise ConfigError("inputs", f"shape ({len(fis.inputs)}, {', '.join(map(str, grid.shape))})",
-                          tuple(inputs.shape))
+        raise ConfigError(
+            "inputs", f"shape ({len(fis.inputs)}, {', '.join(map(str, grid.shape))})", tuple(inputs.shape)
+        )
     rows = inputs.reshape(len(fis.inputs), -1).T
     unique, inverse = torch.unique(rows, dim=0, return_inverse=True)
     values = fis(unique.to(fis.dtype)).to(torch.float64)
-    nodes = values[inverse].T.reshape((len(fis.outputs),) + grid.shape)       # (O, D, H, W)
-    mean = harmonic_mean_of_ends(nodes, grid)                                  # (O, S, D, H, W)
+    nodes = values[inverse].T.reshape((len(fis.outputs),) + grid.shape)  # (O, D, H, W)
+    mean = harmonic_mean_of_ends(nodes, grid)  # (O, S, D, H, W)
     out = {name: mean[o].to(dtype) for o, name in enumerate(fis.output_names())}
     out["_evaluations"] = int(unique.shape[0])
     return out

@@ -54,6 +54,7 @@ Example:
     >>> torch.equal(read_fis(path)(x), fis(x))
     True
 """
+
 from __future__ import annotations
 
 import math
@@ -75,19 +76,31 @@ __all__ = ["parse_fis", "read_fis", "fis_text", "write_fis"]
 _MF_READ = {
     "trapmf": (Trapezoid, (0, 1, 2, 3)),
     "trimf": (Triangle, (0, 1, 2)),
-    "gaussmf": (Gaussian, (1, 0)),          # [sigma c] -> (mean, sigma)
+    "gaussmf": (Gaussian, (1, 0)),  # [sigma c] -> (mean, sigma)
     "gbellmf": (Bell, (0, 1, 2)),
-    "sigmf": (Sigmoid, (1, 0)),             # [a c] = [slope center] -> (center, slope)
+    "sigmf": (Sigmoid, (1, 0)),  # [a c] = [slope center] -> (center, slope)
     "singletonmf": (Singleton, (0,)),
 }
 _MF_WRITE = {cls.kind: (name, order) for name, (cls, order) in _MF_READ.items()}
 
-_HEDGE_CODES = {1: ("seldom",), 5: ("somewhat",), 20: ("very",), 30: ("extremely",), 40: ("very", "very"),
-                99: ("any",)}
+_HEDGE_CODES = {1: ("seldom",), 5: ("somewhat",), 20: ("very",), 30: ("extremely",), 40: ("very", "very"), 99: ("any",)}
 _CODE_OF = {h: c for c, h in _HEDGE_CODES.items()}
 
-_SYSTEM_KEYS = {"Name", "Type", "Version", "NumInputs", "NumOutputs", "NumRules", "AndMethod", "OrMethod",
-                "ImpMethod", "AggMethod", "DefuzzMethod", "DisableStructuralChecks", "Resolution"}
+_SYSTEM_KEYS = {
+    "Name",
+    "Type",
+    "Version",
+    "NumInputs",
+    "NumOutputs",
+    "NumRules",
+    "AndMethod",
+    "OrMethod",
+    "ImpMethod",
+    "AggMethod",
+    "DefuzzMethod",
+    "DisableStructuralChecks",
+    "Resolution",
+}
 _VAR_KEYS = {"Name", "Range", "NumMFs"}
 _NUM = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
 _MF_LINE = re.compile(r"^'([^']*)'\s*:\s*'([^']*)'\s*,\s*\[([^\]]*)\]$")
@@ -138,8 +151,9 @@ def _item(sec, key, path, required, form=None):
     """``(value text, line)`` of ``key`` in a section; None when absent and not required."""
     if key not in sec.items:
         if required:
-            raise _err(path, sec.line, f"[{sec.name}] {key}", f"a {form or key + '='} line in this section",
-                       None, False)
+            raise _err(
+                path, sec.line, f"[{sec.name}] {key}", f"a {form or key + '='} line in this section", None, False
+            )
         return None
     return sec.items[key]
 
@@ -183,8 +197,14 @@ def _method(sec, key, allowed, default, path):
 def _variable(sec, path, output: bool) -> Variable:
     for key, (_, n) in sec.items.items():
         if key not in _VAR_KEYS and not re.fullmatch(r"MF\d+", key) and not (output and key == "Default"):
-            raise _err(path, n, f"[{sec.name}] {key}", f"one of Name, Range, NumMFs, MFk{', Default' if output else ''}",
-                       None, False)
+            raise _err(
+                path,
+                n,
+                f"[{sec.name}] {key}",
+                f"one of Name, Range, NumMFs, MFk{', Default' if output else ''}",
+                None,
+                False,
+            )
     name = _string(sec, "Name", path)
     text, n = _item(sec, "Range", path, True, form="Range=[lo hi]")
     m = re.fullmatch(r"\[(.*)\]", text)
@@ -196,8 +216,13 @@ def _variable(sec, path, output: bool) -> Variable:
     num = _int(sec, "NumMFs", path)
     keys = sorted((k for k in sec.items if re.fullmatch(r"MF\d+", k)), key=lambda k: int(k[2:]))
     if [int(k[2:]) for k in keys] != list(range(1, num + 1)):
-        raise _err(path, sec.items["NumMFs"][1], f"[{sec.name}] NumMFs",
-                   f"MF1 .. MF{num} to follow (NumMFs={num})", f"{', '.join(keys) or 'no MF lines'}")
+        raise _err(
+            path,
+            sec.items["NumMFs"][1],
+            f"[{sec.name}] NumMFs",
+            f"MF1 .. MF{num} to follow (NumMFs={num})",
+            f"{', '.join(keys) or 'no MF lines'}",
+        )
     terms = {}
     for k in keys:
         text, n = sec.items[k]
@@ -212,8 +237,13 @@ def _variable(sec, path, output: bool) -> Variable:
         if len(values) != len(order):
             raise _err(path, n, f"[{sec.name}] {k}", f"{len(order)} parameters for {kind}", f"[{params}]")
         if not all(math.isfinite(v) and abs(v) <= LIMIT for v in values):
-            raise _err(path, n, f"[{sec.name}] {k}", "finite parameters of magnitude <= 1e30 (float32 arithmetic)",
-                       f"[{params}]")
+            raise _err(
+                path,
+                n,
+                f"[{sec.name}] {k}",
+                "finite parameters of magnitude <= 1e30 (float32 arithmetic)",
+                f"[{params}]",
+            )
         if term in terms:
             raise _err(path, n, f"[{sec.name}] {k}", "distinct term names", term)
         ours = [values[order.index(j)] for j in range(len(order))]
@@ -266,21 +296,27 @@ def parse_fis(text: str, path="<string>") -> MamdaniSystem:
     counts = {}
     for key, prefix in (("NumInputs", "Input"), ("NumOutputs", "Output")):
         num = _int(sysec, key, path)
-        found = sorted(int(s.name[len(prefix):]) for s in sections if re.fullmatch(prefix + r"\d+", s.name))
+        found = sorted(int(s.name[len(prefix) :]) for s in sections if re.fullmatch(prefix + r"\d+", s.name))
         if found != list(range(1, num + 1)):
-            raise _err(path, sysec.items[key][1], f"[System] {key}",
-                       f"sections [{prefix}1] .. [{prefix}{num}]",
-                       ", ".join(f"[{prefix}{k}]" for k in found) or "none")
+            raise _err(
+                path,
+                sysec.items[key][1],
+                f"[System] {key}",
+                f"sections [{prefix}1] .. [{prefix}{num}]",
+                ", ".join(f"[{prefix}{k}]" for k in found) or "none",
+            )
         if num == 0:
             raise _err(path, sysec.items[key][1], f"[System] {key}", "at least 1", num)
         counts[prefix] = num
     inputs = [_variable(by[f"Input{k}"], path, False) for k in range(1, counts["Input"] + 1)]
     outputs = [_variable(by[f"Output{k}"], path, True) for k in range(1, counts["Output"] + 1)]
-    methods = dict(and_method=_method(sysec, "AndMethod", AND_METHODS, "min", path),
-                   or_method=_method(sysec, "OrMethod", OR_METHODS, "max", path),
-                   implication=_method(sysec, "ImpMethod", IMPLICATIONS, "min", path),
-                   aggregation=_method(sysec, "AggMethod", AGGREGATIONS, "max", path),
-                   defuzzification=_method(sysec, "DefuzzMethod", DEFUZZIFIERS, "centroid", path))
+    methods = dict(
+        and_method=_method(sysec, "AndMethod", AND_METHODS, "min", path),
+        or_method=_method(sysec, "OrMethod", OR_METHODS, "max", path),
+        implication=_method(sysec, "ImpMethod", IMPLICATIONS, "min", path),
+        aggregation=_method(sysec, "AggMethod", AGGREGATIONS, "max", path),
+        defuzzification=_method(sysec, "DefuzzMethod", DEFUZZIFIERS, "centroid", path),
+    )
     resolution = _int(sysec, "Resolution", path, required=False)
     if resolution is not None:
         methods["resolution"] = resolution
@@ -311,16 +347,18 @@ def parse_fis(text: str, path="<string>") -> MamdaniSystem:
         rules.append(Rule(a, c, "and" if m.group(4) == "1" else "or", weight))
     num_rules = _int(sysec, "NumRules", path, required=False)
     if num_rules is not None and num_rules != len(rules):
-        raise _err(path, sysec.items["NumRules"][1], "[System] NumRules", f"{len(rules)} (the rule lines found)",
-                   num_rules)
+        raise _err(
+            path, sysec.items["NumRules"][1], "[System] NumRules", f"{len(rules)} (the rule lines found)", num_rules
+        )
     if not rules:
         raise _err(path, by["Rules"].line, "[Rules]", "at least one rule line", None, False)
     try:
         return MamdaniSystem(name, inputs, outputs, rules, **methods)
     except ConfigError as e:
         line = sysec.items["Resolution"][1] if e.key == "resolution" and "Resolution" in sysec.items else sysec.line
-        raise _err(path, line, "[System] Resolution" if e.key == "resolution" else e.key, e.expected, e.got,
-                   e.show_got) from None
+        raise _err(
+            path, line, "[System] Resolution" if e.key == "resolution" else e.key, e.expected, e.got, e.show_got
+        ) from None
 
 
 def read_fis(path) -> MamdaniSystem:
@@ -345,8 +383,11 @@ def _code(clause: Clause | None, var: Variable, where: str) -> str:
     neg = hedges[:1] == ("not",)
     rest = hedges[1:] if neg else hedges
     if rest and rest not in _CODE_OF:
-        raise ConfigError(where, "hedges that .fis can encode (not, seldom, somewhat, very, extremely, "
-                                 "very very, any)", " ".join(hedges))
+        raise ConfigError(
+            where,
+            "hedges that .fis can encode (not, seldom, somewhat, very, extremely, very very, any)",
+            " ".join(hedges),
+        )
     idx = var.index(clause.term) + 1
     text = str(idx) if not rest else f"{idx}.{_CODE_OF[rest]:02d}".rstrip("0")
     return ("-" if neg else "") + text
@@ -355,18 +396,31 @@ def _code(clause: Clause | None, var: Variable, where: str) -> str:
 def fis_text(system: MamdaniSystem, comments: str = "") -> str:
     """The ``.fis`` text of a system (``comments``: lines written first, each prefixed ``% ``)."""
     out = [f"% {c}" if c else "%" for c in comments.splitlines()]
-    out += ["[System]", f"Name='{system.name}'", "Type='mamdani'", "Version=2.0",
-            f"NumInputs={len(system.inputs)}", f"NumOutputs={len(system.outputs)}", f"NumRules={len(system.rules)}",
-            f"AndMethod='{system.and_method}'", f"OrMethod='{system.or_method}'",
-            f"ImpMethod='{system.implication}'", f"AggMethod='{system.aggregation}'",
-            f"DefuzzMethod='{system.defuzzification}'"]
+    out += [
+        "[System]",
+        f"Name='{system.name}'",
+        "Type='mamdani'",
+        "Version=2.0",
+        f"NumInputs={len(system.inputs)}",
+        f"NumOutputs={len(system.outputs)}",
+        f"NumRules={len(system.rules)}",
+        f"AndMethod='{system.and_method}'",
+        f"OrMethod='{system.or_method}'",
+        f"ImpMethod='{system.implication}'",
+        f"AggMethod='{system.aggregation}'",
+        f"DefuzzMethod='{system.defuzzification}'",
+    ]
     if system.resolution != 1000:
         out.append(f"Resolution={system.resolution}")
     for label, variables in (("Input", system.inputs), ("Output", system.outputs)):
         for k, var in enumerate(variables, start=1):
-            out += ["", f"[{label}{k}]", f"Name='{var.name}'",
-                    f"Range=[{_num(var.range[0], torch.float64)} {_num(var.range[1], torch.float64)}]",
-                    f"NumMFs={len(var.terms)}"]
+            out += [
+                "",
+                f"[{label}{k}]",
+                f"Name='{var.name}'",
+                f"Range=[{_num(var.range[0], torch.float64)} {_num(var.range[1], torch.float64)}]",
+                f"NumMFs={len(var.terms)}",
+            ]
             for j, (term, mf) in enumerate(var.terms.items(), start=1):
                 mname, order = _MF_WRITE[mf.kind]
                 ours = mf.values()

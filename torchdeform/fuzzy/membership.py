@@ -32,6 +32,7 @@ Example:
     >>> mf(torch.tensor([1.0, 3.0, 5.5]))
     tensor([0.5000, 1.0000, 0.2500])
 """
+
 from __future__ import annotations
 
 import math
@@ -41,8 +42,19 @@ from torch import nn
 
 from ..errors import ConfigError
 
-__all__ = ["MembershipFunction", "Trapezoid", "Triangle", "Gaussian", "Bell", "Sigmoid", "Singleton", "KINDS", "make",
-           "HEDGES", "apply_hedges"]
+__all__ = [
+    "MembershipFunction",
+    "Trapezoid",
+    "Triangle",
+    "Gaussian",
+    "Bell",
+    "Sigmoid",
+    "Singleton",
+    "KINDS",
+    "make",
+    "HEDGES",
+    "apply_hedges",
+]
 
 _TINY = 1e-12
 
@@ -79,8 +91,7 @@ class MembershipFunction(nn.Module):
     def __init__(self, *params):
         super().__init__()
         if len(params) != len(self.names):
-            raise ConfigError(self.kind, f"{len(self.names)} parameters ({', '.join(self.names)})",
-                              list(params))
+            raise ConfigError(self.kind, f"{len(self.names)} parameters ({', '.join(self.names)})", list(params))
         values = [float(p) if not torch.is_tensor(p) else float(p.detach()) for p in params]
         if not all(math.isfinite(v) for v in values):
             raise ConfigError(self.kind, "finite parameters", values)
@@ -225,8 +236,7 @@ class Bell(MembershipFunction):
         """Degrees ``1 / (1 + |(x - center)/width|^(2 slope))`` of ``x`` (any shape, same shape out)."""
         p = self.params.to(x.dtype)
         z2 = ((x - p[2]) / p[0]) ** 2
-        return 1.0 / (1.0 + torch.exp(p[1] * torch.log(z2.clamp_min(1e-300 if x.dtype == torch.float64
-                                                                          else 1e-38))))
+        return 1.0 / (1.0 + torch.exp(p[1] * torch.log(z2.clamp_min(1e-300 if x.dtype == torch.float64 else 1e-38))))
 
     def support(self):
         """``center +- width 100^(1 / (2 |slope|))`` (degree below about 0.01 outside)."""
@@ -304,6 +314,7 @@ def make(kind: str, *params) -> MembershipFunction:
 
 
 # ------------------------------------------------------------------ hedges
+
 
 def _extremely(m):
     return torch.where(m <= 0.5, 2.0 * m * m, 1.0 - 2.0 * (1.0 - m) ** 2)

@@ -31,6 +31,7 @@ Example:
     >>> 500.0 <= liver["youngs_modulus"] <= 10000.0
     True
 """
+
 from __future__ import annotations
 
 import copy
@@ -45,7 +46,7 @@ __all__ = ["PRESET_DIR", "TISSUE_FILE", "list_presets", "preset_path", "load_pre
 
 try:
     import tomllib
-except ModuleNotFoundError:                                  # Python < 3.11
+except ModuleNotFoundError:  # Python < 3.11
     import tomli as tomllib
 
 
@@ -57,6 +58,7 @@ def _preset_dir():
     """
     try:
         from importlib.resources import files
+
         return files("torchdeform.rulefiles")
     except ModuleNotFoundError:
         return Path(__file__).resolve().parents[2] / "fuzzy"
@@ -106,7 +108,7 @@ def _library() -> dict:
     path = PRESET_DIR / TISSUE_FILE
     try:
         return tomllib.loads(path.read_text(encoding="utf-8"))
-    except tomllib.TOMLDecodeError as e:                     # a broken edit of the shipped file
+    except tomllib.TOMLDecodeError as e:  # a broken edit of the shipped file
         raise ConfigError("tissue library", f"valid TOML ({e})", None, file=str(path)) from None
 
 
@@ -137,6 +139,11 @@ def tissue_parameters(name: str, system: MamdaniSystem | None = None) -> dict:
     fis = system if system is not None else load_preset(_library()["system"])
     out = fis.evaluate(consistency=float(entry["consistency"]))
     lo, hi = entry["youngs_modulus_range"]
-    return {"youngs_modulus": float(out["youngs_modulus"]), "viscosity": float(out["viscosity"]),
-            "density": float(entry["density"]), "consistency": float(entry["consistency"]),
-            "term": entry["term"], "youngs_modulus_range": (float(lo), float(hi))}
+    return {
+        "youngs_modulus": float(out["youngs_modulus"]),
+        "viscosity": float(out["viscosity"]),
+        "density": float(entry["density"]),
+        "consistency": float(entry["consistency"]),
+        "term": entry["term"],
+        "youngs_modulus_range": (float(lo), float(hi)),
+    }

@@ -11,6 +11,7 @@ join the antecedent clauses (one connective per rule, as in MATLAB), ``AND`` joi
 consequents, and ``WITH w`` (optional) is the rule weight in ``[0, 1]``. Keywords are
 case-insensitive; variable and term names are not.
 """
+
 from __future__ import annotations
 
 import math
@@ -205,9 +206,9 @@ def _parse(text: str) -> Rule:
     ante, conns = clauses(words[1:then], True)
     if len(conns) > 1:
         fail("one connective per rule (all AND or all OR)", "AND and OR mixed")
-    cons, _ = clauses(words[then + 1:end], False)
+    cons, _ = clauses(words[then + 1 : end], False)
     connective = "or" if "or" in conns else "and"
     try:
         return Rule(ante, cons, connective, weight, text=str(text).strip())
-    except ConfigError as e:                    # weight out of [0, 1], an output twice: name the rule
+    except ConfigError as e:  # weight out of [0, 1], an output twice: name the rule
         fail(e.expected, e.got)

@@ -35,6 +35,7 @@ Example:
     >>> round(float(fis.evaluate(service=9.0)["tip"]), 2)
     20.87
 """
+
 from __future__ import annotations
 
 import warnings
@@ -48,8 +49,18 @@ from ..errors import ConfigError, NoRuleFiredError
 from .membership import apply_hedges
 from .rules import Rule
 
-__all__ = ["AND_METHODS", "OR_METHODS", "IMPLICATIONS", "AGGREGATIONS", "DEFUZZIFIERS", "ON_EMPTY",
-           "EmptyOutputWarning", "ResolutionWarning", "MamdaniSystem", "defuzzify"]
+__all__ = [
+    "AND_METHODS",
+    "OR_METHODS",
+    "IMPLICATIONS",
+    "AGGREGATIONS",
+    "DEFUZZIFIERS",
+    "ON_EMPTY",
+    "EmptyOutputWarning",
+    "ResolutionWarning",
+    "MamdaniSystem",
+    "defuzzify",
+]
 
 AND_METHODS = ("min", "prod")
 OR_METHODS = ("max", "probor")
@@ -76,7 +87,7 @@ def _snorm(a, b, method):
         return torch.maximum(a, b)
     if method == "sum":
         return a + b
-    return a + b - a * b                                        # probor
+    return a + b - a * b  # probor
 
 
 @dataclass(frozen=True)
@@ -111,16 +122,32 @@ class MamdaniSystem(nn.Module):
     ``requires_grad=False``; ``system.requires_grad_()`` makes them learnable.
     """
 
-    def __init__(self, name: str, inputs, outputs, rules, *, and_method: str = "min", or_method: str = "max",
-                 implication: str = "min", aggregation: str = "max", defuzzification: str = "centroid",
-                 resolution: int = 1000, on_empty: str = "default", chunk: int = 8192):
+    def __init__(
+        self,
+        name: str,
+        inputs,
+        outputs,
+        rules,
+        *,
+        and_method: str = "min",
+        or_method: str = "max",
+        implication: str = "min",
+        aggregation: str = "max",
+        defuzzification: str = "centroid",
+        resolution: int = 1000,
+        on_empty: str = "default",
+        chunk: int = 8192,
+    ):
         super().__init__()
         self.name = str(name)
-        for key, value, allowed in (("and_method", and_method, AND_METHODS), ("or_method", or_method, OR_METHODS),
-                                    ("implication", implication, IMPLICATIONS),
-                                    ("aggregation", aggregation, AGGREGATIONS),
-                                    ("defuzzification", defuzzification, DEFUZZIFIERS),
-                                    ("on_empty", on_empty, ON_EMPTY)):
+        for key, value, allowed in (
+            ("and_method", and_method, AND_METHODS),
+            ("or_method", or_method, OR_METHODS),
+            ("implication", implication, IMPLICATIONS),
+            ("aggregation", aggregation, AGGREGATIONS),
+            ("defuzzification", defuzzification, DEFUZZIFIERS),
+            ("on_empty", on_empty, ON_EMPTY),
+        ):
             if value not in allowed:
                 raise ConfigError(key, f"one of {', '.join(allowed)}", value)
         self.and_method, self.or_method, self.implication = and_method, or_method, implication
@@ -142,8 +169,12 @@ class MamdaniSystem(nn.Module):
         if not self.rules:
             raise ConfigError("rules", "at least one rule", [])
         # one input row needs its aggregate and every consequent group's set over the cells
-        check_memory("resolution", 4.0 * self.resolution * (2 + len(self.rules)), f"{self.resolution} output cells",
-                     got=self.resolution)
+        check_memory(
+            "resolution",
+            4.0 * self.resolution * (2 + len(self.rules)),
+            f"{self.resolution} output cells",
+            got=self.resolution,
+        )
         self._compile_rules()
         self._check_cells()
 
@@ -151,7 +182,7 @@ class MamdaniSystem(nn.Module):
         """Warn about output terms that the defuzzification cells sample too coarsely to count."""
         for v in self.outputs:
             mfs = v.terms
-            if next(iter(mfs.values())).is_singleton or self.resolution > 10**6:     # fine enough for any term
+            if next(iter(mfs.values())).is_singleton or self.resolution > 10**6:  # fine enough for any term
                 continue
             lo, hi = v.range
             h = (hi - lo) / self.resolution
@@ -160,11 +191,14 @@ class MamdaniSystem(nn.Module):
                 with torch.no_grad():
                     peak = float(mf(y.to(self.dtype)).max())
                 if peak < 0.5:
-                    warnings.warn(f"{self.name}: output {v.name}'s term {name} is narrower than the defuzzification "
-                                  f"cells ({h:.3g} wide at resolution {self.resolution}): sampled there its "
-                                  f"membership peaks at {peak:.2g}, so it adds "
-                                  f"{'nothing' if peak == 0 else 'too little'} to {v.name}; raise the resolution",
-                                  ResolutionWarning, stacklevel=3)
+                    warnings.warn(
+                        f"{self.name}: output {v.name}'s term {name} is narrower than the defuzzification "
+                        f"cells ({h:.3g} wide at resolution {self.resolution}): sampled there its "
+                        f"membership peaks at {peak:.2g}, so it adds "
+                        f"{'nothing' if peak == 0 else 'too little'} to {v.name}; raise the resolution",
+                        ResolutionWarning,
+                        stacklevel=3,
+                    )
 
     # ------------------------------------------------------------ structure
 
@@ -185,7 +219,7 @@ class MamdaniSystem(nn.Module):
         """Resolve names to indices once; check every clause."""
         ins = {v.name: i for i, v in enumerate(self.inputs)}
         outs = {v.name: i for i, v in enumerate(self.outputs)}
-        self._ante = []                   # per rule: [(input index, term index, hedges)]
+        self._ante = []  # per rule: [(input index, term index, hedges)]
         per_output = [dict() for _ in self.outputs]
         for r, rule in enumerate(self.rules):
             key = f"rule {r + 1} ({rule})"
@@ -213,7 +247,7 @@ class MamdaniSystem(nn.Module):
         """
         out = []
         for i, v in enumerate(self.inputs):
-            b = v.bounds.to(x.dtype)        # rounded like the corners: a shoulder at the range end holds
+            b = v.bounds.to(x.dtype)  # rounded like the corners: a shoulder at the range end holds
             xi = x[:, i].clamp(b[0], b[1])
             out.append(torch.stack([mf(xi) for mf in v.terms.values()], dim=1))
         return out
@@ -227,8 +261,11 @@ class MamdaniSystem(nn.Module):
             deg = None
             for i, t, hedges in clauses:
                 d = apply_hedges(mu[i][:, t], hedges)
-                deg = d if deg is None else (_tnorm(deg, d, method) if rule.connective == "and"
-                                             else _snorm(deg, d, method))
+                deg = (
+                    d
+                    if deg is None
+                    else (_tnorm(deg, d, method) if rule.connective == "and" else _snorm(deg, d, method))
+                )
             cols.append(deg * rule.weight if rule.weight != 1.0 else deg)
         return torch.stack(cols, dim=1)
 
@@ -272,7 +309,7 @@ class MamdaniSystem(nn.Module):
             alpha = fire[:, rules[0]] if len(rules) == 1 else fire[:, list(rules)].amax(dim=1)
             implied = _tnorm(alpha[:, None], nu[g][None, :], self.implication)
             agg = implied if agg is None else _snorm(agg, implied, self.aggregation)
-        if agg is None:                                        # no group: nothing fires here
+        if agg is None:  # no group: nothing fires here
             return torch.zeros(fire.shape[0], nu.shape[-1], dtype=fire.dtype, device=fire.device)
         return agg
 
@@ -295,7 +332,7 @@ class MamdaniSystem(nn.Module):
                 if h is None:
                     plans.append(None)
                     continue
-                active = (nu > 0).T.tolist()                   # (U, G)
+                active = (nu > 0).T.tolist()  # (U, G)
                 runs, start = [], 0
                 for u in range(1, len(active) + 1):
                     if u == len(active) or active[u] != active[start]:
@@ -318,15 +355,19 @@ class MamdaniSystem(nn.Module):
         compiled. Returns ``f(x) -> outputs`` like ``self(x)``.
         """
         from .._compile import inductor_options
+
         cache = {}
 
         def run(x):
             key = self._parameter_snapshot()
             if "key" not in cache or not _same(cache["key"], key):
                 plan = self.sparsity_plan()
-                cache.update(key=key, fn=torch.compile(lambda part: self.infer(part, plan), dynamic=False,
-                                                       options=inductor_options()))
+                cache.update(
+                    key=key,
+                    fn=torch.compile(lambda part: self.infer(part, plan), dynamic=False, options=inductor_options()),
+                )
             return self._run(x, cache["fn"], chunk, pad=True)
+
         return run
 
     def _parameter_snapshot(self) -> list:
@@ -337,14 +378,15 @@ class MamdaniSystem(nn.Module):
         if not x.is_floating_point():
             x = x.to(torch.get_default_dtype())
         if x.shape[-1] != len(self.inputs):
-            raise ConfigError("inputs", f"a last dimension of {len(self.inputs)} ({', '.join(self.input_names())})",
-                              tuple(x.shape))
+            raise ConfigError(
+                "inputs", f"a last dimension of {len(self.inputs)} ({', '.join(self.input_names())})", tuple(x.shape)
+            )
         lead = x.shape[:-1]
         flat = x.reshape(-1, len(self.inputs))
         n = flat.shape[0]
         ys, empties = [], []
         for s in range(0, n, chunk):
-            part = flat[s:s + chunk]
+            part = flat[s : s + chunk]
             if pad and part.shape[0] < chunk:
                 part = torch.cat([part, part[-1:].expand(chunk - part.shape[0], -1)])
             out, e = infer(part)
@@ -389,8 +431,10 @@ class MamdaniSystem(nn.Module):
         rows, cols = torch.nonzero(empty, as_tuple=True)
         r, o = int(rows[0]), int(cols[0])
         point = ", ".join(f"{n}={float(v):.6g}" for n, v in zip(self.input_names(), x[r]))
-        msg = (f"{self.name}: no rule fires for output {self.outputs[o].name} at {point} "
-               f"({int(empty.any(dim=1).sum())} of {empty.shape[0]} input rows)")
+        msg = (
+            f"{self.name}: no rule fires for output {self.outputs[o].name} at {point} "
+            f"({int(empty.any(dim=1).sum())} of {empty.shape[0]} input rows)"
+        )
         if self.on_empty == "error":
             raise NoRuleFiredError(msg)
         warnings.warn(msg + "; using the output's default", EmptyOutputWarning, stacklevel=3)
@@ -405,23 +449,29 @@ class MamdaniSystem(nn.Module):
         missing = [n for n in self.input_names() if n not in values]
         unknown = [n for n in values if n not in self.input_names()]
         if missing or unknown:
-            raise ConfigError("inputs", f"exactly the inputs {', '.join(self.input_names())}",
-                              f"missing {missing}, unknown {unknown}" if missing else f"unknown {unknown}",
-                              show_got=True)
+            raise ConfigError(
+                "inputs",
+                f"exactly the inputs {', '.join(self.input_names())}",
+                f"missing {missing}, unknown {unknown}" if missing else f"unknown {unknown}",
+                show_got=True,
+            )
         cols = torch.broadcast_tensors(*[torch.as_tensor(values[n], dtype=self.dtype) for n in self.input_names()])
         out = self(torch.stack(cols, dim=-1))
         return {n: out[..., k] for k, n in enumerate(self.output_names())}
 
     def extra_repr(self) -> str:
         """The settings for ``repr``: name, rule count and the inference methods."""
-        return (f"name={self.name!r}, rules={len(self.rules)}, and={self.and_method}, or={self.or_method}, "
-                f"implication={self.implication}, aggregation={self.aggregation}, "
-                f"defuzzification={self.defuzzification}, resolution={self.resolution}")
+        return (
+            f"name={self.name!r}, rules={len(self.rules)}, and={self.and_method}, or={self.or_method}, "
+            f"implication={self.implication}, aggregation={self.aggregation}, "
+            f"defuzzification={self.defuzzification}, resolution={self.resolution}"
+        )
 
 
 def _same(a: list, b: list) -> bool:
-    return len(a) == len(b) and all(s.dtype == t.dtype and s.device == t.device and torch.equal(s, t)
-                                    for s, t in zip(a, b))
+    return len(a) == len(b) and all(
+        s.dtype == t.dtype and s.device == t.device and torch.equal(s, t) for s, t in zip(a, b)
+    )
 
 
 def defuzzify(agg: torch.Tensor, y: torch.Tensor, h: float | None, method: str) -> tuple:
@@ -441,7 +491,7 @@ def defuzzify(agg: torch.Tensor, y: torch.Tensor, h: float | None, method: str) 
     mass = agg.sum(dim=1)
     has = mass > 0
     safe = torch.where(has, mass, torch.ones_like(mass))
-    if h is None:                                   # singletons: sort positions (they may be learned)
+    if h is None:  # singletons: sort positions (they may be learned)
         y, order = torch.sort(y)
         agg = agg[:, order]
     if method == "centroid":
@@ -449,7 +499,9 @@ def defuzzify(agg: torch.Tensor, y: torch.Tensor, h: float | None, method: str) 
     if method == "bisector":
         cum = torch.cumsum(agg, dim=1)
         half = 0.5 * mass
-        k = torch.searchsorted(cum.detach().contiguous(), half.detach()[:, None].contiguous()).clamp_max(agg.shape[1] - 1)
+        k = torch.searchsorted(cum.detach().contiguous(), half.detach()[:, None].contiguous()).clamp_max(
+            agg.shape[1] - 1
+        )
         before = torch.where(k > 0, cum.gather(1, (k - 1).clamp_min(0)), torch.zeros_like(k, dtype=agg.dtype))
         cell = agg.gather(1, k)
         yk = y[k[:, 0]]
@@ -458,7 +510,7 @@ def defuzzify(agg: torch.Tensor, y: torch.Tensor, h: float | None, method: str) 
         frac = (half[:, None] - before) / torch.where(cell > 0, cell, torch.ones_like(cell))
         return yk - 0.5 * h + h * frac[:, 0].clamp(0, 1), mass * h
     top = agg.amax(dim=1, keepdim=True)
-    rtol = max(1e-12, 8 * torch.finfo(agg.dtype).eps)   # ties up to rounding: ~1e-6 in float32, 1e-12 in float64
+    rtol = max(1e-12, 8 * torch.finfo(agg.dtype).eps)  # ties up to rounding: ~1e-6 in float32, 1e-12 in float64
     on = (agg >= top * (1 - rtol)) & (top > 0)
     if method == "mom":
         n = on.sum(dim=1)

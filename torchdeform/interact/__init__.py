@@ -28,6 +28,7 @@ Examples:
     >>> bool(d.min() >= -1e-12)                                     # no node inside the probe
     True
 """
+
 from .contact import PenaltyContact, ProjectionContact
 from .grasp import Attachment, Grasp
 from .haptic import HapticLoop
@@ -40,5 +41,20 @@ from .tools import Box, Capsule, HalfSpace, Shape, Sphere, Tool
 #: shape names of scene files -> classes (the analytic shapes and ``mesh``)
 SHAPES = {**_ANALYTIC, "mesh": MeshShape}
 
-__all__ = ["Tool", "Shape", "Sphere", "Capsule", "Box", "HalfSpace", "MeshShape", "SHAPES", "ProjectionContact",
-           "PenaltyContact", "Grasp", "Attachment", "StrainLimit", "support_reaction", "HapticLoop"]
+__all__ = [
+    "Tool",
+    "Shape",
+    "Sphere",
+    "Capsule",
+    "Box",
+    "HalfSpace",
+    "MeshShape",
+    "SHAPES",
+    "ProjectionContact",
+    "PenaltyContact",
+    "Grasp",
+    "Attachment",
+    "StrainLimit",
+    "support_reaction",
+    "HapticLoop",
+]

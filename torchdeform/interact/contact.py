@@ -36,6 +36,7 @@ Examples:
     >>> bool(state.x[:, 0].min() >= -0.001 - 1e-12)                 # nothing sinks through the floor
     True
 """
+
 from __future__ import annotations
 
 import math
@@ -99,15 +100,23 @@ class ProjectionContact:
         ([-0.2, 0.0, 0.0], [0.0, 1.0, 1.0])
     """
 
-    def __init__(self, tools, friction: float = 0.0, *, direction: str = "normal", hold: bool = False,
-                 haptic_gain: float | None = None):
+    def __init__(
+        self,
+        tools,
+        friction: float = 0.0,
+        *,
+        direction: str = "normal",
+        hold: bool = False,
+        haptic_gain: float | None = None,
+    ):
         self.tools = _tools(tools)
         self.friction = _number(friction, "contact.friction", "a Coulomb coefficient >= 0")
         if direction not in DIRECTIONS:
             raise ConfigError("contact.direction", " or ".join(DIRECTIONS), direction)
         self.direction, self.hold = direction, bool(hold)
-        self.haptic_gain = None if haptic_gain is None else _number(haptic_gain, "contact.haptic_gain",
-                                                                    "a gain >= 0 (N/m)")
+        self.haptic_gain = (
+            None if haptic_gain is None else _number(haptic_gain, "contact.haptic_gain", "a gain >= 0 (N/m)")
+        )
         self._held = [Attachment() for _ in self.tools] if self.hold else None
 
     @property
@@ -127,12 +136,12 @@ class ProjectionContact:
         u = u / length(u).clamp_min(torch.finfo(x.dtype).tiny)
         ahead = inside & ((n * u).sum(1, keepdim=True) > 0.5)
         s = torch.zeros_like(d)
-        for _ in range(4):                  # Newton on sdf(x + s u) = 0 along the motion
+        for _ in range(4):  # Newton on sdf(x + s u) = 0 along the motion
             ds, ns = tool.sdf(x + s * u, t)
             s = s - ds / (ns * u).sum(1, keepdim=True).clamp_min(0.5)
         y = x + s * u
         ds, ns = tool.sdf(y, t)
-        y = y - ds.clamp_max(0) * ns        # what the ray left inside goes along the normal
+        y = y - ds.clamp_max(0) * ns  # what the ray left inside goes along the normal
         return torch.where(ahead, y, torch.where(inside, x - d * n, x))
 
     def project(self, model, x, v, t, dt, readings=None):
@@ -155,10 +164,11 @@ class ProjectionContact:
             held = None
             if self.hold:
                 if torch.is_tensor(t):
-                    raise ConfigError("contact.hold", "the eager step (held nodes are kept in Python)",
-                                      "a compiled step")
+                    raise ConfigError(
+                        "contact.hold", "the eager step (held nodes are kept in Python)", "a compiled step"
+                    )
                 att = self._held[k]
-                if att.mask is not None:        # release the held nodes whose motion leaves the tool
+                if att.mask is not None:  # release the held nodes whose motion leaves the tool
                     d, n = tool.sdf(x, t)
                     leaving = ((v - tool.point_velocity(x, t)) * n).sum(1, keepdim=True) > 0
                     att.release(leaving)
@@ -194,7 +204,7 @@ class ProjectionContact:
                 touched = inside if held is None else inside | held
                 report(readings, tool.name, "contacts", touched.flatten(1).sum(1).to(x.dtype))
                 if self.haptic_gain is not None:
-                    n_in = inside.flatten(2).sum(2).to(x.dtype)               # (B, 1)
+                    n_in = inside.flatten(2).sum(2).to(x.dtype)  # (B, 1)
                     push = torch.where(inside, x - x0, torch.zeros_like(x)).flatten(2).sum(2)
                     report(readings, tool.name, "haptic", -self.haptic_gain * push / n_in.clamp_min(1))
         return x, v

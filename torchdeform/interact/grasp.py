@@ -25,6 +25,7 @@ Examples:
     >>> state.readings["forceps.grasped"].tolist(), bool(state.readings["forceps.force"][0, 0] < 0)
     ([1.0], True)
 """
+
 from __future__ import annotations
 
 import math
@@ -120,8 +121,9 @@ class Grasp:
             raise ConfigError("grasp.tool", "a Tool", type(tool).__name__)
         self.tool, self.close, self.open = tool, _time(close, "grasp.close"), _time(open, "grasp.open")
         if (self.close is None) != (self.open is None):
-            raise ConfigError("grasp", "both a close and an open time (s), open = inf for never",
-                              f"close={close}, open={open}")
+            raise ConfigError(
+                "grasp", "both a close and an open time (s), open = inf for never", f"close={close}, open={open}"
+            )
         if self.close is not None and not self.open > self.close:
             raise ConfigError("grasp.open", f"a time after close = {self.close} s", open)
         try:
@@ -159,8 +161,11 @@ class Grasp:
             readings: the step's readings, or None.
         """
         if torch.is_tensor(t):
-            raise ConfigError("interactions", "a Grasp in the eager step (it keeps the grasped nodes in "
-                                              "Python between steps)", "a compiled step")
+            raise ConfigError(
+                "interactions",
+                "a Grasp in the eager step (it keeps the grasped nodes in Python between steps)",
+                "a compiled step",
+            )
         now = self.closed_at(float(t))
         if now and not self._was_closed:
             d, _ = self.tool.sdf(x, t)
@@ -176,6 +181,12 @@ class Grasp:
         if not now:
             self.held.release()
         self._was_closed = now
-        report(readings, self.tool.name, "grasped", x.new_tensor(0.0).expand(x.shape[0]) if self.held.mask is None
-               else self.held.mask.flatten(1).sum(1).to(x.dtype))
+        report(
+            readings,
+            self.tool.name,
+            "grasped",
+            x.new_tensor(0.0).expand(x.shape[0])
+            if self.held.mask is None
+            else self.held.mask.flatten(1).sum(1).to(x.dtype),
+        )
         return x, v

@@ -34,6 +34,7 @@ Examples:
     >>> bool(forces[0][0] == 0 and forces[-1][0] > 0), loop.stats()["mode"]   # the tissue pushes up
     (True, 'direct')
 """
+
 from __future__ import annotations
 
 import copy
@@ -69,9 +70,21 @@ class HapticLoop:
         name: the tool's name.
     """
 
-    def __init__(self, model, shape: Shape, start, dt: float, *, rate: float = 1000.0, mode: str = "auto",
-                 steps_per_tick: int | None = None, integrator=None, compiled: bool = True,
-                 contact: dict | None = None, name: str = "haptic"):
+    def __init__(
+        self,
+        model,
+        shape: Shape,
+        start,
+        dt: float,
+        *,
+        rate: float = 1000.0,
+        mode: str = "auto",
+        steps_per_tick: int | None = None,
+        integrator=None,
+        compiled: bool = True,
+        contact: dict | None = None,
+        name: str = "haptic",
+    ):
         from .._compile import INDUCTOR_OPTIONS
         from ..sim.compiled import IMPLICIT_OPTIONS, CompiledStep
         from ..sim.integrators import SymplecticEuler
@@ -91,17 +104,22 @@ class HapticLoop:
         self.contact = ProjectionContact(self.tool, **(contact or {}))
         if not isinstance(model, Model):
             raise ConfigError("haptic.model", "a torchdeform Model", type(model).__name__)
-        self.model = body = copy.copy(model)                    # the caller's model keeps its interactions
+        self.model = body = copy.copy(model)  # the caller's model keeps its interactions
         body.interactions = list(model.interactions) + [self.contact]
         spacing = model.grid.spacing
         self._touch = 1e-6 * (min(spacing) if isinstance(spacing, (tuple, list)) else spacing)
         # inductor's C++ wrapper runs the whole step without the GIL: the ticks of the device thread
         # are not held up behind it (the Python wrapper's kernels keep the GIL: at 64^3 a
         # 0.5 ms sleep of the other thread then took 7.4 ms, with the C++ wrapper 0.58 ms)
-        self.step = CompiledStep(integrator or SymplecticEuler(), body, self.dt, enable=compiled,
-                                 options={**INDUCTOR_OPTIONS, **IMPLICIT_OPTIONS})
+        self.step = CompiledStep(
+            integrator or SymplecticEuler(),
+            body,
+            self.dt,
+            enable=compiled,
+            options={**INDUCTOR_OPTIONS, **IMPLICIT_OPTIONS},
+        )
         self.state = self.step.packed.pack_state(body.rest_state())
-        self._k_node = self.step.packed.spring_sums(self.step.packed.stiffness)   # (1, 1, P)
+        self._k_node = self.step.packed.spring_sums(self.step.packed.stiffness)  # (1, 1, P)
         self.mode, self._requested = mode, mode
         self._lock = threading.Lock()
         self._thread, self._running = None, False
@@ -127,8 +145,8 @@ class HapticLoop:
             with torch.no_grad():
                 d, n = self.tool.sdf(self.state.x, self.state.t)
                 touched = (d <= self._touch) & (self.step.packed.free > 0)
-                w = (self._k_node * touched)[0, 0]                                     # (P,)
-                nn = n[0]                                                               # (3, P)
+                w = (self._k_node * touched)[0, 0]  # (P,)
+                nn = n[0]  # (3, P)
                 K = torch.einsum("p,ip,jp->ij", w, nn, nn).double().cpu().numpy()
         with self._lock:
             self._body = (force, p, K)
@@ -157,7 +175,7 @@ class HapticLoop:
     def start(self) -> None:
         """Compile and warm up the body step, choose the mode, start the body thread (local mode)."""
         t0 = time.perf_counter()
-        self.advance()                                         # compiles on this first call
+        self.advance()  # compiles on this first call
         self.compile_s = time.perf_counter() - t0
         t0 = time.perf_counter()
         for _ in range(3):
@@ -199,7 +217,7 @@ class HapticLoop:
         wait = self._next - time.perf_counter()
         if wait > 0:
             time.sleep(wait)
-        elif wait < -10.0 / self.rate:      # more than 10 ticks behind: start again, no long burst
+        elif wait < -10.0 / self.rate:  # more than 10 ticks behind: start again, no long burst
             self._next = time.perf_counter()
         self._last_tick = time.perf_counter()
         return force
@@ -211,5 +229,10 @@ class HapticLoop:
         """
         end = self._last_tick if self._ticks else time.perf_counter()
         span = max(end - self._t0, 1e-12)
-        return {"mode": self.mode, "force_hz": self._ticks / span, "body_hz": self._body_steps / span,
-                "ticks": self._ticks, "body_steps": self._body_steps}
+        return {
+            "mode": self.mode,
+            "force_hz": self._ticks / span,
+            "body_hz": self._body_steps / span,
+            "ticks": self._ticks,
+            "body_steps": self._body_steps,
+        }

@@ -38,6 +38,7 @@ triangles (trimesh's ``signed_distance`` takes about 6 s at 32 without embree).
 Mesh ``(x, y, z)`` are the channels ``(D, H, W)`` in that order, in metres, in the tool's own frame
 (the tool's position moves the mesh's origin), as in :mod:`torchdeform.mesh`.
 """
+
 from __future__ import annotations
 
 import math
@@ -66,7 +67,7 @@ class _Triangles:
     """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
-        tri = np.asarray(vertices, dtype=np.float64)[faces]                          # (F, 3, 3)
+        tri = np.asarray(vertices, dtype=np.float64)[faces]  # (F, 3, 3)
         a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
         ab, bc, ca = b - a, c - b, a - c
         n = np.cross(ab, c - a)
@@ -76,9 +77,17 @@ class _Triangles:
         lengths = np.stack([(e * e).sum(-1) for e in (ab, bc, ca)], 0)
         # a triangle of area below 1e-12 of its longest edge squared is degenerate (a sliver, a point)
         flat = nn <= 1e-24 * lengths.max(0) ** 2
-        self.table = np.ascontiguousarray(np.concatenate(
-            [np.concatenate([a, b, c, ab, bc, ca, e0, e1, e2, n], 1).T,
-             np.maximum(nn, 1e-300)[None], np.maximum(lengths, 1e-300), flat[None].astype(np.float64)], 0))
+        self.table = np.ascontiguousarray(
+            np.concatenate(
+                [
+                    np.concatenate([a, b, c, ab, bc, ca, e0, e1, e2, n], 1).T,
+                    np.maximum(nn, 1e-300)[None],
+                    np.maximum(lengths, 1e-300),
+                    flat[None].astype(np.float64),
+                ],
+                0,
+            )
+        )
 
     def closest(self, p: np.ndarray, idx: np.ndarray, point: bool = False):
         """Squared distance ``(M,)`` from points ``p`` ``(3, M)`` to triangles ``idx`` ``(M,)``.
@@ -86,7 +95,7 @@ class _Triangles:
         With ``point``, also the nearest point of each triangle ``(3, M)``.
         """
         if len(idx) > _CHUNK:
-            parts = [self.closest(p[:, i:i + _CHUNK], idx[i:i + _CHUNK], point) for i in range(0, len(idx), _CHUNK)]
+            parts = [self.closest(p[:, i : i + _CHUNK], idx[i : i + _CHUNK], point) for i in range(0, len(idx), _CHUNK)]
             if not point:
                 return np.concatenate(parts)
             return np.concatenate([a for a, _ in parts]), np.concatenate([b for _, b in parts], 1)
@@ -95,7 +104,7 @@ class _Triangles:
         def dot(x, y):
             return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
 
-        a, b, c, ab, bc, ca, e0, e1, e2, n = (t[3 * i:3 * i + 3] for i in range(10))
+        a, b, c, ab, bc, ca, e0, e1, e2, n = (t[3 * i : 3 * i + 3] for i in range(10))
         nn, lengths, flat = t[30], t[31:34], t[34]
         ap, bp, cp = p - a, p - b, p - c
         inside = (dot(ap, e0) >= 0) & (dot(bp, e1) >= 0) & (dot(cp, e2) >= 0) & (flat == 0)
@@ -103,7 +112,7 @@ class _Triangles:
         d2, offset = None, None
         for q, e, k in ((ap, ab, 0), (bp, bc, 1), (cp, ca, 2)):
             s = np.clip(dot(q, e) / lengths[k], 0.0, 1.0)
-            r = q - s * e                                               # p minus the edge's nearest point
+            r = q - s * e  # p minus the edge's nearest point
             r2 = dot(r, r)
             if d2 is None:
                 d2, offset = r2, r
@@ -111,32 +120,33 @@ class _Triangles:
                 if point:
                     offset = np.where(r2 < d2, r, offset)
                 d2 = np.minimum(d2, r2)
-        d2 = np.where(inside, above ** 2 / nn, d2)
+        d2 = np.where(inside, above**2 / nn, d2)
         if not point:
             return d2
         return d2, p - np.where(inside, above / nn * n, offset)
 
 
-def _unsigned_distance(tris: _Triangles, vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray,
-                       h: float, shape: tuple[int, int, int]) -> np.ndarray:
+def _unsigned_distance(
+    tris: _Triangles, vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, h: float, shape: tuple[int, int, int]
+) -> np.ndarray:
     """Distance ``(D, H, W)`` float64 from the grid points to the surface (steps 1 to 3 above)."""
     D, H, W = shape
     N = D * H * W
     axes = [origin[i] + h * np.arange(shape[i]) for i in range(3)]
     points = np.stack(np.meshgrid(*axes, indexing="ij"), 0).reshape(3, N)
-    best = np.full(N, np.inf)                                           # squared distance to the site
-    nearest = np.full(N, -1, dtype=np.int64)                            # the site's triangle
-    site = np.zeros((3, N))                                             # a surface point [m]
+    best = np.full(N, np.inf)  # squared distance to the site
+    nearest = np.full(N, -1, dtype=np.int64)  # the site's triangle
+    site = np.zeros((3, N))  # a surface point [m]
 
     # 1. the band: every triangle against the grid points of its bounding box grown by one spacing
     tri = vertices[faces]
     dims = np.array(shape)
     i0 = np.clip(np.floor((tri.min(1) - origin) / h).astype(np.int64) - 1, 0, dims - 1)
     i1 = np.clip(np.ceil((tri.max(1) - origin) / h).astype(np.int64) + 1, 0, dims - 1)
-    size = i1 - i0 + 1                                                  # (F, 3) points per axis
+    size = i1 - i0 + 1  # (F, 3) points per axis
     counts = size.prod(1)
     start = 0
-    while start < len(faces):                                           # chunks of about _CHUNK pairs
+    while start < len(faces):  # chunks of about _CHUNK pairs
         stop = start + max(1, int(np.searchsorted(np.cumsum(counts[start:]), _CHUNK, "right")))
         c = counts[start:stop]
         f = np.repeat(np.arange(start, stop), c)
@@ -147,8 +157,8 @@ def _unsigned_distance(tris: _Triangles, vertices: np.ndarray, faces: np.ndarray
         i = i0[f, 0] + local // (sz[:, 2] * sz[:, 1])
         pt = (i * H + j) * W + k
         d2, q = tris.closest(points[:, pt], f, point=True)
-        order = np.lexsort((d2, pt))                                    # by point, then distance
-        first = order[np.r_[True, pt[order][1:] != pt[order][:-1]]]     # each point's nearest triangle
+        order = np.lexsort((d2, pt))  # by point, then distance
+        first = order[np.r_[True, pt[order][1:] != pt[order][:-1]]]  # each point's nearest triangle
         pt, d2, f, q = pt[first], d2[first], f[first], q[:, first]
         better = d2 < best[pt]
         pt = pt[better]
@@ -252,8 +262,9 @@ class MeshShape(Shape):
 
     def __init__(self, mesh, resolution: int = 32, padding: float = 0.1):
         if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)) or resolution < 4:
-            raise ConfigError("mesh_shape.resolution", "an integer >= 4 (grid points along the longest axis)",
-                              resolution)
+            raise ConfigError(
+                "mesh_shape.resolution", "an integer >= 4 (grid points along the longest axis)", resolution
+            )
         try:
             pad = float(padding)
         except (TypeError, ValueError):
@@ -278,14 +289,18 @@ class MeshShape(Shape):
         axes = [origin[i] + h * np.arange(shape[i]) for i in range(3)]
         inside = inside_mask(vertices, faces, *axes, tol=1e-6 * h)
         phi = torch.from_numpy(np.where(inside, -dist, dist))
-        depth = -float(phi.min())                          # the deepest grid point inside [m]
+        depth = -float(phi.min())  # the deepest grid point inside [m]
         if depth < h:
-            warnings.warn(f"MeshShape: no grid point lies more than {max(depth, 0.0):.3g} m inside the mesh, under one "
-                          f"spacing ({h:.3g} m): thin parts will be missed by contact; raise resolution "
-                          f"(now {int(resolution)})", UserWarning, stacklevel=2)
+            warnings.warn(
+                f"MeshShape: no grid point lies more than {max(depth, 0.0):.3g} m inside the mesh, under one "
+                f"spacing ({h:.3g} m): thin parts will be missed by contact; raise resolution "
+                f"(now {int(resolution)})",
+                UserWarning,
+                stacklevel=2,
+            )
         self.field = phi[None, None].contiguous()
         self.gradient = torch.stack(torch.gradient(phi, spacing=h), 0)[None].contiguous()
-        self._stacked = {}                                   # (dtype, device) -> (1, 4, D, H, W)
+        self._stacked = {}  # (dtype, device) -> (1, 4, D, H, W)
 
     def _tables(self, like: torch.Tensor):
         key = (like.dtype, like.device)
@@ -304,19 +319,24 @@ class MeshShape(Shape):
             the dtype and device of ``p``.
         """
         B, trailing = p.shape[0], p.shape[2:]
-        q = p.reshape(B, 3, -1)                                          # (B, 3, M)
+        q = p.reshape(B, 3, -1)  # (B, 3, M)
         M = q.shape[2]
         lo = q.new_tensor(self.origin).view(1, 3, 1)
         hi = lo + q.new_tensor([(s - 1) * self.spacing for s in self.shape]).view(1, 3, 1)
-        inner = torch.minimum(torch.maximum(q, lo), hi)                  # nearest point of the box
-        u = 2 * (inner - lo) / (hi - lo) - 1                             # [-1, 1] per channel (D, H, W)
-        grid = u.flip(1).permute(0, 2, 1).reshape(1, B * M, 1, 1, 3)      # grid_sample's (x=W, y=H, z=D)
-        s = F.grid_sample(self._tables(q), grid, mode="bilinear", padding_mode="border",   # trilinear in 3-D
-                          align_corners=True)
-        s = s.reshape(4, B, M).permute(1, 0, 2)                          # (B, 4, M)
+        inner = torch.minimum(torch.maximum(q, lo), hi)  # nearest point of the box
+        u = 2 * (inner - lo) / (hi - lo) - 1  # [-1, 1] per channel (D, H, W)
+        grid = u.flip(1).permute(0, 2, 1).reshape(1, B * M, 1, 1, 3)  # grid_sample's (x=W, y=H, z=D)
+        s = F.grid_sample(
+            self._tables(q),
+            grid,
+            mode="bilinear",
+            padding_mode="border",  # trilinear in 3-D
+            align_corners=True,
+        )
+        s = s.reshape(4, B, M).permute(1, 0, 2)  # (B, 4, M)
         d, (_, n) = s[:, :1], _unit(s[:, 1:])
         # outside the box: from the surface point nearest to the box point, inner - d n
         r, m = _unit(q - inner + d * n)
-        out = (q != inner).any(1, keepdim=True)                          # (B, 1, M)
+        out = (q != inner).any(1, keepdim=True)  # (B, 1, M)
         d, n = torch.where(out, r, d), torch.where(out, m, n)
         return d.reshape(B, 1, *trailing), n.reshape(B, 3, *trailing)

@@ -27,6 +27,7 @@ Examples:
     >>> [round(f, 6) for f in support_reaction(model, state)[0].tolist()]    # settled: both nodes' weight
     [2.0, 0.0, 0.0]
 """
+
 from __future__ import annotations
 
 import torch
@@ -42,8 +43,15 @@ def report(readings: dict | None, name: str, key: str, value: torch.Tensor) -> N
     readings[k] = value if k not in readings else readings[k] + value
 
 
-def report_momentum(readings: dict | None, name: str, mass: torch.Tensor, dv: torch.Tensor, x: torch.Tensor,
-                    centre: torch.Tensor, dt: float) -> None:
+def report_momentum(
+    readings: dict | None,
+    name: str,
+    mass: torch.Tensor,
+    dv: torch.Tensor,
+    x: torch.Tensor,
+    centre: torch.Tensor,
+    dt: float,
+) -> None:
     """Report the force and torque on a tool whose response changed node velocities by ``dv``.
 
     Args:
@@ -57,7 +65,7 @@ def report_momentum(readings: dict | None, name: str, mass: torch.Tensor, dv: to
     """
     if readings is None:
         return
-    f = mass * dv / dt                                            # force of the tool on each node
+    f = mass * dv / dt  # force of the tool on each node
     report(readings, name, "force", -f.flatten(2).sum(2))
     report(readings, name, "torque", -torch.cross(x - centre, f, dim=1).flatten(2).sum(2))
 

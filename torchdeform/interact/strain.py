@@ -33,6 +33,7 @@ Examples:
     >>> [round(c, 12) for c in x1[0, 0, :, 0, 0].tolist()]            # both ends move 0.45 in
     [0.45, 1.55]
 """
+
 from __future__ import annotations
 
 import math
@@ -64,8 +65,7 @@ class StrainLimit:
         4
     """
 
-    def __init__(self, min_ratio: float = 0.9, max_ratio: float = 1.1, passes: int = 4,
-                 update_velocity: bool = True):
+    def __init__(self, min_ratio: float = 0.9, max_ratio: float = 1.1, passes: int = 4, update_velocity: bool = True):
         for key, v in (("strain_limit.min_ratio", min_ratio), ("strain_limit.max_ratio", max_ratio)):
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
                 raise ConfigError(key, "a positive ratio of the rest length", v)
@@ -139,9 +139,14 @@ class StrainLimit:
 
         def fn(s, src, dx):
             wa, wb = free[(..., *src)], free[(..., *grid.stencil[s][1])]
-            alpha, violated = self.rule((dx * dx).sum(1, keepdim=True), take(model.rest_length, s, src),
-                                        take(model.stiffness, s, src) > 0, wa, wb)
-            step = alpha * dx                                          # moves a towards b when too long
+            alpha, violated = self.rule(
+                (dx * dx).sum(1, keepdim=True),
+                take(model.rest_length, s, src),
+                take(model.stiffness, s, src) > 0,
+                wa,
+                wb,
+            )
+            step = alpha * dx  # moves a towards b when too long
             return torch.cat([step * wa, violated * wa], 1), torch.cat([-step * wb, violated * wb], 1)
 
         return accumulate(grid, fn, x, channels=4)
@@ -149,10 +154,10 @@ class StrainLimit:
     def _packed_sums(self, pm: PackedModel, x):
         """As :meth:`_grid_sums` on a packed model: one sum over the ``2 S`` directions, ``(B, 4, P)``."""
         x = pm.trace.operand(x)
-        dx = pm.ends(x) - pm.blocks(x).unsqueeze(2)                          # (B, 3, 2S, N, L)
+        dx = pm.ends(x) - pm.blocks(x).unsqueeze(2)  # (B, 3, 2S, N, L)
         sq = dx[:, 0] * dx[:, 0] + dx[:, 1] * dx[:, 1] + dx[:, 2] * dx[:, 2]  # (B, 2S, N, L)
-        wa = pm.blocks(pm.free)[:, 0]                                        # (1, 1, N, L), 0 in the halo
-        wb = pm.ends(pm.free)[:, 0]                                          # (1, 2S, N, L)
+        wa = pm.blocks(pm.free)[:, 0]  # (1, 1, N, L), 0 in the halo
+        wb = pm.ends(pm.free)[:, 0]  # (1, 2S, N, L)
         exists = (pm.directed(pm.stiffness) > 0) & (pm.spring_exists > 0)
         alpha, violated = self.rule(sq, pm.directed(pm.rest_length), exists, wa, wb)
         # Channels kept apart (four sums, one loop over the nodes), as PackedLinearisation.apply.

@@ -23,6 +23,7 @@ Examples:
     >>> round(d.item(), 6), n[0, :, 0].tolist()
     (0.015, [-1.0, 0.0, 0.0])
 """
+
 from __future__ import annotations
 
 import math
@@ -57,7 +58,7 @@ class Shape:
 
     def sdf(self, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Signed distance ``(B, 1, ...)`` and outward unit normal ``(B, 3, ...)`` at points ``p`` ``(B, 3, ...)``."""
-        raise NotImplementedError                                   # pragma: no cover
+        raise NotImplementedError  # pragma: no cover
 
 
 class Sphere(Shape):
@@ -115,7 +116,7 @@ class Capsule(Shape):
     def sdf(self, p):
         """Signed distance and outward normal (see :meth:`Shape.sdf`)."""
         a = self.axis
-        on_axis = p[:, a:a + 1].clamp(-self.half_length, self.half_length)
+        on_axis = p[:, a : a + 1].clamp(-self.half_length, self.half_length)
         q = torch.cat([on_axis if c == a else torch.zeros_like(on_axis) for c in range(3)], 1)
         r, n = _unit(p - q, fallback=(a + 1) % 3)
         return r - self.radius, n
@@ -146,10 +147,10 @@ class Box(Shape):
     def sdf(self, p):
         """Signed distance and outward normal (see :meth:`Shape.sdf`)."""
         h = p.new_tensor(self.half_extents).view(1, 3, *[1] * (p.dim() - 2))
-        q = p.abs() - h                                             # > 0 outside along that axis
+        q = p.abs() - h  # > 0 outside along that axis
         outside = q.clamp_min(0)
         r_out, n_out = _unit(outside * p.sign())
-        inside_d, face = q.max(dim=1, keepdim=True)                 # nearest face from inside (<= 0)
+        inside_d, face = q.max(dim=1, keepdim=True)  # nearest face from inside (<= 0)
         n_in = torch.zeros_like(p).scatter(1, face, 1.0) * p.sign().where(p != 0, torch.ones_like(p))
         is_out = (q > 0).any(dim=1, keepdim=True)
         return torch.where(is_out, r_out, inside_d), torch.where(is_out, n_out, n_in)
@@ -189,7 +190,7 @@ SHAPES = {"sphere": Sphere, "capsule": Capsule, "box": Box, "half_space": HalfSp
 
 def _rotation_matrix(r: torch.Tensor) -> torch.Tensor:
     """Rodrigues: rotation vectors ``(..., 3)`` (axis times angle, radians) -> matrices ``(..., 3, 3)``."""
-    theta = r.norm(dim=-1, keepdim=True)[..., None]                 # (..., 1, 1)
+    theta = r.norm(dim=-1, keepdim=True)[..., None]  # (..., 1, 1)
     k = r / theta[..., 0].clamp_min(torch.finfo(r.dtype).tiny)
     z = torch.zeros_like(k[..., 0])
     K = torch.stack([z, -k[..., 2], k[..., 1], k[..., 2], z, -k[..., 0], -k[..., 1], k[..., 0], z], -1)
@@ -243,21 +244,28 @@ class Tool:
 
     def __init__(self, shape: Shape, path=None, *, position=None, orientation=None, name: str = "tool"):
         if not isinstance(shape, Shape):
-            raise ConfigError("tool.shape", "a Shape (Sphere, Capsule, Box, HalfSpace, MeshShape)",
-                              type(shape).__name__)
+            raise ConfigError(
+                "tool.shape", "a Shape (Sphere, Capsule, Box, HalfSpace, MeshShape)", type(shape).__name__
+            )
         if (path is None) == (position is None):
-            raise ConfigError("tool", "exactly one of path (waypoints) or position (fixed or callable)",
-                              "both" if path is not None else "neither")
+            raise ConfigError(
+                "tool",
+                "exactly one of path (waypoints) or position (fixed or callable)",
+                "both" if path is not None else "neither",
+            )
         if path is not None and orientation is not None:
-            raise ConfigError("tool.orientation", "orientations inside the path waypoints (t, position, rotation)",
-                              orientation)
+            raise ConfigError(
+                "tool.orientation", "orientations inside the path waypoints (t, position, rotation)", orientation
+            )
         self.shape, self.name = shape, str(name)
         self._fn = self._path = self._rot_fn = self._rot = None
         if path is not None:
             try:
                 rows = [tuple(w) for w in path]
             except TypeError:
-                raise ConfigError("tool.path", "waypoints [t, [d, h, w]] or [t, [d, h, w], [rd, rh, rw]]", path) from None
+                raise ConfigError(
+                    "tool.path", "waypoints [t, [d, h, w]] or [t, [d, h, w], [rd, rh, rw]]", path
+                ) from None
             sizes = {len(w) for w in rows}
             if not rows or not sizes <= {2, 3} or len(sizes) != 1:
                 raise ConfigError("tool.path", "waypoints all [t, position] or all [t, position, rotation]", path)
@@ -330,7 +338,11 @@ class Tool:
     def frame(self, t, like: torch.Tensor):
         """``(c, R)``: the position ``(B|1, 3, 1, ...)`` against fields like ``like``, and ``R`` ``(B|1, 3, 3)`` or None."""
         r = self.rotation(t)
-        R = None if r is None else _rotation_matrix(torch.as_tensor(r, dtype=like.dtype, device=like.device).reshape(-1, 3))
+        R = (
+            None
+            if r is None
+            else _rotation_matrix(torch.as_tensor(r, dtype=like.dtype, device=like.device).reshape(-1, 3))
+        )
         return _field(self.position(t), like), R
 
     def sdf(self, x: torch.Tensor, t) -> tuple[torch.Tensor, torch.Tensor]:
@@ -358,6 +370,8 @@ class Tool:
 
 def _constant(value: torch.Tensor):
     """A callable ``t -> value`` (a pose per batch entry, set from Python)."""
+
     def fn(t):
         return value
+
     return fn

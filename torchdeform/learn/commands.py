@@ -3,6 +3,7 @@
 ``torchdeform data cube|balloon`` (synthetic series) and :func:`run_script`, the frame every
 training script in ``training/`` shares.
 """
+
 from __future__ import annotations
 
 import json
@@ -61,14 +62,23 @@ def _numbers(text, key):
 def command(args) -> int:
     """Run ``torchdeform data ...``; prints a one-line summary."""
     if args.data_command == "balloon":
-        s = balloon_series(snapshots=args.snapshots, interval=args.interval, dt=args.dt, noise=args.noise,
-                           seed=args.seed)
+        s = balloon_series(
+            snapshots=args.snapshots, interval=args.interval, dt=args.dt, noise=args.noise, seed=args.seed
+        )
     else:
         k, c = _numbers(args.stiffness, "--stiffness"), _numbers(args.damping, "--damping")
         if args.n is None:
-            s = radetzky_cube(springs=70 if args.springs is None else args.springs, stiffness=k, damping=c,
-                              mass=args.mass, steps=args.steps, dt=args.dt, noise=args.noise, every=args.every,
-                              seed=args.seed)
+            s = radetzky_cube(
+                springs=70 if args.springs is None else args.springs,
+                stiffness=k,
+                damping=c,
+                mass=args.mass,
+                steps=args.steps,
+                dt=args.dt,
+                noise=args.noise,
+                every=args.every,
+                seed=args.seed,
+            )
         else:
             if args.springs is not None:
                 raise ConfigError("--springs", "not together with --n (Radetzky's sets are 3 x 3 x 3)", args.springs)
@@ -78,12 +88,26 @@ def command(args) -> int:
                 if args.regions not in ("layers", "inclusion"):
                     raise ConfigError("--regions", "layers or inclusion", args.regions)
                 regions = layered_regions(g) if args.regions == "layers" else inclusion_regions(g, args.n / 4)
-            s = cube_series(n=args.n, topology=args.topology, load=args.load, amplitude=args.amplitude,
-                            stiffness=k, damping=c, mass=args.mass, regions=regions, steps=args.steps, dt=args.dt,
-                            noise=args.noise, every=args.every, seed=args.seed)
+            s = cube_series(
+                n=args.n,
+                topology=args.topology,
+                load=args.load,
+                amplitude=args.amplitude,
+                stiffness=k,
+                damping=c,
+                mass=args.mass,
+                regions=regions,
+                steps=args.steps,
+                dt=args.dt,
+                noise=args.noise,
+                every=args.every,
+                seed=args.seed,
+            )
     path = s.save(args.out)
-    print(f"{path}: {s.meta['description']}; {len(s.steps)} observations of {s.grid.num_nodes} nodes, "
-          f"dt = {s.dt:g} s, {s.grid.num_springs if s.spring_mask is None else int(s.spring_mask.sum())} springs")
+    print(
+        f"{path}: {s.meta['description']}; {len(s.steps)} observations of {s.grid.num_nodes} nodes, "
+        f"dt = {s.dt:g} s, {s.grid.num_springs if s.spring_mask is None else int(s.spring_mask.sum())} springs"
+    )
     return 0
 
 
@@ -103,6 +127,7 @@ def run_script(name: str, args, fit, summary) -> int:
     alone writes ``result.json`` and prints.
     """
     import torch.distributed as dist
+
     joined = dist.is_available() and dist.is_initialized()
     main = not joined or dist.get_rank() == 0
 
@@ -114,16 +139,23 @@ def run_script(name: str, args, fit, summary) -> int:
         out.mkdir(parents=True, exist_ok=True)
         t0, c0 = time.perf_counter(), time.process_time()
         result = fit(args, out)
-        result.update(wall_seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0,
-                      threads=args.threads, ranks=dist.get_world_size() if joined else 1)
+        result.update(
+            wall_seconds=time.perf_counter() - t0,
+            cpu_seconds=time.process_time() - c0,
+            threads=args.threads,
+            ranks=dist.get_world_size() if joined else 1,
+        )
         if main:
             try:
                 text = json.dumps(result, indent=1, allow_nan=False)
             except ValueError:
-                raise NonFiniteOutputError(f"refusing to write {out / 'result.json'}: it would hold NaN or inf "
-                                           f"({', '.join(non_finite_keys(result))})") from None
+                raise NonFiniteOutputError(
+                    f"refusing to write {out / 'result.json'}: it would hold NaN or inf "
+                    f"({', '.join(non_finite_keys(result))})"
+                ) from None
             with atomic_path(out / "result.json") as tmp:
                 tmp.write_text(text)
             print(summary(result))
         return 0
+
     return guarded(name, work, echo=main)

@@ -3,6 +3,7 @@
 Teacher-forcing windows, checkpointed back-propagation through time, masks for missing
 observations.
 """
+
 from __future__ import annotations
 
 import math
@@ -56,9 +57,19 @@ class WindowLoss:
     window indices, for stochastic subsets) to get a 0-d loss tensor.
     """
 
-    def __init__(self, series: Series, window: int | None = 10, velocity: str = "difference",
-                 checkpoint: int | None = None, detach: bool = True, integrator=None, smooth: int = 0,
-                 dtype=torch.float64, engine: str = "eager", backend="inductor"):
+    def __init__(
+        self,
+        series: Series,
+        window: int | None = 10,
+        velocity: str = "difference",
+        checkpoint: int | None = None,
+        detach: bool = True,
+        integrator=None,
+        smooth: int = 0,
+        dtype=torch.float64,
+        engine: str = "eager",
+        backend="inductor",
+    ):
         _check("velocity", velocity, ("difference", "zero", "carry"))
         _check("engine", engine, LOSS_ENGINES)
         self.engine = engine
@@ -66,16 +77,19 @@ class WindowLoss:
         if engine == "compiled":
             # imported here: it loads inductor, which would add 2 s to every import of torchdeform
             from .._compile import fresh
+
             # its own code object: dynamo keeps compiled graphs (and its recompile limit) per code object
-            self._compiled = torch.compile(fresh(type(self)._advance).__get__(self), dynamic=False, fullgraph=True,
-                                           backend=backend)
+            self._compiled = torch.compile(
+                fresh(type(self)._advance).__get__(self), dynamic=False, fullgraph=True, backend=backend
+            )
         self.series, self.velocity, self.dtype, self.detach = series, velocity, dtype, bool(detach)
         steps = np.asarray(series.steps)
         T = len(steps)
         E = series.every
         if T < 2 or (np.diff(steps) != E).any():
-            raise ConfigError("series.steps", "evenly spaced observation steps (resample the series first)",
-                              steps[:6].tolist())
+            raise ConfigError(
+                "series.steps", "evenly spaced observation steps (resample the series first)", steps[:6].tolist()
+            )
         if window is not None and int(window) < 1:
             raise ConfigError("window", "an integer >= 1 (observation intervals) or None", window)
         if checkpoint is not None and int(checkpoint) < 1:
@@ -85,7 +99,7 @@ class WindowLoss:
         self.every, self.T = E, T
         self.checkpoint = None if checkpoint is None else int(checkpoint)
         self.integrator = integrator or INTEGRATORS[series.integrator]()
-        self.obs = torch.as_tensor(series.positions, dtype=dtype)                 # (T, 3, D, H, W)
+        self.obs = torch.as_tensor(series.positions, dtype=dtype)  # (T, 3, D, H, W)
         free = ~torch.as_tensor(series.constrained())
         self.weight = (torch.as_tensor(series.mask) & free).to(dtype).unsqueeze(1)  # (T, 1, D, H, W)
         X = series.grid.rest_positions(dtype)
@@ -94,21 +108,23 @@ class WindowLoss:
         if self.count == 0:
             raise ConfigError("series.mask", "at least one observed free node", "none", show_got=True)
         self.ref = math.sqrt(max(float(disp) / self.count, 1e-300))
-        self.starts = list(range(0, T - 1, self.K))                               # window start observations
+        self.starts = list(range(0, T - 1, self.K))  # window start observations
         # the autograd graph of one evaluation: every step of every window keeps its node fields (state,
         # forces, spring terms); a checkpoint keeps one segment and the segment ends
         steps = (T - 1) * E
         held = steps if self.checkpoint is None else self.checkpoint + steps // self.checkpoint
         g = series.grid
-        check_memory("checkpoint" if checkpoint is not None else "window",
-                     float(held) * g.num_nodes * torch.finfo(dtype).bits / 8 * (30 + 3 * g.S),
-                     f"the autograd graph of {held} steps of {g.num_nodes} nodes (set checkpoint to keep fewer)",
-                     got=checkpoint if checkpoint is not None else window)
+        check_memory(
+            "checkpoint" if checkpoint is not None else "window",
+            float(held) * g.num_nodes * torch.finfo(dtype).bits / 8 * (30 + 3 * g.S),
+            f"the autograd graph of {held} steps of {g.num_nodes} nodes (set checkpoint to keep fewer)",
+            got=checkpoint if checkpoint is not None else window,
+        )
         if int(smooth) < 0:
             raise ConfigError("smooth", "an integer >= 0 (half-width in observations)", smooth)
         self.smooth = int(smooth)
         # normalisation over the whole series, so a subset of windows has the same scale
-        self.scale = 1.0 / (self.count * self.ref ** 2)
+        self.scale = 1.0 / (self.count * self.ref**2)
 
     @property
     def num_windows(self) -> int:
@@ -129,7 +145,7 @@ class WindowLoss:
         use = w & later & free
         x = torch.where(use, obs, x)
         tab = s.tables(model.dtype, model.device)
-        if tab["drag"] is not None:                                # boundary: known prescribed positions
+        if tab["drag"] is not None:  # boundary: known prescribed positions
             steps = torch.as_tensor(s.steps)[idx]
             x = torch.where(tab["drag_mask"], tab["drag"][steps], x)
         if self.smooth:
@@ -162,8 +178,8 @@ class WindowLoss:
         for i in starts:
             j = np.arange(max(0, i - h), min(self.T - 1, i + h) + 1)
             tau = (j - i) * E * dt
-            V = np.stack([np.ones_like(tau), tau, tau ** 2], 1)
-            W = torch.as_tensor(np.linalg.pinv(V), dtype=self.dtype)          # (3, len(j))
+            V = np.stack([np.ones_like(tau), tau, tau**2], 1)
+            W = torch.as_tensor(np.linalg.pinv(V), dtype=self.dtype)  # (3, len(j))
             o = self.obs[torch.as_tensor(j)]
             a = torch.einsum("j,j...->...", W[0], o)
             b = torch.einsum("j,j...->...", W[1], o)
@@ -200,8 +216,9 @@ class WindowLoss:
         if self._compiled is not None:
             try:
                 return self._compiled(model, x, v, n)
-            except Exception as e:                          # noqa: BLE001 (any failure -> eager)
+            except Exception as e:  # noqa: BLE001 (any failure -> eager)
                 from .._compile import warn_fallback
+
                 self._compiled = None
                 first = (str(e).strip().splitlines() or [""])[0][:160]
                 warn_fallback(f"{type(e).__name__}: {first}", "the eager rollout")
@@ -211,11 +228,11 @@ class WindowLoss:
         """Loss of the windows starting at observation indices ``starts`` (one batch)."""
         K, E = self.K, self.every
         idx = torch.tensor(starts)
-        obs_idx = (idx.view(-1, 1) + torch.arange(1, K + 1).view(1, -1))         # (B, K)
+        obs_idx = idx.view(-1, 1) + torch.arange(1, K + 1).view(1, -1)  # (B, K)
         valid = (obs_idx <= self.T - 1).to(self.dtype).view(len(starts), K, 1, 1, 1, 1)
         obs_idx = obs_idx.clamp_max(self.T - 1)
-        targets = self.obs[obs_idx]                                              # (B, K, 3, D, H, W)
-        weights = self.weight[obs_idx] * valid                                  # (B, K, 1, D, H, W)
+        targets = self.obs[obs_idx]  # (B, K, 3, D, H, W)
+        weights = self.weight[obs_idx] * valid  # (B, K, 1, D, H, W)
         n0 = torch.as_tensor(self.series.steps)[idx]
         total = K * E
         seg = self.checkpoint or total
@@ -233,6 +250,7 @@ class WindowLoss:
                 def segment(x, v, k, c, m, off=off, length=length):
                     sub = self.series.model(k, c, m, model.dtype, model.device)
                     return self._segment(sub, x, v, n0, length, off, targets, weights)
+
                 x, v, part = _checkpoint(segment, x, v, k, c, m, use_reentrant=True)
             else:
                 x, v, part = self._segment(model, x, v, n0, length, off, targets, weights)
@@ -259,7 +277,7 @@ class WindowLoss:
         for i in self.starts:
             if i > 0:
                 w = torch.as_tensor(s.mask)[i][None, None] & free
-                state = State(torch.where(w, self.obs[i:i + 1], state.x), state.v, 0.0)
+                state = State(torch.where(w, self.obs[i : i + 1], state.x), state.v, 0.0)
             loss, state = self._window_loss(model, state, [i])
             if i in chosen:
                 total = total + loss

@@ -4,6 +4,7 @@ Positive transforms, spring and node parameters (shared, per direction class, pe
 spring), fuzzy springs, and the bundle that builds a :class:`~torchdeform.sim.model.Model`
 (Radetzky's network weights ``1/m``, ``c``, ``d``).
 """
+
 from __future__ import annotations
 
 import math
@@ -17,14 +18,24 @@ from ..sim.grid import Grid
 from ..sim.springs import harmonic_mean_of_ends
 from .series import Series
 
-__all__ = ["Positive", "SpringParameter", "NodeParameter", "FuzzySprings", "Parameters", "to_raw", "from_raw",
-           "node_to_springs", "expand_spring_param", "TRANSFORMS", "SHARING"]
+__all__ = [
+    "Positive",
+    "SpringParameter",
+    "NodeParameter",
+    "FuzzySprings",
+    "Parameters",
+    "to_raw",
+    "from_raw",
+    "node_to_springs",
+    "expand_spring_param",
+    "TRANSFORMS",
+    "SHARING",
+]
 
 
 TRANSFORMS = ("log", "softplus")
-_BLOWUP = 1e30            # the loss L-BFGS sees at trial points where the simulation diverged
+_BLOWUP = 1e30  # the loss L-BFGS sees at trial points where the simulation diverged
 SHARING = ("shared", "class", "region", "spring")
-
 
 
 def node_to_springs(values: torch.Tensor, grid: Grid, spring_mask=None) -> torch.Tensor:
@@ -61,9 +72,9 @@ def expand_spring_param(value, grid: Grid, regions=None, spring_mask=None, dtype
         return t.view(S, 1, 1, 1) * mask
     if tuple(t.shape) == (S,) + shape:
         return t * mask
-    raise ConfigError("spring parameter", f"a number, (R,) with regions, (S,) or (S, D, H, W) = {(S,) + shape}",
-                      tuple(t.shape))
-
+    raise ConfigError(
+        "spring parameter", f"a number, (R,) with regions, (S,) or (S, D, H, W) = {(S,) + shape}", tuple(t.shape)
+    )
 
 
 # ------------------------------------------------------------------- transforms
@@ -126,8 +137,16 @@ class SpringParameter(nn.Module):
     Calling it returns the per-spring tensor ``(S, D, H, W)`` (zero where no spring exists).
     """
 
-    def __init__(self, grid, spring_mask=None, init=1.0, sharing: str = "shared", regions=None,
-                 transform: str = "log", dtype=torch.float64):
+    def __init__(
+        self,
+        grid,
+        spring_mask=None,
+        init=1.0,
+        sharing: str = "shared",
+        regions=None,
+        transform: str = "log",
+        dtype=torch.float64,
+    ):
         super().__init__()
         _check("sharing", sharing, SHARING)
         self.grid, self.sharing = grid, sharing
@@ -138,8 +157,9 @@ class SpringParameter(nn.Module):
         elif sharing == "class":
             classes = grid.direction_class()
             self.classes = sorted(set(classes), key=["axis", "face", "body"].index)
-            self.register_buffer("class_index", torch.tensor([self.classes.index(c) for c in classes]),
-                                 persistent=False)
+            self.register_buffer(
+                "class_index", torch.tensor([self.classes.index(c) for c in classes]), persistent=False
+            )
             n = len(self.classes)
         elif sharing == "region":
             if regions is None:
@@ -161,8 +181,7 @@ class SpringParameter(nn.Module):
     @classmethod
     def like(cls, series: Series, init=1.0, sharing: str = "shared", transform: str = "log"):
         """A parameter on the grid and springs of ``series`` (regions from its truth, if any)."""
-        return cls(series.grid, series.spring_mask_tensor(), init, sharing,
-                   series.truth.get("regions"), transform)
+        return cls(series.grid, series.spring_mask_tensor(), init, sharing, series.truth.get("regions"), transform)
 
     def values(self) -> torch.Tensor:
         """The learned values, ``(n,)``."""
@@ -246,8 +265,7 @@ class FuzzySprings(nn.Module):
         params = Parameters(series, fs.part("stiffness"), fs.part("damping"), mass)
     """
 
-    def __init__(self, fis, inputs: dict, outputs=None, scale=None, learn: str = "inputs", grid=None,
-                 spring_mask=None):
+    def __init__(self, fis, inputs: dict, outputs=None, scale=None, learn: str = "inputs", grid=None, spring_mask=None):
         super().__init__()
         _check("learn", learn, ("inputs", "membership", "both"))
         self.fis = fis.double()
@@ -258,8 +276,9 @@ class FuzzySprings(nn.Module):
             raise ConfigError("inputs", f"a value for each input ({', '.join(names)})", sorted(inputs))
         for role, out in self.outputs.items():
             if out not in self.fis.output_names():
-                raise ConfigError(f"outputs.{role}", f"an output of {self.fis.name} "
-                                                     f"({', '.join(self.fis.output_names())})", out)
+                raise ConfigError(
+                    f"outputs.{role}", f"an output of {self.fis.name} ({', '.join(self.fis.output_names())})", out
+                )
         self.fis.requires_grad_(False)
         if learn in ("membership", "both"):
             for v in self.fis.outputs:
@@ -324,8 +343,9 @@ class Parameters(nn.Module):
             if isinstance(value, nn.Module):
                 self.learned[name] = value
             else:
-                self.fixed[name] = torch.as_tensor(np.asarray(value, dtype=np.float64)
-                                                   if not torch.is_tensor(value) else value).to(dtype)
+                self.fixed[name] = torch.as_tensor(
+                    np.asarray(value, dtype=np.float64) if not torch.is_tensor(value) else value
+                ).to(dtype)
 
     def physical(self) -> dict:
         """``{"stiffness": (S, D, H, W) or number, "damping": ..., "mass": (D, H, W) or number}``."""

@@ -3,6 +3,7 @@
 Spread of per-spring fits, curvature of the loss (undetermined directions), learning curves
 and scans.
 """
+
 from __future__ import annotations
 
 import math
@@ -17,8 +18,16 @@ from .parameters import Parameters
 from .series import Series
 from .trainer import Record
 
-__all__ = ["active_springs", "relative_error", "spread_report", "curvature_report", "plot_history", "plot_scan",
-           "plot_spread", "history_dicts"]
+__all__ = [
+    "active_springs",
+    "relative_error",
+    "spread_report",
+    "curvature_report",
+    "plot_history",
+    "plot_scan",
+    "plot_spread",
+    "history_dicts",
+]
 
 
 # ------------------------------------------------------------------- reports and plots
@@ -58,12 +67,16 @@ def spread_report(learned, truth) -> dict:
     rel = np.abs(r - 1)
     q = np.quantile(r, [0, 0.05, 0.25, 0.5, 0.75, 0.95, 1])
     within10 = float(np.mean(rel <= 0.1))
-    return {"n": int(a.size), "ratio": dict(zip(["min", "p05", "p25", "median", "p75", "p95", "max"],
-                                                 map(float, q))),
-            "log_ratio_std": float(np.std(np.log(r))), "median_rel_error": float(np.median(rel)),
-            "max_rel_error": float(rel.max()), "within_1pct": float(np.mean(rel <= 0.01)),
-            "within_10pct": within10,
-            "verdict": "recovered" if within10 >= 0.95 else "not determined by the data"}
+    return {
+        "n": int(a.size),
+        "ratio": dict(zip(["min", "p05", "p25", "median", "p75", "p95", "max"], map(float, q))),
+        "log_ratio_std": float(np.std(np.log(r))),
+        "median_rel_error": float(np.median(rel)),
+        "max_rel_error": float(rel.max()),
+        "within_1pct": float(np.mean(rel <= 0.01)),
+        "within_10pct": within10,
+        "verdict": "recovered" if within10 >= 0.95 else "not determined by the data",
+    }
 
 
 def curvature_report(params: Parameters, loss, rel_threshold: float = 1e-6, max_params: int = 600) -> dict:
@@ -86,15 +99,23 @@ def curvature_report(params: Parameters, loss, rel_threshold: float = 1e-6, max_
     rows = []
     for i in range(n):
         h = torch.autograd.grad(g[i], learnable, retain_graph=True, allow_unused=True)
-        rows.append(torch.cat([(x if x is not None else torch.zeros_like(p)).reshape(-1)
-                               for x, p in zip(h, learnable)]).detach())
+        rows.append(
+            torch.cat(
+                [(x if x is not None else torch.zeros_like(p)).reshape(-1) for x, p in zip(h, learnable)]
+            ).detach()
+        )
     H = torch.stack(rows)
     H = 0.5 * (H + H.T)
     ev = torch.linalg.eigvalsh(H).flip(0).cpu().numpy()
     top = max(float(ev[0]), 1e-300)
     pos = ev[ev > 0]
-    return {"n": n, "eigenvalues": ev.tolist(), "condition": float(pos[0] / pos[-1]) if pos.size else math.inf,
-            "undetermined": int((ev < rel_threshold * top).sum()), "threshold": rel_threshold}
+    return {
+        "n": n,
+        "eigenvalues": ev.tolist(),
+        "condition": float(pos[0] / pos[-1]) if pos.size else math.inf,
+        "undetermined": int((ev < rel_threshold * top).sum()),
+        "threshold": rel_threshold,
+    }
 
 
 def plot_history(history, path, title: str = "learning curve", extra: dict | None = None) -> Path:
@@ -103,6 +124,7 @@ def plot_history(history, path, title: str = "learning curve", extra: dict | Non
     ``extra``: more curves ``{label: (iterations, values)}``. Returns the path.
     """
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -125,15 +147,18 @@ def plot_history(history, path, title: str = "learning curve", extra: dict | Non
     return path
 
 
-def plot_scan(values, losses, marker_at, path, xlabel: str, marker: str = "true value", title: str = "scan",
-              logx: bool = False) -> Path:
+def plot_scan(
+    values, losses, marker_at, path, xlabel: str, marker: str = "true value", title: str = "scan", logx: bool = False
+) -> Path:
     """Loss against one scanned parameter (log loss axis), a vertical line at ``marker_at``.
 
     Written to ``path`` (PNG). Returns the path.
     """
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     fig, ax = plt.subplots(figsize=(6, 4))
     (ax.loglog if logx else ax.semilogy)(values, losses, ".-")
     ax.axvline(marker_at, color="k", lw=1, label=marker)
@@ -150,11 +175,13 @@ def plot_scan(values, losses, marker_at, path, xlabel: str, marker: str = "true 
 def plot_spread(learned, truth, path, title: str = "per-spring recovery") -> Path:
     """Histogram of learned/true ratios (log scale) to ``path``."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    r = np.asarray(torch.as_tensor(learned).detach(), dtype=np.float64) / np.asarray(torch.as_tensor(truth),
-                                                                                      dtype=np.float64)
+    r = np.asarray(torch.as_tensor(learned).detach(), dtype=np.float64) / np.asarray(
+        torch.as_tensor(truth), dtype=np.float64
+    )
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.hist(np.log10(r), bins=30)
     ax.axvline(0.0, color="k", lw=1)
@@ -171,5 +198,4 @@ def plot_spread(learned, truth, path, title: str = "per-spring recovery") -> Pat
 
 def history_dicts(history) -> list:
     """The history as JSON-able dicts."""
-    return [{"iteration": r.iteration, "loss": r.loss, "grad_norm": r.grad_norm, "seconds": r.seconds}
-            for r in history]
+    return [{"iteration": r.iteration, "loss": r.loss, "grad_norm": r.grad_norm, "seconds": r.seconds} for r in history]

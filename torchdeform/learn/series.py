@@ -38,6 +38,7 @@ Example:
     >>> learn.load_series(path).loads
     [PointForce(node=(2, 1, 1), force=(-0.05, 0.0, 0.0), start=0.0, ramp=0.0, period=None)]
 """
+
 from __future__ import annotations
 
 import json
@@ -72,8 +73,13 @@ def load_to_json(load, index: int) -> tuple[dict, dict]:
         index: its position in the series' list (names its stored array).
     """
     profile = "sine" if load.period is not None else "ramp" if load.ramp > 0 else "constant"
-    d = {"kind": None, "profile": profile, "start": float(load.start), "duration": float(load.ramp),
-         "period": 1.0 if load.period is None else float(load.period)}
+    d = {
+        "kind": None,
+        "profile": profile,
+        "start": float(load.start),
+        "duration": float(load.ramp),
+        "period": 1.0 if load.period is None else float(load.period),
+    }
     arrays = {}
     if isinstance(load, PointForce):
         d.update(kind="force", nodes=[[int(c) for c in load.node]], vector=[float(c) for c in load.force])
@@ -99,8 +105,10 @@ def load_from_json(d, arrays: dict, shape: tuple, where: str) -> list:
     A ``"force"`` on several nodes is one :class:`PointForce` per node. Raises a
     :class:`ConfigError` naming ``where`` and the key.
     """
+
     def bad(key, expected, got):
         return ConfigError(f"{where}.{key}", expected, got)
+
     if not isinstance(d, dict):
         raise ConfigError(where, "a table with kind, profile, ...", d)
     kind = d.get("kind")
@@ -117,8 +125,11 @@ def load_from_json(d, arrays: dict, shape: tuple, where: str) -> list:
         nums[k] = float(v)
     if profile == "sine" and nums["period"] <= 0:
         raise bad("period", "a positive number (s)", nums["period"])
-    timing = {"start": nums["start"], "ramp": 0.0 if profile == "constant" else nums["duration"],
-              "period": nums["period"] if profile == "sine" else None}
+    timing = {
+        "start": nums["start"],
+        "ramp": 0.0 if profile == "constant" else nums["duration"],
+        "period": nums["period"] if profile == "sine" else None,
+    }
     if kind == "field":
         name = d.get("array")
         if name not in arrays:
@@ -187,6 +198,7 @@ class Series:
             labels) and the scalar/table values in ``meta["truth"]``.
         meta: JSON-able dict (description, generator settings, noise, seed ...).
     """
+
     positions: np.ndarray
     steps: np.ndarray
     mask: np.ndarray
@@ -244,11 +256,11 @@ class Series:
         force, offset = None, None
         for ld in self.loads:
             if isinstance(ld, Drag):
-                off = ld.offset(t)[:, :, None, None, None] * ld.mask().numpy()[None, None]     # (n, 3, D, H, W)
+                off = ld.offset(t)[:, :, None, None, None] * ld.mask().numpy()[None, None]  # (n, 3, D, H, W)
                 offset = off if offset is None else offset + off
             else:
                 f = ld.factor(t)[:, None, None, None, None]
-                dense = ld.dense(self.grid, torch.float64, "cpu").numpy()                       # (1, 3, D, H, W)
+                dense = ld.dense(self.grid, torch.float64, "cpu").numpy()  # (1, 3, D, H, W)
                 force = f * dense if force is None else force + f * dense
         out = {"force": None, "drag": None, "drag_mask": None}
         if force is not None:
@@ -266,16 +278,29 @@ class Series:
         Any shape :class:`Model` accepts; tensors keep their autograd graph.
         """
         fixed = torch.as_tensor(self.constrained())
-        return Model(self.grid, stiffness=stiffness, damping=damping, damping_mode=self.damping_mode, mass=mass,
-                     fixed=fixed, spring_mask=None if self.spring_mask is None else torch.as_tensor(self.spring_mask),
-                     dtype=dtype, device=device)
+        return Model(
+            self.grid,
+            stiffness=stiffness,
+            damping=damping,
+            damping_mode=self.damping_mode,
+            mass=mass,
+            fixed=fixed,
+            spring_mask=None if self.spring_mask is None else torch.as_tensor(self.spring_mask),
+            dtype=dtype,
+            device=device,
+        )
 
     def true_model(self, dtype=torch.float64, device=None) -> Model:
         """The model with the true parameters (synthetic series)."""
         if not self.truth:
             raise ConfigError("truth", "a synthetic series with true parameters", "none stored", show_got=True)
-        return self.model(torch.as_tensor(self.truth["stiffness"]), torch.as_tensor(self.truth["damping"]),
-                          torch.as_tensor(self.truth["mass"]), dtype, device)
+        return self.model(
+            torch.as_tensor(self.truth["stiffness"]),
+            torch.as_tensor(self.truth["damping"]),
+            torch.as_tensor(self.truth["mass"]),
+            dtype,
+            device,
+        )
 
     def advance(self, model: Model, state: State, n, integrator=None) -> State:
         """One step of the series' dynamics from step ``n`` to ``n + 1``.
@@ -322,9 +347,12 @@ class Series:
     def save(self, path) -> Path:
         """Write the series to ``path`` (``.npz``, compressed); returns the path."""
         path = Path(path)
-        arrays = {"positions": np.asarray(self.positions, dtype=np.float64),
-                  "steps": np.asarray(self.steps, dtype=np.int64),
-                  "mask": np.asarray(self.mask, dtype=bool), "fixed": np.asarray(self.fixed, dtype=bool)}
+        arrays = {
+            "positions": np.asarray(self.positions, dtype=np.float64),
+            "steps": np.asarray(self.steps, dtype=np.int64),
+            "mask": np.asarray(self.mask, dtype=bool),
+            "fixed": np.asarray(self.fixed, dtype=bool),
+        }
         if self.spring_mask is not None:
             arrays["spring_mask"] = np.asarray(self.spring_mask, dtype=bool)
         for k in ("stiffness", "damping", "mass", "regions"):
@@ -337,17 +365,33 @@ class Series:
             arrays.update(stored)
         g = self.grid
         meta = dict(self.meta)
-        meta.update({"format": FORMAT, "dt": float(self.dt), "shape": list(g.shape), "spacing": list(g.spacing),
-                     "origin": list(g.origin), "topology": g.topology, "damping_mode": self.damping_mode,
-                     "integrator": self.integrator, "loads": loads, "start": "rest",
-                     "node_mask": g.node_mask is not None})
+        meta.update(
+            {
+                "format": FORMAT,
+                "dt": float(self.dt),
+                "shape": list(g.shape),
+                "spacing": list(g.spacing),
+                "origin": list(g.origin),
+                "topology": g.topology,
+                "damping_mode": self.damping_mode,
+                "integrator": self.integrator,
+                "loads": loads,
+                "start": "rest",
+                "node_mask": g.node_mask is not None,
+            }
+        )
         if g.node_mask is not None:
             arrays["node_mask"] = g.node_mask.numpy()
         arrays["meta"] = np.array(json.dumps(meta))
         for k, a in arrays.items():
-            require_finite(f"{path.name}: {k}", a, "observation, axis, d, h, w" if k == "positions" else "",
-                           "the simulated body diverged (a load or amplitude too large for its time step?)"
-                           if k == "positions" else "")
+            require_finite(
+                f"{path.name}: {k}",
+                a,
+                "observation, axis, d, h, w" if k == "positions" else "",
+                "the simulated body diverged (a load or amplitude too large for its time step?)"
+                if k == "positions"
+                else "",
+            )
         path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(path) as tmp, open(tmp, "wb") as fh:
             np.savez_compressed(fh, **arrays)
@@ -372,7 +416,7 @@ def load_series(path) -> Series:
     try:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
-    except Exception as e:                                  # zip/pickle/format errors of many kinds
+    except Exception as e:  # zip/pickle/format errors of many kinds
         raise _fail(path, "file", "a .npz archive written by torchdeform.learn", f"{type(e).__name__}: {e}") from None
     for key in ("meta", "positions", "steps", "mask", "fixed"):
         if key not in arrays:
@@ -394,8 +438,12 @@ def load_series(path) -> Series:
         raise _fail(path, "meta.shape", "three node counts [D, H, W]", shape)
     shape = tuple(shape)
     if meta["integrator"] not in INTEGRATORS or meta["integrator"] in ("implicit", "knoche"):
-        raise _fail(path, "meta.integrator", "an explicit integrator name (symplectic, explicit, verlet, rk4)",
-                    meta["integrator"])
+        raise _fail(
+            path,
+            "meta.integrator",
+            "an explicit integrator name (symplectic, explicit, verlet, rk4)",
+            meta["integrator"],
+        )
     if meta["damping_mode"] not in ("projected", "unprojected"):
         raise _fail(path, "meta.damping_mode", "projected or unprojected", meta["damping_mode"])
     node_mask = None
@@ -404,10 +452,17 @@ def load_series(path) -> Series:
             raise _fail(path, "node_mask", "an array in the file (meta.node_mask is true)", "missing")
         node_mask = arrays["node_mask"]
         if node_mask.shape != shape or node_mask.dtype != bool:
-            raise _fail(path, "node_mask", f"bool of shape {shape} (meta.shape)", f"{node_mask.dtype} {node_mask.shape}")
+            raise _fail(
+                path, "node_mask", f"bool of shape {shape} (meta.shape)", f"{node_mask.dtype} {node_mask.shape}"
+            )
     try:
-        grid = Grid(shape, meta["spacing"], meta["topology"], node_mask=None if node_mask is None
-                    else torch.from_numpy(node_mask), origin=meta.get("origin", (0.0, 0.0, 0.0)))
+        grid = Grid(
+            shape,
+            meta["spacing"],
+            meta["topology"],
+            node_mask=None if node_mask is None else torch.from_numpy(node_mask),
+            origin=meta.get("origin", (0.0, 0.0, 0.0)),
+        )
     except ConfigError as e:
         raise _fail(path, f"meta.{e.key.split('.')[-1]}", e.expected, e.got) from None
     S = grid.S
@@ -419,8 +474,12 @@ def load_series(path) -> Series:
         raise _fail(path, "positions", "floating-point values", str(pos.dtype))
     if not np.isfinite(pos).all():
         bad = np.argwhere(~np.isfinite(pos))[0]
-        raise _fail(path, "positions", "finite values (no NaN or inf; mark missing data in 'mask')",
-                    f"{pos[tuple(bad)]} at observation {bad[0]}")
+        raise _fail(
+            path,
+            "positions",
+            "finite values (no NaN or inf; mark missing data in 'mask')",
+            f"{pos[tuple(bad)]} at observation {bad[0]}",
+        )
     T = pos.shape[0]
     if T < 2:
         raise _fail(path, "positions", "at least 2 observations", T)
@@ -437,8 +496,12 @@ def load_series(path) -> Series:
         raise _fail(path, "fixed", f"bool of shape {shape}", f"{fixed.dtype} {fixed.shape}")
     smask = arrays.get("spring_mask")
     if smask is not None and (smask.shape != (S,) + shape or smask.dtype != bool):
-        raise _fail(path, "spring_mask", f"bool of shape {(S,) + shape} (topology {grid.topology})",
-                    f"{smask.dtype} {smask.shape}")
+        raise _fail(
+            path,
+            "spring_mask",
+            f"bool of shape {(S,) + shape} (topology {grid.topology})",
+            f"{smask.dtype} {smask.shape}",
+        )
     if not isinstance(meta["loads"], list):
         raise _fail(path, "meta.loads", "a list of load tables", meta["loads"])
     loads = []
@@ -457,8 +520,20 @@ def load_series(path) -> Series:
         if not np.isfinite(a).all() or (a < 0).any():
             raise _fail(path, f"true_{key}", "finite values >= 0", "NaN, inf or negative values")
         truth[key] = a
-    series = Series(pos.astype(np.float64), steps.astype(np.int64), mask, float(dt), grid, smask, fixed, loads,
-                    meta["damping_mode"], meta["integrator"], truth, meta)
+    series = Series(
+        pos.astype(np.float64),
+        steps.astype(np.int64),
+        mask,
+        float(dt),
+        grid,
+        smask,
+        fixed,
+        loads,
+        meta["damping_mode"],
+        meta["integrator"],
+        truth,
+        meta,
+    )
     if "num_steps" in meta and meta["num_steps"] != series.num_steps:
         raise _fail(path, "meta.num_steps", f"the last entry of steps ({series.num_steps})", meta["num_steps"])
     return series

@@ -27,6 +27,7 @@ Example:
     >>> s.positions.shape, type(s.loads[0]).__name__
     ((21, 3, 3, 3, 3), 'Drag')
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -38,8 +39,17 @@ from ..sim.grid import Grid
 from .parameters import NodeParameter, Parameters, SpringParameter, expand_spring_param
 from .series import Series
 
-__all__ = ["radetzky_cube", "per_spring_start", "cube_series", "balloon_series", "cube_grid", "indentation", "layered_regions",
-           "inclusion_regions", "SPRING_SETS"]
+__all__ = [
+    "radetzky_cube",
+    "per_spring_start",
+    "cube_series",
+    "balloon_series",
+    "cube_grid",
+    "indentation",
+    "layered_regions",
+    "inclusion_regions",
+    "SPRING_SETS",
+]
 
 #: Radetzky's cube spring sets: number of springs -> (topology, kept half-directions or None).
 #: 70 is Radetzky's count; the thesis figure that placed its 16 extra springs is lost, so we
@@ -55,8 +65,9 @@ def indentation(grid: Grid, depth: float, radius: int = 0, duration: float = 0.5
     """
     D, H, W = grid.shape
     ch, cw = (H - 1) / 2, (W - 1) / 2
-    nodes = [(D - 1, j, k) for j in range(H) for k in range(W)
-             if abs(j - ch) <= radius + 0.5 and abs(k - cw) <= radius + 0.5]
+    nodes = [
+        (D - 1, j, k) for j in range(H) for k in range(W) if abs(j - ch) <= radius + 0.5 and abs(k - cw) <= radius + 0.5
+    ]
     return Drag(grid.index_mask(nodes), offset=(-float(depth), 0.0, 0.0), ramp=float(duration))
 
 
@@ -90,8 +101,18 @@ def cube_grid(n: int = 3, spacing: float = 0.01, springs: int | None = None, top
     return grid, mask
 
 
-def _simulate_truth(series: Series, stiffness, damping, mass, noise: float, every: int, observe, seed: int,
-                    dtype=torch.float64, integrator=None) -> Series:
+def _simulate_truth(
+    series: Series,
+    stiffness,
+    damping,
+    mass,
+    noise: float,
+    every: int,
+    observe,
+    seed: int,
+    dtype=torch.float64,
+    integrator=None,
+) -> Series:
     """Fill ``series.positions/steps/mask/truth`` by simulating the true model."""
     grid = series.grid
     smask = series.spring_mask_tensor()
@@ -102,7 +123,7 @@ def _simulate_truth(series: Series, stiffness, damping, mass, noise: float, ever
     series.truth.update({"stiffness": k.numpy(), "damping": c.numpy(), "mass": m.numpy()})
     with torch.no_grad():
         model = series.model(k, c, m, dtype)
-        xs = series.simulate(model, integrator=integrator)[:, 0].to(torch.float64).numpy()        # (N + 1, 3, D, H, W)
+        xs = series.simulate(model, integrator=integrator)[:, 0].to(torch.float64).numpy()  # (N + 1, 3, D, H, W)
     N = xs.shape[0] - 1
     steps = np.arange(0, N + 1, int(every))
     clean = xs[steps]
@@ -115,11 +136,11 @@ def _simulate_truth(series: Series, stiffness, damping, mass, noise: float, ever
         X = grid.rest_positions(torch.float64)[0].numpy()
         free = ~series.constrained() & grid.nodes().numpy()
         disp = (clean - X[None])[:, :, free]
-        sigma = float(noise) * float(np.sqrt(np.mean(disp ** 2)))
+        sigma = float(noise) * float(np.sqrt(np.mean(disp**2)))
         rng = np.random.default_rng(seed)
         pos = pos + rng.normal(0.0, sigma, size=pos.shape)
         series.meta["noise_sigma"] = sigma
-    pos[~np.broadcast_to(obs[:, None], pos.shape)] = 0.0                  # unobserved entries carry no data
+    pos[~np.broadcast_to(obs[:, None], pos.shape)] = 0.0  # unobserved entries carry no data
     series.positions, series.steps, series.mask = pos, steps, obs
     series.meta.update({"noise": float(noise), "seed": int(seed), "every": int(every)})
     return series
@@ -129,12 +150,26 @@ def _truth_meta(stiffness, damping, mass) -> dict:
     def js(v):
         a = np.asarray(v, dtype=np.float64)
         return float(a) if a.ndim == 0 else a.tolist()
+
     return {"stiffness": js(stiffness), "damping": js(damping), "mass": js(mass)}
 
 
-def radetzky_cube(springs: int = 70, stiffness=10.0, damping=0.1, mass=0.01, force=(-0.05, 0.0, 0.0),
-                  steps: int = 250, dt: float = 0.005, spacing: float = 0.01, noise: float = 0.0, every: int = 1,
-                  observe=None, seed: int = 0, damping_mode: str = "unprojected", integrator=None) -> Series:
+def radetzky_cube(
+    springs: int = 70,
+    stiffness=10.0,
+    damping=0.1,
+    mass=0.01,
+    force=(-0.05, 0.0, 0.0),
+    steps: int = 250,
+    dt: float = 0.005,
+    spacing: float = 0.01,
+    noise: float = 0.0,
+    every: int = 1,
+    observe=None,
+    seed: int = 0,
+    damping_mode: str = "unprojected",
+    integrator=None,
+) -> Series:
     """Radetzky's cube experiment: 3 x 3 x 3 nodes, lower 9 fixed, a constant force on the top-centre node.
 
     The force acts for all ``steps`` steps. The thesis gives neither the parameters, the force,
@@ -166,13 +201,25 @@ def radetzky_cube(springs: int = 70, stiffness=10.0, damping=0.1, mass=0.01, for
         a :class:`Series`.
     """
     grid, smask = cube_grid(3, spacing, springs)
-    s = Series(np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool), positive_number(dt, "dt"), grid,
-               None if smask is None else smask.numpy(), grid.face("bottom").numpy(),
-               [PointForce((2, 1, 1), tuple(float(c) for c in force))], damping_mode=damping_mode,
-               meta={"generator": "radetzky_cube", "springs": springs, "steps": int(steps),
-                     "description": f"Radetzky's cube, {springs} springs, lower 9 nodes fixed, "
-                                    f"constant force {tuple(force)} N on the top-centre node",
-                     "truth": _truth_meta(stiffness, damping, mass)})
+    s = Series(
+        np.zeros(0),
+        np.zeros(0, dtype=np.int64),
+        np.zeros(0, dtype=bool),
+        positive_number(dt, "dt"),
+        grid,
+        None if smask is None else smask.numpy(),
+        grid.face("bottom").numpy(),
+        [PointForce((2, 1, 1), tuple(float(c) for c in force))],
+        damping_mode=damping_mode,
+        meta={
+            "generator": "radetzky_cube",
+            "springs": springs,
+            "steps": int(steps),
+            "description": f"Radetzky's cube, {springs} springs, lower 9 nodes fixed, "
+            f"constant force {tuple(force)} N on the top-centre node",
+            "truth": _truth_meta(stiffness, damping, mass),
+        },
+    )
     if integrator is not None:
         s.integrator = integrator.name
     return _finish(s, stiffness, damping, mass, noise, every, observe, seed, steps, integrator)
@@ -223,10 +270,11 @@ def _finish(s: Series, stiffness, damping, mass, noise, every, observe, seed, st
         raise ConfigError("every", f"a divisor of steps = {steps} (>= 1)", every)
     if not (0 <= float(noise) < 1):
         raise ConfigError("noise", "a relative noise level in [0, 1)", noise)
-    s.steps = np.array([0, int(steps)])                         # num_steps for the tables
+    s.steps = np.array([0, int(steps)])  # num_steps for the tables
     s.meta["num_steps"] = int(steps)
-    return _simulate_truth(s, stiffness, damping, mass, float(noise), int(every), observe, int(seed),
-                           integrator=integrator)
+    return _simulate_truth(
+        s, stiffness, damping, mass, float(noise), int(every), observe, int(seed), integrator=integrator
+    )
 
 
 def layered_regions(grid: Grid, layers: int = 2) -> np.ndarray:
@@ -246,10 +294,26 @@ def inclusion_regions(grid: Grid, radius: float) -> np.ndarray:
     return (np.sqrt(((idx - c) ** 2).sum(0)) <= radius).astype(np.int64)
 
 
-def cube_series(n: int = 4, topology: int = 26, load: str = "constant", amplitude: float | None = None,
-                stiffness=10.0, damping=0.1, mass=0.01, regions=None, steps: int = 250, dt: float = 0.005,
-                spacing: float = 0.01, noise: float = 0.0, every: int = 1, observe=None, seed: int = 0,
-                damping_mode: str = "unprojected", period: float = 0.5, duration: float = 0.5) -> Series:
+def cube_series(
+    n: int = 4,
+    topology: int = 26,
+    load: str = "constant",
+    amplitude: float | None = None,
+    stiffness=10.0,
+    damping=0.1,
+    mass=0.01,
+    regions=None,
+    steps: int = 250,
+    dt: float = 0.005,
+    spacing: float = 0.01,
+    noise: float = 0.0,
+    every: int = 1,
+    observe=None,
+    seed: int = 0,
+    damping_mode: str = "unprojected",
+    period: float = 0.5,
+    duration: float = 0.5,
+) -> Series:
     """An ``n^3`` cube with its bottom face fixed under one of several loads.
 
     Args:
@@ -297,19 +361,45 @@ def cube_series(n: int = 4, topology: int = 26, load: str = "constant", amplitud
     truth = {} if regions is None else {"regions": np.asarray(regions, dtype=np.int64)}
     if regions is not None and tuple(np.shape(regions)) != grid.shape:
         raise ConfigError("regions", f"integer labels of shape {grid.shape}", np.shape(regions))
-    s = Series(np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool), positive_number(dt, "dt"), grid,
-               None,
-               grid.face("bottom").numpy(), [ld], damping_mode=damping_mode, truth=truth,
-               meta={"generator": "cube_series", "n": int(n), "load": load, "steps": int(steps),
-                     "description": f"{n}^3 cube, {topology} neighbours, bottom fixed, load {load}",
-                     "truth": _truth_meta(stiffness, damping, mass)})
+    s = Series(
+        np.zeros(0),
+        np.zeros(0, dtype=np.int64),
+        np.zeros(0, dtype=bool),
+        positive_number(dt, "dt"),
+        grid,
+        None,
+        grid.face("bottom").numpy(),
+        [ld],
+        damping_mode=damping_mode,
+        truth=truth,
+        meta={
+            "generator": "cube_series",
+            "n": int(n),
+            "load": load,
+            "steps": int(steps),
+            "description": f"{n}^3 cube, {topology} neighbours, bottom fixed, load {load}",
+            "truth": _truth_meta(stiffness, damping, mass),
+        },
+    )
     return _finish(s, stiffness, damping, mass, noise, every, observe, seed, steps)
 
 
-def balloon_series(subdivisions: int = 1, radius: float = 0.05, spacing: float | None = None, topology: int = 26,
-                   stiffness=2.0, damping=0.05, mass=0.05, pressure: float = 30.0, snapshots: int = 5,
-                   interval: float = 1.0, dt: float = 0.02, noise: float = 0.0, seed: int = 0,
-                   mesh=None) -> Series:
+def balloon_series(
+    subdivisions: int = 1,
+    radius: float = 0.05,
+    spacing: float | None = None,
+    topology: int = 26,
+    stiffness=2.0,
+    damping=0.05,
+    mass=0.05,
+    pressure: float = 30.0,
+    snapshots: int = 5,
+    interval: float = 1.0,
+    dt: float = 0.02,
+    noise: float = 0.0,
+    seed: int = 0,
+    mesh=None,
+) -> Series:
     """Radetzky's balloon, synthetically: a voxelised closed surface inflated by a rising pressure.
 
     A closed trimesh surface (an icosphere by default) voxelised into a grid body, inflated by a
@@ -360,23 +450,37 @@ def balloon_series(subdivisions: int = 1, radius: float = 0.05, spacing: float |
     pts = X[:, surface].T
     _, nearest = cKDTree(vertices).query(pts)
     field_ = np.zeros((3,) + grid.shape)
-    field_[:, surface] = (normals[nearest] * float(pressure) * spacing ** 2).T
+    field_[:, surface] = (normals[nearest] * float(pressure) * spacing**2).T
     steps_per = int(round(float(interval) / float(dt)))
     if steps_per < 1 or abs(steps_per * dt - interval) > 1e-9 * interval:
         raise ConfigError("interval", f"a whole number of time steps dt = {dt}", interval)
     steps = steps_per * (int(snapshots) - 1)
     fixed = np.zeros(grid.shape, dtype=bool)
-    centre = np.unravel_index(np.argmin(np.where(nodes, ((X - X[:, nodes].mean(1)[:, None, None, None]) ** 2).sum(0),
-                                                   np.inf)), grid.shape)
+    centre = np.unravel_index(
+        np.argmin(np.where(nodes, ((X - X[:, nodes].mean(1)[:, None, None, None]) ** 2).sum(0), np.inf)), grid.shape
+    )
     fixed[centre] = True
     ld = FieldForce(field_, ramp=steps * dt)
-    s = Series(np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool), positive_number(dt, "dt"), grid,
-               None, fixed,
-               [ld], damping_mode="unprojected",
-               meta={"generator": "balloon_series", "steps": steps, "snapshots": int(snapshots),
-                     "interval": float(interval), "surface_nodes": int(surface.sum()),
-                     "description": f"voxelised closed surface ({grid.num_nodes} nodes, {grid.num_springs} springs), "
-                                    f"pressure ramped to {pressure} Pa along vertex normals, "
-                                    f"{snapshots} snapshots {interval} s apart",
-                     "truth": _truth_meta(stiffness, damping, mass)})
+    s = Series(
+        np.zeros(0),
+        np.zeros(0, dtype=np.int64),
+        np.zeros(0, dtype=bool),
+        positive_number(dt, "dt"),
+        grid,
+        None,
+        fixed,
+        [ld],
+        damping_mode="unprojected",
+        meta={
+            "generator": "balloon_series",
+            "steps": steps,
+            "snapshots": int(snapshots),
+            "interval": float(interval),
+            "surface_nodes": int(surface.sum()),
+            "description": f"voxelised closed surface ({grid.num_nodes} nodes, {grid.num_springs} springs), "
+            f"pressure ramped to {pressure} Pa along vertex normals, "
+            f"{snapshots} snapshots {interval} s apart",
+            "truth": _truth_meta(stiffness, damping, mass),
+        },
+    )
     return _finish(s, stiffness, damping, mass, noise, steps_per, None, seed, steps)

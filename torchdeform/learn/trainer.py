@@ -3,6 +3,7 @@
 Adam or L-BFGS over a :class:`~torchdeform.learn.loss.WindowLoss`, early stopping, checkpoint
 and bitwise resume, a divergence guard.
 """
+
 from __future__ import annotations
 
 import math
@@ -22,7 +23,7 @@ from .parameters import Parameters, _check
 __all__ = ["Trainer", "Record", "NonFiniteLossError"]
 
 
-_BLOWUP = 1e30            # the loss L-BFGS sees at trial points where the simulation diverged
+_BLOWUP = 1e30  # the loss L-BFGS sees at trial points where the simulation diverged
 
 
 class NonFiniteLossError(TorchdeformError, FloatingPointError):
@@ -40,10 +41,12 @@ def _start_values(params) -> str:
             parts.append(f"{name} {v:.3g}")
     return ", ".join(parts)
 
+
 # ------------------------------------------------------------------- training
 @dataclass
 class Record:
     """One entry of the learning curve."""
+
     iteration: int
     loss: float
     grad_norm: float
@@ -76,13 +79,32 @@ class Trainer:
     so :meth:`save` and :meth:`run` are called on every rank, and every rank can :meth:`load`.
     """
 
-    def __init__(self, params: Parameters, loss: WindowLoss, optimizer: str = "adam", lr: float | None = None,
-                 iterations: int = 200, clip: float | None = 10.0, windows_per_step: int | None = None,
-                 patience: int = 50, min_delta: float = 1e-4, tol: float = 0.0, seed: int = 0,
-                 checkpoint_path=None, checkpoint_every: int = 0, progress: bool = True, lbfgs_inner: int = 20):
+    def __init__(
+        self,
+        params: Parameters,
+        loss: WindowLoss,
+        optimizer: str = "adam",
+        lr: float | None = None,
+        iterations: int = 200,
+        clip: float | None = 10.0,
+        windows_per_step: int | None = None,
+        patience: int = 50,
+        min_delta: float = 1e-4,
+        tol: float = 0.0,
+        seed: int = 0,
+        checkpoint_path=None,
+        checkpoint_every: int = 0,
+        progress: bool = True,
+        lbfgs_inner: int = 20,
+    ):
         _check("optimizer", optimizer, ("adam", "lbfgs"))
         self.params, self.loss, self.kind = params, loss, optimizer
-        self.iterations, self.clip, self.patience, self.min_delta = int(iterations), clip, int(patience), float(min_delta)
+        self.iterations, self.clip, self.patience, self.min_delta = (
+            int(iterations),
+            clip,
+            int(patience),
+            float(min_delta),
+        )
         self.tol, self.progress = float(tol), progress
         self.windows_per_step = windows_per_step
         if windows_per_step is not None and optimizer == "lbfgs":
@@ -96,9 +118,15 @@ class Trainer:
         if optimizer == "adam":
             self.opt = torch.optim.Adam(learnable, lr=0.05 if lr is None else lr)
         else:
-            self.opt = torch.optim.LBFGS(learnable, lr=1.0 if lr is None else lr, max_iter=int(lbfgs_inner),
-                                         tolerance_grad=1e-12, tolerance_change=1e-15, history_size=20,
-                                         line_search_fn="strong_wolfe")
+            self.opt = torch.optim.LBFGS(
+                learnable,
+                lr=1.0 if lr is None else lr,
+                max_iter=int(lbfgs_inner),
+                tolerance_grad=1e-12,
+                tolerance_change=1e-15,
+                history_size=20,
+                line_search_fn="strong_wolfe",
+            )
         self.history: list[Record] = []
         self.iteration = 0
         self.best = math.inf
@@ -110,7 +138,7 @@ class Trainer:
     def _windows(self):
         if self.windows_per_step is None or self.windows_per_step >= self.loss.num_windows:
             return None
-        return torch.randperm(self.loss.num_windows, generator=self.generator)[:self.windows_per_step]
+        return torch.randperm(self.loss.num_windows, generator=self.generator)[: self.windows_per_step]
 
     def _grad_norm(self) -> float:
         g = [p.grad.detach().reshape(-1) for p in self._learnable if p.grad is not None]
@@ -135,7 +163,7 @@ class Trainer:
             self.opt.zero_grad()
             try:
                 val = self.loss(self.params)
-            except ConfigError:                   # a trial step outside finite parameters
+            except ConfigError:  # a trial step outside finite parameters
                 val = None
             if val is None or not bool(torch.isfinite(val)):
                 # a line-search trial point where the simulation blew up: a large finite value
@@ -145,6 +173,7 @@ class Trainer:
                 return torch.tensor(_BLOWUP, dtype=torch.float64)
             val.backward()
             return val.detach()
+
         loss = self.opt.step(closure)
         loss = float(loss)
         return (math.inf if loss >= _BLOWUP else loss), self._grad_norm()
@@ -170,7 +199,7 @@ class Trainer:
             bar.update(1)
             bar.set_postfix(loss=f"{loss:.3e}")
             if not math.isfinite(loss) or not all(bool(torch.isfinite(p).all()) for p in self._learnable):
-                with torch.no_grad():                       # keep the last finite values
+                with torch.no_grad():  # keep the last finite values
                     for p, s in zip(self._learnable, snapshot):
                         p.copy_(s)
                 what = "the loss" if not math.isfinite(loss) else "a parameter"
@@ -180,10 +209,15 @@ class Trainer:
                     raise NonFiniteLossError(
                         f"training cannot start: {what} is not finite at the start values ({_start_values(self.params)}): "
                         "the rollout diverges there; start closer to the data's values, or use a smaller time step or "
-                        "an implicit integrator")
+                        "an implicit integrator"
+                    )
                 self.stopped = "non-finite loss"
-                warnings.warn(f"training stopped at iteration {self.iteration}: {what} went non-finite; the last "
-                              "finite parameters are kept", UserWarning, stacklevel=2)
+                warnings.warn(
+                    f"training stopped at iteration {self.iteration}: {what} went non-finite; the last "
+                    "finite parameters are kept",
+                    UserWarning,
+                    stacklevel=2,
+                )
                 break
             if loss < self.best * (1 - self.min_delta):
                 self.best, self.since_best = loss, 0
@@ -193,8 +227,11 @@ class Trainer:
                 self.stopped = f"loss <= tol ({self.tol:g})"
             elif self.since_best >= self.patience:
                 self.stopped = f"no improvement for {self.patience} iterations"
-            if self.checkpoint_path is not None and self.checkpoint_every and \
-                    self.iteration % self.checkpoint_every == 0:
+            if (
+                self.checkpoint_path is not None
+                and self.checkpoint_every
+                and self.iteration % self.checkpoint_every == 0
+            ):
                 self.save(self.checkpoint_path)
         bar.close()
         return self.history
@@ -207,10 +244,17 @@ class Trainer:
     # ---------------------------------------------------------------- checkpoints
     def state_dict(self) -> dict:
         """Everything a resume needs: parameters, optimizer, sampling RNG, counters and history."""
-        return {"params": self.params.state_dict(), "optimizer": self.opt.state_dict(),
-                "generator": self.generator.get_state(), "iteration": self.iteration, "best": self.best,
-                "since_best": self.since_best, "stopped": self.stopped, "seconds": self.seconds,
-                "history": [[r.iteration, r.loss, r.grad_norm, r.seconds] for r in self.history]}
+        return {
+            "params": self.params.state_dict(),
+            "optimizer": self.opt.state_dict(),
+            "generator": self.generator.get_state(),
+            "iteration": self.iteration,
+            "best": self.best,
+            "since_best": self.since_best,
+            "stopped": self.stopped,
+            "seconds": self.seconds,
+            "history": [[r.iteration, r.loss, r.grad_norm, r.seconds] for r in self.history],
+        }
 
     def save(self, path) -> Path:
         """Write a resumable checkpoint (parameters, optimizer, sampling RNG, history).
@@ -238,8 +282,11 @@ class Trainer:
             self.params.load_state_dict(sd["params"])
             self.opt.load_state_dict(sd["optimizer"])
         except (RuntimeError, KeyError, ValueError, EOFError, pickle.UnpicklingError) as e:
-            raise ConfigError("checkpoint", "a checkpoint of this parameter set and optimizer",
-                              f"{path} ({type(e).__name__}: {str(e).splitlines()[0]})") from None
+            raise ConfigError(
+                "checkpoint",
+                "a checkpoint of this parameter set and optimizer",
+                f"{path} ({type(e).__name__}: {str(e).splitlines()[0]})",
+            ) from None
         self.generator.set_state(sd["generator"])
         self.iteration, self.best, self.since_best = sd["iteration"], sd["best"], sd["since_best"]
         self.stopped, self.seconds = sd["stopped"], sd["seconds"]

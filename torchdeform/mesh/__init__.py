@@ -22,6 +22,7 @@ Example:
     >>> int((out["face"] >= 0).sum())     # 16 x 16 pixels less two corners marching tetrahedra chamfer
     254
 """
+
 from .raster import Camera, rasterize, save_png
 from .surfaces import (
     SURFACE_SUFFIXES,
@@ -37,6 +38,19 @@ from .surfaces import (
     voxelize,
 )
 
-__all__ = ["voxelize", "grid_from_mesh", "load_mesh", "inside_mask", "marching_tetrahedra", "body_surface",
-           "trilinear_weights",
-           "volume_surface", "save_surface", "SURFACE_TOL", "SURFACE_SUFFIXES", "Camera", "rasterize", "save_png"]
+__all__ = [
+    "voxelize",
+    "grid_from_mesh",
+    "load_mesh",
+    "inside_mask",
+    "marching_tetrahedra",
+    "body_surface",
+    "trilinear_weights",
+    "volume_surface",
+    "save_surface",
+    "SURFACE_TOL",
+    "SURFACE_SUFFIXES",
+    "Camera",
+    "rasterize",
+    "save_png",
+]

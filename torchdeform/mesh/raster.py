@@ -59,6 +59,7 @@ Example:
     >>> int((out["face"] == 0).sum()), round(float(out["image"][3, 4, 0]), 6), float(out["depth"][3, 4])
     (3, 1.0, 5.0)
 """
+
 from __future__ import annotations
 
 import math
@@ -118,8 +119,11 @@ class Camera:
             raise ConfigError("size", "an image size (H, W) of positive integers", size)
         self.size = s
         if (fov_deg is None) == (ortho_height is None):
-            raise ConfigError("camera", "exactly one of fov_deg (perspective) and ortho_height (orthographic)",
-                              {"fov_deg": fov_deg, "ortho_height": ortho_height})
+            raise ConfigError(
+                "camera",
+                "exactly one of fov_deg (perspective) and ortho_height (orthographic)",
+                {"fov_deg": fov_deg, "ortho_height": ortho_height},
+            )
         if fov_deg is not None:
             fov = float(fov_deg)
             if not 0.0 < fov < 180.0:
@@ -141,7 +145,7 @@ class Camera:
         if float(right.norm()) < 1e-9 * float(u.norm()) or float(u.norm()) == 0.0:
             raise ConfigError("up", "a direction not parallel to target - eye", up)
         right = right / right.norm()
-        self._frame = torch.stack([right, torch.linalg.cross(right, fwd), fwd])       # rows: right, up', forward
+        self._frame = torch.stack([right, torch.linalg.cross(right, fwd), fwd])  # rows: right, up', forward
 
     def __repr__(self) -> str:
         lens = f"fov_deg={self.fov_deg}" if self.perspective else f"ortho_height={self.ortho_height}"
@@ -181,7 +185,7 @@ class Camera:
         if p.ndim != 2 or p.shape[1] != 3:
             raise ConfigError("points", "an (N, 3) array of points", tuple(p.shape))
         eye, R = self.frame(p.dtype, p.device)
-        c = (p - eye) @ R.T                                                  # (N, 3) camera coordinates
+        c = (p - eye) @ R.T  # (N, 3) camera coordinates
         H, W = self.size
         if self.perspective:
             xy = c[:, :2] / c[:, 2:3] * self.focal
@@ -193,8 +197,10 @@ class Camera:
 
 def _edges(s0, s1, s2, px, py):
     """The three 2-D edge functions at ``(px, py)``; ``s_k`` are ``(..., 2)`` screen vertices."""
+
     def edge(a, b):
         return (b[..., 0] - a[..., 0]) * (py - a[..., 1]) - (b[..., 1] - a[..., 1]) * (px - a[..., 0])
+
     return edge(s1, s2), edge(s2, s0), edge(s0, s1)
 
 
@@ -221,9 +227,19 @@ def _check_mesh(vertices, faces, colors, texcoords):
     return v, f, colors, texcoords
 
 
-def rasterize(vertices, faces, camera: Camera, colors=None, *, texcoords=None, light=None,
-              ambient: float = 0.2, background=(1.0, 1.0, 1.0), two_sided: bool = False,
-              chunk_pairs: int = 1 << 21) -> dict:
+def rasterize(
+    vertices,
+    faces,
+    camera: Camera,
+    colors=None,
+    *,
+    texcoords=None,
+    light=None,
+    ambient: float = 0.2,
+    background=(1.0, 1.0, 1.0),
+    two_sided: bool = False,
+    chunk_pairs: int = 1 << 21,
+) -> dict:
     """Render a triangle mesh with a z-buffer: visibility, barycentrics, colours and Lambert shading.
 
     Args:
@@ -277,9 +293,9 @@ def rasterize(vertices, faces, camera: Camera, colors=None, *, texcoords=None, l
 
     # 1-2: project, cull
     pix, z = camera.project(v.detach())
-    s = pix[f]                                                              # (F, 3, 2) screen vertices
-    zf = z[f]                                                               # (F, 3)
-    area = _edges(s[:, 0], s[:, 1], s[:, 2], s[:, 0, 0], s[:, 0, 1])[0]     # twice the signed area
+    s = pix[f]  # (F, 3, 2) screen vertices
+    zf = z[f]  # (F, 3)
+    area = _edges(s[:, 0], s[:, 1], s[:, 2], s[:, 0, 0], s[:, 0, 1])[0]  # twice the signed area
     keep = (area != 0) & torch.isfinite(s).all(2).all(1)
     if camera.perspective:
         keep &= (zf > 0).all(1)
@@ -305,7 +321,7 @@ def rasterize(vertices, faces, camera: Camera, colors=None, *, texcoords=None, l
         stop = max(int(torch.searchsorted(cum, base + int(chunk_pairs), right=True)), start + 1)
         fc = faces_hit[start:stop]
         cnt = counts[fc]
-        fi = torch.repeat_interleave(fc, cnt)                               # (P,) face of each pair
+        fi = torch.repeat_interleave(fc, cnt)  # (P,) face of each pair
         local = torch.arange(int(cnt.sum()), device=device) - torch.repeat_interleave(torch.cumsum(cnt, 0) - cnt, cnt)
         col = x0[fi] + local % nx[fi]
         row = y0[fi] + local // nx[fi]
@@ -329,8 +345,8 @@ def rasterize(vertices, faces, camera: Camera, colors=None, *, texcoords=None, l
     # 5: barycentrics, depth, colour and shade of the winning face at every hit pixel
     hit = torch.nonzero(fbuf >= 0).flatten()
     fh = fbuf[hit]
-    pix_v, z_v = camera.project(v)                                          # with autograd, if any
-    sv, zv = pix_v[f[fh]], z_v[f[fh]]                                       # (P, 3, 2), (P, 3)
+    pix_v, z_v = camera.project(v)  # with autograd, if any
+    sv, zv = pix_v[f[fh]], z_v[f[fh]]  # (P, 3, 2), (P, 3)
     px = (hit % W).to(dtype) + 0.5
     py = torch.div(hit, W, rounding_mode="floor").to(dtype) + 0.5
     b = torch.stack(_edges(sv[:, 0], sv[:, 1], sv[:, 2], px, py), 1)
@@ -341,7 +357,7 @@ def rasterize(vertices, faces, camera: Camera, colors=None, *, texcoords=None, l
         b = q * depth[:, None]
     else:
         depth = (b * zv).sum(1)
-    tri = v[f[fh]]                                                          # (P, 3, 3)
+    tri = v[f[fh]]  # (P, 3, 3)
     normal = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     normal = normal / normal.norm(dim=1, keepdim=True)
     if light is None:
@@ -366,8 +382,12 @@ def rasterize(vertices, faces, camera: Camera, colors=None, *, texcoords=None, l
     image = bg.expand(H * W, 3).index_put((hit,), rgb * shade[:, None])
     depth_img = torch.full((H * W,), math.inf, dtype=dtype, device=device).index_put((hit,), depth)
     bary = torch.zeros(H * W, 3, dtype=dtype, device=device).index_put((hit,), b)
-    return {"image": image.reshape(H, W, 3), "depth": depth_img.reshape(H, W), "face": fbuf.reshape(H, W),
-            "bary": bary.reshape(H, W, 3)}
+    return {
+        "image": image.reshape(H, W, 3),
+        "depth": depth_img.reshape(H, W),
+        "face": fbuf.reshape(H, W),
+        "bary": bary.reshape(H, W, 3),
+    }
 
 
 def save_png(path, image) -> None:
@@ -385,6 +405,7 @@ def save_png(path, image) -> None:
         ((3, 2), (128, 128, 128))
     """
     from ..volume.rendering import save_png as write_png
+
     img = torch.as_tensor(image).detach().cpu()
     if img.ndim != 3 or img.shape[2] != 3:
         raise ConfigError("image", "an RGB image (H, W, 3)", tuple(img.shape))

@@ -15,6 +15,7 @@ Example:
     >>> shape
     (11, 11, 11)
 """
+
 from __future__ import annotations
 
 import math
@@ -56,17 +57,23 @@ def load_mesh(mesh_or_path, scale: float = 1.0, key: str = "mesh"):
             raise ConfigError(key, "an existing mesh file", f"{path} (not found)")
         try:
             mesh = trimesh.load(str(path), force="mesh")
-        except Exception as e:                       # trimesh raises many kinds for bad files
-            raise ConfigError(key, "a triangle mesh file trimesh can read (.stl, .obj, .ply, .off, ...)",
-                              f"{path} ({type(e).__name__}: {e})") from None
+        except Exception as e:  # trimesh raises many kinds for bad files
+            raise ConfigError(
+                key,
+                "a triangle mesh file trimesh can read (.stl, .obj, .ply, .off, ...)",
+                f"{path} ({type(e).__name__}: {e})",
+            ) from None
     else:
         mesh = mesh_or_path
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise ConfigError(key, "a triangle mesh with at least one triangle", f"{name} (no triangles)")
     if not mesh.is_watertight:
         open_edges = len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
-        raise ConfigError(key, "a closed (watertight) triangle mesh",
-                          f"{name} ({open_edges} open edges)" if open_edges else f"{name} (non-manifold edges)")
+        raise ConfigError(
+            key,
+            "a closed (watertight) triangle mesh",
+            f"{name} ({open_edges} open edges)" if open_edges else f"{name} (non-manifold edges)",
+        )
     scale = float(scale)
     if not math.isfinite(scale) or scale <= 0:
         raise ConfigError("scale", "a positive number (metres per mesh unit)", scale)
@@ -104,6 +111,7 @@ def _crossings_above(tri: np.ndarray, xq: np.ndarray, yq: np.ndarray, zq: np.nda
     # 2-D edge functions = barycentric weights (times twice the signed projected area)
     def edge(a, b):
         return (y[f, b] - y[f, a]) * (pz - z[f, a]) - (z[f, b] - z[f, a]) * (py - y[f, a])
+
     w0, w1, w2 = edge(1, 2), edge(2, 0), edge(0, 1)
     hit = ((w0 > 0) & (w1 > 0) & (w2 > 0)) | ((w0 < 0) & (w1 < 0) & (w2 < 0))
     w0, w1, w2, f, j, k = w0[hit], w1[hit], w2[hit], f[hit], j[hit], k[hit]
@@ -112,7 +120,7 @@ def _crossings_above(tri: np.ndarray, xq: np.ndarray, yq: np.ndarray, zq: np.nda
     # a crossing at x_hit lies above the nodes i < n, with n = #{i: xq[i] < x_hit}
     hist = np.zeros((H * W, D + 1), dtype=np.int64)
     np.add.at(hist, (j * W + k, np.searchsorted(xq, x_hit, "left")), 1)
-    above = np.cumsum(hist[:, ::-1], axis=1)[:, ::-1][:, 1:]            # (H*W, D)
+    above = np.cumsum(hist[:, ::-1], axis=1)[:, ::-1][:, 1:]  # (H*W, D)
     return (above % 2 == 1).T.reshape(D, H, W)
 
 
@@ -173,13 +181,17 @@ def voxelize(mesh_or_path, spacing, padding: int = 0, scale: float = 1.0):
     vertices, faces = load_mesh(mesh_or_path, scale)
     lo, hi = vertices.min(0), vertices.max(0)
     shape = tuple(int(math.ceil((h - l) / s - 1e-9)) + 1 + 2 * int(padding) for l, h, s in zip(lo, hi, sp))
-    check_grid("spacing", shape)                   # a spacing far too fine for the mesh: refused, not allocated
+    check_grid("spacing", shape)  # a spacing far too fine for the mesh: refused, not allocated
     origin = tuple(float((l + h) / 2 - (n - 1) * s / 2) for l, h, n, s in zip(lo, hi, shape, sp))
     axes = [o + s * np.arange(n) for o, s, n in zip(origin, sp, shape)]
     mask = inside_mask(vertices, faces, *axes, tol=SURFACE_TOL * min(sp))
     if not mask.any():
-        raise ConfigError("spacing", f"a spacing small enough that some node falls inside the mesh "
-                                     f"(its bounding box is {tuple(float(e) for e in hi - lo)} m)", spacing)
+        raise ConfigError(
+            "spacing",
+            f"a spacing small enough that some node falls inside the mesh "
+            f"(its bounding box is {tuple(float(e) for e in hi - lo)} m)",
+            spacing,
+        )
     return torch.from_numpy(mask), origin, shape
 
 
@@ -275,13 +287,13 @@ def marching_tetrahedra(field, level: float = 0.5, pad: bool = True):
     if min(arr.shape) < 2:
         return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
     inside = arr > level
-    corner_in = [inside[i:D - 1 + i, j:H - 1 + j, k:W - 1 + k] for i, j, k in _CORNERS]
+    corner_in = [inside[i : D - 1 + i, j : H - 1 + j, k : W - 1 + k] for i, j, k in _CORNERS]
     n_in = sum(c.astype(np.int8) for c in corner_in)
-    cubes = np.argwhere((n_in > 0) & (n_in < 8))                                     # (K, 3) lower corners
+    cubes = np.argwhere((n_in > 0) & (n_in < 8))  # (K, 3) lower corners
     flat = arr.reshape(-1)
     strides = np.array([H * W, W, 1])
-    corner_ids = (cubes @ strides)[:, None] + (_CORNERS @ strides)[None, :]          # (K, 8) node ids
-    tets = corner_ids[:, _CUBE_TETS].reshape(-1, 4)                                  # (6K, 4)
+    corner_ids = (cubes @ strides)[:, None] + (_CORNERS @ strides)[None, :]  # (K, 8) node ids
+    tets = corner_ids[:, _CUBE_TETS].reshape(-1, 4)  # (6K, 4)
     vals = flat[tets]
     case = ((vals > level) * np.array([1, 2, 4, 8])).sum(1)
     edges_a, edges_b, inside_c = [], [], []
@@ -297,7 +309,7 @@ def marching_tetrahedra(field, level: float = 0.5, pad: bool = True):
             inside_c.append(t[:, ins])
     if not edges_a:
         return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
-    ea, eb = np.concatenate(edges_a), np.concatenate(edges_b)                       # (F, 3) node ids
+    ea, eb = np.concatenate(edges_a), np.concatenate(edges_b)  # (F, 3) node ids
     lo, hi = np.minimum(ea, eb), np.maximum(ea, eb)
     keys = lo.astype(np.int64) * (D * H * W) + hi
     uniq, faces = np.unique(keys.reshape(-1), return_inverse=True)
@@ -315,7 +327,7 @@ def marching_tetrahedra(field, level: float = 0.5, pad: bool = True):
     normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     ins_pos = []
     for grp in inside_c:
-        P = np.stack(np.unravel_index(grp, (D, H, W)), -1).astype(np.float64) - shift   # (n, k, 3)
+        P = np.stack(np.unravel_index(grp, (D, H, W)), -1).astype(np.float64) - shift  # (n, k, 3)
         ins_pos.append(P.mean(1))
     ins_pos = np.concatenate(ins_pos)
     flip = (normal * (tri.mean(1) - ins_pos)).sum(1) < 0
@@ -357,7 +369,7 @@ def trilinear_weights(q: np.ndarray, shape) -> tuple:
 
 def _interp_positions(x: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Node positions ``x`` ``(3, D, H, W)`` interpolated at fractional node indices ``q`` (:func:`trilinear_weights`)."""
-    _, cols, vals = trilinear_weights(q, x.shape[1:])               # 8 blocks of V entries, corner-major
+    _, cols, vals = trilinear_weights(q, x.shape[1:])  # 8 blocks of V entries, corner-major
     return (vals * x.reshape(3, -1)[:, cols]).reshape(3, 8, len(q)).sum(1).T
 
 
@@ -410,6 +422,7 @@ def volume_surface(volume, level: float, offsets=None, spacing=(1.0, 1.0, 1.0), 
         ``(vertices (V, 3), faces (F, 3))``.
     """
     from ..volume import as_volume, warp
+
     vol, _ = as_volume(volume)
     if vol.shape[:2] != (1, 1):
         raise ConfigError("volume", "a single volume (D, H, W)", tuple(vol.shape))
@@ -432,16 +445,26 @@ def save_surface(path, vertices, faces, *, vertex_attributes=None) -> None:
         ConfigError: another suffix, or bad arrays.
     """
     import trimesh
+
     path = Path(path)
     if path.suffix.lower() not in SURFACE_SUFFIXES:
         raise ConfigError("surface file", "a .ply, .stl or .obj path", str(path))
     v, f = np.asarray(vertices, dtype=np.float64), np.asarray(faces)
-    if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or (len(f) and (f.min() < 0 or f.max() >= len(v))):
+    if (
+        v.ndim != 2
+        or v.shape[1] != 3
+        or f.ndim != 2
+        or f.shape[1] != 3
+        or (len(f) and (f.min() < 0 or f.max() >= len(v)))
+    ):
         raise ConfigError("surface", "vertices (V, 3) and faces (F, 3) indexing them", (v.shape, f.shape))
     attrs = {k: np.asarray(a, dtype=np.float64) for k, a in (vertex_attributes or {}).items()}
     if any(a.shape != (len(v),) for a in attrs.values()):
-        raise ConfigError("vertex_attributes", f"one value per vertex ({len(v)},) for each name",
-                          {k: a.shape for k, a in attrs.items()})
+        raise ConfigError(
+            "vertex_attributes",
+            f"one value per vertex ({len(v)},) for each name",
+            {k: a.shape for k, a in attrs.items()},
+        )
     with atomic_path(path) as tmp:
         trimesh.Trimesh(vertices=v, faces=f, process=False, vertex_attributes=attrs).export(str(tmp))
 

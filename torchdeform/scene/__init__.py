@@ -139,12 +139,28 @@ Example:
     >>> summary["steps"], summary["frames"]
     (20, 3)
 """
+
 from .chainmail import ChainMailScene, chainmail_scene
 from .mass_spring import Scene, demo_scene, mass_spring_scene
 from .reader import SECTIONS, Source, Table
 from .run import energy_series, load_scene, one_line_warnings, plot_energy, report, run_scene, scene_volume_outputs
 from .topology import TopologySet
 
-__all__ = ["Scene", "ChainMailScene", "Source", "Table", "load_scene", "demo_scene", "run_scene", "mass_spring_scene",
-           "chainmail_scene", "energy_series", "plot_energy", "one_line_warnings", "report", "scene_volume_outputs",
-           "SECTIONS", "TopologySet"]
+__all__ = [
+    "Scene",
+    "ChainMailScene",
+    "Source",
+    "Table",
+    "load_scene",
+    "demo_scene",
+    "run_scene",
+    "mass_spring_scene",
+    "chainmail_scene",
+    "energy_series",
+    "plot_energy",
+    "one_line_warnings",
+    "report",
+    "scene_volume_outputs",
+    "SECTIONS",
+    "TopologySet",
+]

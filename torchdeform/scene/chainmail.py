@@ -4,6 +4,7 @@ The ``[chainmail]`` section and the runner that moves the drag groups frame by f
 and writes the same outputs as a mass-spring run (``trajectory.npz``, ``summary.json``,
 ``energy.png``).
 """
+
 from __future__ import annotations
 
 import json
@@ -31,6 +32,7 @@ class ChainMailScene:
     time (``t`` from 0 to the last waypoint), then relaxes ``relax_steps`` times (drag groups and
     fixed elements held). :meth:`run` writes ``trajectory.npz``, ``summary.json`` and ``energy.png``.
     """
+
     grid: Grid
     limits: Limits
     method: str = "gibson"
@@ -85,22 +87,48 @@ class ChainMailScene:
         x = np.stack(frames)
         disp = np.linalg.norm(x - X[0].float().numpy()[None], axis=1).reshape(len(x), -1).max(1)
         g = self.grid
-        np.savez(out / "trajectory.npz", t=times, x=x, X=X[0].float().numpy(), node_mask=g.nodes().numpy(),
-                 shape=np.array(g.shape), spacing=np.array(g.spacing), origin=np.array(g.origin),
-                 model="chainmail", method=self.method, energy=np.array(energy), max_displacement=disp,
-                 max_violation=np.array(violation), moved=np.array(moved), fraction=np.array(fraction))
+        np.savez(
+            out / "trajectory.npz",
+            t=times,
+            x=x,
+            X=X[0].float().numpy(),
+            node_mask=g.nodes().numpy(),
+            shape=np.array(g.shape),
+            spacing=np.array(g.spacing),
+            origin=np.array(g.origin),
+            model="chainmail",
+            method=self.method,
+            energy=np.array(energy),
+            max_displacement=disp,
+            max_violation=np.array(violation),
+            moved=np.array(moved),
+            fraction=np.array(fraction),
+        )
         dt = float(times[1] - times[0]) if len(times) > 1 else 0.0
         summary = {
-            "name": self.name, "scene": getattr(self.source, "path", None), "model": "chainmail",
-            "integrator": {"name": f"chainmail-{self.method}", "relax_steps": self.relax_steps,
-                           "relax_mode": self.relax_mode},
-            "steps": self.frames, "dt_s": dt, "dt_auto": False, "simulated_time_s": float(times[-1]),
-            "time_step_bound_s": None, "stability_bound_method": "none: ChainMail is geometric",
-            "wall_time_s": wall, "steps_per_s": self.frames / wall if wall > 0 else None,
-            "nodes": g.num_nodes, "grid": {"shape": list(g.shape), "spacing": list(g.spacing),
-                                           "origin": list(g.origin), "topology": 6},
-            "frames": len(times), "max_displacement_m": float(disp[-1]), "peak_displacement_m": float(disp.max()),
-            "max_violation_m": float(max(violation)), "blocked_frames": int(sum(f < 1.0 for f in fraction)),
+            "name": self.name,
+            "scene": getattr(self.source, "path", None),
+            "model": "chainmail",
+            "integrator": {
+                "name": f"chainmail-{self.method}",
+                "relax_steps": self.relax_steps,
+                "relax_mode": self.relax_mode,
+            },
+            "steps": self.frames,
+            "dt_s": dt,
+            "dt_auto": False,
+            "simulated_time_s": float(times[-1]),
+            "time_step_bound_s": None,
+            "stability_bound_method": "none: ChainMail is geometric",
+            "wall_time_s": wall,
+            "steps_per_s": self.frames / wall if wall > 0 else None,
+            "nodes": g.num_nodes,
+            "grid": {"shape": list(g.shape), "spacing": list(g.spacing), "origin": list(g.origin), "topology": 6},
+            "frames": len(times),
+            "max_displacement_m": float(disp[-1]),
+            "peak_displacement_m": float(disp.max()),
+            "max_violation_m": float(max(violation)),
+            "blocked_frames": int(sum(f < 1.0 for f in fraction)),
             "final_relax_energy_m2": energy[-1],
         }
         _plot_scene(out / "energy.png", times, energy, disp, f"{self.name}: ChainMail ({self.method})")
@@ -112,6 +140,7 @@ class ChainMailScene:
 def _plot_scene(path, t, energy, disp, title):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+
     fig = Figure(figsize=(7, 5), layout="constrained")
     FigureCanvasAgg(fig)
     top, bottom = fig.subplots(2, 1, sharex=True)
@@ -150,8 +179,11 @@ def chainmail_scene(src, data: dict, base, name: str = "chainmail") -> ChainMail
             t.only_with(k, "tissue")
         tissue = t.raw("tissue", "a tissue name or a consistency value in [0, 10]")
         with src.located(t.key("tissue")):
-            limits = tissue_limits(grid, tissue, reference_stress=t.num(
-                "reference_stress", "a positive stress in Pa", 300.0, lo=0, lo_open=True))
+            limits = tissue_limits(
+                grid,
+                tissue,
+                reference_stress=t.num("reference_stress", "a positive stress in Pa", 300.0, lo=0, lo_open=True),
+            )
     else:
         t.only_with("reference_stress", "compression")
         comp = t.num("compression", "a ratio in (0, 1] (minimum distance / spacing)", 0.9, lo=0, hi=1, lo_open=True)
@@ -170,17 +202,23 @@ def chainmail_scene(src, data: dict, base, name: str = "chainmail") -> ChainMail
     drags = drags_section(src, data["drags"], grid) if "drags" in data else []
     out = Table(src, "output", data.get("output", {}), ("name",))
     scene = ChainMailScene(
-        grid, limits, method, fixed, drags,
+        grid,
+        limits,
+        method,
+        fixed,
+        drags,
         frames=t.integer("frames", "an integer >= 1 (moves along the drag paths)", 20, lo=1),
         relax_steps=t.integer("relax_steps", "an integer >= 0", 0),
         relax_mode=t.text("relax_mode", '"centroid" or "goal"', "centroid", RELAX_MODES),
         relax_moved_only=bool(t.raw("relax_moved_only", "true or false", False)),
         on_blocked=t.text("on_blocked", '"scale" or "error"', "scale", ("scale", "error")),
-        name=out.text("name", "a string", name), source=src)
+        name=out.text("name", "a string", name),
+        source=src,
+    )
     if fixed is not None:
         for n, d in enumerate(drags):
             if bool((torch.as_tensor(d.nodes, dtype=torch.bool) & fixed).any()):
                 raise src.error(f"drags[{n}].nodes", "free elements (a dragged element is fixed)")
     with src.located(t.name):
-        ChainMail(grid, limits, fixed=fixed, method=method)           # checks method, node mask, rest state
+        ChainMail(grid, limits, fixed=fixed, method=method)  # checks method, node mask, rest state
     return scene

@@ -6,6 +6,7 @@ The ``[material]`` (a stiffness, a modulus, or tissue words through the fuzzy ti
 build, and the built-in demo (:func:`demo_scene`). ``[[tools]]`` and ``[strain_limit]`` are read
 by :mod:`.tools`, ``[[cuts]]``, ``[[cautery]]``, ``[tear]``, ``[[coagulate]]`` by :mod:`.topology`.
 """
+
 from __future__ import annotations
 
 import math
@@ -29,22 +30,47 @@ from .reader import SECTIONS, Source, Table, drags_section, faces, grid_section,
 from .tools import ToolSet, palpation_option, strain_limit_section
 from .topology import TOPOLOGY, TopologySet, tools_with_cutters, topology_section
 
-__all__ = ["Scene", "mass_spring_scene", "demo_scene", "lattice_modulus", "tissue_moduli", "INTEGRATOR_OPTIONS",
-           "EXPLICIT", "DTYPES", "MODEL_KEYS", "TISSUE_EXPECTED"]
+__all__ = [
+    "Scene",
+    "mass_spring_scene",
+    "demo_scene",
+    "lattice_modulus",
+    "tissue_moduli",
+    "INTEGRATOR_OPTIONS",
+    "EXPLICIT",
+    "DTYPES",
+    "MODEL_KEYS",
+    "TISSUE_EXPECTED",
+]
 
 #: Options of each integrator (keyword arguments of its class): key -> what is expected.
 INTEGRATOR_OPTIONS = {
-    "explicit": {}, "symplectic": {}, "rk4": {},
+    "explicit": {},
+    "symplectic": {},
+    "rk4": {},
     "verlet": {"kd": "a number in [0, 1)"},
     "implicit": {"cg_iters": "an integer >= 1", "cg_tol": "a positive number", "newton_iters": "an integer >= 0"},
-    "knoche": {"material": "a number in [0, 1] or a [D][H][W] array of them", "eps": "a positive number",
-               "gain": "a positive number"},
-    "adaptive": {"rtol": "a positive number", "pair": "one of " + ", ".join(f'"{p}"' for p in PAIRS),
-                 "min_step": "a positive number of seconds", "max_step": "a positive number of seconds"},
-    "projective": {"iterations": "an integer >= 1", "tol": "a number >= 0",
-                   "solver": "one of " + ", ".join(f'"{p}"' for p in SOLVERS), "rho": "a number in [0, 1)",
-                   "relaxation": "a number in (0, 1]", "delay": "an integer >= 0", "cg_iters": "an integer >= 1",
-                   "cg_tol": "a number >= 0"},
+    "knoche": {
+        "material": "a number in [0, 1] or a [D][H][W] array of them",
+        "eps": "a positive number",
+        "gain": "a positive number",
+    },
+    "adaptive": {
+        "rtol": "a positive number",
+        "pair": "one of " + ", ".join(f'"{p}"' for p in PAIRS),
+        "min_step": "a positive number of seconds",
+        "max_step": "a positive number of seconds",
+    },
+    "projective": {
+        "iterations": "an integer >= 1",
+        "tol": "a number >= 0",
+        "solver": "one of " + ", ".join(f'"{p}"' for p in SOLVERS),
+        "rho": "a number in [0, 1)",
+        "relaxation": "a number in (0, 1]",
+        "delay": "an integer >= 0",
+        "cg_iters": "an integer >= 1",
+        "cg_tol": "a number >= 0",
+    },
 }
 #: integer options and their least values; text options and their choices
 _INTEGER_OPTIONS = {"cg_iters": 1, "newton_iters": 0, "iterations": 1, "delay": 0}
@@ -52,10 +78,19 @@ _TEXT_OPTIONS = {"pair": tuple(PAIRS), "solver": SOLVERS}
 EXPLICIT = ("explicit", "symplectic", "verlet", "rk4")
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 #: Model keyword -> scene key, to locate errors raised by the core.
-MODEL_KEYS = {"stiffness": "material.stiffness", "damping": "material.damping",
-              "damping_mode": "material.damping_mode", "mass": "mass", "density": "mass.density",
-              "gravity": "boundary.gravity", "home": "boundary.home", "anchors.stiffness": "boundary.anchors.stiffness",
-              "anchors.every": "boundary.anchors.every", "decay": "boundary.decay", "fixed": "boundary.fixed"}
+MODEL_KEYS = {
+    "stiffness": "material.stiffness",
+    "damping": "material.damping",
+    "damping_mode": "material.damping_mode",
+    "mass": "mass",
+    "density": "mass.density",
+    "gravity": "boundary.gravity",
+    "home": "boundary.home",
+    "anchors.stiffness": "boundary.anchors.stiffness",
+    "anchors.every": "boundary.anchors.every",
+    "decay": "boundary.decay",
+    "fixed": "boundary.fixed",
+}
 
 
 # ------------------------------------------------------------------ the scene
@@ -127,7 +162,7 @@ class Scene:
 
     def build(self, device=None) -> Model:
         """The :class:`Model` on ``device`` (default: the scene's, else CPU); built once per device."""
-        if device is None and self.device is not None:           # the scene's: its line in the file
+        if device is None and self.device is not None:  # the scene's: its line in the file
             try:
                 dev = usable_device(self.device, "integrator.device")
             except ConfigError as e:
@@ -145,8 +180,11 @@ class Scene:
             return float(self.dt)
         if not (0 < bound < math.inf):
             raise self.source.error(
-                "integrator.dt", f'seconds: "auto" needs a finite, positive stability bound and '
-                f'{self.integrator.name} has {bound:g} s here', "auto")
+                "integrator.dt",
+                f'seconds: "auto" needs a finite, positive stability bound and '
+                f"{self.integrator.name} has {bound:g} s here",
+                "auto",
+            )
         return self.safety * bound
 
     @property
@@ -156,8 +194,10 @@ class Scene:
 
 
 # ------------------------------------------------------------------ tissue words -> stiffness
-TISSUE_EXPECTED = ("a tissue of the fuzzy library (brain, fat, liver, ...), a consistency term (very_soft, soft, "
-                   "medium, firm, hard) or a consistency value in [0, 10]")
+TISSUE_EXPECTED = (
+    "a tissue of the fuzzy library (brain, fat, liver, ...), a consistency term (very_soft, soft, "
+    "medium, firm, hard) or a consistency value in [0, 10]"
+)
 
 
 def lattice_modulus(grid: Grid) -> float:
@@ -179,8 +219,8 @@ def lattice_modulus(grid: Grid) -> float:
     d = torch.tensor(grid.directions, dtype=torch.float64) * torch.tensor(grid.spacing, dtype=torch.float64)
     length = d.norm(dim=1, keepdim=True)
     n = d / length
-    a = n * n                                                         # the normal part of a_s
-    C = (length ** 2 * a).T @ a / math.prod(grid.spacing)              # (3, 3) per unit k
+    a = n * n  # the normal part of a_s
+    C = (length**2 * a).T @ a / math.prod(grid.spacing)  # (3, 3) per unit k
     return float((1.0 / torch.linalg.inv(C).diagonal()).mean())
 
 
@@ -199,6 +239,7 @@ def tissue_moduli(values, key: str = "tissue") -> list:
     """
     from ..errors import ConfigError
     from ..fuzzy.presets import load_preset, tissues
+
     library, fis = tissues(), load_preset("tissue_si")
     var = fis.inputs[0]
     consistency = []
@@ -222,12 +263,15 @@ def _material(t: Table, grid: Grid) -> dict:
             E = tissue_moduli([t.data["tissue"]])[0]
         args = {"stiffness": E / lattice_modulus(grid), "normalize": False}
     else:
-        args = {"stiffness": t.per_class(which, "N/m" if which == "stiffness" else "N"),
-                "normalize": which == "modulus"}
+        args = {
+            "stiffness": t.per_class(which, "N/m" if which == "stiffness" else "N"),
+            "normalize": which == "modulus",
+        }
     if t.has("damping"):
         args["damping"] = t.per_class("damping", "N s/m")
-    args["damping_mode"] = t.text("damping_mode", '"projected" or "unprojected"', "projected",
-                                 ("projected", "unprojected"))
+    args["damping_mode"] = t.text(
+        "damping_mode", '"projected" or "unprojected"', "projected", ("projected", "unprojected")
+    )
     laws = ("hooke",) + tuple(LAWS)
     name = t.text("law", "one of " + ", ".join(f'"{n}"' for n in laws), "hooke", laws)
     own = () if name == "hooke" else LAWS[name].params
@@ -242,11 +286,13 @@ def _material(t: Table, grid: Grid) -> dict:
 def _regions(src: Source, items, grid: Grid, base_stiffness) -> torch.Tensor:
     """Per-spring stiffness ``(S, D, H, W)`` of ``[[regions]]``: each spring the harmonic mean of its ends' k."""
     from ..sim.springs import harmonic_mean_of_ends
+
     if not isinstance(items, list):
         raise src.error("regions", "[[regions]] tables", items)
     if not is_number(base_stiffness):
-        raise src.error("material", "stiffness = a number or tissue = .. with [[regions]] (not a class table or "
-                                    "modulus)")
+        raise src.error(
+            "material", "stiffness = a number or tissue = .. with [[regions]] (not a class table or modulus)"
+        )
     k = torch.full(grid.shape, float(base_stiffness), dtype=torch.float64)
     for n, item in enumerate(items):
         t = Table(src, f"regions[{n}]", item, SECTIONS["regions"])
@@ -280,8 +326,10 @@ def _boundary(t: Table, grid: Grid) -> dict:
         args["home"] = t.num("home", "a number >= 0 (N/m)", lo=0)
     if t.has("anchors"):
         a = Table(t.src, t.key("anchors"), t.data["anchors"], ("stiffness", "every"))
-        args["anchors"] = (a.num("stiffness", "a number >= 0 (N/m)", lo=0),
-                           a.integer("every", "an integer >= 1 (every k-th node)", lo=1))
+        args["anchors"] = (
+            a.num("stiffness", "a number >= 0 (N/m)", lo=0),
+            a.integer("every", "an integer >= 1 (every k-th node)", lo=1),
+        )
     if t.has("decay"):
         args["decay"] = t.num("decay", "a rate >= 0 (1/s)", lo=0)
     if t.has("gravity"):
@@ -295,8 +343,9 @@ def _loads(src: Source, items, grid: Grid) -> list:
     loads = []
     for n, item in enumerate(items):
         t = Table(src, f"loads[{n}]", item, SECTIONS["loads"])
-        timing = dict(start=t.num("start", "a time >= 0 (s)", 0.0, lo=0),
-                      ramp=t.num("ramp", "a duration >= 0 (s)", 0.0, lo=0))
+        timing = dict(
+            start=t.num("start", "a time >= 0 (s)", 0.0, lo=0), ramp=t.num("ramp", "a duration >= 0 (s)", 0.0, lo=0)
+        )
         if t.one_of("node", "face") == "node":
             t.only_with("traction", "node")
             node = t.index("node")
@@ -337,8 +386,11 @@ def _integrator(t: Table, grid: Grid) -> dict:
                 w = torch.as_tensor(v, dtype=torch.float64)
             except (TypeError, ValueError, RuntimeError):
                 raise t.fail(k, expected, v) from None
-            if isinstance(v, bool) or not (w.dim() == 0 or tuple(w.shape) == grid.shape) \
-                    or not bool(((w >= 0) & (w <= 1)).all()):
+            if (
+                isinstance(v, bool)
+                or not (w.dim() == 0 or tuple(w.shape) == grid.shape)
+                or not bool(((w >= 0) & (w <= 1)).all())
+            ):
                 raise t.fail(k, expected + f" (grid {grid.shape})", v if w.dim() == 0 else tuple(w.shape))
             kwargs[k] = float(w) if w.dim() == 0 else w
         else:
@@ -351,25 +403,29 @@ def _integrator(t: Table, grid: Grid) -> dict:
     dt = t.raw("dt", 'a positive number of seconds or "auto"')
     if dt == "auto":
         if name not in EXPLICIT:
-            raise t.fail("dt", f'a positive number of seconds ("auto" needs an explicit integrator, '
-                               f'not {name})', dt)
+            raise t.fail("dt", f'a positive number of seconds ("auto" needs an explicit integrator, not {name})', dt)
     elif not (is_number(dt) and dt > 0):
         raise t.fail("dt", 'a positive number of seconds or "auto"', dt)
     if t.has("safety") and dt != "auto":
         raise t.fail("safety", 'no safety unless dt = "auto"', t.data["safety"])
     device = t.text("device", 'a device name such as "cpu" or "cuda"', None)
-    if device is not None:                         # tried once: torch accepts names it cannot use ("meta", "xpu")
+    if device is not None:  # tried once: torch accepts names it cannot use ("meta", "xpu")
         try:
             usable_device(device, "device")
         except ConfigError as e:
             raise t.fail("device", e.expected, device) from None
-    return dict(integrator=integrator, dt=dt if dt == "auto" else float(dt),
-                safety=t.num("safety", "a number in (0, 1]", 0.9, lo=0, hi=1, lo_open=True),
-                steps=t.integer("steps", "an integer >= 0 (number of steps)"),
-                dtype=DTYPES[t.text("dtype", '"float32" or "float64"', "float32", DTYPES)], device=device,
-                threads=t.integer("threads", "an integer >= 1 (CPU threads of the run)", None, lo=1),
-                engine=t.text("engine", f'one of {", ".join(ENGINES)} (auto: native or compiled when the run repays it)',
-                              "auto", ENGINES))
+    return dict(
+        integrator=integrator,
+        dt=dt if dt == "auto" else float(dt),
+        safety=t.num("safety", "a number in (0, 1]", 0.9, lo=0, hi=1, lo_open=True),
+        steps=t.integer("steps", "an integer >= 0 (number of steps)"),
+        dtype=DTYPES[t.text("dtype", '"float32" or "float64"', "float32", DTYPES)],
+        device=device,
+        threads=t.integer("threads", "an integer >= 1 (CPU threads of the run)", None, lo=1),
+        engine=t.text(
+            "engine", f"one of {', '.join(ENGINES)} (auto: native or compiled when the run repays it)", "auto", ENGINES
+        ),
+    )
 
 
 def mass_spring_scene(src: Source, data: dict, base: Path, name: str = "scene") -> Scene:
@@ -388,9 +444,11 @@ def mass_spring_scene(src: Source, data: dict, base: Path, name: str = "scene") 
     if "chainmail" in data:
         raise src.error("chainmail", 'model = "chainmail" (a top-level key) for a [chainmail] section')
     options = tuple(k for opts in INTEGRATOR_OPTIONS.values() for k in opts)
-    section = {name_: Table(src, name_, data[name_], keys + (options if name_ == "integrator" else ()))
-               for name_, keys in SECTIONS.items()
-               if name_ in data and name_ not in ("loads", "drags", "regions", "tools", "cuts", "cautery", "coagulate")}
+    section = {
+        name_: Table(src, name_, data[name_], keys + (options if name_ == "integrator" else ()))
+        for name_, keys in SECTIONS.items()
+        if name_ in data and name_ not in ("loads", "drags", "regions", "tools", "cuts", "cautery", "coagulate")
+    }
     grid = grid_section(section["grid"], base)
     model_args = {**_material(section["material"], grid), **_mass(section["mass"])}
     if "regions" in data:
@@ -413,52 +471,75 @@ def mass_spring_scene(src: Source, data: dict, base: Path, name: str = "scene") 
     if palpation is not None:
         tools.palpation = palpation
     topology = None
-    if any(k in data for k in TOPOLOGY) or out.has("surfaces"):           # times checked now if dt is a number
+    if any(k in data for k in TOPOLOGY) or out.has("surfaces"):  # times checked now if dt is a number
         end = None if run["dt"] == "auto" else run["steps"] * run["dt"]
         topology = topology_section(src, data, grid, tools, out, end)
-    scene = Scene(grid, model_args, **run, source=src,
-                  record_every=out.integer("record_every", "an integer >= 1 (steps between frames)", None, lo=1),
-                  name=out.text("name", "a string", name), tools=tools, topology=topology)
-    frames = scene.steps // scene.frames_every + 2      # recorded positions and velocities, kept on the CPU
+    scene = Scene(
+        grid,
+        model_args,
+        **run,
+        source=src,
+        record_every=out.integer("record_every", "an integer >= 1 (steps between frames)", None, lo=1),
+        name=out.text("name", "a string", name),
+        tools=tools,
+        topology=topology,
+    )
+    frames = scene.steps // scene.frames_every + 2  # recorded positions and velocities, kept on the CPU
     key = "output.record_every" if scene.record_every else "integrator.steps"
     with src.located(key, {key: key}):
-        check_memory(key, 6.0 * frames * grid.num_nodes * scene.dtype.itemsize,
-                     f"{frames} recorded frames of {grid.num_nodes} nodes", got=scene.record_every or scene.steps)
+        check_memory(
+            key,
+            6.0 * frames * grid.num_nodes * scene.dtype.itemsize,
+            f"{frames} recorded frames of {grid.num_nodes} nodes",
+            got=scene.record_every or scene.steps,
+        )
     animation = out.data.get("animation", False)
     if not isinstance(animation, bool):
         raise out.fail("animation", "true or false (write animation.gif)", animation)
     scene.animation = "animation.gif" if animation else None
     if "volume" in data:
         vt = Table(src, "volume", data["volume"], SECTIONS["volume"])
-        scene.volume = {"file": vt.text("file", 'a volume file or "phantom:N"'),
-                        "tf": vt.text("tf", "a transfer-function preset or file", "ct-soft"),
-                        "mode": vt.text("mode", '"dvr", "mip" or "average"', "dvr", ("dvr", "mip", "average")),
-                        "view": vt.text("view", "an axis view d, h, w, -d, -h, -w", "h",
-                                        ("d", "h", "w", "-d", "-h", "-w")), "base": str(base)}
+        scene.volume = {
+            "file": vt.text("file", 'a volume file or "phantom:N"'),
+            "tf": vt.text("tf", "a transfer-function preset or file", "ct-soft"),
+            "mode": vt.text("mode", '"dvr", "mip" or "average"', "dvr", ("dvr", "mip", "average")),
+            "view": vt.text("view", "an axis view d, h, w, -d, -h, -w", "h", ("d", "h", "w", "-d", "-h", "-w")),
+            "base": str(base),
+        }
         from ..volume.io import check_volume_source
         from ..volume.rendering import get_tf
-        name = scene.volume["file"]                       # checked now, not after the simulation
+
+        name = scene.volume["file"]  # checked now, not after the simulation
         with src.located("volume.file", {"volume": "volume.file", "volume.file": "volume.file"}):
             check_volume_source(name if name.startswith("phantom") else Path(base) / name, "volume.file")
         with src.located("volume.tf", {"transfer function": "volume.tf", "control point": "volume.tf"}):
             get_tf(scene.volume["tf"])
     if "texture" in data:
         from ..texture.synthesis import SEAM_METHODS
+
         tt = Table(src, "texture", data["texture"], SECTIONS["texture"])
-        exemplar = tt.text("exemplar", 'liver, liver:N or an exemplar file (.npy, .npz, a folder of slices)', "liver:64")
+        exemplar = tt.text(
+            "exemplar", "liver, liver:N or an exemplar file (.npy, .npz, a folder of slices)", "liver:64"
+        )
         if not exemplar.startswith("liver"):
             exemplar = str(Path(base) / exemplar)
         with src.located(tt.key("exemplar")):
             from ..texture.exemplar import exemplar_from
+
             ex = exemplar_from(exemplar, tt.integer("seed", "an integer >= 0", 0))
         block = tt.integer("block", "an integer block size >= 2 (voxels)", min(ex.shape[1:]) // 2, lo=2)
         if block > min(ex.shape[1:]):
-            raise tt.fail("block", f"a block no larger than the exemplar's smallest side ({min(ex.shape[1:])} voxels)",
-                          block)
+            raise tt.fail(
+                "block", f"a block no larger than the exemplar's smallest side ({min(ex.shape[1:])} voxels)", block
+            )
         spacing = min(scene.grid.spacing)
-        scene.texture = {"exemplar": ex, "block": block, "seed": tt.integer("seed", "an integer >= 0", 0),
-                         "voxel": tt.num("voxel", "a positive voxel size (m)", spacing / 4, lo=0, lo_open=True),
-                         "seams": tt.text("seams", " or ".join(f'"{m}"' for m in SEAM_METHODS), "none", SEAM_METHODS)}
+        scene.texture = {
+            "exemplar": ex,
+            "block": block,
+            "seed": tt.integer("seed", "an integer >= 0", 0),
+            "voxel": tt.num("voxel", "a positive voxel size (m)", spacing / 4, lo=0, lo_open=True),
+            "seams": tt.text("seams", " or ".join(f'"{m}"' for m in SEAM_METHODS), "none", SEAM_METHODS),
+        }
     scene.build("cpu")
     return scene
 
@@ -484,10 +565,27 @@ def demo_scene() -> Scene:
     """
     grid = Grid((11, 11, 11), spacing=0.001, topology=26)
     top_centre = Drag(grid.index_mask([(10, 5, 5)]), [(0.0, (0.0, 0.0, 0.0)), (0.05, (0.002, 0.001, 0.0))])
-    model_args = dict(stiffness=3.0, normalize=False, damping=1e-4, damping_mode="projected", density=1000.0,
-                      fixed=grid.face("bottom"), decay=100.0, gravity=(-9.81, 0.0, 0.0), drags=[top_centre])
+    model_args = dict(
+        stiffness=3.0,
+        normalize=False,
+        damping=1e-4,
+        damping_mode="projected",
+        density=1000.0,
+        fixed=grid.face("bottom"),
+        decay=100.0,
+        gravity=(-9.81, 0.0, 0.0),
+        drags=[top_centre],
+    )
     # the procedural CT phantom fills the cube; run_scene also writes its before/after renders
     volume = {"file": "phantom:64", "tf": "ct-soft", "mode": "dvr", "view": "h"}
-    return Scene(grid, model_args, SymplecticEuler(), dt=1e-4, steps=1500, record_every=15, name="demo",
-                 volume=volume, animation="demo.gif")
-
+    return Scene(
+        grid,
+        model_args,
+        SymplecticEuler(),
+        dt=1e-4,
+        steps=1500,
+        record_every=15,
+        name="demo",
+        volume=volume,
+        animation="demo.gif",
+    )

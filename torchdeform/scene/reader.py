@@ -20,6 +20,7 @@ Example:
     ...
     torchdeform.errors.ConfigError: scene.toml:2: grid.spacing: expected a positive number, got -1
 """
+
 from __future__ import annotations
 
 import math
@@ -36,25 +37,65 @@ from ..sim.grid import CLASSES, FACES, TOPOLOGIES, Grid
 
 try:
     import tomllib
-except ModuleNotFoundError:                                   # Python 3.10
+except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
-__all__ = ["Source", "Table", "read", "is_number", "grid_section", "faces", "node_list", "drags_section",
-           "region_mask", "SECTIONS", "REQUIRED", "MISSING"]
+__all__ = [
+    "Source",
+    "Table",
+    "read",
+    "is_number",
+    "grid_section",
+    "faces",
+    "node_list",
+    "drags_section",
+    "region_mask",
+    "SECTIONS",
+    "REQUIRED",
+    "MISSING",
+]
 
 SECTIONS = {
     "grid": ("shape", "mesh", "spacing", "topology", "origin", "padding", "scale"),
-    "material": ("stiffness", "modulus", "tissue", "damping", "damping_mode", "law", "stiffening", "quadratic",
-                 "cubic"),
+    "material": (
+        "stiffness",
+        "modulus",
+        "tissue",
+        "damping",
+        "damping_mode",
+        "law",
+        "stiffening",
+        "quadratic",
+        "cubic",
+    ),
     "regions": ("sphere", "box", "stiffness", "tissue"),
     "mass": ("mass", "density"),
     "boundary": ("fixed", "fixed_nodes", "home", "anchors", "decay", "gravity"),
     "loads": ("node", "force", "face", "traction", "start", "ramp"),
     "drags": ("nodes", "face", "box", "path"),
     "integrator": ("name", "dt", "safety", "steps", "dtype", "device", "threads", "engine"),
-    "tools": ("name", "shape", "radius", "half_length", "axis", "half_extents", "normal", "file", "resolution",
-              "position", "orientation", "path", "contact", "friction", "direction", "hold", "haptic_gain",
-              "stiffness", "damping", "grasp"),
+    "tools": (
+        "name",
+        "shape",
+        "radius",
+        "half_length",
+        "axis",
+        "half_extents",
+        "normal",
+        "file",
+        "resolution",
+        "position",
+        "orientation",
+        "path",
+        "contact",
+        "friction",
+        "direction",
+        "hold",
+        "haptic_gain",
+        "stiffness",
+        "damping",
+        "grasp",
+    ),
     "strain_limit": ("min", "max", "passes", "update_velocity"),
     "cuts": ("origin", "u", "v", "triangle", "edges", "at", "gape", "tool", "edge", "start", "stop", "pieces"),
     "cautery": ("tool", "at", "every", "start", "stop"),
@@ -63,8 +104,19 @@ SECTIONS = {
     "output": ("record_every", "name", "palpation", "surfaces", "animation"),
     "volume": ("file", "tf", "mode", "view"),
     "texture": ("exemplar", "block", "seed", "voxel", "seams"),
-    "chainmail": ("method", "compression", "stretch", "shear", "tissue", "reference_stress", "frames",
-                  "relax_steps", "relax_mode", "relax_moved_only", "on_blocked"),
+    "chainmail": (
+        "method",
+        "compression",
+        "stretch",
+        "shear",
+        "tissue",
+        "reference_stress",
+        "frames",
+        "relax_steps",
+        "relax_mode",
+        "relax_moved_only",
+        "on_blocked",
+    ),
 }
 REQUIRED = ("grid", "material", "mass", "integrator")
 #: marks an argument that was not given (``got`` not shown, no default)
@@ -82,8 +134,14 @@ class Source:
     def error(self, key: str, expected: str, got=MISSING) -> ConfigError:
         """A ConfigError for the dotted ``key``; ``got`` omitted = not shown."""
         shown = got is not MISSING
-        return ConfigError(key, expected, got if shown else None, file=self.path,
-                           line=self.line_of(key) if self.path else None, show_got=shown)
+        return ConfigError(
+            key,
+            expected,
+            got if shown else None,
+            file=self.path,
+            line=self.line_of(key) if self.path else None,
+            show_got=shown,
+        )
 
     def line_of(self, key: str) -> int | None:
         """1-based line of a dotted key like ``loads[1].force`` (best effort), else None."""
@@ -92,7 +150,7 @@ class Source:
         names = [p[0] for p in parts]
         headers = [(i, m.group(1)) for i, line in enumerate(lines) if (m := _HEADER.match(line))]
         start, end, best, rest = -1, headers[0][0] if headers else len(lines), None, names
-        for n in range(len(names), 0, -1):                     # longest matching table header
+        for n in range(len(names), 0, -1):  # longest matching table header
             hits = [i for i, h in headers if h == ".".join(names[:n])]
             index = int(parts[n - 1][1] or 0)
             if len(hits) > index:
@@ -120,7 +178,7 @@ class Source:
             shown = e.show_got
             if e.key in (keys or {}):
                 key = keys[e.key]
-            elif e.key.split(".")[0] in SECTIONS and "." in e.key:     # already a scene key
+            elif e.key.split(".")[0] in SECTIONS and "." in e.key:  # already a scene key
                 key = e.key
             raise self.error(key, e.expected, e.got if shown else MISSING) from None
 
@@ -167,8 +225,11 @@ class Table:
         if k not in self.data:
             return self.raw(k, expected, default)
         v = self.data[k]
-        ok = is_number(v) and (lo is None or (v > lo if lo_open else v >= lo)) \
+        ok = (
+            is_number(v)
+            and (lo is None or (v > lo if lo_open else v >= lo))
             and (hi is None or (v < hi if hi_open else v <= hi))
+        )
         if not ok:
             raise self.fail(k, expected, v)
         return float(v)
@@ -203,8 +264,11 @@ class Table:
     def index(self, k, value=MISSING, where=None):
         """A node index ``[i, j, k]`` (three integers >= 0)."""
         v = self.raw(k, "a node index [i, j, k]") if value is MISSING else value
-        if not (isinstance(v, list) and len(v) == 3 and all(isinstance(c, int) and not isinstance(c, bool)
-                                                            and c >= 0 for c in v)):
+        if not (
+            isinstance(v, list)
+            and len(v) == 3
+            and all(isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in v)
+        ):
             raise self.src.error(where or self.key(k), "a node index [i, j, k] of three integers >= 0", v)
         return tuple(v)
 
@@ -225,8 +289,11 @@ class Table:
         present = [k for k in keys if k in self.data]
         if len(present) != 1:
             what = " or ".join(keys)
-            raise (self.fail(present[1], f"exactly one of {what}", present) if present else
-                   self.src.error(self.name, f"exactly one of the keys {what}"))
+            raise (
+                self.fail(present[1], f"exactly one of {what}", present)
+                if present
+                else self.src.error(self.name, f"exactly one of the keys {what}")
+            )
         return present[0]
 
     def only_with(self, k, other):
@@ -257,13 +324,13 @@ def read(path) -> tuple[Source, dict]:
         line = int(m.group(1)) if m else None
         msg = re.sub(r"\s*\(at line \d+, column \d+\)", "", msg) + (f" at column {m.group(2)}" if m else "")
         raise ConfigError("toml", f"valid TOML syntax ({msg})", file=str(path), line=line) from None
-    model = data.get("model", "mass-spring")                 # top-level key: which deformation model
+    model = data.get("model", "mass-spring")  # top-level key: which deformation model
     if model not in ("mass-spring", "chainmail"):
         raise src.error("model", '"mass-spring" (default) or "chainmail"', model)
     for name in data:
         if name not in SECTIONS and name != "model":
             raise src.error(name, "one of the sections " + ", ".join(f"[{s}]" for s in SECTIONS), name)
-    for name in (("grid", "chainmail") if model == "chainmail" else REQUIRED):
+    for name in ("grid", "chainmail") if model == "chainmail" else REQUIRED:
         if name not in data:
             raise src.error(name, f"a [{name}] section (required)")
     return src, data
@@ -275,14 +342,16 @@ def grid_section(t: Table, base: Path) -> Grid:
     ``base`` is the folder a mesh path is relative to.
     """
     spacing = t.raw("spacing", "one positive number or three [sd, sh, sw] in metres")
-    if not (is_number(spacing) and spacing > 0) and not (isinstance(spacing, list) and len(spacing) == 3
-                                                        and all(is_number(s) and s > 0 for s in spacing)):
+    if not (is_number(spacing) and spacing > 0) and not (
+        isinstance(spacing, list) and len(spacing) == 3 and all(is_number(s) and s > 0 for s in spacing)
+    ):
         raise t.fail("spacing", "one positive number or three [sd, sh, sw] in metres", spacing)
     topology = t.integer("topology", "6, 14, 18 or 26", 26)
     if topology not in TOPOLOGIES:
         raise t.fail("topology", "6, 14, 18 or 26", topology)
     if t.one_of("shape", "mesh") == "mesh":
         from ..mesh import grid_from_mesh
+
         t.only_with("origin", "mesh")
         mesh = t.text("mesh", "a mesh file name (relative to the scene file)")
         padding = t.integer("padding", "an integer >= 0 (node layers)", 0)
@@ -292,8 +361,14 @@ def grid_section(t: Table, base: Path) -> Grid:
     t.only_with("padding", "shape")
     t.only_with("scale", "shape")
     shape = t.raw("shape", "three node counts [D, H, W]")
-    if not (isinstance(shape, list) and len(shape) == 3 and all(isinstance(n, int) and not isinstance(n, bool)
-                                                                 for n in shape)) or min(shape) < 1:
+    if (
+        not (
+            isinstance(shape, list)
+            and len(shape) == 3
+            and all(isinstance(n, int) and not isinstance(n, bool) for n in shape)
+        )
+        or min(shape) < 1
+    ):
         raise t.fail("shape", "three node counts [D, H, W], each >= 1", shape)
     origin = t.vec("origin", "three numbers [od, oh, ow] in metres", (0.0, 0.0, 0.0))
     with t.src.located(t.key("shape"), {"grid.shape": t.key("shape")}):
@@ -343,19 +418,36 @@ def drags_section(src: Source, items, grid: Grid) -> list:
             lo, hi = b.vec("lo", "three numbers [d, h, w] in metres"), b.vec("hi", "three numbers [d, h, w] in metres")
             nodes = grid.box_mask(lo, hi)
             if not bool(nodes.any()):
-                raise t.fail("box", "a box {lo, hi} (rest positions, m) containing at least one node",
-                             {"lo": list(lo), "hi": list(hi)})
+                raise t.fail(
+                    "box",
+                    "a box {lo, hi} (rest positions, m) containing at least one node",
+                    {"lo": list(lo), "hi": list(hi)},
+                )
         expected = "a list of waypoints [[t, [od, oh, ow]], ...] (s, m)"
         path = t.raw("path", expected)
-        if not (isinstance(path, list) and path and all(
-                isinstance(p, list) and len(p) == 2 and is_number(p[0]) and isinstance(p[1], list)
-                and len(p[1]) == 3 and all(is_number(c) for c in p[1]) for p in path)):
+        if not (
+            isinstance(path, list)
+            and path
+            and all(
+                isinstance(p, list)
+                and len(p) == 2
+                and is_number(p[0])
+                and isinstance(p[1], list)
+                and len(p[1]) == 3
+                and all(is_number(c) for c in p[1])
+                for p in path
+            )
+        ):
             raise t.fail("path", expected, path)
         size = max(n * h for n, h in zip(grid.shape, grid.spacing))
         far = max(math.sqrt(sum(c * c for c in p[1])) for p in path)
         if far > 1000 * size:
-            raise t.fail("path", f"offsets within 1000 body sizes ({1000 * size:.3g} m here; farther, float32 positions "
-                         "no longer resolve the node spacing)", path)
+            raise t.fail(
+                "path",
+                f"offsets within 1000 body sizes ({1000 * size:.3g} m here; farther, float32 positions "
+                "no longer resolve the node spacing)",
+                path,
+            )
         with src.located(t.key("path")):
             drags.append(Drag(nodes, [(float(p[0]), tuple(float(c) for c in p[1])) for p in path]))
     return drags
@@ -375,7 +467,9 @@ def region_mask(t: Table, grid) -> torch.Tensor:
         mask = ((X - c.view(3, 1, 1, 1)) ** 2).sum(0) <= r * r * (1 + 1e-12)
     else:
         b = Table(t.src, t.key("box"), t.data["box"], ("lo", "hi"))
-        mask = grid.box_mask(b.vec("lo", "three numbers [d, h, w] in metres"), b.vec("hi", "three numbers [d, h, w] in metres"))
+        mask = grid.box_mask(
+            b.vec("lo", "three numbers [d, h, w] in metres"), b.vec("hi", "three numbers [d, h, w] in metres")
+        )
     mask = mask & grid.nodes()
     if not bool(mask.any()):
         raise t.fail(which, "a region containing at least one node (rest positions, m)", t.data[which])

@@ -4,6 +4,7 @@
 ``summary.json``, ``energy.png`` and, with a ``[volume]`` section, the deformed volume and its
 renders), and the pieces the command line shows.
 """
+
 from __future__ import annotations
 
 import copy
@@ -26,9 +27,20 @@ from .mass_spring import EXPLICIT, Scene, mass_spring_scene
 from .reader import read
 from .tools import ToolRecorder, support_series, tool_outputs
 
-__all__ = ["load_scene", "run_scene", "energy_series", "plot_energy", "one_line_warnings", "report",
-           "scene_volume_outputs", "scene_texture", "scene_texture_outputs", "scene_animation", "tool_forces_at",
-           "scene_engine"]
+__all__ = [
+    "load_scene",
+    "run_scene",
+    "energy_series",
+    "plot_energy",
+    "one_line_warnings",
+    "report",
+    "scene_volume_outputs",
+    "scene_texture",
+    "scene_texture_outputs",
+    "scene_animation",
+    "tool_forces_at",
+    "scene_engine",
+]
 
 
 def load_scene(path) -> Scene | ChainMailScene:
@@ -99,10 +111,10 @@ def energy_series(model: Model, x: torch.Tensor, v: torch.Tensor, chunk: int = 1
     free = ~model.constrained.view(1, *model.grid.shape)
     with torch.no_grad():
         for a in range(0, len(x), chunk):
-            xc = x[a:a + chunk].to(model.device, model.dtype)
-            vc = v[a:a + chunk].to(model.device, model.dtype)
+            xc = x[a : a + chunk].to(model.device, model.dtype)
+            vc = v[a : a + chunk].to(model.device, model.dtype)
             terms = model.energy(State(xc, vc))
-            u = (xc - model.X).norm(dim=1)                                  # (T, D, H, W)
+            u = (xc - model.X).norm(dim=1)  # (T, D, H, W)
             terms["max_displacement"] = u.flatten(1).amax(1)
             terms["max_free_displacement"] = (u * free).flatten(1).amax(1)
             for k, val in terms.items():
@@ -124,13 +136,14 @@ def plot_energy(path, t: np.ndarray, series: dict, title: str = "") -> None:
         if k in series:
             top.plot(t, series[k], label=k, lw=2 if k == "total" else 1.2)
     top.set_ylabel("energy (J)")
-    top.ticklabel_format(axis="y", style="sci", scilimits=(-2, 3))   # short tick labels within the margin
+    top.ticklabel_format(axis="y", style="sci", scilimits=(-2, 3))  # short tick labels within the margin
     top.legend(loc="best", fontsize="small")
     top.grid(alpha=0.3)
     top.set_title(title)
     bottom.plot(t, series["max_displacement"] * 1e3, color="k", label="all nodes")
-    bottom.plot(t, series["max_free_displacement"] * 1e3, color="tab:blue", ls="--",
-                label="free nodes (not fixed or dragged)")
+    bottom.plot(
+        t, series["max_free_displacement"] * 1e3, color="tab:blue", ls="--", label="free nodes (not fixed or dragged)"
+    )
     bottom.legend(loc="best", fontsize="small")
     bottom.set_ylabel("max displacement (mm)")
     bottom.set_xlabel("time (s)")
@@ -199,7 +212,7 @@ def run_scene(scene: Scene, out_dir, progress: bool = True, device=None, force: 
         >>> json.loads((out / "summary.json").read_text())["name"]
         'cube'
     """
-    if not isinstance(scene, Scene):                          # a ChainMail scene runs itself
+    if not isinstance(scene, Scene):  # a ChainMail scene runs itself
         with RunFolder(out_dir, force) as stage:
             return scene.run(stage, progress=progress, device=device)
     threads = torch.get_num_threads()
@@ -215,8 +228,12 @@ def run_scene(scene: Scene, out_dir, progress: bool = True, device=None, force: 
 def scene_engine(scene: Scene, topology: bool) -> Engine:
     """The scene's :class:`~torchdeform.sim.engine.Engine`; topology changes between steps run eagerly."""
     if topology and scene.engine in ("native", "compiled"):
-        raise scene.source.error("integrator.engine", '"auto" or "eager" for a scene with topology changes '
-                                 "(they edit the model between steps, which the eager step reads)", "compiled")
+        raise scene.source.error(
+            "integrator.engine",
+            '"auto" or "eager" for a scene with topology changes '
+            "(they edit the model between steps, which the eager step reads)",
+            "compiled",
+        )
     return Engine(scene.engine, blocked="topology changes between steps run in the eager step" if topology else None)
 
 
@@ -224,7 +241,7 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
     """:func:`run_scene` of a mass-spring scene, with the scene's threads set."""
     model = scene.build(device)
     recorder = None
-    if scene.tools is not None:                               # fresh contacts and grasps: they keep state
+    if scene.tools is not None:  # fresh contacts and grasps: they keep state
         model = copy.copy(model)
         model.interactions = scene.tools.interactions()
         if scene.tools.tools:
@@ -236,8 +253,8 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
         check_dt(model, dt, integrator, bound)
     state = model.rest_state()
     callback, events = recorder, None
-    if scene.topology is not None:                            # topology changes edit a copy of the model
-        if scene.topology.checked_end is None:                # dt = "auto": the run's length is known now
+    if scene.topology is not None:  # topology changes edit a copy of the model
+        if scene.topology.checked_end is None:  # dt = "auto": the run's length is known now
             scene.topology.check(scene.steps * dt)
         model = scene.topology.prepare(model)
         events = scene.topology.events(model, dt, scene.steps * dt, out)
@@ -248,28 +265,47 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
     if events is not None:
         events.begin(state)
         # the springs change during the run: each frame's energies with the springs it was stepped with
-        first = model.start(state)                            # the recorded start: dragged nodes moving
+        first = model.start(state)  # the recorded start: dragged nodes moving
         energies = [energy_series(model, first.x[:1], first.v[:1])]
 
         def frame_energy(step, st):
             if step % scene.frames_every == 0:
                 energies.append(energy_series(model, st.x[:1], st.v[:1]))
+
         callback = _chain(recorder, frame_energy, events)
-    final, rec = simulate(model, state, dt, scene.steps, integrator, record_every=scene.frames_every,
-                          progress=progress, warn=False, callback=callback, engine=engine)
+    final, rec = simulate(
+        model,
+        state,
+        dt,
+        scene.steps,
+        integrator,
+        record_every=scene.frames_every,
+        progress=progress,
+        warn=False,
+        callback=callback,
+        engine=engine,
+    )
     wall = time.perf_counter() - start
     series = None
     if energies is not None:
-        if scene.steps % scene.frames_every:                  # the final frame, appended by run_outputs
+        if scene.steps % scene.frames_every:  # the final frame, appended by run_outputs
             energies.append(energy_series(model, final.x[:1], final.v[:1]))
         series = {k: np.concatenate([e[k] for e in energies]) for k in energies[0]}
 
-    summary, (t, x, v, series) = run_outputs(scene, model, integrator, dt, bound, final, rec, wall, engine.summary(),
-                                             out, series)
+    summary, (t, x, v, series) = run_outputs(
+        scene, model, integrator, dt, bound, final, rec, wall, engine.summary(), out, series
+    )
     grid = model.grid
     if recorder is not None:
-        summary.update(tool_outputs(scene.tools, recorder.series(), (t, support_series(model, t, x, v)), out,
-                                    f"{scene.name}: {integrator.name}, dt = {dt:.3g} s"))
+        summary.update(
+            tool_outputs(
+                scene.tools,
+                recorder.series(),
+                (t, support_series(model, t, x, v)),
+                out,
+                f"{scene.name}: {integrator.name}, dt = {dt:.3g} s",
+            )
+        )
     if events is not None:
         summary["topology"] = events.outputs(final, out, f"{scene.name}: {integrator.name}, dt = {dt:.3g} s")
     texture = None
@@ -280,14 +316,16 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
         summary["texture"]["seams"] = seams
     if scene.volume:
         spec = dict(scene.volume)
-        cut = None if events is None else (grid, events.pieces())          # a cut body: a carved render
-        summary["volume"] = scene_volume_outputs(spec.pop("file"), final.x[:1], model.X, grid.spacing, out, cut=cut,
-                                                 **spec)
+        cut = None if events is None else (grid, events.pieces())  # a cut body: a carved render
+        summary["volume"] = scene_volume_outputs(
+            spec.pop("file"), final.x[:1], model.X, grid.spacing, out, cut=cut, **spec
+        )
     if scene.animation:
         labels = events.pieces() if events is not None else None
         tools = None if recorder is None else recorder.series()
-        summary["animation"] = scene_animation(scene, model, t, x, v, out, labels=labels, tools=tools,
-                                               texture=texture, progress=progress)
+        summary["animation"] = scene_animation(
+            scene, model, t, x, v, out, labels=labels, tools=tools, texture=texture, progress=progress
+        )
     finish_outputs(summary, out, t, series, f"{scene.name}: {integrator.name}, dt = {dt:.3g} s")
     return summary
 
@@ -302,18 +340,34 @@ def finish_outputs(summary: dict, out: Path, t: np.ndarray, series: dict, title:
     try:
         text = json.dumps(summary, indent=2, allow_nan=False)
     except ValueError:
-        raise NonFiniteOutputError("refusing to write summary.json: a figure of the run is NaN or inf "
-                                   f"({', '.join(non_finite_keys(summary))})") from None
-    if "tools" in summary:                # each series (lists of numbers, lists of those) on one line
-        text = re.sub(r"\[\s+([-+\d.eE,\s]+?)\s+\]", lambda m: "[" + ", ".join(re.split(r",\s*", m.group(1))) + "]",
-                      text)
-        text = re.sub(r"\[\s+(\[[^\[\]]*\](?:,\s+\[[^\[\]]*\])*)\s+\]",
-                      lambda m: "[" + ", ".join(re.split(r"(?<=\]),\s+", m.group(1))) + "]", text)
+        raise NonFiniteOutputError(
+            f"refusing to write summary.json: a figure of the run is NaN or inf ({', '.join(non_finite_keys(summary))})"
+        ) from None
+    if "tools" in summary:  # each series (lists of numbers, lists of those) on one line
+        text = re.sub(
+            r"\[\s+([-+\d.eE,\s]+?)\s+\]", lambda m: "[" + ", ".join(re.split(r",\s*", m.group(1))) + "]", text
+        )
+        text = re.sub(
+            r"\[\s+(\[[^\[\]]*\](?:,\s+\[[^\[\]]*\])*)\s+\]",
+            lambda m: "[" + ", ".join(re.split(r"(?<=\]),\s+", m.group(1))) + "]",
+            text,
+        )
     (out / "summary.json").write_text(text + "\n")
 
 
-def run_outputs(scene: Scene, model: Model, integrator, dt: float, bound: float, final, rec: dict, wall: float,
-                engine_summary: dict, out: Path, series: dict | None = None) -> tuple:
+def run_outputs(
+    scene: Scene,
+    model: Model,
+    integrator,
+    dt: float,
+    bound: float,
+    final,
+    rec: dict,
+    wall: float,
+    engine_summary: dict,
+    out: Path,
+    series: dict | None = None,
+) -> tuple:
     """Write ``trajectory.npz`` of a run; return the summary's common part and ``(t, x, v, series)``.
 
     ``rec`` is :func:`~torchdeform.sim.engine.simulate`'s record of the whole body (the last frame
@@ -331,10 +385,21 @@ def run_outputs(scene: Scene, model: Model, integrator, dt: float, bound: float,
     for name, value in (("x", x), ("v", v), *series.items()):
         require_finite(f"trajectory.npz: {name}", value, "frame, ..." if name in "xv" else "frame", cause)
     grid = model.grid
-    np.savez(out / "trajectory.npz", t=t, x=x.float().numpy(), v=v.float().numpy(),
-             X=model.X[0].float().cpu().numpy(), node_mask=grid.nodes().numpy(),
-             shape=np.array(grid.shape), spacing=np.array(grid.spacing), origin=np.array(grid.origin),
-             topology=grid.topology, dt=dt, integrator=integrator.name, **series)
+    np.savez(
+        out / "trajectory.npz",
+        t=t,
+        x=x.float().numpy(),
+        v=v.float().numpy(),
+        X=model.X[0].float().cpu().numpy(),
+        node_mask=grid.nodes().numpy(),
+        shape=np.array(grid.shape),
+        spacing=np.array(grid.spacing),
+        origin=np.array(grid.origin),
+        topology=grid.topology,
+        dt=dt,
+        integrator=integrator.name,
+        **series,
+    )
 
     options = {k: v for k, v in vars(integrator).items() if isinstance(v, (int, float, str)) and not k.startswith("_")}
     summary = {
@@ -352,14 +417,17 @@ def run_outputs(scene: Scene, model: Model, integrator, dt: float, bound: float,
         "engine": engine_summary,
         "nodes": grid.num_nodes,
         "springs": grid.num_springs,
-        "grid": {"shape": list(grid.shape), "spacing": list(grid.spacing), "origin": list(grid.origin),
-                 "topology": grid.topology},
+        "grid": {
+            "shape": list(grid.shape),
+            "spacing": list(grid.spacing),
+            "origin": list(grid.origin),
+            "topology": grid.topology,
+        },
         "dtype": str(model.dtype).replace("torch.", ""),
         "device": str(model.device),
         **({"threads": scene.threads} if scene.threads else {}),
         "frames": len(t),
-        "final_energy_J": {k: float(series[k][-1]) for k in ("kinetic", "elastic", "gravity", "total")
-                           if k in series},
+        "final_energy_J": {k: float(series[k][-1]) for k in ("kinetic", "elastic", "gravity", "total") if k in series},
         "max_displacement_m": float(series["max_displacement"][-1]),
         "peak_displacement_m": float(series["max_displacement"].max()),
         "max_free_displacement_m": float(series["max_free_displacement"][-1]),
@@ -374,6 +442,7 @@ def _chain(*callbacks):
     def call(step, state):
         for c in callbacks:
             c(step, state)
+
     return call
 
 
@@ -384,24 +453,30 @@ def report(summary: dict, out_dir) -> str:
     files = summary.get("outputs") or ["trajectory.npz", "summary.json", "energy.png"]
     tools = ""
     if "tools" in summary:
-        tools = ", max tool force " + ", ".join(f"{name} {entry['max_force_N']:.3g} N"
-                                                for name, entry in summary["tools"].items())
+        tools = ", max tool force " + ", ".join(
+            f"{name} {entry['max_force_N']:.3g} N" for name, entry in summary["tools"].items()
+        )
     if "topology" in summary:
         topo = summary["topology"]
-        tools += (f", {topo['springs_removed_by_cuts'] + topo['springs_removed_by_tear']} springs cut or torn, "
-                  f"{topo['cautery_nodes_removed']} nodes burnt, {topo['components']} piece(s)")
+        tools += (
+            f", {topo['springs_removed_by_cuts'] + topo['springs_removed_by_tear']} springs cut or torn, "
+            f"{topo['cautery_nodes_removed']} nodes burnt, {topo['components']} piece(s)"
+        )
     stiffest = (summary.get("palpation") or {}).get("stiffest")
     if stiffest:
-        tools += (f", stiffest press at {stiffest['along_m'] * 1e3:.3g} mm along the line "
-                  f"({stiffest['peak_force_N']:.3g} N)")
+        tools += (
+            f", stiffest press at {stiffest['along_m'] * 1e3:.3g} mm along the line ({stiffest['peak_force_N']:.3g} N)"
+        )
     engine = summary.get("engine") or {}
     ran = f" ({engine['ran']}" if engine.get("ran") else ""
     if ran and engine.get("compile_s") is not None:
         ran += f", {'C kernel' if engine['ran'] == 'native' else 'compile'} {engine['compile_s']:.1f} s"
     ran += ")" if ran else ""
-    return (f"{summary['name']}: {summary['steps']} {summary['integrator']['name']} steps of "
-            f"{summary['dt_s']:.3g} s{bound} in {summary['wall_time_s']:.2f} s{ran}, max displacement "
-            f"{summary['max_displacement_m'] * 1e3:.3g} mm{tools}; wrote {', '.join(files)} to {out_dir}")
+    return (
+        f"{summary['name']}: {summary['steps']} {summary['integrator']['name']} steps of "
+        f"{summary['dt_s']:.3g} s{bound} in {summary['wall_time_s']:.2f} s{ran}, max displacement "
+        f"{summary['max_displacement_m'] * 1e3:.3g} mm{tools}; wrote {', '.join(files)} to {out_dir}"
+    )
 
 
 def _volume_path(name: str, base) -> str:
@@ -409,8 +484,9 @@ def _volume_path(name: str, base) -> str:
     return name if name.startswith("phantom") or base is None else str(Path(base) / name)
 
 
-def scene_volume_outputs(volume, x, X, spacing, out_dir, tf: str = "ct-soft", mode: str = "dvr",
-                         view: str = "h", base=None, cut=None) -> dict:
+def scene_volume_outputs(
+    volume, x, X, spacing, out_dir, tf: str = "ct-soft", mode: str = "dvr", view: str = "h", base=None, cut=None
+) -> dict:
     """Deform a scene's volume by its final node positions and write its renders.
 
     Writes ``volume_before.png``, ``volume_after.png`` and ``volume_deformed.npy`` to ``out_dir``.
@@ -435,6 +511,7 @@ def scene_volume_outputs(volume, x, X, spacing, out_dir, tf: str = "ct-soft", mo
         a summary dict for ``summary.json``.
     """
     from ..volume import load_volume, node_offsets, render, save_png, save_volume, to_image, warp
+
     name = str(volume)
     path = _volume_path(name, base)
     vol = torch.from_numpy(load_volume(path, "volume.file"))
@@ -448,14 +525,21 @@ def scene_volume_outputs(volume, x, X, spacing, out_dir, tf: str = "ct-soft", mo
             after = render(vol, tf, mode, view, offsets=offsets)
         else:
             from ..topology import cut_pieces
-            pieces = [(o.float(), m) for o, m in cut_pieces(cut[0], x.double().cpu(), cut[1].cpu(), tuple(vol.shape),
-                                                           X.double().cpu())]
-            after = render(vol, tf, mode, view, pieces=pieces, fill=float(vol.min()))    # the gap: "air"
+
+            pieces = [
+                (o.float(), m)
+                for o, m in cut_pieces(cut[0], x.double().cpu(), cut[1].cpu(), tuple(vol.shape), X.double().cpu())
+            ]
+            after = render(vol, tf, mode, view, pieces=pieces, fill=float(vol.min()))  # the gap: "air"
         save_png(out / "volume_after.png", to_image(after, flip_up=flip))
     save_volume(out / "volume_deformed.npy", deformed.numpy())
-    return {"volume": name, "shape": list(vol.shape), "max_offset_voxels": float(offsets.abs().max()),
-            "folded_fraction": info["folded"], "outputs": ["volume_before.png", "volume_after.png",
-                                                            "volume_deformed.npy"]}
+    return {
+        "volume": name,
+        "shape": list(vol.shape),
+        "max_offset_voxels": float(offsets.abs().max()),
+        "folded_fraction": info["folded"],
+        "outputs": ["volume_before.png", "volume_after.png", "volume_deformed.npy"],
+    }
 
 
 def scene_texture(spec: dict, grid):
@@ -473,6 +557,7 @@ def scene_texture(spec: dict, grid):
         (None without blending).
     """
     from ..texture.mapping import body_texture
+
     tex = body_texture(grid, spec["exemplar"], spec["block"], spec["seed"], spec["voxel"])
     seams = tex.blend(spec["seams"]) if spec.get("seams", "none") != "none" else None
     return tex, seams
@@ -498,11 +583,18 @@ def scene_texture_outputs(tex, grid, x, labels, out_dir) -> dict:
     from ..texture import render_textured
     from ..texture.mapping import framing_camera
     from ..topology import cut_surfaces
+
     pieces = cut_surfaces(grid, x.detach().double().cpu(), labels.cpu())
     camera = framing_camera(torch.cat([torch.as_tensor(p.vertices) for p in pieces]), (1.3, -1.1, 0.9), 38.0)
     save_png(Path(out_dir) / "textured.png", render_textured(pieces, tex, camera, light=(1.0, -0.5, 0.6))["image"])
-    return {"exemplar_voxels": list(tex.exemplar.shape[1:]), "block": tex.block, "blocks": list(tex.blocks),
-            "voxel_m": tex.voxel, "pieces": len(pieces), "outputs": ["textured.png"]}
+    return {
+        "exemplar_voxels": list(tex.exemplar.shape[1:]),
+        "block": tex.block,
+        "blocks": list(tex.blocks),
+        "voxel_m": tex.voxel,
+        "pieces": len(pieces),
+        "outputs": ["textured.png"],
+    }
 
 
 def tool_forces_at(series: dict, names, t: np.ndarray) -> dict:
@@ -529,12 +621,22 @@ def tool_forces_at(series: dict, names, t: np.ndarray) -> dict:
     k = np.clip(np.searchsorted(st, t), 0, len(st) - 1)
     prev = np.clip(k - 1, 0, len(st) - 1)
     k = np.where(np.abs(st[prev] - t) < np.abs(st[k] - t), prev, k)
-    before = t < st[0] / 2                                              # the start frame: no step yet
+    before = t < st[0] / 2  # the start frame: no step yet
     return {name: np.where(before[:, None], 0.0, np.asarray(series[f"{name}.force"])[k]) for name in names}
 
 
-def scene_animation(scene: Scene, model: Model, t: np.ndarray, x: torch.Tensor, v: torch.Tensor, out_dir,
-                    labels=None, tools: dict | None = None, texture=None, progress: bool = False) -> dict:
+def scene_animation(
+    scene: Scene,
+    model: Model,
+    t: np.ndarray,
+    x: torch.Tensor,
+    v: torch.Tensor,
+    out_dir,
+    labels=None,
+    tools: dict | None = None,
+    texture=None,
+    progress: bool = False,
+) -> dict:
     """Write ``scene.animation`` (a GIF): the run's textured surface beside its deformed volume render.
 
     See :func:`torchdeform.view.animation.animate`. The volume is the scene's ``[volume]`` (else the
@@ -560,6 +662,7 @@ def scene_animation(scene: Scene, model: Model, t: np.ndarray, x: torch.Tensor, 
         ``bytes``, ``wall_time_s``.
     """
     from ..view.animation import animate, drag_forces
+
     start = time.perf_counter()
     grid = model.grid
     forces = {}
@@ -570,7 +673,18 @@ def scene_animation(scene: Scene, model: Model, t: np.ndarray, x: torch.Tensor, 
     volume = dict(scene.volume or {"file": "phantom:64"})
     name, base = str(volume.pop("file")), volume.pop("base", None)
     path = _volume_path(name, base)
-    info = animate(grid, t, x, Path(out_dir) / scene.animation, labels=labels, texture=texture, volume=path,
-                   forces=forces, progress=progress, **volume)
+    info = animate(
+        grid,
+        t,
+        x,
+        Path(out_dir) / scene.animation,
+        labels=labels,
+        texture=texture,
+        volume=path,
+        forces=forces,
+        progress=progress,
+        **volume,
+    )
     return {k: info[k] for k in ("file", "frames", "size", "panel", "bytes")} | {
-        "wall_time_s": time.perf_counter() - start}
+        "wall_time_s": time.perf_counter() - start
+    }

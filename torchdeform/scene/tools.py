@@ -53,6 +53,7 @@ Example:
     ...
     torchdeform.errors.ConfigError: s.toml:5: tools[0].radius: expected a positive number of metres, got -0.003
 """
+
 from __future__ import annotations
 
 import math
@@ -72,16 +73,37 @@ from ..outputs import save_figure
 from ..sim.model import State
 from .reader import SECTIONS, Source, Table, is_number
 
-__all__ = ["SHAPE_KEYS", "CONTACTS", "ToolSet", "tools_section", "strain_limit_section", "palpation_option",
-           "ToolRecorder", "tool_outputs", "support_series", "work_direction", "palpation", "plot_forces", "plot_palpation",
-           "MAX_POINTS"]
+__all__ = [
+    "SHAPE_KEYS",
+    "CONTACTS",
+    "ToolSet",
+    "tools_section",
+    "strain_limit_section",
+    "palpation_option",
+    "ToolRecorder",
+    "tool_outputs",
+    "support_series",
+    "work_direction",
+    "palpation",
+    "plot_forces",
+    "plot_palpation",
+    "MAX_POINTS",
+]
 
 #: size keys of each tool shape
-SHAPE_KEYS = {"sphere": ("radius",), "capsule": ("radius", "half_length", "axis"), "box": ("half_extents",),
-              "half_space": ("normal",), "mesh": ("file", "resolution")}
+SHAPE_KEYS = {
+    "sphere": ("radius",),
+    "capsule": ("radius", "half_length", "axis"),
+    "box": ("half_extents",),
+    "half_space": ("normal",),
+    "mesh": ("file", "resolution"),
+}
 #: contact responses of a tool and their own keys
-CONTACTS = {"projection": ("friction", "direction", "hold", "haptic_gain"), "penalty": ("stiffness", "damping"),
-            "none": ()}
+CONTACTS = {
+    "projection": ("friction", "direction", "hold", "haptic_gain"),
+    "penalty": ("stiffness", "damping"),
+    "none": (),
+}
 #: most points of a series in summary.json
 MAX_POINTS = 1000
 _AXES = {"d": 0, "h": 1, "w": 2}
@@ -156,8 +178,9 @@ def _shape(t: Table, kind: str, base: Path):
             axis = _AXES[axis]
         if axis not in (0, 1, 2) or isinstance(axis, bool):
             raise t.fail("axis", '"d", "h" or "w" (or 0, 1, 2): the grid axis of the shaft', t.data["axis"])
-        return Capsule(t.num("radius", metres, lo=0, lo_open=True),
-                       t.num("half_length", "a number of metres >= 0", lo=0), axis)
+        return Capsule(
+            t.num("radius", metres, lo=0, lo_open=True), t.num("half_length", "a number of metres >= 0", lo=0), axis
+        )
     if kind == "box":
         h = t.vec("half_extents", "three positive numbers [hd, hh, hw] in metres")
         if min(h) <= 0:
@@ -168,23 +191,35 @@ def _shape(t: Table, kind: str, base: Path):
         if not any(normal):
             raise t.fail("normal", "a non-zero direction [nd, nh, nw]", list(normal))
         return HalfSpace(normal)
-    try:                                                     # mesh: the optional module, imported when used
+    try:  # mesh: the optional module, imported when used
         from ..interact.meshes import MeshShape
-    except ImportError:                                      # pragma: no cover
-        raise t.fail("shape", "one of " + ", ".join(f'"{s}"' for s in SHAPE_KEYS if s != "mesh")
-                     + " (mesh tools need torchdeform.interact.meshes)", "mesh") from None
+    except ImportError:  # pragma: no cover
+        raise t.fail(
+            "shape",
+            "one of "
+            + ", ".join(f'"{s}"' for s in SHAPE_KEYS if s != "mesh")
+            + " (mesh tools need torchdeform.interact.meshes)",
+            "mesh",
+        ) from None
     file = t.text("file", "a closed triangle mesh file (relative to the scene file; x, y, z = D, H, W in m)")
-    resolution = t.integer("resolution", "an integer >= 4 (distance-field points along the longest axis)", 32,
-                           lo=4)
+    resolution = t.integer("resolution", "an integer >= 4 (distance-field points along the longest axis)", 32, lo=4)
     with t.src.located(t.key("file"), {"mesh_shape.resolution": t.key("resolution")}):
         return MeshShape(Path(base) / file, resolution=resolution)
 
 
 def _path(t: Table) -> list:
     v = t.data["path"]
-    ok = isinstance(v, list) and v and all(
-        isinstance(w, list) and len(w) in (2, 3) and is_number(w[0])
-        and all(isinstance(p, list) and len(p) == 3 and all(is_number(c) for c in p) for p in w[1:]) for w in v)
+    ok = (
+        isinstance(v, list)
+        and v
+        and all(
+            isinstance(w, list)
+            and len(w) in (2, 3)
+            and is_number(w[0])
+            and all(isinstance(p, list) and len(p) == 3 and all(is_number(c) for c in p) for p in w[1:])
+            for w in v
+        )
+    )
     if not ok or len({len(w) for w in v}) != 1:
         raise t.fail("path", _WAYPOINTS + ", all of one kind", v)
     return [tuple([float(w[0])] + [tuple(float(c) for c in p) for p in w[1:]]) for w in v]
@@ -199,7 +234,7 @@ def _grasp(t: Table, tool: Tool) -> dict:
     kwargs = {"close": close, "open": opened, "margin": g.num("margin", "metres >= 0", 0.0, lo=0)}
     keys = {"grasp": g.name, **{f"grasp.{k}": g.key(k) for k in ("close", "open", "margin")}}
     with t.src.located(g.name, keys):
-        Grasp(tool, **kwargs)                                 # its own checks: both times, open after close
+        Grasp(tool, **kwargs)  # its own checks: both times, open after close
     return kwargs
 
 
@@ -229,12 +264,17 @@ def tools_section(src: Source, items, base) -> ToolSet:
         kind = t.text("shape", "one of " + ", ".join(f'"{s}"' for s in SHAPE_KEYS), choices=SHAPE_KEYS)
         shape = _shape(t, kind, Path(base))
         if t.one_of("position", "path") == "position":
-            pose = {"position": t.vec("position", "three numbers [d, h, w] in metres"),
-                    "orientation": t.vec("orientation", "a rotation vector [rd, rh, rw] in radians", None)}
+            pose = {
+                "position": t.vec("position", "three numbers [d, h, w] in metres"),
+                "orientation": t.vec("orientation", "a rotation vector [rd, rh, rw] in radians", None),
+            }
         else:
             if t.has("orientation"):
-                raise t.fail("orientation", "no orientation with a path (rotations go into its waypoints "
-                                            "[t, [d, h, w], [rd, rh, rw]])", t.data["orientation"])
+                raise t.fail(
+                    "orientation",
+                    "no orientation with a path (rotations go into its waypoints [t, [d, h, w], [rd, rh, rw]])",
+                    t.data["orientation"],
+                )
             pose = {"path": _path(t)}
         with src.located(t.key("path" if "path" in pose else "position")):
             tool = Tool(shape, **pose, name=name)
@@ -243,24 +283,30 @@ def tools_section(src: Source, items, base) -> ToolSet:
         for k in (k for keys in CONTACTS.values() for k in keys):
             if t.has(k) and k not in CONTACTS[contact]:
                 owner = next(c for c, keys in CONTACTS.items() if k in keys)
-                raise t.fail(k, f'no {k} with contact = "{contact}" (it is an option of contact = "{owner}")',
-                             t.data[k])
+                raise t.fail(
+                    k, f'no {k} with contact = "{contact}" (it is an option of contact = "{owner}")', t.data[k]
+                )
         if contact == "projection":
-            kwargs = {"friction": t.num("friction", "a Coulomb coefficient >= 0", 0.0, lo=0),
-                      "direction": t.text("direction", " or ".join(f'"{d}"' for d in DIRECTIONS), "normal",
-                                          DIRECTIONS),
-                      "hold": _flag(t, "hold", False),
-                      "haptic_gain": t.num("haptic_gain", "a gain >= 0 (N/m)", None, lo=0)}
+            kwargs = {
+                "friction": t.num("friction", "a Coulomb coefficient >= 0", 0.0, lo=0),
+                "direction": t.text("direction", " or ".join(f'"{d}"' for d in DIRECTIONS), "normal", DIRECTIONS),
+                "hold": _flag(t, "hold", False),
+                "haptic_gain": t.num("haptic_gain", "a gain >= 0 (N/m)", None, lo=0),
+            }
         elif contact == "penalty":
-            kwargs = {"stiffness": t.num("stiffness", "a positive number (N/m per metre of penetration)", lo=0,
-                                         lo_open=True),
-                      "damping": t.num("damping", "a number >= 0 (N s/m)", 0.0, lo=0)}
+            kwargs = {
+                "stiffness": t.num("stiffness", "a positive number (N/m per metre of penetration)", lo=0, lo_open=True),
+                "damping": t.num("damping", "a number >= 0 (N s/m)", 0.0, lo=0),
+            }
         else:
             kwargs = {}
         grasp = _grasp(t, tool) if t.has("grasp") else None
         if contact == "none" and grasp is None:
-            raise t.fail("contact", '"projection" or "penalty" (a tool with contact = "none" does nothing '
-                                    'without a grasp)', "none")
+            raise t.fail(
+                "contact",
+                '"projection" or "penalty" (a tool with contact = "none" does nothing without a grasp)',
+                "none",
+            )
         out.tools.append(tool)
         out.contacts.append((contact, kwargs))
         out.grasps.append(grasp)
@@ -273,13 +319,17 @@ def strain_limit_section(t: Table) -> dict:
     Keys: ``min`` (0.9), ``max`` (1.1): the bounds of a spring's length over its rest length;
     ``passes`` (4) Jacobi passes per step; ``update_velocity`` (true).
     """
-    kwargs = {"min_ratio": t.num("min", "a ratio in (0, 1] (shortest length / rest length)", 0.9, lo=0, hi=1,
-                                 lo_open=True),
-              "max_ratio": t.num("max", "a ratio >= 1 (longest length / rest length)", 1.1, lo=1),
-              "passes": t.integer("passes", "an integer >= 1 (Jacobi passes per step)", 4, lo=1),
-              "update_velocity": _flag(t, "update_velocity", True)}
-    keys = {"strain_limit.min_ratio": t.key("min"), "strain_limit.max_ratio": t.key("max"),
-            "strain_limit.passes": t.key("passes")}
+    kwargs = {
+        "min_ratio": t.num("min", "a ratio in (0, 1] (shortest length / rest length)", 0.9, lo=0, hi=1, lo_open=True),
+        "max_ratio": t.num("max", "a ratio >= 1 (longest length / rest length)", 1.1, lo=1),
+        "passes": t.integer("passes", "an integer >= 1 (Jacobi passes per step)", 4, lo=1),
+        "update_velocity": _flag(t, "update_velocity", True),
+    }
+    keys = {
+        "strain_limit.min_ratio": t.key("min"),
+        "strain_limit.max_ratio": t.key("max"),
+        "strain_limit.passes": t.key("passes"),
+    }
     with t.src.located(t.name, keys):
         StrainLimit(**kwargs)
     return kwargs
@@ -290,8 +340,11 @@ def palpation_option(out: Table, tools: ToolSet | None) -> str | None:
     if not out.has("palpation"):
         return None
     v = out.data["palpation"]
-    touching = [tool.name for tool, (kind, _) in zip(tools.tools if tools else [], tools.contacts if tools else [])
-                if kind != "none"]
+    touching = [
+        tool.name
+        for tool, (kind, _) in zip(tools.tools if tools else [], tools.contacts if tools else [])
+        if kind != "none"
+    ]
     expected = "true, false or the name of a [[tools]] tool with a contact"
     if v is False:
         return None
@@ -414,8 +467,10 @@ def work_direction(t: np.ndarray, position: np.ndarray, force: np.ndarray) -> np
     length = np.linalg.norm(u)
     return u / length if length > 0 else np.zeros(3)
 
-def tool_outputs(tools: ToolSet, series: dict, frames: tuple, out_dir, title: str = "",
-                 max_points: int = MAX_POINTS) -> dict:
+
+def tool_outputs(
+    tools: ToolSet, series: dict, frames: tuple, out_dir, title: str = "", max_points: int = MAX_POINTS
+) -> dict:
     """Write ``tools.npz``, ``forces.png`` (and ``palpation.png``); return the summary's tool parts.
 
     Args:
@@ -445,13 +500,19 @@ def tool_outputs(tools: ToolSet, series: dict, frames: tuple, out_dir, title: st
         peak = int(np.argmax(magnitude)) if len(magnitude) else 0
         u = work_direction(t, position, force)
         moving = bool(np.ptp(position, axis=0).max() > 0) if len(t) else False
-        entry = {"contact": tools.contacts[tools.names.index(name)][0],
-                 "grasp": tools.grasps[tools.names.index(name)] is not None,
-                 "points": len(t_mean), "steps_per_point": block,
-                 "t_s": _round(t_mean), "force_N": _round(f_mean), "position_m": _round(p_mean),
-                 "max_force_N": float(magnitude[peak]) if len(magnitude) else 0.0,
-                 "max_force_t_s": float(t_mean[peak]) if len(magnitude) else 0.0,
-                 "work_direction": _round(u), "moving": moving}
+        entry = {
+            "contact": tools.contacts[tools.names.index(name)][0],
+            "grasp": tools.grasps[tools.names.index(name)] is not None,
+            "points": len(t_mean),
+            "steps_per_point": block,
+            "t_s": _round(t_mean),
+            "force_N": _round(f_mean),
+            "position_m": _round(p_mean),
+            "max_force_N": float(magnitude[peak]) if len(magnitude) else 0.0,
+            "max_force_t_s": float(t_mean[peak]) if len(magnitude) else 0.0,
+            "work_direction": _round(u),
+            "moving": moving,
+        }
         for key in ("contacts", "grasped"):
             if f"{name}.{key}" in series:
                 npz[f"{name}.{key}"] = series[f"{name}.{key}"]
@@ -461,20 +522,24 @@ def tool_outputs(tools: ToolSet, series: dict, frames: tuple, out_dir, title: st
     np.savez(out / "tools.npz", **npz)
     ft, fr = frames
     every = max(1, math.ceil(len(ft) / max_points))
-    result = {"tools": summary,
-              "support_reaction_N": {"t_s": _round(ft[::every]), "force_N": _round(fr[::every]),
-                                     "max_N": float(np.linalg.norm(fr, axis=1).max()) if len(fr) else 0.0}}
+    result = {
+        "tools": summary,
+        "support_reaction_N": {
+            "t_s": _round(ft[::every]),
+            "force_N": _round(fr[::every]),
+            "max_N": float(np.linalg.norm(fr, axis=1).max()) if len(fr) else 0.0,
+        },
+    }
     plot_forces(out / "forces.png", curves, frames, title)
     if tools.palpation is not None:
         name = tools.palpation
         tool = tools.tools[tools.names.index(name)]
         position = npz[f"{name}.position"]
         contacts = series.get(f"{name}.contacts")
-        if contacts is None:                                  # a penalty contact reports contacts too
+        if contacts is None:  # a penalty contact reports contacts too
             contacts = (np.linalg.norm(series[f"{name}.force"], axis=1) > 0).astype(float)
         velocity = np.array([tool.velocity(float(s)) for s in t], dtype=np.float64).reshape(-1, 3)
-        result["palpation"] = {"tool": tool.name, **palpation(t, series[f"{name}.force"], position, contacts,
-                                                              velocity)}
+        result["palpation"] = {"tool": tool.name, **palpation(t, series[f"{name}.force"], position, contacts, velocity)}
         plot_palpation(out / "palpation.png", result["palpation"], title)
     return result
 
@@ -501,8 +566,14 @@ def _smooth(a: np.ndarray, width: int) -> np.ndarray:
     return np.convolve(a, kernel, "same") / np.convolve(np.ones_like(a), kernel, "same")
 
 
-def palpation(t: np.ndarray, force: np.ndarray, position: np.ndarray, contacts: np.ndarray,
-              velocity: np.ndarray | None = None, curve_points: int = 100) -> dict:
+def palpation(
+    t: np.ndarray,
+    force: np.ndarray,
+    position: np.ndarray,
+    contacts: np.ndarray,
+    velocity: np.ndarray | None = None,
+    curve_points: int = 100,
+) -> dict:
     """The presses of a tool: force against indentation at each point, and where the tissue is stiffest.
 
     A press is a run of steps in which the tool touches the tissue (``contacts > 0``; gaps shorter
@@ -554,20 +625,29 @@ def palpation(t: np.ndarray, force: np.ndarray, position: np.ndarray, contacts: 
             continue
         n = offset[k] / depth
         inward = (velocity[a:b] @ n) > 0 if velocity is not None else np.diff(offset @ n, append=-np.inf) > 0
-        while k > 0 and not inward[k]:                              # the loading branch ends where the tool
-            k -= 1                                                  # last moved inwards (not at its turn)
-        delta = (offset @ n)[:k + 1]
-        f = _smooth(-(force[a:a + k + 1] @ n), 2 * max(1, (k + 1) // 100) + 1)
+        while k > 0 and not inward[k]:  # the loading branch ends where the tool
+            k -= 1  # last moved inwards (not at its turn)
+        delta = (offset @ n)[: k + 1]
+        f = _smooth(-(force[a : a + k + 1] @ n), 2 * max(1, (k + 1) // 100) + 1)
         peak = int(np.argmax(f))
         upper = np.flatnonzero(delta >= 0.5 * depth)
-        slope = float(np.polyfit(delta[upper], f[upper], 1)[0]) if len(upper) >= 2 and np.ptp(delta[upper]) > 0 \
+        slope = (
+            float(np.polyfit(delta[upper], f[upper], 1)[0])
+            if len(upper) >= 2 and np.ptp(delta[upper]) > 0
             else float("nan")
-        keep = np.unique(np.linspace(0, k, min(curve_points, k + 1)).round().astype(int))   # the loading branch
-        points.append({"position_m": _round(p[k]), "t_s": _round([t[a], t[b - 1]]),
-                       "indentation_m": depth, "peak_force_N": float(f[peak]),
-                       "peak_indentation_m": float(delta[peak]),
-                       "stiffness_N_per_m": slope if math.isfinite(slope) else None,
-                       "curve": {"indentation_m": _round(delta[keep]), "force_N": _round(f[keep])}})
+        )
+        keep = np.unique(np.linspace(0, k, min(curve_points, k + 1)).round().astype(int))  # the loading branch
+        points.append(
+            {
+                "position_m": _round(p[k]),
+                "t_s": _round([t[a], t[b - 1]]),
+                "indentation_m": depth,
+                "peak_force_N": float(f[peak]),
+                "peak_indentation_m": float(delta[peak]),
+                "stiffness_N_per_m": slope if math.isfinite(slope) else None,
+                "curve": {"indentation_m": _round(delta[keep]), "force_N": _round(f[keep])},
+            }
+        )
     if points:
         first, last = np.array(points[0]["position_m"]), np.array(points[-1]["position_m"])
         line = last - first
@@ -576,9 +656,13 @@ def palpation(t: np.ndarray, force: np.ndarray, position: np.ndarray, contacts: 
             q["along_m"] = float(f"{float((np.array(q['position_m']) - first) @ e):.6g}")
         peaks = np.array([q["peak_force_N"] for q in points])
         i = int(np.argmax(peaks))
-        stiffest = {"index": i, "along_m": points[i]["along_m"], "position_m": points[i]["position_m"],
-                    "peak_force_N": float(peaks[i]), "ratio_to_median": float(peaks[i] / np.median(peaks))
-                    if np.median(peaks) > 0 else None}
+        stiffest = {
+            "index": i,
+            "along_m": points[i]["along_m"],
+            "position_m": points[i]["position_m"],
+            "peak_force_N": float(peaks[i]),
+            "ratio_to_median": float(peaks[i] / np.median(peaks)) if np.median(peaks) > 0 else None,
+        }
     else:
         stiffest = None
     return {"points": points, "stiffest": stiffest}
@@ -588,6 +672,7 @@ def palpation(t: np.ndarray, force: np.ndarray, position: np.ndarray, contacts: 
 def _figure(size):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+
     fig = Figure(figsize=size, layout="constrained")
     FigureCanvasAgg(fig)
     return fig
@@ -607,10 +692,15 @@ def plot_forces(path, curves: dict, frames: tuple, title: str = "") -> None:
     fig = _figure((11, 4.5))
     left, right = fig.subplots(1, 2)
     for name, (t, position, force, u) in curves.items():
-        line, = right.plot(t, np.linalg.norm(force, axis=1), lw=1.2, label=f"{name} |F|")
+        (line,) = right.plot(t, np.linalg.norm(force, axis=1), lw=1.2, label=f"{name} |F|")
         if u is not None:
-            left.plot((position - position[0]) @ u * 1e3, -(force @ u), lw=1.2, color=line.get_color(),
-                      label=f"{name} along [{', '.join(f'{c:.2f}' for c in np.round(u, 2) + 0.0)}]")
+            left.plot(
+                (position - position[0]) @ u * 1e3,
+                -(force @ u),
+                lw=1.2,
+                color=line.get_color(),
+                label=f"{name} along [{', '.join(f'{c:.2f}' for c in np.round(u, 2) + 0.0)}]",
+            )
     ft, fr = frames
     if len(ft):
         right.plot(ft, np.linalg.norm(fr, axis=1), "k--", lw=1, label="supports |R|")
@@ -638,14 +728,20 @@ def plot_palpation(path, result: dict, title: str = "") -> None:
         title: the figure's title.
     """
     from matplotlib import colormaps
+
     fig = _figure((11, 4.5))
     left, right = fig.subplots(1, 2)
     points = result["points"]
     cmap = colormaps["viridis"]
     for i, q in enumerate(points):
         colour = cmap(i / max(1, len(points) - 1))
-        left.plot(np.array(q["curve"]["indentation_m"]) * 1e3, q["curve"]["force_N"], color=colour, lw=1.2,
-                  label=f"{q['along_m'] * 1e3:.1f} mm")
+        left.plot(
+            np.array(q["curve"]["indentation_m"]) * 1e3,
+            q["curve"]["force_N"],
+            color=colour,
+            lw=1.2,
+            label=f"{q['along_m'] * 1e3:.1f} mm",
+        )
     left.set_xlabel("indentation (mm)")
     left.set_ylabel("force (N)")
     left.set_title(f"force-indentation, {result['tool']}")
@@ -656,13 +752,18 @@ def plot_palpation(path, result: dict, title: str = "") -> None:
         peaks = np.array([q["peak_force_N"] for q in points])
         right.plot(along, peaks, "o-", color="tab:red", label="peak force")
         best = result["stiffest"]
-        right.annotate(f"stiffest: {best['along_m'] * 1e3:.1f} mm", (best["along_m"] * 1e3, best["peak_force_N"]),
-                       textcoords="offset points", xytext=(8, -4), ha="left", fontsize="small")
+        right.annotate(
+            f"stiffest: {best['along_m'] * 1e3:.1f} mm",
+            (best["along_m"] * 1e3, best["peak_force_N"]),
+            textcoords="offset points",
+            xytext=(8, -4),
+            ha="left",
+            fontsize="small",
+        )
         right.margins(y=0.12)
         twin = right.twinx()
         slopes = [np.nan if q["stiffness_N_per_m"] is None else q["stiffness_N_per_m"] for q in points]
-        twin.plot(along, slopes, "s--", color="tab:blue",
-                  label="slope")
+        twin.plot(along, slopes, "s--", color="tab:blue", label="slope")
         twin.set_ylabel("slope of the loading half (N/m)", color="tab:blue")
         right.legend(loc="upper left", fontsize="small")
         twin.legend(loc="upper right", fontsize="small")
@@ -680,7 +781,8 @@ def support_series(model, t: np.ndarray, x: torch.Tensor, v: torch.Tensor) -> np
     out = []
     with torch.no_grad():
         for i in range(len(t)):
-            state = State(x[i:i + 1].to(model.device, model.dtype), v[i:i + 1].to(model.device, model.dtype),
-                          float(t[i]))
+            state = State(
+                x[i : i + 1].to(model.device, model.dtype), v[i : i + 1].to(model.device, model.dtype), float(t[i])
+            )
             out.append(support_reaction(model, state)[0].double().cpu())
     return torch.stack(out).numpy() if out else np.zeros((0, 3))

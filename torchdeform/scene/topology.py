@@ -65,6 +65,7 @@ Example:
     ...
     torchdeform.errors.ConfigError: s.toml:3: cuts[0].triangle: expected a non-degenerate triangle: three corners not on one line, got ((0.0, 0.0, 0.0), (0.01, 0.0, 0.0), (0.02, 0.0, 0.0))
 """
+
 from __future__ import annotations
 
 import copy
@@ -92,14 +93,17 @@ from ..topology import (
 from ..topology.masks import alive, editable
 from .reader import SECTIONS, Source, Table, is_number, region_mask
 
-__all__ = ["TOPOLOGY", "TopologySet", "TopologyEvents", "topology_section", "tools_with_cutters",
-           "plot_topology"]
+__all__ = ["TOPOLOGY", "TopologySet", "TopologyEvents", "topology_section", "tools_with_cutters", "plot_topology"]
 
 #: the sections read here
 TOPOLOGY = ("cuts", "cautery", "tear", "coagulate")
 #: the keys of each form of a ``[[cuts]]`` table (besides ``gape``)
-CUT_FORMS = {"origin": ("origin", "u", "v", "at"), "triangle": ("triangle", "at"), "edges": ("edges", "at"),
-             "tool": ("tool", "edge", "start", "stop", "pieces")}
+CUT_FORMS = {
+    "origin": ("origin", "u", "v", "at"),
+    "triangle": ("triangle", "at"),
+    "edges": ("edges", "at"),
+    "tool": ("tool", "edge", "start", "stop", "pieces"),
+}
 _METRES = "three numbers [d, h, w] in metres"
 
 
@@ -113,15 +117,26 @@ def tools_with_cutters(src: Source, data: dict, base):
     :func:`~torchdeform.scene.tools.tools_section` unchanged.
     """
     from .tools import CONTACTS, tools_section
+
     items = data["tools"]
-    users = {e.get("tool") for s in ("cuts", "cautery") if isinstance(data.get(s), list)
-             for e in data[s] if isinstance(e, dict)}
+    users = {
+        e.get("tool")
+        for s in ("cuts", "cautery")
+        if isinstance(data.get(s), list)
+        for e in data[s]
+        if isinstance(e, dict)
+    }
     options = {k for keys in CONTACTS.values() for k in keys}
     quiet = []
     if isinstance(items, list):
         for n, item in enumerate(items):
-            if (isinstance(item, dict) and item.get("contact") == "none" and "grasp" not in item
-                    and item.get("name", f"tool{n + 1}") in users and not options & set(item)):
+            if (
+                isinstance(item, dict)
+                and item.get("contact") == "none"
+                and "grasp" not in item
+                and item.get("name", f"tool{n + 1}") in users
+                and not options & set(item)
+            ):
                 quiet.append(n)
         items = [{**item, "contact": "projection"} if n in quiet else item for n, item in enumerate(items)]
     tools = tools_section(src, items, base)
@@ -172,8 +187,7 @@ class TopologySet:
         tol = 1e-9 * max(1.0, end)
         for key, value in self.times:
             if not -tol <= value <= end + tol:
-                raise self.source.error(key, f"a time in [0, {end:g}] s (the run lasts steps x dt = {end:g} s)",
-                                        value)
+                raise self.source.error(key, f"a time in [0, {end:g}] s (the run lasts steps x dt = {end:g} s)", value)
         lo, hi = self.body_box()
         for c in self.cuts:
             if "tool" not in c:
@@ -183,9 +197,13 @@ class TopologySet:
             edges = torch.stack([scalpel.edge_at(c["start"] + (stop - c["start"]) * i / 256) for i in range(257)])
             box = (edges.flatten(0, 1).amin(0).tolist(), edges.flatten(0, 1).amax(0).tolist())
             if not _meets(box, (lo, hi)):
-                raise self.source.error(f"{c['key']}.edge", f"an edge that reaches the body (its path from "
-                                        f"{c['start']:g} to {stop:g} s stays within {_box_text(box)}, the body's "
-                                        f"rest box is {_box_text((lo, hi))})", [list(p) for p in c["edge"]])
+                raise self.source.error(
+                    f"{c['key']}.edge",
+                    f"an edge that reaches the body (its path from "
+                    f"{c['start']:g} to {stop:g} s stays within {_box_text(box)}, the body's "
+                    f"rest box is {_box_text((lo, hi))})",
+                    [list(p) for p in c["edge"]],
+                )
 
     def prepare(self, model):
         """A copy of ``model`` for one run: its spring and node fields its own, stored per slot (editable)."""
@@ -224,8 +242,11 @@ def _flag(t: Table, k: str, default: bool) -> bool:
 def _points(t: Table, k: str, n: int, expected: str) -> list:
     """A list of ``n`` points ``[d, h, w]`` (``n`` None: two or more)."""
     v = t.raw(k, expected)
-    ok = isinstance(v, list) and (len(v) == n if n else len(v) >= 2) and all(
-        isinstance(p, list) and len(p) == 3 and all(is_number(c) for c in p) for p in v)
+    ok = (
+        isinstance(v, list)
+        and (len(v) == n if n else len(v) >= 2)
+        and all(isinstance(p, list) and len(p) == 3 and all(is_number(c) for c in p) for p in v)
+    )
     if not ok:
         raise t.fail(k, expected, v)
     return [tuple(float(c) for c in p) for p in v]
@@ -253,8 +274,10 @@ def _cut(t: Table, grid, tools, out: TopologySet) -> dict:
         if k != "gape" and k not in CUT_FORMS[which]:
             owner = next(f for f, keys in CUT_FORMS.items() if k in keys)
             raise t.fail(k, f"no {k} with {which} = .. (it goes with {owner} = ..)", t.data[k])
-    entry = {"key": t.name, "gape": t.num("gape", "a fraction in [0, 1) of the rest length", 0.0, lo=0, hi=1,
-                                          hi_open=True)}
+    entry = {
+        "key": t.name,
+        "gape": t.num("gape", "a fraction in [0, 1) of the rest length", 0.0, lo=0, hi=1, hi_open=True),
+    }
     if which == "tool":
         entry["tool"] = _tool(t, tools)
         edge = _points(t, "edge", 2, "the cutting edge's two ends [[d, h, w], [d, h, w]] in the tool's frame (m)")
@@ -263,14 +286,22 @@ def _cut(t: Table, grid, tools, out: TopologySet) -> dict:
         start, stop = _time(t, "start", out.times), _time(t, "stop", out.times, None)
         if stop is not None and stop <= start:
             raise t.fail("stop", f"a time after start ({start:g} s)", stop)
-        entry.update(edge=tuple(edge), start=start, stop=stop,
-                     pieces=t.integer("pieces", "an integer >= 1 (triangles per step)", 1, lo=1))
+        entry.update(
+            edge=tuple(edge),
+            start=start,
+            stop=stop,
+            pieces=t.integer("pieces", "an integer >= 1 (triangles per step)", 1, lo=1),
+        )
         return entry
     key = t.key(which)
     if which == "origin":
         with t.src.located(key):
-            blade = Blade(t.vec("origin", _METRES), t.vec("u", "three numbers [ud, uh, uw] in metres (an edge)"),
-                          t.vec("v", "three numbers [vd, vh, vw] in metres (an edge)"), key=key)
+            blade = Blade(
+                t.vec("origin", _METRES),
+                t.vec("u", "three numbers [ud, uh, uw] in metres (an edge)"),
+                t.vec("v", "three numbers [vd, vh, vw] in metres (an edge)"),
+                key=key,
+            )
     elif which == "triangle":
         corners = _points(t, "triangle", 3, "three corners [[d, h, w], [d, h, w], [d, h, w]] in metres")
         with t.src.located(key):
@@ -278,17 +309,28 @@ def _cut(t: Table, grid, tools, out: TopologySet) -> dict:
     else:
         v = t.data["edges"]
         expected = "the edge's ends at two or more poses [[[d, h, w], [d, h, w]], ...] in metres"
-        if not (isinstance(v, list) and len(v) >= 2 and all(
-                isinstance(e, list) and len(e) == 2 and all(isinstance(p, list) and len(p) == 3
-                                                            and all(is_number(c) for c in p) for p in e) for e in v)):
+        if not (
+            isinstance(v, list)
+            and len(v) >= 2
+            and all(
+                isinstance(e, list)
+                and len(e) == 2
+                and all(isinstance(p, list) and len(p) == 3 and all(is_number(c) for c in p) for p in e)
+                for e in v
+            )
+        ):
             raise t.fail("edges", expected, v)
         with t.src.located(key):
             blade = Blade.swept(v, key=key)
     box = blade.bounds()
     body = out.body_box()
     if not _meets(box, body):
-        raise t.fail(which, f"a blade that reaches the body (the blade lies within {_box_text(box)}, the body's "
-                            f"rest box is {_box_text(body)})", t.data[which])
+        raise t.fail(
+            which,
+            f"a blade that reaches the body (the blade lies within {_box_text(box)}, the body's "
+            f"rest box is {_box_text(body)})",
+            t.data[which],
+        )
     entry.update(blade=blade, at=_time(t, "at", out.times))
     return entry
 
@@ -303,22 +345,34 @@ def _cautery(t: Table, tools, out: TopologySet) -> dict:
     start, stop = _time(t, "start", out.times), _time(t, "stop", out.times, None)
     if stop is not None and stop < start:
         raise t.fail("stop", f"a time not before start ({start:g} s)", stop)
-    entry.update(at=None, every=t.integer("every", "an integer >= 1 (steps between burns)", 1, lo=1), start=start,
-                 stop=stop)
+    entry.update(
+        at=None, every=t.integer("every", "an integer >= 1 (steps between burns)", 1, lo=1), start=start, stop=stop
+    )
     return entry
 
 
 def _tear(t: Table, out: TopologySet) -> dict:
     which = t.one_of("max_strain", "max_force")
-    expected = ("a positive strain l / l0 - 1 at which a spring breaks" if which == "max_strain"
-                else "a positive force (N) at which a spring breaks")
-    return {"key": t.name, which: t.num(which, expected, lo=0, lo_open=True),
-            "one_per_step": _flag(t, "one_per_step", False), "start": _time(t, "start", out.times)}
+    expected = (
+        "a positive strain l / l0 - 1 at which a spring breaks"
+        if which == "max_strain"
+        else "a positive force (N) at which a spring breaks"
+    )
+    return {
+        "key": t.name,
+        which: t.num(which, expected, lo=0, lo_open=True),
+        "one_per_step": _flag(t, "one_per_step", False),
+        "start": _time(t, "start", out.times),
+    }
 
 
 def _coagulate(t: Table, grid, out: TopologySet) -> dict:
-    return {"key": t.name, "at": _time(t, "at", out.times), "region": region_mask(t, grid),
-            "viscosity_factor": t.num("viscosity_factor", "a factor >= 1 (the rise of the damping)", 1.0, lo=1)}
+    return {
+        "key": t.name,
+        "at": _time(t, "at", out.times),
+        "region": region_mask(t, grid),
+        "viscosity_factor": t.num("viscosity_factor", "a factor >= 1 (the rise of the damping)", 1.0, lo=1),
+    }
 
 
 def topology_section(src: Source, data: dict, grid, tools, out: Table, end: float | None = None) -> TopologySet:
@@ -349,8 +403,7 @@ def topology_section(src: Source, data: dict, grid, tools, out: Table, end: floa
     if "tear" in data:
         result.tear = _tear(Table(src, "tear", data["tear"], SECTIONS["tear"]), result)
     for n, item in enumerate(data.get("coagulate", [])):
-        result.coagulate.append(_coagulate(Table(src, f"coagulate[{n}]", item, SECTIONS["coagulate"]), grid,
-                                           result))
+        result.coagulate.append(_coagulate(Table(src, f"coagulate[{n}]", item, SECTIONS["coagulate"]), grid, result))
     if out.has("surfaces"):
         v = out.data["surfaces"]
         expected = "a list of times [t1, t2, ...] (s) at which to write the pieces' surfaces"
@@ -389,18 +442,25 @@ class TopologyEvents:
     def __init__(self, spec: TopologySet, model, dt: float, end: float, out_dir=None):
         self.spec, self.model, self.dt, self.end = spec, model, float(dt), float(end)
         self.out = None if out_dir is None else Path(out_dir)
-        self.scalpels = [Scalpel(spec.tools[c["tool"]], c["edge"], c["pieces"], c["gape"]) if "tool" in c else None
-                         for c in spec.cuts]
+        self.scalpels = [
+            Scalpel(spec.tools[c["tool"]], c["edge"], c["pieces"], c["gape"]) if "tool" in c else None
+            for c in spec.cuts
+        ]
         self.started = [False] * len(spec.cuts)
-        self.done = {"cuts": [False] * len(spec.cuts), "cautery": [False] * len(spec.cautery),
-                     "coagulate": [False] * len(spec.coagulate), "surfaces": [False] * len(spec.surfaces)}
-        self.log = {c["key"]: {"calls": 0, "first_t_s": None, "last_t_s": None}
-                    for c in spec.cuts + spec.cautery + spec.coagulate + ([spec.tear] if spec.tear else [])}
-        self.totals = {"cut": 0, "tear": 0, "nodes": 0, "mass_kg": 0.0, "momentum": [0.0, 0.0, 0.0],
-                       "coagulated": 0}
+        self.done = {
+            "cuts": [False] * len(spec.cuts),
+            "cautery": [False] * len(spec.cautery),
+            "coagulate": [False] * len(spec.coagulate),
+            "surfaces": [False] * len(spec.surfaces),
+        }
+        self.log = {
+            c["key"]: {"calls": 0, "first_t_s": None, "last_t_s": None}
+            for c in spec.cuts + spec.cautery + spec.coagulate + ([spec.tear] if spec.tear else [])
+        }
+        self.totals = {"cut": 0, "tear": 0, "nodes": 0, "mass_kg": 0.0, "momentum": [0.0, 0.0, 0.0], "coagulated": 0}
         self.history = [(0.0, 0, 0, 0)]
         self.surface_files = []
-        self.blade = None                                   # the latest blade: its plane splits the surfaces
+        self.blade = None  # the latest blade: its plane splits the surfaces
         self._tol = 1e-6 * self.dt
 
     def _due(self, t: float, at: float) -> bool:
@@ -436,7 +496,7 @@ class TopologyEvents:
                 if self.done["cuts"][i] or not self._due(t, c["start"]):
                     continue
                 knife = self.scalpels[i]
-                if not self.started[i]:                      # the sweep starts at `start`, not at this step
+                if not self.started[i]:  # the sweep starts at `start`, not at this step
                     knife.update(model, State(state.x, state.v, c["start"]))
                     self.started[i] = True
                 n = knife.update(model, State(state.x, state.v, min(t, stop)))
@@ -458,7 +518,7 @@ class TopologyEvents:
                         continue
                     if self._due(t, stop):
                         self.done["cautery"][i] = True
-                state.v = state.v.clone()                    # a recorded frame may share the velocities
+                state.v = state.v.clone()  # a recorded frame may share the velocities
                 burnt = cauterize(model, state, spec.tools[c["tool"]])
                 self.totals["nodes"] += burnt["nodes"]
                 self.totals["mass_kg"] += burnt["mass_kg"]
@@ -518,27 +578,38 @@ class TopologyEvents:
         for key, entry in self.log.items():
             if entry["calls"]:
                 sections[key] = {k: (round(v, 12) if isinstance(v, float) else v) for k, v in entry.items()}
-        return {"springs_removed_by_cuts": self.totals["cut"], "springs_removed_by_tear": self.totals["tear"],
-                "cautery_nodes_removed": self.totals["nodes"], "cautery_mass_removed_kg": self.totals["mass_kg"],
-                "cautery_momentum_removed_kg_m_per_s": self.totals["momentum"],
-                "coagulated_springs": self.totals["coagulated"], "springs_left": springs, "components": count,
-                "sections": sections, "surfaces": self.surface_files,
-                "outputs": ["topology.png"] + [f for s in self.surface_files for f in s["files"]]}
+        return {
+            "springs_removed_by_cuts": self.totals["cut"],
+            "springs_removed_by_tear": self.totals["tear"],
+            "cautery_nodes_removed": self.totals["nodes"],
+            "cautery_mass_removed_kg": self.totals["mass_kg"],
+            "cautery_momentum_removed_kg_m_per_s": self.totals["momentum"],
+            "coagulated_springs": self.totals["coagulated"],
+            "springs_left": springs,
+            "components": count,
+            "sections": sections,
+            "surfaces": self.surface_files,
+            "outputs": ["topology.png"] + [f for s in self.surface_files for f in s["files"]],
+        }
 
     def outputs(self, state: State, out_dir, title: str = "") -> dict:
         """Write ``topology.png``; return :meth:`summary`."""
         summary = self.summary()
         labels, _ = components(self.model)
         x = state.x[:1].detach().double().cpu()
-        plot_topology(Path(out_dir) / "topology.png", np.array(self.history + [(float(state.t),) + self.history[-1][1:]]),
-                      x[0].numpy(), labels.cpu().numpy(), title,
-                      surfaces=cut_surfaces(self.model.grid, x, self.pieces().cpu()))
+        plot_topology(
+            Path(out_dir) / "topology.png",
+            np.array(self.history + [(float(state.t),) + self.history[-1][1:]]),
+            x[0].numpy(),
+            labels.cpu().numpy(),
+            title,
+            surfaces=cut_surfaces(self.model.grid, x, self.pieces().cpu()),
+        )
         return summary
 
 
 # ------------------------------------------------------------------ the figure
-def plot_topology(path, history: np.ndarray, x: np.ndarray, labels: np.ndarray, title: str = "",
-                  surfaces=None) -> None:
+def plot_topology(path, history: np.ndarray, x: np.ndarray, labels: np.ndarray, title: str = "", surfaces=None) -> None:
     """Write ``topology.png``: changes over time, the final nodes by component in two slices, the final surfaces.
 
     Args:
@@ -551,6 +622,7 @@ def plot_topology(path, history: np.ndarray, x: np.ndarray, labels: np.ndarray, 
             frame, drawn shaded in 3-D (axis D up) in a fourth panel.
     """
     from .tools import _figure
+
     fig = _figure((17.5 if surfaces else 13, 4.2))
     left, mid, right = fig.subplots(1, 4 if surfaces else 3)[:3]
     if surfaces:
@@ -569,8 +641,10 @@ def plot_topology(path, history: np.ndarray, x: np.ndarray, labels: np.ndarray, 
     ids = np.unique(labels[inside])
     colour = np.searchsorted(ids, np.where(inside, labels, ids[0] if len(ids) else 0))
     D, H, _ = labels.shape
-    views = ((mid, (slice(None), H // 2, slice(None)), (2, 0), f"w-d slice at h node {H // 2}"),
-             (right, (D - 1, slice(None), slice(None)), (2, 1), f"h-w, top layer (d node {D - 1})"))
+    views = (
+        (mid, (slice(None), H // 2, slice(None)), (2, 0), f"w-d slice at h node {H // 2}"),
+        (right, (D - 1, slice(None), slice(None)), (2, 1), f"h-w, top layer (d node {D - 1})"),
+    )
     for ax, at, (a, b), name in views:
         keep = inside[at]
         p = x[(slice(None),) + at][:, keep] * 1e3
@@ -587,11 +661,12 @@ def plot_topology(path, history: np.ndarray, x: np.ndarray, labels: np.ndarray, 
 def _surface_panel(ax, surfaces) -> None:
     """The cut surfaces shaded by a light from above (Lambert), axis D up, in millimetres."""
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
     light = np.array([0.8, -0.3, 0.5])
     light /= np.linalg.norm(light)
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
     for k, piece in enumerate(surfaces):
-        v = piece.vertices[:, [2, 1, 0]] * 1e3                     # (w, h, d): d drawn upwards
+        v = piece.vertices[:, [2, 1, 0]] * 1e3  # (w, h, d): d drawn upwards
         tri = v[piece.faces]
         n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
@@ -599,7 +674,7 @@ def _surface_panel(ax, surfaces) -> None:
         base = np.array([0.85, 0.45, 0.4]) if k % 2 == 0 else np.array([0.45, 0.6, 0.85])
         ax.add_collection3d(Poly3DCollection(tri, facecolors=shade[:, None] * base, edgecolors="none"))
         lo, hi = np.minimum(lo, v.min(0)), np.maximum(hi, v.max(0))
-    span = np.maximum(hi - lo, 0.05 * (hi - lo).max() + 1e-9)        # a flat body keeps a visible extent
+    span = np.maximum(hi - lo, 0.05 * (hi - lo).max() + 1e-9)  # a flat body keeps a visible extent
     mid = (hi + lo) / 2
     for axis, c, w in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), mid, span):
         axis(c - w / 2, c + w / 2)

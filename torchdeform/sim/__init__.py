@@ -38,29 +38,60 @@ Examples:
     >>> state.x.shape, state.t
     (torch.Size([1, 3, 4, 4, 4]), 0.001)
 """
+
 from .adaptive import PAIRS, Adaptive, StepSizeError
 from .catalog import INTEGRATORS
 from .engine import ENGINES, Engine, simulate
 from .forces import Drag, FieldForce, PointForce, SurfaceForce
 from .grid import Grid
 from .integrators import (
-                          RK4,
-                          DampedVerlet,
-                          ExplicitEuler,
-                          ImplicitEuler,
-                          Integrator,
-                          KnocheRelaxation,
-                          SymplecticEuler,
-                          conjugate_gradient,
+    RK4,
+    DampedVerlet,
+    ExplicitEuler,
+    ImplicitEuler,
+    Integrator,
+    KnocheRelaxation,
+    SymplecticEuler,
+    conjugate_gradient,
 )
 from .laws import LAWS, Exponential, Polynomial, SpringLaw
 from .model import Model, State, lumped_mass
 from .projective import ProjectiveDynamics
 from .stability import DivergenceMonitor, check_dt, gershgorin_omega2, power_omega2, suggest_dt, time_step_bound
 
-__all__ = ["Grid", "Model", "State", "lumped_mass", "Drag", "PointForce", "SurfaceForce", "FieldForce",
-           "INTEGRATORS", "Integrator", "ExplicitEuler", "SymplecticEuler", "DampedVerlet", "RK4", "ImplicitEuler",
-           "KnocheRelaxation", "conjugate_gradient", "simulate", "Engine", "ENGINES", "DivergenceMonitor", "check_dt", "gershgorin_omega2",
-           "power_omega2", "suggest_dt", "time_step_bound", "Adaptive", "PAIRS", "StepSizeError",
-           "SpringLaw", "Exponential", "Polynomial", "LAWS",
-           "ProjectiveDynamics"]
+__all__ = [
+    "Grid",
+    "Model",
+    "State",
+    "lumped_mass",
+    "Drag",
+    "PointForce",
+    "SurfaceForce",
+    "FieldForce",
+    "INTEGRATORS",
+    "Integrator",
+    "ExplicitEuler",
+    "SymplecticEuler",
+    "DampedVerlet",
+    "RK4",
+    "ImplicitEuler",
+    "KnocheRelaxation",
+    "conjugate_gradient",
+    "simulate",
+    "Engine",
+    "ENGINES",
+    "DivergenceMonitor",
+    "check_dt",
+    "gershgorin_omega2",
+    "power_omega2",
+    "suggest_dt",
+    "time_step_bound",
+    "Adaptive",
+    "PAIRS",
+    "StepSizeError",
+    "SpringLaw",
+    "Exponential",
+    "Polynomial",
+    "LAWS",
+    "ProjectiveDynamics",
+]

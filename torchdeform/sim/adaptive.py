@@ -51,6 +51,7 @@ Example:
     >>> adaptive.stats["accepted"] > 3, adaptive.stats["rejected"] >= 0
     (True, True)
 """
+
 from __future__ import annotations
 
 import math
@@ -80,6 +81,7 @@ class Pair:
         b: weights of the propagated solution.
         e: ``b`` minus the embedded solution's weights (the error estimate's weights).
     """
+
     name: str
     order: int
     error_order: int
@@ -90,24 +92,44 @@ class Pair:
 
 
 def _pair(name, order, error_order, c, a, b, b_hat) -> Pair:
-    return Pair(name, order, error_order, tuple(c), tuple(tuple(r) for r in a), tuple(b),
-                tuple(x - y for x, y in zip(b, b_hat)))
+    return Pair(
+        name, order, error_order, tuple(c), tuple(tuple(r) for r in a), tuple(b), tuple(x - y for x, y in zip(b, b_hat))
+    )
 
 
 #: the pairs by name
-PAIRS = {p.name: p for p in (
-    _pair("heun_euler", 2, 1, [0, 1], [[], [1]], [1 / 2, 1 / 2], [1, 0]),
-    _pair("bogacki_shampine", 3, 2, [0, 1 / 2, 3 / 4, 1],
-          [[], [1 / 2], [0, 3 / 4], [2 / 9, 1 / 3, 4 / 9]],
-          [2 / 9, 1 / 3, 4 / 9, 0], [7 / 24, 1 / 4, 1 / 3, 1 / 8]),
-    _pair("dormand_prince", 5, 4, [0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1, 1],
-          [[], [1 / 5], [3 / 40, 9 / 40], [44 / 45, -56 / 15, 32 / 9],
-           [19372 / 6561, -25360 / 2187, 64448 / 6561, -212 / 729],
-           [9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656],
-           [35 / 384, 0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84]],
-          [35 / 384, 0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84, 0],
-          [5179 / 57600, 0, 7571 / 16695, 393 / 640, -92097 / 339200, 187 / 2100, 1 / 40]),
-)}
+PAIRS = {
+    p.name: p
+    for p in (
+        _pair("heun_euler", 2, 1, [0, 1], [[], [1]], [1 / 2, 1 / 2], [1, 0]),
+        _pair(
+            "bogacki_shampine",
+            3,
+            2,
+            [0, 1 / 2, 3 / 4, 1],
+            [[], [1 / 2], [0, 3 / 4], [2 / 9, 1 / 3, 4 / 9]],
+            [2 / 9, 1 / 3, 4 / 9, 0],
+            [7 / 24, 1 / 4, 1 / 3, 1 / 8],
+        ),
+        _pair(
+            "dormand_prince",
+            5,
+            4,
+            [0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1, 1],
+            [
+                [],
+                [1 / 5],
+                [3 / 40, 9 / 40],
+                [44 / 45, -56 / 15, 32 / 9],
+                [19372 / 6561, -25360 / 2187, 64448 / 6561, -212 / 729],
+                [9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656],
+                [35 / 384, 0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84],
+            ],
+            [35 / 384, 0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84, 0],
+            [5179 / 57600, 0, 7571 / 16695, 393 / 640, -92097 / 339200, 187 / 2100, 1 / 40],
+        ),
+    )
+}
 
 
 def stability_limits(pair: Pair, resolution: float = 1e-4) -> tuple:
@@ -126,7 +148,7 @@ def stability_limits(pair: Pair, resolution: float = 1e-4) -> tuple:
     n = len(pair.c)
     A = np.zeros((n, n))
     for i, row in enumerate(pair.a):
-        A[i, :len(row)] = row
+        A[i, : len(row)] = row
     b, one = np.asarray(pair.b), np.ones(n)
 
     limits = []
@@ -163,9 +185,11 @@ class StepSizeError(DivergenceError):
         self.step, self.quantity, self.value, self.dt, self.safe_dt = None, "step size", h, h, None
         self.t, self.min_step = t, min_step
         Exception.__init__(
-            self, f"adaptive step ({pair}, rtol {rtol:g}) fell to {h:.3g} s at t = {t:.6g} s, below min_step "
-                  f"{min_step:.3g} s: the motion is too stiff or too abrupt for an explicit pair at this "
-                  f"tolerance; loosen rtol, lower min_step, or use ImplicitEuler")
+            self,
+            f"adaptive step ({pair}, rtol {rtol:g}) fell to {h:.3g} s at t = {t:.6g} s, below min_step "
+            f"{min_step:.3g} s: the motion is too stiff or too abrupt for an explicit pair at this "
+            f"tolerance; loosen rtol, lower min_step, or use ImplicitEuler",
+        )
 
 
 class Adaptive(Integrator):
@@ -194,11 +218,17 @@ class Adaptive(Integrator):
     """
 
     name = "adaptive"
-    drag_in_rates = True          # the error control then sees the global drag too
+    drag_in_rates = True  # the error control then sees the global drag too
     eager_reason = "adaptive steps run in the eager step"
 
-    def __init__(self, rtol: float = 1e-3, atol=None, pair: str = "bogacki_shampine", min_step: float | None = None,
-                 max_step: float | None = None):
+    def __init__(
+        self,
+        rtol: float = 1e-3,
+        atol=None,
+        pair: str = "bogacki_shampine",
+        min_step: float | None = None,
+        max_step: float | None = None,
+    ):
         rtol = float(rtol)
         if not (math.isfinite(rtol) and 0 < rtol < 1):
             raise ConfigError("rtol", "a relative tolerance between 0 and 1 (e.g. 1e-3)", rtol)
@@ -255,15 +285,18 @@ class Adaptive(Integrator):
 
         def combine(w, ks):
             return sum(h * wi * k for wi, k in zip(w, ks) if wi)
+
         return x + combine(p.b, kx), v + combine(p.b, kv), combine(p.e, kx), combine(p.e, kv)
 
     def _ratio(self, model, x0, v0, x1, v1, ex, ev) -> float:
         """The error ratio ``err`` of a try (max over the batch; inf when non-finite)."""
+
         def largest(t):
             t = t.abs()
             if self.mask is not None:
                 t = t * self.mask
             return t.flatten(1).amax(1)
+
         ax, av = self.tolerances
         sx = ax + self.rtol * torch.maximum(largest(x0 - model.X), largest(x1 - model.X))
         sv = av + self.rtol * torch.maximum(largest(v0), largest(v1))
@@ -291,11 +324,11 @@ class Adaptive(Integrator):
             if err <= 1.0:
                 state = self.finish(model, state, x1, v1, try_h)
                 if last:
-                    state = State(state.x, state.v, t_end, state.readings)    # no drift of the clock
+                    state = State(state.x, state.v, t_end, state.readings)  # no drift of the clock
                 self.stats["accepted"] += 1
                 self.stats["min_h"] = min(self.stats["min_h"], try_h)
                 self.stats["max_h"] = max(self.stats["max_h"], try_h)
-                if not last or try_h >= h:              # a shortened last try says nothing about h
+                if not last or try_h >= h:  # a shortened last try says nothing about h
                     h = try_h * factor
             else:
                 self.stats["rejected"] += 1

@@ -41,6 +41,7 @@ Examples:
     >>> float(u.detach().mean()), float(k.grad)
     (0.25, -1.5)
 """
+
 from __future__ import annotations
 
 from typing import Callable
@@ -96,10 +97,21 @@ class ImplicitSolve(torch.autograd.Function):
         return (lam, None, None) + (None,) * len(saved)
 
 
-def adjoint_solve(apply_A: Callable, b: torch.Tensor, solver: Callable, *, precond=None, mask=None,
-                  iters: int = 100, tol: float = 1e-8, adjoint_iters: int | None = None,
-                  adjoint_tol: float | None = None, adjoint_operator: Callable | None = None,
-                  saved: tuple = (), on_backward: Callable | None = None):
+def adjoint_solve(
+    apply_A: Callable,
+    b: torch.Tensor,
+    solver: Callable,
+    *,
+    precond=None,
+    mask=None,
+    iters: int = 100,
+    tol: float = 1e-8,
+    adjoint_iters: int | None = None,
+    adjoint_tol: float | None = None,
+    adjoint_operator: Callable | None = None,
+    saved: tuple = (),
+    on_backward: Callable | None = None,
+):
     """Solve ``A u = b`` (``A`` symmetric positive definite) with the adjoint gradient.
 
     Args:
@@ -137,12 +149,12 @@ def adjoint_solve(apply_A: Callable, b: torch.Tensor, solver: Callable, *, preco
         >>> u.detach().tolist(), b.grad.tolist()
         ([[0.5, 0.5]], [[0.5, 0.25]])
     """
-    with torch.no_grad():                    # no graph through the iterations
+    with torch.no_grad():  # no graph through the iterations
         u, n_it, rel = solver(apply_A, b, precond, mask, iters, tol)
     if not torch.is_grad_enabled():
         return u, n_it, rel
     residual = b - apply_A(u)
-    if not residual.requires_grad:           # nothing to differentiate: the solver's result
+    if not residual.requires_grad:  # nothing to differentiate: the solver's result
         return u, n_it, rel
     a_iters = iters if adjoint_iters is None else adjoint_iters
     a_tol = tol if adjoint_tol is None else adjoint_tol
@@ -158,4 +170,5 @@ def adjoint_solve(apply_A: Callable, b: torch.Tensor, solver: Callable, *, preco
         if on_backward is not None:
             on_backward(n, r)
         return lam
+
     return ImplicitSolve.apply(residual, u, adjoint, *(t.detach() for t in saved)), n_it, rel

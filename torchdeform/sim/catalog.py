@@ -11,6 +11,7 @@ Examples:
     >>> td.INTEGRATORS["rk4"] is td.RK4, td.INTEGRATORS["implicit"](cg_iters=20).cg_iters
     (True, 20)
 """
+
 from __future__ import annotations
 
 from .adaptive import Adaptive
@@ -20,5 +21,16 @@ from .projective import ProjectiveDynamics
 __all__ = ["INTEGRATORS"]
 
 #: integrator name (``[integrator] name`` of scene files) -> class
-INTEGRATORS = {cls.name: cls for cls in (ExplicitEuler, SymplecticEuler, DampedVerlet, RK4, ImplicitEuler,
-                                          KnocheRelaxation, Adaptive, ProjectiveDynamics)}
+INTEGRATORS = {
+    cls.name: cls
+    for cls in (
+        ExplicitEuler,
+        SymplecticEuler,
+        DampedVerlet,
+        RK4,
+        ImplicitEuler,
+        KnocheRelaxation,
+        Adaptive,
+        ProjectiveDynamics,
+    )
+}

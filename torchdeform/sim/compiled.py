@@ -38,6 +38,7 @@ Example:
     >>> bool(state.v[0, 0].mean() < 0)                  # falling under gravity
     True
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -65,8 +66,16 @@ from .model import State
 from .packed import PackedLinearisation, PackedModel, TraceContext
 from .threads import ThreadGovernor, omp_threads
 
-__all__ = ["CompileFallbackWarning", "CompiledStep", "ImplicitGraph", "compiled_step", "step_threads", "SERIAL_NODES",
-           "IMPLICIT_OPTIONS", "STEP_OPTIONS"]
+__all__ = [
+    "CompileFallbackWarning",
+    "CompiledStep",
+    "ImplicitGraph",
+    "compiled_step",
+    "step_threads",
+    "SERIAL_NODES",
+    "IMPLICIT_OPTIONS",
+    "STEP_OPTIONS",
+]
 
 
 #: Extra options for the implicit step, whose CG loop body runs ``cg_iters`` times per step:
@@ -99,9 +108,20 @@ class CompiledStep:
         compile_error: the reason of the fall-back, or None.
     """
 
-    def __init__(self, integrator, model, dt: float, loads=None, *, mode: str | None = None,
-                 enable: bool = True, options: dict | None = None, editable=False, threads: int | None = None,
-                 force_form: str | None = None):
+    def __init__(
+        self,
+        integrator,
+        model,
+        dt: float,
+        loads=None,
+        *,
+        mode: str | None = None,
+        enable: bool = True,
+        options: dict | None = None,
+        editable=False,
+        threads: int | None = None,
+        force_form: str | None = None,
+    ):
         if force_form not in (None, "native", "gather", "reduction"):
             raise ConfigError("force_form", "None, 'native', 'gather' or 'reduction'", force_form)
         self.integrator, self.model, self.loads = integrator, model, loads
@@ -112,12 +132,24 @@ class CompiledStep:
         implicit = isinstance(integrator, ImplicitEuler)
         #: picks the threads of each step from the step times (:mod:`~torchdeform.sim.threads`):
         #: an explicit step on several threads on a CPU, compiled or with the C spring kernel, else None
-        self.governor = (ThreadGovernor(self.threads) if (enable or force_form == "native") and not implicit
-                         and self.threads > 1 and model.device.type == "cpu" and mode is None else None)
+        self.governor = (
+            ThreadGovernor(self.threads)
+            if (enable or force_form == "native")
+            and not implicit
+            and self.threads > 1
+            and model.device.type == "cpu"
+            and mode is None
+            else None
+        )
         self.packed = pm = PackedModel(model, share=editable)
         pm.force_form = force_form
-        self._loads = None if loads is None or callable(loads) else pm.pack(torch.as_tensor(
-            loads, dtype=model.dtype, device=model.device).expand(-1, 3, *model.grid.shape))
+        self._loads = (
+            None
+            if loads is None or callable(loads)
+            else pm.pack(
+                torch.as_tensor(loads, dtype=model.dtype, device=model.device).expand(-1, 3, *model.grid.shape)
+            )
+        )
         dt_, loads_p = self.dt, self._loads
 
         #: the compile-time context of this step's graph; its packed kernels see it through a view
@@ -150,17 +182,22 @@ class CompiledStep:
         elif enable:
             try:
                 opts = dict(STEP_OPTIONS, **(options or INDUCTOR_OPTIONS))
-                if implicit:                        # its while_loop graph kept in the on-disk cache too
+                if implicit:  # its while_loop graph kept in the on-disk cache too
                     opts.update(IMPLICIT_OPTIONS, **loop_cache_options())
-                if self.governor is not None:       # the thread count is read when the code runs
+                if self.governor is not None:  # the thread count is read when the code runs
                     opts["cpp.dynamic_threads"] = True
-                compile_ = functools.partial(torch.compile, dynamic=False, mode=mode, fullgraph=implicit,
-                                             options=None if mode else inductor_options(opts, self.threads))
+                compile_ = functools.partial(
+                    torch.compile,
+                    dynamic=False,
+                    mode=mode,
+                    fullgraph=implicit,
+                    options=None if mode else inductor_options(opts, self.threads),
+                )
                 if implicit:
                     self._fn = ImplicitGraph(integrator, pm, self.dt, loads_p, compile_, self.threads)
                 else:
                     self._fn = compile_(fresh(step))
-            except Exception as e:                          # noqa: BLE001 (any failure -> eager)
+            except Exception as e:  # noqa: BLE001 (any failure -> eager)
                 self._fallback(e)
 
     def _fallback(self, e: Exception) -> None:
@@ -173,8 +210,9 @@ class CompiledStep:
         if not torch.is_grad_enabled():
             return False
         m = self.model
-        return any(t is not None and t.requires_grad
-                   for t in (state.x, state.v, m.stiffness, m.damping, m.mass, m.inv_mass))
+        return any(
+            t is not None and t.requires_grad for t in (state.x, state.v, m.stiffness, m.damping, m.mass, m.inv_mass)
+        )
 
     def step_packed(self, state: State) -> State:
         """One step on a packed state (``x``, ``v``: ``(B, 3, P)``), no gradient."""
@@ -184,7 +222,7 @@ class CompiledStep:
                 t = torch.scalar_tensor(float(state.t), dtype=self.model.dtype, device=self.model.device)
                 x, v, readings = self._governed(lambda n: self._compiled_call(x, v, t, n))
                 return State(x, v, state.t + self.dt, readings or None)
-            except Exception as e:                          # noqa: BLE001 (any failure -> eager)
+            except Exception as e:  # noqa: BLE001 (any failure -> eager)
                 self._fallback(e)
         with torch.no_grad():
             return self._governed(lambda n: self._eager_step(state))
@@ -207,7 +245,7 @@ class CompiledStep:
             # (one check per model tensor, ~0.15 ms per call on the beam) cannot fail.
             with torch.no_grad(), skip_guards():
                 return self._fn(x, v, t)
-        with torch.no_grad(), no_autograd_cache():      # compiles; on another thread count, traces again
+        with torch.no_grad(), no_autograd_cache():  # compiles; on another thread count, traces again
             out = self._fn(x, v, t)
         self._compiled_for.add(signature)
         return out
@@ -263,7 +301,7 @@ class ImplicitGraph:
 
     def __init__(self, integ, pm, dt, loads, compile_=None, threads: int | None = None):
         loop = while_loop()
-        if loop is None:                                                # pragma: no cover
+        if loop is None:  # pragma: no cover
             raise RuntimeError("this torch has no while_loop for the compiled implicit solve")
         precond, mask, iters, tol = integ.preconditioner(pm, dt), pm.free, integ.cg_iters, integ.cg_tol
         self.integ = integ
@@ -334,9 +372,18 @@ def step_threads(model, integrator, available: int | None = None) -> int:
     return 1 if below is None or model.grid.num_nodes < below else available
 
 
-def compiled_step(integrator, model, dt: float, loads=None, *, mode: str | None = None,
-                  enable: bool = True, editable=False, threads: int | None = None,
-                  force_form: str | None = None) -> CompiledStep:
+def compiled_step(
+    integrator,
+    model,
+    dt: float,
+    loads=None,
+    *,
+    mode: str | None = None,
+    enable: bool = True,
+    editable=False,
+    threads: int | None = None,
+    force_form: str | None = None,
+) -> CompiledStep:
     """Wrap one integrator step on one model in ``torch.compile`` (the no-grad fast path).
 
     Args:
@@ -369,5 +416,14 @@ def compiled_step(integrator, model, dt: float, loads=None, *, mode: str | None 
         parameters require grad) it calls the eager step. If compilation fails it warns once
         (:class:`CompileFallbackWarning`) and uses the eager step from then on.
     """
-    return CompiledStep(integrator, model, dt, loads, mode=mode, enable=enable, editable=editable, threads=threads,
-                        force_form=force_form)
+    return CompiledStep(
+        integrator,
+        model,
+        dt,
+        loads,
+        mode=mode,
+        enable=enable,
+        editable=editable,
+        threads=threads,
+        force_form=force_form,
+    )

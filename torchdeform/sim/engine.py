@@ -38,6 +38,7 @@ Example:
     >>> engine.ran, engine.reason.split(":")[0]        # a short run does not repay a compile
     ('eager', 'auto')
 """
+
 from __future__ import annotations
 
 import statistics
@@ -62,9 +63,10 @@ def gradient_needed(model: Model, state: State) -> bool:
     """Whether a step of ``model`` from ``state`` must record a gradient (grad mode on and a tensor needs it)."""
     if not torch.is_grad_enabled():
         return False
-    return any(t is not None and t.requires_grad
-               for t in (state.x, state.v, model.stiffness, model.damping, model.mass, model.inv_mass,
-                         model.rest_length))
+    return any(
+        t is not None and t.requires_grad
+        for t in (state.x, state.v, model.stiffness, model.damping, model.mass, model.inv_mass, model.rest_length)
+    )
 
 
 class Engine:
@@ -124,9 +126,16 @@ class Engine:
     #: compiled one a single loop). A native step that one fused kernel makes whole is not compiled.
     COMPILED_SAVES = 1 / 4
 
-    def __init__(self, mode: str = "auto", probe_steps: int = 3, payback: float = 2.0,
-                 compile_s: dict | None = None, editable=False, blocked: str | None = None,
-                 compile: bool = True):
+    def __init__(
+        self,
+        mode: str = "auto",
+        probe_steps: int = 3,
+        payback: float = 2.0,
+        compile_s: dict | None = None,
+        editable=False,
+        blocked: str | None = None,
+        compile: bool = True,
+    ):
         if mode not in ENGINES:
             raise ConfigError("engine", f"one of {', '.join(ENGINES)}", mode)
         self.mode, self.probe_steps, self.payback = mode, max(2, int(probe_steps)), float(payback)
@@ -175,8 +184,9 @@ class Engine:
             return self.expected["implicit"]
         return self.expected["explicit" if model is not None and native.supports(model) is None else "reduction"]
 
-    def decide(self, integrator: Integrator, eager_s: list, remaining: int, threads: int = 1,
-               model: Model | None = None) -> bool:
+    def decide(
+        self, integrator: Integrator, eager_s: list, remaining: int, threads: int = 1, model: Model | None = None
+    ) -> bool:
         """``"auto"`` after its eager probe: leave the eager step for the ``remaining`` steps?
 
         Sets :attr:`choice` (``"native"`` where :meth:`native_blocker` allows it and the eager time to
@@ -192,9 +202,11 @@ class Engine:
         self.choice = "native" if why_not is None else "compiled"
         expected = self.expected["native"] if why_not is None else self.expected_compile_s(integrator, model)
         worth = to_come > self.payback * expected
-        self.reason = (f"auto: {remaining:,} steps x {self.eager_ms:.3g} ms eager = {to_come:.3g} s "
-                       f"{'>' if worth else '<='} {self.payback:g} x ~{expected:g} s "
-                       f"{'C kernel build' if why_not is None else 'compile'}")
+        self.reason = (
+            f"auto: {remaining:,} steps x {self.eager_ms:.3g} ms eager = {to_come:.3g} s "
+            f"{'>' if worth else '<='} {self.payback:g} x ~{expected:g} s "
+            f"{'C kernel build' if why_not is None else 'compile'}"
+        )
         if not worth:
             self.choice = None
         elif why_not is None:
@@ -203,8 +215,10 @@ class Engine:
             extra = self.expected["gather"] - self.expected["reduction"]
             gather = to_come * self.GATHER_SAVES > self.payback * extra
             self.force_form = "gather" if gather else "reduction"
-            self.reason += (f"; compiled, {self.force_form} form ({to_come * self.GATHER_SAVES:.3g} s saved "
-                            f"{'>' if gather else '<='} {self.payback:g} x ~{extra:g} s more compile)")
+            self.reason += (
+                f"; compiled, {self.force_form} form ({to_come * self.GATHER_SAVES:.3g} s saved "
+                f"{'>' if gather else '<='} {self.payback:g} x ~{extra:g} s more compile)"
+            )
         else:
             self.reason += "; compiled"
         return worth
@@ -224,9 +238,11 @@ class Engine:
         saved = remaining * self.native_ms / 1e3 * self.COMPILED_SAVES
         expected = self.expected["explicit"]
         worth = saved > self.payback * expected
-        self.reason += (f"; {self.native_ms:.3g} ms per native step, compiling would save ~{saved:.3g} s "
-                        f"{'>' if worth else '<='} {self.payback:g} x ~{expected:g} s compile"
-                        f"{': compiled' if worth else ''}")
+        self.reason += (
+            f"; {self.native_ms:.3g} ms per native step, compiling would save ~{saved:.3g} s "
+            f"{'>' if worth else '<='} {self.payback:g} x ~{expected:g} s compile"
+            f"{': compiled' if worth else ''}"
+        )
         return worth
 
     def summary(self) -> dict:
@@ -237,18 +253,31 @@ class Engine:
         """
         packed = self.step is not None and self.ran in ("native", "compiled")
         gov = self.step.governor if packed else None
-        return {"requested": self.mode, "ran": self.ran, "why": self.reason,
-                "eager_ms_per_step": self.eager_ms, "native_ms_per_step": self.native_ms,
-                "compile_s": self.compile_s, "force_form": self.step.force_form if packed else None,
-                "threads": gov.summary() if gov is not None else None}
+        return {
+            "requested": self.mode,
+            "ran": self.ran,
+            "why": self.reason,
+            "eager_ms_per_step": self.eager_ms,
+            "native_ms_per_step": self.native_ms,
+            "compile_s": self.compile_s,
+            "force_form": self.step.force_form if packed else None,
+            "threads": gov.summary() if gov is not None else None,
+        }
 
     def _compile(self, model, integrator, dt, loads, how: str = "compiled"):
         """The packed step of engine ``how`` (``"native"``: uncompiled, with the C kernel)."""
         from .compiled import compiled_step
+
         native_only = how == "native"
-        self.step = compiled_step(integrator, model, dt, loads, editable=self.editable,
-                                  enable=self.enable and not native_only,
-                                  force_form="native" if native_only else self.force_form)
+        self.step = compiled_step(
+            integrator,
+            model,
+            dt,
+            loads,
+            editable=self.editable,
+            enable=self.enable and not native_only,
+            force_form="native" if native_only else self.force_form,
+        )
         return self.step
 
 
@@ -261,9 +290,21 @@ def _reads_positions(callback) -> bool:
     return callback is not None and getattr(callback, "reads_positions", True)
 
 
-def simulate(model: Model, state: State, dt: float, steps: int, integrator: Integrator | None = None,
-             loads=None, record_every: int | None = None, check_every: int = 10, progress: bool = False,
-             warn: bool = True, callback=None, engine: Engine | str = "eager", rtol: float | None = None):
+def simulate(
+    model: Model,
+    state: State,
+    dt: float,
+    steps: int,
+    integrator: Integrator | None = None,
+    loads=None,
+    record_every: int | None = None,
+    check_every: int = 10,
+    progress: bool = False,
+    warn: bool = True,
+    callback=None,
+    engine: Engine | str = "eager",
+    rtol: float | None = None,
+):
     """Run ``steps`` steps with divergence detection.
 
     Args:
@@ -310,11 +351,13 @@ def simulate(model: Model, state: State, dt: float, steps: int, integrator: Inte
     """
     if rtol is not None:
         from .adaptive import Adaptive
+
         if integrator is None:
             integrator = Adaptive(rtol=rtol)
         elif not isinstance(integrator, Adaptive):
-            raise ConfigError("rtol", f"no integrator, or an Adaptive one (the {integrator.name} integrator "
-                                      f"takes a fixed dt)", rtol)
+            raise ConfigError(
+                "rtol", f"no integrator, or an Adaptive one (the {integrator.name} integrator takes a fixed dt)", rtol
+            )
     integrator = integrator or SymplecticEuler()
     engine = engine if isinstance(engine, Engine) else Engine(engine)
     dt = positive_dt(dt)
@@ -324,7 +367,7 @@ def simulate(model: Model, state: State, dt: float, steps: int, integrator: Inte
     if warn and integrator.name not in ("implicit", "knoche", "adaptive", "projective"):
         check_dt(model, dt, integrator)
     monitor = DivergenceMonitor(model, dt, integrator)
-    state = model.start(state)                        # fixed nodes at rest, dragged nodes on their path
+    state = model.start(state)  # fixed nodes at rest, dragged nodes on their path
     ts, xs, vs = [], [], []
 
     def record(st):
@@ -344,7 +387,7 @@ def simulate(model: Model, state: State, dt: float, steps: int, integrator: Inte
     def start(how):
         t0 = time.perf_counter()
         step = engine._compile(model, integrator, dt, loads, how)
-        if how == "native":                             # the C kernel's build (or load from the disk cache)
+        if how == "native":  # the C kernel's build (or load from the disk cache)
             engine.compile_s = time.perf_counter() - t0
         return step
 
@@ -366,6 +409,7 @@ def simulate(model: Model, state: State, dt: float, steps: int, integrator: Inte
                 if len(samples) == engine.probe_steps:
                     probing = None
                     from .compiled import step_threads
+
                     if engine.decide(integrator, samples, steps - i, step_threads(model, integrator), model):
                         engine.ran = engine.choice
                         compiled = start(engine.choice)
@@ -376,7 +420,7 @@ def simulate(model: Model, state: State, dt: float, steps: int, integrator: Inte
             t0 = time.perf_counter()
             packed = compiled.step_packed(packed)
             spent = time.perf_counter() - t0
-            if engine.ran == "compiled" and timing < 2:     # compile time: first call less the second
+            if engine.ran == "compiled" and timing < 2:  # compile time: first call less the second
                 timing += 1
                 if not compiled.compiled and engine.enable:  # compilation failed: eager from now on
                     engine.ran, engine.reason = "eager", f"{engine.reason}; compile failed: {compiled.compile_error}"
@@ -391,7 +435,7 @@ def simulate(model: Model, state: State, dt: float, steps: int, integrator: Inte
                     probing = None
                     if engine.decide_compiled(samples, steps - i, fused=compiled.fused is not None):
                         engine.ran, timing = "compiled", 0
-                        compiled = start("compiled")        # the same packed layout: the state carries over
+                        compiled = start("compiled")  # the same packed layout: the state carries over
             look = i == steps or (record_every and i % record_every == 0) or _reads_positions(callback)
             state = compiled.packed.unpack_state(packed) if look else packed
         if i % check_every == 0 or i == steps:

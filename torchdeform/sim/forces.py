@@ -20,6 +20,7 @@ with a ``period`` the ramp multiplies ``sin(2 pi (t - start) / period)``. A prof
 at a float (Python numbers), a 0-d tensor (inside compiled code, without branches) or an array
 of times (numpy: the per-step tables of :class:`~torchdeform.learn.series.Series`).
 """
+
 from __future__ import annotations
 
 import math
@@ -115,6 +116,7 @@ class PointForce(_Timed):
         >>> f.factor(0.1), f.dense(td.Grid((3, 3, 3), 0.01), torch.float64, "cpu")[0, 0, 2, 1, 1].item()
         (0.5, -0.05)
     """
+
     node: tuple
     force: tuple
     start: float = 0.0
@@ -151,6 +153,7 @@ class SurfaceForce(_Timed):
         >>> round(top.sum().item(), 6)                # -100 Pa over a 2 cm x 2 cm face
         -0.04
     """
+
     face: str
     traction: tuple
     start: float = 0.0
@@ -194,6 +197,7 @@ class FieldForce(_Timed):
         >>> f.dense(td.Grid((2, 2, 2), 0.01), torch.float32, "cpu").shape, f.factor(0.25)
         (torch.Size([1, 3, 2, 2, 2]), 0.25)
     """
+
     field: np.ndarray
     start: float = 0.0
     ramp: float = 0.0
@@ -300,6 +304,7 @@ class Drag(_Timed):
         >>> td.Drag(g.face("top"), offset=(0.002, 0, 0), ramp=1.0).offset(0.5)
         (0.001, 0.0, 0.0)
     """
+
     nodes: torch.Tensor
     path: list | None = None
     offset_vector: tuple | None = None
@@ -307,13 +312,17 @@ class Drag(_Timed):
     ramp: float = 0.0
     period: float | None = None
 
-    def __init__(self, nodes, path=None, *, offset=None, start: float = 0.0, ramp: float = 0.0,
-                 period: float | None = None):
+    def __init__(
+        self, nodes, path=None, *, offset=None, start: float = 0.0, ramp: float = 0.0, period: float | None = None
+    ):
         self.nodes, self.path, self.start, self.ramp, self.period = nodes, path, start, ramp, period
         self.offset_vector = None if offset is None else as_vec3(offset, "drag.offset")
         if (path is None) == (offset is None):
-            raise ConfigError("drag", "exactly one of path (waypoints) or offset (with a time profile)",
-                              "both" if path is not None else "neither")
+            raise ConfigError(
+                "drag",
+                "exactly one of path (waypoints) or offset (with a time profile)",
+                "both" if path is not None else "neither",
+            )
         _timing(start, ramp, period, "drag")
         self._path = None if path is None else Waypoints(path, "drag.path")
 

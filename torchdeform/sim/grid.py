@@ -17,6 +17,7 @@ topology  half-directions                    S
 Per-spring tensors have shape ``(S, D, H, W)``; entry ``[s, i, j, k]`` is the spring from
 node ``(i, j, k)`` to node ``(i, j, k) + direction[s]``.
 """
+
 from __future__ import annotations
 
 import math
@@ -41,8 +42,16 @@ TOPOLOGIES = {
 #: Direction classes, for stiffness "per direction class".
 CLASSES = ("axis", "face", "body")
 
-FACES = {"d-": (0, 0), "d+": (0, 1), "h-": (1, 0), "h+": (1, 1), "w-": (2, 0), "w+": (2, 1),
-         "bottom": (0, 0), "top": (0, 1)}
+FACES = {
+    "d-": (0, 0),
+    "d+": (0, 1),
+    "h-": (1, 0),
+    "h+": (1, 1),
+    "w-": (2, 0),
+    "w+": (2, 1),
+    "bottom": (0, 0),
+    "top": (0, 1),
+}
 
 
 def _slices(step: int, n: int) -> tuple[slice, slice]:
@@ -120,8 +129,7 @@ class Grid:
             if tuple(mask.shape) != shape:
                 raise ConfigError("grid.node_mask", f"a bool array of shape {shape}", tuple(mask.shape))
             if not bool(mask.any()):
-                raise ConfigError("grid.node_mask", "at least one node inside the body", "an empty mask",
-                                  show_got=True)
+                raise ConfigError("grid.node_mask", "at least one node inside the body", "an empty mask", show_got=True)
             object.__setattr__(self, "node_mask", None if bool(mask.all()) else mask)
 
     # ----------------------------------------------------------------- stencil
@@ -197,8 +205,9 @@ class Grid:
         same values as slicing the whole grid's, without building it.
         """
         box = box or tuple((0, n) for n in self.shape)
-        axes = [torch.arange(lo, hi, dtype=torch.float64) * s + o
-                for (lo, hi), s, o in zip(box, self.spacing, self.origin)]
+        axes = [
+            torch.arange(lo, hi, dtype=torch.float64) * s + o for (lo, hi), s, o in zip(box, self.spacing, self.origin)
+        ]
         X = torch.stack(torch.meshgrid(*axes, indexing="ij"))
         return X.unsqueeze(0).to(dtype=dtype, device=device)
 

@@ -34,6 +34,7 @@ Examples:
     >>> round(float(s.v[0, 0].mean()), 5)                    # free fall: g dt
     -0.00981
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -126,7 +127,7 @@ class Integrator:
             v = v * math.exp(-model.decay * dt)
         return State(x, v, t1, readings or None)
 
-    def advance(self, model, state, dt, loads):                       # pragma: no cover
+    def advance(self, model, state, dt, loads):  # pragma: no cover
         """The update of one step: ``(x, v)`` at ``t + dt``, before constraints and global drag."""
         raise NotImplementedError
 
@@ -141,6 +142,7 @@ class ExplicitEuler(Integrator):
         >>> float((s.x - model.X).abs().max()), round(float(s.v[0, 0].mean()), 5)   # x' = x + h v, v' = h g
         (0.0, -0.00981)
     """
+
     name = "explicit"
 
     def advance(self, model, state, dt, loads):
@@ -159,6 +161,7 @@ class SymplecticEuler(Integrator):
         >>> round(float((s.x - model.X)[0, 0].mean()), 8)        # x' = x + h v' = h^2 g
         -9.81e-06
     """
+
     name = "symplectic"
 
     def advance(self, model, state, dt, loads):
@@ -182,6 +185,7 @@ class DampedVerlet(Integrator):
         >>> round(float(s.v.mean()), 6)                          # v' = (1 - kd) v + h a
         0.9
     """
+
     name = "verlet"
 
     def __init__(self, kd: float = 0.0):
@@ -226,6 +230,7 @@ def rates(model: Model, loads=None):
     and :mod:`torchdeform.sim.adaptive`). The global drag is part of ``a`` (``-c v`` at free
     nodes), so the stages integrate it to their own order.
     """
+
     def f(t, x, v):
         if model.drags:
             x, v = model.constrain(x, v, t)
@@ -234,6 +239,7 @@ def rates(model: Model, loads=None):
             drag = model.decay * v
             a = a - (drag if model.free is None else model.free * drag)
         return v, a
+
     return f
 
 
@@ -256,6 +262,7 @@ class RK4(Integrator):
         >>> round(float(s.x[0, 2, 0, 0, 1]) - 1.0, 6), round(0.1 * math.cos(s.t), 6)
         (0.05403, 0.05403)
     """
+
     name = "rk4"
     drag_in_rates = True
 
@@ -267,8 +274,7 @@ class RK4(Integrator):
         k2x, k2v = f(t0 + dt / 2, x0 + dt / 2 * k1x, v0 + dt / 2 * k1v)
         k3x, k3v = f(t0 + dt / 2, x0 + dt / 2 * k2x, v0 + dt / 2 * k2v)
         k4x, k4v = f(stage_time(t0, dt, 1), x0 + dt * k3x, v0 + dt * k3v)
-        return (x0 + dt / 6 * (k1x + 2 * k2x + 2 * k3x + k4x),
-                v0 + dt / 6 * (k1v + 2 * k2v + 2 * k3v + k4v))
+        return (x0 + dt / 6 * (k1x + 2 * k2x + 2 * k3x + k4x), v0 + dt / 6 * (k1v + 2 * k2v + 2 * k3v + k4v))
 
 
 def _dot(a, b):
@@ -342,9 +348,11 @@ def conjugate_gradient(apply_A, b, precond=None, mask=None, iters: int = 100, to
     if dot is None:
         dot, norm = _dot, (lambda r: r.detach().flatten(1).norm(dim=1))
     else:
+
         def norm(r):
             r = r.detach()
             return dot(r, r).flatten(1)[:, 0].sqrt()
+
     u, r, p, rz = cg_start(b, precond, mask, dot)
     bnorm = norm(r).clamp_min(1e-300)
     for it in range(1, iters + 1):
@@ -429,17 +437,27 @@ class ImplicitEuler(Integrator):
         >>> round(float(k.grad), 12), adjoint.last_adjoint_cg[0]
         (-0.025, 1)
     """
+
     name = "implicit"
     #: the values of ``gradient``
     GRADIENTS = ("unrolled", "adjoint")
 
-    def __init__(self, cg_iters: int = 100, cg_tol: float = 1e-6, newton_iters: int = 0, *,
-                 gradient: str = "unrolled", adjoint_iters: int | None = None, adjoint_tol: float | None = None):
+    def __init__(
+        self,
+        cg_iters: int = 100,
+        cg_tol: float = 1e-6,
+        newton_iters: int = 0,
+        *,
+        gradient: str = "unrolled",
+        adjoint_iters: int | None = None,
+        adjoint_tol: float | None = None,
+    ):
         self.cg_iters, self.cg_tol, self.newton_iters = int(cg_iters), float(cg_tol), int(newton_iters)
         if gradient not in self.GRADIENTS:
             raise ConfigError("implicit.gradient", '"unrolled" or "adjoint"', gradient)
-        if adjoint_iters is not None and (isinstance(adjoint_iters, bool) or not isinstance(adjoint_iters, int)
-                                          or adjoint_iters < 1):
+        if adjoint_iters is not None and (
+            isinstance(adjoint_iters, bool) or not isinstance(adjoint_iters, int) or adjoint_iters < 1
+        ):
             raise ConfigError("implicit.adjoint_iters", "a whole number >= 1", adjoint_iters)
         if adjoint_tol is not None and not (isinstance(adjoint_tol, (int, float)) and 0 <= adjoint_tol < math.inf):
             raise ConfigError("implicit.adjoint_tol", "a number >= 0", adjoint_tol)
@@ -465,6 +483,7 @@ class ImplicitEuler(Integrator):
         def apply_A(u):
             y = model.mass * u + op.apply(u)
             return y if model.k_home is None else y + (h * h) * model.k_home * u
+
         apply_A.lin, apply_A.op = lin, op
         return lin, apply_A
 
@@ -486,7 +505,7 @@ class ImplicitEuler(Integrator):
         else:
             rhs = h * F - model.mass * (v - v0)
         delta_c = None
-        if model.drags:      # prescribed velocities of dragged nodes over the step
+        if model.drags:  # prescribed velocities of dragged nodes over the step
             _, v_target = model.constrain(x0, v0, just_before(t1))
             delta_c = torch.where(model.constrained[None, None], v_target - v, torch.zeros_like(v))
             rhs = rhs - apply_A(delta_c)
@@ -500,12 +519,13 @@ class ImplicitEuler(Integrator):
         v = state.v
         for it in range(1 + self.newton_iters):
             x_lin, apply_A, rhs, delta_c = self.system(model, state, v, it, dt, loads)
-            if adjoint:        # (the state's x is the caller's: the backward keeps a copy)
+            if adjoint:  # (the state's x is the caller's: the backward keeps a copy)
                 x_keep = x_lin.detach().clone() if x_lin is state.x else x_lin
                 delta, n_it, rel = self._adjoint_solve(model, x_keep, apply_A, rhs, precond, dt)
             else:
-                delta, n_it, rel = conjugate_gradient(apply_A, rhs, precond, model.free, self.cg_iters, self.cg_tol,
-                                                      model.inner)
+                delta, n_it, rel = conjugate_gradient(
+                    apply_A, rhs, precond, model.free, self.cg_iters, self.cg_tol, model.inner
+                )
             self.last_cg = (n_it, rel)
             v = v + delta if delta_c is None else v + delta + delta_c
         return state.x + dt * v, v
@@ -523,10 +543,21 @@ class ImplicitEuler(Integrator):
 
         def record(n_it, rel):
             self.last_adjoint_cg = (n_it, rel)
-        return adjoint_solve(apply_A, rhs, conjugate_gradient, precond=precond, mask=model.free,
-                             iters=self.cg_iters, tol=self.cg_tol, adjoint_iters=self.adjoint_iters,
-                             adjoint_tol=self.adjoint_tol, adjoint_operator=operator, saved=(x_lin, precond),
-                             on_backward=record)
+
+        return adjoint_solve(
+            apply_A,
+            rhs,
+            conjugate_gradient,
+            precond=precond,
+            mask=model.free,
+            iters=self.cg_iters,
+            tol=self.cg_tol,
+            adjoint_iters=self.adjoint_iters,
+            adjoint_tol=self.adjoint_tol,
+            adjoint_operator=operator,
+            saved=(x_lin, precond),
+            on_backward=record,
+        )
 
 
 class KnocheRelaxation(Integrator):
@@ -557,6 +588,7 @@ class KnocheRelaxation(Integrator):
         >>> round(float(u[0, 0, 2, 2, 2]), 7), round(float(u[0, 0, 1, 2, 2]), 7), bool((s.v == 0).all())
         (0.00028, 0.00012, True)
     """
+
     name = "knoche"
     eager_reason = "Knoche's relaxation runs in the eager step"
 
@@ -582,6 +614,7 @@ class KnocheRelaxation(Integrator):
             s_i = half[(..., *src)]
             s_j = s_i + dhalf
             return s_j * mean * du, -s_i * mean * du
+
         F = accumulate(grid, edge, u, w, half, channels=3)
         ghosts = grid.missing_neighbours(model.device).to(model.dtype)[None, None]
         F = F - ghosts * 0.5 * (0.5 * w) * u
@@ -592,6 +625,21 @@ class KnocheRelaxation(Integrator):
         return model.X + u, torch.zeros_like(state.v)
 
 
-__all__ = ["Integrator", "rates", "ExplicitEuler", "SymplecticEuler", "DampedVerlet", "RK4", "ImplicitEuler",
-           "KnocheRelaxation", "conjugate_gradient", "cg_start", "cg_iteration", "just_before", "stage_time", "inverse_diagonal",
-           "time_step_bound", "positive_dt"]
+__all__ = [
+    "Integrator",
+    "rates",
+    "ExplicitEuler",
+    "SymplecticEuler",
+    "DampedVerlet",
+    "RK4",
+    "ImplicitEuler",
+    "KnocheRelaxation",
+    "conjugate_gradient",
+    "cg_start",
+    "cg_iteration",
+    "just_before",
+    "stage_time",
+    "inverse_diagonal",
+    "time_step_bound",
+    "positive_dt",
+]

@@ -32,6 +32,7 @@ Examples:
     >>> law.slope(l, l0, k, b)                       # tangent stiffness: k at rest, k e at 10 %
     tensor([100.0000, 271.8282])
 """
+
 from __future__ import annotations
 
 import torch
@@ -63,19 +64,21 @@ class SpringLaw:
 
     def tension(self, l, l0, k, *p) -> torch.Tensor:
         """Force along the spring (N), positive when it pulls its ends together."""
-        raise NotImplementedError                                   # pragma: no cover
+        raise NotImplementedError  # pragma: no cover
 
     def slope(self, l, l0, k, *p) -> torch.Tensor:
         """Tangent stiffness ``d tension / dl`` (N/m)."""
-        raise NotImplementedError                                   # pragma: no cover
+        raise NotImplementedError  # pragma: no cover
 
     def energy(self, l, l0, k, *p) -> torch.Tensor:
         """Elastic energy (J), the integral of the tension from ``l0`` to ``l``."""
-        raise NotImplementedError                                   # pragma: no cover
+        raise NotImplementedError  # pragma: no cover
 
     def __repr__(self) -> str:
-        args = ", ".join(f"{n}={v!r}" if not torch.is_tensor(v) else f"{n}=tensor{tuple(v.shape)}"
-                         for n, v in zip(self.params, self.values))
+        args = ", ".join(
+            f"{n}={v!r}" if not torch.is_tensor(v) else f"{n}=tensor{tuple(v.shape)}"
+            for n, v in zip(self.params, self.values)
+        )
         return f"{type(self).__name__}({args})"
 
 
@@ -193,5 +196,8 @@ def as_law(law) -> SpringLaw | None:
         return law
     if isinstance(law, str) and law in LAWS:
         return LAWS[law]()
-    raise ConfigError("law", "None (Hooke), " + ", ".join(f'"{n}"' for n in LAWS) + " or a SpringLaw "
-                      "(td.Exponential, td.Polynomial)", law)
+    raise ConfigError(
+        "law",
+        "None (Hooke), " + ", ".join(f'"{n}"' for n in LAWS) + " or a SpringLaw (td.Exponential, td.Polynomial)",
+        law,
+    )

@@ -10,6 +10,7 @@ Example:
     >>> state.x.shape, state.t
     (torch.Size([1, 3, 5, 5, 5]), 0.0001)
 """
+
 from __future__ import annotations
 
 import math
@@ -40,6 +41,7 @@ class State:
         >>> s.x.shape, s.t
         (torch.Size([2, 3, 4, 4, 4]), 0.5)
     """
+
     x: torch.Tensor
     v: torch.Tensor
     t: float = 0.0
@@ -53,8 +55,11 @@ class State:
 
 def _as_tensor(value, key, dtype, device) -> torch.Tensor:
     try:
-        t = torch.as_tensor(value, dtype=dtype, device=device) if not torch.is_tensor(value) \
+        t = (
+            torch.as_tensor(value, dtype=dtype, device=device)
+            if not torch.is_tensor(value)
             else value.to(dtype=dtype, device=device)
+        )
     except (TypeError, ValueError, RuntimeError):
         raise ConfigError(key, "a number or an array of numbers", value) from None
     if not bool(torch.isfinite(t).all()):
@@ -87,8 +92,9 @@ def spring_param(value, grid: Grid, key: str, dtype, device, allow_zero=True) ->
     elif t.dim() == 4 and tuple(t.shape) == (S,) + shape:
         t = t.unsqueeze(0)
     elif not (t.dim() == 5 and tuple(t.shape[1:]) == (S,) + shape):
-        raise ConfigError(key, f"a number, (S,), (S, D, H, W) or (B, S, D, H, W) with S = {S}, "
-                               f"grid {shape}", tuple(t.shape))
+        raise ConfigError(
+            key, f"a number, (S,), (S, D, H, W) or (B, S, D, H, W) with S = {S}, grid {shape}", tuple(t.shape)
+        )
     if bool((t < 0).any()) or (not allow_zero and bool((t == 0).any())):
         raise ConfigError(key, "values >= 0" if allow_zero else "values > 0", float(t.min()))
     return t
@@ -186,9 +192,29 @@ class Model:
         (torch.Size([2, 3, 4, 4, 4]), -9.81, True)
     """
 
-    def __init__(self, grid: Grid, stiffness, damping=None, *, damping_mode="projected", law=None, normalize=False,
-                 mass=None, density=None, gravity=None, fixed=None, drags=None, home=None, anchors=None,
-                 decay=None, loads=None, interactions=None, spring_mask=None, dtype=torch.float32, device=None):
+    def __init__(
+        self,
+        grid: Grid,
+        stiffness,
+        damping=None,
+        *,
+        damping_mode="projected",
+        law=None,
+        normalize=False,
+        mass=None,
+        density=None,
+        gravity=None,
+        fixed=None,
+        drags=None,
+        home=None,
+        anchors=None,
+        decay=None,
+        loads=None,
+        interactions=None,
+        spring_mask=None,
+        dtype=torch.float32,
+        device=None,
+    ):
         self.grid, self.dtype, self.device = grid, dtype, torch.device(device or "cpu")
         dev = self.device
         if damping_mode not in ("projected", "unprojected"):
@@ -207,8 +233,9 @@ class Model:
         if spring_mask is not None:
             spring_mask = torch.as_tensor(spring_mask, dtype=torch.bool, device=dev)
             if tuple(spring_mask.shape) != (grid.S,) + grid.shape:
-                raise ConfigError("spring_mask", f"bool (S, D, H, W) = {(grid.S,) + grid.shape}",
-                                  tuple(spring_mask.shape))
+                raise ConfigError(
+                    "spring_mask", f"bool (S, D, H, W) = {(grid.S,) + grid.shape}", tuple(spring_mask.shape)
+                )
             mask = mask & spring_mask
         if grid.node_mask is not None or spring_mask is not None:
             m = mask.unsqueeze(0).to(dtype)
@@ -220,8 +247,14 @@ class Model:
         #: the spring law (:mod:`torchdeform.sim.laws`), or None for Hooke's law
         self.law = as_law(law)
         #: the law's parameters as spring fields ``(Bp, S, 1|D, 1|H, 1|W)``, in ``law.params`` order
-        self.law_params = () if self.law is None else tuple(
-            spring_param(value, grid, f"law.{name}", dtype, dev) for name, value in zip(self.law.params, self.law.values))
+        self.law_params = (
+            ()
+            if self.law is None
+            else tuple(
+                spring_param(value, grid, f"law.{name}", dtype, dev)
+                for name, value in zip(self.law.params, self.law.values)
+            )
+        )
 
         # masses
         if (mass is None) == (density is None):
@@ -255,16 +288,22 @@ class Model:
         bad = (self.mass <= 0) & (free > 0)
         if bool(bad.any()):
             idx = tuple(int(i) for i in bad.expand(-1, -1, *grid.shape).nonzero()[0][2:])
-            raise ConfigError("mass", f"a positive mass at every free node; node {idx} has "
-                                      f"{float(self.mass.expand(-1, -1, *grid.shape)[(0, 0) + idx]):g} kg",
-                              show_got=False)
+            raise ConfigError(
+                "mass",
+                f"a positive mass at every free node; node {idx} has "
+                f"{float(self.mass.expand(-1, -1, *grid.shape)[(0, 0) + idx]):g} kg",
+                show_got=False,
+            )
         self.free = None if not bool(constrained.any()) else free
         safe_mass = torch.where(self.mass > 0, self.mass, torch.ones_like(self.mass))
         self.inv_mass = 1.0 / safe_mass if self.free is None else free / safe_mass
 
         # other terms
-        self.gravity = None if gravity is None else torch.tensor(
-            as_vec3(gravity, "gravity"), dtype=dtype, device=dev).view(1, 3, 1, 1, 1)
+        self.gravity = (
+            None
+            if gravity is None
+            else torch.tensor(as_vec3(gravity, "gravity"), dtype=dtype, device=dev).view(1, 3, 1, 1, 1)
+        )
         k_home = None
         if home is not None:
             k_home = node_param(home, grid, "home", dtype, dev)
@@ -282,9 +321,11 @@ class Model:
         self.loads = [(ld, ld.dense(grid, dtype, dev)) for ld in (loads or [])]
         for c in interactions or []:
             if not (callable(getattr(c, "project", None)) and callable(getattr(c, "force", None))):
-                raise ConfigError("interactions", "interactions with project() and force() "
-                                              "(torchdeform.interact.ProjectionContact, PenaltyContact)",
-                                  type(c).__name__)
+                raise ConfigError(
+                    "interactions",
+                    "interactions with project() and force() (torchdeform.interact.ProjectionContact, PenaltyContact)",
+                    type(c).__name__,
+                )
         self.interactions = list(interactions or [])
 
     # --------------------------------------------------------------- states
@@ -375,8 +416,9 @@ class Model:
     def spring_forces(self, x, v, impl: str = "fast") -> torch.Tensor:
         """Forces of the grid springs alone, ``(B, 3, D, H, W)``; ``impl`` as in :meth:`forces`."""
         fn = spring_forces if impl == "fast" else spring_forces_conv
-        return fn(x, v, self.grid, self.stiffness, self.rest_length, self.damping, self.projected,
-                  self.law, self.law_params)
+        return fn(
+            x, v, self.grid, self.stiffness, self.rest_length, self.damping, self.projected, self.law, self.law_params
+        )
 
     def spring_sums(self, p: torch.Tensor) -> torch.Tensor:
         """``sum_j p_ij`` over the springs at each node, ``(Bp, 1, D, H, W)``.

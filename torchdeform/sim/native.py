@@ -39,6 +39,7 @@ Example:
     >>> f.shape, bool(torch.allclose(f, pm.spring_forces(x, s.v), atol=1e-5))
     (torch.Size([1, 3, 508]), True)
 """
+
 from __future__ import annotations
 
 import ctypes
@@ -58,8 +59,21 @@ import torch
 
 from .springs import _needs_gate
 
-__all__ = ["Variant", "source", "unavailable", "supports", "variant_of", "kernel", "spring_forces", "cache_dir",
-           "NativeBuildError", "fused_blocker", "symplectic_step", "BLOCK_NODES", "name_of"]
+__all__ = [
+    "Variant",
+    "source",
+    "unavailable",
+    "supports",
+    "variant_of",
+    "kernel",
+    "spring_forces",
+    "cache_dir",
+    "NativeBuildError",
+    "fused_blocker",
+    "symplectic_step",
+    "BLOCK_NODES",
+    "name_of",
+]
 
 #: bump when the generated source changes meaning (part of every cache key through the source)
 KERNEL_VERSION = 3
@@ -128,25 +142,40 @@ def source(var: Variant) -> str:
     T, S, damp = var.dtype, var.S, var.damping
     sqrt = "sqrtf" if T == "float" else "sqrt"
     # the update's operands: new velocities U (F holds the new positions), 1 / m and m, g, dt, the drag factor
-    upd = (f", {T}* restrict U, const {T}* restrict IM, const {T}* restrict MS, {T} g0, {T} g1, {T} g2, "
-           f"{T} dt, {T} keep") if var.update else ""
-    rings = 2 if damp == 2 else 1                    # a; and b (Radetzky's damping, per spring)
-    lines = [f"/* torchdeform spring forces, kernel version {KERNEL_VERSION}: {var} */",
-             "#include <stdint.h>", "#include <stdlib.h>", "#include <string.h>", "#include <math.h>",
-             "#ifdef _OPENMP", "#include <omp.h>", "#endif", f"#define BLK {BLOCK_NODES}", "",
-             f"static __thread {T}* ring_buf = 0;", "static __thread int64_t ring_len = 0;", "",
-             f"static {T}* ring(int64_t n) {{",
-             "  if (n > ring_len) {",
-             f"    free(ring_buf); ring_buf = ({T}*)malloc(n * sizeof({T})); ring_len = ring_buf ? n : 0;",
-             "  }",
-             "  return ring_buf;",
-             "}", "",
-             f"static __attribute__((noinline)) int core(const {T}* restrict X, const {T}* restrict V, "
-             f"{T}* restrict F, const {T}* restrict inside,",
-             f"    const {T}* restrict kq, const {T}* restrict lq, const {T}* restrict cq, "
-             f"const int64_t* restrict off, int64_t P, int64_t G, int64_t lo, int64_t hi, {T} tiny{upd}) {{",
-             f"  const {T} *X0 = X, *X1 = X + P, *X2 = X + 2 * P;",
-             f"  {T} *F0 = F, *F1 = F + P, *F2 = F + 2 * P;"]
+    upd = (
+        (f", {T}* restrict U, const {T}* restrict IM, const {T}* restrict MS, {T} g0, {T} g1, {T} g2, {T} dt, {T} keep")
+        if var.update
+        else ""
+    )
+    rings = 2 if damp == 2 else 1  # a; and b (Radetzky's damping, per spring)
+    lines = [
+        f"/* torchdeform spring forces, kernel version {KERNEL_VERSION}: {var} */",
+        "#include <stdint.h>",
+        "#include <stdlib.h>",
+        "#include <string.h>",
+        "#include <math.h>",
+        "#ifdef _OPENMP",
+        "#include <omp.h>",
+        "#endif",
+        f"#define BLK {BLOCK_NODES}",
+        "",
+        f"static __thread {T}* ring_buf = 0;",
+        "static __thread int64_t ring_len = 0;",
+        "",
+        f"static {T}* ring(int64_t n) {{",
+        "  if (n > ring_len) {",
+        f"    free(ring_buf); ring_buf = ({T}*)malloc(n * sizeof({T})); ring_len = ring_buf ? n : 0;",
+        "  }",
+        "  return ring_buf;",
+        "}",
+        "",
+        f"static __attribute__((noinline)) int core(const {T}* restrict X, const {T}* restrict V, "
+        f"{T}* restrict F, const {T}* restrict inside,",
+        f"    const {T}* restrict kq, const {T}* restrict lq, const {T}* restrict cq, "
+        f"const int64_t* restrict off, int64_t P, int64_t G, int64_t lo, int64_t hi, {T} tiny{upd}) {{",
+        f"  const {T} *X0 = X, *X1 = X + P, *X2 = X + 2 * P;",
+        f"  {T} *F0 = F, *F1 = F + P, *F2 = F + 2 * P;",
+    ]
     w = lines.append
     if damp or var.update:
         w(f"  const {T} *V0 = V, *V1 = V + P, *V2 = V + 2 * P;")
@@ -186,7 +215,7 @@ def source(var: Variant) -> str:
             if var.gate:
                 w("        cs = ks != 0 ? cs : 0;")
             w(f"        const {T} w0 = V0[j] - v0, w1 = V1[j] - v1, w2 = V2[j] - v2;")
-        if damp == 1:      # (k (l - l0) + c (d . w) / l) / l, masked
+        if damp == 1:  # (k (l - l0) + c (d . w) / l) / l, masked
             w(f"        const {T} a = (ks * (l - ls) + cs * (d0 * w0 + d1 * w1 + d2 * w2) * il) * (il * m);")
         else:
             w(f"        const {T} a = ks * (l - ls) * (il * m);")
@@ -220,8 +249,10 @@ def source(var: Variant) -> str:
         w(f"        const {T} a = A[{s} * RS + r];")
         if damp == 2:
             w(f"        const {T} b = Bc[{s} * RS + r];")
-            w("        f0 += a * (X0[j] - x0) + b * (V0[j] - v0); f1 += a * (X1[j] - x1) + b * (V1[j] - v1);"
-              " f2 += a * (X2[j] - x2) + b * (V2[j] - v2);")
+            w(
+                "        f0 += a * (X0[j] - x0) + b * (V0[j] - v0); f1 += a * (X1[j] - x1) + b * (V1[j] - v1);"
+                " f2 += a * (X2[j] - x2) + b * (V2[j] - v2);"
+            )
         else:
             w("        f0 += a * (X0[j] - x0); f1 += a * (X1[j] - x1); f2 += a * (X2[j] - x2);")
         w("      }")
@@ -234,8 +265,10 @@ def source(var: Variant) -> str:
     w(f"int springs(const {T}* x, const {T}* v, {T}* f, const {T}* inside, const {T}* k, const {T}* l0,")
     w(f"    const {T}* c, const int64_t* off, int64_t B, int64_t P, int64_t G, int64_t kb, int64_t lb,")
     if var.update:
-        w(f"    int64_t cb, int nt, {T} tiny, {T}* u, const {T}* im, const {T}* ms, int64_t mb, "
-          f"{T} g0, {T} g1, {T} g2, {T} dt, {T} keep) {{")
+        w(
+            f"    int64_t cb, int nt, {T} tiny, {T}* u, const {T}* im, const {T}* ms, int64_t mb, "
+            f"{T} g0, {T} g1, {T} g2, {T} dt, {T} keep) {{"
+        )
     else:
         w(f"    int64_t cb, int nt, {T} tiny) {{")
     w("  int failed = 0;")
@@ -284,8 +317,10 @@ def _update_lines(w, T: str, ind: str) -> None:
     ``U``; ``keep`` the global drag's ``exp(-decay dt)``), as :class:`~torchdeform.sim.integrators.SymplecticEuler`.
     """
     w(f"{ind}const {T} im = IM[i], ms = MS[i];")
-    w(f"{ind}const {T} u0 = V0[i] + dt * (im * (f0 + ms * g0)), u1 = V1[i] + dt * (im * (f1 + ms * g1)), "
-      f"u2 = V2[i] + dt * (im * (f2 + ms * g2));")
+    w(
+        f"{ind}const {T} u0 = V0[i] + dt * (im * (f0 + ms * g0)), u1 = V1[i] + dt * (im * (f1 + ms * g1)), "
+        f"u2 = V2[i] + dt * (im * (f2 + ms * g2));"
+    )
     w(f"{ind}F0[i] = x0 + dt * u0; F1[i] = x1 + dt * u1; F2[i] = x2 + dt * u2;")
     w(f"{ind}U0[i] = u0 * keep; U1[i] = u1 * keep; U2[i] = u2 * keep;")
 
@@ -294,17 +329,20 @@ def _update_lines(w, T: str, ind: str) -> None:
 def cache_dir() -> Path:
     """Where built kernels are kept: ``$TORCHDEFORM_CACHE_DIR/kernels``, else ``~/.cache/torchdeform/kernels``."""
     root = os.environ.get("TORCHDEFORM_CACHE_DIR") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "torchdeform")
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "torchdeform"
+    )
     return Path(root) / "kernels"
 
 
 #: compiler flags, tried in this order until one set works (GCC's RTL combiner spends 70% of a
 #: 3 s build on the one long basic block of 2 S springs and changes nothing measurable: 1.3 s
 #: without it; then no -march=native, then no OpenMP)
-FLAG_SETS = (["-O3", "-march=native", "-fno-math-errno", "-fopenmp", "-fdisable-rtl-combine"],
-             ["-O3", "-march=native", "-fno-math-errno", "-fopenmp"],
-             ["-O3", "-fno-math-errno", "-fopenmp"],
-             ["-O3", "-fno-math-errno"])
+FLAG_SETS = (
+    ["-O3", "-march=native", "-fno-math-errno", "-fopenmp", "-fdisable-rtl-combine"],
+    ["-O3", "-march=native", "-fno-math-errno", "-fopenmp"],
+    ["-O3", "-fno-math-errno", "-fopenmp"],
+    ["-O3", "-fno-math-errno"],
+)
 
 
 @functools.lru_cache(maxsize=None)
@@ -338,7 +376,7 @@ def unavailable() -> str | None:
     return None
 
 
-_kernels: dict = {}                 # loaded functions by the custom op's ``kernel`` argument (:func:`kernel`)
+_kernels: dict = {}  # loaded functions by the custom op's ``kernel`` argument (:func:`kernel`)
 
 
 def _build(var: Variant):
@@ -353,12 +391,15 @@ def _build(var: Variant):
             with tempfile.TemporaryDirectory(dir=so.parent) as tmp:
                 c_file, out = Path(tmp) / "springs.c", Path(tmp) / "springs.so"
                 c_file.write_text(src)
-                r = subprocess.run([cmd, *flags, "-fPIC", "-shared", str(c_file), "-o", str(out), "-lm"],
-                                   capture_output=True, text=True)
+                r = subprocess.run(
+                    [cmd, *flags, "-fPIC", "-shared", str(c_file), "-o", str(out), "-lm"],
+                    capture_output=True,
+                    text=True,
+                )
                 if r.returncode != 0:
                     last = f"{cmd} {' '.join(flags)}: {r.stderr.strip()[-800:]}"
                     continue
-                os.replace(out, so)                         # atomic: concurrent builders agree
+                os.replace(out, so)  # atomic: concurrent builders agree
         try:
             lib = ctypes.CDLL(str(so))
         except OSError as e:
@@ -383,8 +424,10 @@ def name_of(var: Variant) -> str:
         >>> name_of(Variant(S=13, dtype="float", damping=1))
         'S13-float-d1-k0-l0-c0-g0'
     """
-    name = (f"S{var.S}-{var.dtype}-d{var.damping}-k{var.k_per_spring:d}-l{var.l0_per_spring:d}"
-            f"-c{var.c_per_spring:d}-g{var.gate:d}" + ("-step" if var.update else ""))
+    name = (
+        f"S{var.S}-{var.dtype}-d{var.damping}-k{var.k_per_spring:d}-l{var.l0_per_spring:d}"
+        f"-c{var.c_per_spring:d}-g{var.gate:d}" + ("-step" if var.update else "")
+    )
     _variants[name] = var
     return name
 
@@ -417,9 +460,16 @@ def variant_of(pm) -> Variant:
     """The kernel :class:`Variant` of a :class:`~torchdeform.sim.packed.PackedModel`."""
     per = [p is not None and p.shape[-1] != 1 for p in (pm.stiffness, pm.rest_length, pm.damping)]
     damping = 0 if pm.damping is None else (1 if pm.projected else 2)
-    gate = bool(damping) and _needs_gate(pm.stiffness, pm.damping)      # as spring_law gates it
-    return Variant(S=len(pm.offsets), dtype=_CTYPE[pm.dtype], damping=damping, k_per_spring=per[0],
-                   l0_per_spring=per[1], c_per_spring=per[2] and bool(damping), gate=gate)
+    gate = bool(damping) and _needs_gate(pm.stiffness, pm.damping)  # as spring_law gates it
+    return Variant(
+        S=len(pm.offsets),
+        dtype=_CTYPE[pm.dtype],
+        damping=damping,
+        k_per_spring=per[0],
+        l0_per_spring=per[1],
+        c_per_spring=per[2] and bool(damping),
+        gate=gate,
+    )
 
 
 def supports(pm) -> str | None:
@@ -452,11 +502,19 @@ def fused_blocker(pm, integrator, loads=None) -> str | None:
     interactions keep the step in torch around the force kernel.
     """
     from .integrators import SymplecticEuler
+
     if type(integrator) is not SymplecticEuler:
         return f"the {integrator.name} integrator"
-    extras = [name for name, present in (("home springs", pm.k_home is not None), ("loads", bool(pm.loads) or loads is not None),
-                                         ("drags", bool(pm.drags)), ("interactions", bool(pm.interactions)))
-              if present]
+    extras = [
+        name
+        for name, present in (
+            ("home springs", pm.k_home is not None),
+            ("loads", bool(pm.loads) or loads is not None),
+            ("drags", bool(pm.drags)),
+            ("interactions", bool(pm.interactions)),
+        )
+        if present
+    ]
     if extras:
         return ", ".join(extras)
     return supports(pm)
@@ -481,8 +539,25 @@ def symplectic_step(pm, x: torch.Tensor, v: torch.Tensor, dt: float, name: str |
     xo, vo = torch.empty_like(x), torch.empty_like(v)
     g = (0.0, 0.0, 0.0) if pm.gravity is None else tuple(float(a) for a in pm.gravity.flatten())
     keep = 1.0 if pm.decay is None else math.exp(-pm.decay * dt)
-    _call(name, x, v, xo, pm.inside, pm.stiffness, pm.rest_length, pm.damping, pm.offset_table, pm.G,
-          vo.data_ptr(), im.data_ptr(), ms.data_ptr(), _batch_stride(im), *g, dt, keep)
+    _call(
+        name,
+        x,
+        v,
+        xo,
+        pm.inside,
+        pm.stiffness,
+        pm.rest_length,
+        pm.damping,
+        pm.offset_table,
+        pm.G,
+        vo.data_ptr(),
+        im.data_ptr(),
+        ms.data_ptr(),
+        _batch_stride(im),
+        *g,
+        dt,
+        keep,
+    )
     return xo, vo
 
 
@@ -493,17 +568,36 @@ def _batch_stride(p: torch.Tensor) -> int:
 def _call(name: str, x, v, out, inside, k, l0, c, offsets, G: int, *update) -> None:
     """Run kernel ``name`` into ``out`` (the spring operands made contiguous; ``update``: the fused step's)."""
     x, v, inside, k, l0 = (t.contiguous() for t in (x, v, inside, k, l0))
-    c = k if c is None else c.contiguous()               # not read by an undamped kernel
+    c = k if c is None else c.contiguous()  # not read by an undamped kernel
     B, _, P = x.shape
     ptr = [t.data_ptr() for t in (x, v, out, inside, k, l0, c, offsets)]
-    if _function(name)(*ptr, B, P, G, _batch_stride(k), _batch_stride(l0), _batch_stride(c),
-                       torch.get_num_threads(), torch.finfo(x.dtype).tiny, *update):
+    if _function(name)(
+        *ptr,
+        B,
+        P,
+        G,
+        _batch_stride(k),
+        _batch_stride(l0),
+        _batch_stride(c),
+        torch.get_num_threads(),
+        torch.finfo(x.dtype).tiny,
+        *update,
+    ):
         raise MemoryError(f"native spring kernel {name}: a thread could not allocate its ring of springs")
 
 
 @torch.library.custom_op("torchdeform::native_springs", mutates_args=())
-def native_springs(x: torch.Tensor, v: torch.Tensor, inside: torch.Tensor, k: torch.Tensor, l0: torch.Tensor,
-                   c: torch.Tensor | None, offsets: torch.Tensor, kernel: str, G: int) -> torch.Tensor:
+def native_springs(
+    x: torch.Tensor,
+    v: torch.Tensor,
+    inside: torch.Tensor,
+    k: torch.Tensor,
+    l0: torch.Tensor,
+    c: torch.Tensor | None,
+    offsets: torch.Tensor,
+    kernel: str,
+    G: int,
+) -> torch.Tensor:
     """Spring forces ``(B, 3, P)`` by the loaded C kernel named ``kernel`` (see :func:`spring_forces`)."""
     x = x.contiguous()
     f = torch.empty_like(x)

@@ -30,6 +30,7 @@ Example:
     >>> pm.unpack_state(s).x.shape
     torch.Size([1, 3, 4, 5, 6])
 """
+
 from __future__ import annotations
 
 import copy
@@ -138,12 +139,12 @@ class PackedModel(Model):
         both = list(grid.directions) + [tuple(-a for a in d) for d in grid.directions]
         self._dir_index = tuple(torch.tensor([d[a] + 1 for d in both], device=model.device) for a in range(3))
 
-        self.inside = self.pack(grid.nodes().to(self.dtype)[None, None].to(self.device))[0, 0]    # (P,)
+        self.inside = self.pack(grid.nodes().to(self.dtype)[None, None].to(self.device))[0, 0]  # (P,)
         self.X = self.pack(model.X)
         self.mass = self._node(model.mass)
         self.inv_mass = self._node(model.inv_mass)
         self.free = self._node(model.inv_mass.new_ones(1, 1, 1, 1, 1) if model.free is None else model.free)
-        self.constrained = self.free[0, 0] == 0                                       # (P,), halo too
+        self.constrained = self.free[0, 0] == 0  # (P,), halo too
         self.drag_masks = [self.pack(m.to(self.dtype)) > 0 for m in model.drag_masks]
         self.k_home = None if model.k_home is None else self._node(model.k_home)
         self.loads = [(ld, self.pack(dense)) for ld, dense in model.loads]
@@ -181,8 +182,9 @@ class PackedModel(Model):
         """
         unknown = set(fields) - set(self.SHARED_SPRING_FIELDS)
         if unknown or "stiffness" not in fields:
-            raise ValueError(f"share: spring fields from {self.SHARED_SPRING_FIELDS}, stiffness included; "
-                             f"got {tuple(fields)}")
+            raise ValueError(
+                f"share: spring fields from {self.SHARED_SPRING_FIELDS}, stiffness included; got {tuple(fields)}"
+            )
         S, shape = self.grid.S, self.grid.shape
         model.shared = tuple(f for f in self.SHARED_SPRING_FIELDS if f in fields)
         for name in model.shared:
@@ -202,8 +204,9 @@ class PackedModel(Model):
         """``field`` stored in memory under ``torch.compile`` (see :meth:`TraceContext.keep`)."""
         return self.trace.keep(field)
 
-    def traced(self, ctx: TraceContext, threads: int | None = None, native_ok: bool = True,
-               build: bool = True) -> "PackedModel":
+    def traced(
+        self, ctx: TraceContext, threads: int | None = None, native_ok: bool = True, build: bool = True
+    ) -> "PackedModel":
         """A view of this model (same tensors) whose kernels follow the compile-time context ``ctx``.
 
         ``threads``: the thread count the code is compiled for (default torch's), which chooses
@@ -239,7 +242,7 @@ class PackedModel(Model):
     def unpack(self, t: torch.Tensor) -> torch.Tensor:
         """``(B, C, P) -> (B, C, D, H, W)`` (a view of the interior)."""
         D, H, W = self.grid.shape
-        return t[..., :self._P_grid].view(*t.shape[:2], D + 2, H + 2, W + 2)[..., 1:-1, 1:-1, 1:-1]
+        return t[..., : self._P_grid].view(*t.shape[:2], D + 2, H + 2, W + 2)[..., 1:-1, 1:-1, 1:-1]
 
     def pack_state(self, state: State) -> State:
         """A grid-layout state (``(B, 3, D, H, W)``) in the packed layout (``(B, 3, P)``)."""
@@ -263,7 +266,7 @@ class PackedModel(Model):
 
     def shift(self, t: torch.Tensor, o: int) -> torch.Tensor:
         """The core range of ``t`` (last axis ``P``) shifted by the linear offset ``o``."""
-        return t[..., self.G + o:self.P - self.G + o]
+        return t[..., self.G + o : self.P - self.G + o]
 
     def ends(self, t: torch.Tensor) -> torch.Tensor:
         """The far end of the spring along each of the ``2 S`` directions from each core node.
@@ -277,8 +280,7 @@ class PackedModel(Model):
         # The corner neighbour (-1, -1, -1) of the first core node G = plane + row + 1 is node 0,
         # so the view starts where t starts.
         t = t.contiguous()
-        cube = t.as_strided((*t.shape[:2], 3, 3, 3, self.P - 2 * self.G),
-                            (t.stride(0), t.stride(1), plane, row, 1, 1))
+        cube = t.as_strided((*t.shape[:2], 3, 3, 3, self.P - 2 * self.G), (t.stride(0), t.stride(1), plane, row, 1, 1))
         return self.blocks(cube[:, :, self._dir_index[0], self._dir_index[1], self._dir_index[2]])
 
     def differences(self, t: torch.Tensor) -> torch.Tensor:
@@ -340,14 +342,15 @@ class PackedModel(Model):
         total = None
         for s, o in enumerate(self.offsets):
             for sign in (1, -1):
-                deltas = [[self.shift(c, sign * o) - c0 for c, c0 in zip(comp, cen)]
-                          for comp, cen in zip(comps, centre)]
+                deltas = [
+                    [self.shift(c, sign * o) - c0 for c, c0 in zip(comp, cen)] for comp, cen in zip(comps, centre)
+                ]
                 terms = fn(s, sign, self.shift(self.inside, sign * o), *deltas)
                 total = terms if total is None else [a + b for a, b in zip(total, terms)]
         # In an implicit step the forces feed the right-hand side, which several reductions and the
         # CG loop's first vectors read: store them rather than let each reader recompute 2 S
         # springs. In an explicit step they feed one fused update, and storing would cost ~30%.
-        own = self.shift(self.inside, 0)               # halo nodes get exactly zero
+        own = self.shift(self.inside, 0)  # halo nodes get exactly zero
         return self.spread(torch.stack([t * own for t in total], 1), self.trace.store_sums)
 
     def spread(self, sums: torch.Tensor, store: bool = False) -> torch.Tensor:
@@ -385,9 +388,16 @@ class PackedModel(Model):
         def fn(s, sign, mask, dx, dv=None):
             sq = dx[0] * dx[0] + dx[1] * dx[1] + dx[2] * dx[2]
             dxdv = None if dv is None else dx[0] * dv[0] + dx[1] * dv[1] + dx[2] * dv[2]
-            alpha, beta = spring_law(sq, dxdv, self.param(k, s, sign), self.param(l0, s, sign),
-                                     None if c is None else self.param(c, s, sign), projected,
-                                     self.law, tuple(self.param(p, s, sign) for p in self.law_params))
+            alpha, beta = spring_law(
+                sq,
+                dxdv,
+                self.param(k, s, sign),
+                self.param(l0, s, sign),
+                None if c is None else self.param(c, s, sign),
+                projected,
+                self.law,
+                tuple(self.param(p, s, sign) for p in self.law_params),
+            )
             alpha = alpha * mask
             if beta is None:
                 return [alpha * d for d in dx]
@@ -400,16 +410,17 @@ class PackedModel(Model):
         """:meth:`spring_forces` as one sum over the ``2 S`` directions per node (see :meth:`ends`)."""
         k, l0, c = self.directed(self.stiffness), self.directed(self.rest_length), self.damping
         x = self.trace.operand(x)
-        dx = self.differences(x)                                                   # (B, 3, 2S, N, L)
-        sq = dx[:, 0] * dx[:, 0] + dx[:, 1] * dx[:, 1] + dx[:, 2] * dx[:, 2]      # (B, 2S, N, L)
+        dx = self.differences(x)  # (B, 3, 2S, N, L)
+        sq = dx[:, 0] * dx[:, 0] + dx[:, 1] * dx[:, 1] + dx[:, 2] * dx[:, 2]  # (B, 2S, N, L)
         dv = dxdv = None
         if c is not None:
             c = self.directed(c)
             v = self.trace.operand(v)
             dv = self.differences(v)
             dxdv = dx[:, 0] * dv[:, 0] + dx[:, 1] * dv[:, 1] + dx[:, 2] * dv[:, 2]
-        alpha, beta = spring_law(sq, dxdv, k, l0, c, self.projected, self.law,
-                                 tuple(self.directed(p) for p in self.law_params))
+        alpha, beta = spring_law(
+            sq, dxdv, k, l0, c, self.projected, self.law, tuple(self.directed(p) for p in self.law_params)
+        )
         exists = self.exists()
         alpha = alpha * exists
         if beta is None:
@@ -458,11 +469,12 @@ class PackedLinearisation:
         combined: the fields are those of :meth:`scaled`.
     """
 
-    def __init__(self, pm: PackedModel, x: torch.Tensor | None = None, clamp: bool = True, fields=None,
-                 combined: bool = False):
+    def __init__(
+        self, pm: PackedModel, x: torch.Tensor | None = None, clamp: bool = True, fields=None, combined: bool = False
+    ):
         self.pm, self.combined = pm, combined
         if fields is None:
-            dx = pm.differences(x)                                               # (B, 3, 2S, N, L)
+            dx = pm.differences(x)  # (B, 3, 2S, N, L)
             sq = dx[:, 0] * dx[:, 0] + dx[:, 1] * dx[:, 1] + dx[:, 2] * dx[:, 2]  # (B, 2S, N, L)
             k, l0 = pm.directed(pm.stiffness), pm.directed(pm.rest_length)
             lp = tuple(pm.directed(p) for p in pm.law_params)
@@ -501,10 +513,9 @@ class PackedLinearisation:
         pm, (_, a, b) = self.pm, self.fields
         if c is not None:
             c = pm.directed(c)
-            if pm.stiffness.shape[-1] != 1 and c.shape[-1] == 1:    # stiffness per spring: gate the damping
+            if pm.stiffness.shape[-1] != 1 and c.shape[-1] == 1:  # stiffness per spring: gate the damping
                 c = gate_damping(c, a + b)
-        alpha, beta = combine_coefficients(a, b, alpha_scale, c,
-                                           projected, c_scale)
+        alpha, beta = combine_coefficients(a, b, alpha_scale, c, projected, c_scale)
         return alpha * pm.spring_exists, beta * pm.spring_exists
 
     def apply(self, u, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> torch.Tensor:
@@ -515,13 +526,13 @@ class PackedLinearisation:
         """
         pm = self.pm
         u = pm.trace.operand(u)
-        du = pm.differences(u)                                                   # (B, 3, 2S, N, L)
-        if self.combined:                                  # m (= sqrt(beta) n), alpha
+        du = pm.differences(u)  # (B, 3, 2S, N, L)
+        if self.combined:  # m (= sqrt(beta) n), alpha
             if not (alpha_scale == 1 and c is None):
                 raise ValueError("a combined operator (PackedLinearisation.scaled) takes no scales")
-            *m, alpha = (f.transpose(-3, -2) for f in self.fields)               # (B, 2S, N, L)
+            *m, alpha = (f.transpose(-3, -2) for f in self.fields)  # (B, 2S, N, L)
             proj = m[0] * du[:, 0] + m[1] * du[:, 1] + m[2] * du[:, 2]
-        else:                                              # n, a, b
+        else:  # n, a, b
             alpha, beta = self._coefficients(alpha_scale, c, projected, c_scale)
             m = [self.fields[0][:, a] for a in range(3)]
             proj = beta * (m[0] * du[:, 0] + m[1] * du[:, 1] + m[2] * du[:, 2])

@@ -96,6 +96,7 @@ In compiled code the step is unrolled.
 
 Shapes: positions and velocities ``(B, 3, D, H, W)`` (packed ``(B, 3, P)`` on the fast path).
 """
+
 from __future__ import annotations
 
 import copy
@@ -195,9 +196,21 @@ class ProjectiveDynamics(Integrator):
 
     name = "projective"
 
-    def __init__(self, iterations: int = 10, tol: float = 0.0, solver: str = "auto", *, rho: float = 0.95,
-                 relaxation: float = 0.9, delay: int = 1, cg_iters: int = 50, cg_tol: float = 1e-6,
-                 gradient: str = "auto", adjoint_iters: int = 500, adjoint_tol: float = 1e-10):
+    def __init__(
+        self,
+        iterations: int = 10,
+        tol: float = 0.0,
+        solver: str = "auto",
+        *,
+        rho: float = 0.95,
+        relaxation: float = 0.9,
+        delay: int = 1,
+        cg_iters: int = 50,
+        cg_tol: float = 1e-6,
+        gradient: str = "auto",
+        adjoint_iters: int = 500,
+        adjoint_tol: float = 1e-10,
+    ):
         self.iterations = _count(iterations, "projective.iterations", 1)
         self.tol = _number(tol, "projective.tol", "a number >= 0", lambda v: v >= 0)
         if solver not in SOLVERS:
@@ -214,7 +227,7 @@ class ProjectiveDynamics(Integrator):
         self.adjoint_iters = _count(adjoint_iters, "projective.adjoint_iters", 1)
         self.adjoint_tol = _number(adjoint_tol, "projective.adjoint_tol", "a number >= 0", lambda v: v >= 0)
         self.last_iterations, self.last_residual, self.last_cg, self.last_adjoint = 0, 0.0, (0, 0.0), None
-        self._cache = None          # (key, value): the factor (cholesky) or the operator (cg)
+        self._cache = None  # (key, value): the factor (cholesky) or the operator (cg)
 
     def solver_for(self, model) -> str:
         """The global-step solver used for ``model`` (``"auto"`` resolved: see ``solver``).
@@ -257,18 +270,21 @@ class ProjectiveDynamics(Integrator):
         """
         solver = self.solver_for(model)
         if solver != "jacobi" and getattr(model, "law", None) is not None:
-            raise ConfigError("projective.solver", "'jacobi' for a model with a spring law (projective "
-                                                    "dynamics' constant matrix needs Hooke springs)", self.solver)
+            raise ConfigError(
+                "projective.solver",
+                "'jacobi' for a model with a spring law (projective dynamics' constant matrix needs Hooke springs)",
+                self.solver,
+            )
         if solver == "cholesky" and _is_packed(model):
             return self._advance_unpacked(model, state, dt, loads)
         h = dt
         x0, v0, t1 = state.x, state.v, state.t + h
         free = model.free
-        xp = x0 + h * v0                                  # where inertia alone takes the body
+        xp = x0 + h * v0  # where inertia alone takes the body
         x = xp
         if model.drags:
-            x, _ = model.constrain(x, v0, t1)             # dragged nodes on their path at t + h
-        if model.gravity is not None:                     # y, as far as gravity goes
+            x, _ = model.constrain(x, v0, t1)  # dragged nodes on their path at t + h
+        if model.gravity is not None:  # y, as far as gravity goes
             g = (h * h) * model.gravity
             x = x + (g if free is None else g * free)
 
@@ -277,7 +293,7 @@ class ProjectiveDynamics(Integrator):
             return r if free is None else r * free
 
         if self.gradient_for(solver) == "adjoint" and torch.is_grad_enabled() and not torch.compiler.is_compiling():
-            with torch.no_grad():                         # no graph through the iterations
+            with torch.no_grad():  # no graph through the iterations
                 x_star, n_it, rel = self._solve(solver, model, x.detach(), x0, h, residual, self.iterations, self.tol)
             x = self._adjoint(model, solver, h, x, x_star, residual)
         else:
@@ -315,18 +331,20 @@ class ProjectiveDynamics(Integrator):
         """
         free = model.free
 
-        def mixed(x):                                     # free nodes from x, constrained ones from x_init
+        def mixed(x):  # free nodes from x, constrained ones from x_init
             return x if free is None else x * free + x_init * (1 - free)
+
         x_star = x_star.detach()
         if not residual(mixed(x_star)).requires_grad:
-            return mixed(x_star)                          # nothing to differentiate
-        x_var = x_star.clone().requires_grad_()           # the graph's handle for J^T lambda
+            return mixed(x_star)  # nothing to differentiate
+        x_var = x_star.clone().requires_grad_()  # the graph's handle for J^T lambda
         r = residual(mixed(x_var))
         zero = torch.zeros_like(x_star)
 
         def adjoint(g):
-            def rhs(lam):                                 # g - J^T lambda = g + (dr/dx)^T lambda
+            def rhs(lam):  # g - J^T lambda = g + (dr/dx)^T lambda
                 return g + torch.autograd.grad(r, x_var, lam, retain_graph=True)[0]
+
             g = g if free is None else g * free
             lam, n_it, rel = self._solve(solver, model, zero, zero, h, rhs, self.adjoint_iters, self.adjoint_tol)
             self.last_adjoint = (n_it, float(rel))
@@ -383,18 +401,26 @@ class ProjectiveDynamics(Integrator):
             # turning point of its oscillation)
             return i, x_new, x, omega, _relative(step, x - x0)
 
-        carry = (torch.zeros((), dtype=torch.int64, device=x.device), x, x,
-                 torch.ones((), dtype=x.dtype, device=x.device), x.new_zeros(()))
+        carry = (
+            torch.zeros((), dtype=torch.int64, device=x.device),
+            x,
+            x,
+            torch.ones((), dtype=x.dtype, device=x.device),
+            x.new_zeros(()),
+        )
         loop = None
         if tol <= 0 and torch.compiler.is_compiling():
             from .._compile import while_loop  # (lazy: importing it loads inductor, ~1.7 s)
+
             loop = while_loop()
         if loop is not None:
             n = iterations
-            def looped(*c):                       # a loop body may not return its inputs
+
+            def looped(*c):  # a loop body may not return its inputs
                 i, x_new, x_prev, omega, rel = body(*c)
                 return i, x_new, x_prev.clone(), omega if accelerate else omega.clone(), rel
-            carry = (carry[0], carry[1], carry[2].clone(), *carry[3:])        # nor alias each other
+
+            carry = (carry[0], carry[1], carry[2].clone(), *carry[3:])  # nor alias each other
             _, x, _, _, rel = loop(lambda i, *_: i < n, looped, carry)
             return x, iterations, rel
         for it in range(1, iterations + 1):
@@ -420,25 +446,31 @@ class ProjectiveDynamics(Integrator):
         try:
             import cholespy
         except ImportError:
-            raise ConfigError("projective.solver", "the cholespy package for solver='cholesky' "
-                                                   "(pip install cholespy), or solver='cg' or 'jacobi'",
-                              "cholesky") from None
+            raise ConfigError(
+                "projective.solver",
+                "the cholespy package for solver='cholesky' (pip install cholespy), or solver='cg' or 'jacobi'",
+                "cholesky",
+            ) from None
         factors, index = self._cached(model, h, lambda: self._factor(model, h, cholespy))
 
         def solve(r):
             if r.requires_grad:
-                raise ConfigError("projective.gradient", "'adjoint' or 'auto' with solver='cholesky' (its solves "
-                                                         "have no unrolled gradient)", self.gradient)
+                raise ConfigError(
+                    "projective.gradient",
+                    "'adjoint' or 'auto' with solver='cholesky' (its solves have no unrolled gradient)",
+                    self.gradient,
+                )
             B = r.shape[0]
             flat = r.reshape(B, 3, -1)
             out = torch.zeros_like(flat)
             for b in range(B):
                 solver = factors[b if len(factors) > 1 else 0]
-                rhs = flat[b][:, index].T.contiguous().to(solver[1])      # (n_free, 3)
+                rhs = flat[b][:, index].T.contiguous().to(solver[1])  # (n_free, 3)
                 sol = torch.zeros_like(rhs)
                 solver[0].solve(rhs, sol)
                 out[b][:, index] = sol.T.to(r.dtype)
             return out.view_as(r)
+
         return solve
 
     def _factor(self, model, h, cholespy):
@@ -449,22 +481,32 @@ class ProjectiveDynamics(Integrator):
         factors = []
         for A in mats:
             dev = model.device
-            factors.append((cls(A.shape[0], torch.as_tensor(A.indptr, dtype=torch.int32, device=dev),
-                                torch.as_tensor(A.indices, dtype=torch.int32, device=dev),
-                                torch.as_tensor(A.data, dtype=torch.float64, device=dev),
-                                cholespy.MatrixType.CSR), dtype))
+            factors.append(
+                (
+                    cls(
+                        A.shape[0],
+                        torch.as_tensor(A.indptr, dtype=torch.int32, device=dev),
+                        torch.as_tensor(A.indices, dtype=torch.int32, device=dev),
+                        torch.as_tensor(A.data, dtype=torch.float64, device=dev),
+                        cholespy.MatrixType.CSR,
+                    ),
+                    dtype,
+                )
+            )
         return factors, torch.as_tensor(index, device=model.device)
 
     # ------------------------------------------------------------------ cg
     def _cg_solve(self, model, h):
         """``r -> A^-1 r`` by preconditioned CG on the stencil (masked to the free nodes)."""
-        apply_A, precond = self._cached(model, h, lambda: (laplacian_operator(model, h),
-                                                           jacobi_inverse_diagonal(model, h)))
+        apply_A, precond = self._cached(
+            model, h, lambda: (laplacian_operator(model, h), jacobi_inverse_diagonal(model, h))
+        )
 
         def solve(r):
             u, n_it, rel = conjugate_gradient(apply_A, r, precond, model.free, self.cg_iters, self.cg_tol)
             self.last_cg = (n_it, rel)
             return u
+
         return solve
 
     @staticmethod
@@ -534,6 +576,7 @@ def laplacian_operator(model, h: float):
     def apply_A(u):
         y = mass * u + op.apply(u)
         return y if k_home is None else y + (h * h) * k_home * u
+
     return apply_A
 
 
@@ -554,8 +597,11 @@ def system_matrices(model, h: float):
     grid = model.grid
     N = math.prod(grid.shape)
     ids = torch.arange(N).view(grid.shape)
-    free = torch.ones(grid.shape, dtype=torch.bool) if model.free is None else \
-        (model.free.detach().cpu().reshape(-1, *grid.shape)[0] > 0)
+    free = (
+        torch.ones(grid.shape, dtype=torch.bool)
+        if model.free is None
+        else (model.free.detach().cpu().reshape(-1, *grid.shape)[0] > 0)
+    )
     index = ids[free].numpy()
     pos = np.full(N, -1, dtype=np.int64)
     pos[index] = np.arange(len(index))

@@ -12,6 +12,7 @@ Sign convention: a spring from ``i`` to ``j = i + d`` with tension vector ``f`` 
 from ``i`` towards ``j`` when the spring pulls) adds ``+f`` to node ``i`` and ``-f`` to
 node ``j``; summed over springs that is ``-D^T f``.
 """
+
 from __future__ import annotations
 
 from typing import Callable
@@ -21,9 +22,26 @@ import torch.nn.functional as F
 
 from .grid import Grid
 
-__all__ = ["stencil_weights", "difference_conv", "adjoint_conv", "take", "accumulate", "difference",
-           "harmonic_mean_of_ends", "adjoint", "spring_law", "tension", "spring_forces", "spring_forces_conv",
-           "spring_energy", "node_sums", "Linearisation", "combine_coefficients", "gate_damping", "gated_damping"]
+__all__ = [
+    "stencil_weights",
+    "difference_conv",
+    "adjoint_conv",
+    "take",
+    "accumulate",
+    "difference",
+    "harmonic_mean_of_ends",
+    "adjoint",
+    "spring_law",
+    "tension",
+    "spring_forces",
+    "spring_forces_conv",
+    "spring_energy",
+    "node_sums",
+    "Linearisation",
+    "combine_coefficients",
+    "gate_damping",
+    "gated_damping",
+]
 
 
 # ------------------------------------------------------------------ reference path
@@ -78,7 +96,7 @@ def take(p: torch.Tensor, s: int, src) -> torch.Tensor:
     ``p`` has shape ``(Bp, S, 1, 1, 1)`` (one value per direction) or ``(Bp, S, D, H, W)``
     (one per spring); the result broadcasts against ``(B, C, *region)``.
     """
-    q = p[:, s:s + 1]
+    q = p[:, s : s + 1]
     return q if q.shape[-1] == 1 and q.shape[-3:] == (1, 1, 1) else q[(..., *src)]
 
 
@@ -146,8 +164,8 @@ def harmonic_mean_of_ends(values: torch.Tensor, grid: Grid, spring_mask=None) ->
     series), zero where no spring exists (``spring_mask``, default the grid's) or both ends are
     zero. Differentiable.
     """
-    nodes = values.unsqueeze(1)                                    # (B, 1, D, H, W)
-    ends = nodes + difference(nodes, grid)[:, :, 0]                # value at the far end
+    nodes = values.unsqueeze(1)  # (B, 1, D, H, W)
+    ends = nodes + difference(nodes, grid)[:, :, 0]  # value at the far end
     here = nodes.expand_as(ends)
     total = here + ends
     safe = torch.where(total > 0, total, torch.ones_like(total))
@@ -254,13 +272,24 @@ def spring_forces(x, v, grid, k, l0, c=None, projected=True, law=None, lp=()) ->
     Returns:
         forces ``(B, 3, D, H, W)``.
     """
+
     def lps(s, src):
         return tuple(take(p, s, src) for p in lp)
+
     if c is None:
-        return accumulate(grid, lambda s, src, dx: tension(dx, None, take(k, s, src), take(l0, s, src),
-                                                            None, projected, law, lps(s, src)), x)
-    return accumulate(grid, lambda s, src, dx, dv: tension(dx, dv, take(k, s, src), take(l0, s, src),
-                                                           take(c, s, src), projected, law, lps(s, src)), x, v)
+        return accumulate(
+            grid,
+            lambda s, src, dx: tension(dx, None, take(k, s, src), take(l0, s, src), None, projected, law, lps(s, src)),
+            x,
+        )
+    return accumulate(
+        grid,
+        lambda s, src, dx, dv: tension(
+            dx, dv, take(k, s, src), take(l0, s, src), take(c, s, src), projected, law, lps(s, src)
+        ),
+        x,
+        v,
+    )
 
 
 def spring_forces_conv(x, v, grid, k, l0, c=None, projected=True, law=None, lp=()) -> torch.Tensor:
@@ -268,9 +297,9 @@ def spring_forces_conv(x, v, grid, k, l0, c=None, projected=True, law=None, lp=(
 
     Same arguments as :func:`spring_forces`.
     """
-    delta = difference_conv(x, grid).movedim(2, 1)            # (B, 3, S, D, H, W)
+    delta = difference_conv(x, grid).movedim(2, 1)  # (B, 3, S, D, H, W)
     dv = difference_conv(v, grid).movedim(2, 1) if c is not None else None
-    unsq = (lambda p: None if p is None else p.unsqueeze(1))   # (Bk, 1, S, ...)
+    unsq = lambda p: None if p is None else p.unsqueeze(1)  # (Bk, 1, S, ...)
     f = tension(delta, dv, unsq(k), unsq(l0), unsq(c), projected, law, tuple(map(unsq, lp)))
     return -adjoint_conv(f.movedim(1, 2), grid)
 
@@ -300,6 +329,7 @@ def node_sums(grid, p) -> torch.Tensor:
     def both_ends(s, src, _):
         q = take(p, s, src).expand(p.shape[0], 1, *[sl.stop - sl.start for sl in src])
         return q, q
+
     return accumulate(grid, both_ends, zeros)
 
 
@@ -350,8 +380,9 @@ class Linearisation:
         out.grid, out.combined, out.parts, out.gated = self.grid, True, [], self.gated
         for s, (src, _) in enumerate(self.grid.stencil):
             n, a, b = self.parts[s]
-            out.parts.append((n, *combine_coefficients(a, b, alpha_scale, self._damping(c, s, src, a, b),
-                                                       projected, c_scale)))
+            out.parts.append(
+                (n, *combine_coefficients(a, b, alpha_scale, self._damping(c, s, src, a, b), projected, c_scale))
+            )
         return out
 
     def _damping(self, c, s, src, a, b):
@@ -367,10 +398,12 @@ class Linearisation:
         ``h2 = alpha_scale`` and ``h = c_scale``; ``K = -dF/dx`` (clamped) and ``C = -dF/dv``
         (damping ``c`` or none).
         """
+
         def fn(s, src, du):
             n, a, b = self.parts[s]
             alpha, beta = combine_coefficients(a, b, alpha_scale, self._damping(c, s, src, a, b), projected, c_scale)
             return alpha * du + beta * (n * du).sum(1, keepdim=True) * n
+
         return -accumulate(self.grid, fn, u)
 
 

@@ -16,6 +16,7 @@ implicit Euler         none (A-stable)
 ``Lk`` comes from Gershgorin (a guaranteed upper bound: ``max_i (2 sum_j k_ij + k_home) / m_i``)
 or from power iteration on the stencil's stiffness products (tight; the default).
 """
+
 from __future__ import annotations
 
 import math
@@ -25,8 +26,15 @@ import torch
 
 from ..errors import DivergenceError, StabilityWarning
 
-__all__ = ["gershgorin_omega2", "damping_rate_bound", "power_omega2", "time_step_bound", "suggest_dt", "check_dt",
-           "DivergenceMonitor"]
+__all__ = [
+    "gershgorin_omega2",
+    "damping_rate_bound",
+    "power_omega2",
+    "time_step_bound",
+    "suggest_dt",
+    "check_dt",
+    "DivergenceMonitor",
+]
 
 
 @torch.no_grad()
@@ -155,6 +163,7 @@ def time_step_bound(model, integrator="symplectic", method: str = "power", x=Non
         # h^2 w^2 <= 2 + 2 e^{-c h} (1 - h g) (Jury), down to 1/sqrt(2) of the bound for a strong drag
         def stable(t):
             return t * t * lk <= 2 + 2 * math.exp(-c * t) * (1 - t * lc)
+
         lo, hi = 0.0, h
         for _ in range(80):
             mid = 0.5 * (lo + hi)
@@ -196,13 +205,19 @@ def check_dt(model, dt: float, integrator, bound: float | None = None) -> float:
     """
     bound = time_step_bound(model, integrator) if bound is None else bound
     if dt > bound and bound == 0:
-        warnings.warn(f"dt = {dt:.3g} s: {_name(integrator)} is unstable at every time step for this model (springs "
-                      "without damping); add damping, or use the symplectic, verlet, rk4 or an implicit integrator",
-                      StabilityWarning, stacklevel=3)
+        warnings.warn(
+            f"dt = {dt:.3g} s: {_name(integrator)} is unstable at every time step for this model (springs "
+            "without damping); add damping, or use the symplectic, verlet, rk4 or an implicit integrator",
+            StabilityWarning,
+            stacklevel=3,
+        )
     elif dt > bound:
-        warnings.warn(f"dt = {dt:.3g} s exceeds the stability bound of {_name(integrator)}: the bound is "
-                      f"{bound:.3g} s; use dt <= {0.9 * bound:.3g} s or an implicit integrator", StabilityWarning,
-                      stacklevel=3)
+        warnings.warn(
+            f"dt = {dt:.3g} s exceeds the stability bound of {_name(integrator)}: the bound is "
+            f"{bound:.3g} s; use dt <= {0.9 * bound:.3g} s or an implicit integrator",
+            StabilityWarning,
+            stacklevel=3,
+        )
     return bound
 
 
@@ -251,15 +266,17 @@ class DivergenceMonitor:
         implicit = name in ("implicit", "knoche", "projective")
         try:
             bound = math.inf if implicit else time_step_bound(self.model, name)
-        except Exception:                                                # pragma: no cover
+        except Exception:  # pragma: no cover
             bound = math.nan
         safe = 0.9 * bound if math.isfinite(bound) and bound > 0 else None
         cause = None
         if implicit or (math.isfinite(bound) and self.dt <= bound) or bound == math.inf:
             # the linear stability bound holds (or there is none): the time step is not what diverged
             within = "an implicit integrator" if implicit else f"dt within the stability bound ({bound:.3g} s)"
-            cause = (f"with {within} the time step is not the cause: look for a load, drag, gravity or start "
-                     "state too large for this body, or a spring law that stiffens without limit")
+            cause = (
+                f"with {within} the time step is not the cause: look for a load, drag, gravity or start "
+                "state too large for this body, or a spring law that stiffens without limit"
+            )
             safe = None
         raise DivergenceError(step, quantity, value, self.dt, safe, cause=cause)
 

@@ -38,6 +38,7 @@ process, 5 ms on one thread either way):
     >>> run(100, busy=False); gov.current    # the full count is probed again now and then
     2
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -128,8 +129,18 @@ class ThreadGovernor:
         switches: how many times :attr:`current` changed.
     """
 
-    def __init__(self, threads: int, *, window: int = 8, probe: int = 3, jump: float = 1.5, margin: float = 0.9,
-                 period: int = 32, max_period: int = 512, busy_cores: float = 0.5):
+    def __init__(
+        self,
+        threads: int,
+        *,
+        window: int = 8,
+        probe: int = 3,
+        jump: float = 1.5,
+        margin: float = 0.9,
+        period: int = 32,
+        max_period: int = 512,
+        busy_cores: float = 0.5,
+    ):
         self.full = self.current = max(1, int(threads))
         self.options = sorted({self.full, max(1, self.full // 2), 1}, reverse=True)
         self.window, self.probe_steps, self.jump, self.margin = int(window), int(probe), float(jump), float(margin)
@@ -139,10 +150,10 @@ class ThreadGovernor:
         self.period = self.countdown = self.base_period
         self.probing: int | None = None
         self.probe_times: list = []
-        self.seen: set = set()                       # counts run so far (a first step traces: not timed)
+        self.seen: set = set()  # counts run so far (a first step traces: not timed)
         self.steps: Counter = Counter()
         self.switches = 0
-        self.slow = 0                                # steps in a row whose window is above jump x best
+        self.slow = 0  # steps in a row whose window is above jump x best
         #: started at the first recorded step (not during the compile, whose compiler runs beside it)
         self._sampler = None
         self._sample = self.full > 1 and busy_cores is not None
@@ -156,7 +167,7 @@ class ThreadGovernor:
         self.steps[threads] += 1
         if self._sample and self._sampler is None:
             self._sampler = _Sampler()
-        if threads not in self.seen:                 # the first step on a count traces it again
+        if threads not in self.seen:  # the first step on a count traces it again
             self.seen.add(threads)
             return
         if self.probing is not None:
@@ -168,7 +179,7 @@ class ThreadGovernor:
         if len(self.recent) < self.window or len(self.options) == 1:
             return
         now = statistics.median(self.recent)
-        if self._sample:                # once (after ~0.1 s of steps): is the machine busy from the start?
+        if self._sample:  # once (after ~0.1 s of steps): is the machine busy from the start?
             others = self._sampler.others()
             if others is not None:
                 self._sample = False
@@ -197,7 +208,7 @@ class ThreadGovernor:
 
     def _conclude(self) -> None:
         # against the latest steps on the current count (the window may still hold older ones)
-        now = statistics.median(list(self.recent)[-self.probe_steps:])
+        now = statistics.median(list(self.recent)[-self.probe_steps :])
         probed = statistics.median(self.probe_times)
         if probed < self.margin * now:
             self.current, self.switches = self.probing, self.switches + 1
@@ -205,7 +216,7 @@ class ThreadGovernor:
             self.recent.extend(self.probe_times)
             self.best = probed
             self.period = self.base_period
-        else:                                        # the probe lost: this is the new normal
+        else:  # the probe lost: this is the new normal
             self.best = now
             if self.current != self.full:
                 self.period = min(2 * self.period, self.max_period)
@@ -214,5 +225,8 @@ class ThreadGovernor:
 
     def summary(self) -> dict:
         """``{"threads": current, "steps_per_threads": {n: steps}, "switches": k}``."""
-        return {"threads": self.current, "steps_per_threads": dict(sorted(self.steps.items())),
-                "switches": self.switches}
+        return {
+            "threads": self.current,
+            "steps_per_threads": dict(sorted(self.steps.items())),
+            "switches": self.switches,
+        }

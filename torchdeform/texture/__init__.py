@@ -14,12 +14,29 @@
                        blend by CG on the one spring operator; a seam measure, histogram distances
 =====================  ===========================================================================
 """
+
 from .atlas import TextureAtlas, TriangleSamples, build_atlas, export_textured, sample_triangles
 from .exemplar import as_exemplar, liver_exemplar, load_exemplar
 from .mapping import render_textured, vertex_colours
 from .seams import histogram_distance, poisson_blend_3d, poisson_blend_slices, seam_jump, seam_measure
 from .synthesis import SEAM_METHODS, SolidTexture
 
-__all__ = ["as_exemplar", "liver_exemplar", "load_exemplar", "SolidTexture", "seam_measure", "seam_jump", "poisson_blend_3d",
-           "poisson_blend_slices", "histogram_distance", "vertex_colours", "render_textured",
-           "TextureAtlas", "TriangleSamples", "build_atlas", "export_textured", "sample_triangles", "SEAM_METHODS"]
+__all__ = [
+    "as_exemplar",
+    "liver_exemplar",
+    "load_exemplar",
+    "SolidTexture",
+    "seam_measure",
+    "seam_jump",
+    "poisson_blend_3d",
+    "poisson_blend_slices",
+    "histogram_distance",
+    "vertex_colours",
+    "render_textured",
+    "TextureAtlas",
+    "TriangleSamples",
+    "build_atlas",
+    "export_textured",
+    "sample_triangles",
+    "SEAM_METHODS",
+]

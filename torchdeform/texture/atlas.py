@@ -37,6 +37,7 @@ Examples:
     >>> atlas.image.shape, atlas.cell.tolist()      # one cell of 5 + 2 texels
     (torch.Size([7, 7, 3]), [7])
 """
+
 from __future__ import annotations
 
 import math
@@ -49,11 +50,10 @@ import torch
 from ..errors import ConfigError
 from ..outputs import atomic_path
 
-__all__ = ["TriangleSamples", "TextureAtlas", "sample_triangles", "build_atlas", "export_textured",
-           "TEXTURED_SUFFIXES"]
+__all__ = ["TriangleSamples", "TextureAtlas", "sample_triangles", "build_atlas", "export_textured", "TEXTURED_SUFFIXES"]
 
 TEXTURED_SUFFIXES = (".ply", ".glb", ".obj")
-_SLACK = 1e-9                                    # a + b <= 1 + slack: integer legs keep their far corners
+_SLACK = 1e-9  # a + b <= 1 + slack: integer legs keep their far corners
 
 
 def _ragged(counts: torch.Tensor):
@@ -67,10 +67,16 @@ def _triangles(vertices_rest, faces, texture, density):
     """Corners ``A`` and legs ``AB``, ``AC`` in texture voxels (float64, ``(F, 3)`` each), ``n_a``, ``n_b``."""
     X = torch.as_tensor(vertices_rest, dtype=torch.float64)
     f = torch.as_tensor(faces, dtype=torch.int64)
-    if X.dim() != 2 or X.shape[1] != 3 or f.dim() != 2 or f.shape[1] != 3 or (
-            len(f) and (int(f.min()) < 0 or int(f.max()) >= len(X))):
-        raise ConfigError("surface", "rest vertices (V, 3) and faces (F, 3) indexing them",
-                          (tuple(X.shape), tuple(f.shape)))
+    if (
+        X.dim() != 2
+        or X.shape[1] != 3
+        or f.dim() != 2
+        or f.shape[1] != 3
+        or (len(f) and (int(f.min()) < 0 or int(f.max()) >= len(X)))
+    ):
+        raise ConfigError(
+            "surface", "rest vertices (V, 3) and faces (F, 3) indexing them", (tuple(X.shape), tuple(f.shape))
+        )
     if not (isinstance(density, (int, float)) and math.isfinite(density) and density > 0):
         raise ConfigError("density", "a positive number (samples per voxel along each leg)", density)
     Xv = (X - texture.origin.to(torch.float64)) / texture.voxel
@@ -152,7 +158,7 @@ def sample_triangles(vertices_rest, faces, texture, density: float = 1.0) -> Tri
         (7, [0.0, 0.0, 0.0, 0.0], [0.0, 0.3333333333333333, 0.6666666666666666, 1.0])
     """
     A, AB, AC, n_a, n_b = _triangles(vertices_rest, faces, texture, density)
-    rows = torch.floor(n_a + _SLACK).long() + 1                                  # i = 0 .. floor(n_a)
+    rows = torch.floor(n_a + _SLACK).long() + 1  # i = 0 .. floor(n_a)
     row_face, row_i = _ragged(rows)
     a_row, _ = _params(row_i.double(), torch.zeros(len(row_i), dtype=torch.float64), n_a[row_face], n_b[row_face])
     per_row = torch.floor(n_b[row_face] * (1.0 - a_row) + _SLACK).clamp_min(0).long() + 1
@@ -161,7 +167,9 @@ def sample_triangles(vertices_rest, faces, texture, density: float = 1.0) -> Tri
     # samples outnumber the rows about 10 to 1)
     start = A.index_select(0, row_face) + a_row[:, None] * AB.index_select(0, row_face)
     step = torch.where(n_b[:, None] > 0, AC / n_b.clamp_min(1e-300)[:, None], torch.zeros_like(AC))
-    P = torch.addcmul(start.index_select(0, row), j[:, None].double(), step.index_select(0, row_face).index_select(0, row))
+    P = torch.addcmul(
+        start.index_select(0, row), j[:, None].double(), step.index_select(0, row_face).index_select(0, row)
+    )
     per_face = torch.zeros(len(n_a), dtype=torch.int64).index_add_(0, row_face, per_row)
     face, i = row_face.index_select(0, row), row_i.index_select(0, row)
     return TriangleSamples(face, i.int(), j.int(), _colour_at(texture, P), n_a, n_b, per_face, int(len(face)))
@@ -189,8 +197,9 @@ class TextureAtlas:
     def to_pil(self):
         """The atlas as an 8-bit RGB ``PIL.Image``."""
         from PIL import Image
+
         arr = (self.image.double().clamp(0, 1) * 255).round().to(torch.uint8).numpy()
-        return Image.fromarray(np.ascontiguousarray(arr))                 # (H, W, 3) uint8: RGB
+        return Image.fromarray(np.ascontiguousarray(arr))  # (H, W, 3) uint8: RGB
 
 
 def _pack(cell: torch.Tensor):
@@ -198,7 +207,7 @@ def _pack(cell: torch.Tensor):
     W = max(int(cell.max()), math.ceil(math.sqrt(float((cell.double() ** 2).sum()))))
     corner = torch.zeros(len(cell), 2, dtype=torch.int64)
     y0 = 0
-    for s in torch.unique(cell).flip(0).tolist():                              # largest cells first
+    for s in torch.unique(cell).flip(0).tolist():  # largest cells first
         idx = torch.nonzero(cell == s).flatten()
         k, cols = torch.arange(len(idx)), W // s
         corner[idx, 0] = (k % cols) * s
@@ -207,8 +216,9 @@ def _pack(cell: torch.Tensor):
     return corner, (y0, W)
 
 
-def build_atlas(vertices_rest, faces, texture, density: float = 1.0, samples: TriangleSamples | None = None
-                ) -> TextureAtlas:
+def build_atlas(
+    vertices_rest, faces, texture, density: float = 1.0, samples: TriangleSamples | None = None
+) -> TextureAtlas:
     """Pack each triangle's samples into a square cell of an RGB atlas, with a 1-texel gutter and corner UVs.
 
     Args:
@@ -242,7 +252,7 @@ def build_atlas(vertices_rest, faces, texture, density: float = 1.0, samples: Tr
     image[flat] = s.colour
     filled[flat] = True
     # the gutter and the rest of each cell: the triangle's affine map extended past its edges
-    face, k = _ragged(cell ** 2)
+    face, k = _ragged(cell**2)
     side = cell[face]
     x, y = k % side, torch.div(k, side, rounding_mode="floor")
     tflat = (corner[face, 1] + y) * W + corner[face, 0] + x
@@ -252,8 +262,9 @@ def build_atlas(vertices_rest, faces, texture, density: float = 1.0, samples: Tr
     image[tflat] = _colour_at(texture, A[face] + a[:, None] * AB[face] + b[:, None] * AC[face])
     # corner UVs: A at texel centre (x0 + 1.5, y0 + 1.5), B = A + (n_a, 0), C = A + (0, n_b)
     pa = corner.double() + 1.5
-    px = torch.stack([pa, pa + torch.stack([n_a, torch.zeros_like(n_a)], 1),
-                      pa + torch.stack([torch.zeros_like(n_b), n_b], 1)], 1)            # (F, 3, 2) pixels
+    px = torch.stack(
+        [pa, pa + torch.stack([n_a, torch.zeros_like(n_a)], 1), pa + torch.stack([torch.zeros_like(n_b), n_b], 1)], 1
+    )  # (F, 3, 2) pixels
     uv = torch.stack([px[..., 0] / W, 1.0 - px[..., 1] / H], -1)
     return TextureAtlas(image.reshape(H, W, 3), uv, corner, cell, s)
 
@@ -294,19 +305,22 @@ def export_textured(path, vertices, faces, rest, texture, kind: str | None = Non
         True
     """
     import trimesh
+
     path = Path(path)
     k = (kind if kind is not None else path.suffix.lstrip(".")).lower()
     if "." + k not in TEXTURED_SUFFIXES:
-        raise ConfigError("textured file", "a .ply, .glb or .obj path (or kind 'ply', 'glb', 'obj')",
-                          kind if kind is not None else str(path))
+        raise ConfigError(
+            "textured file",
+            "a .ply, .glb or .obj path (or kind 'ply', 'glb', 'obj')",
+            kind if kind is not None else str(path),
+        )
     v = np.asarray(torch.as_tensor(vertices, dtype=torch.float64))
     X = torch.as_tensor(rest, dtype=torch.float64)
     f = np.asarray(torch.as_tensor(faces, dtype=torch.int64))
     if v.ndim != 2 or v.shape[1] != 3 or tuple(X.shape) != v.shape:
-        raise ConfigError("surface", "deformed and rest vertices of the same shape (V, 3)",
-                          (v.shape, tuple(X.shape)))
+        raise ConfigError("surface", "deformed and rest vertices of the same shape (V, 3)", (v.shape, tuple(X.shape)))
     if k == "ply":
-        _, _, _, _, _ = _triangles(X, f, texture, density)                 # validates faces
+        _, _, _, _, _ = _triangles(X, f, texture, density)  # validates faces
         rgb = (texture.at_material(X).double().clamp(0, 1) * 255).round().to(torch.uint8).numpy()
         colours = np.concatenate([rgb, np.full((len(rgb), 1), 255, np.uint8)], 1)
         with atomic_path(path) as tmp:
@@ -316,7 +330,7 @@ def export_textured(path, vertices, faces, rest, texture, kind: str | None = Non
     corners = np.arange(3 * len(f)).reshape(-1, 3)
     visual = trimesh.visual.TextureVisuals(uv=atlas.uv.reshape(-1, 2).numpy(), image=atlas.to_pil())
     mesh = trimesh.Trimesh(vertices=v[f.reshape(-1)], faces=corners, visual=visual, process=False)
-    if k == "obj":                                  # the .mtl and texture image it names are written beside it
+    if k == "obj":  # the .mtl and texture image it names are written beside it
         mesh.export(str(path), file_type=k)
     else:
         with atomic_path(path) as tmp:

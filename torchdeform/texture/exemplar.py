@@ -17,6 +17,7 @@ Examples:
     >>> tuple(ex.shape), bool(ex.min() >= 0) and bool(ex.max() <= 1)
     ((3, 32, 32, 32), True)
 """
+
 from __future__ import annotations
 
 import math
@@ -48,8 +49,12 @@ def as_exemplar(array, key: str = "exemplar") -> torch.Tensor:
     elif t.is_floating_point():
         t = t.float()
         if not bool(torch.isfinite(t).all()) or float(t.min()) < 0 or float(t.max()) > 1:
-            raise ConfigError(key, "colours in [0, 1] (floats) or 0..255 (uint8)",
-                              f"values in [{float(t.min()):g}, {float(t.max()):g}]", show_got=True)
+            raise ConfigError(
+                key,
+                "colours in [0, 1] (floats) or 0..255 (uint8)",
+                f"values in [{float(t.min()):g}, {float(t.max()):g}]",
+                show_got=True,
+            )
     else:
         raise ConfigError(key, "uint8 or floating-point colours", str(t.dtype))
     if min(t.shape[1:]) < 2:
@@ -77,14 +82,19 @@ def load_exemplar(path) -> torch.Tensor:
         if not files:
             raise ConfigError("exemplar", "a folder holding slice images (.png, .jpg)", str(p))
         import matplotlib.image as mpimg
+
         slices, size = [], None
         for f in files:
             img = np.asarray(mpimg.imread(f))
             if img.ndim != 3 or img.shape[2] not in (3, 4):
                 raise ConfigError(f"exemplar: {f.name}", "an RGB slice image", f"shape {img.shape}", show_got=True)
             if size is not None and img.shape[:2] != size:
-                raise ConfigError(f"exemplar: {f.name}", f"a slice of {size[0]} x {size[1]} pixels like the first",
-                                  f"{img.shape[0]} x {img.shape[1]}", show_got=True)
+                raise ConfigError(
+                    f"exemplar: {f.name}",
+                    f"a slice of {size[0]} x {size[1]} pixels like the first",
+                    f"{img.shape[0]} x {img.shape[1]}",
+                    show_got=True,
+                )
             size = img.shape[:2]
             img = img[..., :3]
             slices.append(img.astype(np.float32) / 255.0 if img.dtype == np.uint8 else img.astype(np.float32))
@@ -119,25 +129,26 @@ def liver_exemplar(size: int = 128, seed: int = 0, lobule: float = 12.0, vessels
     n = int(size)
     gen = torch.Generator().manual_seed(int(seed))
     axes = torch.arange(n, dtype=torch.float32)
-    P = torch.stack(torch.meshgrid(axes, axes, axes, indexing="ij"))                       # (3, n, n, n)
+    P = torch.stack(torch.meshgrid(axes, axes, axes, indexing="ij"))  # (3, n, n, n)
     # lobules: distances to the nearest two jittered seeds (Voronoi; one seed per cell of a k^3
     # lattice, so the nearest seeds lie in the 27 cells around a voxel's own); border where they tie
     k = max(2, round(n / lobule))
     size_c = n / k
     jitter = 0.35 * (torch.rand(3, k, k, k, generator=gen) * 2 - 1)
-    seeds = (torch.stack(torch.meshgrid(*[torch.arange(k, dtype=torch.float32)] * 3, indexing="ij")) + 0.5
-             + jitter) * size_c                                                            # (3, k, k, k)
-    cell = (P / size_c).floor().long().clamp_(0, k - 1)                                    # (3, n, n, n)
+    seeds = (
+        torch.stack(torch.meshgrid(*[torch.arange(k, dtype=torch.float32)] * 3, indexing="ij")) + 0.5 + jitter
+    ) * size_c  # (3, k, k, k)
+    cell = (P / size_c).floor().long().clamp_(0, k - 1)  # (3, n, n, n)
     dists = []
     for off in [(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)]:
         idx = [(cell[i] + off[i]).clamp(0, k - 1) for i in range(3)]
-        q = seeds[:, idx[0], idx[1], idx[2]]                                               # (3, n, n, n)
+        q = seeds[:, idx[0], idx[1], idx[2]]  # (3, n, n, n)
         dists.append(((P - q) ** 2).sum(0))
-    two = torch.stack(dists).topk(2, dim=0, largest=False).values.sqrt()                  # (2, n, n, n)
-    border = two[1] - two[0]                                                               # 0 on lobule borders
+    two = torch.stack(dists).topk(2, dim=0, largest=False).values.sqrt()  # (2, n, n, n)
+    border = two[1] - two[0]  # 0 on lobule borders
     centre = two[0]
-    lob = torch.clamp(border / (0.5 * lobule), 0, 1)                                      # 0 border .. 1 inside
-    vein = torch.exp(-(centre / (0.12 * lobule)) ** 2)                                    # central vein
+    lob = torch.clamp(border / (0.5 * lobule), 0, 1)  # 0 border .. 1 inside
+    vein = torch.exp(-((centre / (0.12 * lobule)) ** 2))  # central vein
     # vessels: tubes along smooth random paths
     tube = torch.zeros(n, n, n)
     lumen = torch.zeros(n, n, n)
@@ -146,14 +157,16 @@ def liver_exemplar(size: int = 128, seed: int = 0, lobule: float = 12.0, vessels
         bend = (torch.rand(3, generator=gen) - 0.5) * n * 0.5
         r = n * (0.03 + 0.04 * float(torch.rand(1, generator=gen)))
         ts = torch.linspace(0, 1, 24)
-        path = a[:, None] * (1 - ts) + b[:, None] * ts + bend[:, None] * torch.sin(math.pi * ts)   # (3, 24)
+        path = a[:, None] * (1 - ts) + b[:, None] * ts + bend[:, None] * torch.sin(math.pi * ts)  # (3, 24)
         dist = torch.cdist(P.reshape(3, -1).T, path.T).min(1).values.view(n, n, n)
         tube = torch.maximum(tube, torch.clamp(1.2 - dist / r, 0, 1))
         lumen = torch.maximum(lumen, torch.clamp(1 - dist / (0.6 * r), 0, 1))
     var = _smooth_noise((n, n, n), n / 3, gen)
     fine = _smooth_noise((n, n, n), 2.0, gen)
     base = torch.tensor([0.55, 0.20, 0.15]).view(3, 1, 1, 1)
-    colour = base * (0.75 + 0.25 * lob + 0.08 * var + 0.05 * fine) + torch.tensor([0.12, 0.05, 0.04]).view(3, 1, 1, 1) * vein
+    colour = (
+        base * (0.75 + 0.25 * lob + 0.08 * var + 0.05 * fine) + torch.tensor([0.12, 0.05, 0.04]).view(3, 1, 1, 1) * vein
+    )
     wall = torch.tensor([0.85, 0.70, 0.65]).view(3, 1, 1, 1)
     blood = torch.tensor([0.30, 0.03, 0.05]).view(3, 1, 1, 1)
     colour = colour * (1 - tube) + wall * tube

@@ -18,6 +18,7 @@ Examples:
     >>> vertex_colours(tex, piece).shape == piece.vertices.shape
     True
 """
+
 from __future__ import annotations
 
 import torch
@@ -42,6 +43,7 @@ def framing_camera(vertices, direction=(1.2, -1.0, 1.4), fov_deg: float = 40.0, 
     ``direction`` is in units of the largest side of the vertices' bounding box (m), from its centre.
     """
     from ..mesh.raster import Camera
+
     v = torch.as_tensor(vertices, dtype=torch.float64)
     lo, hi = v.min(0).values, v.max(0).values
     centre, extent = (hi + lo) / 2, float((hi - lo).max())
@@ -49,8 +51,9 @@ def framing_camera(vertices, direction=(1.2, -1.0, 1.4), fov_deg: float = 40.0, 
     return Camera(eye=tuple(eye.tolist()), target=tuple(centre.tolist()), fov_deg=fov_deg, size=size)
 
 
-def render_textured(surfaces, texture, camera, *, light=None, ambient: float = 0.35, per_pixel: bool = True,
-                    background=(1.0, 1.0, 1.0)) -> dict:
+def render_textured(
+    surfaces, texture, camera, *, light=None, ambient: float = 0.35, per_pixel: bool = True, background=(1.0, 1.0, 1.0)
+) -> dict:
     """Rasterise surfaces (deformed vertices) coloured by the solid texture at material coordinates.
 
     Args:
@@ -68,6 +71,7 @@ def render_textured(surfaces, texture, camera, *, light=None, ambient: float = 0
         the rasteriser's dict: ``image`` ``(H, W, 3)``, ``depth``, ``face``, ``bary``.
     """
     from ..mesh.raster import rasterize
+
     verts, faces, rest, base = [], [], [], 0
     for s in surfaces:
         v = torch.as_tensor(s.vertices, dtype=torch.float64)
@@ -77,11 +81,20 @@ def render_textured(surfaces, texture, camera, *, light=None, ambient: float = 0
         base += len(v)
     v, f, r = torch.cat(verts), torch.cat(faces), torch.cat(rest)
     if per_pixel:
-        colours = lambda X: texture.at_material(X).to(X.dtype)          # noqa: E731 (the rasteriser's callable)
-        return rasterize(v, f, camera, colours, texcoords=r, light=light, ambient=ambient, background=background,
-                         two_sided=True)
-    return rasterize(v, f, camera, texture.at_material(r).to(v.dtype), light=light, ambient=ambient,
-                     background=background, two_sided=True)
+        colours = lambda X: texture.at_material(X).to(X.dtype)  # noqa: E731 (the rasteriser's callable)
+        return rasterize(
+            v, f, camera, colours, texcoords=r, light=light, ambient=ambient, background=background, two_sided=True
+        )
+    return rasterize(
+        v,
+        f,
+        camera,
+        texture.at_material(r).to(v.dtype),
+        light=light,
+        ambient=ambient,
+        background=background,
+        two_sided=True,
+    )
 
 
 def body_texture(grid, exemplar="liver:64", block=None, seed: int = 0, voxel=None):
@@ -101,13 +114,14 @@ def body_texture(grid, exemplar="liver:64", block=None, seed: int = 0, voxel=Non
     """
     if isinstance(exemplar, str):
         from .exemplar import exemplar_from
+
         exemplar = exemplar_from(exemplar, seed)
     block = block or min(exemplar.shape[1:]) // 2
     voxel = voxel or min(grid.spacing) / 4
     X = grid.rest_positions(torch.float64)[0].reshape(3, -1)
     lo, hi = X.min(1).values, X.max(1).values
-    pad = 2 * max(grid.spacing)                                   # the surfaces reach half a cell out
+    pad = 2 * max(grid.spacing)  # the surfaces reach half a cell out
     extent = [int((h - l + 2 * pad) / voxel) + 2 for l, h in zip(lo.tolist(), hi.tolist())]
     from .synthesis import SolidTexture
-    return SolidTexture(exemplar, block=block, extent=extent, seed=seed, voxel=voxel,
-                        origin=tuple((lo - pad).tolist()))
+
+    return SolidTexture(exemplar, block=block, extent=extent, seed=seed, voxel=voxel, origin=tuple((lo - pad).tolist()))

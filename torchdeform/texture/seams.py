@@ -78,6 +78,7 @@ between the normalised histograms, in ``[0, 2]``).
 Shapes: volumes ``(C, D, H, W)``, float32 or float64, any device. Nothing here is learnt, but
 everything is plain tensor algebra and therefore differentiable in the volume.
 """
+
 from __future__ import annotations
 
 import torch
@@ -87,8 +88,15 @@ from ..sim.grid import Grid
 from ..sim.integrators import conjugate_gradient
 from ..sim.springs import accumulate, adjoint, difference
 
-__all__ = ["seam_measure", "seam_jump", "poisson_blend_3d", "poisson_blend_slices", "histogram_distance", "face_edges",
-           "seam_band"]
+__all__ = [
+    "seam_measure",
+    "seam_jump",
+    "poisson_blend_3d",
+    "poisson_blend_slices",
+    "histogram_distance",
+    "face_edges",
+    "seam_band",
+]
 
 GUIDES = ("mean", "zero")
 REGIONS = ("seams", "all")
@@ -179,15 +187,15 @@ def seam_band(shape, block, margin: int) -> torch.Tensor:
 
 def _guidance(x: torch.Tensor, grid: Grid, faces: torch.Tensor, guide: str) -> torch.Tensor:
     """Guidance field ``(B, 3, C, D, H, W)``: ``D x`` in blocks, the face rule on face edges."""
-    d = difference(x, grid)                                   # (B, S=3, C, D, H, W), 0 off the grid
-    faces = faces.to(x.device)[None, :, None]                  # (1, 3, 1, D, H, W)
+    d = difference(x, grid)  # (B, S=3, C, D, H, W), 0 off the grid
+    faces = faces.to(x.device)[None, :, None]  # (1, 3, 1, D, H, W)
     if guide == "zero":
         return torch.where(faces, torch.zeros((), dtype=x.dtype, device=x.device), d)
     inblock = (grid.in_grid_mask(x.device)[None, :, None] & ~faces).to(x.dtype)
     d_in = d * inblock
     num = torch.zeros_like(d)
     den = torch.zeros_like(inblock)
-    for a in range(3):                                         # the edges before and after, same axis
+    for a in range(3):  # the edges before and after, same axis
         # torch.roll wraps around, but what wraps in is never an in-block edge where it is used:
         # shifting by +1 brings the off-grid edge n-1 to index 0; index n-1 is never a face edge.
         for shift in (1, -1):
@@ -199,8 +207,10 @@ def _guidance(x: torch.Tensor, grid: Grid, faces: torch.Tensor, guide: str) -> t
 
 def _laplacian(grid: Grid):
     """``w -> L w = D^T D w`` through the one spring operator (identity spring law)."""
+
     def apply_L(w):
         return -accumulate(grid, lambda s, src, dw: dw, w)
+
     return apply_L
 
 
@@ -213,24 +223,25 @@ def _blend(x: torch.Tensor, grid: Grid, block, *, guide, region, margin, iters, 
     if not isinstance(iters, int) or iters < 1:
         raise ConfigError("iters", "an integer >= 1", iters)
     faces = face_edges(grid.shape, block)
-    if not bool(faces.any()):                                  # one block: nothing to blend
+    if not bool(faces.any()):  # one block: nothing to blend
         return x, 0, 0.0
     g = _guidance(x, grid, faces, guide)
-    rhs = adjoint(g - difference(x, grid), grid)               # D^T r, (B, 1, D, H, W)
+    rhs = adjoint(g - difference(x, grid), grid)  # D^T r, (B, 1, D, H, W)
     mask = None
     if region == "seams":
         band = seam_band(grid.shape, block, margin)
         if not bool(band.all()):
             mask = band.to(device=x.device, dtype=x.dtype)[None, None]
     w, used, rel = conjugate_gradient(_laplacian(grid), rhs, mask=mask, iters=iters, tol=tol)
-    if mask is None:                                           # Neumann: fix the mean colour
+    if mask is None:  # Neumann: fix the mean colour
         w = w - w.mean(dim=(1, 2, 3, 4), keepdim=True)
     return x + w, used, rel
 
 
 # ---------------------------------------------------------------------------- public API
-def seam_measure(volume: torch.Tensor, block, *, axis: int | None = None,
-                 reference: torch.Tensor | None = None) -> float:
+def seam_measure(
+    volume: torch.Tensor, block, *, axis: int | None = None, reference: torch.Tensor | None = None
+) -> float:
     """How visible the block seams are: face differences over in-block differences.
 
     ``s = mean |v_j - v_i|`` over face edges (planes ``k b - 1`` and ``k b``, every interior face along
@@ -268,15 +279,15 @@ def seam_measure(volume: torch.Tensor, block, *, axis: int | None = None,
             raise ConfigError("axis", "0, 1, 2 or None", axis)
         faces[[a for a in range(3) if a != axis]] = False
     if not bool(faces.any()):
-        raise ConfigError("block", f"a block size that puts a face inside the volume {tuple(volume.shape[1:])}",
-                          block)
+        raise ConfigError("block", f"a block size that puts a face inside the volume {tuple(volume.shape[1:])}", block)
     grid = Grid(tuple(volume.shape[1:]), spacing=1.0, topology=6)
-    d = difference(volume[None], grid)[0].abs()                # (3, C, D, H, W)
+    d = difference(volume[None], grid)[0].abs()  # (3, C, D, H, W)
     faces = faces.to(volume.device)[:, None].expand_as(d)
     num = d[faces].mean()
     if reference is None:
-        inblock = (grid.in_grid_mask(volume.device)[:, None] & ~face_edges(volume.shape[1:], block)
-                   .to(volume.device)[:, None]).expand_as(d)
+        inblock = (
+            grid.in_grid_mask(volume.device)[:, None] & ~face_edges(volume.shape[1:], block).to(volume.device)[:, None]
+        ).expand_as(d)
         den = d[inblock].mean()
     else:
         reference = _check_volume(reference, "reference")
@@ -320,16 +331,16 @@ def seam_jump(volume: torch.Tensor, block, *, reference: torch.Tensor | None = N
     shape = tuple(volume.shape[1:])
     faces = face_edges(shape, block).to(volume.device)
     grid = Grid(shape, spacing=1.0, topology=6)
-    d = difference(volume[None], grid)[0]                              # (3, C, D, H, W), signed
+    d = difference(volume[None], grid)[0]  # (3, C, D, H, W), signed
     total, count = d.new_zeros(()), 0
     for a in range(3):
         n = shape[a]
         ok = faces[a].clone()
         idx = torch.arange(n, device=volume.device).view([-1 if b == a else 1 for b in range(3)])
-        ok &= (idx >= 1) & (idx + 2 <= n - 1)                          # steps before and after exist
+        ok &= (idx >= 1) & (idx + 2 <= n - 1)  # steps before and after exist
         if not bool(ok.any()):
             continue
-        da = d[a]                                                      # (C, D, H, W)
+        da = d[a]  # (C, D, H, W)
         before, after = torch.roll(da, 1, 1 + a), torch.roll(da, -1, 1 + a)
         jump = (da - (before + after) / 2).abs()[:, ok]
         total, count = total + jump.sum(), count + jump.numel()
@@ -346,9 +357,17 @@ def seam_jump(volume: torch.Tensor, block, *, reference: torch.Tensor | None = N
     return float(total / count / den.clamp_min(torch.finfo(den.dtype).tiny))
 
 
-def poisson_blend_3d(volume: torch.Tensor, block, *, iters: int = 2000, tol: float = 1e-6,
-                     region: str = "seams", margin: int = 4, guide: str = "mean",
-                     return_info: bool = False):
+def poisson_blend_3d(
+    volume: torch.Tensor,
+    block,
+    *,
+    iters: int = 2000,
+    tol: float = 1e-6,
+    region: str = "seams",
+    margin: int = 4,
+    guide: str = "mean",
+    return_info: bool = False,
+):
     """Blend block seams by 3-D guided Poisson editing, each channel on its own.
 
     Minimises ``|D u - g|^2`` over the 6-neighbour edges (see the module notes): ``g`` is the volume's
@@ -386,15 +405,24 @@ def poisson_blend_3d(volume: torch.Tensor, block, *, iters: int = 2000, tol: flo
     volume = _check_volume(volume)
     C = volume.shape[0]
     grid = Grid(tuple(volume.shape[1:]), spacing=1.0, topology=6)
-    x = volume.reshape(C, 1, *volume.shape[1:])               # one batch entry per channel
+    x = volume.reshape(C, 1, *volume.shape[1:])  # one batch entry per channel
     u, used, rel = _blend(x, grid, block, guide=guide, region=region, margin=margin, iters=iters, tol=tol)
     u = u.reshape(volume.shape)
     return (u, used, rel) if return_info else u
 
 
-def poisson_blend_slices(volume: torch.Tensor, block, axis: int = 0, *, iters: int = 2000, tol: float = 1e-6,
-                         region: str = "seams", margin: int = 4, guide: str = "mean",
-                         return_info: bool = False):
+def poisson_blend_slices(
+    volume: torch.Tensor,
+    block,
+    axis: int = 0,
+    *,
+    iters: int = 2000,
+    tol: float = 1e-6,
+    region: str = "seams",
+    margin: int = 4,
+    guide: str = "mean",
+    return_info: bool = False,
+):
     """Chen & He's per-slice 2-D Poisson blend: every slice normal to ``axis`` on its own.
 
     The same guided problem as :func:`poisson_blend_3d` restricted to the 4-neighbour edges inside

@@ -30,6 +30,7 @@ Examples:
     >>> tex.colour(torch.tensor([[1.0, 2.0, 3.0]])).shape
     torch.Size([1, 3])
 """
+
 from __future__ import annotations
 
 import math
@@ -64,15 +65,24 @@ class SolidTexture:
         volume: None, or after :meth:`blend` the blended texture ``(3, D, H, W)`` the lookups read.
     """
 
-    def __init__(self, exemplar, block: int = 64, extent=(64, 64, 64), seed: int = 0, voxel: float = 1.0,
-                 origin=(0.0, 0.0, 0.0)):
-        self.exemplar = exemplar if torch.is_tensor(exemplar) and exemplar.is_floating_point() and exemplar.dim() == 4 \
-            and exemplar.shape[0] == 3 \
+    def __init__(
+        self, exemplar, block: int = 64, extent=(64, 64, 64), seed: int = 0, voxel: float = 1.0, origin=(0.0, 0.0, 0.0)
+    ):
+        self.exemplar = (
+            exemplar
+            if torch.is_tensor(exemplar)
+            and exemplar.is_floating_point()
+            and exemplar.dim() == 4
+            and exemplar.shape[0] == 3
             else as_exemplar(exemplar)
+        )
         size = tuple(self.exemplar.shape[1:])
         if not isinstance(block, int) or block < 2 or block > min(size):
-            raise ConfigError("texture.block", f"an integer block size from 2 to the exemplar's smallest side "
-                                               f"({min(size)} voxels)", block)
+            raise ConfigError(
+                "texture.block",
+                f"an integer block size from 2 to the exemplar's smallest side ({min(size)} voxels)",
+                block,
+            )
         ext = tuple(int(e) for e in extent)
         if len(ext) != 3 or min(ext) < 1:
             raise ConfigError("texture.extent", "three positive voxel counts (D, H, W)", extent)
@@ -82,12 +92,13 @@ class SolidTexture:
         self.origin = torch.tensor([float(c) for c in origin], dtype=torch.float64)
         self.blocks = tuple(math.ceil(e / block) for e in ext)
         gen = torch.Generator().manual_seed(int(seed))
-        high = torch.tensor([s - block + 1 for s in size])                       # offsets in [0, E - b]
+        high = torch.tensor([s - block + 1 for s in size])  # offsets in [0, E - b]
         self.offsets = (torch.rand(*self.blocks, 3, generator=gen) * high).long().clamp_(max=high - 1)
         self.volume: torch.Tensor | None = None
 
-    def blend(self, method: str = "3d", *, region: str = "seams", margin: int = 4, iters: int = 2000,
-              tol: float = 1e-6) -> dict:
+    def blend(
+        self, method: str = "3d", *, region: str = "seams", margin: int = 4, iters: int = 2000, tol: float = 1e-6
+    ) -> dict:
         """Blend the block seams; later lookups read the blended volume (see the module docstring).
 
         Args:
@@ -117,6 +128,7 @@ class SolidTexture:
         import time
 
         from .seams import histogram_distance, poisson_blend_3d, poisson_blend_slices, seam_jump
+
         if method not in SEAM_METHODS:
             raise ConfigError("texture.seams", " or ".join(f'"{m}"' for m in SEAM_METHODS), method)
         t0 = time.perf_counter()
@@ -124,12 +136,18 @@ class SolidTexture:
         v = self.materialise()
         multi = any(n > 1 for n in self.blocks)
         before = seam_jump(v, self.block, reference=self.exemplar) if multi else 0.0
-        report = dict(method=method, seam_before=before, seam_after=before, iterations=0,
-                      histogram_before=histogram_distance(v, self.exemplar))
+        report = dict(
+            method=method,
+            seam_before=before,
+            seam_after=before,
+            iterations=0,
+            histogram_before=histogram_distance(v, self.exemplar),
+        )
         if method != "none" and multi:
             blend = poisson_blend_3d if method == "3d" else poisson_blend_slices
-            v, report["iterations"], _ = blend(v, self.block, region=region, margin=margin, iters=iters, tol=tol,
-                                               return_info=True)
+            v, report["iterations"], _ = blend(
+                v, self.block, region=region, margin=margin, iters=iters, tol=tol, return_info=True
+            )
             report["seam_after"] = seam_jump(v, self.block, reference=self.exemplar)
             self._set_volume(v.clamp(0, 1))
         report["histogram_after"] = histogram_distance(v, self.exemplar)
@@ -165,7 +183,7 @@ class SolidTexture:
             d, h, w = ex.shape[1:]
             cols = math.ceil(math.sqrt(d))
             rows = math.ceil(d / cols)
-            padded = F.pad(ex, (0, 1, 0, 1), mode="replicate")                 # (3, d, h + 1, w + 1)
+            padded = F.pad(ex, (0, 1, 0, 1), mode="replicate")  # (3, d, h + 1, w + 1)
             padded = torch.cat([padded, padded.new_zeros(3, rows * cols - d, h + 1, w + 1)], 1)
             image = padded.reshape(3, rows, cols, h + 1, w + 1).permute(0, 1, 3, 2, 4)
             cache[dtype] = (image.reshape(1, 3, rows * (h + 1), cols * (w + 1)).contiguous(), cols)
@@ -178,7 +196,7 @@ class SolidTexture:
         n = self.blocks
         idx = [cell[:, a].long().clamp_(0, n[a] - 1) for a in range(3)]
         flat = (idx[0] * n[1] + idx[1]) * n[2] + idx[2]
-        start = self.offsets.view(-1, 3).index_select(0, flat).to(points.dtype)    # (N, 3)
+        start = self.offsets.view(-1, 3).index_select(0, flat).to(points.dtype)  # (N, 3)
         return start + (points - b * cell)
 
     def colour(self, points: torch.Tensor, mode: str = "trilinear") -> torch.Tensor:
@@ -206,21 +224,22 @@ class SolidTexture:
         image, cols = self._slice_atlas(q.dtype)
         d, h, w = self._source(q.dtype).shape[1:]
         lim = torch.tensor([d - 1, h - 1, w - 1], dtype=q.dtype, device=q.device)
-        q = torch.minimum(q.clamp(min=0), lim)                                   # padding "border"
+        q = torch.minimum(q.clamp(min=0), lim)  # padding "border"
         d0 = q[:, 0].floor().clamp_(max=max(d - 2, 0))
         frac = q[:, 0] - d0
-        slab = torch.stack([d0, (d0 + 1).clamp_(max=d - 1)])                     # (2, N) slices
+        slab = torch.stack([d0, (d0 + 1).clamp_(max=d - 1)])  # (2, N) slices
         tile_row = torch.div(slab, cols, rounding_mode="floor")
         y = tile_row * (h + 1) + q[:, 1]
         x = (slab - tile_row * cols) * (w + 1) + q[:, 2]
         size = image.shape[-2:]
-        grid = torch.stack([x * (2 / (size[1] - 1)) - 1, y * (2 / (size[0] - 1)) - 1], -1)   # (2, N, 2)
+        grid = torch.stack([x * (2 / (size[1] - 1)) - 1, y * (2 / (size[0] - 1)) - 1], -1)  # (2, N, 2)
         n = q.shape[0]
         parts = torch.get_num_threads() if q.device.type == "cpu" and n >= 8192 else 1
         per = -(-n // parts)
         grid = F.pad(grid, (0, 0, 0, per * parts - n)).reshape(2, parts, per, 2).transpose(0, 1)
-        out = F.grid_sample(image.expand(parts, -1, -1, -1), grid, mode="bilinear", padding_mode="border",
-                            align_corners=True)                                  # (parts, 3, 2, per)
+        out = F.grid_sample(
+            image.expand(parts, -1, -1, -1), grid, mode="bilinear", padding_mode="border", align_corners=True
+        )  # (parts, 3, 2, per)
         out = out.permute(1, 2, 0, 3).reshape(3, 2, -1)[:, :, :n]
         return torch.lerp(out[:, 0], out[:, 1], frac).T
 

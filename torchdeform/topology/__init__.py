@@ -35,6 +35,7 @@ Examples:
     >>> count
     2
 """
+
 from .cautery import cauterize
 from .chainmail import link_crossing, unlink
 from .components import components
@@ -43,7 +44,29 @@ from .split import add_node, share_mass
 from .surfaces import CutSurface, cut_pieces, cut_surfaces, extend_displacement, save_cut_surfaces
 from .tear import coagulate, coagulated_rest_length, spring_lengths, spring_strain, strain_limit_from_force, tear
 
-__all__ = ["Blade", "Scalpel", "crossed_slots", "crossing", "cut", "pretension", "sides", "cauterize", "add_node",
-           "share_mass", "components", "tear", "coagulate", "coagulated_rest_length", "spring_lengths",
-           "spring_strain", "strain_limit_from_force", "link_crossing", "unlink", "CutSurface", "cut_surfaces",
-           "save_cut_surfaces", "extend_displacement", "cut_pieces"]
+__all__ = [
+    "Blade",
+    "Scalpel",
+    "crossed_slots",
+    "crossing",
+    "cut",
+    "pretension",
+    "sides",
+    "cauterize",
+    "add_node",
+    "share_mass",
+    "components",
+    "tear",
+    "coagulate",
+    "coagulated_rest_length",
+    "spring_lengths",
+    "spring_strain",
+    "strain_limit_from_force",
+    "link_crossing",
+    "unlink",
+    "CutSurface",
+    "cut_surfaces",
+    "save_cut_surfaces",
+    "extend_displacement",
+    "cut_pieces",
+]

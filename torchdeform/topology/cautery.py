@@ -17,6 +17,7 @@ Examples:
     >>> burnt["nodes"], round(burnt["mass_kg"], 9)                 # the top centre node
     (1, 0.001)
 """
+
 from __future__ import annotations
 
 import torch
@@ -52,9 +53,12 @@ def cauterize(model, state, tool) -> dict:
         return {"nodes": 0, "mass_kg": 0.0, "momentum": (0.0, 0.0, 0.0)}
     mass = model.mass.expand(1, 1, *grid.shape)
     b = burn[None, None].to(model.dtype)
-    out = {"nodes": int(burn.sum()), "mass_kg": float((mass * b).sum()),
-           "momentum": tuple(float(p) for p in (mass * b * state.v).flatten(2).sum(2)[0])}
-    at_src, at_dst = ends(grid, burn)                                 # springs with an end burnt
+    out = {
+        "nodes": int(burn.sum()),
+        "mass_kg": float((mass * b).sum()),
+        "momentum": tuple(float(p) for p in (mass * b * state.v).flatten(2).sum(2)[0]),
+    }
+    at_src, at_dst = ends(grid, burn)  # springs with an end burnt
     remove(model, at_src | at_dst)
     if model.k_home is not None:
         assign(model, "k_home", model.k_home.expand(1, 1, *grid.shape) * (1 - b))

@@ -31,6 +31,7 @@ Example:
     >>> float(cm.displacement()[0, :, 3:].abs().max()), r.moved > 1
     (0.0, True)
 """
+
 from __future__ import annotations
 
 import functools
@@ -86,7 +87,7 @@ def link_crossing(positions: torch.Tensor, blade: Blade, grid=None) -> torch.Ten
     shape = tuple(x.shape[2:])
     if grid is not None and tuple(grid.shape) != shape:
         raise ConfigError("positions", f"(B, 3, D, H, W) with grid {grid.shape}", tuple(x.shape))
-    out = crossing(_box6(shape), x, blade)            # 6 neighbours: half-direction s is axis s
+    out = crossing(_box6(shape), x, blade)  # 6 neighbours: half-direction s is axis s
     if grid is not None:
         out &= link_mask(grid, x.device)
     return out
@@ -141,9 +142,15 @@ def unlink(target, positions, blade: Blade) -> torch.Tensor:
     except (TypeError, ValueError, RuntimeError):
         raise ConfigError("target", "a ChainMail or a bool (3, D, H, W) link mask", type(target).__name__) from None
     x = _positions(positions)
-    if mask.dim() not in (4, 5) or tuple(mask.shape[-4:]) != (3,) + tuple(x.shape[2:]) or \
-            (mask.dim() == 5 and mask.shape[0] not in (1, x.shape[0])):
-        raise ConfigError("target", f"a bool (3, D, H, W) or (B, 3, D, H, W) link mask matching positions "
-                                    f"{tuple(x.shape)}", tuple(mask.shape))
+    if (
+        mask.dim() not in (4, 5)
+        or tuple(mask.shape[-4:]) != (3,) + tuple(x.shape[2:])
+        or (mask.dim() == 5 and mask.shape[0] not in (1, x.shape[0]))
+    ):
+        raise ConfigError(
+            "target",
+            f"a bool (3, D, H, W) or (B, 3, D, H, W) link mask matching positions {tuple(x.shape)}",
+            tuple(mask.shape),
+        )
     new = mask.to(x.device) & ~link_crossing(x, blade)
     return new[0] if mask.dim() == 4 and x.shape[0] == 1 else new

@@ -11,6 +11,7 @@ Examples:
     >>> components(model)[1]
     1
 """
+
 from __future__ import annotations
 
 import torch
@@ -37,7 +38,7 @@ def components(model, batch: int = 0) -> tuple[torch.Tensor, int]:
     exists = live[min(batch, live.shape[0] - 1)]
     dev = exists.device
     inside = grid.nodes().to(dev)
-    if model.removed is not None:                                     # burnt away (cautery)
+    if model.removed is not None:  # burnt away (cautery)
         inside = inside & ~model.removed.to(dev)
     big = torch.iinfo(torch.int64).max
     labels = torch.arange(inside.numel(), device=dev).view(shape)

@@ -35,6 +35,7 @@ Examples:
     >>> crossing(grid, grid.rest_positions(torch.float64), blade)[0, 0].flatten().tolist()   # along D, stored at node 0
     [True, False]
 """
+
 from __future__ import annotations
 
 import torch
@@ -88,8 +89,7 @@ class Blade:
         area, scale = _dot(n, n) ** 0.5, (_dot(u, u) * _dot(v, v)) ** 0.5
         if not area > 1e-12 * scale or scale == 0:
             what = "three corners not on one line" if triangle else "two non-zero edges u and v, not parallel"
-            raise ConfigError(key, f"a non-degenerate {'triangle' if triangle else 'blade'}: {what}",
-                              (o, u, v))
+            raise ConfigError(key, f"a non-degenerate {'triangle' if triangle else 'blade'}: {what}", (o, u, v))
         self.patches.append((o, u, v, bool(triangle)))
         if len(self.patches) == 1:
             self.normal = tuple(c / area for c in n)
@@ -117,9 +117,9 @@ class Blade:
         for k in range(e.shape[0] - 1):
             a0, b0, a1, b1 = (tuple(float(c) for c in p) for p in (e[k, 0], e[k, 1], e[k + 1, 0], e[k + 1, 1]))
             u, v, w = [q - p for p, q in zip(a0, b0)], [q - p for p, q in zip(a0, a1)], [q - p for p, q in zip(b0, b1)]
-            if _dot(_cross(u, v), _cross(u, v)) == 0:            # the edge moved along itself: nothing swept
+            if _dot(_cross(u, v), _cross(u, v)) == 0:  # the edge moved along itself: nothing swept
                 continue
-            if all(abs(p - q) <= 1e-12 * (1 + abs(p)) for p, q in zip(v, w)):       # a translation: one parallelogram
+            if all(abs(p - q) <= 1e-12 * (1 + abs(p)) for p, q in zip(v, w)):  # a translation: one parallelogram
                 parts = [(a0, u, v, False)]
             else:
                 parts = [(a0, u, [q - p for p, q in zip(a0, b1)], True), (a0, [q - p for p, q in zip(a0, b1)], v, True)]
@@ -189,8 +189,9 @@ def _covers(box, patches) -> bool:
     The patch coordinates are linear in the point, so testing the 8 corners suffices (plain floats:
     a handful of numbers, no tensor calls), strictly inside by a margin of 1e-12.
     """
-    corners = [(x, y, z) for x in (box[0][0], box[1][0]) for y in (box[0][1], box[1][1])
-               for z in (box[0][2], box[1][2])]
+    corners = [
+        (x, y, z) for x in (box[0][0], box[1][0]) for y in (box[0][1], box[1][1]) for z in (box[0][2], box[1][2])
+    ]
     return any(all(_inside(*_patch_coordinates(c, patch), patch[3], -1e-12) for c in corners) for patch in patches)
 
 
@@ -215,9 +216,13 @@ def _layer_range(top: list, bottom: list, steps: set):
     """
     pos, neg = [t > 0 for t in top], [b <= 0 for b in bottom]
     n = len(pos)
-    found = [k for k in range(n) if (pos[k] and neg[k])
-             or (1 in steps and k + 1 < n and ((pos[k] and neg[k + 1]) or (neg[k] and pos[k + 1])))
-             or (-1 in steps and k > 0 and ((pos[k] and neg[k - 1]) or (neg[k] and pos[k - 1])))]
+    found = [
+        k
+        for k in range(n)
+        if (pos[k] and neg[k])
+        or (1 in steps and k + 1 < n and ((pos[k] and neg[k + 1]) or (neg[k] and pos[k + 1])))
+        or (-1 in steps and k > 0 and ((pos[k] and neg[k - 1]) or (neg[k] and pos[k - 1])))
+    ]
     return (found[0], found[-1]) if found else None
 
 
@@ -247,7 +252,7 @@ def _far_ends(sub: torch.Tensor, axis: int, before: int, after: int, index: tupl
     """
     pad = [1, 1, 1, 1, 1, 1]
     pad[2 * (2 - axis)], pad[2 * (2 - axis) + 1] = 1 - before, 1 - after
-    up = torch.nn.functional.pad(sub[None], pad)[0] > 0                              # (n0+2, n1+2, n2+2)
+    up = torch.nn.functional.pad(sub[None], pad)[0] > 0  # (n0+2, n1+2, n2+2)
     box = tuple(m - 2 for m in up.shape)
     st = up.stride()
     cube = up.as_strided((3, 3, 3) + box, st + st)
@@ -278,14 +283,14 @@ def crossed_pieces(grid, x: torch.Tensor, blade: Blade) -> list:
     N, dev = D * H * W, x.device
     exists = grid.spring_mask(dev)
     index = _direction_index(grid, dev)
-    offs = ((index[0] - 1) * H + index[1] - 1) * W + index[2] - 1            # (S,) flat offsets
+    offs = ((index[0] - 1) * H + index[1] - 1) * W + index[2] - 1  # (S,) flat offsets
     out = []
     for b in range(x.shape[0]):
         xb = x[b]
         for n, c, patches in blade.planes():
             axis = max(range(3), key=lambda a: abs(n[a]))
             other = tuple(a for a in range(3) if a != axis)
-            if abs(n[axis]) == 1.0:                   # axis-aligned: the layer bounds from x itself
+            if abs(n[axis]) == 1.0:  # axis-aligned: the layer bounds from x itself
                 top, bottom = torch.stack([xb[axis].amax(other), xb[axis].amin(other)]).tolist()
                 if n[axis] > 0:
                     top, bottom = [t - c for t in top], [b - c for b in bottom]
@@ -300,7 +305,7 @@ def crossed_pieces(grid, x: torch.Tensor, blade: Blade) -> list:
                 continue
             lo, hi = rng
             lo2, hi2 = max(lo - (-1 in steps), 0), min(hi + (1 in steps), grid.shape[axis] - 1)
-            slab = xb.narrow(axis + 1, lo2, hi2 - lo2 + 1)                          # (3, ...) layers lo-1..hi+1
+            slab = xb.narrow(axis + 1, lo2, hi2 - lo2 + 1)  # (3, ...) layers lo-1..hi+1
             near, far = _far_ends(_heights(slab, n, c), axis, lo - lo2, hi2 - hi, index)
             mask = (near.unsqueeze(0) != far) & exists.narrow(axis + 1, lo, hi - lo + 1)
             # The slab's positions bound every candidate segment: when a patch covers that box,
@@ -308,7 +313,7 @@ def crossed_pieces(grid, x: torch.Tensor, blade: Blade) -> list:
             flat = slab.reshape(3, -1)
             box = torch.stack([flat.amin(1), flat.amax(1)]).tolist()
             if not _covers(box, patches):
-                slot = list(mask.nonzero(as_tuple=True))                               # s, then the layers
+                slot = list(mask.nonzero(as_tuple=True))  # s, then the layers
                 slot[axis + 1] = slot[axis + 1] + lo
                 p_i = (slot[1] * H + slot[2]) * W + slot[3]
                 q_i = p_i + offs[slot[0]]
@@ -398,7 +403,7 @@ def cut(model: Model, x: torch.Tensor, blade: Blade, gape: float = 0.0) -> int:
         old = model.cut_nodes
         fresh = nodes if old is None else nodes & ~old
         springs = None
-        if old is not None:                                           # a spring shortened once only
+        if old is not None:  # a spring shortened once only
             a, b = ends(grid, old)
             springs = ~(a | b)
         assign(model, "rest_length", pretension(model, fresh, gape, springs))
@@ -443,7 +448,7 @@ class Scalpel:
         """The edge's two ends at time ``t``, ``(2, 3)`` float64 (batch entry 0 of the tool's pose)."""
         like = torch.zeros(1, 3, dtype=torch.float64)
         c, R = self.tool.frame(t, like)
-        e = torch.tensor(self.edge, dtype=torch.float64)                   # (2, 3)
+        e = torch.tensor(self.edge, dtype=torch.float64)  # (2, 3)
         if R is not None:
             e = e @ R[0].T
         return e + c.reshape(-1, 3)[0]
@@ -456,7 +461,7 @@ class Scalpel:
             return None
         try:
             return Blade.swept(edges, key="scalpel")
-        except ConfigError:                          # moved only along its own line
+        except ConfigError:  # moved only along its own line
             return None
 
     def update(self, model: Model, state) -> int:

@@ -24,6 +24,7 @@ Examples:
     >>> (a | b)[0, 0].flatten().tolist()              # along D: only the spring 0-1 has node 0 at an end
     [True, False, False]
 """
+
 from __future__ import annotations
 
 from typing import NamedTuple
@@ -41,6 +42,7 @@ class Slab(NamedTuple):
     ``mask`` has the grid's shape except along ``axis``, where it spans ``mask.shape[axis + 1]``
     layers from ``start``.
     """
+
     batch: int
     axis: int
     start: int
@@ -95,14 +97,23 @@ def assign(model, name: str, value: torch.Tensor) -> None:
     otherwise the attribute is replaced (a compiled step sharing the old tensor would not see it).
     """
     cur = getattr(model, name)
-    if (cur is not None and tuple(cur.shape) == tuple(value.shape) and cur.dtype == value.dtype
-            and not cur.requires_grad and not value.requires_grad):
+    if (
+        cur is not None
+        and tuple(cur.shape) == tuple(value.shape)
+        and cur.dtype == value.dtype
+        and not cur.requires_grad
+        and not value.requires_grad
+    ):
         cur.copy_(value)
         return
     if model.shared and name in ("rest_length", "damping"):
-        raise ConfigError(f"model.{name}", f"a per-spring {name} shared with the compiled step: "
-                          f"compiled_step(..., editable=({', '.join(repr(f) for f in model.shared + (name,))}))",
-                          "a per-direction one", show_got=True)
+        raise ConfigError(
+            f"model.{name}",
+            f"a per-spring {name} shared with the compiled step: "
+            f"compiled_step(..., editable=({', '.join(repr(f) for f in model.shared + (name,))}))",
+            "a per-direction one",
+            show_got=True,
+        )
     setattr(model, name, value)
 
 
@@ -133,8 +144,12 @@ def _union(grid, pieces: list, device=None) -> torch.Tensor:
 
 def _full_slots(model, t) -> bool:
     """``t`` is a full per-slot field that may be written in place."""
-    return (t is not None and t.dim() == 5 and tuple(t.shape[1:]) == (model.grid.S,) + model.grid.shape
-            and not t.requires_grad)
+    return (
+        t is not None
+        and t.dim() == 5
+        and tuple(t.shape[1:]) == (model.grid.S,) + model.grid.shape
+        and not t.requires_grad
+    )
 
 
 def _slabs(grid, springs) -> list:
@@ -142,8 +157,7 @@ def _slabs(grid, springs) -> list:
     if isinstance(springs, list):
         return springs
     if isinstance(springs, tuple):
-        springs = _dense(grid, springs, int(springs[0].max()) + 1 if springs[0].numel() else 1,
-                         springs[0].device)
+        springs = _dense(grid, springs, int(springs[0].max()) + 1 if springs[0].numel() else 1, springs[0].device)
     return [Slab(b, 0, 0, springs[b]) for b in range(springs.shape[0])]
 
 
@@ -163,7 +177,7 @@ def remove(model, springs) -> int:
     nb = 1 + max((p.batch for p in pieces), default=0)
     if _full_slots(model, k) and nb <= k.shape[0]:
         count = 0
-        for piece in pieces:                         # two dense operations over the slab's layers
+        for piece in pieces:  # two dense operations over the slab's layers
             kv = piece.view(k)
             count += int(torch.count_nonzero(kv * piece.mask))
             kv.masked_fill_(piece.mask, 0)

@@ -30,6 +30,7 @@ Examples:
     >>> added["neighbours"], round(added["mass_kg"], 12), round(float(model.mass.sum()), 12)
     (6, 0.000857142857, 0.026)
 """
+
 from __future__ import annotations
 
 import torch
@@ -79,7 +80,7 @@ def add_node(model, state, node, neighbours=None, position=None, gape: float = 0
         raise ConfigError("add_node.gape", "a fraction in [0, 1)", gape)
     body = grid.nodes().to(state.x.device) & ~model.removed
     # the stencil neighbours: slot (s, node) joins node -> node + d_s; slot (s, node - d_s) joins the other way
-    links = []                                                     # (slot index, neighbour)
+    links = []  # (slot index, neighbour)
     for s, d in enumerate(grid.directions):
         for sign in (1, -1):
             j = tuple(a + sign * b for a, b in zip(node, d))
@@ -93,20 +94,24 @@ def add_node(model, state, node, neighbours=None, position=None, gape: float = 0
     js = [j for _, j in links]
     mass = full_node(model, "mass")
     m_nb = torch.stack([mass[(0, 0) + j] for j in js])
-    v_nb = torch.stack([state.v[(0, slice(None)) + j] for j in js])              # (|N|, 3)
+    v_nb = torch.stack([state.v[(0, slice(None)) + j] for j in js])  # (|N|, 3)
     m_new, m_left = share_mass(m_nb)
     new_mass = mass.clone()
     for j, m in zip(js, m_left):
         new_mass[(0, 0) + j] = m
     new_mass[(0, 0) + node] = m_new
-    x_new = torch.stack([state.x[(0, slice(None)) + j] for j in js]).mean(0) if position is None \
+    x_new = (
+        torch.stack([state.x[(0, slice(None)) + j] for j in js]).mean(0)
+        if position is None
         else state.x.new_tensor(position)
+    )
     state.x[(0, slice(None)) + node] = x_new
     state.v[(0, slice(None)) + node] = (m_nb[:, None] * v_nb).sum(0) / (len(js) + 1) / m_new
     # springs: the mean parameters of the body's remaining springs along the same half-direction
-    live = alive(model)[0]                                                       # (S, D, H, W)
-    k, c, l0 = (None if p is None else full(model, p).clone() for p in (model.stiffness, model.damping,
-                                                                          model.rest_length))
+    live = alive(model)[0]  # (S, D, H, W)
+    k, c, l0 = (
+        None if p is None else full(model, p).clone() for p in (model.stiffness, model.damping, model.rest_length)
+    )
     for (s, *src), j in links:
         at = (0, s, *src)
         n_s = live[s].sum().clamp_min(1)

@@ -48,6 +48,7 @@ Example:
     >>> [(s.label, s.vertices.shape == s.rest.shape) for s in surfaces]     # one closed surface per side
     [(0, True), (32, True)]
 """
+
 from __future__ import annotations
 
 import warnings
@@ -61,8 +62,16 @@ from ..errors import ConfigError
 from ..mesh import body_surface, save_surface
 from ..volume.deform import node_offsets
 
-__all__ = ["CutSurface", "cut_surfaces", "surface_map", "FrameSurface", "save_cut_surfaces", "extend_displacement",
-           "extension_weights", "cut_pieces"]
+__all__ = [
+    "CutSurface",
+    "cut_surfaces",
+    "surface_map",
+    "FrameSurface",
+    "save_cut_surfaces",
+    "extend_displacement",
+    "extension_weights",
+    "cut_pieces",
+]
 
 
 class CutSurface(NamedTuple):
@@ -89,8 +98,11 @@ def _positions(x, shape, key) -> torch.Tensor:
     if x.dim() == 5 and x.shape[0] == 1:
         x = x[0]
     if x.dim() != 4 or tuple(x.shape) != (3, *shape):
-        raise ConfigError(key, f"node positions (3, {', '.join(map(str, shape))}) or a batch of one "
-                               f"(1, 3, ...) of the grid", tuple(x.shape))
+        raise ConfigError(
+            key,
+            f"node positions (3, {', '.join(map(str, shape))}) or a batch of one (1, 3, ...) of the grid",
+            tuple(x.shape),
+        )
     if not x.is_floating_point():
         x = x.double()
     if not bool(torch.isfinite(x).all()):
@@ -104,8 +116,11 @@ def _labels(labels, shape) -> torch.Tensor:
     if t.dim() == 5 and tuple(t.shape[:2]) == (1, 1):
         t = t[0, 0]
     if tuple(t.shape) != tuple(shape) or t.is_floating_point() or t.is_complex() or t.dtype == torch.bool:
-        raise ConfigError("labels", f"integer labels of the grid's nodes {tuple(shape)} (negative: no piece)",
-                          (tuple(t.shape), str(t.dtype)))
+        raise ConfigError(
+            "labels",
+            f"integer labels of the grid's nodes {tuple(shape)} (negative: no piece)",
+            (tuple(t.shape), str(t.dtype)),
+        )
     return t.long()
 
 
@@ -139,8 +154,8 @@ def extension_weights(mask: np.ndarray) -> tuple:
     D, H, W = mask.shape
     mp = np.pad(mask, 2)
 
-    def at(e):                                                   # the mask at index - e, (D, H, W)
-        return mp[2 - e[0]:2 - e[0] + D, 2 - e[1]:2 - e[1] + H, 2 - e[2]:2 - e[2] + W]
+    def at(e):  # the mask at index - e, (D, H, W)
+        return mp[2 - e[0] : 2 - e[0] + D, 2 - e[1] : 2 - e[1] + H, 2 - e[2] : 2 - e[2] + W]
 
     dirs = [(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) != (0, 0, 0)]
     lin_n, near_n = np.zeros(mask.shape), np.zeros(mask.shape)
@@ -198,14 +213,19 @@ def extend_displacement(u: torch.Tensor, mask: torch.Tensor, spacing=(1.0, 1.0, 
     rows, cols, vals = (torch.as_tensor(a, device=u.device) for a in extension_weights(mask.cpu().numpy()))
     E = torch.sparse_coo_tensor(torch.stack([rows, cols]), vals.to(u.dtype), (N, N), check_invariants=False)
     out = (E @ u.reshape(C, N).T).T.reshape(u.shape)
-    out = torch.where(mask, u, out)                                  # the piece exactly as it is
+    out = torch.where(mask, u, out)  # the piece exactly as it is
     filled = torch.zeros(N, dtype=torch.bool, device=u.device)
     filled[rows] = True
     filled = filled.view(mask.shape)
     if not bool(filled.all()):
         from scipy.ndimage import distance_transform_edt
-        idx = distance_transform_edt(~filled.cpu().numpy(), sampling=tuple(float(s) for s in spacing),
-                                     return_distances=False, return_indices=True)
+
+        idx = distance_transform_edt(
+            ~filled.cpu().numpy(),
+            sampling=tuple(float(s) for s in spacing),
+            return_distances=False,
+            return_indices=True,
+        )
         idx = torch.as_tensor(idx, device=u.device)
         out = out[:, idx[0], idx[1], idx[2]]
     return out
@@ -285,6 +305,7 @@ def surface_map(grid, labels: np.ndarray) -> dict:
     from scipy.sparse import coo_matrix, csr_matrix, vstack
 
     from ..mesh import marching_tetrahedra, trilinear_weights
+
     shape = tuple(grid.shape)
     N = int(np.prod(shape))
     X = grid.rest_positions(torch.float64)[0].reshape(3, N).T.numpy()
@@ -301,10 +322,18 @@ def surface_map(grid, labels: np.ndarray) -> dict:
         owner.append(np.full(len(q), int(label)))
         count += len(q)
     if not blocks:
-        return {"weights": csr_matrix((0, N)), "rest": np.zeros((0, 3)), "faces": np.zeros((0, 3), np.int64),
-                "label": np.zeros(0, np.int64)}
-    return {"weights": vstack(blocks).tocsr(), "rest": np.concatenate(rests), "faces": np.concatenate(faces),
-            "label": np.concatenate(owner)}
+        return {
+            "weights": csr_matrix((0, N)),
+            "rest": np.zeros((0, 3)),
+            "faces": np.zeros((0, 3), np.int64),
+            "label": np.zeros(0, np.int64),
+        }
+    return {
+        "weights": vstack(blocks).tocsr(),
+        "rest": np.concatenate(rests),
+        "faces": np.concatenate(faces),
+        "label": np.concatenate(owner),
+    }
 
 
 def save_cut_surfaces(directory, surfaces, stem: str = "piece") -> list[Path]:
@@ -341,8 +370,9 @@ def save_cut_surfaces(directory, surfaces, stem: str = "piece") -> list[Path]:
     for s in surfaces:
         path = directory / f"{stem}_{s.label}.ply"
         rest = np.asarray(s.rest, dtype=np.float64)
-        save_surface(path, s.vertices, s.faces,
-                     vertex_attributes={f"rest_{c}": rest[:, i] for i, c in enumerate("xyz")})
+        save_surface(
+            path, s.vertices, s.faces, vertex_attributes={f"rest_{c}": rest[:, i] for i, c in enumerate("xyz")}
+        )
         paths.append(path)
     return paths
 
@@ -383,8 +413,9 @@ def cut_pieces(grid, x, labels, volume_shape, X=None) -> list[tuple[torch.Tensor
     x, X, labels = _inputs(grid, x, labels, X)
     volume_shape = tuple(int(n) for n in volume_shape)
     if len(volume_shape) != 3 or any(N < n for N, n in zip(volume_shape, grid.shape)):
-        raise ConfigError("volume_shape", f"three voxel counts, each at least the node count {tuple(grid.shape)}",
-                          volume_shape)
+        raise ConfigError(
+            "volume_shape", f"three voxel counts, each at least the node count {tuple(grid.shape)}", volume_shape
+        )
     out = []
     for label in torch.unique(labels[labels >= 0]).tolist():
         mask = labels == label
@@ -422,7 +453,7 @@ class FrameSurface:
         self.source = m = surface_map(grid, labels)
         W = m["weights"].tocsr()
         W.sum_duplicates()
-        used, cols = np.unique(W.indices, return_inverse=True)       # the nodes the surface reads
+        used, cols = np.unique(W.indices, return_inverse=True)  # the nodes the surface reads
         D, H, W_ = shape
         d, h, w = np.unravel_index(used, shape)
         if packed is None:
@@ -433,18 +464,23 @@ class FrameSurface:
         self.stride = stride
         #: (M, 3) flat index of each used node's three coordinates in the positions' storage
         self.index = torch.as_tensor(where[:, None] + stride * np.arange(3)[None, :], device=device)
-        X = grid.rest_positions(torch.float64)[0].reshape(3, -1).T.numpy()[used]         # (M, 3)
+        X = grid.rest_positions(torch.float64)[0].reshape(3, -1).T.numpy()[used]  # (M, 3)
         self.X = torch.as_tensor(X, dtype=dtype, device=device)
         V, M = W.shape[0], len(used)
-        with warnings.catch_warnings():                              # "sparse CSR support is in beta"
+        with warnings.catch_warnings():  # "sparse CSR support is in beta"
             warnings.simplefilter("ignore", UserWarning)
-            self.weights = torch.sparse_csr_tensor(torch.as_tensor(W.indptr, dtype=torch.int64),
-                                                   torch.as_tensor(cols.reshape(-1), dtype=torch.int64),
-                                                   torch.as_tensor(W.data), (V, M), dtype=dtype, device=device,
-                                                   check_invariants=False)
+            self.weights = torch.sparse_csr_tensor(
+                torch.as_tensor(W.indptr, dtype=torch.int64),
+                torch.as_tensor(cols.reshape(-1), dtype=torch.int64),
+                torch.as_tensor(W.data),
+                (V, M),
+                dtype=dtype,
+                device=device,
+                check_invariants=False,
+            )
         self.rest = torch.as_tensor(m["rest"], dtype=dtype, device=device)
         self.faces = torch.as_tensor(m["faces"], dtype=torch.int64, device=device)
-        self._corners = self.faces.T.contiguous()                    # (3, F)
+        self._corners = self.faces.T.contiguous()  # (3, F)
         self._flat = self.faces.reshape(-1)
         # the faces around each vertex, padded with face F (a zero row): (V, K), K = the largest valence
         F_ = int(self.faces.shape[0])
@@ -454,14 +490,17 @@ class FrameSurface:
         start = torch.cumsum(count, 0) - count
         slot = torch.arange(int(count.max()) if V else 0)[None]
         face_of = torch.arange(F_).repeat_interleave(3)[order]
-        self._incident = torch.where(slot < count[:, None], face_of[(start[:, None] + slot).clamp_max(max(3 * F_ - 1, 0))],
-                                     F_).to(device)
+        self._incident = torch.where(
+            slot < count[:, None], face_of[(start[:, None] + slot).clamp_max(max(3 * F_ - 1, 0))], F_
+        ).to(device)
         self.compile_error = None
         self._compiled = None
         if compile:
             from .._compile import INDUCTOR_OPTIONS, inductor_options
-            self._compiled = torch.compile(self._gather_normals, dynamic=False,
-                                           options=inductor_options(INDUCTOR_OPTIONS))
+
+            self._compiled = torch.compile(
+                self._gather_normals, dynamic=False, options=inductor_options(INDUCTOR_OPTIONS)
+            )
 
     @property
     def num_vertices(self) -> int:
@@ -470,7 +509,7 @@ class FrameSurface:
 
     def vertices(self, x: torch.Tensor) -> torch.Tensor:
         """``(V, 3)`` deformed vertices from node positions (packed ``(1, 3, P)`` or grid layout)."""
-        u = x.reshape(-1)[self.index] - self.X                       # (M, 3): only the surface nodes
+        u = x.reshape(-1)[self.index] - self.X  # (M, 3): only the surface nodes
         return torch.addmm(self.rest, self.weights, u)
 
     def normals(self, v: torch.Tensor) -> torch.Tensor:
@@ -484,16 +523,17 @@ class FrameSurface:
             try:
                 with torch.no_grad():
                     return self._compiled(v)
-            except Exception as e:                                   # noqa: BLE001 (any failure -> eager)
+            except Exception as e:  # noqa: BLE001 (any failure -> eager)
                 from .._compile import warn_fallback
+
                 self._compiled = None
                 self.compile_error = f"{type(e).__name__}: {(str(e).strip().splitlines() or [''])[0][:160]}"
                 warn_fallback(self.compile_error, "the eager surface normals")
         return self._scatter_normals(v)
 
     def _face_normals(self, v):
-        p = v[self._flat].view(-1, 3, 3)                             # (F, corner, xyz)
-        return torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=1)   # 2 x area x unit normal
+        p = v[self._flat].view(-1, 3, 3)  # (F, corner, xyz)
+        return torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=1)  # 2 x area x unit normal
 
     @staticmethod
     def _unit(n):
@@ -510,7 +550,7 @@ class FrameSurface:
     def _gather_normals(self, v):
         """Each vertex sums the face normals of its incident faces (no scatter): the compiled path."""
         fn = self._face_normals(v)
-        fn = torch.cat([fn, fn.new_zeros(1, 3)])                     # face F: the padding
+        fn = torch.cat([fn, fn.new_zeros(1, 3)])  # face F: the padding
         return self._unit(fn[self._incident].sum(1))
 
     def __call__(self, x: torch.Tensor):

@@ -20,6 +20,7 @@ Examples:
     >>> tear(model, x, max_strain=0.3), components(model)[1]
     (1, 2)
 """
+
 from __future__ import annotations
 
 import torch
@@ -28,13 +29,12 @@ from ..errors import ConfigError
 from ..sim.springs import difference
 from .masks import alive, assign, ends, full, remove
 
-__all__ = ["spring_lengths", "spring_strain", "tear", "strain_limit_from_force", "coagulate",
-           "coagulated_rest_length"]
+__all__ = ["spring_lengths", "spring_strain", "tear", "strain_limit_from_force", "coagulate", "coagulated_rest_length"]
 
 
 def spring_lengths(grid, x: torch.Tensor) -> torch.Tensor:
     """Current length of every spring slot ``(B, S, D, H, W)`` (zero where the grid has no spring)."""
-    d = difference(x, grid)                                           # (B, S, 3, D, H, W)
+    d = difference(x, grid)  # (B, S, 3, D, H, W)
     return (d * d).sum(2).sqrt() * grid.spring_mask(x.device)
 
 
@@ -66,7 +66,7 @@ def tear(model, x: torch.Tensor, max_strain, one_per_step: bool = False) -> int:
     over = strain > max_strain
     if one_per_step:
         flat = torch.where(over, strain, torch.full_like(strain, -torch.inf)).flatten(1)
-        top = flat.argmax(1)                                          # first of the largest
+        top = flat.argmax(1)  # first of the largest
         pick = torch.zeros_like(flat, dtype=torch.bool)
         pick[torch.arange(flat.shape[0]), top] = True
         over = over & pick.view_as(over)
@@ -97,8 +97,11 @@ def coagulate(model, x: torch.Tensor, region: torch.Tensor, viscosity_factor: fl
     both = at_src & at_dst & alive(model)
     assign(model, "rest_length", coagulated_rest_length(model, x, both))
     if model.damping is not None and viscosity_factor != 1:
-        assign(model, "damping", torch.where(both, full(model, model.damping) * viscosity_factor,
-                                             full(model, model.damping)))
+        assign(
+            model,
+            "damping",
+            torch.where(both, full(model, model.damping) * viscosity_factor, full(model, model.damping)),
+        )
     return int(both.sum())
 
 

@@ -40,6 +40,7 @@ Example:
     ...     gif.n_frames, gif.size                         # (width, height): two 64-pixel panels, a caption band
     (2, (128, 88))
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -51,8 +52,20 @@ from ..errors import ConfigError
 from ..outputs import atomic_path
 from ..texture.mapping import body_texture
 
-__all__ = ["animate", "frame_indices", "drag_forces", "body_texture", "surface_camera", "format_force", "caption",
-           "compose", "write_gif", "SURFACE_DIRECTION", "SURFACE_FOV", "LIGHT"]
+__all__ = [
+    "animate",
+    "frame_indices",
+    "drag_forces",
+    "body_texture",
+    "surface_camera",
+    "format_force",
+    "caption",
+    "compose",
+    "write_gif",
+    "SURFACE_DIRECTION",
+    "SURFACE_FOV",
+    "LIGHT",
+]
 
 #: where the surface camera looks from, in units of the body's largest side from its centre
 SURFACE_DIRECTION = (1.3, -1.1, 0.9)
@@ -124,15 +137,16 @@ def drag_forces(model, x, v, t) -> np.ndarray:
         mask = mask | m[0, 0]
     with torch.no_grad():
         for i in range(T):
-            xi = x[i:i + 1].to(model.device, model.dtype)
-            vi = v[i:i + 1].to(model.device, model.dtype)
-            F = model.forces(xi, vi, float(t[i]))[0]                       # (3, D, H, W)
-            out[i] = (-F[:, mask].sum(1)).double().cpu().numpy() + 0.0             # no -0.0
+            xi = x[i : i + 1].to(model.device, model.dtype)
+            vi = v[i : i + 1].to(model.device, model.dtype)
+            F = model.forces(xi, vi, float(t[i]))[0]  # (3, D, H, W)
+            out[i] = (-F[:, mask].sum(1)).double().cpu().numpy() + 0.0  # no -0.0
     return out
 
 
-def surface_camera(grid, x, size: int = 320, direction=SURFACE_DIRECTION, fov_deg: float = SURFACE_FOV,
-                   fill: float = 0.9):
+def surface_camera(
+    grid, x, size: int = 320, direction=SURFACE_DIRECTION, fov_deg: float = SURFACE_FOV, fill: float = 0.9
+):
     """The perspective camera of the surface panel: it frames the body in every frame of ``x``.
 
     The box of all node positions, widened by half a spacing (the surfaces reach that far), is looked
@@ -163,14 +177,16 @@ def surface_camera(grid, x, size: int = 320, direction=SURFACE_DIRECTION, fov_de
         0.9
     """
     from ..texture.mapping import framing_camera
+
     p = torch.as_tensor(x).detach().double().cpu().transpose(0, 1).reshape(3, -1)
     half = torch.tensor(grid.spacing, dtype=torch.float64) / 2
     lo, hi = p.min(1).values - half, p.max(1).values + half
-    corners = torch.stack([torch.where(torch.tensor([(c >> k) & 1 for k in range(3)], dtype=torch.bool), hi, lo)
-                           for c in range(8)])
+    corners = torch.stack(
+        [torch.where(torch.tensor([(c >> k) & 1 for k in range(3)], dtype=torch.bool), hi, lo) for c in range(8)]
+    )
     d = torch.tensor(direction, dtype=torch.float64)
     d = d / d.norm()
-    for _ in range(8):                                 # the projected size is about inverse to the distance
+    for _ in range(8):  # the projected size is about inverse to the distance
         cam = framing_camera(corners, tuple(d.tolist()), fov_deg, size=(int(size), int(size)))
         reach = float((cam.project(corners)[0] - size / 2).abs().max()) / (size / 2)
         if abs(reach - fill) < 1e-3:
@@ -191,7 +207,7 @@ def format_force(force) -> str:
         return f"{f:.2f} N"
     if f >= 1e-3:
         return f"{f * 1e3:.2f} mN"
-    return f"{f * 1e6:.1f} uN"                                        # the default font has no micro sign
+    return f"{f * 1e6:.1f} uN"  # the default font has no micro sign
 
 
 def caption(t: float, forces: dict | None = None) -> str:
@@ -214,9 +230,10 @@ def caption(t: float, forces: dict | None = None) -> str:
 
 def _font(size: int):
     from PIL import ImageFont
+
     try:
         return ImageFont.load_default(size=size)
-    except TypeError:                                                  # Pillow < 10.1: the bitmap font
+    except TypeError:  # Pillow < 10.1: the bitmap font
         return ImageFont.load_default()
 
 
@@ -238,6 +255,7 @@ def compose(surface, volume, text: str, titles=("surface", "volume")) -> np.ndar
         (88, 128, 3)
     """
     from PIL import Image, ImageDraw
+
     S = surface.shape[0]
     band = max(24, S // 9)
     canvas = Image.new("RGB", (2 * S, S + band), (255, 255, 255))
@@ -272,6 +290,7 @@ def write_gif(frames, path, fps: float = 12.0, hold: float = 1.0, colours: int =
         the file's size in bytes.
     """
     from PIL import Image
+
     ims = [Image.fromarray(np.ascontiguousarray(f)) for f in frames]
     picks = [ims[i] for i in frame_indices(len(ims), 4)]
     w, h = ims[0].size
@@ -292,6 +311,7 @@ def _volume_panel(vol, offsets, tf, mode, view, extent, size, render_scale) -> n
     from PIL import Image
 
     from ..volume import render, to_image
+
     rows, cols = _VIEW_AXES[view.lstrip("-")]
     er, ec = extent[rows], extent[cols]
     ph, pw = (size, max(1, round(size * ec / er))) if er >= ec else (max(1, round(size * er / ec)), size)
@@ -307,9 +327,25 @@ def _volume_panel(vol, offsets, tf, mode, view, extent, size, render_scale) -> n
     return np.asarray(panel)
 
 
-def animate(grid, t, x, out_path, *, labels=None, texture=None, volume="phantom:64", tf: str = "ct-soft",
-            mode: str = "dvr", view: str = "h", forces: dict | None = None, frames: int = 48, size: int = 320,
-            fps: float = 12.0, render_scale: float = 0.4, progress: bool = False) -> dict:
+def animate(
+    grid,
+    t,
+    x,
+    out_path,
+    *,
+    labels=None,
+    texture=None,
+    volume="phantom:64",
+    tf: str = "ct-soft",
+    mode: str = "dvr",
+    view: str = "h",
+    forces: dict | None = None,
+    frames: int = 48,
+    size: int = 320,
+    fps: float = 12.0,
+    render_scale: float = 0.4,
+    progress: bool = False,
+) -> dict:
     """Write an animated GIF of recorded frames: textured surface | deformed volume, time and forces.
 
     Args:
@@ -345,6 +381,7 @@ def animate(grid, t, x, out_path, *, labels=None, texture=None, volume="phantom:
     from ..texture import render_textured
     from ..topology import cut_surfaces
     from ..volume import load_volume, node_offsets
+
     t = np.asarray(t, dtype=np.float64).reshape(-1)
     x = torch.as_tensor(x).detach().double().cpu()
     if x.dim() != 5 or x.shape[1] != 3 or tuple(x.shape[2:]) != grid.shape or len(x) != len(t):
@@ -368,16 +405,23 @@ def animate(grid, t, x, out_path, *, labels=None, texture=None, volume="phantom:
     titles = ("surface: solid texture, shaded", f"volume: {mode}, view {view}")
     images, captions = [], []
     for i in tqdm(idx, disable=not progress, desc="animate", unit="frame"):
-        pieces = cut_surfaces(grid, x[i:i + 1], labels)
+        pieces = cut_surfaces(grid, x[i : i + 1], labels)
         surface = render_textured(pieces, texture, camera, light=LIGHT)["image"]
         surface = (surface.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
-        offsets = node_offsets(x[i:i + 1], X, grid.spacing, tuple(vol.shape)).float()
+        offsets = node_offsets(x[i : i + 1], X, grid.spacing, tuple(vol.shape)).float()
         right = _volume_panel(vol, offsets, tf, mode, view, extent, size, render_scale)
         text = caption(t[i], {k: f[i] for k, f in forces.items()})
         captions.append(text)
         images.append(compose(surface, right, text, titles))
     nbytes = write_gif(images, out_path, fps)
-    return {"file": Path(out_path).name, "frames": len(images), "size": list(images[0].shape[:2]), "panel": size,
-            "indices": idx, "times_s": [float(t[i]) for i in idx], "captions": captions, "bytes": nbytes,
-            "camera": camera}
-
+    return {
+        "file": Path(out_path).name,
+        "frames": len(images),
+        "size": list(images[0].shape[:2]),
+        "panel": size,
+        "indices": idx,
+        "times_s": [float(t[i]) for i in idx],
+        "captions": captions,
+        "bytes": nbytes,
+        "camera": camera,
+    }

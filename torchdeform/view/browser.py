@@ -13,6 +13,7 @@ Examples:
     >>> browser.missing() in (None, browser.missing())      # None where chromium and selenium are installed
     True
 """
+
 from __future__ import annotations
 
 import os
@@ -21,8 +22,7 @@ import time
 
 from ..errors import ConfigError
 
-__all__ = ["CHROMIUM", "CHROMEDRIVER", "WIDTH", "HEIGHT", "missing", "start", "open_page", "js", "measure",
-           "measured"]
+__all__ = ["CHROMIUM", "CHROMEDRIVER", "WIDTH", "HEIGHT", "missing", "start", "open_page", "js", "measure", "measured"]
 
 CHROMIUM, CHROMEDRIVER = "/usr/bin/chromium", "/usr/bin/chromedriver"
 #: the window size (CSS pixels)
@@ -32,8 +32,10 @@ WIDTH, HEIGHT = 800, 600
 def missing() -> str | None:
     """What is missing to drive a browser (one line naming how to install it), or None."""
     if not (os.path.exists(CHROMIUM) and os.path.exists(CHROMEDRIVER)):
-        return (f"Debian's chromium and chromium-driver ({CHROMIUM}, {CHROMEDRIVER}): "
-                "apt-get install chromium chromium-driver")
+        return (
+            f"Debian's chromium and chromium-driver ({CHROMIUM}, {CHROMEDRIVER}): "
+            "apt-get install chromium chromium-driver"
+        )
     try:
         import selenium.webdriver  # noqa: F401
     except ImportError:
@@ -53,12 +55,24 @@ def start(profile_dir, width: int = WIDTH, height: int = HEIGHT):
         raise ConfigError("browser", why, "missing")
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
+
     opts = webdriver.ChromeOptions()
     opts.binary_location = CHROMIUM
-    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-                "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                "--no-first-run", "--disable-extensions", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-                f"--window-size={width},{height}", f"--user-data-dir={profile_dir}"):
+    for arg in (
+        "--headless=new",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-dev-shm-usage",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+        "--no-first-run",
+        "--disable-extensions",
+        "--use-angle=swiftshader",
+        "--enable-unsafe-swiftshader",
+        f"--window-size={width},{height}",
+        f"--user-data-dir={profile_dir}",
+    ):
         opts.add_argument(arg)
     driver = webdriver.Chrome(options=opts, service=Service(CHROMEDRIVER))
     driver.set_script_timeout(30)
@@ -73,11 +87,14 @@ def js(driver, expr: str):
 def open_page(driver, url: str, frames: int = 5, timeout: float = 30.0) -> None:
     """Load a viewer's ``url`` and wait until the page has received ``frames`` frames and a stats message."""
     from selenium.webdriver.support.ui import WebDriverWait
+
     driver.get(url)
     WebDriverWait(driver, timeout).until(
-        lambda d: d.execute_script("return (window.viewerStats && window.viewerStats.framesReceived) || 0") >= frames)
+        lambda d: d.execute_script("return (window.viewerStats && window.viewerStats.framesReceived) || 0") >= frames
+    )
     WebDriverWait(driver, timeout).until(
-        lambda d: d.execute_script("return window.viewerStats && window.viewerStats.lastStats") is not None)
+        lambda d: d.execute_script("return window.viewerStats && window.viewerStats.lastStats") is not None
+    )
 
 
 def measure(driver, seconds: float = 2.0) -> dict:
@@ -90,8 +107,12 @@ def measure(driver, seconds: float = 2.0) -> dict:
     time.sleep(seconds)
     f1, t1 = js(driver, "[window.viewerStats.framesReceived, performance.now()]")
     stats = js(driver, "window.viewerStats")
-    return {"fps": float(stats["fps"]), "received": (f1 - f0) / ((t1 - t0) / 1000.0),
-            "sim_hz": float(stats["lastStats"]["sim_hz"]), "resolution": float(stats["resolution"])}
+    return {
+        "fps": float(stats["fps"]),
+        "received": (f1 - f0) / ((t1 - t0) / 1000.0),
+        "sim_hz": float(stats["lastStats"]["sim_hz"]),
+        "resolution": float(stats["resolution"]),
+    }
 
 
 def measured(driver, windows: int = 3, seconds: float = 2.0, settle: float = 3.0) -> dict:

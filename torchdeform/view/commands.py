@@ -4,6 +4,7 @@ Loads the scene, serves the viewer on loopback (a random token in the URL) and p
 the page's URL. Ctrl-C stops it (exit status 0). A bad scene file is a
 :class:`~torchdeform.errors.ConfigError`: one line on stderr and exit status 2.
 """
+
 from __future__ import annotations
 
 import os
@@ -26,14 +27,17 @@ def add_arguments(p) -> None:
         p: the sub-command's parser.
     """
     p.add_argument("scene", help="scene file (.toml)")
-    p.add_argument("--host", default="127.0.0.1",
-                   help="interface to listen on (default 127.0.0.1: this machine only)")
+    p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=integer(lo=0, hi=65535), default=0, help="port (default 0: a free one)")
     p.add_argument("--token", default=None, help="the URL's secret (default: a random one)")
     p.add_argument("--device", default=None, help="cpu or cuda (default: the scene's, else cpu)")
     p.add_argument("--open", action="store_true", help="open the page in a browser")
-    p.add_argument("--threads", type=integer(lo=1), default=None,
-                   help="CPU threads for the simulation (default: all cores but one, left to the browser)")
+    p.add_argument(
+        "--threads",
+        type=integer(lo=1),
+        default=None,
+        help="CPU threads for the simulation (default: all cores but one, left to the browser)",
+    )
 
 
 def command(args) -> int:
@@ -47,25 +51,31 @@ def command(args) -> int:
     """
     if not 0 <= args.port <= 65535:
         raise ConfigError("--port", "a port in [0, 65535] (0: a free one)", args.port)
-    if args.token is not None and not (8 <= len(args.token) <= 256 and args.token.isprintable()
-                                       and all(c.isalnum() or c in "-_.~" for c in args.token)):
-        raise ConfigError("--token", "8 to 256 URL-safe characters (letters, digits, - _ . ~)", args.token,
-                          show_got=False)
+    if args.token is not None and not (
+        8 <= len(args.token) <= 256 and args.token.isprintable() and all(c.isalnum() or c in "-_.~" for c in args.token)
+    ):
+        raise ConfigError(
+            "--token", "8 to 256 URL-safe characters (letters, digits, - _ . ~)", args.token, show_got=False
+        )
     if args.threads is not None and args.threads < 1:
         raise ConfigError("--threads", "a thread count >= 1", args.threads)
     try:
         import websockets  # noqa: F401 - only to say what is missing
     except ImportError:
-        raise ConfigError("view", "the websockets library (pip install 'torchdeform[viewer]')",
-                          show_got=False) from None
+        raise ConfigError(
+            "view", "the websockets library (pip install 'torchdeform[viewer]')", show_got=False
+        ) from None
     import torch
 
     from ..scene.run import load_scene, one_line_warnings
     from .server import serve
+
     torch.set_num_threads(args.threads or default_threads())
     from .session import ViewerSession
+
     with one_line_warnings():
         scene = load_scene(args.scene)
         session = ViewerSession(scene, device=args.device)
-    return serve(session, args.host, args.port, args.token, log=lambda url: print(url, flush=True),
-                 open_browser=args.open)
+    return serve(
+        session, args.host, args.port, args.token, log=lambda url: print(url, flush=True), open_browser=args.open
+    )

@@ -42,6 +42,7 @@ Examples:
     ...
     ValueError: drag.vertex: expected a vertex index in [0, 10), got 30
 """
+
 from __future__ import annotations
 
 import asyncio
@@ -77,7 +78,7 @@ LOOPBACK = {"127.0.0.1", "localhost", "::1"}
 COMMANDS = ("play", "pause", "reset", "drag", "release", "tool", "cut", "term", "fps", "next")
 _PAGE_HEADERS = {
     "Content-Security-Policy": "default-src 'self'; connect-src 'self'; style-src 'self' 'unsafe-inline'; "
-                               "img-src 'self' data:; frame-ancestors 'none'; base-uri 'none'; form-action 'none'",
+    "img-src 'self' data:; frame-ancestors 'none'; base-uri 'none'; form-action 'none'",
     "Cache-Control": "no-store",
     "Referrer-Policy": "no-referrer",
     "X-Content-Type-Options": "nosniff",
@@ -153,8 +154,12 @@ def validate(msg: Any, vertices: int | None = None) -> dict:
         return {"cmd": cmd}
     if cmd == "drag":
         vertex = msg.get("vertex")
-        if isinstance(vertex, bool) or not isinstance(vertex, int) or vertex < 0 or \
-                (vertices is not None and vertex >= vertices):
+        if (
+            isinstance(vertex, bool)
+            or not isinstance(vertex, int)
+            or vertex < 0
+            or (vertices is not None and vertex >= vertices)
+        ):
             bound = f"[0, {vertices})" if vertices is not None else ">= 0"
             raise ValueError(f"drag.vertex: expected a vertex index in {bound}, got {str(vertex)[:40]}")
         return {"cmd": cmd, "vertex": vertex, "target": _vector(msg.get("target"), "drag.target")}
@@ -168,7 +173,7 @@ def validate(msg: Any, vertices: int | None = None) -> dict:
         if not isinstance(name, str) or not 0 < len(name) <= 64:
             raise ValueError("term.name: expected a term name")
         return {"cmd": cmd, "name": name, "value": _number(msg.get("value"), "term.value")}
-    return {"cmd": cmd, "value": _number(msg.get("value"), "fps.value", 0.0, 1000.0)}   # fps
+    return {"cmd": cmd, "value": _number(msg.get("value"), "fps.value", 0.0, 1000.0)}  # fps
 
 
 def _short(raw: Any, n: int = 60) -> str:
@@ -202,9 +207,9 @@ class _Page:
         self.frame: bytes | None = None
         self.wake = asyncio.Event()
         self.sent_frames = 0
-        self.primed = False             # has been posted a frame of the current body
-        self.pull = False               # the page asks for each frame ("next"): none sent unasked
-        self.credit = 0                 # frames it asked for and has not been sent
+        self.primed = False  # has been posted a frame of the current body
+        self.pull = False  # the page asks for each frame ("next"): none sent unasked
+        self.credit = 0  # frames it asked for and has not been sent
 
     def ask(self) -> None:
         """The page asked for a frame ("next"): from now on frames go only when asked, at most 2 ahead."""
@@ -214,12 +219,12 @@ class _Page:
 
     def post(self, mesh: str | None = None, stats: str | None = None, frame: bytes | None = None) -> None:
         if mesh is not None:
-            self.mesh, self.frame = mesh, None      # a frame of the old mesh is stale
+            self.mesh, self.frame = mesh, None  # a frame of the old mesh is stale
             self.primed = False
         if stats is not None:
             self.stats = stats
         if frame is not None:
-            self.frame = frame                      # replaces an unsent one: the page skips it
+            self.frame = frame  # replaces an unsent one: the page skips it
         self.wake.set()
 
     async def send_loop(self) -> None:
@@ -229,9 +234,9 @@ class _Page:
             for name in ("mesh", "stats", "frame"):
                 data = getattr(self, name)
                 if data is None or (name == "frame" and self.pull and self.credit <= 0):
-                    continue                        # a pulling page gets the newest frame when it asks
+                    continue  # a pulling page gets the newest frame when it asks
                 setattr(self, name, None)
-                await self.ws.send(data)            # waits while the page is slow; newer data replaces
+                await self.ws.send(data)  # waits while the page is slow; newer data replaces
                 if name == "frame":
                     self.sent_frames += 1
                     self.credit -= self.pull
@@ -254,8 +259,15 @@ class Viewer:
     thread, as the tests do).
     """
 
-    def __init__(self, session, host: str = "127.0.0.1", port: int = 0, token: str | None = None,
-                 frame_rate: float = 60.0, stats_rate: float = 5.0):
+    def __init__(
+        self,
+        session,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        token: str | None = None,
+        frame_rate: float = 60.0,
+        stats_rate: float = 5.0,
+    ):
         self.session = session
         self.host = host
         self.port = int(port)
@@ -263,8 +275,8 @@ class Viewer:
         self.frame_rate = float(frame_rate)
         self.stats_rate = float(stats_rate)
         self.page_fps: float | None = None
-        self.frames = 0                 # frames taken from the session and posted to the pages
-        self.ignored = 0                # messages ignored (logged)
+        self.frames = 0  # frames taken from the session and posted to the pages
+        self.ignored = 0  # messages ignored (logged)
         self.pages: set[_Page] = set()
         self._stop_sim = threading.Event()
         self._sim_thread: threading.Thread | None = None
@@ -276,8 +288,8 @@ class Viewer:
         self._mesh_json: str | None = None
         self._mesh_version: int | None = None
         self._vertices: int | None = None
-        self._frame: tuple[int, bytes] | None = None     # (sequence number, positions) of the last snapshot
-        self._changed = False                            # a command may have moved the body
+        self._frame: tuple[int, bytes] | None = None  # (sequence number, positions) of the last snapshot
+        self._changed = False  # a command may have moved the body
 
     # -------------------------------------------------------------- addresses
     @property
@@ -291,9 +303,16 @@ class Viewer:
     def _response(self, status: int, body: bytes, content_type: str, extra: dict | None = None):
         from websockets.datastructures import Headers
         from websockets.http11 import Response
+
         reasons = {200: "OK", 403: "Forbidden", 404: "Not Found", 405: "Method Not Allowed"}
-        headers = Headers({"Content-Type": content_type, "Content-Length": str(len(body)),
-                           "X-Content-Type-Options": "nosniff", "Connection": "close"})
+        headers = Headers(
+            {
+                "Content-Type": content_type,
+                "Content-Length": str(len(body)),
+                "X-Content-Type-Options": "nosniff",
+                "Connection": "close",
+            }
+        )
         for k, v in (extra or {}).items():
             headers[k] = v
         return Response(status, reasons.get(status, ""), headers, body)
@@ -317,7 +336,7 @@ class Viewer:
         path = parts.path
         given = parse_qs(parts.query).get("token", [None])[0]
         if path.startswith("/static/"):
-            name = path[len("/static/"):]
+            name = path[len("/static/") :]
             if name not in STATIC_FILES:
                 return self._response(404, b"404 Not Found\n", "text/plain; charset=utf-8")
             body = (STATIC_DIR / name).read_bytes()
@@ -345,12 +364,12 @@ class Viewer:
             await self._refresh_mesh()
         page.post(mesh=self._mesh_json)
         self.pages.add(page)
-        self._changed = True                # the worker takes a fresh snapshot for it
+        self._changed = True  # the worker takes a fresh snapshot for it
         sender = asyncio.create_task(page.send_loop())
         try:
             async for raw in ws:
                 await self._on_message(raw, page)
-        except Exception as e:      # a broken or oversized message closes this page only
+        except Exception as e:  # a broken or oversized message closes this page only
             logger.info("page connection closed: %s", e)
         finally:
             self.pages.discard(page)
@@ -383,7 +402,7 @@ class Viewer:
             await asyncio.to_thread(self.session.command, msg)
         except ValueError as e:
             return self._ignore(raw, str(e))
-        except Exception as e:      # a session bug must not stop the server
+        except Exception as e:  # a session bug must not stop the server
             return self._ignore(raw, f"{type(e).__name__}: {e}")
         self._changed = True
         await self._refresh_mesh()
@@ -424,7 +443,7 @@ class Viewer:
                     fresh = seq != last
                     last = seq
                     for page in list(self.pages):
-                        if fresh or not page.primed:        # a new page gets the body even when still
+                        if fresh or not page.primed:  # a new page gets the body even when still
                             page.primed = True
                             page.post(frame=frame)
                     self.frames += fresh
@@ -444,11 +463,11 @@ class Viewer:
         while not self._stop_sim.is_set():
             try:
                 steps = self.session.advance(chunk)
-            except Exception as e:      # e.g. a divergence: pause, say so once, keep serving
+            except Exception as e:  # e.g. a divergence: pause, say so once, keep serving
                 logger.error("simulation stopped: %s: %s", type(e).__name__, e)
                 try:
                     self.session.command({"cmd": "pause"})
-                except Exception:       # noqa: S110 - nothing more to do
+                except Exception:  # noqa: S110 - nothing more to do
                     pass
                 steps = 0
             changed, self._changed = self._changed, False
@@ -471,13 +490,21 @@ class Viewer:
             ready: called with this viewer once it listens (its :attr:`port` known).
         """
         from websockets.asyncio.server import serve as ws_serve
+
         self._loop = asyncio.get_running_loop()
         self._stopped = asyncio.Event()
         self._stop_sim.clear()
         self._sim_thread = threading.Thread(target=self._simulate, name="torchdeform-view-sim", daemon=True)
-        async with ws_serve(self._handler, self.host, self.port, process_request=self.process_request,
-                            max_size=MAX_MESSAGE, compression=None, write_limit=2 ** 20,
-                            logger=logging.getLogger("torchdeform.view.websockets")) as server:
+        async with ws_serve(
+            self._handler,
+            self.host,
+            self.port,
+            process_request=self.process_request,
+            max_size=MAX_MESSAGE,
+            compression=None,
+            write_limit=2**20,
+            logger=logging.getLogger("torchdeform.view.websockets"),
+        ) as server:
             self.port = server.sockets[0].getsockname()[1]
             self._sim_thread.start()
             broadcaster = asyncio.create_task(self._broadcast())
@@ -516,12 +543,14 @@ class Viewer:
         Returns:
             This viewer (its :attr:`port` and :attr:`url` set).
         """
+
         def target():
             try:
                 asyncio.run(self.serve_async(lambda _: self._ready.set()))
-            except BaseException as e:      # noqa: BLE001 - reported by start()
+            except BaseException as e:  # noqa: BLE001 - reported by start()
                 self._error = e
                 self._ready.set()
+
         self._thread = threading.Thread(target=target, name="torchdeform-view", daemon=True)
         self._thread.start()
         if not self._ready.wait(timeout) or self._error is not None:
@@ -537,14 +566,20 @@ class Viewer:
         if self._loop is not None and self._stopped is not None and not self._loop.is_closed():
             try:
                 self._loop.call_soon_threadsafe(self._stopped.set)
-            except RuntimeError:        # the loop has just closed
+            except RuntimeError:  # the loop has just closed
                 pass
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout)
 
 
-def serve(session, host: str = "127.0.0.1", port: int = 0, token: str | None = None,
-          log: Callable[[str], Any] | None = print, open_browser: bool = False) -> int:
+def serve(
+    session,
+    host: str = "127.0.0.1",
+    port: int = 0,
+    token: str | None = None,
+    log: Callable[[str], Any] | None = print,
+    open_browser: bool = False,
+) -> int:
     """Serve the viewer of ``session`` until Ctrl-C; returns the exit status (0).
 
     Args:
@@ -558,13 +593,14 @@ def serve(session, host: str = "127.0.0.1", port: int = 0, token: str | None = N
     Returns:
         0 once stopped (Ctrl-C).
     """
+
     def ready(viewer: Viewer) -> None:
         if log is not None:
             log(viewer.url)
         if open_browser:
             import webbrowser
+
             webbrowser.open(viewer.url)
 
     Viewer(session, host, port, token).run(ready)
     return 0
-

@@ -51,6 +51,7 @@ nothing changes)
 Shapes: node positions ``(1, 3, D, H, W)`` (m); vertex positions ``(V, 3)`` in the axis order
 ``(D, H, W)``.
 """
+
 from __future__ import annotations
 
 import math
@@ -77,8 +78,16 @@ TERM_RANGE = (0.0, 10.0)
 #: the integrators the session keeps from a scene (others run with symplectic Euler)
 _KEPT = ("symplectic", "verlet", "rk4")
 _TOOL, _DRAG = "viewer_tool", "viewer_drag"
-_KEYS = {"play": (), "pause": (), "reset": (), "release": (), "drag": ("vertex", "target"), "tool": ("position",),
-         "cut": ("origin", "u", "v"), "term": ("name", "value")}
+_KEYS = {
+    "play": (),
+    "pause": (),
+    "reset": (),
+    "release": (),
+    "drag": ("vertex", "target"),
+    "tool": ("position",),
+    "cut": ("origin", "u", "v"),
+    "term": ("name", "value"),
+}
 
 
 # ------------------------------------------------------------------ a node held at a target
@@ -91,7 +100,7 @@ class _Hold:
     eager_only = True
 
     def __init__(self, node_mask: torch.Tensor, target: torch.Tensor):
-        self.mask, self.target = node_mask, target                  # (1, 1, D, H, W) bool, (1, 3, 1, 1, 1)
+        self.mask, self.target = node_mask, target  # (1, 1, D, H, W) bool, (1, 3, 1, 1, 1)
 
     def force(self, model, x, v, t):
         """Holding adds no force."""
@@ -123,8 +132,10 @@ def _number(value, key: str, lo=-math.inf, hi=math.inf) -> float:
 
 def _point(value, key: str, lo, hi) -> tuple:
     if not isinstance(value, (list, tuple)) or len(value) != 3:
-        _fail(f"{key}: expected three numbers [d, h, w] in metres, got {type(value).__name__}"
-              + (f" of length {len(value)}" if isinstance(value, (list, tuple)) else ""))
+        _fail(
+            f"{key}: expected three numbers [d, h, w] in metres, got {type(value).__name__}"
+            + (f" of length {len(value)}" if isinstance(value, (list, tuple)) else "")
+        )
     return tuple(_number(c, f"{key}[{i}]", lo[i], hi[i]) for i, c in enumerate(value))
 
 
@@ -186,12 +197,12 @@ class ViewerSession:
             self._reach = (tuple(lo - 2 * size for lo in self._lo), tuple(h + 2 * size for h in self._hi))
             self._span = 4 * size
             self.tool_radius = 3.0 * max(grid.spacing)
-            self._k0 = full(self._base, self._base.stiffness).clone()        # the scene's springs
+            self._k0 = full(self._base, self._base.stiffness).clone()  # the scene's springs
             k = self._k0[(self._k0 > 0) & grid.spring_mask(self._k0.device)]
             self._lattice = lattice_modulus(grid)
             self._E0 = float(k.double().median()) * self._lattice if k.numel() else 0.0
         self._c0 = self._scene_consistency() if self._E0 > 0 else None
-        self._timing = None                                   # (dt, tool stiffness) of the scene's model
+        self._timing = None  # (dt, tool stiffness) of the scene's model
         self._reset()
         self._retime()
         self._timing = (self.dt, self._tool_k)
@@ -200,9 +211,10 @@ class ViewerSession:
     def _scene_consistency(self) -> float:
         """The scene's consistency: its ``[material] tissue`` if it has one, else from its modulus."""
         from ..fuzzy.presets import load_preset, tissues
+
         try:
             import tomllib
-        except ImportError:                                    # Python 3.10
+        except ImportError:  # Python 3.10
             import tomli as tomllib
         try:
             tissue = tomllib.loads(self.scene.source.text or "").get("material", {}).get("tissue")
@@ -216,7 +228,7 @@ class ViewerSession:
                 return float(library[tissue]["consistency"])
             if tissue in var.term_names:
                 return float(var.terms[tissue].peak())
-        grid = np.linspace(*TERM_RANGE, 1001)                      # E(c) is non-decreasing: invert it
+        grid = np.linspace(*TERM_RANGE, 1001)  # E(c) is non-decreasing: invert it
         E = np.asarray(tissue_moduli(grid.tolist()))
         i = int(np.searchsorted(E, self._E0))
         if i == 0 or i == len(E):
@@ -305,9 +317,11 @@ class ViewerSession:
         extra = set(msg) - {"cmd", *_KEYS[cmd]}
         missing = [k for k in _KEYS[cmd] if k not in msg]
         if extra or missing:
-            _fail(f"{cmd}: expected the keys {', '.join(('cmd',) + _KEYS[cmd])}"
-                  + (f", unknown {', '.join(sorted(map(str, extra)))}" if extra else "")
-                  + (f", missing {', '.join(missing)}" if missing else ""))
+            _fail(
+                f"{cmd}: expected the keys {', '.join(('cmd',) + _KEYS[cmd])}"
+                + (f", unknown {', '.join(sorted(map(str, extra)))}" if extra else "")
+                + (f", missing {', '.join(missing)}" if missing else "")
+            )
         with self._lock, torch.no_grad():
             getattr(self, f"_cmd_{cmd}")(msg)
 
@@ -345,8 +359,9 @@ class ViewerSession:
         mask = torch.zeros(self.grid.num_nodes, dtype=torch.bool)
         mask[node] = True
         dev, dtype = self.model.device, self.model.dtype
-        self._hold = _Hold(mask.view(1, 1, *self.grid.shape).to(dev),
-                           torch.tensor(target, dtype=dtype, device=dev).view(1, 3, 1, 1, 1))
+        self._hold = _Hold(
+            mask.view(1, 1, *self.grid.shape).to(dev), torch.tensor(target, dtype=dtype, device=dev).view(1, 3, 1, 1, 1)
+        )
         self._drag_node = tuple(int(c) for c in np.unravel_index(node, self.grid.shape))
         self._set_interactions()
 
@@ -379,8 +394,10 @@ class ViewerSession:
     def _cmd_term(self, msg):
         name = msg["name"]
         if name != "consistency" or self._c0 is None:
-            _fail(f"name: expected one of {', '.join(self._terms()) or 'no term (this body has no springs)'}, "
-                  f"got {name!r}"[:200])
+            _fail(
+                f"name: expected one of {', '.join(self._terms()) or 'no term (this body has no springs)'}, "
+                f"got {name!r}"[:200]
+            )
         value = _number(msg["value"], "value", *TERM_RANGE)
         factor = tissue_moduli([value])[0] / self._E0
         k = self.model.stiffness
@@ -416,7 +433,7 @@ class ViewerSession:
                 new = self.integrator.step(self.model, self.state, self.dt)
                 if bool(torch.isfinite(new.x).all()) and bool(torch.isfinite(new.v).all()):
                     self.state = new
-                else:                                           # undo the step, halve dt
+                else:  # undo the step, halve dt
                     self.dt *= 0.5
             steps += 1
             if time.perf_counter() - start >= seconds:
@@ -438,9 +455,15 @@ class ViewerSession:
         with self._lock:
             rest = self._rest_np
             bounds = [rest.min(0).tolist(), rest.max(0).tolist()] if len(rest) else [self._lo, self._hi]
-            return {"type": "mesh", "version": self.mesh_version, "vertices": len(rest),
-                    "faces": self._faces.reshape(-1).tolist(), "bounds": bounds, "terms": self._terms(),
-                    "tool_radius": self.tool_radius}
+            return {
+                "type": "mesh",
+                "version": self.mesh_version,
+                "vertices": len(rest),
+                "faces": self._faces.reshape(-1).tolist(),
+                "bounds": bounds,
+                "terms": self._terms(),
+                "tool_radius": self.tool_radius,
+            }
 
     def positions(self) -> bytes:
         """The surface's vertex positions now: ``V * 3`` float32 little-endian values (m, axes D, H, W)."""
@@ -467,7 +490,13 @@ class ViewerSession:
                 f = readings.get(f"{name}.force")
                 return float(f[0].double().norm()) if f is not None else 0.0
 
-            return {"type": "stats", "t": float(self.state.t), "sim_hz": self._rate if self.playing else 0.0,
-                    "force": magnitude(_TOOL) if self._tool is not None else 0.0,
-                    "drag_force": magnitude(_DRAG) if self._hold is not None else 0.0,
-                    "springs": self._springs, "playing": self.playing, "mesh_version": self.mesh_version}
+            return {
+                "type": "stats",
+                "t": float(self.state.t),
+                "sim_hz": self._rate if self.playing else 0.0,
+                "force": magnitude(_TOOL) if self._tool is not None else 0.0,
+                "drag_force": magnitude(_DRAG) if self._hold is not None else 0.0,
+                "springs": self._springs,
+                "playing": self.playing,
+                "mesh_version": self.mesh_version,
+            }

@@ -3,6 +3,7 @@
 Bad input (wrong shapes or dtypes, NaN voxels, unknown file types, a node grid finer than the
 volume) is a :class:`~torchdeform.errors.ConfigError`: one line on stderr and exit status 2.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -37,8 +38,9 @@ def load_offsets(path, volume_shape=None):
     if arr.dtype.kind not in "iuf":
         raise ConfigError("offsets", "a numeric array of node offsets", f"{path}: dtype {arr.dtype}")
     if arr.ndim != 4 or arr.shape[0] != 3:
-        raise ConfigError("offsets", "an array of shape (3, n_d, n_h, n_w) (voxels, channels D, H, W)",
-                          f"{path}: shape {arr.shape}")
+        raise ConfigError(
+            "offsets", "an array of shape (3, n_d, n_h, n_w) (voxels, channels D, H, W)", f"{path}: shape {arr.shape}"
+        )
     return as_offsets(torch.as_tensor(np.asarray(arr, dtype=np.float32)), volume_shape, key=f"offsets ({path})")
 
 
@@ -49,13 +51,23 @@ def warp_command(args) -> int:
     if args.inverse_iters < 0:
         raise ConfigError("--inverse-iters", "an integer >= 0", args.inverse_iters)
     with torch.no_grad():
-        out, info = warp(torch.from_numpy(vol), offsets, args.mode, inverse_iters=args.inverse_iters,
-                         order=args.order, padding=args.padding, fill=args.fill, return_info=True)
+        out, info = warp(
+            torch.from_numpy(vol),
+            offsets,
+            args.mode,
+            inverse_iters=args.inverse_iters,
+            order=args.order,
+            padding=args.padding,
+            fill=args.fill,
+            return_info=True,
+        )
     save_volume(args.out, out.numpy())
     folded = info["folded"]
-    print(f"warped {args.volume} {vol.shape} by {tuple(offsets.shape[2:])} nodes ({args.mode}"
-          f"{', %d inverse iterations' % info['iterations'] if args.inverse_iters else ''}"
-          f"{', folded %.2f%%' % (100 * folded) if folded else ''}) -> {args.out}")
+    print(
+        f"warped {args.volume} {vol.shape} by {tuple(offsets.shape[2:])} nodes ({args.mode}"
+        f"{', %d inverse iterations' % info['iterations'] if args.inverse_iters else ''}"
+        f"{', folded %.2f%%' % (100 * folded) if folded else ''}) -> {args.out}"
+    )
     return 0
 
 
@@ -73,9 +85,13 @@ def add_render_arguments(p) -> None:
     p.add_argument("--frames", type=integer(lo=1, hi=3600), default=24, help="GIF orbit frames (default 24)")
     p.add_argument("--step", type=number(lo=0.05), default=1.0, help="sample spacing along rays in voxels")
     p.add_argument("--inverse-iters", type=integer(lo=0), default=0)
-    p.add_argument("--engine", choices=("grid_sample", "eager", "compiled"), default="grid_sample",
-                   help="axis views through --offsets: grid_sample (default), or the fused fast path, "
-                        "compiled (~10x faster per frame, 30-60 s to compile once) or eager")
+    p.add_argument(
+        "--engine",
+        choices=("grid_sample", "eager", "compiled"),
+        default="grid_sample",
+        help="axis views through --offsets: grid_sample (default), or the fused fast path, "
+        "compiled (~10x faster per frame, 30-60 s to compile once) or eager",
+    )
 
 
 def render_command(args) -> int:
@@ -95,8 +111,11 @@ def render_command(args) -> int:
         if out.suffix.lower() == ".gif":
             save_gif(out, orbit_frames(vol, args.frames, args.elevation, (args.size, args.size), **kw))
         else:
-            view = OrbitCamera(args.azimuth, args.elevation, size=(args.size, args.size)) \
-                if args.view == "orbit" else args.view
+            view = (
+                OrbitCamera(args.azimuth, args.elevation, size=(args.size, args.size))
+                if args.view == "orbit"
+                else args.view
+            )
             img = render(vol, view=view, engine=args.engine, **kw)
             save_png(out, to_image(img, flip_up=args.view in ("h", "-h", "w", "-w")))
     print(f"rendered {args.volume} ({args.mode}, view {args.view}) -> {out}")

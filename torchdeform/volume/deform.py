@@ -43,6 +43,7 @@ Example:
     >>> torch.allclose(out[:, :, 1:], vol[:, :, :-1])
     True
 """
+
 from __future__ import annotations
 
 import math
@@ -69,6 +70,7 @@ def _tensor(value, key: str, kinds: str, expected: str) -> torch.Tensor:
         return value
     try:
         import numpy as np
+
         arr = np.asarray(value)
         if arr.dtype.kind not in kinds:
             raise TypeError
@@ -95,7 +97,7 @@ def as_volume(volume, key: str = "volume", dtype=None) -> tuple[torch.Tensor, bo
         volume = volume.to(dtype or torch.float32)
     elif dtype is not None:
         volume = volume.to(dtype)
-    lo, hi = torch.aminmax(volume)               # one pass, NaN propagates (10x cheaper than isfinite().all())
+    lo, hi = torch.aminmax(volume)  # one pass, NaN propagates (10x cheaper than isfinite().all())
     if not (math.isfinite(float(lo)) and math.isfinite(float(hi))):
         bad = int((~torch.isfinite(volume)).sum())
         raise ConfigError(key, "finite voxel values (no NaN or inf)", f"{bad} non-finite voxels")
@@ -115,8 +117,11 @@ def as_offsets(offsets, volume_shape=None, key: str = "offsets", dtype=None, dev
     if offsets.dim() == 4:
         offsets = offsets[None]
     if offsets.dim() != 5 or offsets.shape[1] != 3 or min(offsets.shape) < 1:
-        raise ConfigError(key, "an array of shape (3, n_d, n_h, n_w) or (B, 3, n_d, n_h, n_w), channel order "
-                               "(D, H, W)", tuple(offsets.shape))
+        raise ConfigError(
+            key,
+            "an array of shape (3, n_d, n_h, n_w) or (B, 3, n_d, n_h, n_w), channel order (D, H, W)",
+            tuple(offsets.shape),
+        )
     if not offsets.is_floating_point():
         offsets = offsets.to(torch.float32)
     offsets = offsets.to(dtype=dtype or offsets.dtype, device=device)
@@ -125,8 +130,11 @@ def as_offsets(offsets, volume_shape=None, key: str = "offsets", dtype=None, dev
     if volume_shape is not None:
         for n, N, ax in zip(offsets.shape[2:], volume_shape, "DHW"):
             if n > N:
-                raise ConfigError(key, f"a node grid no finer than the volume {tuple(volume_shape)} "
-                                       f"(axis {ax}: {n} nodes for {N} voxels)", tuple(offsets.shape[1:]))
+                raise ConfigError(
+                    key,
+                    f"a node grid no finer than the volume {tuple(volume_shape)} (axis {ax}: {n} nodes for {N} voxels)",
+                    tuple(offsets.shape[1:]),
+                )
     return offsets
 
 
@@ -177,8 +185,9 @@ def identity_points(shape, dtype=torch.float32, device=None) -> torch.Tensor:
     return torch.stack(torch.meshgrid(*axes, indexing="ij"))[None]
 
 
-def sample(volume: torch.Tensor, points: torch.Tensor, padding: str = "border", fill: float = 0.0,
-           align_corners: bool = True) -> torch.Tensor:
+def sample(
+    volume: torch.Tensor, points: torch.Tensor, padding: str = "border", fill: float = 0.0, align_corners: bool = True
+) -> torch.Tensor:
     """Trilinear samples of ``volume`` at voxel coordinates.
 
     Args:
@@ -196,8 +205,13 @@ def sample(volume: torch.Tensor, points: torch.Tensor, padding: str = "border", 
     pts = points.reshape(points.shape[0], 3, -1, 1, 1) if len(S) != 3 else points
     grid = to_grid_sample(pts, volume.shape[2:], align_corners)
     vol = volume - fill if (padding == "zeros" and fill) else volume
-    out = F.grid_sample(vol.expand(B, *vol.shape[1:]), grid.expand(B, *grid.shape[1:]), mode="bilinear",
-                        padding_mode="border" if padding == "border" else "zeros", align_corners=align_corners)
+    out = F.grid_sample(
+        vol.expand(B, *vol.shape[1:]),
+        grid.expand(B, *grid.shape[1:]),
+        mode="bilinear",
+        padding_mode="border" if padding == "border" else "zeros",
+        align_corners=align_corners,
+    )
     if padding == "zeros" and fill:
         out = out + fill
     return out.reshape(B, volume.shape[1], *S)
@@ -207,8 +221,7 @@ def sample(volume: torch.Tensor, points: torch.Tensor, padding: str = "border", 
 def _bspline(t: torch.Tensor) -> torch.Tensor:
     """Cubic B-spline kernel."""
     a = t.abs()
-    return torch.where(a < 1, (4 - 6 * a ** 2 + 3 * a ** 3) / 6,
-                       torch.where(a < 2, (2 - a) ** 3 / 6, torch.zeros_like(a)))
+    return torch.where(a < 1, (4 - 6 * a**2 + 3 * a**3) / 6, torch.where(a < 2, (2 - a) ** 3 / 6, torch.zeros_like(a)))
 
 
 def axis_weights_at(pos, n: int, N: int, order: str = "linear", cell_centred: bool = False) -> torch.Tensor:
@@ -228,13 +241,14 @@ def axis_weights_at(pos, n: int, N: int, order: str = "linear", cell_centred: bo
         a = torch.arange(n, dtype=pos.dtype, device=pos.device)
         return (1 - (t[:, None] - a[None]).abs()).clamp(min=0)
     ext = torch.arange(-2, n + 2, dtype=pos.dtype, device=pos.device)
-    w = _bspline(t[:, None] - ext[None])                                  # (P, n + 4)
+    w = _bspline(t[:, None] - ext[None])  # (P, n + 4)
     Wm = torch.zeros(pos.shape[0], n, dtype=pos.dtype, device=pos.device)
     return Wm.index_add(1, ext.clamp(0, n - 1).long(), w)
 
 
-def axis_weights(n: int, N: int, order: str = "linear", dtype=torch.float64, device=None,
-                 cell_centred: bool = False) -> torch.Tensor:
+def axis_weights(
+    n: int, N: int, order: str = "linear", dtype=torch.float64, device=None, cell_centred: bool = False
+) -> torch.Tensor:
     """Interpolation matrix ``(N, n)`` from ``n`` nodes to the ``N`` voxel centres of an axis.
 
     :func:`axis_weights_at` at ``0, 1, ..., N - 1``.
@@ -303,8 +317,10 @@ class DisplacementField:
         """The field at every voxel centre, ``(B, 3, D, H, W)`` (built once)."""
         if self._dense is None:
             if self.cell_centred:
-                W = [axis_weights(n, N, "linear", self.nodes.dtype, self.nodes.device, cell_centred=True)
-                     for n, N in zip(self.node_shape, self.volume_shape)]
+                W = [
+                    axis_weights(n, N, "linear", self.nodes.dtype, self.nodes.device, cell_centred=True)
+                    for n, N in zip(self.node_shape, self.volume_shape)
+                ]
                 self._dense = torch.einsum("bcijk,Di,Hj,Wk->bcDHW", self.nodes, *W)
             else:
                 self._dense = offset_texture(self.nodes, self.volume_shape, self.order)
@@ -393,12 +409,13 @@ def jacobian_determinant(field: torch.Tensor, spacing=(1.0, 1.0, 1.0)) -> torch.
     """
     if field.dim() != 5 or field.shape[1] != 3 or min(field.shape[2:]) < 2:
         raise ConfigError("field", "a displacement field (B, 3, D, H, W) with every axis >= 2", tuple(field.shape))
-    grads = [torch.gradient(field[:, c], spacing=tuple(float(s) for s in spacing), dim=(1, 2, 3))
-             for c in range(3)]
+    grads = [torch.gradient(field[:, c], spacing=tuple(float(s) for s in spacing), dim=(1, 2, 3)) for c in range(3)]
     J = [[grads[i][j] + (1.0 if i == j else 0.0) for j in range(3)] for i in range(3)]
-    return (J[0][0] * (J[1][1] * J[2][2] - J[1][2] * J[2][1])
-            - J[0][1] * (J[1][0] * J[2][2] - J[1][2] * J[2][0])
-            + J[0][2] * (J[1][0] * J[2][1] - J[1][1] * J[2][0]))
+    return (
+        J[0][0] * (J[1][1] * J[2][2] - J[1][2] * J[2][1])
+        - J[0][1] * (J[1][0] * J[2][2] - J[1][2] * J[2][0])
+        + J[0][2] * (J[1][0] * J[2][1] - J[1][1] * J[2][0])
+    )
 
 
 def folding_fraction(offsets, volume_shape, order: str = "linear", samples=None) -> float:
@@ -429,15 +446,25 @@ def check_folding(offsets, volume_shape, order: str = "linear", stacklevel: int 
     """:func:`folding_fraction`, warning (:class:`FoldingWarning`) when it is above zero."""
     frac = folding_fraction(offsets, volume_shape, order)
     if frac > 0:
-        warnings.warn(f"the deformation folds: det(I + grad u) <= 0 at {frac:.2%} of the samples; node offsets "
-                      f"above about half the node spacing turn the volume inside out there",
-                      FoldingWarning, stacklevel=stacklevel + 1)
+        warnings.warn(
+            f"the deformation folds: det(I + grad u) <= 0 at {frac:.2%} of the samples; node offsets "
+            f"above about half the node spacing turn the volume inside out there",
+            FoldingWarning,
+            stacklevel=stacklevel + 1,
+        )
     return frac
 
 
 # ------------------------------------------------------------------ warping
-def sample_points(offsets, volume_shape, mode: str = "deform", inverse_iters: int = 0, tol: float = 1e-4,
-                  order: str = "linear", points: torch.Tensor | None = None):
+def sample_points(
+    offsets,
+    volume_shape,
+    mode: str = "deform",
+    inverse_iters: int = 0,
+    tol: float = 1e-4,
+    order: str = "linear",
+    points: torch.Tensor | None = None,
+):
     """Where :func:`warp` samples the volume: ``(X (B, 3, *S), info)``.
 
     ``points`` (voxel coordinates ``(B or 1, 3, *S)``) default to every voxel centre.
@@ -452,9 +479,20 @@ def sample_points(offsets, volume_shape, mode: str = "deform", inverse_iters: in
     return X, info
 
 
-def warp(volume, offsets, mode: str = "deform", *, inverse_iters: int = 0, tol: float = 1e-4,
-         order: str = "linear", padding: str = "border", fill: float = 0.0, material=None,
-         check: bool = True, return_info: bool = False):
+def warp(
+    volume,
+    offsets,
+    mode: str = "deform",
+    *,
+    inverse_iters: int = 0,
+    tol: float = 1e-4,
+    order: str = "linear",
+    padding: str = "border",
+    fill: float = 0.0,
+    material=None,
+    check: bool = True,
+    return_info: bool = False,
+):
     """Deform a volume by node offsets.
 
     Args:
@@ -532,8 +570,7 @@ def _material(material, u, shape, vol) -> torch.Tensor:
         m = m[None, None]
     node_shape = tuple(u.shape[2:])
     if m.dim() != 5 or m.shape[1] != 1 or tuple(m.shape[2:]) not in (node_shape, shape):
-        raise ConfigError("material", f"an array of the node grid {node_shape} or the volume {shape}",
-                          tuple(m.shape))
+        raise ConfigError("material", f"an array of the node grid {node_shape} or the volume {shape}", tuple(m.shape))
     if not bool(torch.isfinite(m).all()):
         raise ConfigError("material", "finite values in [0, 1]", "non-finite values", show_got=True)
     if tuple(m.shape[2:]) == node_shape and node_shape != shape:
@@ -561,6 +598,24 @@ def node_offsets(x: torch.Tensor, X: torch.Tensor, spacing, volume_shape) -> tor
     return (x - X) * torch.tensor(scale, dtype=x.dtype, device=x.device).view(1, 3, 1, 1, 1)
 
 
-__all__ = ["FoldingWarning", "DisplacementField", "MODES", "as_volume", "as_offsets", "to_grid_sample",
-           "identity_points", "sample", "axis_weights", "axis_weights_at", "offset_texture", "inverse_points", "inverse_residual",
-           "jacobian_determinant", "folding_fraction", "check_folding", "sample_points", "warp", "node_offsets"]
+__all__ = [
+    "FoldingWarning",
+    "DisplacementField",
+    "MODES",
+    "as_volume",
+    "as_offsets",
+    "to_grid_sample",
+    "identity_points",
+    "sample",
+    "axis_weights",
+    "axis_weights_at",
+    "offset_texture",
+    "inverse_points",
+    "inverse_residual",
+    "jacobian_determinant",
+    "folding_fraction",
+    "check_folding",
+    "sample_points",
+    "warp",
+    "node_offsets",
+]

@@ -14,6 +14,7 @@ Example:
     >>> load_volume(path).shape
     (4, 5, 6)
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -25,8 +26,10 @@ from ..errors import ConfigError
 from ..outputs import atomic_path, require_finite
 
 SUFFIXES = (".npy", ".npz", ".nii", ".nii.gz", ".nrrd", ".nhdr")
-_EXTRA = {"nibabel": "NIfTI files need nibabel: pip install nibabel (or torchdeform[volume])",
-          "nrrd": "NRRD files need pynrrd: pip install pynrrd (or torchdeform[volume])"}
+_EXTRA = {
+    "nibabel": "NIfTI files need nibabel: pip install nibabel (or torchdeform[volume])",
+    "nrrd": "NRRD files need pynrrd: pip install pynrrd (or torchdeform[volume])",
+}
 
 
 def _suffix(path: Path) -> str:
@@ -51,11 +54,13 @@ def check_array(arr, key: str, path=None, ndim: int = 3) -> np.ndarray:
     if arr.dtype.kind not in "biuf":
         raise ConfigError(key, "a numeric array (integers or floats)", f"{where}dtype {arr.dtype}")
     if arr.ndim != ndim or min(arr.shape, default=0) < 1:
-        raise ConfigError(key, f"a non-empty {ndim}-D array" + (" (D, H, W)" if ndim == 3 else ""),
-                          f"{where}shape {arr.shape}")
+        raise ConfigError(
+            key, f"a non-empty {ndim}-D array" + (" (D, H, W)" if ndim == 3 else ""), f"{where}shape {arr.shape}"
+        )
     if arr.dtype.kind == "f" and not np.isfinite(arr).all():
-        raise ConfigError(key, "finite values (no NaN or inf)",
-                          f"{where}{int((~np.isfinite(arr)).sum())} non-finite values")
+        raise ConfigError(
+            key, "finite values (no NaN or inf)", f"{where}{int((~np.isfinite(arr)).sum())} non-finite values"
+        )
     return arr
 
 
@@ -75,8 +80,9 @@ def read_array(path, key: str = "volume") -> np.ndarray:
                 names = list(z.files)
                 name = "volume" if "volume" in names else (names[0] if len(names) == 1 else None)
                 if name is None:
-                    raise ConfigError(key, "an .npz with one array or an array named 'volume'",
-                                      f"{path} (arrays {names})")
+                    raise ConfigError(
+                        key, "an .npz with one array or an array named 'volume'", f"{path} (arrays {names})"
+                    )
                 return z[name]
         if suffix in (".nii", ".nii.gz"):
             nib = _optional("nibabel", key, path)
@@ -86,7 +92,7 @@ def read_array(path, key: str = "volume") -> np.ndarray:
         return data
     except ConfigError:
         raise
-    except Exception as e:                              # corrupt files raise many kinds
+    except Exception as e:  # corrupt files raise many kinds
         raise ConfigError(key, f"a readable {suffix} file", f"{path} ({type(e).__name__}: {e})") from None
 
 
@@ -99,6 +105,7 @@ def load_volume(path, key: str = "volume") -> np.ndarray:
     text = str(path)
     if text == "phantom" or text.startswith("phantom:"):
         from .phantoms import phantom
+
         return phantom((_phantom_side(text, key),) * 3).numpy()
     arr = check_array(read_array(path, key), key, path)
     return np.ascontiguousarray(arr, dtype=np.float32)
@@ -113,7 +120,7 @@ def _phantom_side(text: str, key: str) -> int:
     if n < 8:
         raise ConfigError(key, "phantom or phantom:N with N >= 8 voxels", text)
     # the volume, its warped copy and the render's sample buffers: about 6 float32 copies
-    check_memory(key, 24.0 * n ** 3, f"a phantom of {n}^3 voxels", got=text)
+    check_memory(key, 24.0 * n**3, f"a phantom of {n}^3 voxels", got=text)
     return n
 
 
@@ -149,7 +156,7 @@ def save_volume(path, volume, spacing=(1.0, 1.0, 1.0), key: str = "--out") -> No
         module = _optional("nibabel", key, path)
     elif suffix == ".nrrd":
         module = _optional("nrrd", key, path)
-    with atomic_path(path, key) as tmp:            # a failed write leaves an earlier file whole
+    with atomic_path(path, key) as tmp:  # a failed write leaves an earlier file whole
         if suffix == ".npy":
             np.save(tmp, arr)
         elif suffix == ".npz":

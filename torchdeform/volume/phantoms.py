@@ -23,6 +23,7 @@ Example:
     >>> tuple(v.shape), float(v.min()), float(v.max()) > 700
     ((32, 32, 32), -1000.0, True)
 """
+
 from __future__ import annotations
 
 import math
@@ -77,8 +78,12 @@ def phantom(shape=(128, 128, 128), noise: float = 8.0, seed: int = 0, dtype=torc
     v[_ellipsoid(z, y, x, (0, 0, 0), (0.88, 0.64, 0.82)) <= 1] = SOFT
     liver = _ellipsoid(z, y, x, (0.15, -0.05, -0.38), (0.45, 0.42, 0.36)) <= 1
     v[liver] = LIVER
-    for a, b in (((0.45, 0.1, -0.3), (0.0, -0.05, -0.45)), ((0.0, -0.05, -0.45), (-0.2, -0.25, -0.3)),
-                 ((0.0, -0.05, -0.45), (-0.15, 0.2, -0.55)), ((0.45, 0.1, -0.3), (0.3, -0.3, -0.2))):
+    for a, b in (
+        ((0.45, 0.1, -0.3), (0.0, -0.05, -0.45)),
+        ((0.0, -0.05, -0.45), (-0.2, -0.25, -0.3)),
+        ((0.0, -0.05, -0.45), (-0.15, 0.2, -0.55)),
+        ((0.45, 0.1, -0.3), (0.3, -0.3, -0.2)),
+    ):
         v[liver & (_segment_distance(z, y, x, a, b) < 0.035)] = VESSEL
     t = _ellipsoid(z, y, x, (0.25, -0.2, -0.5), (0.12, 0.12, 0.12))
     v[t <= 1] = RIM
@@ -89,7 +94,7 @@ def phantom(shape=(128, 128, 128), noise: float = 8.0, seed: int = 0, dtype=torc
         v[k <= 0.5] = KIDNEY
     v[_segment_distance(z, y, x, (0.9, 0.12, 0.08), (-0.9, 0.12, 0.08)) < 0.07] = AORTA
     v[_segment_distance(z, y, x, (0.9, 0.1, -0.12), (-0.9, 0.1, -0.12)) < 0.08] = CAVA
-    r = ((y - 0.42) ** 2 + x ** 2).sqrt()
+    r = ((y - 0.42) ** 2 + x**2).sqrt()
     column = (r < 0.16) & (z.abs() < 0.85)
     disc = torch.cos(z * math.pi * 6).abs() > 0.93
     v[column] = BONE

@@ -52,6 +52,7 @@ Example:
     >>> tuple(img.shape), float(img.max())
     ((1, 1, 8, 8), 1000.0)
 """
+
 from __future__ import annotations
 
 import math
@@ -102,14 +103,18 @@ class TransferFunction:
         sigma = sigma if torch.is_tensor(sigma) else torch.as_tensor(sigma, dtype=torch.float32)
         K = self.values.numel()
         if K < 2 or not bool((self.values[1:] > self.values[:-1]).all()) or not bool(torch.isfinite(self.values).all()):
-            raise ConfigError("transfer function values", "at least two finite, strictly increasing values",
-                              self.values.tolist())
+            raise ConfigError(
+                "transfer function values", "at least two finite, strictly increasing values", self.values.tolist()
+            )
         if tuple(colors.shape) != (K, 3):
             raise ConfigError("transfer function colors", f"{K} RGB triples (K, 3)", tuple(colors.shape))
         if tuple(sigma.shape) != (K,):
             raise ConfigError("transfer function opacity", f"{K} values", tuple(sigma.shape))
-        if not bool(torch.isfinite(colors).all()) or not bool(torch.isfinite(sigma).all()) \
-                or bool((sigma.detach() < 0).any()):
+        if (
+            not bool(torch.isfinite(colors).all())
+            or not bool(torch.isfinite(sigma).all())
+            or bool((sigma.detach() < 0).any())
+        ):
             raise ConfigError("transfer function", "finite colours and opacities >= 0", "bad values", show_got=True)
         if int(resolution) < 2:
             raise ConfigError("resolution", "an integer >= 2", resolution)
@@ -133,7 +138,9 @@ class TransferFunction:
         x = torch.linspace(float(v[0]), float(v[-1]), self.resolution, dtype=torch.float64, device=device)
         i = torch.searchsorted(v, x, right=True).clamp(1, len(v) - 1)
         f = ((x - v[i - 1]) / (v[i] - v[i - 1])).to(dtype)[:, None]
-        knots = torch.cat([self.colors.to(dtype=dtype, device=device), self.sigma.to(dtype=dtype, device=device)[:, None]], 1)
+        knots = torch.cat(
+            [self.colors.to(dtype=dtype, device=device), self.sigma.to(dtype=dtype, device=device)[:, None]], 1
+        )
         return knots[i - 1] * (1 - f) + knots[i] * f
 
     def lookup(self, v: torch.Tensor, lo: float, hi: float, table: torch.Tensor | None = None) -> torch.Tensor:
@@ -153,8 +160,9 @@ class TransferFunction:
 
     def to(self, dtype) -> "TransferFunction":
         """A copy with colours and extinctions in ``dtype`` (the control values stay float64)."""
-        return TransferFunction(self.values, self.colors.to(dtype), self.sigma.to(dtype), self.relative,
-                                self.resolution, self.name)
+        return TransferFunction(
+            self.values, self.colors.to(dtype), self.sigma.to(dtype), self.relative, self.resolution, self.name
+        )
 
     # ------------------------------------------------------------ files
     def save(self, path) -> None:
@@ -169,13 +177,29 @@ class TransferFunction:
 
 #: name -> (values, colors, sigma, relative). CT values in Hounsfield units.
 PRESETS = {
-    "ct-bone": ([-1000, 150, 250, 400, 1000, 3000],
-                [[0, 0, 0], [0.55, 0.25, 0.2], [0.9, 0.75, 0.6], [1.0, 0.95, 0.85], [1, 1, 1], [1, 1, 1]],
-                [0.0, 0.0, 0.02, 0.3, 1.0, 1.0], False),
-    "ct-soft": ([-1000, -300, -120, -60, 20, 60, 90, 200, 400, 3000],
-                [[0, 0, 0], [0, 0, 0], [0.9, 0.8, 0.4], [0.9, 0.8, 0.4], [0.75, 0.3, 0.25], [0.85, 0.4, 0.3],
-                 [1.0, 0.6, 0.4], [1.0, 0.3, 0.3], [1, 1, 0.95], [1, 1, 1]],
-                [0.0, 0.0, 0.004, 0.004, 0.01, 0.03, 0.06, 0.1, 0.5, 1.0], False),
+    "ct-bone": (
+        [-1000, 150, 250, 400, 1000, 3000],
+        [[0, 0, 0], [0.55, 0.25, 0.2], [0.9, 0.75, 0.6], [1.0, 0.95, 0.85], [1, 1, 1], [1, 1, 1]],
+        [0.0, 0.0, 0.02, 0.3, 1.0, 1.0],
+        False,
+    ),
+    "ct-soft": (
+        [-1000, -300, -120, -60, 20, 60, 90, 200, 400, 3000],
+        [
+            [0, 0, 0],
+            [0, 0, 0],
+            [0.9, 0.8, 0.4],
+            [0.9, 0.8, 0.4],
+            [0.75, 0.3, 0.25],
+            [0.85, 0.4, 0.3],
+            [1.0, 0.6, 0.4],
+            [1.0, 0.3, 0.3],
+            [1, 1, 0.95],
+            [1, 1, 1],
+        ],
+        [0.0, 0.0, 0.004, 0.004, 0.01, 0.03, 0.06, 0.1, 0.5, 1.0],
+        False,
+    ),
     "grey": ([0.0, 1.0], [[0, 0, 0], [1, 1, 1]], [0.0, 0.05], True),
 }
 
@@ -200,8 +224,9 @@ def load_tf(path, resolution: int = 4096) -> TransferFunction:
     """
     path = Path(path)
     if not path.exists():
-        raise ConfigError("transfer function", "a transfer-function file or a preset (" + ", ".join(PRESETS) + ")",
-                          str(path))
+        raise ConfigError(
+            "transfer function", "a transfer-function file or a preset (" + ", ".join(PRESETS) + ")", str(path)
+        )
     text = read_text(path, "transfer function", "transfer-function file")
     rows, relative, where = [], False, []
     for n, line in enumerate(text.splitlines(), 1):
@@ -253,6 +278,7 @@ class OrbitCamera:
         fov: vertical field of view in degrees.
         size: image ``(height, width)`` in pixels.
     """
+
     azimuth: float = 30.0
     elevation: float = 20.0
     distance: float = 1.6
@@ -268,8 +294,9 @@ class OrbitCamera:
         diag = math.sqrt(sum(n * n for n in shape))
         az, el = math.radians(self.azimuth), math.radians(self.elevation)
         # view direction (from eye to centre) in (D, H, W)
-        fwd = torch.tensor([-math.sin(el), math.cos(el) * math.cos(az), math.cos(el) * math.sin(az)],
-                           dtype=torch.float64)
+        fwd = torch.tensor(
+            [-math.sin(el), math.cos(el) * math.cos(az), math.cos(el) * math.sin(az)], dtype=torch.float64
+        )
         eye = centre - fwd * self.distance * diag
         up0 = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
         right = torch.linalg.cross(fwd, up0)
@@ -318,15 +345,17 @@ class _Accumulator:
     def add(self, v: torch.Tensor, dt: torch.Tensor):
         """Samples ``v`` ``(B, S, *img)`` front to back with segment lengths ``dt`` (broadcastable)."""
         if self.mode == "dvr":
-            e = self.tf.lookup(v, self.lo, self.hi, self.table)            # (4, B, S, *img)
+            e = self.tf.lookup(v, self.lo, self.hi, self.table)  # (4, B, S, *img)
             alpha = -torch.expm1(-e[3] * dt)
             trans = torch.cumprod(1 - alpha, dim=1)
             excl = torch.cat([torch.ones_like(trans[:, :1]), trans[:, :-1]], 1) * self.T.unsqueeze(1)
-            w = excl * alpha                                                # (B, S, *img)
+            w = excl * alpha  # (B, S, *img)
             self.C = self.C + torch.einsum("cbs...,bs...->bc...", e[:3], w)
             self.T = self.T * trans[:, -1]
         elif self.mode == "mip":
-            vv = v if not torch.is_tensor(dt) or dt.dim() == 0 else torch.where(dt > 0, v, torch.full_like(v, -math.inf))
+            vv = (
+                v if not torch.is_tensor(dt) or dt.dim() == 0 else torch.where(dt > 0, v, torch.full_like(v, -math.inf))
+            )
             self.M = torch.maximum(self.M, vv.amax(dim=1))
         else:
             dtb = dt.expand_as(v) if torch.is_tensor(dt) else torch.full_like(v, dt)
@@ -351,10 +380,26 @@ def _chunk_slabs(n_img: int, chunk_points: int) -> int:
 
 
 # ================================================================= render
-def render(volume, tf=None, mode: str = "dvr", view="d", *, offsets=None, warp_mode: str = "deform",
-           inverse_iters: int = 0, order: str = "linear", padding: str = "border", fill: float = 0.0,
-           step: float = 1.0, size=None, stop: float = 1e-3, chunk_points: int = 1 << 20,
-           window=None, engine: str = "grid_sample", pieces=None) -> torch.Tensor:
+def render(
+    volume,
+    tf=None,
+    mode: str = "dvr",
+    view="d",
+    *,
+    offsets=None,
+    warp_mode: str = "deform",
+    inverse_iters: int = 0,
+    order: str = "linear",
+    padding: str = "border",
+    fill: float = 0.0,
+    step: float = 1.0,
+    size=None,
+    stop: float = 1e-3,
+    chunk_points: int = 1 << 20,
+    window=None,
+    engine: str = "grid_sample",
+    pieces=None,
+) -> torch.Tensor:
     """Render a volume, optionally through a displacement field (without building the warped volume).
 
     Args:
@@ -447,19 +492,55 @@ def render(volume, tf=None, mode: str = "dvr", view="d", *, offsets=None, warp_m
     B = vol.shape[0] if field is None else max(vol.shape[0], field.nodes.shape[0])
     B = B if pieces is None else max(B, pieces.batch)
     if isinstance(view, OrbitCamera):
-        return _render_orbit(vol, field, tf, mode, view, inverse_iters, padding, fill, step, stop, chunk_points,
-                             lo, hi, table, B, pieces)
+        return _render_orbit(
+            vol, field, tf, mode, view, inverse_iters, padding, fill, step, stop, chunk_points, lo, hi, table, B, pieces
+        )
     if view not in AXIS_VIEWS:
         raise ConfigError("view", "an axis (" + ", ".join(AXIS_VIEWS) + ") or an OrbitCamera", view)
     if engine != "grid_sample" and _fast_supported(vol, field, view, inverse_iters, B):
-        return _render_axis_fast(vol, field, tf, mode, view, padding, fill, step, size, stop, chunk_points,
-                                 lo, hi, table, engine)[0]
-    return _render_axis(vol, field, tf, mode, view, inverse_iters, padding, fill, step, size, stop,
-                        chunk_points, lo, hi, table, B, pieces)
+        return _render_axis_fast(
+            vol, field, tf, mode, view, padding, fill, step, size, stop, chunk_points, lo, hi, table, engine
+        )[0]
+    return _render_axis(
+        vol,
+        field,
+        tf,
+        mode,
+        view,
+        inverse_iters,
+        padding,
+        fill,
+        step,
+        size,
+        stop,
+        chunk_points,
+        lo,
+        hi,
+        table,
+        B,
+        pieces,
+    )
 
 
-def _render_axis(vol, field, tf, mode, view, inverse_iters, padding, fill, step, size, stop, chunk_points,
-                 lo, hi, table, B, pieces=None):
+def _render_axis(
+    vol,
+    field,
+    tf,
+    mode,
+    view,
+    inverse_iters,
+    padding,
+    fill,
+    step,
+    size,
+    stop,
+    chunk_points,
+    lo,
+    hi,
+    table,
+    B,
+    pieces=None,
+):
     shape = tuple(vol.shape[2:])
     axis = "dhw".index(view[-1])
     reverse = view.startswith("-")
@@ -470,27 +551,28 @@ def _render_axis(vol, field, tf, mode, view, inverse_iters, padding, fill, step,
     img_shape = size or tuple(shape[a] for a in others)
     dtype, device = vol.dtype, vol.device
     # pixel centres in voxel coordinates of the two image axes
-    pix = [(torch.arange(m, dtype=dtype, device=device) + 0.5) * (shape[a] / m) - 0.5
-           for m, a in zip(img_shape, others)]
+    pix = [
+        (torch.arange(m, dtype=dtype, device=device) + 0.5) * (shape[a] / m) - 0.5 for m, a in zip(img_shape, others)
+    ]
     native = size is None or tuple(size) == tuple(shape[a] for a in others)
-    direct = field is None and pieces is None and native and n == N   # samples on voxel centres: read slices
+    direct = field is None and pieces is None and native and n == N  # samples on voxel centres: read slices
     acc = _Accumulator(mode, tf, lo, hi, table, img_shape, dtype, device, B)
     S = _chunk_slabs(img_shape[0] * img_shape[1], chunk_points)
     order_k = range(n - 1, -1, -1) if reverse else range(n)
     ks = list(order_k)
     if field is not None:
-        nodes = field.nodes                                                 # (Bn, 3, nd, nh, nw)
+        nodes = field.nodes  # (Bn, 3, nd, nh, nw)
         Wb = axis_weights_at(pix[0], field.node_shape[others[0]], shape[others[0]], field.order, field.cell_centred)
         Wc = axis_weights_at(pix[1], field.node_shape[others[1]], shape[others[1]], field.order, field.cell_centred)
         perm = [0, 1, 2 + axis, 2 + others[0], 2 + others[1]]
-        nodes_p = nodes.permute(*perm)                                      # (Bn, 3, na, nb, nc)
+        nodes_p = nodes.permute(*perm)  # (Bn, 3, na, nb, nc)
         ctr = torch.einsum("bcaij,Hi,Wj->bcaHW", nodes_p, Wb, Wc) if field.order == "linear" else None
     for start in range(0, n, S):
-        kk = torch.tensor(ks[start:start + S], dtype=dtype, device=device)
-        z = -0.5 + (kk + 0.5) * dt                                            # (S,)
+        kk = torch.tensor(ks[start : start + S], dtype=dtype, device=device)
+        z = -0.5 + (kk + 0.5) * dt  # (S,)
         if direct:
             idx = kk.long()
-            v = vol.index_select(2 + axis, idx).movedim(2 + axis, 2)[:, 0]   # (B, S, img...)
+            v = vol.index_select(2 + axis, idx).movedim(2 + axis, 2)[:, 0]  # (B, S, img...)
             v = v.expand(B, *v.shape[1:])
         else:
             # sample points p in (D, H, W) voxel coordinates, (1, 3, S, h, w)
@@ -500,7 +582,7 @@ def _render_axis(vol, field, tf, mode, view, inverse_iters, padding, fill, step,
             p = torch.stack(p)[None]
             if field is not None:
                 Wa = axis_weights_at(z, field.node_shape[axis], N, field.order, field.cell_centred)
-                if ctr is not None:                                          # linear: reuse the (b, c) products
+                if ctr is not None:  # linear: reuse the (b, c) products
                     u_perm = torch.einsum("sa,bcaHW->bcsHW", Wa, ctr)
                 else:
                     u_perm = torch.einsum("sa,bcaij,Hi,Wj->bcsHW", Wa, nodes_p, Wb, Wc)
@@ -512,7 +594,7 @@ def _render_axis(vol, field, tf, mode, view, inverse_iters, padding, fill, step,
             if pieces is not None:
                 v = pieces.sample(vol, p, padding, fill, inverse_iters)[:, 0]
             else:
-                v = sample(vol, X, padding, fill)[:, 0]                      # (B, S, h, w)
+                v = sample(vol, X, padding, fill)[:, 0]  # (B, S, h, w)
         acc.add(v, torch.tensor(dt, dtype=dtype, device=device))
         if acc.done(stop):
             break
@@ -530,11 +612,12 @@ def _refine(field, p, X, iters, tol=1e-4):
     return X, info
 
 
-def _render_orbit(vol, field, tf, mode, cam, inverse_iters, padding, fill, step, stop, chunk_points, lo, hi,
-                  table, B, pieces=None):
+def _render_orbit(
+    vol, field, tf, mode, cam, inverse_iters, padding, fill, step, stop, chunk_points, lo, hi, table, B, pieces=None
+):
     shape = tuple(vol.shape[2:])
     dtype, device = vol.dtype, vol.device
-    eye, d = cam.rays(shape, dtype, device)                                    # (3,), (3, h, w)
+    eye, d = cam.rays(shape, dtype, device)  # (3,), (3, h, w)
     lo_b = torch.full((3, 1, 1), -0.5, dtype=dtype, device=device)
     hi_b = torch.tensor([n - 0.5 for n in shape], dtype=dtype, device=device).view(3, 1, 1)
     inv = 1.0 / torch.where(d.abs() < 1e-12, torch.full_like(d, 1e-12), d)
@@ -542,7 +625,7 @@ def _render_orbit(vol, field, tf, mode, cam, inverse_iters, padding, fill, step,
     t1 = (hi_b - eye.view(3, 1, 1)) * inv
     t_near = torch.minimum(t0, t1).amax(0).clamp(min=0)
     t_far = torch.maximum(t0, t1).amin(0)
-    length = (t_far - t_near).clamp(min=0)                                     # (h, w)
+    length = (t_far - t_near).clamp(min=0)  # (h, w)
     n = int(math.ceil(float(length.max()) / step)) if float(length.max()) > 0 else 0
     img = tuple(d.shape[1:])
     acc = _Accumulator(mode, tf, lo, hi, table, img, dtype, device, B)
@@ -550,9 +633,9 @@ def _render_orbit(vol, field, tf, mode, cam, inverse_iters, padding, fill, step,
     for start in range(0, n, S):
         k = torch.arange(start, min(n, start + S), dtype=dtype, device=device).view(-1, 1, 1)
         seg0 = k * step
-        seglen = (length.unsqueeze(0) - seg0).clamp(0, step)                   # (S, h, w)
+        seglen = (length.unsqueeze(0) - seg0).clamp(0, step)  # (S, h, w)
         t = t_near.unsqueeze(0) + seg0 + seglen / 2
-        p = (eye.view(3, 1, 1, 1) + d.unsqueeze(1) * t.unsqueeze(0))[None]     # (1, 3, S, h, w)
+        p = (eye.view(3, 1, 1, 1) + d.unsqueeze(1) * t.unsqueeze(0))[None]  # (1, 3, S, h, w)
         X = p
         if field is not None:
             X = p - field.at(p)
@@ -583,21 +666,26 @@ class _Pieces:
 
     def __init__(self, pieces, shape, order, cell_centred, dtype, device):
         expected = "a non-empty list of (offsets (3, n_d, n_h, n_w), material (n_d, n_h, n_w)) pairs"
-        if not isinstance(pieces, (list, tuple)) or not pieces or \
-                not all(isinstance(pc, (list, tuple)) and len(pc) == 2 for pc in pieces):
+        if (
+            not isinstance(pieces, (list, tuple))
+            or not pieces
+            or not all(isinstance(pc, (list, tuple)) and len(pc) == 2 for pc in pieces)
+        ):
             raise ConfigError("pieces", expected, type(pieces).__name__)
         self.fields, self.materials = [], []
         for u, m in pieces:
             field = DisplacementField(as_offsets(u, shape, "pieces offsets", dtype, device), shape, order, cell_centred)
             m = torch.as_tensor(m).to(dtype=dtype, device=device)
             if tuple(m.shape) != field.node_shape:
-                raise ConfigError("pieces material", f"a node array {field.node_shape} (the offsets' node grid)",
-                                  tuple(m.shape))
+                raise ConfigError(
+                    "pieces material", f"a node array {field.node_shape} (the offsets' node grid)", tuple(m.shape)
+                )
             if not bool(torch.isfinite(m).all()) or bool((m < 0).any()) or bool((m > 1).any()):
                 raise ConfigError("pieces material", "values in [0, 1]", "values outside", show_got=True)
             if self.fields and field.node_shape != self.fields[0].node_shape:
-                raise ConfigError("pieces offsets", f"one node grid {self.fields[0].node_shape} for every piece",
-                                  field.node_shape)
+                raise ConfigError(
+                    "pieces offsets", f"one node grid {self.fields[0].node_shape} for every piece", field.node_shape
+                )
             self.fields.append(field)
             self.materials.append(m[None, None])
         batches = {f.nodes.shape[0] for f in self.fields} - {1}
@@ -612,7 +700,7 @@ class _Pieces:
             X = p - field.at(p)
             if inverse_iters:
                 X, _ = _refine(field, p, X, inverse_iters)
-            w = sample(m, field.to_node_coords(X), "border")                           # (B, 1, *S)
+            w = sample(m, field.to_node_coords(X), "border")  # (B, 1, *S)
             v = sample(vol, X, padding, fill)
             if best_w is None:
                 best_w, best_v = w, v
@@ -629,8 +717,12 @@ ENGINES = ("grid_sample", "eager", "compiled")
 #: Inductor options of the compiled renderer: indices are clamped in the code, so the bounds
 #: asserts go; the realisation thresholds keep the sample coordinates in registers (one fused
 #: loop per chunk instead of stored intermediates), as in :mod:`torchdeform.sim.compiled`.
-FAST_INDUCTOR_OPTIONS = {"assert_indirect_indexing": False, "realize_opcount_threshold": 10_000,
-                         "realize_reads_threshold": 1_000, "realize_acc_reads_threshold": 1_000}
+FAST_INDUCTOR_OPTIONS = {
+    "assert_indirect_indexing": False,
+    "realize_opcount_threshold": 10_000,
+    "realize_reads_threshold": 1_000,
+    "realize_acc_reads_threshold": 1_000,
+}
 
 _FAST_CACHE: dict = {}
 _fast_warned: set = set()
@@ -695,15 +787,17 @@ def trilinear_flat(v: torch.Tensor, X, shape, padding: str = "border", fill: flo
     """
     D, H, W = (int(s) for s in shape)
     (a0, a1, wa0, wa1), (b0, b1, wb0, wb1), (c0, c1, wc0, wc1) = (
-        _axis_terms(x, N, padding) for x, N in zip(X, (D, H, W)))
+        _axis_terms(x, N, padding) for x, N in zip(X, (D, H, W))
+    )
     rows = [(a0 * (H * W), wa0), (a1 * (H * W), wa1)]
     cols = [(b0 * W, wb0), (b1 * W, wb1)]
     out = 0.0
     for ra, wa in rows:
         for cb, wb in cols:
             base = ra + cb
-            pair = wc0 * torch.gather(v, 0, (base + c0).long().reshape(-1)).view((base + c0).shape) \
-                + wc1 * torch.gather(v, 0, (base + c1).long().reshape(-1)).view((base + c1).shape)
+            pair = wc0 * torch.gather(v, 0, (base + c0).long().reshape(-1)).view(
+                (base + c0).shape
+            ) + wc1 * torch.gather(v, 0, (base + c1).long().reshape(-1)).view((base + c1).shape)
             out = out + (wa * wb) * pair
     if padding == "zeros" and fill:
         out = out + fill * (1 - (wa0 + wa1) * (wb0 + wb1) * (wc0 + wc1))
@@ -713,8 +807,7 @@ def trilinear_flat(v: torch.Tensor, X, shape, padding: str = "border", fill: flo
 class _FastAxis:
     """Everything fixed about one fast axis-view render; :meth:`chunk` is the per-chunk code."""
 
-    def __init__(self, shape, node_shape, view, mode, img_shape, n, dt, S, padding, fill, cell_centred,
-                 resolution):
+    def __init__(self, shape, node_shape, view, mode, img_shape, n, dt, S, padding, fill, cell_centred, resolution):
         self.shape, self.node_shape, self.mode = tuple(shape), tuple(node_shape), mode
         self.axis = "dhw".index(view[-1])
         self.reverse = view.startswith("-")
@@ -739,18 +832,18 @@ class _FastAxis:
         node layer); ``pix_b`` ``(h, 1)``, ``pix_c`` ``(1, w)``: pixel centres in voxels.
         """
         S, n = self.S, self.n
-        k = start + torch.arange(S, dtype=v.dtype, device=v.device)                 # (S,)
+        k = start + torch.arange(S, dtype=v.dtype, device=v.device)  # (S,)
         valid = k < n
         kk = (n - 1 - k) if self.reverse else k
         z = -0.5 + (kk + 0.5) * self.dt
         a0, fa = self.slab_nodes(z)
         na = self.node_shape[self.axis]
-        u0 = ctr[:, a0]                                                              # (3, S, h, w)
+        u0 = ctr[:, a0]  # (3, S, h, w)
         u = u0 + fa.view(1, S, 1, 1) * (ctr[:, (a0 + 1).clamp(max=na - 1)] - u0) if na > 1 else u0
         p = [None, None, None]
         p[self.axis], p[self.others[0]], p[self.others[1]] = z.view(S, 1, 1), pix_b, pix_c
         X = [p[c] - u[c] for c in range(3)]
-        val = trilinear_flat(v, X, self.shape, self.padding, self.fill)            # (S, h, w)
+        val = trilinear_flat(v, X, self.shape, self.padding, self.fill)  # (S, h, w)
         vmask = valid.view(S, 1, 1)
         if self.mode == "mip":
             (M,) = state
@@ -765,6 +858,7 @@ class _FastAxis:
             # store the samples: every compositing term reads them (inlined, the trilinear
             # interpolation would be recomputed per term)
             from .._compile import realize
+
             val = realize(val)
         x = ((val - lohi[0]) * ((R - 1) / (lohi[1] - lohi[0]))).clamp(0, R - 1)
         i0 = x.floor().clamp(max=R - 2)
@@ -775,9 +869,10 @@ class _FastAxis:
             lo_e = torch.gather(table, 0, (i0 + ch).long().reshape(-1)).view(i0.shape)
             hi_e = torch.gather(table, 0, (i0 + (ch + 4)).long().reshape(-1)).view(i0.shape)
             e.append(lo_e + f * (hi_e - lo_e))
-        tau = e[3] * (self.dt * vmask.to(val.dtype))                                  # (S, h, w)
+        tau = e[3] * (self.dt * vmask.to(val.dtype))  # (S, h, w)
         if torch.compiler.is_compiling():
             from .._compile import realize
+
             tau = realize(tau)
         # front to back through the S slabs, unrolled: pointwise per pixel (no scan), so it fuses
         # into one loop; exp(-acc) is the transmittance since the chunk's start
@@ -799,17 +894,19 @@ def _fast_chunk_fn(spec: _FastAxis, engine: str):
     if engine == "eager":
         return spec.chunk
     from .._compile import fresh, inductor_options
+
     threads = torch.get_num_threads()
     key = tuple((k, tuple(v) if isinstance(v, list) else v) for k, v in sorted(vars(spec).items())) + (threads,)
     fn = _FAST_CACHE.get(key)
     if fn is None:
+
         def chunk(*args):
             return spec.chunk(*args)
+
         try:
             # inductor_options: the thread count goes into inductor's cache key (see there)
-            compiled = torch.compile(fresh(chunk), dynamic=False,
-                                     options=inductor_options(FAST_INDUCTOR_OPTIONS))
-        except Exception as e:                                                     # pragma: no cover
+            compiled = torch.compile(fresh(chunk), dynamic=False, options=inductor_options(FAST_INDUCTOR_OPTIONS))
+        except Exception as e:  # pragma: no cover
             compiled, reason = None, f"{type(e).__name__}: {e}".splitlines()[0]
         state = {"fn": compiled}
 
@@ -817,11 +914,12 @@ def _fast_chunk_fn(spec: _FastAxis, engine: str):
             if state["fn"] is not None:
                 try:
                     return state["fn"](*args)
-                except Exception as e:                                             # pragma: no cover
+                except Exception as e:  # pragma: no cover
                     _warn_fast(f"{type(e).__name__}: {e}".splitlines()[0])
                     state["fn"] = None
             return spec.chunk(*args)
-        if compiled is None:                                                       # pragma: no cover
+
+        if compiled is None:  # pragma: no cover
             _warn_fast(reason)
         _FAST_CACHE[key] = fn
     return fn
@@ -829,16 +927,28 @@ def _fast_chunk_fn(spec: _FastAxis, engine: str):
 
 def _warn_fast(reason: str) -> None:
     import warnings
+
     if reason not in _fast_warned:
         _fast_warned.add(reason)
-        warnings.warn(f"torchdeform: torch.compile unavailable for the fast renderer ({reason[:200]}); "
-                      f"using the eager code", RenderCompileWarning, stacklevel=4)
+        warnings.warn(
+            f"torchdeform: torch.compile unavailable for the fast renderer ({reason[:200]}); using the eager code",
+            RenderCompileWarning,
+            stacklevel=4,
+        )
 
 
 def _fast_supported(vol, field, view, inverse_iters, B) -> bool:
-    return (field is not None and isinstance(view, str) and view in AXIS_VIEWS and B == 1 and vol.shape[0] == 1
-            and field.order == "linear" and not inverse_iters and vol.dtype in (torch.float32, torch.float64)
-            and not (torch.is_grad_enabled() and (vol.requires_grad or field.nodes.requires_grad)))
+    return (
+        field is not None
+        and isinstance(view, str)
+        and view in AXIS_VIEWS
+        and B == 1
+        and vol.shape[0] == 1
+        and field.order == "linear"
+        and not inverse_iters
+        and vol.dtype in (torch.float32, torch.float64)
+        and not (torch.is_grad_enabled() and (vol.requires_grad or field.nodes.requires_grad))
+    )
 
 
 def _transparent_below(table: torch.Tensor, lo: float, hi: float) -> float:
@@ -869,8 +979,7 @@ def _slab_max(v: torch.Tensor, others) -> torch.Tensor:
     return _SLAB_MAX[key]
 
 
-def _render_axis_fast(vol, field, tf, mode, view, padding, fill, step, size, stop, chunk_points, lo, hi, table,
-                      engine):
+def _render_axis_fast(vol, field, tf, mode, view, padding, fill, step, size, stop, chunk_points, lo, hi, table, engine):
     """:func:`render` of an axis view through the offsets, by :class:`_FastAxis` chunks.
 
     ``engine`` is ``"eager"`` or ``"compiled"``; returns ``(image, info)`` with ``info`` the chunks
@@ -884,16 +993,29 @@ def _render_axis_fast(vol, field, tf, mode, view, padding, fill, step, size, sto
     n = max(1, round(N / step))
     dt = N / n
     img_shape = size or tuple(shape[a] for a in others)
-    pix = [(torch.arange(m, dtype=dtype, device=device) + 0.5) * (shape[a] / m) - 0.5
-           for m, a in zip(img_shape, others)]
+    pix = [
+        (torch.arange(m, dtype=dtype, device=device) + 0.5) * (shape[a] / m) - 0.5 for m, a in zip(img_shape, others)
+    ]
     S = min(n, _chunk_slabs(img_shape[0] * img_shape[1], chunk_points), 32 if mode == "dvr" else n)
     cc = field.cell_centred
     Wb = axis_weights_at(pix[0], field.node_shape[others[0]], shape[others[0]], "linear", cc).to(dtype)
     Wc = axis_weights_at(pix[1], field.node_shape[others[1]], shape[others[1]], "linear", cc).to(dtype)
     nodes_p = field.nodes[0].to(dtype).permute(0, 1 + axis, 1 + others[0], 1 + others[1])
-    ctr = torch.einsum("caij,Hi,Wj->caHW", nodes_p, Wb, Wc).contiguous()         # (3, n_axis, h, w)
-    spec = _FastAxis(shape, field.node_shape, view, mode, img_shape, n, dt, S, padding, fill, cc,
-                     table.shape[0] if table is not None else 0)
+    ctr = torch.einsum("caij,Hi,Wj->caHW", nodes_p, Wb, Wc).contiguous()  # (3, n_axis, h, w)
+    spec = _FastAxis(
+        shape,
+        field.node_shape,
+        view,
+        mode,
+        img_shape,
+        n,
+        dt,
+        S,
+        padding,
+        fill,
+        cc,
+        table.shape[0] if table is not None else 0,
+    )
     fn = _fast_chunk_fn(spec, engine)
     v = vol.reshape(-1).contiguous()
     h, w = img_shape
@@ -910,7 +1032,7 @@ def _render_axis_fast(vol, field, tf, mode, view, padding, fill, step, size, sto
     if mode == "dvr":
         skip_below = _transparent_below(table, lo, hi)
         if math.isfinite(skip_below):
-            slab_max = _slab_max(vol[0, 0], others)                                  # (N,)
+            slab_max = _slab_max(vol[0, 0], others)  # (N,)
             if padding == "zeros":
                 slab_max = slab_max.clamp(min=fill)
             reach = int(math.ceil(float(field.nodes[:, axis].abs().max()))) + 1
@@ -950,6 +1072,7 @@ def to_image(image: torch.Tensor, window=None, background=(0.0, 0.0, 0.0), flip_
     ``flip_up``: flip the rows (for side views, so that high D is at the top).
     """
     import numpy as np
+
     img = image.detach()[0].double().cpu()
     if img.shape[0] == 4:
         bg = torch.tensor(background, dtype=torch.float64).view(3, 1, 1)
@@ -966,13 +1089,15 @@ def to_image(image: torch.Tensor, window=None, background=(0.0, 0.0, 0.0), flip_
 def save_png(path, rgb) -> None:
     """Write a uint8 ``(h, w, 3)`` array as PNG."""
     from PIL import Image
-    with atomic_path(path) as tmp:                 # a failed write leaves an earlier image whole
+
+    with atomic_path(path) as tmp:  # a failed write leaves an earlier image whole
         Image.fromarray(rgb).save(str(tmp))
 
 
 def save_gif(path, frames, fps: float = 12.0) -> None:
     """Write uint8 ``(h, w, 3)`` frames as a looping GIF."""
     from PIL import Image
+
     ims = [Image.fromarray(f) for f in frames]
     with atomic_path(path) as tmp:
         ims[0].save(str(tmp), save_all=True, append_images=ims[1:], duration=int(1000 / fps), loop=0)
@@ -988,6 +1113,21 @@ def orbit_frames(volume, frames: int = 24, elevation: float = 20.0, size=(256, 2
     return out
 
 
-__all__ = ["TransferFunction", "PRESETS", "preset", "load_tf", "get_tf", "OrbitCamera", "render", "to_image",
-           "save_png", "save_gif", "orbit_frames", "RENDER_MODES", "AXIS_VIEWS", "ENGINES", "trilinear_flat",
-           "RenderCompileWarning"]
+__all__ = [
+    "TransferFunction",
+    "PRESETS",
+    "preset",
+    "load_tf",
+    "get_tf",
+    "OrbitCamera",
+    "render",
+    "to_image",
+    "save_png",
+    "save_gif",
+    "orbit_frames",
+    "RENDER_MODES",
+    "AXIS_VIEWS",
+    "ENGINES",
+    "trilinear_flat",
+    "RenderCompileWarning",
+]
