@@ -69,7 +69,7 @@ def holds(status, err: str, folder: Path | None = None) -> None:
     else:
         assert not errors, err
     if folder is not None and folder.exists():
-        assert not [p for p in folder.rglob(STAGING + "*")], list(folder.rglob("*"))
+        assert not list(folder.rglob(STAGING + "*")), list(folder.rglob("*"))
 
 
 def finite_npz(path: Path) -> None:

@@ -81,7 +81,7 @@ def _deformed(grid, seed=0):
 @pytest.mark.parametrize("two_pieces", [False, True])
 def test_frame_surface_matches_cut_surfaces(two_pieces):
     grid = td.Grid((5, 6, 7), spacing=(0.01, 0.012, 0.009), topology=26)
-    X, x = _deformed(grid)
+    _X, x = _deformed(grid)
     labels = np.zeros(grid.shape, np.int64)
     if two_pieces:
         labels[3:] = 1  # two sides of a cut between layers 2 and 3

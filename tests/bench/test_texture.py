@@ -37,7 +37,7 @@ def test_bench_texture_json(capsys, tmp_path):
     assert doc["bench"] == "texture" and {"machine", "met", "target_speedup"} <= set(doc)
     rows = {r["model"]: r for r in doc["rows"]}
     assert set(rows) == {"A", "B", "C", "D", "cut face"}
-    for name, vertices, faces, gpu_nodes, gpu_triangles in MODELS:
+    for name, _vertices, faces, gpu_nodes, _gpu_triangles in MODELS:
         r = rows[name]
         assert r["faces"] == faces and r["vertices"] == (faces + 4) // 2
         assert r["samples"] > r["faces"] and r["node_ms"] > 0 and r["triangle_ms"] > 0

@@ -45,7 +45,7 @@ def test_warp_missing(monkeypatch):
     ok, why = bench_warp.warp_available()
     assert ok is False
     assert why == bench_warp.INSTALL_HINT and "pip install warp-lang" in why
-    model, state, dt = speed_cube(3, 6)
+    model, state, _dt = speed_cube(3, 6)
     with pytest.raises(RuntimeError, match="warp-lang is not installed"):
         bench_warp.WarpSprings(model, state)
     with pytest.raises(RuntimeError, match="warp-lang is not installed"):

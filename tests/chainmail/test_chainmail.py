@@ -183,7 +183,7 @@ def test_sequential_matches_reference_homogeneous(method):
     rng = np.random.default_rng(0)
     lim = Limits.from_material(GRID, 0.8, 1.2, 0.15)
     mn, mx, sh = _np_limits(lim)
-    for trial in range(4):
+    for _trial in range(4):
         cm = ChainMail(GRID, lim, method=method)
         for picks, d in _random_moves(rng, GRID.shape, 3):
             before = cm.positions()[0].numpy()
@@ -216,7 +216,7 @@ def test_enhanced_matches_reference_heterogeneous():
     lim = _hetero_limits(GRID, rng)
     assert not lim.uniform
     mn, mx, sh = _np_limits(lim)
-    for trial in range(3):
+    for _trial in range(3):
         cm = ChainMail(GRID, lim, method="enhanced")
         for picks, d in _random_moves(rng, GRID.shape, 3):
             before = cm.positions()[0].numpy()
@@ -270,7 +270,7 @@ def test_limits_hold_after_every_move_with_fixed_faces_and_node_mask():
         fixed = g.face("bottom")
         cm = ChainMail(g, lim, fixed=fixed, method=method)
         inside = [tuple(int(v) for v in ijk) for ijk in (mask & ~fixed).nonzero()]
-        for step in range(8):
+        for _step in range(8):
             picks = [inside[int(rng.integers(len(inside)))]]
             before = cm.positions()
             r = cm.move(picks, rng.normal(size=3) * 0.02)
@@ -476,7 +476,7 @@ def test_relaxation_lowers_energy_monotonically_and_removes_creases():
     held[15, 8, 8] = True
     free = ~g.face("bottom") & ~held
     c0 = float(crease_measure(x0, g, free))
-    x1, e1 = relax(x0, g, lim, steps=1, free=free)
+    x1, _e1 = relax(x0, g, lim, steps=1, free=free)
     x4, e4 = relax(x0, g, lim, steps=4, free=free)
     _, e10 = relax(x0, g, lim, steps=10, free=free)
     assert all(b <= a * (1 + 1e-12) for a, b in zip(e10, e10[1:])) and e10[-1] < 0.9 * e10[0]

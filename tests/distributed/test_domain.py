@@ -119,7 +119,7 @@ def test_a_slab_is_the_global_model_restricted_to_its_rows():
 
 
 def test_one_process_is_simulate(tmp_path):
-    model, integrator, cuts = cases.build("implicit26")
+    model, integrator, _cuts = cases.build("implicit26")
     run = decomposed_simulate(model, cases.start(model), cases.DT, 20, integrator, record_every=5)
     model, integrator, _ = cases.build("implicit26")
     final, rec = td.simulate(model, cases.start(model), cases.DT, 20, integrator, record_every=5, warn=False)

@@ -298,7 +298,7 @@ def test_spring_parameters_against_a_node_loop():
                         vals.append(float(fis.evaluate(service=service, food=food)["tip"]))
                     expect = 2 * vals[0] * vals[1] / (vals[0] + vals[1])
                     assert float(tip[s, i, j, k]) == pytest.approx(expect, rel=1e-12)
-    assert S == tip.shape[0]
+    assert tip.shape[0] == S
 
 
 def test_spring_parameters_bad_shapes():

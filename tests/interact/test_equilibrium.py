@@ -126,7 +126,7 @@ def _tool_and_obstacle(case):
     return Tool(HalfSpace((-1.0, 0.0, 0.0)), path=[(0.0, start), (RAMP, end)]), half_space(end, (-1.0, 0.0, 0.0))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _oracle(case):
     """``(edge list, fixed (N,), masses (N,), contact equilibrium, gravity-only equilibrium)``."""
     grid = td.Grid(case.shape, spacing=H, topology=case.topology)
@@ -220,11 +220,11 @@ def test_six_neighbour_block_on_a_base_alone_buckles():
 IMPLICIT_DT = 1e-2  # (s) the gap below is largest, and the run short, at large steps
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _implicit_run(dt):
     case = CASES[0]
     el, fixed, mass, eq, _ = _oracle(case)
-    model, tool = _model(case, eq, mass)
+    model, _tool = _model(case, eq, mass)
     integrator = td.ImplicitEuler(cg_iters=200, cg_tol=1e-13)
     state = _settle(model, dt, integrator)
     after = integrator.step(model, state, dt)

@@ -245,7 +245,7 @@ def test_resume_is_bitwise_identical(tmp_path, optimizer):
 
     p1, t1 = fresh()
     t1.run()
-    p2, t2 = fresh()
+    _p2, t2 = fresh()
     t2.run(stop_after=3)
     t2.save(tmp_path / "ckpt.pt")
     p3, t3 = fresh()

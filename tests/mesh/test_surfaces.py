@@ -10,8 +10,8 @@ import torch
 
 trimesh = pytest.importorskip("trimesh")
 
-from torchdeform.errors import ConfigError  # noqa: E402
-from torchdeform.mesh import body_surface, marching_tetrahedra, save_surface, volume_surface  # noqa: E402
+from torchdeform.errors import ConfigError
+from torchdeform.mesh import body_surface, marching_tetrahedra, save_surface, volume_surface
 
 
 def sphere_field(n, R, centre=None):

@@ -23,7 +23,7 @@ def _nodes(origin, shape, spacing):
 
 
 def _in_box(P, lo, hi, tol=1e-12):
-    return np.all((P >= np.asarray(lo) - tol) & (P <= np.asarray(hi) + tol), axis=-1)
+    return np.all((np.asarray(lo) - tol <= P) & (np.asarray(hi) + tol >= P), axis=-1)
 
 
 def test_box_with_nodes_on_its_faces_keeps_them():
@@ -87,7 +87,7 @@ def test_padding_and_scale():
 
 def test_axis_convention_x_to_d():
     """Mesh x, y, z map to grid axes D, H, W."""
-    mask, origin, shape = voxelize(trimesh.creation.box((0.004, 0.002, 0.001)), 0.001)
+    _mask, _origin, shape = voxelize(trimesh.creation.box((0.004, 0.002, 0.001)), 0.001)
     assert shape == (5, 3, 2)
 
 

@@ -33,7 +33,7 @@ def least_motion(x, shape, links, bounds, picks, delta):
             lo, hi = bounds(p, a, c)
             adj[q].append((p, lo, hi))  # x_q - x_p in [lo, hi]
             adj[p].append((q, -hi, -lo))  # x_p - x_q in [-hi, -lo]
-        env = {n: (-math.inf if pull else math.inf) for n in nodes}
+        env = dict.fromkeys(nodes, -math.inf if pull else math.inf)
         for p in picks:
             env[p] = x[c][p] + delta[c]
         changed = True

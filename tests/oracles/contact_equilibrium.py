@@ -286,7 +286,7 @@ def _solve(X, edges, mass, gravity, fixed, obstacles, x0, ftol, maxiter, active_
     fixed = np.asarray(fixed, dtype=bool)
     free = np.flatnonzero(~fixed)
     F, O = len(free), len(obstacles)
-    i, j, k, l0 = _edges(edges)
+    _i, _j, k, l0 = _edges(edges)
     L = float(np.mean(l0))  # length unit
     kref = float(np.mean(k))
     Escale = kref * L * L  # energy unit

@@ -262,7 +262,7 @@ def random_system(seed: int, *, n_rules=(2, 9), hedges=False, methods=None, outp
     for v in outputs:  # every output in at least one rule
         if not any(c.var == v.name for r in rules for c in r.cons):
             r = rules[int(rng.integers(len(rules)))]
-            r.cons = [c for c in r.cons] + [ClauseSpec(v.name, v.terms[0].name)]
+            r.cons = list(r.cons) + [ClauseSpec(v.name, v.terms[0].name)]
     return SystemSpec(f"random{seed}", inputs, outputs, rules, dict(methods or {}))
 
 

@@ -167,7 +167,7 @@ def test_forward_is_the_same_to_the_bit():
 
 
 class _Box:
-    __slots__ = ("t", "__weakref__")
+    __slots__ = ("__weakref__", "t")
 
     def __init__(self, t):
         self.t = t
@@ -273,7 +273,7 @@ def test_implicit_solve_of_a_dense_system():
     A = (R @ R.T + 6 * torch.eye(6, dtype=F64)).requires_grad_()
     b = torch.randn(1, 6, generator=gen, dtype=F64, requires_grad=True)
     g = torch.randn(1, 6, generator=gen, dtype=F64)
-    u, iters, rel = adjoint_solve(lambda u: u @ A, b, conjugate_gradient, iters=50, tol=1e-14)
+    u, _iters, _rel = adjoint_solve(lambda u: u @ A, b, conjugate_gradient, iters=50, tol=1e-14)
     (u * g).sum().backward()
     lam = torch.linalg.solve(A.detach(), g[0])
     u_ref = torch.linalg.solve(A.detach(), b.detach()[0])

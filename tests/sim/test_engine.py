@@ -25,7 +25,7 @@ def body(n=4, dtype=torch.float64, drags=True):
         density=1000.0,
         gravity=(-9.81, 0, 0),
         fixed=grid.face("bottom"),
-        drags=drags and drag or [],
+        drags=(drags and drag) or [],
         decay=5.0,
         dtype=dtype,
     )

@@ -139,7 +139,7 @@ def test_jacobian_equals_the_oracle_hessian_and_finite_differences(name):
 
 @pytest.mark.parametrize("name", ["exponential", "polynomial"])
 def test_energy_equals_the_oracle_and_its_gradient_is_minus_the_force(name):
-    model, x, el, (tension, _, energy) = setup(name, seed=3)
+    model, x, el, (_tension, _, energy) = setup(name, seed=3)
     xe = el.from_field(x[0])
     d = xe[el.a] - xe[el.b]
     ref = sum(energy(float(np.linalg.norm(d[s])), el.l0[s], s) for s in range(len(el.springs)))

@@ -29,7 +29,7 @@ def test_surface_force_total_is_traction_times_area():
 
 
 def test_point_force_ramp():
-    g, m = cube(loads=[td.PointForce((2, 1, 1), (1.0, 2.0, 3.0), start=0.1, ramp=0.2)])
+    _g, m = cube(loads=[td.PointForce((2, 1, 1), (1.0, 2.0, 3.0), start=0.1, ramp=0.2)])
     assert m.external(0.05) is None
     assert m.external(0.2)[0, :, 2, 1, 1].tolist() == pytest.approx([0.5, 1.0, 1.5])
     assert m.external(1.0)[0, :, 2, 1, 1].tolist() == pytest.approx([1.0, 2.0, 3.0])
@@ -58,7 +58,7 @@ def test_home_and_anchor_springs_pull_back_to_rest():
 
 
 def test_decay_is_exact_exponential_without_springs():
-    g, m = cube(stiffness=0.0, decay=3.0)
+    _g, m = cube(stiffness=0.0, decay=3.0)
     st = m.rest_state()
     st = td.State(st.x, torch.ones_like(st.x))
     for integ in (td.SymplecticEuler(), td.RK4(), td.ImplicitEuler()):
@@ -69,7 +69,7 @@ def test_decay_is_exact_exponential_without_springs():
 
 
 def test_free_fall_rk4_is_exact():
-    g, m = cube(stiffness=0.0, gravity=(-9.81, 0.0, 0.0))
+    _g, m = cube(stiffness=0.0, gravity=(-9.81, 0.0, 0.0))
     s = m.rest_state()
     for _ in range(20):
         s = td.RK4().step(m, s, 0.005)
@@ -152,7 +152,7 @@ def test_node_mask_body_outside_nodes_never_move():
 
 # ------------------------------------------------------------ extreme cases
 def test_coincident_nodes_give_finite_forces_and_gradients():
-    g, m = cube(damping=0.1)
+    _g, m = cube(damping=0.1)
     x = m.X.clone()
     x[0, :, 1, 1, 1] = x[0, :, 1, 1, 2]  # two neighbours on top of each other
     x.requires_grad_(True)
@@ -168,7 +168,7 @@ def test_coincident_nodes_give_finite_forces_and_gradients():
 
 
 def test_inverted_cell_is_finite_and_implicit_solve_stays_definite():
-    g, m = cube(n=3, stiffness=1e4, fixed=None)
+    _g, m = cube(n=3, stiffness=1e4, fixed=None)
     x = m.X.clone()
     x[0, 0, 2, 1, 1] = m.X[0, 0, 0, 1, 1] - 0.005  # top-centre pushed through the bottom
     s = td.State(x, torch.zeros_like(x))
@@ -183,7 +183,7 @@ def test_inverted_cell_is_finite_and_implicit_solve_stays_definite():
 
 def test_mirrored_body_is_a_documented_equilibrium():
     # springs see only lengths: a mirror image of the rest shape has no spring force
-    g, m = cube(fixed=None)
+    _g, m = cube(fixed=None)
     x = m.X.clone()
     x[:, 0] = -x[:, 0]
     assert float(m.forces(x, torch.zeros_like(x)).abs().max()) < 1e-12
@@ -211,7 +211,7 @@ def test_bad_stiffness_is_rejected(k):
 
 @pytest.mark.parametrize("dt", [0.0, -1e-3, float("nan")])
 def test_non_positive_dt_is_rejected(dt):
-    g, m = cube()
+    _g, m = cube()
     with pytest.raises(td.ConfigError, match="dt"):
         td.SymplecticEuler().step(m, m.rest_state(), dt)
     with pytest.raises(td.ConfigError, match="dt"):
@@ -230,7 +230,7 @@ def test_bad_grid_shape_is_rejected(shape):
 
 
 def test_explicit_euler_without_damping_warns():
-    g, m = cube()
+    _g, m = cube()
     with pytest.warns(td.StabilityWarning, match="unstable at every time step"):
         td.simulate(m, m.rest_state(), 1e-5, 1, integrator=td.ExplicitEuler())
 

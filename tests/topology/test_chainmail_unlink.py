@@ -101,7 +101,7 @@ def _bounds(grid):
 # ------------------------------------------------------------------ (a) full cut
 def _full_blade(grid, layer):
     """A blade between d-layers ``layer`` and ``layer + 1``, larger than the body."""
-    D, H, W = grid.shape
+    _D, H, W = grid.shape
     h = grid.spacing
     return Blade(((layer + 0.5) * h[0], -h[1], -h[2]), (0.0, (H + 1) * h[1], 0.0), (0.0, 0.0, (W + 1) * h[2]))
 

@@ -81,7 +81,7 @@ def test_added_node_springs_copy_the_neighbours_and_are_shortened():
 
 
 def test_add_node_refuses_nodes_of_the_body():
-    grid, model, state = _moving_body(6)
+    _grid, model, state = _moving_body(6)
     with pytest.raises(ConfigError, match="add_node.node"):
         add_node(model, state, (1, 1, 1))
     with pytest.raises(ConfigError, match="add_node.node"):

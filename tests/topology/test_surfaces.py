@@ -250,7 +250,7 @@ def test_carved_render_shows_the_gap(view):
 
 
 def test_carved_dvr_is_transparent_in_the_gap():
-    grid, model, labels, x = _moved_apart()
+    grid, _model, labels, x = _moved_apart()
     vol = _ramp_volume()
     tf = TransferFunction([0.0, 0.5, 20.0], [[1, 1, 1]] * 3, [0.0, 0.2, 0.2])
     img = render(vol, tf, "dvr", "h", pieces=cut_pieces(grid, x, labels, vol.shape), stop=0)

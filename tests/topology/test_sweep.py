@@ -32,7 +32,7 @@ def _segment_hits_triangle(p, q, a, b, c):
     qv = np.cross(s, e1)
     v = (d @ qv) / det
     t = (e2 @ qv) / det
-    return 0 <= u and 0 <= v and u + v <= 1 and 0 <= t <= 1
+    return u >= 0 and v >= 0 and u + v <= 1 and 0 <= t <= 1
 
 
 def _oracle(el, x, triangles):
@@ -64,7 +64,7 @@ def _curved_edges(k=7):
 
 @pytest.mark.parametrize("topology", [6, 18, 26])
 def test_triangle_blade_matches_brute_force(topology):
-    grid, model, x, el = _body(topology)
+    grid, _model, x, el = _body(topology)
     a, b, c = np.array([0.005, -0.004, 0.01]), np.array([0.05, 0.02, 0.002]), np.array([0.02, 0.055, 0.045])
     hit = crossing(grid, x, Blade.triangle(tuple(a), tuple(b), tuple(c)))[0]
     expect = _oracle(el, el.from_field(x[0]), [(a, b, c)])

@@ -123,7 +123,7 @@ def test_sphere_tool_presses_and_reports_force(session):
     assert st["force"] > 0 and math.isfinite(st["force"])
     c = N // 2
     assert float(s.state.x[0, 0, N - 1, c, c]) < top - 5e-4  # the top pushed down
-    d, _ = s._tool.sdf(s.state.x, s.state.t)
+    _d, _ = s._tool.sdf(s.state.x, s.state.t)
     s.command({"cmd": "tool", "position": None})
     assert s.stats()["force"] == 0
     assert len(s.model.interactions) == 0
@@ -295,7 +295,7 @@ def test_malformed_messages_raise_and_change_nothing(session):
     before = _snapshot(s)
     rng = random.Random(0)
     V = s.mesh()["vertices"]
-    for n in range(1000):
+    for _n in range(1000):
         msg = _junk(rng, V)
         with pytest.raises(ValueError) as e:
             s.command(msg)

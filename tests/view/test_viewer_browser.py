@@ -15,15 +15,15 @@ import pytest
 import torch
 
 from tests.view.test_viewer_security import make_session
-from torchdeform.view import browser  # noqa: E402
+from torchdeform.view import browser
 
 if browser.missing():
     pytest.skip(f"the browser tests need {browser.missing()}", allow_module_level=True)
 pytest.importorskip("websockets", reason="the viewer needs websockets (pip install websockets)")
-from selenium.webdriver.common.action_chains import ActionChains  # noqa: E402
-from selenium.webdriver.common.by import By  # noqa: E402
+from selenium.webdriver.common.action_chains import ActionChains
+from selenium.webdriver.common.by import By
 
-from torchdeform.view.server import Viewer  # noqa: E402
+from torchdeform.view.server import Viewer
 
 BACKGROUND = (0x1E, 0x22, 0x27)
 js = browser.js

@@ -14,10 +14,10 @@ import pytest
 import torch
 
 websockets = pytest.importorskip("websockets")
-from websockets.exceptions import ConnectionClosed, InvalidStatus  # noqa: E402
-from websockets.sync.client import connect  # noqa: E402
+from websockets.exceptions import ConnectionClosed, InvalidStatus
+from websockets.sync.client import connect
 
-from torchdeform.view.server import MAX_MESSAGE, STATIC_FILES, Viewer, validate  # noqa: E402
+from torchdeform.view.server import MAX_MESSAGE, STATIC_FILES, Viewer, validate
 
 SCENE = """
 [grid]
@@ -146,9 +146,8 @@ def test_plain_http_on_the_socket_path_is_not_an_upgrade(viewer):
 def test_socket_refused(viewer, token, org):
     token = viewer.token if token == "ok" else token
     org = origin(viewer) if org == "ok" else (org.format(port=viewer.port) if org else None)
-    with pytest.raises(InvalidStatus) as e:
-        with connect(ws_url(viewer, token), origin=org, open_timeout=10):
-            pass
+    with pytest.raises(InvalidStatus) as e, connect(ws_url(viewer, token), origin=org, open_timeout=10):
+        pass
     assert e.value.response.status_code == 403
 
 
@@ -395,7 +394,7 @@ def test_command_line(tmp_path):
         assert c.getresponse().status == 200
         c.close()
         p.send_signal(signal.SIGINT)  # Ctrl-C: a clean stop, exit status 0
-        out, err = p.communicate(timeout=30)
+        _out, err = p.communicate(timeout=30)
         assert p.returncode == 0, err
     finally:
         if p.poll() is None:

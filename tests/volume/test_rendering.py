@@ -121,7 +121,7 @@ def test_transfer_function_file_round_trip_and_errors(tmp_path):
     with pytest.raises(ConfigError, match="preset"):
         render(torch.zeros(3, 3, 3), "no-such-preset")
     rel = TransferFunction([0.0, 1.0], [[0, 0, 0], [1, 1, 1]], [0.0, 1.0], relative=True)
-    rgb, s = rel(torch.tensor([150.0]), volume=torch.tensor([100.0, 200.0]))
+    _rgb, s = rel(torch.tensor([150.0]), volume=torch.tensor([100.0, 200.0]))
     assert float(s[0]) == pytest.approx(0.5, abs=1e-3)
 
 

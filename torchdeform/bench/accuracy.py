@@ -75,9 +75,9 @@ import math
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import torch
 
@@ -443,11 +443,11 @@ class Method:
         """Whether this method runs on ``scene`` (dynamic or static scenes)."""
         raise NotImplementedError
 
-    def params(self, ctx: "Context") -> list:  # pragma: no cover
+    def params(self, ctx: Context) -> list:  # pragma: no cover
         """The parameters swept on this scene (``ctx.quick`` for the short list)."""
         raise NotImplementedError
 
-    def skip(self, ctx: "Context", param) -> str | None:
+    def skip(self, ctx: Context, param) -> str | None:
         """Why a parameter is not run on this scene, or None."""
         return None
 
@@ -1300,7 +1300,7 @@ def inverse_warp_rows(quick: bool, dtype=torch.float64, repeats: int = 3, seed: 
     from ..volume import DisplacementField, identity_points, inverse_points, inverse_residual
 
     size, nodes = (32, 5) if quick else (64, 9)
-    AMP = 0.15  # noqa: N806 (node spacings)
+    AMP = 0.15
     iters = (0, 1, 2, 4, 8) if quick else (0, 1, 2, 3, 4, 6, 8, 12, 16, 24)
     g = torch.Generator().manual_seed(seed)
     spacing = (size - 1) / (nodes - 1)

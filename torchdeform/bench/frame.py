@@ -254,7 +254,7 @@ def _frame_row(shape, *, repeats, frames, compiled, volume_size, dtype, device, 
             cpu_t.append((time.process_time() - c0) / frames)
         if not bool(torch.isfinite(v).all() and torch.isfinite(n).all()):
             raise RuntimeError(f"bench frame {_name(shape)}: non-finite surface (the step diverged at dt = {dt:.3g} s)")
-    med = lambda t: 1e3 * statistics.median(t)  # noqa: E731
+    med = lambda t: 1e3 * statistics.median(t)
     step_ms, vertices_ms, normals_ms = med(step_t), med(vert_t), med(norm_t)
     surface_ms = med([a + b for a, b in zip(vert_t, norm_t)])
     volume_ms = med(vol_t) if render_ is not None else None

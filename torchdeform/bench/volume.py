@@ -147,9 +147,9 @@ def run(args) -> int:
                 for path in paths:
                     compile_s = None
                     if path == "naive":
-                        fn = lambda: render(warp(vol, offsets, check=False), t, mode, "h", stop=1e-3)  # noqa: E731
+                        fn = lambda: render(warp(vol, offsets, check=False), t, mode, "h", stop=1e-3)
                     else:
-                        fn = lambda e=path: render(vol, t, mode, "h", offsets=offsets, stop=1e-3, engine=e)  # noqa: E731
+                        fn = lambda e=path: render(vol, t, mode, "h", offsets=offsets, stop=1e-3, engine=e)
                     if path == "compiled":
                         t0 = time.perf_counter()
                         fn()  # compiles (once per shape, view and mode)

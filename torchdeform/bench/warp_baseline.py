@@ -95,7 +95,7 @@ def _require_warp():
     return _warp()
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _kernels(scalar_name: str) -> dict:
     """The three kernels for ``"float32"`` (``wp.vec3``) or ``"float64"`` (``wp.vec3d``).
 

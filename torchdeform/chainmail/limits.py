@@ -156,7 +156,7 @@ class Limits:
         return tuple(out)
 
     @classmethod
-    def from_material(cls, grid: Grid, compression=0.9, stretch=1.1, shear=0.1) -> "Limits":
+    def from_material(cls, grid: Grid, compression=0.9, stretch=1.1, shear=0.1) -> Limits:
         """Limits as ratios of the rest spacing.
 
         ``min_a = compression * h_a``, ``max_a = stretch * h_a``, ``shear_a = shear * h_a``.

@@ -185,7 +185,7 @@ class ChainMail:
             m = lk[0] & link_mask(self.grid)
             self._linkmask, self._cut = m, bool((m != link_mask(self.grid)).any())
             oks = []
-            for k, (a, sgn) in enumerate(DIRECTIONS):
+            for _k, (a, sgn) in enumerate(DIRECTIONS):
                 lp = np.zeros(self._pshape, dtype=np.uint8)
                 lp[1:-1, 1:-1, 1:-1] = m[a].numpy()
                 lp = lp.reshape(-1)
@@ -309,16 +309,13 @@ class ChainMail:
         """Padded flat indices -> node indices ``(i * H + j) * W + k``."""
         p = np.asarray(padded, dtype=np.int64)
         i, j, k = np.unravel_index(p, self._pshape)
-        D, H, W = self.grid.shape
+        _D, H, W = self.grid.shape
         return ((i - 1) * H + (j - 1)) * W + (k - 1)
 
     def _picked(self, nodes) -> list:
         shape = self.grid.shape
-        if (
-            torch.is_tensor(nodes)
-            and nodes.dtype == torch.bool
-            or isinstance(nodes, np.ndarray)
-            and nodes.dtype == bool
+        if (torch.is_tensor(nodes) and nodes.dtype == torch.bool) or (
+            isinstance(nodes, np.ndarray) and nodes.dtype == bool
         ):
             m = torch.as_tensor(nodes).cpu()
             if tuple(m.shape) != shape:

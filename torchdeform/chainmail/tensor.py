@@ -85,7 +85,7 @@ def _bounding_box(m: torch.Tensor, shape, pad: int = 1) -> tuple:
     any_ = m.reshape(-1, *shape).any(0)  # contiguous reductions only (fast)
     hw = any_.any(0)
     ends = []
-    for a, (n, prof) in enumerate(zip(shape, (any_.flatten(1).any(1), hw.any(1), hw.any(0)))):
+    for _a, (n, prof) in enumerate(zip(shape, (any_.flatten(1).any(1), hw.any(1), hw.any(0)))):
         idx = torch.arange(n, device=m.device)
         ends += [torch.where(prof, idx, n).min(), torch.where(prof, idx, -1).max()]
     v = torch.stack(ends).tolist()

@@ -285,7 +285,7 @@ class ShardedLoss:
             info = (type(failure), failure.args, dict(vars(failure)))
             try:
                 pickle.dumps(info)
-            except Exception:  # noqa: BLE001 (unpicklable details)
+            except Exception:
                 info = (TorchdeformError, (str(failure),), {})
         infos = [None] * self.world
         dist.all_gather_object(infos, info, group=self.group)

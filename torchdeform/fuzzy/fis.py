@@ -269,7 +269,7 @@ def _clause(code: float, var: Variable, path, n, where) -> Clause | None:
         return None
     neg = code < 0
     a = abs(code)
-    idx = int(math.floor(a + 1e-9))
+    idx = math.floor(a + 1e-9)
     frac = round((a - idx) * 100)
     if frac not in _HEDGE_CODES and frac != 0:
         raise _err(path, n, where, "a hedge code .01 .05 .2 .3 .4 or .99 after the index", code)

@@ -267,7 +267,7 @@ class Sigmoid(MembershipFunction):
 
     def peak(self):
         """``+inf`` for a rising sigmoid (slope > 0), ``-inf`` otherwise."""
-        c, s = self.values()
+        _c, s = self.values()
         return math.inf if s > 0 else -math.inf
 
 

@@ -92,7 +92,7 @@ def preset_path(name: str):
     return PRESET_DIR / f"{name}.fis"
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _text(name: str) -> str:
     return preset_path(name).read_text(encoding="utf-8")
 
@@ -103,7 +103,7 @@ def load_preset(name: str) -> MamdaniSystem:
     return parse_fis(_text(name), f"{name}.fis")
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _library() -> dict:
     path = PRESET_DIR / TISSUE_FILE
     try:

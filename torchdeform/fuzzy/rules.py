@@ -146,7 +146,7 @@ class Rule:
         return s + (f" WITH {self.weight!r}" if self.weight != 1.0 else "")
 
     @staticmethod
-    def parse(text: str) -> "Rule":
+    def parse(text: str) -> Rule:
         """Parse a rule sentence (see the module docstring).
 
         Raises :class:`ConfigError` naming the rule and what was expected.
@@ -183,7 +183,7 @@ def _parse(text: str) -> Rule:
 
     def clauses(ws, allow_or):
         out, conns, cur = [], set(), []
-        for i, w in enumerate(ws + [None]):
+        for _i, w in enumerate(ws + [None]):
             if w is not None and w.upper() not in ("AND", "OR"):
                 cur.append(w)
                 continue

@@ -279,7 +279,7 @@ class MeshShape(Shape):
         if not extent > 0:
             raise ConfigError("mesh", "a triangle mesh with a non-zero extent", "all vertices at one point")
         h = extent * (1 + 2 * pad) / (int(resolution) - 1)
-        shape = tuple(max(2, int(math.ceil((e + 2 * pad * extent) / h - 1e-9)) + 1) for e in hi - lo)
+        shape = tuple(max(2, math.ceil((e + 2 * pad * extent) / h - 1e-9) + 1) for e in hi - lo)
         origin = (lo + hi) / 2 - (np.array(shape) - 1) * h / 2
         self.vertices, self.faces = vertices, faces
         self.spacing, self.shape = float(h), shape

@@ -216,7 +216,7 @@ class WindowLoss:
         if self._compiled is not None:
             try:
                 return self._compiled(model, x, v, n)
-            except Exception as e:  # noqa: BLE001 (any failure -> eager)
+            except Exception as e:
                 from .._compile import warn_fallback
 
                 self._compiled = None

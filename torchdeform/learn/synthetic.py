@@ -451,7 +451,7 @@ def balloon_series(
     _, nearest = cKDTree(vertices).query(pts)
     field_ = np.zeros((3,) + grid.shape)
     field_[:, surface] = (normals[nearest] * float(pressure) * spacing**2).T
-    steps_per = int(round(float(interval) / float(dt)))
+    steps_per = round(float(interval) / float(dt))
     if steps_per < 1 or abs(steps_per * dt - interval) > 1e-9 * interval:
         raise ConfigError("interval", f"a whole number of time steps dt = {dt}", interval)
     steps = steps_per * (int(snapshots) - 1)

@@ -272,7 +272,7 @@ class Trainer:
             wait()
         return path
 
-    def load(self, path) -> "Trainer":
+    def load(self, path) -> Trainer:
         """Resume from a checkpoint written by :meth:`save` (same parameters and optimizer kind)."""
         path = Path(path)
         if not path.is_file():

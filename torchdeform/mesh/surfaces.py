@@ -180,7 +180,7 @@ def voxelize(mesh_or_path, spacing, padding: int = 0, scale: float = 1.0):
         raise ConfigError("padding", "an integer >= 0 (node layers)", padding)
     vertices, faces = load_mesh(mesh_or_path, scale)
     lo, hi = vertices.min(0), vertices.max(0)
-    shape = tuple(int(math.ceil((h - l) / s - 1e-9)) + 1 + 2 * int(padding) for l, h, s in zip(lo, hi, sp))
+    shape = tuple(math.ceil((h - l) / s - 1e-9) + 1 + 2 * int(padding) for l, h, s in zip(lo, hi, sp))
     check_grid("spacing", shape)  # a spacing far too fine for the mesh: refused, not allocated
     origin = tuple(float((l + h) / 2 - (n - 1) * s / 2) for l, h, n, s in zip(lo, hi, shape, sp))
     axes = [o + s * np.arange(n) for o, s, n in zip(origin, sp, shape)]

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..options import one_line_warnings  # noqa: F401  (re-exported: torchdeform.scene.one_line_warnings)
+from ..options import one_line_warnings
 from ..outputs import NonFiniteOutputError, RunFolder, manifest, non_finite_keys, require_finite, save_figure
 from ..sim.engine import Engine, simulate
 from ..sim.model import Model, State

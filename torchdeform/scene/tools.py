@@ -229,7 +229,7 @@ def _grasp(t: Table, tool: Tool) -> dict:
     g = Table(t.src, t.key("grasp"), t.data["grasp"], ("close", "open", "margin"))
     close = g.num("close", "a time in seconds >= 0 when the jaws close", lo=0)
     opened = g.data.get("open")
-    if opened is not None and not (is_number(opened) or opened == math.inf) or isinstance(opened, bool):
+    if (opened is not None and not (is_number(opened) or opened == math.inf)) or isinstance(opened, bool):
         raise g.fail("open", "a time in seconds after close (inf: never)", opened)
     kwargs = {"close": close, "open": opened, "margin": g.num("margin", "metres >= 0", 0.0, lo=0)}
     keys = {"grasp": g.name, **{f"grasp.{k}": g.key(k) for k in ("close", "open", "margin")}}

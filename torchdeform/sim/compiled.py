@@ -197,7 +197,7 @@ class CompiledStep:
                     self._fn = ImplicitGraph(integrator, pm, self.dt, loads_p, compile_, self.threads)
                 else:
                     self._fn = compile_(fresh(step))
-            except Exception as e:  # noqa: BLE001 (any failure -> eager)
+            except Exception as e:
                 self._fallback(e)
 
     def _fallback(self, e: Exception) -> None:
@@ -222,7 +222,7 @@ class CompiledStep:
                 t = torch.scalar_tensor(float(state.t), dtype=self.model.dtype, device=self.model.device)
                 x, v, readings = self._governed(lambda n: self._compiled_call(x, v, t, n))
                 return State(x, v, state.t + self.dt, readings or None)
-            except Exception as e:  # noqa: BLE001 (any failure -> eager)
+            except Exception as e:
                 self._fallback(e)
         with torch.no_grad():
             return self._governed(lambda n: self._eager_step(state))

@@ -252,7 +252,7 @@ class Grid:
         X = self.rest_positions(torch.float64)[0]
         lo = torch.tensor(lo, dtype=torch.float64).view(3, 1, 1, 1)
         hi = torch.tensor(hi, dtype=torch.float64).view(3, 1, 1, 1)
-        return self.nodes() & ((X >= lo - 1e-12) & (X <= hi + 1e-12)).all(0)
+        return self.nodes() & ((lo - 1e-12 <= X) & (hi + 1e-12 >= X)).all(0)
 
     def every_kth(self, k: int) -> torch.Tensor:
         """Bool ``(D, H, W)``: existing nodes with ``(i + j + l) % k == 0`` (Radetzky's anchors).

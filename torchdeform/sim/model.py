@@ -47,7 +47,7 @@ class State:
     t: float = 0.0
     readings: dict | None = None
 
-    def detach(self) -> "State":
+    def detach(self) -> State:
         """The same state with ``x``, ``v`` and the readings detached from the autograd graph."""
         readings = None if self.readings is None else {k: r.detach() for k, r in self.readings.items()}
         return State(self.x.detach(), self.v.detach(), self.t, readings)

@@ -345,7 +345,7 @@ FLAG_SETS = (
 )
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _compiler() -> tuple:
     """``(command, version line, cpu identity)``; command None when there is no C compiler."""
     cmd = os.environ.get("CC") or next((c for c in ("cc", "gcc", "clang") if shutil.which(c)), None)
@@ -364,7 +364,7 @@ def _compiler() -> tuple:
     return cmd, version.splitlines()[0] if version else "", cpu
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def unavailable() -> str | None:
     """Why no kernel can be built here (no C compiler, not a POSIX system), or None."""
     if os.name != "posix":

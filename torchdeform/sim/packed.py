@@ -206,7 +206,7 @@ class PackedModel(Model):
 
     def traced(
         self, ctx: TraceContext, threads: int | None = None, native_ok: bool = True, build: bool = True
-    ) -> "PackedModel":
+    ) -> PackedModel:
         """A view of this model (same tensors) whose kernels follow the compile-time context ``ctx``.
 
         ``threads``: the thread count the code is compiled for (default torch's), which chooses
@@ -275,7 +275,7 @@ class PackedModel(Model):
         view indexed by direction (no per-direction copies: under ``torch.compile`` a sum over the
         directions is one loop over the nodes with the directions as its inner reduction).
         """
-        D, H, W = self.grid.shape
+        _D, H, W = self.grid.shape
         plane, row = (H + 2) * (W + 2), W + 2
         # The corner neighbour (-1, -1, -1) of the first core node G = plane + row + 1 is node 0,
         # so the view starts where t starts.
@@ -436,7 +436,7 @@ class PackedModel(Model):
         """``sum_j p_ij`` per node, ``(Bp, 1, P)``."""
         return self.gather(lambda s, sign, mask: [self.param(p, s, sign) * mask])
 
-    def linearise(self, x, clamp=True) -> "PackedLinearisation":
+    def linearise(self, x, clamp=True) -> PackedLinearisation:
         """Springs linearised at packed positions ``x`` (:class:`PackedLinearisation`)."""
         return PackedLinearisation(self, x, clamp)
 
@@ -487,7 +487,7 @@ class PackedLinearisation:
             fields = (n, a, slope - a)
         self.fields = tuple(fields)
 
-    def scaled(self, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> "PackedLinearisation":
+    def scaled(self, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> PackedLinearisation:
         """The operator ``u -> apply(u, alpha_scale, c, projected, c_scale)``, coefficients combined.
 
         A linearisation with combined coefficients, the CG loop's inner kernel: per spring

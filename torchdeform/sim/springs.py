@@ -15,7 +15,7 @@ node ``j``; summed over springs that is ``-D^T f``.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
@@ -370,7 +370,7 @@ class Linearisation:
     #: True for the operator of :meth:`scaled` (coefficients already combined).
     combined = False
 
-    def scaled(self, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> "Linearisation":
+    def scaled(self, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> Linearisation:
         """The operator ``u -> apply(u, alpha_scale, c, projected, c_scale)``, combined once.
 
         Its per-spring coefficients are combined once, for many products with the same scales,

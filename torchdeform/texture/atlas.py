@@ -172,7 +172,7 @@ def sample_triangles(vertices_rest, faces, texture, density: float = 1.0) -> Tri
     )
     per_face = torch.zeros(len(n_a), dtype=torch.int64).index_add_(0, row_face, per_row)
     face, i = row_face.index_select(0, row), row_i.index_select(0, row)
-    return TriangleSamples(face, i.int(), j.int(), _colour_at(texture, P), n_a, n_b, per_face, int(len(face)))
+    return TriangleSamples(face, i.int(), j.int(), _colour_at(texture, P), n_a, n_b, per_face, len(face))
 
 
 @dataclass

@@ -81,7 +81,7 @@ def render_textured(
         base += len(v)
     v, f, r = torch.cat(verts), torch.cat(faces), torch.cat(rest)
     if per_pixel:
-        colours = lambda X: texture.at_material(X).to(X.dtype)  # noqa: E731 (the rasteriser's callable)
+        colours = lambda X: texture.at_material(X).to(X.dtype)
         return rasterize(
             v, f, camera, colours, texcoords=r, light=light, ambient=ambient, background=background, two_sided=True
         )

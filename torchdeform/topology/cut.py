@@ -95,13 +95,13 @@ class Blade:
             self.normal = tuple(c / area for c in n)
 
     @classmethod
-    def triangle(cls, a, b, c, key: str = "blade") -> "Blade":
+    def triangle(cls, a, b, c, key: str = "blade") -> Blade:
         """The triangle with corners ``a``, ``b``, ``c`` ``(3,)`` m."""
         a, b, c = (as_vec3(p, f"{key}.corner") for p in (a, b, c))
         return cls(a, [q - p for p, q in zip(a, b)], [q - p for p, q in zip(a, c)], triangle=True, key=key)
 
     @classmethod
-    def swept(cls, edges, key: str = "blade") -> "Blade":
+    def swept(cls, edges, key: str = "blade") -> Blade:
         """The surface a straight cutting edge sweeps through ``K >= 2`` poses.
 
         Args:

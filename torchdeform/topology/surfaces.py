@@ -412,7 +412,7 @@ def cut_pieces(grid, x, labels, volume_shape, X=None) -> list[tuple[torch.Tensor
     """
     x, X, labels = _inputs(grid, x, labels, X)
     volume_shape = tuple(int(n) for n in volume_shape)
-    if len(volume_shape) != 3 or any(N < n for N, n in zip(volume_shape, grid.shape)):
+    if len(volume_shape) != 3 or any(n > N for N, n in zip(volume_shape, grid.shape)):
         raise ConfigError(
             "volume_shape", f"three voxel counts, each at least the node count {tuple(grid.shape)}", volume_shape
         )
@@ -454,7 +454,7 @@ class FrameSurface:
         W = m["weights"].tocsr()
         W.sum_duplicates()
         used, cols = np.unique(W.indices, return_inverse=True)  # the nodes the surface reads
-        D, H, W_ = shape
+        _D, H, W_ = shape
         d, h, w = np.unravel_index(used, shape)
         if packed is None:
             where, stride = used, int(np.prod(shape))
@@ -523,7 +523,7 @@ class FrameSurface:
             try:
                 with torch.no_grad():
                     return self._compiled(v)
-            except Exception as e:  # noqa: BLE001 (any failure -> eager)
+            except Exception as e:
                 from .._compile import warn_fallback
 
                 self._compiled = None

@@ -299,8 +299,8 @@ def write_gif(frames, path, fps: float = 12.0, hold: float = 1.0, colours: int =
         montage.paste(im, (0, h * k))
     palette = montage.quantize(colours, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE)
     ims = [im.quantize(palette=palette, dither=Image.Dither.NONE) for im in ims]
-    step = int(round(1000 / fps))
-    durations = [step] * (len(ims) - 1) + [max(step, int(round(1000 * hold)))]
+    step = round(1000 / fps)
+    durations = [step] * (len(ims) - 1) + [max(step, round(1000 * hold))]
     with atomic_path(path) as tmp:
         ims[0].save(str(tmp), save_all=True, append_images=ims[1:], duration=durations, loop=0)
     return Path(path).stat().st_size

@@ -52,8 +52,9 @@ import logging
 import math
 import secrets
 import threading
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
 from .session import _number, _point
@@ -467,7 +468,7 @@ class Viewer:
                 logger.error("simulation stopped: %s: %s", type(e).__name__, e)
                 try:
                     self.session.command({"cmd": "pause"})
-                except Exception:  # noqa: S110 - nothing more to do
+                except Exception:
                     pass
                 steps = 0
             changed, self._changed = self._changed, False
@@ -547,7 +548,7 @@ class Viewer:
         def target():
             try:
                 asyncio.run(self.serve_async(lambda _: self._ready.set()))
-            except BaseException as e:  # noqa: BLE001 - reported by start()
+            except BaseException as e:
                 self._error = e
                 self._ready.set()
 

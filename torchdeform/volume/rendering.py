@@ -158,7 +158,7 @@ class TransferFunction:
         out = self.lookup(v, lo, hi)
         return out[:3].movedim(0, -1), out[3]
 
-    def to(self, dtype) -> "TransferFunction":
+    def to(self, dtype) -> TransferFunction:
         """A copy with colours and extinctions in ``dtype`` (the control values stay float64)."""
         return TransferFunction(
             self.values, self.colors.to(dtype), self.sigma.to(dtype), self.relative, self.resolution, self.name
@@ -626,7 +626,7 @@ def _render_orbit(
     t_near = torch.minimum(t0, t1).amax(0).clamp(min=0)
     t_far = torch.maximum(t0, t1).amin(0)
     length = (t_far - t_near).clamp(min=0)  # (h, w)
-    n = int(math.ceil(float(length.max()) / step)) if float(length.max()) > 0 else 0
+    n = math.ceil(float(length.max()) / step) if float(length.max()) > 0 else 0
     img = tuple(d.shape[1:])
     acc = _Accumulator(mode, tf, lo, hi, table, img, dtype, device, B)
     S = _chunk_slabs(img[0] * img[1], chunk_points)
@@ -1035,15 +1035,15 @@ def _render_axis_fast(vol, field, tf, mode, view, padding, fill, step, size, sto
             slab_max = _slab_max(vol[0, 0], others)  # (N,)
             if padding == "zeros":
                 slab_max = slab_max.clamp(min=fill)
-            reach = int(math.ceil(float(field.nodes[:, axis].abs().max()))) + 1
+            reach = math.ceil(float(field.nodes[:, axis].abs().max())) + 1
     pix_b, pix_c = pix[0].view(h, 1), pix[1].view(1, w)
     run = skipped = 0
     for start in range(0, n, S):
         if slab_max is not None:
-            ks = [k for k in (start, min(n, start + S) - 1)]
+            ks = list((start, min(n, start + S) - 1))
             zs = [-0.5 + ((n - 1 - k if view.startswith("-") else k) + 0.5) * dt for k in ks]
-            a = min(N - 1, max(0, int(math.floor(min(zs))) - reach))
-            b = max(a + 1, min(N, int(math.ceil(max(zs))) + reach + 1))
+            a = min(N - 1, max(0, math.floor(min(zs)) - reach))
+            b = max(a + 1, min(N, math.ceil(max(zs)) + reach + 1))
             if a >= b or float(slab_max[a:b].max()) <= skip_below:
                 skipped += 1
                 continue
