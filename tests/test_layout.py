@@ -199,3 +199,50 @@ def test_heavy_libraries_are_not_loaded(statement):
 
 def test_heavy_library_check_can_fail():
     assert "scipy" in _loaded_heavy("import scipy")
+
+
+# ------------------------------------------------------------------ layers
+#: the floors of the package, bottom to top (``../DESIGN.md``); an import runs down or sideways, never up
+LAYERS = [
+    {"errors", "options", "outputs", "checks", "_compile"},  # the ground floor
+    {"sim"},
+    {"fuzzy", "volume", "chainmail", "mesh"},
+    {"interact", "topology", "learn", "anatomy", "texture"},
+    {"scene"},
+    {"view", "distributed"},
+    {"torchdeform"},  # the package's own face (``import torchdeform as td``)
+    {"bench"},
+    {"cli"},
+    {"__main__"},  # ``python -m torchdeform``
+]
+FLOOR = {group: n for n, floor in enumerate(LAYERS) for group in floor}
+
+
+def upward_imports(imports=None) -> list:
+    """Every import from a lower floor to a higher one, and every import of ``bench`` outside ``cli``."""
+    bad = []
+    for importer, found in (IMPORTS if imports is None else imports).items():
+        for target, _, line in found:
+            a, b = group(importer), group(target)
+            where = f"{MODULES[importer].relative_to(ROOT) if importer in MODULES else importer}:{line}"
+            if FLOOR[b] > FLOOR[a]:
+                bad.append(f"{where}: {importer} ({a}, floor {FLOOR[a]}) imports {target} ({b}, floor {FLOOR[b]})")
+            elif b == "bench" and a not in ("bench", "cli"):
+                bad.append(f"{where}: {importer} imports {target}: only cli imports bench")
+    return bad
+
+
+def test_every_subpackage_has_a_floor():
+    groups = {group(m) for m in MODULES}
+    assert groups <= set(FLOOR), f"subpackages without a floor in LAYERS: {sorted(groups - set(FLOOR))}"
+
+
+def test_layer_check_can_fail():
+    fake = {"torchdeform.sim.model": [("torchdeform.scene.run", None, 3), ("torchdeform.bench.common", None, 4)]}
+    bad = upward_imports(fake)
+    assert len(bad) == 2 and "floor 1" in bad[0] and "floor 4" in bad[0]
+
+
+def test_imports_run_down_the_layers():
+    bad = upward_imports()
+    assert not bad, "imports that run up the layers:\n" + "\n".join(bad)

@@ -17,6 +17,7 @@ import json
 import math
 import os
 import shutil
+import sys
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -27,6 +28,8 @@ from .errors import ConfigError, TorchdeformError
 __all__ = [
     "atomic_path",
     "save_figure",
+    "axes",
+    "save_plot",
     "RunFolder",
     "manifest",
     "require_finite",
@@ -106,6 +109,35 @@ def save_figure(fig, path, dpi: int = 100) -> None:
     """Write a matplotlib figure to ``path`` (format by suffix) whole or not at all (:func:`atomic_path`)."""
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi)
+
+
+def axes(*, figsize=(6.5, 4.5), ncols: int = 1):
+    """A matplotlib figure and its axes (``ncols`` side by side, ``figsize`` in inches) for a plot; Agg, no screen.
+
+    Examples:
+        >>> from torchdeform.outputs import axes
+        >>> fig, (left, right) = axes(figsize=(8, 3), ncols=2)
+        >>> fig.get_size_inches().tolist()
+        [8.0, 3.0]
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt.subplots(1, ncols, figsize=figsize)
+
+
+def save_plot(fig, out_dir, name: str) -> None:
+    """Write ``fig`` as ``out_dir/name`` (110 dpi, tight layout, atomically), close it and say so on stderr."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    path = Path(out_dir) / name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_figure(fig, path, dpi=110)
+    plt.close(fig)
+    print(f"wrote {path}", file=sys.stderr)
 
 
 def manifest(folder, also=("summary.json",)) -> list:

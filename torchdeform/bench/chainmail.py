@@ -37,7 +37,8 @@ import torch
 
 from ..errors import ConfigError
 from ..options import integer
-from .common import add_common, axes, emit, int_list, machine_info, progress, save_figure
+from ..outputs import axes, save_plot
+from .common import add_common, emit, int_list, machine_info, progress
 
 __all__ = ["COLUMNS", "SPACING", "PULLS", "add_arguments", "run"]
 
@@ -207,7 +208,7 @@ def run(args) -> int:
 
 
 def _plot(rows, out_dir) -> None:
-    fig, ax = axes((6.5, 4.5))
+    fig, ax = axes(figsize=(6.5, 4.5))
     styles = {"gibson": "-", "enhanced": "--", "tensor": ":"}
     for variant in ("gibson", "enhanced", "tensor"):
         for n in sorted({r["n"] for r in rows if r["variant"] == variant}):
@@ -222,4 +223,4 @@ def _plot(rows, out_dir) -> None:
     ax.set_title("ChainMail: a local pull, cost against moved elements and grid size")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, ncol=2)
-    save_figure(fig, out_dir, "chainmail.png")
+    save_plot(fig, out_dir, "chainmail.png")

@@ -19,7 +19,6 @@ import torch
 from .. import options
 from ..options import integer
 from ..outputs import atomic_path
-from ..outputs import save_figure as write_figure
 from ..sim.grid import Grid
 from ..sim.model import Model, State
 
@@ -32,8 +31,6 @@ __all__ = [
     "emit",
     "format_table",
     "speed_cube",
-    "axes",
-    "save_figure",
     "busy_neighbour",
 ]
 
@@ -147,25 +144,3 @@ def speed_cube(n: int, topology: int, dtype=torch.float32, device="cpu", seed: i
     x = model.X + (1e-4 * torch.randn(model.X.shape, generator=g, dtype=torch.float64)).to(dtype=dtype, device=device)
     v = (1e-3 * torch.randn(model.X.shape, generator=g, dtype=torch.float64)).to(dtype=dtype, device=device)
     return model, State(x, v, 0.0), 1e-4  # dt well below the bound (~8e-4 s for 26 neighbours)
-
-
-def axes(figsize=(6.5, 4.5), ncols: int = 1):
-    """A matplotlib figure and its axes (``ncols`` side by side) for a bench plot (Agg: no screen needed)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt.subplots(1, ncols, figsize=figsize)
-
-
-def save_figure(fig, out_dir, name: str) -> None:
-    """Write ``fig`` as ``out_dir/name`` (110 dpi), close it and say so on stderr."""
-    import matplotlib.pyplot as plt
-
-    fig.tight_layout()
-    path = Path(out_dir) / name
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_figure(fig, path, dpi=110)
-    plt.close(fig)
-    print(f"wrote {path}", file=sys.stderr)

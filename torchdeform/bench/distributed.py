@@ -35,7 +35,8 @@ from pathlib import Path
 
 from ..errors import ConfigError
 from ..options import integer, number
-from .common import add_common, axes, emit, int_list, machine_info, progress, save_figure
+from ..outputs import axes, save_plot
+from .common import add_common, emit, int_list, machine_info, progress
 
 __all__ = ["COLUMNS", "SWEEP_SCENE", "add_arguments", "run", "worker"]
 
@@ -279,7 +280,7 @@ def run(args) -> int:
 
 
 def _plot(rows, out_dir) -> None:
-    fig, (left, right) = axes((10, 4.2), ncols=2)
+    fig, (left, right) = axes(figsize=(10, 4.2), ncols=2)
     for case, marker in (("explicit", "o"), ("implicit", "s")):
         sel = [r for r in rows if r["case"] == case]
         if not sel:
@@ -303,7 +304,7 @@ def _plot(rows, out_dir) -> None:
     right.set_title(f"sweep of {sweep[0]['grid']}" if sweep else "sweep")
     for ax in (left, right):
         ax.grid(True, alpha=0.3)
-    save_figure(fig, out_dir, "distributed.png")
+    save_plot(fig, out_dir, "distributed.png")
 
 
 if __name__ == "__main__":

@@ -50,8 +50,9 @@ import torch
 
 from ..errors import ConfigError
 from ..options import integer
+from ..outputs import axes, save_plot
 from ..topology.surfaces import FrameSurface
-from .common import add_common, axes, device_sync, emit, machine_info, progress, save_figure
+from .common import add_common, device_sync, emit, machine_info, progress
 
 __all__ = [
     "COLUMNS",
@@ -368,7 +369,7 @@ def run(args) -> int:
 
 
 def _plot(rows, out_dir, threads) -> None:
-    fig, ax = axes((6.5, 4.5))
+    fig, ax = axes(figsize=(6.5, 4.5))
     xs = list(range(len(rows)))
     what = f"{threads} CPU thread{'s' if threads != 1 else ''}"
     ax.plot(xs, [r["surface_fps"] for r in rows], marker="o", label=f"torchdeform, step + surface ({what})")
@@ -391,4 +392,4 @@ def _plot(rows, out_dir, threads) -> None:
     ax.set_title("One step + deformed surface per frame, against Punak's GPU")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
-    save_figure(fig, out_dir, "frame.png")
+    save_plot(fig, out_dir, "frame.png")

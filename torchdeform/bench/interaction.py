@@ -33,7 +33,8 @@ import torch
 
 from ..errors import ConfigError
 from ..options import integer, number
-from .common import add_common, axes, emit, int_list, machine_info, progress, save_figure
+from ..outputs import axes, save_plot
+from .common import add_common, emit, int_list, machine_info, progress
 
 __all__ = ["COLUMNS", "add_arguments", "run", "pressing_scene"]
 
@@ -214,7 +215,7 @@ def run(args) -> int:
 
 
 def _plot(rows, out_dir) -> None:
-    fig, ax = axes((6.5, 4.2))
+    fig, ax = axes(figsize=(6.5, 4.2))
     for engine, style in (("compiled", "-o"), ("eager", "--s")):
         pts = sorted((r["n"], r["hz"]) for r in rows if r["mode"] == "step" and r["engine"] == engine)
         if pts:
@@ -230,4 +231,4 @@ def _plot(rows, out_dir) -> None:
     ax.set_title("A sphere tool pressing in: steps/s and haptic rate")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
-    save_figure(fig, out_dir, "interaction.png")
+    save_plot(fig, out_dir, "interaction.png")

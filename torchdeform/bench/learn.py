@@ -34,7 +34,8 @@ import torch
 
 from ..errors import ConfigError
 from ..options import integer
-from .common import add_common, axes, emit, machine_info, save_figure
+from ..outputs import axes, save_plot
+from .common import add_common, emit, machine_info
 
 __all__ = ["COLUMNS", "TARGET_SPEEDUP", "TOLERANCE", "PERTURBATION", "add_arguments", "run"]
 
@@ -197,7 +198,7 @@ def run(args) -> int:
 
 
 def _plot(rows, agreement, out_dir, threads) -> None:
-    fig, (a1, a2) = axes((10, 4), ncols=2)
+    fig, (a1, a2) = axes(figsize=(10, 4), ncols=2)
     a1.bar([r["engine"] for r in rows], [r["s_per_iteration"] for r in rows], color=["C0", "C1"][: len(rows)])
     a1.set_ylabel("seconds per L-BFGS iteration")
     a1.set_title(f"Per-spring run, {threads} thread{'s' if threads != 1 else ''}")
@@ -217,4 +218,4 @@ def _plot(rows, agreement, out_dir, threads) -> None:
     a2.set_title("Rounding grows along the ill-determined run")
     a2.grid(True, which="both", alpha=0.3)
     a2.legend(fontsize=8)
-    save_figure(fig, out_dir, "learn.png")
+    save_plot(fig, out_dir, "learn.png")

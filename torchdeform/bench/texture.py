@@ -46,7 +46,8 @@ import numpy as np
 import torch
 
 from ..options import integer
-from .common import add_common, axes, emit, format_table, machine_info, progress, save_figure
+from ..outputs import axes, save_plot
+from .common import add_common, emit, format_table, machine_info, progress
 
 __all__ = ["COLUMNS", "add_arguments", "run", "MODELS", "hull_mesh"]
 
@@ -287,11 +288,11 @@ def _plot_seams(rows, slices, out_dir) -> None:
         ax.set_xlabel("W (voxels)")
         ax.set_ylabel("D (voxels)")
     fig.suptitle("Block seams of a 64^3-block solid texture (slice normal to H)", fontsize=10)
-    save_figure(fig, out_dir, "texture_seams.png")
+    save_plot(fig, out_dir, "texture_seams.png")
 
 
 def _plot(rows, out_dir) -> None:
-    fig, ax = axes((6.5, 4.2))
+    fig, ax = axes(figsize=(6.5, 4.2))
     x = np.arange(len(rows))
     ax.bar(x - 0.2, [r["speedup_nodes"] for r in rows], 0.4, label="node colouring")
     ax.bar(x + 0.2, [r["speedup_triangles"] for r in rows], 0.4, label="triangle interiors")
@@ -302,4 +303,4 @@ def _plot(rows, out_dir) -> None:
     ax.set_title("Solid texture on Chen & He's model sizes")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
-    save_figure(fig, out_dir, "texture.png")
+    save_plot(fig, out_dir, "texture.png")

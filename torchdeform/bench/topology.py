@@ -33,7 +33,8 @@ import torch
 
 from ..errors import ConfigError
 from ..options import integer
-from .common import add_common, axes, emit, int_list, machine_info, progress, save_figure, speed_cube
+from ..outputs import axes, save_plot
+from .common import add_common, emit, int_list, machine_info, progress, speed_cube
 
 __all__ = ["COLUMNS", "add_arguments", "run", "expected_count"]
 
@@ -185,7 +186,7 @@ def run(args) -> int:
 
 
 def _plot(rows, out_dir) -> None:
-    fig, (a, b) = axes((10, 4.2), ncols=2)
+    fig, (a, b) = axes(figsize=(10, 4.2), ncols=2)
     for topology, style in zip(sorted({r["topology"] for r in rows}), ("-o", "-s", "-^", "-d")):
         pts = sorted((r["n"], r["cut_ms"], r["step_ratio"]) for r in rows if r["topology"] == topology)
         ns = [p[0] for p in pts]
@@ -205,4 +206,4 @@ def _plot(rows, out_dir) -> None:
     for ax in (a, b):
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
-    save_figure(fig, out_dir, "topology.png")
+    save_plot(fig, out_dir, "topology.png")

@@ -33,7 +33,8 @@ import torch
 
 from ..errors import ConfigError
 from ..options import integer, number
-from .common import add_common, axes, busy_neighbour, emit, int_list, machine_info, progress, save_figure
+from ..outputs import axes, save_plot
+from .common import add_common, busy_neighbour, emit, int_list, machine_info, progress
 
 __all__ = ["COLUMNS", "TARGET_FPS", "TARGET_SIZE", "viewer_cube", "add_arguments", "run"]
 
@@ -183,7 +184,7 @@ def run(args) -> int:
 
 
 def _plot(rows, out_dir) -> None:
-    fig, ax = axes((6.5, 4.5))
+    fig, ax = axes(figsize=(6.5, 4.5))
     for busy, marker in ((False, "o"), (True, "^")):
         sel = [r for r in rows if r["busy"] == busy]
         if sel:
@@ -203,4 +204,4 @@ def _plot(rows, out_dir) -> None:
     ax.set_title("Browser viewer (headless chromium, software WebGL)")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
-    save_figure(fig, out_dir, "viewer.png")
+    save_plot(fig, out_dir, "viewer.png")

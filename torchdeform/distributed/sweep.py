@@ -327,10 +327,10 @@ def plot(out: Path, keys: list, rows: list) -> Path | None:
     numeric = [k for k in keys if all(isinstance(r[k], (int, float)) and not isinstance(r[k], bool) for r in rows)]
     if not numeric or not rows:
         return None
-    from ..bench.common import axes, save_figure
+    from ..outputs import axes, save_plot
 
     xkey, others = numeric[0], [k for k in keys if k != numeric[0]]
-    fig, ax = axes((6.5, 4.5))
+    fig, ax = axes(figsize=(6.5, 4.5))
     groups = {}
     for r in rows:
         groups.setdefault(tuple(r[k] for k in others), []).append(r)
@@ -364,5 +364,5 @@ def plot(out: Path, keys: list, rows: list) -> Path | None:
             ax.legend(fontsize=7, ncol=1 + len(groups) // 24, loc="upper left", bbox_to_anchor=(1.01, 1.0))
         else:
             ax.legend(fontsize=7)
-    save_figure(fig, out, "sweep.png")
+    save_plot(fig, out, "sweep.png")
     return out / "sweep.png"

@@ -110,7 +110,7 @@ Keys
     ``"topology"`` part of ``summary.json``)
     ``animation``  ``true``: write ``animation.gif``, the textured surface beside the deformed
     volume render with the time and the tools' forces (as ``torchdeform run --animation``; see
-    :func:`torchdeform.view.animation.animate`)
+    :func:`torchdeform.scene.animation.animate`)
 ``[volume]`` (optional): a volume filling the grid's bounding box, deformed by the final state;
     the run also writes ``volume_before.png``, ``volume_after.png``, ``volume_deformed.npy``
     ``file``  a volume file (.npy, .npz, .nii, .nrrd; relative to the scene file) or ``"phantom:N"``
@@ -128,6 +128,7 @@ tables count from 0) and what was expected.
 Modules: :mod:`.reader` (files, located errors, typed values and the shared sections: the API a
 new model kind builds on), :mod:`.mass_spring`, :mod:`.tools` (``[[tools]]``, ``[strain_limit]``
 and the tool outputs of a run), :mod:`.topology` (cuts, cautery, tearing, coagulation and their outputs), :mod:`.chainmail`, :mod:`.run` (load and run),
+:mod:`.animation` (a run's frames, textured surface beside the deformed volume, into an animated GIF),
 :mod:`.commands` (``torchdeform run`` and ``demo``).
 
 Example:

@@ -156,7 +156,7 @@ class Scene:
     #: ``[[coagulate]]``, ``[output] surfaces``): ``run_scene`` applies them between steps on a copy of the model
     topology: TopologySet | None = None
     #: optional file name (``"animation.gif"`` for ``[output] animation = true``): ``run_scene`` then writes
-    #: an animated GIF of the run there (:func:`torchdeform.view.animation.animate`)
+    #: an animated GIF of the run there (:func:`torchdeform.scene.animation.animate`)
     animation: str | None = None
     _models: dict = field(default_factory=dict, init=False, repr=False)
 

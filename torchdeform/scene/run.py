@@ -639,10 +639,10 @@ def scene_animation(
 ) -> dict:
     """Write ``scene.animation`` (a GIF): the run's textured surface beside its deformed volume render.
 
-    See :func:`torchdeform.view.animation.animate`. The volume is the scene's ``[volume]`` (else the
+    See :func:`torchdeform.scene.animation.animate`. The volume is the scene's ``[volume]`` (else the
     procedural phantom, ``phantom:64``), the texture its ``[texture]`` (else the procedural liver). The
     caption shows the time and the force of every tool (``tools``) and, for a scene with drags, the
-    force the drags exert to hold their nodes (:func:`~torchdeform.view.animation.drag_forces`).
+    force the drags exert to hold their nodes (:func:`~torchdeform.scene.animation.drag_forces`).
     A cut body is drawn as the final pieces (``labels``) in every frame, its volume uncarved.
 
     Args:
@@ -661,7 +661,7 @@ def scene_animation(
         a summary dict for ``summary.json``: ``file``, ``frames``, ``size`` ``[height, width]``, ``panel``,
         ``bytes``, ``wall_time_s``.
     """
-    from ..view.animation import animate, drag_forces
+    from .animation import animate, drag_forces
 
     start = time.perf_counter()
     grid = model.grid

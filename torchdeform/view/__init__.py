@@ -1,8 +1,6 @@
-"""Seeing and touching the tissue: an animated demo and a live viewer in the browser.
+"""Seeing and touching the tissue: a live viewer in the browser (the run's animation is :mod:`torchdeform.scene.animation`).
 
 =====================  ===========================================================================
-:mod:`.animation`      frames of a run (textured, shaded surface beside the deformed volume render,
-                       time and tool force written on them) into an animated GIF
 :mod:`.session`        a simulation the viewer drives: play, pause, reset, drag, tool, cut, tissue terms
 :mod:`.server`         the local viewer: page and WebSocket on loopback, token and Origin checked
 :mod:`.commands`       ``torchdeform view SCENE.toml``

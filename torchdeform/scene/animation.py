@@ -25,7 +25,7 @@ module inside the function that writes the animation). Pillow writes the GIF and
 Example:
     >>> import torch
     >>> import torchdeform as td
-    >>> from torchdeform.view.animation import animate
+    >>> from torchdeform.scene.animation import animate
     >>> grid = td.Grid((3, 3, 3), spacing=0.01)
     >>> X = grid.rest_positions(torch.float32)[0]
     >>> x = torch.stack([X, X + 0.002])                   # two frames: the body moves 2 mm along each axis

@@ -13,7 +13,7 @@ from PIL import Image
 
 import torchdeform as td
 from torchdeform import cli
-from torchdeform.view.animation import animate, drag_forces, frame_indices
+from torchdeform.scene.animation import animate, drag_forces, frame_indices
 
 SHAPE, SPACING, K = (5, 5, 5), 0.002, 2.0
 
