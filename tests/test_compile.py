@@ -58,7 +58,7 @@ SCRIPT = """
         y, c = counted(lambda: torch.compile(make(factor), fullgraph=True, options=loop_cache_options())(torch.ones(4)))
         loops.append(dict(c, factor=factor, y=y.tolist()))
 
-    grid = td.Grid((3, 4, 5), 0.01, 6)
+    grid = td.Grid((3, 4, 5), spacing=0.01, topology=6)
     model = td.Model(grid, stiffness=50.0, damping=0.1, mass=1e-3, gravity=(-9.81, 0, 0),
                      fixed=grid.face("bottom") & grid.nodes(), dtype=torch.float64)
     step = CompiledStep(td.ImplicitEuler(cg_iters=8, cg_tol=0), model, 1e-3)
@@ -85,7 +85,7 @@ def test_a_second_process_loads_the_compiled_implicit_step_and_a_changed_loop_mi
     assert a["compiled"] and b["compiled"]
     assert (a["hits"], a["misses"]) == (0, 1) and (b["hits"], b["misses"]) == (1, 0)
     assert a["x"] == b["x"] and a["v"] == b["v"]
-    grid = td.Grid((3, 4, 5), 0.01, 6)
+    grid = td.Grid((3, 4, 5), spacing=0.01, topology=6)
     model = td.Model(
         grid,
         stiffness=50.0,

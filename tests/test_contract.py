@@ -82,7 +82,7 @@ def test_knoche_scene_without_material(tmp_path, capsys):
             'name = "symplectic"', 'name = "knoche"'
         ),
     )
-    assert cli.main(["run", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    assert cli.main(argv=["run", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
     assert "material" in one_line(capsys)
 
 
@@ -103,11 +103,11 @@ def test_sizes_beyond_memory_are_refused_with_the_key_and_the_bytes(tmp_path, ca
         avail = checks.available_memory
         checks.available_memory = lambda device=None: 2**30
         try:
-            assert cli.main(argv) == 2
+            assert cli.main(argv=argv) == 2
         finally:
             checks.available_memory = avail
     else:
-        assert cli.main(argv) == 2
+        assert cli.main(argv=argv) == 2
     err = one_line(capsys)
     assert key in err and "fits in memory" in err and "B" in err
     assert not (tmp_path / "out").exists() and not (tmp_path / "out.png").exists()
@@ -117,13 +117,13 @@ def test_fuzzy_resolution_beyond_memory(tmp_path, capsys):
     text = (ROOT / "fuzzy" / "susilap_g.fis").read_text().replace("[System]\n", "[System]\nResolution=100000000000\n")
     path = tmp_path / "big.fis"
     path.write_text(text)
-    assert cli.main(["fuzzy", "eval", str(path), "consistency=5"]) == 2
+    assert cli.main(argv=["fuzzy", "eval", str(path), "consistency=5"]) == 2
     err = one_line(capsys)
     assert "Resolution" in err and f"{path}:" in err and "TiB" in err
 
 
 def test_fis_path_that_is_a_folder(tmp_path, capsys):
-    assert cli.main(["fuzzy", "show", str(tmp_path)]) == 2
+    assert cli.main(argv=["fuzzy", "show", str(tmp_path)]) == 2
     assert "not a folder" in one_line(capsys)
 
 
@@ -135,20 +135,24 @@ def test_non_utf8_csv_names_the_line(tmp_path, capsys, where):
         argv = ["fuzzy", "eval", str(ROOT / "fuzzy" / "susilap_g.fis"), "--inputs", str(csv)]
     else:
         argv = ["sweep", str(scene(tmp_path)), "--points", str(csv), "--out", str(tmp_path / "sw")]
-    assert cli.main(argv) == 2
+    assert cli.main(argv=argv) == 2
     assert f"{csv}:3:" in one_line(capsys) and "UTF-8" in capsys.readouterr().err + "UTF-8"
 
 
 def test_output_paths_that_are_files_missing_folders_or_unwritable(tmp_path, capsys):
     path = scene(tmp_path)
-    assert cli.main(["run", str(path), "--out", str(path), "--quiet"]) == 2  # a file
+    assert cli.main(argv=["run", str(path), "--out", str(path), "--quiet"]) == 2  # a file
     assert "this path is a file" in one_line(capsys)
     assert (
-        cli.main(["data", "cube", "--out", str(tmp_path / "no" / "such" / "x.npz"), "--n", "3", "--steps", "5"]) == 0
+        cli.main(argv=["data", "cube", "--out", str(tmp_path / "no" / "such" / "x.npz"), "--n", "3", "--steps", "5"])
+        == 0
     )  # folders are made
-    assert cli.main(["warp", "phantom:16", str(tmp_path / "x.npy"), "--out", str(tmp_path / "missing" / "w.npy")]) == 2
+    assert (
+        cli.main(argv=["warp", "phantom:16", str(tmp_path / "x.npy"), "--out", str(tmp_path / "missing" / "w.npy")])
+        == 2
+    )
     one_line(capsys)
-    assert cli.main(["run", str(path), "--out", "/proc/torchdeform-test/out", "--quiet"]) == 2  # cannot be made
+    assert cli.main(argv=["run", str(path), "--out", "/proc/torchdeform-test/out", "--quiet"]) == 2  # cannot be made
     assert "--out" in one_line(capsys)
 
 
@@ -165,7 +169,7 @@ def test_output_paths_that_are_files_missing_folders_or_unwritable(tmp_path, cap
 )
 def test_cli_numbers_are_checked_while_parsing(capsys, argv, option):
     with pytest.raises(SystemExit) as e:
-        cli.main(argv)
+        cli.main(argv=argv)
     assert e.value.code == 2
     err = one_line(capsys, "torchdeform ")
     assert f"argument {option}" in err and "--help" in err
@@ -224,7 +228,7 @@ def test_fuzzy_ranges_beyond_float32_are_refused(tmp_path, capsys):
     path = tmp_path / "wide.fis"
     path.write_text(text.replace("Range=[0 12]", "Range=[0 1e40]", 1))
     assert "Range=[0 1e40]" in path.read_text()
-    assert cli.main(["fuzzy", "eval", str(path), "consistency=5"]) == 2
+    assert cli.main(argv=["fuzzy", "eval", str(path), "consistency=5"]) == 2
     err = one_line(capsys)
     assert "Range" in err and "1e30" in err
 
@@ -255,7 +259,7 @@ def test_output_term_narrower_than_a_cell_warns(tmp_path, capsys):
         2, 2 (1) : 1
         """)
     )
-    assert cli.main(["fuzzy", "eval", str(path), "x=10"]) == 0
+    assert cli.main(argv=["fuzzy", "eval", str(path), "x=10"]) == 0
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("torchdeform: warning: narrow: output y's term hi is narrower")
     with warnings.catch_warnings():
@@ -276,10 +280,10 @@ def test_data_cube_never_writes_non_finite_series(tmp_path, capsys, amplitude, c
     argv = ["data", "cube", "--out", str(out), "--n", "3", "--load", "sine", "--amplitude", amplitude]
     if amplitude == "nan":
         with pytest.raises(SystemExit) as e:
-            cli.main(argv)
+            cli.main(argv=argv)
         assert e.value.code == code
     else:
-        assert cli.main(argv) == code
+        assert cli.main(argv=argv) == code
         assert "refusing to write c.npz: positions is nan" in one_line(capsys)
     assert not out.exists() and listing(tmp_path) == []
 
@@ -305,7 +309,7 @@ def test_chainmail_drag_of_1e300_m_is_refused(tmp_path, capsys):
         path = [[0.0, [0.0, 0.0, 0.0]], [1.0, [1e300, 0.0, 0.0]]]
         """,
     )
-    assert cli.main(["run", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    assert cli.main(argv=["run", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
     err = one_line(capsys)
     assert f"{path}:16: drags[0].path: expected offsets within 1000 body sizes" in err
 
@@ -334,7 +338,7 @@ def test_training_from_a_diverging_start_stops_with_one_line(tmp_path):
 
 @pytest.mark.parametrize("case", ["no stiffness", "every node fixed"])
 def test_time_step_bound_without_springs_or_free_nodes_is_inf(case):
-    g = td.Grid((3, 3, 3), 0.01)
+    g = td.Grid((3, 3, 3), spacing=0.01)
     kw = (
         dict(stiffness=0.0)
         if case == "no stiffness"
@@ -342,7 +346,7 @@ def test_time_step_bound_without_springs_or_free_nodes_is_inf(case):
     )
     model = td.Model(g, mass=1e-3, **kw)
     for name in ("explicit", "symplectic", "verlet", "rk4"):
-        assert td.time_step_bound(model, name) == math.inf
+        assert td.time_step_bound(model, integrator=name) == math.inf
     assert td.time_step_bound(model, method="gershgorin") == math.inf
     with warnings.catch_warnings():
         warnings.simplefilter("error")
@@ -350,30 +354,30 @@ def test_time_step_bound_without_springs_or_free_nodes_is_inf(case):
 
 
 def test_simulate_zero_steps_returns_the_start():
-    g = td.Grid((3, 3, 3), 0.01)
+    g = td.Grid((3, 3, 3), spacing=0.01)
     model = td.Model(g, stiffness=10.0, mass=1e-3, fixed=g.face("bottom"), gravity=(-9.81, 0, 0))
     start = model.rest_state()
     for integrator in (td.SymplecticEuler(), td.RK4(), td.ImplicitEuler(), td.ProjectiveDynamics()):
-        final, rec = td.simulate(model, start, 1e-3, 0, integrator, record_every=1)
+        final, rec = td.simulate(model, start, 1e-3, 0, integrator=integrator, record_every=1)
         assert final.t == 0.0 and torch.equal(final.x, start.x) and torch.equal(final.v, start.v)
         assert rec["x"].shape[0] == 1 and torch.isfinite(rec["x"]).all()
 
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf")])
 def test_drag_path_with_a_non_finite_time_is_refused(bad):
-    g = td.Grid((3, 3, 3), 0.01)
+    g = td.Grid((3, 3, 3), spacing=0.01)
     with pytest.raises(td.ConfigError, match="finite waypoint times"):
-        td.Drag(g.face("top"), [(0.0, (0.0, 0.0, 0.0)), (bad, (0.0, 0.0, 0.01))])
+        td.Drag(g.face("top"), path=[(0.0, (0.0, 0.0, 0.0)), (bad, (0.0, 0.0, 0.01))])
 
 
 def test_fixed_nodes_never_move_even_with_a_start_velocity():
-    g = td.Grid((3, 3, 3), 0.01)
+    g = td.Grid((3, 3, 3), spacing=0.01)
     model = td.Model(g, stiffness=10.0, damping=0.01, mass=1e-3, fixed=g.face("bottom"), dtype=torch.float64)
     rest = model.rest_state()
     start = td.State(rest.x, torch.full_like(rest.v, 0.1))
     finals = {}
     for integrator in (td.SymplecticEuler(), td.RK4(), td.ImplicitEuler(cg_tol=1e-12), td.ProjectiveDynamics()):
-        final, _ = td.simulate(model, start, 1e-4, 20, integrator)
+        final, _ = td.simulate(model, start, 1e-4, 20, integrator=integrator)
         assert float((final.x - rest.x)[0, :, 0].abs().max()) == 0.0, integrator.name
         finals[integrator.name] = final.x
     # the free nodes moved (the start velocity was kept there) and implicit Euler agrees with PD
@@ -423,7 +427,7 @@ def test_volume_section_is_checked_before_the_simulation(tmp_path, capsys, monke
     import torchdeform.scene.run as run_module
 
     monkeypatch.setattr(run_module, "simulate", lambda *a, **k: pytest.fail("the simulation ran"))
-    assert cli.main(["run", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    assert cli.main(argv=["run", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
     assert f"{path}:23: volume.file" in one_line(capsys)
     assert not (tmp_path / "out").exists()
 
@@ -431,10 +435,10 @@ def test_volume_section_is_checked_before_the_simulation(tmp_path, capsys, monke
 def test_a_rerun_leaves_exactly_its_own_outputs(tmp_path, capsys):
     out = tmp_path / "out"
     with_volume = scene(tmp_path, TINY + '\n[volume]\nfile = "phantom:16"\n', "a.toml")
-    assert cli.main(["run", str(with_volume), "--out", str(out), "--quiet"]) == 0
+    assert cli.main(argv=["run", str(with_volume), "--out", str(out), "--quiet"]) == 0
     first = listing(out)
     assert "volume_after.png" in first and json.loads((out / "summary.json").read_text())["outputs"] == first
-    assert cli.main(["run", str(scene(tmp_path, TINY, "b.toml")), "--out", str(out), "--quiet"]) == 0
+    assert cli.main(argv=["run", str(scene(tmp_path, TINY, "b.toml")), "--out", str(out), "--quiet"]) == 0
     second = listing(out)
     assert second == ["energy.png", "summary.json", "trajectory.npz"]
     assert json.loads((out / "summary.json").read_text())["outputs"] == second
@@ -442,16 +446,16 @@ def test_a_rerun_leaves_exactly_its_own_outputs(tmp_path, capsys):
 
 def test_a_folder_with_other_files_needs_force(tmp_path, capsys):
     path = scene(tmp_path)
-    assert cli.main(["run", str(path), "--out", str(tmp_path), "--quiet"]) == 2  # holds scene.toml
+    assert cli.main(argv=["run", str(path), "--out", str(tmp_path), "--quiet"]) == 2  # holds scene.toml
     assert "--force" in one_line(capsys) and listing(tmp_path) == ["scene.toml"]
-    assert cli.main(["run", str(path), "--out", str(tmp_path), "--quiet", "--force"]) == 0
+    assert cli.main(argv=["run", str(path), "--out", str(tmp_path), "--quiet", "--force"]) == 0
     capsys.readouterr()
     assert listing(tmp_path) == ["energy.png", "scene.toml", "summary.json", "trajectory.npz"]
 
 
 # ------------------------------------------------------------------ misleading messages
 def test_divergence_under_a_huge_load_does_not_blame_dt():
-    g = td.Grid((3, 3, 3), 0.01)
+    g = td.Grid((3, 3, 3), spacing=0.01)
     model = td.Model(
         g, stiffness=10.0, mass=1e-3, fixed=g.face("bottom"), loads=[td.PointForce((2, 1, 1), (1e300, 0, 0))]
     )
@@ -462,7 +466,7 @@ def test_divergence_under_a_huge_load_does_not_blame_dt():
 
 
 def test_divergence_above_the_bound_still_names_a_safe_dt():
-    g = td.Grid((3, 3, 3), 0.01)
+    g = td.Grid((3, 3, 3), spacing=0.01)
     model = td.Model(g, stiffness=10.0, mass=1e-3, fixed=g.face("bottom"), gravity=(-9.81, 0, 0))
     bound = td.time_step_bound(model)
     with pytest.raises(td.DivergenceError) as e:
@@ -472,7 +476,7 @@ def test_divergence_above_the_bound_still_names_a_safe_dt():
 
 def test_stability_warning_with_a_zero_bound_reads(capsys, tmp_path):
     path = scene(tmp_path, TINY.replace('name = "symplectic"', 'name = "explicit"').replace("damping = 0.1\n", ""))
-    cli.main(["run", str(path), "--out", str(tmp_path / "out"), "--quiet"])
+    cli.main(argv=["run", str(path), "--out", str(tmp_path / "out"), "--quiet"])
     err = capsys.readouterr().err
     warning = [x for x in err.splitlines() if "warning" in x]
     assert len(warning) == 1 and "unstable at every time step" in warning[0] and "dt <= 0 s" not in err
@@ -480,7 +484,7 @@ def test_stability_warning_with_a_zero_bound_reads(capsys, tmp_path):
 
 def test_warnings_are_one_line_each(tmp_path, capsys):
     path = scene(tmp_path, TINY.replace("dt = 1e-4", "dt = 3e-4"))  # above the bound: a StabilityWarning
-    cli.main(["run", str(path), "--out", str(tmp_path / "out"), "--quiet"])
+    cli.main(argv=["run", str(path), "--out", str(tmp_path / "out"), "--quiet"])
     err = capsys.readouterr().err
     assert err and all(x.startswith("torchdeform: ") for x in err.splitlines()), err
     assert sum("warning: dt = 0.0003 s exceeds the stability bound" in x for x in err.splitlines()) == 1

@@ -31,6 +31,8 @@ from torchdeform.errors import TorchdeformError
 from torchdeform.learn import load_series
 from torchdeform.outputs import STAGING
 
+pytestmark = pytest.mark.slow  # fuzz campaigns (hypothesis, 1,270 cases)
+
 ROOT = Path(__file__).resolve().parents[1]
 #: generated cases per family
 CASES = {"scene": 250, "fis": 250, "csv": 150, "series": 150, "volume": 120, "cli": 200, "options": 150}
@@ -51,7 +53,7 @@ def call(argv) -> tuple[int, str, str]:
     out, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         try:
-            status = cli.main([str(a) for a in argv])
+            status = cli.main(argv=[str(a) for a in argv])
         except SystemExit as e:  # argparse: usage errors and --help
             status = e.code
     return status, out.getvalue(), err.getvalue()

@@ -1,6 +1,8 @@
 """Package layout: the import graph of torchdeform, read from the source with ``ast``.
 
-* the module import graph (every ``import`` statement, also those inside functions) is acyclic;
+* the module import graph (every ``import`` statement, also those inside functions, but not those
+  under ``if TYPE_CHECKING:``, which only annotations use) is acyclic;
+* imports run down the floors of the package (``LAYERS``), never up, and only ``cli`` imports ``bench``;
 * no module imports a ``_private`` name (or a ``_private`` module) from another subpackage
   (subpackage = the first component below ``torchdeform``; each top-level module is its own;
   ``torchdeform._compile`` is the shared ground floor, importable everywhere, though the
@@ -54,12 +56,27 @@ def _ours(name: str) -> bool:
     return name == "torchdeform" or name.startswith("torchdeform.")
 
 
+def _is_type_checking(test: ast.expr) -> bool:
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
+    )
+
+
 def imports_of(name: str):
     """``(target module, imported name or None, line)`` for every torchdeform import in ``name``.
 
     ``from .x import y`` gives ``(x.y, None)`` when ``y`` is a submodule, else ``(x, "y")``."""
     tree = ast.parse(MODULES[name].read_text(), filename=str(MODULES[name]))
+    typing_only = {
+        id(inner)
+        for block in ast.walk(tree)
+        if isinstance(block, ast.If) and _is_type_checking(block.test)
+        for stmt in block.body
+        for inner in ast.walk(stmt)
+    }
     for node in ast.walk(tree):
+        if id(node) in typing_only:  # ``if TYPE_CHECKING:`` imports are for annotations, never run
+            continue
         if isinstance(node, ast.Import):
             for alias in node.names:
                 if _ours(alias.name):

@@ -53,7 +53,7 @@ class CompileFallbackWarning(UserWarning):
 _warned: set = set()
 
 
-def warn_fallback(reason: str, what: str = "the eager step", stacklevel: int = 3) -> None:
+def warn_fallback(reason: str, *, what: str = "the eager step", stacklevel: int = 3) -> None:
     """Warn that compilation is unavailable and ``what`` runs instead.
 
     Once per kind of ``reason`` (its text before the first colon).
@@ -82,7 +82,7 @@ INDUCTOR_OPTIONS = {
 }
 
 
-def inductor_options(options: dict | None = None, threads: int | None = None) -> dict:
+def inductor_options(*, options: dict | None = None, threads: int | None = None) -> dict:
     """``options`` plus a thread count (default: torch's current one) as inductor's ``cpp.threads``.
 
     Inductor chooses serial or OpenMP loops from the thread count at code generation, but its
@@ -93,7 +93,7 @@ def inductor_options(options: dict | None = None, threads: int | None = None) ->
 
     Examples:
         >>> import torch
-        >>> inductor_options({"size_asserts": False})["cpp.threads"] == torch.get_num_threads()
+        >>> inductor_options(options={"size_asserts": False})["cpp.threads"] == torch.get_num_threads()
         True
     """
     _register_realize_lowering()  # every torch.compile here takes its options from this

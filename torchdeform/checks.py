@@ -42,7 +42,7 @@ def _try_device(name: str) -> str | None:
     return None
 
 
-def usable_device(device, key: str = "--device", file=None, line=None) -> torch.device:
+def usable_device(device, *, key: str = "--device", file=None, line=None) -> torch.device:
     """``device`` as a :class:`torch.device` that works here, or a :class:`ConfigError` saying why not.
 
     Args:
@@ -54,7 +54,7 @@ def usable_device(device, key: str = "--device", file=None, line=None) -> torch.
     Examples:
         >>> usable_device("cpu")
         device(type='cpu')
-        >>> usable_device("meta", "integrator.device")
+        >>> usable_device("meta", key="integrator.device")
         Traceback (most recent call last):
         ...
         torchdeform.errors.ConfigError: integrator.device: expected a device this torch can compute on ("cpu"...
@@ -69,7 +69,7 @@ def usable_device(device, key: str = "--device", file=None, line=None) -> torch.
         dev = torch.device(device)
     except (RuntimeError, TypeError, ValueError):
         raise ConfigError(
-            key, 'a device name such as "cpu", "cuda" or "cuda:1"', device, file=file, line=line
+            key, 'a device name such as "cpu", "cuda" or "cuda:1"', got=device, file=file, line=line
         ) from None
     why = _try_device(str(dev))
     if why is not None:
@@ -97,7 +97,7 @@ def format_bytes(n: float) -> str:
     return f"{int(n)} B"
 
 
-def available_memory(device=None) -> int | None:
+def available_memory(*, device=None) -> int | None:
     """Bytes that can still be allocated on ``device`` (CPU: ``MemAvailable``), or None if unknown."""
     dev = torch.device(device or "cpu")
     if dev.type == "cuda":
@@ -120,7 +120,7 @@ def available_memory(device=None) -> int | None:
         return None
 
 
-def check_memory(key: str, nbytes: float, what: str, device=None, got=None, file=None, line=None) -> None:
+def check_memory(key: str, nbytes: float, what: str, *, device=None, got=None, file=None, line=None) -> None:
     """Refuse (``ConfigError`` naming ``key``) when ``nbytes`` exceed what ``device`` has available.
 
     Args:
@@ -139,20 +139,20 @@ def check_memory(key: str, nbytes: float, what: str, device=None, got=None, file
         ...
         torchdeform.errors.ConfigError: grid.shape: expected a size that fits in memory: a grid of 1e6 x 1e6 x 1e6 nodes needs at least 888 PiB...
     """
-    avail = available_memory(device)
+    avail = available_memory(device=device)
     if avail is None or nbytes <= avail:
         return
     raise ConfigError(
         key,
         f"a size that fits in memory: {what} needs at least {format_bytes(nbytes)}, and "
         f"{format_bytes(avail)} is available on {torch.device(device or 'cpu')}",
-        got,
+        got=got,
         file=file,
         line=line,
     )
 
 
-def read_text(path, key: str, what: str = "file") -> str:
+def read_text(path, key: str, *, what: str = "file") -> str:
     r"""The UTF-8 text of an input file, or a :class:`ConfigError` naming ``key`` (and the line of a bad byte).
 
     Args:
@@ -163,24 +163,24 @@ def read_text(path, key: str, what: str = "file") -> str:
     Examples:
         >>> p = getfixture("tmp_path") / "bad.csv"
         >>> _ = p.write_bytes(b"a,b\n1,2\n\xff,3\n")
-        >>> read_text(p, "--inputs", "CSV file")
+        >>> read_text(p, "--inputs", what="CSV file")
         Traceback (most recent call last):
         ...
         torchdeform.errors.ConfigError: ...bad.csv:3: --inputs: expected a UTF-8 text CSV file, got 'byte 0xff that is not UTF-8'
-        >>> read_text(p.parent, "--inputs", "CSV file")
+        >>> read_text(p.parent, "--inputs", what="CSV file")
         Traceback (most recent call last):
         ...
         torchdeform.errors.ConfigError: --inputs: expected a CSV file, not a folder, got '...'
     """
     p = Path(path)
     if p.is_dir():
-        raise ConfigError(key, f"a {what}, not a folder", str(p))
+        raise ConfigError(key, f"a {what}, not a folder", got=str(p))
     try:
         data = p.read_bytes()
     except FileNotFoundError:
-        raise ConfigError(key, f"an existing {what}", str(p)) from None
+        raise ConfigError(key, f"an existing {what}", got=str(p)) from None
     except OSError as e:
-        raise ConfigError(key, f"a readable {what} ({e.strerror})", str(p)) from None
+        raise ConfigError(key, f"a readable {what} ({e.strerror})", got=str(p)) from None
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError as e:
@@ -188,14 +188,14 @@ def read_text(path, key: str, what: str = "file") -> str:
         raise ConfigError(
             key,
             f"a UTF-8 text {what}",
-            f"byte 0x{data[e.start]:02x} that is not UTF-8",
+            got=f"byte 0x{data[e.start]:02x} that is not UTF-8",
             file=str(p),
             line=line,
             show_got=True,
         ) from None
 
 
-def check_grid(key: str, shape, topology: int = 26, itemsize: int = 4, device=None, file=None, line=None) -> None:
+def check_grid(key: str, shape, *, topology: int = 26, itemsize: int = 4, device=None, file=None, line=None) -> None:
     """Refuse a node grid whose model cannot fit in memory (:func:`check_memory`).
 
     The estimate (a lower bound): state, rest positions, masses, forces and the integrator's
@@ -224,7 +224,7 @@ def check_grid(key: str, shape, topology: int = 26, itemsize: int = 4, device=No
         key,
         float(nodes) * itemsize * (30 + int(topology)),
         f"a grid of {' x '.join(str(int(n)) for n in shape)} nodes ({topology} neighbours)",
-        device,
+        device=device,
         got=list(shape),
         file=file,
         line=line,

@@ -105,7 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv=None) -> int:
+def main(*, argv=None) -> int:
     """Run the ``torchdeform`` command; returns the exit status (:func:`torchdeform.options.guarded`).
 
     ``0`` done, ``2`` a user's mistake or an environment that cannot do it (one line on stderr),

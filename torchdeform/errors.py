@@ -46,14 +46,14 @@ class ConfigError(TorchdeformError, ValueError):
 
     Examples:
         >>> import torchdeform as td
-        >>> e = td.ConfigError("material.stiffness", "a number >= 0 (N/m)", -3.0, file="cube.toml", line=7)
+        >>> e = td.ConfigError("material.stiffness", "a number >= 0 (N/m)", got=-3.0, file="cube.toml", line=7)
         >>> str(e)
         'cube.toml:7: material.stiffness: expected a number >= 0 (N/m), got -3.0'
         >>> e.key, e.line, isinstance(e, ValueError)
         ('material.stiffness', 7, True)
     """
 
-    def __init__(self, key: str, expected: str, got=None, file=None, line=None, *, show_got=True):
+    def __init__(self, key: str, expected: str, *, got=None, file=None, line=None, show_got=True):
         self.key, self.expected, self.got, self.file, self.line = key, expected, got, file, line
         self.show_got = show_got and got is not None
         where = ""
@@ -84,7 +84,7 @@ class DivergenceError(TorchdeformError, FloatingPointError):
     """
 
     def __init__(
-        self, step: int, quantity: str, value: float, dt: float, safe_dt: float | None, cause: str | None = None
+        self, step: int, quantity: str, value: float, dt: float, safe_dt: float | None, *, cause: str | None = None
     ):
         self.step, self.quantity, self.value, self.dt, self.safe_dt = step, quantity, value, dt, safe_dt
         self.cause = cause
@@ -104,7 +104,7 @@ class StabilityWarning(UserWarning):
     Examples:
         >>> import warnings
         >>> import torchdeform as td
-        >>> model = td.Model(td.Grid((3, 3, 3), 0.01), stiffness=10.0, mass=1e-3)
+        >>> model = td.Model(td.Grid((3, 3, 3), spacing=0.01), stiffness=10.0, mass=1e-3)
         >>> with warnings.catch_warnings(record=True) as caught:
         ...     warnings.simplefilter("always")
         ...     bound = td.check_dt(model, 1.0, "symplectic")          # 1 s: far above the bound
@@ -113,13 +113,13 @@ class StabilityWarning(UserWarning):
     """
 
 
-def positive_number(value, key: str, expected: str = "a positive number") -> float:
+def positive_number(value, key: str, *, expected: str = "a positive number") -> float:
     """``value`` as a positive, finite float, or a :class:`ConfigError` naming ``key``.
 
     Examples:
         >>> positive_number("0.5", "radius")
         0.5
-        >>> positive_number(-1, "radius", "a positive number of metres")
+        >>> positive_number(-1, "radius", expected="a positive number of metres")
         Traceback (most recent call last):
         ...
         torchdeform.errors.ConfigError: radius: expected a positive number of metres, got -1
@@ -127,7 +127,7 @@ def positive_number(value, key: str, expected: str = "a positive number") -> flo
     try:
         v = float(value)
     except (TypeError, ValueError):
-        raise ConfigError(key, expected, value) from None
+        raise ConfigError(key, expected, got=value) from None
     if not math.isfinite(v) or v <= 0:
-        raise ConfigError(key, expected, value)
+        raise ConfigError(key, expected, got=value)
     return v

@@ -55,6 +55,10 @@ class Parser(argparse.ArgumentParser):
         'demo: error: argument --steps: expected an integer >= 1, got 0 (see demo --help)\n'
     """
 
+    def __init__(self, **kwargs):
+        # ``argparse.ArgumentParser``'s options, keyword-only (``prog=``, ``description=``, ...)
+        super().__init__(**kwargs)
+
     def error(self, message):
         """Print ``message`` as one line and exit with status 2."""
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
@@ -69,7 +73,7 @@ def _bounds(lo, hi, lo_open, hi_open) -> str:
     return " and ".join(parts)
 
 
-def number(lo=None, hi=None, *, lo_open: bool = False, hi_open: bool = False, unit: str = ""):
+def number(*, lo=None, hi=None, lo_open: bool = False, hi_open: bool = False, unit: str = ""):
     """An ``argparse`` type: a finite number within the bounds (``nan`` and ``inf`` are refused).
 
     Examples:
@@ -101,7 +105,7 @@ def number(lo=None, hi=None, *, lo_open: bool = False, hi_open: bool = False, un
     return parse
 
 
-def integer(lo=None, hi=None):
+def integer(*, lo=None, hi=None):
     """An ``argparse`` type: an integer within ``[lo, hi]``.
 
     Examples:
@@ -128,7 +132,7 @@ def integer(lo=None, hi=None):
     return parse
 
 
-def int_list(lo=None, hi=None):
+def int_list(*, lo=None, hi=None):
     """An ``argparse`` type: comma-separated integers within ``[lo, hi]``, at least one.
 
     Examples:
@@ -155,20 +159,20 @@ def int_list(lo=None, hi=None):
     return parse
 
 
-def number_list(count: int | None = None, lo=None, *, lo_open: bool = False):
+def number_list(*, count: int | None = None, lo=None, lo_open: bool = False):
     """An ``argparse`` type: comma-separated finite numbers (exactly ``count`` of them, if given).
 
     Examples:
-        >>> number_list(2, lo=0, lo_open=True)("3,0.4")
+        >>> number_list(count=2, lo=0, lo_open=True)("3,0.4")
         [3.0, 0.4]
-        >>> number_list(2, lo=0, lo_open=True)("3")
+        >>> number_list(count=2, lo=0, lo_open=True)("3")
         Traceback (most recent call last):
         ...
         argparse.ArgumentTypeError: expected 2 comma-separated finite numbers > 0, got '3'
     """
     bounds = _bounds(lo, None, lo_open, False)
     expected = (f"{count} " if count else "") + "comma-separated finite numbers" + (f" {bounds}" if bounds else "")
-    one = number(lo, lo_open=lo_open)
+    one = number(lo=lo, lo_open=lo_open)
 
     def parse(text):
         try:
@@ -184,7 +188,7 @@ def number_list(count: int | None = None, lo=None, *, lo_open: bool = False):
 
 
 @contextmanager
-def one_line_warnings(prefix: str = "torchdeform: warning: "):
+def one_line_warnings(*, prefix: str = "torchdeform: warning: "):
     """Show every warning raised inside as one line on stderr (no source line), each once."""
     seen = set()
 
@@ -227,7 +231,7 @@ def guarded(prog: str, func, *args, echo: bool = True) -> int:
     Examples:
         >>> from torchdeform.errors import ConfigError
         >>> def bad():
-        ...     raise ConfigError("--dt", "a positive number (s)", -1.0)
+        ...     raise ConfigError("--dt", "a positive number (s)", got=-1.0)
         >>> import contextlib, io
         >>> err = io.StringIO()
         >>> with contextlib.redirect_stderr(err):
@@ -239,12 +243,12 @@ def guarded(prog: str, func, *args, echo: bool = True) -> int:
 
     from .errors import TorchdeformError
 
-    def say(text: str) -> None:
+    def say(text: object) -> None:
         if echo:
             print(f"{prog}: {' '.join(str(text).split())}", file=sys.stderr)
 
     try:
-        with one_line_warnings(f"{prog}: warning: "):
+        with one_line_warnings(prefix=f"{prog}: warning: "):
             status = func(*args)
         try:
             sys.stdout.flush()

@@ -20,6 +20,7 @@ import shutil
 import sys
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -29,6 +30,7 @@ __all__ = [
     "atomic_path",
     "save_figure",
     "axes",
+    "figure",
     "save_plot",
     "RunFolder",
     "manifest",
@@ -52,7 +54,7 @@ def _suffixes(path: Path) -> str:
 
 
 @contextmanager
-def atomic_path(path, key: str = "--out"):
+def atomic_path(path, *, key: str = "--out"):
     """Yield a temporary path beside ``path`` (same suffix); rename it onto ``path`` on success.
 
     Writers that choose the format by the suffix (PIL, trimesh, numpy) see the right one. If the
@@ -80,11 +82,11 @@ def atomic_path(path, key: str = "--out"):
     """
     path = Path(path)
     if path.is_dir():
-        raise ConfigError(key, "a file path, not a folder", str(path))
+        raise ConfigError(key, "a file path, not a folder", got=str(path))
     parent = path.parent
     if not parent.is_dir():
         what = "is not a folder" if parent.exists() else "does not exist"
-        raise ConfigError(key, f"a path in an existing folder ({parent} {what})", str(path))
+        raise ConfigError(key, f"a path in an existing folder ({parent} {what})", got=str(path))
     suffix = _suffixes(path)
     stem = path.name[: len(path.name) - len(suffix)] if suffix else path.name
     tmp = parent / f"{STAGING}{os.getpid()}-{stem}{suffix}"
@@ -105,7 +107,7 @@ def atomic_path(path, key: str = "--out"):
             tmp.unlink()
 
 
-def save_figure(fig, path, dpi: int = 100) -> None:
+def save_figure(fig, path, *, dpi: int = 100) -> None:
     """Write a matplotlib figure to ``path`` (format by suffix) whole or not at all (:func:`atomic_path`)."""
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi)
@@ -128,6 +130,24 @@ def axes(*, figsize=(6.5, 4.5), ncols: int = 1):
     return plt.subplots(1, ncols, figsize=figsize)
 
 
+def figure(*, figsize=(6.5, 4.5)):
+    """A matplotlib figure of ``figsize`` inches with constrained layout on its own Agg canvas (no pyplot, no screen).
+
+    Examples:
+        >>> from torchdeform.outputs import figure
+        >>> fig = figure(figsize=(8, 3))
+        >>> left, right = fig.subplots(1, 2)
+        >>> fig.get_size_inches().tolist(), fig.get_layout_engine() is not None
+        ([8.0, 3.0], True)
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=figsize, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
 def save_plot(fig, out_dir, name: str) -> None:
     """Write ``fig`` as ``out_dir/name`` (110 dpi, tight layout, atomically), close it and say so on stderr."""
     import matplotlib.pyplot as plt
@@ -140,7 +160,7 @@ def save_plot(fig, out_dir, name: str) -> None:
     print(f"wrote {path}", file=sys.stderr)
 
 
-def manifest(folder, also=("summary.json",)) -> list:
+def manifest(folder, *, also=("summary.json",)) -> list:
     """The files under ``folder`` (relative POSIX paths, sorted), plus ``also``: a run's outputs."""
     folder = Path(folder)
     names = {p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file()}
@@ -213,7 +233,7 @@ class RunFolder:
         (['a.txt', 'summary.json'], '2')
     """
 
-    def __init__(self, out, force: bool = False, key: str = "--out"):
+    def __init__(self, out, *, force: bool = False, key: str = "--out"):
         self.out, self.force, self.key = Path(out), force, key
         self.stage = None
 
@@ -221,14 +241,14 @@ class RunFolder:
         """Refuse an unusable ``out`` before any work (creates nothing; also safe on every rank)."""
         out = self.out
         if out.exists() and not out.is_dir():
-            raise ConfigError(self.key, "a folder (this path is a file)", str(out))
+            raise ConfigError(self.key, "a folder (this path is a file)", got=str(out))
         parent = out
         while not parent.exists():
             parent = parent.parent
         if not parent.is_dir():
-            raise ConfigError(self.key, f"a folder that can be created ({parent} is a file)", str(out))
+            raise ConfigError(self.key, f"a folder that can be created ({parent} is a file)", got=str(out))
         if not os.access(parent, os.W_OK | os.X_OK):
-            raise ConfigError(self.key, f"a folder this user can write to ({parent} is not writable)", str(out))
+            raise ConfigError(self.key, f"a folder this user can write to ({parent} is not writable)", got=str(out))
         if out.is_dir() and not self.force and _previous(out) is None:
             others = sorted(p.name for p in out.iterdir() if not p.name.startswith(STAGING))
             if others:
@@ -238,7 +258,7 @@ class RunFolder:
                     f"an empty folder or the folder of an earlier run (one with summary.json); "
                     f"it holds {len(others)} other entries ({shown}): choose another folder or add "
                     "--force to write beside them",
-                    str(out),
+                    got=str(out),
                 )
 
     def __enter__(self) -> Path:
@@ -246,7 +266,7 @@ class RunFolder:
         try:
             self.out.mkdir(parents=True, exist_ok=True)
         except OSError as e:
-            raise ConfigError(self.key, f"a folder that can be created ({e.strerror})", str(self.out)) from None
+            raise ConfigError(self.key, f"a folder that can be created ({e.strerror})", got=str(self.out)) from None
         _remove_orphans(self.out)
         self.previous = _previous(self.out)
         self.stage = self.out / f"{STAGING}{os.getpid()}"
@@ -254,7 +274,8 @@ class RunFolder:
         self.stage.mkdir()
         return self.stage
 
-    def __exit__(self, kind, value, tb) -> bool:
+    def __exit__(self, kind, value, tb) -> Literal[False]:
+        assert self.stage is not None  # set by __enter__
         try:
             if kind is None:
                 self.commit()
@@ -295,7 +316,7 @@ class NonFiniteOutputError(TorchdeformError, FloatingPointError):
     """An output would have held NaN or inf: it was not written."""
 
 
-def require_finite(name: str, value, what: str = "", cause: str = "") -> None:
+def require_finite(name: str, value, *, what: str = "", cause: str = "") -> None:
     """Refuse an output holding NaN or inf: raise :class:`NonFiniteOutputError` naming it and where.
 
     Args:
@@ -307,7 +328,7 @@ def require_finite(name: str, value, what: str = "", cause: str = "") -> None:
     Examples:
         >>> import numpy as np
         >>> require_finite("series.npz: x", np.zeros((2, 3)))
-        >>> require_finite("series.npz: x", np.array([[0, 1], [np.nan, 2]]), "step, node", "--amplitude is nan")
+        >>> require_finite("series.npz: x", np.array([[0, 1], [np.nan, 2]]), what="step, node", cause="--amplitude is nan")
         Traceback (most recent call last):
         ...
         torchdeform.outputs.NonFiniteOutputError: refusing to write series.npz: x is nan at step, node (1, 0) ...
@@ -327,7 +348,7 @@ def require_finite(name: str, value, what: str = "", cause: str = "") -> None:
     )
 
 
-def non_finite_keys(tree, path: str = "", limit: int = 5) -> list:
+def non_finite_keys(tree, *, path: str = "", limit: int = 5) -> list:
     """The dotted keys of the NaN or inf numbers in a JSON-like tree (at most ``limit``).
 
     Examples:
@@ -337,10 +358,10 @@ def non_finite_keys(tree, path: str = "", limit: int = 5) -> list:
     found = []
     if isinstance(tree, dict):
         for k, v in tree.items():
-            found += non_finite_keys(v, f"{path}.{k}" if path else str(k), limit)
+            found += non_finite_keys(v, path=f"{path}.{k}" if path else str(k), limit=limit)
     elif isinstance(tree, (list, tuple)):
         for i, v in enumerate(tree):
-            found += non_finite_keys(v, f"{path}[{i}]", limit)
+            found += non_finite_keys(v, path=f"{path}[{i}]", limit=limit)
     elif isinstance(tree, float) and not math.isfinite(tree):
         found.append(f"{path} = {tree}")
     return found[:limit]

@@ -63,7 +63,7 @@ def parse_args(argv=None):
     p.add_argument("--seed", type=integer(lo=0), default=0, help="seed of the noise and of random initial values")
     p.add_argument(
         "--offset",
-        type=number_list(2, lo=0, lo_open=True),
+        type=number_list(count=2, lo=0, lo_open=True),
         default=[3.0, 0.4],
         help="run 3 initial factors for stiffness,damping (default 3,0.4)",
     )
@@ -184,13 +184,13 @@ def shared_run(series, args, out) -> dict:
             "1,2 for a series whose truth is not one shared stiffness and damping "
             f"(run 3 fits one of each; {args.data or 'this series'} has per-region values "
             f"stiffness {kt}, damping {ct})",
-            args.runs,
+            got=args.runs,
         )
     fk, fc = args.offset
     params = learn.Parameters(
         series,
-        learn.SpringParameter.like(series, kt * fk),
-        learn.SpringParameter.like(series, ct * fc),
+        learn.SpringParameter.like(series, init=kt * fk),
+        learn.SpringParameter.like(series, init=ct * fc),
         series.truth["mass"],
     )
     loss = make_loss(series, args)
@@ -222,7 +222,7 @@ def implicit_integrator(args):
 def stiff_cube(args):
     """Radetzky's cube 1000x stiffer, stepped by implicit Euler at ``args.dt_factor`` x the explicit bound."""
     probe = learn.radetzky_cube(springs=args.springs, steps=1, **STIFF)
-    bound = td.time_step_bound(probe.true_model(), "symplectic")
+    bound = td.time_step_bound(probe.true_model(), integrator="symplectic")
     series = learn.radetzky_cube(
         springs=args.springs,
         noise=args.noise,
@@ -272,13 +272,13 @@ def per_spring_run(series, args, out, with_mass: bool) -> dict:
         v = mod.values().detach()
         spread[key] = learn.spread_report(v[active], true[active])
         if data_parallel.is_main():
-            learn.plot_spread(v[active], true[active], out / f"{name}_spread_{key}.png", f"{name}: {key}")
+            learn.plot_spread(v[active], true[active], out / f"{name}_spread_{key}.png", title=f"{name}: {key}")
     if with_mass:
         free = torch.as_tensor(~series.constrained())[series.grid.nodes()]
         v, tm = params.learned["mass"].values().detach(), truth["mass"]
         spread["mass"] = learn.spread_report(v[free], tm[free])
         if data_parallel.is_main():
-            learn.plot_spread(v[free], tm[free], out / f"{name}_spread_mass.png", f"{name}: mass (free nodes)")
+            learn.plot_spread(v[free], tm[free], out / f"{name}_spread_mass.png", title=f"{name}: mass (free nodes)")
     res.update(
         {
             "spread": spread,
@@ -300,8 +300,8 @@ def long_run(args, out) -> dict:
     kt, ct = series.meta["truth"]["stiffness"], series.meta["truth"]["damping"]
     params = learn.Parameters(
         series,
-        learn.SpringParameter.like(series, kt * 2.0),
-        learn.SpringParameter.like(series, ct * 0.5),
+        learn.SpringParameter.like(series, init=kt * 2.0),
+        learn.SpringParameter.like(series, init=ct * 0.5),
         series.truth["mass"],
     )
     loss = data_parallel.parallel_loss(
@@ -360,7 +360,7 @@ def fit(args, out) -> dict:
         except ValueError:
             runs = [0]
         if not runs or any(r not in (1, 2, 3) for r in runs):
-            raise td.ConfigError("--runs", "comma-separated runs among 1, 2, 3", args.runs)
+            raise td.ConfigError("--runs", "comma-separated runs among 1, 2, 3", got=args.runs)
         result = {
             "series": {k: v for k, v in series.meta.items() if k != "loads"},
             "optimizer": args.optimizer,

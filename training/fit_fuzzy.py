@@ -88,7 +88,7 @@ def main(argv=None) -> int:
 def fit(args, out) -> dict:
     ref = fuzzy.load_preset(args.preset).double()
     if len(ref.inputs) != 1:
-        raise td.ConfigError("--preset", "a fuzzy system with one input (the slider)", args.preset)
+        raise td.ConfigError("--preset", "a fuzzy system with one input (the slider)", got=args.preset)
     name = ref.input_names()[0]
     target = {k: float(v) for k, v in ref.evaluate({name: args.target}).items()}
     kt, ct = target["spring_const"], target["viscosity"]

@@ -99,7 +99,7 @@ def fit(args, out) -> dict:
     kt = series.meta["truth"]["stiffness"]
     g = np.random.default_rng(args.seed + 1)
     init = args.init if args.init is not None else kt * float(np.exp(g.uniform(np.log(0.2), np.log(5.0))))
-    k = learn.SpringParameter.like(series, init)
+    k = learn.SpringParameter.like(series, init=init)
     params = learn.Parameters(series, k, series.truth["damping"], series.truth["mass"])
     loss = data_parallel.parallel_loss(learn.WindowLoss(series, window=1, velocity=args.velocity))
     main = data_parallel.is_main()

@@ -1,8 +1,5 @@
 """``torchdeform bench accuracy``: a smoke run of ``--quick --json --out`` (about 10-15 s on 2
 cores) checked for real behaviour, and the Pareto front against a brute-force check.
-
-Works whether or not ``accuracy`` is registered in ``torchdeform.bench.BENCHES`` yet: the
-module fixture adds the entry for the duration of the run when it is missing.
 """
 
 import contextlib
@@ -11,27 +8,28 @@ import io
 import json
 import math
 import random
+from itertools import pairwise
 
 import pytest
 import torch
 
 import torchdeform as td
 from torchdeform import cli
-from torchdeform.bench import accuracy as ba
-from torchdeform.bench import registry as bench
+from torchdeform.bench.accuracy.report import TARGETS, pareto_front
+from torchdeform.bench.accuracy.runner import COLUMNS
+from torchdeform.bench.accuracy.scenes import SCENES, SIDE, cell_share, cube
+
+pytestmark = pytest.mark.slow  # a bench smoke run
 
 EXPLICIT = ("explicit", "symplectic", "verlet", "rk4")
 SMOOTH = ("load", "supports")  # the drag path has kinks, which cap the observed order
 
 
 def _main(argv):
-    """``cli.main`` with the accuracy bench registered; returns ``(rc, stdout)``."""
+    """``cli.main(["bench", "accuracy", *argv])``; returns ``(rc, stdout)``."""
     out = io.StringIO()
-    with pytest.MonkeyPatch.context() as mp:
-        if "accuracy" not in bench.BENCHES:
-            mp.setitem(bench.BENCHES, "accuracy", (ba.HELP, ba.add_arguments, ba.run))
-        with contextlib.redirect_stdout(out):
-            rc = cli.main(["bench", "accuracy", *argv])
+    with contextlib.redirect_stdout(out):
+        rc = cli.main(argv=["bench", "accuracy", *argv])
     return rc, out.getvalue()
 
 
@@ -58,7 +56,7 @@ def test_quick_json_rows_and_references(quick):
     rows = doc["rows"]
     assert rows
     for r in rows:
-        assert set(r) == set(ba.COLUMNS)
+        assert set(r) == set(COLUMNS)
         assert r["status"] in ("ok", "diverged")
         assert r["wall_s"] is not None and r["wall_s"] > 0
         if r["status"] == "ok":
@@ -69,7 +67,7 @@ def test_quick_json_rows_and_references(quick):
         assert name in methods or name in doc["skipped"], name
     assert set(EXPLICIT) | {"implicit", "static"} <= methods
     assert "knoche" in doc["skipped"] and doc["skipped"]["knoche"]
-    assert {r["scene"] for r in rows} == set(ba.SCENES)
+    assert {r["scene"] for r in rows} == set(SCENES)
     for name, ref in doc["references"].items():
         assert ref["text"] and ref["max_displacement_m"] > 0
         if name == "load-static":
@@ -87,7 +85,7 @@ def test_quick_orders_and_stability(quick):
         for method, low, high in (("rk4", 2.0, 6.0), ("symplectic", 0.6, 1.6)):
             ok = [r for r in _ok(rows, scene, method) if r["dt_bound"] < 1]
             assert len(ok) >= 2, (scene, method)
-            for a, b in zip(ok, ok[1:]):
+            for a, b in pairwise(ok):
                 assert a["error"] < b["error"], (scene, method)  # error grows with dt
                 assert a["error"] > 10 * refs[scene]["error_estimate"]  # above the reference's own error
             if scene == "load" or method == "symplectic":
@@ -129,7 +127,7 @@ def test_quick_pareto_and_recommendation(quick):
             assert p["pareto"] == (not dominated), (scene, p["method"], p["param"])
         assert any(p["pareto"] for p in ok)
     assert not any(r["pareto"] for r in rows if r["status"] != "ok")
-    assert doc["targets"] == list(ba.TARGETS)
+    assert doc["targets"] == list(TARGETS)
     for rec in doc["recommendations"]:
         reach = [r for r in rows if r["scene"] == rec["scene"] and r["status"] == "ok" and r["error"] <= rec["target"]]
         if not reach:
@@ -146,7 +144,7 @@ def test_quick_files(quick):
     doc, path = quick
     with open(path / "accuracy.csv", newline="") as fh:
         table = list(csv.DictReader(fh))
-    assert len(table) == len(doc["rows"]) and set(table[0]) == set(ba.COLUMNS)
+    assert len(table) == len(doc["rows"]) and set(table[0]) == set(COLUMNS)
     png = path / "accuracy.png"
     assert png.is_file() and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size < 400_000
 
@@ -163,7 +161,7 @@ def test_pareto_front_brute_force():
             )
             for _ in range(n)
         ]
-        got = ba.pareto_front(pts)
+        got = pareto_front(pts)
         valid = [p[0] is not None and math.isfinite(p[0]) and math.isfinite(p[1]) for p in pts]
         want = []
         for i, p in enumerate(pts):
@@ -181,7 +179,7 @@ def test_pareto_front_brute_force():
 
 def test_cell_share_and_scaling():
     grid = td.Grid((3, 3, 3), topology=26)
-    s = ba.cell_share(grid)
+    s = cell_share(grid)
     axis_d = grid.directions.index((1, 0, 0))
     assert s[axis_d, 0, 1, 1] == 1.0  # interior edge: 4 cells
     assert s[axis_d, 0, 0, 1] == 0.5  # in a face of the box: 2 cells
@@ -189,15 +187,15 @@ def test_cell_share_and_scaling():
     body = grid.directions.index((1, 1, 1))
     assert bool((s[body] == 1).all())  # a body diagonal lies in one cell
     # k = E h s: the same cube at two resolutions has the same total spring "modulus" per volume
-    g3, kw3 = ba.cube(3, 5e3, 4e-4, None)
-    g5, kw5 = ba.cube(5, 5e3, 4e-4, None)
+    g3, kw3 = cube(3, 5e3, 4e-4, None)
+    g5, kw5 = cube(5, 5e3, 4e-4, None)
     m3 = td.Model(g3, **kw3, dtype=torch.float64)
     m5 = td.Model(g5, **kw5, dtype=torch.float64)
     assert float(m3.mass.sum()) == pytest.approx(float(m5.mass.sum()))  # rho * volume
     # sum over springs of k l0^2 (~ E * volume for a lattice) does not depend on the spacing
     ksum = [float((m.stiffness * m.rest_length**2 * g.spring_mask()).sum()) for m, g in ((m3, g3), (m5, g5))]
     assert ksum[0] == pytest.approx(ksum[1], rel=1e-12)
-    assert ksum[0] == pytest.approx(27 * 5e3 * ba.SIDE**3, rel=1e-12)  # 3 + 6*2 + 4*3 per cell volume
+    assert ksum[0] == pytest.approx(27 * 5e3 * SIDE**3, rel=1e-12)  # 3 + 6*2 + 4*3 per cell volume
 
 
 def test_bad_options_are_one_line(capsys):

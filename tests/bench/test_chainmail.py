@@ -2,11 +2,15 @@
 
 import json
 
+import pytest
+
 from torchdeform import cli
+
+pytestmark = pytest.mark.slow  # a bench smoke run
 
 
 def test_bench_chainmail_quick_json(capsys, tmp_path):
-    rc = cli.main(["bench", "chainmail", "--quick", "--json", "--out", str(tmp_path)])
+    rc = cli.main(argv=["bench", "chainmail", "--quick", "--json", "--out", str(tmp_path)])
     assert rc == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["bench"] == "chainmail"

@@ -9,12 +9,14 @@ import pytest
 
 from torchdeform import cli
 
+pytestmark = pytest.mark.slow  # a bench smoke run
+
 
 def test_a_step_row_on_two_ranks(tmp_path, capsys):
     n = 8
     assert (
         cli.main(
-            [
+            argv=[
                 "bench",
                 "distributed",
                 "--cases",
@@ -46,6 +48,6 @@ def test_a_step_row_on_two_ranks(tmp_path, capsys):
 
 @pytest.mark.parametrize("argv", [["--cases", "step"], ["--ranks", "3", "--n", "2"], ["--device", "cuda"]])
 def test_bad_options_are_one_line(argv, capsys):
-    assert cli.main(["bench", "distributed", *argv]) == 2
+    assert cli.main(argv=["bench", "distributed", *argv]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("torchdeform:")

@@ -13,9 +13,11 @@ from torchdeform.errors import ConfigError
 from torchdeform.sim.packed import PackedModel
 from torchdeform.topology import cut_surfaces
 
+pytestmark = pytest.mark.slow  # a bench smoke run
+
 
 def test_bench_frame_quick_json(capsys, tmp_path):
-    rc = cli.main(["bench", "frame", "--quick", "--json", "--out", str(tmp_path)])
+    rc = cli.main(argv=["bench", "frame", "--quick", "--json", "--out", str(tmp_path)])
     assert rc == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["bench"] == "frame"
@@ -72,7 +74,7 @@ def _brute_normals(v, faces):
 
 def _deformed(grid, seed=0):
     g = torch.Generator().manual_seed(seed)
-    X = grid.rest_positions(torch.float64)
+    X = grid.rest_positions(dtype=torch.float64)
     A = torch.eye(3, dtype=torch.float64) + 0.1 * torch.randn(3, 3, generator=g, dtype=torch.float64)
     x = torch.einsum("ij,bjdhw->bidhw", A, X) + 0.002 * torch.randn(X.shape, generator=g, dtype=torch.float64)
     return X, x
@@ -89,14 +91,14 @@ def test_frame_surface_matches_cut_surfaces(two_pieces):
     ref_v = np.concatenate([s.vertices for s in ref])
     ref_f = np.concatenate([s.faces + sum(len(p.vertices) for p in ref[:i]) for i, s in enumerate(ref)])
     # grid layout
-    surf = FrameSurface(grid, labels, dtype=torch.float64)
+    surf = FrameSurface(grid, labels=labels, dtype=torch.float64)
     v = surf.vertices(x)
     assert np.abs(v.numpy() - ref_v).max() < 1e-10
     assert np.array_equal(surf.faces.numpy(), ref_f)
     # packed layout (the bench's): read straight from the packed state
     model = td.Model(grid, stiffness=10.0, mass=1e-3, dtype=torch.float64)
     pm = PackedModel(model)
-    psurf = FrameSurface(grid, labels, packed=pm, dtype=torch.float64)
+    psurf = FrameSurface(grid, labels=labels, packed=pm, dtype=torch.float64)
     vp = psurf.vertices(pm.pack(x))
     assert np.abs(vp.numpy() - ref_v).max() < 1e-10
     # normals: both formulations against the brute force
@@ -108,7 +110,7 @@ def test_frame_surface_matches_cut_surfaces(two_pieces):
 def test_frame_surface_rest_and_float32():
     grid = td.Grid((4, 4, 4), spacing=0.01, topology=26)
     surf = FrameSurface(grid)
-    X = grid.rest_positions(torch.float32)
+    X = grid.rest_positions(dtype=torch.float32)
     v, n = surf(X)
     assert torch.allclose(v, surf.rest)
     assert torch.allclose(n.norm(dim=1), torch.ones(len(n)), atol=1e-6)
@@ -119,7 +121,7 @@ def test_frame_surface_rest_and_float32():
 
 def test_bench_frame_volume_row(capsys):
     rc = cli.main(
-        [
+        argv=[
             "bench",
             "frame",
             "--quick",

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.slow  # a bench smoke run
+
 TIPPER = Path(__file__).resolve().parents[1] / "data" / "fis" / "tipper.fis"
 
 

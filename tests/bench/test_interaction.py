@@ -3,16 +3,19 @@ against a plain simulation of the same scene (grid layout, an independent path t
 
 import json
 
+import pytest
 import torch
 
 import torchdeform as td
 from torchdeform import cli
 from torchdeform.bench.interaction import pressing_scene
 
+pytestmark = pytest.mark.slow  # a bench smoke run
+
 
 def test_bench_interaction_eager_json(capsys, tmp_path):
     rc = cli.main(
-        [
+        argv=[
             "bench",
             "interaction",
             "--quick",
@@ -41,7 +44,7 @@ def test_bench_interaction_eager_json(capsys, tmp_path):
         assert r["hz"] > 0 and r["force_N"] > 0
     assert step["mode"] == "step" and haptic["mode"] == "haptic" and haptic["body_hz"] > 0
     # the step row's force: the same scene stepped on the grid layout (press to t >= 0.1 s, then 3 x 20 steps)
-    model, _, dt = pressing_scene(5, torch.float64)
+    model, _, dt = pressing_scene(5, dtype=torch.float64)
     t, steps = dt, 1  # the first (compiling) step, then on to t >= 0.1 s
     while t < 0.1:
         t, steps = t + dt, steps + 1

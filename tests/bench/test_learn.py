@@ -2,12 +2,16 @@
 
 import json
 
+import pytest
+
 from torchdeform import cli
 from torchdeform.bench.learn import PERTURBATION
 
+pytestmark = pytest.mark.slow  # a bench smoke run
+
 
 def test_bench_learn_quick_json(capsys, tmp_path):
-    rc = cli.main(["bench", "learn", "--quick", "--json", "--out", str(tmp_path)])
+    rc = cli.main(argv=["bench", "learn", "--quick", "--json", "--out", str(tmp_path)])
     assert rc == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["bench"] == "learn" and doc["met"] is None  # --quick: no compiled engine to judge
@@ -24,7 +28,7 @@ def test_bench_learn_quick_json(capsys, tmp_path):
 
 
 def test_bench_learn_refuses_one_iteration(capsys):
-    assert cli.main(["bench", "learn", "--iterations", "1", "--json"]) == 2
+    assert cli.main(argv=["bench", "learn", "--iterations", "1", "--json"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [
         "torchdeform: --iterations: expected at least 2 (the first compiled iteration includes the compile), got 1"

@@ -11,9 +11,11 @@ import pytest
 import torchdeform as td
 from torchdeform import cli
 
+pytestmark = pytest.mark.slow  # a bench smoke run
+
 
 def test_bench_speed_quick_json(capsys, tmp_path):
-    rc = cli.main(["bench", "speed", "--quick", "--json", "--threads", "2", "--out", str(tmp_path)])
+    rc = cli.main(argv=["bench", "speed", "--quick", "--json", "--threads", "2", "--out", str(tmp_path)])
     assert rc == 0
     captured = capsys.readouterr()
     assert "recompile_limit" not in captured.err  # one compilation per shape, not per step
@@ -72,7 +74,7 @@ def test_bench_speed_quick_json(capsys, tmp_path):
 def test_bench_speed_table_eager_only(capsys):
     assert (
         cli.main(
-            [
+            argv=[
                 "bench",
                 "speed",
                 "--quick",
@@ -96,6 +98,6 @@ def test_bench_speed_table_eager_only(capsys):
 
 
 def test_bench_bad_option_is_one_line(capsys):
-    assert cli.main(["bench", "speed", "--topologies", "7"]) == 2
+    assert cli.main(argv=["bench", "speed", "--topologies", "7"]) == 2
     err = capsys.readouterr().err
     assert "--topologies" in err and "Traceback" not in err

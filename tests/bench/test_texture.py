@@ -2,10 +2,13 @@
 
 import json
 
+import pytest
 import trimesh
 
 from torchdeform import cli
 from torchdeform.bench.texture import MODELS, hull_mesh
+
+pytestmark = pytest.mark.slow  # a bench smoke run
 
 
 def test_hull_meshes_are_closed_with_chen_and_he_counts():
@@ -18,7 +21,7 @@ def test_hull_meshes_are_closed_with_chen_and_he_counts():
 def test_bench_texture_json(capsys, tmp_path):
     assert (
         cli.main(
-            [
+            argv=[
                 "bench",
                 "texture",
                 "--quick",
@@ -54,6 +57,6 @@ def test_bench_texture_json(capsys, tmp_path):
 
 
 def test_bad_seam_blocks_is_one_line_and_exit_2(capsys):
-    assert cli.main(["bench", "texture", "--seam-blocks", "2,x"]) == 2
+    assert cli.main(argv=["bench", "texture", "--seam-blocks", "2,x"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--seam-blocks" in err[0], err

@@ -2,12 +2,16 @@
 
 import json
 
+import pytest
+
 from torchdeform import cli
+
+pytestmark = pytest.mark.slow  # a bench smoke run
 
 
 def test_bench_topology_eager_json(capsys, tmp_path):
     rc = cli.main(
-        [
+        argv=[
             "bench",
             "topology",
             "--quick",
@@ -49,5 +53,5 @@ def test_bench_topology_eager_json(capsys, tmp_path):
 
 
 def test_bench_topology_refuses_bad_sizes(capsys):
-    assert cli.main(["bench", "topology", "--sizes", "2", "--no-compile"]) == 2
+    assert cli.main(argv=["bench", "topology", "--sizes", "2", "--no-compile"]) == 2
     assert "--sizes" in capsys.readouterr().err

@@ -24,7 +24,10 @@ CASES = ("lbfgs", "adam")
 
 def shared(series, k, c):
     return learn.Parameters(
-        series, learn.SpringParameter.like(series, k), learn.SpringParameter.like(series, c), series.truth["mass"]
+        series,
+        learn.SpringParameter.like(series, init=k),
+        learn.SpringParameter.like(series, init=c),
+        series.truth["mass"],
     )
 
 
@@ -100,7 +103,7 @@ class FailsOnLastWindow:
     num_windows = 1
 
     def __call__(self, params, windows=None):
-        raise ConfigError("rollout", "a run that does not fail", "a failure on one rank")
+        raise ConfigError("rollout", "a run that does not fail", got="a failure on one rank")
 
 
 def main(out: str) -> int:

@@ -40,7 +40,7 @@ def build(name: str):
     grid = td.Grid(SHAPE, spacing=H, topology=topology, node_mask=mask)
     side = torch.zeros(SHAPE, dtype=torch.bool)
     side[1:, :, -1] = True  # the far w face, over every slab, dragged sideways
-    drag = td.Drag(side, [(0.0, (0.0, 0.0, 0.0)), (STEPS * DT, (0.0, 0.0, 0.004))])
+    drag = td.Drag(side, path=[(0.0, (0.0, 0.0, 0.0)), (STEPS * DT, (0.0, 0.0, 0.004))])
     stiffness = {6: 400.0, 26: 200.0}[topology]
     model = td.Model(
         grid,
@@ -74,7 +74,7 @@ def start(model):
     x = s.x + 1e-4 * torch.randn(s.x.shape, generator=g, dtype=s.x.dtype) * (
         model.free if model.free is not None else 1
     )
-    return td.State(x, s.v, 0.0)
+    return td.State(x, s.v, t=0.0)
 
 
 def main(out: Path, names: list) -> None:
@@ -87,7 +87,7 @@ def main(out: Path, names: list) -> None:
     try:
         for name in names:
             model, integrator, cuts = build(name)
-            run = decomposed_simulate(model, start(model), DT, STEPS, integrator, record_every=10, cuts=cuts)
+            run = decomposed_simulate(model, start(model), DT, STEPS, integrator=integrator, record_every=10, cuts=cuts)
             if dist.get_rank() == 0:
                 np.savez(
                     out / f"{name}.npz",

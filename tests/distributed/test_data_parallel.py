@@ -75,7 +75,7 @@ def params_of(series, k=12.0, c=0.08):
 def value_and_grad(loss, params, windows=None):
     for p in params.parameters():
         p.grad = None
-    v = loss(params, windows)
+    v = loss(params, windows=windows)
     v.backward()
     return float(v.detach()), [p.grad.clone() for p in params.parameters()]
 
@@ -91,14 +91,14 @@ def test_split_covers_every_window_exactly_once():
     s = cube(100)  # 10 windows
     loss = learn.WindowLoss(s, window=10)
     subset = [7, 2, 9, 0, 4]
-    got = [ShardedLoss(loss, rank=r, world=3).windows(subset) for r in range(3)]
+    got = [ShardedLoss(loss, rank=r, world=3).windows(windows=subset) for r in range(3)]
     assert got == [[7, 2], [9, 0], [4]]
     both = [ShardedLoss([loss, loss], rank=r, world=3).windows() for r in range(3)]
     assert functools.reduce(operator.iadd, both, []) == list(range(20)) and [len(b) for b in both] == [7, 7, 6]
     with pytest.raises(ConfigError, match="rank"):
         shard(4, 3, 3)
     with pytest.raises(ConfigError, match="windows"):
-        ShardedLoss(loss).windows([10])
+        ShardedLoss(loss).windows(windows=[10])
 
 
 # ------------------------------------------------------------------ one process
@@ -156,6 +156,7 @@ def single_process():
 
 
 @pytest.mark.parametrize("ranks", [2, 3])
+@pytest.mark.slow
 def test_data_parallel_fits_equal_the_single_process_fits(tmp_path, ranks, single_process):
     """L-BFGS on one series and Adam on random window subsets of two series (stopped half-way,
     checkpointed by rank 0, resumed on every rank): the learned values of every rank equal the
@@ -184,6 +185,7 @@ def test_data_parallel_fits_equal_the_single_process_fits(tmp_path, ranks, singl
     assert [float.fromhex(x) for x in got["few"]["grad"]] == pytest.approx([float(x) for x in g], rel=1e-13, abs=0)
 
 
+@pytest.mark.slow
 def test_fit_cube_script_under_torchrun_equals_one_process(tmp_path):
     """training/fit_cube.py on 2 ranks: rank 0 alone writes and prints; learned values equal the
     one-process script's to 1e-12."""

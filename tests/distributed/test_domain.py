@@ -5,6 +5,7 @@ input on one process."""
 
 from __future__ import annotations
 
+import itertools
 import os
 import subprocess
 import sys
@@ -32,7 +33,14 @@ def reference(name, with_cut=True):
             cut(model, state.x, blade)
 
     _, rec = td.simulate(
-        model, cases.start(model), cases.DT, cases.STEPS, integrator, record_every=10, callback=cut_once, warn=False
+        model,
+        cases.start(model),
+        cases.DT,
+        cases.STEPS,
+        integrator=integrator,
+        record_every=10,
+        callback=cut_once,
+        warn=False,
     )
     return rec
 
@@ -58,6 +66,7 @@ RUNS = {2: list(cases.CASES), 3: ["rk4_26", "implicit6"]}
 
 
 @pytest.mark.parametrize("ranks", sorted(RUNS))
+@pytest.mark.slow
 def test_ranks_follow_the_single_process_trajectory(tmp_path, ranks):
     launch(ranks, tmp_path, RUNS[ranks])
     for name in RUNS[ranks]:
@@ -86,7 +95,7 @@ def test_slabs_cover_the_rows_and_refuse_more_ranks_than_rows():
         for world in range(1, min(depth, 5) + 1):
             rows = slab_rows(depth, world)
             assert rows[0][0] == 0 and rows[-1][1] == depth
-            assert all(a[1] == b[0] for a, b in zip(rows, rows[1:]))
+            assert all(a[1] == b[0] for a, b in itertools.pairwise(rows))
             sizes = [hi - lo for lo, hi in rows]
             assert min(sizes) >= 1 and max(sizes) - min(sizes) <= 1
     with pytest.raises(td.ConfigError, match="at most 4 ranks"):
@@ -108,8 +117,8 @@ def test_a_slab_is_the_global_model_restricted_to_its_rows():
             model.X.shape, generator=torch.Generator().manual_seed(rank), dtype=torch.float64
         )
         v = torch.randn(x.shape, generator=torch.Generator().manual_seed(9), dtype=torch.float64)
-        f = model.forces(x, v, 0.0)
-        lf = td.Model.forces(slab, x[:, :, e_lo:e_hi].clone(), v[:, :, e_lo:e_hi].clone(), 0.0)
+        f = model.forces(x, v, t=0.0)
+        lf = td.Model.forces(slab, x[:, :, e_lo:e_hi].clone(), v[:, :, e_lo:e_hi].clone(), t=0.0)
         assert torch.equal(lf[:, :, slab.owned], f[:, :, slab.rows[0] : slab.rows[1]])
     from torchdeform.interact import StrainLimit
 
@@ -120,9 +129,9 @@ def test_a_slab_is_the_global_model_restricted_to_its_rows():
 
 def test_one_process_is_simulate(tmp_path):
     model, integrator, _cuts = cases.build("implicit26")
-    run = decomposed_simulate(model, cases.start(model), cases.DT, 20, integrator, record_every=5)
+    run = decomposed_simulate(model, cases.start(model), cases.DT, 20, integrator=integrator, record_every=5)
     model, integrator, _ = cases.build("implicit26")
-    final, rec = td.simulate(model, cases.start(model), cases.DT, 20, integrator, record_every=5, warn=False)
+    final, rec = td.simulate(model, cases.start(model), cases.DT, 20, integrator=integrator, record_every=5, warn=False)
     assert torch.equal(run.final.x, final.x) and torch.equal(run.record["x"], rec["x"])
     assert run.comm_s == 0 and run.model.halo.exchanges == 0
 
@@ -130,7 +139,7 @@ def test_one_process_is_simulate(tmp_path):
 @pytest.mark.parametrize("factor", [3.0, 0.5])
 def test_a_divergence_stops_as_simulate_does(factor):
     """Above the bound a runaway names a safe dt; within it, a 1e30 N load is not blamed on dt."""
-    g = td.Grid((6, 3, 3), 0.01, topology=6)
+    g = td.Grid((6, 3, 3), spacing=0.01, topology=6)
     loads = [] if factor > 1 else [td.PointForce((5, 1, 1), (1e30, 0.0, 0.0))]
     model = td.Model(
         g,
@@ -153,7 +162,7 @@ def test_a_divergence_stops_as_simulate_does(factor):
 def test_unsupported_integrators_are_refused():
     model, _, _ = cases.build("symplectic6")
     with pytest.raises(td.ConfigError, match="domain-decomposed"):
-        decomposed_simulate(model, model.rest_state(), 1e-4, 2, td.ProjectiveDynamics())
+        decomposed_simulate(model, model.rest_state(), 1e-4, 2, integrator=td.ProjectiveDynamics())
 
 
 SCENE = """\
@@ -187,13 +196,14 @@ record_every = 20
 
 
 @pytest.mark.parametrize("integrator", ["rk4"])
+@pytest.mark.slow
 def test_the_same_scene_file_runs_on_two_ranks(tmp_path, integrator):
     """``torchrun -m torchdeform run`` writes the one-process outputs (same trajectory, energies after the cut)."""
     scene = tmp_path / "slab.toml"
     scene.write_text(SCENE.replace("{name}", integrator))
     from torchdeform import cli
 
-    assert cli.main(["run", str(scene), "--out", str(tmp_path / "one"), "--quiet"]) == 0
+    assert cli.main(argv=["run", str(scene), "--out", str(tmp_path / "one"), "--quiet"]) == 0
     cmd = [
         sys.executable,
         "-m",
@@ -227,6 +237,7 @@ def test_the_same_scene_file_runs_on_two_ranks(tmp_path, integrator):
     assert all(p["exchanges"] == 4 * 100 + 1 for p in summary["domain"]["per_rank"])  # RK4: 4 per step, 1 cut
 
 
+@pytest.mark.slow
 def test_more_ranks_than_rows_stops_every_rank_with_one_line(tmp_path):
     scene = tmp_path / "bad.toml"
     scene.write_text(SCENE.replace("{name}", "rk4").replace("shape = [6, 4, 5]", "shape = [2, 4, 5]"))

@@ -41,7 +41,7 @@ def same_rows(a, b):
 
 
 def sweep_cli(*argv):
-    return cli.main(["sweep", *map(str, argv), "--quiet"])
+    return cli.main(argv=["sweep", *map(str, argv), "--quiet"])
 
 
 def torchrun(n, *argv, timeout=120):
@@ -106,6 +106,7 @@ def test_table_equals_runs_of_edited_scene_files(tmp_path):
 
 
 @pytest.mark.parametrize("ranks", [2, 3])
+@pytest.mark.slow
 def test_ranks_gather_the_single_process_table(tmp_path, ranks):
     path = scene_file(tmp_path)
     assert sweep_cli(path, "--set", SETS[0], "--set", SETS[1], "--out", tmp_path / "one") == 0
@@ -138,6 +139,7 @@ def test_batched_points_equal_one_by_one(tmp_path):
                 np.testing.assert_allclose(float(b[k]), float(s[k]), rtol=1e-6, err_msg=k)
 
 
+@pytest.mark.slow
 def test_a_killed_sweep_reruns_only_the_missing_points(tmp_path):
     path = scene_file(tmp_path, steps=300)
     argv = [
@@ -192,6 +194,7 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, argv, message):
     assert not (tmp_path / "out").exists()  # checked before any work
 
 
+@pytest.mark.slow
 def test_bad_input_on_two_ranks_stops_every_rank(tmp_path):
     """Every rank checks the points before any collective: no rank hangs; rank 0 alone prints the
     line (torchrun then reports the failed ranks itself and exits 1)."""

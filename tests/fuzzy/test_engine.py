@@ -29,6 +29,7 @@ point average, with the cell-counting error of the torchdeform grid added to the
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 import warnings
@@ -44,6 +45,7 @@ from skfuzzy import control as ctrl
 from skfuzzy.control.controlsystem import CrispValueCalculator
 from torch.func import functional_call
 
+from tests.helpers import F64
 from tests.oracles.fuzzy import (
     TORCH_RES,
     ambiguous_maximum,
@@ -76,7 +78,6 @@ from torchdeform.fuzzy import (
 from torchdeform.fuzzy.membership import apply_hedges
 from torchdeform.fuzzy.system import defuzzify
 
-F64 = torch.float64
 METHODS = ("centroid", "bisector", "mom", "som", "lom")
 MAX_METHODS = ("mom", "som", "lom")
 TOL = 1e-3  # of the output range
@@ -149,19 +150,19 @@ def _ours_all_methods(fis, xt):
     ours = {}
     for m in METHODS:
         fis.defuzzification = m
-        ours[m] = fis(xt).numpy()
+        ours[m] = fis(xt).cpu().numpy()
     return ours
 
 
 @pytest.fixture(scope="module")
-def skfuzzy_random():
+def skfuzzy_random(device):
     t0 = time.perf_counter()
     res = Agreement()
     for seed in range(N_SYSTEMS):
         spec = random_system(seed)
         X = random_points(spec, 10_000 + seed, POINTS)
-        xt = torch.tensor(X, dtype=F64)
-        ours = _ours_all_methods(build_torch(spec), xt)
+        xt = torch.tensor(X, dtype=F64, device=device)
+        ours = _ours_all_methods(build_torch(spec).to(device), xt)
         sim, cons, used = build_skfuzzy(spec)
         res.systems += 1
         for p, x in enumerate(X):
@@ -343,7 +344,7 @@ def test_tipping_tutorial_value():
 
 
 @pytest.mark.parametrize("method", METHODS)
-def test_tipping_grid(method):
+def test_tipping_grid(method, device):
     """mom/som/lom skip points where the maximum is reached in separate places (e.g. quality 10,
     service 0: 'low' and 'high' both fire at 1, peaks at 0 and 25, mom 12.5): the tutorial's peaks
     (0, 13, 25) are never cell midpoints (0 and 25 are the range ends), so torchdeform samples
@@ -353,7 +354,7 @@ def test_tipping_grid(method):
     Q, S = np.r_[Q, 6.5, 3.3, 9.1], np.r_[S, 9.8, 7.7, 0.4]
     # torchdeform: the default 1000 cells for centroid / bisector, 3000 for the maxima (see top)
     ours = _tipping_torch(defuzzification=method, **({"resolution": TORCH_RES} if method in MAX_METHODS else {}))
-    got = ours(torch.tensor(np.stack([Q, S], 1), dtype=F64))[:, 0].numpy()
+    got = ours.to(device)(torch.tensor(np.stack([Q, S], 1), dtype=F64, device=device))[:, 0].cpu().numpy()
     sim, tip = _tipping_skfuzzy(fine=True)
     tip.defuzzify_method = method
     compared = 0
@@ -381,7 +382,7 @@ COMBOS = [
 
 
 @pytest.mark.parametrize("combo", COMBOS, ids=lambda c: "-".join(c.values()))
-def test_operators_match_numpy_oracle(combo):
+def test_operators_match_numpy_oracle(combo, device):
     """Product implication, sum/probor aggregation, prod AND, probor OR (and hedges, in half the
     systems) against the numpy evaluation + ``skfuzzy.defuzz`` on 2001-point universes."""
     t0 = time.perf_counter()
@@ -389,8 +390,8 @@ def test_operators_match_numpy_oracle(combo):
     for seed in range(12):
         spec = random_system(500 + seed, hedges=seed % 2 == 1, methods=combo)
         X = random_points(spec, 600 + seed, 5)
-        xt = torch.tensor(X, dtype=F64)
-        ours = _ours_all_methods(build_torch(spec), xt)
+        xt = torch.tensor(X, dtype=F64, device=device)
+        ours = _ours_all_methods(build_torch(spec).to(device), xt)
         res.systems += 1
         for p, x in enumerate(X):
             res.points += 1
@@ -764,23 +765,23 @@ def _spec_with(n_in, n_out, start=0):
 
 
 @pytest.mark.parametrize("method", METHODS)
-def test_batch_shapes_and_chunks(method):
+def test_batch_shapes_and_chunks(method, device):
     spec = _spec_with(2, 2)
-    fis = build_torch(spec, defuzzification=method, resolution=500).double()
-    X = torch.tensor(random_points(spec, 3, 24), dtype=F64)
+    fis = build_torch(spec, defuzzification=method, resolution=500).double().to(device)
+    X = torch.tensor(random_points(spec, 3, 24), dtype=F64, device=device)
     out = fis(X)
     assert out.shape == (24, 2)
     assert torch.equal(fis(X.reshape(2, 3, 4, 2)), out.reshape(2, 3, 4, 2))
     assert fis(X[0]).shape == (2,)
     rows = torch.cat([fis(X[i : i + 1]) for i in range(24)])
     torch.testing.assert_close(rows, out, rtol=0, atol=1e-12)
-    chunked = build_torch(spec, defuzzification=method, resolution=500, chunk=5).double()
+    chunked = build_torch(spec, defuzzification=method, resolution=500, chunk=5).double().to(device)
     torch.testing.assert_close(chunked(X), out, rtol=0, atol=1e-12)
     named = fis.evaluate({v.name: X[:, k] for k, v in enumerate(spec.inputs)})
     for o, v in enumerate(spec.outputs):
         torch.testing.assert_close(named[v.name], out[:, o], rtol=0, atol=1e-12)
     with pytest.raises(ConfigError):
-        fis(torch.zeros(4, 3, dtype=F64))
+        fis(torch.zeros(4, 3, dtype=F64, device=device))
 
 
 @pytest.mark.parametrize("method", METHODS)
@@ -797,11 +798,11 @@ def test_sparsity_plan_gives_the_dense_result(method, ops):
         plan = fis.sparsity_plan()
         for runs in plan:
             assert runs[0][0] == 0 and runs[-1][1] == 400  # the runs tile the grid
-            assert all(a[1] == b[0] for a, b in zip(runs, runs[1:]))
+            assert all(a[1] == b[0] for a, b in itertools.pairwise(runs))
             planned += sum((b - a) * len(g) for a, b, g in runs)
         X = torch.tensor(random_points(spec, seed, 64), dtype=F64)
         dense, empty = fis.infer(X)
-        sparse, empty_sparse = fis.infer(X, plan)
+        sparse, empty_sparse = fis.infer(X, plan=plan)
         torch.testing.assert_close(sparse, dense, rtol=0, atol=1e-9)
         assert torch.equal(empty_sparse, empty)
     assert planned > 0
@@ -816,7 +817,9 @@ def test_sparsity_plan_skips_disjoint_terms():
         "s", [x], [y], ["IF x IS a THEN y IS lo", "IF x IS b THEN y IS mid", "IF x IS b THEN y IS hi"], resolution=10
     ).double()
     (runs,) = fis.sparsity_plan()
-    lo, mid, hi = (next(g for g, c in enumerate(fis._cons[0]) if c.term == y.index(t, "")) for t in ("lo", "mid", "hi"))
+    lo, mid, hi = (
+        next(g for g, c in enumerate(fis._cons[0]) if c.term == y.index(t, key="")) for t in ("lo", "mid", "hi")
+    )
     # cell midpoints 0.5, 1.5, ..., 9.5
     assert runs == ((0, 3, (lo,)), (3, 4, (lo, mid)), (4, 5, (mid,)), (5, 6, (mid, hi)), (6, 9, (hi,)), (9, 10, ()))
 
@@ -838,7 +841,7 @@ def test_compiled_rebuilds_the_plan_when_parameters_change(monkeypatch):
 
 
 @pytest.mark.parametrize("method", METHODS)
-def test_float32_matches_float64(method):
+def test_float32_matches_float64(method, device):
     """1e-4 of the range for centroid and bisector. mom/som/lom pick grid cells: a float32
     rounding may move them by one cell (range / resolution) where a plateau edge sits at a cell
     boundary, and they are compared on systems with piecewise-linear output terms only: a smooth
@@ -856,9 +859,9 @@ def test_float32_matches_float64(method):
             if method in MAX_METHODS
             else ("trapezoid", "triangle", "gaussian", "bell"),
         )
-        fis32 = build_torch(spec, torch.float32, defuzzification=method, resolution=1000)
-        fis64 = build_torch(spec, torch.float64, defuzzification=method, resolution=1000)
-        X = torch.tensor(random_points(spec, seed, 40), dtype=torch.float32)
+        fis32 = build_torch(spec, torch.float32, defuzzification=method, resolution=1000).to(device)
+        fis64 = build_torch(spec, torch.float64, defuzzification=method, resolution=1000).to(device)
+        X = torch.tensor(random_points(spec, seed, 40), dtype=torch.float32, device=device)
         a, b = fis32(X).double(), fis64(X.double())
         fire = fis64.firing(X.double())
         for o, v in enumerate(spec.outputs):
@@ -900,11 +903,11 @@ def test_dtype_changes_keep_range_end_shoulders():
 
 def test_parse_fields():
     r = Rule.parse("IF a IS very low OR b IS not somewhat high THEN y IS big AND z IS small WITH 0.25")
-    assert r.antecedent == [Clause("a", "low", ("very",)), Clause("b", "high", ("not", "somewhat"))]
+    assert r.antecedent == [Clause("a", "low", hedges=("very",)), Clause("b", "high", hedges=("not", "somewhat"))]
     assert r.consequent == [Clause("y", "big"), Clause("z", "small")]
     assert (r.connective, r.weight) == ("or", 0.25)
     r2 = Rule.parse("  if (a is Low) and (b is NOT high) then y is Big  ")
-    assert r2.antecedent == [Clause("a", "Low"), Clause("b", "high", ("not",))]
+    assert r2.antecedent == [Clause("a", "Low"), Clause("b", "high", hedges=("not",))]
     assert (r2.connective, r2.weight, r2.consequent) == ("and", 1.0, [Clause("y", "Big")])
 
 
@@ -921,7 +924,7 @@ def test_parse_round_trip():
             ]
             assert rule.weight == r.weight
             assert len(r.ante) == 1 or rule.connective == r.connective
-            weird = Rule(rule.antecedent, rule.consequent, rule.connective, float(rng.uniform(0, 1)))
+            weird = Rule(rule.antecedent, rule.consequent, connective=rule.connective, weight=float(rng.uniform(0, 1)))
             assert Rule.parse(str(weird)) == weird, str(weird)  # any weight survives
             n += 1
     assert n > 200

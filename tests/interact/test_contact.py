@@ -41,7 +41,7 @@ def test_sphere_and_halfspace_distances_are_analytic():
     r = np.linalg.norm(p, axis=1)
     assert np.allclose(d, r - 0.7, atol=1e-14) and np.allclose(n, p / r[:, None], atol=1e-14)
     normal = np.array([1.0, 2.0, -2.0]) / 3.0
-    d, n = _sdf(HalfSpace((1.0, 2.0, -2.0)), p)
+    d, n = _sdf(HalfSpace(normal=(1.0, 2.0, -2.0)), p)
     assert np.allclose(d, p @ normal, atol=1e-14) and np.allclose(n, normal[None], atol=1e-15)
 
 
@@ -102,7 +102,7 @@ def test_capsule_and_box_distances_match_brute_force(shape):
 
 @pytest.mark.parametrize(
     "shape",
-    [Sphere(0.015), Capsule(0.008, 0.01, axis=1), Box((0.01, 0.02, 0.012)), HalfSpace((1.0, 0.5, 0.0))],
+    [Sphere(0.015), Capsule(0.008, 0.01, axis=1), Box((0.01, 0.02, 0.012)), HalfSpace(normal=(1.0, 0.5, 0.0))],
     ids=["sphere", "capsule", "box", "half-space"],
 )
 def test_projection_puts_penetrating_nodes_on_the_surface(shape):
@@ -126,7 +126,7 @@ def test_projection_puts_penetrating_nodes_on_the_surface(shape):
 def test_fixed_nodes_are_not_projected():
     grid = td.Grid((3, 3, 3), spacing=0.01)
     model = td.Model(grid, stiffness=1.0, mass=1e-3, fixed=grid.face("bottom"), dtype=torch.float64)
-    floor = Tool(HalfSpace((1.0, 0.0, 0.0)), position=(0.005, 0.0, 0.0))  # above the bottom layer
+    floor = Tool(HalfSpace(normal=(1.0, 0.0, 0.0)), position=(0.005, 0.0, 0.0))  # above the bottom layer
     x, _ = ProjectionContact(floor).project(model, model.X.clone(), torch.zeros_like(model.X), 0.0, 1e-3)
     assert torch.equal(x[:, :, 0], model.X[:, :, 0])  # fixed layer stays
     assert torch.allclose(x[:, 0, 1:], model.X[:, 0, 1:])  # the others were above already
@@ -138,7 +138,7 @@ def _energy(model, state):
 
 def test_body_dropped_on_a_floor_never_gains_energy():
     grid = td.Grid((2, 2, 2), spacing=0.01, topology=26)
-    floor = Tool(HalfSpace((1.0, 0.0, 0.0)), position=(-0.02, 0.0, 0.0))  # 2 cm below the body
+    floor = Tool(HalfSpace(normal=(1.0, 0.0, 0.0)), position=(-0.02, 0.0, 0.0))  # 2 cm below the body
     model = td.Model(
         grid,
         stiffness=50.0,
@@ -166,7 +166,7 @@ def test_incline_sticks_below_the_friction_angle_and_slides_above(ratio):
     mu = math.tan(theta) / ratio  # ratio < 1: mu > tan(theta) sticks; > 1 slides
     normal = (math.cos(theta), math.sin(theta), 0.0)
     grid = td.Grid((1, 1, 1), spacing=0.01)
-    floor = Tool(HalfSpace(normal), position=(0.0, 0.0, 0.0))  # the node rests on the plane
+    floor = Tool(HalfSpace(normal=normal), position=(0.0, 0.0, 0.0))  # the node rests on the plane
     g = 9.81
     model = td.Model(
         grid,
@@ -190,7 +190,7 @@ def test_incline_sticks_below_the_friction_angle_and_slides_above(ratio):
 
 def test_penalty_contact_gradcheck_stiffness_and_tool_position():
     grid = td.Grid((2, 2, 2), spacing=0.01)
-    X = grid.rest_positions(torch.float64)
+    X = grid.rest_positions(dtype=torch.float64)
 
     def forces(k, centre):
         tool = Tool(Sphere(0.008), position=lambda t: centre)
@@ -210,7 +210,7 @@ def test_penalty_contact_gradcheck_stiffness_and_tool_position():
 def test_packed_layout_gives_the_same_contact_step():
     grid = td.Grid((4, 5, 3), spacing=0.01, topology=26)
     probe = Tool(Sphere(0.012), path=[(0.0, (0.045, 0.02, 0.01)), (0.01, (0.035, 0.02, 0.01))])
-    floor = Tool(HalfSpace((1.0, 0.0, 0.0)), position=(-0.001, 0.0, 0.0))
+    floor = Tool(HalfSpace(normal=(1.0, 0.0, 0.0)), position=(-0.001, 0.0, 0.0))
     model = td.Model(
         grid,
         stiffness=30.0,
@@ -240,13 +240,16 @@ def test_packed_layout_gives_the_same_contact_step():
         (lambda: Capsule(0.1, -0.2), "capsule.half_length"),
         (lambda: Capsule(0.1, 0.2, axis=3), "capsule.axis"),
         (lambda: Box((0.1, 0.0, 0.1)), "box.half_extents"),
-        (lambda: HalfSpace((0.0, 0.0, 0.0)), "half_space.normal"),
+        (lambda: HalfSpace(normal=(0.0, 0.0, 0.0)), "half_space.normal"),
         (lambda: Tool(Sphere(0.1), path=[(0.0, (0, 0, 0)), (0.0, (1, 0, 0))]), "tool.path"),
         (lambda: Tool(Sphere(0.1)), "tool"),
         (lambda: Tool("sphere", position=(0, 0, 0)), "tool.shape"),
         (lambda: ProjectionContact(Tool(Sphere(0.1), position=(0, 0, 0)), friction=-1.0), "contact.friction"),
         (lambda: PenaltyContact(Tool(Sphere(0.1), position=(0, 0, 0)), stiffness=0.0), "contact.stiffness"),
-        (lambda: td.Model(td.Grid((2, 2, 2), 0.01), stiffness=1.0, mass=1.0, interactions=[object()]), "interactions"),
+        (
+            lambda: td.Model(td.Grid((2, 2, 2), spacing=0.01), stiffness=1.0, mass=1.0, interactions=[object()]),
+            "interactions",
+        ),
     ],
 )
 def test_bad_tool_input_is_one_clear_error(make, key):

@@ -123,7 +123,7 @@ def _tool_and_obstacle(case):
         start = (top + R + LIFT,) + tuple(case.centre_hw)
         return Tool(Sphere(R), path=[(0.0, start), (RAMP, end)]), sphere(end, R)
     end, start = (top - case.depth, 0.0, 0.0), (top + LIFT, 0.0, 0.0)
-    return Tool(HalfSpace((-1.0, 0.0, 0.0)), path=[(0.0, start), (RAMP, end)]), half_space(end, (-1.0, 0.0, 0.0))
+    return Tool(HalfSpace(normal=(-1.0, 0.0, 0.0)), path=[(0.0, start), (RAMP, end)]), half_space(end, (-1.0, 0.0, 0.0))
 
 
 @functools.cache

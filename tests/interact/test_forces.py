@@ -20,6 +20,7 @@ import pytest
 import torch
 
 import torchdeform as td
+from tests.helpers import F64
 from torchdeform.errors import ConfigError
 from torchdeform.interact import (
     Box,
@@ -33,8 +34,6 @@ from torchdeform.interact import (
     support_reaction,
 )
 from torchdeform.sim.compiled import CompileFallbackWarning, compiled_step
-
-F64 = torch.float64
 
 
 def _weight(model):
@@ -74,7 +73,7 @@ def test_haptic_force_is_minus_gain_times_mean_push_out_two_nodes():
     contact = ProjectionContact(tool, haptic_gain=50.0)
     x = torch.tensor([[0.5, 0.0, 0.0], [0.0, 0.6, 0.0]], dtype=F64).T.reshape(1, 3, 2, 1, 1)
     readings = {}
-    x1, _ = contact.project(model, x, torch.zeros_like(x), 0.0, 0.01, readings)
+    x1, _ = contact.project(model, x, torch.zeros_like(x), 0.0, 0.01, readings=readings)
     # by hand: node 1 moves 0.5 along +D, node 2 moves 0.4 along +H (Punak eqs. 4-3..4-5)
     delta = np.array([[0.5, 0.0, 0.0], [0.0, 0.4, 0.0]])
     assert np.allclose(x1[0, :, :, 0, 0].T.numpy(), [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], atol=1e-15)
@@ -83,12 +82,12 @@ def test_haptic_force_is_minus_gain_times_mean_push_out_two_nodes():
 
 
 def test_projection_reports_the_momentum_it_removes():
-    model = td.Model(td.Grid((1, 1, 1), 1.0), stiffness=1.0, mass=2.0, dtype=F64)
-    floor = Tool(HalfSpace((1.0, 0.0, 0.0)), position=(0.0, 0.0, 0.0), name="floor")
+    model = td.Model(td.Grid((1, 1, 1), spacing=1.0), stiffness=1.0, mass=2.0, dtype=F64)
+    floor = Tool(HalfSpace(normal=(1.0, 0.0, 0.0)), position=(0.0, 0.0, 0.0), name="floor")
     x = torch.tensor([-0.01, 0.3, 0.0], dtype=F64).view(1, 3, 1, 1, 1)
     v = torch.tensor([-1.5, 0.2, 0.0], dtype=F64).view(1, 3, 1, 1, 1)
     readings = {}
-    ProjectionContact(floor).project(model, x, v, 0.0, 0.01, readings)
+    ProjectionContact(floor).project(model, x, v, 0.0, 0.01, readings=readings)
     # the floor stops 1.5 m/s of a 2 kg node in 0.01 s: it pushes with 300 N; the floor feels -300 N
     assert torch.allclose(readings["floor.force"], torch.tensor([[-300.0, 0.0, 0.0]], dtype=F64))
     # torque about the floor's origin of the force on the node: r x f with r = (0, 0.3, 0), f = (300, 0, 0)
@@ -96,11 +95,11 @@ def test_projection_reports_the_momentum_it_removes():
 
 
 def test_penalty_reports_minus_its_force():
-    floor = Tool(HalfSpace((1.0, 0.0, 0.0)), position=(0.0, 0.0, 0.0), name="floor")
+    floor = Tool(HalfSpace(normal=(1.0, 0.0, 0.0)), position=(0.0, 0.0, 0.0), name="floor")
     c = PenaltyContact(floor, stiffness=100.0)
     x = torch.tensor([[[-0.01, 0.02, -0.03]], [[0.0] * 3], [[0.0] * 3]], dtype=F64).view(1, 3, 3)
     readings = {}
-    c.project(None, x, torch.zeros_like(x), 0.0, 0.01, readings)
+    c.project(None, x, torch.zeros_like(x), 0.0, 0.01, readings=readings)
     assert torch.allclose(readings["floor.force"], torch.tensor([[-4.0, 0.0, 0.0]], dtype=F64))
     assert readings["floor.contacts"].tolist() == [2.0]
 
@@ -186,7 +185,8 @@ def test_hold_keeps_touched_nodes_on_the_tool_until_they_pull_away():
     # a node falling onto a rising paddle sticks to it; when the paddle drops faster than the node
     # can fall, the node leaves it
     paddle = Tool(
-        HalfSpace((1.0, 0.0, 0.0)), path=[(0.0, (-0.005, 0.0, 0.0)), (0.05, (0.0, 0.0, 0.0)), (0.06, (-0.01, 0.0, 0.0))]
+        HalfSpace(normal=(1.0, 0.0, 0.0)),
+        path=[(0.0, (-0.005, 0.0, 0.0)), (0.05, (0.0, 0.0, 0.0)), (0.06, (-0.01, 0.0, 0.0))],
     )
     model = td.Model(
         grid,
@@ -210,7 +210,7 @@ def test_hold_keeps_touched_nodes_on_the_tool_until_they_pull_away():
 def test_motion_direction_pushes_along_the_tool_motion():
     # a sphere moving along +D catches an off-axis node: it leaves along D, H and W unchanged
     tool = Tool(Sphere(0.01), path=[(0.0, (0.0, 0.0, 0.0)), (1.0, (0.01, 0.0, 0.0))])
-    model = td.Model(td.Grid((1, 1, 1), 1.0), stiffness=1.0, mass=1.0, dtype=F64)
+    model = td.Model(td.Grid((1, 1, 1), spacing=1.0), stiffness=1.0, mass=1.0, dtype=F64)
     x = torch.tensor([0.009, 0.004, -0.003], dtype=F64).view(1, 3, 1, 1, 1)
     t = 0.5  # centre at D = 0.005
     x1, _ = ProjectionContact(tool, direction="motion").project(model, x, torch.zeros_like(x), t, 0.01)
@@ -232,7 +232,7 @@ def test_one_tool_pose_per_batch_entry_equals_separate_runs():
         dtype=F64,
         interactions=[ProjectionContact(Tool(Sphere(0.01), position=centres))],
     )
-    sb, _ = td.simulate(batched, batched.rest_state(2), dt=5e-4, steps=50)
+    sb, _ = td.simulate(batched, batched.rest_state(batch=2), dt=5e-4, steps=50)
     for b in range(2):
         single = td.Model(
             grid,

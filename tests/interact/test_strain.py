@@ -61,7 +61,9 @@ def test_one_pass_equals_the_edge_list_oracle(topology):
     edges = EdgeList(grid.shape, grid.spacing, topology)
     free = ~edges.from_field(model.constrained[None].expand(3, *grid.shape).numpy())[:, 0].astype(bool)
     want = oracle_pass(edges, edges.from_field(x[0]), free, 0.9, 1.1)
-    got, _ = StrainLimit(0.9, 1.1, passes=1, update_velocity=False).project(model, x, torch.zeros_like(x), 0.0, 1e-3)
+    got, _ = StrainLimit(min_ratio=0.9, max_ratio=1.1, passes=1, update_velocity=False).project(
+        model, x, torch.zeros_like(x), 0.0, 1e-3
+    )
     assert np.abs(edges.from_field(got[0]) - want).max() < 1e-15
 
 
@@ -75,7 +77,7 @@ def test_passes_bring_every_spring_within_its_bounds():
         return max(ratio.max() - 1.1, 0.9 - ratio.min(), 0.0)
 
     assert worst(x) > 0.4
-    limit = StrainLimit(0.9, 1.1, passes=300, update_velocity=False)
+    limit = StrainLimit(min_ratio=0.9, max_ratio=1.1, passes=300, update_velocity=False)
     x1, _ = limit.project(model, x, torch.zeros_like(x), 0.0, 1e-3)
     assert worst(x1) < 1e-6
     assert torch.equal(x1[:, :, 0], x[:, :, 0])  # fixed nodes stay
@@ -87,16 +89,16 @@ def test_no_op_within_bounds_and_velocity_follows():
     g = torch.Generator().manual_seed(1)
     x = model.X + 2e-4 * torch.randn(model.X.shape, generator=g, dtype=torch.float64)  # < 4 % strain
     v = torch.randn(x.shape, generator=g, dtype=torch.float64)
-    x1, v1 = StrainLimit(0.9, 1.1, passes=3).project(model, x, v, 0.0, 1e-3)
+    x1, v1 = StrainLimit(min_ratio=0.9, max_ratio=1.1, passes=3).project(model, x, v, 0.0, 1e-3)
     assert torch.equal(x1, x) and torch.equal(v1, v)
     _, model2, xs = _stretched()
-    x2, v2 = StrainLimit(0.9, 1.1, passes=2).project(model2, xs, torch.zeros_like(xs), 0.0, 1e-3)
+    x2, v2 = StrainLimit(min_ratio=0.9, max_ratio=1.1, passes=2).project(model2, xs, torch.zeros_like(xs), 0.0, 1e-3)
     assert torch.allclose(v2, (x2 - xs) / 1e-3, rtol=0, atol=1e-12)
 
 
 def test_in_a_simulation_and_bad_input():
     grid = td.Grid((4, 3, 3), spacing=0.01, topology=26)
-    pull = td.Drag(grid.face("top"), [(0.0, (0, 0, 0)), (0.01, (0.004, 0, 0))])  # 4 mm up in 10 ms
+    pull = td.Drag(grid.face("top"), path=[(0.0, (0, 0, 0)), (0.01, (0.004, 0, 0))])  # 4 mm up in 10 ms
     edges = EdgeList(grid.shape, grid.spacing, 26)
 
     def largest_ratio(interactions):
@@ -114,7 +116,7 @@ def test_in_a_simulation_and_bad_input():
         return (np.linalg.norm(p[edges.b] - p[edges.a], axis=1) / edges.l0).max(), model
 
     free_ratio, _ = largest_ratio(None)
-    limited_ratio, _model = largest_ratio([StrainLimit(0.9, 1.2, passes=200)])
+    limited_ratio, _model = largest_ratio([StrainLimit(min_ratio=0.9, max_ratio=1.2, passes=200)])
     assert free_ratio > 1.3 and limited_ratio < 1.2 + 1e-6  # the soft springs would stretch far more
     for kwargs, key in (
         ({"min_ratio": 1.2}, "strain_limit"),
@@ -140,7 +142,7 @@ def test_springs_on_their_bound_within_rounding_are_left_alone(ratio):
     free = ~edges.from_field(model.constrained[None].expand(3, *grid.shape).numpy())[:, 0].astype(bool)
     assert np.array_equal(oracle_pass(edges, p, free, 0.9, 1.1), p)
     v = torch.randn(x.shape, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
-    limit = StrainLimit(0.9, 1.1, passes=3)
+    limit = StrainLimit(min_ratio=0.9, max_ratio=1.1, passes=3)
     x1, v1 = limit.project(model, x, v, 0.0, 1e-3)
     assert torch.equal(x1, x) and torch.equal(v1, v)
     pm = PackedModel(model)
@@ -159,7 +161,7 @@ def test_packed_layout_gives_the_same_projection(topology):
     springs = torch.rand((grid.S,) + grid.shape, generator=g) > 0.25  # cut a quarter of them
     fixed = torch.zeros(grid.shape, dtype=torch.bool)
     fixed[0, :2] = True
-    limit = StrainLimit(0.9, 1.1, passes=2)
+    limit = StrainLimit(min_ratio=0.9, max_ratio=1.1, passes=2)
 
     def project(spring_mask):
         model = td.Model(
@@ -193,7 +195,7 @@ def test_packed_layout_gives_the_same_projection(topology):
 def test_compiled_step_wrapper_runs_strain_limits_like_simulate():
     """The eager packed path behind ``compiled_step`` (``enable=False``) equals ``td.simulate``."""
     grid = td.Grid((4, 3, 3), spacing=0.01, topology=26)
-    pull = td.Drag(grid.face("top"), [(0.0, (0, 0, 0)), (0.01, (0.004, 0.001, 0))])
+    pull = td.Drag(grid.face("top"), path=[(0.0, (0, 0, 0)), (0.01, (0.004, 0.001, 0))])
     model = td.Model(
         grid,
         stiffness=0.5,
@@ -202,12 +204,12 @@ def test_compiled_step_wrapper_runs_strain_limits_like_simulate():
         gravity=(-9.81, 0, 0),
         fixed=grid.face("bottom"),
         drags=[pull],
-        interactions=[StrainLimit(0.9, 1.15, passes=5)],
+        interactions=[StrainLimit(min_ratio=0.9, max_ratio=1.15, passes=5)],
         dtype=torch.float64,
     )
     dt, steps = 5e-4, 20
     rest = model.rest_state(batch=2)
-    start = td.State(*model.constrain(rest.x, rest.v, 0.0), 0.0)  # dragged nodes on their path, as simulate
+    start = td.State(*model.constrain(rest.x, rest.v, 0.0), t=0.0)  # dragged nodes on their path, as simulate
     step = compiled_step(td.SymplecticEuler(), model, dt, enable=False)
     assert not step.compiled
     got = step.run(start, steps)

@@ -37,16 +37,19 @@ def _compare(series, window, **kw):
     return compiled, params
 
 
+@pytest.mark.slow
 def test_compiled_loss_and_gradient_equal_eager_on_radetzkys_cube():
     _compare(learn.radetzky_cube(springs=70, steps=40), window=10)
 
 
+@pytest.mark.slow
 def test_compiled_loss_follows_drags_and_checkpoints():
     """A dragged top face (the drag table inside the compiled step) and checkpointed segments."""
     series = learn.cube_series(n=3, topology=26, load="sine", steps=30, dt=0.005, period=0.1)
     _compare(series, window=None, checkpoint=10)
 
 
+@pytest.mark.slow
 def test_new_parameter_values_do_not_recompile():
     """The model's tensors are graph inputs: a new start (new values) reuses the graphs."""
     torch._dynamo.reset()
@@ -59,6 +62,7 @@ def test_new_parameter_values_do_not_recompile():
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == graphs
 
 
+@pytest.mark.slow
 def test_failed_compilation_warns_once_and_runs_eagerly():
     def broken(gm, example_inputs):
         raise RuntimeError("no compiler here")
@@ -80,19 +84,20 @@ def test_unknown_engine_is_refused():
         learn.WindowLoss(learn.radetzky_cube(steps=20), engine="fast")
 
 
+@pytest.mark.slow
 def test_traced_spring_sum_is_the_in_place_sum_to_the_bit():
     """Under torch.compile the springs are summed as zero-padded terms, not in-place slice updates:
     the same additions in the same order (forces and their gradient, float64)."""
-    grid = td.Grid((3, 4, 5), 0.01, 26)
+    grid = td.Grid((3, 4, 5), spacing=0.01, topology=26)
     g = torch.Generator().manual_seed(0)
-    x = grid.rest_positions(torch.float64) + 1e-3 * torch.randn(1, 3, 3, 4, 5, generator=g, dtype=torch.float64)
+    x = grid.rest_positions(dtype=torch.float64) + 1e-3 * torch.randn(1, 3, 3, 4, 5, generator=g, dtype=torch.float64)
     v = torch.randn(1, 3, 3, 4, 5, generator=g, dtype=torch.float64)
     k = (1 + torch.rand(1, grid.S, 3, 4, 5, generator=g, dtype=torch.float64)).requires_grad_()
     c = torch.rand(1, grid.S, 3, 4, 5, generator=g, dtype=torch.float64)
-    l0 = grid.rest_lengths(torch.float64).view(1, grid.S, 1, 1, 1)
+    l0 = grid.rest_lengths(dtype=torch.float64).view(1, grid.S, 1, 1, 1)
 
     def forces(k):
-        return spring_forces(x, v, grid, k, l0, c, True)
+        return spring_forces(x, v, grid, k, l0, c=c, projected=True)
 
     traced = torch.compile(forces, backend="eager", fullgraph=True)
     fe, ft = forces(k), traced(k)

@@ -34,8 +34,8 @@ def cube(steps=100, **kw):
 def shared(series, k, c, mass=None):
     return learn.Parameters(
         series,
-        learn.SpringParameter.like(series, k),
-        learn.SpringParameter.like(series, c),
+        learn.SpringParameter.like(series, init=k),
+        learn.SpringParameter.like(series, init=c),
         series.truth["mass"] if mass is None else mass,
     )
 
@@ -47,23 +47,23 @@ def test_transforms_roundtrip_and_positive(transform):
     assert torch.allclose(learn.from_raw(learn.to_raw(v, transform), transform), v, rtol=1e-12)
     raw = torch.linspace(-40, 40, 9, dtype=torch.float64)
     assert (learn.from_raw(raw, transform) > 0).all()
-    p = learn.Positive(v, transform)
+    p = learn.Positive(v, transform=transform)
     assert torch.allclose(p(), v, rtol=1e-12)
     with pytest.raises(ConfigError, match="init"):
-        learn.Positive(torch.tensor([1.0, -1.0]), transform)
+        learn.Positive(torch.tensor([1.0, -1.0]), transform=transform)
 
 
 def test_sharing_modes():
-    g, _ = learn.cube_grid(4, 0.01, None, 26)
+    g, _ = learn.cube_grid(n=4, spacing=0.01, springs=None, topology=26)
     mask = g.spring_mask()
-    k = learn.SpringParameter(g, None, 3.0, "shared")()
+    k = learn.SpringParameter(g, spring_mask=None, init=3.0, sharing="shared")()
     assert torch.allclose(k, 3.0 * mask.to(k.dtype), rtol=1e-14, atol=0)
-    c = learn.SpringParameter(g, None, torch.tensor([1.0, 2.0, 3.0]), "class")()
+    c = learn.SpringParameter(g, spring_mask=None, init=torch.tensor([1.0, 2.0, 3.0]), sharing="class")()
     for s, cls in enumerate(g.direction_class()):
         expect = {"axis": 1.0, "face": 2.0, "body": 3.0}[cls]
         assert torch.allclose(c[s][mask[s]], torch.tensor(expect, dtype=c.dtype))
-    lab = learn.layered_regions(g, 2)
-    r = learn.SpringParameter(g, None, torch.tensor([2.0, 8.0]), "region", regions=lab)()
+    lab = learn.layered_regions(g, layers=2)
+    r = learn.SpringParameter(g, spring_mask=None, init=torch.tensor([2.0, 8.0]), sharing="region", regions=lab)()
     # oracle: harmonic mean of the two end nodes' region values, spring by spring
     vals = np.array([2.0, 8.0])[lab]
     for s, d in enumerate(g.directions):
@@ -71,13 +71,13 @@ def test_sharing_modes():
             a, b = vals[i, j, l], vals[i + d[0], j + d[1], l + d[2]]
             assert r[s, i, j, l].item() == pytest.approx(2 * a * b / (a + b))
     n = int(mask.sum())
-    sp = learn.SpringParameter(g, None, torch.arange(1.0, n + 1), "spring")
+    sp = learn.SpringParameter(g, spring_mask=None, init=torch.arange(1.0, n + 1), sharing="spring")
     out = sp()
     assert torch.equal(sp.per_spring(out), sp.values()) and (out[~mask] == 0).all()
     with pytest.raises(ConfigError, match="init"):
-        learn.SpringParameter(g, None, torch.ones(3), "spring")
+        learn.SpringParameter(g, spring_mask=None, init=torch.ones(3), sharing="spring")
     with pytest.raises(ConfigError, match="sharing"):
-        learn.SpringParameter(g, None, 1.0, "per-node")
+        learn.SpringParameter(g, spring_mask=None, init=1.0, sharing="per-node")
 
 
 # ------------------------------------------------------------------ the loss
@@ -92,7 +92,7 @@ def test_loss_is_zero_at_truth_and_matches_hand_written_full_rollout():
     with torch.no_grad():
         x = s.simulate(s.model(1.2 * k0, c0, s.truth["mass"]))[:, 0].numpy()
     free = ~s.constrained()
-    X = s.grid.rest_positions(torch.float64)[0].numpy()
+    X = s.grid.rest_positions(dtype=torch.float64)[0].numpy()
     err = ((x[1:] - s.positions[1:]) ** 2)[:, :, free]
     ref2 = np.mean(((s.positions - X) ** 2)[:, :, free])
     assert loss == pytest.approx(err.sum() / (err.size * (61 / 60)) / ref2, rel=1e-10)
@@ -168,11 +168,11 @@ def test_shared_recovery_with_one_percent_noise():
 def test_per_spring_fit_loss_falls_and_report_flags_undetermined_springs():
     s = cube(100, springs=54)
     g = torch.Generator().manual_seed(0)
-    k = learn.SpringParameter.like(s, 1.0, "spring")
+    k = learn.SpringParameter.like(s, init=1.0, sharing="spring")
     n = int(k.mask.sum())
     true = k.per_spring(torch.as_tensor(s.truth["stiffness"]))
     init = true * torch.exp(torch.empty(n, dtype=torch.float64).uniform_(math.log(0.2), math.log(5), generator=g))
-    k = learn.SpringParameter.like(s, init, "spring")
+    k = learn.SpringParameter.like(s, init=init, sharing="spring")
     p = learn.Parameters(s, k, s.truth["damping"], s.truth["mass"])
     L = learn.WindowLoss(s, window=10)
     first = float(L(p).detach())
@@ -202,7 +202,7 @@ def test_spread_report_verdicts():
 def test_sparse_snapshots_recover_stiffness():
     s = learn.balloon_series()
     k0 = s.meta["truth"]["stiffness"]
-    p = learn.Parameters(s, learn.SpringParameter.like(s, k0 / 3), s.truth["damping"], s.truth["mass"])
+    p = learn.Parameters(s, learn.SpringParameter.like(s, init=k0 / 3), s.truth["damping"], s.truth["mass"])
     tr = learn.Trainer(
         p, learn.WindowLoss(s, window=1, velocity="zero"), optimizer="lbfgs", iterations=5, patience=2, progress=False
     )
@@ -339,7 +339,7 @@ def test_checkpointed_loss_with_a_scalar_mass_equals_the_whole_graph():
     s = learn.radetzky_cube(springs=54, steps=40)
 
     def value_and_grads(checkpoint):
-        p = learn.Parameters(s, learn.SpringParameter.like(s, 12.0), learn.SpringParameter.like(s, 0.1), 0.01)
+        p = learn.Parameters(s, learn.SpringParameter.like(s, init=12.0), learn.SpringParameter.like(s, init=0.1), 0.01)
         loss = learn.WindowLoss(s, window=None, checkpoint=checkpoint)(p)
         loss.backward()
         return loss.detach(), [q.grad.clone() for q in p.parameters() if q.grad is not None]

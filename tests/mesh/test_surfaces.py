@@ -22,7 +22,7 @@ def sphere_field(n, R, centre=None):
 
 @pytest.mark.parametrize("R,n", [(6.0, 16), (10.0, 25)])
 def test_sphere_is_watertight_with_analytic_volume_and_area(R, n):
-    v, f = marching_tetrahedra(sphere_field(n, R), 0.0)
+    v, f = marching_tetrahedra(sphere_field(n, R), level=0.0)
     mesh = trimesh.Trimesh(v, f, process=False)
     assert mesh.is_watertight and mesh.is_winding_consistent
     assert mesh.volume > 0  # faces point outwards
@@ -41,7 +41,7 @@ def test_border_is_closed_and_nodes_on_the_level_keep_it_manifold():
     assert mesh.is_watertight and mesh.volume > 0
     assert np.allclose(v.min(0), -0.5) and np.allclose(v.max(0), np.array(m.shape) - 0.5)
     # integer radius: grid nodes exactly on the level
-    v, f = marching_tetrahedra(sphere_field(21, 8.0), 0.0)
+    v, f = marching_tetrahedra(sphere_field(21, 8.0), level=0.0)
     assert trimesh.Trimesh(v, f).is_watertight
 
 
@@ -53,8 +53,8 @@ def test_uniform_displacement_moves_the_body_surface():
     mask[1:5, 2:6, 1:4] = True
     mask[2, 3, 0] = True
     d = torch.tensor([0.01, -0.004, 0.007], dtype=torch.float64)
-    v0, f0 = body_surface(X, mask)
-    v1, f1 = body_surface(X + d.view(3, 1, 1, 1), mask)
+    v0, f0 = body_surface(X, node_mask=mask)
+    v1, f1 = body_surface(X + d.view(3, 1, 1, 1), node_mask=mask)
     assert np.array_equal(f0, f1)
     assert np.abs(v1 - v0 - d.numpy()).max() < 1e-12
     assert trimesh.Trimesh(v0, f0).is_watertight
@@ -75,7 +75,7 @@ def test_warped_volume_surface_moves_by_the_offset():
 
 @pytest.mark.parametrize("suffix", [".ply", ".stl", ".obj"])
 def test_export_round_trips_through_trimesh(tmp_path, suffix):
-    v, f = marching_tetrahedra(sphere_field(14, 5.0), 0.0)
+    v, f = marching_tetrahedra(sphere_field(14, 5.0), level=0.0)
     ref = trimesh.Trimesh(v, f, process=False)
     save_surface(tmp_path / f"s{suffix}", v, f)
     back = trimesh.load(tmp_path / f"s{suffix}", force="mesh")
@@ -85,7 +85,7 @@ def test_export_round_trips_through_trimesh(tmp_path, suffix):
 
 
 def test_surface_bad_input(tmp_path):
-    v, f = marching_tetrahedra(sphere_field(8, 2.5), 0.0)
+    v, f = marching_tetrahedra(sphere_field(8, 2.5), level=0.0)
     with pytest.raises(ConfigError, match=r"\.ply, \.stl or \.obj"):
         save_surface(tmp_path / "s.vtk", v, f)
     with pytest.raises(ConfigError, match="3-D"):
@@ -93,4 +93,4 @@ def test_surface_bad_input(tmp_path):
     with pytest.raises(ConfigError, match="finite"):
         marching_tetrahedra(np.full((3, 3, 3), np.nan))
     with pytest.raises(ConfigError, match="grid shape"):
-        body_surface(torch.zeros(3, 4, 4, 4), torch.ones(3, 3, 3, dtype=torch.bool))
+        body_surface(torch.zeros(3, 4, 4, 4), node_mask=torch.ones(3, 3, 3, dtype=torch.bool))

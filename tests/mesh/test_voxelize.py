@@ -106,7 +106,7 @@ def test_grid_from_stl_file(tmp_path):
 
 def test_voxelised_body_gets_positive_masses_from_a_density():
     """The poles of a sphere are lone inside nodes; they still get mass and move."""
-    grid = grid_from_mesh(trimesh.creation.icosphere(subdivisions=2, radius=0.005), 0.001, 26)
+    grid = grid_from_mesh(trimesh.creation.icosphere(subdivisions=2, radius=0.005), 0.001, topology=26)
     assert bool(grid.nodes()[0, 5, 5]) and not bool(grid.nodes()[0, 4:7, 4:7].all())
     model = td.Model(grid, 1.0, density=1000.0)
     assert bool((model.mass[0, 0][grid.nodes()] > 0).all())
@@ -125,7 +125,7 @@ def test_open_mesh_is_config_error(tmp_path):
     path = tmp_path / "open.stl"
     open_box.export(path)
     with pytest.raises(ConfigError, match="closed"):
-        grid_from_mesh(path, 0.001, 26)
+        grid_from_mesh(path, 0.001, topology=26)
 
 
 def test_unreadable_file_and_bad_arguments(tmp_path):

@@ -38,7 +38,7 @@ def dragged_run(steps=60, every=20):
         density=1000.0,
         fixed=grid.face("bottom"),
         gravity=(-9.81, 0.0, 0.0),
-        drags=[td.Drag(top, [(0.0, (0.0, 0.0, 0.0)), (0.01, (0.0, 0.0, 0.0015))])],
+        drags=[td.Drag(top, path=[(0.0, (0.0, 0.0, 0.0)), (0.01, (0.0, 0.0, 0.0015))])],
         decay=50.0,
         dtype=torch.float64,
     )
@@ -189,9 +189,9 @@ def test_output_animation_true_writes_animation_gif(tmp_path):
 
 def test_cli_animation_flag(tmp_path, capsys):
     path = write(tmp_path, SCENE)
-    assert cli.main(["run", str(path), "--out", str(tmp_path / "plain"), "--quiet"]) == 0
+    assert cli.main(argv=["run", str(path), "--out", str(tmp_path / "plain"), "--quiet"]) == 0
     assert not (tmp_path / "plain" / "animation.gif").exists()
-    assert cli.main(["run", str(path), "--out", str(tmp_path / "anim"), "--quiet", "--animation"]) == 0
+    assert cli.main(argv=["run", str(path), "--out", str(tmp_path / "anim"), "--quiet", "--animation"]) == 0
     assert "animation.gif" in capsys.readouterr().out
     assert len(gif_frames(tmp_path / "anim" / "animation.gif")) == 3
 
@@ -199,7 +199,7 @@ def test_cli_animation_flag(tmp_path, capsys):
 @pytest.mark.parametrize("value", ['"yes"', "1"])
 def test_bad_animation_value_is_one_line_exit_2(tmp_path, capsys, value):
     path = write(tmp_path, SCENE + f"animation = {value}\n")
-    assert cli.main(["run", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    assert cli.main(argv=["run", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "output.animation" in err[0] and "scene.toml:" in err[0], err
 
@@ -214,7 +214,7 @@ def test_demo_writes_demo_gif(tmp_path, monkeypatch):
         return scene
 
     monkeypatch.setattr(scene_mod, "demo_scene", short_demo)
-    assert cli.main(["demo", "--out", str(tmp_path), "--quiet"]) == 0
+    assert cli.main(argv=["demo", "--out", str(tmp_path), "--quiet"]) == 0
     assert json.loads((tmp_path / "summary.json").read_text())["animation"]["file"] == "demo.gif"
     with Image.open(tmp_path / "demo.gif") as im:
         assert im.n_frames == 3 and im.size[0] == 640 and im.size[1] >= 320

@@ -44,6 +44,6 @@ def test_texture_section_writes_a_textured_image(tmp_path):
 )
 def test_bad_texture_sections(tmp_path, capsys, text, key):
     path = write(tmp_path, body() + f"\n[texture]\n{text}\n" + run_part(steps=2))
-    assert cli.main(["run", str(path), "--out", str(tmp_path / "o")]) == 2
+    assert cli.main(argv=["run", str(path), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and key in err[0] and "scene.toml" in err[0], err

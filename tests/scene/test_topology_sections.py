@@ -246,7 +246,9 @@ def test_shipped_cut_scene_loads():
 
 @pytest.mark.slow
 def test_shipped_cut_scene_opens_the_block(tmp_path):
-    summary = run_scene(load_scene(SCENES / "cut.toml"), tmp_path, progress=False)
+    scene = load_scene(SCENES / "cut.toml")
+    scene.texture = None  # checked here: the opening; the scene's texture is run by test_scene.py
+    summary = run_scene(scene, tmp_path, progress=False)
     topo = summary["topology"]
     assert topo["springs_removed_by_cuts"] > 0 and topo["components"] == 1
     names = topo["surfaces"][0]["files"]  # one closed surface per side of the cut (Punak)
@@ -393,7 +395,7 @@ BAD = {
 def test_bad_topology_input_is_one_line_exit_2(case, bad_dir, capsys):
     text, key, expected, needle = BAD[case]
     path = write(bad_dir, text, "bad.toml")
-    rc = cli.main(["run", str(path), "--out", str(bad_dir / "out"), "--quiet"])
+    rc = cli.main(argv=["run", str(path), "--out", str(bad_dir / "out"), "--quiet"])
     err = capsys.readouterr().err
     assert rc == 2
     assert err.endswith("\n") and err.count("\n") == 1, err
@@ -407,7 +409,7 @@ def test_time_after_the_end_with_auto_dt_is_found_when_the_run_starts(bad_dir, c
     text = _edit("at = 0.002", "at = 5.0", _edit("dt = 0.0002", 'dt = "auto"'))
     path = write(bad_dir, text, "bad.toml")
     load_scene(path)  # the run's length is not known yet
-    rc = cli.main(["run", str(path), "--out", str(bad_dir / "out"), "--quiet"])
+    rc = cli.main(argv=["run", str(path), "--out", str(bad_dir / "out"), "--quiet"])
     err = capsys.readouterr().err
     assert rc == 2 and err.count("\n") == 1
     assert err.startswith(

@@ -76,6 +76,7 @@ def body(drag: bool):
 
 
 @pytest.mark.parametrize("drag", [False, True], ids=["load", "drag"])
+@pytest.mark.slow
 def test_global_error_follows_the_tolerance_on_the_load_and_drag_scenes(drag):
     """Positions every 10 ms over 0.1 s against Dormand-Prince at rtol 1e-10, relative to the largest
     displacement: Bogacki-Shampine's error stays within 10x of rtol, and steps get rejected on the way."""
@@ -120,12 +121,12 @@ def test_rtol_argument_checks_and_the_engine():
             td.Adaptive(rtol=bad)
     with pytest.raises(ConfigError, match="pair"):
         td.Adaptive(pair="rk45")
-    engine = td.Engine("auto")
+    engine = td.Engine(mode="auto")
     td.simulate(model, s, 0.1, 20, rtol=1e-4, engine=engine, warn=False)
     assert engine.ran == "eager" and "adaptive" in engine.reason
 
 
 def test_adaptive_state_time_lands_on_the_output_grid():
     model, s = oscillator()
-    st = td.Adaptive(rtol=1e-5).step(model, State(s.x, s.v, 0.25), 0.7)
+    st = td.Adaptive(rtol=1e-5).step(model, State(s.x, s.v, t=0.25), 0.7)
     assert st.t == 0.25 + 0.7

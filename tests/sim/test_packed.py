@@ -7,14 +7,14 @@ import pytest
 import torch
 
 import torchdeform as td
+from tests.helpers import F64
 from torchdeform.sim.compiled import CompiledStep, ImplicitGraph
 from torchdeform.sim.packed import BLOCK, PackedModel
 
-F64 = torch.float64
 INTEGRATORS = [
     td.ExplicitEuler(),
     td.SymplecticEuler(),
-    td.DampedVerlet(0.1),
+    td.DampedVerlet(kd=0.1),
     td.RK4(),
     td.ImplicitEuler(cg_iters=60, cg_tol=1e-13),
     td.ImplicitEuler(cg_iters=20, cg_tol=0, newton_iters=1),
@@ -27,7 +27,9 @@ def _scene(topology, mode="projected", batch=1):
     grid = td.Grid((5, 4, 6), spacing=(0.01, 0.011, 0.012), topology=topology, node_mask=node_mask)
     g = torch.Generator().manual_seed(topology)
     k = 40 * (1 + torch.rand((grid.S,) + grid.shape, generator=g, dtype=F64))
-    drag = td.Drag(grid.index_mask([(0, 0, 5)]), [(0.0, (0, 0, 0)), (0.004, (1e-3, 0, 0)), (0.01, (1e-3, 2e-3, 0))])
+    drag = td.Drag(
+        grid.index_mask([(0, 0, 5)]), path=[(0.0, (0, 0, 0)), (0.004, (1e-3, 0, 0)), (0.01, (1e-3, 2e-3, 0))]
+    )
     model = td.Model(
         grid,
         stiffness=k,
@@ -45,7 +47,7 @@ def _scene(topology, mode="projected", batch=1):
     x = model.X + 2e-4 * torch.randn((batch, 3) + grid.shape, generator=g, dtype=F64)
     v = 1e-2 * torch.randn((batch, 3) + grid.shape, generator=g, dtype=F64)
     x, v = model.constrain(x, v, 0.0)
-    return model, td.State(x, v, 0.0)
+    return model, td.State(x, v, t=0.0)
 
 
 @pytest.mark.parametrize("topology", [6, 14, 18, 26])
@@ -54,15 +56,17 @@ def test_packed_forces_equal_grid_forces(topology, mode):
     model, state = _scene(topology, mode, batch=2)
     pm = PackedModel(model)
     ps = pm.pack_state(state)
-    F_grid = model.forces(state.x, state.v, 0.002)
-    F_packed = pm.unpack(pm.forces(ps.x, ps.v, 0.002))
+    F_grid = model.forces(state.x, state.v, t=0.002)
+    F_packed = pm.unpack(pm.forces(ps.x, ps.v, t=0.002))
     assert torch.allclose(F_packed, F_grid, rtol=1e-12, atol=1e-14 * float(F_grid.abs().max()))
     assert torch.equal(pm.pack(F_grid)[..., : pm.G], torch.zeros_like(pm.pack(F_grid)[..., : pm.G]))
     # Gershgorin sums and stiffness products, the other spring operators of the packed model
     assert torch.allclose(pm.unpack(pm.spring_sums(pm.stiffness)), model.spring_sums(model.stiffness), rtol=1e-12)
     u = torch.randn_like(state.x)
-    Ku = model.linearise(state.x).apply(u, 0.7, model.damping, model.projected, 0.3)
-    Ku_p = pm.unpack(pm.linearise(ps.x).apply(pm.pack(u), 0.7, pm.damping, pm.projected, 0.3))
+    Ku = model.linearise(state.x).apply(u, alpha_scale=0.7, c=model.damping, projected=model.projected, c_scale=0.3)
+    Ku_p = pm.unpack(
+        pm.linearise(ps.x).apply(pm.pack(u), alpha_scale=0.7, c=pm.damping, projected=pm.projected, c_scale=0.3)
+    )
     assert torch.allclose(Ku_p, Ku, rtol=1e-10, atol=1e-12 * float(Ku.abs().max()))
 
 
@@ -70,7 +74,7 @@ def test_packed_forces_equal_grid_forces(topology, mode):
 def test_packed_layout_round_trips_and_core_is_whole_blocks(shape):
     """pack/unpack round-trip any shape; the core range is a whole number of blocks, and every
     entry of a packed field outside the grid (halo and tail) is zero."""
-    model = td.Model(td.Grid(shape, 0.01, 26), stiffness=10.0, mass=1e-3, dtype=F64)
+    model = td.Model(td.Grid(shape, spacing=0.01, topology=26), stiffness=10.0, mass=1e-3, dtype=F64)
     pm = PackedModel(model)
     assert (pm.P - 2 * pm.G) % BLOCK == 0 and (shape[0] + 2) * (shape[1] + 2) * (shape[2] + 2) <= pm.P
     t = torch.randn((2, 3) + shape, dtype=F64)
@@ -87,7 +91,7 @@ def test_packed_steps_equal_grid_steps(integ):
     as the 0-d tensor the compiled step passes."""
     model, state = _scene(26)
     pm = PackedModel(model)
-    ref, s, st = state, pm.pack_state(state), pm.pack_state(td.State(state.x, state.v, torch.tensor(0.0, dtype=F64)))
+    ref, s, st = state, pm.pack_state(state), pm.pack_state(td.State(state.x, state.v, t=torch.tensor(0.0, dtype=F64)))
     for _ in range(20):
         ref = integ.step(model, ref, 5e-4)
         s = integ.step(pm, s, 5e-4)
@@ -125,7 +129,9 @@ def test_compiled_implicit_graph_equals_eager_step():
 
 
 def test_time_functions_agree_for_floats_and_tensors():
-    drag = td.Drag(torch.ones(2, 2, 2, dtype=torch.bool), [(0.1, (0, 0, 0)), (0.3, (1.0, -2.0, 0.5)), (0.4, (0, 0, 1))])
+    drag = td.Drag(
+        torch.ones(2, 2, 2, dtype=torch.bool), path=[(0.1, (0, 0, 0)), (0.3, (1.0, -2.0, 0.5)), (0.4, (0, 0, 1))]
+    )
     load = td.PointForce((0, 0, 0), (1, 0, 0), start=0.05, ramp=0.1)
     for t in [0.0, 0.1, 0.2, 0.29999, 0.3, 0.35, 0.4, 0.7]:
         tt = torch.tensor(t, dtype=F64)

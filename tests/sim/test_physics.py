@@ -27,9 +27,8 @@ import torch
 from scipy.integrate import solve_ivp
 
 import torchdeform as td
+from tests.helpers import F64
 from tests.oracles.edge_list import EdgeList
-
-F64 = torch.float64
 
 
 def _field_mask(edges, mask):
@@ -139,7 +138,7 @@ def test_chain_linearised_spectrum(both_ends):
         ref = 4 * k / m * np.sin((2 * n - 1) * np.pi / (2 * (2 * N + 1))) ** 2
     np.testing.assert_allclose(lam, np.sort(ref), rtol=1e-12)
     # and the stability bound of the chain is 2 / omega_max (tight within 1e-6)
-    bound = td.time_step_bound(model, "symplectic")
+    bound = td.time_step_bound(model, integrator="symplectic")
     assert abs(bound / (2 / math.sqrt(ref.max())) - 1) < 1e-6
 
 
@@ -183,7 +182,7 @@ def _torchdeform_equilibrium(model, steps=60, dt=1e3):
     state = model.rest_state()
     for _ in range(steps):
         state = integ.step(model, state, dt)
-        state = td.State(state.x, torch.zeros_like(state.v), state.t)
+        state = td.State(state.x, torch.zeros_like(state.v), t=state.t)
         if float((model.forces(state.x, state.v) * model.free).abs().max()) < 1e-15:
             break
     return state
@@ -267,12 +266,12 @@ def test_normalized_stiffness_gives_resolution_independent_stretch():
 
 
 # ============================================================== invariants
-def _free_body(topology=26, damping=None, mode="projected", seed=2):
+def _free_body(topology=26, damping=None, mode="projected", seed=2, device=None):
     grid = td.Grid((3, 3, 3), spacing=(0.01, 0.011, 0.012), topology=topology)
-    model = td.Model(grid, stiffness=50.0, damping=damping, damping_mode=mode, density=1000.0, dtype=F64)
+    model = td.Model(grid, stiffness=50.0, damping=damping, damping_mode=mode, density=1000.0, dtype=F64, device=device)
     gen = torch.Generator().manual_seed(seed)
-    x = model.X + 5e-4 * torch.randn((1, 3) + grid.shape, generator=gen, dtype=F64)
-    v = 0.05 * torch.randn((1, 3) + grid.shape, generator=gen, dtype=F64)
+    x = model.X + 5e-4 * torch.randn((1, 3) + grid.shape, generator=gen, dtype=F64).to(model.device)
+    v = 0.05 * torch.randn((1, 3) + grid.shape, generator=gen, dtype=F64).to(model.device)
     return model, td.State(x, v)
 
 
@@ -294,7 +293,7 @@ def test_symplectic_euler_energy_band_10000_steps():
     gen = torch.Generator().manual_seed(6)
     x = model.X + 1e-3 * torch.randn(model.X.shape, generator=gen, dtype=F64)
     state = td.State(x, 0.05 * torch.randn(model.X.shape, generator=gen, dtype=F64))
-    dt = 0.2 * td.time_step_bound(model, "symplectic")
+    dt = 0.2 * td.time_step_bound(model, integrator="symplectic")
     E0 = float(model.energy(state)["total"])
     energies = []
 
@@ -310,13 +309,13 @@ def test_symplectic_euler_energy_band_10000_steps():
 
 
 @pytest.mark.parametrize("damping", [None, 0.2])
-def test_symplectic_euler_conserves_momenta(damping):
+def test_symplectic_euler_conserves_momenta(damping, device):
     """No fixed nodes, no gravity, random velocities: central pair forces (springs and projected
     dashpots) conserve linear and angular momentum under symplectic Euler (exactly, up to
     rounding)."""
-    model, state = _free_body(damping=damping)
+    model, state = _free_body(damping=damping, device=device)
     p0, L0 = _momenta(model, state)
-    dt = 0.5 * td.time_step_bound(model, "symplectic")
+    dt = 0.5 * td.time_step_bound(model, integrator="symplectic")
     state, _ = td.simulate(model, state, dt, 500)
     p1, L1 = _momenta(model, state)
     assert float((p1 - p0).norm()) <= 1e-10 * float(p0.norm())
@@ -326,13 +325,13 @@ def test_symplectic_euler_conserves_momenta(damping):
 
 @pytest.mark.parametrize(
     "integrator",
-    [td.ExplicitEuler(), td.DampedVerlet(0.0), td.RK4(), td.ImplicitEuler(cg_tol=1e-14, cg_iters=500)],
+    [td.ExplicitEuler(), td.DampedVerlet(kd=0.0), td.RK4(), td.ImplicitEuler(cg_tol=1e-14, cg_iters=500)],
     ids=["explicit", "verlet", "rk4", "implicit"],
 )
-def test_linear_momentum_conserved_by_all_integrators(integrator):
-    model, state = _free_body(damping=0.2)
+def test_linear_momentum_conserved_by_all_integrators(integrator, device):
+    model, state = _free_body(damping=0.2, device=device)
     p0, _ = _momenta(model, state)
-    dt = 0.3 * td.time_step_bound(model, "symplectic")
+    dt = 0.3 * td.time_step_bound(model, integrator="symplectic")
     for _ in range(20):
         state = integrator.step(model, state, dt)
     p1, _ = _momenta(model, state)
@@ -344,7 +343,7 @@ def test_rigid_rotation_damped_only_by_unprojected_damping():
     force, Radetzky's unprojected damping gives -c (v_i - v_j) on every spring (REFERENCE 1.2)."""
     grid = td.Grid((3, 3, 3), spacing=(0.01, 0.011, 0.012), topology=26)
     w = torch.tensor([0.3, -1.2, 0.7], dtype=F64)
-    X = grid.rest_positions(F64)
+    X = grid.rest_positions(dtype=F64)
     v = torch.linalg.cross(w.view(1, 3, 1, 1, 1).expand_as(X), X, dim=1)
     proj = td.Model(grid, stiffness=50.0, damping=0.2, mass=1.0, dtype=F64)
     unproj = td.Model(grid, stiffness=50.0, damping=0.2, damping_mode="unprojected", mass=1.0, dtype=F64)
@@ -396,7 +395,7 @@ def order_reference():
     [
         (td.ExplicitEuler(), (20, 40, 80, 160), 0.8, 1.3),
         (td.SymplecticEuler(), (20, 40, 80, 160), 0.8, 1.3),
-        (td.DampedVerlet(0.0), (20, 40, 80, 160), 0.8, 1.3),
+        (td.DampedVerlet(kd=0.0), (20, 40, 80, 160), 0.8, 1.3),
         (td.ImplicitEuler(cg_iters=300, cg_tol=1e-12), (16, 32, 64, 128), 0.8, 1.3),
         (td.RK4(), (10, 20, 40, 80), 3.5, 4.6),
     ],
@@ -443,12 +442,12 @@ def test_time_step_bound_vs_dense_eigenvalue(topology):
     model, k = _stability_model(topology)
     w2 = _dense_omega2(model, k)
     dense = 2 / math.sqrt(w2)
-    bound = td.time_step_bound(model, "symplectic")
+    bound = td.time_step_bound(model, integrator="symplectic")
     assert abs(bound / dense - 1) < 0.01
     # Gershgorin is a guaranteed (smaller) bound; the RK4 bound is sqrt(2) larger
-    assert td.time_step_bound(model, "symplectic", method="gershgorin") <= dense * (1 + 1e-12)
+    assert td.time_step_bound(model, integrator="symplectic", method="gershgorin") <= dense * (1 + 1e-12)
     assert td.gershgorin_omega2(model) >= w2 * (1 - 1e-12)
-    assert abs(td.time_step_bound(model, "rk4") / (2 * math.sqrt(2) / math.sqrt(w2)) - 1) < 0.01
+    assert abs(td.time_step_bound(model, integrator="rk4") / (2 * math.sqrt(2) / math.sqrt(w2)) - 1) < 0.01
 
 
 def _perturbed(model, amp=1e-7, seed=3):
@@ -462,7 +461,7 @@ def test_symplectic_stable_just_below_bound():
     """At 0.95 x the computed bound symplectic Euler runs 2,000 steps with bounded energy
     (perturbation 1e-7 of the spacing, so the linear analysis applies), no warning."""
     model, _ = _stability_model(topology=14)
-    dt = 0.95 * td.time_step_bound(model, "symplectic")
+    dt = 0.95 * td.time_step_bound(model, integrator="symplectic")
     state = _perturbed(model)
     E0 = float(model.energy(state)["total"])
     energies = []
@@ -487,10 +486,12 @@ def test_divergence_detected_above_bound():
     with a DivergenceError naming the step, the quantity and a safe dt below the dense bound."""
     model, k = _stability_model()
     dense = 2 / math.sqrt(_dense_omega2(model, k))
-    bound = td.time_step_bound(model, "symplectic")
-    with pytest.warns(td.StabilityWarning, match="exceeds the stability bound"):
-        with pytest.raises(td.DivergenceError) as info:
-            td.simulate(model, _perturbed(model), 1.5 * bound, 2000)
+    bound = td.time_step_bound(model, integrator="symplectic")
+    with (
+        pytest.warns(td.StabilityWarning, match="exceeds the stability bound"),
+        pytest.raises(td.DivergenceError) as info,
+    ):
+        td.simulate(model, _perturbed(model), 1.5 * bound, 2000)
     err = info.value
     msg = str(err)
     assert 0 < err.step <= 2000 and f"step {err.step}" in msg
@@ -502,7 +503,7 @@ def test_divergence_detected_above_bound():
 
 def test_check_dt_warns_only_above_bound():
     model, _ = _stability_model()
-    bound = td.time_step_bound(model, "symplectic")
+    bound = td.time_step_bound(model, integrator="symplectic")
     with pytest.warns(td.StabilityWarning):
         td.check_dt(model, 1.1 * bound, "symplectic")
     with pytest.warns(td.StabilityWarning):
@@ -515,18 +516,24 @@ def test_check_dt_warns_only_above_bound():
 
 
 @pytest.mark.parametrize("stiffness", [1e2, 1e4, 1e6, 1e8])
-def test_implicit_euler_at_100x_bound(stiffness):
+def test_implicit_euler_at_100x_bound(stiffness, device):
     """Implicit Euler at 100 x the explicit bound, fixed base, gravity, an initial random
     deformation: finite, the total energy (kinetic + elastic + gravity) never exceeds its initial
     value, oscillations die out, and the sag approaches the static one (mg / k scale)."""
     grid = td.Grid((3, 3, 3), spacing=0.01, topology=26)
     model = td.Model(
-        grid, stiffness=stiffness, density=1000.0, gravity=(-9.81, 0, 0), fixed=grid.face("bottom"), dtype=F64
+        grid,
+        stiffness=stiffness,
+        density=1000.0,
+        gravity=(-9.81, 0, 0),
+        fixed=grid.face("bottom"),
+        dtype=F64,
+        device=device,
     )
-    dt = 100 * td.time_step_bound(model, "symplectic")
+    dt = 100 * td.time_step_bound(model, integrator="symplectic")
     gen = torch.Generator().manual_seed(4)
     sag = float(model.mass.sum()) * 9.81 / stiffness  # a displacement scale
-    x0 = model.X + 0.3 * sag * torch.randn(model.X.shape, generator=gen, dtype=F64) * model.free
+    x0 = model.X + 0.3 * sag * torch.randn(model.X.shape, generator=gen, dtype=F64).to(device) * model.free
     state = td.State(x0, torch.zeros_like(x0))
     E0 = float(model.energy(state)["total"])
     scale = abs(E0) + float(model.mass.sum()) * 9.81 * sag
@@ -663,7 +670,7 @@ def test_knoche_step_matches_shader_transcription(seed):
 def _rollout(integrator, steps, dt, per_direction=False):
     grid = td.Grid((3, 3, 3), spacing=0.1, topology=26)
     gen = torch.Generator().manual_seed(0)
-    x0 = grid.rest_positions(F64) + 0.01 * torch.randn((1, 3, 3, 3, 3), generator=gen, dtype=F64)
+    x0 = grid.rest_positions(dtype=F64) + 0.01 * torch.randn((1, 3, 3, 3, 3), generator=gen, dtype=F64)
     v0 = 0.05 * torch.randn((1, 3, 3, 3, 3), generator=gen, dtype=F64)
     P = torch.randn(3, 81, generator=gen, dtype=F64)
     fixed = grid.face("bottom")

@@ -64,7 +64,7 @@ def test_stencil_forces_equal_edge_list(case):
         "model fast": model.spring_forces(x, vt, impl="fast"),
         "model conv": model.spring_forces(x, vt, impl="conv"),
         "springs.spring_forces": springs.spring_forces(
-            x, vt, grid, model.stiffness, model.rest_length, model.damping, projected
+            x, vt, grid, model.stiffness, model.rest_length, c=model.damping, projected=projected
         ),
     }
     for b in range(x.shape[0]):

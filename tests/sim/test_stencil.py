@@ -34,7 +34,7 @@ def _node_mask(shape, seed=1):
 def _deformed(grid, B=2, amp=0.25, seed=0):
     """Random deformed positions and velocities ``(B, 3, D, H, W)``, float64."""
     gen = torch.Generator().manual_seed(seed)
-    X = grid.rest_positions(torch.float64)
+    X = grid.rest_positions(dtype=torch.float64)
     x = X + amp * torch.randn((B, 3) + grid.shape, generator=gen, dtype=torch.float64)
     v = torch.randn((B, 3) + grid.shape, generator=gen, dtype=torch.float64)
     return x, v
@@ -72,14 +72,14 @@ def test_spring_count_with_node_mask_and_box(topology):
 def test_rest_lengths_anisotropic(topology):
     grid = td.Grid(SHAPE, spacing=SPACING, topology=topology)
     edges = EdgeList(SHAPE, SPACING, topology)
-    l0 = grid.rest_lengths(torch.float64).numpy()
+    l0 = grid.rest_lengths(dtype=torch.float64).numpy()
     for (s, _, _), ref in zip(edges.locate(grid.directions), edges.l0):
         assert abs(l0[s] - ref) < 1e-15
 
 
 # ------------------------------------------------------------ D and D^T
 @pytest.mark.parametrize("topology", TOPOLOGIES)
-def test_difference_matches_edge_list(topology):
+def test_difference_matches_edge_list(topology, device):
     grid = td.Grid(SHAPE, spacing=SPACING, topology=topology)
     edges = EdgeList(SHAPE, SPACING, topology)
     x = torch.randn((2, 3) + SHAPE, dtype=torch.float64)
@@ -88,14 +88,14 @@ def test_difference_matches_edge_list(topology):
         ref[(slice(None), s, slice(None)) + p] = (
             x.numpy()[(slice(None), slice(None)) + q] - x.numpy()[(slice(None), slice(None)) + p]
         )
-    fast = springs.difference(x, grid).numpy()
-    conv = springs.difference_conv(x, grid).numpy()
+    fast = springs.difference(x.to(device), grid).cpu().numpy()
+    conv = springs.difference_conv(x.to(device), grid).cpu().numpy()
     np.testing.assert_allclose(fast, ref, rtol=0, atol=ATOL)
     np.testing.assert_allclose(conv, ref, rtol=0, atol=ATOL)
 
 
 @pytest.mark.parametrize("topology", TOPOLOGIES)
-def test_adjoint_matches_edge_list(topology):
+def test_adjoint_matches_edge_list(topology, device):
     """``D^T f``: each spring's value leaves its first endpoint and arrives at its second."""
     grid = td.Grid(SHAPE, spacing=SPACING, topology=topology)
     edges = EdgeList(SHAPE, SPACING, topology)
@@ -106,22 +106,25 @@ def test_adjoint_matches_edge_list(topology):
         val = fn[(slice(None), s, slice(None)) + p]
         ref[(slice(None), slice(None)) + p] -= val
         ref[(slice(None), slice(None)) + q] += val
-    np.testing.assert_allclose(springs.adjoint(f, grid).numpy(), ref, rtol=0, atol=ATOL)
-    np.testing.assert_allclose(springs.adjoint_conv(f, grid).numpy(), ref, rtol=0, atol=ATOL)
+    fd = f.to(device)
+    np.testing.assert_allclose(springs.adjoint(fd, grid).cpu().numpy(), ref, rtol=0, atol=ATOL)
+    np.testing.assert_allclose(springs.adjoint_conv(fd, grid).cpu().numpy(), ref, rtol=0, atol=ATOL)
     # accumulate with b = -a is -D^T a
     acc = springs.accumulate(
-        grid, lambda s, src, d: f[(slice(None), s, slice(None), *src)], torch.zeros((2, 3) + SHAPE, dtype=torch.float64)
+        grid,
+        lambda s, src, d: fd[(slice(None), s, slice(None), *src)],
+        torch.zeros((2, 3) + SHAPE, dtype=torch.float64, device=device),
     )
-    np.testing.assert_allclose(acc.numpy(), -ref, rtol=0, atol=ATOL)
+    np.testing.assert_allclose(acc.cpu().numpy(), -ref, rtol=0, atol=ATOL)
 
 
 @pytest.mark.parametrize("topology", TOPOLOGIES)
-def test_adjointness(topology):
+def test_adjointness(topology, device):
     """<D x, f> = <x, D^T f> for both implementations (f only on springs inside the grid)."""
     grid = td.Grid(SHAPE, spacing=SPACING, topology=topology)
-    x = torch.randn((3, 2) + SHAPE, dtype=torch.float64)
-    f = torch.randn((3, grid.S, 2) + SHAPE, dtype=torch.float64)
-    f = f * grid.spring_mask()[None, :, None].to(torch.float64)
+    x = torch.randn((3, 2) + SHAPE, dtype=torch.float64).to(device)
+    f = torch.randn((3, grid.S, 2) + SHAPE, dtype=torch.float64).to(device)
+    f = f * grid.spring_mask(device=device)[None, :, None].to(torch.float64)
     for D, DT in ((springs.difference, springs.adjoint), (springs.difference_conv, springs.adjoint_conv)):
         lhs = (D(x, grid) * f).sum()
         rhs = (x * DT(f, grid)).sum()
@@ -132,7 +135,7 @@ def test_adjointness(topology):
 @pytest.mark.parametrize("projected", [True, False])
 @pytest.mark.parametrize("use_mask", [False, True])
 @pytest.mark.parametrize("topology", TOPOLOGIES)
-def test_spring_forces_match_edge_list(topology, use_mask, projected):
+def test_spring_forces_match_edge_list(topology, use_mask, projected, device):
     """conv3d reference = fast path = edge list, with per-spring random stiffness and damping,
     anisotropic spacing, a node mask, random deformed states and velocities (batch of 2)."""
     mask = _node_mask(SHAPE) if use_mask else None
@@ -153,21 +156,25 @@ def test_spring_forces_match_edge_list(topology, use_mask, projected):
         damping_mode="projected" if projected else "unprojected",
         mass=1.0,
         dtype=torch.float64,
+        device=device,
     )
     x, v = _deformed(grid)
-    f_fast = model.forces(x, v, impl="fast")
-    f_conv = model.forces(x, v, impl="conv")
-    f_direct = springs.spring_forces(x, v, grid, model.stiffness, model.rest_length, model.damping, projected)
+    xd, vd = x.to(device), v.to(device)
+    f_fast = model.forces(xd, vd, impl="fast").cpu()
+    f_conv = model.forces(xd, vd, impl="conv").cpu()
+    f_direct = springs.spring_forces(
+        xd, vd, grid, model.stiffness, model.rest_length, c=model.damping, projected=projected
+    ).cpu()
     for b in range(x.shape[0]):
         ref = edges.to_field(edges.forces(edges.from_field(x[b]), edges.from_field(v[b]), k_e, c_e, projected))
         np.testing.assert_allclose(f_fast[b].numpy(), ref, rtol=0, atol=ATOL)
         np.testing.assert_allclose(f_conv[b].numpy(), ref, rtol=0, atol=ATOL)
         np.testing.assert_allclose(f_direct[b].numpy(), ref, rtol=0, atol=ATOL)
     # without damping
-    und = td.Model(grid, stiffness=torch.from_numpy(k_full), mass=1.0, dtype=torch.float64)
+    und = td.Model(grid, stiffness=torch.from_numpy(k_full), mass=1.0, dtype=torch.float64, device=device)
     ref = edges.to_field(edges.forces(edges.from_field(x[0]), k=k_e))
-    np.testing.assert_allclose(und.forces(x, v, impl="fast")[0].numpy(), ref, rtol=0, atol=ATOL)
-    np.testing.assert_allclose(und.forces(x, v, impl="conv")[0].numpy(), ref, rtol=0, atol=ATOL)
+    np.testing.assert_allclose(und.forces(xd, vd, impl="fast")[0].cpu().numpy(), ref, rtol=0, atol=ATOL)
+    np.testing.assert_allclose(und.forces(xd, vd, impl="conv")[0].cpu().numpy(), ref, rtol=0, atol=ATOL)
 
 
 @pytest.mark.parametrize("topology", TOPOLOGIES)
@@ -209,7 +216,7 @@ def test_edge_list_oracle_is_consistent():
 # --------------------------------------------------------------- energy
 @pytest.mark.parametrize("use_mask", [False, True])
 @pytest.mark.parametrize("topology", TOPOLOGIES)
-def test_spring_energy_matches_edge_list(topology, use_mask):
+def test_spring_energy_matches_edge_list(topology, use_mask, device):
     mask = _node_mask(SHAPE) if use_mask else None
     grid = td.Grid(
         SHAPE, spacing=SPACING, topology=topology, node_mask=None if mask is None else torch.from_numpy(mask)
@@ -217,9 +224,9 @@ def test_spring_energy_matches_edge_list(topology, use_mask):
     edges = EdgeList(SHAPE, SPACING, topology, mask)
     k_full = np.random.default_rng(5).uniform(0.5, 2.0, (grid.S,) + SHAPE)
     k_e = np.array([k_full[(s,) + p] for s, p, _ in edges.locate(grid.directions)])
-    model = td.Model(grid, stiffness=torch.from_numpy(k_full), mass=1.0, dtype=torch.float64)
+    model = td.Model(grid, stiffness=torch.from_numpy(k_full), mass=1.0, dtype=torch.float64, device=device)
     x, v = _deformed(grid)
-    e = model.energy(td.State(x, v))["elastic"]
+    e = model.energy(td.State(x.to(device), v.to(device)))["elastic"].cpu()
     for b in range(2):
         ref = edges.energy(edges.from_field(x[b]), k_e)
         assert abs(float(e[b]) - ref) <= 1e-12 * max(1.0, ref)
@@ -273,5 +280,5 @@ def test_linearisation_matches_assembled_matrices(topology, projected):
         np.testing.assert_allclose(edges.from_field(lin.apply(u)[0]).ravel(), K @ ue, rtol=0, atol=1e-11)
         h = 0.3
         C = edges.damping_matrix(xe, c_e, projected)
-        got = lin.apply(u, h * h, model.damping, model.projected, h)
+        got = lin.apply(u, alpha_scale=h * h, c=model.damping, projected=model.projected, c_scale=h)
         np.testing.assert_allclose(edges.from_field(got[0]).ravel(), (h * h * K + h * C) @ ue, rtol=0, atol=1e-11)

@@ -88,7 +88,7 @@ def test_omp_threads_restores_the_setting():
 
 
 def test_which_steps_get_a_governor():
-    model = td.Model(td.Grid((8, 8, 8), 0.01, 26), stiffness=10.0, mass=1e-3)
+    model = td.Model(td.Grid((8, 8, 8), spacing=0.01, topology=26), stiffness=10.0, mass=1e-3)
     assert CompiledStep(td.SymplecticEuler(), model, 1e-4, threads=2).governor is not None
     assert CompiledStep(td.SymplecticEuler(), model, 1e-4, threads=1).governor is None
     assert CompiledStep(td.SymplecticEuler(), model, 1e-4, threads=2, enable=False).governor is None
@@ -97,7 +97,7 @@ def test_which_steps_get_a_governor():
 
 @pytest.mark.slow
 def test_a_compiled_step_on_either_thread_count_equals_the_eager_step():
-    grid = td.Grid((8, 8, 8), 0.01, 26)
+    grid = td.Grid((8, 8, 8), spacing=0.01, topology=26)
     model = td.Model(
         grid,
         stiffness=20.0,

@@ -15,7 +15,7 @@ VOXEL = 0.001
 
 
 def _liver_texture():
-    return SolidTexture(liver_exemplar(16, seed=3), block=8, extent=(32, 32, 32), voxel=VOXEL, seed=1)
+    return SolidTexture(liver_exemplar(size=16, seed=3), block=8, extent=(32, 32, 32), voxel=VOXEL, seed=1)
 
 
 def _affine_texture(E=32):
@@ -154,7 +154,7 @@ def test_glb_and_obj_round_trips_carry_the_atlas(tmp_path):
 
 def test_unknown_suffix_is_a_config_error(tmp_path):
     rest, faces = _sphere(0)
-    with pytest.raises(ConfigError, match="ply, .glb or .obj"):
+    with pytest.raises(ConfigError, match=r"ply, \.glb or \.obj"):
         export_textured(tmp_path / "s.stl", rest, faces, rest, _liver_texture())
     with pytest.raises(ConfigError):
         sample_triangles(rest, faces, _liver_texture(), density=0)

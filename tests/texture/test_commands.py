@@ -19,7 +19,7 @@ def sphere(tmp_path):
 def test_texture_command_writes_vertex_colours(tmp_path, sphere, capsys):
     out = tmp_path / "sphere.ply"
     rc = cli.main(
-        [
+        argv=[
             "texture",
             "liver:32",
             "--mesh",
@@ -28,6 +28,8 @@ def test_texture_command_writes_vertex_colours(tmp_path, sphere, capsys):
             "0.001",
             "--out",
             str(out),
+            "--voxel",
+            "0.0005",  # 40^3 texture voxels (default: the largest extent / 128, 128^3)
             "--block",
             "16",
             "--image",
@@ -78,6 +80,6 @@ def test_bad_input_is_one_line_and_exit_2(case, tmp_path, sphere, capsys):
         + (["--block", "64"] if "block" in case else [])
         + (["--seams", "poisson"] if "seam" in case else [])
     )
-    assert cli.main(args) == 2
+    assert cli.main(argv=args) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and key in err[0] and text in err[0], err

@@ -18,13 +18,13 @@ def _square(shift=(0.0, 0.0, 0.0)):
 
 
 def test_vertex_colours_are_texture_lookups_at_rest_coordinates():
-    tex = SolidTexture(liver_exemplar(16, seed=1), block=8, extent=(24, 24, 24), voxel=0.0005)
+    tex = SolidTexture(liver_exemplar(size=16, seed=1), block=8, extent=(24, 24, 24), voxel=0.0005)
     s = _square()
     assert torch.allclose(vertex_colours(tex, s), tex.at_material(torch.from_numpy(s.rest)).float())
 
 
 def test_every_pixel_shows_the_texture_at_its_material_point_however_the_surface_moved():
-    tex = SolidTexture(liver_exemplar(16, seed=1).double(), block=8, extent=(24, 24, 24), voxel=0.0005)
+    tex = SolidTexture(liver_exemplar(size=16, seed=1).double(), block=8, extent=(24, 24, 24), voxel=0.0005)
     moved = _square(shift=(0.0, 0.003, -0.002))  # a translated surface, same material
     cam = Camera(
         eye=(0.05, 0.008, 0.003), target=(0.0, 0.008, 0.003), up=(0.0, 0.0, 1.0), ortho_height=0.008, size=(32, 32)

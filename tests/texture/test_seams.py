@@ -271,7 +271,7 @@ def test_poisson_blend_removes_most_of_the_gradient_jump_of_a_tiled_liver():
     from torchdeform.texture import SolidTexture, liver_exemplar
     from torchdeform.texture.seams import histogram_distance, poisson_blend_3d, seam_jump
 
-    ex = liver_exemplar(48, seed=0)
+    ex = liver_exemplar(size=48, seed=0)
     v = SolidTexture(ex, block=16, extent=(48, 48, 48), seed=1).materialise()
     u = poisson_blend_3d(v, 16)
     tiled, blended, seamless = (seam_jump(x, 16, reference=ex) for x in (v, u, ex))
@@ -288,11 +288,11 @@ def test_solid_texture_blend_reads_the_blended_volume_from_then_on():
     from torchdeform.texture.seams import histogram_distance, poisson_blend_3d, poisson_blend_slices, seam_jump
     from torchdeform.volume import to_grid_sample
 
-    ex = liver_exemplar(32, seed=2)
+    ex = liver_exemplar(size=32, seed=2)
     tiled = SolidTexture(ex, block=16, extent=(40, 32, 24), seed=3).materialise()
     for method, blend in (("3d", poisson_blend_3d), ("slices", poisson_blend_slices)):
         tex = SolidTexture(ex, block=16, extent=(40, 32, 24), seed=3)
-        report = tex.blend(method)
+        report = tex.blend(method=method)
         want = blend(tiled, 16).clamp(0, 1)
         assert torch.equal(tex.materialise(), want)
         gen = torch.Generator().manual_seed(0)
@@ -305,7 +305,7 @@ def test_solid_texture_blend_reads_the_blended_volume_from_then_on():
         assert report["histogram_after"] == pytest.approx(histogram_distance(blend(tiled, 16), ex))
     assert report["seam_after"] < report["seam_before"]
     tex = SolidTexture(ex, block=16, extent=(40, 32, 24), seed=3)
-    assert tex.blend("none")["seam_after"] == tex.blend("none")["seam_before"] and tex.volume is None
+    assert tex.blend(method="none")["seam_after"] == tex.blend(method="none")["seam_before"] and tex.volume is None
     assert torch.equal(tex.materialise(), tiled)
-    with pytest.raises(ConfigError, match="texture.seams"):
-        tex.blend("poisson")
+    with pytest.raises(ConfigError, match=r"texture\.seams"):
+        tex.blend(method="poisson")

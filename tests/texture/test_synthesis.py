@@ -23,7 +23,7 @@ from torchdeform.texture import SolidTexture, as_exemplar, liver_exemplar, load_
 
 @pytest.fixture(scope="module")
 def exemplar():
-    return liver_exemplar(32, seed=3)
+    return liver_exemplar(size=32, seed=3)
 
 
 @pytest.mark.parametrize("extent, block", [((40, 20, 33), 16), ((16, 16, 16), 16), ((7, 50, 9), 8)])
@@ -77,7 +77,7 @@ def test_trilinear_slice_lookup_equals_3d_grid_sample(dtype, tol):
 
     from torchdeform.volume import to_grid_sample
 
-    ex = liver_exemplar(24, seed=4)[:, :19, :, :21].to(dtype)  # 19 slices: 5 x 4 tiles
+    ex = liver_exemplar(size=24, seed=4)[:, :19, :, :21].to(dtype)  # 19 slices: 5 x 4 tiles
     tex = SolidTexture(ex, block=8, extent=(16, 16, 16))
     gen = torch.Generator().manual_seed(1)
     q = torch.rand(20001, 3, generator=gen, dtype=dtype) * torch.tensor([23.0, 28, 25], dtype=dtype) - 2
@@ -97,7 +97,7 @@ def test_colours_of_a_surface_ignore_rigid_motion(exemplar):
     from torchdeform.topology import cut_surfaces
 
     grid = td.Grid((6, 5, 4), spacing=0.002, topology=26)
-    X = grid.rest_positions(torch.float64)
+    X = grid.rest_positions(dtype=torch.float64)
     labels = torch.zeros(grid.shape, dtype=torch.int64)
     tex = SolidTexture(exemplar, block=8, extent=(30, 30, 30), seed=2, voxel=0.0005, origin=(-0.0013, -0.0021, -0.0017))
     angle = 0.7
@@ -115,7 +115,7 @@ def test_colours_of_a_surface_ignore_rigid_motion(exemplar):
 
 
 def test_liver_exemplar_is_seeded_and_rgb():
-    a, b, c = liver_exemplar(16, seed=0), liver_exemplar(16, seed=0), liver_exemplar(16, seed=1)
+    a, b, c = liver_exemplar(size=16, seed=0), liver_exemplar(size=16, seed=0), liver_exemplar(size=16, seed=1)
     assert torch.equal(a, b) and not torch.equal(a, c)
     assert a.shape == (3, 16, 16, 16) and float(a.min()) >= 0 and float(a.max()) <= 1
     assert float(a[0].mean()) > float(a[1].mean())  # reddish
@@ -136,7 +136,7 @@ def test_exemplar_files(tmp_path):
     assert torch.equal(load_exemplar(tmp_path / "ex.npz"), ref)
     assert torch.allclose(load_exemplar(folder), ref, atol=1 / 255)
     mpimg.imsave(folder / "slice_999.png", np.zeros((3, 3, 3), dtype=np.uint8))
-    with pytest.raises(ConfigError, match="slice_999.png.*6 x 5"):
+    with pytest.raises(ConfigError, match=r"slice_999.png.*6 x 5"):
         load_exemplar(folder)
 
 

@@ -13,19 +13,17 @@ import pytest
 import torch
 
 import torchdeform as td
+from tests.helpers import F64, make_grid, make_model
 from torchdeform.errors import ConfigError
 from torchdeform.interact import Capsule, Sphere, Tool
 from torchdeform.topology import cauterize, components
 
-F64 = torch.float64
 H = 0.01
 
 
 def _body(node_mask=None):
-    grid = td.Grid((5, 4, 4), spacing=H, topology=26, node_mask=node_mask)
-    return td.Model(
-        grid, stiffness=20.0, damping=0.02, mass=1e-3, gravity=(-9.81, 0, 0), fixed=grid.face("bottom"), dtype=F64
-    )
+    grid = make_grid((5, 4, 4), spacing=H, node_mask=node_mask)
+    return make_model(grid, stiffness=20.0, damping=0.02, gravity=(-9.81, 0, 0), fixed=grid.face("bottom"))
 
 
 def test_removed_mass_and_momentum_are_accounted_for():
@@ -65,5 +63,5 @@ def test_a_burn_through_the_body_leaves_two_pieces():
 
 def test_cautery_needs_one_body():
     model = _body()
-    with pytest.raises(ConfigError, match="cauterize.state"):
-        cauterize(model, model.rest_state(2), Tool(Sphere(0.01), position=(0.04, 0.0, 0.0)))
+    with pytest.raises(ConfigError, match=r"cauterize\.state"):
+        cauterize(model, model.rest_state(batch=2), Tool(Sphere(0.01), position=(0.04, 0.0, 0.0)))

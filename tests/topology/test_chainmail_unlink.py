@@ -24,12 +24,12 @@ import pytest
 import torch
 
 import torchdeform as td
+from tests.helpers import F64
 from tests.oracles.chainmail_moves import least_motion
 from torchdeform.chainmail import ChainMail, Limits, limit_violation, link_mask, relax, tensor_chainmail
 from torchdeform.errors import ConfigError
 from torchdeform.topology import Blade, link_crossing, unlink
 
-F64 = torch.float64
 SPACING = (1.0, 0.9, 1.1)
 
 
@@ -89,7 +89,7 @@ def _mask_from(links, shape):
 
 def _setup(shape=(6, 5, 4)):
     grid = td.Grid(shape, spacing=SPACING)
-    lim = Limits.from_material(grid, 0.8, 1.2, 0.2)
+    lim = Limits.from_material(grid, compression=0.8, stretch=1.2, shear=0.2)
     return grid, lim
 
 
@@ -112,14 +112,14 @@ def test_full_cut_isolates_the_far_side_sequential(method):
     pick, delta = [(0, 2, 1)], (-2.5, 0.6, -0.4)
     whole = ChainMail(grid, lim, method=method)
     whole.move(pick, delta)
-    assert float(whole.displacement(F64)[0, :, 3:].abs().max()) > 0.1  # uncut: the top is dragged
+    assert float(whole.displacement(dtype=F64)[0, :, 3:].abs().max()) > 0.1  # uncut: the top is dragged
 
     cm = ChainMail(grid, lim, method=method)
     links = unlink(cm, None, _full_blade(grid, 2))
     assert int((link_mask(grid) & ~links).sum()) == grid.shape[1] * grid.shape[2]
     assert not bool(links[0, 2].any()) and bool(links[0, :2].all())
     r = cm.move(pick, delta)
-    u = cm.displacement(F64)[0]
+    u = cm.displacement(dtype=F64)[0]
     assert float(u[:, 3:].abs().max()) == 0.0  # exactly: nothing moved
     assert r.fraction == 1.0 and r.moved > 1
     assert float(u[:, :3].abs().max()) > 0.1
@@ -129,12 +129,12 @@ def test_full_cut_isolates_the_far_side_sequential(method):
     assert bool((r.moved_nodes < 3 * 5 * 4).all())  # node indices: layers 0..2 only
     # relaxation respects the cut as well: the far side stays put
     cm.relax(steps=3)
-    assert float(cm.displacement(F64)[0, :, 3:].abs().max()) == 0.0
+    assert float(cm.displacement(dtype=F64)[0, :, 3:].abs().max()) == 0.0
 
 
 def test_full_cut_isolates_the_far_side_tensor():
     grid, lim = _setup()
-    x = grid.rest_positions(F64).repeat(2, 1, 1, 1, 1)
+    x = grid.rest_positions(dtype=F64).repeat(2, 1, 1, 1, 1)
     pick = torch.zeros(grid.shape, dtype=torch.bool)
     pick[0, 2, 1] = True
     d = torch.tensor([[-2.5, 0.6, -0.4], [-1.0, -0.8, 0.5]], dtype=F64)
@@ -158,7 +158,7 @@ def test_full_cut_isolates_the_far_side_tensor():
 def test_oblique_partial_blade_matches_brute_force():
     grid, lim = _setup((7, 6, 5))
     shape = grid.shape
-    x = grid.rest_positions(F64)
+    x = grid.rest_positions(dtype=F64)
     g = torch.Generator().manual_seed(3)
     x = x + 0.05 * torch.rand(x.shape, generator=g, dtype=F64)  # a deformed body
     # an oblique rectangle: edges u, v at right angles, covering part of the body only
@@ -180,7 +180,7 @@ def test_oblique_partial_blade_matches_brute_force():
     assert {a for *_, a in expect} == {0, 1, 2}  # oblique: links of every axis
     got = link_mask(grid) & ~unlink(link_mask(grid), x, blade)
     assert torch.equal(got, _mask_from(expect, shape))
-    assert torch.equal(link_crossing(x, blade, grid)[0], got)
+    assert torch.equal(link_crossing(x, blade, grid=grid)[0], got)
     cm = ChainMail(grid, lim, positions=x, method="enhanced")
     assert torch.equal(~unlink(cm, None, blade) & link_mask(grid), got)
     assert torch.equal(cm.links, link_mask(grid) & ~got)
@@ -188,7 +188,7 @@ def test_oblique_partial_blade_matches_brute_force():
 
 def test_node_on_the_plane_counts_as_the_side_opposite_the_normal():
     grid, _ = _setup((5, 3, 3))
-    x = grid.rest_positions(F64)
+    x = grid.rest_positions(dtype=F64)
     h = grid.spacing
     blade = Blade((2 * h[0], -1.0, -1.0), (0.0, 5.0, 0.0), (0.0, 0.0, 5.0))  # through layer 2, normal +d
     cut_ = link_mask(grid) & ~unlink(link_mask(grid), x, blade)
@@ -205,7 +205,7 @@ def test_far_side_follows_through_uncut_links(method):
     hs = grid.spacing
     # cut the d-links between layers 2 and 3 for h in {0, 1, 2}; h in {3, 4} stays linked
     blade = Blade((2.5 * hs[0], -hs[1], -hs[2]), (0.0, 3.0 * hs[1], 0.0), (0.0, 0.0, (shape[2] + 1) * hs[2]))
-    x = grid.rest_positions(F64)
+    x = grid.rest_positions(dtype=F64)
     links = unlink(link_mask(grid), x, blade)
     all_links = lattice_links(shape)
     cut_set = brute_cut(x[0].numpy(), all_links, blade.patches[0][0], blade.patches[0][1], blade.patches[0][2])
@@ -225,7 +225,7 @@ def test_far_side_follows_through_uncut_links(method):
         cm = ChainMail(grid, lim, method=method, links=links)
         res = cm.move([pick], delta)
         assert res.fraction == 1.0
-        u = cm.displacement(F64)[0].numpy()
+        u = cm.displacement(dtype=F64)[0].numpy()
         assert float(limit_violation(cm.positions(), grid, lim, links=links)[0]) < 1e-12
     assert np.abs(u - ref).max() < 1e-12
     far = u[:, 3:, :3]  # the far side behind the cut
@@ -252,7 +252,7 @@ def test_all_true_mask_is_bit_identical_sequential(method):
 
 def test_all_true_mask_is_bit_identical_tensor():
     grid, lim = _setup()
-    x = grid.rest_positions(F64).repeat(2, 1, 1, 1, 1)
+    x = grid.rest_positions(dtype=F64).repeat(2, 1, 1, 1, 1)
     pick = torch.zeros(grid.shape, dtype=torch.bool)
     pick[1, 2, 2] = True
     d = torch.tensor([[1.5, -0.5, 0.2], [-0.3, 0.9, 1.1]], dtype=F64)
@@ -275,7 +275,9 @@ def test_bad_masks_and_relinking_are_refused():
     with pytest.raises(ConfigError):
         ChainMail(grid, lim, links=torch.ones(3, 2, 2, 2, dtype=torch.bool))
     with pytest.raises(ConfigError):
-        tensor_chainmail(grid.rest_positions(F64), grid, lim, grid.face("top"), (1.0, 0, 0), links=torch.ones(2, 2, 2))
+        tensor_chainmail(
+            grid.rest_positions(dtype=F64), grid, lim, grid.face("top"), (1.0, 0, 0), links=torch.ones(2, 2, 2)
+        )
     with pytest.raises(ConfigError):
         unlink(link_mask(grid), None, _full_blade(grid, 2))
     unlink(cm, None, _full_blade(grid, 2))

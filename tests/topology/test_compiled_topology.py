@@ -8,16 +8,16 @@ import pytest
 import torch
 
 import torchdeform as td
+from tests.helpers import F64
 from torchdeform.interact import Sphere, Tool
 from torchdeform.sim.compiled import compiled_step
 from torchdeform.topology import Blade, cauterize, cut
 
-F64 = torch.float64
 H = 0.01
 
 
 def _model():
-    grid = td.Grid((5, 4, 4), H, 26)
+    grid = td.Grid((5, 4, 4), spacing=H, topology=26)
     return td.Model(
         grid, stiffness=20.0, damping=0.01, mass=1e-3, gravity=(-9.81, 0, 0), fixed=grid.face("bottom"), dtype=F64
     )

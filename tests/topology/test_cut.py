@@ -17,17 +17,17 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 import torchdeform as td
+from tests.helpers import F64, make_grid, make_model
 from tests.oracles.edge_list import EdgeList
 from torchdeform.errors import ConfigError
 from torchdeform.topology import Blade, components, crossing, cut
 
-F64 = torch.float64
 H = 0.01
 
 
 def _model(n, topology, shape=None):
-    grid = td.Grid(shape or (n, n, n), spacing=H, topology=topology)
-    return grid, td.Model(grid, stiffness=10.0, damping=0.01, mass=1e-3, dtype=F64)
+    grid = make_grid(shape or n, spacing=H, topology=topology)
+    return grid, make_model(grid, stiffness=10.0, damping=0.01)
 
 
 @pytest.mark.parametrize(

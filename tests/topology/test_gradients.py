@@ -9,15 +9,15 @@ from __future__ import annotations
 import torch
 
 import torchdeform as td
+from tests.helpers import F64
 from torchdeform.topology import Blade, coagulated_rest_length, cut, pretension
 from torchdeform.topology.masks import ends
 
-F64 = torch.float64
 H = 0.01
 
 
 def _grid():
-    return td.Grid((4, 2, 2), H, 18)
+    return td.Grid((4, 2, 2), spacing=H, topology=18)
 
 
 def _simulate(model, steps=15):

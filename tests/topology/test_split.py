@@ -6,16 +6,16 @@ import pytest
 import torch
 
 import torchdeform as td
+from tests.helpers import F64
 from torchdeform.errors import ConfigError
 from torchdeform.interact import Sphere, Tool
 from torchdeform.topology import add_node, cauterize, share_mass
 
-F64 = torch.float64
 H = 0.01
 
 
 def _moving_body(topology=26):
-    grid = td.Grid((4, 4, 4), H, topology)
+    grid = td.Grid((4, 4, 4), spacing=H, topology=topology)
     gen = torch.Generator().manual_seed(0)
     mass = 1e-3 * (1 + torch.rand(grid.shape, generator=gen, dtype=F64))
     model = td.Model(grid, stiffness=15.0, damping=0.02, mass=mass, dtype=F64)
@@ -82,7 +82,7 @@ def test_added_node_springs_copy_the_neighbours_and_are_shortened():
 
 def test_add_node_refuses_nodes_of_the_body():
     _grid, model, state = _moving_body(6)
-    with pytest.raises(ConfigError, match="add_node.node"):
+    with pytest.raises(ConfigError, match=r"add_node\.node"):
         add_node(model, state, (1, 1, 1))
-    with pytest.raises(ConfigError, match="add_node.node"):
+    with pytest.raises(ConfigError, match=r"add_node\.node"):
         add_node(model, state, (9, 0, 0))

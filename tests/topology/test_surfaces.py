@@ -23,6 +23,7 @@ import torch
 import trimesh
 
 import torchdeform as td
+from tests.helpers import F64
 from torchdeform.errors import ConfigError
 from torchdeform.topology import (
     Blade,
@@ -37,14 +38,13 @@ from torchdeform.topology import (
 )
 from torchdeform.volume import OrbitCamera, TransferFunction, node_offsets, render
 
-F64 = torch.float64
 SPACING = (0.01, 0.012, 0.008)  # anisotropic, so the axes cannot be mixed up unnoticed
 ORIGIN = (0.1, -0.2, 0.05)
 
 
 def _cut_body(n, k, spacing=SPACING):
     """An n^3 body cut between node layers k and k + 1 along D; returns (grid, model, labels)."""
-    grid = td.Grid((n, n, n), spacing, topology=26, origin=ORIGIN)
+    grid = td.Grid((n, n, n), spacing=spacing, topology=26, origin=ORIGIN)
     model = td.Model(grid, stiffness=10.0, mass=1e-3, dtype=F64)
     sd, sh, sw = spacing
     blade = Blade(
@@ -175,7 +175,7 @@ def test_sides_as_labels_and_a_batch_of_one():
 def test_extension_is_linear_one_layer_out_and_nearest_beyond():
     mask = torch.zeros(6, 3, 3, dtype=torch.bool)
     mask[:2] = True
-    X = td.Grid((6, 3, 3), 1.0).rest_positions(F64)[0]
+    X = td.Grid((6, 3, 3), spacing=1.0).rest_positions(dtype=F64)[0]
     A = torch.tensor([[1.1, 0.2, 0.0], [0.0, 0.9, 0.1], [0.05, 0.0, 1.0]], dtype=F64)
     u = torch.einsum("ij,jdhw->idhw", A - torch.eye(3, dtype=F64), X) * mask
     out = extend_displacement(u, mask)
@@ -253,7 +253,7 @@ def test_carved_dvr_is_transparent_in_the_gap():
     grid, _model, labels, x = _moved_apart()
     vol = _ramp_volume()
     tf = TransferFunction([0.0, 0.5, 20.0], [[1, 1, 1]] * 3, [0.0, 0.2, 0.2])
-    img = render(vol, tf, "dvr", "h", pieces=cut_pieces(grid, x, labels, vol.shape), stop=0)
+    img = render(vol, tf=tf, mode="dvr", view="h", pieces=cut_pieces(grid, x, labels, vol.shape), stop=0)
     alpha = img[0, 3].numpy()
     _, gap = _expected_mip()
     assert (alpha[gap] == 0).all()

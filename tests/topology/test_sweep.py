@@ -12,11 +12,11 @@ import pytest
 import torch
 
 import torchdeform as td
+from tests.helpers import F64
 from tests.oracles.edge_list import EdgeList
 from torchdeform.interact import Sphere, Tool
 from torchdeform.topology import Blade, Scalpel, components, crossing, cut
 
-F64 = torch.float64
 H = 0.01
 
 
@@ -93,7 +93,7 @@ def test_progressive_cut_equals_one_cut_of_the_whole_sweep():
     start, end = (0.025, -0.012, 0.0), (0.028, 0.075, 0.0)
     tool = Tool(Sphere(0.001), path=[(0.0, start), (1.0, end)])
     knife = Scalpel(tool, edge=((0.0, 0.0, -0.012), (0.0, 0.0, 0.03)))
-    state = td.State(x.clone(), torch.zeros_like(x), 0.0)
+    state = td.State(x.clone(), torch.zeros_like(x), t=0.0)
     total = 0
     for i in range(41):
         state.t = i / 40
@@ -108,7 +108,7 @@ def test_progressive_cut_equals_one_cut_of_the_whole_sweep():
         Sphere(0.001), path=[(0.0, (0.025, 0.0, 0.02), (0.0, 0.0, 0.0)), (1.0, (0.025, 0.05, 0.02), (0.0, 0.8, 0.0))]
     )
     knife = Scalpel(tool, edge=((0.0, 0.0, -0.03), (0.0, 0.0, 0.03)), pieces=4)
-    state = td.State(x.clone(), torch.zeros_like(x), 0.0)
+    state = td.State(x.clone(), torch.zeros_like(x), t=0.0)
     for i in range(11):
         state.t = i / 10
         knife.update(model, state)
@@ -124,7 +124,7 @@ def test_progressive_cut_equals_one_cut_of_the_whole_sweep():
 
 def test_gape_shortens_the_springs_at_the_cut_once_and_opens_it():
     n = 6
-    grid = td.Grid((n, n, n), H, 26)
+    grid = td.Grid((n, n, n), spacing=H, topology=26)
     blade = Blade((2.5 * H, -H, -H), (0.0, (n + 1) * H, 0.0), (0.0, 0.0, (n + 1) * H))
 
     def opened(gape):
@@ -137,7 +137,7 @@ def test_gape_shortens_the_springs_at_the_cut_once_and_opens_it():
     _, gap0 = opened(0.0)
     assert abs(gap0 - H) < 1e-9 and gap > H * 1.05  # the cut gapes open
     # exactly the springs left at the two layers of the cut are shortened, by 20 %
-    l0 = grid.rest_lengths(F64).view(-1, 1, 1, 1).expand(-1, *grid.shape)
+    l0 = grid.rest_lengths(dtype=F64).view(-1, 1, 1, 1).expand(-1, *grid.shape)
     ratio = model.rest_length[0] / l0
     live = (model.stiffness[0] != 0) & grid.spring_mask()
     at_cut = torch.zeros((grid.S,) + grid.shape, dtype=torch.bool)

@@ -37,7 +37,7 @@ def _scene(consistency=5.0):
         gravity=(-9.81, 0.0, 0.0),
         decay=50.0,
     )
-    return td.Scene(grid, args, td.SymplecticEuler(), dt="auto", name="cube")
+    return td.Scene(grid, args, integrator=td.SymplecticEuler(), dt="auto", name="cube")
 
 
 @pytest.fixture

@@ -17,6 +17,8 @@ import torch
 from tests.view.test_viewer_security import make_session
 from torchdeform.view import browser
 
+pytestmark = pytest.mark.slow  # the browser (selenium, headless chromium)
+
 if browser.missing():
     pytest.skip(f"the browser tests need {browser.missing()}", allow_module_level=True)
 pytest.importorskip("websockets", reason="the viewer needs websockets (pip install websockets)")
@@ -32,7 +34,7 @@ js = browser.js
 @pytest.fixture(scope="module")
 def driver(tmp_path_factory):
     try:
-        d = browser.start(tmp_path_factory.mktemp("chromium-profile"))
+        d = browser.start(timeout=tmp_path_factory.mktemp("chromium-profile"))
     except Exception as e:  # a broken browser install is not a failure of the viewer
         pytest.skip(f"headless chromium did not start: {str(e).splitlines()[0]}")
     yield d
@@ -47,7 +49,7 @@ def small(tmp_path_factory):
 
 
 def open_page(driver, viewer: Viewer, frames: int = 5, timeout: float = 30):
-    browser.open_page(driver, viewer.url, frames, timeout)
+    browser.open_page(driver, viewer.url, frames=frames, timeout=timeout)
 
 
 def canvas_pixels(driver) -> np.ndarray:
@@ -174,7 +176,7 @@ def test_bench_viewer_quick_json(capsys, tmp_path):
     from torchdeform.view.session import ViewerSession
 
     threads = torch.get_num_threads()
-    assert cli.main(["bench", "viewer", "--quick", "--json", "--out", str(tmp_path)]) == 0
+    assert cli.main(argv=["bench", "viewer", "--quick", "--json", "--out", str(tmp_path)]) == 0
     assert torch.get_num_threads() == threads  # restored
     doc = json.loads(capsys.readouterr().out)
     assert doc["bench"] == "viewer" and doc["met"] is None  # no 32^3 row in the quick run

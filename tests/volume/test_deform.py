@@ -32,34 +32,35 @@ def trilinear_nodes_np(nodes, shape):
 
 
 @pytest.mark.parametrize("padding,scipy_mode", [("border", "nearest"), ("zeros", "grid-constant")])
-def test_warp_equals_map_coordinates(padding, scipy_mode):
+def test_warp_equals_map_coordinates(padding, scipy_mode, device):
     rng = np.random.default_rng(0)
     shape = (9, 11, 13)
     vol = rng.normal(size=shape)
     nodes = rng.normal(scale=1.5, size=(3, 4, 5, 6))
     fill = 0.7 if padding == "zeros" else 0.0
-    out = warp(torch.tensor(vol), torch.tensor(nodes), padding=padding, fill=fill, check=False).numpy()
+    vol_t, nodes_t = torch.tensor(vol, device=device), torch.tensor(nodes, device=device)
+    out = warp(vol_t, nodes_t, padding=padding, fill=fill, check=False).cpu().numpy()
     u = trilinear_nodes_np(nodes, shape)
     grid = np.stack(np.meshgrid(*[np.arange(N) for N in shape], indexing="ij"))
     ref = map_coordinates(vol, grid - u, order=1, mode=scipy_mode, cval=fill)
     assert np.abs(out - ref).max() < 1e-5
 
 
-def test_identity_is_exact():
-    vol = torch.randn(7, 8, 9) * 1000
+def test_identity_is_exact(device):
+    vol = (torch.randn(7, 8, 9) * 1000).to(device)
     for mode in ("deform", "knoche", "carve"):
-        assert torch.equal(warp(vol, torch.zeros(3, 3, 3, 3), mode=mode, inverse_iters=3), vol)
+        assert torch.equal(warp(vol, torch.zeros(3, 3, 3, 3, device=device), mode=mode, inverse_iters=3), vol)
 
 
-def test_uniform_offset_moves_content_from_a_to_b():
-    vol = torch.zeros(12, 12, 12, dtype=torch.float64)
+def test_uniform_offset_moves_content_from_a_to_b(device):
+    vol = torch.zeros(12, 12, 12, dtype=torch.float64, device=device)
     A = (3, 4, 5)
     vol[A] = 1.0
     d = (2.0, -1.0, 3.0)
-    offsets = torch.tensor(d, dtype=torch.float64).view(3, 1, 1, 1).expand(3, 3, 3, 3)
+    offsets = torch.tensor(d, dtype=torch.float64, device=device).view(3, 1, 1, 1).expand(3, 3, 3, 3)
     out = warp(vol, offsets, check=False)
     B = tuple(a + int(x) for a, x in zip(A, d))
-    assert out[B] == pytest.approx(1.0, abs=1e-12)
+    assert float(out[B]) == pytest.approx(1.0, abs=1e-12)
     assert float(out.sum()) == pytest.approx(1.0, abs=1e-12)
 
 
@@ -76,12 +77,13 @@ def cell_centred_np(arr, pos):
     return val
 
 
-def test_knoche_mode_equals_cell_centred_lookup():
+def test_knoche_mode_equals_cell_centred_lookup(device):
     rng = np.random.default_rng(1)
     shape, n = (6, 7, 8), (3, 4, 3)
     vol = rng.normal(size=shape)
     nodes = rng.normal(scale=1.2, size=(3,) + n)
-    out = warp(torch.tensor(vol), torch.tensor(nodes), mode="knoche", check=False).numpy()
+    out = warp(torch.tensor(vol, device=device), torch.tensor(nodes, device=device), mode="knoche", check=False)
+    out = out.cpu().numpy()
     ref = np.zeros(shape)
     for ijk in np.ndindex(*shape):
         uvw = [(i + 0.5) / N for i, N in zip(ijk, shape)]  # texture coordinates
@@ -91,14 +93,15 @@ def test_knoche_mode_equals_cell_centred_lookup():
     assert np.abs(out - ref).max() < 1e-10
 
 
-def test_fixed_point_inverse_round_trip():
+def test_fixed_point_inverse_round_trip(device):
     rng = np.random.default_rng(2)
     shape = (33, 33, 33)
-    nodes = torch.tensor(rng.uniform(-1, 1, size=(3, 5, 5, 5)) * 0.3 * 8)  # 30% of the node spacing (8 voxels)
+    # 30% of the node spacing (8 voxels)
+    nodes = torch.tensor(rng.uniform(-1, 1, size=(3, 5, 5, 5)) * 0.3 * 8, device=device)
     field = DisplacementField(nodes, shape)
-    p = torch.tensor(rng.uniform(2, 30, size=(1, 3, 500)))
-    X0, _ = inverse_points(field, p, 0)
-    X, info = inverse_points(field, p, 50, tol=1e-6)
+    p = torch.tensor(rng.uniform(2, 30, size=(1, 3, 500)), device=device)
+    X0, _ = inverse_points(field, p, iters=0)
+    X, info = inverse_points(field, p, iters=50, tol=1e-6)
     assert float(inverse_residual(field, X, p).max()) < 1e-3
     assert float(inverse_residual(field, X0, p).max()) > 1e-2  # first order is visibly worse
     assert info["iterations"] < 50
@@ -121,23 +124,24 @@ def test_jacobian_of_linear_field_and_folding():
         warp(torch.zeros(64, 64, 64), big)
 
 
-def test_bspline_texture_is_smooth_and_reproduces_constants():
-    c = offset_texture(torch.full((3, 4, 4, 4), 2.5, dtype=torch.float64), (10, 10, 10), order="bspline")
+def test_bspline_texture_is_smooth_and_reproduces_constants(device):
+    c = offset_texture(torch.full((3, 4, 4, 4), 2.5, dtype=torch.float64, device=device), (10, 10, 10), order="bspline")
     assert torch.allclose(c, torch.full_like(c, 2.5))
-    spike = torch.zeros(3, 5, 5, 5, dtype=torch.float64)
+    spike = torch.zeros(3, 5, 5, 5, dtype=torch.float64, device=device)
     spike[0, 2, 2, 2] = 1.0
     lin = offset_texture(spike, (17, 17, 17))
     bs = offset_texture(spike, (17, 17, 17), order="bspline")
     assert 0 < float(bs.max()) < float(lin.max())  # approximating, smoother
 
 
-def test_carve_keeps_values_and_removes_material():
-    vol = torch.arange(8 * 8 * 8, dtype=torch.float64).reshape(8, 8, 8)
-    mask = torch.ones(8, 8, 8, dtype=torch.float64)
+def test_carve_keeps_values_and_removes_material(device):
+    vol = torch.arange(8 * 8 * 8, dtype=torch.float64, device=device).reshape(8, 8, 8)
+    mask = torch.ones(8, 8, 8, dtype=torch.float64, device=device)
     mask[:, :, 6:] = 0
-    out = warp(vol, torch.zeros(3, 2, 2, 2, dtype=torch.float64), mode="carve", material=mask, fill=-5.0)
+    zero = torch.zeros(3, 2, 2, 2, dtype=torch.float64, device=device)
+    out = warp(vol, zero, mode="carve", material=mask, fill=-5.0)
     assert torch.equal(out[:, :, :6], vol[:, :, :6]) and bool((out[:, :, 6:] == -5.0).all())
-    offsets = torch.zeros(3, 3, 3, 3, dtype=torch.float64)
+    offsets = torch.zeros(3, 3, 3, 3, dtype=torch.float64, device=device)
     offsets[2] = -2.0  # body pushed 2 voxels towards w-
     out = warp(vol, offsets, mode="carve", fill=-5.0, check=False)
     assert torch.allclose(out[:, :, :5], vol[:, :, :5])  # values unchanged, not shifted
@@ -204,7 +208,7 @@ def test_cli_warp_matches_library_and_rejects_bad_input(tmp_path, capsys):
     np.save(tmp_path / "o.npy", offs)
     assert (
         cli.main(
-            [
+            argv=[
                 "warp",
                 str(tmp_path / "v.npy"),
                 str(tmp_path / "o.npy"),
@@ -220,6 +224,6 @@ def test_cli_warp_matches_library_and_rejects_bad_input(tmp_path, capsys):
     assert np.allclose(np.load(tmp_path / "w.npy"), ref, atol=1e-6)
     np.save(tmp_path / "bad.npy", offs[:2])
     capsys.readouterr()
-    code = cli.main(["warp", str(tmp_path / "v.npy"), str(tmp_path / "bad.npy"), "--out", str(tmp_path / "x.npy")])
+    code = cli.main(argv=["warp", str(tmp_path / "v.npy"), str(tmp_path / "bad.npy"), "--out", str(tmp_path / "x.npy")])
     err = capsys.readouterr().err
     assert code == 2 and err.startswith("torchdeform: ") and "Traceback" not in err and err.count("\n") == 1

@@ -11,8 +11,9 @@ volume     deform and render a 256^3 volume: frames per second of each rendering
 chainmail  time of a local ChainMail pull against grid size and moved elements
 =========  ================================================================================
 
-Each benchmark is one module here with ``add_arguments(parser)`` and ``run(args) -> int``, and
-one entry of :data:`~torchdeform.bench.registry.BENCHES`; :mod:`.common` holds what they share,
+Each benchmark is one module here with ``add_arguments(parser)`` and ``run(args) -> int`` (a
+subpackage where it is large: :mod:`.accuracy`), and one entry of
+:data:`~torchdeform.bench.registry.BENCHES`; :mod:`.common` holds what they share,
 :mod:`.warp_baseline` the NVIDIA Warp comparison of ``speed``. Only the command line
 (:mod:`torchdeform.cli`) imports this package: the library never depends on its benchmarks.
 

@@ -102,14 +102,14 @@ def run(args) -> int:
     tsizes = args.tensor_sizes or ([16, 24] if args.quick else [32, 64, 100])
     repeats = args.repeats or (2 if args.quick else 5)
     if repeats < 1 or min(sizes + tsizes) < 3:
-        raise ConfigError("--repeats/--sizes", "at least 1 repeat and sizes >= 3", (repeats, sizes))
+        raise ConfigError("--repeats/--sizes", "at least 1 repeat and sizes >= 3", got=(repeats, sizes))
     pulls = PULLS[:2] if args.quick else PULLS
     dtype = getattr(torch, args.dtype)
     rows = []
     bar = progress(len(sizes) * len(pulls) * 2 + len(tsizes), "bench chainmail")
     for n in sizes:
         grid = Grid((n, n, n), spacing=SPACING)
-        lim = Limits.from_material(grid, 0.8, 1.2, 0.2)
+        lim = Limits.from_material(grid, compression=0.8, stretch=1.2, shear=0.2)
         centre = (n // 2, n // 2, n // 2)
         for variant in ("gibson", "enhanced"):
             cm = ChainMail(grid, lim, method=variant)
@@ -117,7 +117,9 @@ def run(args) -> int:
                 if pull / (0.2 * SPACING) > n // 2 - 1:  # the pull would reach the border
                     bar.update(1)
                     continue
-                ms, r = _median_ms(lambda: cm.move([centre], (pull, pull / 2, 0.0)), cm.reset, repeats)
+                ms, r = _median_ms(
+                    lambda cm=cm, pull=pull, centre=centre: cm.move([centre], (pull, pull / 2, 0.0)), cm.reset, repeats
+                )
                 cm.move([centre], (pull, pull / 2, 0.0))
                 worst = float(limit_violation(cm.positions(), grid, lim)[0])
                 cm.reset()
@@ -141,17 +143,17 @@ def run(args) -> int:
     pull = pulls[1]
     for n in tsizes:
         grid = Grid((n, n, n), spacing=SPACING)
-        lim = Limits.from_material(grid, 0.8, 1.2, 0.2)
+        lim = Limits.from_material(grid, compression=0.8, stretch=1.2, shear=0.2)
         if pull / (0.2 * SPACING) > n // 2 - 1:
             bar.update(1)
             continue
-        x = grid.rest_positions(dtype, args.device)
+        x = grid.rest_positions(dtype=dtype, device=args.device)
         pick = torch.zeros(grid.shape, dtype=torch.bool)
         pick[n // 2, n // 2, n // 2] = True
         d = torch.tensor([pull, pull / 2, 0.0], dtype=dtype)
         sync = torch.cuda.synchronize if str(args.device).startswith("cuda") else (lambda: None)
 
-        def once():
+        def once(x=x, grid=grid, lim=lim, pick=pick, d=d, sync=sync):
             r = tensor_chainmail(x, grid, lim, pick, d)
             sync()
             return r
@@ -203,7 +205,7 @@ def run(args) -> int:
     )
     if args.out:
         _plot(rows, args.out)
-    emit("chainmail", args, rows, COLUMNS, extra)
+    emit("chainmail", args, rows, COLUMNS, extra=extra)
     return 0
 
 

@@ -56,7 +56,7 @@ class busy_neighbour:
         return False
 
 
-def int_list(key, lo: int = 1):
+def int_list(key, *, lo: int = 1):
     """An ``argparse`` type: comma-separated integers >= ``lo`` (argparse names the option ``key``)."""
     return options.int_list(lo=lo)
 
@@ -100,7 +100,7 @@ def progress(total: int, desc: str):
     return tqdm(total=total, desc=desc, unit="row", file=sys.stderr, disable=None, leave=False)
 
 
-def emit(name: str, args, rows: list, columns: list, extra: dict | None = None, display=None) -> None:
+def emit(name: str, args, rows: list, columns: list, *, extra: dict | None = None, display=None) -> None:
     """Write ``--out DIR/<name>.csv`` and print the JSON document (``--json``) or the table.
 
     The table shows the ``display`` rows (default ``rows``).
@@ -132,7 +132,7 @@ def format_table(rows: list, columns: list) -> str:
     return "\n".join(lines)
 
 
-def speed_cube(n: int, topology: int, dtype=torch.float32, device="cpu", seed: int = 0):
+def speed_cube(n: int, topology: int, *, dtype=torch.float32, device="cpu", seed: int = 0):
     """The speed scene: an ``n^3`` damped cube, slightly perturbed from rest.
 
     1 cm spacing, k = 100 N/m, c = 0.05 N s/m, 1 g per node, no gravity. Returns
@@ -143,4 +143,4 @@ def speed_cube(n: int, topology: int, dtype=torch.float32, device="cpu", seed: i
     g = torch.Generator().manual_seed(seed)
     x = model.X + (1e-4 * torch.randn(model.X.shape, generator=g, dtype=torch.float64)).to(dtype=dtype, device=device)
     v = (1e-3 * torch.randn(model.X.shape, generator=g, dtype=torch.float64)).to(dtype=dtype, device=device)
-    return model, State(x, v, 0.0), 1e-4  # dt well below the bound (~8e-4 s for 26 neighbours)
+    return model, State(x, v, t=0.0), 1e-4  # dt well below the bound (~8e-4 s for 26 neighbours)

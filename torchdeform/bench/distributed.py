@@ -117,7 +117,7 @@ def _launch(ranks: int, threads: int, args: list, timeout: float) -> tuple:
         done = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
     except subprocess.TimeoutExpired:
         raise ConfigError(
-            "--timeout", f"more seconds: {' '.join(args[:2])} on {ranks} ranks took longer", timeout
+            "--timeout", f"more seconds: {' '.join(args[:2])} on {ranks} ranks took longer", got=timeout
         ) from None
     wall = time.perf_counter() - t
     if done.returncode != 0:
@@ -196,10 +196,10 @@ def worker(out: str, case: str, n: str, steps: str, repeats: str, cg_iters: str,
     if world > 1:
         dist.init_process_group("gloo")
     torch.set_num_threads(int(threads))
-    model, state, dt = speed_cube(int(n), 26, getattr(torch, dtype))
+    model, state, dt = speed_cube(int(n), 26, dtype=getattr(torch, dtype))
     integrator = SymplecticEuler() if case == "explicit" else ImplicitEuler(cg_iters=int(cg_iters), cg_tol=0.0)
-    decomposed_simulate(model, state, dt, 1, integrator)  # warm-up: allocations
-    runs = [decomposed_simulate(model, state, dt, int(steps), integrator) for _ in range(int(repeats))]
+    decomposed_simulate(model, state, dt, 1, integrator=integrator)  # warm-up: allocations
+    runs = [decomposed_simulate(model, state, dt, int(steps), integrator=integrator) for _ in range(int(repeats))]
     mine = [(r.wall_s, r.comm_s, r.model.halo.exchanges, r.model.halo.bytes) for r in runs]
     parts = [mine]
     if world > 1:
@@ -236,13 +236,13 @@ def run(args) -> int:
         raise ConfigError(
             "--ranks/--n/--steps/--repeats/--cg-iters/--points",
             "ranks >= 1, n >= the largest rank count, the others >= 1",
-            (ranks, n, steps, repeats, args.cg_iters, points),
+            got=(ranks, n, steps, repeats, args.cg_iters, points),
         )
     chosen = [c.strip() for c in args.cases.split(",") if c.strip()]
     if not chosen or set(chosen) - {"sweep", "explicit", "implicit"}:
-        raise ConfigError("--cases", "a comma-separated choice of sweep, explicit, implicit", args.cases)
+        raise ConfigError("--cases", "a comma-separated choice of sweep, explicit, implicit", got=args.cases)
     if args.device != "cpu":
-        raise ConfigError("--device", "cpu (the bench launches gloo ranks on this machine)", args.device)
+        raise ConfigError("--device", "cpu (the bench launches gloo ranks on this machine)", got=args.device)
     cores = args.threads or os.cpu_count() or 1
     rows = []
     cases = [(c, r) for c in ("sweep", "explicit", "implicit") if c in chosen for r in ranks]
@@ -275,7 +275,7 @@ def run(args) -> int:
         _plot(rows, args.out)
     if not args.json:
         print("bench distributed: " + extra["setup"])
-    emit("distributed", args, rows, COLUMNS, extra)
+    emit("distributed", args, rows, COLUMNS, extra=extra)
     return 0
 
 

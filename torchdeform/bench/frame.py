@@ -102,14 +102,14 @@ def parse_sizes(text) -> list:
         try:
             dims = [int(v) for v in item.split("x")]
         except ValueError:
-            raise ConfigError("--sizes", "comma-separated n or DxHxW, e.g. 16,32,40x60x20", text) from None
+            raise ConfigError("--sizes", "comma-separated n or DxHxW, e.g. 16,32,40x60x20", got=text) from None
         if len(dims) == 1:
             dims = dims * 3
         if len(dims) != 3 or min(dims) < 2:
-            raise ConfigError("--sizes", "n or DxHxW with every count >= 2, e.g. 16,40x60x20", text)
+            raise ConfigError("--sizes", "n or DxHxW with every count >= 2, e.g. 16,40x60x20", got=text)
         shapes.append(tuple(dims))
     if not shapes:
-        raise ConfigError("--sizes", "at least one grid size", text)
+        raise ConfigError("--sizes", "at least one grid size", got=text)
     return shapes
 
 
@@ -117,7 +117,7 @@ def _name(shape) -> str:
     return f"{shape[0]}^3" if len(set(shape)) == 1 else "x".join(map(str, shape))
 
 
-def frame_body(shape, dtype=torch.float32, device="cpu", seed: int = 0):
+def frame_body(shape, *, dtype=torch.float32, device="cpu", seed: int = 0):
     """The bench's body: ``(model, state, dt)`` (module docstring, "Body"); ``state`` in the grid layout."""
     from ..sim.grid import Grid
     from ..sim.model import Model, State
@@ -133,11 +133,11 @@ def frame_body(shape, dtype=torch.float32, device="cpu", seed: int = 0):
         dtype=dtype,
         device=device,
     )
-    dt = suggest_dt(model, "verlet", safety=0.9, method="gershgorin")
+    dt = suggest_dt(model, integrator="verlet", safety=0.9, method="gershgorin")
     g = torch.Generator().manual_seed(seed)
     x = model.X + (1e-4 * torch.randn(model.X.shape, generator=g, dtype=torch.float64)).to(dtype=dtype, device=device)
     x = torch.where(grid.face("bottom").to(device), model.X, x)
-    return model, State(x, torch.zeros_like(x), 0.0), dt
+    return model, State(x, torch.zeros_like(x), t=0.0), dt
 
 
 def add_arguments(p) -> None:
@@ -186,7 +186,9 @@ def _volume_fn(model, packed, size, compiled, dtype, device):
     def frame(x):
         xg = packed.unpack(x)
         off = node_offsets(xg, model.X, model.grid.spacing, shape)[0]
-        return render(vol, tf, "dvr", "h", offsets=off, stop=1e-3, engine="compiled" if compiled else "eager")
+        return render(
+            vol, tf=tf, mode="dvr", view="h", offsets=off, stop=1e-3, engine="compiled" if compiled else "eager"
+        )
 
     return frame
 
@@ -196,7 +198,7 @@ def _frame_row(shape, *, repeats, frames, compiled, volume_size, dtype, device, 
     from ..sim.integrators import DampedVerlet
 
     sync = device_sync(device)
-    model, state, dt = frame_body(shape, dtype, device)
+    model, state, dt = frame_body(shape, dtype=dtype, device=device)
     with torch.no_grad():
         step = compiled_step(DampedVerlet(kd=KD), model, dt, enable=compiled)
         ps = step.packed.pack_state(state)  # packed once, outside the timing
@@ -310,9 +312,9 @@ def run(args) -> int:
     repeats = args.repeats or (2 if args.quick else 5)
     frames = args.frames or (2 if args.quick else None)
     if repeats < 1 or (frames is not None and frames < 1):
-        raise ConfigError("--repeats/--frames", "at least 1", (repeats, frames))
+        raise ConfigError("--repeats/--frames", "at least 1", got=(repeats, frames))
     if args.volume and args.volume_size < 8:
-        raise ConfigError("--volume-size", "a volume side of at least 8 voxels", args.volume_size)
+        raise ConfigError("--volume-size", "a volume side of at least 8 voxels", got=args.volume_size)
     compiled = not (args.no_compile or args.quick)
     dtype = getattr(torch, args.dtype)
     saved = torch.get_num_threads()
@@ -359,7 +361,7 @@ def run(args) -> int:
     if not args.json:
         engines = ", ".join(sorted({r["engine"] for r in rows}))
         print(f"frames per second ({engines} step, {threads} thread{'s' if threads != 1 else ''}); " + extra["setup"])
-    emit("frame", args, rows, COLUMNS, extra)
+    emit("frame", args, rows, COLUMNS, extra=extra)
     if not args.json and judged:
         print(
             f"step + surface >= {TARGET_RATIO:g}x Punak at every size: {'yes' if extra['met'] else 'no'} "

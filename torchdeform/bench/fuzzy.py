@@ -49,7 +49,7 @@ def add_arguments(p) -> None:
     p.add_argument("--no-compile", action="store_true", help="skip the compiled row")
 
 
-def to_skfuzzy(fis, points: int = 2001):
+def to_skfuzzy(fis, *, points: int = 2001):
     """The same system in scikit-fuzzy (``ControlSystemSimulation``), universes of ``points`` samples.
 
     Supports min/max inference and the membership kinds scikit-fuzzy has.
@@ -62,7 +62,7 @@ def to_skfuzzy(fis, points: int = 2001):
         raise ConfigError(
             "system",
             "min/max inference for the scikit-fuzzy comparison",
-            (fis.and_method, fis.or_method, fis.implication, fis.aggregation),
+            got=(fis.and_method, fis.or_method, fis.implication, fis.aggregation),
         )
 
     def mf(u, m):
@@ -75,7 +75,7 @@ def to_skfuzzy(fis, points: int = 2001):
             "sigmoid": lambda: fz.sigmf(u, p[0], p[1]),
         }
         if m.kind not in table:
-            raise ConfigError("system", "membership kinds scikit-fuzzy has", m.kind)
+            raise ConfigError("system", "membership kinds scikit-fuzzy has", got=m.kind)
         return table[m.kind]()
 
     variables = {}
@@ -89,7 +89,9 @@ def to_skfuzzy(fis, points: int = 2001):
     rules = []
     for rule in fis.rules:
         if rule.weight != 1.0 or any(c.hedges for c in rule.antecedent + rule.consequent):
-            raise ConfigError("system", "rules without weights or hedges for the scikit-fuzzy comparison", str(rule))
+            raise ConfigError(
+                "system", "rules without weights or hedges for the scikit-fuzzy comparison", got=str(rule)
+            )
         terms = [variables[c.variable][c.term] for c in rule.antecedent]
         ante = terms[0]
         for t in terms[1:]:
@@ -119,7 +121,7 @@ def run(args) -> int:
     n = args.inputs or (20_000 if args.quick else 2_000_000)
     n_sk = args.skfuzzy_inputs or (20 if args.quick else 300)
     if n < 1 or n_sk < 1:
-        raise ConfigError("--inputs", "positive row counts", (n, n_sk))
+        raise ConfigError("--inputs", "positive row counts", got=(n, n_sk))
     gen = torch.Generator().manual_seed(0)
     lo = torch.tensor([v.range[0] for v in fis.inputs], dtype=dtype)
     hi = torch.tensor([v.range[1] for v in fis.inputs], dtype=dtype)
@@ -189,5 +191,5 @@ def run(args) -> int:
     compiled = [r for r in rows if r["mode"] == "compiled"]
     if compiled:
         extra["compiled_inputs_per_s"] = compiled[0]["inputs_per_s"]
-    emit("fuzzy", args, rows, COLUMNS, extra)
+    emit("fuzzy", args, rows, COLUMNS, extra=extra)
     return 0

@@ -70,7 +70,7 @@ def add_arguments(p) -> None:
     p.add_argument("--no-compile", action="store_true", help="eager only (no torch.compile: a smoke run)")
 
 
-def pressing_scene(n: int, dtype=torch.float32, device="cpu", path: bool = True):
+def pressing_scene(n: int, *, dtype=torch.float32, device="cpu", path: bool = True):
     """The bench body and tool: ``(model, tool, dt)``.
 
     An ``n^3`` 26-neighbour body (k = 50 N/m, c = 0.1 N s/m, 1 g per node, bottom fixed), a sphere
@@ -105,7 +105,7 @@ def _step_row(n, engine, steps, repeats, dtype, device):
     from ..sim.compiled import compiled_step
     from ..sim.integrators import SymplecticEuler
 
-    model, _, dt = pressing_scene(n, dtype, device)
+    model, _, dt = pressing_scene(n, dtype=dtype, device=device)
     step = compiled_step(SymplecticEuler(), model, dt, enable=engine == "compiled")
     ps = step.packed.pack_state(model.rest_state())
     t0 = time.perf_counter()
@@ -143,7 +143,7 @@ def _step_row(n, engine, steps, repeats, dtype, device):
 def _haptic_row(n, seconds, dtype, device, compiled=True):
     from ..interact import HapticLoop, Sphere
 
-    model, tool, dt = pressing_scene(n, dtype, device, path=False)
+    model, tool, dt = pressing_scene(n, dtype=dtype, device=device, path=False)
     model.interactions = []  # the loop adds the device's tool
     start = tuple(float(c) for c in tool.position(0.0))
     loop = HapticLoop(
@@ -182,7 +182,7 @@ def run(args) -> int:
         raise ConfigError(
             "--sizes/--haptic-size/--steps/--seconds",
             "sizes >= 4, steps >= 1, seconds > 0",
-            (sizes, hn, steps, seconds),
+            got=(sizes, hn, steps, seconds),
         )
     dtype = getattr(torch, args.dtype)
     engines = ["eager"] if args.no_compile else ["compiled"] + (["eager"] if args.eager else [])
@@ -210,7 +210,7 @@ def run(args) -> int:
     }
     if args.out:
         _plot(rows, args.out)
-    emit("interaction", args, rows, COLUMNS, extra)
+    emit("interaction", args, rows, COLUMNS, extra=extra)
     return 0
 
 

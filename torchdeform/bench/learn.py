@@ -88,9 +88,11 @@ def run(args) -> int:
 
     iterations = args.iterations or (2 if args.quick else 10)
     if iterations < 2:
-        raise ConfigError("--iterations", "at least 2 (the first compiled iteration includes the compile)", iterations)
+        raise ConfigError(
+            "--iterations", "at least 2 (the first compiled iteration includes the compile)", got=iterations
+        )
     if args.device != "cpu":
-        raise ConfigError("--device", "cpu (the training rollouts of this bench run on the CPU)", args.device)
+        raise ConfigError("--device", "cpu (the training rollouts of this bench run on the CPU)", got=args.device)
     compiled = not (args.no_compile or args.quick)
     saved = torch.get_num_threads()
     torch.set_num_threads(args.threads or 1)  # a 27-node body: one thread is fastest
@@ -132,7 +134,7 @@ def run(args) -> int:
         ):
             for name, r in runs.items():
                 before = r["trainer"].seconds
-                r["trainer"].run(it)
+                r["trainer"].run(iterations=it)
                 seconds[name].append(r["trainer"].seconds - before)
             ref = _values(runs["eager"]["params"])
             agreement.append(
@@ -179,7 +181,7 @@ def run(args) -> int:
         _plot(rows, agreement, args.out, threads)
     if not args.json:
         print("training iterations, " + extra["setup"])
-    emit("learn", args, rows, COLUMNS, extra)
+    emit("learn", args, rows, COLUMNS, extra=extra)
     if not args.json:
         if compiled:
             print(f"start: loss {check['loss_rel']:.1e}, gradient {check['grad_rel']:.1e} relative (compiled vs eager)")

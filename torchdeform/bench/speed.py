@@ -105,7 +105,7 @@ def add_arguments(p) -> None:
     )
 
 
-def beam_scene(dtype=torch.float32, device="cpu"):
+def beam_scene(*, dtype=torch.float32, device="cpu"):
     """The implicit benchmark, shaped like SOFA's spring-beam benchmark.
 
     A 16 x 4 x 4 m beam of 40 x 10 x 10 nodes (W is the long axis), 26 neighbours, stiffness 100
@@ -275,7 +275,7 @@ def speed_row(
     ``peak_rss_mb`` is the process's peak resident memory during the row (Linux), torch included.
     """
     reset = _reset_peak()
-    model, state, dt = speed_cube(n, topology, dtype, device)
+    model, state, dt = speed_cube(n, topology, dtype=dtype, device=device)
     integ = SymplecticEuler()
     sync = device_sync(device)
     row = {
@@ -330,7 +330,7 @@ def beam_row(
     ``cg_iters`` CG iterations, no tolerance: every step does exactly that many, as SOFA's
     benchmark. ``mode``, ``threads`` and ``contention`` as in :func:`speed_row`.
     """
-    model, state, dt = beam_scene(dtype, device)
+    model, state, dt = beam_scene(dtype=dtype, device=device)
     integ = ImplicitEuler(cg_iters=cg_iters, cg_tol=0)
     sync = device_sync(device)
     row = {
@@ -391,35 +391,45 @@ def _warp_row(n, topology, dtype, steps, repeats, target_s, reference):
     from .warp_baseline import warp_speed_row
 
     row = warp_speed_row(
-        n, topology, "atomic", dtype=dtype, steps=steps, repeats=repeats, target_s=target_s, reference=reference
+        n,
+        topology=topology,
+        variant="atomic",
+        dtype=dtype,
+        steps=steps,
+        repeats=repeats,
+        target_s=target_s,
+        reference=reference,
     )
     row.setdefault("peak_rss_mb", None)
     return row
 
 
-def run(args) -> int:
-    """Run ``torchdeform bench speed``; returns the exit status."""
+def _options(args):
+    """The checked options: ``(device, sizes, topologies, dtypes, threads)``."""
     device = str(torch.device(args.device))
     if device.startswith("cuda") and not torch.cuda.is_available():
-        raise ConfigError("--device", "cpu, or cuda on a machine with CUDA", args.device)
+        raise ConfigError("--device", "cpu, or cuda on a machine with CUDA", got=args.device)
     sizes = args.sizes or ([8, 12] if args.quick else [16, 32, 64, 128])
     topologies = args.topologies or ([6, 26] if args.quick else [6, 18, 26])
     dtypes = (args.dtypes or ("float32" if args.quick else "float32,float64")).split(",")
     threads = args.threads or [torch.get_num_threads()]
     if min(sizes) < 2:
-        raise ConfigError("--sizes", "grid sizes >= 2", sizes)
+        raise ConfigError("--sizes", "grid sizes >= 2", got=sizes)
     for t in topologies:
         if t not in (6, 14, 18, 26):
-            raise ConfigError("--topologies", "6, 14, 18 or 26", t)
+            raise ConfigError("--topologies", "6, 14, 18 or 26", got=t)
     for d in dtypes:
         if d not in ("float32", "float64"):
-            raise ConfigError("--dtypes", "float32 and/or float64, comma-separated", args.dtypes)
+            raise ConfigError("--dtypes", "float32 and/or float64, comma-separated", got=args.dtypes)
     if min(threads) < 1:
-        raise ConfigError("--threads", "integers >= 1", threads)
+        raise ConfigError("--threads", "integers >= 1", got=threads)
     if args.steps is not None and args.steps < 1:
-        raise ConfigError("--steps", "an integer >= 1", args.steps)
-    repeats = args.repeats or (3 if args.quick else 5)
-    target_s = 0.02 if args.quick else 0.2
+        raise ConfigError("--steps", "an integer >= 1", got=args.steps)
+    return device, sizes, topologies, dtypes, threads
+
+
+def _plan(args, device, sizes, topologies, dtypes, threads):
+    """``(tasks, warp_ok, warp_why)``: the measurements ``[(kind, n, topology, dtype, threads, mode), ...]``."""
     from ..sim import native
 
     modes = ["eager"] if args.no_compile else ["eager", "compiled"]
@@ -457,7 +467,11 @@ def run(args) -> int:
             for m in modes
             if not (args.quick and m == "compiled")
         ]
+    return tasks, warp_ok, warp_why
 
+
+def _run_tasks(args, tasks, device, repeats, target_s):
+    """Run the measurements; returns ``(rows, beam_rows)``."""
     rows, beam_rows, refs, beam_refs = [], [], {}, {}
     saved_threads = torch.get_num_threads()
     redirect = contextlib.redirect_stdout(sys.stderr) if args.json else contextlib.nullcontext()
@@ -505,6 +519,16 @@ def run(args) -> int:
                 bar.update(1)
     finally:
         torch.set_num_threads(saved_threads)
+    return rows, beam_rows
+
+
+def run(args) -> int:
+    """Run ``torchdeform bench speed``; returns the exit status."""
+    device, sizes, topologies, dtypes, threads = _options(args)
+    repeats = args.repeats or (3 if args.quick else 5)
+    target_s = 0.02 if args.quick else 0.2
+    tasks, warp_ok, warp_why = _plan(args, device, sizes, topologies, dtypes, threads)
+    rows, beam_rows = _run_tasks(args, tasks, device, repeats, target_s)
 
     warp_by = {
         (r["n"], r["topology"], r["dtype"]): r["msprings_per_s"]
@@ -554,7 +578,7 @@ def run(args) -> int:
         print(f"symplectic Euler on a damped n^3 cube, {device}, torch {machine['torch']}")
         if not warp_ok:
             print(f"Warp rows skipped: {warp_why}")
-    emit("speed", args, rows, SPEED_COLUMNS, extra, display)
+    emit("speed", args, rows, SPEED_COLUMNS, extra=extra, display=display)
     if not args.json:
         if beam_rows:
             print(f"\nimplicit Euler: {_BEAM}")
@@ -582,7 +606,7 @@ def _threads_note(row) -> str:
     return "" if n == row["threads"] else f" ({n} thread{'s' if n > 1 else ''} {100 * k / sum(used.values()):.0f}%)"
 
 
-#: issue targets on 2 cores: the implicit beam (SOFA about 110 on a desktop CPU) and 64^3 explicit
+#: speed targets on 2 cores: the implicit beam (SOFA about 110 on a desktop CPU) and 64^3 explicit
 TARGETS = {"beam_steps_per_s": 220.0, "msprings_64": 1000.0, "busy_vs_idle": 0.4}
 
 

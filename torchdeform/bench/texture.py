@@ -29,7 +29,7 @@ the exemplar's (colour units), CG iterations and seconds. The exemplar's own val
 placed at the same planes) is the floor. With ``--out``, ``texture_seams.png`` shows a slice of
 each.
 
-It runs on 2 CPU threads unless ``--threads`` says otherwise (the issue's target is stated for 2 cores).
+It runs on 2 CPU threads unless ``--threads`` says otherwise (its target is stated for 2 cores).
 
 Example:
     torchdeform bench texture --quick
@@ -91,7 +91,7 @@ def add_arguments(p) -> None:
     )
 
 
-def hull_mesh(vertices: int, seed: int = 0):
+def hull_mesh(vertices: int, *, seed: int = 0):
     """A closed mesh with exactly ``vertices`` vertices and ``2 vertices - 4`` faces (see the module docstring).
 
     Returns ``(V (n, 3) float64 in texture voxels, F (2n - 4, 3) int64)``.
@@ -129,15 +129,15 @@ def _median_ms(fn, repeats):
 def _rows(repeats):
     from ..texture import SolidTexture, liver_exemplar, sample_triangles
 
-    tex = SolidTexture(liver_exemplar(128, seed=0), block=64, extent=BOX, seed=0)
+    tex = SolidTexture(liver_exemplar(size=128, seed=0), block=64, extent=BOX, seed=0)
     rows = []
     for name, nv, nf, gpu_nodes, gpu_triangles in MODELS:
         v_count = (nf + 4) // 2  # closed: F = 2V - 4
         v, f = hull_mesh(v_count, seed=ord(name))
         X = torch.from_numpy(v).float()
-        node_ms = _median_ms(lambda: tex.colour(X), repeats)
+        node_ms = _median_ms(lambda X=X: tex.colour(X), repeats)
         count = []
-        triangle_ms = _median_ms(lambda: count.append(sample_triangles(v, f, tex).count), repeats)
+        triangle_ms = _median_ms(lambda v=v, f=f, count=count: count.append(sample_triangles(v, f, tex).count), repeats)
         rows.append(
             dict(
                 model=name,
@@ -168,7 +168,7 @@ def _cut_face_row(tex, repeats):
     from ..topology import Blade, cut, cut_surfaces
 
     n, h = 16, 0.0025
-    grid = td.Grid((n, n, n), h, 26)
+    grid = td.Grid((n, n, n), spacing=h, topology=26)
     model = td.Model(grid, stiffness=10.0, mass=1e-3, dtype=torch.float64)
     cut(model, model.X, Blade(((n / 2 - 0.5) * h, -h, -h), (0, (n + 1) * h, 0), (0, 0, (n + 1) * h)))
     side = (model.X[0, 0] > (n / 2 - 0.5) * h).long()
@@ -203,12 +203,12 @@ def _seam_rows(blocks):
     from ..texture import SolidTexture, liver_exemplar
     from ..texture.seams import histogram_distance, seam_jump
 
-    ex = liver_exemplar(128, seed=0)
+    ex = liver_exemplar(size=128, seed=0)
     extent = tuple(64 * n for n in blocks)
     rows, slices = [], {}
     for method, name in (("none", "tiled"), ("3d", "3-D Poisson"), ("slices", "per-slice 2-D (D)")):
         tex = SolidTexture(ex, block=64, extent=extent, seed=0)
-        r = tex.blend(method)  # "none": the tiled texture, after = before
+        r = tex.blend(method=method)  # "none": the tiled texture, after = before
         rows.append(
             dict(
                 method=name,
@@ -246,7 +246,9 @@ def run(args) -> int:
         blocks = tuple(int(n) for n in args.seam_blocks.split(","))
         assert len(blocks) == 3 and min(blocks) >= 1 and max(blocks) >= 2
     except (ValueError, AssertionError):
-        raise ConfigError("--seam-blocks", "three block counts D,H,W, at least one of them >= 2", args.seam_blocks)
+        raise ConfigError(
+            "--seam-blocks", "three block counts D,H,W, at least one of them >= 2", got=args.seam_blocks
+        ) from None
     bar = progress(3, "bench texture")
     rows, tex = _rows(repeats)
     bar.update(1)
@@ -270,7 +272,7 @@ def run(args) -> int:
     if args.out:
         _plot(models, args.out)
         _plot_seams(seams, slices, args.out)
-    emit("texture", args, rows, COLUMNS, extra)
+    emit("texture", args, rows, COLUMNS, extra=extra)
     if not args.json:
         print()
         print(format_table(seams, SEAM_COLUMNS))

@@ -16,7 +16,7 @@ layers. A row carries:
   steps), so a slow drift of the machine does not read as a change;
 * ``recompiles``: graphs dynamo compiled during the cut and the steps after it (target: 0).
 
-Targets (issue 18): a cut on 64^3 in < 1 ms; step time after within 5 % of before; no
+Targets: a cut on 64^3 in < 1 ms; step time after within 5 % of before; no
 recompilation. It runs on one CPU thread unless ``--threads`` says otherwise.
 
 Example:
@@ -94,7 +94,7 @@ def _row(topology, n, steps, repeats, compiled, dtype, device):
     from ..sim.integrators import SymplecticEuler
     from ..topology import Blade, components, cut
 
-    model, state, dt = speed_cube(n, topology, dtype, device)
+    model, state, dt = speed_cube(n, topology, dtype=dtype, device=device)
     step = compiled_step(SymplecticEuler(), model, dt, enable=compiled, editable=True)
     ps = step.packed.pack_state(state)
     t0 = time.perf_counter()
@@ -158,7 +158,7 @@ def run(args) -> int:
         raise ConfigError(
             "--sizes/--topologies/--steps/--repeats",
             "sizes >= 4, topologies of 6, 14, 18, 26, steps >= 1, repeats >= 1",
-            (sizes, topologies, steps, repeats),
+            got=(sizes, topologies, steps, repeats),
         )
     dtype = getattr(torch, args.dtype)
     rows = []
@@ -181,7 +181,7 @@ def run(args) -> int:
     }
     if args.out:
         _plot(rows, args.out)
-    emit("topology", args, rows, COLUMNS, extra)
+    emit("topology", args, rows, COLUMNS, extra=extra)
     return 0
 
 

@@ -65,7 +65,7 @@ def viewer_cube(n: int):
     model_args = dict(
         stiffness=5.0, damping=1e-4, density=1000.0, fixed=grid.face("bottom"), decay=20.0, gravity=(-9.81, 0.0, 0.0)
     )
-    return Scene(grid, model_args, SymplecticEuler(), dt=1e-4, steps=100, name=f"cube{n}")
+    return Scene(grid, model_args, integrator=SymplecticEuler(), dt=1e-4, steps=100, name=f"cube{n}")
 
 
 def add_arguments(p) -> None:
@@ -99,7 +99,7 @@ def _row(n: int, driver, *, windows, seconds, settle, busy) -> dict:
     try:
         build = time.perf_counter() - t
         browser.open_page(driver, viewer.url)
-        rates = browser.measured(driver, windows, seconds, settle)
+        rates = browser.measured(driver, windows=windows, seconds=seconds, settle=settle)
         vertices = int(browser.js(driver, "window.viewerStats.vertices"))
     finally:
         viewer.stop()
@@ -122,11 +122,11 @@ def run(args) -> int:
 
     why = browser.missing()
     if why is not None:
-        raise ConfigError("bench viewer", why, "missing")
+        raise ConfigError("bench viewer", why, got="missing")
     try:
         import websockets  # noqa: F401
     except ImportError:
-        raise ConfigError("bench viewer", "websockets: pip install websockets", "missing") from None
+        raise ConfigError("bench viewer", "websockets: pip install websockets", got="missing") from None
     sizes = args.sizes or ([16] if args.quick else [16, 32])
     windows = args.windows or (1 if args.quick else 3)
     settle = args.settle if args.settle is not None else (1.0 if args.quick else 3.0)
@@ -134,10 +134,12 @@ def run(args) -> int:
         raise ConfigError(
             "--sizes/--windows/--seconds/--settle",
             "sizes >= 2, windows >= 1, seconds > 0, settle >= 0",
-            (sizes, windows, args.seconds, settle),
+            got=(sizes, windows, args.seconds, settle),
         )
     if args.device != "cpu" or args.dtype != "float32":
-        raise ConfigError("--device/--dtype", "cpu and float32 (the viewer's simulation)", (args.device, args.dtype))
+        raise ConfigError(
+            "--device/--dtype", "cpu and float32 (the viewer's simulation)", got=(args.device, args.dtype)
+        )
     saved = torch.get_num_threads()
     torch.set_num_threads(args.threads or default_threads())
     rows = []
@@ -177,7 +179,7 @@ def run(args) -> int:
         _plot(rows, args.out)
     if not args.json:
         print("the viewer's page in headless chromium: " + extra["setup"])
-    emit("viewer", args, rows, COLUMNS, extra)
+    emit("viewer", args, rows, COLUMNS, extra=extra)
     if not args.json and judged:
         print(f">= {TARGET_FPS:g} fps drawn and received at {TARGET_SIZE}^3 and up: {'yes' if extra['met'] else 'no'}")
     return 0

@@ -71,14 +71,14 @@ def add_arguments(p) -> None:
     p.add_argument("--no-compile", action="store_true", help="leave out the compiled path")
 
 
-def bench_volume(size: int, nodes: int = 9, amplitude: float = 3.0, dtype=torch.float32):
+def bench_volume(size: int, *, nodes: int = 9, amplitude: float = 3.0, dtype=torch.float32):
     """The bench's volume ``(size,)*3`` (HU) and node offsets ``(3, nodes, nodes, nodes)`` in voxels."""
     import torch.nn.functional as F
 
     from ..volume import phantom
 
     half = max(8, size // 2)
-    vol = phantom((half,) * 3, dtype=dtype)
+    vol = phantom(shape=(half,) * 3, dtype=dtype)
     vol = F.interpolate(vol[None, None], size=(size,) * 3, mode="trilinear", align_corners=True)[0, 0]
     g = torch.Generator().manual_seed(0)
     offsets = (torch.rand(3, nodes, nodes, nodes, generator=g, dtype=torch.float64) * 2 - 1) * amplitude
@@ -106,11 +106,11 @@ def run(args) -> int:
     modes = [m.strip() for m in args.modes.split(",") if m.strip()]
     if size < 8 or args.nodes < 2 or args.nodes > size or repeats < 1:
         raise ConfigError(
-            "--size", "a volume side >= 8, 2 <= --nodes <= size, --repeats >= 1", (size, args.nodes, repeats)
+            "--size", "a volume side >= 8, 2 <= --nodes <= size, --repeats >= 1", got=(size, args.nodes, repeats)
         )
     for m in modes:
         if m not in ("mip", "dvr", "average"):
-            raise ConfigError("--modes", "mip, dvr and/or average", args.modes)
+            raise ConfigError("--modes", "mip, dvr and/or average", got=args.modes)
     saved = torch.get_num_threads()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -124,12 +124,12 @@ def run(args) -> int:
         paths = [q for q in paths if q != "compiled"]
     for q in paths:
         if q not in PATHS:
-            raise ConfigError("--paths", "a comma list of " + ", ".join(PATHS), args.paths)
+            raise ConfigError("--paths", "a comma list of " + ", ".join(PATHS), got=args.paths)
     if "naive" not in paths:
         paths = ["naive"] + paths
     rows, compile_times = [], {}
     try:
-        vol, offsets = bench_volume(size, args.nodes, args.amplitude, dtype)
+        vol, offsets = bench_volume(size, nodes=args.nodes, amplitude=args.amplitude, dtype=dtype)
         tf = preset("ct-bone")
         with torch.no_grad(), progress(len(paths) * len(modes), "bench volume") as bar:
             for mode in modes:
@@ -147,9 +147,13 @@ def run(args) -> int:
                 for path in paths:
                     compile_s = None
                     if path == "naive":
-                        fn = lambda: render(warp(vol, offsets, check=False), t, mode, "h", stop=1e-3)
+                        fn = lambda t=t, mode=mode: render(
+                            warp(vol, offsets, check=False), tf=t, mode=mode, view="h", stop=1e-3
+                        )
                     else:
-                        fn = lambda e=path: render(vol, t, mode, "h", offsets=offsets, stop=1e-3, engine=e)
+                        fn = lambda e=path, t=t, mode=mode: render(
+                            vol, tf=t, mode=mode, view="h", offsets=offsets, stop=1e-3, engine=e
+                        )
                     if path == "compiled":
                         t0 = time.perf_counter()
                         fn()  # compiles (once per shape, view and mode)
@@ -184,5 +188,5 @@ def run(args) -> int:
     }
     if not args.json:
         print("deform + render, " + extra["setup"])
-    emit("volume", args, rows, COLUMNS, extra)
+    emit("volume", args, rows, COLUMNS, extra=extra)
     return 0

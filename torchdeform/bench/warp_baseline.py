@@ -34,7 +34,7 @@ Warp's banner and module-load messages do not mix with benchmark output.
 Example:
     >>> from torchdeform.bench.warp_baseline import warp_available, warp_speed_row
     >>> ok, why = warp_available()
-    >>> row = warp_speed_row(16, 26, "atomic") if ok else None   # doctest: +SKIP
+    >>> row = warp_speed_row(16, topology=26, variant="atomic") if ok else None   # doctest: +SKIP
 """
 
 import functools
@@ -299,7 +299,7 @@ class WarpSprings:
     :meth:`step` only launches kernels; on the CPU a launch returns when it is done.
     """
 
-    def __init__(self, model, state, variant: str = "atomic"):
+    def __init__(self, model, state, *, variant: str = "atomic"):
         if variant not in VARIANTS:
             raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
         _check_model(model)
@@ -396,7 +396,7 @@ class WarpSprings:
         self._cmds, self._cmd_dt = cmds, dt
         return cmds
 
-    def step(self, dt: float, steps: int = 1) -> None:
+    def step(self, dt: float, *, steps: int = 1) -> None:
         """Advance ``steps`` symplectic Euler steps of ``dt`` seconds (kernels only, no copies)."""
         cmds = self._commands(float(dt))
         if self.variant == "atomic":
@@ -421,15 +421,15 @@ class WarpSprings:
         x, v = (self.x2, self.v2) if self._flip else (self.x, self.v)
         shape = (1, 3) + self.model.grid.shape
         to_torch = lambda a: torch.from_numpy(a.numpy().T.copy()).reshape(shape).to(self.model.dtype)
-        return State(to_torch(x), to_torch(v), self.t)
+        return State(to_torch(x), to_torch(v), t=self.t)
 
 
 # ------------------------------------------------------------------------ speed row
 def warp_speed_row(
     n: int,
+    *,
     topology: int = 26,
     variant: str = "atomic",
-    *,
     dtype=torch.float32,
     steps=None,
     repeats: int = 5,
@@ -468,11 +468,11 @@ def warp_speed_row(
     if variant not in VARIANTS:
         raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
     wp = _require_warp()
-    model, state, dt = speed_cube(n, topology, dtype)
+    model, state, dt = speed_cube(n, topology, dtype=dtype)
     if reference is None:
         with torch.no_grad():
             reference = SymplecticEuler().step(model, state, dt)
-    sim = WarpSprings(model, state, variant)
+    sim = WarpSprings(model, state, variant=variant)
     row = {
         "grid": f"{n}^3",
         "n": n,
@@ -505,7 +505,7 @@ def warp_speed_row(
         sim.set_state(state)
         wp.synchronize()
         t0 = time.perf_counter()
-        sim.step(dt, steps)
+        sim.step(dt, steps=steps)
         wp.synchronize()
         times.append((time.perf_counter() - t0) / steps)
     sec = statistics.median(times)

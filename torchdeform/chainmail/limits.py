@@ -65,15 +65,17 @@ def _limit_tensor(value, key, shape) -> torch.Tensor:
             else value.detach().to("cpu", torch.float64)
         )
     except (TypeError, ValueError, RuntimeError):
-        raise ConfigError(key, "a number, three numbers (d, h, w) or a (3, D, H, W) array", value) from None
+        raise ConfigError(key, "a number, three numbers (d, h, w) or a (3, D, H, W) array", got=value) from None
     if t.dim() == 0:
         t = t.expand(3).clone()
     if tuple(t.shape) not in ((3,), (3,) + tuple(shape)):
         raise ConfigError(
-            key, f"a number, three numbers (d, h, w) or a (3, D, H, W) = {(3,) + tuple(shape)} array", tuple(t.shape)
+            key,
+            f"a number, three numbers (d, h, w) or a (3, D, H, W) = {(3,) + tuple(shape)} array",
+            got=tuple(t.shape),
         )
     if not bool(torch.isfinite(t).all()):
-        raise ConfigError(key, "finite values", "non-finite values", show_got=True)
+        raise ConfigError(key, "finite values", got="non-finite values", show_got=True)
     return t
 
 
@@ -114,9 +116,9 @@ class Limits:
         hi = _limit_tensor(self.max, "limits.max", shape)
         sh = _limit_tensor(self.shear, "limits.shear", shape)
         if bool((lo < 0).any()):
-            raise ConfigError("limits.min", "distances >= 0 (no element may pass its neighbour)", float(lo.min()))
+            raise ConfigError("limits.min", "distances >= 0 (no element may pass its neighbour)", got=float(lo.min()))
         if bool((sh < 0).any()):
-            raise ConfigError("limits.shear", "shear limits >= 0", float(sh.min()))
+            raise ConfigError("limits.shear", "shear limits >= 0", got=float(sh.min()))
         per = lambda t: t.view(3, 1, 1, 1) if t.dim() == 1 else t
         bad = per(lo) > per(hi)
         if bool(bad.any()):
@@ -142,7 +144,7 @@ class Limits:
         shape = (3,) + self.grid.shape
         return tuple(t.view(3, 1, 1, 1).expand(shape) if t.dim() == 1 else t for t in (self.min, self.max, self.shear))
 
-    def offset_bounds(self, dtype=torch.float64, device=None) -> tuple:
+    def offset_bounds(self, *, dtype=torch.float64, device=None) -> tuple:
         """Limits on offset differences ``u_j - u_i`` (``u = x - X``), as ``(lo, hi, shear)``.
 
         ``lo_a = min_a - spacing_a``, ``hi_a = max_a - spacing_a``. Each ``(3,)`` when
@@ -156,7 +158,7 @@ class Limits:
         return tuple(out)
 
     @classmethod
-    def from_material(cls, grid: Grid, compression=0.9, stretch=1.1, shear=0.1) -> Limits:
+    def from_material(cls, grid: Grid, *, compression=0.9, stretch=1.1, shear=0.1) -> Limits:
         """Limits as ratios of the rest spacing.
 
         ``min_a = compression * h_a``, ``max_a = stretch * h_a``, ``shear_a = shear * h_a``.
@@ -184,9 +186,9 @@ class Limits:
                     else torch.as_tensor(value, dtype=torch.float64)
                 )
             except (TypeError, ValueError, RuntimeError):
-                raise ConfigError(key, "a number, three numbers (d, h, w) or a (D, H, W) array", value) from None
+                raise ConfigError(key, "a number, three numbers (d, h, w) or a (D, H, W) array", got=value) from None
             if not bool(torch.isfinite(t).all()):
-                raise ConfigError(key, "finite values", "non-finite values", show_got=True)
+                raise ConfigError(key, "finite values", got="non-finite values", show_got=True)
             if t.dim() == 0:
                 return t * h
             if tuple(t.shape) == (3,):
@@ -201,14 +203,18 @@ class Limits:
                         lo[a], hi[a] = slice(0, n - 1), slice(1, n)
                         links[(a, *lo)] = 0.5 * (t[tuple(lo)] + t[tuple(hi)])
                 return links * h.view(3, 1, 1, 1)
-            raise ConfigError(key, f"a number, three numbers (d, h, w) or a (D, H, W) = {shape} array", tuple(t.shape))
+            raise ConfigError(
+                key, f"a number, three numbers (d, h, w) or a (D, H, W) = {shape} array", got=tuple(t.shape)
+            )
 
         if bool((torch.as_tensor(shear, dtype=torch.float64) < 0).any()):
-            raise ConfigError("shear", "a ratio >= 0", shear if not torch.is_tensor(shear) else float(shear.min()))
+            raise ConfigError("shear", "a ratio >= 0", got=shear if not torch.is_tensor(shear) else float(shear.min()))
         return cls(grid, ratio(compression, "compression"), ratio(stretch, "stretch"), ratio(shear, "shear"))
 
 
-def tissue_limits(grid: Grid, tissue, labels=None, reference_stress: float = 300.0, slack_range=(0.005, 0.5)) -> Limits:
+def tissue_limits(
+    grid: Grid, tissue, *, labels=None, reference_stress: float = 300.0, slack_range=(0.005, 0.5)
+) -> Limits:
     """Limits from the fuzzy tissue library (:mod:`torchdeform.fuzzy.presets`).
 
     Each tissue's Young's modulus ``E`` (the ``tissue_si`` Mamdani system evaluated at its
@@ -239,10 +245,10 @@ def tissue_limits(grid: Grid, tissue, labels=None, reference_stress: float = 300
     from ..fuzzy.presets import load_preset, tissue_parameters
 
     if not (isinstance(reference_stress, (int, float)) and reference_stress > 0):
-        raise ConfigError("reference_stress", "a positive stress in Pa", reference_stress)
+        raise ConfigError("reference_stress", "a positive stress in Pa", got=reference_stress)
     items = list(tissue) if isinstance(tissue, (list, tuple)) else [tissue]
     if not items:
-        raise ConfigError("tissue", "at least one tissue name or consistency value", tissue)
+        raise ConfigError("tissue", "at least one tissue name or consistency value", got=tissue)
     eps = []
     system = None
     for item in items:
@@ -252,11 +258,11 @@ def tissue_limits(grid: Grid, tissue, labels=None, reference_stress: float = 300
             system = system or load_preset("tissue_si")
             E = float(system.evaluate(consistency=float(item))["youngs_modulus"])
         else:
-            raise ConfigError("tissue", "a tissue name or a consistency value in [0, 10]", item)
+            raise ConfigError("tissue", "a tissue name or a consistency value in [0, 10]", got=item)
         eps.append(min(max(reference_stress / E, slack_range[0]), slack_range[1]))
     if labels is None:
         if len(eps) != 1:
-            raise ConfigError("labels", "a (D, H, W) integer array to choose among several tissues", None)
+            raise ConfigError("labels", "a (D, H, W) integer array to choose among several tissues", got=None)
         e = torch.tensor(eps[0], dtype=torch.float64)
     else:
         lab = torch.as_tensor(labels)
@@ -264,10 +270,10 @@ def tissue_limits(grid: Grid, tissue, labels=None, reference_stress: float = 300
             raise ConfigError(
                 "labels",
                 f"integers in [0, {len(eps) - 1}] of shape {grid.shape}",
-                tuple(lab.shape) if tuple(lab.shape) != grid.shape else "values out of range",
+                got=tuple(lab.shape) if tuple(lab.shape) != grid.shape else "values out of range",
             )
         e = torch.tensor(eps, dtype=torch.float64)[lab.long()]
-    return Limits.from_material(grid, 1 - e, 1 + e, e)
+    return Limits.from_material(grid, compression=1 - e, stretch=1 + e, shear=e)
 
 
 # ---------------------------------------------------------------- the checker
@@ -275,7 +281,7 @@ def _exists(grid: Grid, device) -> torch.Tensor:
     return grid.nodes().to(device)
 
 
-def link_mask(grid: Grid, device=None) -> torch.Tensor:
+def link_mask(grid: Grid, *, device=None) -> torch.Tensor:
     """Bool ``(3, D, H, W)``: the links the grid has (both ends inside the box and the node mask).
 
     Entry ``[a, i, j, k]`` is the link from node ``(i, j, k)`` to its neighbour along ``+a``; the
@@ -288,7 +294,7 @@ def link_mask(grid: Grid, device=None) -> torch.Tensor:
         >>> m.shape, int(m.sum())                     # 1*3*4 + 2*2*4 + 2*3*3 links
         (torch.Size([3, 2, 3, 4]), 46)
     """
-    return _grid6(grid).spring_mask(device)
+    return _grid6(grid).spring_mask(device=device)
 
 
 def _as_links(links, grid: Grid, device, batch: int | None = None, key: str = "links"):
@@ -302,17 +308,17 @@ def _as_links(links, grid: Grid, device, batch: int | None = None, key: str = "l
             else torch.as_tensor(links, dtype=torch.bool, device=device)
         )
     except (TypeError, ValueError, RuntimeError):
-        raise ConfigError(key, "a bool (3, D, H, W) or (B, 3, D, H, W) link mask", type(links).__name__) from None
+        raise ConfigError(key, "a bool (3, D, H, W) or (B, 3, D, H, W) link mask", got=type(links).__name__) from None
     if m.dim() == 4:
         m = m.unsqueeze(0)
     if m.dim() != 5 or tuple(m.shape[1:]) != (3,) + grid.shape or (batch is not None and m.shape[0] not in (1, batch)):
         raise ConfigError(
-            key, f"a bool (3, D, H, W) or (B, 3, D, H, W) link mask with grid {grid.shape}", tuple(m.shape)
+            key, f"a bool (3, D, H, W) or (B, 3, D, H, W) link mask with grid {grid.shape}", got=tuple(m.shape)
         )
     return m
 
 
-def limit_violation(positions: torch.Tensor, grid: Grid, limits: Limits, per_link: bool = False, links=None):
+def limit_violation(positions: torch.Tensor, grid: Grid, limits: Limits, *, per_link: bool = False, links=None):
     """Largest amount (m) by which any link exceeds its ChainMail limits.
 
     An independent, vectorised check written on absolute positions (not on the offsets the
@@ -335,7 +341,7 @@ def limit_violation(positions: torch.Tensor, grid: Grid, limits: Limits, per_lin
         >>> import torchdeform as td
         >>> g = td.Grid((3, 3, 3), spacing=1.0)
         >>> lim = td.Limits(g, 0.9, 1.1, 0.1)
-        >>> x = g.rest_positions(torch.float64)
+        >>> x = g.rest_positions(dtype=torch.float64)
         >>> float(td.limit_violation(x, g, lim)[0])
         0.0
         >>> x[0, 0, 2] += 0.5                            # lift the top layer: its links stretch to 1.5
@@ -376,7 +382,9 @@ def _grid6(grid: Grid) -> Grid:
         return grid
     key = ("chainmail_grid6",)
     if key not in grid._cache:
-        grid._cache[key] = Grid(grid.shape, grid.spacing, 6, node_mask=grid.node_mask, origin=grid.origin)
+        grid._cache[key] = Grid(
+            grid.shape, spacing=grid.spacing, topology=6, node_mask=grid.node_mask, origin=grid.origin
+        )
     return grid._cache[key]
 
 
@@ -390,7 +398,7 @@ def _link_values(t: torch.Tensor, a: int, region) -> torch.Tensor:
     return t[a] if t.dim() == 1 else t[a][region]
 
 
-def neighbour_boxes(u: torch.Tensor, grid: Grid, bounds: tuple, source: torch.Tensor, links=None):
+def neighbour_boxes(u: torch.Tensor, grid: Grid, bounds: tuple, source: torch.Tensor, *, links=None):
     """The box each element's offset must lie in relative to its face neighbours in ``source``.
 
     Args:

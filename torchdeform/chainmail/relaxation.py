@@ -28,7 +28,7 @@ def _goal_shift(grid: Grid, limits: Limits | None, mode: str, dtype, device):
     """
     if mode == "centroid" or limits is None:
         return None
-    lo, hi, _ = limits.offset_bounds(dtype, device)
+    lo, hi, _ = limits.offset_bounds(dtype=dtype, device=device)
     g = 0.5 * (lo + hi)
     return None if not bool((g != 0).any()) else g
 
@@ -51,7 +51,7 @@ def _residual(u, grid6: Grid, goal, links=None):
     Returned with the neighbour counts ``(1|B, 1, D, H, W)``; ``links``: ``None`` or bool
     ``(1|B, 3, D, H, W)``, the links that exist.
     """
-    masks = grid6.spring_mask(u.device)
+    masks = grid6.spring_mask(device=u.device)
     if links is None:
 
         def weight(s, src):
@@ -79,6 +79,7 @@ def _residual(u, grid6: Grid, goal, links=None):
 def relax_energy(
     positions: torch.Tensor,
     grid: Grid,
+    *,
     limits: Limits | None = None,
     mode: str = "centroid",
     offsets: bool = False,
@@ -93,8 +94,8 @@ def relax_energy(
     ``(3, D, H, W)`` or ``(B, 3, D, H, W)``; unlinked pairs add nothing.
     """
     if mode not in RELAX_MODES:
-        raise ConfigError("mode", '"centroid" or "goal"', mode)
-    u = positions if offsets else positions - grid.rest_positions(positions.dtype, positions.device)
+        raise ConfigError("mode", '"centroid" or "goal"', got=mode)
+    u = positions if offsets else positions - grid.rest_positions(dtype=positions.dtype, device=positions.device)
     u = u if u.dim() == 5 else u.unsqueeze(0)
     g6 = _grid6(grid)
     lk = _as_links(links, grid, u.device, u.shape[0])
@@ -104,14 +105,16 @@ def relax_energy(
         du = u[(..., *dst)] - u[(..., *src)]
         if goal is not None:
             du = du - _goal_vector(goal, s, src, du)
-        e = (du * du).sum(1) * g6.spring_mask(u.device)[s][src]
+        e = (du * du).sum(1) * g6.spring_mask(device=u.device)[s][src]
         if lk is not None:
             e = e * lk[(slice(None), s, *src)]
         total = total + 0.5 * e.flatten(1).sum(1)
     return total
 
 
-def crease_measure(positions: torch.Tensor, grid: Grid, free=None, offsets: bool = False, links=None) -> torch.Tensor:
+def crease_measure(
+    positions: torch.Tensor, grid: Grid, *, free=None, offsets: bool = False, links=None
+) -> torch.Tensor:
     """Straight-line artefact measure, ``(B,)`` in m^2.
 
     ``sum_i |c_i - u_i|^2`` over the free elements, where ``c_i`` is the centroid of the offsets
@@ -130,7 +133,7 @@ def crease_measure(positions: torch.Tensor, grid: Grid, free=None, offsets: bool
         links: optional bool link mask ``(3, D, H, W)`` or ``(B, 3, D, H, W)`` (unlinked
             neighbours are not neighbours).
     """
-    u = positions if offsets else positions - grid.rest_positions(positions.dtype, positions.device)
+    u = positions if offsets else positions - grid.rest_positions(dtype=positions.dtype, device=positions.device)
     u = u if u.dim() == 5 else u.unsqueeze(0)
     r, deg = _residual(u, _grid6(grid), None, _as_links(links, grid, u.device, u.shape[0]))
     dev = (r / deg.clamp_min(1)) ** 2
@@ -142,6 +145,7 @@ def relax(
     positions: torch.Tensor,
     grid: Grid,
     limits: Limits,
+    *,
     steps: int = 1,
     mode: str = "centroid",
     free=None,
@@ -189,7 +193,7 @@ def relax(
         >>> from torchdeform.chainmail import ChainMail, Limits, relax
         >>> from torchdeform.sim.grid import Grid
         >>> g = Grid((9, 9, 9), spacing=1.0)
-        >>> cm = ChainMail(g, Limits.from_material(g, 0.7, 1.3, 0.3))
+        >>> cm = ChainMail(g, Limits.from_material(g, compression=0.7, stretch=1.3, shear=0.3))
         >>> r = cm.move([(4, 4, 4)], (2.0, 0.0, 0.0))
         >>> free = torch.ones(9, 9, 9, dtype=torch.bool); free[4, 4, 4] = False   # hold the pick
         >>> x, e = relax(cm.positions(), g, cm.limits, steps=4, free=free)
@@ -197,15 +201,15 @@ def relax(
         True
     """
     if mode not in RELAX_MODES:
-        raise ConfigError("mode", '"centroid" or "goal"', mode)
+        raise ConfigError("mode", '"centroid" or "goal"', got=mode)
     if not isinstance(steps, int) or isinstance(steps, bool) or steps < 0:
-        raise ConfigError("steps", "an integer >= 0", steps)
+        raise ConfigError("steps", "an integer >= 0", got=steps)
     if not (0 < float(omega) < 2):
-        raise ConfigError("omega", "a relaxation factor in (0, 2)", omega)
+        raise ConfigError("omega", "a relaxation factor in (0, 2)", got=omega)
     squeeze = positions.dim() == 4
     x = positions.unsqueeze(0) if squeeze else positions
     dt, dev = x.dtype, x.device
-    X = grid.rest_positions(dt, dev)
+    X = grid.rest_positions(dtype=dt, device=dev)
     u = x if offsets else x - X
     g6 = _grid6(grid)
     lk = _as_links(links, grid, dev, u.shape[0])
@@ -215,16 +219,16 @@ def relax(
     idx = [torch.arange(n, device=dev) for n in grid.shape]
     parity = (idx[0].view(-1, 1, 1) + idx[1].view(1, -1, 1) + idx[2].view(1, 1, -1)) % 2
     colours = [m & (parity == c).view(1, 1, *grid.shape) for c in (0, 1)]
-    bounds = limits.offset_bounds(dt, dev)
+    bounds = limits.offset_bounds(dtype=dt, device=dev)
     goal = _goal_shift(grid, limits, mode, dt, dev)
     source = nodes.view(1, 1, *grid.shape)
-    energies = [float(relax_energy(u, grid, limits, mode, offsets=True, links=lk).sum())]
+    energies = [float(relax_energy(u, grid, limits=limits, mode=mode, offsets=True, links=lk).sum())]
     for _ in range(steps):
         for colour in colours:
             r, deg = _residual(u, g6, goal, lk)
             target = u + omega * r / deg.clamp_min(1)
-            lo, hi = neighbour_boxes(u, grid, bounds, source, lk)
+            lo, hi = neighbour_boxes(u, grid, bounds, source, links=lk)
             u = torch.where(colour, torch.minimum(torch.maximum(target, lo), hi), u)
-        energies.append(float(relax_energy(u, grid, limits, mode, offsets=True, links=lk).sum()))
+        energies.append(float(relax_energy(u, grid, limits=limits, mode=mode, offsets=True, links=lk).sum()))
     out = u if offsets else X + u
     return (out[0] if squeeze else out), energies

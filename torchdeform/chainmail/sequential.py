@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import heapq
 import math
-from dataclasses import dataclass, field
+from dataclasses import KW_ONLY, dataclass, field
 
 import numpy as np
 import torch
@@ -62,6 +62,7 @@ class MoveResult:
     """
 
     requested: tuple
+    _: KW_ONLY
     fraction: float = 1.0
     blocked: bool = False
     moved: int = 0
@@ -102,7 +103,8 @@ class ChainMail:
     Examples:
         >>> import torchdeform as td
         >>> g = td.Grid((16, 16, 16), spacing=0.001)
-        >>> cm = td.ChainMail(g, td.Limits.from_material(g, 0.8, 1.2, 0.2), fixed=g.face("bottom"))
+        >>> lim = td.Limits.from_material(g, compression=0.8, stretch=1.2, shear=0.2)
+        >>> cm = td.ChainMail(g, lim, fixed=g.face("bottom"))
         >>> r = cm.move([(15, 8, 8)], (0.002, 0.0, 0.0))       # pull the top centre up 2 mm
         >>> r.fraction, r.max_touches, r.moved > 1
         (1.0, 1, True)
@@ -111,25 +113,25 @@ class ChainMail:
         (torch.Size([1, 3, 16, 16, 16]), 0.002, 0.0)
     """
 
-    def __init__(self, grid: Grid, limits: Limits, fixed=None, positions=None, method: str = "gibson", links=None):
+    def __init__(self, grid: Grid, limits: Limits, *, fixed=None, positions=None, method: str = "gibson", links=None):
         if not isinstance(grid, Grid):
-            raise ConfigError("grid", "a torchdeform.Grid", type(grid).__name__)
+            raise ConfigError("grid", "a torchdeform.Grid", got=type(grid).__name__)
         if not isinstance(limits, Limits) or limits.grid.shape != grid.shape:
-            raise ConfigError("limits", f"a chainmail.Limits for the grid {grid.shape}", type(limits).__name__)
+            raise ConfigError("limits", f"a chainmail.Limits for the grid {grid.shape}", got=type(limits).__name__)
         if method not in METHODS:
-            raise ConfigError("method", '"gibson" or "enhanced"', method)
+            raise ConfigError("method", '"gibson" or "enhanced"', got=method)
         if method == "gibson" and not limits.uniform:
             raise ConfigError(
                 "method",
                 '"enhanced" for per-link (heterogeneous) limits: Gibson\'s six lists need one set of limits per axis',
-                method,
+                got=method,
             )
         if method == "gibson" and grid.node_mask is not None:
             raise ConfigError(
                 "method",
                 '"enhanced" for a body with a node mask: Gibson\'s one path per element '
                 "(d, then h, then w) needs a box",
-                method,
+                got=method,
             )
         self.grid, self.limits, self.method = grid, limits, method
         #: Excess (m) below which an element that cannot move (fixed, or picked earlier in the
@@ -146,7 +148,7 @@ class ChainMail:
         if fixed is not None:
             fx = torch.as_tensor(fixed, dtype=torch.bool).cpu()
             if tuple(fx.shape) != grid.shape:
-                raise ConfigError("fixed", f"a bool mask of shape {grid.shape}", tuple(fx.shape))
+                raise ConfigError("fixed", f"a bool mask of shape {grid.shape}", got=tuple(fx.shape))
             inner = flag[1:-1, 1:-1, 1:-1]
             inner[fx.numpy() & (inner > 0)] = _FIXED
         self._flag = flag.reshape(-1)
@@ -169,7 +171,7 @@ class ChainMail:
             self._links = arrays
         self._linkmask = None
         self._install_links(links)
-        self.set_positions(grid.rest_positions(torch.float64) if positions is None else positions)
+        self.set_positions(grid.rest_positions(dtype=torch.float64) if positions is None else positions)
         self._views()
 
     # ------------------------------------------------------------------ links
@@ -177,7 +179,9 @@ class ChainMail:
         """Store the link mask and build the per-direction reachability arrays ``_ok``."""
         lk = _as_links(links, self.grid, "cpu")
         if lk is not None and lk.shape[0] != 1:
-            raise ConfigError("links", f"a bool (3, D, H, W) link mask with grid {self.grid.shape}", tuple(lk.shape))
+            raise ConfigError(
+                "links", f"a bool (3, D, H, W) link mask with grid {self.grid.shape}", got=tuple(lk.shape)
+            )
         if lk is None:
             self._linkmask, self._cut = None, False
             self._okarr = (self._flag,) * 6
@@ -217,7 +221,8 @@ class ChainMail:
         Example:
             >>> import torchdeform as td
             >>> g = td.Grid((4, 4, 4), spacing=1.0)
-            >>> cm = td.ChainMail(g, td.Limits.from_material(g, 0.8, 1.2, 0.2), method="enhanced")
+            >>> lim = td.Limits.from_material(g, compression=0.8, stretch=1.2, shear=0.2)
+            >>> cm = td.ChainMail(g, lim, method="enhanced")
             >>> links = cm.links
             >>> links[0, 1] = False                       # unlink layer 1 from layer 2 (along d)
             >>> cm.set_links(links)
@@ -254,7 +259,7 @@ class ChainMail:
         x = x[0] if x.dim() == 5 else x
         if tuple(x.shape) != (3,) + self.grid.shape:
             raise ConfigError(
-                "positions", f"(1, 3, D, H, W) or (3, D, H, W) with grid {self.grid.shape}", tuple(x.shape)
+                "positions", f"(1, 3, D, H, W) or (3, D, H, W) with grid {self.grid.shape}", got=tuple(x.shape)
             )
         worst, excess = limit_violation(x, self.grid, self.limits, per_link=True, links=self._linkmask)
         if float(worst) > 1e-12:
@@ -266,7 +271,7 @@ class ChainMail:
                 f"exceeds them by {float(worst):.3g} m",
                 show_got=False,
             )
-        u = (x - self.grid.rest_positions(torch.float64)[0]) * self.grid.nodes()
+        u = (x - self.grid.rest_positions(dtype=torch.float64)[0]) * self.grid.nodes()
         self._interior(self._u)[...] = u.numpy()
 
     def reset(self) -> None:
@@ -275,22 +280,22 @@ class ChainMail:
         self._moved[:] = False
         self._held = np.zeros(0, dtype=np.int64)
 
-    def offsets(self, dtype=torch.float32, device=None) -> torch.Tensor:
+    def offsets(self, *, dtype=torch.float32, device=None) -> torch.Tensor:
         """The displacement field ``u = x - X``, ``(1, 3, D, H, W)`` metres (0 outside the node mask)."""
         return torch.from_numpy(self._interior(self._u).copy()).unsqueeze(0).to(dtype=dtype, device=device)
 
     displacement = offsets
 
-    def positions(self, dtype=torch.float64, device=None) -> torch.Tensor:
+    def positions(self, *, dtype=torch.float64, device=None) -> torch.Tensor:
         """Positions ``x = X + u``, ``(1, 3, D, H, W)``."""
-        return self.grid.rest_positions(dtype, device) + self.offsets(dtype, device)
+        return self.grid.rest_positions(dtype=dtype, device=device) + self.offsets(dtype=dtype, device=device)
 
-    def state(self, dtype=torch.float32, device=None):
+    def state(self, *, dtype=torch.float32, device=None):
         """A :class:`~torchdeform.sim.model.State` (``x``, ``v = 0``) the mass-spring integrators continue from."""
         from ..sim.model import State
 
-        x = self.positions(dtype, device)
-        return State(x, torch.zeros_like(x), 0.0)
+        x = self.positions(dtype=dtype, device=device)
+        return State(x, torch.zeros_like(x), t=0.0)
 
     def moved_mask(self) -> torch.Tensor:
         """Bool ``(D, H, W)``: elements moved since construction or :meth:`clear_moved`."""
@@ -319,31 +324,33 @@ class ChainMail:
         ):
             m = torch.as_tensor(nodes).cpu()
             if tuple(m.shape) != shape:
-                raise ConfigError("nodes", f"a bool mask of shape {shape} or a list of [i, j, k]", tuple(m.shape))
+                raise ConfigError("nodes", f"a bool mask of shape {shape} or a list of [i, j, k]", got=tuple(m.shape))
             idx = [tuple(int(v) for v in r) for r in m.nonzero()]
         else:
             try:
                 idx = [tuple(int(v) for v in ijk) for ijk in nodes]
             except (TypeError, ValueError):
-                raise ConfigError("nodes", "a list of node indices [i, j, k] or a bool mask", nodes) from None
+                raise ConfigError("nodes", "a list of node indices [i, j, k] or a bool mask", got=nodes) from None
         if not idx:
-            raise ConfigError("nodes", "at least one element to move", nodes if not torch.is_tensor(nodes) else "[]")
+            raise ConfigError(
+                "nodes", "at least one element to move", got=nodes if not torch.is_tensor(nodes) else "[]"
+            )
         out = []
         for ijk in idx:
             if len(ijk) != 3 or not all(0 <= v < n for v, n in zip(ijk, shape)):
                 raise ConfigError(
-                    "nodes", f"element indices inside the grid {shape} (a pull outside the grid)", list(ijk)
+                    "nodes", f"element indices inside the grid {shape} (a pull outside the grid)", got=list(ijk)
                 )
             p = ((ijk[0] + 1) * self._pshape[1] + ijk[1] + 1) * self._pshape[2] + ijk[2] + 1
             if self._flag[p] == _OUTSIDE:
-                raise ConfigError("nodes", "elements inside the body's node mask", list(ijk))
+                raise ConfigError("nodes", "elements inside the body's node mask", got=list(ijk))
             if self._flag[p] == _FIXED:
-                raise ConfigError("nodes", "free elements (this one is fixed and cannot be moved)", list(ijk))
+                raise ConfigError("nodes", "free elements (this one is fixed and cannot be moved)", got=list(ijk))
             out.append(p)
         return list(dict.fromkeys(out))
 
     # ------------------------------------------------------------------ moving
-    def move(self, nodes, displacement, on_blocked: str = "scale", bisections: int = 12) -> MoveResult:
+    def move(self, nodes, displacement, *, on_blocked: str = "scale", bisections: int = 12) -> MoveResult:
         """Move the picked elements rigidly by ``displacement``; ChainMail drags, pushes and shears the rest.
 
         Args:
@@ -362,13 +369,13 @@ class ChainMail:
                 displacement or option.
         """
         if on_blocked not in ("scale", "error"):
-            raise ConfigError("on_blocked", '"scale" or "error"', on_blocked)
+            raise ConfigError("on_blocked", '"scale" or "error"', got=on_blocked)
         try:
             d = tuple(float(v) for v in (displacement.tolist() if torch.is_tensor(displacement) else displacement))
         except (TypeError, ValueError):
-            raise ConfigError("displacement", "three numbers (dd, dh, dw) in metres", displacement) from None
+            raise ConfigError("displacement", "three numbers (dd, dh, dw) in metres", got=displacement) from None
         if len(d) != 3 or not all(math.isfinite(v) for v in d):
-            raise ConfigError("displacement", "three finite numbers (dd, dh, dw) in metres", displacement)
+            raise ConfigError("displacement", "three finite numbers (dd, dh, dw) in metres", got=displacement)
         picked = self._picked(nodes)
         start = [(p, self._u[0, p], self._u[1, p], self._u[2, p]) for p in picked]
 
@@ -632,7 +639,7 @@ class ChainMail:
 
     # --------------------------------------------------------------- relaxing
     def relax(
-        self, steps: int = 1, mode: str = "centroid", only_moved: bool = False, omega: float = 1.0, hold=None
+        self, *, steps: int = 1, mode: str = "centroid", only_moved: bool = False, omega: float = 1.0, hold=None
     ) -> list:
         """Elastic relaxation of the current deformation (see :func:`relax`).
 
@@ -653,9 +660,17 @@ class ChainMail:
             free &= ~torch.as_tensor(hold, dtype=torch.bool).cpu().numpy()
         if only_moved:
             free &= self._interior(self._moved)
-        u = self.offsets(torch.float64)
+        u = self.offsets(dtype=torch.float64)
         u, energies = relax(
-            u, self.grid, self.limits, steps, mode, torch.from_numpy(free), omega, offsets=True, links=self._linkmask
+            u,
+            self.grid,
+            self.limits,
+            steps=steps,
+            mode=mode,
+            free=torch.from_numpy(free),
+            omega=omega,
+            offsets=True,
+            links=self._linkmask,
         )
         self._interior(self._u)[...] = u[0].numpy()
         return energies

@@ -16,7 +16,7 @@ of its reach.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import KW_ONLY, dataclass
 
 import torch
 
@@ -53,12 +53,13 @@ class SweepResult:
     sweeps: int
     depth: torch.Tensor
     violation: torch.Tensor
+    _: KW_ONLY
     checked: int = 0
     box: tuple = ()
 
     def displacement(self, grid: Grid) -> torch.Tensor:
         """Offsets ``x - X``, ``(B, 3, D, H, W)``."""
-        return self.positions - grid.rest_positions(self.positions.dtype, self.positions.device)
+        return self.positions - grid.rest_positions(dtype=self.positions.dtype, device=self.positions.device)
 
 
 # ------------------------------------------------------------------ boxes
@@ -74,7 +75,7 @@ def _extent(box) -> tuple:
 def _box_grid(grid: Grid, box, node_mask: bool = False) -> Grid:
     """A 6-neighbour grid of the box's shape (its stencil slices index box-local tensors)."""
     mask = grid.nodes()[_index(box)] if node_mask and grid.node_mask is not None else None
-    return Grid(_extent(box), grid.spacing, 6, node_mask=mask)
+    return Grid(_extent(box), spacing=grid.spacing, topology=6, node_mask=mask)
 
 
 def _bounding_box(m: torch.Tensor, shape, pad: int = 1) -> tuple:
@@ -187,6 +188,7 @@ def tensor_chainmail(
     limits: Limits,
     picked,
     displacement,
+    *,
     fixed=None,
     max_sweeps: int | None = None,
     links=None,
@@ -231,10 +233,10 @@ def tensor_chainmail(
         >>> import torch
         >>> import torchdeform as td
         >>> g = td.Grid((16, 16, 16), spacing=1.0)
-        >>> lim = td.Limits.from_material(g, 0.8, 1.2, 0.2)
+        >>> lim = td.Limits.from_material(g, compression=0.8, stretch=1.2, shear=0.2)
         >>> pick = torch.zeros(16, 16, 16, dtype=torch.bool)
         >>> pick[15, 8, 8] = True                                   # the top centre
-        >>> r = td.tensor_chainmail(g.rest_positions(torch.float64).repeat(2, 1, 1, 1, 1), g, lim, pick,
+        >>> r = td.tensor_chainmail(g.rest_positions(dtype=torch.float64).repeat(2, 1, 1, 1, 1), g, lim, pick,
         ...                         torch.tensor([[2.0, 0, 0], [-1.0, 0.5, 0]], dtype=torch.float64))
         >>> r.sweeps, r.depth.tolist(), r.moved.flatten(1).sum(1).tolist(), bool((r.violation < 1e-12).all())
         (10, [10, 5], [853, 146], True)
@@ -247,7 +249,7 @@ def tensor_chainmail(
     """
     x = positions
     if x.dim() != 5 or x.shape[1] != 3 or tuple(x.shape[2:]) != grid.shape:
-        raise ConfigError("positions", f"(B, 3, D, H, W) with grid {grid.shape}", tuple(x.shape))
+        raise ConfigError("positions", f"(B, 3, D, H, W) with grid {grid.shape}", got=tuple(x.shape))
     dev, dt, B, shape = x.device, x.dtype, x.shape[0], grid.shape
 
     def mask(value, key):
@@ -259,24 +261,26 @@ def tensor_chainmail(
         if tuple(m.shape) == shape:
             m = m.unsqueeze(0)
         if m.dim() != 4 or tuple(m.shape[1:]) != shape or m.shape[0] not in (1, B):
-            raise ConfigError(key, f"a bool (D, H, W) or (B, D, H, W) mask with grid {shape}", tuple(m.shape))
+            raise ConfigError(key, f"a bool (D, H, W) or (B, D, H, W) mask with grid {shape}", got=tuple(m.shape))
         return m.unsqueeze(1)  # (1|B, 1, D, H, W)
 
     nodes = _exists(grid, dev).view(1, 1, *shape)
     pick = mask(picked, "picked") & nodes
     box = _bounding_box(pick, shape) if bool(pick.any()) else None  # the active box (see below)
     if box is None or not bool(pick[_index(box)].flatten(1).any(1).expand(B).all()):
-        raise ConfigError("picked", "at least one element inside the body for every batch entry", "none")
+        raise ConfigError("picked", "at least one element inside the body for every batch entry", got="none")
     fix = mask(fixed, "fixed") & nodes if fixed is not None else None
     if fix is not None and bool((pick & fix).any()):
-        raise ConfigError("picked", "free elements (a picked element is fixed and cannot be moved)", "fixed element")
+        raise ConfigError(
+            "picked", "free elements (a picked element is fixed and cannot be moved)", got="fixed element"
+        )
     d = torch.as_tensor(displacement, dtype=dt, device=dev)
     if d.dim() == 1:
         d = d.unsqueeze(0)
     if tuple(d.shape) not in ((1, 3), (B, 3)) or not bool(torch.isfinite(d).all()):
-        raise ConfigError("displacement", "(3,) or (B, 3) finite numbers in metres", tuple(d.shape))
+        raise ConfigError("displacement", "(3,) or (B, 3) finite numbers in metres", got=tuple(d.shape))
     lk = _as_links(links, grid, dev, B)
-    bounds = limits.offset_bounds(dt, dev)
+    bounds = limits.offset_bounds(dtype=dt, device=dev)
     sign = torch.sign(d).view(-1, 3, 1, 1, 1)
     pull, push = sign > 0, sign < 0
     if max_sweeps is not None:
@@ -287,7 +291,7 @@ def tensor_chainmail(
     # the active box: everything below is box-local (offsets u, rest positions X, masks, limits)
     moved = torch.zeros((B, 1) + shape, dtype=torch.bool, device=dev)
     moved[_index(box)] = pick[_index(box)]
-    X = grid.rest_positions(dt, dev, box)
+    X = grid.rest_positions(dtype=dt, device=dev, box=box)
     u = x[_index(box)] - X
     u = torch.where(pick[_index(box)], u + d.view(-1, 3, 1, 1, 1), u)
 
@@ -304,7 +308,7 @@ def tensor_chainmail(
     sweeps = checked = 0
     for _ in range(limit):
         checked += g.shape[0] * g.shape[1] * g.shape[2]
-        lo, hi = neighbour_boxes(u, g, bounds_b, moved_b, lk_b)
+        lo, hi = neighbour_boxes(u, g, bounds_b, moved_b, links=lk_b)
         step = torch.where(pull, torch.maximum(u, lo), torch.where(push, torch.minimum(u, hi), u))
         new = torch.where(free_b, step, u)
         changed = (new != u).any(1, keepdim=True)
@@ -316,7 +320,7 @@ def tensor_chainmail(
         u = new
         if any(flags[1:]):  # the front reached a side: grow
             bigger = _grown(box, flags[1:])
-            X = grid.rest_positions(dt, dev, bigger)
+            X = grid.rest_positions(dtype=dt, device=dev, box=bigger)
             fresh = x[_index(bigger)] - X
             fresh[_inner(box, bigger)] = u
             u, box = fresh, bigger
@@ -332,4 +336,4 @@ def tensor_chainmail(
         g, *(t if t.dim() == 1 else t[(slice(None), *idx[1:])] for t in (limits.min, limits.max, limits.shear))
     )
     violation = limit_violation(xn[idx], g, box_limits, links=lk_b)
-    return SweepResult(xn, moved4, sweeps, depth, violation, checked, box)
+    return SweepResult(xn, moved4, sweeps, depth, violation, checked=checked, box=box)

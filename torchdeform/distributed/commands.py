@@ -93,7 +93,7 @@ def scene_cuts(scene) -> list:
         raise ConfigError(
             "tools",
             "no [[tools]] or [strain_limit] in a domain-decomposed run (they need the whole body); run it on one rank",
-            "tools",
+            got="tools",
         )
     if topo is None:
         return []
@@ -104,20 +104,22 @@ def scene_cuts(scene) -> list:
         ("output.surfaces", topo.surfaces),
     ):
         if items:
-            raise scene.source.error(key, "only [[cuts]] blades in a domain-decomposed run; run it on one rank", key)
+            raise scene.source.error(
+                key, "only [[cuts]] blades in a domain-decomposed run; run it on one rank", got=key
+            )
     out = []
     for c in topo.cuts:
         if "blade" not in c:
             raise scene.source.error(
                 c["key"] + ".tool",
                 "a blade (origin/u/v, triangle, edges) in a domain-decomposed run, not a scalpel",
-                c.get("tool"),
+                got=c.get("tool"),
             )
         if c.get("gape"):
             raise scene.source.error(
                 c["key"] + ".gape",
                 "0 in a domain-decomposed run (pre-tension reaches springs beyond the one-layer halo)",
-                c["gape"],
+                got=c["gape"],
             )
         out.append((c["at"], c["blade"]))
     return out
@@ -139,36 +141,38 @@ def _run_decomposed(args, rank: int, world: int) -> int:
             args.device.replace("cuda", f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}")
             if args.device == "cuda"
             else args.device,
-            "--device",
+            key="--device",
         )
-    folder = RunFolder(args.out, args.force)
+    folder = RunFolder(args.out, force=args.force)
     folder.check()  # every rank, before any collective
     scene = load_scene(args.scene)
     if not isinstance(scene, Scene):
-        raise ConfigError("model", "a mass-spring scene in a domain-decomposed run", "chainmail")
+        raise ConfigError("model", "a mass-spring scene in a domain-decomposed run", got="chainmail")
     if getattr(args, "animation", False) or scene.animation or scene.volume or scene.texture:
         raise ConfigError(
             "run",
             "no animation, [volume] or [texture] in a domain-decomposed run (yet); run it on one rank",
-            "torchrun",
+            got="torchrun",
         )
     integrator = scene.integrator
     if integrator.name not in SUPPORTED_INTEGRATORS:
         raise scene.source.error(
-            "integrator.name", f"one of {', '.join(SUPPORTED_INTEGRATORS)} in a domain-decomposed run", integrator.name
+            "integrator.name",
+            f"one of {', '.join(SUPPORTED_INTEGRATORS)} in a domain-decomposed run",
+            got=integrator.name,
         )
     cuts = scene_cuts(scene)
     slab_rows(scene.grid.shape[0], world)  # more ranks than rows: refused before any work
     device = args.device or scene.device or "cpu"
     if str(device) == "cuda":  # one GPU per rank on each machine
         device = f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}"
-    model = scene.build(device)
-    bound = time_step_bound(model, integrator)
+    model = scene.build(device=device)
+    bound = time_step_bound(model, integrator=integrator)
     dt = scene.time_step(bound)
     if scene.topology is not None and scene.topology.checked_end is None:
         scene.topology.check(scene.steps * dt)
     if integrator.name in EXPLICIT and rank == 0:
-        check_dt(model, dt, integrator, bound)
+        check_dt(model, dt, integrator, bound=bound)
     import torch.distributed as dist
 
     if not dist.is_initialized():
@@ -181,7 +185,7 @@ def _run_decomposed(args, rank: int, world: int) -> int:
             model.rest_state(),
             dt,
             scene.steps,
-            integrator,
+            integrator=integrator,
             record_every=scene.frames_every,
             progress=not args.quiet,
             cuts=cuts,
@@ -228,7 +232,7 @@ def _points(args) -> tuple[list, list]:
     from .sweep import check_key, parse_set, product, read_points
 
     if bool(args.set) == bool(args.points):
-        raise ConfigError("sweep", "--set KEY=V1,V2,... (repeatable) or --points FILE.csv, not both", None)
+        raise ConfigError("sweep", "--set KEY=V1,V2,... (repeatable) or --points FILE.csv, not both", got=None)
     if args.points:
         points = read_points(args.points)
         keys = list(points[0])
@@ -236,7 +240,7 @@ def _points(args) -> tuple[list, list]:
         sets = [parse_set(s) for s in args.set]
         keys = [k for k, _ in sets]
         if len(set(keys)) != len(keys):
-            raise ConfigError("--set", "each key once", ", ".join(keys))
+            raise ConfigError("--set", "each key once", got=", ".join(keys))
         points = product(sets)
     for k in keys:
         check_key(k)
@@ -253,15 +257,15 @@ def _sweep(args, rank: int, world: int) -> int:
     keys, points = _points(args)
     src, data = read(args.scene)
     if data.get("model", "mass-spring") != "mass-spring":
-        raise ConfigError("sweep", "a mass-spring scene file", data.get("model"))
+        raise ConfigError("sweep", "a mass-spring scene file", got=data.get("model"))
     base, name = Path(args.scene).parent, Path(args.scene).stem
     scenes = [point_scene(src, data, base, name, p) for p in points]  # every point checked first
     ids = [point_id(p) for p in points]
     if len(set(ids)) != len(ids):
-        raise ConfigError("sweep", "distinct points", "a point given twice")
+        raise ConfigError("sweep", "distinct points", got="a point given twice")
     out = Path(args.out)
     if out.exists() and not out.is_dir():
-        raise ConfigError("--out", "a folder", str(out))
+        raise ConfigError("--out", "a folder", got=str(out))
     device = args.device
     if device is None and world > 1 and torch.cuda.is_available():
         device = f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}"
@@ -291,7 +295,7 @@ def _sweep(args, rank: int, world: int) -> int:
             file=sys.stderr,
         ) as bar:
             for batch in mine:
-                for i, row in zip(batch, run_batch([scenes[i] for i in batch], device)):
+                for i, row in zip(batch, run_batch([scenes[i] for i in batch], device=device)):
                     record(out, rank, ids[i], row)
                     rows[ids[i]] = row
                 bar.update(len(batch))

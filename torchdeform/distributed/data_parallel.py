@@ -58,8 +58,8 @@ communication):
     >>> [list(shard(8, r, 3)) for r in range(3)]
     [[0, 1, 2], [3, 4, 5], [6, 7]]
     >>> series = learn.radetzky_cube(springs=70, steps=60)
-    >>> params = learn.Parameters(series, learn.SpringParameter.like(series, 12.0),
-    ...                           learn.SpringParameter.like(series, 0.08), series.truth["mass"])
+    >>> params = learn.Parameters(series, learn.SpringParameter.like(series, init=12.0),
+    ...                           learn.SpringParameter.like(series, init=0.08), series.truth["mass"])
     >>> loss = learn.WindowLoss(series, window=10)
     >>> sharded = ShardedLoss(loss)
     >>> sharded.num_windows, bool(sharded(params) == loss(params))
@@ -97,7 +97,7 @@ def shard(n: int, rank: int, world: int) -> range:
     """
     n, rank, world = int(n), int(rank), int(world)
     if world < 1 or not 0 <= rank < world:
-        raise ConfigError("rank", f"0 <= rank < world (world >= 1), world = {world}", rank)
+        raise ConfigError("rank", f"0 <= rank < world (world >= 1), world = {world}", got=rank)
     q, extra = divmod(n, world)
     start = rank * q + min(rank, extra)
     return range(start, start + q + (rank < extra))
@@ -181,7 +181,7 @@ class ShardedLoss:
 
         self.losses = list(losses) if isinstance(losses, (list, tuple)) else [losses]
         if not self.losses or not all(hasattr(x, "num_windows") and callable(x) for x in self.losses):
-            raise ConfigError("losses", "a WindowLoss or a non-empty list of them", losses)
+            raise ConfigError("losses", "a WindowLoss or a non-empty list of them", got=losses)
         joined = dist.is_available() and dist.is_initialized()
         self.group = group
         self.rank = int(rank if rank is not None else dist.get_rank(group) if joined else 0)
@@ -197,17 +197,17 @@ class ShardedLoss:
         """Windows of all the losses together (what a trainer's ``windows_per_step`` draws from)."""
         return self.offsets[-1]
 
-    def windows(self, windows=None) -> list:
+    def windows(self, *, windows=None) -> list:
         """This rank's windows: global indices, in order (its block of ``windows``, default all)."""
         chosen = list(range(self.num_windows)) if windows is None else [int(i) for i in windows]
         bad = [i for i in chosen if not 0 <= i < self.num_windows]
         if bad:
-            raise ConfigError("windows", f"window indices in 0 .. {self.num_windows - 1}", bad[:5])
+            raise ConfigError("windows", f"window indices in 0 .. {self.num_windows - 1}", got=bad[:5])
         return [chosen[j] for j in shard(len(chosen), self.rank, self.world)]
 
     def _local(self, model, windows):
         """The sum of this rank's windows, or None when it has none."""
-        mine = self.windows(windows)
+        mine = self.windows(windows=windows)
         total = None
         for n, loss in enumerate(self.losses):
             lo, hi = self.offsets[n], self.offsets[n + 1]
@@ -218,7 +218,7 @@ class ShardedLoss:
             total = part if total is None else total + part
         return total
 
-    def partial(self, params, windows=None) -> torch.Tensor:
+    def partial(self, params, *, windows=None) -> torch.Tensor:
         """This rank's part of the loss (no communication): the sum over ranks is the loss.
 
         Its gradient is this rank's part of the gradient.
@@ -230,14 +230,14 @@ class ShardedLoss:
     def __call__(self, params, windows=None) -> torch.Tensor:
         """The loss over every rank's windows, a 0-d tensor (the same on every rank); call on every rank."""
         if self.world == 1:
-            return self.partial(params, windows)
+            return self.partial(params, windows=windows)
         import torch.distributed as dist
 
         if not (dist.is_available() and dist.is_initialized()):
             raise ConfigError(
                 "ShardedLoss",
                 f"an initialised torch.distributed process group for {self.world} ranks (torchrun; see process_group)",
-                None,
+                got=None,
             )
         shared = None
         failure = None
@@ -252,7 +252,7 @@ class ShardedLoss:
                     raise ConfigError(
                         "params",
                         "a Parameters (a model's own tensors get no gradient from the other ranks)",
-                        type(params).__name__,
+                        got=type(params).__name__,
                     )
             local = self._local(model, windows)
         except TorchdeformError as e:  # flagged in the collective below: every rank raises
@@ -336,7 +336,7 @@ def is_main() -> bool:
 
 
 @contextmanager
-def process_group(backend: str = "gloo"):
+def process_group(*, backend: str = "gloo"):
     """Join ``torchrun``'s process group for the block when ``WORLD_SIZE`` > 1; yield ``(rank, world)``.
 
     Without torchrun (no ``WORLD_SIZE``) nothing is started: ``(0, 1)``. At a normal end every

@@ -40,7 +40,7 @@ from __future__ import annotations
 import copy
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import KW_ONLY, dataclass, field
 
 import torch
 
@@ -78,7 +78,7 @@ def slab_rows(depth: int, world: int) -> list:
             "ranks",
             f"at most {depth} ranks for a grid of {depth} rows along D (each rank "
             f"simulates a slab of at least one row)",
-            world,
+            got=world,
         )
     base, extra = divmod(depth, world)
     out, lo = [], 0
@@ -106,6 +106,7 @@ class Halo:
     world: int
     below: bool
     above: bool
+    _: KW_ONLY
     group: object = None
     seconds: float = 0.0
     exchanges: int = 0
@@ -137,7 +138,7 @@ class Halo:
         self.exchanges += 1
         self.seconds += time.perf_counter() - t0
 
-    def all_reduce(self, t: torch.Tensor, op=None) -> torch.Tensor:
+    def all_reduce(self, t: torch.Tensor, *, op=None) -> torch.Tensor:
         """``t`` reduced over ranks (sum by default), in place; returns ``t``."""
         if self.world == 1:
             return t
@@ -190,7 +191,7 @@ class SlabModel(Model):
         o = self.owned
         return self.halo.all_reduce(super().inner(a[:, :, o], b[:, :, o]))
 
-    def forces(self, x, v, t: float = 0.0, loads=None, impl: str = "fast"):
+    def forces(self, x, v, *, t: float = 0.0, loads=None, impl: str = "fast"):
         """The model's forces after refreshing the halo of ``x`` (and ``v``, damped springs) in place.
 
         Right on the owned nodes.
@@ -199,12 +200,14 @@ class SlabModel(Model):
             self.halo.exchange(x, v)
         else:
             self.halo.exchange(x)
-        return super().forces(x, v, t, loads, impl)
+        return super().forces(x, v, t=t, loads=loads, impl=impl)
 
-    def linearise(self, x, clamp=True):
+    def linearise(self, x, *, clamp=True):
         """The springs linearised at ``x`` (halo refreshed); its products refresh their argument's halo."""
         self.halo.exchange(x)
-        lin = _SlabLinearisation(x, self.grid, self.stiffness, self.rest_length, clamp, self.law, self.law_params)
+        lin = _SlabLinearisation(
+            x, self.grid, self.stiffness, self.rest_length, clamp=clamp, law=self.law, lp=self.law_params
+        )
         lin.halo = self.halo
         return lin
 
@@ -216,7 +219,7 @@ def _rows(t, lo: int, hi: int, shape: tuple):
     return t[..., lo:hi, :, :].clone()
 
 
-def decompose(model: Model, rank: int, world: int, group=None) -> SlabModel:
+def decompose(model: Model, rank: int, world: int, *, group=None) -> SlabModel:
     """Rank ``rank``'s slab of ``model`` among ``world`` ranks (:func:`slab_rows` along D).
 
     Args:
@@ -233,7 +236,7 @@ def decompose(model: Model, rank: int, world: int, group=None) -> SlabModel:
             "interactions",
             "no tool interactions in a domain-decomposed run (contact and grasps "
             "need the whole body); run it on one rank",
-            len(model.interactions),
+            got=len(model.interactions),
         )
     grid = model.grid
     lo, hi = slab_rows(grid.shape[0], world)[rank]
@@ -243,12 +246,14 @@ def decompose(model: Model, rank: int, world: int, group=None) -> SlabModel:
     mask = None if grid.node_mask is None else grid.node_mask[e_lo:e_hi]
     if mask is not None and not bool(mask.any()):
         raise ConfigError(
-            "ranks", f"fewer ranks: rank {rank}'s slab (rows {lo}..{hi - 1} along D) has no node of the body", world
+            "ranks", f"fewer ranks: rank {rank}'s slab (rows {lo}..{hi - 1} along D) has no node of the body", got=world
         )
     origin = (grid.origin[0] + e_lo * grid.spacing[0],) + tuple(grid.origin[1:])
     local = copy.copy(model)
     local.__class__ = SlabModel
-    local.grid = Grid((e_hi - e_lo,) + shape[1:], grid.spacing, grid.topology, mask, origin)
+    local.grid = Grid(
+        (e_hi - e_lo,) + shape[1:], spacing=grid.spacing, topology=grid.topology, node_mask=mask, origin=origin
+    )
     for name in (
         "X",
         "stiffness",
@@ -269,7 +274,7 @@ def decompose(model: Model, rank: int, world: int, group=None) -> SlabModel:
     local.shared = ()
     local.rows, local.extent = (lo, hi), (e_lo, e_hi)
     local.owned = slice(lo - e_lo, hi - e_lo)
-    local.halo = Halo(rank, world, below, above, group)
+    local.halo = Halo(rank, world, below, above, group=group)
     local.whole = model
     return local
 
@@ -299,6 +304,7 @@ class DecomposedRun:
     wall_s: float
     comm_s: float
     steps: int
+    _: KW_ONLY
     extra: dict = field(default_factory=dict)
 
     @property
@@ -338,8 +344,8 @@ def decomposed_simulate(
     state: State,
     dt: float,
     steps: int,
-    integrator=None,
     *,
+    integrator=None,
     record_every: int | None = None,
     check_every: int = 10,
     progress: bool = False,
@@ -375,18 +381,20 @@ def decomposed_simulate(
     integrator = integrator or SymplecticEuler()
     if integrator.name not in SUPPORTED_INTEGRATORS:
         raise ConfigError(
-            "integrator.name", f"one of {', '.join(SUPPORTED_INTEGRATORS)} in a domain-decomposed run", integrator.name
+            "integrator.name",
+            f"one of {', '.join(SUPPORTED_INTEGRATORS)} in a domain-decomposed run",
+            got=integrator.name,
         )
     steps = int(steps)
     if steps < 0:
-        raise ConfigError("steps", "an integer >= 0", steps)
+        raise ConfigError("steps", "an integer >= 0", got=steps)
     rank, world = _rank_and_world(group)
-    local = decompose(model, rank, world, group)
+    local = decompose(model, rank, world, group=group)
     e_lo, e_hi = local.extent
     own = local.owned
     state = model.start(state)  # fixed nodes at rest, dragged nodes on their path
     monitor = DivergenceMonitor(model, dt, integrator)  # the whole body's energy scale and safe dt
-    st = State(state.x[:, :, e_lo:e_hi].clone(), state.v[:, :, e_lo:e_hi].clone(), state.t)
+    st = State(state.x[:, :, e_lo:e_hi].clone(), state.v[:, :, e_lo:e_hi].clone(), t=state.t)
     pending = sorted(((float(at), blade) for at, blade in cuts), key=lambda c: c[0])
     ts, xs, vs = [], [], []
 
@@ -458,7 +466,7 @@ def _gather(local: SlabModel, st: State, ts, xs, vs, rank: int, world: int, grou
     else:
         parts = [mine]
     dev = st.x.device
-    final = State(torch.cat([p[0] for p in parts], 2).to(dev), torch.cat([p[1] for p in parts], 2).to(dev), st.t)
+    final = State(torch.cat([p[0] for p in parts], 2).to(dev), torch.cat([p[1] for p in parts], 2).to(dev), t=st.t)
     rec = {}
     if xs:
         rec = {

@@ -5,7 +5,7 @@ every other key is the scene file's. Each point's scene is built (and so checked
 runs, then simulated; its row holds the values, the summary figures of the run and its wall
 time. Finished points are recorded as they finish (one JSON line each in ``DIR/records/``), so a
 rerun of the same sweep into the same folder runs only the missing ones (after a crash or a
-pre-empted job).
+preempted job).
 
 **Batches.** Points whose scenes differ only in ``material.stiffness`` and ``material.damping``
 (with a fixed ``integrator.dt``: ``"auto"`` follows the stiffness) run as one batched model: the
@@ -100,7 +100,7 @@ def parse_set(text: str) -> tuple[str, list]:
     key, sep, values = str(text).partition("=")
     key = key.strip()
     if not sep or not key or not values.strip():
-        raise ConfigError("--set", "KEY=V1,V2,... (e.g. material.stiffness=1,2,4)", text)
+        raise ConfigError("--set", "KEY=V1,V2,... (e.g. material.stiffness=1,2,4)", got=text)
     return key, [parse_value(v) for v in values.split(",")]
 
 
@@ -113,16 +113,18 @@ def product(sets: list) -> list:
 def read_points(path) -> list:
     """A list file of points: CSV, a header of dotted keys, one point per row (values as :func:`parse_value`)."""
     path = Path(path)
-    with io.StringIO(read_text(path, "--points", "CSV file"), newline="") as fh:
+    with io.StringIO(read_text(path, "--points", what="CSV file"), newline="") as fh:
         rows = list(csv.reader(fh))
     rows = [r for r in rows if any(c.strip() for c in r)]
     if len(rows) < 2:
-        raise ConfigError("--points", "a header of scene keys and at least one row", str(path))
+        raise ConfigError("--points", "a header of scene keys and at least one row", got=str(path))
     keys = [k.strip() for k in rows[0]]
     points = []
     for n, row in enumerate(rows[1:], start=2):
         if len(row) != len(keys):
-            raise ConfigError(f"--points line {n}", f"{len(keys)} values (one per key of the header)", ",".join(row))
+            raise ConfigError(
+                f"--points line {n}", f"{len(keys)} values (one per key of the header)", got=",".join(row)
+            )
         points.append({k: parse_value(v) for k, v in zip(keys, row)})
     return points
 
@@ -141,7 +143,7 @@ def check_key(key: str) -> None:
         raise ConfigError(
             "--set",
             f"SECTION.KEY of a scene file (sections {sections}; {section}: {', '.join(known) or 'no such section'})",
-            key,
+            got=key,
         )
 
 
@@ -163,28 +165,28 @@ def point_scene(src, data: dict, base: Path, name: str, values: dict):
         section, _, k = key.partition(".")
         data.setdefault(section, {})[k] = value
     try:
-        scene = mass_spring_scene(Source(), data, base, name)
+        scene = mass_spring_scene(Source(), data, base, name=name)
     except ConfigError as e:
         if e.key in values:
-            raise ConfigError(f"--set {e.key}", e.expected, values[e.key]) from None
+            raise ConfigError(f"--set {e.key}", e.expected, got=values[e.key]) from None
         raise ConfigError(
             e.key,
             e.expected,
-            e.got if e.show_got else None,
+            got=e.got if e.show_got else None,
             file=src.path,
             show_got=e.show_got,
             line=src.line_of(e.key),
         ) from None
     if scene.tools is not None or scene.topology is not None:
         raise ConfigError(
-            "sweep", "a scene without [[tools]], [strain_limit] or topology sections (not swept yet)", src.path
+            "sweep", "a scene without [[tools]], [strain_limit] or topology sections (not swept yet)", got=src.path
         )
     return scene
 
 
-def run_point(scene, device=None) -> dict:
+def run_point(scene, *, device=None) -> dict:
     """Simulate ``scene`` (no files written): the figures of :data:`FIGURES` (a batch of one)."""
-    return run_batch([scene], device)[0]
+    return run_batch([scene], device=device)[0]
 
 
 def _figures(model, rec, final, b: int) -> dict:
@@ -225,7 +227,7 @@ def batches(points: list, scenes: list, size: int) -> list:
     return order
 
 
-def run_batch(scenes: list, device=None) -> list:
+def run_batch(scenes: list, *, device=None) -> list:
     """Simulate scenes that differ only in spring stiffness and damping as one batched model.
 
     Returns one row per scene (:data:`FIGURES`); a batch that diverges runs point by point.
@@ -238,7 +240,7 @@ def run_batch(scenes: list, device=None) -> list:
     from ..sim.engine import simulate
     from ..sim.stability import time_step_bound
 
-    models = [s.build(device) for s in scenes]
+    models = [s.build(device=device) for s in scenes]
     model = models[0]
     if len(models) > 1:  # the spring parameters stacked along the batch axis
         model = copy.copy(model)
@@ -249,16 +251,16 @@ def run_batch(scenes: list, device=None) -> list:
                 [(torch.zeros_like(m.stiffness) if m.damping is None else m.damping).expand(shape) for m in models]
             )
     scene = scenes[0]
-    dt = scene.time_step(min(time_step_bound(m, scene.integrator) for m in models))
+    dt = scene.time_step(min(time_step_bound(m, integrator=scene.integrator) for m in models))
     engine = scene_engine(scene, False)
     start = time.perf_counter()
     try:
         final, rec = simulate(
             model,
-            model.rest_state(len(models)),
+            model.rest_state(batch=len(models)),
             dt,
             scene.steps,
-            scene.integrator,
+            integrator=scene.integrator,
             record_every=scene.frames_every,
             progress=False,
             warn=False,
@@ -266,7 +268,7 @@ def run_batch(scenes: list, device=None) -> list:
         )
     except DivergenceError as e:
         if len(scenes) > 1:
-            return [run_point(s, device) for s in scenes]
+            return [run_point(s, device=device) for s in scenes]
         row = dict.fromkeys(FIGURES)
         row.update(
             status=f"diverged: {str(e).splitlines()[0]}",

@@ -45,7 +45,7 @@ def load(name_or_path) -> MamdaniSystem:
     try:
         from .presets import load_preset
     except ImportError:  # the preset library has not landed yet
-        raise ConfigError("file", "an existing .fis file (no presets are shipped yet)", str(name_or_path)) from None
+        raise ConfigError("file", "an existing .fis file (no presets are shipped yet)", got=str(name_or_path)) from None
     return load_preset(str(name_or_path))
 
 
@@ -79,21 +79,21 @@ def parse_assignments(fis: MamdaniSystem, items) -> dict:
     for item in items:
         name, sep, text = item.partition("=")
         if not sep:
-            raise ConfigError("input", "NAME=VALUE", item)
+            raise ConfigError("input", "NAME=VALUE", got=item)
         if name not in fis.input_names():
-            raise ConfigError("input", f"one of {', '.join(fis.input_names())}", name)
+            raise ConfigError("input", f"one of {', '.join(fis.input_names())}", got=name)
         try:
             values[name] = float(text)
         except ValueError:
-            raise ConfigError(name, "a number", text) from None
+            raise ConfigError(name, "a number", got=text) from None
         if not math.isfinite(values[name]):
-            raise ConfigError(name, "a finite number", text)
+            raise ConfigError(name, "a finite number", got=text)
     missing = [n for n in fis.input_names() if n not in values]
     if missing:
         raise ConfigError(
             "inputs",
             f"a value for every input ({', '.join(fis.input_names())})",
-            f"missing {', '.join(missing)}",
+            got=f"missing {', '.join(missing)}",
             show_got=True,
         )
     return values
@@ -105,7 +105,7 @@ def read_inputs_csv(fis: MamdaniSystem, path) -> torch.Tensor:
     Extra columns are ignored; blank lines are skipped.
     """
     p = Path(path)
-    with io.StringIO(read_text(p, "--inputs", "CSV file"), newline="") as f:
+    with io.StringIO(read_text(p, "--inputs", what="CSV file"), newline="") as f:
         reader = csv.reader(f)
         header = [h.strip() for h in next(reader, [])]
         missing = [n for n in fis.input_names() if n not in header]
@@ -113,7 +113,7 @@ def read_inputs_csv(fis: MamdaniSystem, path) -> torch.Tensor:
             raise ConfigError(
                 "header",
                 f"columns for every input ({', '.join(fis.input_names())})",
-                f"missing {', '.join(missing)}",
+                got=f"missing {', '.join(missing)}",
                 file=str(p),
                 line=1,
             )
@@ -126,13 +126,17 @@ def read_inputs_csv(fis: MamdaniSystem, path) -> torch.Tensor:
                 values = [float(row[c]) for c in cols]
             except (ValueError, IndexError):
                 raise ConfigError(
-                    "row", f"numbers in columns {', '.join(fis.input_names())}", ",".join(row), file=str(p), line=line
+                    "row",
+                    f"numbers in columns {', '.join(fis.input_names())}",
+                    got=",".join(row),
+                    file=str(p),
+                    line=line,
                 ) from None
             if not all(map(math.isfinite, values)):
-                raise ConfigError("row", "finite numbers", ",".join(row), file=str(p), line=line)
+                raise ConfigError("row", "finite numbers", got=",".join(row), file=str(p), line=line)
             rows.append(values)
     if not rows:
-        raise ConfigError("--inputs", "at least one data row", str(p))
+        raise ConfigError("--inputs", "at least one data row", got=str(p))
     return torch.tensor(rows, dtype=torch.float64)
 
 
@@ -155,7 +159,7 @@ def format_rows(fis: MamdaniSystem, rows: list, as_json: bool) -> str:
     return "\n".join(out)
 
 
-def plot(fis: MamdaniSystem, out_dir, points: int = 401) -> list:
+def plot(fis: MamdaniSystem, out_dir, *, points: int = 401) -> list:
     """Write PNGs of the membership functions and the input-output curves.
 
     ``mf_<variable>.png`` (every term of every variable) and ``curve_<input>_<output>.png``
@@ -213,7 +217,9 @@ def main(args) -> int:
         print(describe(fis))
     elif args.fuzzy_command == "eval":
         if args.inputs and args.values:
-            raise ConfigError("eval", "either NAME=VALUE pairs or --inputs FILE.csv, not both", None, show_got=False)
+            raise ConfigError(
+                "eval", "either NAME=VALUE pairs or --inputs FILE.csv, not both", got=None, show_got=False
+            )
         x = (
             read_inputs_csv(fis, args.inputs)
             if args.inputs

@@ -21,7 +21,7 @@ Example:
     >>> fis = load_preset("susilap_g")
     >>> grid = Grid((10, 10, 10), spacing=0.01, topology=26)
     >>> inputs = node_inputs(grid, fis, {"consistency": 5.5},
-    ...                      [(Ellipsoid((0.05, 0.05, 0.05), (0.02, 0.03, 0.02)), {"consistency": 10.1})])
+    ...                      regions=[(Ellipsoid((0.05, 0.05, 0.05), (0.02, 0.03, 0.02)), {"consistency": 10.1})])
     >>> params = spring_parameters(fis, grid, inputs)
     >>> params["_evaluations"], tuple(params["spring_const"].shape)      # two tissues: two evaluations
     (2, (13, 10, 10, 10))
@@ -56,15 +56,15 @@ class Ellipsoid:
         """Bool ``(D, H, W)``: nodes whose rest position lies inside (boundary included)."""
         if len(self.center) != 3 or len(self.radii) != 3 or min(self.radii) <= 0:
             raise ConfigError(
-                "ellipsoid", "center (3 numbers) and radii (3 positive numbers)", (self.center, self.radii)
+                "ellipsoid", "center (3 numbers) and radii (3 positive numbers)", got=(self.center, self.radii)
             )
-        X = grid.rest_positions(torch.float64)[0]
+        X = grid.rest_positions(dtype=torch.float64)[0]
         c = torch.tensor(self.center, dtype=torch.float64).view(3, 1, 1, 1)
         r = torch.tensor(self.radii, dtype=torch.float64).view(3, 1, 1, 1)
         return (((X - c) / r) ** 2).sum(0) <= 1.0 + 1e-12
 
 
-def node_inputs(grid: Grid, fis: MamdaniSystem, base: dict, regions=()) -> torch.Tensor:
+def node_inputs(grid: Grid, fis: MamdaniSystem, base: dict, *, regions=()) -> torch.Tensor:
     """Input values per node, ``(n_inputs, D, H, W)`` (float64).
 
     Args:
@@ -77,22 +77,22 @@ def node_inputs(grid: Grid, fis: MamdaniSystem, base: dict, regions=()) -> torch
     names = fis.input_names()
     missing = [n for n in names if n not in base]
     if missing:
-        raise ConfigError("base", f"a value for every input ({', '.join(names)})", f"missing {missing}")
+        raise ConfigError("base", f"a value for every input ({', '.join(names)})", got=f"missing {missing}")
     out = torch.empty((len(names),) + grid.shape, dtype=torch.float64)
     for i, n in enumerate(names):
         out[i] = float(base[n])
     for k, (where, values) in enumerate(regions):
         mask = where.mask(grid) if isinstance(where, Ellipsoid) else torch.as_tensor(where, dtype=torch.bool)
         if tuple(mask.shape) != grid.shape:
-            raise ConfigError(f"regions[{k}]", f"a mask of shape {grid.shape} or an Ellipsoid", tuple(mask.shape))
+            raise ConfigError(f"regions[{k}]", f"a mask of shape {grid.shape} or an Ellipsoid", got=tuple(mask.shape))
         for n, v in values.items():
             if n not in names:
-                raise ConfigError(f"regions[{k}]", f"input names of {fis.name} ({', '.join(names)})", n)
+                raise ConfigError(f"regions[{k}]", f"input names of {fis.name} ({', '.join(names)})", got=n)
             out[names.index(n)][mask] = float(v)
     return out
 
 
-def spring_parameters(fis: MamdaniSystem, grid: Grid, inputs: torch.Tensor, dtype=torch.float32) -> dict:
+def spring_parameters(fis: MamdaniSystem, grid: Grid, inputs: torch.Tensor, *, dtype=torch.float32) -> dict:
     """Per-spring values of every output: ``{output name: (S, D, H, W)}``.
 
     Args:
@@ -107,7 +107,7 @@ def spring_parameters(fis: MamdaniSystem, grid: Grid, inputs: torch.Tensor, dtyp
     """
     if inputs.dim() != 4 or inputs.shape[0] != len(fis.inputs) or tuple(inputs.shape[1:]) != grid.shape:
         raise ConfigError(
-            "inputs", f"shape ({len(fis.inputs)}, {', '.join(map(str, grid.shape))})", tuple(inputs.shape)
+            "inputs", f"shape ({len(fis.inputs)}, {', '.join(map(str, grid.shape))})", got=tuple(inputs.shape)
         )
     rows = inputs.reshape(len(fis.inputs), -1).T
     unique, inverse = torch.unique(rows, dim=0, return_inverse=True)

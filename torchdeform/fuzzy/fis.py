@@ -113,7 +113,7 @@ class _Section:
 
 
 def _err(path, line, key, expected, got=None, show_got=True):
-    return ConfigError(key, expected, got, file=str(path), line=line, show_got=show_got)
+    return ConfigError(key, expected, got=got, file=str(path), line=line, show_got=show_got)
 
 
 def _sections(text: str, path) -> list:
@@ -276,10 +276,10 @@ def _clause(code: float, var: Variable, path, n, where) -> Clause | None:
     if not 1 <= idx <= len(var.terms):
         raise _err(path, n, where, f"an index 1..{len(var.terms)} of {var.name}'s terms (0 = unused)", code)
     hedges = (("not",) if neg else ()) + _HEDGE_CODES.get(frac, ())
-    return Clause(var.name, var.term_names[idx - 1], hedges)
+    return Clause(var.name, var.term_names[idx - 1], hedges=hedges)
 
 
-def parse_fis(text: str, path="<string>") -> MamdaniSystem:
+def parse_fis(text: str, *, path="<string>") -> MamdaniSystem:
     """A :class:`MamdaniSystem` from the text of a ``.fis`` file (``path`` names it in errors)."""
     sections = _sections(text, path)
     by = {s.name: s for s in sections}
@@ -344,7 +344,7 @@ def parse_fis(text: str, path="<string>") -> MamdaniSystem:
             raise _err(path, n, where, "at least one input index that is not 0", line)
         if not c:
             raise _err(path, n, where, "at least one output index that is not 0", line)
-        rules.append(Rule(a, c, "and" if m.group(4) == "1" else "or", weight))
+        rules.append(Rule(a, c, connective="and" if m.group(4) == "1" else "or", weight=weight))
     num_rules = _int(sysec, "NumRules", path, required=False)
     if num_rules is not None and num_rules != len(rules):
         raise _err(
@@ -364,8 +364,8 @@ def parse_fis(text: str, path="<string>") -> MamdaniSystem:
 def read_fis(path) -> MamdaniSystem:
     """Read a MATLAB ``.fis`` file into a :class:`MamdaniSystem`."""
     p = Path(path)
-    text = read_text(p, "file", ".fis file")
-    return parse_fis(text, p)
+    text = read_text(p, "file", what=".fis file")
+    return parse_fis(text, path=p)
 
 
 def _num(v: float, dtype) -> str:
@@ -386,14 +386,14 @@ def _code(clause: Clause | None, var: Variable, where: str) -> str:
         raise ConfigError(
             where,
             "hedges that .fis can encode (not, seldom, somewhat, very, extremely, very very, any)",
-            " ".join(hedges),
+            got=" ".join(hedges),
         )
     idx = var.index(clause.term) + 1
     text = str(idx) if not rest else f"{idx}.{_CODE_OF[rest]:02d}".rstrip("0")
     return ("-" if neg else "") + text
 
 
-def fis_text(system: MamdaniSystem, comments: str = "") -> str:
+def fis_text(system: MamdaniSystem, *, comments: str = "") -> str:
     """The ``.fis`` text of a system (``comments``: lines written first, each prefixed ``% ``)."""
     out = [f"% {c}" if c else "%" for c in comments.splitlines()]
     out += [
@@ -434,7 +434,7 @@ def fis_text(system: MamdaniSystem, comments: str = "") -> str:
         where = f"rule {r} ({rule})"
         ante = {c.variable: c for c in rule.antecedent}
         if len(ante) != len(rule.antecedent):
-            raise ConfigError(where, ".fis rules use each input at most once", str(rule))
+            raise ConfigError(where, ".fis rules use each input at most once", got=str(rule))
         cons = {c.variable: c for c in rule.consequent}
         a = " ".join(_code(ante.get(v.name), v, where) for v in system.inputs)
         c = " ".join(_code(cons.get(v.name), v, where) for v in system.outputs)
@@ -442,11 +442,11 @@ def fis_text(system: MamdaniSystem, comments: str = "") -> str:
     return "\n".join(out) + "\n"
 
 
-def write_fis(system: MamdaniSystem, path, comments: str = "") -> Path:
+def write_fis(system: MamdaniSystem, path, *, comments: str = "") -> Path:
     """Write a system as a MATLAB ``.fis`` file; returns the path.
 
     Reading it back with :func:`read_fis` gives a system with identical outputs.
     """
     p = Path(path)
-    p.write_text(fis_text(system, comments), encoding="utf-8")
+    p.write_text(fis_text(system, comments=comments), encoding="utf-8")
     return p

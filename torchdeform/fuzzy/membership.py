@@ -35,6 +35,7 @@ Example:
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import torch
@@ -91,10 +92,10 @@ class MembershipFunction(nn.Module):
     def __init__(self, *params):
         super().__init__()
         if len(params) != len(self.names):
-            raise ConfigError(self.kind, f"{len(self.names)} parameters ({', '.join(self.names)})", list(params))
+            raise ConfigError(self.kind, f"{len(self.names)} parameters ({', '.join(self.names)})", got=list(params))
         values = [float(p) if not torch.is_tensor(p) else float(p.detach()) for p in params]
         if not all(math.isfinite(v) for v in values):
-            raise ConfigError(self.kind, "finite parameters", values)
+            raise ConfigError(self.kind, "finite parameters", got=values)
         self.check(values)
         self.raw = nn.Parameter(torch.tensor(values, dtype=torch.get_default_dtype()), requires_grad=False)
 
@@ -147,8 +148,8 @@ class Trapezoid(MembershipFunction):
 
     def check(self, values):
         """Raise :class:`ConfigError` unless the corner points are in order ``a <= b <= c <= d``."""
-        if any(q < p for p, q in zip(values, values[1:])):
-            raise ConfigError(self.kind, "corner points in order a <= b <= c <= d", values)
+        if any(q < p for p, q in itertools.pairwise(values)):
+            raise ConfigError(self.kind, "corner points in order a <= b <= c <= d", got=values)
 
     @property
     def params(self):
@@ -195,7 +196,7 @@ class Gaussian(MembershipFunction):
     def check(self, values):
         """Raise :class:`ConfigError` for ``sigma == 0``."""
         if values[1] == 0:
-            raise ConfigError(self.kind, "sigma != 0", values)
+            raise ConfigError(self.kind, "sigma != 0", got=values)
 
     @property
     def params(self):
@@ -225,7 +226,7 @@ class Bell(MembershipFunction):
     def check(self, values):
         """Raise :class:`ConfigError` for ``width == 0``."""
         if values[0] == 0:
-            raise ConfigError(self.kind, "width != 0", values)
+            raise ConfigError(self.kind, "width != 0", got=values)
 
     @property
     def params(self):
@@ -309,7 +310,7 @@ def make(kind: str, *params) -> MembershipFunction:
     try:
         cls = KINDS[kind]
     except KeyError:
-        raise ConfigError("membership function", f"one of {', '.join(KINDS)}", kind) from None
+        raise ConfigError("membership function", f"one of {', '.join(KINDS)}", got=kind) from None
     return cls(*params)
 
 

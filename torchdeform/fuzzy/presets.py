@@ -88,7 +88,7 @@ def preset_path(name: str):
     name = _name(name)
     known = list_presets()
     if name not in known:
-        raise ConfigError("preset", f"one of {', '.join(known)}", name)
+        raise ConfigError("preset", f"one of {', '.join(known)}", got=name)
     return PRESET_DIR / f"{name}.fis"
 
 
@@ -100,7 +100,7 @@ def _text(name: str) -> str:
 def load_preset(name: str) -> MamdaniSystem:
     """A fresh :class:`MamdaniSystem` read from preset ``name`` (see :func:`list_presets`)."""
     name = _name(name)
-    return parse_fis(_text(name), f"{name}.fis")
+    return parse_fis(_text(name), path=f"{name}.fis")
 
 
 @functools.cache
@@ -109,7 +109,7 @@ def _library() -> dict:
     try:
         return tomllib.loads(path.read_text(encoding="utf-8"))
     except tomllib.TOMLDecodeError as e:  # a broken edit of the shipped file
-        raise ConfigError("tissue library", f"valid TOML ({e})", None, file=str(path)) from None
+        raise ConfigError("tissue library", f"valid TOML ({e})", got=None, file=str(path)) from None
 
 
 def tissues() -> dict:
@@ -120,7 +120,7 @@ def tissues() -> dict:
     return copy.deepcopy(_library()["tissues"])
 
 
-def tissue_parameters(name: str, system: MamdaniSystem | None = None) -> dict:
+def tissue_parameters(name: str, *, system: MamdaniSystem | None = None) -> dict:
     """Material parameters of tissue ``name`` in SI units, from the tissue library's fuzzy system.
 
     Args:
@@ -134,7 +134,7 @@ def tissue_parameters(name: str, system: MamdaniSystem | None = None) -> dict:
     """
     lib = tissues()
     if name not in lib:
-        raise ConfigError("tissue", f"one of {', '.join(sorted(lib))}", name)
+        raise ConfigError("tissue", f"one of {', '.join(sorted(lib))}", got=name)
     entry = lib[name]
     fis = system if system is not None else load_preset(_library()["system"])
     out = fis.evaluate(consistency=float(entry["consistency"]))

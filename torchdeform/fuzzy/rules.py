@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 import re
-from dataclasses import dataclass, field
+from dataclasses import KW_ONLY, dataclass, field
 
 import torch
 from torch import nn
@@ -32,7 +32,7 @@ _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.\-]*$")
 def check_name(name: str, key: str) -> str:
     """A variable or term name: letters, digits, ``_ . -``, not starting with a digit."""
     if not isinstance(name, str) or not _NAME.match(name) or name.upper() in _KEYWORDS or name in HEDGES:
-        raise ConfigError(key, "a name of letters, digits and _ . - (not a keyword or hedge)", name)
+        raise ConfigError(key, "a name of letters, digits and _ . - (not a keyword or hedge)", got=name)
     return name
 
 
@@ -56,27 +56,27 @@ class Variable(nn.Module):
             gives the middle of the range (MATLAB's convention).
     """
 
-    def __init__(self, name: str, range, terms: dict, default: float | None = None):
+    def __init__(self, name: str, range, terms: dict, *, default: float | None = None):
         super().__init__()
         self.name = check_name(name, "variable name")
         try:
             lo, hi = (float(v) for v in range)
         except (TypeError, ValueError):
-            raise ConfigError(f"{name}.range", "two numbers lo < hi", range) from None
+            raise ConfigError(f"{name}.range", "two numbers lo < hi", got=range) from None
         if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
-            raise ConfigError(f"{name}.range", "two finite numbers lo < hi", (lo, hi))
+            raise ConfigError(f"{name}.range", "two finite numbers lo < hi", got=(lo, hi))
         if max(abs(lo), abs(hi)) > LIMIT:
-            raise ConfigError(f"{name}.range", RANGE_TEXT, (lo, hi))
+            raise ConfigError(f"{name}.range", RANGE_TEXT, got=(lo, hi))
         self.range = (lo, hi)
         # the range as a buffer follows .to()/.double() like the parameters, so a system built in
         # float32 clips inputs to the same rounded ends as its float32 corner points
         self.register_buffer("bounds", torch.tensor([lo, hi], dtype=torch.get_default_dtype()))
         if not terms:
-            raise ConfigError(f"{name}.terms", "at least one term", terms)
+            raise ConfigError(f"{name}.terms", "at least one term", got=terms)
         for t, mf in terms.items():
             check_name(t, f"{name} term name")
             if not isinstance(mf, MembershipFunction):
-                raise ConfigError(f"{name}.{t}", "a membership function", mf)
+                raise ConfigError(f"{name}.{t}", "a membership function", got=mf)
         self.terms = nn.ModuleDict(terms)
         self.default = 0.5 * (lo + hi) if default is None else float(default)
 
@@ -85,12 +85,12 @@ class Variable(nn.Module):
         """The term names, in order (the term index of a ``.fis`` file is its position here plus one)."""
         return list(self.terms.keys())
 
-    def index(self, term: str, key: str = "term") -> int:
+    def index(self, term: str, *, key: str = "term") -> int:
         """The position of ``term`` in :attr:`term_names`; :class:`ConfigError` under ``key`` if there is none."""
         try:
             return self.term_names.index(term)
         except ValueError:
-            raise ConfigError(key, f"a term of {self.name} ({', '.join(self.term_names)})", term) from None
+            raise ConfigError(key, f"a term of {self.name} ({', '.join(self.term_names)})", got=term) from None
 
     def __repr__(self) -> str:
         terms = ", ".join(f"{t}={mf!r}" for t, mf in self.terms.items())
@@ -103,6 +103,7 @@ class Clause:
 
     variable: str
     term: str
+    _: KW_ONLY
     hedges: tuple = ()
 
     def __str__(self) -> str:
@@ -121,24 +122,25 @@ class Rule:
 
     antecedent: list
     consequent: list
+    _: KW_ONLY
     connective: str = "and"
     weight: float = 1.0
     text: str = field(default="", compare=False)
 
     def __post_init__(self):
         if self.connective not in ("and", "or"):
-            raise ConfigError("rule connective", "'and' or 'or'", self.connective)
+            raise ConfigError("rule connective", "'and' or 'or'", got=self.connective)
         if not self.antecedent:
-            raise ConfigError("rule", "at least one antecedent clause", str(self))
+            raise ConfigError("rule", "at least one antecedent clause", got=str(self))
         if not self.consequent:
-            raise ConfigError("rule", "at least one consequent clause", str(self))
+            raise ConfigError("rule", "at least one consequent clause", got=str(self))
         w = float(self.weight)
         if not (0.0 <= w <= 1.0):
-            raise ConfigError("rule weight", "a number in [0, 1]", self.weight)
+            raise ConfigError("rule weight", "a number in [0, 1]", got=self.weight)
         self.weight = w
         outs = [c.variable for c in self.consequent]
         if len(set(outs)) != len(outs):
-            raise ConfigError("rule", "each output at most once in a consequent", str(self))
+            raise ConfigError("rule", "each output at most once in a consequent", got=str(self))
 
     def __str__(self) -> str:
         join = f" {self.connective.upper()} "
@@ -161,7 +163,7 @@ def _parse(text: str) -> Rule:
     words = str(text).replace("(", " ").replace(")", " ").split()
 
     def fail(expected, got):
-        raise ConfigError(f"rule {text.strip()!r}", expected, got)
+        raise ConfigError(f"rule {text.strip()!r}", expected, got=got)
 
     if not words or words[0].upper() != "IF":
         fail("a sentence starting with IF", words[0] if words else "")
@@ -199,7 +201,7 @@ def _parse(text: str) -> Rule:
             for h in hedges:
                 if h not in HEDGES:
                     fail(f"a hedge ({', '.join(HEDGES)}) before the term", h)
-            out.append(Clause(cur[0], cur[-1], hedges))
+            out.append(Clause(cur[0], cur[-1], hedges=hedges))
             cur = []
         return out, conns
 
@@ -209,6 +211,6 @@ def _parse(text: str) -> Rule:
     cons, _ = clauses(words[then + 1 : end], False)
     connective = "or" if "or" in conns else "and"
     try:
-        return Rule(ante, cons, connective, weight, text=str(text).strip())
+        return Rule(ante, cons, connective=connective, weight=weight, text=str(text).strip())
     except ConfigError as e:  # weight out of [0, 1], an output twice: name the rule
         fail(e.expected, e.got)

@@ -149,25 +149,25 @@ class MamdaniSystem(nn.Module):
             ("on_empty", on_empty, ON_EMPTY),
         ):
             if value not in allowed:
-                raise ConfigError(key, f"one of {', '.join(allowed)}", value)
+                raise ConfigError(key, f"one of {', '.join(allowed)}", got=value)
         self.and_method, self.or_method, self.implication = and_method, or_method, implication
         self.aggregation, self.defuzzification, self.on_empty = aggregation, defuzzification, on_empty
         if int(resolution) < 2:
-            raise ConfigError("resolution", "an integer >= 2", resolution)
+            raise ConfigError("resolution", "an integer >= 2", got=resolution)
         self.resolution, self.chunk = int(resolution), max(1, int(chunk))
         if not inputs or not outputs:
-            raise ConfigError("system", "at least one input and one output", (len(inputs), len(outputs)))
+            raise ConfigError("system", "at least one input and one output", got=(len(inputs), len(outputs)))
         self.inputs, self.outputs = nn.ModuleList(inputs), nn.ModuleList(outputs)
         names = [v.name for v in self.inputs] + [v.name for v in self.outputs]
         if len(set(names)) != len(names):
-            raise ConfigError("variables", "distinct names for all inputs and outputs", names)
+            raise ConfigError("variables", "distinct names for all inputs and outputs", got=names)
         for v in self.outputs:
             kinds = {mf.is_singleton for mf in v.terms.values()}
             if len(kinds) > 1:
-                raise ConfigError(f"{v.name}.terms", "all singletons or none (no mixing)", v.term_names)
+                raise ConfigError(f"{v.name}.terms", "all singletons or none (no mixing)", got=v.term_names)
         self.rules = [r if isinstance(r, Rule) else Rule.parse(r) for r in rules]
         if not self.rules:
-            raise ConfigError("rules", "at least one rule", [])
+            raise ConfigError("rules", "at least one rule", got=[])
         # one input row needs its aggregate and every consequent group's set over the cells
         check_memory(
             "resolution",
@@ -226,14 +226,14 @@ class MamdaniSystem(nn.Module):
             clauses = []
             for c in rule.antecedent:
                 if c.variable not in ins:
-                    raise ConfigError(key, f"an input variable ({', '.join(ins)})", c.variable)
-                clauses.append((ins[c.variable], self.inputs[ins[c.variable]].index(c.term, key), c.hedges))
+                    raise ConfigError(key, f"an input variable ({', '.join(ins)})", got=c.variable)
+                clauses.append((ins[c.variable], self.inputs[ins[c.variable]].index(c.term, key=key), c.hedges))
             self._ante.append(clauses)
             for c in rule.consequent:
                 if c.variable not in outs:
-                    raise ConfigError(key, f"an output variable ({', '.join(outs)})", c.variable)
+                    raise ConfigError(key, f"an output variable ({', '.join(outs)})", got=c.variable)
                 o = outs[c.variable]
-                t = self.outputs[o].index(c.term, key)
+                t = self.outputs[o].index(c.term, key=key)
                 group = (t, c.hedges) if self.aggregation == "max" else (t, c.hedges, r)
                 per_output[o].setdefault(group, []).append(r)
         self._cons = [[_Consequent(tuple(rs), g[0], g[1]) for g, rs in groups.items()] for groups in per_output]
@@ -289,7 +289,7 @@ class MamdaniSystem(nn.Module):
         nu = torch.stack([apply_hedges(mfs[g.term](y), g.hedges) for g in groups])
         return y, nu, h
 
-    def aggregate(self, fire: torch.Tensor, o: int, nu: torch.Tensor, cells=None) -> torch.Tensor:
+    def aggregate(self, fire: torch.Tensor, o: int, nu: torch.Tensor, *, cells=None) -> torch.Tensor:
         """Aggregated output set ``(N, U)`` of output ``o`` from rule degrees ``fire`` ``(N, R)``.
 
         ``cells`` (a tuple of ``(start, stop, groups)`` from :meth:`sparsity_plan`) restricts the
@@ -345,7 +345,7 @@ class MamdaniSystem(nn.Module):
         """Crisp outputs ``(..., n_outputs)`` for inputs ``x``: ``(..., n_inputs)``."""
         return self._run(x, self.infer, self.chunk, pad=False)
 
-    def compiled(self, chunk: int = 65536):
+    def compiled(self, *, chunk: int = 65536):
         """The same evaluation through ``torch.compile``.
 
         Fused kernels that visit only the consequent groups that can be non-zero on each run of
@@ -364,7 +364,9 @@ class MamdaniSystem(nn.Module):
                 plan = self.sparsity_plan()
                 cache.update(
                     key=key,
-                    fn=torch.compile(lambda part: self.infer(part, plan), dynamic=False, options=inductor_options()),
+                    fn=torch.compile(
+                        lambda part: self.infer(part, plan=plan), dynamic=False, options=inductor_options()
+                    ),
                 )
             return self._run(x, cache["fn"], chunk, pad=True)
 
@@ -379,7 +381,9 @@ class MamdaniSystem(nn.Module):
             x = x.to(torch.get_default_dtype())
         if x.shape[-1] != len(self.inputs):
             raise ConfigError(
-                "inputs", f"a last dimension of {len(self.inputs)} ({', '.join(self.input_names())})", tuple(x.shape)
+                "inputs",
+                f"a last dimension of {len(self.inputs)} ({', '.join(self.input_names())})",
+                got=tuple(x.shape),
             )
         lead = x.shape[:-1]
         flat = x.reshape(-1, len(self.inputs))
@@ -396,7 +400,7 @@ class MamdaniSystem(nn.Module):
         self._check_empty((torch.cat(empties) if len(empties) != 1 else empties[0])[:n], flat)
         return y.reshape(*lead, len(self.outputs))
 
-    def infer(self, x: torch.Tensor, plan: tuple | None = None) -> tuple:
+    def infer(self, x: torch.Tensor, *, plan: tuple | None = None) -> tuple:
         """Outputs ``(N, n_outputs)`` and the zero-firing-mass mask ``(N, n_outputs)`` for one chunk.
 
         ``x``: ``(N, n_inputs)``; no checks, no Python branching on data (compilable).
@@ -419,7 +423,7 @@ class MamdaniSystem(nn.Module):
                 value = moment / torch.where(mass > 0, mass, torch.ones_like(mass))
                 mass = mass * h
             else:
-                value, mass = defuzzify(self.aggregate(fire, o, nu, cells), grid, h, self.defuzzification)
+                value, mass = defuzzify(self.aggregate(fire, o, nu, cells=cells), grid, h, self.defuzzification)
             empty = mass <= 0
             outs.append(torch.where(empty, torch.full_like(value, v.default), value))
             empties.append(empty)
@@ -439,7 +443,7 @@ class MamdaniSystem(nn.Module):
             raise NoRuleFiredError(msg)
         warnings.warn(msg + "; using the output's default", EmptyOutputWarning, stacklevel=3)
 
-    def evaluate(self, values: dict | None = None, **named) -> dict:
+    def evaluate(self, values: dict | None = None, /, **named) -> dict:
         """Crisp outputs by name: ``evaluate(consistency=5.5) -> {"spring_const": ..., ...}``.
 
         Values may be numbers or tensors of one shape (broadcast together); the results have
@@ -452,7 +456,7 @@ class MamdaniSystem(nn.Module):
             raise ConfigError(
                 "inputs",
                 f"exactly the inputs {', '.join(self.input_names())}",
-                f"missing {missing}, unknown {unknown}" if missing else f"unknown {unknown}",
+                got=f"missing {missing}, unknown {unknown}" if missing else f"unknown {unknown}",
                 show_got=True,
             )
         cols = torch.broadcast_tensors(*[torch.as_tensor(values[n], dtype=self.dtype) for n in self.input_names()])

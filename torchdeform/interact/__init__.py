@@ -13,6 +13,8 @@
                        model between body steps for large bodies)
 :mod:`.strain`         strain limiting: springs pulled back into ``[min, max]`` times their rest
                        length by averaged Jacobi corrections (Provot)
+:mod:`.palpation`      reading a tool's force series: the direction it works in, block means, its
+                       presses (force against indentation) and where the tissue is stiffest
 =====================  ===========================================================================
 
 Examples:

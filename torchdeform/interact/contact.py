@@ -4,7 +4,7 @@ Both are contact responses a :class:`~torchdeform.sim.model.Model` takes through
 ``Model(..., interactions=[...])``; the model knows them only by two methods, so the mass-spring core
 does not import this package:
 
-* ``project(model, x, v, t, dt, readings) -> (x, v)``, called by every integrator at the end of
+* ``project(model, x, v, t, dt, *, readings=None) -> (x, v)``, called by every integrator at the end of
   a step (after dragged nodes are put on their path), inside the compiled step too; it adds what
   it measured (forces on the tools, :mod:`~torchdeform.interact.reactions`) to the dict
   ``readings``, which the step returns as ``State.readings``;
@@ -29,7 +29,7 @@ Examples:
     >>> import torchdeform as td
     >>> from torchdeform.interact import HalfSpace, ProjectionContact, Tool
     >>> grid = td.Grid((2, 2, 2), spacing=0.01)
-    >>> floor = Tool(HalfSpace((1.0, 0.0, 0.0)), position=(-0.001, 0.0, 0.0))   # 1 mm below the body
+    >>> floor = Tool(HalfSpace(normal=(1.0, 0.0, 0.0)), position=(-0.001, 0.0, 0.0))   # 1 mm below the body
     >>> model = td.Model(grid, stiffness=10.0, mass=1e-3, gravity=(-9.81, 0, 0),
     ...                  interactions=[ProjectionContact([floor])], dtype=torch.float64)
     >>> state, _ = td.simulate(model, model.rest_state(), dt=1e-3, steps=300)
@@ -54,13 +54,13 @@ __all__ = ["ProjectionContact", "PenaltyContact"]
 def _tools(tools) -> list:
     tools = [tools] if isinstance(tools, Tool) else list(tools)
     if not tools or not all(isinstance(t, Tool) for t in tools):
-        raise ConfigError("contact.tools", "one Tool or a list of Tools", tools)
+        raise ConfigError("contact.tools", "one Tool or a list of Tools", got=tools)
     return tools
 
 
 def _number(value, key, expected, low=0.0):
     if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value) or value < low:
-        raise ConfigError(key, expected, value)
+        raise ConfigError(key, expected, got=value)
     return float(value)
 
 
@@ -92,7 +92,7 @@ class ProjectionContact:
         >>> import torch
         >>> from torchdeform.interact import Sphere, Tool
         >>> import torchdeform as td
-        >>> model = td.Model(td.Grid((1, 1, 1), 1.0), stiffness=1.0, mass=1.0, dtype=torch.float64)
+        >>> model = td.Model(td.Grid((1, 1, 1), spacing=1.0), stiffness=1.0, mass=1.0, dtype=torch.float64)
         >>> c = ProjectionContact(Tool(Sphere(0.5), position=(0.3, 0.0, 0.0)))
         >>> x, v = c.project(model, torch.zeros(1, 3, 1, 1, 1, dtype=torch.float64),
         ...                  torch.ones(1, 3, 1, 1, 1, dtype=torch.float64), 0.0, 0.01)
@@ -103,8 +103,8 @@ class ProjectionContact:
     def __init__(
         self,
         tools,
-        friction: float = 0.0,
         *,
+        friction: float = 0.0,
         direction: str = "normal",
         hold: bool = False,
         haptic_gain: float | None = None,
@@ -112,7 +112,7 @@ class ProjectionContact:
         self.tools = _tools(tools)
         self.friction = _number(friction, "contact.friction", "a Coulomb coefficient >= 0")
         if direction not in DIRECTIONS:
-            raise ConfigError("contact.direction", " or ".join(DIRECTIONS), direction)
+            raise ConfigError("contact.direction", " or ".join(DIRECTIONS), got=direction)
         self.direction, self.hold = direction, bool(hold)
         self.haptic_gain = (
             None if haptic_gain is None else _number(haptic_gain, "contact.haptic_gain", "a gain >= 0 (N/m)")
@@ -144,7 +144,7 @@ class ProjectionContact:
         y = y - ds.clamp_max(0) * ns  # what the ray left inside goes along the normal
         return torch.where(ahead, y, torch.where(inside, x - d * n, x))
 
-    def project(self, model, x, v, t, dt, readings=None):
+    def project(self, model, x, v, t, dt, *, readings=None):
         """Nodes inside a tool moved to its surface at time ``t``, velocities corrected.
 
         Args:
@@ -165,13 +165,13 @@ class ProjectionContact:
             if self.hold:
                 if torch.is_tensor(t):
                     raise ConfigError(
-                        "contact.hold", "the eager step (held nodes are kept in Python)", "a compiled step"
+                        "contact.hold", "the eager step (held nodes are kept in Python)", got="a compiled step"
                     )
                 att = self._held[k]
                 if att.mask is not None:  # release the held nodes whose motion leaves the tool
                     d, n = tool.sdf(x, t)
                     leaving = ((v - tool.point_velocity(x, t)) * n).sum(1, keepdim=True) > 0
-                    att.release(leaving)
+                    att.release(which=leaving)
                     x, v = att.follow(tool, x, v, t)
                 held = att.mask
             d, n = tool.sdf(x, t)
@@ -221,17 +221,17 @@ class PenaltyContact:
     Examples:
         >>> import torch
         >>> from torchdeform.interact import HalfSpace, Tool
-        >>> c = PenaltyContact(Tool(HalfSpace((1.0, 0.0, 0.0)), position=(0.0, 0.0, 0.0)), stiffness=100.0)
+        >>> c = PenaltyContact(Tool(HalfSpace(normal=(1.0, 0.0, 0.0)), position=(0.0, 0.0, 0.0)), stiffness=100.0)
         >>> x = torch.tensor([[[-0.01], [0.0], [0.0]]], dtype=torch.float64)     # 1 cm below the floor
         >>> c.force(None, x, torch.zeros_like(x), 0.0).flatten().tolist()
         [1.0, 0.0, 0.0]
     """
 
-    def __init__(self, tools, stiffness, damping: float = 0.0):
+    def __init__(self, tools, stiffness, *, damping: float = 0.0):
         self.tools = _tools(tools)
         k = stiffness
         if not torch.is_tensor(k) and (not isinstance(k, (int, float)) or not math.isfinite(k) or k <= 0):
-            raise ConfigError("contact.stiffness", "a positive number (N/m)", stiffness)
+            raise ConfigError("contact.stiffness", "a positive number (N/m)", got=stiffness)
         self.stiffness, self.damping = stiffness, _number(damping, "contact.damping", "a number >= 0 (N s/m)")
 
     def force(self, model, x, v, t):
@@ -259,7 +259,7 @@ class PenaltyContact:
                 f = f - self.damping * vn.clamp_max(0) * (depth > 0) * n
             yield f, d < 0
 
-    def project(self, model, x, v, t, dt, readings=None):
+    def project(self, model, x, v, t, dt, *, readings=None):
         """Positions unchanged; reports each tool's force and torque, the penalty at the end of the step."""
         if readings is not None:
             for tool, (f, inside) in zip(self.tools, self._forces(x, v, t)):

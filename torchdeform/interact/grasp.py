@@ -59,7 +59,7 @@ class Attachment:
         self.local = torch.where(new, local, self.local)
         self.mask = self.mask | new
 
-    def release(self, which: torch.Tensor | None = None) -> None:
+    def release(self, *, which: torch.Tensor | None = None) -> None:
         """Let go of the nodes of ``which`` (all when None)."""
         if self.mask is not None:
             self.mask = torch.zeros_like(self.mask) if which is None else self.mask & ~which
@@ -85,9 +85,9 @@ def _time(value, key):
     try:
         v = float(value)
     except (TypeError, ValueError):
-        raise ConfigError(key, "a time in seconds", value) from None
+        raise ConfigError(key, "a time in seconds", got=value) from None
     if math.isnan(v) or v < 0:
-        raise ConfigError(key, "a time in seconds >= 0", value)
+        raise ConfigError(key, "a time in seconds >= 0", got=value)
     return v
 
 
@@ -116,22 +116,22 @@ class Grasp:
         (False, True, False)
     """
 
-    def __init__(self, tool: Tool, close: float | None = None, open: float | None = None, *, margin: float = 0.0):
+    def __init__(self, tool: Tool, *, close: float | None = None, open: float | None = None, margin: float = 0.0):
         if not isinstance(tool, Tool):
-            raise ConfigError("grasp.tool", "a Tool", type(tool).__name__)
+            raise ConfigError("grasp.tool", "a Tool", got=type(tool).__name__)
         self.tool, self.close, self.open = tool, _time(close, "grasp.close"), _time(open, "grasp.open")
         if (self.close is None) != (self.open is None):
             raise ConfigError(
-                "grasp", "both a close and an open time (s), open = inf for never", f"close={close}, open={open}"
+                "grasp", "both a close and an open time (s), open = inf for never", got=f"close={close}, open={open}"
             )
         if self.close is not None and not self.open > self.close:
-            raise ConfigError("grasp.open", f"a time after close = {self.close} s", open)
+            raise ConfigError("grasp.open", f"a time after close = {self.close} s", got=open)
         try:
             self.margin = float(margin)
         except (TypeError, ValueError):
-            raise ConfigError("grasp.margin", "metres >= 0", margin) from None
+            raise ConfigError("grasp.margin", "metres >= 0", got=margin) from None
         if not math.isfinite(self.margin) or self.margin < 0:
-            raise ConfigError("grasp.margin", "metres >= 0", margin)
+            raise ConfigError("grasp.margin", "metres >= 0", got=margin)
         self.held, self._was_closed = Attachment(), False
         #: closed now (a device loop sets it when no times are given)
         self.closed = False
@@ -149,7 +149,7 @@ class Grasp:
         """A grasp adds no force."""
         return None
 
-    def project(self, model, x, v, t, dt, readings=None):
+    def project(self, model, x, v, t, dt, *, readings=None):
         """Attach on closing, move the held nodes with the tool, release on opening.
 
         Args:
@@ -164,7 +164,7 @@ class Grasp:
             raise ConfigError(
                 "interactions",
                 "a Grasp in the eager step (it keeps the grasped nodes in Python between steps)",
-                "a compiled step",
+                got="a compiled step",
             )
         now = self.closed_at(float(t))
         if now and not self._was_closed:

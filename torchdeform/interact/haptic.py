@@ -91,19 +91,19 @@ class HapticLoop:
         from ..sim.model import Model
 
         if mode not in MODES:
-            raise ConfigError("haptic.mode", " or ".join(MODES), mode)
-        self.rate = positive_number(rate, "haptic.rate", "a positive rate in Hz")
-        self.dt = positive_number(dt, "haptic.dt", "a positive time step (s)")
+            raise ConfigError("haptic.mode", " or ".join(MODES), got=mode)
+        self.rate = positive_number(rate, "haptic.rate", expected="a positive rate in Hz")
+        self.dt = positive_number(dt, "haptic.dt", expected="a positive time step (s)")
         if steps_per_tick is None:
             steps_per_tick = max(1, round(1.0 / (self.rate * self.dt)))
         if not isinstance(steps_per_tick, int) or steps_per_tick < 1:
-            raise ConfigError("haptic.steps_per_tick", "an integer >= 1", steps_per_tick)
+            raise ConfigError("haptic.steps_per_tick", "an integer >= 1", got=steps_per_tick)
         self.steps_per_tick = steps_per_tick
         self.pose = torch.tensor(start, dtype=model.dtype, device=model.device).reshape(3)
         self.tool = Tool(shape, position=self.pose, name=name)
         self.contact = ProjectionContact(self.tool, **(contact or {}))
         if not isinstance(model, Model):
-            raise ConfigError("haptic.model", "a torchdeform Model", type(model).__name__)
+            raise ConfigError("haptic.model", "a torchdeform Model", got=type(model).__name__)
         self.model = body = copy.copy(model)  # the caller's model keeps its interactions
         body.interactions = list(model.interactions) + [self.contact]
         spacing = model.grid.spacing
@@ -202,7 +202,7 @@ class HapticLoop:
         """The force ``(3,)`` N the hand feels with the tool at ``position`` ``(3,)`` m; paced to :attr:`rate`."""
         p = np.asarray(position, dtype=np.float64).reshape(3)
         if not np.isfinite(p).all():
-            raise ConfigError("haptic.position", "three finite numbers (m)", position)
+            raise ConfigError("haptic.position", "three finite numbers (m)", got=position)
         with self._lock:
             self._target = p
         if self.mode == "direct":

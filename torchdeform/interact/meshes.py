@@ -260,24 +260,24 @@ class MeshShape(Shape):
         [1.0, 0.0, 0.0]
     """
 
-    def __init__(self, mesh, resolution: int = 32, padding: float = 0.1):
+    def __init__(self, mesh, *, resolution: int = 32, padding: float = 0.1):
         if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)) or resolution < 4:
             raise ConfigError(
-                "mesh_shape.resolution", "an integer >= 4 (grid points along the longest axis)", resolution
+                "mesh_shape.resolution", "an integer >= 4 (grid points along the longest axis)", got=resolution
             )
         try:
             pad = float(padding)
         except (TypeError, ValueError):
             pad = math.nan
         if not math.isfinite(pad) or pad < 0:
-            raise ConfigError("mesh_shape.padding", "a number >= 0 (fraction of the largest extent)", padding)
+            raise ConfigError("mesh_shape.padding", "a number >= 0 (fraction of the largest extent)", got=padding)
         if isinstance(mesh, Path):
             mesh = str(mesh)
         vertices, faces = load_mesh(mesh, key="mesh")
         lo, hi = vertices.min(0), vertices.max(0)
         extent = float((hi - lo).max())
         if not extent > 0:
-            raise ConfigError("mesh", "a triangle mesh with a non-zero extent", "all vertices at one point")
+            raise ConfigError("mesh", "a triangle mesh with a non-zero extent", got="all vertices at one point")
         h = extent * (1 + 2 * pad) / (int(resolution) - 1)
         shape = tuple(max(2, math.ceil((e + 2 * pad * extent) / h - 1e-9) + 1) for e in hi - lo)
         origin = (lo + hi) / 2 - (np.array(shape) - 1) * h / 2

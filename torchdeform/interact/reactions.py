@@ -70,7 +70,7 @@ def report_momentum(
     report(readings, name, "torque", -torch.cross(x - centre, f, dim=1).flatten(2).sum(2))
 
 
-def support_reaction(model, state, loads=None, per_node: bool = False) -> torch.Tensor:
+def support_reaction(model, state, *, loads=None, per_node: bool = False) -> torch.Tensor:
     """Force the supports exert on the tissue at fixed and dragged nodes (quasi-static).
 
     Minus the sum of every force on the constrained nodes (springs, gravity, loads, penalty
@@ -82,9 +82,6 @@ def support_reaction(model, state, loads=None, per_node: bool = False) -> torch.
         loads: extra loads as for the integrators.
         per_node: return the field ``(B, 3, ...)`` instead of the total ``(B, 3)``.
     """
-    F = model.forces(state.x, state.v, state.t, loads)
-    if model.free is None:
-        field = torch.zeros_like(F)
-    else:
-        field = -F * (1 - model.free)
+    F = model.forces(state.x, state.v, t=state.t, loads=loads)
+    field = torch.zeros_like(F) if model.free is None else -F * (1 - model.free)
     return field if per_node else field.flatten(2).sum(2)

@@ -29,7 +29,7 @@ Examples:
     >>> model = td.Model(grid, stiffness=1.0, mass=1.0, dtype=torch.float64)
     >>> x = torch.tensor([0.0, 2.0], dtype=torch.float64).view(1, 1, 2, 1, 1) * torch.tensor(
     ...     [1.0, 0.0, 0.0], dtype=torch.float64).view(1, 3, 1, 1, 1)     # stretched to 2 x rest
-    >>> x1, _ = StrainLimit(0.9, 1.1, passes=1).project(model, x, torch.zeros_like(x), 0.0, 0.01)
+    >>> x1, _ = StrainLimit(min_ratio=0.9, max_ratio=1.1, passes=1).project(model, x, torch.zeros_like(x), 0.0, 0.01)
     >>> [round(c, 12) for c in x1[0, 0, :, 0, 0].tolist()]            # both ends move 0.45 in
     [0.45, 1.55]
 """
@@ -61,18 +61,20 @@ class StrainLimit:
         update_velocity: add ``dx / dt`` of the correction to the velocities.
 
     Examples:
-        >>> StrainLimit(0.9, 1.1, passes=4).passes
+        >>> StrainLimit(min_ratio=0.9, max_ratio=1.1, passes=4).passes
         4
     """
 
-    def __init__(self, min_ratio: float = 0.9, max_ratio: float = 1.1, passes: int = 4, update_velocity: bool = True):
+    def __init__(
+        self, *, min_ratio: float = 0.9, max_ratio: float = 1.1, passes: int = 4, update_velocity: bool = True
+    ):
         for key, v in (("strain_limit.min_ratio", min_ratio), ("strain_limit.max_ratio", max_ratio)):
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-                raise ConfigError(key, "a positive ratio of the rest length", v)
+                raise ConfigError(key, "a positive ratio of the rest length", got=v)
         if not min_ratio <= 1 <= max_ratio:
-            raise ConfigError("strain_limit", "min_ratio <= 1 <= max_ratio", (min_ratio, max_ratio))
+            raise ConfigError("strain_limit", "min_ratio <= 1 <= max_ratio", got=(min_ratio, max_ratio))
         if not isinstance(passes, int) or isinstance(passes, bool) or passes < 1:
-            raise ConfigError("strain_limit.passes", "an integer >= 1", passes)
+            raise ConfigError("strain_limit.passes", "an integer >= 1", got=passes)
         self.min_ratio, self.max_ratio, self.passes = float(min_ratio), float(max_ratio), passes
         self.update_velocity = bool(update_velocity)
 
@@ -106,7 +108,8 @@ class StrainLimit:
         Examples:
             >>> import torch
             >>> one = torch.ones(1, dtype=torch.float64)
-            >>> alpha, n = StrainLimit(0.9, 1.1).rule(4 * one, one, one > 0, one, 0 * one)   # l = 2 l0
+            >>> limit = StrainLimit(min_ratio=0.9, max_ratio=1.1)
+            >>> alpha, n = limit.rule(4 * one, one, one > 0, one, 0 * one)   # l = 2 l0
             >>> round(alpha.item(), 12), n.item()    # the free end a moves 0.45 * 2 = 0.9 towards b
             (0.45, 1.0)
         """
@@ -164,7 +167,7 @@ class StrainLimit:
         sums = [(alpha * dx[:, a]).sum(1, keepdim=True) for a in range(3)] + [violated.sum(1, keepdim=True)]
         return pm.spread((torch.cat(sums, 1) * wa).flatten(-2))
 
-    def project(self, model, x, v, t, dt, readings=None):
+    def project(self, model, x, v, t, dt, *, readings=None):
         """``passes`` Jacobi passes on the positions at the end of a step (velocities follow).
 
         Args:

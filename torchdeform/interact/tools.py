@@ -75,7 +75,7 @@ class Sphere(Shape):
     """
 
     def __init__(self, radius: float):
-        self.radius = positive_number(radius, "sphere.radius", "a positive number of metres")
+        self.radius = positive_number(radius, "sphere.radius", expected="a positive number of metres")
 
     def sdf(self, p):
         """Signed distance and outward normal (see :meth:`Shape.sdf`)."""
@@ -101,16 +101,16 @@ class Capsule(Shape):
         (0.5, [1.0, 0.0, 0.0])
     """
 
-    def __init__(self, radius: float, half_length: float, axis: int = 2):
-        self.radius = positive_number(radius, "capsule.radius", "a positive number of metres")
+    def __init__(self, radius: float, half_length: float, *, axis: int = 2):
+        self.radius = positive_number(radius, "capsule.radius", expected="a positive number of metres")
         try:
             self.half_length = float(half_length)
         except (TypeError, ValueError):
-            raise ConfigError("capsule.half_length", "a number of metres >= 0", half_length) from None
+            raise ConfigError("capsule.half_length", "a number of metres >= 0", got=half_length) from None
         if not math.isfinite(self.half_length) or self.half_length < 0:
-            raise ConfigError("capsule.half_length", "a number of metres >= 0", half_length)
+            raise ConfigError("capsule.half_length", "a number of metres >= 0", got=half_length)
         if axis not in (0, 1, 2):
-            raise ConfigError("capsule.axis", "0 (D), 1 (H) or 2 (W)", axis)
+            raise ConfigError("capsule.axis", "0 (D), 1 (H) or 2 (W)", got=axis)
         self.axis = axis
 
     def sdf(self, p):
@@ -141,7 +141,7 @@ class Box(Shape):
     def __init__(self, half_extents):
         h = as_vec3(half_extents, "box.half_extents")
         if min(h) <= 0:
-            raise ConfigError("box.half_extents", "three positive numbers (metres)", half_extents)
+            raise ConfigError("box.half_extents", "three positive numbers (metres)", got=half_extents)
         self.half_extents = h
 
     def sdf(self, p):
@@ -166,16 +166,16 @@ class HalfSpace(Shape):
 
     Examples:
         >>> import torch
-        >>> d, n = HalfSpace((1.0, 0.0, 0.0)).sdf(torch.tensor([[[-0.5], [3.0], [0.0]]]))
+        >>> d, n = HalfSpace(normal=(1.0, 0.0, 0.0)).sdf(torch.tensor([[[-0.5], [3.0], [0.0]]]))
         >>> d.item(), n[0, :, 0].tolist()
         (-0.5, [1.0, 0.0, 0.0])
     """
 
-    def __init__(self, normal=(1.0, 0.0, 0.0)):
+    def __init__(self, *, normal=(1.0, 0.0, 0.0)):
         v = as_vec3(normal, "half_space.normal")
         s = math.sqrt(sum(c * c for c in v))
         if s == 0:
-            raise ConfigError("half_space.normal", "a non-zero direction", normal)
+            raise ConfigError("half_space.normal", "a non-zero direction", got=normal)
         self.normal = tuple(c / s for c in v)
 
     def sdf(self, p):
@@ -242,20 +242,20 @@ class Tool:
         (0.003, [0.0, 0.0, 1.0])
     """
 
-    def __init__(self, shape: Shape, path=None, *, position=None, orientation=None, name: str = "tool"):
+    def __init__(self, shape: Shape, *, path=None, position=None, orientation=None, name: str = "tool"):
         if not isinstance(shape, Shape):
             raise ConfigError(
-                "tool.shape", "a Shape (Sphere, Capsule, Box, HalfSpace, MeshShape)", type(shape).__name__
+                "tool.shape", "a Shape (Sphere, Capsule, Box, HalfSpace, MeshShape)", got=type(shape).__name__
             )
         if (path is None) == (position is None):
             raise ConfigError(
                 "tool",
                 "exactly one of path (waypoints) or position (fixed or callable)",
-                "both" if path is not None else "neither",
+                got="both" if path is not None else "neither",
             )
         if path is not None and orientation is not None:
             raise ConfigError(
-                "tool.orientation", "orientations inside the path waypoints (t, position, rotation)", orientation
+                "tool.orientation", "orientations inside the path waypoints (t, position, rotation)", got=orientation
             )
         self.shape, self.name = shape, str(name)
         self._fn = self._path = self._rot_fn = self._rot = None
@@ -264,18 +264,18 @@ class Tool:
                 rows = [tuple(w) for w in path]
             except TypeError:
                 raise ConfigError(
-                    "tool.path", "waypoints [t, [d, h, w]] or [t, [d, h, w], [rd, rh, rw]]", path
+                    "tool.path", "waypoints [t, [d, h, w]] or [t, [d, h, w], [rd, rh, rw]]", got=path
                 ) from None
             sizes = {len(w) for w in rows}
             if not rows or not sizes <= {2, 3} or len(sizes) != 1:
-                raise ConfigError("tool.path", "waypoints all [t, position] or all [t, position, rotation]", path)
-            self._path = Waypoints([w[:2] for w in rows], "tool.path")
+                raise ConfigError("tool.path", "waypoints all [t, position] or all [t, position, rotation]", got=path)
+            self._path = Waypoints([w[:2] for w in rows], key="tool.path")
             if sizes == {3}:
-                self._rot = Waypoints([(w[0], w[2]) for w in rows], "tool.path rotation")
+                self._rot = Waypoints([(w[0], w[2]) for w in rows], key="tool.path rotation")
         else:
-            self.move_to(position, orientation)
+            self.move_to(position, orientation=orientation)
 
-    def move_to(self, position, orientation=None) -> None:
+    def move_to(self, position, *, orientation=None) -> None:
         """Set the pose: a position ``(3,)`` / ``(B, 3)`` m or a callable ``t -> (3,)``, and a rotation vector.
 
         A device loop calls this before each step; the tool's velocity is then zero (give it a
@@ -290,14 +290,14 @@ class Tool:
             self._fn = _constant(position)
         else:
             self._fn = None
-            self._path = Waypoints([(0.0, as_vec3(position, "tool.position"))], "tool.position")
+            self._path = Waypoints([(0.0, as_vec3(position, "tool.position"))], key="tool.position")
         self._rot_fn = None
         if callable(orientation):
             self._rot_fn = orientation
         elif torch.is_tensor(orientation) and orientation.shape[-1:] == (3,) and orientation.dim() <= 2:
             self._rot_fn = _constant(orientation)
         elif orientation is not None:
-            self._rot = Waypoints([(0.0, as_vec3(orientation, "tool.orientation"))], "tool.orientation")
+            self._rot = Waypoints([(0.0, as_vec3(orientation, "tool.orientation"))], key="tool.orientation")
 
     def position(self, t):
         """Position at time ``t``: a tuple for a float ``t``, a tensor ``(3,)`` / ``(B, 3)`` for a 0-d tensor."""
@@ -320,7 +320,7 @@ class Tool:
             return (torch.as_tensor(b) - torch.as_tensor(a)) / (2 * dt)
         return tuple((q - p) / (2 * dt) for p, q in zip(a, b))
 
-    def velocity(self, t, dt: float = 1e-6):
+    def velocity(self, t, *, dt: float = 1e-6):
         """Velocity ``(3,)`` m/s of the tool's origin at ``t``.
 
         The path segment entered at ``t``; a central difference of step ``dt`` for a callable.
@@ -329,7 +329,7 @@ class Tool:
             return self._rate(self._fn, t, dt)
         return self._path.rate(t)
 
-    def angular_velocity(self, t, dt: float = 1e-6):
+    def angular_velocity(self, t, *, dt: float = 1e-6):
         """Angular velocity ``(3,)`` rad/s: the rate of the rotation vector (exact about a fixed axis)."""
         if self._rot_fn is not None:
             return self._rate(self._rot_fn, t, dt)

@@ -43,8 +43,8 @@ Modules: :mod:`.series` (series and their files), :mod:`.synthetic` (generators)
 Example:
     >>> from torchdeform import learn
     >>> series = learn.radetzky_cube(springs=70, steps=100)          # the first 100 of its 250 steps
-    >>> params = learn.Parameters(series, stiffness=learn.SpringParameter.like(series, 30.0),
-    ...                           damping=learn.SpringParameter.like(series, 0.04),
+    >>> params = learn.Parameters(series, stiffness=learn.SpringParameter.like(series, init=30.0),
+    ...                           damping=learn.SpringParameter.like(series, init=0.04),
     ...                           mass=series.truth["mass"])
     >>> loss = learn.WindowLoss(series, window=10)
     >>> trainer = learn.Trainer(params, loss, optimizer="lbfgs", iterations=30, tol=1e-12, progress=False)

@@ -53,9 +53,9 @@ def _numbers(text, key):
     try:
         vals = [float(v) for v in str(text).split(",")]
     except ValueError:
-        raise ConfigError(key, "a number or comma-separated numbers", text) from None
+        raise ConfigError(key, "a number or comma-separated numbers", got=text) from None
     if not all(math.isfinite(v) and v >= 0 for v in vals):
-        raise ConfigError(key, "finite numbers >= 0", text)
+        raise ConfigError(key, "finite numbers >= 0", got=text)
     return vals[0] if len(vals) == 1 else vals
 
 
@@ -81,12 +81,14 @@ def command(args) -> int:
             )
         else:
             if args.springs is not None:
-                raise ConfigError("--springs", "not together with --n (Radetzky's sets are 3 x 3 x 3)", args.springs)
+                raise ConfigError(
+                    "--springs", "not together with --n (Radetzky's sets are 3 x 3 x 3)", got=args.springs
+                )
             regions = None
             if args.regions is not None:
-                g, _ = cube_grid(args.n, 0.01, None, args.topology)
+                g, _ = cube_grid(n=args.n, spacing=0.01, springs=None, topology=args.topology)
                 if args.regions not in ("layers", "inclusion"):
-                    raise ConfigError("--regions", "layers or inclusion", args.regions)
+                    raise ConfigError("--regions", "layers or inclusion", got=args.regions)
                 regions = layered_regions(g) if args.regions == "layers" else inclusion_regions(g, args.n / 4)
             s = cube_series(
                 n=args.n,
@@ -135,7 +137,7 @@ def run_script(name: str, args, fit, summary) -> int:
         torch.set_num_threads(args.threads)
         out = Path(args.out)
         if out.exists() and not out.is_dir():
-            raise ConfigError("--out", "a folder (this path is a file)", str(out))
+            raise ConfigError("--out", "a folder (this path is a file)", got=str(out))
         out.mkdir(parents=True, exist_ok=True)
         t0, c0 = time.perf_counter(), time.process_time()
         result = fit(args, out)

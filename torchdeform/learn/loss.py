@@ -60,6 +60,7 @@ class WindowLoss:
     def __init__(
         self,
         series: Series,
+        *,
         window: int | None = 10,
         velocity: str = "difference",
         checkpoint: int | None = None,
@@ -88,12 +89,12 @@ class WindowLoss:
         E = series.every
         if T < 2 or (np.diff(steps) != E).any():
             raise ConfigError(
-                "series.steps", "evenly spaced observation steps (resample the series first)", steps[:6].tolist()
+                "series.steps", "evenly spaced observation steps (resample the series first)", got=steps[:6].tolist()
             )
         if window is not None and int(window) < 1:
-            raise ConfigError("window", "an integer >= 1 (observation intervals) or None", window)
+            raise ConfigError("window", "an integer >= 1 (observation intervals) or None", got=window)
         if checkpoint is not None and int(checkpoint) < 1:
-            raise ConfigError("checkpoint", "an integer >= 1 (steps per segment) or None", checkpoint)
+            raise ConfigError("checkpoint", "an integer >= 1 (steps per segment) or None", got=checkpoint)
         self.K = T - 1 if window is None else min(int(window), T - 1)
         self.last_step = series.num_steps
         self.every, self.T = E, T
@@ -102,11 +103,11 @@ class WindowLoss:
         self.obs = torch.as_tensor(series.positions, dtype=dtype)  # (T, 3, D, H, W)
         free = ~torch.as_tensor(series.constrained())
         self.weight = (torch.as_tensor(series.mask) & free).to(dtype).unsqueeze(1)  # (T, 1, D, H, W)
-        X = series.grid.rest_positions(dtype)
+        X = series.grid.rest_positions(dtype=dtype)
         disp = ((self.obs - X) ** 2 * self.weight).sum()
         self.count = float(self.weight.sum()) * 3
         if self.count == 0:
-            raise ConfigError("series.mask", "at least one observed free node", "none", show_got=True)
+            raise ConfigError("series.mask", "at least one observed free node", got="none", show_got=True)
         self.ref = math.sqrt(max(float(disp) / self.count, 1e-300))
         self.starts = list(range(0, T - 1, self.K))  # window start observations
         # the autograd graph of one evaluation: every step of every window keeps its node fields (state,
@@ -121,7 +122,7 @@ class WindowLoss:
             got=checkpoint if checkpoint is not None else window,
         )
         if int(smooth) < 0:
-            raise ConfigError("smooth", "an integer >= 0 (half-width in observations)", smooth)
+            raise ConfigError("smooth", "an integer >= 0 (half-width in observations)", got=smooth)
         self.smooth = int(smooth)
         # normalisation over the whole series, so a subset of windows has the same scale
         self.scale = 1.0 / (self.count * self.ref**2)
@@ -134,17 +135,17 @@ class WindowLoss:
     # ---------------------------------------------------------------- starting states
     def _start(self, model, starts: list) -> State:
         s = self.series
-        st = s.start_state(model, len(starts))
+        st = s.start_state(model, batch=len(starts))
         x, v = st.x, st.v
         if all(i == 0 for i in starts):
-            return State(x, v, 0.0)
+            return State(x, v, t=0.0)
         idx = torch.tensor(starts)
         obs, w = self.obs[idx], torch.as_tensor(s.mask)[idx].unsqueeze(1)
         later = torch.tensor([i > 0 for i in starts]).view(-1, 1, 1, 1, 1)
         free = ~torch.as_tensor(s.constrained())
         use = w & later & free
         x = torch.where(use, obs, x)
-        tab = s.tables(model.dtype, model.device)
+        tab = s.tables(dtype=model.dtype, device=model.device)
         if tab["drag"] is not None:  # boundary: known prescribed positions
             steps = torch.as_tensor(s.steps)[idx]
             x = torch.where(tab["drag_mask"], tab["drag"][steps], x)
@@ -161,7 +162,7 @@ class WindowLoss:
                 steps = torch.as_tensor(s.steps)[idx]
                 vd = (tab["drag"][steps] - tab["drag"][(steps - 1).clamp_min(0)]) / s.dt
                 v = torch.where(tab["drag_mask"] & later, vd, v)
-        return State(x, v, 0.0)
+        return State(x, v, t=0.0)
 
     def _smoothed(self, starts: list):
         """Savitzky-Golay start states for noisy data.
@@ -208,7 +209,7 @@ class WindowLoss:
         The series' loads and drags are indexed by step, so the state's time is not needed
         (and a time that changed every call would make the compiled step recompile).
         """
-        st = self.series.advance(model, State(x, v, 0.0), n, self.integrator)
+        st = self.series.advance(model, State(x, v, t=0.0), n, integrator=self.integrator)
         return st.x, st.v
 
     def _step(self, model, x, v, n):
@@ -221,7 +222,7 @@ class WindowLoss:
 
                 self._compiled = None
                 first = (str(e).strip().splitlines() or [""])[0][:160]
-                warn_fallback(f"{type(e).__name__}: {first}", "the eager rollout")
+                warn_fallback(f"{type(e).__name__}: {first}", what="the eager rollout")
         return self._advance(model, x, v, n)
 
     def _window_loss(self, model, state: State, starts: list):
@@ -248,14 +249,14 @@ class WindowLoss:
                 k, c, m = model.stiffness, model.damping, model.mass
 
                 def segment(x, v, k, c, m, off=off, length=length):
-                    sub = self.series.model(k, c, m, model.dtype, model.device)
+                    sub = self.series.model(k, c, m, dtype=model.dtype, device=model.device)
                     return self._segment(sub, x, v, n0, length, off, targets, weights)
 
                 x, v, part = _checkpoint(segment, x, v, k, c, m, use_reentrant=True)
             else:
                 x, v, part = self._segment(model, x, v, n0, length, off, targets, weights)
             loss = loss + part
-        return loss, State(x, v, 0.0)
+        return loss, State(x, v, t=0.0)
 
     def __call__(self, params, windows=None) -> torch.Tensor:
         """The loss, a 0-d tensor.
@@ -277,7 +278,7 @@ class WindowLoss:
         for i in self.starts:
             if i > 0:
                 w = torch.as_tensor(s.mask)[i][None, None] & free
-                state = State(torch.where(w, self.obs[i : i + 1], state.x), state.v, 0.0)
+                state = State(torch.where(w, self.obs[i : i + 1], state.x), state.v, t=0.0)
             loss, state = self._window_loss(model, state, [i])
             if i in chosen:
                 total = total + loss

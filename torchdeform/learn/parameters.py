@@ -38,7 +38,7 @@ _BLOWUP = 1e30  # the loss L-BFGS sees at trial points where the simulation dive
 SHARING = ("shared", "class", "region", "spring")
 
 
-def node_to_springs(values: torch.Tensor, grid: Grid, spring_mask=None) -> torch.Tensor:
+def node_to_springs(values: torch.Tensor, grid: Grid, *, spring_mask=None) -> torch.Tensor:
     """Per-node values to per-spring values: harmonic mean of the two end nodes.
 
     Args:
@@ -50,11 +50,11 @@ def node_to_springs(values: torch.Tensor, grid: Grid, spring_mask=None) -> torch
         ``(S, D, H, W)`` (or ``(B, S, D, H, W)``), zero where no spring exists. Differentiable.
     """
     lead = values.dim() == 4
-    out = harmonic_mean_of_ends(values if lead else values.unsqueeze(0), grid, spring_mask)
+    out = harmonic_mean_of_ends(values if lead else values.unsqueeze(0), grid, spring_mask=spring_mask)
     return out if lead else out[0]
 
 
-def expand_spring_param(value, grid: Grid, regions=None, spring_mask=None, dtype=torch.float64):
+def expand_spring_param(value, grid: Grid, *, regions=None, spring_mask=None, dtype=torch.float64):
     """A spring parameter as ``(S, D, H, W)``.
 
     ``value`` is a number, a per-region table ``(R,)`` (with node ``regions`` labels
@@ -67,13 +67,13 @@ def expand_spring_param(value, grid: Grid, regions=None, spring_mask=None, dtype
         return t * mask
     if regions is not None and t.dim() == 1:
         lab = torch.as_tensor(regions, dtype=torch.long)
-        return node_to_springs(t[lab], grid, spring_mask)
+        return node_to_springs(t[lab], grid, spring_mask=spring_mask)
     if t.dim() == 1 and t.shape[0] == S:
         return t.view(S, 1, 1, 1) * mask
     if tuple(t.shape) == (S,) + shape:
         return t * mask
     raise ConfigError(
-        "spring parameter", f"a number, (R,) with regions, (S,) or (S, D, H, W) = {(S,) + shape}", tuple(t.shape)
+        "spring parameter", f"a number, (R,) with regions, (S,) or (S, D, H, W) = {(S,) + shape}", got=tuple(t.shape)
     )
 
 
@@ -92,7 +92,7 @@ def from_raw(raw: torch.Tensor, transform: str) -> torch.Tensor:
 
 def _check(key, value, allowed):
     if value not in allowed:
-        raise ConfigError(key, f"one of {', '.join(allowed)}", value)
+        raise ConfigError(key, f"one of {', '.join(allowed)}", got=value)
 
 
 class Positive(nn.Module):
@@ -105,12 +105,12 @@ class Positive(nn.Module):
         transform: ``"log"`` or ``"softplus"``.
     """
 
-    def __init__(self, init, transform: str = "log", dtype=torch.float64):
+    def __init__(self, init, *, transform: str = "log", dtype=torch.float64):
         super().__init__()
         _check("transform", transform, TRANSFORMS)
         init = torch.as_tensor(init, dtype=dtype).clone()
         if not bool(torch.isfinite(init).all()) or bool((init <= 0).any()):
-            raise ConfigError("init", "finite values > 0", init.flatten()[:5].tolist())
+            raise ConfigError("init", "finite values > 0", got=init.flatten()[:5].tolist())
         self.transform = transform
         scale = float(init.abs().mean()) if transform == "softplus" else 1.0
         self.register_buffer("scale", torch.tensor(scale, dtype=dtype))
@@ -140,6 +140,7 @@ class SpringParameter(nn.Module):
     def __init__(
         self,
         grid,
+        *,
         spring_mask=None,
         init=1.0,
         sharing: str = "shared",
@@ -163,10 +164,10 @@ class SpringParameter(nn.Module):
             n = len(self.classes)
         elif sharing == "region":
             if regions is None:
-                raise ConfigError("regions", "node labels (D, H, W) for sharing='region'", None, show_got=True)
+                raise ConfigError("regions", "node labels (D, H, W) for sharing='region'", got=None, show_got=True)
             lab = torch.as_tensor(np.asarray(regions), dtype=torch.long)
             if tuple(lab.shape) != grid.shape or int(lab.min()) < 0:
-                raise ConfigError("regions", f"labels >= 0 of shape {grid.shape}", tuple(lab.shape))
+                raise ConfigError("regions", f"labels >= 0 of shape {grid.shape}", got=tuple(lab.shape))
             self.register_buffer("regions", lab, persistent=False)
             n = int(lab.max()) + 1
         else:
@@ -175,13 +176,20 @@ class SpringParameter(nn.Module):
         if init.dim() == 0:
             init = init.expand(n)
         if tuple(init.shape) != (n,):
-            raise ConfigError("init", f"a number or {n} values for sharing={sharing!r}", tuple(init.shape))
-        self.value = Positive(init, transform, dtype)
+            raise ConfigError("init", f"a number or {n} values for sharing={sharing!r}", got=tuple(init.shape))
+        self.value = Positive(init, transform=transform, dtype=dtype)
 
     @classmethod
-    def like(cls, series: Series, init=1.0, sharing: str = "shared", transform: str = "log"):
+    def like(cls, series: Series, *, init=1.0, sharing: str = "shared", transform: str = "log"):
         """A parameter on the grid and springs of ``series`` (regions from its truth, if any)."""
-        return cls(series.grid, series.spring_mask_tensor(), init, sharing, series.truth.get("regions"), transform)
+        return cls(
+            series.grid,
+            spring_mask=series.spring_mask_tensor(),
+            init=init,
+            sharing=sharing,
+            regions=series.truth.get("regions"),
+            transform=transform,
+        )
 
     def values(self) -> torch.Tensor:
         """The learned values, ``(n,)``."""
@@ -197,7 +205,7 @@ class SpringParameter(nn.Module):
         if self.sharing == "class":
             return v[self.class_index].view(-1, 1, 1, 1) * mask
         if self.sharing == "region":
-            return node_to_springs(v[self.regions], self.grid, self.mask)
+            return node_to_springs(v[self.regions], self.grid, spring_mask=self.mask)
         out = torch.zeros(self.mask.shape, dtype=dtype, device=v.device)
         return out.masked_scatter(self.mask, v)
 
@@ -215,7 +223,7 @@ class NodeParameter(nn.Module):
     Calling it returns ``(D, H, W)``.
     """
 
-    def __init__(self, grid, init=1.0, sharing: str = "shared", transform: str = "log", dtype=torch.float64):
+    def __init__(self, grid, *, init=1.0, sharing: str = "shared", transform: str = "log", dtype=torch.float64):
         super().__init__()
         _check("sharing", sharing, ("shared", "node"))
         self.grid, self.sharing = grid, sharing
@@ -227,9 +235,9 @@ class NodeParameter(nn.Module):
         if init.shape[0] == math.prod(grid.shape) and n != init.shape[0]:
             init = init[grid.nodes().reshape(-1)]
         if tuple(init.shape) != (n,):
-            raise ConfigError("init", f"a number or {n} values for sharing={sharing!r}", tuple(init.shape))
+            raise ConfigError("init", f"a number or {n} values for sharing={sharing!r}", got=tuple(init.shape))
         self.register_buffer("nodes", grid.nodes(), persistent=False)
-        self.value = Positive(init, transform, dtype)
+        self.value = Positive(init, transform=transform, dtype=dtype)
 
     def values(self) -> torch.Tensor:
         """The learned values, ``(1,)`` (shared) or ``(num_nodes,)`` (per node)."""
@@ -265,7 +273,9 @@ class FuzzySprings(nn.Module):
         params = Parameters(series, fs.part("stiffness"), fs.part("damping"), mass)
     """
 
-    def __init__(self, fis, inputs: dict, outputs=None, scale=None, learn: str = "inputs", grid=None, spring_mask=None):
+    def __init__(
+        self, fis, inputs: dict, *, outputs=None, scale=None, learn: str = "inputs", grid=None, spring_mask=None
+    ):
         super().__init__()
         _check("learn", learn, ("inputs", "membership", "both"))
         self.fis = fis.double()
@@ -273,11 +283,11 @@ class FuzzySprings(nn.Module):
         self.scale = dict(scale or {})
         names = self.fis.input_names()
         if set(inputs) != set(names):
-            raise ConfigError("inputs", f"a value for each input ({', '.join(names)})", sorted(inputs))
+            raise ConfigError("inputs", f"a value for each input ({', '.join(names)})", got=sorted(inputs))
         for role, out in self.outputs.items():
             if out not in self.fis.output_names():
                 raise ConfigError(
-                    f"outputs.{role}", f"an output of {self.fis.name} ({', '.join(self.fis.output_names())})", out
+                    f"outputs.{role}", f"an output of {self.fis.name} ({', '.join(self.fis.output_names())})", got=out
                 )
         self.fis.requires_grad_(False)
         if learn in ("membership", "both"):
@@ -290,7 +300,7 @@ class FuzzySprings(nn.Module):
         self.register_buffer("hi", hi)
         x = torch.tensor([float(inputs[n]) for n in names], dtype=torch.float64)
         if bool(((x <= lo) | (x >= hi)).any()):
-            raise ConfigError("inputs", "values strictly inside each input's range", inputs)
+            raise ConfigError("inputs", "values strictly inside each input's range", got=inputs)
         u = (x - lo) / (hi - lo)
         self.raw_inputs = nn.Parameter(torch.log(u / (1 - u)), requires_grad=learn in ("inputs", "both"))
         self.grid = grid
@@ -334,7 +344,7 @@ class Parameters(nn.Module):
         mass: a :class:`NodeParameter` (learned) or fixed kg per node (a number or ``(D, H, W)``).
     """
 
-    def __init__(self, series: Series, stiffness, damping, mass, dtype=torch.float64):
+    def __init__(self, series: Series, stiffness, damping, mass, *, dtype=torch.float64):
         super().__init__()
         self.series, self.dtype = series, dtype
         self.learned = nn.ModuleDict()
@@ -357,7 +367,7 @@ class Parameters(nn.Module):
     def model(self):
         """The :class:`~torchdeform.sim.model.Model` with the current values (differentiable)."""
         p = self.physical()
-        return self.series.model(p["stiffness"], p["damping"], p["mass"], self.dtype)
+        return self.series.model(p["stiffness"], p["damping"], p["mass"], dtype=self.dtype)
 
     def summary(self) -> dict:
         """Learned values as plain Python: a float for one value, else a list."""

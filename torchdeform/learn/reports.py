@@ -79,7 +79,7 @@ def spread_report(learned, truth) -> dict:
     }
 
 
-def curvature_report(params: Parameters, loss, rel_threshold: float = 1e-6, max_params: int = 600) -> dict:
+def curvature_report(params: Parameters, loss, *, rel_threshold: float = 1e-6, max_params: int = 600) -> dict:
     """Eigenvalues of the loss Hessian in the transformed (log) parameters at the current values.
 
     Directions with curvature below ``rel_threshold * max`` are (practically) not determined
@@ -118,7 +118,7 @@ def curvature_report(params: Parameters, loss, rel_threshold: float = 1e-6, max_
     }
 
 
-def plot_history(history, path, title: str = "learning curve", extra: dict | None = None) -> Path:
+def plot_history(history, path, *, title: str = "learning curve", extra: dict | None = None) -> Path:
     """Loss against iteration (log scale) to ``path`` (PNG).
 
     ``extra``: more curves ``{label: (iterations, values)}``. Returns the path.
@@ -148,7 +148,7 @@ def plot_history(history, path, title: str = "learning curve", extra: dict | Non
 
 
 def plot_scan(
-    values, losses, marker_at, path, xlabel: str, marker: str = "true value", title: str = "scan", logx: bool = False
+    values, losses, marker_at, path, xlabel: str, *, marker: str = "true value", title: str = "scan", logx: bool = False
 ) -> Path:
     """Loss against one scanned parameter (log loss axis), a vertical line at ``marker_at``.
 
@@ -172,7 +172,7 @@ def plot_scan(
     return Path(path)
 
 
-def plot_spread(learned, truth, path, title: str = "per-spring recovery") -> Path:
+def plot_spread(learned, truth, path, *, title: str = "per-spring recovery") -> Path:
     """Histogram of learned/true ratios (log scale) to ``path``."""
     import matplotlib
 

@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import KW_ONLY, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -95,7 +95,7 @@ def load_to_json(load, index: int) -> tuple[dict, dict]:
         else:
             d["path"] = [[float(t), [float(c) for c in o]] for t, o in load.path]
     else:
-        raise ConfigError(f"loads[{index}]", "a PointForce, SurfaceForce, FieldForce or Drag", type(load).__name__)
+        raise ConfigError(f"loads[{index}]", "a PointForce, SurfaceForce, FieldForce or Drag", got=type(load).__name__)
     return d, arrays
 
 
@@ -105,63 +105,26 @@ def load_from_json(d, arrays: dict, shape: tuple, where: str) -> list:
     A ``"force"`` on several nodes is one :class:`PointForce` per node. Raises a
     :class:`ConfigError` naming ``where`` and the key.
     """
-
-    def bad(key, expected, got):
-        return ConfigError(f"{where}.{key}", expected, got)
-
     if not isinstance(d, dict):
-        raise ConfigError(where, "a table with kind, profile, ...", d)
+        raise ConfigError(where, "a table with kind, profile, ...", got=d)
     kind = d.get("kind")
     if kind not in LOAD_KINDS:
-        raise bad("kind", f"one of {', '.join(LOAD_KINDS)}", kind)
-    profile = d.get("profile", "constant")
-    if profile not in PROFILES:
-        raise bad("profile", f"one of {', '.join(PROFILES)}", profile)
-    nums = {}
-    for k, default in (("start", 0.0), ("duration", 0.0), ("period", 1.0)):
-        v = d.get(k, default)
-        if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-            raise bad(k, "a finite number >= 0 (s)", v)
-        nums[k] = float(v)
-    if profile == "sine" and nums["period"] <= 0:
-        raise bad("period", "a positive number (s)", nums["period"])
-    timing = {
-        "start": nums["start"],
-        "ramp": 0.0 if profile == "constant" else nums["duration"],
-        "period": nums["period"] if profile == "sine" else None,
-    }
+        raise _bad_load(where, "kind", f"one of {', '.join(LOAD_KINDS)}", kind)
+    timing = _load_timing(d, where)
     if kind == "field":
         name = d.get("array")
         if name not in arrays:
-            raise bad("array", "the name of a (3, D, H, W) array stored in the file", name)
+            raise _bad_load(where, "array", "the name of a (3, D, H, W) array stored in the file", name)
         arr = np.asarray(arrays[name], dtype=np.float64)
         if arr.shape != (3,) + tuple(shape):
-            raise bad("array", f"shape (3, {', '.join(map(str, shape))})", arr.shape)
+            raise _bad_load(where, "array", f"shape (3, {', '.join(map(str, shape))})", arr.shape)
         return [FieldForce(arr, **timing)]
-    vector = d.get("vector")
-    if kind != "drag" or "path" not in d:
-        try:
-            vector = tuple(float(c) for c in vector)
-        except (TypeError, ValueError):
-            vector = ()
-        if len(vector) != 3 or not all(math.isfinite(c) for c in vector):
-            raise bad("vector", "three finite numbers (d, h, w)", d.get("vector"))
+    vector = _load_vector(d, where) if kind != "drag" or "path" not in d else d.get("vector")
     if kind == "traction":
         if d.get("face") not in FACES:
-            raise bad("face", f"a face name: {', '.join(FACES)}", d.get("face"))
+            raise _bad_load(where, "face", f"a face name: {', '.join(FACES)}", d.get("face"))
         return [SurfaceForce(d["face"], vector, **timing)]
-    nodes = d.get("nodes")
-    try:
-        nodes = [tuple(int(c) for c in n) for n in nodes]
-        ok = all(len(n) == 3 for n in nodes) and len(nodes) > 0
-    except (TypeError, ValueError):
-        ok = False
-    if not ok:
-        raise bad("nodes", "a non-empty list of node indices [[i, j, k], ...]", d.get("nodes"))
-    for nd in nodes:
-        if not all(0 <= c < n for c, n in zip(nd, shape)):
-            raise bad("nodes", f"node indices inside the grid {tuple(shape)}", list(nd))
-    nodes = list(dict.fromkeys(nodes))
+    nodes = _load_nodes(d, shape, where)
     if kind == "force":
         return [PointForce(nd, vector, **timing) for nd in nodes]
     mask = torch.zeros(tuple(shape), dtype=torch.bool)
@@ -173,8 +136,60 @@ def load_from_json(d, arrays: dict, shape: tuple, where: str) -> list:
     try:
         path = [(float(p[0]), tuple(float(c) for c in p[1])) for p in path]
     except (TypeError, ValueError, IndexError, KeyError):
-        raise bad("path", "waypoints [[t, [od, oh, ow]], ...]", d.get("path")) from None
-    return [Drag(mask, path)]
+        raise _bad_load(where, "path", "waypoints [[t, [od, oh, ow]], ...]", d.get("path")) from None
+    return [Drag(mask, path=path)]
+
+
+def _bad_load(where: str, key: str, expected: str, got) -> ConfigError:
+    """The error for key ``key`` of the load table at ``where``."""
+    return ConfigError(f"{where}.{key}", expected, got=got)
+
+
+def _load_timing(d: dict, where: str) -> dict:
+    """The ``start``, ``ramp`` and ``period`` keywords of a load table's ``profile`` and times (s)."""
+    profile = d.get("profile", "constant")
+    if profile not in PROFILES:
+        raise _bad_load(where, "profile", f"one of {', '.join(PROFILES)}", profile)
+    nums = {}
+    for k, default in (("start", 0.0), ("duration", 0.0), ("period", 1.0)):
+        v = d.get(k, default)
+        if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+            raise _bad_load(where, k, "a finite number >= 0 (s)", v)
+        nums[k] = float(v)
+    if profile == "sine" and nums["period"] <= 0:
+        raise _bad_load(where, "period", "a positive number (s)", nums["period"])
+    return {
+        "start": nums["start"],
+        "ramp": 0.0 if profile == "constant" else nums["duration"],
+        "period": nums["period"] if profile == "sine" else None,
+    }
+
+
+def _load_vector(d: dict, where: str) -> tuple:
+    """A load table's ``vector``: three finite numbers ``(d, h, w)``."""
+    try:
+        vector = tuple(float(c) for c in d.get("vector"))
+    except (TypeError, ValueError):
+        vector = ()
+    if len(vector) != 3 or not all(math.isfinite(c) for c in vector):
+        raise _bad_load(where, "vector", "three finite numbers (d, h, w)", d.get("vector"))
+    return vector
+
+
+def _load_nodes(d: dict, shape: tuple, where: str) -> list:
+    """A load table's ``nodes``: distinct ``(i, j, k)`` index triples inside the grid, in order."""
+    nodes = d.get("nodes")
+    try:
+        nodes = [tuple(int(c) for c in n) for n in nodes]
+        ok = all(len(n) == 3 for n in nodes) and len(nodes) > 0
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise _bad_load(where, "nodes", "a non-empty list of node indices [[i, j, k], ...]", d.get("nodes"))
+    for nd in nodes:
+        if not all(0 <= c < n for c, n in zip(nd, shape)):
+            raise _bad_load(where, "nodes", f"node indices inside the grid {tuple(shape)}", list(nd))
+    return list(dict.fromkeys(nodes))
 
 
 # ---------------------------------------------------------------------------- series
@@ -207,6 +222,7 @@ class Series:
     spring_mask: np.ndarray | None
     fixed: np.ndarray
     loads: list
+    _: KW_ONLY
     damping_mode: str = "unprojected"
     integrator: str = "symplectic"
     truth: dict = field(default_factory=dict)
@@ -223,9 +239,9 @@ class Series:
         """Steps between observations (requires uniform spacing)."""
         return int(self.steps[1] - self.steps[0]) if len(self.steps) > 1 else 1
 
-    def spring_mask_tensor(self, device=None) -> torch.Tensor:
+    def spring_mask_tensor(self, *, device=None) -> torch.Tensor:
         """Bool ``(S, D, H, W)`` of existing springs."""
-        base = self.grid.spring_mask(device)
+        base = self.grid.spring_mask(device=device)
         return base if self.spring_mask is None else base & torch.as_tensor(self.spring_mask, device=device)
 
     def prescribed(self) -> np.ndarray:
@@ -240,7 +256,7 @@ class Series:
         """Bool ``(D, H, W)``: fixed or dragged."""
         return self.fixed | self.prescribed()
 
-    def tables(self, dtype=torch.float64, device=None) -> dict:
+    def tables(self, *, dtype=torch.float64, device=None) -> dict:
         """Dense load tables over steps ``0 .. num_steps + 1``.
 
         ``force`` ``(N + 2, 3, D, H, W)`` (external force at ``t_n``) or None, and
@@ -266,13 +282,13 @@ class Series:
         if force is not None:
             out["force"] = torch.as_tensor(force, dtype=dtype, device=device)
         if offset is not None:
-            X = self.grid.rest_positions(dtype, device)
+            X = self.grid.rest_positions(dtype=dtype, device=device)
             out["drag"] = X + torch.as_tensor(offset, dtype=dtype, device=device)
             out["drag_mask"] = torch.as_tensor(self.prescribed(), device=device)[None, None]
         cache[key] = out
         return out
 
-    def model(self, stiffness, damping, mass, dtype=torch.float64, device=None) -> Model:
+    def model(self, stiffness, damping, mass, *, dtype=torch.float64, device=None) -> Model:
         """The :class:`~torchdeform.sim.model.Model` of this set-up with the given parameters.
 
         Any shape :class:`Model` accepts; tensors keep their autograd graph.
@@ -290,46 +306,46 @@ class Series:
             device=device,
         )
 
-    def true_model(self, dtype=torch.float64, device=None) -> Model:
+    def true_model(self, *, dtype=torch.float64, device=None) -> Model:
         """The model with the true parameters (synthetic series)."""
         if not self.truth:
-            raise ConfigError("truth", "a synthetic series with true parameters", "none stored", show_got=True)
+            raise ConfigError("truth", "a synthetic series with true parameters", got="none stored", show_got=True)
         return self.model(
             torch.as_tensor(self.truth["stiffness"]),
             torch.as_tensor(self.truth["damping"]),
             torch.as_tensor(self.truth["mass"]),
-            dtype,
-            device,
+            dtype=dtype,
+            device=device,
         )
 
-    def advance(self, model: Model, state: State, n, integrator=None) -> State:
+    def advance(self, model: Model, state: State, n, *, integrator=None) -> State:
         """One step of the series' dynamics from step ``n`` to ``n + 1``.
 
         ``n`` is an int, or a ``(B,)`` LongTensor of per-batch-entry steps. External force at
         ``t_n``, the integrator's step, dragged nodes onto their positions at ``t_{n+1}``.
         """
-        tab = self.tables(model.dtype, model.device)
+        tab = self.tables(dtype=model.dtype, device=model.device)
         integrator = integrator or INTEGRATORS[self.integrator]()
         now, nxt = (n, n + 1) if torch.is_tensor(n) else (slice(n, n + 1), slice(n + 1, n + 2))
         loads = None if tab["force"] is None else tab["force"][now]
-        new = integrator.step(model, state, self.dt, loads)
+        new = integrator.step(model, state, self.dt, loads=loads)
         if tab["drag"] is not None:
             target = tab["drag"][nxt]
             vel = (target - tab["drag"][now]) / self.dt
             m = tab["drag_mask"]
-            new = State(torch.where(m, target, new.x), torch.where(m, vel, new.v), new.t)
+            new = State(torch.where(m, target, new.x), torch.where(m, vel, new.v), t=new.t)
         return new
 
-    def start_state(self, model: Model, batch: int = 1) -> State:
+    def start_state(self, model: Model, *, batch: int = 1) -> State:
         """The state at step 0 (rest; dragged nodes on their path)."""
-        st = model.rest_state(batch)
-        tab = self.tables(model.dtype, model.device)
+        st = model.rest_state(batch=batch)
+        tab = self.tables(dtype=model.dtype, device=model.device)
         if tab["drag"] is not None:
             m = tab["drag_mask"]
-            st = State(torch.where(m, tab["drag"][0], st.x), st.v, 0.0)
+            st = State(torch.where(m, tab["drag"][0], st.x), st.v, t=0.0)
         return st
 
-    def simulate(self, model: Model, steps: int | None = None, integrator=None) -> torch.Tensor:
+    def simulate(self, model: Model, *, steps: int | None = None, integrator=None) -> torch.Tensor:
         """Positions ``(N + 1, B, 3, D, H, W)`` at steps ``0 .. N``.
 
         No gradient tracking unless the model's parameters require it.
@@ -339,7 +355,7 @@ class Series:
         st = self.start_state(model)
         xs = [st.x]
         for n in range(steps):
-            st = self.advance(model, st, n, integrator)
+            st = self.advance(model, st, n, integrator=integrator)
             xs.append(st.x)
         return torch.stack(xs)
 
@@ -387,8 +403,8 @@ class Series:
             require_finite(
                 f"{path.name}: {k}",
                 a,
-                "observation, axis, d, h, w" if k == "positions" else "",
-                "the simulated body diverged (a load or amplitude too large for its time step?)"
+                what="observation, axis, d, h, w" if k == "positions" else "",
+                cause="the simulated body diverged (a load or amplitude too large for its time step?)"
                 if k == "positions"
                 else "",
             )
@@ -400,7 +416,7 @@ class Series:
 
 # ---------------------------------------------------------------------------- loading
 def _fail(path, key, expected, got=None, show_got=True):
-    return ConfigError(key, expected, got, file=str(path), show_got=show_got)
+    return ConfigError(key, expected, got=got, file=str(path), show_got=show_got)
 
 
 def load_series(path) -> Series:
@@ -411,6 +427,32 @@ def load_series(path) -> Series:
             missing arrays, wrong shapes, NaN/inf, or metadata that does not match the arrays.
     """
     path = Path(path)
+    arrays = _read_arrays(path)
+    meta = _read_meta(path, arrays)
+    shape = tuple(meta["shape"])
+    grid = _read_grid(path, meta, arrays, shape)
+    pos, steps, mask, fixed, smask = _read_observations(path, arrays, grid)
+    series = Series(
+        pos.astype(np.float64),
+        steps.astype(np.int64),
+        mask,
+        float(meta["dt"]),
+        grid,
+        smask,
+        fixed,
+        _read_loads(path, meta, arrays, shape),
+        damping_mode=meta["damping_mode"],
+        integrator=meta["integrator"],
+        truth=_read_truth(path, arrays, grid),
+        meta=meta,
+    )
+    if "num_steps" in meta and meta["num_steps"] != series.num_steps:
+        raise _fail(path, "meta.num_steps", f"the last entry of steps ({series.num_steps})", meta["num_steps"])
+    return series
+
+
+def _read_arrays(path: Path) -> dict:
+    """The arrays of the ``.npz`` file at ``path``, the required ones checked present."""
     if not path.is_file():
         raise _fail(path, "file", "an existing .npz series file", "not found")
     try:
@@ -421,6 +463,11 @@ def load_series(path) -> Series:
     for key in ("meta", "positions", "steps", "mask", "fixed"):
         if key not in arrays:
             raise _fail(path, key, "an array in the file", "missing")
+    return arrays
+
+
+def _read_meta(path: Path, arrays: dict) -> dict:
+    """The JSON metadata of a series file: format, time step, shape, integrator and damping mode checked."""
     try:
         meta = json.loads(str(arrays["meta"]))
     except json.JSONDecodeError as e:
@@ -436,7 +483,6 @@ def load_series(path) -> Series:
     shape = meta["shape"]
     if not (isinstance(shape, list) and len(shape) == 3 and all(isinstance(v, int) and v >= 1 for v in shape)):
         raise _fail(path, "meta.shape", "three node counts [D, H, W]", shape)
-    shape = tuple(shape)
     if meta["integrator"] not in INTEGRATORS or meta["integrator"] in ("implicit", "knoche"):
         raise _fail(
             path,
@@ -446,6 +492,11 @@ def load_series(path) -> Series:
         )
     if meta["damping_mode"] not in ("projected", "unprojected"):
         raise _fail(path, "meta.damping_mode", "projected or unprojected", meta["damping_mode"])
+    return meta
+
+
+def _read_grid(path: Path, meta: dict, arrays: dict, shape: tuple) -> Grid:
+    """The :class:`~torchdeform.sim.grid.Grid` of a series file (with its node mask, if any)."""
     node_mask = None
     if meta.get("node_mask"):
         if "node_mask" not in arrays:
@@ -456,17 +507,20 @@ def load_series(path) -> Series:
                 path, "node_mask", f"bool of shape {shape} (meta.shape)", f"{node_mask.dtype} {node_mask.shape}"
             )
     try:
-        grid = Grid(
+        return Grid(
             shape,
-            meta["spacing"],
-            meta["topology"],
+            spacing=meta["spacing"],
+            topology=meta["topology"],
             node_mask=None if node_mask is None else torch.from_numpy(node_mask),
             origin=meta.get("origin", (0.0, 0.0, 0.0)),
         )
     except ConfigError as e:
         raise _fail(path, f"meta.{e.key.split('.')[-1]}", e.expected, e.got) from None
-    S = grid.S
 
+
+def _read_observations(path: Path, arrays: dict, grid: Grid) -> tuple:
+    """``(positions, steps, mask, fixed, spring_mask)`` of a series file, shapes and values checked."""
+    shape, S = grid.shape, grid.S
     pos = arrays["positions"]
     if pos.ndim != 5 or pos.shape[1:] != (3,) + shape:
         raise _fail(path, "positions", f"shape (T, 3, {', '.join(map(str, shape))}) to match meta.shape", pos.shape)
@@ -502,6 +556,11 @@ def load_series(path) -> Series:
             f"bool of shape {(S,) + shape} (topology {grid.topology})",
             f"{smask.dtype} {smask.shape}",
         )
+    return pos, steps, mask, fixed, smask
+
+
+def _read_loads(path: Path, meta: dict, arrays: dict, shape: tuple) -> list:
+    """The loads of a series file (``meta.loads``), errors naming the file."""
     if not isinstance(meta["loads"], list):
         raise _fail(path, "meta.loads", "a list of load tables", meta["loads"])
     loads = []
@@ -509,7 +568,13 @@ def load_series(path) -> Series:
         try:
             loads += load_from_json(d, arrays, shape, f"meta.loads[{i}]")
         except ConfigError as e:
-            raise ConfigError(e.key, e.expected, e.got, file=str(path), show_got=e.show_got) from None
+            raise ConfigError(e.key, e.expected, got=e.got, file=str(path), show_got=e.show_got) from None
+    return loads
+
+
+def _read_truth(path: Path, arrays: dict, grid: Grid) -> dict:
+    """The true parameters stored in a series file (``true_stiffness``, ...), shapes and values checked."""
+    shape, S = grid.shape, grid.S
     truth = {}
     for key, want in (("stiffness", (S,) + shape), ("damping", (S,) + shape), ("mass", shape), ("regions", shape)):
         a = arrays.get(f"true_{key}")
@@ -520,20 +585,4 @@ def load_series(path) -> Series:
         if not np.isfinite(a).all() or (a < 0).any():
             raise _fail(path, f"true_{key}", "finite values >= 0", "NaN, inf or negative values")
         truth[key] = a
-    series = Series(
-        pos.astype(np.float64),
-        steps.astype(np.int64),
-        mask,
-        float(dt),
-        grid,
-        smask,
-        fixed,
-        loads,
-        meta["damping_mode"],
-        meta["integrator"],
-        truth,
-        meta,
-    )
-    if "num_steps" in meta and meta["num_steps"] != series.num_steps:
-        raise _fail(path, "meta.num_steps", f"the last entry of steps ({series.num_steps})", meta["num_steps"])
-    return series
+    return truth

@@ -57,7 +57,7 @@ __all__ = [
 SPRING_SETS = {54: (6, None), 70: (14, ((1, 1, 1), (1, -1, -1))), 86: (14, None), 126: (18, None)}
 
 
-def indentation(grid: Grid, depth: float, radius: int = 0, duration: float = 0.5) -> Drag:
+def indentation(grid: Grid, depth: float, *, radius: int = 0, duration: float = 0.5) -> Drag:
     """An indenter pushed ``depth`` metres into the top face (axis D, ``"top"``) over ``duration`` seconds.
 
     The top nodes within ``radius`` nodes (Chebyshev) of the face centre are prescribed at
@@ -71,7 +71,7 @@ def indentation(grid: Grid, depth: float, radius: int = 0, duration: float = 0.5
     return Drag(grid.index_mask(nodes), offset=(-float(depth), 0.0, 0.0), ramp=float(duration))
 
 
-def cube_grid(n: int = 3, spacing: float = 0.01, springs: int | None = None, topology: int = 26):
+def cube_grid(*, n: int = 3, spacing: float = 0.01, springs: int | None = None, topology: int = 26):
     """A cube of ``n^3`` nodes and its spring mask.
 
     Args:
@@ -85,9 +85,9 @@ def cube_grid(n: int = 3, spacing: float = 0.01, springs: int | None = None, top
     """
     if springs is not None:
         if springs not in SPRING_SETS:
-            raise ConfigError("springs", f"one of {', '.join(map(str, SPRING_SETS))}", springs)
+            raise ConfigError("springs", f"one of {', '.join(map(str, SPRING_SETS))}", got=springs)
         if n != 3:
-            raise ConfigError("springs", "Radetzky's spring sets only on a 3 x 3 x 3 cube (n = 3)", n)
+            raise ConfigError("springs", "Radetzky's spring sets only on a 3 x 3 x 3 cube (n = 3)", got=n)
         topology, keep = SPRING_SETS[springs]
     else:
         keep = None
@@ -117,12 +117,12 @@ def _simulate_truth(
     grid = series.grid
     smask = series.spring_mask_tensor()
     regions = series.truth.get("regions")
-    k = expand_spring_param(stiffness, grid, regions, smask)
-    c = expand_spring_param(damping, grid, regions, smask)
+    k = expand_spring_param(stiffness, grid, regions=regions, spring_mask=smask)
+    c = expand_spring_param(damping, grid, regions=regions, spring_mask=smask)
     m = torch.as_tensor(np.asarray(mass, dtype=np.float64)).expand(grid.shape).clone() * grid.nodes()
     series.truth.update({"stiffness": k.numpy(), "damping": c.numpy(), "mass": m.numpy()})
     with torch.no_grad():
-        model = series.model(k, c, m, dtype)
+        model = series.model(k, c, m, dtype=dtype)
         xs = series.simulate(model, integrator=integrator)[:, 0].to(torch.float64).numpy()  # (N + 1, 3, D, H, W)
     N = xs.shape[0] - 1
     steps = np.arange(0, N + 1, int(every))
@@ -133,7 +133,7 @@ def _simulate_truth(
     obs &= grid.nodes().numpy()[None]
     pos = clean.copy()
     if noise > 0:
-        X = grid.rest_positions(torch.float64)[0].numpy()
+        X = grid.rest_positions(dtype=torch.float64)[0].numpy()
         free = ~series.constrained() & grid.nodes().numpy()
         disp = (clean - X[None])[:, :, free]
         sigma = float(noise) * float(np.sqrt(np.mean(disp**2)))
@@ -155,6 +155,7 @@ def _truth_meta(stiffness, damping, mass) -> dict:
 
 
 def radetzky_cube(
+    *,
     springs: int = 70,
     stiffness=10.0,
     damping=0.1,
@@ -200,7 +201,7 @@ def radetzky_cube(
     Returns:
         a :class:`Series`.
     """
-    grid, smask = cube_grid(3, spacing, springs)
+    grid, smask = cube_grid(n=3, spacing=spacing, springs=springs)
     s = Series(
         np.zeros(0),
         np.zeros(0, dtype=np.int64),
@@ -225,7 +226,7 @@ def radetzky_cube(
     return _finish(s, stiffness, damping, mass, noise, every, observe, seed, steps, integrator)
 
 
-def per_spring_start(series: Series, seed: int = 0, with_mass: bool = False, spread=(0.2, 5.0)):
+def per_spring_start(series: Series, *, seed: int = 0, with_mass: bool = False, spread=(0.2, 5.0)):
     """Radetzky's per-spring start: every spring's stiffness and damping at ``U[lo, hi]`` x truth.
 
     The factors are log-uniform between ``spread`` (Radetzky's runs 1 and 2: 0.2 and 5), drawn
@@ -251,25 +252,25 @@ def per_spring_start(series: Series, seed: int = 0, with_mass: bool = False, spr
     def factors(n):
         return torch.exp(torch.empty(n, dtype=torch.float64).uniform_(np.log(lo), np.log(hi), generator=g))
 
-    probe = SpringParameter.like(series, 1.0, "spring")
+    probe = SpringParameter.like(series, init=1.0, sharing="spring")
     truth = {key: probe.per_spring(torch.as_tensor(series.truth[key])) for key in ("stiffness", "damping")}
     n = len(truth["stiffness"])
-    k = SpringParameter.like(series, truth["stiffness"] * factors(n), "spring")
-    c = SpringParameter.like(series, truth["damping"] * factors(n), "spring")
+    k = SpringParameter.like(series, init=truth["stiffness"] * factors(n), sharing="spring")
+    c = SpringParameter.like(series, init=truth["damping"] * factors(n), sharing="spring")
     mass = series.truth["mass"]
     if with_mass:
         truth["mass"] = torch.as_tensor(mass, dtype=torch.float64).expand(series.grid.shape)[series.grid.nodes()]
-        mass = NodeParameter(series.grid, truth["mass"] * factors(len(truth["mass"])), "node")
+        mass = NodeParameter(series.grid, init=truth["mass"] * factors(len(truth["mass"])), sharing="node")
     return Parameters(series, k, c, mass), truth
 
 
 def _finish(s: Series, stiffness, damping, mass, noise, every, observe, seed, steps, integrator=None) -> Series:
     if int(steps) < 1:
-        raise ConfigError("steps", "an integer >= 1", steps)
+        raise ConfigError("steps", "an integer >= 1", got=steps)
     if int(every) < 1 or int(steps) % int(every):
-        raise ConfigError("every", f"a divisor of steps = {steps} (>= 1)", every)
+        raise ConfigError("every", f"a divisor of steps = {steps} (>= 1)", got=every)
     if not (0 <= float(noise) < 1):
-        raise ConfigError("noise", "a relative noise level in [0, 1)", noise)
+        raise ConfigError("noise", "a relative noise level in [0, 1)", got=noise)
     s.steps = np.array([0, int(steps)])  # num_steps for the tables
     s.meta["num_steps"] = int(steps)
     return _simulate_truth(
@@ -277,7 +278,7 @@ def _finish(s: Series, stiffness, damping, mass, noise, every, observe, seed, st
     )
 
 
-def layered_regions(grid: Grid, layers: int = 2) -> np.ndarray:
+def layered_regions(grid: Grid, *, layers: int = 2) -> np.ndarray:
     """Region labels ``(D, H, W)``: ``layers`` horizontal slabs along axis D (0 at the bottom)."""
     D = grid.shape[0]
     lab = (np.arange(D) * layers) // D
@@ -295,6 +296,7 @@ def inclusion_regions(grid: Grid, radius: float) -> np.ndarray:
 
 
 def cube_series(
+    *,
     n: int = 4,
     topology: int = 26,
     load: str = "constant",
@@ -344,8 +346,8 @@ def cube_series(
         a :class:`Series`.
     """
     if int(n) < 2:
-        raise ConfigError("n", "an integer >= 2", n)
-    grid, _ = cube_grid(int(n), spacing, None, topology)
+        raise ConfigError("n", "an integer >= 2", got=n)
+    grid, _ = cube_grid(n=int(n), spacing=spacing, springs=None, topology=topology)
     top = (n - 1, (n - 1) // 2, (n - 1) // 2)
     if load in ("constant", "ramp"):
         a = 0.05 if amplitude is None else float(amplitude)
@@ -357,10 +359,10 @@ def cube_series(
         a = 0.2 * spacing if amplitude is None else float(amplitude)
         ld = indentation(grid, a, radius=max(0, (n - 3) // 3), duration=duration)
     else:
-        raise ConfigError("load", "one of constant, ramp, sine, indent", load)
+        raise ConfigError("load", "one of constant, ramp, sine, indent", got=load)
     truth = {} if regions is None else {"regions": np.asarray(regions, dtype=np.int64)}
     if regions is not None and tuple(np.shape(regions)) != grid.shape:
-        raise ConfigError("regions", f"integer labels of shape {grid.shape}", np.shape(regions))
+        raise ConfigError("regions", f"integer labels of shape {grid.shape}", got=np.shape(regions))
     s = Series(
         np.zeros(0),
         np.zeros(0, dtype=np.int64),
@@ -385,6 +387,7 @@ def cube_series(
 
 
 def balloon_series(
+    *,
     subdivisions: int = 1,
     radius: float = 0.05,
     spacing: float | None = None,
@@ -446,14 +449,14 @@ def balloon_series(
         for step in (-1, 1):
             inner &= np.roll(padded, step, axis)[1:-1, 1:-1, 1:-1]
     surface = nodes & ~inner
-    X = grid.rest_positions(torch.float64)[0].numpy()
+    X = grid.rest_positions(dtype=torch.float64)[0].numpy()
     pts = X[:, surface].T
     _, nearest = cKDTree(vertices).query(pts)
     field_ = np.zeros((3,) + grid.shape)
     field_[:, surface] = (normals[nearest] * float(pressure) * spacing**2).T
     steps_per = round(float(interval) / float(dt))
     if steps_per < 1 or abs(steps_per * dt - interval) > 1e-9 * interval:
-        raise ConfigError("interval", f"a whole number of time steps dt = {dt}", interval)
+        raise ConfigError("interval", f"a whole number of time steps dt = {dt}", got=interval)
     steps = steps_per * (int(snapshots) - 1)
     fixed = np.zeros(grid.shape, dtype=bool)
     centre = np.unravel_index(

@@ -83,6 +83,7 @@ class Trainer:
         self,
         params: Parameters,
         loss: WindowLoss,
+        *,
         optimizer: str = "adam",
         lr: float | None = None,
         iterations: int = 200,
@@ -108,13 +109,15 @@ class Trainer:
         self.tol, self.progress = float(tol), progress
         self.windows_per_step = windows_per_step
         if windows_per_step is not None and optimizer == "lbfgs":
-            raise ConfigError("windows_per_step", "None with L-BFGS (it needs one fixed objective)", windows_per_step)
+            raise ConfigError(
+                "windows_per_step", "None with L-BFGS (it needs one fixed objective)", got=windows_per_step
+            )
         self.checkpoint_path = None if checkpoint_path is None else Path(checkpoint_path)
         self.checkpoint_every = int(checkpoint_every)
         self.generator = torch.Generator().manual_seed(int(seed))
         learnable = [p for p in params.parameters() if p.requires_grad]
         if not learnable:
-            raise ConfigError("params", "at least one learned parameter", "none", show_got=True)
+            raise ConfigError("params", "at least one learned parameter", got="none", show_got=True)
         if optimizer == "adam":
             self.opt = torch.optim.Adam(learnable, lr=0.05 if lr is None else lr)
         else:
@@ -178,7 +181,7 @@ class Trainer:
         loss = float(loss)
         return (math.inf if loss >= _BLOWUP else loss), self._grad_norm()
 
-    def run(self, iterations: int | None = None, stop_after: int | None = None) -> list:
+    def run(self, *, iterations: int | None = None, stop_after: int | None = None) -> list:
         """Train until ``iterations`` (total), early stopping, or ``stop_after`` iterations of this call.
 
         ``stop_after`` simulates an interruption. Returns the history (list of :class:`Record`).
@@ -276,7 +279,7 @@ class Trainer:
         """Resume from a checkpoint written by :meth:`save` (same parameters and optimizer kind)."""
         path = Path(path)
         if not path.is_file():
-            raise ConfigError("checkpoint", "an existing checkpoint file", str(path))
+            raise ConfigError("checkpoint", "an existing checkpoint file", got=str(path))
         try:
             sd = torch.load(path, weights_only=True)
             self.params.load_state_dict(sd["params"])
@@ -285,7 +288,7 @@ class Trainer:
             raise ConfigError(
                 "checkpoint",
                 "a checkpoint of this parameter set and optimizer",
-                f"{path} ({type(e).__name__}: {str(e).splitlines()[0]})",
+                got=f"{path} ({type(e).__name__}: {str(e).splitlines()[0]})",
             ) from None
         self.generator.set_state(sd["generator"])
         self.iteration, self.best, self.since_best = sd["iteration"], sd["best"], sd["since_best"]

@@ -77,7 +77,7 @@ def _vec3(value, key: str) -> tuple:
     except (TypeError, ValueError):
         t = ()
     if len(t) != 3 or not all(math.isfinite(c) for c in t):
-        raise ConfigError(key, "three finite numbers (x, y, z)", value)
+        raise ConfigError(key, "three finite numbers (x, y, z)", got=value)
     return t
 
 
@@ -116,34 +116,34 @@ class Camera:
         except (TypeError, ValueError):
             s = ()
         if len(s) != 2 or min(s) < 1:
-            raise ConfigError("size", "an image size (H, W) of positive integers", size)
+            raise ConfigError("size", "an image size (H, W) of positive integers", got=size)
         self.size = s
         if (fov_deg is None) == (ortho_height is None):
             raise ConfigError(
                 "camera",
                 "exactly one of fov_deg (perspective) and ortho_height (orthographic)",
-                {"fov_deg": fov_deg, "ortho_height": ortho_height},
+                got={"fov_deg": fov_deg, "ortho_height": ortho_height},
             )
         if fov_deg is not None:
             fov = float(fov_deg)
             if not 0.0 < fov < 180.0:
-                raise ConfigError("fov_deg", "a vertical field of view in degrees, 0 < fov < 180", fov_deg)
+                raise ConfigError("fov_deg", "a vertical field of view in degrees, 0 < fov < 180", got=fov_deg)
             self.perspective, self.fov_deg, self.ortho_height = True, fov, None
             self.focal = (s[0] / 2) / math.tan(math.radians(fov) / 2)
         else:
             height = float(ortho_height)
             if not (math.isfinite(height) and height > 0):
-                raise ConfigError("ortho_height", "a positive view height in metres", ortho_height)
+                raise ConfigError("ortho_height", "a positive view height in metres", got=ortho_height)
             self.perspective, self.fov_deg, self.ortho_height = False, None, height
             self.focal = s[0] / height
         e, t, u = (torch.tensor(a, dtype=torch.float64) for a in (self.eye, self.target, self.up))
         fwd = t - e
         if float(fwd.norm()) == 0.0:
-            raise ConfigError("target", "a point different from the eye", target)
+            raise ConfigError("target", "a point different from the eye", got=target)
         fwd = fwd / fwd.norm()
         right = torch.linalg.cross(fwd, u)
         if float(right.norm()) < 1e-9 * float(u.norm()) or float(u.norm()) == 0.0:
-            raise ConfigError("up", "a direction not parallel to target - eye", up)
+            raise ConfigError("up", "a direction not parallel to target - eye", got=up)
         right = right / right.norm()
         self._frame = torch.stack([right, torch.linalg.cross(right, fwd), fwd])  # rows: right, up', forward
 
@@ -151,7 +151,7 @@ class Camera:
         lens = f"fov_deg={self.fov_deg}" if self.perspective else f"ortho_height={self.ortho_height}"
         return f"Camera(eye={self.eye}, target={self.target}, up={self.up}, {lens}, size={self.size})"
 
-    def frame(self, dtype=torch.float64, device=None) -> tuple:
+    def frame(self, *, dtype=torch.float64, device=None) -> tuple:
         """The camera frame: ``eye (3,)`` and the rows ``right, up', forward`` as ``(3, 3)``.
 
         Example:
@@ -183,14 +183,11 @@ class Camera:
         if not p.is_floating_point():
             p = p.double()
         if p.ndim != 2 or p.shape[1] != 3:
-            raise ConfigError("points", "an (N, 3) array of points", tuple(p.shape))
-        eye, R = self.frame(p.dtype, p.device)
+            raise ConfigError("points", "an (N, 3) array of points", got=tuple(p.shape))
+        eye, R = self.frame(dtype=p.dtype, device=p.device)
         c = (p - eye) @ R.T  # (N, 3) camera coordinates
         H, W = self.size
-        if self.perspective:
-            xy = c[:, :2] / c[:, 2:3] * self.focal
-        else:
-            xy = c[:, :2] * self.focal
+        xy = c[:, :2] / c[:, 2:3] * self.focal if self.perspective else c[:, :2] * self.focal
         pix = torch.stack([W / 2 + xy[:, 0], H / 2 - xy[:, 1]], dim=1)
         return pix, c[:, 2]
 
@@ -209,21 +206,21 @@ def _check_mesh(vertices, faces, colors, texcoords):
     if not v.is_floating_point():
         v = v.double()
     if v.ndim != 2 or v.shape[1] != 3:
-        raise ConfigError("vertices", "an (V, 3) array of floats", tuple(v.shape))
+        raise ConfigError("vertices", "an (V, 3) array of floats", got=tuple(v.shape))
     f = torch.as_tensor(faces, device=v.device)
     if f.ndim != 2 or f.shape[1] != 3 or f.is_floating_point() or f.dtype == torch.bool:
-        raise ConfigError("faces", "an (F, 3) integer array of vertex indices", (tuple(f.shape), str(f.dtype)))
+        raise ConfigError("faces", "an (F, 3) integer array of vertex indices", got=(tuple(f.shape), str(f.dtype)))
     f = f.long()
     if f.numel() and (int(f.min()) < 0 or int(f.max()) >= len(v)):
-        raise ConfigError("faces", f"vertex indices in [0, {len(v)})", (int(f.min()), int(f.max())))
+        raise ConfigError("faces", f"vertex indices in [0, {len(v)})", got=(int(f.min()), int(f.max())))
     if colors is not None and not callable(colors):
         colors = torch.as_tensor(colors, dtype=v.dtype, device=v.device)
         if colors.shape != (len(v), 3):
-            raise ConfigError("colors", f"per-vertex RGB ({len(v)}, 3) or a callable", tuple(colors.shape))
+            raise ConfigError("colors", f"per-vertex RGB ({len(v)}, 3) or a callable", got=tuple(colors.shape))
     if texcoords is not None:
         texcoords = torch.as_tensor(texcoords, dtype=v.dtype, device=v.device)
         if texcoords.ndim != 2 or len(texcoords) != len(v):
-            raise ConfigError("texcoords", f"one point per vertex ({len(v)}, C)", tuple(texcoords.shape))
+            raise ConfigError("texcoords", f"one point per vertex ({len(v)}, C)", got=tuple(texcoords.shape))
     return v, f, colors, texcoords
 
 
@@ -231,8 +228,8 @@ def rasterize(
     vertices,
     faces,
     camera: Camera,
-    colors=None,
     *,
+    colors=None,
     texcoords=None,
     light=None,
     ambient: float = 0.2,
@@ -286,7 +283,7 @@ def rasterize(
     v, f, colors, texcoords = _check_mesh(vertices, faces, colors, texcoords)
     ambient = float(ambient)
     if not 0.0 <= ambient <= 1.0:
-        raise ConfigError("ambient", "a number in [0, 1]", ambient)
+        raise ConfigError("ambient", "a number in [0, 1]", got=ambient)
     bg = torch.tensor(_vec3(background, "background"), dtype=v.dtype, device=v.device)
     H, W = camera.size
     dtype, device = v.dtype, v.device
@@ -361,11 +358,11 @@ def rasterize(
     normal = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     normal = normal / normal.norm(dim=1, keepdim=True)
     if light is None:
-        ldir = -camera.frame(dtype, device)[1][2]
+        ldir = -camera.frame(dtype=dtype, device=device)[1][2]
     else:
         ldir = torch.tensor(_vec3(light, "light"), dtype=dtype, device=device)
         if float(ldir.norm()) == 0.0:
-            raise ConfigError("light", "a non-zero direction towards the light", light)
+            raise ConfigError("light", "a non-zero direction towards the light", got=light)
         ldir = ldir / ldir.norm()
     ndotl = normal @ ldir
     shade = ambient + (1.0 - ambient) * (ndotl.abs() if two_sided else ndotl.clamp(min=0.0))
@@ -375,7 +372,7 @@ def rasterize(
         tc = v if texcoords is None else texcoords
         rgb = torch.as_tensor(colors((b[:, :, None] * tc[f[fh]]).sum(1)), dtype=dtype, device=device)
         if rgb.shape != (len(hit), 3):
-            raise ConfigError("colors", f"a callable returning RGB ({len(hit)}, 3)", tuple(rgb.shape))
+            raise ConfigError("colors", f"a callable returning RGB ({len(hit)}, 3)", got=tuple(rgb.shape))
     else:
         rgb = (b[:, :, None] * colors[f[fh]]).sum(1)
 
@@ -404,9 +401,9 @@ def save_png(path, image) -> None:
         >>> Image.open(path).size, Image.open(path).getpixel((0, 0))
         ((3, 2), (128, 128, 128))
     """
-    from ..volume.rendering import save_png as write_png
+    from ..volume.images import save_png as write_png
 
     img = torch.as_tensor(image).detach().cpu()
     if img.ndim != 3 or img.shape[2] != 3:
-        raise ConfigError("image", "an RGB image (H, W, 3)", tuple(img.shape))
+        raise ConfigError("image", "an RGB image (H, W, 3)", got=tuple(img.shape))
     write_png(path, (img.double().clamp(0, 1) * 255 + 0.5).to(torch.uint8).contiguous().numpy())

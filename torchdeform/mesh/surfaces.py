@@ -34,7 +34,7 @@ from ..sim.grid import Grid
 SURFACE_TOL = 1e-6
 
 
-def load_mesh(mesh_or_path, scale: float = 1.0, key: str = "mesh"):
+def load_mesh(mesh_or_path, *, scale: float = 1.0, key: str = "mesh"):
     """A closed triangle mesh as ``(vertices (V, 3) float64 metres, faces (F, 3) int64)``.
 
     Args:
@@ -54,29 +54,29 @@ def load_mesh(mesh_or_path, scale: float = 1.0, key: str = "mesh"):
         path = Path(mesh_or_path)
         name = str(path)
         if not path.is_file():
-            raise ConfigError(key, "an existing mesh file", f"{path} (not found)")
+            raise ConfigError(key, "an existing mesh file", got=f"{path} (not found)")
         try:
             mesh = trimesh.load(str(path), force="mesh")
         except Exception as e:  # trimesh raises many kinds for bad files
             raise ConfigError(
                 key,
                 "a triangle mesh file trimesh can read (.stl, .obj, .ply, .off, ...)",
-                f"{path} ({type(e).__name__}: {e})",
+                got=f"{path} ({type(e).__name__}: {e})",
             ) from None
     else:
         mesh = mesh_or_path
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise ConfigError(key, "a triangle mesh with at least one triangle", f"{name} (no triangles)")
+        raise ConfigError(key, "a triangle mesh with at least one triangle", got=f"{name} (no triangles)")
     if not mesh.is_watertight:
         open_edges = len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
         raise ConfigError(
             key,
             "a closed (watertight) triangle mesh",
-            f"{name} ({open_edges} open edges)" if open_edges else f"{name} (non-manifold edges)",
+            got=f"{name} ({open_edges} open edges)" if open_edges else f"{name} (non-manifold edges)",
         )
     scale = float(scale)
     if not math.isfinite(scale) or scale <= 0:
-        raise ConfigError("scale", "a positive number (metres per mesh unit)", scale)
+        raise ConfigError("scale", "a positive number (metres per mesh unit)", got=scale)
     return np.asarray(mesh.vertices, dtype=np.float64) * scale, np.asarray(mesh.faces, dtype=np.int64)
 
 
@@ -142,7 +142,7 @@ def inside_mask(vertices: np.ndarray, faces: np.ndarray, xs, ys, zs, tol: float)
     return out
 
 
-def voxelize(mesh_or_path, spacing, padding: int = 0, scale: float = 1.0):
+def voxelize(mesh_or_path, spacing, *, padding: int = 0, scale: float = 1.0):
     """Voxelise a closed triangle mesh: which nodes of a regular grid lie inside it.
 
     The grid covers the mesh's bounding box (centred on it, ``ceil(extent / spacing) + 1``
@@ -175,10 +175,10 @@ def voxelize(mesh_or_path, spacing, padding: int = 0, scale: float = 1.0):
     except (TypeError, ValueError):
         sp = ()
     if len(sp) != 3 or not all(math.isfinite(s) and s > 0 for s in sp):
-        raise ConfigError("spacing", "one positive number or three (sd, sh, sw) in metres", spacing)
+        raise ConfigError("spacing", "one positive number or three (sd, sh, sw) in metres", got=spacing)
     if isinstance(padding, bool) or not isinstance(padding, (int, np.integer)) or padding < 0:
-        raise ConfigError("padding", "an integer >= 0 (node layers)", padding)
-    vertices, faces = load_mesh(mesh_or_path, scale)
+        raise ConfigError("padding", "an integer >= 0 (node layers)", got=padding)
+    vertices, faces = load_mesh(mesh_or_path, scale=scale)
     lo, hi = vertices.min(0), vertices.max(0)
     shape = tuple(math.ceil((h - l) / s - 1e-9) + 1 + 2 * int(padding) for l, h, s in zip(lo, hi, sp))
     check_grid("spacing", shape)  # a spacing far too fine for the mesh: refused, not allocated
@@ -190,12 +190,12 @@ def voxelize(mesh_or_path, spacing, padding: int = 0, scale: float = 1.0):
             "spacing",
             f"a spacing small enough that some node falls inside the mesh "
             f"(its bounding box is {tuple(float(e) for e in hi - lo)} m)",
-            spacing,
+            got=spacing,
         )
     return torch.from_numpy(mask), origin, shape
 
 
-def grid_from_mesh(path, spacing, topology: int = 26, padding: int = 0, scale: float = 1.0) -> Grid:
+def grid_from_mesh(path, spacing, *, topology: int = 26, padding: int = 0, scale: float = 1.0) -> Grid:
     """A :class:`~torchdeform.sim.grid.Grid` whose node mask is a voxelised closed mesh.
 
     Args: as :func:`voxelize`, plus ``topology`` (6, 14, 18 or 26 neighbours).
@@ -206,8 +206,8 @@ def grid_from_mesh(path, spacing, topology: int = 26, padding: int = 0, scale: f
         >>> g.shape, g.num_nodes < 11 ** 3
         ((11, 11, 11), True)
     """
-    mask, origin, shape = voxelize(path, spacing, padding, scale)
-    return Grid(shape, spacing, topology, node_mask=mask, origin=origin)
+    mask, origin, shape = voxelize(path, spacing, padding=padding, scale=scale)
+    return Grid(shape, spacing=spacing, topology=topology, node_mask=mask, origin=origin)
 
 
 __all__ = ["voxelize", "grid_from_mesh", "load_mesh", "inside_mask"]
@@ -242,13 +242,13 @@ _TET_CASES = _tet_cases()
 def _as_field(field, key):
     arr = field.detach().cpu().double().numpy() if torch.is_tensor(field) else np.asarray(field, dtype=np.float64)
     if arr.ndim != 3 or min(arr.shape) < 1:
-        raise ConfigError(key, "a 3-D array (D, H, W)", tuple(arr.shape))
+        raise ConfigError(key, "a 3-D array (D, H, W)", got=tuple(arr.shape))
     if not np.isfinite(arr).all():
-        raise ConfigError(key, "finite values (no NaN or inf)", "non-finite values", show_got=True)
+        raise ConfigError(key, "finite values (no NaN or inf)", got="non-finite values", show_got=True)
     return arr
 
 
-def marching_tetrahedra(field, level: float = 0.5, pad: bool = True):
+def marching_tetrahedra(field, *, level: float = 0.5, pad: bool = True):
     """Iso-surface ``field = level`` of a scalar grid, as a closed, consistently oriented triangle mesh.
 
     Each grid cube is split into six tetrahedra along its main diagonal (the split matches across
@@ -277,7 +277,7 @@ def marching_tetrahedra(field, level: float = 0.5, pad: bool = True):
     arr = _as_field(field, "field")
     level = float(level)
     if not math.isfinite(level):
-        raise ConfigError("level", "a finite iso-value", level)
+        raise ConfigError("level", "a finite iso-value", got=level)
     shift = 0
     if pad:
         # below the level; for a 0/1 mask at 0.5 the value 0, so the border crossing sits half-way
@@ -373,7 +373,7 @@ def _interp_positions(x: np.ndarray, q: np.ndarray) -> np.ndarray:
     return (vals * x.reshape(3, -1)[:, cols]).reshape(3, 8, len(q)).sum(1).T
 
 
-def body_surface(x, node_mask=None, level: float = 0.5):
+def body_surface(x, *, node_mask=None, level: float = 0.5):
     """Surface of a (deformed) grid body: marching tetrahedra over the node mask, moved with the nodes.
 
     The surface of ``node_mask`` (half a spacing outside the body's outer nodes, at ``level`` of the
@@ -400,15 +400,15 @@ def body_surface(x, node_mask=None, level: float = 0.5):
     if xs.ndim == 5 and xs.shape[0] == 1:
         xs = xs[0]
     if xs.ndim != 4 or xs.shape[0] != 3:
-        raise ConfigError("x", "node positions (3, D, H, W) or (1, 3, D, H, W)", tuple(xs.shape))
+        raise ConfigError("x", "node positions (3, D, H, W) or (1, 3, D, H, W)", got=tuple(xs.shape))
     mask = np.ones(xs.shape[1:]) if node_mask is None else _as_field(node_mask, "node_mask")
     if mask.shape != xs.shape[1:]:
-        raise ConfigError("node_mask", f"a mask of the grid shape {tuple(xs.shape[1:])}", tuple(mask.shape))
-    q, faces = marching_tetrahedra(mask.astype(np.float64), level)
+        raise ConfigError("node_mask", f"a mask of the grid shape {tuple(xs.shape[1:])}", got=tuple(mask.shape))
+    q, faces = marching_tetrahedra(mask.astype(np.float64), level=level)
     return _interp_positions(xs, q), faces
 
 
-def volume_surface(volume, level: float, offsets=None, spacing=(1.0, 1.0, 1.0), **warp_kw):
+def volume_surface(volume, level: float, *, offsets=None, spacing=(1.0, 1.0, 1.0), **warp_kw):
     """Iso-surface of a volume (optionally warped by node offsets first, :func:`~torchdeform.volume.warp`).
 
     Args:
@@ -425,10 +425,10 @@ def volume_surface(volume, level: float, offsets=None, spacing=(1.0, 1.0, 1.0), 
 
     vol, _ = as_volume(volume)
     if vol.shape[:2] != (1, 1):
-        raise ConfigError("volume", "a single volume (D, H, W)", tuple(vol.shape))
+        raise ConfigError("volume", "a single volume (D, H, W)", got=tuple(vol.shape))
     if offsets is not None:
         vol = warp(vol, offsets, **warp_kw)
-    v, f = marching_tetrahedra(vol.reshape(vol.shape[-3:]), level)
+    v, f = marching_tetrahedra(vol.reshape(vol.shape[-3:]), level=level)
     return v * np.asarray(spacing, dtype=np.float64).reshape(1, 3), f
 
 
@@ -448,7 +448,7 @@ def save_surface(path, vertices, faces, *, vertex_attributes=None) -> None:
 
     path = Path(path)
     if path.suffix.lower() not in SURFACE_SUFFIXES:
-        raise ConfigError("surface file", "a .ply, .stl or .obj path", str(path))
+        raise ConfigError("surface file", "a .ply, .stl or .obj path", got=str(path))
     v, f = np.asarray(vertices, dtype=np.float64), np.asarray(faces)
     if (
         v.ndim != 2
@@ -457,13 +457,13 @@ def save_surface(path, vertices, faces, *, vertex_attributes=None) -> None:
         or f.shape[1] != 3
         or (len(f) and (f.min() < 0 or f.max() >= len(v)))
     ):
-        raise ConfigError("surface", "vertices (V, 3) and faces (F, 3) indexing them", (v.shape, f.shape))
+        raise ConfigError("surface", "vertices (V, 3) and faces (F, 3) indexing them", got=(v.shape, f.shape))
     attrs = {k: np.asarray(a, dtype=np.float64) for k, a in (vertex_attributes or {}).items()}
     if any(a.shape != (len(v),) for a in attrs.values()):
         raise ConfigError(
             "vertex_attributes",
             f"one value per vertex ({len(v)},) for each name",
-            {k: a.shape for k, a in attrs.items()},
+            got={k: a.shape for k, a in attrs.items()},
         )
     with atomic_path(path) as tmp:
         trimesh.Trimesh(vertices=v, faces=f, process=False, vertex_attributes=attrs).export(str(tmp))

@@ -14,112 +14,201 @@ the built-in scenes (face ``"bottom"`` = ``"d-"``, ``"top"`` = ``"d+"``). Node i
 
 Keys
 ----
-``[grid]`` (required)
-    ``shape = [D, H, W]``  node counts, each >= 1 (or ``mesh``)
-    ``mesh = "organ.stl"``  a closed triangle mesh voxelised into the node mask (instead of
-    ``shape``; path relative to the scene file; mesh x, y, z -> D, H, W)
-    ``spacing``  metres, one number or ``[sd, sh, sw]`` (required)
-    ``topology``  6, 14, 18 or 26 neighbours (default 26)
-    ``origin = [od, oh, ow]``  position of node [0, 0, 0] in metres (default 0; ``shape`` only)
-    ``padding``  extra node layers around the mesh's bounding box (default 0; ``mesh`` only)
-    ``scale``  metres per mesh unit, e.g. 0.001 for a mesh in mm (default 1; ``mesh`` only)
-``[material]`` (required)
-    ``stiffness``  spring stiffness k in N/m: a number, or one per direction class
-    ``{axis = .., face = .., body = ..}`` (only the classes of the topology are needed)
-    ``modulus``  instead of ``stiffness``: Y in N, each spring gets ``k = Y / l0``
-    (resolution-independent); a number or a table as for ``stiffness``
-    ``damping``  dashpot along each spring in N s/m (divided by l0 too with ``modulus``);
-    a number or a class table (default: none)
-    ``damping_mode``  ``"projected"`` (default) or ``"unprojected"`` (Radetzky)
-    ``law``  ``"hooke"`` (default), ``"exponential"`` (``stiffening`` b) or ``"polynomial"``
-    (``quadratic`` c2, ``cubic`` c3): strain-stiffening springs (:mod:`torchdeform.sim.laws`) whose
-    small-strain stiffness is ``stiffness``; each parameter a number >= 0 or a class table (default 0)
-    ``tissue``  instead of ``stiffness``: words of the fuzzy tissue library (:mod:`torchdeform.fuzzy`):
-    a tissue (``"liver"``, ``"fat"``, ...), a consistency term (``"very_soft"`` ... ``"hard"``) or
-    a consistency number 0..10; its Young's modulus E becomes ``k = E / lattice_modulus(grid)``
-    (``k = E h / 2.7`` for 26 neighbours)
-``[[regions]]`` (optional, repeatable; needs ``stiffness`` as one number or ``tissue``): a part of
-    the body with its own stiffness, later regions on top of earlier ones
-    ``sphere = {center = [d, h, w], radius = r}`` or ``box = {lo = [..], hi = [..]}`` (rest
-    positions, m), and ``stiffness`` (N/m) or ``tissue`` (as in ``[material]``); a spring gets
-    the harmonic mean of its two end nodes' stiffness
-``[mass]`` (required, exactly one key)
-    ``mass``  kg per node, or ``density``  kg/m^3 (lumped from cell volumes)
-``[boundary]`` (optional)
-    ``fixed``  a face name or a list of them: ``"bottom"``, ``"top"``, ``"d-"``, ``"d+"``,
-    ``"h-"``, ``"h+"``, ``"w-"``, ``"w+"``
-    ``fixed_nodes = [[i, j, k], ...]``  more fixed nodes
-    ``home``  stiffness (N/m) of home springs to every node's rest position (Punak)
-    ``anchors = {stiffness = .., every = ..}``  anchor springs (N/m) on every k-th node (Radetzky)
-    ``decay``  global drag rate c in 1/s: ``v <- v exp(-c dt)`` each step
-    ``gravity = [gd, gh, gw]``  m/s^2
-``[[loads]]`` (optional, repeatable), one of
-    ``node = [i, j, k]`` with ``force = [fd, fh, fw]`` (N), or
-    ``face = "top"`` with ``traction = [td, th, tw]`` (Pa, lumped onto the face's nodes);
-    both take ``start`` (s, default 0) and ``ramp`` (s to reach full strength, default 0)
-``[[drags]]`` (optional, repeatable): a group of nodes moved rigidly along a path
-    ``nodes = [[i, j, k], ...]`` or ``face = "top"`` or ``box = {lo = [..], hi = [..]}``
-    (rest positions in metres, bounds included), and
-    ``path = [[t, [od, oh, ow]], ...]``  offsets (m) from the rest position at increasing
-    times (s), linear in between, held after the last
-``[[tools]]`` (optional, repeatable): rigid tools touching the tissue (:mod:`torchdeform.interact`)
-    ``name`` (default ``tool1``, ``tool2``, ...; unique: the keys of the force readings)
-    ``shape``  ``"sphere"`` (``radius``), ``"capsule"`` (``radius``, ``half_length``, ``axis`` =
-    ``"d"``, ``"h"`` or ``"w"``), ``"box"`` (``half_extents = [hd, hh, hw]``), ``"half_space"``
-    (``normal``, default ``[1, 0, 0]``) or ``"mesh"`` (``file``, a closed mesh relative to the scene
-    file, and ``resolution`` of its distance field, default 32); metres
-    ``position = [d, h, w]`` (fixed, with an optional ``orientation = [rd, rh, rw]``, a rotation
-    vector in radians) or ``path = [[t, [d, h, w]], ...]`` / ``[[t, [d, h, w], [rd, rh, rw]], ...]``
-    (increasing times, linear in between, held after the last)
-    ``contact``  ``"projection"`` (default; options ``friction``, ``direction`` = ``"normal"`` or
-    ``"motion"``, ``hold``, ``haptic_gain``), ``"penalty"`` (``stiffness`` N/m, ``damping``) or
-    ``"none"`` (with a grasp)
-    ``grasp = {close = t1, open = t2, margin = m}``  forceps: what lies in the shape (plus
-    ``margin``) at ``close`` follows the tool until ``open`` (s; ``inf`` for never)
-``[strain_limit]`` (optional): ``min`` (0.9), ``max`` (1.1): bounds of every spring's length over
-    its rest length; ``passes`` (4); ``update_velocity`` (true)
-``[[cuts]]``, ``[[cautery]]``, ``[tear]``, ``[[coagulate]]`` (optional): topology changes between steps
-    (:mod:`.topology`): blades (``origin``/``u``/``v``, ``triangle`` or ``edges``) cutting ``at`` a time,
-    or a ``tool`` carrying an ``edge`` from ``start`` to ``stop``, with ``gape``; a ``tool`` burning
-    nodes ``at`` a time or every step; springs tearing past ``max_strain`` or ``max_force``; a region
-    (as in ``[[regions]]``) whose shape sets ``at`` a time, its damping times ``viscosity_factor``
-``[integrator]`` (required)
-    ``name``  ``"explicit"``, ``"symplectic"`` (default), ``"verlet"``, ``"rk4"``,
-    ``"implicit"``, ``"projective"``, ``"adaptive"`` or ``"knoche"``
-    ``dt``  seconds > 0, or ``"auto"`` (explicit integrators: ``safety`` x the stability bound)
-    ``safety``  fraction of the bound used by ``dt = "auto"`` (default 0.9)
-    ``steps``  number of steps >= 0 (required)
-    ``dtype``  ``"float32"`` (default) or ``"float64"``;  ``device``  ``"cpu"`` (default), ``"cuda"``
-    ``threads``  CPU threads of the run (default: torch's; small bodies run faster on one)
-    options of ``verlet``: ``kd`` (per-step damping in [0, 1), default 0);
-    of ``implicit``: ``cg_iters`` (100), ``cg_tol`` (1e-6), ``newton_iters`` (0);
-    of ``projective``: ``iterations`` (10), ``tol`` (0), ``solver`` (``"auto"``, ``"cholesky"``,
-    ``"cg"``, ``"jacobi"``), ``rho`` (0.95), ``relaxation`` (0.9), ``delay`` (1), ``cg_iters`` (50),
-    ``cg_tol`` (1e-6);
-    of ``adaptive`` (``dt``: the interval between recorded states; the steps are its own):
-    ``rtol`` (1e-3), ``pair`` (``"bogacki_shampine"``), ``min_step``, ``max_step``;
-    of ``knoche`` (needs ``topology = 6``): ``material`` (w in [0, 1], a number or a
-    ``[D][H][W]`` array), ``eps`` (1e-3), ``gain`` (default 3 / D)
-``[output]`` (optional)
-    ``record_every``  steps between saved frames (default: about 100 frames)
-    ``name``  title of the run (default: the file's name)
-    ``palpation``  ``true`` (the first tool with a contact) or a tool's name: analyse its presses,
-    write ``palpation.png`` and a ``"palpation"`` part of ``summary.json``
-    ``surfaces = [t1, t2, ...]``  times (s) at which the closed surface of every connected piece is
-    written as ``surface_<ms>ms_<label>.ply`` (with topology changes also ``topology.png`` and a
-    ``"topology"`` part of ``summary.json``)
-    ``animation``  ``true``: write ``animation.gif``, the textured surface beside the deformed
-    volume render with the time and the tools' forces (as ``torchdeform run --animation``; see
-    :func:`torchdeform.scene.animation.animate`)
+Each section below lists its keys as ``key``: meaning (default). The scene-file reference of the
+documentation is generated from this list.
+
+``[grid]`` (required):
+
+- ``shape = [D, H, W]``: node counts, each >= 1 (or ``mesh``)
+- ``mesh = "organ.stl"``: a closed triangle mesh voxelised into the node mask (instead of
+  ``shape``; path relative to the scene file; mesh x, y, z -> D, H, W)
+- ``spacing``: metres, one number or ``[sd, sh, sw]`` (required)
+- ``topology``: 6, 14, 18 or 26 neighbours (26)
+- ``origin = [od, oh, ow]``: position of node [0, 0, 0] in metres (0; ``shape`` only)
+- ``padding``: extra node layers around the mesh's bounding box (0; ``mesh`` only)
+- ``scale``: metres per mesh unit, e.g. 0.001 for a mesh in mm (1; ``mesh`` only)
+
+``[material]`` (required):
+
+- ``stiffness``: spring stiffness k in N/m: a number, or one per direction class
+  ``{axis = .., face = .., body = ..}`` (only the classes of the topology are needed)
+- ``modulus``: instead of ``stiffness``: Y in N, each spring gets ``k = Y / l0``
+  (resolution-independent); a number or a table as for ``stiffness``
+- ``tissue``: instead of ``stiffness``: words of the fuzzy tissue library (:mod:`torchdeform.fuzzy`):
+  a tissue (``"liver"``, ``"fat"``, ...), a consistency term (``"very_soft"`` ... ``"hard"``) or
+  a consistency number 0..10; its Young's modulus E becomes ``k = E / lattice_modulus(grid)``
+  (``k = E h / 2.7`` for 26 neighbours)
+- ``damping``: dashpot along each spring in N s/m (divided by l0 too with ``modulus``);
+  a number or a class table (none)
+- ``damping_mode``: ``"projected"`` (default) or ``"unprojected"`` (Radetzky)
+- ``law``: ``"hooke"`` (default), ``"exponential"`` (``stiffening`` b) or ``"polynomial"``
+  (``quadratic`` c2, ``cubic`` c3): strain-stiffening springs (:mod:`torchdeform.sim.laws`) whose
+  small-strain stiffness is ``stiffness``; each parameter a number >= 0 or a class table (0)
+
+``[[regions]]`` (optional, repeatable; needs ``stiffness`` as one number, or ``tissue``, in
+``[material]``): a part of the body with its own stiffness, later regions on top of earlier ones;
+a spring gets the harmonic mean of its two end nodes' stiffness:
+
+- ``sphere = {center = [d, h, w], radius = r}`` or ``box = {lo = [..], hi = [..]}``: the region
+  (rest positions, m)
+- ``stiffness`` (N/m) or ``tissue`` (as in ``[material]``): its stiffness
+
+``[mass]`` (required, exactly one key):
+
+- ``mass``: kg per node
+- ``density``: kg/m^3, lumped from cell volumes (each node owns its voxel, halved at the box faces)
+
+``[boundary]`` (optional):
+
+- ``fixed``: a face name or a list of them: ``"bottom"``, ``"top"``, ``"d-"``, ``"d+"``,
+  ``"h-"``, ``"h+"``, ``"w-"``, ``"w+"``
+- ``fixed_nodes = [[i, j, k], ...]``: more fixed nodes
+- ``home``: stiffness (N/m) of home springs to every node's rest position (Punak)
+- ``anchors = {stiffness = .., every = ..}``: anchor springs (N/m) on the nodes with
+  ``(i + j + k) % every == 0`` (Radetzky)
+- ``decay``: global drag rate c in 1/s: ``v <- v exp(-c dt)`` each step
+- ``gravity = [gd, gh, gw]``: m/s^2
+
+``[[loads]]`` (optional, repeatable):
+
+- ``node = [i, j, k]`` with ``force = [fd, fh, fw]``: a point force (N) on one node
+- ``face = "top"`` with ``traction = [td, th, tw]``: a traction (Pa) lumped onto the face's nodes
+- ``start``: s, when the load appears (0)
+- ``ramp``: s, how long it takes to reach full strength (0)
+
+``[[drags]]`` (optional, repeatable): a group of nodes moved rigidly along a path:
+
+- ``nodes = [[i, j, k], ...]``, ``face = "top"`` or ``box = {lo = [..], hi = [..]}``: the group
+  (box: rest positions in metres, bounds included)
+- ``path = [[t, [od, oh, ow]], ...]``: offsets (m) from the rest position at increasing times (s),
+  linear in between, held after the last
+
+``[[tools]]`` (optional, repeatable): rigid tools touching the tissue (:mod:`torchdeform.interact`):
+
+- ``name``: unique; the keys of the force readings (``tool1``, ``tool2``, ...)
+- ``shape``: ``"sphere"`` (``radius``), ``"capsule"`` (``radius``, ``half_length``, ``axis`` =
+  ``"d"``, ``"h"`` or ``"w"``), ``"box"`` (``half_extents = [hd, hh, hw]``), ``"half_space"``
+  (``normal``, default ``[1, 0, 0]``) or ``"mesh"`` (``file``, a closed mesh relative to the scene
+  file, and ``resolution`` of its distance field, default 32); metres
+- ``position = [d, h, w]``: a fixed pose, with an optional ``orientation = [rd, rh, rw]`` (a
+  rotation vector in radians)
+- ``path = [[t, [d, h, w]], ...]`` or ``[[t, [d, h, w], [rd, rh, rw]], ...]``: poses at increasing
+  times, linear in between, held after the last
+- ``contact``: ``"projection"`` (default; options ``friction``, ``direction`` = ``"normal"`` or
+  ``"motion"``, ``hold``, ``haptic_gain``), ``"penalty"`` (``stiffness`` N/m, ``damping``) or
+  ``"none"`` (a grasp, or a tool that only cuts or burns)
+- ``grasp = {close = t1, open = t2, margin = m}``: forceps: what lies in the shape (plus
+  ``margin``) at ``close`` follows the tool until ``open`` (s; ``inf`` for never)
+
+``[strain_limit]`` (optional): every spring's length kept within bounds of its rest length:
+
+- ``min``, ``max``: the bounds, as ratios of the rest length (0.9, 1.1)
+- ``passes``: Jacobi passes per step (4)
+- ``update_velocity``: velocities follow the corrections (true)
+
+``[[cuts]]`` (optional, repeatable): a blade cutting the springs it crosses (:mod:`.topology`):
+
+- ``origin = [d, h, w]``, ``u``, ``v``: the parallelogram blade ``origin + a u + b v``, ``a, b`` in
+  [0, 1] (m); or ``triangle = [[d, h, w], [..], [..]]``; or ``edges = [[[d, h, w], [d, h, w]],
+  ...]``, the surface a straight edge sweeps through two or more poses
+- ``at``: s, when the blade cuts (0)
+- ``tool``, ``edge``, ``start``, ``stop``, ``pieces``: instead of a blade, a scalpel: the edge
+  ``[[a], [b]]`` in the frame of a ``[[tools]]`` entry cuts what it sweeps from ``start`` (s, 0) to
+  ``stop`` (s, the end of the run), ``pieces`` triangles per step (1)
+- ``gape``: in [0, 1): the springs left at the cut's nodes shorten by this fraction, and the cut
+  opens (0)
+
+``[[cautery]]`` (optional, repeatable):
+
+- ``tool``: the nodes inside this tool are burnt away, with their springs
+- ``at``: once, at this time (s); or ``every`` (1), ``start`` (0), ``stop`` (the end): at every
+  ``every``-th step from ``start`` to ``stop``
+
+``[tear]`` (optional):
+
+- ``max_strain`` (``l / l0 - 1`` > 0) or ``max_force`` (N > 0: the strain ``F / (k l0)`` of each
+  spring): springs past the limit break
+- ``one_per_step``: only the most strained spring breaks per step (false)
+- ``start``: s, when tearing starts (0)
+
+``[[coagulate]]`` (optional, repeatable):
+
+- ``at``: s, when the region coagulates (0)
+- ``box = {lo = [..], hi = [..]}`` or ``sphere = {center = [..], radius = r}``: the region, as in
+  ``[[regions]]``; springs with both ends in it take their current length as rest length
+- ``viscosity_factor``: >= 1, their damping is multiplied by it (1)
+
+A tool that only cuts or burns may have ``contact = "none"``. Every time lies in ``[0, steps x
+dt]``; a blade (or a scalpel's edge along its path) must reach the body's rest bounding box.
+
+``[integrator]`` (required):
+
+- ``name``: ``"explicit"``, ``"symplectic"`` (default), ``"verlet"``, ``"rk4"``, ``"implicit"``,
+  ``"projective"``, ``"adaptive"`` or ``"knoche"``
+- ``dt``: seconds > 0, or ``"auto"`` (explicit integrators: ``safety`` x the stability bound)
+- ``safety``: fraction of the bound used by ``dt = "auto"`` (0.9)
+- ``steps``: number of steps >= 0 (required)
+- ``dtype``: ``"float32"`` (default) or ``"float64"``
+- ``device``: ``"cpu"`` (default) or ``"cuda"`` (``--device`` overrides it)
+- ``threads``: CPU threads of the run (torch's; small bodies run faster on one, and much faster
+  on a busy machine)
+- ``engine``: ``"auto"`` (default: the C-kernel or compiled step when the run repays its
+  start-up), ``"eager"``, ``"native"`` or ``"compiled"``; the summary's ``engine`` says which ran
+  and why
+- ``kd``: ``verlet``'s per-step damping in [0, 1) (0)
+- ``cg_iters`` (100), ``cg_tol`` (1e-6), ``newton_iters`` (0): ``implicit``'s options
+- ``iterations`` (10), ``tol`` (0), ``solver`` (``"auto"``, ``"cholesky"``, ``"cg"``,
+  ``"jacobi"``), ``rho`` (0.95), ``relaxation`` (0.9), ``delay`` (1), ``cg_iters`` (50),
+  ``cg_tol`` (1e-6): ``projective``'s options
+- ``rtol`` (1e-3), ``pair`` (``"bogacki_shampine"``), ``min_step``, ``max_step``: ``adaptive``'s
+  options; ``dt`` is then the interval between recorded states, the steps are its own
+- ``material`` (w in [0, 1], a number or a ``[D][H][W]`` array), ``eps`` (1e-3), ``gain``
+  (3 / D): ``knoche``'s options (it needs ``topology = 6``)
+
+``[output]`` (optional):
+
+- ``record_every``: steps between saved frames (about 100 frames)
+- ``name``: title of the run (the file's name)
+- ``palpation``: ``true`` (the first tool with a contact) or a tool's name: analyse its presses,
+  write ``palpation.png`` and a ``"palpation"`` part of ``summary.json``
+- ``surfaces = [t1, t2, ...]``: times (s) at which the closed surface of every connected piece
+  (and side of the latest blade) is written as ``surface_<ms>ms_<label>.ply``
+- ``animation``: ``true``: write ``animation.gif``, the textured surface beside the deformed
+  volume render with the time and the tools' forces (as ``torchdeform run --animation``; see
+  :func:`torchdeform.scene.animation.animate`)
+
 ``[volume]`` (optional): a volume filling the grid's bounding box, deformed by the final state;
-    the run also writes ``volume_before.png``, ``volume_after.png``, ``volume_deformed.npy``
-    ``file``  a volume file (.npy, .npz, .nii, .nrrd; relative to the scene file) or ``"phantom:N"``
-    ``tf``  transfer-function preset or file (default ``"ct-soft"``); ``mode``  ``"dvr"``
-    (default), ``"mip"`` or ``"average"``; ``view``  axis view (default ``"h"``)
-``model = "chainmail"`` (optional top-level key, before any section): a ChainMail scene instead
-    of a mass-spring one: ``[grid]``, ``[chainmail]`` (required), ``[boundary]`` (``fixed``,
-    ``fixed_nodes``), ``[[drags]]`` (the picked elements and their paths), ``[output]``; see
-    :func:`torchdeform.scene.chainmail.chainmail_scene` for the ``[chainmail]`` keys
+the run also writes ``volume_before.png``, ``volume_after.png``, ``volume_deformed.npy``:
+
+- ``file``: a volume file (.npy, .npz, .nii, .nrrd; relative to the scene file) or ``"phantom:N"``
+- ``tf``: transfer-function preset or file (``"ct-soft"``)
+- ``mode``: ``"dvr"`` (default), ``"mip"`` or ``"average"``
+- ``view``: axis view (``"h"``)
+
+``[texture]`` (optional): a solid texture on the body's material points; the run writes
+``textured.png`` of the final surfaces, cut faces showing the interior:
+
+- ``exemplar``: ``"liver"``, ``"liver:N"`` or an exemplar file (.npy, .npz, a folder of slices;
+  relative to the scene file) (``"liver:64"``)
+- ``block``: block size in voxels (half the exemplar's smallest side)
+- ``seed``: random offsets of the blocks (0)
+- ``voxel``: texture voxel size in m (a quarter of the smallest spacing)
+- ``seams``: ``"none"`` (default), ``"3d"`` or ``"slices"``: block seams blended; the seam measure
+  before and after goes into ``summary.json``
+
+``model = "chainmail"`` (optional top-level key, before any section): a ChainMail scene instead of
+a mass-spring one, with ``[grid]`` (its topology ignored: ChainMail links face neighbours),
+``[boundary]`` (``fixed``, ``fixed_nodes``), ``[[drags]]`` (the picked elements and their paths),
+``[output]`` (``name``) and ``[chainmail]`` (required; :func:`torchdeform.scene.chainmail.chainmail_scene`):
+
+- ``method``: ``"gibson"`` (default) or ``"enhanced"``
+- ``compression`` (0.9), ``stretch`` (1.1), ``shear`` (0.1): the limits as ratios of the spacing
+- ``tissue``: instead of the ratios, a name of the fuzzy tissue library or a consistency 0..10,
+  with ``reference_stress`` (Pa, 300)
+- ``frames``: frames of the run (20)
+- ``relax_steps`` (0), ``relax_mode`` (``"centroid"`` or ``"goal"``), ``relax_moved_only``
+  (false): relaxation after each frame
+- ``on_blocked``: ``"scale"`` (default) or ``"error"``: a move that would shift a fixed element
 
 Every problem is a :class:`~torchdeform.errors.ConfigError` naming the file, the line (found
 by a text search, best effort), the dotted key (``integrator.dt``, ``loads[0].force``; array

@@ -27,7 +27,7 @@ Example:
     >>> import torchdeform as td
     >>> from torchdeform.scene.animation import animate
     >>> grid = td.Grid((3, 3, 3), spacing=0.01)
-    >>> X = grid.rest_positions(torch.float32)[0]
+    >>> X = grid.rest_positions(dtype=torch.float32)[0]
     >>> x = torch.stack([X, X + 0.002])                   # two frames: the body moves 2 mm along each axis
     >>> out = getfixture("tmp_path") / "a.gif"
     >>> info = animate(grid, [0.0, 0.1], x, out, volume=torch.rand(8, 8, 8) * 1000, size=64,
@@ -93,7 +93,7 @@ def frame_indices(n: int, frames: int) -> list:
     """
     n, frames = int(n), int(frames)
     if n < 1 or frames < 1:
-        raise ConfigError("frames", "at least one recorded and one shown frame", (n, frames))
+        raise ConfigError("frames", "at least one recorded and one shown frame", got=(n, frames))
     if frames == 1:
         return [n - 1]
     if frames >= n:
@@ -139,13 +139,13 @@ def drag_forces(model, x, v, t) -> np.ndarray:
         for i in range(T):
             xi = x[i : i + 1].to(model.device, model.dtype)
             vi = v[i : i + 1].to(model.device, model.dtype)
-            F = model.forces(xi, vi, float(t[i]))[0]  # (3, D, H, W)
+            F = model.forces(xi, vi, t=float(t[i]))[0]  # (3, D, H, W)
             out[i] = (-F[:, mask].sum(1)).double().cpu().numpy() + 0.0  # no -0.0
     return out
 
 
 def surface_camera(
-    grid, x, size: int = 320, direction=SURFACE_DIRECTION, fov_deg: float = SURFACE_FOV, fill: float = 0.9
+    grid, x, *, size: int = 320, direction=SURFACE_DIRECTION, fov_deg: float = SURFACE_FOV, fill: float = 0.9
 ):
     """The perspective camera of the surface panel: it frames the body in every frame of ``x``.
 
@@ -169,7 +169,7 @@ def surface_camera(
         >>> import torch
         >>> import torchdeform as td
         >>> grid = td.Grid((3, 3, 3), spacing=0.01)
-        >>> cam = surface_camera(grid, grid.rest_positions(torch.float64), size=64)
+        >>> cam = surface_camera(grid, grid.rest_positions(dtype=torch.float64), size=64)
         >>> cam.size, [round(c, 4) for c in cam.target]
         ((64, 64), [0.01, 0.01, 0.01])
         >>> corners = torch.tensor([[a, b, c] for a in (-0.005, 0.025) for b in (-0.005, 0.025) for c in (-0.005, 0.025)])
@@ -187,7 +187,7 @@ def surface_camera(
     d = torch.tensor(direction, dtype=torch.float64)
     d = d / d.norm()
     for _ in range(8):  # the projected size is about inverse to the distance
-        cam = framing_camera(corners, tuple(d.tolist()), fov_deg, size=(int(size), int(size)))
+        cam = framing_camera(corners, direction=tuple(d.tolist()), fov_deg=fov_deg, size=(int(size), int(size)))
         reach = float((cam.project(corners)[0] - size / 2).abs().max()) / (size / 2)
         if abs(reach - fill) < 1e-3:
             break
@@ -210,7 +210,7 @@ def format_force(force) -> str:
     return f"{f * 1e6:.1f} uN"  # the default font has no micro sign
 
 
-def caption(t: float, forces: dict | None = None) -> str:
+def caption(t: float, *, forces: dict | None = None) -> str:
     """The caption of a frame: the simulated time and each named force's magnitude.
 
     Args:
@@ -221,7 +221,7 @@ def caption(t: float, forces: dict | None = None) -> str:
         one line, e.g. ``"t = 0.050 s   drag 2.31 mN"``.
 
     Example:
-        >>> caption(0.05, {"drag": [0.0, 0.002, 0.0]}), caption(1.0)
+        >>> caption(0.05, forces={"drag": [0.0, 0.002, 0.0]}), caption(1.0)
         ('t = 0.050 s   drag 2.00 mN', 't = 1.000 s   (no tool or drag)')
     """
     parts = ", ".join(f"{name} {format_force(f)}" for name, f in (forces or {}).items())
@@ -237,7 +237,7 @@ def _font(size: int):
         return ImageFont.load_default()
 
 
-def compose(surface, volume, text: str, titles=("surface", "volume")) -> np.ndarray:
+def compose(surface, volume, text: str, *, titles=("surface", "volume")) -> np.ndarray:
     """One frame: two square panels side by side, a title on each and a caption band underneath.
 
     Args:
@@ -272,7 +272,7 @@ def compose(surface, volume, text: str, titles=("surface", "volume")) -> np.ndar
     return np.asarray(canvas)
 
 
-def write_gif(frames, path, fps: float = 12.0, hold: float = 1.0, colours: int = 256) -> int:
+def write_gif(frames, path, *, fps: float = 12.0, hold: float = 1.0, colours: int = 256) -> int:
     """Write uint8 ``(h, w, 3)`` frames as a looping GIF; the last frame stays ``hold`` seconds.
 
     All frames share one palette of ``colours`` colours, taken from up to four frames spread over the
@@ -317,7 +317,7 @@ def _volume_panel(vol, offsets, tf, mode, view, extent, size, render_scale) -> n
     ph, pw = (size, max(1, round(size * ec / er))) if er >= ec else (max(1, round(size * er / ec)), size)
     rh, rw = max(1, round(ph * render_scale)), max(1, round(pw * render_scale))
     with torch.no_grad():
-        img = render(vol, tf, mode, view, offsets=offsets, size=(rh, rw))
+        img = render(vol, tf=tf, mode=mode, view=view, offsets=offsets, size=(rh, rw))
     rgb = to_image(img, flip_up=view.lstrip("-") in ("h", "w"))
     im = Image.fromarray(rgb)
     if (rh, rw) != (ph, pw):
@@ -385,9 +385,9 @@ def animate(
     t = np.asarray(t, dtype=np.float64).reshape(-1)
     x = torch.as_tensor(x).detach().double().cpu()
     if x.dim() != 5 or x.shape[1] != 3 or tuple(x.shape[2:]) != grid.shape or len(x) != len(t):
-        raise ConfigError("x", f"node positions (T, 3) + {grid.shape} with T = len(t) = {len(t)}", tuple(x.shape))
+        raise ConfigError("x", f"node positions (T, 3) + {grid.shape} with T = len(t) = {len(t)}", got=tuple(x.shape))
     if view.lstrip("-") not in _VIEW_AXES or view.count("-") > 1:
-        raise ConfigError("view", "an axis view d, h, w, -d, -h, -w", view)
+        raise ConfigError("view", "an axis view d, h, w, -d, -h, -w", got=view)
     size = int(size)
     idx = frame_indices(len(t), frames)
     if labels is None:
@@ -395,12 +395,12 @@ def animate(
     if texture is None or isinstance(texture, dict):
         texture = body_texture(grid, **(texture or {}))
     if isinstance(volume, (str, Path)):
-        volume = load_volume(str(volume), "volume.file")
+        volume = load_volume(str(volume), key="volume.file")
     vol = torch.as_tensor(np.asarray(volume) if not torch.is_tensor(volume) else volume).float()
-    X = grid.rest_positions(torch.float64)
+    X = grid.rest_positions(dtype=torch.float64)
     extent = [(n - 1) * s for n, s in zip(grid.shape, grid.spacing)]
     extent = [e if e > 0 else s for e, s in zip(extent, grid.spacing)]
-    camera = surface_camera(grid, x[idx], size)
+    camera = surface_camera(grid, x[idx], size=size)
     forces = {k: np.asarray(f, dtype=np.float64).reshape(len(t), 3) for k, f in (forces or {}).items()}
     titles = ("surface: solid texture, shaded", f"volume: {mode}, view {view}")
     images, captions = [], []
@@ -410,10 +410,10 @@ def animate(
         surface = (surface.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
         offsets = node_offsets(x[i : i + 1], X, grid.spacing, tuple(vol.shape)).float()
         right = _volume_panel(vol, offsets, tf, mode, view, extent, size, render_scale)
-        text = caption(t[i], {k: f[i] for k, f in forces.items()})
+        text = caption(float(t[i]), forces={k: f[i] for k, f in forces.items()})
         captions.append(text)
-        images.append(compose(surface, right, text, titles))
-    nbytes = write_gif(images, out_path, fps)
+        images.append(compose(surface, right, text, titles=titles))
+    nbytes = write_gif(images, out_path, fps=fps)
     return {
         "file": Path(out_path).name,
         "frames": len(images),

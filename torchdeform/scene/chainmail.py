@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import KW_ONLY, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +35,7 @@ class ChainMailScene:
 
     grid: Grid
     limits: Limits
+    _: KW_ONLY
     method: str = "gibson"
     fixed: torch.Tensor | None = None
     drags: list = field(default_factory=list)
@@ -46,7 +47,7 @@ class ChainMailScene:
     name: str = "chainmail"
     source: object = None
 
-    def run(self, out_dir, progress: bool = True, device=None) -> dict:
+    def run(self, out_dir, *, progress: bool = True, device=None) -> dict:
         """Run the scene; returns the summary (also written to ``summary.json``).
 
         ``device`` is not used (the sequential ChainMail runs on the CPU).
@@ -62,7 +63,7 @@ class ChainMailScene:
             hold |= m
             idx = [tuple(int(v) for v in r) for r in m.nonzero()]
             groups.append((d, idx))
-        X = self.grid.rest_positions(torch.float64)
+        X = self.grid.rest_positions(dtype=torch.float64)
         frames = [X[0].float().numpy()]
         energy, violation, moved, fraction = [0.0], [0.0], [0], [1.0]
         start = time.perf_counter()
@@ -70,16 +71,16 @@ class ChainMailScene:
             n_moved, frac = 0, 1.0
             for d, idx in groups:
                 target = np.asarray(d.offset(float(t)), dtype=np.float64)
-                current = cm.displacement(torch.float64)[0][(slice(None),) + idx[0]].numpy()
+                current = cm.displacement(dtype=torch.float64)[0][(slice(None),) + idx[0]].numpy()
                 delta = target - current
                 if np.any(delta != 0):
                     r = cm.move(idx, delta, on_blocked=self.on_blocked)
                     n_moved, frac = n_moved + r.moved, min(frac, r.fraction)
             if self.relax_steps:
-                cm.relax(self.relax_steps, self.relax_mode, self.relax_moved_only, hold=hold)
+                cm.relax(steps=self.relax_steps, mode=self.relax_mode, only_moved=self.relax_moved_only, hold=hold)
             x = cm.positions()
             frames.append(x[0].float().numpy())
-            energy.append(float(relax_energy(x, self.grid, self.limits, self.relax_mode)[0]))
+            energy.append(float(relax_energy(x, self.grid, limits=self.limits, mode=self.relax_mode)[0]))
             violation.append(float(limit_violation(x, self.grid, self.limits)[0]))
             moved.append(n_moved)
             fraction.append(frac)
@@ -155,7 +156,7 @@ def _plot_scene(path, t, energy, disp, title):
     save_figure(fig, path, dpi=100)
 
 
-def chainmail_scene(src, data: dict, base, name: str = "chainmail") -> ChainMailScene:
+def chainmail_scene(src, data: dict, base, *, name: str = "chainmail") -> ChainMailScene:
     """Build a :class:`ChainMailScene` from a parsed scene file with ``model = "chainmail"``.
 
     Called by :func:`torchdeform.scene.load_scene`. ``[chainmail]`` keys: ``method``
@@ -170,10 +171,10 @@ def chainmail_scene(src, data: dict, base, name: str = "chainmail") -> ChainMail
     """
     unused = [k for k in data if k not in ("model", "grid", "chainmail", "boundary", "drags", "output")]
     if unused:
-        raise src.error(unused[0], 'no such section in a scene with model = "chainmail"', unused[0])
+        raise src.error(unused[0], 'no such section in a scene with model = "chainmail"', got=unused[0])
     grid = grid_section(Table(src, "grid", data["grid"], SECTIONS["grid"]), base)
     t = Table(src, "chainmail", data["chainmail"], SECTIONS["chainmail"])
-    method = t.text("method", '"gibson" or "enhanced"', "gibson", METHODS)
+    method = t.text("method", '"gibson" or "enhanced"', default="gibson", choices=METHODS)
     if t.has("tissue"):
         for k in ("compression", "stretch", "shear"):
             t.only_with(k, "tissue")
@@ -182,15 +183,19 @@ def chainmail_scene(src, data: dict, base, name: str = "chainmail") -> ChainMail
             limits = tissue_limits(
                 grid,
                 tissue,
-                reference_stress=t.num("reference_stress", "a positive stress in Pa", 300.0, lo=0, lo_open=True),
+                reference_stress=t.num(
+                    "reference_stress", "a positive stress in Pa", default=300.0, lo=0, lo_open=True
+                ),
             )
     else:
         t.only_with("reference_stress", "compression")
-        comp = t.num("compression", "a ratio in (0, 1] (minimum distance / spacing)", 0.9, lo=0, hi=1, lo_open=True)
-        stretch = t.num("stretch", "a ratio >= 1 (maximum distance / spacing)", 1.1, lo=1)
-        shear = t.num("shear", "a ratio >= 0 (shear limit / spacing)", 0.1, lo=0)
+        comp = t.num(
+            "compression", "a ratio in (0, 1] (minimum distance / spacing)", default=0.9, lo=0, hi=1, lo_open=True
+        )
+        stretch = t.num("stretch", "a ratio >= 1 (maximum distance / spacing)", default=1.1, lo=1)
+        shear = t.num("shear", "a ratio >= 0 (shear limit / spacing)", default=0.1, lo=0)
         with src.located(t.name):
-            limits = Limits.from_material(grid, comp, stretch, shear)
+            limits = Limits.from_material(grid, compression=comp, stretch=stretch, shear=shear)
     fixed = None
     if "boundary" in data:
         b = Table(src, "boundary", data["boundary"], ("fixed", "fixed_nodes"))
@@ -204,15 +209,15 @@ def chainmail_scene(src, data: dict, base, name: str = "chainmail") -> ChainMail
     scene = ChainMailScene(
         grid,
         limits,
-        method,
-        fixed,
-        drags,
-        frames=t.integer("frames", "an integer >= 1 (moves along the drag paths)", 20, lo=1),
-        relax_steps=t.integer("relax_steps", "an integer >= 0", 0),
-        relax_mode=t.text("relax_mode", '"centroid" or "goal"', "centroid", RELAX_MODES),
-        relax_moved_only=bool(t.raw("relax_moved_only", "true or false", False)),
-        on_blocked=t.text("on_blocked", '"scale" or "error"', "scale", ("scale", "error")),
-        name=out.text("name", "a string", name),
+        method=method,
+        fixed=fixed,
+        drags=drags,
+        frames=t.integer("frames", "an integer >= 1 (moves along the drag paths)", default=20, lo=1),
+        relax_steps=t.integer("relax_steps", "an integer >= 0", default=0),
+        relax_mode=t.text("relax_mode", '"centroid" or "goal"', default="centroid", choices=RELAX_MODES),
+        relax_moved_only=bool(t.raw("relax_moved_only", "true or false", default=False)),
+        on_blocked=t.text("on_blocked", '"scale" or "error"', default="scale", choices=("scale", "error")),
+        name=out.text("name", "a string", default=name),
         source=src,
     )
     if fixed is not None:

@@ -58,15 +58,17 @@ def add_demo_arguments(p) -> None:
 def run_command(args) -> int:
     """Run a scene file; prints one line (what ran, how fast, where the outputs are)."""
     if args.device is not None:
-        usable_device(args.device, "--device")
+        usable_device(args.device, key="--device")
     scene = load_scene(args.scene)
     if getattr(args, "animation", False):
         if not isinstance(scene, Scene):
-            raise ConfigError("--animation", "a mass-spring scene (ChainMail scenes write no animation)", "chainmail")
+            raise ConfigError(
+                "--animation", "a mass-spring scene (ChainMail scenes write no animation)", got="chainmail"
+            )
         scene.animation = scene.animation or "animation.gif"
     if getattr(args, "engine", None):
         if not isinstance(scene, Scene):
-            raise ConfigError("--engine", "a mass-spring scene (ChainMail scenes have no engine)", "chainmail")
+            raise ConfigError("--engine", "a mass-spring scene (ChainMail scenes have no engine)", got="chainmail")
         scene.engine = args.engine
     summary = run_scene(scene, args.out, progress=not args.quiet, device=args.device, force=args.force)
     print(report(summary, args.out))
@@ -76,7 +78,7 @@ def run_command(args) -> int:
 def demo_command(args) -> int:
     """Run the built-in demo scene."""
     if args.device is not None:
-        usable_device(args.device, "--device")
+        usable_device(args.device, key="--device")
     summary = run_scene(demo_scene(), args.out, progress=not args.quiet, device=args.device, force=args.force)
     print(report(summary, args.out))
     return 0

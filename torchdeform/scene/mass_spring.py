@@ -10,8 +10,9 @@ by :mod:`.tools`, ``[[cuts]]``, ``[[cautery]]``, ``[tear]``, ``[[coagulate]]`` b
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import KW_ONLY, dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, cast
 
 import torch
 
@@ -29,6 +30,10 @@ from ..sim.projective import SOLVERS
 from .reader import SECTIONS, Source, Table, drags_section, faces, grid_section, is_number, node_list, region_mask
 from .tools import ToolSet, palpation_option, strain_limit_section
 from .topology import TOPOLOGY, TopologySet, tools_with_cutters, topology_section
+
+if TYPE_CHECKING:
+    from ..fuzzy.membership import MembershipFunction
+    from ..fuzzy.rules import Variable
 
 __all__ = [
     "Scene",
@@ -121,9 +126,9 @@ class Scene:
         >>> import torchdeform as td
         >>> grid = td.Grid((4, 4, 4), spacing=0.01)
         >>> scene = td.Scene(grid, dict(stiffness=50.0, damping=0.1, density=1000.0, fixed=grid.face("bottom")),
-        ...                  td.SymplecticEuler(), dt="auto", steps=200)
+        ...                  integrator=td.SymplecticEuler(), dt="auto", steps=200)
         >>> model = scene.build()                                  # built once per device
-        >>> model is scene.build("cpu"), model.grid is grid, scene.frames_every
+        >>> model is scene.build(device="cpu"), model.grid is grid, scene.frames_every
         (True, True, 2)
         >>> bound = td.time_step_bound(model)
         >>> scene.time_step(bound) == 0.9 * bound                  # dt = "auto": safety * bound
@@ -132,6 +137,7 @@ class Scene:
 
     grid: Grid
     model_args: dict
+    _: KW_ONLY
     integrator: Integrator = field(default_factory=SymplecticEuler)
     dt: float | str = "auto"
     steps: int = 1000
@@ -160,17 +166,17 @@ class Scene:
     animation: str | None = None
     _models: dict = field(default_factory=dict, init=False, repr=False)
 
-    def build(self, device=None) -> Model:
+    def build(self, *, device=None) -> Model:
         """The :class:`Model` on ``device`` (default: the scene's, else CPU); built once per device."""
         if device is None and self.device is not None:  # the scene's: its line in the file
             try:
-                dev = usable_device(self.device, "integrator.device")
+                dev = usable_device(self.device, key="integrator.device")
             except ConfigError as e:
-                raise self.source.error("integrator.device", e.expected, self.device) from None
+                raise self.source.error("integrator.device", e.expected, got=self.device) from None
         else:
-            dev = usable_device(device, "device")
+            dev = usable_device(device, key="device")
         if str(dev) not in self._models:
-            with self.source.located("material", MODEL_KEYS):
+            with self.source.located("material", keys=MODEL_KEYS):
                 self._models[str(dev)] = Model(self.grid, **self.model_args, dtype=self.dtype, device=dev)
         return self._models[str(dev)]
 
@@ -183,7 +189,7 @@ class Scene:
                 "integrator.dt",
                 f'seconds: "auto" needs a finite, positive stability bound and '
                 f"{self.integrator.name} has {bound:g} s here",
-                "auto",
+                got="auto",
             )
         return self.safety * bound
 
@@ -224,7 +230,7 @@ def lattice_modulus(grid: Grid) -> float:
     return float((1.0 / torch.linalg.inv(C).diagonal()).mean())
 
 
-def tissue_moduli(values, key: str = "tissue") -> list:
+def tissue_moduli(values, *, key: str = "tissue") -> list:
     """Young's moduli (Pa) of tissue words or consistency values, from the fuzzy tissue library.
 
     Each value is a tissue of :func:`torchdeform.fuzzy.tissues` (its consistency), a term of the
@@ -241,17 +247,17 @@ def tissue_moduli(values, key: str = "tissue") -> list:
     from ..fuzzy.presets import load_preset, tissues
 
     library, fis = tissues(), load_preset("tissue_si")
-    var = fis.inputs[0]
+    var = cast("Variable", fis.inputs[0])  # a system's inputs are variables
     consistency = []
     for v in values:
         if isinstance(v, str) and v in library:
             consistency.append(float(library[v]["consistency"]))
         elif isinstance(v, str) and v in var.term_names:
-            consistency.append(float(var.terms[v].peak()))
+            consistency.append(float(cast("MembershipFunction", var.terms[v]).peak()))
         elif is_number(v) and 0 <= v <= 10:
             consistency.append(float(v))
         else:
-            raise ConfigError(key, TISSUE_EXPECTED, v)
+            raise ConfigError(key, TISSUE_EXPECTED, got=v)
     out = fis(torch.tensor(consistency, dtype=fis.dtype).view(-1, 1))
     return [float(e) for e in out[:, fis.output_names().index("youngs_modulus")]]
 
@@ -270,16 +276,16 @@ def _material(t: Table, grid: Grid) -> dict:
     if t.has("damping"):
         args["damping"] = t.per_class("damping", "N s/m")
     args["damping_mode"] = t.text(
-        "damping_mode", '"projected" or "unprojected"', "projected", ("projected", "unprojected")
+        "damping_mode", '"projected" or "unprojected"', default="projected", choices=("projected", "unprojected")
     )
     laws = ("hooke",) + tuple(LAWS)
-    name = t.text("law", "one of " + ", ".join(f'"{n}"' for n in laws), "hooke", laws)
+    name = t.text("law", "one of " + ", ".join(f'"{n}"' for n in laws), default="hooke", choices=laws)
     own = () if name == "hooke" else LAWS[name].params
     for key in ("stiffening", "quadratic", "cubic"):
         if key not in own:
             t.only_with(key, f'law = "{name}"')
     if name != "hooke":
-        args["law"] = LAWS[name](*(t.per_class(key, "dimensionless") if t.has(key) else 0.0 for key in own))
+        args["law"] = LAWS[name](**{key: t.per_class(key, "dimensionless") if t.has(key) else 0.0 for key in own})
     return args
 
 
@@ -288,7 +294,7 @@ def _regions(src: Source, items, grid: Grid, base_stiffness) -> torch.Tensor:
     from ..sim.springs import harmonic_mean_of_ends
 
     if not isinstance(items, list):
-        raise src.error("regions", "[[regions]] tables", items)
+        raise src.error("regions", "[[regions]] tables", got=items)
     if not is_number(base_stiffness):
         raise src.error(
             "material", "stiffness = a number or tissue = .. with [[regions]] (not a class table or modulus)"
@@ -301,7 +307,7 @@ def _regions(src: Source, items, grid: Grid, base_stiffness) -> torch.Tensor:
             value = t.num("stiffness", "a positive number (N/m)", lo=0, lo_open=True)
         else:
             with src.located(t.key("tissue")):
-                value = tissue_moduli([t.data["tissue"]], "tissue")[0] / lattice_modulus(grid)
+                value = tissue_moduli([t.data["tissue"]], key="tissue")[0] / lattice_modulus(grid)
         k[mask] = value
     return harmonic_mean_of_ends(k[None], grid)[0]
 
@@ -339,12 +345,13 @@ def _boundary(t: Table, grid: Grid) -> dict:
 
 def _loads(src: Source, items, grid: Grid) -> list:
     if not isinstance(items, list):
-        raise src.error("loads", "[[loads]] tables", items)
+        raise src.error("loads", "[[loads]] tables", got=items)
     loads = []
     for n, item in enumerate(items):
         t = Table(src, f"loads[{n}]", item, SECTIONS["loads"])
         timing = dict(
-            start=t.num("start", "a time >= 0 (s)", 0.0, lo=0), ramp=t.num("ramp", "a duration >= 0 (s)", 0.0, lo=0)
+            start=t.num("start", "a time >= 0 (s)", default=0.0, lo=0),
+            ramp=t.num("ramp", "a duration >= 0 (s)", default=0.0, lo=0),
         )
         if t.one_of("node", "face") == "node":
             t.only_with("traction", "node")
@@ -360,12 +367,14 @@ def _loads(src: Source, items, grid: Grid) -> list:
 
 
 def _integrator(t: Table, grid: Grid) -> dict:
-    name = t.text("name", "one of " + ", ".join(f'"{n}"' for n in INTEGRATORS), "symplectic", INTEGRATORS)
+    name = t.text(
+        "name", "one of " + ", ".join(f'"{n}"' for n in INTEGRATORS), default="symplectic", choices=INTEGRATORS
+    )
     options = INTEGRATOR_OPTIONS[name]
     for k in t.data:
         if k not in SECTIONS["integrator"] and k not in options:
             own = ", ".join(options) if options else "none"
-            raise t.fail(k, f"one of the keys {', '.join(SECTIONS['integrator'])} (options of {name}: {own})", k)
+            raise t.fail(k, f"one of the keys {', '.join(SECTIONS['integrator'])} (options of {name}: {own})", got=k)
     kwargs = {}
     for k, expected in options.items():
         if not t.has(k):
@@ -385,50 +394,55 @@ def _integrator(t: Table, grid: Grid) -> dict:
             try:
                 w = torch.as_tensor(v, dtype=torch.float64)
             except (TypeError, ValueError, RuntimeError):
-                raise t.fail(k, expected, v) from None
+                raise t.fail(k, expected, got=v) from None
             if (
                 isinstance(v, bool)
                 or not (w.dim() == 0 or tuple(w.shape) == grid.shape)
                 or not bool(((w >= 0) & (w <= 1)).all())
             ):
-                raise t.fail(k, expected + f" (grid {grid.shape})", v if w.dim() == 0 else tuple(w.shape))
+                raise t.fail(k, expected + f" (grid {grid.shape})", got=v if w.dim() == 0 else tuple(w.shape))
             kwargs[k] = float(w) if w.dim() == 0 else w
         else:
             kwargs[k] = t.num(k, expected, lo=0, lo_open=True)
     if name == "knoche" and grid.topology != 6:
-        raise t.src.error("grid.topology", "6 for the knoche integrator", grid.topology)
+        raise t.src.error("grid.topology", "6 for the knoche integrator", got=grid.topology)
     with t.src.located(t.name):
         integrator = INTEGRATORS[name](**kwargs)
 
     dt = t.raw("dt", 'a positive number of seconds or "auto"')
     if dt == "auto":
         if name not in EXPLICIT:
-            raise t.fail("dt", f'a positive number of seconds ("auto" needs an explicit integrator, not {name})', dt)
+            raise t.fail(
+                "dt", f'a positive number of seconds ("auto" needs an explicit integrator, not {name})', got=dt
+            )
     elif not (is_number(dt) and dt > 0):
-        raise t.fail("dt", 'a positive number of seconds or "auto"', dt)
+        raise t.fail("dt", 'a positive number of seconds or "auto"', got=dt)
     if t.has("safety") and dt != "auto":
-        raise t.fail("safety", 'no safety unless dt = "auto"', t.data["safety"])
-    device = t.text("device", 'a device name such as "cpu" or "cuda"', None)
+        raise t.fail("safety", 'no safety unless dt = "auto"', got=t.data["safety"])
+    device = t.text("device", 'a device name such as "cpu" or "cuda"', default=None)
     if device is not None:  # tried once: torch accepts names it cannot use ("meta", "xpu")
         try:
-            usable_device(device, "device")
+            usable_device(device, key="device")
         except ConfigError as e:
-            raise t.fail("device", e.expected, device) from None
+            raise t.fail("device", e.expected, got=device) from None
     return dict(
         integrator=integrator,
         dt=dt if dt == "auto" else float(dt),
-        safety=t.num("safety", "a number in (0, 1]", 0.9, lo=0, hi=1, lo_open=True),
+        safety=t.num("safety", "a number in (0, 1]", default=0.9, lo=0, hi=1, lo_open=True),
         steps=t.integer("steps", "an integer >= 0 (number of steps)"),
-        dtype=DTYPES[t.text("dtype", '"float32" or "float64"', "float32", DTYPES)],
+        dtype=DTYPES[t.text("dtype", '"float32" or "float64"', default="float32", choices=DTYPES)],
         device=device,
-        threads=t.integer("threads", "an integer >= 1 (CPU threads of the run)", None, lo=1),
+        threads=t.integer("threads", "an integer >= 1 (CPU threads of the run)", default=None, lo=1),
         engine=t.text(
-            "engine", f"one of {', '.join(ENGINES)} (auto: native or compiled when the run repays it)", "auto", ENGINES
+            "engine",
+            f"one of {', '.join(ENGINES)} (auto: native or compiled when the run repays it)",
+            default="auto",
+            choices=ENGINES,
         ),
     )
 
 
-def mass_spring_scene(src: Source, data: dict, base: Path, name: str = "scene") -> Scene:
+def mass_spring_scene(src: Source, data: dict, base: Path, *, name: str = "scene") -> Scene:
     """Build a :class:`Scene` from a parsed scene file whose model is ``"mass-spring"``.
 
     The file is parsed by :func:`~torchdeform.scene.reader.read`; this is called by
@@ -469,24 +483,25 @@ def mass_spring_scene(src: Source, data: dict, base: Path, name: str = "scene") 
     out = section.get("output") or Table(src, "output", {}, SECTIONS["output"])
     palpation = palpation_option(out, tools)
     if palpation is not None:
+        assert tools is not None  # palpation names a tool
         tools.palpation = palpation
     topology = None
     if any(k in data for k in TOPOLOGY) or out.has("surfaces"):  # times checked now if dt is a number
         end = None if run["dt"] == "auto" else run["steps"] * run["dt"]
-        topology = topology_section(src, data, grid, tools, out, end)
+        topology = topology_section(src, data, grid, tools, out, end=end)
     scene = Scene(
         grid,
         model_args,
         **run,
         source=src,
-        record_every=out.integer("record_every", "an integer >= 1 (steps between frames)", None, lo=1),
-        name=out.text("name", "a string", name),
+        record_every=out.integer("record_every", "an integer >= 1 (steps between frames)", default=None, lo=1),
+        name=out.text("name", "a string", default=name),
         tools=tools,
         topology=topology,
     )
     frames = scene.steps // scene.frames_every + 2  # recorded positions and velocities, kept on the CPU
     key = "output.record_every" if scene.record_every else "integrator.steps"
-    with src.located(key, {key: key}):
+    with src.located(key, keys={key: key}):
         check_memory(
             key,
             6.0 * frames * grid.num_nodes * scene.dtype.itemsize,
@@ -495,52 +510,56 @@ def mass_spring_scene(src: Source, data: dict, base: Path, name: str = "scene") 
         )
     animation = out.data.get("animation", False)
     if not isinstance(animation, bool):
-        raise out.fail("animation", "true or false (write animation.gif)", animation)
+        raise out.fail("animation", "true or false (write animation.gif)", got=animation)
     scene.animation = "animation.gif" if animation else None
     if "volume" in data:
         vt = Table(src, "volume", data["volume"], SECTIONS["volume"])
         scene.volume = {
             "file": vt.text("file", 'a volume file or "phantom:N"'),
-            "tf": vt.text("tf", "a transfer-function preset or file", "ct-soft"),
-            "mode": vt.text("mode", '"dvr", "mip" or "average"', "dvr", ("dvr", "mip", "average")),
-            "view": vt.text("view", "an axis view d, h, w, -d, -h, -w", "h", ("d", "h", "w", "-d", "-h", "-w")),
+            "tf": vt.text("tf", "a transfer-function preset or file", default="ct-soft"),
+            "mode": vt.text("mode", '"dvr", "mip" or "average"', default="dvr", choices=("dvr", "mip", "average")),
+            "view": vt.text(
+                "view", "an axis view d, h, w, -d, -h, -w", default="h", choices=("d", "h", "w", "-d", "-h", "-w")
+            ),
             "base": str(base),
         }
         from ..volume.io import check_volume_source
-        from ..volume.rendering import get_tf
+        from ..volume.transfer import get_tf
 
         name = scene.volume["file"]  # checked now, not after the simulation
-        with src.located("volume.file", {"volume": "volume.file", "volume.file": "volume.file"}):
+        with src.located("volume.file", keys={"volume": "volume.file", "volume.file": "volume.file"}):
             check_volume_source(name if name.startswith("phantom") else Path(base) / name, "volume.file")
-        with src.located("volume.tf", {"transfer function": "volume.tf", "control point": "volume.tf"}):
+        with src.located("volume.tf", keys={"transfer function": "volume.tf", "control point": "volume.tf"}):
             get_tf(scene.volume["tf"])
     if "texture" in data:
         from ..texture.synthesis import SEAM_METHODS
 
         tt = Table(src, "texture", data["texture"], SECTIONS["texture"])
         exemplar = tt.text(
-            "exemplar", "liver, liver:N or an exemplar file (.npy, .npz, a folder of slices)", "liver:64"
+            "exemplar", "liver, liver:N or an exemplar file (.npy, .npz, a folder of slices)", default="liver:64"
         )
         if not exemplar.startswith("liver"):
             exemplar = str(Path(base) / exemplar)
         with src.located(tt.key("exemplar")):
             from ..texture.exemplar import exemplar_from
 
-            ex = exemplar_from(exemplar, tt.integer("seed", "an integer >= 0", 0))
-        block = tt.integer("block", "an integer block size >= 2 (voxels)", min(ex.shape[1:]) // 2, lo=2)
+            ex = exemplar_from(exemplar, seed=tt.integer("seed", "an integer >= 0", default=0))
+        block = tt.integer("block", "an integer block size >= 2 (voxels)", default=min(ex.shape[1:]) // 2, lo=2)
         if block > min(ex.shape[1:]):
             raise tt.fail(
-                "block", f"a block no larger than the exemplar's smallest side ({min(ex.shape[1:])} voxels)", block
+                "block", f"a block no larger than the exemplar's smallest side ({min(ex.shape[1:])} voxels)", got=block
             )
         spacing = min(scene.grid.spacing)
         scene.texture = {
             "exemplar": ex,
             "block": block,
-            "seed": tt.integer("seed", "an integer >= 0", 0),
-            "voxel": tt.num("voxel", "a positive voxel size (m)", spacing / 4, lo=0, lo_open=True),
-            "seams": tt.text("seams", " or ".join(f'"{m}"' for m in SEAM_METHODS), "none", SEAM_METHODS),
+            "seed": tt.integer("seed", "an integer >= 0", default=0),
+            "voxel": tt.num("voxel", "a positive voxel size (m)", default=spacing / 4, lo=0, lo_open=True),
+            "seams": tt.text(
+                "seams", " or ".join(f'"{m}"' for m in SEAM_METHODS), default="none", choices=SEAM_METHODS
+            ),
         }
-    scene.build("cpu")
+    scene.build(device="cpu")
     return scene
 
 
@@ -563,8 +582,8 @@ def demo_scene() -> Scene:
         >>> len(scene.model_args["drags"]), scene.volume["file"], scene.animation
         (1, 'phantom:64', 'demo.gif')
     """
-    grid = Grid((11, 11, 11), spacing=0.001, topology=26)
-    top_centre = Drag(grid.index_mask([(10, 5, 5)]), [(0.0, (0.0, 0.0, 0.0)), (0.05, (0.002, 0.001, 0.0))])
+    grid = Grid((11, 11, 11), spacing=(0.001, 0.001, 0.001), topology=26)
+    top_centre = Drag(grid.index_mask([(10, 5, 5)]), path=[(0.0, (0.0, 0.0, 0.0)), (0.05, (0.002, 0.001, 0.0))])
     model_args = dict(
         stiffness=3.0,
         normalize=False,
@@ -581,7 +600,7 @@ def demo_scene() -> Scene:
     return Scene(
         grid,
         model_args,
-        SymplecticEuler(),
+        integrator=SymplecticEuler(),
         dt=1e-4,
         steps=1500,
         record_every=15,

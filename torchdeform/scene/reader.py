@@ -13,7 +13,7 @@ This is the public sibling API of the scene modules: :mod:`.mass_spring` and
 
 Example:
     >>> from torchdeform.scene.reader import SECTIONS, Source, Table
-    >>> src = Source("scene.toml", "[grid]\nspacing = -1\n")
+    >>> src = Source(path="scene.toml", text="[grid]\nspacing = -1\n")
     >>> t = Table(src, "grid", {"spacing": -1}, SECTIONS["grid"])
     >>> t.num("spacing", "a positive number", lo=0, lo_open=True)
     Traceback (most recent call last):
@@ -27,6 +27,7 @@ import math
 import re
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any, TypeGuard
 
 import torch
 
@@ -38,7 +39,7 @@ from ..sim.grid import CLASSES, FACES, TOPOLOGIES, Grid
 try:
     import tomllib
 except ModuleNotFoundError:  # Python 3.10
-    import tomli as tomllib
+    import tomli as tomllib  # pyright: ignore[reportMissingImports]  # installed on Python 3.10 only
 
 __all__ = [
     "Source",
@@ -128,16 +129,16 @@ _HEADER = re.compile(r"^\s*\[\[?\s*([A-Za-z0-9_.\-]+)\s*\]\]?")
 class Source:
     """A scene file's path and text: builds :class:`ConfigError` s that name file and line."""
 
-    def __init__(self, path=None, text: str = ""):
+    def __init__(self, *, path=None, text: str = ""):
         self.path, self.text = (None if path is None else str(path)), text
 
-    def error(self, key: str, expected: str, got=MISSING) -> ConfigError:
+    def error(self, key: str, expected: str, *, got=MISSING) -> ConfigError:
         """A ConfigError for the dotted ``key``; ``got`` omitted = not shown."""
         shown = got is not MISSING
         return ConfigError(
             key,
             expected,
-            got if shown else None,
+            got=got if shown else None,
             file=self.path,
             line=self.line_of(key) if self.path else None,
             show_got=shown,
@@ -146,7 +147,7 @@ class Source:
     def line_of(self, key: str) -> int | None:
         """1-based line of a dotted key like ``loads[1].force`` (best effort), else None."""
         lines = self.text.splitlines()
-        parts = [re.fullmatch(r"(.*?)(?:\[(\d+)\])?", p).groups() for p in key.split(".")]
+        parts = [_name_and_index(p) for p in key.split(".")]
         names = [p[0] for p in parts]
         headers = [(i, m.group(1)) for i, line in enumerate(lines) if (m := _HEADER.match(line))]
         start, end, best, rest = -1, headers[0][0] if headers else len(lines), None, names
@@ -168,7 +169,7 @@ class Source:
         return None if best is None else best + 1
 
     @contextmanager
-    def located(self, key: str, keys: dict | None = None):
+    def located(self, key: str, *, keys: dict | None = None):
         """Re-raise a core ConfigError as one about scene ``key`` (or ``keys[core key]``)."""
         try:
             yield
@@ -176,15 +177,22 @@ class Source:
             if e.file is not None:
                 raise
             shown = e.show_got
-            if e.key in (keys or {}):
+            if keys and e.key in keys:
                 key = keys[e.key]
             elif e.key.split(".")[0] in SECTIONS and "." in e.key:  # already a scene key
                 key = e.key
-            raise self.error(key, e.expected, e.got if shown else MISSING) from None
+            raise self.error(key, e.expected, got=e.got if shown else MISSING) from None
+
+
+def _name_and_index(part: str) -> tuple[str, str | None]:
+    """``"loads[1]"`` -> ``("loads", "1")``, ``"grid"`` -> ``("grid", None)``."""
+    m = re.fullmatch(r"(.*?)(?:\[(\d+)\])?", part)
+    assert m is not None  # the pattern matches every string
+    return m.group(1), m.group(2)
 
 
 # ------------------------------------------------------------------ typed values
-def is_number(v) -> bool:
+def is_number(v) -> TypeGuard[float]:
     """True for a finite int or float (not a bool)."""
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
@@ -194,10 +202,10 @@ class Table:
 
     def __init__(self, src: Source, name: str, data, allowed):
         if not isinstance(data, dict):
-            raise src.error(name, "a table", data)
+            raise src.error(name, "a table", got=data)
         unknown = [k for k in data if k not in allowed]
         if unknown:
-            raise src.error(f"{name}.{unknown[0]}", "one of the keys " + ", ".join(allowed), unknown[0])
+            raise src.error(f"{name}.{unknown[0]}", "one of the keys " + ", ".join(allowed), got=unknown[0])
         self.src, self.name, self.data = src, name, data
 
     def key(self, k: str) -> str:
@@ -208,11 +216,11 @@ class Table:
         """True when the table has the key ``k``."""
         return k in self.data
 
-    def fail(self, k: str, expected: str, got=MISSING) -> ConfigError:
+    def fail(self, k: str, expected: str, *, got=MISSING) -> ConfigError:
         """A located ConfigError for key ``k`` of this table (to raise); ``got`` omitted = not shown."""
-        return self.src.error(self.key(k), expected, got)
+        return self.src.error(self.key(k), expected, got=got)
 
-    def raw(self, k, expected, default=MISSING):
+    def raw(self, k, expected, *, default: Any = MISSING) -> Any:
         """The value of ``k``, or ``default``; a missing key without default is an error."""
         if k not in self.data:
             if default is MISSING:
@@ -220,10 +228,10 @@ class Table:
             return default
         return self.data[k]
 
-    def num(self, k, expected="a number", default=MISSING, lo=None, hi=None, lo_open=False, hi_open=False):
+    def num(self, k, expected, *, default=MISSING, lo=None, hi=None, lo_open=False, hi_open=False):
         """A finite number, optionally in ``[lo, hi]`` (ends open with ``lo_open``/``hi_open``)."""
         if k not in self.data:
-            return self.raw(k, expected, default)
+            return self.raw(k, expected, default=default)
         v = self.data[k]
         ok = (
             is_number(v)
@@ -231,37 +239,37 @@ class Table:
             and (hi is None or (v < hi if hi_open else v <= hi))
         )
         if not ok:
-            raise self.fail(k, expected, v)
+            raise self.fail(k, expected, got=v)
         return float(v)
 
-    def integer(self, k, expected, default=MISSING, lo=0):
+    def integer(self, k, expected, *, default=MISSING, lo=0):
         """An integer >= ``lo``."""
         if k not in self.data:
-            return self.raw(k, expected, default)
+            return self.raw(k, expected, default=default)
         v = self.data[k]
         if not isinstance(v, int) or isinstance(v, bool) or v < lo:
-            raise self.fail(k, expected, v)
+            raise self.fail(k, expected, got=v)
         return v
 
-    def text(self, k, expected, default=MISSING, choices=None):
+    def text(self, k, expected, *, default=MISSING, choices=None):
         """A string, optionally one of ``choices``."""
         if k not in self.data:
-            return self.raw(k, expected, default)
+            return self.raw(k, expected, default=default)
         v = self.data[k]
         if not isinstance(v, str) or (choices is not None and v not in choices):
-            raise self.fail(k, expected, v)
+            raise self.fail(k, expected, got=v)
         return v
 
-    def vec(self, k, expected="three numbers [d, h, w]", default=MISSING):
+    def vec(self, k, expected, *, default=MISSING):
         """Three finite numbers."""
         if k not in self.data:
-            return self.raw(k, expected, default)
+            return self.raw(k, expected, default=default)
         v = self.data[k]
         if not (isinstance(v, list) and len(v) == 3 and all(is_number(c) for c in v)):
-            raise self.fail(k, expected, v)
+            raise self.fail(k, expected, got=v)
         return tuple(float(c) for c in v)
 
-    def index(self, k, value=MISSING, where=None):
+    def index(self, k, *, value=MISSING, where=None):
         """A node index ``[i, j, k]`` (three integers >= 0)."""
         v = self.raw(k, "a node index [i, j, k]") if value is MISSING else value
         if not (
@@ -269,7 +277,7 @@ class Table:
             and len(v) == 3
             and all(isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in v)
         ):
-            raise self.src.error(where or self.key(k), "a node index [i, j, k] of three integers >= 0", v)
+            raise self.src.error(where or self.key(k), "a node index [i, j, k] of three integers >= 0", got=v)
         return tuple(v)
 
     def per_class(self, k, unit):
@@ -278,10 +286,10 @@ class Table:
         v = self.raw(k, expected)
         if isinstance(v, dict):
             if not v or not all(c in CLASSES and is_number(x) and x >= 0 for c, x in v.items()):
-                raise self.fail(k, expected, v)
+                raise self.fail(k, expected, got=v)
             return {c: float(x) for c, x in v.items()}
         if not is_number(v) or v < 0:
-            raise self.fail(k, expected, v)
+            raise self.fail(k, expected, got=v)
         return float(v)
 
     def one_of(self, *keys) -> str:
@@ -290,7 +298,7 @@ class Table:
         if len(present) != 1:
             what = " or ".join(keys)
             raise (
-                self.fail(present[1], f"exactly one of {what}", present)
+                self.fail(present[1], f"exactly one of {what}", got=present)
                 if present
                 else self.src.error(self.name, f"exactly one of the keys {what}")
             )
@@ -299,7 +307,7 @@ class Table:
     def only_with(self, k, other):
         """Raise a located ConfigError if ``k`` is present: it does not go together with ``other``."""
         if k in self.data:
-            raise self.fail(k, f"no {k} together with {self.name}.{other}", self.data[k])
+            raise self.fail(k, f"no {k} together with {self.name}.{other}", got=self.data[k])
 
 
 # ------------------------------------------------------------------ reading files
@@ -314,8 +322,8 @@ def read(path) -> tuple[Source, dict]:
             unknown model or section, or a required section missing.
     """
     path = Path(path)
-    text = read_text(path, "scene", "scene file (.toml)")
-    src = Source(path, text)
+    text = read_text(path, "scene", what="scene file (.toml)")
+    src = Source(path=path, text=text)
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
@@ -326,10 +334,10 @@ def read(path) -> tuple[Source, dict]:
         raise ConfigError("toml", f"valid TOML syntax ({msg})", file=str(path), line=line) from None
     model = data.get("model", "mass-spring")  # top-level key: which deformation model
     if model not in ("mass-spring", "chainmail"):
-        raise src.error("model", '"mass-spring" (default) or "chainmail"', model)
+        raise src.error("model", '"mass-spring" (default) or "chainmail"', got=model)
     for name in data:
         if name not in SECTIONS and name != "model":
-            raise src.error(name, "one of the sections " + ", ".join(f"[{s}]" for s in SECTIONS), name)
+            raise src.error(name, "one of the sections " + ", ".join(f"[{s}]" for s in SECTIONS), got=name)
     for name in ("grid", "chainmail") if model == "chainmail" else REQUIRED:
         if name not in data:
             raise src.error(name, f"a [{name}] section (required)")
@@ -345,19 +353,19 @@ def grid_section(t: Table, base: Path) -> Grid:
     if not (is_number(spacing) and spacing > 0) and not (
         isinstance(spacing, list) and len(spacing) == 3 and all(is_number(s) and s > 0 for s in spacing)
     ):
-        raise t.fail("spacing", "one positive number or three [sd, sh, sw] in metres", spacing)
-    topology = t.integer("topology", "6, 14, 18 or 26", 26)
+        raise t.fail("spacing", "one positive number or three [sd, sh, sw] in metres", got=spacing)
+    topology = t.integer("topology", "6, 14, 18 or 26", default=26)
     if topology not in TOPOLOGIES:
-        raise t.fail("topology", "6, 14, 18 or 26", topology)
+        raise t.fail("topology", "6, 14, 18 or 26", got=topology)
     if t.one_of("shape", "mesh") == "mesh":
         from ..mesh import grid_from_mesh
 
         t.only_with("origin", "mesh")
         mesh = t.text("mesh", "a mesh file name (relative to the scene file)")
-        padding = t.integer("padding", "an integer >= 0 (node layers)", 0)
-        scale = t.num("scale", "a positive number (metres per mesh unit)", 1.0, lo=0, lo_open=True)
-        with t.src.located(t.key("mesh"), {k: t.key(k) for k in ("spacing", "padding", "scale")}):
-            return grid_from_mesh(base / mesh, spacing, topology, padding, scale)
+        padding = t.integer("padding", "an integer >= 0 (node layers)", default=0)
+        scale = t.num("scale", "a positive number (metres per mesh unit)", default=1.0, lo=0, lo_open=True)
+        with t.src.located(t.key("mesh"), keys={k: t.key(k) for k in ("spacing", "padding", "scale")}):
+            return grid_from_mesh(base / mesh, spacing, topology=topology, padding=padding, scale=scale)
     t.only_with("padding", "shape")
     t.only_with("scale", "shape")
     shape = t.raw("shape", "three node counts [D, H, W]")
@@ -369,12 +377,13 @@ def grid_section(t: Table, base: Path) -> Grid:
         )
         or min(shape) < 1
     ):
-        raise t.fail("shape", "three node counts [D, H, W], each >= 1", shape)
-    origin = t.vec("origin", "three numbers [od, oh, ow] in metres", (0.0, 0.0, 0.0))
-    with t.src.located(t.key("shape"), {"grid.shape": t.key("shape")}):
-        check_grid("grid.shape", shape, topology)
+        raise t.fail("shape", "three node counts [D, H, W], each >= 1", got=shape)
+    origin = t.vec("origin", "three numbers [od, oh, ow] in metres", default=(0.0, 0.0, 0.0))
+    with t.src.located(t.key("shape"), keys={"grid.shape": t.key("shape")}):
+        check_grid("grid.shape", shape, topology=topology)
     with t.src.located(t.name):
-        return Grid(tuple(shape), spacing, topology, origin=origin)
+        spacing = tuple(spacing) if isinstance(spacing, list) else (spacing,) * 3
+        return Grid(tuple(shape), spacing=spacing, topology=topology, origin=origin)
 
 
 def faces(t: Table, k: str, grid: Grid) -> torch.Tensor:
@@ -383,7 +392,7 @@ def faces(t: Table, k: str, grid: Grid) -> torch.Tensor:
     names = [v] if isinstance(v, str) else v
     expected = "a face name or a list of them: " + ", ".join(f'"{f}"' for f in FACES)
     if not isinstance(names, list) or not all(isinstance(n, str) and n in FACES for n in names):
-        raise t.fail(k, expected, v)
+        raise t.fail(k, expected, got=v)
     mask = torch.zeros(grid.shape, dtype=torch.bool)
     for n in names:
         mask |= grid.face(n)
@@ -394,9 +403,9 @@ def node_list(t: Table, k: str, grid: Grid) -> torch.Tensor:
     """Bool ``(D, H, W)`` of the nodes listed by key ``k`` (``[[i, j, k], ...]``)."""
     v = t.raw(k, "a list of node indices [[i, j, k], ...]")
     if not isinstance(v, list) or not v:
-        raise t.fail(k, "a non-empty list of node indices [[i, j, k], ...]", v)
+        raise t.fail(k, "a non-empty list of node indices [[i, j, k], ...]", got=v)
     for n, ijk in enumerate(v):
-        t.index(k, ijk, where=f"{t.key(k)}[{n}]")
+        t.index(k, value=ijk, where=f"{t.key(k)}[{n}]")
     with t.src.located(t.key(k)):
         return grid.index_mask(v)
 
@@ -404,7 +413,7 @@ def node_list(t: Table, k: str, grid: Grid) -> torch.Tensor:
 def drags_section(src: Source, items, grid: Grid) -> list:
     """The :class:`~torchdeform.sim.forces.Drag` s of the ``[[drags]]`` tables ``items``."""
     if not isinstance(items, list):
-        raise src.error("drags", "[[drags]] tables", items)
+        raise src.error("drags", "[[drags]] tables", got=items)
     drags = []
     for n, item in enumerate(items):
         t = Table(src, f"drags[{n}]", item, SECTIONS["drags"])
@@ -421,7 +430,7 @@ def drags_section(src: Source, items, grid: Grid) -> list:
                 raise t.fail(
                     "box",
                     "a box {lo, hi} (rest positions, m) containing at least one node",
-                    {"lo": list(lo), "hi": list(hi)},
+                    got={"lo": list(lo), "hi": list(hi)},
                 )
         expected = "a list of waypoints [[t, [od, oh, ow]], ...] (s, m)"
         path = t.raw("path", expected)
@@ -438,7 +447,7 @@ def drags_section(src: Source, items, grid: Grid) -> list:
                 for p in path
             )
         ):
-            raise t.fail("path", expected, path)
+            raise t.fail("path", expected, got=path)
         size = max(n * h for n, h in zip(grid.shape, grid.spacing))
         far = max(math.sqrt(sum(c * c for c in p[1])) for p in path)
         if far > 1000 * size:
@@ -446,10 +455,10 @@ def drags_section(src: Source, items, grid: Grid) -> list:
                 "path",
                 f"offsets within 1000 body sizes ({1000 * size:.3g} m here; farther, float32 positions "
                 "no longer resolve the node spacing)",
-                path,
+                got=path,
             )
         with src.located(t.key("path")):
-            drags.append(Drag(nodes, [(float(p[0]), tuple(float(c) for c in p[1])) for p in path]))
+            drags.append(Drag(nodes, path=[(float(p[0]), tuple(float(c) for c in p[1])) for p in path]))
     return drags
 
 
@@ -463,7 +472,7 @@ def region_mask(t: Table, grid) -> torch.Tensor:
         b = Table(t.src, t.key("sphere"), t.data["sphere"], ("center", "radius"))
         c = torch.tensor(b.vec("center", "three numbers [d, h, w] in metres"), dtype=torch.float64)
         r = b.num("radius", "a positive number of metres", lo=0, lo_open=True)
-        X = grid.rest_positions(torch.float64)[0]
+        X = grid.rest_positions(dtype=torch.float64)[0]
         mask = ((X - c.view(3, 1, 1, 1)) ** 2).sum(0) <= r * r * (1 + 1e-12)
     else:
         b = Table(t.src, t.key("box"), t.data["box"], ("lo", "hi"))
@@ -472,5 +481,5 @@ def region_mask(t: Table, grid) -> torch.Tensor:
         )
     mask = mask & grid.nodes()
     if not bool(mask.any()):
-        raise t.fail(which, "a region containing at least one node (rest positions, m)", t.data[which])
+        raise t.fail(which, "a region containing at least one node (rest positions, m)", got=t.data[which])
     return mask

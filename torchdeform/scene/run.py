@@ -13,6 +13,7 @@ import math
 import re
 import time
 from pathlib import Path
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -88,11 +89,11 @@ def load_scene(path) -> Scene | ChainMailScene:
     src, data = read(path)
     base, name = Path(path).parent, Path(path).stem
     if data.get("model") == "chainmail":
-        return chainmail_scene(src, data, base, name)
-    return mass_spring_scene(src, data, base, name)
+        return chainmail_scene(src, data, base, name=name)
+    return mass_spring_scene(src, data, base, name=name)
 
 
-def energy_series(model: Model, x: torch.Tensor, v: torch.Tensor, chunk: int = 1) -> dict:
+def energy_series(model: Model, x: torch.Tensor, v: torch.Tensor, *, chunk: int = 1) -> dict:
     """Energies and largest displacement of recorded frames.
 
     Args:
@@ -122,7 +123,7 @@ def energy_series(model: Model, x: torch.Tensor, v: torch.Tensor, chunk: int = 1
     return {k: torch.cat(v).numpy() for k, v in out.items()}
 
 
-def plot_energy(path, t: np.ndarray, series: dict, title: str = "") -> None:
+def plot_energy(path, t: np.ndarray, series: dict, *, title: str = "") -> None:
     """Write a PNG: energies (J) and largest displacement (mm) over time (s)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -159,7 +160,9 @@ def _bound_method(name: str) -> str:
     return "power iteration on the spring stencil (linearised at rest)"
 
 
-def run_scene(scene: Scene, out_dir, progress: bool = True, device=None, force: bool = False) -> dict:
+def run_scene(
+    scene: Scene | ChainMailScene, out_dir, *, progress: bool = True, device=None, force: bool = False
+) -> dict:
     """Run a scene and write ``trajectory.npz``, ``summary.json`` and ``energy.png`` to ``out_dir``.
 
     The outputs are written whole or not at all (:class:`~torchdeform.outputs.RunFolder`): they are
@@ -213,13 +216,13 @@ def run_scene(scene: Scene, out_dir, progress: bool = True, device=None, force: 
         'cube'
     """
     if not isinstance(scene, Scene):  # a ChainMail scene runs itself
-        with RunFolder(out_dir, force) as stage:
+        with RunFolder(out_dir, force=force) as stage:
             return scene.run(stage, progress=progress, device=device)
     threads = torch.get_num_threads()
     if scene.threads:
         torch.set_num_threads(scene.threads)
     try:
-        with RunFolder(out_dir, force) as stage:
+        with RunFolder(out_dir, force=force) as stage:
             return _run(scene, stage, progress, device)
     finally:
         torch.set_num_threads(threads)
@@ -232,14 +235,16 @@ def scene_engine(scene: Scene, topology: bool) -> Engine:
             "integrator.engine",
             '"auto" or "eager" for a scene with topology changes '
             "(they edit the model between steps, which the eager step reads)",
-            "compiled",
+            got="compiled",
         )
-    return Engine(scene.engine, blocked="topology changes between steps run in the eager step" if topology else None)
+    return Engine(
+        mode=scene.engine, blocked="topology changes between steps run in the eager step" if topology else None
+    )
 
 
 def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
     """:func:`run_scene` of a mass-spring scene, with the scene's threads set."""
-    model = scene.build(device)
+    model = scene.build(device=device)
     recorder = None
     if scene.tools is not None:  # fresh contacts and grasps: they keep state
         model = copy.copy(model)
@@ -247,17 +252,17 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
         if scene.tools.tools:
             recorder = ToolRecorder(scene.tools.names, scene.steps, model.device, model.dtype)
     integrator = scene.integrator
-    bound = time_step_bound(model, integrator)
+    bound = time_step_bound(model, integrator=integrator)
     dt = scene.time_step(bound)
     if integrator.name in EXPLICIT:
-        check_dt(model, dt, integrator, bound)
+        check_dt(model, dt, integrator, bound=bound)
     state = model.rest_state()
     callback, events = recorder, None
     if scene.topology is not None:  # topology changes edit a copy of the model
         if scene.topology.checked_end is None:  # dt = "auto": the run's length is known now
             scene.topology.check(scene.steps * dt)
         model = scene.topology.prepare(model)
-        events = scene.topology.events(model, dt, scene.steps * dt, out)
+        events = scene.topology.events(model, dt, scene.steps * dt, out_dir=out)
 
     engine = scene_engine(scene, events is not None)
     start = time.perf_counter()
@@ -278,7 +283,7 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
         state,
         dt,
         scene.steps,
-        integrator,
+        integrator=integrator,
         record_every=scene.frames_every,
         progress=progress,
         warn=False,
@@ -297,17 +302,18 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
     )
     grid = model.grid
     if recorder is not None:
+        assert scene.tools is not None  # the recorder records the scene's tools
         summary.update(
             tool_outputs(
                 scene.tools,
                 recorder.series(),
                 (t, support_series(model, t, x, v)),
                 out,
-                f"{scene.name}: {integrator.name}, dt = {dt:.3g} s",
+                title=f"{scene.name}: {integrator.name}, dt = {dt:.3g} s",
             )
         )
     if events is not None:
-        summary["topology"] = events.outputs(final, out, f"{scene.name}: {integrator.name}, dt = {dt:.3g} s")
+        summary["topology"] = events.outputs(final, out, title=f"{scene.name}: {integrator.name}, dt = {dt:.3g} s")
     texture = None
     if scene.texture:
         texture, seams = scene_texture(scene.texture, grid)
@@ -335,7 +341,7 @@ def finish_outputs(summary: dict, out: Path, t: np.ndarray, series: dict, title:
 
     ``summary["outputs"]`` becomes the list of files in ``out`` (the run's manifest).
     """
-    plot_energy(out / "energy.png", t, series, title)
+    plot_energy(out / "energy.png", t, series, title=title)
     summary["outputs"] = manifest(out)
     try:
         text = json.dumps(summary, indent=2, allow_nan=False)
@@ -383,7 +389,7 @@ def run_outputs(
         series = energy_series(model, x, v)
     cause = "the run diverged between two divergence checks"
     for name, value in (("x", x), ("v", v), *series.items()):
-        require_finite(f"trajectory.npz: {name}", value, "frame, ..." if name in "xv" else "frame", cause)
+        require_finite(f"trajectory.npz: {name}", value, what="frame, ..." if name in "xv" else "frame", cause=cause)
     grid = model.grid
     np.savez(
         out / "trajectory.npz",
@@ -485,7 +491,7 @@ def _volume_path(name: str, base) -> str:
 
 
 def scene_volume_outputs(
-    volume, x, X, spacing, out_dir, tf: str = "ct-soft", mode: str = "dvr", view: str = "h", base=None, cut=None
+    volume, x, X, spacing, out_dir, *, tf: str = "ct-soft", mode: str = "dvr", view: str = "h", base=None, cut=None
 ) -> dict:
     """Deform a scene's volume by its final node positions and write its renders.
 
@@ -514,23 +520,24 @@ def scene_volume_outputs(
 
     name = str(volume)
     path = _volume_path(name, base)
-    vol = torch.from_numpy(load_volume(path, "volume.file"))
+    vol = torch.from_numpy(load_volume(path, key="volume.file"))
     out = Path(out_dir)
     with torch.no_grad():
         offsets = node_offsets(x.double().cpu(), X.double().cpu(), spacing, tuple(vol.shape)).float()
-        deformed, info = warp(vol, offsets, return_info=True)
+        # with return_info, warp returns (volume, info dict)
+        deformed, info = cast("tuple[torch.Tensor, dict]", warp(vol, offsets, return_info=True))
         flip = view in ("h", "-h", "w", "-w")
-        save_png(out / "volume_before.png", to_image(render(vol, tf, mode, view), flip_up=flip))
+        save_png(out / "volume_before.png", to_image(render(vol, tf=tf, mode=mode, view=view), flip_up=flip))
         if cut is None:
-            after = render(vol, tf, mode, view, offsets=offsets)
+            after = render(vol, tf=tf, mode=mode, view=view, offsets=offsets)
         else:
             from ..topology import cut_pieces
 
             pieces = [
                 (o.float(), m)
-                for o, m in cut_pieces(cut[0], x.double().cpu(), cut[1].cpu(), tuple(vol.shape), X.double().cpu())
+                for o, m in cut_pieces(cut[0], x.double().cpu(), cut[1].cpu(), tuple(vol.shape), X=X.double().cpu())
             ]
-            after = render(vol, tf, mode, view, pieces=pieces, fill=float(vol.min()))  # the gap: "air"
+            after = render(vol, tf=tf, mode=mode, view=view, pieces=pieces, fill=float(vol.min()))  # the gap: "air"
         save_png(out / "volume_after.png", to_image(after, flip_up=flip))
     save_volume(out / "volume_deformed.npy", deformed.numpy())
     return {
@@ -558,8 +565,8 @@ def scene_texture(spec: dict, grid):
     """
     from ..texture.mapping import body_texture
 
-    tex = body_texture(grid, spec["exemplar"], spec["block"], spec["seed"], spec["voxel"])
-    seams = tex.blend(spec["seams"]) if spec.get("seams", "none") != "none" else None
+    tex = body_texture(grid, exemplar=spec["exemplar"], block=spec["block"], seed=spec["seed"], voxel=spec["voxel"])
+    seams = tex.blend(method=spec["seams"]) if spec.get("seams", "none") != "none" else None
     return tex, seams
 
 
@@ -585,7 +592,9 @@ def scene_texture_outputs(tex, grid, x, labels, out_dir) -> dict:
     from ..topology import cut_surfaces
 
     pieces = cut_surfaces(grid, x.detach().double().cpu(), labels.cpu())
-    camera = framing_camera(torch.cat([torch.as_tensor(p.vertices) for p in pieces]), (1.3, -1.1, 0.9), 38.0)
+    camera = framing_camera(
+        torch.cat([torch.as_tensor(p.vertices) for p in pieces]), direction=(1.3, -1.1, 0.9), fov_deg=38.0
+    )
     save_png(Path(out_dir) / "textured.png", render_textured(pieces, tex, camera, light=(1.0, -0.5, 0.6))["image"])
     return {
         "exemplar_voxels": list(tex.exemplar.shape[1:]),
@@ -632,6 +641,7 @@ def scene_animation(
     x: torch.Tensor,
     v: torch.Tensor,
     out_dir,
+    *,
     labels=None,
     tools: dict | None = None,
     texture=None,
@@ -665,12 +675,14 @@ def scene_animation(
 
     start = time.perf_counter()
     grid = model.grid
+    assert scene.animation is not None  # the file name of the animation asked for
     forces = {}
     if tools is not None:
+        assert scene.tools is not None  # the series are those of the scene's tools
         forces.update(tool_forces_at(tools, scene.tools.names, t))
     if model.drags:
         forces["drag" if len(model.drags) == 1 else "drags"] = drag_forces(model, x, v, t)
-    volume = dict(scene.volume or {"file": "phantom:64"})
+    volume: dict[str, Any] = dict(scene.volume or {"file": "phantom:64"})
     name, base = str(volume.pop("file")), volume.pop("base", None)
     path = _volume_path(name, base)
     info = animate(

@@ -8,7 +8,8 @@ responses and grasps, ``[strain_limit]`` a :class:`~torchdeform.interact.strain.
 order), grasps: contact comes after strain limiting so no node ends a step inside a tool, and a
 grasp comes last so held nodes end every step exactly on the forceps.
 
-Running (:class:`ToolRecorder`, :func:`tool_outputs`): every step's readings
+Running (:class:`ToolRecorder`, :func:`tool_outputs`; the analysis of the series is
+:mod:`torchdeform.interact.palpation`'s): every step's readings
 (``State.readings["<name>.force"]``, ``(B, 3)`` N, the force the tissue exerts on the tool as
 the hand feels it; ``.contacts``; ``.grasped``) of batch entry 0 are copied into one buffer on
 the model's device, ``(steps, tools, 5)``, moved to the CPU once at the end. ``tool_outputs``
@@ -24,15 +25,17 @@ writes
   recorded frames (:func:`~torchdeform.interact.support_reaction`);
 * ``forces.png``: per tool the force along its motion against its displacement, and the force
   magnitude over time;
-* with ``[output] palpation``: the presses of one tool (:func:`palpation`), ``palpation.png`` and
+* with ``[output] palpation``: the presses of one tool
+  (:func:`~torchdeform.interact.palpation.palpation`), ``palpation.png`` and
   a ``"palpation"`` part of ``summary.json``.
 
-Force along the motion: the tool works against the tissue along ``u`` (:func:`work_direction`: its
-directions of motion weighted by the power it puts into the tissue; down for a probe pressing
-into a surface, up for forceps lifting tissue). With ``p0`` its first position, the displacement is
-``s = (p - p0) . u`` (m) and the force along the motion ``-F . u`` (N): the tissue's resistance,
-positive when it pushes back against the probe or pulls back on the forceps. Tools that do not move
-(a table) appear only in the force-over-time panel.
+Force along the motion: the tool works against the tissue along ``u``
+(:func:`~torchdeform.interact.palpation.work_direction`: its directions of motion weighted by the
+power it puts into the tissue; down for a probe pressing into a surface, up for forceps lifting
+tissue). With ``p0`` its first position, the displacement is ``s = (p - p0) . u`` (m) and the
+force along the motion ``-F . u`` (N): the tissue's resistance, positive when it pushes back
+against the probe or pulls back on the forceps. Tools that do not move (a table) appear only in the
+force-over-time panel.
 
 Example:
     >>> from torchdeform.scene.reader import Source
@@ -45,10 +48,10 @@ Example:
     ... '''
     >>> probe = {"name": "probe", "shape": "sphere", "radius": 0.003, "friction": 0.3,
     ...          "path": [[0.0, [0.02, 0.01, 0.01]], [0.1, [0.018, 0.01, 0.01]]]}
-    >>> tools = tools_section(Source("s.toml", text), [probe], base=".")
+    >>> tools = tools_section(Source(path="s.toml", text=text), [probe], base=".")
     >>> [type(c).__name__ for c in tools.interactions()], tools.names
     (['ProjectionContact'], ['probe'])
-    >>> tools_section(Source("s.toml", text), [{**probe, "radius": -0.003}], base=".")
+    >>> tools_section(Source(path="s.toml", text=text), [{**probe, "radius": -0.003}], base=".")
     Traceback (most recent call last):
     ...
     torchdeform.errors.ConfigError: s.toml:5: tools[0].radius: expected a positive number of metres, got -0.003
@@ -66,10 +69,11 @@ import torch
 
 from ..interact.contact import DIRECTIONS, PenaltyContact, ProjectionContact
 from ..interact.grasp import Grasp
+from ..interact.palpation import block_means, palpation, plot_palpation, significant, work_direction
 from ..interact.reactions import support_reaction
 from ..interact.strain import StrainLimit
 from ..interact.tools import Box, Capsule, HalfSpace, Sphere, Tool
-from ..outputs import save_figure
+from ..outputs import figure, save_figure
 from ..sim.model import State
 from .reader import SECTIONS, Source, Table, is_number
 
@@ -83,10 +87,7 @@ __all__ = [
     "ToolRecorder",
     "tool_outputs",
     "support_series",
-    "work_direction",
-    "palpation",
     "plot_forces",
-    "plot_palpation",
     "MAX_POINTS",
 ]
 
@@ -112,7 +113,7 @@ _WAYPOINTS = "waypoints [[t, [d, h, w]], ...] or [[t, [d, h, w], [rd, rh, rw]], 
 
 
 # ------------------------------------------------------------------ the tools of a scene
-@dataclass(eq=False)
+@dataclass(eq=False, kw_only=True)
 class ToolSet:
     """The tools of a scene, their contact responses and grasps, and strain limiting.
 
@@ -128,7 +129,8 @@ class ToolSet:
     Examples:
         >>> from torchdeform.interact import Sphere, Tool
         >>> probe = Tool(Sphere(0.003), position=(0.02, 0.01, 0.01), name="probe")
-        >>> tools = ToolSet([probe], [("projection", {"friction": 0.5})], [None], {"min_ratio": 0.8})
+        >>> tools = ToolSet(tools=[probe], contacts=[("projection", {"friction": 0.5})], grasps=[None],
+        ...                 strain_limit={"min_ratio": 0.8})
         >>> [type(c).__name__ for c in tools.interactions()]
         ['StrainLimit', 'ProjectionContact']
         >>> tools.interactions()[1] is tools.interactions()[1]      # fresh objects every call
@@ -148,7 +150,7 @@ class ToolSet:
 
     def interactions(self) -> list:
         """New interaction objects (contacts and grasps keep state between steps): strain limit, contacts, grasps."""
-        out = [] if self.strain_limit is None else [StrainLimit(**self.strain_limit)]
+        out: list = [] if self.strain_limit is None else [StrainLimit(**self.strain_limit)]
         for tool, (kind, kwargs) in zip(self.tools, self.contacts):
             if kind == "projection":
                 out.append(ProjectionContact(tool, **kwargs))
@@ -161,14 +163,14 @@ class ToolSet:
 def _flag(t: Table, k: str, default: bool) -> bool:
     v = t.data.get(k, default)
     if not isinstance(v, bool):
-        raise t.fail(k, "true or false", v)
+        raise t.fail(k, "true or false", got=v)
     return v
 
 
 def _shape(t: Table, kind: str, base: Path):
     for k in (k for keys in SHAPE_KEYS.values() for k in keys):
         if t.has(k) and k not in SHAPE_KEYS[kind]:
-            raise t.fail(k, f'no {k} for shape = "{kind}" (its keys: {", ".join(SHAPE_KEYS[kind])})', t.data[k])
+            raise t.fail(k, f'no {k} for shape = "{kind}" (its keys: {", ".join(SHAPE_KEYS[kind])})', got=t.data[k])
     metres = "a positive number of metres"
     if kind == "sphere":
         return Sphere(t.num("radius", metres, lo=0, lo_open=True))
@@ -177,20 +179,22 @@ def _shape(t: Table, kind: str, base: Path):
         if axis in _AXES:
             axis = _AXES[axis]
         if axis not in (0, 1, 2) or isinstance(axis, bool):
-            raise t.fail("axis", '"d", "h" or "w" (or 0, 1, 2): the grid axis of the shaft', t.data["axis"])
+            raise t.fail("axis", '"d", "h" or "w" (or 0, 1, 2): the grid axis of the shaft', got=t.data["axis"])
         return Capsule(
-            t.num("radius", metres, lo=0, lo_open=True), t.num("half_length", "a number of metres >= 0", lo=0), axis
+            t.num("radius", metres, lo=0, lo_open=True),
+            t.num("half_length", "a number of metres >= 0", lo=0),
+            axis=axis,
         )
     if kind == "box":
         h = t.vec("half_extents", "three positive numbers [hd, hh, hw] in metres")
         if min(h) <= 0:
-            raise t.fail("half_extents", "three positive numbers [hd, hh, hw] in metres", list(h))
+            raise t.fail("half_extents", "three positive numbers [hd, hh, hw] in metres", got=list(h))
         return Box(h)
     if kind == "half_space":
-        normal = t.vec("normal", "three numbers [nd, nh, nw], the outward direction", (1.0, 0.0, 0.0))
+        normal = t.vec("normal", "three numbers [nd, nh, nw], the outward direction", default=(1.0, 0.0, 0.0))
         if not any(normal):
-            raise t.fail("normal", "a non-zero direction [nd, nh, nw]", list(normal))
-        return HalfSpace(normal)
+            raise t.fail("normal", "a non-zero direction [nd, nh, nw]", got=list(normal))
+        return HalfSpace(normal=normal)
     try:  # mesh: the optional module, imported when used
         from ..interact.meshes import MeshShape
     except ImportError:  # pragma: no cover
@@ -199,11 +203,13 @@ def _shape(t: Table, kind: str, base: Path):
             "one of "
             + ", ".join(f'"{s}"' for s in SHAPE_KEYS if s != "mesh")
             + " (mesh tools need torchdeform.interact.meshes)",
-            "mesh",
+            got="mesh",
         ) from None
     file = t.text("file", "a closed triangle mesh file (relative to the scene file; x, y, z = D, H, W in m)")
-    resolution = t.integer("resolution", "an integer >= 4 (distance-field points along the longest axis)", 32, lo=4)
-    with t.src.located(t.key("file"), {"mesh_shape.resolution": t.key("resolution")}):
+    resolution = t.integer(
+        "resolution", "an integer >= 4 (distance-field points along the longest axis)", default=32, lo=4
+    )
+    with t.src.located(t.key("file"), keys={"mesh_shape.resolution": t.key("resolution")}):
         return MeshShape(Path(base) / file, resolution=resolution)
 
 
@@ -221,7 +227,7 @@ def _path(t: Table) -> list:
         )
     )
     if not ok or len({len(w) for w in v}) != 1:
-        raise t.fail("path", _WAYPOINTS + ", all of one kind", v)
+        raise t.fail("path", _WAYPOINTS + ", all of one kind", got=v)
     return [tuple([float(w[0])] + [tuple(float(c) for c in p) for p in w[1:]]) for w in v]
 
 
@@ -230,10 +236,10 @@ def _grasp(t: Table, tool: Tool) -> dict:
     close = g.num("close", "a time in seconds >= 0 when the jaws close", lo=0)
     opened = g.data.get("open")
     if (opened is not None and not (is_number(opened) or opened == math.inf)) or isinstance(opened, bool):
-        raise g.fail("open", "a time in seconds after close (inf: never)", opened)
-    kwargs = {"close": close, "open": opened, "margin": g.num("margin", "metres >= 0", 0.0, lo=0)}
+        raise g.fail("open", "a time in seconds after close (inf: never)", got=opened)
+    kwargs = {"close": close, "open": opened, "margin": g.num("margin", "metres >= 0", default=0.0, lo=0)}
     keys = {"grasp": g.name, **{f"grasp.{k}": g.key(k) for k in ("close", "open", "margin")}}
-    with t.src.located(g.name, keys):
+    with t.src.located(g.name, keys=keys):
         Grasp(tool, **kwargs)  # its own checks: both times, open after close
     return kwargs
 
@@ -252,51 +258,55 @@ def tools_section(src: Source, items, base) -> ToolSet:
         ConfigError: naming the file, the line and the key (``tools[1].radius``).
     """
     if not isinstance(items, list):
-        raise src.error("tools", "[[tools]] tables", items)
+        raise src.error("tools", "[[tools]] tables", got=items)
     out = ToolSet()
     for n, item in enumerate(items):
         t = Table(src, f"tools[{n}]", item, SECTIONS["tools"])
-        name = t.text("name", "a tool name (letters, digits, _ and -)", f"tool{n + 1}")
+        name = t.text("name", "a tool name (letters, digits, _ and -)", default=f"tool{n + 1}")
         if not _NAME.match(name):
-            raise t.fail("name", "a tool name (letters, digits, _ and -, not starting with a digit)", name)
+            raise t.fail("name", "a tool name (letters, digits, _ and -, not starting with a digit)", got=name)
         if name in out.names:
-            raise t.fail("name", "a name no other tool has", name)
+            raise t.fail("name", "a name no other tool has", got=name)
         kind = t.text("shape", "one of " + ", ".join(f'"{s}"' for s in SHAPE_KEYS), choices=SHAPE_KEYS)
         shape = _shape(t, kind, Path(base))
         if t.one_of("position", "path") == "position":
             pose = {
                 "position": t.vec("position", "three numbers [d, h, w] in metres"),
-                "orientation": t.vec("orientation", "a rotation vector [rd, rh, rw] in radians", None),
+                "orientation": t.vec("orientation", "a rotation vector [rd, rh, rw] in radians", default=None),
             }
         else:
             if t.has("orientation"):
                 raise t.fail(
                     "orientation",
                     "no orientation with a path (rotations go into its waypoints [t, [d, h, w], [rd, rh, rw]])",
-                    t.data["orientation"],
+                    got=t.data["orientation"],
                 )
             pose = {"path": _path(t)}
         with src.located(t.key("path" if "path" in pose else "position")):
             tool = Tool(shape, **pose, name=name)
 
-        contact = t.text("contact", "one of " + ", ".join(f'"{c}"' for c in CONTACTS), "projection", CONTACTS)
+        contact = t.text(
+            "contact", "one of " + ", ".join(f'"{c}"' for c in CONTACTS), default="projection", choices=CONTACTS
+        )
         for k in (k for keys in CONTACTS.values() for k in keys):
             if t.has(k) and k not in CONTACTS[contact]:
                 owner = next(c for c, keys in CONTACTS.items() if k in keys)
                 raise t.fail(
-                    k, f'no {k} with contact = "{contact}" (it is an option of contact = "{owner}")', t.data[k]
+                    k, f'no {k} with contact = "{contact}" (it is an option of contact = "{owner}")', got=t.data[k]
                 )
         if contact == "projection":
             kwargs = {
-                "friction": t.num("friction", "a Coulomb coefficient >= 0", 0.0, lo=0),
-                "direction": t.text("direction", " or ".join(f'"{d}"' for d in DIRECTIONS), "normal", DIRECTIONS),
+                "friction": t.num("friction", "a Coulomb coefficient >= 0", default=0.0, lo=0),
+                "direction": t.text(
+                    "direction", " or ".join(f'"{d}"' for d in DIRECTIONS), default="normal", choices=DIRECTIONS
+                ),
                 "hold": _flag(t, "hold", False),
-                "haptic_gain": t.num("haptic_gain", "a gain >= 0 (N/m)", None, lo=0),
+                "haptic_gain": t.num("haptic_gain", "a gain >= 0 (N/m)", default=None, lo=0),
             }
         elif contact == "penalty":
             kwargs = {
                 "stiffness": t.num("stiffness", "a positive number (N/m per metre of penetration)", lo=0, lo_open=True),
-                "damping": t.num("damping", "a number >= 0 (N s/m)", 0.0, lo=0),
+                "damping": t.num("damping", "a number >= 0 (N s/m)", default=0.0, lo=0),
             }
         else:
             kwargs = {}
@@ -305,7 +315,7 @@ def tools_section(src: Source, items, base) -> ToolSet:
             raise t.fail(
                 "contact",
                 '"projection" or "penalty" (a tool with contact = "none" does nothing without a grasp)',
-                "none",
+                got="none",
             )
         out.tools.append(tool)
         out.contacts.append((contact, kwargs))
@@ -320,9 +330,11 @@ def strain_limit_section(t: Table) -> dict:
     ``passes`` (4) Jacobi passes per step; ``update_velocity`` (true).
     """
     kwargs = {
-        "min_ratio": t.num("min", "a ratio in (0, 1] (shortest length / rest length)", 0.9, lo=0, hi=1, lo_open=True),
-        "max_ratio": t.num("max", "a ratio >= 1 (longest length / rest length)", 1.1, lo=1),
-        "passes": t.integer("passes", "an integer >= 1 (Jacobi passes per step)", 4, lo=1),
+        "min_ratio": t.num(
+            "min", "a ratio in (0, 1] (shortest length / rest length)", default=0.9, lo=0, hi=1, lo_open=True
+        ),
+        "max_ratio": t.num("max", "a ratio >= 1 (longest length / rest length)", default=1.1, lo=1),
+        "passes": t.integer("passes", "an integer >= 1 (Jacobi passes per step)", default=4, lo=1),
         "update_velocity": _flag(t, "update_velocity", True),
     }
     keys = {
@@ -330,7 +342,7 @@ def strain_limit_section(t: Table) -> dict:
         "strain_limit.max_ratio": t.key("max"),
         "strain_limit.passes": t.key("passes"),
     }
-    with t.src.located(t.name, keys):
+    with t.src.located(t.name, keys=keys):
         StrainLimit(**kwargs)
     return kwargs
 
@@ -353,7 +365,7 @@ def palpation_option(out: Table, tools: ToolSet | None) -> str | None:
     if isinstance(v, str) and v in touching:
         return v
     known = f" ({', '.join(touching)})" if touching else " (there is none)"
-    raise out.fail("palpation", expected + known, v)
+    raise out.fail("palpation", expected + known, got=v)
 
 
 # ------------------------------------------------------------------ recording a run
@@ -373,9 +385,9 @@ class ToolRecorder:
         >>> from torchdeform.sim.model import State
         >>> rec = ToolRecorder(["probe"], steps=2, device="cpu", dtype=torch.float64)
         >>> x = torch.zeros(1, 3, 1, 1, 1)
-        >>> rec(1, State(x, x, 0.1, {"probe.force": torch.tensor([[1.0, 2.0, 3.0]]),
-        ...                         "probe.contacts": torch.tensor([4.0])}))
-        >>> rec(2, State(x, x, 0.2, {}))
+        >>> rec(1, State(x, x, t=0.1, readings={"probe.force": torch.tensor([[1.0, 2.0, 3.0]]),
+        ...                                       "probe.contacts": torch.tensor([4.0])}))
+        >>> rec(2, State(x, x, t=0.2, readings={}))
         >>> s = rec.series()
         >>> s["t"].tolist(), s["probe.force"].tolist(), s["probe.contacts"].tolist()
         ([0.1, 0.2], [[1.0, 2.0, 3.0], [0.0, 0.0, 0.0]], [4.0, 0.0])
@@ -426,50 +438,8 @@ class ToolRecorder:
         return out
 
 
-def _blocks(a: np.ndarray, size: int) -> np.ndarray:
-    """Means over consecutive blocks of ``size`` rows (the last block may be shorter)."""
-    if size <= 1:
-        return a
-    n = len(a)
-    starts = np.arange(0, n, size)
-    sums = np.add.reduceat(a, starts, axis=0)
-    counts = np.diff(np.append(starts, n)).reshape((-1,) + (1,) * (a.ndim - 1))
-    return sums / counts
-
-
-def _round(a, digits: int = 6):
-    """Nested lists of floats with ``digits`` significant digits (keeps summary.json small)."""
-    a = np.asarray(a, dtype=np.float64)
-    if a.size == 0:
-        return a.tolist()
-    return np.vectorize(lambda x: float(f"{x:.{digits}g}"), otypes=[np.float64])(a).tolist()
-
-
-def work_direction(t: np.ndarray, position: np.ndarray, force: np.ndarray) -> np.ndarray:
-    """The unit vector ``(3,)`` along which a tool works against the tissue (zero if it never does).
-
-    ``u`` is proportional to ``sum_t max(0, -F . v) v / |v|``: the tool's directions of motion,
-    weighted by the power it puts into the tissue (``-F`` is its push on the tissue, ``v`` its
-    velocity from ``position``). Down for a probe pressing into a surface, up for forceps lifting
-    tissue; ``-sum F`` for a tool that does no work, e.g. one that stands still.
-
-    Args:
-        t: times ``(T,)`` s.
-        position: the tool's positions ``(T, 3)`` m.
-        force: the force it feels ``(T, 3)`` N.
-    """
-    v = np.gradient(position, t, axis=0) if len(t) > 1 else np.zeros_like(position)
-    speed = np.linalg.norm(v, axis=1, keepdims=True)
-    power = np.clip(-(force * v).sum(1, keepdims=True), 0, None)
-    u = (power * v / np.where(speed > 0, speed, 1)).sum(0)
-    if not np.linalg.norm(u) > 0:
-        u = -force.sum(0)
-    length = np.linalg.norm(u)
-    return u / length if length > 0 else np.zeros(3)
-
-
 def tool_outputs(
-    tools: ToolSet, series: dict, frames: tuple, out_dir, title: str = "", max_points: int = MAX_POINTS
+    tools: ToolSet, series: dict, frames: tuple, out_dir, *, title: str = "", max_points: int = MAX_POINTS
 ) -> dict:
     """Write ``tools.npz``, ``forces.png`` (and ``palpation.png``); return the summary's tool parts.
 
@@ -487,14 +457,14 @@ def tool_outputs(
     out = Path(out_dir)
     t = series["t"]
     block = max(1, math.ceil(len(t) / max_points))
-    t_mean = _blocks(t, block)
+    t_mean = block_means(t, block)
     npz, summary, curves = {"t": t}, {}, {}
     for tool in tools.tools:
         name = tool.name
         force = series[f"{name}.force"]
         position = np.asarray(tool.position(t), dtype=np.float64).reshape(-1, 3) * np.ones((len(t), 1))
         npz[f"{name}.force"], npz[f"{name}.position"] = force, position
-        f_mean = _blocks(force, block)
+        f_mean = block_means(force, block)
         p_mean = np.asarray(tool.position(t_mean), dtype=np.float64).reshape(-1, 3) * np.ones((len(t_mean), 1))
         magnitude = np.linalg.norm(f_mean, axis=1)
         peak = int(np.argmax(magnitude)) if len(magnitude) else 0
@@ -505,18 +475,18 @@ def tool_outputs(
             "grasp": tools.grasps[tools.names.index(name)] is not None,
             "points": len(t_mean),
             "steps_per_point": block,
-            "t_s": _round(t_mean),
-            "force_N": _round(f_mean),
-            "position_m": _round(p_mean),
+            "t_s": significant(t_mean),
+            "force_N": significant(f_mean),
+            "position_m": significant(p_mean),
             "max_force_N": float(magnitude[peak]) if len(magnitude) else 0.0,
             "max_force_t_s": float(t_mean[peak]) if len(magnitude) else 0.0,
-            "work_direction": _round(u),
+            "work_direction": significant(u),
             "moving": moving,
         }
         for key in ("contacts", "grasped"):
             if f"{name}.{key}" in series:
                 npz[f"{name}.{key}"] = series[f"{name}.{key}"]
-                entry[key] = _round(_blocks(series[f"{name}.{key}"], block), 4)
+                entry[key] = significant(block_means(series[f"{name}.{key}"], block), digits=4)
         summary[name] = entry
         curves[name] = (t_mean, p_mean, f_mean, u if moving else None)
     np.savez(out / "tools.npz", **npz)
@@ -525,12 +495,12 @@ def tool_outputs(
     result = {
         "tools": summary,
         "support_reaction_N": {
-            "t_s": _round(ft[::every]),
-            "force_N": _round(fr[::every]),
+            "t_s": significant(ft[::every]),
+            "force_N": significant(fr[::every]),
             "max_N": float(np.linalg.norm(fr, axis=1).max()) if len(fr) else 0.0,
         },
     }
-    plot_forces(out / "forces.png", curves, frames, title)
+    plot_forces(out / "forces.png", curves, frames, title=title)
     if tools.palpation is not None:
         name = tools.palpation
         tool = tools.tools[tools.names.index(name)]
@@ -539,157 +509,27 @@ def tool_outputs(
         if contacts is None:  # a penalty contact reports contacts too
             contacts = (np.linalg.norm(series[f"{name}.force"], axis=1) > 0).astype(float)
         velocity = np.array([tool.velocity(float(s)) for s in t], dtype=np.float64).reshape(-1, 3)
-        result["palpation"] = {"tool": tool.name, **palpation(t, series[f"{name}.force"], position, contacts, velocity)}
-        plot_palpation(out / "palpation.png", result["palpation"], title)
+        result["palpation"] = {
+            "tool": tool.name,
+            **palpation(t, series[f"{name}.force"], position, contacts, velocity=velocity),
+        }
+        plot_palpation(out / "palpation.png", result["palpation"], title=title)
     return result
 
 
-# ------------------------------------------------------------------ palpation
-def _episodes(touching: np.ndarray, min_steps: int) -> list:
-    """``[(start, stop), ...]`` of the runs of ``touching``; gaps shorter than a tenth of both runs are bridged."""
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], touching.astype(np.int8), [0]])))
-    runs = [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2])]
-    merged = []
-    for a, b in runs:
-        if merged and a - merged[-1][1] < 0.1 * min(b - a, merged[-1][1] - merged[-1][0]):
-            merged[-1] = (merged[-1][0], b)
-        else:
-            merged.append((a, b))
-    return [(a, b) for a, b in merged if b - a >= min_steps]
-
-
-def _smooth(a: np.ndarray, width: int) -> np.ndarray:
-    """Centred moving average of odd ``width`` (shorter at the ends)."""
-    if width <= 1 or len(a) < 3:
-        return a
-    kernel = np.ones(width)
-    return np.convolve(a, kernel, "same") / np.convolve(np.ones_like(a), kernel, "same")
-
-
-def palpation(
-    t: np.ndarray,
-    force: np.ndarray,
-    position: np.ndarray,
-    contacts: np.ndarray,
-    velocity: np.ndarray | None = None,
-    curve_points: int = 100,
-) -> dict:
-    """The presses of a tool: force against indentation at each point, and where the tissue is stiffest.
-
-    A press is a run of steps in which the tool touches the tissue (``contacts > 0``; gaps shorter
-    than a tenth of the runs beside them are bridged, runs under 10 steps dropped). In each press,
-    from the tool's position ``p_on`` at first contact, the press direction ``n`` points to the
-    deepest position ``p_max`` (the farthest from ``p_on``), the indentation is
-    ``delta = (p - p_on) . n`` and the force ``F_n = -F . n`` (N, the tissue pushing back). On the
-    loading branch (first contact to ``p_max`` while the tool moves inwards, ``velocity . n > 0``: the
-    step at which it turns round is left out; ``F_n`` smoothed over about 2 % of the branch): the peak
-    force, the indentation there, the slope of ``F_n`` against ``delta`` (N/m, a least-squares line
-    through ``delta_max / 2 .. delta_max``), ``p_max``, and the branch as the force-indentation
-    curve. Positions along the line of presses are
-    ``(p_max - p_max[0]) . e`` with ``e`` the unit vector from the first press to the last.
-
-    Args:
-        t: times ``(T,)`` s.
-        force: the force the tool feels ``(T, 3)`` N.
-        position: the tool's position ``(T, 3)`` m.
-        contacts: nodes touched per step ``(T,)``.
-        velocity: the tool's velocity ``(T, 3)`` m/s (that of the path segment entered at each time),
-            or None: forward differences of ``position``.
-        curve_points: points per force-indentation curve in the result.
-
-    Returns:
-        ``{"points": [{"position_m", "along_m", "t_s" (start, end), "indentation_m", "peak_force_N",
-        "stiffness_N_per_m", "curve": {"indentation_m", "force_N"}}, ...], "stiffest": {...}}``;
-        ``stiffest`` is the press with the largest peak force (``index``, ``along_m``,
-        ``position_m``, ``peak_force_N``, ``ratio_to_median``) or None when there is no press.
-
-    Examples:
-        >>> import numpy as np
-        >>> t = np.linspace(0, 2, 2001)
-        >>> depth = np.clip(1 - abs((t % 1) - 0.5) * 4, 0, None) * 1e-3          # two presses, 1 mm deep
-        >>> position = np.stack([-depth, np.zeros_like(t), np.floor(t) * 0.01], 1)
-        >>> stiffness = np.where(t < 1, 100.0, 300.0)                           # N/m: the second is stiffer
-        >>> force = np.stack([stiffness * depth, 0 * t, 0 * t], 1)              # the tissue pushes up
-        >>> r = palpation(t, force, position, depth > 0)
-        >>> [round(p["stiffness_N_per_m"]) for p in r["points"]], r["stiffest"]["index"], r["stiffest"]["along_m"]
-        ([100, 300], 1, 0.01)
-    """
-    t, force, position = np.asarray(t, float), np.asarray(force, float), np.asarray(position, float)
-    points = []
-    for a, b in _episodes(np.asarray(contacts) > 0, min_steps=10):
-        p = position[a:b]
-        offset = p - p[0]
-        k = int(np.argmax(np.linalg.norm(offset, axis=1)))
-        depth = float(np.linalg.norm(offset[k]))
-        if depth == 0:
-            continue
-        n = offset[k] / depth
-        inward = (velocity[a:b] @ n) > 0 if velocity is not None else np.diff(offset @ n, append=-np.inf) > 0
-        while k > 0 and not inward[k]:  # the loading branch ends where the tool
-            k -= 1  # last moved inwards (not at its turn)
-        delta = (offset @ n)[: k + 1]
-        f = _smooth(-(force[a : a + k + 1] @ n), 2 * max(1, (k + 1) // 100) + 1)
-        peak = int(np.argmax(f))
-        upper = np.flatnonzero(delta >= 0.5 * depth)
-        slope = (
-            float(np.polyfit(delta[upper], f[upper], 1)[0])
-            if len(upper) >= 2 and np.ptp(delta[upper]) > 0
-            else float("nan")
-        )
-        keep = np.unique(np.linspace(0, k, min(curve_points, k + 1)).round().astype(int))  # the loading branch
-        points.append(
-            {
-                "position_m": _round(p[k]),
-                "t_s": _round([t[a], t[b - 1]]),
-                "indentation_m": depth,
-                "peak_force_N": float(f[peak]),
-                "peak_indentation_m": float(delta[peak]),
-                "stiffness_N_per_m": slope if math.isfinite(slope) else None,
-                "curve": {"indentation_m": _round(delta[keep]), "force_N": _round(f[keep])},
-            }
-        )
-    if points:
-        first, last = np.array(points[0]["position_m"]), np.array(points[-1]["position_m"])
-        line = last - first
-        e = line / np.linalg.norm(line) if np.linalg.norm(line) > 0 else np.zeros(3)
-        for q in points:
-            q["along_m"] = float(f"{float((np.array(q['position_m']) - first) @ e):.6g}")
-        peaks = np.array([q["peak_force_N"] for q in points])
-        i = int(np.argmax(peaks))
-        stiffest = {
-            "index": i,
-            "along_m": points[i]["along_m"],
-            "position_m": points[i]["position_m"],
-            "peak_force_N": float(peaks[i]),
-            "ratio_to_median": float(peaks[i] / np.median(peaks)) if np.median(peaks) > 0 else None,
-        }
-    else:
-        stiffest = None
-    return {"points": points, "stiffest": stiffest}
-
-
 # ------------------------------------------------------------------ plots
-def _figure(size):
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=size, layout="constrained")
-    FigureCanvasAgg(fig)
-    return fig
-
-
-def plot_forces(path, curves: dict, frames: tuple, title: str = "") -> None:
+def plot_forces(path, curves: dict, frames: tuple, *, title: str = "") -> None:
     """Write ``forces.png``: per tool the force along its motion (N) against its displacement (mm), and |F| over time.
 
     Args:
         path: the PNG file.
         curves: ``{name: (t (T,), position (T, 3), force (T, 3), u (3,) or None)}``: ``u`` the
-            direction the tool works in (:func:`work_direction`), None for a tool that stands still
-            (not drawn against its displacement).
+            direction the tool works in (:func:`~torchdeform.interact.palpation.work_direction`), None
+            for a tool that stands still (not drawn against its displacement).
         frames: ``(t (F,), support reaction (F, 3))`` (drawn over time, dashed).
         title: the figure's title.
     """
-    fig = _figure((11, 4.5))
+    fig = figure(figsize=(11, 4.5))
     left, right = fig.subplots(1, 2)
     for name, (t, position, force, u) in curves.items():
         (line,) = right.plot(t, np.linalg.norm(force, axis=1), lw=1.2, label=f"{name} |F|")
@@ -719,70 +559,13 @@ def plot_forces(path, curves: dict, frames: tuple, title: str = "") -> None:
     save_figure(fig, path, dpi=100)
 
 
-def plot_palpation(path, result: dict, title: str = "") -> None:
-    """Write ``palpation.png``: left force-indentation per press, right peak force and slope along the line.
-
-    Args:
-        path: the PNG file.
-        result: the ``"palpation"`` part of the summary (:func:`palpation` plus ``"tool"``).
-        title: the figure's title.
-    """
-    from matplotlib import colormaps
-
-    fig = _figure((11, 4.5))
-    left, right = fig.subplots(1, 2)
-    points = result["points"]
-    cmap = colormaps["viridis"]
-    for i, q in enumerate(points):
-        colour = cmap(i / max(1, len(points) - 1))
-        left.plot(
-            np.array(q["curve"]["indentation_m"]) * 1e3,
-            q["curve"]["force_N"],
-            color=colour,
-            lw=1.2,
-            label=f"{q['along_m'] * 1e3:.1f} mm",
-        )
-    left.set_xlabel("indentation (mm)")
-    left.set_ylabel("force (N)")
-    left.set_title(f"force-indentation, {result['tool']}")
-    left.grid(alpha=0.3)
-    if points:
-        left.legend(loc="upper left", fontsize="x-small", title="position", title_fontsize="x-small")
-        along = np.array([q["along_m"] for q in points]) * 1e3
-        peaks = np.array([q["peak_force_N"] for q in points])
-        right.plot(along, peaks, "o-", color="tab:red", label="peak force")
-        best = result["stiffest"]
-        right.annotate(
-            f"stiffest: {best['along_m'] * 1e3:.1f} mm",
-            (best["along_m"] * 1e3, best["peak_force_N"]),
-            textcoords="offset points",
-            xytext=(8, -4),
-            ha="left",
-            fontsize="small",
-        )
-        right.margins(y=0.12)
-        twin = right.twinx()
-        slopes = [np.nan if q["stiffness_N_per_m"] is None else q["stiffness_N_per_m"] for q in points]
-        twin.plot(along, slopes, "s--", color="tab:blue", label="slope")
-        twin.set_ylabel("slope of the loading half (N/m)", color="tab:blue")
-        right.legend(loc="upper left", fontsize="small")
-        twin.legend(loc="upper right", fontsize="small")
-    right.set_xlabel("position along the line of presses (mm)")
-    right.set_ylabel("peak force (N)", color="tab:red")
-    right.set_title("peak force along the line")
-    right.grid(alpha=0.3)
-    if title:
-        fig.suptitle(title)
-    save_figure(fig, path, dpi=100)
-
-
 def support_series(model, t: np.ndarray, x: torch.Tensor, v: torch.Tensor) -> np.ndarray:
     """The supports' reaction ``(F, 3)`` N at recorded frames ``x``, ``v`` ``(F, 3, D, H, W)`` (batch entry 0)."""
     out = []
     with torch.no_grad():
         for i in range(len(t)):
             state = State(
-                x[i : i + 1].to(model.device, model.dtype), v[i : i + 1].to(model.device, model.dtype), float(t[i])
+                x[i : i + 1].to(model.device, model.dtype), v[i : i + 1].to(model.device, model.dtype), t=float(t[i])
             )
             out.append(support_reaction(model, state)[0].double().cpu())
     return torch.stack(out).numpy() if out else np.zeros((0, 3))

@@ -57,10 +57,10 @@ Example:
     ... [[cuts]]
     ... triangle = [[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.02, 0.0, 0.0]]
     ... '''
-    >>> src = Source("s.toml", text)
+    >>> src = Source(path="s.toml", text=text)
     >>> data = {"cuts": [{"triangle": [[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.02, 0.0, 0.0]]}]}
     >>> out = Table(src, "output", {}, SECTIONS["output"])
-    >>> topology_section(src, data, Grid((3, 3, 3), 0.01), None, out, end=1.0)
+    >>> topology_section(src, data, Grid((3, 3, 3), spacing=0.01), None, out, end=1.0)
     Traceback (most recent call last):
     ...
     torchdeform.errors.ConfigError: s.toml:3: cuts[0].triangle: expected a non-degenerate triangle: three corners not on one line, got ((0.0, 0.0, 0.0), (0.01, 0.0, 0.0), (0.02, 0.0, 0.0))
@@ -69,13 +69,15 @@ Example:
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass, field
+from dataclasses import KW_ONLY, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
 from ..outputs import save_figure
+from ..sim.grid import Grid
 from ..sim.model import State
 from ..topology import (
     Blade,
@@ -164,7 +166,8 @@ class TopologySet:
         tools: the tools by name.
     """
 
-    grid: object
+    grid: Grid
+    _: KW_ONLY
     source: Source = field(default_factory=Source)
     cuts: list = field(default_factory=list)
     cautery: list = field(default_factory=list)
@@ -179,7 +182,7 @@ class TopologySet:
 
     def body_box(self) -> tuple:
         """The rest bounding box ``(low (3,), high (3,))`` of the body's nodes (m)."""
-        X = self.grid.rest_positions(torch.float64)[0][:, self.grid.nodes()]
+        X = self.grid.rest_positions(dtype=torch.float64)[0][:, self.grid.nodes()]
         return tuple(X.amin(1).tolist()), tuple(X.amax(1).tolist())
 
     def check(self, end: float) -> None:
@@ -187,7 +190,9 @@ class TopologySet:
         tol = 1e-9 * max(1.0, end)
         for key, value in self.times:
             if not -tol <= value <= end + tol:
-                raise self.source.error(key, f"a time in [0, {end:g}] s (the run lasts steps x dt = {end:g} s)", value)
+                raise self.source.error(
+                    key, f"a time in [0, {end:g}] s (the run lasts steps x dt = {end:g} s)", got=value
+                )
         lo, hi = self.body_box()
         for c in self.cuts:
             if "tool" not in c:
@@ -202,7 +207,7 @@ class TopologySet:
                     f"an edge that reaches the body (its path from "
                     f"{c['start']:g} to {stop:g} s stays within {_box_text(box)}, the body's "
                     f"rest box is {_box_text((lo, hi))})",
-                    [list(p) for p in c["edge"]],
+                    got=[list(p) for p in c["edge"]],
                 )
 
     def prepare(self, model):
@@ -217,9 +222,9 @@ class TopologySet:
         model.cut_nodes = model.cut_nodes.clone() if model.cut_nodes is not None else None
         return model
 
-    def events(self, model, dt: float, end: float, out_dir=None) -> TopologyEvents:
+    def events(self, model, dt: float, end: float, *, out_dir=None) -> TopologyEvents:
         """Fresh :class:`TopologyEvents` for one run of ``model`` (from :meth:`prepare`)."""
-        return TopologyEvents(self, model, dt, end, out_dir)
+        return TopologyEvents(self, model, dt, end, out_dir=out_dir)
 
 
 def _meets(a, b) -> bool:
@@ -235,7 +240,7 @@ def _box_text(box) -> str:
 def _flag(t: Table, k: str, default: bool) -> bool:
     v = t.data.get(k, default)
     if not isinstance(v, bool):
-        raise t.fail(k, "true or false", v)
+        raise t.fail(k, "true or false", got=v)
     return v
 
 
@@ -248,12 +253,12 @@ def _points(t: Table, k: str, n: int, expected: str) -> list:
         and all(isinstance(p, list) and len(p) == 3 and all(is_number(c) for c in p) for p in v)
     )
     if not ok:
-        raise t.fail(k, expected, v)
+        raise t.fail(k, expected, got=v)
     return [tuple(float(c) for c in p) for p in v]
 
 
-def _time(t: Table, k: str, times: list, default=0.0):
-    v = t.num(k, "a time >= 0 (s)", default, lo=0)
+def _time(t: Table, k: str, times: list, default: float | None = 0.0):
+    v = t.num(k, "a time >= 0 (s)", default=default, lo=0)
     if k in t.data:
         times.append((t.key(k), v))
     return v
@@ -264,7 +269,7 @@ def _tool(t: Table, tools) -> str:
     expected = "the name of a [[tools]] tool " + (f"({', '.join(names)})" if names else "(there is none)")
     name = t.raw("tool", expected)
     if not isinstance(name, str) or name not in names:
-        raise t.fail("tool", expected, name)
+        raise t.fail("tool", expected, got=name)
     return name
 
 
@@ -273,24 +278,24 @@ def _cut(t: Table, grid, tools, out: TopologySet) -> dict:
     for k in t.data:
         if k != "gape" and k not in CUT_FORMS[which]:
             owner = next(f for f, keys in CUT_FORMS.items() if k in keys)
-            raise t.fail(k, f"no {k} with {which} = .. (it goes with {owner} = ..)", t.data[k])
+            raise t.fail(k, f"no {k} with {which} = .. (it goes with {owner} = ..)", got=t.data[k])
     entry = {
         "key": t.name,
-        "gape": t.num("gape", "a fraction in [0, 1) of the rest length", 0.0, lo=0, hi=1, hi_open=True),
+        "gape": t.num("gape", "a fraction in [0, 1) of the rest length", default=0.0, lo=0, hi=1, hi_open=True),
     }
     if which == "tool":
         entry["tool"] = _tool(t, tools)
         edge = _points(t, "edge", 2, "the cutting edge's two ends [[d, h, w], [d, h, w]] in the tool's frame (m)")
-        with t.src.located(t.key("edge"), {"scalpel.edge": t.key("edge"), "scalpel.pieces": t.key("pieces")}):
+        with t.src.located(t.key("edge"), keys={"scalpel.edge": t.key("edge"), "scalpel.pieces": t.key("pieces")}):
             Scalpel(out.tools[entry["tool"]], edge)
         start, stop = _time(t, "start", out.times), _time(t, "stop", out.times, None)
         if stop is not None and stop <= start:
-            raise t.fail("stop", f"a time after start ({start:g} s)", stop)
+            raise t.fail("stop", f"a time after start ({start:g} s)", got=stop)
         entry.update(
             edge=tuple(edge),
             start=start,
             stop=stop,
-            pieces=t.integer("pieces", "an integer >= 1 (triangles per step)", 1, lo=1),
+            pieces=t.integer("pieces", "an integer >= 1 (triangles per step)", default=1, lo=1),
         )
         return entry
     key = t.key(which)
@@ -319,7 +324,7 @@ def _cut(t: Table, grid, tools, out: TopologySet) -> dict:
                 for e in v
             )
         ):
-            raise t.fail("edges", expected, v)
+            raise t.fail("edges", expected, got=v)
         with t.src.located(key):
             blade = Blade.swept(v, key=key)
     box = blade.bounds()
@@ -329,14 +334,14 @@ def _cut(t: Table, grid, tools, out: TopologySet) -> dict:
             which,
             f"a blade that reaches the body (the blade lies within {_box_text(box)}, the body's "
             f"rest box is {_box_text(body)})",
-            t.data[which],
+            got=t.data[which],
         )
     entry.update(blade=blade, at=_time(t, "at", out.times))
     return entry
 
 
 def _cautery(t: Table, tools, out: TopologySet) -> dict:
-    entry = {"key": t.name, "tool": _tool(t, tools)}
+    entry: dict[str, Any] = {"key": t.name, "tool": _tool(t, tools)}
     if t.has("at"):
         for k in ("every", "start", "stop"):
             t.only_with(k, "at")
@@ -344,9 +349,12 @@ def _cautery(t: Table, tools, out: TopologySet) -> dict:
         return entry
     start, stop = _time(t, "start", out.times), _time(t, "stop", out.times, None)
     if stop is not None and stop < start:
-        raise t.fail("stop", f"a time not before start ({start:g} s)", stop)
+        raise t.fail("stop", f"a time not before start ({start:g} s)", got=stop)
     entry.update(
-        at=None, every=t.integer("every", "an integer >= 1 (steps between burns)", 1, lo=1), start=start, stop=stop
+        at=None,
+        every=t.integer("every", "an integer >= 1 (steps between burns)", default=1, lo=1),
+        start=start,
+        stop=stop,
     )
     return entry
 
@@ -371,11 +379,11 @@ def _coagulate(t: Table, grid, out: TopologySet) -> dict:
         "key": t.name,
         "at": _time(t, "at", out.times),
         "region": region_mask(t, grid),
-        "viscosity_factor": t.num("viscosity_factor", "a factor >= 1 (the rise of the damping)", 1.0, lo=1),
+        "viscosity_factor": t.num("viscosity_factor", "a factor >= 1 (the rise of the damping)", default=1.0, lo=1),
     }
 
 
-def topology_section(src: Source, data: dict, grid, tools, out: Table, end: float | None = None) -> TopologySet:
+def topology_section(src: Source, data: dict, grid, tools, out: Table, *, end: float | None = None) -> TopologySet:
     """The :class:`TopologySet` of a scene's topology sections and ``[output] surfaces``.
 
     The sections: ``[[cuts]]``, ``[[cautery]]``, ``[tear]`` and ``[[coagulate]]`` (module docstring).
@@ -392,10 +400,10 @@ def topology_section(src: Source, data: dict, grid, tools, out: Table, end: floa
     Raises:
         ConfigError: naming the file, the line and the key (``cuts[1].triangle``).
     """
-    result = TopologySet(grid, src, tools={tool.name: tool for tool in (tools.tools if tools else [])})
+    result = TopologySet(grid, source=src, tools={tool.name: tool for tool in (tools.tools if tools else [])})
     for name in ("cuts", "cautery", "coagulate"):
         if name in data and not isinstance(data[name], list):
-            raise src.error(name, f"[[{name}]] tables", data[name])
+            raise src.error(name, f"[[{name}]] tables", got=data[name])
     for n, item in enumerate(data.get("cuts", [])):
         result.cuts.append(_cut(Table(src, f"cuts[{n}]", item, SECTIONS["cuts"]), grid, tools, result))
     for n, item in enumerate(data.get("cautery", [])):
@@ -408,9 +416,9 @@ def topology_section(src: Source, data: dict, grid, tools, out: Table, end: floa
         v = out.data["surfaces"]
         expected = "a list of times [t1, t2, ...] (s) at which to write the pieces' surfaces"
         if not (isinstance(v, list) and v and all(is_number(s) for s in v)):
-            raise out.fail("surfaces", expected, v)
+            raise out.fail("surfaces", expected, got=v)
         if min(v) < 0:
-            raise out.fail("surfaces", "times >= 0 (s)", v)
+            raise out.fail("surfaces", "times >= 0 (s)", got=v)
         result.surfaces = sorted(float(s) for s in v)
         result.times += [(out.key("surfaces"), s) for s in result.surfaces]
     if end is not None:
@@ -439,11 +447,11 @@ class TopologyEvents:
             moment something changed.
     """
 
-    def __init__(self, spec: TopologySet, model, dt: float, end: float, out_dir=None):
+    def __init__(self, spec: TopologySet, model, dt: float, end: float, *, out_dir=None):
         self.spec, self.model, self.dt, self.end = spec, model, float(dt), float(end)
         self.out = None if out_dir is None else Path(out_dir)
         self.scalpels = [
-            Scalpel(spec.tools[c["tool"]], c["edge"], c["pieces"], c["gape"]) if "tool" in c else None
+            Scalpel(spec.tools[c["tool"]], c["edge"], pieces=c["pieces"], gape=c["gape"]) if "tool" in c else None
             for c in spec.cuts
         ]
         self.started = [False] * len(spec.cuts)
@@ -480,71 +488,92 @@ class TopologyEvents:
 
     def __call__(self, step: int, state: State) -> None:
         """Apply what is due at ``state.t`` (after step ``step``; 0 before the first)."""
-        t, model, spec = float(state.t), self.model, self.spec
+        t = float(state.t)
         before = (self.totals["cut"], self.totals["tear"], self.totals["nodes"])
         with torch.no_grad():
-            for i, c in enumerate(spec.cuts):
-                if "blade" in c:
-                    if not self.done["cuts"][i] and self._due(t, c["at"]):
-                        n = cut(model, state.x, c["blade"], c["gape"])
-                        self.blade = c["blade"]
-                        self.done["cuts"][i] = True
-                        self.totals["cut"] += n
-                        self._note(c["key"], t, springs=n)
-                    continue
-                stop = self.end if c["stop"] is None else c["stop"]
-                if self.done["cuts"][i] or not self._due(t, c["start"]):
-                    continue
-                knife = self.scalpels[i]
-                if not self.started[i]:  # the sweep starts at `start`, not at this step
-                    knife.update(model, State(state.x, state.v, c["start"]))
-                    self.started[i] = True
-                n = knife.update(model, State(state.x, state.v, min(t, stop)))
-                self.blade = knife.swept(c["start"], min(t, stop)) or self.blade
-                self.totals["cut"] += n
-                self._note(c["key"], t, springs=n)
-                if self._due(t, stop):
-                    self.done["cuts"][i] = True
-            for i, c in enumerate(spec.cautery):
-                if self.done["cautery"][i]:
-                    continue
-                if c["at"] is not None:
-                    if not self._due(t, c["at"]):
-                        continue
-                    self.done["cautery"][i] = True
-                else:
-                    stop = self.end if c["stop"] is None else c["stop"]
-                    if not self._due(t, c["start"]) or (step % c["every"] and not self._due(t, stop)):
-                        continue
-                    if self._due(t, stop):
-                        self.done["cautery"][i] = True
-                state.v = state.v.clone()  # a recorded frame may share the velocities
-                burnt = cauterize(model, state, spec.tools[c["tool"]])
-                self.totals["nodes"] += burnt["nodes"]
-                self.totals["mass_kg"] += burnt["mass_kg"]
-                self.totals["momentum"] = [a + b for a, b in zip(self.totals["momentum"], burnt["momentum"])]
-                self._note(c["key"], t, nodes=burnt["nodes"], mass_kg=burnt["mass_kg"])
-            for i, c in enumerate(spec.coagulate):
-                if not self.done["coagulate"][i] and self._due(t, c["at"]):
-                    n = coagulate(model, state.x[:1], c["region"].to(state.x.device), c["viscosity_factor"])
-                    self.done["coagulate"][i] = True
-                    self.totals["coagulated"] += n
-                    self._note(c["key"], t, springs=n)
-            if spec.tear is not None and self._due(t, spec.tear["start"]):
-                limit = spec.tear.get("max_strain")
-                if limit is None:
-                    limit = strain_limit_from_force(model, spec.tear["max_force"])
-                n = tear(model, state.x, limit, spec.tear["one_per_step"])
-                self.totals["tear"] += n
-                if n:
-                    self._note("tear", t, springs=n)
+            self._cuts(t, state)
+            self._cautery(step, t, state)
+            self._coagulate(t, state)
+            self._tear(t, state)
         now = (self.totals["cut"], self.totals["tear"], self.totals["nodes"])
         if now != before:
             self.history.append((t, *now))
-        for i, ts in enumerate(spec.surfaces):
+        for i, ts in enumerate(self.spec.surfaces):
             if not self.done["surfaces"][i] and self._due(t, ts):
                 self.done["surfaces"][i] = True
                 self._surfaces(state, ts, t)
+
+    def _cuts(self, t: float, state: State) -> None:
+        """Blades due at ``t`` cut at once; scalpels sweep from ``start`` to ``stop``."""
+        model = self.model
+        for i, c in enumerate(self.spec.cuts):
+            if "blade" in c:
+                if not self.done["cuts"][i] and self._due(t, c["at"]):
+                    n = cut(model, state.x, c["blade"], gape=c["gape"])
+                    self.blade = c["blade"]
+                    self.done["cuts"][i] = True
+                    self.totals["cut"] += n
+                    self._note(c["key"], t, springs=n)
+                continue
+            stop = self.end if c["stop"] is None else c["stop"]
+            if self.done["cuts"][i] or not self._due(t, c["start"]):
+                continue
+            knife = self.scalpels[i]
+            assert knife is not None  # a cut without a blade is a scalpel's
+            if not self.started[i]:  # the sweep starts at `start`, not at this step
+                knife.update(model, State(state.x, state.v, t=c["start"]))
+                self.started[i] = True
+            n = knife.update(model, State(state.x, state.v, t=min(t, stop)))
+            self.blade = knife.swept(c["start"], min(t, stop)) or self.blade
+            self.totals["cut"] += n
+            self._note(c["key"], t, springs=n)
+            if self._due(t, stop):
+                self.done["cuts"][i] = True
+
+    def _cautery(self, step: int, t: float, state: State) -> None:
+        """Burns due at ``t``: once (``at``) or every ``every`` steps from ``start`` to ``stop``."""
+        for i, c in enumerate(self.spec.cautery):
+            if self.done["cautery"][i]:
+                continue
+            if c["at"] is not None:
+                if not self._due(t, c["at"]):
+                    continue
+                self.done["cautery"][i] = True
+            else:
+                stop = self.end if c["stop"] is None else c["stop"]
+                if not self._due(t, c["start"]) or (step % c["every"] and not self._due(t, stop)):
+                    continue
+                if self._due(t, stop):
+                    self.done["cautery"][i] = True
+            state.v = state.v.clone()  # a recorded frame may share the velocities
+            burnt = cauterize(self.model, state, self.spec.tools[c["tool"]])
+            self.totals["nodes"] += burnt["nodes"]
+            self.totals["mass_kg"] += burnt["mass_kg"]
+            self.totals["momentum"] = [a + b for a, b in zip(self.totals["momentum"], burnt["momentum"])]
+            self._note(c["key"], t, nodes=burnt["nodes"], mass_kg=burnt["mass_kg"])
+
+    def _coagulate(self, t: float, state: State) -> None:
+        """Coagulations due at ``t``."""
+        for i, c in enumerate(self.spec.coagulate):
+            if not self.done["coagulate"][i] and self._due(t, c["at"]):
+                n = coagulate(
+                    self.model, state.x[:1], c["region"].to(state.x.device), viscosity_factor=c["viscosity_factor"]
+                )
+                self.done["coagulate"][i] = True
+                self.totals["coagulated"] += n
+                self._note(c["key"], t, springs=n)
+
+    def _tear(self, t: float, state: State) -> None:
+        """Tearing from ``start`` on: springs past the strain limit break."""
+        spec, model = self.spec.tear, self.model
+        if spec is not None and self._due(t, spec["start"]):
+            limit = spec.get("max_strain")
+            if limit is None:
+                limit = strain_limit_from_force(model, spec["max_force"])
+            n = tear(model, state.x, limit, one_per_step=spec["one_per_step"])
+            self.totals["tear"] += n
+            if n:
+                self._note("tear", t, springs=n)
 
     def pieces(self) -> torch.Tensor:
         """Labels ``(D, H, W)`` of the pieces whose surfaces are drawn (Punak: one surface per side).
@@ -592,7 +621,7 @@ class TopologyEvents:
             "outputs": ["topology.png"] + [f for s in self.surface_files for f in s["files"]],
         }
 
-    def outputs(self, state: State, out_dir, title: str = "") -> dict:
+    def outputs(self, state: State, out_dir, *, title: str = "") -> dict:
         """Write ``topology.png``; return :meth:`summary`."""
         summary = self.summary()
         labels, _ = components(self.model)
@@ -602,14 +631,16 @@ class TopologyEvents:
             np.array(self.history + [(float(state.t),) + self.history[-1][1:]]),
             x[0].numpy(),
             labels.cpu().numpy(),
-            title,
+            title=title,
             surfaces=cut_surfaces(self.model.grid, x, self.pieces().cpu()),
         )
         return summary
 
 
 # ------------------------------------------------------------------ the figure
-def plot_topology(path, history: np.ndarray, x: np.ndarray, labels: np.ndarray, title: str = "", surfaces=None) -> None:
+def plot_topology(
+    path, history: np.ndarray, x: np.ndarray, labels: np.ndarray, *, title: str = "", surfaces=None
+) -> None:
     """Write ``topology.png``: changes over time, the final nodes by component in two slices, the final surfaces.
 
     Args:
@@ -621,9 +652,9 @@ def plot_topology(path, history: np.ndarray, x: np.ndarray, labels: np.ndarray, 
         surfaces: optional :class:`~torchdeform.topology.surfaces.CutSurface` list of the final
             frame, drawn shaded in 3-D (axis D up) in a fourth panel.
     """
-    from .tools import _figure
+    from ..outputs import figure
 
-    fig = _figure((17.5 if surfaces else 13, 4.2))
+    fig = figure(figsize=(17.5 if surfaces else 13, 4.2))
     left, mid, right = fig.subplots(1, 4 if surfaces else 3)[:3]
     if surfaces:
         _surface_panel(fig.add_subplot(1, 4, 4, projection="3d"), surfaces)

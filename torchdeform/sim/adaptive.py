@@ -132,7 +132,7 @@ PAIRS = {
 }
 
 
-def stability_limits(pair: Pair, resolution: float = 1e-4) -> tuple:
+def stability_limits(pair: Pair, *, resolution: float = 1e-4) -> tuple:
     """``(imaginary, real)``: how far the pair's stability region reaches along each axis.
 
     The largest ``y`` with ``|R(i s)| <= 1`` for all ``0 < s <= y`` and the largest ``r`` with
@@ -223,6 +223,7 @@ class Adaptive(Integrator):
 
     def __init__(
         self,
+        *,
         rtol: float = 1e-3,
         atol=None,
         pair: str = "bogacki_shampine",
@@ -231,16 +232,16 @@ class Adaptive(Integrator):
     ):
         rtol = float(rtol)
         if not (math.isfinite(rtol) and 0 < rtol < 1):
-            raise ConfigError("rtol", "a relative tolerance between 0 and 1 (e.g. 1e-3)", rtol)
+            raise ConfigError("rtol", "a relative tolerance between 0 and 1 (e.g. 1e-3)", got=rtol)
         if pair not in PAIRS:
-            raise ConfigError("pair", f"one of {', '.join(PAIRS)}", pair)
+            raise ConfigError("pair", f"one of {', '.join(PAIRS)}", got=pair)
         if atol is not None:
             atol = tuple(float(a) for a in atol)
             if len(atol) != 2 or not all(math.isfinite(a) and a > 0 for a in atol):
-                raise ConfigError("atol", "two positive numbers (positions m, velocities m/s)", atol)
+                raise ConfigError("atol", "two positive numbers (positions m, velocities m/s)", got=atol)
         for key, value in (("min_step", min_step), ("max_step", max_step)):
             if value is not None and not (math.isfinite(float(value)) and float(value) > 0):
-                raise ConfigError(key, "a positive number of seconds", value)
+                raise ConfigError(key, "a positive number of seconds", got=value)
         self.rtol, self.atol, self.pair = rtol, atol, PAIRS[pair]
         self.min_step, self.max_step = min_step, max_step
         self.imag_limit, self.real_limit = stability_limits(self.pair)
@@ -305,11 +306,11 @@ class Adaptive(Integrator):
         return err if math.isfinite(err) else math.inf
 
     # ------------------------------------------------------------------ a call
-    def step(self, model: Model, state: State, dt: float, loads=None) -> State:
+    def step(self, model: Model, state: State, dt: float, *, loads=None) -> State:
         """Advance ``state`` by ``dt`` seconds in as many accepted internal steps as the tolerance needs."""
         dt = positive_dt(dt)
         self._prepare(model)
-        f = rates(model, loads)
+        f = rates(model, loads=loads)
         min_step = self.min_step or 1e-6 * dt
         cap = min(self.cap, dt, self.max_step or math.inf)
         h = min(self._h or cap, cap)
@@ -324,7 +325,7 @@ class Adaptive(Integrator):
             if err <= 1.0:
                 state = self.finish(model, state, x1, v1, try_h)
                 if last:
-                    state = State(state.x, state.v, t_end, state.readings)  # no drift of the clock
+                    state = State(state.x, state.v, t=t_end, readings=state.readings)  # no drift of the clock
                 self.stats["accepted"] += 1
                 self.stats["min_h"] = min(self.stats["min_h"], try_h)
                 self.stats["max_h"] = max(self.stats["max_h"], try_h)

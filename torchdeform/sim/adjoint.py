@@ -117,7 +117,7 @@ def adjoint_solve(
     Args:
         apply_A: ``u -> A u`` on fields shaped like ``b``; differentiable in ``A``'s coefficients.
         b: right-hand side ``(B, C, ...)``, possibly with a graph.
-        solver: ``(apply_A, b, precond, mask, iters, tol) -> (u, iterations, relative residual)``,
+        solver: ``(apply_A, b, *, precond, mask, iters, tol) -> (u, iterations, relative residual)``,
             e.g. :func:`~torchdeform.sim.integrators.conjugate_gradient`.
         precond: preconditioner for ``solver`` (a diagonal, broadcastable), or None.
         mask: 0/1 filter of ``solver`` (broadcastable), or None.
@@ -150,7 +150,7 @@ def adjoint_solve(
         ([[0.5, 0.5]], [[0.5, 0.25]])
     """
     with torch.no_grad():  # no graph through the iterations
-        u, n_it, rel = solver(apply_A, b, precond, mask, iters, tol)
+        u, n_it, rel = solver(apply_A, b, precond=precond, mask=mask, iters=iters, tol=tol)
     if not torch.is_grad_enabled():
         return u, n_it, rel
     residual = b - apply_A(u)
@@ -158,15 +158,17 @@ def adjoint_solve(
         return u, n_it, rel
     a_iters = iters if adjoint_iters is None else adjoint_iters
     a_tol = tol if adjoint_tol is None else adjoint_tol
+
+    def same_operator():
+        return apply_A, precond
+
     if adjoint_operator is None:
         saved = ()
-
-        def adjoint_operator():
-            return apply_A, precond
+    operator = same_operator if adjoint_operator is None else adjoint_operator
 
     def adjoint(grad, *tensors):
-        op, pre = adjoint_operator(*tensors)
-        lam, n, r = solver(op, grad, pre, mask, a_iters, a_tol)
+        op, pre = operator(*tensors)
+        lam, n, r = solver(op, grad, precond=pre, mask=mask, iters=a_iters, tol=a_tol)
         if on_backward is not None:
             on_backward(n, r)
         return lam

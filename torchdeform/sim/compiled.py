@@ -27,7 +27,7 @@ Example:
     >>> import torch
     >>> import torchdeform as td
     >>> from torchdeform.sim.compiled import compiled_step
-    >>> model = td.Model(td.Grid((8, 8, 8), 0.01, 26), stiffness=50.0, damping=0.1, mass=1e-3,
+    >>> model = td.Model(td.Grid((8, 8, 8), spacing=0.01, topology=26), stiffness=50.0, damping=0.1, mass=1e-3,
     ...                  gravity=(-9.81, 0, 0))
     >>> step = compiled_step(td.SymplecticEuler(), model, dt=1e-4)
     >>> state = step.run(model.rest_state(), 10)      # compiles on this first call  # doctest: +SKIP
@@ -113,8 +113,8 @@ class CompiledStep:
         integrator,
         model,
         dt: float,
-        loads=None,
         *,
+        loads=None,
         mode: str | None = None,
         enable: bool = True,
         options: dict | None = None,
@@ -123,7 +123,7 @@ class CompiledStep:
         force_form: str | None = None,
     ):
         if force_form not in (None, "native", "gather", "reduction"):
-            raise ConfigError("force_form", "None, 'native', 'gather' or 'reduction'", force_form)
+            raise ConfigError("force_form", "None, 'native', 'gather' or 'reduction'", got=force_form)
         self.integrator, self.model, self.loads = integrator, model, loads
         self.dt = positive_dt(dt)
         #: the OpenMP threads the code is compiled for (see :func:`step_threads`)
@@ -154,21 +154,21 @@ class CompiledStep:
 
         #: the compile-time context of this step's graph; its packed kernels see it through a view
         #: of the packed model (the model itself carries no compile flags)
-        self.trace = ctx = TraceContext(realize)
-        pmc = pm.traced(ctx, self.threads, native_ok=not implicit, build=enable)
+        self.trace = ctx = TraceContext(store=realize)
+        pmc = pm.traced(ctx, threads=self.threads, native_ok=not implicit, build=enable)
         #: how this step sums the springs, ``"native"``, ``"gather"`` or ``"reduction"`` (decided by the traced view)
         self.force_form = pmc.force_form
         #: uncompiled with the C kernel, a symplectic step that one kernel makes whole
         #: (:func:`~torchdeform.sim.native.symplectic_step`): that kernel's name, else None
         self.fused = None
-        if not enable and self.force_form == "native" and native.fused_blocker(pm, integrator, loads) is None:
+        if not enable and self.force_form == "native" and native.fused_blocker(pm, integrator, loads=loads) is None:
             self.fused = native.kernel(dataclasses.replace(native.variant_of(pm), update=True))
 
         # t enters as a 0-d tensor: ramps and drag paths are evaluated inside the compiled code
         # without branches, and a new t never triggers a recompilation.
         def step(x, v, t):
             ctx.set(graph_inputs=(x, v))
-            state = State(x, v, t)
+            state = State(x, v, t=t)
             out = integrator.finish(pmc, state, *integrator.advance(pmc, state, dt_, loads_p), dt_)
             return out.x, out.v, out.readings or {}
 
@@ -191,10 +191,10 @@ class CompiledStep:
                     dynamic=False,
                     mode=mode,
                     fullgraph=implicit,
-                    options=None if mode else inductor_options(opts, self.threads),
+                    options=None if mode else inductor_options(options=opts, threads=self.threads),
                 )
                 if implicit:
-                    self._fn = ImplicitGraph(integrator, pm, self.dt, loads_p, compile_, self.threads)
+                    self._fn = ImplicitGraph(integrator, pm, self.dt, loads_p, compile_=compile_, threads=self.threads)
                 else:
                     self._fn = compile_(fresh(step))
             except Exception as e:
@@ -221,7 +221,7 @@ class CompiledStep:
                 x, v = state.x, state.v
                 t = torch.scalar_tensor(float(state.t), dtype=self.model.dtype, device=self.model.device)
                 x, v, readings = self._governed(lambda n: self._compiled_call(x, v, t, n))
-                return State(x, v, state.t + self.dt, readings or None)
+                return State(x, v, t=state.t + self.dt, readings=readings or None)
             except Exception as e:
                 self._fallback(e)
         with torch.no_grad():
@@ -239,30 +239,34 @@ class CompiledStep:
         return out
 
     def _compiled_call(self, x, v, t, n: int):
+        fn = self._fn
+        assert fn is not None  # called on the compiled path only
         signature = (tuple((a.shape, a.stride(), a.dtype, a.device) for a in (x, v)), n)
         if signature in self._compiled_for:
             # Shapes and threads of a compiled call, and the model is baked in: dynamo's guards
             # (one check per model tensor, ~0.15 ms per call on the beam) cannot fail.
             with torch.no_grad(), skip_guards():
-                return self._fn(x, v, t)
+                return fn(x, v, t)
         with torch.no_grad(), no_autograd_cache():  # compiles; on another thread count, traces again
-            out = self._fn(x, v, t)
+            out = fn(x, v, t)
         self._compiled_for.add(signature)
         return out
 
     def _eager_step(self, state: State) -> State:
         if self.fused is not None:
-            x, v = native.symplectic_step(self.packed, state.x, state.v, self.dt, self.fused)
-            return State(x, v, state.t + self.dt, None)
-        return self.integrator.step(self.packed, state, self.dt, self._loads if self._loads is not None else self.loads)
+            x, v = native.symplectic_step(self.packed, state.x, state.v, self.dt, name=self.fused)
+            return State(x, v, t=state.t + self.dt, readings=None)
+        return self.integrator.step(
+            self.packed, state, self.dt, loads=self._loads if self._loads is not None else self.loads
+        )
 
     def __call__(self, state: State) -> State:
         """One step on a grid-layout state (``(B, 3, D, H, W)``); eager when a gradient is needed."""
         if self._fn is None or self._needs_grad(state):
-            return self.integrator.step(self.model, state, self.dt, self.loads)
+            return self.integrator.step(self.model, state, self.dt, loads=self.loads)
         return self.packed.unpack_state(self.step_packed(self.packed.pack_state(state)))
 
-    def run(self, state: State, steps: int, callback=None) -> State:
+    def run(self, state: State, steps: int, *, callback=None) -> State:
         """``steps`` steps from a grid-layout state, packed once; returns a grid-layout state.
 
         ``callback(i, packed_state)`` (optional) is called after every step; unpack with
@@ -299,41 +303,45 @@ class ImplicitGraph:
         threads: the thread count the graph is compiled for (default torch's).
     """
 
-    def __init__(self, integ, pm, dt, loads, compile_=None, threads: int | None = None):
+    def __init__(self, integ, pm, dt, loads, *, compile_=None, threads: int | None = None):
         loop = while_loop()
         if loop is None:  # pragma: no cover
             raise RuntimeError("this torch has no while_loop for the compiled implicit solve")
         precond, mask, iters, tol = integ.preconditioner(pm, dt), pm.free, integ.cg_iters, integ.cg_tol
         self.integ = integ
         #: the compile-time context of this graph (see :class:`~torchdeform.sim.packed.TraceContext`)
-        self.trace = ctx = TraceContext(realize if compile_ is not None else None)
-        pm = pm.traced(ctx, threads, native_ok=False)
+        self.trace = ctx = TraceContext(store=realize if compile_ is not None else None)
+        pm = pm.traced(ctx, threads=threads, native_ok=False)
+
+        def cg_loop(bnorm, fields):
+            """The ``while_loop`` condition and body of one Newton iteration's CG solve."""
+
+            def cond(i, u, r, p, rz):
+                if tol <= 0:
+                    return i < iters
+                return (i < 1) | ((i < iters) & ((r.flatten(1).norm(dim=1) / bnorm).max() > tol))
+
+            def body(i, u, r, p, rz):
+                _, A = integ.operator(pm, PackedLinearisation(pm, fields=fields, combined=True), dt)
+                return (i + 1, *cg_iteration(A, u, r, p, rz, precond=precond, mask=mask))
+
+            return cond, body
 
         def step(x, v, t):
             vcur = v
             for it in range(1 + integ.newton_iters):
                 ctx.set(graph_inputs=(x, v), store_sums=True)
-                _, apply_A, rhs, delta_c = integ.system(pm, State(x, v, t), vcur, it, dt, loads)
-                u, r, p, rz = cg_start(rhs, precond, mask)
+                _, apply_A, rhs, delta_c = integ.system(pm, State(x, v, t=t), vcur, it, dt, loads)
+                u, r, p, rz = cg_start(rhs, precond=precond, mask=mask)
                 bnorm = r.flatten(1).norm(dim=1).clamp_min(1e-300)
-                fields = apply_A.op.fields
-
-                def cond(i, u, r, p, rz):
-                    if tol <= 0:
-                        return i < iters
-                    return (i < 1) | ((i < iters) & ((r.flatten(1).norm(dim=1) / bnorm).max() > tol))
-
-                def body(i, u, r, p, rz):
-                    _, A = integ.operator(pm, PackedLinearisation(pm, fields=fields, combined=True), dt)
-                    return (i + 1, *cg_iteration(A, u, r, p, rz, precond, mask))
-
+                cond, body = cg_loop(bnorm, apply_A.op.fields)
                 # Inside the loop body every field is a body input, already in memory.
                 ctx.set(graph_inputs=(x, v), store_sums=True, inputs_stored=True)
                 start = torch.zeros((), dtype=torch.int64, device=x.device)
                 n_it, u, r, p, rz = loop(cond, body, (start, u, r, p, rz))
                 vcur = vcur + u if delta_c is None else vcur + u + delta_c
             ctx.set(store_sums=True)
-            out = integ.finish(pm, State(x, v, t), x + dt * vcur, vcur, dt)
+            out = integ.finish(pm, State(x, v, t=t), x + dt * vcur, vcur, dt)
             return out.x, out.v, n_it, (r.flatten(1).norm(dim=1) / bnorm).max(), out.readings or {}
 
         self.fn = step if compile_ is None else compile_(fresh(step))
@@ -353,7 +361,7 @@ class ImplicitGraph:
 SERIAL_NODES = {"explicit": 512, "implicit": None}
 
 
-def step_threads(model, integrator, available: int | None = None) -> int:
+def step_threads(model, integrator, *, available: int | None = None) -> int:
     """The threads a compiled step of ``integrator`` on ``model`` is compiled for.
 
     One below :data:`SERIAL_NODES` (None: always; small problems: thread barriers cost more than
@@ -363,7 +371,7 @@ def step_threads(model, integrator, available: int | None = None) -> int:
     Examples:
         >>> import torch
         >>> import torchdeform as td
-        >>> beam = td.Model(td.Grid((10, 10, 40), 0.1, 26), stiffness=1.0, mass=1.0)
+        >>> beam = td.Model(td.Grid((10, 10, 40), spacing=0.1, topology=26), stiffness=1.0, mass=1.0)
         >>> step_threads(beam, td.ImplicitEuler(), available=2), step_threads(beam, td.SymplecticEuler(), available=2)
         (1, 2)
     """
@@ -376,8 +384,8 @@ def compiled_step(
     integrator,
     model,
     dt: float,
-    loads=None,
     *,
+    loads=None,
     mode: str | None = None,
     enable: bool = True,
     editable=False,
@@ -420,7 +428,7 @@ def compiled_step(
         integrator,
         model,
         dt,
-        loads,
+        loads=loads,
         mode=mode,
         enable=enable,
         editable=editable,

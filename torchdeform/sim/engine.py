@@ -33,7 +33,7 @@ Example:
     >>> grid = td.Grid((4, 4, 4), spacing=0.01)
     >>> model = td.Model(grid, stiffness=50.0, damping=0.1, density=1000.0, gravity=(-9.81, 0, 0),
     ...                  fixed=grid.face("bottom"))
-    >>> engine = td.Engine("auto")
+    >>> engine = td.Engine(mode="auto")
     >>> state, record = td.simulate(model, model.rest_state(), td.suggest_dt(model), 50, engine=engine)
     >>> engine.ran, engine.reason.split(":")[0]        # a short run does not repay a compile
     ('eager', 'auto')
@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import statistics
 import time
+from typing import ClassVar
 
 import torch
 from tqdm.auto import tqdm
@@ -50,7 +51,7 @@ from tqdm.auto import tqdm
 from ..errors import ConfigError
 from . import native
 from .integrators import ImplicitEuler, Integrator, SymplecticEuler, positive_dt
-from .model import Model, State
+from .model import Loads, Model, State
 from .stability import DivergenceMonitor, check_dt
 
 __all__ = ["ENGINES", "Engine", "simulate", "gradient_needed"]
@@ -71,6 +72,10 @@ def gradient_needed(model: Model, state: State) -> bool:
 
 class Engine:
     """How a simulation's steps run: ``"eager"``, ``"native"``, ``"compiled"`` or ``"auto"`` (module docstring).
+
+    :func:`simulate` steps, records and asks the engine: :meth:`begin` before the first step says
+    which step the run starts on; :meth:`after_eager` and :meth:`after_packed`, given each step's
+    time, say which step it goes on with (``"auto"`` probes, decides and switches there).
 
     Args:
         mode: ``"auto"`` (default), ``"eager"``, ``"native"`` or ``"compiled"``.
@@ -98,10 +103,10 @@ class Engine:
     Examples:
         >>> import torch
         >>> import torchdeform as td
-        >>> model = td.Model(td.Grid((3, 3, 3), 0.01), stiffness=10.0, mass=1e-3)
+        >>> model = td.Model(td.Grid((3, 3, 3), spacing=0.01), stiffness=10.0, mass=1e-3)
         >>> k = torch.tensor(10.0, requires_grad=True)
         >>> model.stiffness = model.stiffness * k / 10.0            # a learned parameter
-        >>> engine = td.Engine("auto")
+        >>> engine = td.Engine(mode="auto")
         >>> _ = td.simulate(model, model.rest_state(), 1e-4, 5, engine=engine, warn=False)
         >>> engine.ran, engine.reason
         ('eager', 'auto: a gradient is needed (the packed engines run without autograd)')
@@ -115,7 +120,7 @@ class Engine:
     #: implicit step's one graph with its CG loop (the 40 x 10 x 10 beam: 27-34 s to build, 2-7 s
     #: when inductor's disk cache holds it from an earlier process; a Newton iteration doubles the
     #: graph, and this cost has no way to know beforehand which case it is)
-    COMPILE_S = {"native": 2.0, "explicit": 8.0, "reduction": 15.0, "gather": 40.0, "implicit": 60.0}
+    COMPILE_S: ClassVar[dict] = {"native": 2.0, "explicit": 8.0, "reduction": 15.0, "gather": 40.0, "implicit": 60.0}
     #: what the gather form saves per step against the reduction form, as a fraction of an eager
     #: step, when compiled for several threads (64^3, 26 neighbours, 2 cores: eager 27 ms,
     #: reduction 3.6 ms, gather 2.45 ms)
@@ -128,6 +133,7 @@ class Engine:
 
     def __init__(
         self,
+        *,
         mode: str = "auto",
         probe_steps: int = 3,
         payback: float = 2.0,
@@ -137,7 +143,7 @@ class Engine:
         compile: bool = True,
     ):
         if mode not in ENGINES:
-            raise ConfigError("engine", f"one of {', '.join(ENGINES)}", mode)
+            raise ConfigError("engine", f"one of {', '.join(ENGINES)}", got=mode)
         self.mode, self.probe_steps, self.payback = mode, max(2, int(probe_steps)), float(payback)
         self.expected = dict(self.COMPILE_S, **(compile_s or {}))
         self.editable, self.blocked, self.enable = editable, blocked, bool(compile)
@@ -152,6 +158,12 @@ class Engine:
         #: the spring sum ``"auto"`` chose for an explicit compiled step (``"gather"`` or
         #: ``"reduction"``), or None (the compiled step's own default)
         self.force_form: str | None = None
+        # the run under way (begin): (model, integrator, dt, loads), the engine being probed, its step
+        # times, compiled steps timed for the compile time
+        self._run: tuple[Model, Integrator, float, Loads] | None = None
+        self._probing: str | None = None
+        self._samples: list = []
+        self._timed = 0
 
     # -------------------------------------------------------------- deciding
     def blocker(self, model: Model, integrator: Integrator, state: State, loads) -> str | None:
@@ -174,7 +186,7 @@ class Engine:
             return "an implicit step is compiled as one graph (its CG products have no C kernel)"
         return native.supports(model)
 
-    def expected_compile_s(self, integrator: Integrator, model: Model | None = None) -> float:
+    def expected_compile_s(self, integrator: Integrator, *, model: Model | None = None) -> float:
         """The compile time :meth:`decide` expects for ``integrator`` on ``model`` (s).
 
         An explicit step around the C kernel (:func:`.native.supports`; unknown without ``model``)
@@ -185,7 +197,7 @@ class Engine:
         return self.expected["explicit" if model is not None and native.supports(model) is None else "reduction"]
 
     def decide(
-        self, integrator: Integrator, eager_s: list, remaining: int, threads: int = 1, model: Model | None = None
+        self, integrator: Integrator, eager_s: list, remaining: int, *, threads: int = 1, model: Model | None = None
     ) -> bool:
         """``"auto"`` after its eager probe: leave the eager step for the ``remaining`` steps?
 
@@ -200,7 +212,7 @@ class Engine:
         to_come = remaining * self.eager_ms / 1e3
         why_not = "no model given" if model is None else self.native_blocker(model, integrator)
         self.choice = "native" if why_not is None else "compiled"
-        expected = self.expected["native"] if why_not is None else self.expected_compile_s(integrator, model)
+        expected = self.expected["native"] if why_not is None else self.expected_compile_s(integrator, model=model)
         worth = to_come > self.payback * expected
         self.reason = (
             f"auto: {remaining:,} steps x {self.eager_ms:.3g} ms eager = {to_come:.3g} s "
@@ -223,7 +235,7 @@ class Engine:
             self.reason += "; compiled"
         return worth
 
-    def decide_compiled(self, native_s: list, remaining: int, fused: bool = False) -> bool:
+    def decide_compiled(self, native_s: list, remaining: int, *, fused: bool = False) -> bool:
         """``"auto"`` after its native probe: compile for the ``remaining`` steps? Extends :attr:`reason`.
 
         Never when the native step is ``fused`` (one C kernel makes the whole step: the compiled
@@ -251,8 +263,8 @@ class Engine:
         ``threads``: the compiled step's thread governor (:meth:`~torchdeform.sim.threads.ThreadGovernor.summary`:
         the count it ended on, steps per count, switches), or None.
         """
-        packed = self.step is not None and self.ran in ("native", "compiled")
-        gov = self.step.governor if packed else None
+        step = self.step if self.ran in ("native", "compiled") else None
+        gov = step.governor if step is not None else None
         return {
             "requested": self.mode,
             "ran": self.ran,
@@ -260,9 +272,110 @@ class Engine:
             "eager_ms_per_step": self.eager_ms,
             "native_ms_per_step": self.native_ms,
             "compile_s": self.compile_s,
-            "force_form": self.step.force_form if packed else None,
+            "force_form": step.force_form if step is not None else None,
             "threads": gov.summary() if gov is not None else None,
         }
+
+    # -------------------------------------------------------------- running
+    def begin(self, model: Model, integrator: Integrator, state: State, dt: float, steps: int, loads):
+        """Before a run's first step (``state`` already :meth:`~torchdeform.sim.model.Model.start` ed).
+
+        Checks that the engine can run the simulation, sets :attr:`ran` and :attr:`reason`, starts
+        a packed engine that was asked for, and plans ``"auto"``'s eager probe (none for a run of
+        at most :attr:`probe_steps` steps).
+
+        Returns:
+            the packed step (:class:`~torchdeform.sim.compiled.CompiledStep`) the run starts on, or
+            None: eager steps.
+
+        Raises:
+            ConfigError: ``"native"`` or ``"compiled"`` for a simulation that engine cannot run.
+        """
+        blocker = self.blocker(model, integrator, state, loads) if self.mode != "eager" else None
+        if self.mode == "native" and blocker is None:
+            blocker = self.native_blocker(model, integrator)
+        if self.mode in ("native", "compiled") and blocker:
+            raise ConfigError("engine", f"a simulation the {self.mode} engine can run; here {blocker}", got=self.mode)
+        self.ran, self.reason = "eager", ("asked for" if self.mode == "eager" else f"auto: {blocker}")
+        self._run = (model, integrator, dt, loads)
+        # the engine "auto" is timing ("eager", then "native"), or None; the step times so far;
+        # the compiled steps timed for the compile time (two: the first less the second)
+        self._probing = "eager" if self.mode == "auto" and blocker is None else None
+        self._samples, self._timed = [], 0
+        packed = None
+        if self.mode in ("native", "compiled"):
+            self.ran, self.reason = self.mode, "asked for"
+            packed = self._start(self.mode)
+        if self._probing and steps <= self.probe_steps:
+            self._probing, self.reason = None, f"auto: {steps} steps are too few to repay a compile"
+        return packed
+
+    def after_eager(self, seconds: float, remaining: int):
+        """After an eager step that took ``seconds``, with ``remaining`` steps to come: the packed step to go on with.
+
+        While ``"auto"`` probes the eager step it keeps the time; after :attr:`probe_steps` steps it
+        asks :meth:`decide` and starts the engine chosen (then probes ``"native"`` in turn).
+
+        Returns:
+            the :class:`~torchdeform.sim.compiled.CompiledStep` to run the remaining steps on, or
+            None: stay eager.
+        """
+        if self._probing != "eager":
+            return None
+        self._samples.append(seconds)
+        if len(self._samples) < self.probe_steps:
+            return None
+        self._probing = None
+        from .compiled import step_threads
+
+        assert self._run is not None  # set by begin
+        model, integrator = self._run[:2]
+        if not self.decide(integrator, self._samples, remaining, threads=step_threads(model, integrator), model=model):
+            return None
+        assert self.choice is not None  # set by decide
+        self.ran = self.choice
+        if self.choice == "native":
+            self._probing, self._samples = "native", []
+        return self._start(self.choice)
+
+    def after_packed(self, step, seconds: float, remaining: int):
+        """After a step of the packed ``step`` that took ``seconds``, with ``remaining`` to come: the one to go on with.
+
+        Measures the compile time of a compiled step (its first call less its second; a compile
+        that failed leaves the uncompiled packed step running and says so in :attr:`reason`), and
+        while ``"auto"`` probes the native step, asks :meth:`decide_compiled` after
+        :attr:`probe_steps` steps and compiles when it repays: the same packed layout, so the
+        state carries over.
+        """
+        if self.ran == "compiled" and self._timed < 2:
+            self._timed += 1
+            if not step.compiled and self.enable:  # compilation failed: eager from now on
+                self.ran, self.reason = "eager", f"{self.reason}; compile failed: {step.compile_error}"
+                self._timed = 2
+            elif self._timed == 1:
+                self.compile_s = seconds
+            else:
+                assert self.compile_s is not None  # the first compiled step's time
+                self.compile_s = max(0.0, self.compile_s - seconds)
+        if self._probing != "native":
+            return step
+        self._samples.append(seconds)
+        if len(self._samples) < self.probe_steps:
+            return step
+        self._probing = None
+        if not self.decide_compiled(self._samples, remaining, fused=step.fused is not None):
+            return step
+        self.ran, self._timed = "compiled", 0
+        return self._start("compiled")
+
+    def _start(self, how: str):
+        """Build the packed step of engine ``how`` for the run; the C kernel's build (or load) is ``compile_s``."""
+        assert self._run is not None  # set by begin
+        t0 = time.perf_counter()
+        step = self._compile(*self._run, how)
+        if how == "native":  # the C kernel's build (or load from the disk cache)
+            self.compile_s = time.perf_counter() - t0
+        return step
 
     def _compile(self, model, integrator, dt, loads, how: str = "compiled"):
         """The packed step of engine ``how`` (``"native"``: uncompiled, with the C kernel)."""
@@ -273,7 +386,7 @@ class Engine:
             integrator,
             model,
             dt,
-            loads,
+            loads=loads,
             editable=self.editable,
             enable=self.enable and not native_only,
             force_form="native" if native_only else self.force_form,
@@ -295,6 +408,7 @@ def simulate(
     state: State,
     dt: float,
     steps: int,
+    *,
     integrator: Integrator | None = None,
     loads=None,
     record_every: int | None = None,
@@ -356,14 +470,16 @@ def simulate(
             integrator = Adaptive(rtol=rtol)
         elif not isinstance(integrator, Adaptive):
             raise ConfigError(
-                "rtol", f"no integrator, or an Adaptive one (the {integrator.name} integrator takes a fixed dt)", rtol
+                "rtol",
+                f"no integrator, or an Adaptive one (the {integrator.name} integrator takes a fixed dt)",
+                got=rtol,
             )
     integrator = integrator or SymplecticEuler()
-    engine = engine if isinstance(engine, Engine) else Engine(engine)
+    engine = engine if isinstance(engine, Engine) else Engine(mode=engine)
     dt = positive_dt(dt)
     steps = int(steps)
     if steps < 0:
-        raise ConfigError("steps", "an integer >= 0", steps)
+        raise ConfigError("steps", "an integer >= 0", got=steps)
     if warn and integrator.name not in ("implicit", "knoche", "adaptive", "projective"):
         check_dt(model, dt, integrator)
     monitor = DivergenceMonitor(model, dt, integrator)
@@ -375,72 +491,26 @@ def simulate(
         xs.append(st.x.detach().cpu())
         vs.append(st.v.detach().cpu())
 
-    blocker = engine.blocker(model, integrator, state, loads) if engine.mode != "eager" else None
-    if engine.mode == "native" and blocker is None:
-        blocker = engine.native_blocker(model, integrator)
-    if engine.mode in ("native", "compiled") and blocker:
-        raise ConfigError("engine", f"a simulation the {engine.mode} engine can run; here {blocker}", engine.mode)
-    engine.ran, engine.reason = "eager", ("asked for" if engine.mode == "eager" else f"auto: {blocker}")
-    # the engine "auto" is timing ("eager", then "native"), or None
-    probing = "eager" if engine.mode == "auto" and blocker is None else None
-
-    def start(how):
-        t0 = time.perf_counter()
-        step = engine._compile(model, integrator, dt, loads, how)
-        if how == "native":  # the C kernel's build (or load from the disk cache)
-            engine.compile_s = time.perf_counter() - t0
-        return step
-
-    compiled = None
-    if engine.mode in ("native", "compiled"):
-        engine.ran, engine.reason = engine.mode, "asked for"
-        compiled = start(engine.mode)
-    if probing and steps <= engine.probe_steps:
-        probing, engine.reason = None, f"auto: {steps} steps are too few to repay a compile"
-    packed, samples, timing = None, [], 0
+    compiled = engine.begin(model, integrator, state, dt, steps, loads)
+    packed = None
     if record_every:
         record(state)
     for i in tqdm(range(1, steps + 1), disable=not progress, desc="simulate", unit="step"):
         if compiled is None:
             t0 = time.perf_counter()
-            state = integrator.step(model, state, dt, loads)
-            if probing:
-                samples.append(time.perf_counter() - t0)
-                if len(samples) == engine.probe_steps:
-                    probing = None
-                    from .compiled import step_threads
-
-                    if engine.decide(integrator, samples, steps - i, step_threads(model, integrator), model):
-                        engine.ran = engine.choice
-                        compiled = start(engine.choice)
-                        probing, samples = ("native", []) if engine.choice == "native" else (None, samples)
+            state = integrator.step(model, state, dt, loads=loads)
+            compiled = engine.after_eager(time.perf_counter() - t0, steps - i)
         else:
             if packed is None:
                 packed = compiled.packed.pack_state(state)
             t0 = time.perf_counter()
             packed = compiled.step_packed(packed)
-            spent = time.perf_counter() - t0
-            if engine.ran == "compiled" and timing < 2:  # compile time: first call less the second
-                timing += 1
-                if not compiled.compiled and engine.enable:  # compilation failed: eager from now on
-                    engine.ran, engine.reason = "eager", f"{engine.reason}; compile failed: {compiled.compile_error}"
-                    timing = 2
-                elif timing == 1:
-                    engine.compile_s = spent
-                else:
-                    engine.compile_s = max(0.0, engine.compile_s - spent)
-            if probing == "native":
-                samples.append(spent)
-                if len(samples) == engine.probe_steps:
-                    probing = None
-                    if engine.decide_compiled(samples, steps - i, fused=compiled.fused is not None):
-                        engine.ran, timing = "compiled", 0
-                        compiled = start("compiled")  # the same packed layout: the state carries over
+            compiled = engine.after_packed(compiled, time.perf_counter() - t0, steps - i)
             look = i == steps or (record_every and i % record_every == 0) or _reads_positions(callback)
             state = compiled.packed.unpack_state(packed) if look else packed
         if i % check_every == 0 or i == steps:
             # a packed state is checked as it is (its halo has no mass), not unpacked for it
-            monitor.check(state, i, mass=compiled.packed.mass if state is packed else None)
+            monitor.check(state, i, mass=compiled.packed.mass if compiled is not None and state is packed else None)
         if record_every and i % record_every == 0:
             record(state)
         if callback is not None:

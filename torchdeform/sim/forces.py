@@ -23,8 +23,9 @@ of times (numpy: the per-step tables of :class:`~torchdeform.learn.series.Series
 
 from __future__ import annotations
 
+import itertools
 import math
-from dataclasses import dataclass
+from dataclasses import KW_ONLY, dataclass
 
 import numpy as np
 import torch
@@ -42,19 +43,19 @@ def as_vec3(value, key) -> tuple:
     except (TypeError, ValueError):
         v = ()
     if len(v) != 3 or not all(math.isfinite(c) for c in v):
-        raise ConfigError(key, "three finite numbers in channel order (D, H, W)", value)
+        raise ConfigError(key, "three finite numbers in channel order (D, H, W)", got=value)
     return v
 
 
 def _timing(start, ramp, period, key) -> None:
     for name, v in (("start", start), ("ramp", ramp)):
         if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-            raise ConfigError(f"{key}.{name}", "a finite number >= 0 (s)", v)
+            raise ConfigError(f"{key}.{name}", "a finite number >= 0 (s)", got=v)
     if period is not None and (not isinstance(period, (int, float)) or not math.isfinite(period) or period <= 0):
-        raise ConfigError(f"{key}.period", "a positive number of seconds (or None: no oscillation)", period)
+        raise ConfigError(f"{key}.period", "a positive number of seconds (or None: no oscillation)", got=period)
 
 
-def profile_factor(t, start: float = 0.0, ramp: float = 0.0, period: float | None = None):
+def profile_factor(t, *, start: float = 0.0, ramp: float = 0.0, period: float | None = None):
     """The time profile of a load or offset drag at ``t`` (see the module docstring).
 
     Args:
@@ -93,9 +94,13 @@ def profile_factor(t, start: float = 0.0, ramp: float = 0.0, period: float | Non
 class _Timed:
     """The time profile every load shares (fields ``start``, ``ramp``, ``period``)."""
 
+    start: float
+    ramp: float
+    period: float | None
+
     def factor(self, t):
         """Load factor at time ``t`` (see :func:`profile_factor`)."""
-        return profile_factor(t, self.start, self.ramp, self.period)
+        return profile_factor(t, start=self.start, ramp=self.ramp, period=self.period)
 
 
 @dataclass
@@ -113,12 +118,13 @@ class PointForce(_Timed):
         >>> import torch
         >>> import torchdeform as td
         >>> f = td.PointForce((2, 1, 1), (-0.05, 0.0, 0.0), ramp=0.2)
-        >>> f.factor(0.1), f.dense(td.Grid((3, 3, 3), 0.01), torch.float64, "cpu")[0, 0, 2, 1, 1].item()
+        >>> f.factor(0.1), f.dense(td.Grid((3, 3, 3), spacing=0.01), torch.float64, "cpu")[0, 0, 2, 1, 1].item()
         (0.5, -0.05)
     """
 
     node: tuple
     force: tuple
+    _: KW_ONLY
     start: float = 0.0
     ramp: float = 0.0
     period: float | None = None
@@ -148,7 +154,7 @@ class SurfaceForce(_Timed):
     Examples:
         >>> import torch
         >>> import torchdeform as td
-        >>> g = td.Grid((3, 3, 3), 0.01)
+        >>> g = td.Grid((3, 3, 3), spacing=0.01)
         >>> top = td.SurfaceForce("top", (-100.0, 0.0, 0.0)).dense(g, torch.float64, "cpu")
         >>> round(top.sum().item(), 6)                # -100 Pa over a 2 cm x 2 cm face
         -0.04
@@ -156,6 +162,7 @@ class SurfaceForce(_Timed):
 
     face: str
     traction: tuple
+    _: KW_ONLY
     start: float = 0.0
     ramp: float = 0.0
     period: float | None = None
@@ -194,11 +201,12 @@ class FieldForce(_Timed):
         >>> import torch
         >>> import torchdeform as td
         >>> f = td.FieldForce(np.ones((3, 2, 2, 2)), ramp=1.0)
-        >>> f.dense(td.Grid((2, 2, 2), 0.01), torch.float32, "cpu").shape, f.factor(0.25)
+        >>> f.dense(td.Grid((2, 2, 2), spacing=0.01), torch.float32, "cpu").shape, f.factor(0.25)
         (torch.Size([1, 3, 2, 2, 2]), 0.25)
     """
 
     field: np.ndarray
+    _: KW_ONLY
     start: float = 0.0
     ramp: float = 0.0
     period: float | None = None
@@ -210,7 +218,7 @@ class FieldForce(_Timed):
         """The field as ``(1, 3, D, H, W)`` at full strength."""
         f = torch.as_tensor(np.asarray(self.field) if not torch.is_tensor(self.field) else self.field)
         if tuple(f.shape) != (3,) + grid.shape:
-            raise ConfigError("field_force.field", f"shape (3, {', '.join(map(str, grid.shape))})", tuple(f.shape))
+            raise ConfigError("field_force.field", f"shape (3, {', '.join(map(str, grid.shape))})", got=tuple(f.shape))
         return f.to(dtype=dtype, device=device).unsqueeze(0)
 
 
@@ -231,17 +239,17 @@ class Waypoints:
         ((0.5, 0.0, -1.0), (1.0, 0.0, -2.0), (2.0, 0.0, -4.0))
     """
 
-    def __init__(self, path, key: str = "path"):
+    def __init__(self, path, *, key: str = "path"):
         if not path:
-            raise ConfigError(key, "at least one waypoint [t, [a, b, c]]", path)
+            raise ConfigError(key, "at least one waypoint [t, [a, b, c]]", got=path)
         try:
             times = [float(p[0]) for p in path]
         except (TypeError, ValueError, IndexError):
-            raise ConfigError(key, "waypoints [t, [a, b, c]] with a number t (s)", path) from None
+            raise ConfigError(key, "waypoints [t, [a, b, c]] with a number t (s)", got=path) from None
         if not all(math.isfinite(t) for t in times):
-            raise ConfigError(key, "finite waypoint times (s)", times)
-        if any(b <= a for a, b in zip(times, times[1:])):
-            raise ConfigError(key, "waypoint times strictly increasing", times)
+            raise ConfigError(key, "finite waypoint times (s)", got=times)
+        if any(b <= a for a, b in itertools.pairwise(times)):
+            raise ConfigError(key, "waypoint times strictly increasing", got=times)
         self.times, self.values = times, [as_vec3(p[1], f"{key} value") for p in path]
 
     def at(self, t):
@@ -297,8 +305,8 @@ class Drag(_Timed):
 
     Examples:
         >>> import torchdeform as td
-        >>> g = td.Grid((3, 3, 3), 0.01)
-        >>> d = td.Drag(g.face("top"), [(0.0, (0, 0, 0)), (1.0, (0.002, 0, 0))])
+        >>> g = td.Grid((3, 3, 3), spacing=0.01)
+        >>> d = td.Drag(g.face("top"), path=[(0.0, (0, 0, 0)), (1.0, (0.002, 0, 0))])
         >>> d.offset(0.5), d.velocity(0.5)
         ((0.001, 0.0, 0.0), (0.002, 0.0, 0.0))
         >>> td.Drag(g.face("top"), offset=(0.002, 0, 0), ramp=1.0).offset(0.5)
@@ -313,7 +321,7 @@ class Drag(_Timed):
     period: float | None = None
 
     def __init__(
-        self, nodes, path=None, *, offset=None, start: float = 0.0, ramp: float = 0.0, period: float | None = None
+        self, nodes, *, path=None, offset=None, start: float = 0.0, ramp: float = 0.0, period: float | None = None
     ):
         self.nodes, self.path, self.start, self.ramp, self.period = nodes, path, start, ramp, period
         self.offset_vector = None if offset is None else as_vec3(offset, "drag.offset")
@@ -321,10 +329,10 @@ class Drag(_Timed):
             raise ConfigError(
                 "drag",
                 "exactly one of path (waypoints) or offset (with a time profile)",
-                "both" if path is not None else "neither",
+                got="both" if path is not None else "neither",
             )
         _timing(start, ramp, period, "drag")
-        self._path = None if path is None else Waypoints(path, "drag.path")
+        self._path = None if path is None else Waypoints(path, key="drag.path")
 
     def mask(self) -> torch.Tensor:
         """The dragged nodes as a bool tensor ``(D, H, W)``."""
@@ -338,11 +346,13 @@ class Drag(_Timed):
         """
         if self.path is None:
             f, o = self.factor(t), self.offset_vector
+            assert o is not None  # an offset is given when there is no path
             if torch.is_tensor(t):
                 return t.new_tensor(o) * f
             if isinstance(t, (int, float)):
                 return tuple(c * f for c in o)
-            return f[:, None] * np.asarray(o)[None]
+            return np.asarray(f)[:, None] * np.asarray(o)[None]
+        assert self._path is not None  # the waypoints of the path
         return self._path.at(t)
 
     def velocity(self, t):
@@ -352,13 +362,14 @@ class Drag(_Timed):
         """
         if self.path is None:
             return self._profile_velocity(t)
+        assert self._path is not None  # the waypoints of the path
         return self._path.rate(t)
 
     def _profile_velocity(self, t):
         """Time derivative of ``offset * factor(t)`` (the ramp's slope on ``[start, start + ramp)``)."""
         s, r, p, o = self.start, self.ramp, self.period, self.offset_vector
+        assert o is not None  # an offset is given when there is no path
         tensor = torch.is_tensor(t)
-        mod = torch if tensor else math
         if tensor:
             tt = t
             on_ramp = ((t >= s) & (t < s + r)).to(t.dtype) if r > 0 else torch.zeros_like(t)
@@ -374,7 +385,10 @@ class Drag(_Timed):
             rate = slope * after
         else:
             w = 2 * math.pi / p
-            rate = after * (slope * mod.sin(w * (tt - s)) + ramp_v * w * mod.cos(w * (tt - s)))
+            if tensor:
+                rate = after * (slope * torch.sin(w * (t - s)) + ramp_v * w * torch.cos(w * (t - s)))
+            else:
+                rate = after * (slope * math.sin(w * (tt - s)) + ramp_v * w * math.cos(w * (tt - s)))
         if tensor:
             return t.new_tensor(o) * rate
         return tuple(c * rate for c in o)

@@ -21,7 +21,7 @@ node ``(i, j, k)`` to node ``(i, j, k) + direction[s]``.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import KW_ONLY, dataclass, field
 from functools import cached_property
 
 import torch
@@ -102,6 +102,7 @@ class Grid:
     """
 
     shape: tuple
+    _: KW_ONLY
     spacing: tuple = (1.0, 1.0, 1.0)
     topology: int = 26
     node_mask: torch.Tensor | None = None
@@ -111,25 +112,27 @@ class Grid:
     def __post_init__(self):
         shape = _numbers(self.shape, int)
         if shape is None or len(shape) != 3 or min(shape) < 1:
-            raise ConfigError("grid.shape", "three node counts D, H, W, each >= 1", self.shape)
+            raise ConfigError("grid.shape", "three node counts D, H, W, each >= 1", got=self.shape)
         spacing = (self.spacing,) * 3 if isinstance(self.spacing, (int, float)) else self.spacing
         spacing = _numbers(spacing, float)
         if spacing is None or len(spacing) != 3 or not all(math.isfinite(s) and s > 0 for s in spacing):
-            raise ConfigError("grid.spacing", "one positive number or three (sd, sh, sw)", self.spacing)
+            raise ConfigError("grid.spacing", "one positive number or three (sd, sh, sw)", got=self.spacing)
         if isinstance(self.topology, bool) or self.topology not in TOPOLOGIES:
-            raise ConfigError("grid.topology", "6, 14, 18 or 26", self.topology)
+            raise ConfigError("grid.topology", "6, 14, 18 or 26", got=self.topology)
         origin = _numbers(self.origin, float)
         if origin is None or len(origin) != 3 or not all(math.isfinite(o) for o in origin):
-            raise ConfigError("grid.origin", "three finite numbers (od, oh, ow) in metres", self.origin)
+            raise ConfigError("grid.origin", "three finite numbers (od, oh, ow) in metres", got=self.origin)
         object.__setattr__(self, "shape", shape)
         object.__setattr__(self, "spacing", spacing)
         object.__setattr__(self, "origin", origin)
         if self.node_mask is not None:
             mask = torch.as_tensor(self.node_mask, dtype=torch.bool, device="cpu")
             if tuple(mask.shape) != shape:
-                raise ConfigError("grid.node_mask", f"a bool array of shape {shape}", tuple(mask.shape))
+                raise ConfigError("grid.node_mask", f"a bool array of shape {shape}", got=tuple(mask.shape))
             if not bool(mask.any()):
-                raise ConfigError("grid.node_mask", "at least one node inside the body", "an empty mask", show_got=True)
+                raise ConfigError(
+                    "grid.node_mask", "at least one node inside the body", got="an empty mask", show_got=True
+                )
             object.__setattr__(self, "node_mask", None if bool(mask.all()) else mask)
 
     # ----------------------------------------------------------------- stencil
@@ -165,12 +168,12 @@ class Grid:
         """Class (``"axis"``, ``"face"`` or ``"body"``) of each half-direction."""
         return [CLASSES[sum(abs(c) for c in d) - 1] for d in self.directions]
 
-    def rest_lengths(self, dtype=torch.float32, device=None) -> torch.Tensor:
+    def rest_lengths(self, *, dtype=torch.float32, device=None) -> torch.Tensor:
         """Rest length of each half-direction, ``(S,)``: ``|(dd*sd, dh*sh, dw*sw)|``."""
         d = torch.tensor(self.directions, dtype=torch.float64)
         return (d * torch.tensor(self.spacing, dtype=torch.float64)).norm(dim=1).to(dtype=dtype, device=device)
 
-    def spring_mask(self, device=None) -> torch.Tensor:
+    def spring_mask(self, *, device=None) -> torch.Tensor:
         """Bool ``(S, D, H, W)``: spring exists (both ends in the grid and in the node mask)."""
         key = ("spring_mask", str(device))
         if key not in self._cache:
@@ -182,7 +185,7 @@ class Grid:
             self._cache[key] = mask.to(device)
         return self._cache[key]
 
-    def in_grid_mask(self, device=None) -> torch.Tensor:
+    def in_grid_mask(self, *, device=None) -> torch.Tensor:
         """Bool ``(S, D, H, W)``: the spring's far end lies inside the box (ignores the node mask)."""
         key = ("in_grid", str(device))
         if key not in self._cache:
@@ -198,7 +201,7 @@ class Grid:
         return int(self.spring_mask().sum())
 
     # ------------------------------------------------------------------ nodes
-    def rest_positions(self, dtype=torch.float32, device=None, box=None) -> torch.Tensor:
+    def rest_positions(self, *, dtype=torch.float32, device=None, box=None) -> torch.Tensor:
         """Rest positions ``X``, shape ``(1, 3, D, H, W)``; channel c varies along axis c.
 
         ``box``: ``((d0, d1), (h0, h1), (w0, w1))`` (ends exclusive) gives only those nodes, the
@@ -223,7 +226,7 @@ class Grid:
         node mask, the face is the first/last existing node along that axis in each column.
         """
         if name not in FACES:
-            raise ConfigError("face", "one of " + ", ".join(FACES), name)
+            raise ConfigError("face", "one of " + ", ".join(FACES), got=name)
         axis, side = FACES[name]
         nodes = self.nodes()
         idx = torch.arange(self.shape[axis]).view([-1 if a == axis else 1 for a in range(3)])
@@ -241,15 +244,15 @@ class Grid:
         for ijk in indices:
             ijk = tuple(int(v) for v in ijk)
             if len(ijk) != 3 or not all(0 <= v < n for v, n in zip(ijk, self.shape)):
-                raise ConfigError("node index", f"three indices inside the grid {self.shape}", list(ijk))
+                raise ConfigError("node index", f"three indices inside the grid {self.shape}", got=list(ijk))
             if not bool(self.nodes()[ijk]):
-                raise ConfigError("node index", "a node inside the body's node mask", list(ijk))
+                raise ConfigError("node index", "a node inside the body's node mask", got=list(ijk))
             mask[ijk] = True
         return mask
 
     def box_mask(self, lo, hi) -> torch.Tensor:
         """Bool ``(D, H, W)`` mask of existing nodes whose rest position lies in ``[lo, hi]`` (metres)."""
-        X = self.rest_positions(torch.float64)[0]
+        X = self.rest_positions(dtype=torch.float64)[0]
         lo = torch.tensor(lo, dtype=torch.float64).view(3, 1, 1, 1)
         hi = torch.tensor(hi, dtype=torch.float64).view(3, 1, 1, 1)
         return self.nodes() & ((lo - 1e-12 <= X) & (hi + 1e-12 >= X)).all(0)
@@ -260,15 +263,15 @@ class Grid:
         The diagonal pattern spreads the anchors evenly along all three axes.
         """
         if int(k) < 1:
-            raise ConfigError("anchors.every", "an integer >= 1", k)
+            raise ConfigError("anchors.every", "an integer >= 1", got=k)
         i, j, l = torch.meshgrid(*[torch.arange(n) for n in self.shape], indexing="ij")
         return self.nodes() & ((i + j + l) % int(k) == 0)
 
-    def missing_neighbours(self, device=None) -> torch.Tensor:
+    def missing_neighbours(self, *, device=None) -> torch.Tensor:
         """Number of the 6 face neighbours of each node that lie outside the grid, ``(D, H, W)``."""
         counts = torch.zeros(self.shape)
         for axis, n in enumerate(self.shape):
-            sl = [slice(None)] * 3
+            sl: list[slice | int] = [slice(None)] * 3
             sl[axis] = 0
             counts[tuple(sl)] += 1
             sl[axis] = n - 1

@@ -29,7 +29,7 @@ of scene files) to the class, these and the adaptive and projective integrators.
 
 Examples:
     >>> import torchdeform as td
-    >>> model = td.Model(td.Grid((3, 3, 3), 0.01), stiffness=1.0, mass=1e-3, gravity=(-9.81, 0, 0))
+    >>> model = td.Model(td.Grid((3, 3, 3), spacing=0.01), stiffness=1.0, mass=1e-3, gravity=(-9.81, 0, 0))
     >>> s = td.RK4().step(model, model.rest_state(), dt=1e-3)
     >>> round(float(s.v[0, 0].mean()), 5)                    # free fall: g dt
     -0.00981
@@ -59,9 +59,9 @@ def positive_dt(dt) -> float:
     try:
         dt = float(dt)
     except (TypeError, ValueError):
-        raise ConfigError("dt", "a positive number of seconds", dt) from None
+        raise ConfigError("dt", "a positive number of seconds", got=dt) from None
     if not math.isfinite(dt) or dt <= 0:
-        raise ConfigError("dt", "a positive, finite number of seconds", dt)
+        raise ConfigError("dt", "a positive, finite number of seconds", got=dt)
     return dt
 
 
@@ -77,7 +77,7 @@ class Integrator:
         ...     name = "still"
         ...     def advance(self, model, state, dt, loads):
         ...         return state.x, state.v
-        >>> model = td.Model(td.Grid((3, 3, 3), 0.01), stiffness=10.0, mass=1e-3, decay=100.0)
+        >>> model = td.Model(td.Grid((3, 3, 3), spacing=0.01), stiffness=10.0, mass=1e-3, decay=100.0)
         >>> s = model.rest_state()
         >>> s.v += 1.0
         >>> s = Still().step(model, s, dt=0.01)              # step adds the clock and the global drag
@@ -87,7 +87,7 @@ class Integrator:
 
     name = "base"
 
-    def step(self, model: Model, state: State, dt: float, loads=None) -> State:
+    def step(self, model: Model, state: State, dt: float, *, loads=None) -> State:
         """Advance ``state`` by ``dt`` seconds.
 
         Args:
@@ -122,10 +122,10 @@ class Integrator:
             x, v = model.constrain(x, v, t1)
         readings = {} if model.interactions else None
         for interaction in model.interactions:
-            x, v = interaction.project(model, x, v, t1, dt, readings)
+            x, v = interaction.project(model, x, v, t1, dt, readings=readings)
         if model.decay is not None and not self.drag_in_rates:
             v = v * math.exp(-model.decay * dt)
-        return State(x, v, t1, readings or None)
+        return State(x, v, t=t1, readings=readings or None)
 
     def advance(self, model, state, dt, loads):  # pragma: no cover
         """The update of one step: ``(x, v)`` at ``t + dt``, before constraints and global drag."""
@@ -137,7 +137,7 @@ class ExplicitEuler(Integrator):
 
     Examples:
         >>> import torchdeform as td
-        >>> model = td.Model(td.Grid((3, 3, 3), 0.01), stiffness=10.0, mass=1e-3, gravity=(-9.81, 0, 0))
+        >>> model = td.Model(td.Grid((3, 3, 3), spacing=0.01), stiffness=10.0, mass=1e-3, gravity=(-9.81, 0, 0))
         >>> s = td.ExplicitEuler().step(model, model.rest_state(), dt=1e-3)
         >>> float((s.x - model.X).abs().max()), round(float(s.v[0, 0].mean()), 5)   # x' = x + h v, v' = h g
         (0.0, -0.00981)
@@ -147,7 +147,7 @@ class ExplicitEuler(Integrator):
 
     def advance(self, model, state, dt, loads):
         """``x' = x + h v``, ``v' = v + h a(x, v)``."""
-        a = model.acceleration(state.x, state.v, state.t, loads)
+        a = model.acceleration(state.x, state.v, t=state.t, loads=loads)
         return state.x + dt * state.v, state.v + dt * a
 
 
@@ -156,7 +156,7 @@ class SymplecticEuler(Integrator):
 
     Examples:
         >>> import torchdeform as td
-        >>> model = td.Model(td.Grid((3, 3, 3), 0.01), stiffness=10.0, mass=1e-3, gravity=(-9.81, 0, 0))
+        >>> model = td.Model(td.Grid((3, 3, 3), spacing=0.01), stiffness=10.0, mass=1e-3, gravity=(-9.81, 0, 0))
         >>> s = td.SymplecticEuler().step(model, model.rest_state(), dt=1e-3)
         >>> round(float((s.x - model.X)[0, 0].mean()), 8)        # x' = x + h v' = h^2 g
         -9.81e-06
@@ -166,7 +166,7 @@ class SymplecticEuler(Integrator):
 
     def advance(self, model, state, dt, loads):
         """``v' = v + h a(x, v)``, ``x' = x + h v'``."""
-        v = state.v + dt * model.acceleration(state.x, state.v, state.t, loads)
+        v = state.v + dt * model.acceleration(state.x, state.v, t=state.t, loads=loads)
         return state.x + dt * v, v
 
 
@@ -178,7 +178,7 @@ class DampedVerlet(Integrator):
 
     Examples:
         >>> import torchdeform as td
-        >>> model = td.Model(td.Grid((3, 3, 3), 0.01), stiffness=10.0, mass=1e-3)
+        >>> model = td.Model(td.Grid((3, 3, 3), spacing=0.01), stiffness=10.0, mass=1e-3)
         >>> s = model.rest_state()
         >>> s.v += 1.0                                           # a rigid translation: no spring force
         >>> s = td.DampedVerlet(kd=0.1).step(model, s, dt=1e-3)
@@ -188,14 +188,14 @@ class DampedVerlet(Integrator):
 
     name = "verlet"
 
-    def __init__(self, kd: float = 0.0):
+    def __init__(self, *, kd: float = 0.0):
         if not 0 <= kd < 1:
-            raise ConfigError("verlet.kd", "a number in [0, 1)", kd)
+            raise ConfigError("verlet.kd", "a number in [0, 1)", got=kd)
         self.kd = float(kd)
 
     def advance(self, model, state, dt, loads):
         """``v' = (1 - kd) v + h a(x, v)``, ``x' = x + h v'``."""
-        v = (1 - self.kd) * state.v + dt * model.acceleration(state.x, state.v, state.t, loads)
+        v = (1 - self.kd) * state.v + dt * model.acceleration(state.x, state.v, t=state.t, loads=loads)
         return state.x + dt * v, v
 
 
@@ -223,7 +223,7 @@ def stage_time(t0, h, c):
     return t0 + c * h
 
 
-def rates(model: Model, loads=None):
+def rates(model: Model, *, loads=None):
     """The state's time derivative as a function ``f(t, x, v) -> (dx/dt, dv/dt) = (v, a)``.
 
     Dragged nodes are put on their path at time ``t`` first (Runge-Kutta stages of :class:`RK4`
@@ -234,7 +234,7 @@ def rates(model: Model, loads=None):
     def f(t, x, v):
         if model.drags:
             x, v = model.constrain(x, v, t)
-        a = model.acceleration(x, v, t, loads)
+        a = model.acceleration(x, v, t=t, loads=loads)
         if model.decay is not None:
             drag = model.decay * v
             a = a - (drag if model.free is None else model.free * drag)
@@ -269,7 +269,7 @@ class RK4(Integrator):
     def advance(self, model, state, dt, loads):
         """Four force evaluations at ``t``, ``t + h/2`` (twice) and ``t + h``."""
         t0, x0, v0 = state.t, state.x, state.v
-        f = rates(model, loads)
+        f = rates(model, loads=loads)
         k1x, k1v = f(stage_time(t0, dt, 0), x0, v0)
         k2x, k2v = f(t0 + dt / 2, x0 + dt / 2 * k1x, v0 + dt / 2 * k1v)
         k3x, k3v = f(t0 + dt / 2, x0 + dt / 2 * k2x, v0 + dt / 2 * k2v)
@@ -282,7 +282,7 @@ def _dot(a, b):
     return (a * b).sum(tuple(range(1, a.dim())), keepdim=True)
 
 
-def cg_start(b, precond=None, mask=None, dot=_dot):
+def cg_start(b, *, precond=None, mask=None, dot=_dot):
     """Initial conjugate-gradient state ``(u, r, p, rz)`` for ``A u = b``.
 
     See :func:`conjugate_gradient`; ``u = 0``, ``r`` the filtered ``b``.
@@ -292,7 +292,7 @@ def cg_start(b, precond=None, mask=None, dot=_dot):
     return torch.zeros_like(r), r, z, dot(r, z)
 
 
-def cg_iteration(apply_A, u, r, p, rz, precond=None, mask=None, dot=_dot):
+def cg_iteration(apply_A, u, r, p, rz, *, precond=None, mask=None, dot=_dot):
     """One preconditioned conjugate-gradient iteration: ``(u, r, p, rz) -> (u, r, p, rz)``.
 
     Guarded so that an exactly solved system (``p^T A p = 0`` or ``r^T z = 0``) stays put
@@ -311,7 +311,7 @@ def cg_iteration(apply_A, u, r, p, rz, precond=None, mask=None, dot=_dot):
     return u, r, p, rz_new
 
 
-def conjugate_gradient(apply_A, b, precond=None, mask=None, iters: int = 100, tol: float = 1e-8, dot=None):
+def conjugate_gradient(apply_A, b, *, precond=None, mask=None, iters: int = 100, tol: float = 1e-8, dot=None):
     """Solve ``A u = b`` for symmetric positive definite ``A`` given as a function.
 
     Batched over the leading dimension; entries where ``mask`` is 0 are held at 0 (Baraff-Witkin
@@ -353,10 +353,10 @@ def conjugate_gradient(apply_A, b, precond=None, mask=None, iters: int = 100, to
             r = r.detach()
             return dot(r, r).flatten(1)[:, 0].sqrt()
 
-    u, r, p, rz = cg_start(b, precond, mask, dot)
+    u, r, p, rz = cg_start(b, precond=precond, mask=mask, dot=dot)
     bnorm = norm(r).clamp_min(1e-300)
     for it in range(1, iters + 1):
-        u, r, p, rz = cg_iteration(apply_A, u, r, p, rz, precond, mask, dot)
+        u, r, p, rz = cg_iteration(apply_A, u, r, p, rz, precond=precond, mask=mask, dot=dot)
         if tol > 0:
             rel = float((norm(r) / bnorm).max())
             if rel <= tol:
@@ -444,23 +444,23 @@ class ImplicitEuler(Integrator):
 
     def __init__(
         self,
+        *,
         cg_iters: int = 100,
         cg_tol: float = 1e-6,
         newton_iters: int = 0,
-        *,
         gradient: str = "unrolled",
         adjoint_iters: int | None = None,
         adjoint_tol: float | None = None,
     ):
         self.cg_iters, self.cg_tol, self.newton_iters = int(cg_iters), float(cg_tol), int(newton_iters)
         if gradient not in self.GRADIENTS:
-            raise ConfigError("implicit.gradient", '"unrolled" or "adjoint"', gradient)
+            raise ConfigError("implicit.gradient", '"unrolled" or "adjoint"', got=gradient)
         if adjoint_iters is not None and (
             isinstance(adjoint_iters, bool) or not isinstance(adjoint_iters, int) or adjoint_iters < 1
         ):
-            raise ConfigError("implicit.adjoint_iters", "a whole number >= 1", adjoint_iters)
+            raise ConfigError("implicit.adjoint_iters", "a whole number >= 1", got=adjoint_iters)
         if adjoint_tol is not None and not (isinstance(adjoint_tol, (int, float)) and 0 <= adjoint_tol < math.inf):
-            raise ConfigError("implicit.adjoint_tol", "a number >= 0", adjoint_tol)
+            raise ConfigError("implicit.adjoint_tol", "a number >= 0", got=adjoint_tol)
         self.gradient, self.adjoint_iters = gradient, adjoint_iters
         self.adjoint_tol = None if adjoint_tol is None else float(adjoint_tol)
         self.last_cg = (0, 0.0)
@@ -478,7 +478,11 @@ class ImplicitEuler(Integrator):
         solve, so CG products skip the scaling); ``apply_A.lin`` is the linearisation.
         """
         lin = model.linearise(x_lin) if torch.is_tensor(x_lin) else x_lin
-        op = lin if lin.combined else lin.scaled(h * h, model.damping, model.projected, h)
+        op = (
+            lin
+            if lin.combined
+            else lin.scaled(alpha_scale=h * h, c=model.damping, projected=model.projected, c_scale=h)
+        )
 
         def apply_A(u):
             y = model.mass * u + op.apply(u)
@@ -498,7 +502,7 @@ class ImplicitEuler(Integrator):
         x0, v0, t1 = state.x, state.v, state.t + h
         x_lin = x0 if it == 0 else x0 + h * v
         lin, apply_A = self.operator(model, x_lin, h)
-        F = model.forces(x_lin, v, t1, loads)
+        F = model.forces(x_lin, v, t=t1, loads=loads)
         if it == 0:
             k_v = lin.apply(v0) + (0 if model.k_home is None else model.k_home * v0)
             rhs = h * (F - h * k_v)
@@ -524,7 +528,13 @@ class ImplicitEuler(Integrator):
                 delta, n_it, rel = self._adjoint_solve(model, x_keep, apply_A, rhs, precond, dt)
             else:
                 delta, n_it, rel = conjugate_gradient(
-                    apply_A, rhs, precond, model.free, self.cg_iters, self.cg_tol, model.inner
+                    apply_A,
+                    rhs,
+                    precond=precond,
+                    mask=model.free,
+                    iters=self.cg_iters,
+                    tol=self.cg_tol,
+                    dot=model.inner,
                 )
             self.last_cg = (n_it, rel)
             v = v + delta if delta_c is None else v + delta + delta_c
@@ -579,7 +589,7 @@ class KnocheRelaxation(Integrator):
     Examples:
         >>> import torch
         >>> import torchdeform as td
-        >>> model = td.Model(td.Grid((4, 4, 4), 0.01, topology=6), stiffness=1.0, mass=1.0,
+        >>> model = td.Model(td.Grid((4, 4, 4), spacing=0.01, topology=6), stiffness=1.0, mass=1.0,
         ...                  dtype=torch.float64)
         >>> s = model.rest_state()
         >>> s.x[0, 0, 2, 2, 2] += 0.001                            # a 1 mm bump at one node
@@ -592,14 +602,14 @@ class KnocheRelaxation(Integrator):
     name = "knoche"
     eager_reason = "Knoche's relaxation runs in the eager step"
 
-    def __init__(self, material, eps: float = 1e-3, gain: float | None = None):
+    def __init__(self, material, *, eps: float = 1e-3, gain: float | None = None):
         self.material, self.eps, self.gain = material, float(eps), gain
 
     def advance(self, model, state, dt, loads):
         """One Jacobi pass of the offsets; velocities are zero."""
         grid = model.grid
         if grid.topology != 6:
-            raise ConfigError("integrator", "a 6-neighbour grid for Knoche relaxation", grid.topology)
+            raise ConfigError("integrator", "a 6-neighbour grid for Knoche relaxation", got=grid.topology)
         w = torch.as_tensor(self.material, dtype=model.dtype, device=model.device)
         w = w.expand(grid.shape).reshape(1, 1, *grid.shape)
         eps = self.eps
@@ -616,7 +626,7 @@ class KnocheRelaxation(Integrator):
             return s_j * mean * du, -s_i * mean * du
 
         F = accumulate(grid, edge, u, w, half, channels=3)
-        ghosts = grid.missing_neighbours(model.device).to(model.dtype)[None, None]
+        ghosts = grid.missing_neighbours(device=model.device).to(model.dtype)[None, None]
         F = F - ghosts * 0.5 * (0.5 * w) * u
         moving = (w <= 1 - eps).to(model.dtype)
         if model.free is not None:

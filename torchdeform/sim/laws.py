@@ -110,7 +110,7 @@ class Exponential(SpringLaw):
         >>> import torch
         >>> import torchdeform as td
         >>> grid = td.Grid((1, 1, 2), spacing=0.01, topology=6)
-        >>> model = td.Model(grid, stiffness=100.0, mass=1e-3, law=td.Exponential(10.0), dtype=torch.float64)
+        >>> model = td.Model(grid, stiffness=100.0, mass=1e-3, law=td.Exponential(stiffening=10.0), dtype=torch.float64)
         >>> x = model.X.clone()
         >>> x[0, 2, 0, 0, 1] += 0.002                       # 20 % strain
         >>> round(float(model.spring_forces(x, None)[0, 2, 0, 0, 0]), 6)   # k l0 (e^2 - 1) / 10
@@ -120,7 +120,7 @@ class Exponential(SpringLaw):
     name = "exponential"
     params = ("stiffening",)
 
-    def __init__(self, stiffening=0.0):
+    def __init__(self, *, stiffening: float | dict | torch.Tensor = 0.0):
         super().__init__(stiffening)
 
     def tension(self, l, l0, k, b):
@@ -166,7 +166,7 @@ class Polynomial(SpringLaw):
     name = "polynomial"
     params = ("quadratic", "cubic")
 
-    def __init__(self, quadratic=0.0, cubic=0.0):
+    def __init__(self, *, quadratic: float | dict | torch.Tensor = 0.0, cubic: float | dict | torch.Tensor = 0.0):
         super().__init__(quadratic, cubic)
 
     def tension(self, l, l0, k, c2, c3):
@@ -199,5 +199,5 @@ def as_law(law) -> SpringLaw | None:
     raise ConfigError(
         "law",
         "None (Hooke), " + ", ".join(f'"{n}"' for n in LAWS) + " or a SpringLaw (td.Exponential, td.Polynomial)",
-        law,
+        got=law,
     )

@@ -14,7 +14,8 @@ Example:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import KW_ONLY, dataclass
 
 import torch
 
@@ -23,6 +24,10 @@ from .forces import as_vec3, home_force
 from .grid import CLASSES, Grid
 from .laws import as_law
 from .springs import Linearisation, node_sums, spring_energy, spring_forces, spring_forces_conv
+
+#: External loads of a step: a force field ``(B, 3, D, H, W)`` (N), a function of time ``t`` (s)
+#: returning one, or None.
+Loads = torch.Tensor | Callable[[float], torch.Tensor] | None
 
 
 @dataclass
@@ -44,13 +49,14 @@ class State:
 
     x: torch.Tensor
     v: torch.Tensor
+    _: KW_ONLY
     t: float = 0.0
     readings: dict | None = None
 
     def detach(self) -> State:
         """The same state with ``x``, ``v`` and the readings detached from the autograd graph."""
         readings = None if self.readings is None else {k: r.detach() for k, r in self.readings.items()}
-        return State(self.x.detach(), self.v.detach(), self.t, readings)
+        return State(self.x.detach(), self.v.detach(), t=self.t, readings=readings)
 
 
 def _as_tensor(value, key, dtype, device) -> torch.Tensor:
@@ -61,13 +67,13 @@ def _as_tensor(value, key, dtype, device) -> torch.Tensor:
             else value.to(dtype=dtype, device=device)
         )
     except (TypeError, ValueError, RuntimeError):
-        raise ConfigError(key, "a number or an array of numbers", value) from None
+        raise ConfigError(key, "a number or an array of numbers", got=value) from None
     if not bool(torch.isfinite(t).all()):
-        raise ConfigError(key, "finite values (no NaN or inf)", "non-finite values", show_got=True)
+        raise ConfigError(key, "finite values (no NaN or inf)", got="non-finite values", show_got=True)
     return t
 
 
-def spring_param(value, grid: Grid, key: str, dtype, device, allow_zero=True) -> torch.Tensor:
+def spring_param(value, grid: Grid, key: str, dtype, device, *, allow_zero=True) -> torch.Tensor:
     """Normalise a spring parameter to shape ``(Bp, S, 1|D, 1|H, 1|W)``.
 
     Accepts a number (all springs), a dict by direction class ``{"axis": .., "face": ..,
@@ -79,7 +85,7 @@ def spring_param(value, grid: Grid, key: str, dtype, device, allow_zero=True) ->
         unknown = set(value) - set(CLASSES)
         missing = set(classes) - set(value)
         if unknown or missing:
-            raise ConfigError(key, f"one value per direction class {sorted(set(classes))}", value)
+            raise ConfigError(key, f"one value per direction class {sorted(set(classes))}", got=value)
         value = [float(value[c]) for c in classes]
     t = _as_tensor(value, key, dtype, device)
     S, shape = grid.S, grid.shape
@@ -93,10 +99,10 @@ def spring_param(value, grid: Grid, key: str, dtype, device, allow_zero=True) ->
         t = t.unsqueeze(0)
     elif not (t.dim() == 5 and tuple(t.shape[1:]) == (S,) + shape):
         raise ConfigError(
-            key, f"a number, (S,), (S, D, H, W) or (B, S, D, H, W) with S = {S}, grid {shape}", tuple(t.shape)
+            key, f"a number, (S,), (S, D, H, W) or (B, S, D, H, W) with S = {S}, grid {shape}", got=tuple(t.shape)
         )
     if bool((t < 0).any()) or (not allow_zero and bool((t == 0).any())):
-        raise ConfigError(key, "values >= 0" if allow_zero else "values > 0", float(t.min()))
+        raise ConfigError(key, "values >= 0" if allow_zero else "values > 0", got=float(t.min()))
     return t
 
 
@@ -113,10 +119,10 @@ def node_param(value, grid: Grid, key: str, dtype, device) -> torch.Tensor:
         return t.view(1, 1, *grid.shape)
     if t.dim() == 5 and t.shape[1] == 1 and all(n in (1, g) for n, g in zip(t.shape[2:], grid.shape)):
         return t
-    raise ConfigError(key, f"a number, (D, H, W) or (B, 1, D, H, W) with grid {grid.shape}", tuple(t.shape))
+    raise ConfigError(key, f"a number, (D, H, W) or (B, 1, D, H, W) with grid {grid.shape}", got=tuple(t.shape))
 
 
-def lumped_mass(grid: Grid, density: float, dtype=torch.float64, device=None) -> torch.Tensor:
+def lumped_mass(grid: Grid, density: float, *, dtype=torch.float64, device=None) -> torch.Tensor:
     """Node masses ``(1, 1, D, H, W)`` from a density (kg/m^3).
 
     Every existing node owns the box-shaped voxel around it (its dual cell), cut at the faces
@@ -171,7 +177,7 @@ class Model:
         decay: global drag rate c (1/s): ``v <- v exp(-c dt)`` after every step, or None.
         loads: list of :class:`~torchdeform.sim.forces.PointForce`, ``SurfaceForce`` or
             ``FieldForce``, or None.
-        interactions: objects with ``project(model, x, v, t, dt, readings) -> (x, v)`` (applied at the end
+        interactions: objects with ``project(model, x, v, t, dt, *, readings) -> (x, v)`` (applied at the end
             of every step) and ``force(model, x, v, t)`` (added to the forces, or None): tool
             contact, grasp, strain limiting (:mod:`torchdeform.interact`); or None. One whose
             ``eager_only`` is true makes the compiled step run eagerly.
@@ -196,8 +202,8 @@ class Model:
         self,
         grid: Grid,
         stiffness,
-        damping=None,
         *,
+        damping=None,
         damping_mode="projected",
         law=None,
         normalize=False,
@@ -218,10 +224,10 @@ class Model:
         self.grid, self.dtype, self.device = grid, dtype, torch.device(device or "cpu")
         dev = self.device
         if damping_mode not in ("projected", "unprojected"):
-            raise ConfigError("damping_mode", '"projected" or "unprojected"', damping_mode)
+            raise ConfigError("damping_mode", '"projected" or "unprojected"', got=damping_mode)
         self.projected = damping_mode == "projected"
-        self.X = grid.rest_positions(dtype, dev)
-        self.rest_length = grid.rest_lengths(dtype, dev).view(1, grid.S, 1, 1, 1)
+        self.X = grid.rest_positions(dtype=dtype, device=dev)
+        self.rest_length = grid.rest_lengths(dtype=dtype, device=dev).view(1, grid.S, 1, 1, 1)
 
         # springs (masked only when some springs are missing)
         k = spring_param(stiffness, grid, "stiffness", dtype, dev)
@@ -229,12 +235,12 @@ class Model:
         if normalize:
             k = k / self.rest_length
             c = None if c is None else c / self.rest_length
-        mask = grid.spring_mask(dev)
+        mask = grid.spring_mask(device=dev)
         if spring_mask is not None:
             spring_mask = torch.as_tensor(spring_mask, dtype=torch.bool, device=dev)
             if tuple(spring_mask.shape) != (grid.S,) + grid.shape:
                 raise ConfigError(
-                    "spring_mask", f"bool (S, D, H, W) = {(grid.S,) + grid.shape}", tuple(spring_mask.shape)
+                    "spring_mask", f"bool (S, D, H, W) = {(grid.S,) + grid.shape}", got=tuple(spring_mask.shape)
                 )
             mask = mask & spring_mask
         if grid.node_mask is not None or spring_mask is not None:
@@ -258,12 +264,12 @@ class Model:
 
         # masses
         if (mass is None) == (density is None):
-            raise ConfigError("mass", "exactly one of mass or density", {"mass": mass, "density": density})
+            raise ConfigError("mass", "exactly one of mass or density", got={"mass": mass, "density": density})
         if density is not None:
             rho = float(density)
             if not math.isfinite(rho) or rho <= 0:
-                raise ConfigError("density", "a positive number (kg/m^3)", density)
-            mass = lumped_mass(grid, rho, dtype, dev)
+                raise ConfigError("density", "a positive number (kg/m^3)", got=density)
+            mass = lumped_mass(grid, rho, dtype=dtype, device=dev)
         self.mass = node_param(mass, grid, "mass", dtype, dev)
 
         # constrained nodes: fixed, dragged, and nodes outside the node mask
@@ -272,7 +278,7 @@ class Model:
         if fixed is not None:
             fixed = torch.as_tensor(fixed, dtype=torch.bool)
             if tuple(fixed.shape) != grid.shape:
-                raise ConfigError("fixed", f"a bool mask of shape {grid.shape}", tuple(fixed.shape))
+                raise ConfigError("fixed", f"a bool mask of shape {grid.shape}", got=tuple(fixed.shape))
             constrained = constrained | fixed
         for d in self.drags:
             constrained = constrained | torch.as_tensor(d.nodes, dtype=torch.bool)
@@ -283,7 +289,7 @@ class Model:
         #: bool ``(D, H, W)`` of nodes at the ends of springs cut so far (for pre-tension), or None
         self.cut_nodes = None
         #: the spring fields stored once with a compiled step (``compiled_step(..., editable=...)``)
-        self.shared = ()
+        self.shared: tuple[str, ...] = ()
         free = (~constrained).to(dtype=dtype, device=dev)[None, None]
         bad = (self.mass <= 0) & (free > 0)
         if bool(bad.any()):
@@ -313,10 +319,10 @@ class Model:
             ka = ka * grid.every_kth(every).to(dtype=dtype, device=dev)[None, None]
             k_home = ka if k_home is None else k_home + ka
         if k_home is not None and bool((k_home < 0).any()):
-            raise ConfigError("home", "stiffness >= 0", float(k_home.min()))
+            raise ConfigError("home", "stiffness >= 0", got=float(k_home.min()))
         self.k_home = k_home
         if decay is not None and (not math.isfinite(float(decay)) or float(decay) < 0):
-            raise ConfigError("decay", "a rate >= 0 (1/s)", decay)
+            raise ConfigError("decay", "a rate >= 0 (1/s)", got=decay)
         self.decay = None if not decay else float(decay)
         self.loads = [(ld, ld.dense(grid, dtype, dev)) for ld in (loads or [])]
         for c in interactions or []:
@@ -324,15 +330,15 @@ class Model:
                 raise ConfigError(
                     "interactions",
                     "interactions with project() and force() (torchdeform.interact.ProjectionContact, PenaltyContact)",
-                    type(c).__name__,
+                    got=type(c).__name__,
                 )
         self.interactions = list(interactions or [])
 
     # --------------------------------------------------------------- states
-    def rest_state(self, batch: int = 1) -> State:
+    def rest_state(self, *, batch: int = 1) -> State:
         """The body at rest: ``x = X``, ``v = 0``, each ``(batch, 3, D, H, W)``."""
         x = self.X.expand(batch, -1, -1, -1, -1).clone()
-        return State(x, torch.zeros_like(x), 0.0)
+        return State(x, torch.zeros_like(x), t=0.0)
 
     def _vector(self, value, like: torch.Tensor) -> torch.Tensor:
         """A 3-vector as ``(1, 3, 1, ...)`` broadcasting against node fields like ``like``."""
@@ -359,7 +365,7 @@ class Model:
             return state
         v = state.v * self.free
         x, v = self.constrain(state.x, v, state.t) if self.drags else (state.x, v)
-        return State(x, v, state.t, getattr(state, "readings", None))
+        return State(x, v, t=state.t, readings=getattr(state, "readings", None))
 
     def constrain(self, x: torch.Tensor, v: torch.Tensor, t):
         """Put dragged nodes on their path at time ``t`` (positions and velocities)."""
@@ -387,7 +393,7 @@ class Model:
                 total = dense * f if total is None else total + dense * f
         return total
 
-    def forces(self, x, v, t: float = 0.0, loads=None, impl: str = "fast") -> torch.Tensor:
+    def forces(self, x, v, *, t: float = 0.0, loads: Loads = None, impl: str = "fast") -> torch.Tensor:
         """Total force on every node (springs, home/anchor springs, gravity, loads), ``(B, 3, D, H, W)``.
 
         Args:
@@ -397,7 +403,7 @@ class Model:
             loads: extra force ``(B|1, 3, D, H, W)`` or a callable ``t -> force``, or None.
             impl: ``"fast"`` (shifted slices) or ``"conv"`` (conv3d reference).
         """
-        F = self.spring_forces(x, v, impl)
+        F = self.spring_forces(x, v, impl=impl)
         if self.k_home is not None:
             F = F + home_force(x, self.X, self.k_home)
         if self.gravity is not None:
@@ -413,11 +419,19 @@ class Model:
                 F = F + f
         return F
 
-    def spring_forces(self, x, v, impl: str = "fast") -> torch.Tensor:
+    def spring_forces(self, x, v, *, impl: str = "fast") -> torch.Tensor:
         """Forces of the grid springs alone, ``(B, 3, D, H, W)``; ``impl`` as in :meth:`forces`."""
         fn = spring_forces if impl == "fast" else spring_forces_conv
         return fn(
-            x, v, self.grid, self.stiffness, self.rest_length, self.damping, self.projected, self.law, self.law_params
+            x,
+            v,
+            self.grid,
+            self.stiffness,
+            self.rest_length,
+            c=self.damping,
+            projected=self.projected,
+            law=self.law,
+            lp=self.law_params,
         )
 
     def spring_sums(self, p: torch.Tensor) -> torch.Tensor:
@@ -438,13 +452,15 @@ class Model:
         """
         return (a * b).sum(tuple(range(1, a.dim())), keepdim=True)
 
-    def acceleration(self, x, v, t: float = 0.0, loads=None) -> torch.Tensor:
+    def acceleration(self, x, v, *, t: float = 0.0, loads: Loads = None) -> torch.Tensor:
         """``M^-1 F``, zero at constrained nodes, ``(B, 3, D, H, W)``."""
-        return self.inv_mass * self.forces(x, v, t, loads)
+        return self.inv_mass * self.forces(x, v, t=t, loads=loads)
 
-    def linearise(self, x, clamp=True) -> Linearisation:
+    def linearise(self, x, *, clamp=True) -> Linearisation:
         """Springs linearised at ``x`` for stiffness products (implicit Euler, bounds)."""
-        return Linearisation(x, self.grid, self.stiffness, self.rest_length, clamp, self.law, self.law_params)
+        return Linearisation(
+            x, self.grid, self.stiffness, self.rest_length, clamp=clamp, law=self.law, lp=self.law_params
+        )
 
     # --------------------------------------------------------------- energy
     def energy(self, state: State) -> dict:
@@ -455,7 +471,7 @@ class Model:
         """
         x, v = state.x, state.v
         ke = 0.5 * (self.mass * v * v).flatten(1).sum(1)
-        el = spring_energy(x, self.grid, self.stiffness, self.rest_length, self.law, self.law_params)
+        el = spring_energy(x, self.grid, self.stiffness, self.rest_length, law=self.law, lp=self.law_params)
         if self.k_home is not None:
             el = el + 0.5 * (self.k_home * (x - self.X) ** 2).flatten(1).sum(1)
         out = {"kinetic": ke, "elastic": el}

@@ -32,7 +32,7 @@ Example:
     >>> import torchdeform as td
     >>> from torchdeform.sim import native
     >>> from torchdeform.sim.packed import PackedModel
-    >>> pm = PackedModel(td.Model(td.Grid((5, 6, 7), 0.01, 26), stiffness=50.0, damping=0.1, mass=1e-3))
+    >>> pm = PackedModel(td.Model(td.Grid((5, 6, 7), spacing=0.01, topology=26), stiffness=50.0, damping=0.1, mass=1e-3))
     >>> s = pm.rest_state()
     >>> x = s.x + 1e-4 * torch.randn_like(s.x)
     >>> f = native.spring_forces(pm, x, s.v) if native.supports(pm) is None else pm.spring_forces(x, s.v)
@@ -52,7 +52,7 @@ import platform
 import shutil
 import subprocess
 import tempfile
-from dataclasses import dataclass
+from dataclasses import KW_ONLY, dataclass
 from pathlib import Path
 
 import torch
@@ -109,6 +109,7 @@ class Variant:
     S: int
     dtype: str
     damping: int
+    _: KW_ONLY
     k_per_spring: bool = False
     l0_per_spring: bool = False
     c_per_spring: bool = False
@@ -483,7 +484,7 @@ def supports(pm) -> str | None:
     return unavailable()
 
 
-def spring_forces(pm, x: torch.Tensor, v: torch.Tensor, name: str | None = None) -> torch.Tensor:
+def spring_forces(pm, x: torch.Tensor, v: torch.Tensor, *, name: str | None = None) -> torch.Tensor:
     """:meth:`~torchdeform.sim.packed.PackedModel.spring_forces` by the C kernel: ``(B, 3, P)``.
 
     No gradient (the kernel is not differentiable). ``name``: the kernel's name from :func:`kernel`
@@ -494,7 +495,7 @@ def spring_forces(pm, x: torch.Tensor, v: torch.Tensor, name: str | None = None)
     return native_springs(x, v, pm.inside, pm.stiffness, pm.rest_length, pm.damping, pm.offset_table, name, pm.G)
 
 
-def fused_blocker(pm, integrator, loads=None) -> str | None:
+def fused_blocker(pm, integrator, *, loads=None) -> str | None:
     """Why :func:`symplectic_step` cannot make this packed step, or None.
 
     It makes the whole step of :class:`~torchdeform.sim.integrators.SymplecticEuler` for Hooke
@@ -520,7 +521,7 @@ def fused_blocker(pm, integrator, loads=None) -> str | None:
     return supports(pm)
 
 
-def symplectic_step(pm, x: torch.Tensor, v: torch.Tensor, dt: float, name: str | None = None):
+def symplectic_step(pm, x: torch.Tensor, v: torch.Tensor, dt: float, *, name: str | None = None):
     """One :class:`~torchdeform.sim.integrators.SymplecticEuler` step of a packed model in one kernel.
 
     The springs, ``a = (f + m g) / m`` (zero at fixed nodes), ``v' = v + dt a``, ``x' = x + dt v'``

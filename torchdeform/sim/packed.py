@@ -23,7 +23,7 @@ spring law (:func:`~torchdeform.sim.springs.spring_law`).
 Example:
     >>> import torchdeform as td
     >>> from torchdeform.sim.packed import PackedModel
-    >>> model = td.Model(td.Grid((4, 5, 6), 0.01, 26), stiffness=50.0, damping=0.1, mass=1e-3)
+    >>> model = td.Model(td.Grid((4, 5, 6), spacing=0.01, topology=26), stiffness=50.0, damping=0.1, mass=1e-3)
     >>> pm = PackedModel(model)
     >>> s = pm.pack_state(model.rest_state())     # x, v: (1, 3, P), P >= 6 * 7 * 8
     >>> s = td.SymplecticEuler().step(pm, s, 1e-4)
@@ -78,7 +78,7 @@ class TraceContext:
         (True, True)
     """
 
-    def __init__(self, store=None):
+    def __init__(self, *, store=None):
         self.store = store
         self.graph_inputs: tuple = ()
         self.store_sums = False
@@ -94,7 +94,7 @@ class TraceContext:
             return f
         return self.store(f)
 
-    def keep(self, t: torch.Tensor, wanted: bool = True) -> torch.Tensor:
+    def keep(self, t: torch.Tensor, *, wanted: bool = True) -> torch.Tensor:
         """``t`` stored in memory when ``wanted`` and tracing; otherwise ``t`` itself."""
         return self.store(t) if self.store is not None and wanted else t
 
@@ -120,7 +120,7 @@ class PackedModel(Model):
             and gaping cuts, ``"damping"`` for coagulation's viscosity rise).
     """
 
-    def __init__(self, model: Model, share=False):
+    def __init__(self, model: Model, *, share=False):
         if isinstance(model, PackedModel):
             raise TypeError("PackedModel(model): the model is already packed")
         self.__dict__.update(model.__dict__)
@@ -160,13 +160,13 @@ class PackedModel(Model):
         #: view of this model bound to its own context (:meth:`traced`)
         self.trace = TraceContext()
         if share:
-            self.share(model, ("stiffness",) if share is True else tuple(share))
+            self.share(model, fields=("stiffness",) if share is True else tuple(share))
 
     #: the spring fields :meth:`share` may store per spring, and the node fields it always shares
     SHARED_SPRING_FIELDS = ("stiffness", "rest_length", "damping")
     SHARED_NODE_FIELDS = ("mass", "inv_mass", "free", "k_home")
 
-    def share(self, model: Model, fields=("stiffness",)) -> None:
+    def share(self, model: Model, *, fields=("stiffness",)) -> None:
         """Make ``model``'s fields grid-layout views of this model's packed fields.
 
         The spring fields named in ``fields`` become per spring (``(Bp, S, P)`` here,
@@ -205,7 +205,7 @@ class PackedModel(Model):
         return self.trace.keep(field)
 
     def traced(
-        self, ctx: TraceContext, threads: int | None = None, native_ok: bool = True, build: bool = True
+        self, ctx: TraceContext, *, threads: int | None = None, native_ok: bool = True, build: bool = True
     ) -> PackedModel:
         """A view of this model (same tensors) whose kernels follow the compile-time context ``ctx``.
 
@@ -246,15 +246,17 @@ class PackedModel(Model):
 
     def pack_state(self, state: State) -> State:
         """A grid-layout state (``(B, 3, D, H, W)``) in the packed layout (``(B, 3, P)``)."""
-        return State(self.pack(state.x), self.pack(state.v), state.t, state.readings)
+        return State(self.pack(state.x), self.pack(state.v), t=state.t, readings=state.readings)
 
     def unpack_state(self, state: State) -> State:
         """A packed state back in the grid layout (contiguous ``(B, 3, D, H, W)``)."""
-        return State(self.unpack(state.x).contiguous(), self.unpack(state.v).contiguous(), state.t, state.readings)
+        return State(
+            self.unpack(state.x).contiguous(), self.unpack(state.v).contiguous(), t=state.t, readings=state.readings
+        )
 
-    def rest_state(self, batch: int = 1) -> State:
+    def rest_state(self, *, batch: int = 1) -> State:
         """The body at rest, packed: ``x = X``, ``v = 0``, each ``(batch, 3, P)``."""
-        return self.pack_state(self.source.rest_state(batch))
+        return self.pack_state(self.source.rest_state(batch=batch))
 
     def _node(self, t: torch.Tensor) -> torch.Tensor:
         return self.pack(t.expand(*t.shape[:2], *self.grid.shape))
@@ -351,15 +353,16 @@ class PackedModel(Model):
         # CG loop's first vectors read: store them rather than let each reader recompute 2 S
         # springs. In an explicit step they feed one fused update, and storing would cost ~30%.
         own = self.shift(self.inside, 0)  # halo nodes get exactly zero
-        return self.spread(torch.stack([t * own for t in total], 1), self.trace.store_sums)
+        assert total is not None  # at least 3 half-directions
+        return self.spread(torch.stack([t * own for t in total], 1), store=self.trace.store_sums)
 
-    def spread(self, sums: torch.Tensor, store: bool = False) -> torch.Tensor:
+    def spread(self, sums: torch.Tensor, *, store: bool = False) -> torch.Tensor:
         """Sums over the core nodes ``(B, C, P_core)`` -> ``(B, C, P)``, zero outside the core range.
 
         Under ``torch.compile`` the result is stored when ``store``, otherwise computed inside
         each reader.
         """
-        return self.trace.keep(F.pad(sums, (self.G, self.G)), store)
+        return self.trace.keep(F.pad(sums, (self.G, self.G)), wanted=store)
 
     # ------------------------------------------------------------------ springs
     #: how :meth:`spring_forces` sums the springs: ``"native"`` (each spring once, in a C kernel,
@@ -376,11 +379,11 @@ class PackedModel(Model):
     #: why a compiled step could not use the C kernel (None: it could, or it was not asked)
     native_why: str | None = None
 
-    def spring_forces(self, x, v, impl: str = "fast") -> torch.Tensor:
+    def spring_forces(self, x, v, *, impl: str = "fast") -> torch.Tensor:
         """Forces of the grid springs, ``(B, 3, P)`` (``impl`` is ignored: one layout, one path)."""
         form = self.force_form or "reduction"
         if form == "native":
-            return native.spring_forces(self, x, v, self.native_kernel)
+            return native.spring_forces(self, x, v, name=self.native_kernel)
         if form == "reduction":
             return self._spring_forces_reduced(x, v)
         k, l0, c, projected = self.stiffness, self.rest_length, self.damping, self.projected
@@ -395,13 +398,14 @@ class PackedModel(Model):
                 self.param(l0, s, sign),
                 None if c is None else self.param(c, s, sign),
                 projected,
-                self.law,
-                tuple(self.param(p, s, sign) for p in self.law_params),
+                law=self.law,
+                lp=tuple(self.param(p, s, sign) for p in self.law_params),
             )
             alpha = alpha * mask
             if beta is None:
                 return [alpha * d for d in dx]
             beta = beta * mask
+            assert dv is not None  # damping terms come with velocity differences
             return [alpha * d + beta * w for d, w in zip(dx, dv)]
 
         return self.gather(fn, x) if c is None else self.gather(fn, x, v)
@@ -419,7 +423,7 @@ class PackedModel(Model):
             dv = self.differences(v)
             dxdv = dx[:, 0] * dv[:, 0] + dx[:, 1] * dv[:, 1] + dx[:, 2] * dv[:, 2]
         alpha, beta = spring_law(
-            sq, dxdv, k, l0, c, self.projected, self.law, tuple(self.directed(p) for p in self.law_params)
+            sq, dxdv, k, l0, c, self.projected, law=self.law, lp=tuple(self.directed(p) for p in self.law_params)
         )
         exists = self.exists()
         alpha = alpha * exists
@@ -427,18 +431,19 @@ class PackedModel(Model):
             terms = [alpha * dx[:, a] for a in range(3)]
         else:
             beta = beta * exists
+            assert dv is not None  # damping terms come with velocity differences
             terms = [alpha * dx[:, a] + beta * dv[:, a] for a in range(3)]
         # channels apart, each sum keeping its direction axis: one loop writes the (B, 3, N, L) buffer
         sums = torch.cat([t.sum(1, keepdim=True) for t in terms], 1)
-        return self.spread(sums.flatten(-2), self.trace.store_sums)
+        return self.spread(sums.flatten(-2), store=self.trace.store_sums)
 
     def spring_sums(self, p: torch.Tensor) -> torch.Tensor:
         """``sum_j p_ij`` per node, ``(Bp, 1, P)``."""
         return self.gather(lambda s, sign, mask: [self.param(p, s, sign) * mask])
 
-    def linearise(self, x, clamp=True) -> PackedLinearisation:
+    def linearise(self, x, *, clamp=True) -> PackedLinearisation:
         """Springs linearised at packed positions ``x`` (:class:`PackedLinearisation`)."""
-        return PackedLinearisation(self, x, clamp)
+        return PackedLinearisation(self, x=x, clamp=clamp)
 
     def energy(self, state: State) -> dict:
         """Energies of a packed state, as :meth:`~torchdeform.sim.model.Model.energy` (unpacked first)."""
@@ -470,15 +475,17 @@ class PackedLinearisation:
     """
 
     def __init__(
-        self, pm: PackedModel, x: torch.Tensor | None = None, clamp: bool = True, fields=None, combined: bool = False
+        self, pm: PackedModel, *, x: torch.Tensor | None = None, clamp: bool = True, fields=None, combined: bool = False
     ):
         self.pm, self.combined = pm, combined
         if fields is None:
+            if x is None:
+                raise ValueError("PackedLinearisation: positions x or fields are needed")
             dx = pm.differences(x)  # (B, 3, 2S, N, L)
             sq = dx[:, 0] * dx[:, 0] + dx[:, 1] * dx[:, 1] + dx[:, 2] * dx[:, 2]  # (B, 2S, N, L)
             k, l0 = pm.directed(pm.stiffness), pm.directed(pm.rest_length)
             lp = tuple(pm.directed(p) for p in pm.law_params)
-            a, _ = spring_law(sq, None, k, l0, None, True, pm.law, lp)
+            a, _ = spring_law(sq, None, k, l0, None, True, law=pm.law, lp=lp)
             if clamp:
                 a = a.clamp_min(0)
             l = sq.clamp_min(torch.finfo(sq.dtype).tiny).sqrt()
@@ -487,7 +494,7 @@ class PackedLinearisation:
             fields = (n, a, slope - a)
         self.fields = tuple(fields)
 
-    def scaled(self, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> PackedLinearisation:
+    def scaled(self, *, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> PackedLinearisation:
         """The operator ``u -> apply(u, alpha_scale, c, projected, c_scale)``, coefficients combined.
 
         A linearisation with combined coefficients, the CG loop's inner kernel: per spring
@@ -515,10 +522,10 @@ class PackedLinearisation:
             c = pm.directed(c)
             if pm.stiffness.shape[-1] != 1 and c.shape[-1] == 1:  # stiffness per spring: gate the damping
                 c = gate_damping(c, a + b)
-        alpha, beta = combine_coefficients(a, b, alpha_scale, c, projected, c_scale)
+        alpha, beta = combine_coefficients(a, b, alpha_scale=alpha_scale, c=c, projected=projected, c_scale=c_scale)
         return alpha * pm.spring_exists, beta * pm.spring_exists
 
-    def apply(self, u, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> torch.Tensor:
+    def apply(self, u, *, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> torch.Tensor:
         """``(h2 K + h C) u``, ``(B, 3, P)``.
 
         Arguments as :meth:`torchdeform.sim.springs.Linearisation.apply` (a combined operator

@@ -124,15 +124,15 @@ def _number(value, key: str, expected: str, ok) -> float:
     try:
         v = float(value)
     except (TypeError, ValueError):
-        raise ConfigError(key, expected, value) from None
+        raise ConfigError(key, expected, got=value) from None
     if not math.isfinite(v) or not ok(v):
-        raise ConfigError(key, expected, value)
+        raise ConfigError(key, expected, got=value)
     return v
 
 
 def _count(value, key: str, least: int) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < least:
-        raise ConfigError(key, f"a whole number >= {least}", value)
+        raise ConfigError(key, f"a whole number >= {least}", got=value)
     return value
 
 
@@ -198,10 +198,10 @@ class ProjectiveDynamics(Integrator):
 
     def __init__(
         self,
+        *,
         iterations: int = 10,
         tol: float = 0.0,
         solver: str = "auto",
-        *,
         rho: float = 0.95,
         relaxation: float = 0.9,
         delay: int = 1,
@@ -214,7 +214,7 @@ class ProjectiveDynamics(Integrator):
         self.iterations = _count(iterations, "projective.iterations", 1)
         self.tol = _number(tol, "projective.tol", "a number >= 0", lambda v: v >= 0)
         if solver not in SOLVERS:
-            raise ConfigError("projective.solver", " or ".join(map(repr, SOLVERS)), solver)
+            raise ConfigError("projective.solver", " or ".join(map(repr, SOLVERS)), got=solver)
         self.solver = solver
         self.rho = _number(rho, "projective.rho", "a number in [0, 1)", lambda v: 0 <= v < 1)
         self.relaxation = _number(relaxation, "projective.relaxation", "a number in (0, 1]", lambda v: 0 < v <= 1)
@@ -222,7 +222,7 @@ class ProjectiveDynamics(Integrator):
         self.cg_iters = _count(cg_iters, "projective.cg_iters", 1)
         self.cg_tol = _number(cg_tol, "projective.cg_tol", "a number >= 0", lambda v: v >= 0)
         if gradient not in GRADIENTS:
-            raise ConfigError("projective.gradient", " or ".join(map(repr, GRADIENTS)), gradient)
+            raise ConfigError("projective.gradient", " or ".join(map(repr, GRADIENTS)), got=gradient)
         self.gradient = gradient
         self.adjoint_iters = _count(adjoint_iters, "projective.adjoint_iters", 1)
         self.adjoint_tol = _number(adjoint_tol, "projective.adjoint_tol", "a number >= 0", lambda v: v >= 0)
@@ -273,7 +273,7 @@ class ProjectiveDynamics(Integrator):
             raise ConfigError(
                 "projective.solver",
                 "'jacobi' for a model with a spring law (projective dynamics' constant matrix needs Hooke springs)",
-                self.solver,
+                got=self.solver,
             )
         if solver == "cholesky" and _is_packed(model):
             return self._advance_unpacked(model, state, dt, loads)
@@ -289,7 +289,7 @@ class ProjectiveDynamics(Integrator):
             x = x + (g if free is None else g * free)
 
         def residual(x):
-            r = model.mass * (xp - x) + (h * h) * model.forces(x, (x - x0) / h, t1, loads)
+            r = model.mass * (xp - x) + (h * h) * model.forces(x, (x - x0) / h, t=t1, loads=loads)
             return r if free is None else r * free
 
         if self.gradient_for(solver) == "adjoint" and torch.is_grad_enabled() and not torch.compiler.is_compiling():
@@ -449,7 +449,7 @@ class ProjectiveDynamics(Integrator):
             raise ConfigError(
                 "projective.solver",
                 "the cholespy package for solver='cholesky' (pip install cholespy), or solver='cg' or 'jacobi'",
-                "cholesky",
+                got="cholesky",
             ) from None
         factors, index = self._cached(model, h, lambda: self._factor(model, h, cholespy))
 
@@ -458,7 +458,7 @@ class ProjectiveDynamics(Integrator):
                 raise ConfigError(
                     "projective.gradient",
                     "'adjoint' or 'auto' with solver='cholesky' (its solves have no unrolled gradient)",
-                    self.gradient,
+                    got=self.gradient,
                 )
             B = r.shape[0]
             flat = r.reshape(B, 3, -1)
@@ -503,7 +503,9 @@ class ProjectiveDynamics(Integrator):
         )
 
         def solve(r):
-            u, n_it, rel = conjugate_gradient(apply_A, r, precond, model.free, self.cg_iters, self.cg_tol)
+            u, n_it, rel = conjugate_gradient(
+                apply_A, r, precond=precond, mask=model.free, iters=self.cg_iters, tol=self.cg_tol
+            )
             self.last_cg = (n_it, rel)
             return u
 
@@ -570,7 +572,7 @@ def laplacian_operator(model, h: float):
     zero = copy.copy(model)
     zero.rest_length = torch.zeros_like(model.rest_length)
     zero.law, zero.law_params = None, ()
-    op = zero.linearise(model.X, clamp=False).scaled(h * h, model.damping, False, h)
+    op = zero.linearise(model.X, clamp=False).scaled(alpha_scale=h * h, c=model.damping, projected=False, c_scale=h)
     mass, k_home = model.mass, model.k_home
 
     def apply_A(u):

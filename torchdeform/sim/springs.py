@@ -45,7 +45,7 @@ __all__ = [
 
 
 # ------------------------------------------------------------------ reference path
-def stencil_weights(grid: Grid, dtype=torch.float32, device=None) -> torch.Tensor:
+def stencil_weights(grid: Grid, *, dtype=torch.float32, device=None) -> torch.Tensor:
     """Convolution weights ``(S, 1, 3, 3, 3)``: ``+1`` at the neighbour, ``-1`` at the centre."""
     w = torch.zeros(grid.S, 1, 3, 3, 3, dtype=dtype, device=device)
     for s, (dd, dh, dw) in enumerate(grid.directions):
@@ -66,10 +66,10 @@ def difference_conv(x: torch.Tensor, grid: Grid) -> torch.Tensor:
         ``i + d_s`` is outside the grid.
     """
     B, C = x.shape[:2]
-    w = stencil_weights(grid, x.dtype, x.device)
+    w = stencil_weights(grid, dtype=x.dtype, device=x.device)
     y = F.conv3d(x.reshape(B * C, 1, *grid.shape), w, padding=1)
     y = y.reshape(B, C, grid.S, *grid.shape).transpose(1, 2)
-    return y * grid.in_grid_mask(x.device)[:, None]
+    return y * grid.in_grid_mask(device=x.device)[:, None]
 
 
 def adjoint_conv(f: torch.Tensor, grid: Grid) -> torch.Tensor:
@@ -83,8 +83,8 @@ def adjoint_conv(f: torch.Tensor, grid: Grid) -> torch.Tensor:
         node field ``(B, C, D, H, W)``.
     """
     B, S, C = f.shape[:3]
-    f = f * grid.in_grid_mask(f.device)[:, None]
-    w = stencil_weights(grid, f.dtype, f.device)
+    f = f * grid.in_grid_mask(device=f.device)[:, None]
+    w = stencil_weights(grid, dtype=f.dtype, device=f.device)
     y = F.conv_transpose3d(f.transpose(1, 2).reshape(B * C, S, *grid.shape), w, padding=1)
     return y.reshape(B, C, *grid.shape)
 
@@ -157,7 +157,7 @@ def difference(x: torch.Tensor, grid: Grid) -> torch.Tensor:
     return out
 
 
-def harmonic_mean_of_ends(values: torch.Tensor, grid: Grid, spring_mask=None) -> torch.Tensor:
+def harmonic_mean_of_ends(values: torch.Tensor, grid: Grid, *, spring_mask=None) -> torch.Tensor:
     """Per-node values ``(B, D, H, W)`` to per-spring values ``(B, S, D, H, W)``.
 
     Each spring gets the harmonic mean ``2 a b / (a + b)`` of its two end nodes (springs in
@@ -170,7 +170,7 @@ def harmonic_mean_of_ends(values: torch.Tensor, grid: Grid, spring_mask=None) ->
     total = here + ends
     safe = torch.where(total > 0, total, torch.ones_like(total))
     out = torch.where(total > 0, 2.0 * here * ends / safe, torch.zeros_like(total))
-    mask = grid.spring_mask(values.device) if spring_mask is None else spring_mask.to(values.device)
+    mask = grid.spring_mask(device=values.device) if spring_mask is None else spring_mask.to(values.device)
     return out * mask
 
 
@@ -195,7 +195,7 @@ def _length(delta: torch.Tensor) -> torch.Tensor:
     return sq.clamp_min(torch.finfo(delta.dtype).tiny).sqrt()
 
 
-def spring_law(sq, dxdv, k, l0, c, projected: bool, law=None, lp=()):
+def spring_law(sq, dxdv, k, l0, c, projected: bool, *, law=None, lp=()):
     """The spring law, as coefficients.
 
     The force on a spring's endpoint ``i`` is ``alpha (x_j - x_i) + beta (v_j - v_i)``, with
@@ -231,7 +231,7 @@ def spring_law(sq, dxdv, k, l0, c, projected: bool, law=None, lp=()):
     return alpha, c
 
 
-def tension(delta, dv, k, l0, c, projected: bool, law=None, lp=()) -> torch.Tensor:
+def tension(delta, dv, k, l0, c, projected: bool, *, law=None, lp=()) -> torch.Tensor:
     """Tension vector of springs: ``k (l - l0) n`` (or a ``law``'s) plus damping (:func:`spring_law`).
 
     Args:
@@ -250,12 +250,12 @@ def tension(delta, dv, k, l0, c, projected: bool, law=None, lp=()) -> torch.Tens
     """
     sq = (delta * delta).sum(1, keepdim=True)
     dxdv = (delta * dv).sum(1, keepdim=True) if c is not None and projected else None
-    alpha, beta = spring_law(sq, dxdv, k, l0, c, projected, law, lp)
+    alpha, beta = spring_law(sq, dxdv, k, l0, c, projected, law=law, lp=lp)
     f = alpha * delta
     return f if beta is None else f + beta * dv
 
 
-def spring_forces(x, v, grid, k, l0, c=None, projected=True, law=None, lp=()) -> torch.Tensor:
+def spring_forces(x, v, grid, k, l0, *, c=None, projected=True, law=None, lp=()) -> torch.Tensor:
     """Node forces of all springs (fast path).
 
     Args:
@@ -279,20 +279,22 @@ def spring_forces(x, v, grid, k, l0, c=None, projected=True, law=None, lp=()) ->
     if c is None:
         return accumulate(
             grid,
-            lambda s, src, dx: tension(dx, None, take(k, s, src), take(l0, s, src), None, projected, law, lps(s, src)),
+            lambda s, src, dx: tension(
+                dx, None, take(k, s, src), take(l0, s, src), None, projected, law=law, lp=lps(s, src)
+            ),
             x,
         )
     return accumulate(
         grid,
         lambda s, src, dx, dv: tension(
-            dx, dv, take(k, s, src), take(l0, s, src), take(c, s, src), projected, law, lps(s, src)
+            dx, dv, take(k, s, src), take(l0, s, src), take(c, s, src), projected, law=law, lp=lps(s, src)
         ),
         x,
         v,
     )
 
 
-def spring_forces_conv(x, v, grid, k, l0, c=None, projected=True, law=None, lp=()) -> torch.Tensor:
+def spring_forces_conv(x, v, grid, k, l0, *, c=None, projected=True, law=None, lp=()) -> torch.Tensor:
     """Node forces of all springs through the ``conv3d`` reference.
 
     Same arguments as :func:`spring_forces`.
@@ -300,21 +302,18 @@ def spring_forces_conv(x, v, grid, k, l0, c=None, projected=True, law=None, lp=(
     delta = difference_conv(x, grid).movedim(2, 1)  # (B, 3, S, D, H, W)
     dv = difference_conv(v, grid).movedim(2, 1) if c is not None else None
     unsq = lambda p: None if p is None else p.unsqueeze(1)  # (Bk, 1, S, ...)
-    f = tension(delta, dv, unsq(k), unsq(l0), unsq(c), projected, law, tuple(map(unsq, lp)))
+    f = tension(delta, dv, unsq(k), unsq(l0), unsq(c), projected, law=law, lp=tuple(map(unsq, lp)))
     return -adjoint_conv(f.movedim(1, 2), grid)
 
 
-def spring_energy(x, grid, k, l0, law=None, lp=()) -> torch.Tensor:
+def spring_energy(x, grid, k, l0, *, law=None, lp=()) -> torch.Tensor:
     """Elastic energy ``sum 1/2 k (l - l0)^2`` (or a ``law``'s) per batch entry, ``(B,)``."""
     B = x.shape[0]
     total = x.new_zeros(B)
     for s, (src, dst) in enumerate(grid.stencil):
         l = _length(x[(..., *dst)] - x[(..., *src)])
         ks, l0s = take(k, s, src), take(l0, s, src)
-        if law is None:
-            e = 0.5 * ks * (l - l0s) ** 2
-        else:
-            e = law.energy(l, l0s, ks, *(take(p, s, src) for p in lp))
+        e = 0.5 * ks * (l - l0s) ** 2 if law is None else law.energy(l, l0s, ks, *(take(p, s, src) for p in lp))
         total = total + e.expand(B, *e.shape[1:]).reshape(B, -1).sum(1)
     return total
 
@@ -349,7 +348,7 @@ class Linearisation:
         lp: the law's parameters, broadcastable like ``k``.
     """
 
-    def __init__(self, x, grid, k, l0, clamp=True, law=None, lp=()):
+    def __init__(self, x, grid, k, l0, *, clamp=True, law=None, lp=()):
         self.grid = grid
         self.parts = []
         #: stiffness per spring: damping given per direction is gated by it (see :func:`gate_damping`)
@@ -370,7 +369,7 @@ class Linearisation:
     #: True for the operator of :meth:`scaled` (coefficients already combined).
     combined = False
 
-    def scaled(self, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> Linearisation:
+    def scaled(self, *, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> Linearisation:
         """The operator ``u -> apply(u, alpha_scale, c, projected, c_scale)``, combined once.
 
         Its per-spring coefficients are combined once, for many products with the same scales,
@@ -381,7 +380,17 @@ class Linearisation:
         for s, (src, _) in enumerate(self.grid.stencil):
             n, a, b = self.parts[s]
             out.parts.append(
-                (n, *combine_coefficients(a, b, alpha_scale, self._damping(c, s, src, a, b), projected, c_scale))
+                (
+                    n,
+                    *combine_coefficients(
+                        a,
+                        b,
+                        alpha_scale=alpha_scale,
+                        c=self._damping(c, s, src, a, b),
+                        projected=projected,
+                        c_scale=c_scale,
+                    ),
+                )
             )
         return out
 
@@ -392,7 +401,7 @@ class Linearisation:
         cs = take(c, s, src)
         return gate_damping(cs, a + b) if self.gated and cs.shape[-3:] == (1, 1, 1) else cs  # a + b = f' = 0 iff k = 0
 
-    def apply(self, u: torch.Tensor, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> torch.Tensor:
+    def apply(self, u: torch.Tensor, *, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> torch.Tensor:
         """``(h2 K + h C) u`` as a node field ``(B, 3, D, H, W)``.
 
         ``h2 = alpha_scale`` and ``h = c_scale``; ``K = -dF/dx`` (clamped) and ``C = -dF/dv``
@@ -401,7 +410,9 @@ class Linearisation:
 
         def fn(s, src, du):
             n, a, b = self.parts[s]
-            alpha, beta = combine_coefficients(a, b, alpha_scale, self._damping(c, s, src, a, b), projected, c_scale)
+            alpha, beta = combine_coefficients(
+                a, b, alpha_scale=alpha_scale, c=self._damping(c, s, src, a, b), projected=projected, c_scale=c_scale
+            )
             return alpha * du + beta * (n * du).sum(1, keepdim=True) * n
 
         return -accumulate(self.grid, fn, u)
@@ -435,7 +446,7 @@ def gate_damping(c, k):
     return torch.where(k != 0, c, torch.zeros((), dtype=c.dtype, device=c.device))
 
 
-def combine_coefficients(a, b, alpha_scale=1.0, c=None, projected=True, c_scale=1.0):
+def combine_coefficients(a, b, *, alpha_scale=1.0, c=None, projected=True, c_scale=1.0):
     """``(alpha, beta)`` of one linearised spring in ``h2 K + h C``.
 
     ``K``'s coefficients ``a, b`` scaled by ``h2 = alpha_scale``, plus the damping ``h c``

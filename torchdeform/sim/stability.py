@@ -21,10 +21,14 @@ from __future__ import annotations
 
 import math
 import warnings
+from typing import TYPE_CHECKING
 
 import torch
 
 from ..errors import DivergenceError, StabilityWarning
+
+if TYPE_CHECKING:
+    from .integrators import Integrator
 
 __all__ = [
     "gershgorin_omega2",
@@ -70,7 +74,7 @@ def _stiffness_product(model, lin, u):
 
 
 @torch.no_grad()
-def power_omega2(model, x=None, iters: int = 60, seed: int = 0) -> float:
+def power_omega2(model, *, x=None, iters: int = 60, seed: int = 0) -> float:
     """``lambda_max(M^-1 K)`` by power iteration on ``M^-1/2 K M^-1/2`` (free nodes only).
 
     Args:
@@ -84,7 +88,7 @@ def power_omega2(model, x=None, iters: int = 60, seed: int = 0) -> float:
 
     Examples:
         >>> import torchdeform as td
-        >>> model = td.Model(td.Grid((4, 4, 4), 0.01), stiffness=50.0, mass=1e-3)
+        >>> model = td.Model(td.Grid((4, 4, 4), spacing=0.01), stiffness=50.0, mass=1e-3)
         >>> lk = td.power_omega2(model)                   # (rad/s)^2
         >>> 0 < lk <= td.gershgorin_omega2(model)
         True
@@ -114,7 +118,7 @@ def _name(integrator) -> str:
 
 
 @torch.no_grad()
-def time_step_bound(model, integrator="symplectic", method: str = "power", x=None) -> float:
+def time_step_bound(model, *, integrator: str | Integrator = "symplectic", method: str = "power", x=None) -> float:
     """Largest stable time step (s) of an explicit integrator for this model.
 
     Args:
@@ -133,15 +137,15 @@ def time_step_bound(model, integrator="symplectic", method: str = "power", x=Non
         >>> grid = td.Grid((1, 1, 2), spacing=1.0, topology=6)       # two nodes, one spring
         >>> model = td.Model(grid, stiffness=1.0, mass=1.0, fixed=grid.index_mask([(0, 0, 0)]),
         ...                  dtype=torch.float64)                     # omega^2 = k / m = 1
-        >>> round(td.time_step_bound(model), 6), round(td.time_step_bound(model, "rk4"), 6)
+        >>> round(td.time_step_bound(model), 6), round(td.time_step_bound(model, integrator="rk4"), 6)
         (2.0, 2.828427)
-        >>> round(td.time_step_bound(model, method="gershgorin"), 6), td.time_step_bound(model, "implicit")
+        >>> round(td.time_step_bound(model, method="gershgorin"), 6), td.time_step_bound(model, integrator="implicit")
         (1.414214, inf)
     """
     name = _name(integrator)
     if name in ("implicit", "knoche", "projective"):
         return math.inf
-    lk = power_omega2(model, x) if method == "power" else gershgorin_omega2(model)
+    lk = power_omega2(model, x=x) if method == "power" else gershgorin_omega2(model)
     lc = damping_rate_bound(model)
     if name == "explicit":
         if lc == 0 or lk == 0:
@@ -172,7 +176,9 @@ def time_step_bound(model, integrator="symplectic", method: str = "power", x=Non
     return h
 
 
-def suggest_dt(model, integrator="symplectic", safety: float = 0.9, method: str = "power") -> float:
+def suggest_dt(
+    model, *, integrator: str | Integrator = "symplectic", safety: float = 0.9, method: str = "power"
+) -> float:
     """A stable time step: ``safety`` times :func:`time_step_bound` (s).
 
     Examples:
@@ -181,13 +187,13 @@ def suggest_dt(model, integrator="symplectic", safety: float = 0.9, method: str 
         >>> grid = td.Grid((1, 1, 2), spacing=1.0, topology=6)       # two nodes, one spring
         >>> model = td.Model(grid, stiffness=1.0, mass=1.0, fixed=grid.index_mask([(0, 0, 0)]),
         ...                  dtype=torch.float64)                     # omega^2 = k / m = 1
-        >>> round(td.suggest_dt(model), 6), round(td.suggest_dt(model, "rk4", safety=0.5), 6)
+        >>> round(td.suggest_dt(model), 6), round(td.suggest_dt(model, integrator="rk4", safety=0.5), 6)
         (1.8, 1.414214)
     """
-    return safety * time_step_bound(model, integrator, method)
+    return safety * time_step_bound(model, integrator=integrator, method=method)
 
 
-def check_dt(model, dt: float, integrator, bound: float | None = None) -> float:
+def check_dt(model, dt: float, integrator, *, bound: float | None = None) -> float:
     """Warn with :class:`StabilityWarning` when ``dt`` exceeds the bound; returns the bound.
 
     Examples:
@@ -203,7 +209,7 @@ def check_dt(model, dt: float, integrator, bound: float | None = None) -> float:
         >>> round(bound, 6), [w.category.__name__ for w in caught]
         (2.0, ['StabilityWarning'])
     """
-    bound = time_step_bound(model, integrator) if bound is None else bound
+    bound = time_step_bound(model, integrator=integrator) if bound is None else bound
     if dt > bound and bound == 0:
         warnings.warn(
             f"dt = {dt:.3g} s: {_name(integrator)} is unstable at every time step for this model (springs "
@@ -235,7 +241,7 @@ class DivergenceMonitor:
 
     Examples:
         >>> import torchdeform as td
-        >>> model = td.Model(td.Grid((3, 3, 3), 0.01), stiffness=10.0, mass=1e-3)
+        >>> model = td.Model(td.Grid((3, 3, 3), spacing=0.01), stiffness=10.0, mass=1e-3)
         >>> monitor = td.DivergenceMonitor(model, dt=1e-4, integrator="symplectic")
         >>> state = model.rest_state()
         >>> monitor.check(state, step=1)                    # finite and calm: nothing happens
@@ -247,11 +253,11 @@ class DivergenceMonitor:
         2 velocity 0.0001
     """
 
-    def __init__(self, model, dt, integrator, factor: float = 1e4):
+    def __init__(self, model, dt, integrator, *, factor: float = 1e4):
         self.model, self.dt, self.integrator = model, dt, integrator
         with torch.no_grad():
             l0 = model.rest_length
-            e_springs = float((0.5 * model.stiffness * l0 * l0 * model.grid.spring_mask(model.device)).sum())
+            e_springs = float((0.5 * model.stiffness * l0 * l0 * model.grid.spring_mask(device=model.device)).sum())
             size = max(n * s for n, s in zip(model.grid.shape, model.grid.spacing))
             g = 0.0 if model.gravity is None else float(model.gravity.norm())
             e_grav = float(model.mass.expand(-1, -1, *model.grid.shape).sum()) * g * size
@@ -265,7 +271,7 @@ class DivergenceMonitor:
         name = _name(self.integrator)
         implicit = name in ("implicit", "knoche", "projective")
         try:
-            bound = math.inf if implicit else time_step_bound(self.model, name)
+            bound = math.inf if implicit else time_step_bound(self.model, integrator=name)
         except Exception:  # pragma: no cover
             bound = math.nan
         safe = 0.9 * bound if math.isfinite(bound) and bound > 0 else None
@@ -280,7 +286,7 @@ class DivergenceMonitor:
             safe = None
         raise DivergenceError(step, quantity, value, self.dt, safe, cause=cause)
 
-    def check(self, state, step: int, mass: torch.Tensor | None = None):
+    def check(self, state, step: int, *, mass: torch.Tensor | None = None):
         """Raise :class:`DivergenceError` if ``state`` is non-finite or runaway.
 
         ``mass``: node masses laid out like ``state`` (a packed state, ``(B, 3, P)``, takes the packed

@@ -79,11 +79,11 @@ class _Sampler:
         return cores - (time.process_time() - p0) / wall
 
 
-def others_busy(seconds: float = 0.2) -> float | None:
+def others_busy(*, seconds: float = 0.2) -> float | None:
     """Cores that other processes kept busy during ``seconds`` (Linux ``/proc/stat``), or None.
 
     Examples:
-        >>> busy = others_busy(0.1)
+        >>> busy = others_busy(seconds=0.1)
         >>> busy is None or busy > -1.0
         True
     """
@@ -155,7 +155,7 @@ class ThreadGovernor:
         self.switches = 0
         self.slow = 0  # steps in a row whose window is above jump x best
         #: started at the first recorded step (not during the compile, whose compiler runs beside it)
-        self._sampler = None
+        self._sampler: _Sampler | None = None
         self._sample = self.full > 1 and busy_cores is not None
 
     def choose(self) -> int:
@@ -180,6 +180,7 @@ class ThreadGovernor:
             return
         now = statistics.median(self.recent)
         if self._sample:  # once (after ~0.1 s of steps): is the machine busy from the start?
+            assert self._sampler is not None  # started at the first recorded step
             others = self._sampler.others()
             if others is not None:
                 self._sample = False
@@ -208,10 +209,12 @@ class ThreadGovernor:
 
     def _conclude(self) -> None:
         # against the latest steps on the current count (the window may still hold older ones)
+        probing = self.probing
+        assert probing is not None  # the end of a probe
         now = statistics.median(list(self.recent)[-self.probe_steps :])
         probed = statistics.median(self.probe_times)
         if probed < self.margin * now:
-            self.current, self.switches = self.probing, self.switches + 1
+            self.current, self.switches = probing, self.switches + 1
             self.recent.clear()
             self.recent.extend(self.probe_times)
             self.best = probed

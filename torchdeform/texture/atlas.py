@@ -28,7 +28,7 @@ coordinates: ``.ply`` with per-vertex colours (Chen & He's node colouring), ``.g
 Examples:
     >>> import torch
     >>> from torchdeform.texture import SolidTexture, liver_exemplar
-    >>> tex = SolidTexture(liver_exemplar(16), block=8, extent=(16, 16, 16), voxel=0.001)
+    >>> tex = SolidTexture(liver_exemplar(size=16), block=8, extent=(16, 16, 16), voxel=0.001)
     >>> rest = torch.tensor([[0.001, 0.001, 0.001], [0.005, 0.001, 0.001], [0.001, 0.005, 0.001]], dtype=torch.float64)
     >>> s = sample_triangles(rest, torch.tensor([[0, 1, 2]]), tex)
     >>> s.count                                     # legs of 4 voxels: 5 + 4 + 3 + 2 + 1 grid points
@@ -75,10 +75,10 @@ def _triangles(vertices_rest, faces, texture, density):
         or (len(f) and (int(f.min()) < 0 or int(f.max()) >= len(X)))
     ):
         raise ConfigError(
-            "surface", "rest vertices (V, 3) and faces (F, 3) indexing them", (tuple(X.shape), tuple(f.shape))
+            "surface", "rest vertices (V, 3) and faces (F, 3) indexing them", got=(tuple(X.shape), tuple(f.shape))
         )
     if not (isinstance(density, (int, float)) and math.isfinite(density) and density > 0):
-        raise ConfigError("density", "a positive number (samples per voxel along each leg)", density)
+        raise ConfigError("density", "a positive number (samples per voxel along each leg)", got=density)
     Xv = (X - texture.origin.to(torch.float64)) / texture.voxel
     A, B, C = Xv[f[:, 0]], Xv[f[:, 1]], Xv[f[:, 2]]
     AB, AC = B - A, C - A
@@ -133,7 +133,7 @@ class TriangleSamples:
         return self.count
 
 
-def sample_triangles(vertices_rest, faces, texture, density: float = 1.0) -> TriangleSamples:
+def sample_triangles(vertices_rest, faces, texture, *, density: float = 1.0) -> TriangleSamples:
     """Sample every triangle's interior on Chen & He's grid and colour the samples (see the module docstring).
 
     Args:
@@ -151,7 +151,7 @@ def sample_triangles(vertices_rest, faces, texture, density: float = 1.0) -> Tri
     Examples:
         >>> import torch
         >>> from torchdeform.texture import SolidTexture, liver_exemplar
-        >>> tex = SolidTexture(liver_exemplar(16), block=8, extent=(16, 16, 16), voxel=0.001)
+        >>> tex = SolidTexture(liver_exemplar(size=16), block=8, extent=(16, 16, 16), voxel=0.001)
         >>> rest = torch.tensor([[0.0, 0, 0], [0.002, 0, 0], [0, 0.003, 0]], dtype=torch.float64)
         >>> s = sample_triangles(rest, [[0, 1, 2]], tex)
         >>> s.count, s.a.tolist()[:4], s.b.tolist()[:4]        # row i = 0 holds b = 0, 1/3, 2/3, 1
@@ -217,7 +217,7 @@ def _pack(cell: torch.Tensor):
 
 
 def build_atlas(
-    vertices_rest, faces, texture, density: float = 1.0, samples: TriangleSamples | None = None
+    vertices_rest, faces, texture, *, density: float = 1.0, samples: TriangleSamples | None = None
 ) -> TextureAtlas:
     """Pack each triangle's samples into a square cell of an RGB atlas, with a 1-texel gutter and corner UVs.
 
@@ -234,14 +234,14 @@ def build_atlas(
     Examples:
         >>> import torch
         >>> from torchdeform.texture import SolidTexture, liver_exemplar
-        >>> tex = SolidTexture(liver_exemplar(16), block=8, extent=(16, 16, 16), voxel=0.001)
+        >>> tex = SolidTexture(liver_exemplar(size=16), block=8, extent=(16, 16, 16), voxel=0.001)
         >>> rest = torch.tensor([[0.0, 0, 0], [0.002, 0, 0], [0, 0.003, 0], [0, 0, 0.003]], dtype=torch.float64)
         >>> atlas = build_atlas(rest, [[0, 1, 2], [0, 2, 3]], tex)
         >>> atlas.cell.tolist(), atlas.uv.shape, bool(((atlas.uv > 0) & (atlas.uv < 1)).all())
         ([6, 6], torch.Size([2, 3, 2]), True)
     """
     A, AB, AC, n_a, n_b = _triangles(vertices_rest, faces, texture, density)
-    s = sample_triangles(vertices_rest, faces, texture, density) if samples is None else samples
+    s = sample_triangles(vertices_rest, faces, texture, density=density) if samples is None else samples
     m = torch.maximum(torch.floor(n_a + _SLACK), torch.floor(n_b + _SLACK)).long() + 1
     cell = m + 2
     corner, (H, W) = _pack(cell)
@@ -269,7 +269,7 @@ def build_atlas(
     return TextureAtlas(image.reshape(H, W, 3), uv, corner, cell, s)
 
 
-def export_textured(path, vertices, faces, rest, texture, kind: str | None = None, density: float = 1.0):
+def export_textured(path, vertices, faces, rest, texture, *, kind: str | None = None, density: float = 1.0):
     """Write a deformed mesh coloured by the solid texture at its rest coordinates.
 
     ``.ply``: per-vertex 8-bit colours ``texture.at_material(rest)`` (node colouring). ``.glb``:
@@ -295,7 +295,7 @@ def export_textured(path, vertices, faces, rest, texture, kind: str | None = Non
     Examples:
         >>> import tempfile, torch, trimesh
         >>> from torchdeform.texture import SolidTexture, liver_exemplar
-        >>> tex = SolidTexture(liver_exemplar(16), block=8, extent=(24, 24, 24), voxel=0.001)
+        >>> tex = SolidTexture(liver_exemplar(size=16), block=8, extent=(24, 24, 24), voxel=0.001)
         >>> sphere = trimesh.creation.icosphere(1, radius=0.005)
         >>> rest = torch.from_numpy(sphere.vertices) + 0.006
         >>> with tempfile.TemporaryDirectory() as d:
@@ -312,13 +312,15 @@ def export_textured(path, vertices, faces, rest, texture, kind: str | None = Non
         raise ConfigError(
             "textured file",
             "a .ply, .glb or .obj path (or kind 'ply', 'glb', 'obj')",
-            kind if kind is not None else str(path),
+            got=kind if kind is not None else str(path),
         )
     v = np.asarray(torch.as_tensor(vertices, dtype=torch.float64))
     X = torch.as_tensor(rest, dtype=torch.float64)
     f = np.asarray(torch.as_tensor(faces, dtype=torch.int64))
     if v.ndim != 2 or v.shape[1] != 3 or tuple(X.shape) != v.shape:
-        raise ConfigError("surface", "deformed and rest vertices of the same shape (V, 3)", (v.shape, tuple(X.shape)))
+        raise ConfigError(
+            "surface", "deformed and rest vertices of the same shape (V, 3)", got=(v.shape, tuple(X.shape))
+        )
     if k == "ply":
         _, _, _, _, _ = _triangles(X, f, texture, density)  # validates faces
         rgb = (texture.at_material(X).double().clamp(0, 1) * 255).round().to(torch.uint8).numpy()
@@ -326,7 +328,7 @@ def export_textured(path, vertices, faces, rest, texture, kind: str | None = Non
         with atomic_path(path) as tmp:
             trimesh.Trimesh(vertices=v, faces=f, vertex_colors=colours, process=False).export(str(tmp), file_type="ply")
         return None
-    atlas = build_atlas(X, f, texture, density)
+    atlas = build_atlas(X, f, texture, density=density)
     corners = np.arange(3 * len(f)).reshape(-1, 3)
     visual = trimesh.visual.TextureVisuals(uv=atlas.uv.reshape(-1, 2).numpy(), image=atlas.to_pil())
     mesh = trimesh.Trimesh(vertices=v[f.reshape(-1)], faces=corners, visual=visual, process=False)

@@ -54,21 +54,21 @@ def command(args) -> int:
 
     out = Path(args.out)
     if out.suffix.lower() not in (".ply", ".glb", ".obj"):
-        raise ConfigError("--out", "a .ply, .glb or .obj file", str(out))
+        raise ConfigError("--out", "a .ply, .glb or .obj file", got=str(out))
     if args.seams not in SEAM_METHODS:
-        raise ConfigError("--seams", " or ".join(SEAM_METHODS), args.seams)
-    vertices, faces = load_mesh(args.mesh, args.scale, key="--mesh")
-    ex = exemplar_from(args.exemplar, args.seed)
+        raise ConfigError("--seams", " or ".join(SEAM_METHODS), got=args.seams)
+    vertices, faces = load_mesh(args.mesh, scale=args.scale, key="--mesh")
+    ex = exemplar_from(args.exemplar, seed=args.seed)
     lo, hi = vertices.min(0), vertices.max(0)
     voxel = args.voxel or float((hi - lo).max()) / 128
     if not voxel > 0:
-        raise ConfigError("--voxel", "a positive voxel size (m)", args.voxel)
+        raise ConfigError("--voxel", "a positive voxel size (m)", got=args.voxel)
     block = args.block or min(ex.shape[1:]) // 2
     extent = [int((h - l) / voxel) + 2 for l, h in zip(lo, hi)]
     tex = SolidTexture(ex, block=block, extent=extent, seed=args.seed, voxel=voxel, origin=tuple(lo))
     seams = ""
     if args.seams != "none":
-        r = tex.blend(args.seams)
+        r = tex.blend(method=args.seams)
         seams = (
             f"; seams ({args.seams} Poisson, {r['seconds']:.1f} s): jump {r['seam_before']:.2f} -> "
             f"{r['seam_after']:.2f}, histogram distance {r['histogram_before']:.4f} -> {r['histogram_after']:.4f}"
@@ -94,6 +94,6 @@ def _image(path, vertices, faces, tex) -> None:
     from ..topology.surfaces import CutSurface
     from .mapping import framing_camera, render_textured
 
-    cam = framing_camera(vertices, (1.2, -1.0, 1.4), 40.0, (384, 512))
+    cam = framing_camera(vertices, direction=(1.2, -1.0, 1.4), fov_deg=40.0, size=(384, 512))
     out = render_textured([CutSurface(0, vertices, faces, vertices)], tex, cam, light=(1.0, -0.5, 0.7))
     save_png(path, out["image"])

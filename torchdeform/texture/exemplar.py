@@ -13,7 +13,7 @@ like every node field of torchdeform). Chen & He used 128 Visible Human liver sl
 * colour: a reddish-brown base modulated by low-frequency noise (the variation across a liver).
 
 Examples:
-    >>> ex = liver_exemplar(32, seed=1)
+    >>> ex = liver_exemplar(size=32, seed=1)
     >>> tuple(ex.shape), bool(ex.min() >= 0) and bool(ex.max() <= 1)
     ((3, 32, 32, 32), True)
 """
@@ -32,7 +32,7 @@ from ..errors import ConfigError
 __all__ = ["load_exemplar", "liver_exemplar", "as_exemplar", "exemplar_from"]
 
 
-def as_exemplar(array, key: str = "exemplar") -> torch.Tensor:
+def as_exemplar(array, *, key: str = "exemplar") -> torch.Tensor:
     """An RGB volume ``(D, H, W, 3)`` or ``(3, D, H, W)`` (uint8 0..255 or floats 0..1) as float32 ``(3, D, H, W)``.
 
     Examples:
@@ -41,7 +41,7 @@ def as_exemplar(array, key: str = "exemplar") -> torch.Tensor:
     """
     t = torch.as_tensor(np.asarray(array))
     if t.dim() != 4 or 3 not in (t.shape[0], t.shape[-1]):
-        raise ConfigError(key, "an RGB volume: (D, H, W, 3) or (3, D, H, W)", tuple(t.shape))
+        raise ConfigError(key, "an RGB volume: (D, H, W, 3) or (3, D, H, W)", got=tuple(t.shape))
     if t.shape[0] != 3 or (t.shape[-1] == 3 and t.shape[0] != 3):
         t = t.permute(3, 0, 1, 2)
     if t.dtype == torch.uint8:
@@ -52,13 +52,13 @@ def as_exemplar(array, key: str = "exemplar") -> torch.Tensor:
             raise ConfigError(
                 key,
                 "colours in [0, 1] (floats) or 0..255 (uint8)",
-                f"values in [{float(t.min()):g}, {float(t.max()):g}]",
+                got=f"values in [{float(t.min()):g}, {float(t.max()):g}]",
                 show_got=True,
             )
     else:
-        raise ConfigError(key, "uint8 or floating-point colours", str(t.dtype))
+        raise ConfigError(key, "uint8 or floating-point colours", got=str(t.dtype))
     if min(t.shape[1:]) < 2:
-        raise ConfigError(key, "at least 2 voxels along every axis", tuple(t.shape[1:]))
+        raise ConfigError(key, "at least 2 voxels along every axis", got=tuple(t.shape[1:]))
     return t.contiguous()
 
 
@@ -76,36 +76,36 @@ def load_exemplar(path) -> torch.Tensor:
     """
     p = Path(path)
     if not p.exists():
-        raise ConfigError("exemplar", "an existing .npy, .npz or folder of slice images", str(p))
+        raise ConfigError("exemplar", "an existing .npy, .npz or folder of slice images", got=str(p))
     if p.is_dir():
         files = sorted(f for f in p.iterdir() if f.suffix.lower() in (".png", ".jpg", ".jpeg"))
         if not files:
-            raise ConfigError("exemplar", "a folder holding slice images (.png, .jpg)", str(p))
+            raise ConfigError("exemplar", "a folder holding slice images (.png, .jpg)", got=str(p))
         import matplotlib.image as mpimg
 
         slices, size = [], None
         for f in files:
             img = np.asarray(mpimg.imread(f))
             if img.ndim != 3 or img.shape[2] not in (3, 4):
-                raise ConfigError(f"exemplar: {f.name}", "an RGB slice image", f"shape {img.shape}", show_got=True)
+                raise ConfigError(f"exemplar: {f.name}", "an RGB slice image", got=f"shape {img.shape}", show_got=True)
             if size is not None and img.shape[:2] != size:
                 raise ConfigError(
                     f"exemplar: {f.name}",
                     f"a slice of {size[0]} x {size[1]} pixels like the first",
-                    f"{img.shape[0]} x {img.shape[1]}",
+                    got=f"{img.shape[0]} x {img.shape[1]}",
                     show_got=True,
                 )
             size = img.shape[:2]
             img = img[..., :3]
             slices.append(img.astype(np.float32) / 255.0 if img.dtype == np.uint8 else img.astype(np.float32))
-        return as_exemplar(np.stack(slices), f"exemplar: {p}")
+        return as_exemplar(np.stack(slices), key=f"exemplar: {p}")
     if p.suffix == ".npy":
-        return as_exemplar(np.load(p), f"exemplar: {p}")
+        return as_exemplar(np.load(p), key=f"exemplar: {p}")
     if p.suffix == ".npz":
         with np.load(p) as data:
             name = "exemplar" if "exemplar" in data.files else data.files[0]
-            return as_exemplar(data[name], f"exemplar: {p}")
-    raise ConfigError("exemplar", "a .npy, .npz or folder of slice images", str(p))
+            return as_exemplar(data[name], key=f"exemplar: {p}")
+    raise ConfigError("exemplar", "a .npy, .npz or folder of slice images", got=str(p))
 
 
 def _smooth_noise(shape, scale: float, gen: torch.Generator) -> torch.Tensor:
@@ -115,7 +115,7 @@ def _smooth_noise(shape, scale: float, gen: torch.Generator) -> torch.Tensor:
     return F.interpolate(c, size=tuple(shape), mode="trilinear", align_corners=True)[0, 0]
 
 
-def liver_exemplar(size: int = 128, seed: int = 0, lobule: float = 12.0, vessels: int = 4) -> torch.Tensor:
+def liver_exemplar(*, size: int = 128, seed: int = 0, lobule: float = 12.0, vessels: int = 4) -> torch.Tensor:
     """A liver-like RGB exemplar ``(3, size, size, size)`` in ``[0, 1]`` (see the module docstring).
 
     Args:
@@ -125,7 +125,7 @@ def liver_exemplar(size: int = 128, seed: int = 0, lobule: float = 12.0, vessels
         vessels: number of vessels.
     """
     if int(size) < 8:
-        raise ConfigError("exemplar.size", "at least 8 voxels", size)
+        raise ConfigError("exemplar.size", "at least 8 voxels", got=size)
     n = int(size)
     gen = torch.Generator().manual_seed(int(seed))
     axes = torch.arange(n, dtype=torch.float32)
@@ -174,11 +174,11 @@ def liver_exemplar(size: int = 128, seed: int = 0, lobule: float = 12.0, vessels
     return colour.clamp(0, 1).contiguous()
 
 
-def exemplar_from(spec: str, seed: int = 0) -> torch.Tensor:
+def exemplar_from(spec: str, *, seed: int = 0) -> torch.Tensor:
     """``liver`` / ``liver:N`` (procedural) or a file or folder (:func:`~torchdeform.texture.load_exemplar`)."""
     if spec == "liver" or spec.startswith("liver:"):
         size = spec.partition(":")[2] or "128"
         if not size.isdigit():
-            raise ConfigError("exemplar", "liver or liver:N with N voxels per side", spec)
-        return liver_exemplar(int(size), seed=seed)
+            raise ConfigError("exemplar", "liver or liver:N with N voxels per side", got=spec)
+        return liver_exemplar(size=int(size), seed=seed)
     return load_exemplar(spec)

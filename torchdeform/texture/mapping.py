@@ -13,8 +13,8 @@ Examples:
     >>> from torchdeform.texture import SolidTexture, liver_exemplar
     >>> from torchdeform.topology import cut_surfaces
     >>> grid = td.Grid((4, 4, 4), spacing=0.002)
-    >>> (piece,) = cut_surfaces(grid, grid.rest_positions(torch.float64), torch.zeros(4, 4, 4, dtype=torch.long))
-    >>> tex = SolidTexture(liver_exemplar(16), block=8, extent=(16, 16, 16), voxel=0.0005, origin=(-0.001,) * 3)
+    >>> (piece,) = cut_surfaces(grid, grid.rest_positions(dtype=torch.float64), torch.zeros(4, 4, 4, dtype=torch.long))
+    >>> tex = SolidTexture(liver_exemplar(size=16), block=8, extent=(16, 16, 16), voxel=0.0005, origin=(-0.001,) * 3)
     >>> vertex_colours(tex, piece).shape == piece.vertices.shape
     True
 """
@@ -37,7 +37,7 @@ def vertex_colours(texture, surface) -> torch.Tensor:
     return texture.at_material(torch.as_tensor(surface.rest, dtype=torch.float64)).float()
 
 
-def framing_camera(vertices, direction=(1.2, -1.0, 1.4), fov_deg: float = 40.0, size=(384, 512)):
+def framing_camera(vertices, *, direction=(1.2, -1.0, 1.4), fov_deg: float = 40.0, size=(384, 512)):
     """A perspective camera looking at the centre of ``vertices`` ``(N, 3)`` from ``direction`` times their size.
 
     ``direction`` is in units of the largest side of the vertices' bounding box (m), from its centre.
@@ -83,13 +83,21 @@ def render_textured(
     if per_pixel:
         colours = lambda X: texture.at_material(X).to(X.dtype)
         return rasterize(
-            v, f, camera, colours, texcoords=r, light=light, ambient=ambient, background=background, two_sided=True
+            v,
+            f,
+            camera,
+            colors=colours,
+            texcoords=r,
+            light=light,
+            ambient=ambient,
+            background=background,
+            two_sided=True,
         )
     return rasterize(
         v,
         f,
         camera,
-        texture.at_material(r).to(v.dtype),
+        colors=texture.at_material(r).to(v.dtype),
         light=light,
         ambient=ambient,
         background=background,
@@ -97,7 +105,7 @@ def render_textured(
     )
 
 
-def body_texture(grid, exemplar="liver:64", block=None, seed: int = 0, voxel=None):
+def body_texture(grid, *, exemplar="liver:64", block=None, seed: int = 0, voxel=None):
     """A :class:`~torchdeform.texture.SolidTexture` covering the grid's rest box (and two spacings around it).
 
     The box of ``textured.png`` of a scene's ``[texture]`` section and of the animation's surface panel.
@@ -115,10 +123,10 @@ def body_texture(grid, exemplar="liver:64", block=None, seed: int = 0, voxel=Non
     if isinstance(exemplar, str):
         from .exemplar import exemplar_from
 
-        exemplar = exemplar_from(exemplar, seed)
+        exemplar = exemplar_from(exemplar, seed=seed)
     block = block or min(exemplar.shape[1:]) // 2
     voxel = voxel or min(grid.spacing) / 4
-    X = grid.rest_positions(torch.float64)[0].reshape(3, -1)
+    X = grid.rest_positions(dtype=torch.float64)[0].reshape(3, -1)
     lo, hi = X.min(1).values, X.max(1).values
     pad = 2 * max(grid.spacing)  # the surfaces reach half a cell out
     extent = [int((h - l + 2 * pad) / voxel) + 2 for l, h in zip(lo.tolist(), hi.tolist())]

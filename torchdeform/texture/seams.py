@@ -106,7 +106,7 @@ REGIONS = ("seams", "all")
 def _check_volume(volume, key="volume") -> torch.Tensor:
     if not torch.is_tensor(volume) or volume.dim() != 4 or not volume.is_floating_point():
         got = tuple(volume.shape) if torch.is_tensor(volume) else type(volume).__name__
-        raise ConfigError(key, "a float tensor (C, D, H, W)", got)
+        raise ConfigError(key, "a float tensor (C, D, H, W)", got=got)
     return volume
 
 
@@ -114,7 +114,7 @@ def _blocks(block, ndim: int = 3) -> tuple:
     """Block size per axis; one int for all axes, or one per axis (``None``: no faces on that axis)."""
     sizes = (block,) * ndim if block is None or isinstance(block, int) else tuple(block)
     if len(sizes) != ndim or not all(b is None or (isinstance(b, int) and b >= 1) for b in sizes):
-        raise ConfigError("block", f"a block size >= 1 or {ndim} of them", block)
+        raise ConfigError("block", f"a block size >= 1 or {ndim} of them", got=block)
     return sizes
 
 
@@ -170,7 +170,7 @@ def seam_band(shape, block, margin: int) -> torch.Tensor:
         [0, 0, 1, 1, 1, 1, 0, 0]
     """
     if not isinstance(margin, int) or margin < 1:
-        raise ConfigError("margin", "an integer >= 1 (voxels)", margin)
+        raise ConfigError("margin", "an integer >= 1 (voxels)", got=margin)
     shape = tuple(int(n) for n in shape)
     sizes = _blocks(block)
     out = torch.zeros(shape, dtype=torch.bool)
@@ -191,7 +191,7 @@ def _guidance(x: torch.Tensor, grid: Grid, faces: torch.Tensor, guide: str) -> t
     faces = faces.to(x.device)[None, :, None]  # (1, 3, 1, D, H, W)
     if guide == "zero":
         return torch.where(faces, torch.zeros((), dtype=x.dtype, device=x.device), d)
-    inblock = (grid.in_grid_mask(x.device)[None, :, None] & ~faces).to(x.dtype)
+    inblock = (grid.in_grid_mask(device=x.device)[None, :, None] & ~faces).to(x.dtype)
     d_in = d * inblock
     num = torch.zeros_like(d)
     den = torch.zeros_like(inblock)
@@ -217,11 +217,11 @@ def _laplacian(grid: Grid):
 def _blend(x: torch.Tensor, grid: Grid, block, *, guide, region, margin, iters, tol):
     """Guided Poisson blend of node fields ``x`` ``(B, 1, D, H, W)`` on ``grid``; see the module notes."""
     if guide not in GUIDES:
-        raise ConfigError("guide", "one of " + ", ".join(map(repr, GUIDES)), guide)
+        raise ConfigError("guide", "one of " + ", ".join(map(repr, GUIDES)), got=guide)
     if region not in REGIONS:
-        raise ConfigError("region", "one of " + ", ".join(map(repr, REGIONS)), region)
+        raise ConfigError("region", "one of " + ", ".join(map(repr, REGIONS)), got=region)
     if not isinstance(iters, int) or iters < 1:
-        raise ConfigError("iters", "an integer >= 1", iters)
+        raise ConfigError("iters", "an integer >= 1", got=iters)
     faces = face_edges(grid.shape, block)
     if not bool(faces.any()):  # one block: nothing to blend
         return x, 0, 0.0
@@ -276,24 +276,27 @@ def seam_measure(
     faces = face_edges(volume.shape[1:], block)
     if axis is not None:
         if axis not in (0, 1, 2):
-            raise ConfigError("axis", "0, 1, 2 or None", axis)
+            raise ConfigError("axis", "0, 1, 2 or None", got=axis)
         faces[[a for a in range(3) if a != axis]] = False
     if not bool(faces.any()):
-        raise ConfigError("block", f"a block size that puts a face inside the volume {tuple(volume.shape[1:])}", block)
+        raise ConfigError(
+            "block", f"a block size that puts a face inside the volume {tuple(volume.shape[1:])}", got=block
+        )
     grid = Grid(tuple(volume.shape[1:]), spacing=1.0, topology=6)
     d = difference(volume[None], grid)[0].abs()  # (3, C, D, H, W)
     faces = faces.to(volume.device)[:, None].expand_as(d)
     num = d[faces].mean()
     if reference is None:
         inblock = (
-            grid.in_grid_mask(volume.device)[:, None] & ~face_edges(volume.shape[1:], block).to(volume.device)[:, None]
+            grid.in_grid_mask(device=volume.device)[:, None]
+            & ~face_edges(volume.shape[1:], block).to(volume.device)[:, None]
         ).expand_as(d)
         den = d[inblock].mean()
     else:
         reference = _check_volume(reference, "reference")
         rgrid = Grid(tuple(reference.shape[1:]), spacing=1.0, topology=6)
         dr = difference(reference[None], rgrid)[0].abs()
-        den = dr[rgrid.in_grid_mask(reference.device)[:, None].expand_as(dr)].mean()
+        den = dr[rgrid.in_grid_mask(device=reference.device)[:, None].expand_as(dr)].mean()
     return float(num / den.clamp_min(torch.finfo(den.dtype).tiny))
 
 
@@ -345,15 +348,15 @@ def seam_jump(volume: torch.Tensor, block, *, reference: torch.Tensor | None = N
         jump = (da - (before + after) / 2).abs()[:, ok]
         total, count = total + jump.sum(), count + jump.numel()
     if count == 0:
-        raise ConfigError("block", f"a block size that puts a face inside the volume {shape}", block)
+        raise ConfigError("block", f"a block size that puts a face inside the volume {shape}", got=block)
     if reference is None:
-        inblock = (grid.in_grid_mask(volume.device) & ~faces)[:, None].expand_as(d)
+        inblock = (grid.in_grid_mask(device=volume.device) & ~faces)[:, None].expand_as(d)
         den = d.abs()[inblock].mean()
     else:
         reference = _check_volume(reference, "reference")
         rgrid = Grid(tuple(reference.shape[1:]), spacing=1.0, topology=6)
         dr = difference(reference[None], rgrid)[0].abs()
-        den = dr[rgrid.in_grid_mask(reference.device)[:, None].expand_as(dr)].mean()
+        den = dr[rgrid.in_grid_mask(device=reference.device)[:, None].expand_as(dr)].mean()
     return float(total / count / den.clamp_min(torch.finfo(den.dtype).tiny))
 
 
@@ -414,8 +417,8 @@ def poisson_blend_3d(
 def poisson_blend_slices(
     volume: torch.Tensor,
     block,
-    axis: int = 0,
     *,
+    axis: int = 0,
     iters: int = 2000,
     tol: float = 1e-6,
     region: str = "seams",
@@ -459,7 +462,7 @@ def poisson_blend_slices(
     """
     volume = _check_volume(volume)
     if axis not in (0, 1, 2):
-        raise ConfigError("axis", "0, 1 or 2", axis)
+        raise ConfigError("axis", "0, 1 or 2", got=axis)
     C = volume.shape[0]
     sizes = list(_blocks(block))
     sizes[axis] = None
@@ -474,7 +477,7 @@ def poisson_blend_slices(
     return (u, used, rel) if return_info else u
 
 
-def histogram_distance(a: torch.Tensor, b: torch.Tensor, bins: int = 32, *, metric: str = "wasserstein") -> float:
+def histogram_distance(a: torch.Tensor, b: torch.Tensor, *, bins: int = 32, metric: str = "wasserstein") -> float:
     """Distance between the per-channel colour histograms of two volumes.
 
     For each channel, both volumes are binned into ``bins`` equal bins over the union of their value
@@ -503,11 +506,11 @@ def histogram_distance(a: torch.Tensor, b: torch.Tensor, bins: int = 32, *, metr
         1.0
     """
     if metric not in ("wasserstein", "l1"):
-        raise ConfigError("metric", "'wasserstein' or 'l1'", metric)
+        raise ConfigError("metric", "'wasserstein' or 'l1'", got=metric)
     if not isinstance(bins, int) or bins < 1:
-        raise ConfigError("bins", "an integer >= 1", bins)
+        raise ConfigError("bins", "an integer >= 1", got=bins)
     if a.shape[0] != b.shape[0]:
-        raise ConfigError("b", f"a volume with {a.shape[0]} channels like a", tuple(b.shape))
+        raise ConfigError("b", f"a volume with {a.shape[0]} channels like a", got=tuple(b.shape))
     a = a.reshape(a.shape[0], -1).double()
     b = b.reshape(b.shape[0], -1).double()
     total = 0.0

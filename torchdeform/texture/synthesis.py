@@ -24,7 +24,7 @@ tissue keeps its colour however the body moves or is cut (:meth:`SolidTexture.at
 Examples:
     >>> import torch
     >>> from torchdeform.texture import liver_exemplar
-    >>> tex = SolidTexture(liver_exemplar(32), block=16, extent=(40, 20, 20), seed=0)
+    >>> tex = SolidTexture(liver_exemplar(size=32), block=16, extent=(40, 20, 20), seed=0)
     >>> tex.blocks                                        # ceil(40/16), ceil(20/16), ceil(20/16)
     (3, 2, 2)
     >>> tex.colour(torch.tensor([[1.0, 2.0, 3.0]])).shape
@@ -66,7 +66,14 @@ class SolidTexture:
     """
 
     def __init__(
-        self, exemplar, block: int = 64, extent=(64, 64, 64), seed: int = 0, voxel: float = 1.0, origin=(0.0, 0.0, 0.0)
+        self,
+        exemplar,
+        *,
+        block: int = 64,
+        extent=(64, 64, 64),
+        seed: int = 0,
+        voxel: float = 1.0,
+        origin=(0.0, 0.0, 0.0),
     ):
         self.exemplar = (
             exemplar
@@ -81,13 +88,13 @@ class SolidTexture:
             raise ConfigError(
                 "texture.block",
                 f"an integer block size from 2 to the exemplar's smallest side ({min(size)} voxels)",
-                block,
+                got=block,
             )
         ext = tuple(int(e) for e in extent)
         if len(ext) != 3 or min(ext) < 1:
-            raise ConfigError("texture.extent", "three positive voxel counts (D, H, W)", extent)
+            raise ConfigError("texture.extent", "three positive voxel counts (D, H, W)", got=extent)
         if not voxel > 0:
-            raise ConfigError("texture.voxel", "a positive voxel size (m)", voxel)
+            raise ConfigError("texture.voxel", "a positive voxel size (m)", got=voxel)
         self.block, self.extent, self.voxel = block, ext, float(voxel)
         self.origin = torch.tensor([float(c) for c in origin], dtype=torch.float64)
         self.blocks = tuple(math.ceil(e / block) for e in ext)
@@ -97,7 +104,7 @@ class SolidTexture:
         self.volume: torch.Tensor | None = None
 
     def blend(
-        self, method: str = "3d", *, region: str = "seams", margin: int = 4, iters: int = 2000, tol: float = 1e-6
+        self, *, method: str = "3d", region: str = "seams", margin: int = 4, iters: int = 2000, tol: float = 1e-6
     ) -> dict:
         """Blend the block seams; later lookups read the blended volume (see the module docstring).
 
@@ -120,8 +127,8 @@ class SolidTexture:
 
         Example:
             >>> from torchdeform.texture import liver_exemplar
-            >>> tex = SolidTexture(liver_exemplar(32), block=16, extent=(32, 32, 32), seed=0)
-            >>> r = tex.blend("3d")
+            >>> tex = SolidTexture(liver_exemplar(size=32), block=16, extent=(32, 32, 32), seed=0)
+            >>> r = tex.blend(method="3d")
             >>> r["seam_after"] < r["seam_before"] / 3, tex.volume.shape
             (True, torch.Size([3, 32, 32, 32]))
         """
@@ -130,7 +137,7 @@ class SolidTexture:
         from .seams import histogram_distance, poisson_blend_3d, poisson_blend_slices, seam_jump
 
         if method not in SEAM_METHODS:
-            raise ConfigError("texture.seams", " or ".join(f'"{m}"' for m in SEAM_METHODS), method)
+            raise ConfigError("texture.seams", " or ".join(f'"{m}"' for m in SEAM_METHODS), got=method)
         t0 = time.perf_counter()
         self._set_volume(None)
         v = self.materialise()
@@ -199,7 +206,7 @@ class SolidTexture:
         start = self.offsets.view(-1, 3).index_select(0, flat).to(points.dtype)  # (N, 3)
         return start + (points - b * cell)
 
-    def colour(self, points: torch.Tensor, mode: str = "trilinear") -> torch.Tensor:
+    def colour(self, points: torch.Tensor, *, mode: str = "trilinear") -> torch.Tensor:
         """Colours ``(N, 3)`` at texture points ``(N, 3)`` (voxels); ``mode`` ``"trilinear"`` or ``"nearest"``.
 
         Lookups read the exemplar at :meth:`exemplar_points` or, after :meth:`blend`, the blended
@@ -210,7 +217,7 @@ class SolidTexture:
         element per thread (``grid_sample`` shares out batch elements, not points).
         """
         if mode not in ("trilinear", "nearest"):
-            raise ConfigError("texture.mode", '"trilinear" or "nearest"', mode)
+            raise ConfigError("texture.mode", '"trilinear" or "nearest"', got=mode)
         q = self.exemplar_points(points) if self.volume is None else points
         if mode == "nearest":
             ex = self._source(points.dtype)
@@ -243,12 +250,12 @@ class SolidTexture:
         out = out.permute(1, 2, 0, 3).reshape(3, 2, -1)[:, :, :n]
         return torch.lerp(out[:, 0], out[:, 1], frac).T
 
-    def at_material(self, X: torch.Tensor, mode: str = "trilinear") -> torch.Tensor:
+    def at_material(self, X: torch.Tensor, *, mode: str = "trilinear") -> torch.Tensor:
         """Colours ``(N, 3)`` at material (rest) coordinates ``X`` ``(N, 3)`` (m)."""
         Xv = (X.double() - self.origin) / self.voxel
-        return self.colour(Xv.to(self.exemplar.dtype if X.dtype != torch.float64 else torch.float64), mode)
+        return self.colour(Xv.to(self.exemplar.dtype if X.dtype != torch.float64 else torch.float64), mode=mode)
 
-    def materialise(self, lo=(0, 0, 0), hi=None) -> torch.Tensor:
+    def materialise(self, *, lo=(0, 0, 0), hi=None) -> torch.Tensor:
         """The texture at the voxels ``lo <= p < hi`` (default: the whole extent), ``(3, d, h, w)``.
 
         Integer voxels read the exemplar exactly (each block a plain copy of its exemplar block).
@@ -256,4 +263,4 @@ class SolidTexture:
         hi = self.extent if hi is None else tuple(hi)
         axes = [torch.arange(int(a), int(b), dtype=torch.float32) for a, b in zip(lo, hi)]
         P = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-        return self.colour(P, "nearest").T.reshape(3, *[len(a) for a in axes])
+        return self.colour(P, mode="nearest").T.reshape(3, *[len(a) for a in axes])

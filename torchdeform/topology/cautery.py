@@ -42,7 +42,7 @@ def cauterize(model, state, tool) -> dict:
     """
     grid = model.grid
     if state.x.shape[0] != 1:
-        raise ConfigError("cauterize.state", "one body (batch 1)", tuple(state.x.shape))
+        raise ConfigError("cauterize.state", "one body (batch 1)", got=tuple(state.x.shape))
     dev = state.x.device
     d, _ = tool.sdf(state.x, state.t)
     removed = model.removed

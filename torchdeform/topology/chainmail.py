@@ -22,7 +22,7 @@ Example:
     >>> import torchdeform as td
     >>> from torchdeform.topology import Blade, unlink
     >>> g = td.Grid((6, 6, 6), spacing=1.0)
-    >>> cm = td.ChainMail(g, td.Limits.from_material(g, 0.8, 1.2, 0.2), method="enhanced")
+    >>> cm = td.ChainMail(g, td.Limits.from_material(g, compression=0.8, stretch=1.2, shear=0.2), method="enhanced")
     >>> blade = Blade((2.5, -1.0, -1.0), (0.0, 7.0, 0.0), (0.0, 0.0, 7.0))   # between layers 2 and 3
     >>> links = unlink(cm, None, blade)
     >>> int((~links[0]).sum() - (~td.chainmail.link_mask(g)[0]).sum())     # 6 x 6 links along d cut
@@ -56,11 +56,11 @@ def _positions(x) -> torch.Tensor:
     x = torch.as_tensor(x)
     x = x.unsqueeze(0) if x.dim() == 4 else x
     if x.dim() != 5 or x.shape[1] != 3:
-        raise ConfigError("positions", "element positions (B, 3, D, H, W) or (3, D, H, W)", tuple(x.shape))
+        raise ConfigError("positions", "element positions (B, 3, D, H, W) or (3, D, H, W)", got=tuple(x.shape))
     return x
 
 
-def link_crossing(positions: torch.Tensor, blade: Blade, grid=None) -> torch.Tensor:
+def link_crossing(positions: torch.Tensor, blade: Blade, *, grid=None) -> torch.Tensor:
     """Bool ``(B, 3, D, H, W)``: the ChainMail link stored at each element along each axis crosses the blade.
 
     Entry ``[b, a, i, j, k]`` is the link from ``(i, j, k)`` to ``(i, j, k) + e_a``; links leaving
@@ -77,19 +77,19 @@ def link_crossing(positions: torch.Tensor, blade: Blade, grid=None) -> torch.Ten
         >>> from torchdeform.topology import Blade, link_crossing
         >>> g = td.Grid((3, 2, 2), spacing=1.0)
         >>> blade = Blade((0.5, -1.0, -1.0), (0.0, 3.0, 0.0), (0.0, 0.0, 3.0))   # between layers 0 and 1
-        >>> c = link_crossing(g.rest_positions(torch.float64), blade, g)
+        >>> c = link_crossing(g.rest_positions(dtype=torch.float64), blade, grid=g)
         >>> c.shape, int(c.sum()), c[0, 0, 0].all().item()
         (torch.Size([1, 3, 3, 2, 2]), 4, True)
     """
     if not isinstance(blade, Blade):
-        raise ConfigError("blade", "a torchdeform.topology.Blade", type(blade).__name__)
+        raise ConfigError("blade", "a torchdeform.topology.Blade", got=type(blade).__name__)
     x = _positions(positions)
     shape = tuple(x.shape[2:])
     if grid is not None and tuple(grid.shape) != shape:
-        raise ConfigError("positions", f"(B, 3, D, H, W) with grid {grid.shape}", tuple(x.shape))
+        raise ConfigError("positions", f"(B, 3, D, H, W) with grid {grid.shape}", got=tuple(x.shape))
     out = crossing(_box6(shape), x, blade)  # 6 neighbours: half-direction s is axis s
     if grid is not None:
-        out &= link_mask(grid, x.device)
+        out &= link_mask(grid, device=x.device)
     return out
 
 
@@ -116,31 +116,31 @@ def unlink(target, positions, blade: Blade) -> torch.Tensor:
         >>> from torchdeform.chainmail import link_mask, tensor_chainmail
         >>> from torchdeform.topology import Blade, unlink
         >>> g = td.Grid((6, 6, 6), spacing=1.0)
-        >>> x = g.rest_positions(torch.float64)
+        >>> x = g.rest_positions(dtype=torch.float64)
         >>> half = Blade((2.5, -1.0, -1.0), (0.0, 2.5, 0.0), (0.0, 0.0, 7.0))   # h in 0..1 only
         >>> links = unlink(link_mask(g), x, half)
         >>> int((~links).sum() - (~link_mask(g)).sum())      # links 2 -> 3 along d with h in 0..1
         12
         >>> pick = torch.zeros(6, 6, 6, dtype=torch.bool); pick[0, 0, 0] = True
-        >>> r = tensor_chainmail(x, g, td.Limits.from_material(g, 0.8, 1.2, 0.2), pick, (-4.0, 0.0, 0.0),
-        ...                      links=links)
+        >>> lim = td.Limits.from_material(g, compression=0.8, stretch=1.2, shear=0.2)
+        >>> r = tensor_chainmail(x, g, lim, pick, (-4.0, 0.0, 0.0), links=links)
         >>> bool(r.moved[0, 5].any()), float(r.violation[0]) < 1e-12   # the far side follows round the cut
         (True, True)
     """
     if isinstance(target, ChainMail):
         x = target.positions() if positions is None else _positions(positions)
         if x.shape[0] != 1:
-            raise ConfigError("positions", "one set of positions (1, 3, D, H, W) for a ChainMail", tuple(x.shape))
-        cut_ = link_crossing(x, blade, target.grid)[0].cpu()
+            raise ConfigError("positions", "one set of positions (1, 3, D, H, W) for a ChainMail", got=tuple(x.shape))
+        cut_ = link_crossing(x, blade, grid=target.grid)[0].cpu()
         new = target.links & ~cut_
         target.set_links(new)
         return new
     if positions is None:
-        raise ConfigError("positions", "element positions (B, 3, D, H, W) to cut a link mask at", None)
+        raise ConfigError("positions", "element positions (B, 3, D, H, W) to cut a link mask at", got=None)
     try:
         mask = target.to(torch.bool) if torch.is_tensor(target) else torch.as_tensor(target, dtype=torch.bool)
     except (TypeError, ValueError, RuntimeError):
-        raise ConfigError("target", "a ChainMail or a bool (3, D, H, W) link mask", type(target).__name__) from None
+        raise ConfigError("target", "a ChainMail or a bool (3, D, H, W) link mask", got=type(target).__name__) from None
     x = _positions(positions)
     if (
         mask.dim() not in (4, 5)
@@ -150,7 +150,7 @@ def unlink(target, positions, blade: Blade) -> torch.Tensor:
         raise ConfigError(
             "target",
             f"a bool (3, D, H, W) or (B, 3, D, H, W) link mask matching positions {tuple(x.shape)}",
-            tuple(mask.shape),
+            got=tuple(mask.shape),
         )
     new = mask.to(x.device) & ~link_crossing(x, blade)
     return new[0] if mask.dim() == 4 and x.shape[0] == 1 else new

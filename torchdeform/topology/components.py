@@ -21,7 +21,7 @@ from .masks import alive
 __all__ = ["components"]
 
 
-def components(model, batch: int = 0) -> tuple[torch.Tensor, int]:
+def components(model, *, batch: int = 0) -> tuple[torch.Tensor, int]:
     """``(labels, count)``: the component of every node ``(D, H, W)`` (int64, -1 outside the body).
 
     Outside the body: outside the grid's node mask, or removed by cautery.

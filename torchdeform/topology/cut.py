@@ -32,7 +32,7 @@ Examples:
     >>> import torchdeform as td
     >>> grid = td.Grid((2, 1, 1), spacing=1.0, topology=6)        # one spring along D
     >>> blade = Blade((0.5, -1.0, -1.0), (0.0, 2.0, 0.0), (0.0, 0.0, 2.0))
-    >>> crossing(grid, grid.rest_positions(torch.float64), blade)[0, 0].flatten().tolist()   # along D, stored at node 0
+    >>> crossing(grid, grid.rest_positions(dtype=torch.float64), blade)[0, 0].flatten().tolist()   # along D, stored at node 0
     [True, False]
 """
 
@@ -89,19 +89,19 @@ class Blade:
         area, scale = _dot(n, n) ** 0.5, (_dot(u, u) * _dot(v, v)) ** 0.5
         if not area > 1e-12 * scale or scale == 0:
             what = "three corners not on one line" if triangle else "two non-zero edges u and v, not parallel"
-            raise ConfigError(key, f"a non-degenerate {'triangle' if triangle else 'blade'}: {what}", (o, u, v))
+            raise ConfigError(key, f"a non-degenerate {'triangle' if triangle else 'blade'}: {what}", got=(o, u, v))
         self.patches.append((o, u, v, bool(triangle)))
         if len(self.patches) == 1:
             self.normal = tuple(c / area for c in n)
 
     @classmethod
-    def triangle(cls, a, b, c, key: str = "blade") -> Blade:
+    def triangle(cls, a, b, c, *, key: str = "blade") -> Blade:
         """The triangle with corners ``a``, ``b``, ``c`` ``(3,)`` m."""
         a, b, c = (as_vec3(p, f"{key}.corner") for p in (a, b, c))
         return cls(a, [q - p for p, q in zip(a, b)], [q - p for p, q in zip(a, c)], triangle=True, key=key)
 
     @classmethod
-    def swept(cls, edges, key: str = "blade") -> Blade:
+    def swept(cls, edges, *, key: str = "blade") -> Blade:
         """The surface a straight cutting edge sweeps through ``K >= 2`` poses.
 
         Args:
@@ -112,7 +112,7 @@ class Blade:
         """
         e = torch.as_tensor(edges, dtype=torch.float64)
         if e.dim() != 3 or e.shape[1:] != (2, 3) or e.shape[0] < 2:
-            raise ConfigError(key, "the edge's ends at two or more poses, shape (K, 2, 3)", tuple(e.shape))
+            raise ConfigError(key, "the edge's ends at two or more poses, shape (K, 2, 3)", got=tuple(e.shape))
         blade = None
         for k in range(e.shape[0] - 1):
             a0, b0, a1, b1 = (tuple(float(c) for c in p) for p in (e[k, 0], e[k, 1], e[k + 1, 0], e[k + 1, 1]))
@@ -129,7 +129,7 @@ class Blade:
                 else:
                     blade._add(o, p, q, tri, key)
         if blade is None:
-            raise ConfigError(key, "an edge that sweeps a surface (it only moved along itself)", tuple(e.shape))
+            raise ConfigError(key, "an edge that sweeps a surface (it only moved along itself)", got=tuple(e.shape))
         return blade
 
     # --------------------------------------------------------------- geometry
@@ -281,7 +281,7 @@ def crossed_pieces(grid, x: torch.Tensor, blade: Blade) -> list:
     """
     D, H, W = grid.shape
     N, dev = D * H * W, x.device
-    exists = grid.spring_mask(dev)
+    exists = grid.spring_mask(device=dev)
     index = _direction_index(grid, dev)
     offs = ((index[0] - 1) * H + index[1] - 1) * W + index[2] - 1  # (S,) flat offsets
     out = []
@@ -351,7 +351,7 @@ def sides(x: torch.Tensor, blade: Blade) -> torch.Tensor:
     return (blade.height(x) > 0).to(torch.int8) * 2 - 1
 
 
-def pretension(model: Model, nodes: torch.Tensor, gape, springs: torch.Tensor | None = None) -> torch.Tensor:
+def pretension(model: Model, nodes: torch.Tensor, gape, *, springs: torch.Tensor | None = None) -> torch.Tensor:
     """Rest lengths ``(Bp, S, D, H, W)`` with the springs at ``nodes`` shortened by the factor ``1 - gape``.
 
     A function of the model's rest lengths and ``gape`` (differentiable in both), the model is not
@@ -364,7 +364,7 @@ def pretension(model: Model, nodes: torch.Tensor, gape, springs: torch.Tensor | 
         springs: optional bool ``(1, S, D, H, W)`` restricting which of them (default: all).
     """
     if not torch.is_tensor(gape) and not 0 <= float(gape) < 1:
-        raise ConfigError("cut.gape", "a fraction in [0, 1) of the rest length", gape)
+        raise ConfigError("cut.gape", "a fraction in [0, 1) of the rest length", got=gape)
     at_src, at_dst = ends(model.grid, nodes)
     touch = (at_src | at_dst) & alive(model)
     if springs is not None:
@@ -373,7 +373,7 @@ def pretension(model: Model, nodes: torch.Tensor, gape, springs: torch.Tensor | 
     return torch.where(touch, l0 * (1 - gape), l0)
 
 
-def cut(model: Model, x: torch.Tensor, blade: Blade, gape: float = 0.0) -> int:
+def cut(model: Model, x: torch.Tensor, blade: Blade, *, gape: float = 0.0) -> int:
     """Remove the springs that cross ``blade`` from ``model`` (in place); returns how many.
 
     Args:
@@ -387,7 +387,7 @@ def cut(model: Model, x: torch.Tensor, blade: Blade, gape: float = 0.0) -> int:
 
     Examples:
         >>> import torchdeform as td
-        >>> model = td.Model(td.Grid((3, 3, 3), 0.01, 6), stiffness=10.0, mass=1e-3)
+        >>> model = td.Model(td.Grid((3, 3, 3), spacing=0.01, topology=6), stiffness=10.0, mass=1e-3)
         >>> cut(model, model.X, Blade((0.005, -0.01, -0.01), (0, 0.04, 0), (0, 0, 0.04)))     # n^2
         9
     """
@@ -406,7 +406,7 @@ def cut(model: Model, x: torch.Tensor, blade: Blade, gape: float = 0.0) -> int:
         if old is not None:  # a spring shortened once only
             a, b = ends(grid, old)
             springs = ~(a | b)
-        assign(model, "rest_length", pretension(model, fresh, gape, springs))
+        assign(model, "rest_length", pretension(model, fresh, gape, springs=springs))
         model.cut_nodes = nodes if old is None else old | nodes
     return count
 
@@ -423,7 +423,7 @@ class Scalpel:
     Examples:
         >>> import torchdeform as td
         >>> from torchdeform.interact import Sphere, Tool
-        >>> model = td.Model(td.Grid((4, 4, 4), 0.01, 6), stiffness=10.0, mass=1e-3)
+        >>> model = td.Model(td.Grid((4, 4, 4), spacing=0.01, topology=6), stiffness=10.0, mass=1e-3)
         >>> tool = Tool(Sphere(0.001), path=[(0.0, (0.015, -0.01, -0.01)), (1.0, (0.015, 0.05, -0.01))])
         >>> knife = Scalpel(tool, edge=((0, 0, 0), (0, 0, 0.05)))
         >>> state = model.rest_state()
@@ -434,13 +434,13 @@ class Scalpel:
         12
     """
 
-    def __init__(self, tool, edge, pieces: int = 1, gape: float = 0.0):
+    def __init__(self, tool, edge, *, pieces: int = 1, gape: float = 0.0):
         self.tool = tool
         self.edge = (as_vec3(edge[0], "scalpel.edge"), as_vec3(edge[1], "scalpel.edge"))
         if self.edge[0] == self.edge[1]:
-            raise ConfigError("scalpel.edge", "two different ends", self.edge)
+            raise ConfigError("scalpel.edge", "two different ends", got=self.edge)
         if int(pieces) < 1:
-            raise ConfigError("scalpel.pieces", "an integer >= 1", pieces)
+            raise ConfigError("scalpel.pieces", "an integer >= 1", got=pieces)
         self.pieces, self.gape = int(pieces), gape
         self._last = None
 
@@ -471,4 +471,4 @@ class Scalpel:
             self._last = t
             return 0
         blade, self._last = self.swept(self._last, t), t
-        return 0 if blade is None else cut(model, state.x, blade, self.gape)
+        return 0 if blade is None else cut(model, state.x, blade, gape=self.gape)

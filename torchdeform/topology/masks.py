@@ -61,7 +61,7 @@ def full(model, p: torch.Tensor) -> torch.Tensor:
 
 def alive(model) -> torch.Tensor:
     """Bool ``(Bp, S, D, H, W)``: the slot holds a spring of the grid that still has stiffness."""
-    return (full(model, model.stiffness) != 0) & model.grid.spring_mask(model.stiffness.device)
+    return (full(model, model.stiffness) != 0) & model.grid.spring_mask(device=model.stiffness.device)
 
 
 def editable(model):
@@ -72,7 +72,7 @@ def editable(model):
 
     Examples:
         >>> import torchdeform as td
-        >>> model = editable(td.Model(td.Grid((3, 3, 3), 0.01, 6), stiffness=1.0, mass=1e-3))
+        >>> model = editable(td.Model(td.Grid((3, 3, 3), spacing=0.01, topology=6), stiffness=1.0, mass=1e-3))
         >>> tuple(model.stiffness.shape), tuple(model.mass.shape), model.free is not None
         ((1, 3, 3, 3, 3), (1, 1, 3, 3, 3), True)
     """
@@ -111,7 +111,7 @@ def assign(model, name: str, value: torch.Tensor) -> None:
             f"model.{name}",
             f"a per-spring {name} shared with the compiled step: "
             f"compiled_step(..., editable=({', '.join(repr(f) for f in model.shared + (name,))}))",
-            "a per-direction one",
+            got="a per-direction one",
             show_got=True,
         )
     setattr(model, name, value)
@@ -185,7 +185,7 @@ def remove(model, springs) -> int:
                 piece.view(c).masked_fill_(piece.mask, 0)
         return count
     if model.shared:
-        raise ConfigError("remove.springs", f"one cut per batch entry of the model's {k.shape[0]}", nb)
+        raise ConfigError("remove.springs", f"one cut per batch entry of the model's {k.shape[0]}", got=nb)
     dense = _union(model.grid, pieces, k.device)
     count = int((dense & alive(model)).sum())
     keep = (~dense).to(model.dtype)

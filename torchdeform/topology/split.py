@@ -53,7 +53,7 @@ def share_mass(masses: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return masses.sum() / (k + 1), masses * (k / (k + 1))
 
 
-def add_node(model, state, node, neighbours=None, position=None, gape: float = 0.0) -> dict:
+def add_node(model, state, node, *, neighbours=None, position=None, gape: float = 0.0) -> dict:
     """Add the removed lattice node ``node`` back to the body, joined to ``neighbours`` (in place).
 
     Args:
@@ -71,13 +71,13 @@ def add_node(model, state, node, neighbours=None, position=None, gape: float = 0
     grid = model.grid
     node = tuple(int(i) for i in node)
     if len(node) != 3 or not all(0 <= i < n for i, n in zip(node, grid.shape)):
-        raise ConfigError("add_node.node", f"a node index (d, h, w) inside the grid {grid.shape}", node)
+        raise ConfigError("add_node.node", f"a node index (d, h, w) inside the grid {grid.shape}", got=node)
     if model.removed is None or not bool(model.removed[node]):
-        raise ConfigError("add_node.node", "a node removed from the body earlier (cautery)", node)
+        raise ConfigError("add_node.node", "a node removed from the body earlier (cautery)", got=node)
     if state.x.shape[0] != 1:
-        raise ConfigError("add_node.state", "one body (batch 1)", tuple(state.x.shape))
+        raise ConfigError("add_node.state", "one body (batch 1)", got=tuple(state.x.shape))
     if not 0 <= float(gape) < 1:
-        raise ConfigError("add_node.gape", "a fraction in [0, 1)", gape)
+        raise ConfigError("add_node.gape", "a fraction in [0, 1)", got=gape)
     body = grid.nodes().to(state.x.device) & ~model.removed
     # the stencil neighbours: slot (s, node) joins node -> node + d_s; slot (s, node - d_s) joins the other way
     links = []  # (slot index, neighbour)
@@ -90,7 +90,7 @@ def add_node(model, state, node, neighbours=None, position=None, gape: float = 0
                 continue
             links.append(((s,) + (node if sign > 0 else j), j))
     if not links:
-        raise ConfigError("add_node.neighbours", "at least one neighbour in the body", node)
+        raise ConfigError("add_node.neighbours", "at least one neighbour in the body", got=node)
     js = [j for _, j in links]
     mass = full_node(model, "mass")
     m_nb = torch.stack([mass[(0, 0) + j] for j in js])

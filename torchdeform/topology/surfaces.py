@@ -101,12 +101,12 @@ def _positions(x, shape, key) -> torch.Tensor:
         raise ConfigError(
             key,
             f"node positions (3, {', '.join(map(str, shape))}) or a batch of one (1, 3, ...) of the grid",
-            tuple(x.shape),
+            got=tuple(x.shape),
         )
     if not x.is_floating_point():
         x = x.double()
     if not bool(torch.isfinite(x).all()):
-        raise ConfigError(key, "finite node positions (no NaN or inf)", "non-finite values", show_got=True)
+        raise ConfigError(key, "finite node positions (no NaN or inf)", got="non-finite values", show_got=True)
     return x
 
 
@@ -119,7 +119,7 @@ def _labels(labels, shape) -> torch.Tensor:
         raise ConfigError(
             "labels",
             f"integer labels of the grid's nodes {tuple(shape)} (negative: no piece)",
-            (tuple(t.shape), str(t.dtype)),
+            got=(tuple(t.shape), str(t.dtype)),
         )
     return t.long()
 
@@ -127,7 +127,7 @@ def _labels(labels, shape) -> torch.Tensor:
 def _inputs(grid, x, labels, X):
     shape = tuple(grid.shape)
     x = _positions(x, shape, "x")
-    X = grid.rest_positions(x.dtype, x.device)[0] if X is None else _positions(X, shape, "X").to(x)
+    X = grid.rest_positions(dtype=x.dtype, device=x.device)[0] if X is None else _positions(X, shape, "X").to(x)
     return x, X, _labels(labels, shape).to(x.device)
 
 
@@ -182,7 +182,7 @@ def extension_weights(mask: np.ndarray) -> tuple:
     return np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
 
 
-def extend_displacement(u: torch.Tensor, mask: torch.Tensor, spacing=(1.0, 1.0, 1.0)) -> torch.Tensor:
+def extend_displacement(u: torch.Tensor, mask: torch.Tensor, *, spacing=(1.0, 1.0, 1.0)) -> torch.Tensor:
     """A piece's node displacements extended over the whole grid (module docstring, "Surfaces").
 
     The first layer around the piece is linearly extrapolated along the 26 lattice directions
@@ -206,9 +206,11 @@ def extend_displacement(u: torch.Tensor, mask: torch.Tensor, spacing=(1.0, 1.0, 
     """
     mask = mask.to(torch.bool)
     if mask.dim() != 3 or u.dim() != 4 or tuple(u.shape[1:]) != tuple(mask.shape):
-        raise ConfigError("u", "displacements (C, D, H, W) and a mask (D, H, W)", (tuple(u.shape), tuple(mask.shape)))
+        raise ConfigError(
+            "u", "displacements (C, D, H, W) and a mask (D, H, W)", got=(tuple(u.shape), tuple(mask.shape))
+        )
     if not bool(mask.any()):
-        raise ConfigError("mask", "a piece with at least one node", "an empty mask", show_got=True)
+        raise ConfigError("mask", "a piece with at least one node", got="an empty mask", show_got=True)
     C, N = u.shape[0], mask.numel()
     rows, cols, vals = (torch.as_tensor(a, device=u.device) for a in extension_weights(mask.cpu().numpy()))
     E = torch.sparse_coo_tensor(torch.stack([rows, cols]), vals.to(u.dtype), (N, N), check_invariants=False)
@@ -231,7 +233,7 @@ def extend_displacement(u: torch.Tensor, mask: torch.Tensor, spacing=(1.0, 1.0, 
     return out
 
 
-def cut_surfaces(grid, x, labels, X=None) -> list[CutSurface]:
+def cut_surfaces(grid, x, labels, *, X=None) -> list[CutSurface]:
     """The closed surface of every piece ``labels == L``, ``L >= 0``, on the deformed lattice.
 
     Each piece's surface follows its own nodes only (its displacement extended beyond it, module
@@ -261,7 +263,7 @@ def cut_surfaces(grid, x, labels, X=None) -> list[CutSurface]:
         >>> import torchdeform as td
         >>> grid = td.Grid((4, 3, 3), spacing=1.0, topology=26)
         >>> labels = (torch.arange(4) >= 2).long().view(4, 1, 1).expand(4, 3, 3)   # two sides along D
-        >>> x = grid.rest_positions(torch.float64).clone()
+        >>> x = grid.rest_positions(dtype=torch.float64).clone()
         >>> x[:, 0, 2:] += 1.0                                                     # side 1 moves 1 m along D
         >>> lo, hi = cut_surfaces(grid, x, labels)
         >>> float(lo.vertices[:, 0].max()), float(hi.vertices[:, 0].min()), float(hi.rest[:, 0].min())
@@ -271,9 +273,9 @@ def cut_surfaces(grid, x, labels, X=None) -> list[CutSurface]:
     out = []
     for label in torch.unique(labels[labels >= 0]).tolist():
         mask = labels == label
-        xl = X + extend_displacement(x - X, mask, grid.spacing)
-        vertices, faces = body_surface(xl, mask)
-        rest, _ = body_surface(X, mask)
+        xl = X + extend_displacement(x - X, mask, spacing=grid.spacing)
+        vertices, faces = body_surface(xl, node_mask=mask)
+        rest, _ = body_surface(X, node_mask=mask)
         out.append(CutSurface(int(label), vertices, faces, rest))
     return out
 
@@ -308,11 +310,11 @@ def surface_map(grid, labels: np.ndarray) -> dict:
 
     shape = tuple(grid.shape)
     N = int(np.prod(shape))
-    X = grid.rest_positions(torch.float64)[0].reshape(3, N).T.numpy()
+    X = grid.rest_positions(dtype=torch.float64)[0].reshape(3, N).T.numpy()
     blocks, rests, faces, owner, count = [], [], [], [], 0
     for label in np.unique(labels[labels >= 0]):
         mask = labels == label
-        q, f = marching_tetrahedra(mask.astype(np.float64), 0.5)
+        q, f = marching_tetrahedra(mask.astype(np.float64), level=0.5)
         r, c, v = trilinear_weights(q, shape)
         T = csr_matrix(coo_matrix((v, (r, c)), shape=(len(q), N)))
         r, c, v = extension_weights(mask)
@@ -336,7 +338,7 @@ def surface_map(grid, labels: np.ndarray) -> dict:
     }
 
 
-def save_cut_surfaces(directory, surfaces, stem: str = "piece") -> list[Path]:
+def save_cut_surfaces(directory, surfaces, *, stem: str = "piece") -> list[Path]:
     """Write every surface as ``<directory>/<stem>_<label>.ply`` (created if missing), via trimesh.
 
     Vertex positions are stored as float32 (``x``, ``y``, ``z``, trimesh's PLY writer); the rest
@@ -362,9 +364,9 @@ def save_cut_surfaces(directory, surfaces, stem: str = "piece") -> list[Path]:
     """
     directory = Path(directory)
     if directory.exists() and not directory.is_dir():
-        raise ConfigError("directory", "a folder for the surface files", str(directory))
+        raise ConfigError("directory", "a folder for the surface files", got=str(directory))
     if not all(isinstance(s, CutSurface) for s in surfaces):
-        raise ConfigError("surfaces", "a list of CutSurface (from cut_surfaces)", type(surfaces).__name__)
+        raise ConfigError("surfaces", "a list of CutSurface (from cut_surfaces)", got=type(surfaces).__name__)
     directory.mkdir(parents=True, exist_ok=True)
     paths = []
     for s in surfaces:
@@ -378,7 +380,7 @@ def save_cut_surfaces(directory, surfaces, stem: str = "piece") -> list[Path]:
 
 
 # ------------------------------------------------------------------ carved render
-def cut_pieces(grid, x, labels, volume_shape, X=None) -> list[tuple[torch.Tensor, torch.Tensor]]:
+def cut_pieces(grid, x, labels, volume_shape, *, X=None) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """The pieces of a cut body for ``render(volume, ..., pieces=...)`` (a carved render of the gap).
 
     Per label ``L >= 0``: the piece's displacement extended over the grid (module docstring) as
@@ -403,7 +405,7 @@ def cut_pieces(grid, x, labels, volume_shape, X=None) -> list[tuple[torch.Tensor
         >>> from torchdeform.volume import render
         >>> grid = td.Grid((5, 2, 2), spacing=1.0)
         >>> labels = (torch.arange(5) >= 2).long().view(5, 1, 1).expand(5, 2, 2)  # cut between nodes 1 and 2
-        >>> x = grid.rest_positions(torch.float64).clone()
+        >>> x = grid.rest_positions(dtype=torch.float64).clone()
         >>> x[:, 0, 2:] += 1.0                                    # side 1 moves 1 node spacing = 3 voxels
         >>> vol = torch.ones(13, 3, 3, dtype=torch.float64)     # nodes at voxels 0, 3, ..., 12; cut at 4.5
         >>> img = render(vol, mode="mip", view="h", pieces=cut_pieces(grid, x, labels, vol.shape))
@@ -414,12 +416,12 @@ def cut_pieces(grid, x, labels, volume_shape, X=None) -> list[tuple[torch.Tensor
     volume_shape = tuple(int(n) for n in volume_shape)
     if len(volume_shape) != 3 or any(n > N for N, n in zip(volume_shape, grid.shape)):
         raise ConfigError(
-            "volume_shape", f"three voxel counts, each at least the node count {tuple(grid.shape)}", volume_shape
+            "volume_shape", f"three voxel counts, each at least the node count {tuple(grid.shape)}", got=volume_shape
         )
     out = []
     for label in torch.unique(labels[labels >= 0]).tolist():
         mask = labels == label
-        xl = X + extend_displacement(x - X, mask, grid.spacing)
+        xl = X + extend_displacement(x - X, mask, spacing=grid.spacing)
         offsets = node_offsets(xl[None], X[None], grid.spacing, volume_shape)
         out.append((offsets, mask.to(x.dtype)))
     return out
@@ -447,7 +449,7 @@ class FrameSurface:
         source: the :func:`surface_map` it was built from (float64 ``rest``, vertex ``label`` ...).
     """
 
-    def __init__(self, grid, labels=None, *, packed=None, dtype=torch.float32, device="cpu", compile: bool = False):
+    def __init__(self, grid, *, labels=None, packed=None, dtype=torch.float32, device="cpu", compile: bool = False):
         shape = tuple(grid.shape)
         labels = np.zeros(shape, np.int64) if labels is None else np.asarray(labels, dtype=np.int64)
         self.source = m = surface_map(grid, labels)
@@ -464,7 +466,7 @@ class FrameSurface:
         self.stride = stride
         #: (M, 3) flat index of each used node's three coordinates in the positions' storage
         self.index = torch.as_tensor(where[:, None] + stride * np.arange(3)[None, :], device=device)
-        X = grid.rest_positions(torch.float64)[0].reshape(3, -1).T.numpy()[used]  # (M, 3)
+        X = grid.rest_positions(dtype=torch.float64)[0].reshape(3, -1).T.numpy()[used]  # (M, 3)
         self.X = torch.as_tensor(X, dtype=dtype, device=device)
         V, M = W.shape[0], len(used)
         with warnings.catch_warnings():  # "sparse CSR support is in beta"
@@ -499,7 +501,7 @@ class FrameSurface:
             from .._compile import INDUCTOR_OPTIONS, inductor_options
 
             self._compiled = torch.compile(
-                self._gather_normals, dynamic=False, options=inductor_options(INDUCTOR_OPTIONS)
+                self._gather_normals, dynamic=False, options=inductor_options(options=INDUCTOR_OPTIONS)
             )
 
     @property
@@ -528,7 +530,7 @@ class FrameSurface:
 
                 self._compiled = None
                 self.compile_error = f"{type(e).__name__}: {(str(e).strip().splitlines() or [''])[0][:160]}"
-                warn_fallback(self.compile_error, "the eager surface normals")
+                warn_fallback(self.compile_error, what="the eager surface normals")
         return self._scatter_normals(v)
 
     def _face_normals(self, v):

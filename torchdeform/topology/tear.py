@@ -35,7 +35,7 @@ __all__ = ["spring_lengths", "spring_strain", "tear", "strain_limit_from_force",
 def spring_lengths(grid, x: torch.Tensor) -> torch.Tensor:
     """Current length of every spring slot ``(B, S, D, H, W)`` (zero where the grid has no spring)."""
     d = difference(x, grid)  # (B, S, 3, D, H, W)
-    return (d * d).sum(2).sqrt() * grid.spring_mask(x.device)
+    return (d * d).sum(2).sqrt() * grid.spring_mask(device=x.device)
 
 
 def spring_strain(model, x: torch.Tensor) -> torch.Tensor:
@@ -51,7 +51,7 @@ def strain_limit_from_force(model, max_force) -> torch.Tensor:
     return torch.as_tensor(max_force, dtype=k.dtype, device=k.device) / (k * l0).clamp_min(torch.finfo(k.dtype).tiny)
 
 
-def tear(model, x: torch.Tensor, max_strain, one_per_step: bool = False) -> int:
+def tear(model, x: torch.Tensor, max_strain, *, one_per_step: bool = False) -> int:
     """Break the springs strained beyond ``max_strain`` at positions ``x`` (in place); returns how many.
 
     Args:
@@ -61,7 +61,7 @@ def tear(model, x: torch.Tensor, max_strain, one_per_step: bool = False) -> int:
         one_per_step: break only the most strained spring of each batch entry.
     """
     if not torch.is_tensor(max_strain) and (not isinstance(max_strain, (int, float)) or not max_strain > 0):
-        raise ConfigError("tear.max_strain", "a positive strain (l / l0 - 1)", max_strain)
+        raise ConfigError("tear.max_strain", "a positive strain (l / l0 - 1)", got=max_strain)
     strain = spring_strain(model, x)
     over = strain > max_strain
     if one_per_step:
@@ -73,7 +73,7 @@ def tear(model, x: torch.Tensor, max_strain, one_per_step: bool = False) -> int:
     return remove(model, over)
 
 
-def coagulate(model, x: torch.Tensor, region: torch.Tensor, viscosity_factor: float = 1.0) -> int:
+def coagulate(model, x: torch.Tensor, region: torch.Tensor, *, viscosity_factor: float = 1.0) -> int:
     """Springs with both ends in ``region`` take their current length as rest length; damping x factor.
 
     Args:
@@ -87,12 +87,12 @@ def coagulate(model, x: torch.Tensor, region: torch.Tensor, viscosity_factor: fl
     """
     grid = model.grid
     if x.shape[0] != 1:
-        raise ConfigError("coagulate.x", "positions of one body (1, 3, D, H, W)", tuple(x.shape))
+        raise ConfigError("coagulate.x", "positions of one body (1, 3, D, H, W)", got=tuple(x.shape))
     if not isinstance(viscosity_factor, (int, float)) or not viscosity_factor >= 1:
-        raise ConfigError("coagulate.viscosity_factor", "a factor >= 1", viscosity_factor)
+        raise ConfigError("coagulate.viscosity_factor", "a factor >= 1", got=viscosity_factor)
     region = torch.as_tensor(region, dtype=torch.bool, device=x.device)
     if tuple(region.shape) != grid.shape:
-        raise ConfigError("coagulate.region", f"a bool mask of shape {grid.shape}", tuple(region.shape))
+        raise ConfigError("coagulate.region", f"a bool mask of shape {grid.shape}", got=tuple(region.shape))
     at_src, at_dst = ends(grid, region)
     both = at_src & at_dst & alive(model)
     assign(model, "rest_length", coagulated_rest_length(model, x, both))

@@ -43,7 +43,7 @@ def missing() -> str | None:
     return None
 
 
-def start(profile_dir, width: int = WIDTH, height: int = HEIGHT):
+def start(profile_dir, *, width: int = WIDTH, height: int = HEIGHT):
     """A headless chromium (selenium ``WebDriver``) with a fresh profile in ``profile_dir``.
 
     Raises:
@@ -52,7 +52,7 @@ def start(profile_dir, width: int = WIDTH, height: int = HEIGHT):
     """
     why = missing()
     if why is not None:
-        raise ConfigError("browser", why, "missing")
+        raise ConfigError("browser", why, got="missing")
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 
@@ -84,7 +84,7 @@ def js(driver, expr: str):
     return driver.execute_script(f"return {expr};")
 
 
-def open_page(driver, url: str, frames: int = 5, timeout: float = 30.0) -> None:
+def open_page(driver, url: str, *, frames: int = 5, timeout: float = 30.0) -> None:
     """Load a viewer's ``url`` and wait until the page has received ``frames`` frames and a stats message."""
     from selenium.webdriver.support.ui import WebDriverWait
 
@@ -97,7 +97,7 @@ def open_page(driver, url: str, frames: int = 5, timeout: float = 30.0) -> None:
     )
 
 
-def measure(driver, seconds: float = 2.0) -> dict:
+def measure(driver, *, seconds: float = 2.0) -> dict:
     """The page's rates over ``seconds``.
 
     ``fps`` (frames drawn per second, the page's own count), ``received`` (frames received per second), ``sim_hz`` (the server's steps per second) and
@@ -115,11 +115,11 @@ def measure(driver, seconds: float = 2.0) -> dict:
     }
 
 
-def measured(driver, windows: int = 3, seconds: float = 2.0, settle: float = 3.0) -> dict:
+def measured(driver, *, windows: int = 3, seconds: float = 2.0, settle: float = 3.0) -> dict:
     """Medians of :func:`measure` over ``windows`` windows.
 
     The first starts after ``settle`` seconds, for the page to settle its drawing resolution.
     """
     time.sleep(settle)
-    runs = [measure(driver, seconds) for _ in range(windows)]
+    runs = [measure(driver, seconds=seconds) for _ in range(windows)]
     return {key: statistics.median(r[key] for r in runs) for key in runs[0]}

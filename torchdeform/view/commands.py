@@ -50,15 +50,15 @@ def command(args) -> int:
         0 once stopped.
     """
     if not 0 <= args.port <= 65535:
-        raise ConfigError("--port", "a port in [0, 65535] (0: a free one)", args.port)
+        raise ConfigError("--port", "a port in [0, 65535] (0: a free one)", got=args.port)
     if args.token is not None and not (
         8 <= len(args.token) <= 256 and args.token.isprintable() and all(c.isalnum() or c in "-_.~" for c in args.token)
     ):
         raise ConfigError(
-            "--token", "8 to 256 URL-safe characters (letters, digits, - _ . ~)", args.token, show_got=False
+            "--token", "8 to 256 URL-safe characters (letters, digits, - _ . ~)", got=args.token, show_got=False
         )
     if args.threads is not None and args.threads < 1:
-        raise ConfigError("--threads", "a thread count >= 1", args.threads)
+        raise ConfigError("--threads", "a thread count >= 1", got=args.threads)
     try:
         import websockets  # noqa: F401 - only to say what is missing
     except ImportError:
@@ -77,5 +77,10 @@ def command(args) -> int:
         scene = load_scene(args.scene)
         session = ViewerSession(scene, device=args.device)
     return serve(
-        session, args.host, args.port, args.token, log=lambda url: print(url, flush=True), open_browser=args.open
+        session,
+        host=args.host,
+        port=args.port,
+        token=args.token,
+        log=lambda url: print(url, flush=True),
+        open_browser=args.open,
     )

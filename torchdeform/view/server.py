@@ -46,6 +46,7 @@ Examples:
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hmac
 import json
 import logging
@@ -102,7 +103,7 @@ def check_token(given: str | None, token: str) -> bool:
     return hmac.compare_digest(given.encode("utf-8", "surrogatepass"), token.encode("utf-8"))
 
 
-def allowed_origins(host: str, port: int, request_host: str | None = None) -> set[str]:
+def allowed_origins(host: str, port: int, *, request_host: str | None = None) -> set[str]:
     """The ``Origin`` values the socket accepts: the page's own address.
 
     Args:
@@ -131,7 +132,7 @@ def _vector(value: Any, key: str) -> list[float]:
     return list(_point(value, key, (-MAX_COORDINATE,) * 3, (MAX_COORDINATE,) * 3))
 
 
-def validate(msg: Any, vertices: int | None = None) -> dict:
+def validate(msg: Any, *, vertices: int | None = None) -> dict:
     """Check one decoded message from the page; returns a clean copy (known keys only).
 
     Args:
@@ -263,6 +264,7 @@ class Viewer:
     def __init__(
         self,
         session,
+        *,
         host: str = "127.0.0.1",
         port: int = 0,
         token: str | None = None,
@@ -351,7 +353,7 @@ class Viewer:
             if not check_token(given, self.token):
                 return self._forbidden("no or wrong token", path)
             origin = request.headers.get("Origin")
-            if origin not in allowed_origins(self.host, self.port, request.headers.get("Host")):
+            if origin not in allowed_origins(self.host, self.port, request_host=request.headers.get("Host")):
                 return self._forbidden(f"Origin {str(origin)[:80]!r} is not the page's", path)
             return None
         if path == "/favicon.ico":
@@ -389,7 +391,7 @@ class Viewer:
         except (ValueError, RecursionError) as e:
             return self._ignore(raw, f"bad JSON ({str(e)[:60]})")
         try:
-            msg = validate(msg, self._vertices)
+            msg = validate(msg, vertices=self._vertices)
         except ValueError as e:
             return self._ignore(raw, str(e))
         if msg["cmd"] == "fps":
@@ -466,10 +468,8 @@ class Viewer:
                 steps = self.session.advance(chunk)
             except Exception as e:  # e.g. a divergence: pause, say so once, keep serving
                 logger.error("simulation stopped: %s: %s", type(e).__name__, e)
-                try:
+                with contextlib.suppress(Exception):
                     self.session.command({"cmd": "pause"})
-                except Exception:
-                    pass
                 steps = 0
             changed, self._changed = self._changed, False
             if self.pages and (steps or changed or self._frame is None):
@@ -484,7 +484,7 @@ class Viewer:
                 self._stop_sim.wait(chunk)
 
     # -------------------------------------------------------------- life cycle
-    async def serve_async(self, ready: Callable[[Viewer], None] | None = None) -> None:
+    async def serve_async(self, *, ready: Callable[[Viewer], None] | None = None) -> None:
         """Serve until :meth:`stop` (or cancellation); the simulation thread runs meanwhile.
 
         Args:
@@ -520,14 +520,14 @@ class Viewer:
                 self._stop_sim.set()
                 await asyncio.to_thread(self._sim_thread.join)
 
-    def run(self, ready: Callable[[Viewer], None] | None = None) -> None:
+    def run(self, *, ready: Callable[[Viewer], None] | None = None) -> None:
         """Serve in this thread until :meth:`stop` or Ctrl-C (which stops cleanly).
 
         Args:
             ready: called with this viewer once it listens.
         """
         try:
-            asyncio.run(self.serve_async(ready))
+            asyncio.run(self.serve_async(ready=ready))
         except KeyboardInterrupt:
             logger.info("interrupted: viewer stopped")
         finally:
@@ -535,7 +535,7 @@ class Viewer:
             if self._sim_thread is not None and self._sim_thread.is_alive():
                 self._sim_thread.join()
 
-    def start(self, timeout: float = 30.0) -> Viewer:
+    def start(self, *, timeout: float = 30.0) -> Viewer:
         """Serve in a background thread; returns once it listens.
 
         Args:
@@ -547,7 +547,7 @@ class Viewer:
 
         def target():
             try:
-                asyncio.run(self.serve_async(lambda _: self._ready.set()))
+                asyncio.run(self.serve_async(ready=lambda _: self._ready.set()))
             except BaseException as e:
                 self._error = e
                 self._ready.set()
@@ -558,23 +558,22 @@ class Viewer:
             raise RuntimeError(f"the viewer did not start: {self._error!r}")
         return self
 
-    def stop(self, timeout: float = 30.0) -> None:
+    def stop(self, *, timeout: float = 30.0) -> None:
         """Stop serving (from any thread) and wait for the server and the simulation to end.
 
         Args:
             timeout: seconds to wait for the background thread of :meth:`start`.
         """
         if self._loop is not None and self._stopped is not None and not self._loop.is_closed():
-            try:
+            with contextlib.suppress(RuntimeError):  # the loop has just closed
                 self._loop.call_soon_threadsafe(self._stopped.set)
-            except RuntimeError:  # the loop has just closed
-                pass
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout)
 
 
 def serve(
     session,
+    *,
     host: str = "127.0.0.1",
     port: int = 0,
     token: str | None = None,
@@ -603,5 +602,5 @@ def serve(
 
             webbrowser.open(viewer.url)
 
-    Viewer(session, host, port, token).run(ready)
+    Viewer(session, host=host, port=port, token=token).run(ready=ready)
     return 0

@@ -106,7 +106,7 @@ class _Hold:
         """Holding adds no force."""
         return None
 
-    def project(self, model, x, v, t, dt, readings=None):
+    def project(self, model, x, v, t, dt, *, readings=None):
         """The held node at the target, at rest; its velocity change reported as a force."""
         x = torch.where(self.mask, self.target, x)
         v1 = torch.where(self.mask, torch.zeros_like(v), v)
@@ -178,7 +178,7 @@ class ViewerSession:
         value: expected a number in [0, 10], got 11
     """
 
-    def __init__(self, scene, device=None, max_nodes=None):
+    def __init__(self, scene, *, device=None, max_nodes=None):
         if not isinstance(scene, Scene):
             _fail(f"scene: expected a mass-spring Scene, got {type(scene).__name__}")
         grid = scene.grid
@@ -186,7 +186,7 @@ class ViewerSession:
             _fail(f"scene: the grid has {grid.num_nodes} nodes, more than max_nodes = {int(max_nodes)}")
         self.scene, self.grid = scene, grid
         self._lock = threading.Lock()
-        self._base = scene.build(device)
+        self._base = scene.build(device=device)
         self.integrator = scene.integrator if scene.integrator.name in _KEPT else SymplecticEuler()
         with torch.no_grad():
             X = self._base.X[0]
@@ -198,7 +198,7 @@ class ViewerSession:
             self._span = 4 * size
             self.tool_radius = 3.0 * max(grid.spacing)
             self._k0 = full(self._base, self._base.stiffness).clone()  # the scene's springs
-            k = self._k0[(self._k0 > 0) & grid.spring_mask(self._k0.device)]
+            k = self._k0[(self._k0 > 0) & grid.spring_mask(device=self._k0.device)]
             self._lattice = lattice_modulus(grid)
             self._E0 = float(k.double().median()) * self._lattice if k.numel() else 0.0
         self._c0 = self._scene_consistency() if self._E0 > 0 else None
@@ -262,7 +262,7 @@ class ViewerSession:
         saved, model.interactions = model.interactions, list(self._scene_interactions)
         try:
             with torch.no_grad():
-                bound = time_step_bound(model, self.integrator)
+                bound = time_step_bound(model, integrator=self.integrator)
                 lk = gershgorin_omega2(model) / 4
         finally:
             model.interactions = saved
@@ -291,7 +291,9 @@ class ViewerSession:
 
     def _build_surface(self) -> None:
         self.labels = self._pieces().cpu()
-        self._surface = FrameSurface(self.grid, self.labels.numpy(), dtype=self.model.dtype, device=self.model.device)
+        self._surface = FrameSurface(
+            self.grid, labels=self.labels.numpy(), dtype=self.model.dtype, device=self.model.device
+        )
         surf = self._surface.source
         self._rest_np = surf["rest"]
         self._faces = surf["faces"]

@@ -6,8 +6,14 @@ rendered, differentiable end to end.
 =====================  ===========================================================================
 :mod:`.deform`         offset texture (trilinear, cubic B-spline), :func:`warp` (deform, carve,
                        Knoche's lookup), fixed-point inverse, folding detection, node offsets
-:mod:`.rendering`      transfer functions, :func:`render` (MIP, average, emission-absorption;
-                       axis views and an orbit camera; a compiled fast path), PNG and GIF
+:mod:`.transfer`       transfer functions: control points, lookup table, presets, files
+:mod:`.cameras`        axis views and the perspective :class:`OrbitCamera`
+:mod:`.plan`           the render plan: :func:`render`'s arguments resolved once, for every path
+:mod:`.rendering`      :func:`render` (MIP, average, emission-absorption; axis views and orbit
+                       views; through offsets or the pieces of a cut)
+:mod:`.fastpath`       the fast path of axis views through offsets (eager or compiled),
+                       :func:`trilinear_flat`
+:mod:`.images`         display mapping, PNG and GIF files, turntables
 :mod:`.io`             ``.npy``/``.npz``/NIfTI/NRRD volumes (nibabel and pynrrd imported on use)
 :mod:`.phantoms`       the procedural CT phantom
 :mod:`.commands`       ``torchdeform warp`` and ``torchdeform render``
@@ -16,7 +22,7 @@ rendered, differentiable end to end.
 Example:
     >>> import torch
     >>> from torchdeform.volume import phantom, warp, render, to_image
-    >>> vol = phantom((32, 32, 32))
+    >>> vol = phantom(shape=(32, 32, 32))
     >>> offsets = torch.zeros(3, 5, 5, 5)
     >>> offsets[0, 4, 2, 2] = 3.0                   # top centre node moved 3 voxels along +D
     >>> img = render(warp(vol, offsets), mode="mip", view="h")
@@ -24,6 +30,7 @@ Example:
     (32, 32, 3)
 """
 
+from .cameras import OrbitCamera
 from .deform import (
     MODES,
     DisplacementField,
@@ -45,26 +52,13 @@ from .deform import (
     to_grid_sample,
     warp,
 )
+from .fastpath import RenderCompileWarning, trilinear_flat
+from .images import orbit_frames, save_gif, save_png, to_image
 from .io import SUFFIXES, check_array, load_volume, read_array, save_volume
 from .phantoms import phantom
-from .rendering import (
-    AXIS_VIEWS,
-    ENGINES,
-    PRESETS,
-    RENDER_MODES,
-    OrbitCamera,
-    RenderCompileWarning,
-    TransferFunction,
-    get_tf,
-    load_tf,
-    orbit_frames,
-    preset,
-    render,
-    save_gif,
-    save_png,
-    to_image,
-    trilinear_flat,
-)
+from .plan import AXIS_VIEWS, ENGINES, RENDER_MODES
+from .rendering import render
+from .transfer import PRESETS, TransferFunction, get_tf, load_tf, preset
 
 __all__ = [
     "FoldingWarning",

@@ -13,9 +13,13 @@ import torch
 
 from ..errors import ConfigError
 from ..options import integer, number
+from .cameras import OrbitCamera
 from .deform import as_offsets, warp
+from .images import orbit_frames, save_gif, save_png, to_image
 from .io import load_volume, read_array, save_volume
-from .rendering import AXIS_VIEWS, OrbitCamera, get_tf, orbit_frames, render, save_gif, save_png, to_image
+from .plan import AXIS_VIEWS
+from .rendering import render
+from .transfer import get_tf
 
 __all__ = ["add_warp_arguments", "add_render_arguments", "warp_command", "render_command", "load_offsets"]
 
@@ -32,29 +36,33 @@ def add_warp_arguments(p) -> None:
     p.add_argument("--fill", type=number(), default=0.0, help="value outside the volume / of removed material")
 
 
-def load_offsets(path, volume_shape=None):
+def load_offsets(path, *, volume_shape=None):
     """Node offsets from ``.npy``/``.npz``: a ``(3, n_d, n_h, n_w)`` float tensor checked against the volume."""
-    arr = read_array(path, "offsets")
+    arr = read_array(path, key="offsets")
     if arr.dtype.kind not in "iuf":
-        raise ConfigError("offsets", "a numeric array of node offsets", f"{path}: dtype {arr.dtype}")
+        raise ConfigError("offsets", "a numeric array of node offsets", got=f"{path}: dtype {arr.dtype}")
     if arr.ndim != 4 or arr.shape[0] != 3:
         raise ConfigError(
-            "offsets", "an array of shape (3, n_d, n_h, n_w) (voxels, channels D, H, W)", f"{path}: shape {arr.shape}"
+            "offsets",
+            "an array of shape (3, n_d, n_h, n_w) (voxels, channels D, H, W)",
+            got=f"{path}: shape {arr.shape}",
         )
-    return as_offsets(torch.as_tensor(np.asarray(arr, dtype=np.float32)), volume_shape, key=f"offsets ({path})")
+    return as_offsets(
+        torch.as_tensor(np.asarray(arr, dtype=np.float32)), volume_shape=volume_shape, key=f"offsets ({path})"
+    )
 
 
 def warp_command(args) -> int:
     """``torchdeform warp``: deform a volume by node offsets and save it; returns the exit status."""
     vol = load_volume(args.volume)
-    offsets = load_offsets(args.offsets, vol.shape)
+    offsets = load_offsets(args.offsets, volume_shape=vol.shape)
     if args.inverse_iters < 0:
-        raise ConfigError("--inverse-iters", "an integer >= 0", args.inverse_iters)
+        raise ConfigError("--inverse-iters", "an integer >= 0", got=args.inverse_iters)
     with torch.no_grad():
         out, info = warp(
             torch.from_numpy(vol),
             offsets,
-            args.mode,
+            mode=args.mode,
             inverse_iters=args.inverse_iters,
             order=args.order,
             padding=args.padding,
@@ -63,10 +71,10 @@ def warp_command(args) -> int:
         )
     save_volume(args.out, out.numpy())
     folded = info["folded"]
+    iterations = f", {int(info['iterations'])} inverse iterations" if args.inverse_iters else ""
+    folding = f", folded {100 * folded:.2f}%" if folded else ""
     print(
-        f"warped {args.volume} {vol.shape} by {tuple(offsets.shape[2:])} nodes ({args.mode}"
-        f"{', %d inverse iterations' % info['iterations'] if args.inverse_iters else ''}"
-        f"{', folded %.2f%%' % (100 * folded) if folded else ''}) -> {args.out}"
+        f"warped {args.volume} {vol.shape} by {tuple(offsets.shape[2:])} nodes ({args.mode}{iterations}{folding}) -> {args.out}"
     )
     return 0
 
@@ -98,21 +106,22 @@ def render_command(args) -> int:
     """``torchdeform render``: a PNG of one view, or a GIF orbit; returns the exit status."""
     out = Path(args.out)
     if out.suffix.lower() not in (".png", ".gif"):
-        raise ConfigError("--out", "an image file ending in .png or .gif", str(out))
+        raise ConfigError("--out", "an image file ending in .png or .gif", got=str(out))
     if args.view not in AXIS_VIEWS + ("orbit",):
-        raise ConfigError("--view", "one of " + ", ".join(AXIS_VIEWS + ("orbit",)), args.view)
+        raise ConfigError("--view", "one of " + ", ".join(AXIS_VIEWS + ("orbit",)), got=args.view)
     if args.size < 8 or args.frames < 1:
-        raise ConfigError("--size", "an image size >= 8 and --frames >= 1", (args.size, args.frames))
+        raise ConfigError("--size", "an image size >= 8 and --frames >= 1", got=(args.size, args.frames))
     vol = torch.from_numpy(load_volume(args.volume))
-    offsets = load_offsets(args.offsets, tuple(vol.shape)) if args.offsets else None
+    offsets = load_offsets(args.offsets, volume_shape=tuple(vol.shape)) if args.offsets else None
     tf = get_tf(args.tf) if args.mode == "dvr" else None
     kw = dict(tf=tf, mode=args.mode, offsets=offsets, step=args.step, inverse_iters=args.inverse_iters)
     with torch.no_grad():
         if out.suffix.lower() == ".gif":
-            save_gif(out, orbit_frames(vol, args.frames, args.elevation, (args.size, args.size), **kw))
+            frames = orbit_frames(vol, frames=args.frames, elevation=args.elevation, size=(args.size, args.size), **kw)
+            save_gif(out, frames)
         else:
             view = (
-                OrbitCamera(args.azimuth, args.elevation, size=(args.size, args.size))
+                OrbitCamera(azimuth=args.azimuth, elevation=args.elevation, size=(args.size, args.size))
                 if args.view == "orbit"
                 else args.view
             )

@@ -76,10 +76,10 @@ def _tensor(value, key: str, kinds: str, expected: str) -> torch.Tensor:
             raise TypeError
         return torch.as_tensor(arr)
     except (TypeError, ValueError, RuntimeError):
-        raise ConfigError(key, expected, type(value).__name__) from None
+        raise ConfigError(key, expected, got=type(value).__name__) from None
 
 
-def as_volume(volume, key: str = "volume", dtype=None) -> tuple[torch.Tensor, bool]:
+def as_volume(volume, *, key: str = "volume", dtype=None) -> tuple[torch.Tensor, bool]:
     """``volume`` as a floating ``(B, C, D, H, W)`` tensor, and whether it was given as ``(D, H, W)``.
 
     Raises:
@@ -87,11 +87,11 @@ def as_volume(volume, key: str = "volume", dtype=None) -> tuple[torch.Tensor, bo
     """
     volume = _tensor(volume, key, "biuf", "a numeric array (D, H, W) or (B, C, D, H, W)")
     if volume.is_complex():
-        raise ConfigError(key, "a real-valued array", str(volume.dtype))
+        raise ConfigError(key, "a real-valued array", got=str(volume.dtype))
     if volume.dim() not in (3, 5):
-        raise ConfigError(key, "an array of shape (D, H, W) or (B, C, D, H, W)", tuple(volume.shape))
+        raise ConfigError(key, "an array of shape (D, H, W) or (B, C, D, H, W)", got=tuple(volume.shape))
     if min(volume.shape) < 1:
-        raise ConfigError(key, "a non-empty array", tuple(volume.shape))
+        raise ConfigError(key, "a non-empty array", got=tuple(volume.shape))
     plain = volume.dim() == 3
     if not volume.is_floating_point():
         volume = volume.to(dtype or torch.float32)
@@ -100,11 +100,11 @@ def as_volume(volume, key: str = "volume", dtype=None) -> tuple[torch.Tensor, bo
     lo, hi = torch.aminmax(volume)  # one pass, NaN propagates (10x cheaper than isfinite().all())
     if not (math.isfinite(float(lo)) and math.isfinite(float(hi))):
         bad = int((~torch.isfinite(volume)).sum())
-        raise ConfigError(key, "finite voxel values (no NaN or inf)", f"{bad} non-finite voxels")
+        raise ConfigError(key, "finite voxel values (no NaN or inf)", got=f"{bad} non-finite voxels")
     return (volume[None, None] if plain else volume), plain
 
 
-def as_offsets(offsets, volume_shape=None, key: str = "offsets", dtype=None, device=None) -> torch.Tensor:
+def as_offsets(offsets, *, volume_shape=None, key: str = "offsets", dtype=None, device=None) -> torch.Tensor:
     """Node offsets as a floating ``(B, 3, n_d, n_h, n_w)`` tensor (voxel units).
 
     Raises:
@@ -113,39 +113,39 @@ def as_offsets(offsets, volume_shape=None, key: str = "offsets", dtype=None, dev
     """
     offsets = _tensor(offsets, key, "iuf", "a numeric array of shape (3, n_d, n_h, n_w)")
     if offsets.is_complex() or offsets.dtype == torch.bool:
-        raise ConfigError(key, "a real-valued array of node offsets in voxels", str(offsets.dtype))
+        raise ConfigError(key, "a real-valued array of node offsets in voxels", got=str(offsets.dtype))
     if offsets.dim() == 4:
         offsets = offsets[None]
     if offsets.dim() != 5 or offsets.shape[1] != 3 or min(offsets.shape) < 1:
         raise ConfigError(
             key,
             "an array of shape (3, n_d, n_h, n_w) or (B, 3, n_d, n_h, n_w), channel order (D, H, W)",
-            tuple(offsets.shape),
+            got=tuple(offsets.shape),
         )
     if not offsets.is_floating_point():
         offsets = offsets.to(torch.float32)
     offsets = offsets.to(dtype=dtype or offsets.dtype, device=device)
     if not bool(torch.isfinite(offsets).all()):
-        raise ConfigError(key, "finite offsets (no NaN or inf)", "non-finite values", show_got=True)
+        raise ConfigError(key, "finite offsets (no NaN or inf)", got="non-finite values", show_got=True)
     if volume_shape is not None:
         for n, N, ax in zip(offsets.shape[2:], volume_shape, "DHW"):
             if n > N:
                 raise ConfigError(
                     key,
                     f"a node grid no finer than the volume {tuple(volume_shape)} (axis {ax}: {n} nodes for {N} voxels)",
-                    tuple(offsets.shape[1:]),
+                    got=tuple(offsets.shape[1:]),
                 )
     return offsets
 
 
 def _choice(value, key, allowed):
     if value not in allowed:
-        raise ConfigError(key, "one of " + ", ".join(allowed), value)
+        raise ConfigError(key, "one of " + ", ".join(allowed), got=value)
     return value
 
 
 # ------------------------------------------------------------------ coordinates
-def to_grid_sample(points: torch.Tensor, shape, align_corners: bool = True) -> torch.Tensor:
+def to_grid_sample(points: torch.Tensor, shape, *, align_corners: bool = True) -> torch.Tensor:
     """Voxel coordinates ``(B, 3, ...)`` in ``(D, H, W)`` order -> ``grid_sample`` grid ``(B, ..., 3)``.
 
     The one axis flip of the library: the last axis of the result is ``(x, y, z) = (W, H, D)``,
@@ -179,14 +179,19 @@ def to_grid_sample(points: torch.Tensor, shape, align_corners: bool = True) -> t
     return torch.stack(parts, dim=-1)
 
 
-def identity_points(shape, dtype=torch.float32, device=None) -> torch.Tensor:
+def identity_points(shape, *, dtype=torch.float32, device=None) -> torch.Tensor:
     """Voxel coordinates of every voxel centre, ``(1, 3, D, H, W)``."""
     axes = [torch.arange(int(n), dtype=dtype, device=device) for n in shape]
     return torch.stack(torch.meshgrid(*axes, indexing="ij"))[None]
 
 
 def sample(
-    volume: torch.Tensor, points: torch.Tensor, padding: str = "border", fill: float = 0.0, align_corners: bool = True
+    volume: torch.Tensor,
+    points: torch.Tensor,
+    *,
+    padding: str = "border",
+    fill: float = 0.0,
+    align_corners: bool = True,
 ) -> torch.Tensor:
     """Trilinear samples of ``volume`` at voxel coordinates.
 
@@ -203,7 +208,7 @@ def sample(
     B = max(volume.shape[0], points.shape[0])
     S = points.shape[2:]
     pts = points.reshape(points.shape[0], 3, -1, 1, 1) if len(S) != 3 else points
-    grid = to_grid_sample(pts, volume.shape[2:], align_corners)
+    grid = to_grid_sample(pts, volume.shape[2:], align_corners=align_corners)
     vol = volume - fill if (padding == "zeros" and fill) else volume
     out = F.grid_sample(
         vol.expand(B, *vol.shape[1:]),
@@ -224,7 +229,7 @@ def _bspline(t: torch.Tensor) -> torch.Tensor:
     return torch.where(a < 1, (4 - 6 * a**2 + 3 * a**3) / 6, torch.where(a < 2, (2 - a) ** 3 / 6, torch.zeros_like(a)))
 
 
-def axis_weights_at(pos, n: int, N: int, order: str = "linear", cell_centred: bool = False) -> torch.Tensor:
+def axis_weights_at(pos, n: int, N: int, *, order: str = "linear", cell_centred: bool = False) -> torch.Tensor:
     """Interpolation weights ``(P, n)`` of ``n`` nodes at voxel positions ``pos`` ``(P,)`` along one axis.
 
     The axis has ``N`` voxels. ``linear``: hat functions with node ``a`` at voxel
@@ -247,17 +252,17 @@ def axis_weights_at(pos, n: int, N: int, order: str = "linear", cell_centred: bo
 
 
 def axis_weights(
-    n: int, N: int, order: str = "linear", dtype=torch.float64, device=None, cell_centred: bool = False
+    n: int, N: int, *, order: str = "linear", dtype=torch.float64, device=None, cell_centred: bool = False
 ) -> torch.Tensor:
     """Interpolation matrix ``(N, n)`` from ``n`` nodes to the ``N`` voxel centres of an axis.
 
     :func:`axis_weights_at` at ``0, 1, ..., N - 1``.
     """
     pos = torch.arange(N, dtype=torch.float64)
-    return axis_weights_at(pos, n, N, order, cell_centred).to(dtype=dtype, device=device)
+    return axis_weights_at(pos, n, N, order=order, cell_centred=cell_centred).to(dtype=dtype, device=device)
 
 
-def offset_texture(offsets, volume_shape, order: str = "linear") -> torch.Tensor:
+def offset_texture(offsets, volume_shape, *, order: str = "linear") -> torch.Tensor:
     """Dense displacement field at every voxel from node offsets (Knoche's offset texture).
 
     Args:
@@ -276,11 +281,13 @@ def offset_texture(offsets, volume_shape, order: str = "linear") -> torch.Tensor
         ((1, 3, 4, 5, 6), 1.0, 1.0)
     """
     volume_shape = tuple(int(n) for n in volume_shape)
-    u = as_offsets(offsets, volume_shape)
+    u = as_offsets(offsets, volume_shape=volume_shape)
     _choice(order, "order", ORDERS)
     if order == "linear" and all(n > 1 for n in u.shape[2:]) and all(N > 1 for N in volume_shape):
         return F.interpolate(u, size=volume_shape, mode="trilinear", align_corners=True)
-    Wd, Wh, Ww = (axis_weights(n, N, order, u.dtype, u.device) for n, N in zip(u.shape[2:], volume_shape))
+    Wd, Wh, Ww = (
+        axis_weights(n, N, order=order, dtype=u.dtype, device=u.device) for n, N in zip(u.shape[2:], volume_shape)
+    )
     return torch.einsum("bcijk,Di,Hj,Wk->bcDHW", u, Wd, Wh, Ww)
 
 
@@ -301,9 +308,9 @@ class DisplacementField:
         [[[1.0, 1.0], [1.0, 1.0], [1.0, 1.0]]]
     """
 
-    def __init__(self, offsets, volume_shape, order: str = "linear", cell_centred: bool = False):
+    def __init__(self, offsets, volume_shape, *, order: str = "linear", cell_centred: bool = False):
         self.volume_shape = tuple(int(n) for n in volume_shape)
-        self.nodes = as_offsets(offsets, self.volume_shape)
+        self.nodes = as_offsets(offsets, volume_shape=self.volume_shape)
         self.order = _choice(order, "order", ORDERS)
         self.cell_centred = cell_centred
         self._dense = None
@@ -318,12 +325,14 @@ class DisplacementField:
         if self._dense is None:
             if self.cell_centred:
                 W = [
-                    axis_weights(n, N, "linear", self.nodes.dtype, self.nodes.device, cell_centred=True)
+                    axis_weights(
+                        n, N, order="linear", dtype=self.nodes.dtype, device=self.nodes.device, cell_centred=True
+                    )
                     for n, N in zip(self.node_shape, self.volume_shape)
                 ]
                 self._dense = torch.einsum("bcijk,Di,Hj,Wk->bcDHW", self.nodes, *W)
             else:
-                self._dense = offset_texture(self.nodes, self.volume_shape, self.order)
+                self._dense = offset_texture(self.nodes, self.volume_shape, order=self.order)
         return self._dense
 
     def to_node_coords(self, points: torch.Tensor) -> torch.Tensor:
@@ -342,13 +351,13 @@ class DisplacementField:
         fields trilinearly from :meth:`dense`.
         """
         if self.order == "bspline" and not self.cell_centred:
-            return sample(self.dense(), points, "border")
+            return sample(self.dense(), points, padding="border")
         q = self.to_node_coords(points)
-        return sample(self.nodes, q, "border")
+        return sample(self.nodes, q, padding="border")
 
 
 # ------------------------------------------------------------------ inverse map
-def inverse_points(field: DisplacementField, points: torch.Tensor, iters: int = 0, tol: float = 1e-4):
+def inverse_points(field: DisplacementField, points: torch.Tensor, *, iters: int = 0, tol: float = 1e-4):
     """Material points ``X`` that moved to ``points``: ``X + u(X) = p``.
 
     ``iters = 0``: first order, ``X = p - u(p)``. Otherwise the fixed-point iteration
@@ -365,12 +374,13 @@ def inverse_points(field: DisplacementField, points: torch.Tensor, iters: int = 
         ``(X (B, 3, *S), info)`` with ``info = {"iterations": k, "update": last max update}``.
     """
     if isinstance(iters, bool) or int(iters) != iters or iters < 0:
-        raise ConfigError("inverse_iters", "an integer >= 0", iters)
+        raise ConfigError("inverse_iters", "an integer >= 0", got=iters)
     if not (tol >= 0):
-        raise ConfigError("tol", "a number >= 0 (voxels)", tol)
+        raise ConfigError("tol", "a number >= 0 (voxels)", got=tol)
     X = points - field.at(points)
     k, update = 0, None
-    for k in range(1, int(iters) + 1):
+    while k < int(iters):
+        k += 1
         X_new = points - field.at(X)
         update = float((X_new - X).detach().abs().max()) if X.numel() else 0.0
         X = X_new
@@ -385,7 +395,7 @@ def inverse_residual(field: DisplacementField, X: torch.Tensor, points: torch.Te
 
 
 # ------------------------------------------------------------------ folding
-def jacobian_determinant(field: torch.Tensor, spacing=(1.0, 1.0, 1.0)) -> torch.Tensor:
+def jacobian_determinant(field: torch.Tensor, *, spacing=(1.0, 1.0, 1.0)) -> torch.Tensor:
     """``det(I + grad u)`` of a dense displacement field by finite differences.
 
     Central differences inside, one-sided at the faces (``torch.gradient``), as VoxelMorph's
@@ -408,7 +418,7 @@ def jacobian_determinant(field: torch.Tensor, spacing=(1.0, 1.0, 1.0)) -> torch.
         0.88
     """
     if field.dim() != 5 or field.shape[1] != 3 or min(field.shape[2:]) < 2:
-        raise ConfigError("field", "a displacement field (B, 3, D, H, W) with every axis >= 2", tuple(field.shape))
+        raise ConfigError("field", "a displacement field (B, 3, D, H, W) with every axis >= 2", got=tuple(field.shape))
     grads = [torch.gradient(field[:, c], spacing=tuple(float(s) for s in spacing), dim=(1, 2, 3)) for c in range(3)]
     J = [[grads[i][j] + (1.0 if i == j else 0.0) for j in range(3)] for i in range(3)]
     return (
@@ -418,7 +428,7 @@ def jacobian_determinant(field: torch.Tensor, spacing=(1.0, 1.0, 1.0)) -> torch.
     )
 
 
-def folding_fraction(offsets, volume_shape, order: str = "linear", samples=None) -> float:
+def folding_fraction(offsets, volume_shape, *, order: str = "linear", samples=None) -> float:
     """Fraction of samples with ``det(I + grad u) <= 0`` (folded).
 
     The field is evaluated on a lattice of ``samples`` points per axis spanning the volume
@@ -432,19 +442,23 @@ def folding_fraction(offsets, volume_shape, order: str = "linear", samples=None)
         0.0
     """
     volume_shape = tuple(int(n) for n in volume_shape)
-    u = as_offsets(offsets, volume_shape)
+    u = as_offsets(offsets, volume_shape=volume_shape)
     if samples is None:
         samples = tuple(max(2, min(N, 4 * (n - 1) + 1)) for n, N in zip(u.shape[2:], volume_shape))
     samples = tuple(int(s) for s in samples)
-    dense = offset_texture(u, samples, order) if samples != volume_shape else offset_texture(u, volume_shape, order)
+    dense = (
+        offset_texture(u, samples, order=order)
+        if samples != volume_shape
+        else offset_texture(u, volume_shape, order=order)
+    )
     spacing = tuple((N - 1) / max(s - 1, 1) for N, s in zip(volume_shape, samples))
-    det = jacobian_determinant(dense.detach(), spacing)
+    det = jacobian_determinant(dense.detach(), spacing=spacing)
     return float((det <= 0).double().mean())
 
 
-def check_folding(offsets, volume_shape, order: str = "linear", stacklevel: int = 2) -> float:
+def check_folding(offsets, volume_shape, *, order: str = "linear", stacklevel: int = 2) -> float:
     """:func:`folding_fraction`, warning (:class:`FoldingWarning`) when it is above zero."""
-    frac = folding_fraction(offsets, volume_shape, order)
+    frac = folding_fraction(offsets, volume_shape, order=order)
     if frac > 0:
         warnings.warn(
             f"the deformation folds: det(I + grad u) <= 0 at {frac:.2%} of the samples; node offsets "
@@ -459,6 +473,7 @@ def check_folding(offsets, volume_shape, order: str = "linear", stacklevel: int 
 def sample_points(
     offsets,
     volume_shape,
+    *,
     mode: str = "deform",
     inverse_iters: int = 0,
     tol: float = 1e-4,
@@ -471,19 +486,19 @@ def sample_points(
     """
     _choice(mode, "mode", MODES)
     volume_shape = tuple(int(n) for n in volume_shape)
-    field = DisplacementField(offsets, volume_shape, order, cell_centred=(mode == "knoche"))
+    field = DisplacementField(offsets, volume_shape, order=order, cell_centred=(mode == "knoche"))
     if points is None:
-        points = identity_points(volume_shape, field.nodes.dtype, field.nodes.device)
+        points = identity_points(volume_shape, dtype=field.nodes.dtype, device=field.nodes.device)
     iters = 0 if mode == "knoche" else inverse_iters
-    X, info = inverse_points(field, points, iters, tol)
+    X, info = inverse_points(field, points, iters=iters, tol=tol)
     return X, info
 
 
 def warp(
     volume,
     offsets,
-    mode: str = "deform",
     *,
+    mode: str = "deform",
     inverse_iters: int = 0,
     tol: float = 1e-4,
     order: str = "linear",
@@ -531,15 +546,20 @@ def warp(
     _choice(padding, "padding", PADDINGS)
     _choice(order, "order", ORDERS)
     if not isinstance(fill, (int, float)) or not math.isfinite(fill):
-        raise ConfigError("fill", "a finite number", fill)
+        raise ConfigError("fill", "a finite number", got=fill)
     shape = tuple(vol.shape[2:])
-    u = as_offsets(offsets, shape, dtype=vol.dtype, device=vol.device)
+    u = as_offsets(offsets, volume_shape=shape, dtype=vol.dtype, device=vol.device)
     if vol.shape[0] != u.shape[0] and 1 not in (vol.shape[0], u.shape[0]):
-        raise ConfigError("offsets", f"a batch of 1 or {vol.shape[0]} (the volume's)", u.shape[0])
-    folded = check_folding(u, shape, order, stacklevel=2) if check and mode != "carve" else None
+        raise ConfigError("offsets", f"a batch of 1 or {vol.shape[0]} (the volume's)", got=u.shape[0])
+    folded = check_folding(u, shape, order=order, stacklevel=2) if check and mode != "carve" else None
     if not bool(u.any()) and not u.requires_grad:
         # zero offsets: X = p exactly; read the voxels instead of interpolating (exact identity)
-        inverse_points(DisplacementField(u, shape, order), identity_points((1, 1, 1), u.dtype), inverse_iters, tol)
+        inverse_points(
+            DisplacementField(u, shape, order=order),
+            identity_points((1, 1, 1), dtype=u.dtype),
+            iters=inverse_iters,
+            tol=tol,
+        )
         B = max(vol.shape[0], u.shape[0])
         out = vol.expand(B, *vol.shape[1:]).clone()
         if mode == "carve" and material is not None:
@@ -547,13 +567,13 @@ def warp(
         if plain and out.shape[:2] == (1, 1):
             out = out[0, 0]
         return (out, {"iterations": 0, "update": 0.0, "folded": folded}) if return_info else out
-    X, info = sample_points(u, shape, mode, inverse_iters, tol, order)
+    X, info = sample_points(u, shape, mode=mode, inverse_iters=inverse_iters, tol=tol, order=order)
     if mode == "carve":
         m = _material(material, u, shape, vol)
-        keep = sample(m, X, "zeros")
+        keep = sample(m, X, padding="zeros")
         out = fill + keep * (vol - fill)
     else:
-        out = sample(vol, X, "border" if mode == "knoche" else padding, fill)
+        out = sample(vol, X, padding="border" if mode == "knoche" else padding, fill=fill)
     if plain and out.shape[:2] == (1, 1):
         out = out[0, 0]
     if return_info:
@@ -570,9 +590,11 @@ def _material(material, u, shape, vol) -> torch.Tensor:
         m = m[None, None]
     node_shape = tuple(u.shape[2:])
     if m.dim() != 5 or m.shape[1] != 1 or tuple(m.shape[2:]) not in (node_shape, shape):
-        raise ConfigError("material", f"an array of the node grid {node_shape} or the volume {shape}", tuple(m.shape))
+        raise ConfigError(
+            "material", f"an array of the node grid {node_shape} or the volume {shape}", got=tuple(m.shape)
+        )
     if not bool(torch.isfinite(m).all()):
-        raise ConfigError("material", "finite values in [0, 1]", "non-finite values", show_got=True)
+        raise ConfigError("material", "finite values in [0, 1]", got="non-finite values", show_got=True)
     if tuple(m.shape[2:]) == node_shape and node_shape != shape:
         m = offset_texture(m.expand(m.shape[0], 3, *node_shape), shape)[:, :1]
     return m

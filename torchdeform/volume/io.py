@@ -44,34 +44,34 @@ def _optional(module: str, key: str, path):
     try:
         return __import__(module)
     except ImportError:
-        raise ConfigError(key, _EXTRA[module], str(path)) from None
+        raise ConfigError(key, _EXTRA[module], got=str(path)) from None
 
 
-def check_array(arr, key: str, path=None, ndim: int = 3) -> np.ndarray:
+def check_array(arr, key: str, *, path=None, ndim: int = 3) -> np.ndarray:
     """A real numeric array with ``ndim`` axes and finite values, else a one-line ConfigError."""
     arr = np.asarray(arr)
     where = f"{path}: " if path else ""
     if arr.dtype.kind not in "biuf":
-        raise ConfigError(key, "a numeric array (integers or floats)", f"{where}dtype {arr.dtype}")
+        raise ConfigError(key, "a numeric array (integers or floats)", got=f"{where}dtype {arr.dtype}")
     if arr.ndim != ndim or min(arr.shape, default=0) < 1:
         raise ConfigError(
-            key, f"a non-empty {ndim}-D array" + (" (D, H, W)" if ndim == 3 else ""), f"{where}shape {arr.shape}"
+            key, f"a non-empty {ndim}-D array" + (" (D, H, W)" if ndim == 3 else ""), got=f"{where}shape {arr.shape}"
         )
     if arr.dtype.kind == "f" and not np.isfinite(arr).all():
         raise ConfigError(
-            key, "finite values (no NaN or inf)", f"{where}{int((~np.isfinite(arr)).sum())} non-finite values"
+            key, "finite values (no NaN or inf)", got=f"{where}{int((~np.isfinite(arr)).sum())} non-finite values"
         )
     return arr
 
 
-def read_array(path, key: str = "volume") -> np.ndarray:
+def read_array(path, *, key: str = "volume") -> np.ndarray:
     """The raw array stored in a file (any number of axes), by file type."""
     path = Path(path)
     suffix = _suffix(path)
     if suffix not in SUFFIXES:
-        raise ConfigError(key, "a .npy, .npz, .nii, .nii.gz or .nrrd file", str(path))
+        raise ConfigError(key, "a .npy, .npz, .nii, .nii.gz or .nrrd file", got=str(path))
     if not path.is_file():
-        raise ConfigError(key, "an existing file", f"{path} (not found)")
+        raise ConfigError(key, "an existing file", got=f"{path} (not found)")
     try:
         if suffix == ".npy":
             return np.load(path, allow_pickle=False)
@@ -81,7 +81,7 @@ def read_array(path, key: str = "volume") -> np.ndarray:
                 name = "volume" if "volume" in names else (names[0] if len(names) == 1 else None)
                 if name is None:
                     raise ConfigError(
-                        key, "an .npz with one array or an array named 'volume'", f"{path} (arrays {names})"
+                        key, "an .npz with one array or an array named 'volume'", got=f"{path} (arrays {names})"
                     )
                 return z[name]
         if suffix in (".nii", ".nii.gz"):
@@ -93,10 +93,10 @@ def read_array(path, key: str = "volume") -> np.ndarray:
     except ConfigError:
         raise
     except Exception as e:  # corrupt files raise many kinds
-        raise ConfigError(key, f"a readable {suffix} file", f"{path} ({type(e).__name__}: {e})") from None
+        raise ConfigError(key, f"a readable {suffix} file", got=f"{path} ({type(e).__name__}: {e})") from None
 
 
-def load_volume(path, key: str = "volume") -> np.ndarray:
+def load_volume(path, *, key: str = "volume") -> np.ndarray:
     """A volume ``(D, H, W)`` as float32 numpy (integers converted, NaN/inf rejected).
 
     ``path`` may also be ``"phantom"`` or ``"phantom:N"`` (the procedural phantom, ``N^3`` voxels,
@@ -106,8 +106,8 @@ def load_volume(path, key: str = "volume") -> np.ndarray:
     if text == "phantom" or text.startswith("phantom:"):
         from .phantoms import phantom
 
-        return phantom((_phantom_side(text, key),) * 3).numpy()
-    arr = check_array(read_array(path, key), key, path)
+        return phantom(shape=(_phantom_side(text, key),) * 3).numpy()
+    arr = check_array(read_array(path, key=key), key, path=path)
     return np.ascontiguousarray(arr, dtype=np.float32)
 
 
@@ -118,7 +118,7 @@ def _phantom_side(text: str, key: str) -> int:
     except ValueError:
         n = 0
     if n < 8:
-        raise ConfigError(key, "phantom or phantom:N with N >= 8 voxels", text)
+        raise ConfigError(key, "phantom or phantom:N with N >= 8 voxels", got=text)
     # the volume, its warped copy and the render's sample buffers: about 6 float32 copies
     check_memory(key, 24.0 * n**3, f"a phantom of {n}^3 voxels", got=text)
     return n
@@ -138,25 +138,25 @@ def check_volume_source(path, key: str = "volume") -> None:
     if text == "phantom" or text.startswith("phantom:"):
         _phantom_side(text, key)
     else:
-        load_volume(path, key)
+        load_volume(path, key=key)
 
 
-def save_volume(path, volume, spacing=(1.0, 1.0, 1.0), key: str = "--out") -> None:
+def save_volume(path, volume, *, spacing=(1.0, 1.0, 1.0), key: str = "--out") -> None:
     """Write a ``(D, H, W)`` volume (numpy or torch) by file type; ``spacing`` goes into NIfTI/NRRD headers."""
     path = Path(path)
     arr = volume.detach().cpu().numpy() if hasattr(volume, "detach") else np.asarray(volume)
     suffix = _suffix(path)
     if suffix not in SUFFIXES or suffix == ".nhdr":
-        raise ConfigError(key, "an output file ending in .npy, .npz, .nii, .nii.gz or .nrrd", str(path))
+        raise ConfigError(key, "an output file ending in .npy, .npz, .nii, .nii.gz or .nrrd", got=str(path))
     if path.parent and not path.parent.exists():
-        raise ConfigError(key, "a file in an existing folder", str(path))
-    require_finite(f"{path.name}: volume", arr, "d, h, w")
+        raise ConfigError(key, "a file in an existing folder", got=str(path))
+    require_finite(f"{path.name}: volume", arr, what="d, h, w")
     module = None
     if suffix in (".nii", ".nii.gz"):
         module = _optional("nibabel", key, path)
     elif suffix == ".nrrd":
         module = _optional("nrrd", key, path)
-    with atomic_path(path, key) as tmp:  # a failed write leaves an earlier file whole
+    with atomic_path(path, key=key) as tmp:  # a failed write leaves an earlier file whole
         if suffix == ".npy":
             np.save(tmp, arr)
         elif suffix == ".npz":

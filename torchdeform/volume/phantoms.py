@@ -19,7 +19,7 @@ exactly -1000 (empty-space tests can rely on it). Deterministic for a given ``se
 
 Example:
     >>> from torchdeform.volume import phantom
-    >>> v = phantom((32, 32, 32))
+    >>> v = phantom(shape=(32, 32, 32))
     >>> tuple(v.shape), float(v.min()), float(v.max()) > 700
     ((32, 32, 32), -1000.0, True)
 """
@@ -53,7 +53,7 @@ def _segment_distance(z, y, x, a, b):
     return ((z - a[0] - t * ab[0]) ** 2 + (y - a[1] - t * ab[1]) ** 2 + (x - a[2] - t * ab[2]) ** 2).sqrt()
 
 
-def phantom(shape=(128, 128, 128), noise: float = 8.0, seed: int = 0, dtype=torch.float32) -> torch.Tensor:
+def phantom(*, shape=(128, 128, 128), noise: float = 8.0, seed: int = 0, dtype=torch.float32) -> torch.Tensor:
     """The phantom as a ``(D, H, W)`` tensor of Hounsfield units.
 
     Args:
@@ -67,9 +67,9 @@ def phantom(shape=(128, 128, 128), noise: float = 8.0, seed: int = 0, dtype=torc
     except (TypeError, ValueError):
         shape = ()
     if len(shape) != 3 or min(shape) < 8:
-        raise ConfigError("shape", "three voxel counts (D, H, W), each >= 8", shape)
+        raise ConfigError("shape", "three voxel counts (D, H, W), each >= 8", got=shape)
     if not (isinstance(noise, (int, float)) and noise >= 0 and math.isfinite(noise)):
-        raise ConfigError("noise", "a number >= 0 (HU)", noise)
+        raise ConfigError("noise", "a number >= 0 (HU)", got=noise)
     z, y, x = _coords(shape, dtype)
     v = torch.full(shape, AIR, dtype=dtype)
     body = _ellipsoid(z, y, x, (0, 0, 0), (0.92, 0.72, 0.9))
