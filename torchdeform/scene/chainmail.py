@@ -17,7 +17,7 @@ import torch
 from tqdm.auto import tqdm
 
 from ..chainmail import METHODS, RELAX_MODES, ChainMail, Limits, limit_violation, relax_energy, tissue_limits
-from ..outputs import manifest, save_figure
+from ..outputs import figure, manifest, save_figure
 from ..sim.grid import Grid
 from .reader import SECTIONS, Table, drags_section, faces, grid_section, node_list
 
@@ -139,11 +139,7 @@ class ChainMailScene:
 
 
 def _plot_scene(path, t, energy, disp, title):
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(7, 5), layout="constrained")
-    FigureCanvasAgg(fig)
+    fig = figure(figsize=(7, 5))
     top, bottom = fig.subplots(2, 1, sharex=True)
     top.plot(t, energy, marker=".")
     top.set_ylabel("relaxation energy (m^2)")
