@@ -4,16 +4,20 @@ Speed targets live in the benchmark, not here: this checks the command runs, pri
 one JSON document, its arithmetic, and that the compiled step equals the eager one.
 """
 
+import argparse
 import json
 
 import pytest
+import torch
 
 import torchdeform as td
 from torchdeform import cli
+from torchdeform.bench import speed
+from torchdeform.bench.common import copy_bandwidth
+from torchdeform.sim.packed import PackedModel
 
-pytestmark = pytest.mark.slow  # a bench smoke run
 
-
+@pytest.mark.slow  # a bench smoke run
 def test_bench_speed_quick_json(capsys, tmp_path):
     rc = cli.main(argv=["bench", "speed", "--quick", "--json", "--threads", "2", "--out", str(tmp_path)])
     assert rc == 0
@@ -26,6 +30,9 @@ def test_bench_speed_quick_json(capsys, tmp_path):
     warp = [r for r in doc["rows"] if r["mode"].startswith("warp")]
     assert {r["topology"] for r in rows} == {6, 26}
     assert "ratio_vs_warp" in doc and doc["ratio_vs_warp"] is None  # no 64^3 row in --quick
+    assert doc["bandwidth_case"] is None  # no 256^3 row either
+    copy = doc["copy_gb_per_s"]
+    assert 0 < copy < 1e4
     from torchdeform.bench.warp_baseline import warp_available
 
     if warp_available()[0]:
@@ -60,6 +67,9 @@ def test_bench_speed_quick_json(capsys, tmp_path):
         sec = r["ms_per_step"] / 1e3
         assert r["msprings_per_s"] == pytest.approx(grid.num_springs / sec / 1e6, rel=1e-9)
         assert r["node_steps_per_s"] == pytest.approx(grid.num_nodes / sec, rel=1e-9)
+        assert r["bytes_per_step"] >= 4 * 3 * r["nodes"] * 4  # x and v read and written, float32
+        assert r["gb_per_s"] == pytest.approx(r["bytes_per_step"] / sec / 1e9, rel=1e-9)
+        assert r["of_copy"] == pytest.approx(r["gb_per_s"] / copy, rel=1e-9)
     for topology in (6, 26):
         assert any(r["mode"] == "eager" and r["topology"] == topology for r in rows)
     compiled = [r for r in rows if r["mode"] == "compiled"]
@@ -71,6 +81,7 @@ def test_bench_speed_quick_json(capsys, tmp_path):
     assert (tmp_path / "speed.csv").is_file() and (tmp_path / "speed.png").is_file()
 
 
+@pytest.mark.slow  # a bench smoke run
 def test_bench_speed_table_eager_only(capsys):
     assert (
         cli.main(
@@ -95,8 +106,49 @@ def test_bench_speed_table_eager_only(capsys):
     )
     out = capsys.readouterr().out
     assert "Msprings/s" in out and "4^3" in out and "compiled" not in out
+    assert "GB/s" in out and "of copy" in out and "copy bandwidth (read + write)" in out
 
 
+def test_copy_bandwidth_sanity():
+    gbs = copy_bandwidth("cpu", nbytes=2**22, repeats=3)  # 4 MiB: in cache, fast and plausible
+    assert 0.01 < gbs < 1e4
+
+
+def test_bytes_per_step_hand_count():
+    """A 3^3 cube, 6 neighbours, float32, damped, no gravity, by hand."""
+    model = td.Model(td.Grid((3, 3, 3), spacing=0.01, topology=6), stiffness=100.0, damping=0.05, mass=1e-3)
+    # eager: x and v (3 x 27 values each) read and written; k, l0, c one value per direction, 1/m one value
+    assert speed.bytes_per_step(model, "eager") == 4 * 3 * 27 * 4 == 1296
+    assert speed.bytes_per_step(model, "eager", batch=2) == 2 * 1296
+    pm = PackedModel(model)
+    # packed: (3 + 2)^3 = 125 nodes with the halo, padded to G = 25 + 5 + 1 = 31 and 2 G - 125 = -63 = 1 mod 8
+    assert pm.P == 126
+    state, inside, inv_mass, mass = 4 * 3 * 126 * 4, 126 * 4, 126 * 4, 126 * 4
+    assert speed.bytes_per_step(pm, "compiled") == state + inside + inv_mass == 7056
+    assert speed.bytes_per_step(pm, "native") == state + inside + inv_mass + mass == 7560  # the fused kernel reads m
+    # per-spring stiffness (a spring mask): S = 3 values per node, stored as (1, S, 3, 3, 3)
+    mask = torch.ones(3, 3, 3, 3, dtype=torch.bool)
+    mask[0, 0, 0, 0] = False
+    cut = td.Model(model.grid, stiffness=100.0, damping=0.05, mass=1e-3, spring_mask=mask)
+    assert speed.bytes_per_step(cut, "eager") == 1296 + 2 * 3 * 27 * 4  # stiffness and damping per spring
+    # gravity: the step reads the mass; a per-node mass (3, 3, 3) counts in the eager layout too
+    heavy = td.Model(model.grid, stiffness=100.0, mass=torch.full((3, 3, 3), 1e-3), gravity=(0, 0, -9.81))
+    assert speed.bytes_per_step(heavy, "eager") == 1296 + 27 * 4 + 27 * 4  # 1/m and m per node
+    with pytest.raises(ValueError):
+        speed.bytes_per_step(model, "compiled")  # a packed mode reads a packed model
+
+
+def test_native_rows_are_planned_on_the_cpu_only():
+    args = argparse.Namespace(no_compile=False, no_warp=True, no_beam=True, quick=False)
+    cuda, _, _ = speed._plan(args, "cuda", [16], [26], ["float32"], [1])
+    assert [t[-1] for t in cuda] == ["eager", "compiled"]
+    cpu, _, _ = speed._plan(args, "cpu", [16], [26], ["float32"], [1])
+    from torchdeform.sim import native
+
+    assert [t[-1] for t in cpu] == (["eager", "compiled"] if native.unavailable() else ["eager", "native", "compiled"])
+
+
+@pytest.mark.slow  # a bench smoke run
 def test_bench_bad_option_is_one_line(capsys):
     assert cli.main(argv=["bench", "speed", "--topologies", "7"]) == 2
     err = capsys.readouterr().err

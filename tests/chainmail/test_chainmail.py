@@ -479,19 +479,20 @@ def _pulled(method="gibson", n=16):
     return g, lim, cm
 
 
-def test_relaxation_lowers_energy_monotonically_and_removes_creases():
+def test_relaxation_lowers_energy_monotonically_and_removes_creases(device):
     g, lim, cm = _pulled()
-    x0 = cm.positions()
+    x0 = cm.positions(device=device)
     held = torch.zeros(g.shape, dtype=torch.bool)
     held[15, 8, 8] = True
-    free = ~g.face("bottom") & ~held
+    free = (~g.face("bottom") & ~held).to(device)
     c0 = float(crease_measure(x0, g, free=free))
     x1, _e1 = relax(x0, g, lim, steps=1, free=free)
     x4, e4 = relax(x0, g, lim, steps=4, free=free)
     _, e10 = relax(x0, g, lim, steps=10, free=free)
     assert all(b <= a * (1 + 1e-12) for a, b in itertools.pairwise(e10)) and e10[-1] < 0.9 * e10[0]
     # the energy is the Dirichlet energy of the offsets, computed here with plain numpy
-    u = (x4 - g.rest_positions(dtype=F64))[0].numpy()
+    assert x4.device == device
+    u = (x4 - g.rest_positions(dtype=F64, device=device))[0].cpu().numpy()
     dirichlet = sum(0.5 * ((np.diff(u, axis=1 + a)) ** 2).sum() for a in range(3))
     assert e4[-1] == pytest.approx(dirichlet, rel=1e-12)
     c1, c4 = float(crease_measure(x1, g, free=free)), float(crease_measure(x4, g, free=free))
@@ -518,13 +519,15 @@ def test_relaxation_goal_mode_and_only_moved():
 
 
 # ------------------------------------------------------------------ outputs and materials
-def test_displacement_field_and_mass_spring_state():
+def test_displacement_field_and_mass_spring_state(device):
     g, lim, cm = _pulled(n=8)
     u = cm.displacement()
     assert u.shape == (1, 3, 8, 8, 8) and u.dtype == torch.float32
-    state = cm.state(dtype=F64)
-    torch.testing.assert_close(state.x, g.rest_positions(dtype=F64) + cm.displacement(dtype=F64))
-    model = td.Model(g, stiffness=10.0, mass=1e-3, fixed=g.face("bottom"), dtype=F64)
+    state = cm.state(dtype=F64, device=device)
+    assert state.x.device == device
+    expect = g.rest_positions(dtype=F64, device=device) + cm.displacement(dtype=F64, device=device)
+    torch.testing.assert_close(state.x, expect)
+    model = td.Model(g, stiffness=10.0, mass=1e-3, fixed=g.face("bottom"), dtype=F64, device=device)
     nxt = td.SymplecticEuler().step(model, state, dt=1e-4)
     assert torch.isfinite(nxt.x).all() and float(nxt.v.abs().max()) > 0  # springs pull it back
     cm2 = ChainMail(g, lim, positions=state.x)  # and back into ChainMail

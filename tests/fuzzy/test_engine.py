@@ -566,7 +566,7 @@ def test_membership_keeps_shape_and_rejects_bad_parameters():
 
 @pytest.mark.parametrize("aggregation", ["max", "sum"])
 @pytest.mark.parametrize("method", ["centroid", "mom", "som", "lom"])
-def test_singleton_outputs(aggregation, method):
+def test_singleton_outputs(aggregation, method, device):
     """Outputs made of singletons: centroid = weighted mean of the positions (weights: the
     aggregated degree of each singleton); mom/som/lom over the positions of largest weight."""
     x = Variable("x", (0, 10), {"lo": Trapezoid(0, 0, 2, 6), "mid": Triangle(2, 5, 8), "hi": Trapezoid(4, 8, 10, 10)})
@@ -582,7 +582,7 @@ def test_singleton_outputs(aggregation, method):
         defuzzification=method,
     ).double()
     X = np.r_[np.linspace(0, 10, 41), 3.3, 6.9]
-    got = fis(torch.tensor(X, dtype=F64)[:, None])[:, 0].numpy()
+    got = fis.to(device)(torch.tensor(X, dtype=F64, device=device)[:, None])[:, 0].cpu().numpy()
     for xv, g in zip(X, got):
         w = dict.fromkeys(pos, 0.0)
         for a, b, wt in rules:
@@ -634,17 +634,17 @@ def test_no_rule_fires_default_and_finite_gradients(method, ops):
     assert float(fis2(torch.tensor([[8.0]], dtype=F64))[0, 0]) == 10.0
 
 
-def test_no_rule_fires_warn_and_error():
-    X = torch.tensor([[3.5], [8.0]])
+def test_no_rule_fires_warn_and_error(device):
+    X = torch.tensor([[3.5], [8.0]], device=device)
     with pytest.warns(EmptyOutputWarning, match="no rule fires for output y at x=8"):
-        out = _sparse(on_empty="warn")(X)
+        out = _sparse(on_empty="warn").to(device)(X)
     assert float(out[1, 0]) == 3.25
     with pytest.raises(NoRuleFiredError, match="x=8") as info:
-        _sparse(on_empty="error")(X)
+        _sparse(on_empty="error").to(device)(X)
     assert isinstance(info.value, TorchdeformError)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        _sparse(on_empty="warn")(torch.tensor([[3.5]]))  # y fires; z ...
+        _sparse(on_empty="warn").to(device)(torch.tensor([[3.5]], device=device))  # y fires; z ...
     with pytest.raises(ConfigError):
         _sparse(on_empty="ignore")
 
@@ -786,7 +786,7 @@ def test_batch_shapes_and_chunks(method, device):
 
 @pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("ops", [{}] + COMBOS, ids=lambda c: "-".join(c.values()) or "min-max")
-def test_sparsity_plan_gives_the_dense_result(method, ops):
+def test_sparsity_plan_gives_the_dense_result(method, ops, device):
     """The plan the compiled path uses skips groups that are zero on a run of cells; it must
     give the dense result (itself checked against scikit-fuzzy above) for every operator set,
     hedged consequents ("not" makes a term non-zero outside its support) and Gaussian/bell
@@ -794,13 +794,13 @@ def test_sparsity_plan_gives_the_dense_result(method, ops):
     planned = 0
     for seed in range(40, 52):
         spec = random_system(seed, hedges=seed % 2 == 0)
-        fis = build_torch(spec, defuzzification=method, resolution=400, **ops).double()
+        fis = build_torch(spec, defuzzification=method, resolution=400, **ops).double().to(device)
         plan = fis.sparsity_plan()
         for runs in plan:
             assert runs[0][0] == 0 and runs[-1][1] == 400  # the runs tile the grid
             assert all(a[1] == b[0] for a, b in itertools.pairwise(runs))
             planned += sum((b - a) * len(g) for a, b, g in runs)
-        X = torch.tensor(random_points(spec, seed, 64), dtype=F64)
+        X = torch.tensor(random_points(spec, seed, 64), dtype=F64, device=device)
         dense, empty = fis.infer(X)
         sparse, empty_sparse = fis.infer(X, plan=plan)
         torch.testing.assert_close(sparse, dense, rtol=0, atol=1e-9)

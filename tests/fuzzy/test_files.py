@@ -266,8 +266,8 @@ def test_cli_plot_writes_pngs(tmp_path):
 # ------------------------------------------------------------------ coupling
 
 
-def test_spring_parameters_against_a_node_loop():
-    fis = read_fis(TIPPER).double()
+def test_spring_parameters_against_a_node_loop(device):
+    fis = read_fis(TIPPER).double()  # the oracle's copy stays on the CPU
     grid = Grid((5, 4, 6), spacing=(0.01, 0.02, 0.01), topology=18)
     ell = Ellipsoid((0.02, 0.03, 0.025), (0.012, 0.02, 0.02))
     mask = torch.zeros(grid.shape, dtype=torch.bool)
@@ -275,10 +275,12 @@ def test_spring_parameters_against_a_node_loop():
     inputs = node_inputs(
         grid, fis, {"service": 3.0, "food": 4.0}, regions=[(ell, {"service": 8.0}), (mask, {"food": 9.5})]
     )
-    params = spring_parameters(fis, grid, inputs, dtype=torch.float64)
+    params = spring_parameters(read_fis(TIPPER).double().to(device), grid, inputs.to(device), dtype=torch.float64)
     assert params["_evaluations"] == len(torch.unique(inputs.reshape(2, -1).T, dim=0)) <= 4
     X = grid.rest_positions(dtype=torch.float64)[0]
     tip = params["tip"]
+    assert tip.device == device
+    tip = tip.cpu()
     S = grid.S
     for s, d in enumerate(grid.directions):
         for i in range(grid.shape[0]):

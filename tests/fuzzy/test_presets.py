@@ -85,18 +85,19 @@ def robo():
 @pytest.mark.parametrize(
     "name, inputs, spring, viscosity", GOLDEN, ids=[f"{g[0]}-{'-'.join(map(str, g[1].values()))}" for g in GOLDEN]
 )
-def test_published_values(name, inputs, spring, viscosity):
-    fis = presets.load_preset(name)
+def test_published_values(name, inputs, spring, viscosity, device):
+    fis = presets.load_preset(name).to(device)
     out = fis.evaluate(**inputs)
+    assert out["spring_const"].device == device
     assert float(out["spring_const"]) == pytest.approx(spring, rel=1e-3)
     assert float(out["viscosity"]) == pytest.approx(viscosity, rel=1e-3)
 
 
-def test_published_values_in_float64_and_batched():
+def test_published_values_in_float64_and_batched(device):
     """The same numbers from a float64 copy and from one batched call (no float32 luck)."""
-    fis = presets.load_preset("susilap_g").to(torch.float64)
-    x = torch.tensor([g[1]["consistency"] for g in GOLDEN[:4]], dtype=torch.float64)
-    out = fis.evaluate(consistency=x)
+    fis = presets.load_preset("susilap_g").to(torch.float64).to(device)
+    x = torch.tensor([g[1]["consistency"] for g in GOLDEN[:4]], dtype=torch.float64, device=device)
+    out = {k: v.cpu() for k, v in fis.evaluate(consistency=x).items()}
     want_s = torch.tensor([g[2] for g in GOLDEN[:4]], dtype=torch.float64)
     want_v = torch.tensor([g[3] for g in GOLDEN[:4]], dtype=torch.float64)
     assert torch.allclose(out["spring_const"], want_s, rtol=1e-3, atol=0)

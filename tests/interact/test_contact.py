@@ -8,11 +8,14 @@
 * a particle on an incline with Coulomb friction sticks for tan(theta) <= mu and slides with the
   analytic acceleration g (sin theta - mu cos theta) above;
 * penalty contact passes gradcheck with respect to its stiffness and the tool's position;
-* the packed layout (the compiled path's) gives the same contact step as the grid layout.
+* the packed layout (the compiled path's) gives the same contact step as the grid layout;
+* every response queues its step on the device without reading a value back (on CUDA, torch's
+  sync debug mode raises on any wait), and takes the same step as on the CPU.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import numpy as np
@@ -21,7 +24,17 @@ import torch
 
 import torchdeform as td
 from torchdeform.errors import ConfigError
-from torchdeform.interact import Box, Capsule, HalfSpace, PenaltyContact, ProjectionContact, Sphere, Tool
+from torchdeform.interact import (
+    Box,
+    Capsule,
+    Grasp,
+    HalfSpace,
+    PenaltyContact,
+    ProjectionContact,
+    Sphere,
+    StrainLimit,
+    Tool,
+)
 from torchdeform.sim.packed import PackedModel
 
 
@@ -30,18 +43,18 @@ def _points(n=400, scale=2.0, seed=0):
     return rng.uniform(-scale, scale, size=(n, 3))
 
 
-def _sdf(shape, p):
-    d, n = shape.sdf(torch.from_numpy(p.T.copy())[None])
-    return d[0, 0].numpy(), n[0].numpy().T
+def _sdf(shape, p, device="cpu"):
+    d, n = shape.sdf(torch.from_numpy(p.T.copy())[None].to(device))
+    return d[0, 0].cpu().numpy(), n[0].cpu().numpy().T
 
 
-def test_sphere_and_halfspace_distances_are_analytic():
+def test_sphere_and_halfspace_distances_are_analytic(device):
     p = _points()
-    d, n = _sdf(Sphere(0.7), p)
+    d, n = _sdf(Sphere(0.7), p, device)
     r = np.linalg.norm(p, axis=1)
     assert np.allclose(d, r - 0.7, atol=1e-14) and np.allclose(n, p / r[:, None], atol=1e-14)
     normal = np.array([1.0, 2.0, -2.0]) / 3.0
-    d, n = _sdf(HalfSpace(normal=(1.0, 2.0, -2.0)), p)
+    d, n = _sdf(HalfSpace(normal=(1.0, 2.0, -2.0)), p, device)
     assert np.allclose(d, p @ normal, atol=1e-14) and np.allclose(n, normal[None], atol=1e-15)
 
 
@@ -86,16 +99,16 @@ def _inside(shape, p):
     [Capsule(0.5, 0.8, axis=0), Capsule(0.3, 0.0, axis=2), Box((0.6, 0.9, 0.4))],
     ids=["capsule-d", "capsule-ball", "box"],
 )
-def test_capsule_and_box_distances_match_brute_force(shape):
+def test_capsule_and_box_distances_match_brute_force(shape, device):
     p = _points(300, 1.6, seed=1)
-    d, n = _sdf(shape, p)
+    d, n = _sdf(shape, p, device)
     surf = _surface_samples(shape)
     brute = np.sqrt(((p[:, None] - surf[None]) ** 2).sum(-1)).min(1)
     sign = np.where(_inside(shape, p), -1.0, 1.0)
     assert np.abs(d - sign * brute).max() < 0.03  # surface sampled every ~0.03
     # the projected point lies on the surface, at distance |d| from p
     q = p - d[:, None] * n
-    dq, _ = _sdf(shape, q)
+    dq, _ = _sdf(shape, q, device)
     assert np.abs(dq).max() < 1e-12
     assert np.allclose(np.linalg.norm(p - q, axis=1), np.abs(d), atol=1e-12)
 
@@ -105,13 +118,13 @@ def test_capsule_and_box_distances_match_brute_force(shape):
     [Sphere(0.015), Capsule(0.008, 0.01, axis=1), Box((0.01, 0.02, 0.012)), HalfSpace(normal=(1.0, 0.5, 0.0))],
     ids=["sphere", "capsule", "box", "half-space"],
 )
-def test_projection_puts_penetrating_nodes_on_the_surface(shape):
+def test_projection_puts_penetrating_nodes_on_the_surface(shape, device):
     grid = td.Grid((6, 6, 6), spacing=0.005)
     tool = Tool(shape, position=(0.0125, 0.0125, 0.0125))
-    model = td.Model(grid, stiffness=1.0, mass=1e-3, dtype=torch.float64)
+    model = td.Model(grid, stiffness=1.0, mass=1e-3, dtype=torch.float64, device=device)
     g = torch.Generator().manual_seed(3)
-    x = model.X + 1e-3 * torch.randn(model.X.shape, generator=g, dtype=torch.float64)
-    v = torch.randn(x.shape, generator=g, dtype=torch.float64)
+    x = model.X + 1e-3 * torch.randn(model.X.shape, generator=g, dtype=torch.float64).to(device)
+    v = torch.randn(x.shape, generator=g, dtype=torch.float64).to(device)
     d0, n0 = tool.sdf(x, 0.0)
     x1, v1 = ProjectionContact(tool).project(model, x, v, 0.0, 1e-3)
     d1, _ = tool.sdf(x1, 0.0)
@@ -123,9 +136,9 @@ def test_projection_puts_penetrating_nodes_on_the_surface(shape):
     assert float(vn[inside].min()) >= -1e-12  # no approaching speed left
 
 
-def test_fixed_nodes_are_not_projected():
+def test_fixed_nodes_are_not_projected(device):
     grid = td.Grid((3, 3, 3), spacing=0.01)
-    model = td.Model(grid, stiffness=1.0, mass=1e-3, fixed=grid.face("bottom"), dtype=torch.float64)
+    model = td.Model(grid, stiffness=1.0, mass=1e-3, fixed=grid.face("bottom"), dtype=torch.float64, device=device)
     floor = Tool(HalfSpace(normal=(1.0, 0.0, 0.0)), position=(0.005, 0.0, 0.0))  # above the bottom layer
     x, _ = ProjectionContact(floor).project(model, model.X.clone(), torch.zeros_like(model.X), 0.0, 1e-3)
     assert torch.equal(x[:, :, 0], model.X[:, :, 0])  # fixed layer stays
@@ -136,7 +149,7 @@ def _energy(model, state):
     return float(model.energy(state)["total"][0])
 
 
-def test_body_dropped_on_a_floor_never_gains_energy():
+def test_body_dropped_on_a_floor_never_gains_energy(device):
     grid = td.Grid((2, 2, 2), spacing=0.01, topology=26)
     floor = Tool(HalfSpace(normal=(1.0, 0.0, 0.0)), position=(-0.02, 0.0, 0.0))  # 2 cm below the body
     model = td.Model(
@@ -146,6 +159,7 @@ def test_body_dropped_on_a_floor_never_gains_energy():
         gravity=(-9.81, 0.0, 0.0),
         interactions=[ProjectionContact(floor)],
         dtype=torch.float64,
+        device=device,
     )
     state = model.rest_state()
     e0 = _energy(model, state)
@@ -161,7 +175,7 @@ def test_body_dropped_on_a_floor_never_gains_energy():
 
 
 @pytest.mark.parametrize("ratio", [0.8, 1.25])
-def test_incline_sticks_below_the_friction_angle_and_slides_above(ratio):
+def test_incline_sticks_below_the_friction_angle_and_slides_above(ratio, device):
     theta = math.radians(25.0)
     mu = math.tan(theta) / ratio  # ratio < 1: mu > tan(theta) sticks; > 1 slides
     normal = (math.cos(theta), math.sin(theta), 0.0)
@@ -175,11 +189,12 @@ def test_incline_sticks_below_the_friction_angle_and_slides_above(ratio):
         gravity=(-g, 0.0, 0.0),
         interactions=[ProjectionContact(floor, friction=mu)],
         dtype=torch.float64,
+        device=device,
     )
     state, _ = td.simulate(model, model.rest_state(), dt=1e-4, steps=2000)  # 0.2 s
-    downhill = torch.tensor([-math.sin(theta), math.cos(theta), 0.0], dtype=torch.float64)
-    s = float((state.x[0, :, 0, 0, 0] * downhill).sum())
-    height = float((state.x[0, :, 0, 0, 0] * torch.tensor(normal, dtype=torch.float64)).sum())
+    node = state.x[0, :, 0, 0, 0].cpu()
+    s = float((node * torch.tensor([-math.sin(theta), math.cos(theta), 0.0], dtype=torch.float64)).sum())  # downhill
+    height = float((node * torch.tensor(normal, dtype=torch.float64)).sum())
     assert abs(height) < 1e-12  # stays on the plane
     if ratio < 1:
         assert abs(s) < 1e-12
@@ -188,26 +203,26 @@ def test_incline_sticks_below_the_friction_angle_and_slides_above(ratio):
         assert s == pytest.approx(0.5 * a * 0.2**2, rel=0.01)
 
 
-def test_penalty_contact_gradcheck_stiffness_and_tool_position():
+def test_penalty_contact_gradcheck_stiffness_and_tool_position(device):
     grid = td.Grid((2, 2, 2), spacing=0.01)
-    X = grid.rest_positions(dtype=torch.float64)
+    X = grid.rest_positions(dtype=torch.float64, device=device)
 
     def forces(k, centre):
         tool = Tool(Sphere(0.008), position=lambda t: centre)
         contact = PenaltyContact(tool, stiffness=k, damping=0.0)
-        model = td.Model(grid, stiffness=5.0, mass=1e-3, interactions=[contact], dtype=torch.float64)
+        model = td.Model(grid, stiffness=5.0, mass=1e-3, interactions=[contact], dtype=torch.float64, device=device)
         x = X + 0.001
         state = td.SymplecticEuler().step(model, td.State(x, torch.zeros_like(x)), 1e-3)
         return state.x
 
-    k = torch.tensor(40.0, dtype=torch.float64, requires_grad=True)
-    centre = torch.tensor([0.0, 0.0, 0.003], dtype=torch.float64, requires_grad=True)
+    k = torch.tensor(40.0, dtype=torch.float64, device=device, requires_grad=True)
+    centre = torch.tensor([0.0, 0.0, 0.003], dtype=torch.float64, device=device, requires_grad=True)
     d, _ = Sphere(0.008).sdf(X + 0.001 - centre.detach().view(1, 3, 1, 1, 1))
     assert float(d.abs().min()) > 1e-4 and int((d < 0).sum()) >= 1  # away from contact onset
     assert torch.autograd.gradcheck(forces, (k, centre))
 
 
-def test_packed_layout_gives_the_same_contact_step():
+def test_packed_layout_gives_the_same_contact_step(device):
     grid = td.Grid((4, 5, 3), spacing=0.01, topology=26)
     probe = Tool(Sphere(0.012), path=[(0.0, (0.045, 0.02, 0.01)), (0.01, (0.035, 0.02, 0.01))])
     floor = Tool(HalfSpace(normal=(1.0, 0.0, 0.0)), position=(-0.001, 0.0, 0.0))
@@ -222,6 +237,7 @@ def test_packed_layout_gives_the_same_contact_step():
             PenaltyContact(probe, stiffness=5.0, damping=0.01),
         ],
         dtype=torch.float64,
+        device=device,
     )
     pm = PackedModel(model)
     state, packed = model.rest_state(), pm.rest_state()
@@ -231,6 +247,58 @@ def test_packed_layout_gives_the_same_contact_step():
         packed = integ.step(pm, packed, 5e-4)
     assert torch.allclose(pm.unpack_state(packed).x, state.x, atol=1e-14, rtol=0)
     assert torch.allclose(pm.unpack_state(packed).v, state.v, atol=1e-11, rtol=0)
+
+
+@contextlib.contextmanager
+def _no_host_wait(device):
+    """Inside, on CUDA, any wait of the host for the device raises (torch's sync debug mode); elsewhere nothing."""
+    if device.type != "cuda":
+        yield
+        return
+    torch.cuda.synchronize(device)
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        yield
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+
+
+def _responses_over_steps(device, steps=3):
+    """Every response of torchdeform.interact applied to a body for a few steps: ``(x, v, readings)``."""
+    grid = td.Grid((4, 4, 4), spacing=0.01, topology=26)
+    model = td.Model(grid, stiffness=20.0, mass=1e-3, fixed=grid.face("bottom"), dtype=torch.float64, device=device)
+    probe = Tool(Sphere(0.012), path=[(0.0, (0.042, 0.015, 0.015)), (0.01, (0.035, 0.015, 0.015))], name="probe")
+    turned = Tool(Box((0.004, 0.006, 0.03)), position=(0.03, 0.0, 0.015), orientation=(0.0, 0.0, 0.3), name="box")
+    floor = Tool(HalfSpace(normal=(1.0, 0.2, 0.0)), position=(0.001, 0.0, 0.0), name="floor")
+    jaws = Tool(Box((0.004,) * 3), path=[(0.0, (0.03, 0.01, 0.01)), (0.01, (0.033, 0.01, 0.01))], name="forceps")
+    responses = [
+        ProjectionContact([probe, turned, floor], friction=0.3, haptic_gain=5.0),
+        ProjectionContact(probe, direction="motion"),
+        PenaltyContact([turned, floor], stiffness=5.0, damping=0.01),
+        Grasp(jaws, close=0.0, open=1.0),
+        StrainLimit(min_ratio=0.95, max_ratio=1.05, passes=2),
+    ]
+    gen = torch.Generator().manual_seed(5)
+    x = model.X + 2e-3 * torch.randn(model.X.shape, generator=gen, dtype=torch.float64).to(device)
+    v = 0.01 * torch.randn(x.shape, generator=gen, dtype=torch.float64).to(device)
+    readings = {}
+    with _no_host_wait(device):
+        for k in range(1, steps + 1):
+            for r in responses:
+                f = r.force(model, x, v, 1e-3 * k)
+                v = v if f is None else v + 1e-3 * f / model.mass
+                x, v = r.project(model, x, v, 1e-3 * k, 1e-3, readings=readings)
+    return x, v, readings
+
+
+def test_responses_queue_on_the_device_without_waiting_for_it(device):
+    x, v, readings = _responses_over_steps(device)
+    x_ref, v_ref, ref = _responses_over_steps(torch.device("cpu"))  # the oracle: the same steps on the CPU
+    assert ref["probe.contacts"].item() > 0 and ref["forceps.grasped"].item() > 0 and ref["box.contacts"].item() > 0
+    assert torch.allclose(x.cpu(), x_ref, rtol=0, atol=1e-12) and torch.allclose(v.cpu(), v_ref, rtol=0, atol=1e-9)
+    assert set(readings) == set(ref)
+    for k, r in ref.items():
+        assert torch.allclose(readings[k].cpu(), r, rtol=1e-9, atol=1e-12), k
 
 
 @pytest.mark.parametrize(

@@ -140,7 +140,7 @@ def _oracle(case):
     return el, fixed, mass, eq, free_fall
 
 
-def _model(case, eq, mass):
+def _model(case, eq, mass, device=None):
     grid = td.Grid(case.shape, spacing=H, topology=case.topology)
     tool, _ = _tool_and_obstacle(case)
     decay = 2 * math.sqrt(eq.reduced_hessian_min / mass.max())  # ~ critical for the slowest mode
@@ -153,6 +153,7 @@ def _model(case, eq, mass):
         decay=decay,
         interactions=[ProjectionContact(tool, friction=0.0)],
         dtype=torch.float64,
+        device=device,
     )
     return model, tool
 
@@ -164,7 +165,7 @@ def _settle(model, dt, integrator=None):
 
 
 @pytest.mark.parametrize("case", CASES, ids=lambda c: c.id)
-def test_pressed_block_settles_at_the_constrained_equilibrium(case):
+def test_pressed_block_settles_at_the_constrained_equilibrium(case, device):
     el, fixed, mass, eq, free_fall = _oracle(case)
     free = ~fixed
     active = eq.active[:, 0]
@@ -175,7 +176,7 @@ def test_pressed_block_settles_at_the_constrained_equilibrium(case):
     assert np.abs(eq.x[below] - free_fall.x[below]).max() > 1e-4
     assert np.abs(eq.slsqp_x - eq.x).max() < 1e-6  # SLSQP alone (before the Newton polish) is close
 
-    model, tool = _model(case, eq, mass)
+    model, tool = _model(case, eq, mass, device)
     dt = td.suggest_dt(model) / math.sqrt(2)  # stable with the post-step decay (module docstring)
     state = _settle(model, dt)
     x = el.from_field(state.x[0])

@@ -20,22 +20,23 @@ from torchdeform.errors import ConfigError
 from torchdeform.interact import HapticLoop, ProjectionContact, Sphere, Tool
 
 
-def _body(n=5, topology=18):
+def _body(n=5, topology=18, device=None):
     grid = td.Grid((n, n, n), spacing=0.01, topology=topology)
-    return grid, td.Model(grid, stiffness=40.0, damping=0.1, mass=1e-3, fixed=grid.face("bottom"), dtype=F64)
+    model = td.Model(grid, stiffness=40.0, damping=0.1, mass=1e-3, fixed=grid.face("bottom"), dtype=F64, device=device)
+    return grid, model
 
 
-def test_local_model_stiffness_and_rendered_force():
-    grid, model = _body()
+def test_local_model_stiffness_and_rendered_force(device):
+    grid, model = _body(device=device)
     r, c = 0.02, np.array([0.04 + 0.02 - 0.004, 0.02, 0.021])  # 4 mm into the top, a little off-centre
     loop = HapticLoop(model, Sphere(r), start=tuple(c), dt=2e-4, mode="local", compiled=False)
     loop.advance()
     f_b, p_b, K = loop.local_model()
     assert np.allclose(p_b, c)
     # the touched nodes: on the sphere after the projection (and free)
-    x = loop.step.packed.unpack_state(loop.state).x[0].reshape(3, -1).T.numpy()
+    x = loop.step.packed.unpack_state(loop.state).x[0].reshape(3, -1).T.cpu().numpy()
     dist = np.linalg.norm(x - c, axis=1)
-    free = model.free[0, 0].expand(grid.shape).reshape(-1).numpy() > 0
+    free = model.free[0, 0].expand(grid.shape).reshape(-1).cpu().numpy() > 0
     touched = free & (dist <= r + 1e-8)
     assert touched.sum() >= 3
     edges = EdgeList(grid.shape, (0.01,) * 3, 18)
@@ -52,15 +53,15 @@ def test_local_model_stiffness_and_rendered_force():
     assert np.allclose(loop.tick(p), f_b - K_ref @ (p - c), atol=1e-12)
 
 
-def test_direct_mode_equals_a_plain_simulation():
-    grid, model = _body(4, 26)
+def test_direct_mode_equals_a_plain_simulation(device):
+    grid, model = _body(4, 26, device)
     start = np.array([0.03 + 0.01 + 0.001, 0.01, 0.01])
     loop = HapticLoop(model, Sphere(0.01), start=tuple(start), dt=2e-4, mode="direct", steps_per_tick=4, compiled=False)
     path = [start - np.array([0.004 * k / 20, 0.0, 0.0]) for k in range(20)]
     with loop:
         forces = [loop.tick(p) for p in path]
     # the same: the tool held at each tick's position for 4 steps, after the loop's 4 warm-up steps
-    pos = torch.tensor(start, dtype=F64)
+    pos = torch.tensor(start, dtype=F64, device=device)
     tool = Tool(Sphere(0.01), position=pos, name="haptic")
     plain = td.Model(
         grid,
@@ -69,13 +70,14 @@ def test_direct_mode_equals_a_plain_simulation():
         mass=1e-3,
         fixed=grid.face("bottom"),
         dtype=F64,
+        device=device,
         interactions=[ProjectionContact(tool)],
     )
     state, _ = td.simulate(plain, plain.rest_state(), dt=2e-4, steps=4)
     for p, f in zip(path, forces):
         pos.copy_(torch.tensor(p))
         state, _ = td.simulate(plain, state, dt=2e-4, steps=4)
-        assert np.allclose(f, state.readings["haptic.force"][0].numpy(), atol=1e-12)
+        assert np.allclose(f, state.readings["haptic.force"][0].cpu().numpy(), atol=1e-12)
     assert forces[-1][0] > 0
 
 

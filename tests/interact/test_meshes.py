@@ -46,17 +46,17 @@ def torus():
     return mesh, MeshShape(mesh, resolution=40)
 
 
-def _sdf(shape, p: np.ndarray):
-    """``shape.sdf`` at points ``(M, 3)``, as numpy ``d`` ``(M,)`` and ``n`` ``(M, 3)``."""
-    d, n = shape.sdf(torch.from_numpy(np.ascontiguousarray(p.T))[None])
-    return d[0, 0].numpy(), n[0].numpy().T
+def _sdf(shape, p: np.ndarray, device="cpu"):
+    """``shape.sdf`` at points ``(M, 3)`` (evaluated on ``device``), as numpy ``d`` ``(M,)`` and ``n`` ``(M, 3)``."""
+    d, n = shape.sdf(torch.from_numpy(np.ascontiguousarray(p.T))[None].to(device))
+    return d[0, 0].cpu().numpy(), n[0].cpu().numpy().T
 
 
 def _points(n, scale, seed=0):
     return np.random.default_rng(seed).uniform(-scale, scale, size=(n, 3))
 
 
-def test_icosphere_matches_the_analytic_ball(icosphere, ball):
+def test_icosphere_matches_the_analytic_ball(icosphere, ball, device):
     h = ball.spacing
     assert ball.shape == (32, 32, 32) and ball.field.dtype == torch.float64
     assert ball.field.shape == (1, 1, 32, 32, 32) and ball.gradient.shape == (1, 3, 32, 32, 32)
@@ -67,7 +67,7 @@ def test_icosphere_matches_the_analytic_ball(icosphere, ball):
 
     p = _points(4000, 1.5 * R)  # the box is +-1.2 r: some outside
     r = np.linalg.norm(p, axis=1)
-    d, n = _sdf(ball, p)
+    d, n = _sdf(ball, p, device)
     err = np.abs(d - (r - R))
     assert err.max() < 1.5 * h
     # away from the kink at the centre, only interpolation and faceting errors remain (measured:
@@ -80,19 +80,19 @@ def test_icosphere_matches_the_analytic_ball(icosphere, ball):
     cos = np.einsum("mi,mi->m", n, p / r[:, None])
     assert cos[in_box & (r > 0.3 * R)].min() > 0.995 and cos[r > 0.3 * R].min() > 0.98
     # far outside the sampled box the distance keeps growing
-    d_far, n_far = _sdf(ball, np.array([[0.1, 0.0, 0.0], [0.0, -0.05, 0.05]]))
+    d_far, n_far = _sdf(ball, np.array([[0.1, 0.0, 0.0], [0.0, -0.05, 0.05]]), device)
     assert np.allclose(d_far, [0.1 - R, np.hypot(0.05, 0.05) - R], atol=1.5 * h)
     assert np.allclose(n_far[0], [1.0, 0.0, 0.0], atol=1e-6)
 
 
-def test_box_mesh_matches_the_analytic_box():
+def test_box_mesh_matches_the_analytic_box(device):
     half = np.array([0.01, 0.006, 0.004])
     shape = MeshShape(trimesh.creation.box(extents=2 * half), resolution=32)
     h = shape.spacing
     assert shape.shape[0] == 32 and shape.shape[0] > shape.shape[1] > shape.shape[2]  # mesh x, y, z = D, H, W
     p = _points(6000, 1.0, seed=1) * 1.3 * half
-    d, n = _sdf(shape, p)
-    d_ref, n_ref = _sdf(Box(tuple(half)), p)
+    d, n = _sdf(shape, p, device)
+    d_ref, n_ref = _sdf(Box(tuple(half)), p)  # the analytic box on the CPU
     q = np.abs(p) - half  # > 0 outside along that axis
     # a face's region, 3 spacings clear of every other face's: the distance is linear around it
     face = np.argmax(q, axis=1)
@@ -123,9 +123,9 @@ def test_torus_matches_trimesh_and_projection_lands_on_the_surface(torus):
     assert np.abs(exact.signed_distance(on)).max() < h
 
 
-def test_packed_and_grid_layouts_agree_and_float32_works(ball):
+def test_packed_and_grid_layouts_agree_and_float32_works(ball, device):
     x = torch.from_numpy(_points(2 * 4 * 5 * 6, 1.3 * R, seed=3)).T.reshape(3, 2, 4, 5, 6).transpose(0, 1)
-    x = x.contiguous()  # (B, 3, D, H, W)
+    x = x.contiguous().to(device)  # (B, 3, D, H, W)
     d, n = ball.sdf(x)
     assert d.shape == (2, 1, 4, 5, 6) and n.shape == (2, 3, 4, 5, 6) and d.dtype == torch.float64
     dp, n_p = ball.sdf(x.reshape(2, 3, -1))
@@ -205,7 +205,7 @@ def test_a_grid_too_coarse_for_a_thin_mesh_warns():
     assert np.allclose(d[2:], 0.001, atol=0.1 * fine.spacing)
 
 
-def test_mesh_tool_in_projection_contact(icosphere, ball):
+def test_mesh_tool_in_projection_contact(icosphere, ball, device):
     grid = td.Grid((5, 5, 5), spacing=0.01)
     path = [(0.0, (0.05, 0.02, 0.02)), (0.1, (0.045, 0.02, 0.02))]
     probe = Tool(ball, path=path)
@@ -217,12 +217,13 @@ def test_mesh_tool_in_projection_contact(icosphere, ball):
         fixed=grid.face("bottom"),
         interactions=[ProjectionContact(probe)],
         dtype=torch.float64,
+        device=device,
     )
     state, _ = td.simulate(model, model.rest_state(), dt=1e-3, steps=100)
     d, _ = probe.sdf(state.x, state.t)
     assert float(d.min()) > -0.1 * ball.spacing  # projected to the field's zero level
     centre = np.array(probe.position(state.t))
-    x = state.x[0].reshape(3, -1).T.numpy() - centre
+    x = state.x[0].reshape(3, -1).T.cpu().numpy() - centre
     depth = trimesh.proximity.ProximityQuery(icosphere).signed_distance(x)  # > 0 inside
     assert depth.max() < ball.spacing
     # the top layer was pushed: the probe went 5 mm below it

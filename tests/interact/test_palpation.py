@@ -2,14 +2,19 @@
 
 Oracles: series built by hand with a known answer: a press against a linear spring ``F = k delta``
 has slope ``k`` and peak ``k delta_max``; block means against ``reshape(...).mean``; the work
-direction of a tool moving along one axis against the force is that axis.
+direction of a tool moving along one axis against the force is that axis. A press simulated on
+the device of the run reads as the same run on the CPU.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
+import torchdeform as td
+from tests.helpers import F64
+from torchdeform.interact import ProjectionContact, Sphere, Tool
 from torchdeform.interact.palpation import block_means, palpation, plot_palpation, significant, work_direction
 
 
@@ -37,6 +42,47 @@ def test_presses_of_linear_springs():
     s = r["stiffest"]
     assert s["index"] == 1 and s["along_m"] == pytest.approx(0.01)
     assert s["ratio_to_median"] == pytest.approx(2.0, rel=2e-2)
+
+
+def _simulated_press(device):
+    """A sphere pressed 2 mm into a block and lifted again: ``(t, force, position, contacts)`` as numpy.
+
+    The readings stay on ``device`` while the body steps and come back once, at the end.
+    """
+    grid = td.Grid((3, 3, 3), spacing=0.01, topology=26)
+    up, down = (0.031, 0.01, 0.01), (0.028, 0.01, 0.01)  # the sphere's bottom 1 mm above the top, then 2 mm in
+    probe = Tool(Sphere(0.01), path=[(0.0, up), (0.05, down), (0.1, up)], name="probe")
+    model = td.Model(
+        grid,
+        stiffness=30.0,
+        damping=0.05,
+        mass=1e-3,
+        fixed=grid.face("bottom"),
+        interactions=[ProjectionContact(probe)],
+        dtype=F64,
+        device=device,
+    )
+    rows = []
+
+    def keep(i, s):
+        rows.append((float(s.t), s.readings["probe.force"][0], s.readings["probe.contacts"][0]))
+
+    td.simulate(model, model.rest_state(), dt=5e-4, steps=200, callback=keep)
+    t = np.array([r[0] for r in rows])
+    force = torch.stack([r[1] for r in rows]).cpu().numpy()
+    contacts = torch.stack([r[2] for r in rows]).cpu().numpy()
+    return t, force, np.array([probe.position(ti) for ti in t]), contacts
+
+
+def test_a_press_simulated_on_the_device_reads_as_on_the_cpu(device):
+    got = palpation(*_simulated_press(device))
+    ref = palpation(*_simulated_press("cpu"))  # the oracle: the same run on the CPU
+    assert len(got["points"]) == len(ref["points"]) == 1
+    p, q = got["points"][0], ref["points"][0]
+    assert q["peak_force_N"] > 0.01 and q["stiffness_N_per_m"] > 1.0 and q["indentation_m"] > 1e-3
+    assert p["peak_force_N"] == pytest.approx(q["peak_force_N"], rel=1e-9)
+    assert p["stiffness_N_per_m"] == pytest.approx(q["stiffness_N_per_m"], rel=1e-6)
+    assert p["indentation_m"] == pytest.approx(q["indentation_m"], rel=1e-12)
 
 
 def test_given_velocity_and_curve_points():

@@ -45,21 +45,22 @@ def oracle_pass(edges: EdgeList, x: np.ndarray, free: np.ndarray, lo: float, hi:
     return x + total / np.maximum(count, 1)[:, None]
 
 
-def _stretched(shape=(3, 4, 3), topology=18, seed=0):
+def _stretched(shape=(3, 4, 3), topology=18, seed=0, device=None):
     grid = td.Grid(shape, spacing=(0.01, 0.012, 0.01), topology=topology)
-    model = td.Model(grid, stiffness=1.0, mass=1e-3, fixed=grid.face("bottom"), dtype=torch.float64)
+    model = td.Model(grid, stiffness=1.0, mass=1e-3, fixed=grid.face("bottom"), dtype=torch.float64, device=device)
     g = torch.Generator().manual_seed(seed)
-    x = model.X * torch.tensor([1.6, 1.0, 0.7], dtype=torch.float64).view(1, 3, 1, 1, 1)  # stretch D, squeeze W
-    x = x + 1e-3 * torch.randn(x.shape, generator=g, dtype=torch.float64)
+    stretch = torch.tensor([1.6, 1.0, 0.7], dtype=torch.float64, device=device)  # stretch D, squeeze W
+    x = model.X * stretch.view(1, 3, 1, 1, 1)
+    x = x + 1e-3 * torch.randn(x.shape, generator=g, dtype=torch.float64).to(device)
     x = torch.where(model.constrained[None, None], model.X, x)  # fixed nodes at rest
     return grid, model, x
 
 
 @pytest.mark.parametrize("topology", [6, 18, 26])
-def test_one_pass_equals_the_edge_list_oracle(topology):
-    grid, model, x = _stretched(topology=topology)
+def test_one_pass_equals_the_edge_list_oracle(topology, device):
+    grid, model, x = _stretched(topology=topology, device=device)
     edges = EdgeList(grid.shape, grid.spacing, topology)
-    free = ~edges.from_field(model.constrained[None].expand(3, *grid.shape).numpy())[:, 0].astype(bool)
+    free = ~edges.from_field(model.constrained[None].expand(3, *grid.shape))[:, 0].astype(bool)
     want = oracle_pass(edges, edges.from_field(x[0]), free, 0.9, 1.1)
     got, _ = StrainLimit(min_ratio=0.9, max_ratio=1.1, passes=1, update_velocity=False).project(
         model, x, torch.zeros_like(x), 0.0, 1e-3
@@ -67,8 +68,8 @@ def test_one_pass_equals_the_edge_list_oracle(topology):
     assert np.abs(edges.from_field(got[0]) - want).max() < 1e-15
 
 
-def test_passes_bring_every_spring_within_its_bounds():
-    grid, model, x = _stretched(topology=26)
+def test_passes_bring_every_spring_within_its_bounds(device):
+    grid, model, x = _stretched(topology=26, device=device)
     edges = EdgeList(grid.shape, grid.spacing, 26)
 
     def worst(xx):
@@ -83,15 +84,15 @@ def test_passes_bring_every_spring_within_its_bounds():
     assert torch.equal(x1[:, :, 0], x[:, :, 0])  # fixed nodes stay
 
 
-def test_no_op_within_bounds_and_velocity_follows():
+def test_no_op_within_bounds_and_velocity_follows(device):
     grid = td.Grid((3, 3, 3), spacing=0.01, topology=26)
-    model = td.Model(grid, stiffness=1.0, mass=1e-3, dtype=torch.float64)
+    model = td.Model(grid, stiffness=1.0, mass=1e-3, dtype=torch.float64, device=device)
     g = torch.Generator().manual_seed(1)
-    x = model.X + 2e-4 * torch.randn(model.X.shape, generator=g, dtype=torch.float64)  # < 4 % strain
-    v = torch.randn(x.shape, generator=g, dtype=torch.float64)
+    x = model.X + 2e-4 * torch.randn(model.X.shape, generator=g, dtype=torch.float64).to(device)  # < 4 % strain
+    v = torch.randn(x.shape, generator=g, dtype=torch.float64).to(device)
     x1, v1 = StrainLimit(min_ratio=0.9, max_ratio=1.1, passes=3).project(model, x, v, 0.0, 1e-3)
     assert torch.equal(x1, x) and torch.equal(v1, v)
-    _, model2, xs = _stretched()
+    _, model2, xs = _stretched(device=device)
     x2, v2 = StrainLimit(min_ratio=0.9, max_ratio=1.1, passes=2).project(model2, xs, torch.zeros_like(xs), 0.0, 1e-3)
     assert torch.allclose(v2, (x2 - xs) / 1e-3, rtol=0, atol=1e-12)
 
@@ -129,19 +130,19 @@ def test_in_a_simulation_and_bad_input():
 
 
 @pytest.mark.parametrize("ratio", [0.9, 1.1])
-def test_springs_on_their_bound_within_rounding_are_left_alone(ratio):
+def test_springs_on_their_bound_within_rounding_are_left_alone(ratio, device):
     """A body scaled onto a bound and a few ulps beyond it (rounding noise) is left exactly as it is."""
     grid = td.Grid((3, 4, 3), spacing=(0.01, 0.012, 0.007), topology=26)
-    model = td.Model(grid, stiffness=1.0, mass=1e-3, fixed=grid.face("bottom"), dtype=torch.float64)
+    model = td.Model(grid, stiffness=1.0, mass=1e-3, fixed=grid.face("bottom"), dtype=torch.float64, device=device)
     x = model.X * (ratio * (1 + np.sign(ratio - 1) * 2e-15))  # ~ 10 ulps outside the bound
     edges = EdgeList(grid.shape, grid.spacing, 26)
     p = edges.from_field(x[0])
     length = np.linalg.norm(p[edges.b] - p[edges.a], axis=1)
     excess = length - np.clip(length, 0.9 * edges.l0, 1.1 * edges.l0)
     assert (np.abs(excess) > 0).all() and (np.abs(excess) < 64 * np.finfo(float).eps * edges.l0).all()
-    free = ~edges.from_field(model.constrained[None].expand(3, *grid.shape).numpy())[:, 0].astype(bool)
+    free = ~edges.from_field(model.constrained[None].expand(3, *grid.shape))[:, 0].astype(bool)
     assert np.array_equal(oracle_pass(edges, p, free, 0.9, 1.1), p)
-    v = torch.randn(x.shape, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    v = torch.randn(x.shape, generator=torch.Generator().manual_seed(2), dtype=torch.float64).to(device)
     limit = StrainLimit(min_ratio=0.9, max_ratio=1.1, passes=3)
     x1, v1 = limit.project(model, x, v, 0.0, 1e-3)
     assert torch.equal(x1, x) and torch.equal(v1, v)
@@ -152,7 +153,7 @@ def test_springs_on_their_bound_within_rounding_are_left_alone(ratio):
 
 
 @pytest.mark.parametrize("topology", [6, 18, 26])
-def test_packed_layout_gives_the_same_projection(topology):
+def test_packed_layout_gives_the_same_projection(topology, device):
     """One ``project`` call on the packed layout (summed over all directions) equals the grid layout's."""
     nodes = torch.ones(4, 5, 3, dtype=torch.bool)
     nodes[3, 4, :] = False  # a body that is not a box
@@ -171,11 +172,12 @@ def test_packed_layout_gives_the_same_projection(topology):
             fixed=fixed,
             spring_mask=spring_mask,
             dtype=torch.float64,
+            device=device,
         )
-        x = model.X * torch.tensor([1.5, 1.0, 0.75], dtype=torch.float64).view(1, 3, 1, 1, 1)
-        x = x + 2e-3 * torch.randn((2,) + x.shape[1:], generator=g, dtype=torch.float64)  # batch of 2
+        x = model.X * torch.tensor([1.5, 1.0, 0.75], dtype=torch.float64, device=device).view(1, 3, 1, 1, 1)
+        x = x + 2e-3 * torch.randn((2,) + x.shape[1:], generator=g, dtype=torch.float64).to(device)  # batch of 2
         x = torch.where(model.constrained[None, None], model.X, x)
-        v = torch.randn(x.shape, generator=g, dtype=torch.float64)
+        v = torch.randn(x.shape, generator=g, dtype=torch.float64).to(device)
         grid_out = limit.project(model, x, v, 0.0, 1e-3)
         pm = PackedModel(model)
         ps = pm.pack_state(td.State(x, v))
@@ -187,12 +189,13 @@ def test_packed_layout_gives_the_same_projection(topology):
     x, (xg, vg), packed = project(springs)
     assert (xg - x).abs().max() > 1e-3  # it did correct
     assert (packed.x - xg).abs().max() < 1e-12 and (packed.v - vg).abs().max() < 1e-12
+    xg, x = xg.cpu(), x.cpu()
     assert torch.equal(xg[..., ~nodes], x[..., ~nodes]) and torch.equal(xg[:, :, fixed], x[:, :, fixed])
     _, (x_uncut, _), _ = project(None)  # the cut springs mattered
-    assert (x_uncut - xg).abs().max() > 1e-4
+    assert (x_uncut.cpu() - xg).abs().max() > 1e-4
 
 
-def test_compiled_step_wrapper_runs_strain_limits_like_simulate():
+def test_compiled_step_wrapper_runs_strain_limits_like_simulate(device):
     """The eager packed path behind ``compiled_step`` (``enable=False``) equals ``td.simulate``."""
     grid = td.Grid((4, 3, 3), spacing=0.01, topology=26)
     pull = td.Drag(grid.face("top"), path=[(0.0, (0, 0, 0)), (0.01, (0.004, 0.001, 0))])
@@ -206,6 +209,7 @@ def test_compiled_step_wrapper_runs_strain_limits_like_simulate():
         drags=[pull],
         interactions=[StrainLimit(min_ratio=0.9, max_ratio=1.15, passes=5)],
         dtype=torch.float64,
+        device=device,
     )
     dt, steps = 5e-4, 20
     rest = model.rest_state(batch=2)
@@ -224,6 +228,7 @@ def test_compiled_step_wrapper_runs_strain_limits_like_simulate():
             fixed=grid.face("bottom"),
             drags=[pull],
             dtype=torch.float64,
+            device=device,
         ),
         start,
         dt=dt,

@@ -31,12 +31,13 @@ def cube(steps=100, **kw):
     return learn.radetzky_cube(springs=kw.pop("springs", 70), steps=steps, **kw)
 
 
-def shared(series, k, c, mass=None):
+def shared(series, k, c, mass=None, device=None):
     return learn.Parameters(
         series,
         learn.SpringParameter.like(series, init=k),
         learn.SpringParameter.like(series, init=c),
         series.truth["mass"] if mass is None else mass,
+        device=device,
     )
 
 
@@ -53,17 +54,21 @@ def test_transforms_roundtrip_and_positive(transform):
         learn.Positive(torch.tensor([1.0, -1.0]), transform=transform)
 
 
-def test_sharing_modes():
+def test_sharing_modes(device):
     g, _ = learn.cube_grid(n=4, spacing=0.01, springs=None, topology=26)
     mask = g.spring_mask()
-    k = learn.SpringParameter(g, spring_mask=None, init=3.0, sharing="shared")()
+    k = learn.SpringParameter(g, spring_mask=None, init=3.0, sharing="shared").to(device)()
+    assert k.device == device
+    k = k.cpu()
     assert torch.allclose(k, 3.0 * mask.to(k.dtype), rtol=1e-14, atol=0)
-    c = learn.SpringParameter(g, spring_mask=None, init=torch.tensor([1.0, 2.0, 3.0]), sharing="class")()
+    c = learn.SpringParameter(g, spring_mask=None, init=torch.tensor([1.0, 2.0, 3.0]), sharing="class").to(device)()
+    c = c.cpu()
     for s, cls in enumerate(g.direction_class()):
         expect = {"axis": 1.0, "face": 2.0, "body": 3.0}[cls]
         assert torch.allclose(c[s][mask[s]], torch.tensor(expect, dtype=c.dtype))
     lab = learn.layered_regions(g, layers=2)
-    r = learn.SpringParameter(g, spring_mask=None, init=torch.tensor([2.0, 8.0]), sharing="region", regions=lab)()
+    r = learn.SpringParameter(g, spring_mask=None, init=torch.tensor([2.0, 8.0]), sharing="region", regions=lab)
+    r = r.to(device)().cpu()
     # oracle: harmonic mean of the two end nodes' region values, spring by spring
     vals = np.array([2.0, 8.0])[lab]
     for s, d in enumerate(g.directions):
@@ -71,9 +76,12 @@ def test_sharing_modes():
             a, b = vals[i, j, l], vals[i + d[0], j + d[1], l + d[2]]
             assert r[s, i, j, l].item() == pytest.approx(2 * a * b / (a + b))
     n = int(mask.sum())
-    sp = learn.SpringParameter(g, spring_mask=None, init=torch.arange(1.0, n + 1), sharing="spring")
+    sp = learn.SpringParameter(g, spring_mask=None, init=torch.arange(1.0, n + 1), sharing="spring").to(device)
     out = sp()
-    assert torch.equal(sp.per_spring(out), sp.values()) and (out[~mask] == 0).all()
+    assert torch.equal(sp.per_spring(out), sp.values()) and (out.cpu()[~mask] == 0).all()
+    m = learn.NodeParameter(g, init=torch.arange(1.0, g.num_nodes + 1), sharing="node").to(device)()
+    assert m.device == device
+    assert torch.allclose(m.cpu().reshape(-1), torch.arange(1.0, g.num_nodes + 1, dtype=m.dtype), rtol=1e-14, atol=0)
     with pytest.raises(ConfigError, match="init"):
         learn.SpringParameter(g, spring_mask=None, init=torch.ones(3), sharing="spring")
     with pytest.raises(ConfigError, match="sharing"):
@@ -81,14 +89,16 @@ def test_sharing_modes():
 
 
 # ------------------------------------------------------------------ the loss
-def test_loss_is_zero_at_truth_and_matches_hand_written_full_rollout():
+def test_loss_is_zero_at_truth_and_matches_hand_written_full_rollout(device):
     s = cube(60)
     k0, c0 = s.meta["truth"]["stiffness"], s.meta["truth"]["damping"]
     for window in (1, 10, None):
-        assert float(learn.WindowLoss(s, window=window)(shared(s, k0, c0)).detach()) < 1e-26
+        assert float(learn.WindowLoss(s, window=window)(shared(s, k0, c0, device=device)).detach()) < 1e-26
     # full rollout: mean squared error of a plain simulation over free, observed coordinates / ref^2
-    p = shared(s, 1.2 * k0, c0)
-    loss = float(learn.WindowLoss(s, window=None)(p).detach())
+    p = shared(s, 1.2 * k0, c0, device=device)
+    loss = learn.WindowLoss(s, window=None)(p)
+    assert loss.device == device
+    loss = float(loss.detach())
     with torch.no_grad():
         x = s.simulate(s.model(1.2 * k0, c0, s.truth["mass"]))[:, 0].numpy()
     free = ~s.constrained()
@@ -98,10 +108,10 @@ def test_loss_is_zero_at_truth_and_matches_hand_written_full_rollout():
     assert loss == pytest.approx(err.sum() / (err.size * (61 / 60)) / ref2, rel=1e-10)
 
 
-def test_gradient_matches_finite_differences():
+def test_gradient_matches_finite_differences(device):
     s = cube(40)
     L = learn.WindowLoss(s, window=8)
-    p = shared(s, 14.0, 0.07)
+    p = shared(s, 14.0, 0.07, device=device)
     L(p).backward()
     for name in ("stiffness", "damping"):
         raw = p.learned[name].value.raw
@@ -115,11 +125,11 @@ def test_gradient_matches_finite_differences():
         assert raw.grad.item() == pytest.approx((up - down) / (2 * h), rel=1e-5)
 
 
-def test_checkpointing_gives_the_same_loss_and_gradient():
+def test_checkpointing_gives_the_same_loss_and_gradient(device):
     s = learn.cube_series(n=3, load="sine", steps=30, period=0.1)
     grads = []
     for ckpt in (None, 7):
-        p = shared(s, 13.0, 0.2)
+        p = shared(s, 13.0, 0.2, device=device)
         loss = learn.WindowLoss(s, window=None, checkpoint=ckpt)(p)
         loss.backward()
         grads.append((float(loss.detach()), [q.grad.clone() for q in p.parameters()]))
@@ -128,22 +138,23 @@ def test_checkpointing_gives_the_same_loss_and_gradient():
         assert torch.allclose(a, b, rtol=1e-11)
 
 
-def test_missing_data_is_ignored():
+def test_missing_data_is_ignored(device):
     observe = np.ones((3, 3, 3), dtype=bool)
     observe[2, 0, 0] = False
     s = cube(60, observe=observe)
-    p = shared(s, 12.0, 0.08)
+    p = shared(s, 12.0, 0.08, device=device)
     before = float(learn.WindowLoss(s, window=None)(p).detach())
     s.positions[:, :, 2, 0, 0] = 123.0  # garbage where nothing was seen
     assert float(learn.WindowLoss(s, window=None)(p).detach()) == before
     # carrying the simulation through unobserved nodes still recovers the truth exactly
-    assert float(learn.WindowLoss(s, window=10, velocity="carry")(shared(s, 10.0, 0.1)).detach()) < 1e-26
+    truth = shared(s, 10.0, 0.1, device=device)
+    assert float(learn.WindowLoss(s, window=10, velocity="carry")(truth).detach()) < 1e-26
 
 
 # ------------------------------------------------------------------ recovery
-def test_shared_recovery_from_offset_start():
+def test_shared_recovery_from_offset_start(device):
     s = cube(150)
-    p = shared(s, 30.0, 0.04)  # 3x and 1/2.5x the truth
+    p = shared(s, 30.0, 0.04, device=device)  # 3x and 1/2.5x the truth
     tr = learn.Trainer(
         p, learn.WindowLoss(s, window=10), optimizer="lbfgs", iterations=20, patience=3, tol=1e-24, progress=False
     )
@@ -153,9 +164,9 @@ def test_shared_recovery_from_offset_start():
     assert learn.relative_error(got["damping"], 0.1) < 1e-3
 
 
-def test_shared_recovery_with_one_percent_noise():
+def test_shared_recovery_with_one_percent_noise(device):
     s = learn.radetzky_cube(springs=70, noise=0.01, seed=2)
-    p = shared(s, 30.0, 0.04)
+    p = shared(s, 30.0, 0.04, device=device)
     tr = learn.Trainer(
         p, learn.WindowLoss(s, window=50, smooth=10), optimizer="lbfgs", iterations=10, patience=3, progress=False
     )
@@ -165,7 +176,7 @@ def test_shared_recovery_with_one_percent_noise():
     assert learn.relative_error(got["damping"], 0.1) < 0.02
 
 
-def test_per_spring_fit_loss_falls_and_report_flags_undetermined_springs():
+def test_per_spring_fit_loss_falls_and_report_flags_undetermined_springs(device):
     s = cube(100, springs=54)
     g = torch.Generator().manual_seed(0)
     k = learn.SpringParameter.like(s, init=1.0, sharing="spring")
@@ -173,15 +184,15 @@ def test_per_spring_fit_loss_falls_and_report_flags_undetermined_springs():
     true = k.per_spring(torch.as_tensor(s.truth["stiffness"]))
     init = true * torch.exp(torch.empty(n, dtype=torch.float64).uniform_(math.log(0.2), math.log(5), generator=g))
     k = learn.SpringParameter.like(s, init=init, sharing="spring")
-    p = learn.Parameters(s, k, s.truth["damping"], s.truth["mass"])
+    p = learn.Parameters(s, k, s.truth["damping"], s.truth["mass"], device=device)
     L = learn.WindowLoss(s, window=10)
     first = float(L(p).detach())
     tr = learn.Trainer(p, L, optimizer="lbfgs", iterations=6, patience=3, progress=False)
     tr.run()
     assert tr.final_loss() < first / 100
-    active = learn.active_springs(s)[k.mask]
+    active = learn.active_springs(s)[k.mask.cpu()]
     assert int((~active).sum()) == 12  # the 12 springs among the 9 fixed nodes
-    v = k.values().detach()
+    v = k.values().detach().cpu()
     assert torch.allclose(v[~active], init[~active], rtol=1e-14)  # no data ever touches them
     rep = learn.spread_report(v[active], true[active])
     assert rep["n"] == 42 and rep["ratio"]["min"] <= rep["ratio"]["median"] <= rep["ratio"]["max"]
@@ -210,14 +221,14 @@ def test_sparse_snapshots_recover_stiffness():
     assert learn.relative_error(p.summary()["stiffness"], k0) < 0.05
 
 
-def test_fuzzy_slider_recovers_target_stiffness_and_viscosity():
+def test_fuzzy_slider_recovers_target_stiffness_and_viscosity(device):
     fis = fuzzy.load_preset("susilap_g").double()
     target = {k: float(v) for k, v in fis.evaluate(consistency=5.5).items()}
     s = cube(100, stiffness=target["spring_const"], damping=target["viscosity"], mass=0.2)
     fs = learn.FuzzySprings(
         fuzzy.load_preset("susilap_g"), {"consistency": 5.1}, grid=s.grid, spring_mask=s.spring_mask_tensor()
     )
-    p = learn.Parameters(s, fs.part("stiffness"), fs.part("damping"), s.truth["mass"])
+    p = learn.Parameters(s, fs.part("stiffness"), fs.part("damping"), s.truth["mass"], device=device)
     learn.Trainer(p, learn.WindowLoss(s, window=10), optimizer="lbfgs", iterations=10, patience=3, progress=False).run()
     got = {k: float(v.detach()) for k, v in fs().items()}
     assert learn.relative_error(got["stiffness"], target["spring_const"]) < 0.01
@@ -334,12 +345,13 @@ def test_fit_cube_recovers_a_stiff_cube_through_implicit_euler(tmp_path):
     assert run["relative_error"]["stiffness"] < 1e-3 and run["relative_error"]["damping"] < 1e-3
 
 
-def test_checkpointed_loss_with_a_scalar_mass_equals_the_whole_graph():
-    """A scalar mass goes through the checkpoint's model rebuild (it once failed there)."""
+def test_checkpointed_loss_with_a_scalar_mass_equals_the_whole_graph(device):
+    """A scalar mass goes through the checkpoint's model rebuild."""
     s = learn.radetzky_cube(springs=54, steps=40)
 
     def value_and_grads(checkpoint):
-        p = learn.Parameters(s, learn.SpringParameter.like(s, init=12.0), learn.SpringParameter.like(s, init=0.1), 0.01)
+        k, c = learn.SpringParameter.like(s, init=12.0), learn.SpringParameter.like(s, init=0.1)
+        p = learn.Parameters(s, k, c, 0.01, device=device)
         loss = learn.WindowLoss(s, window=None, checkpoint=checkpoint)(p)
         loss.backward()
         return loss.detach(), [q.grad.clone() for q in p.parameters() if q.grad is not None]

@@ -59,12 +59,17 @@ def reference_cube(springs, k, d, m, force, steps, dt, h):
 
 
 @pytest.mark.parametrize("springs", [54, 70, 86, 126])
-def test_radetzky_cube_matches_edge_list_simulation(springs):
+def test_radetzky_cube_matches_edge_list_simulation(springs, device):
     s = learn.radetzky_cube(springs=springs, steps=40)
     ref, count = reference_cube(springs, 10.0, 0.1, 0.01, np.array([-0.05, 0.0, 0.0]), 40, 0.005, 0.01)
     assert int(s.spring_mask_tensor().sum()) == count == springs
     got = s.positions.reshape(41, 3, 27).transpose(0, 2, 1)
     assert np.abs(got - ref).max() < 1e-13
+    # the series' own dynamics (load tables, true model) on the device of the run
+    with torch.no_grad():
+        again = s.simulate(s.true_model(device=device))[:, 0]
+    assert again.device == device
+    assert np.abs(again.cpu().numpy().reshape(41, 3, 27).transpose(0, 2, 1) - ref).max() < 1e-13
     # the lower 9 nodes never move; the top-centre node is pushed down
     assert np.array_equal(s.positions[:, :, 0], np.broadcast_to(s.positions[:1, :, 0], s.positions[:, :, 0].shape))
     assert s.positions[-1, 0, 2, 1, 1] < 0.02 - 1e-4
@@ -77,11 +82,14 @@ def test_cube_reaches_equilibrium_in_250_steps():
     assert speed[-1] < 1e-3 * speed.max()
 
 
-def test_sine_drag_and_indentation_follow_their_paths():
+def test_sine_drag_and_indentation_follow_their_paths(device):
     s = learn.cube_series(n=4, topology=26, load="sine", steps=60, dt=0.005, period=0.2, amplitude=0.001)
     t = s.steps * s.dt
     top = s.positions[:, 1, 3, 2, 1] - 2 * 0.01  # channel h of a top node, minus its rest position
     assert np.allclose(top, 0.001 * np.sin(2 * np.pi * t / 0.2), atol=1e-15)
+    with torch.no_grad():  # the drag tables on the device of the run
+        again = s.simulate(s.true_model(device=device))[:, 0, 1, 3, 2, 1].cpu().numpy() - 2 * 0.01
+    assert np.allclose(again, top, atol=1e-15)
     s = learn.cube_series(n=4, load="indent", steps=100, dt=0.005, duration=0.25, amplitude=0.002)
     presc = s.prescribed()
     assert presc.sum() >= 1 and presc[3].sum() == presc.sum()  # only top nodes

@@ -16,7 +16,7 @@ from torchdeform.sim.adjoint import ImplicitSolve, adjoint_solve
 from torchdeform.sim.integrators import conjugate_gradient
 
 
-def _body(per_spring=False, damping=True, drag=False, home=False, shape=(4, 4, 5), seed=0):
+def _body(per_spring=False, damping=True, drag=False, home=False, shape=(4, 4, 5), seed=0, device=None):
     """A small 26-neighbour body with a fixed base, gravity, and parameters that require grad.
 
     Returns ``(loss, params)``: ``loss(integrator, steps)`` is a random projection of the final
@@ -25,13 +25,18 @@ def _body(per_spring=False, damping=True, drag=False, home=False, shape=(4, 4, 5
     grid = td.Grid(shape, spacing=0.01, topology=26)
     gen = torch.Generator().manual_seed(seed)
     kshape = (grid.S,) + grid.shape if per_spring else (grid.S,)
-    k = (50.0 * (1 + 0.2 * torch.rand(kshape, generator=gen, dtype=F64))).requires_grad_()
-    c = (0.05 * (1 + 0.2 * torch.rand(kshape, generator=gen, dtype=F64))).requires_grad_() if damping else None
-    m = (1e-3 * (1 + 0.2 * torch.rand(shape, generator=gen, dtype=F64))).requires_grad_()
-    X = grid.rest_positions(dtype=F64)
-    x0 = (X + 1e-3 * torch.randn(X.shape, generator=gen, dtype=F64)).requires_grad_()
-    v0 = (0.01 * torch.randn(X.shape, generator=gen, dtype=F64)).requires_grad_()
-    P, Q = (torch.randn(X.shape, generator=gen, dtype=F64) for _ in range(2))
+
+    def rand(shape, scale, normal=False):  # drawn on the CPU (same numbers on every device), then moved
+        draw = torch.randn if normal else torch.rand
+        return (scale * draw(shape, generator=gen, dtype=F64)).to(device)
+
+    k = (50.0 * (1 + rand(kshape, 0.2))).requires_grad_()
+    c = (0.05 * (1 + rand(kshape, 0.2))).requires_grad_() if damping else None
+    m = (1e-3 * (1 + rand(shape, 0.2))).requires_grad_()
+    X = grid.rest_positions(dtype=F64, device=device)
+    x0 = (X + rand(X.shape, 1e-3, True)).requires_grad_()
+    v0 = rand(X.shape, 0.01, True).requires_grad_()
+    P, Q = (rand(X.shape, 1.0, True) for _ in range(2))
     drags = [td.Drag(grid.face("top"), offset=(0.002, 0.001, 0.0), ramp=0.05)] if drag else None
 
     def make(k, c, m):
@@ -45,6 +50,7 @@ def _body(per_spring=False, damping=True, drag=False, home=False, shape=(4, 4, 5
             drags=drags,
             home=20.0 if home else None,
             dtype=F64,
+            device=device,
         )
 
     with torch.no_grad():
@@ -86,10 +92,10 @@ def test_gradient_option_is_validated():
     ],
     ids=["per-direction-damped", "undamped-drag-newton2", "per-spring-drag", "per-spring-home-newton2"],
 )
-def test_adjoint_equals_unrolled_gradients(per_spring, damping, drag, home, newton_iters):
+def test_adjoint_equals_unrolled_gradients(per_spring, damping, drag, home, newton_iters, device):
     """Stiffness and damping (per direction or per spring), node masses, x0 and v0: the adjoint
     gradient of a 4-step rollout at 20 x the explicit bound equals the unrolled one to 1e-8."""
-    loss, params = _body(per_spring, damping, drag, home)
+    loss, params = _body(per_spring, damping, drag, home, device=device)
     grads, values = {}, {}
     for gradient in ("unrolled", "adjoint"):
         integ = _implicit(gradient, newton_iters)

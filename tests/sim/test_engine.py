@@ -16,7 +16,7 @@ from torchdeform.sim import native
 from torchdeform.sim.engine import Engine, gradient_needed
 
 
-def body(n=4, dtype=F64, drags=True):
+def body(n=4, dtype=F64, drags=True, device=None):
     grid = make_grid(n)
     drag = [
         td.Drag(grid.index_mask([(n - 1, n // 2, n // 2)]), path=[(0.0, (0.0, 0.0, 0.0)), (0.02, (0.004, 0.002, 0.0))])
@@ -30,6 +30,7 @@ def body(n=4, dtype=F64, drags=True):
         drags=(drags and drag) or [],
         decay=5.0,
         dtype=dtype,
+        device=device,
     )
 
 
@@ -43,8 +44,8 @@ def run(model, engine, steps=30, integrator=None, **kw):
 @pytest.mark.parametrize(
     "integrator", [td.SymplecticEuler(), td.RK4(), td.ImplicitEuler(cg_iters=15)], ids=["symplectic", "rk4", "implicit"]
 )
-def test_compiled_engine_equals_eager(integrator):
-    model = body()
+def test_compiled_engine_equals_eager(integrator, device):
+    model = body(device=device)
     ref, rec_ref = run(model, "eager", integrator=integrator)
     engine = Engine(mode="compiled", compile=False)
     out, rec = run(model, engine, integrator=integrator)
@@ -120,6 +121,24 @@ def test_auto_decides_native_then_compiled_by_hand():
     engine = Engine(mode="auto")  # an implicit step compiles directly
     assert engine.decide(td.ImplicitEuler(), [0.05, 0.03, 0.03], 200_000, threads=2, model=model)
     assert engine.choice == "compiled"
+
+
+def test_auto_on_the_device_picks_an_engine_that_runs_there(device):
+    """The C kernel runs on the CPU only: on a GPU ``"auto"`` goes from eager straight to the
+    compiled step (Triton), with the spring sum the packed model picks there (the reduction form,
+    whose Triton kernel compiles in seconds)."""
+    model = body(device=device)
+    engine = Engine(mode="auto")
+    assert engine.decide(td.SymplecticEuler(), [0.05, 0.03, 0.03], 200_000, threads=2, model=model)
+    if device.type == "cuda":
+        assert (
+            Engine.native_blocker(model, td.SymplecticEuler()) == "the C kernel runs on the CPU (the model is on cuda)"
+        )
+        assert engine.choice == "compiled" and engine.force_form is None and engine.reason.endswith("; compiled")
+        engine._compile(model, td.SymplecticEuler(), 1e-4, None)
+        assert engine.step.packed.force_form is None and engine.step.force_form == "reduction"
+    else:
+        assert engine.choice == ("native" if native.unavailable() is None else "compiled")
 
 
 def test_auto_picks_the_gather_form_only_when_the_steps_to_come_repay_its_compile():

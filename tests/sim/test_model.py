@@ -270,3 +270,19 @@ def test_density_gives_thin_masked_features_positive_mass():
     g = td.Grid((4, 4, 4), spacing=0.01, node_mask=mask)
     m = td.Model(g, stiffness=1.0, density=1000.0, fixed=g.face("bottom"), dtype=F64)
     assert bool((m.mass[0, 0][mask] > 0).all()) and bool((m.mass[0, 0][~mask] == 0).all())
+
+
+def test_masks_given_on_the_device_build_the_same_model(device):
+    """Fixed and dragged node masks may come on the model's device (a GPU mask from a segmentation)."""
+    g = td.Grid((3, 3, 4), spacing=0.01, topology=26)
+    top = g.face("top")
+
+    def build(where):
+        drag = td.Drag(top.to(where), offset=(1e-3, 0.0, 0.0), ramp=0.1)
+        return td.Model(
+            g, stiffness=1.0, mass=1.0, fixed=g.face("bottom").to(where), drags=[drag], dtype=F64, device=device
+        )
+
+    on_host, on_device = build("cpu"), build(device)
+    assert torch.equal(on_device.constrained.cpu(), g.face("bottom") | top)
+    assert torch.equal(on_device.free.cpu(), on_host.free.cpu()) and on_device.free.device == on_device.X.device

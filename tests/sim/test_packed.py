@@ -21,7 +21,7 @@ INTEGRATORS = [
 ]
 
 
-def _scene(topology, mode="projected", batch=1):
+def _scene(topology, mode="projected", batch=1, device=None):
     node_mask = torch.ones(5, 4, 6, dtype=torch.bool)
     node_mask[3:, 2:, :3] = False  # an L-shaped body
     grid = td.Grid((5, 4, 6), spacing=(0.01, 0.011, 0.012), topology=topology, node_mask=node_mask)
@@ -43,17 +43,18 @@ def _scene(topology, mode="projected", batch=1):
         anchors=(5.0, 2),
         loads=[td.PointForce((4, 0, 2), (0.01, 0.0, -0.02), start=0.001, ramp=0.003)],
         dtype=F64,
+        device=device,
     )
-    x = model.X + 2e-4 * torch.randn((batch, 3) + grid.shape, generator=g, dtype=F64)
-    v = 1e-2 * torch.randn((batch, 3) + grid.shape, generator=g, dtype=F64)
+    x = model.X + 2e-4 * torch.randn((batch, 3) + grid.shape, generator=g, dtype=F64).to(model.device)
+    v = 1e-2 * torch.randn((batch, 3) + grid.shape, generator=g, dtype=F64).to(model.device)
     x, v = model.constrain(x, v, 0.0)
     return model, td.State(x, v, t=0.0)
 
 
 @pytest.mark.parametrize("topology", [6, 14, 18, 26])
 @pytest.mark.parametrize("mode", ["projected", "unprojected"])
-def test_packed_forces_equal_grid_forces(topology, mode):
-    model, state = _scene(topology, mode, batch=2)
+def test_packed_forces_equal_grid_forces(topology, mode, device):
+    model, state = _scene(topology, mode, batch=2, device=device)
     pm = PackedModel(model)
     ps = pm.pack_state(state)
     F_grid = model.forces(state.x, state.v, t=0.002)
@@ -86,12 +87,13 @@ def test_packed_layout_round_trips_and_core_is_whole_blocks(shape):
 
 
 @pytest.mark.parametrize("integ", INTEGRATORS, ids=lambda i: f"{i.name}{getattr(i, 'newton_iters', '')}")
-def test_packed_steps_equal_grid_steps(integ):
+def test_packed_steps_equal_grid_steps(integ, device):
     """20 steps through drags, a ramped load, anchors, decay and a node mask; time as a float and
     as the 0-d tensor the compiled step passes."""
-    model, state = _scene(26)
+    model, state = _scene(26, device=device)
     pm = PackedModel(model)
-    ref, s, st = state, pm.pack_state(state), pm.pack_state(td.State(state.x, state.v, t=torch.tensor(0.0, dtype=F64)))
+    t0 = torch.tensor(0.0, dtype=F64, device=device)
+    ref, s, st = state, pm.pack_state(state), pm.pack_state(td.State(state.x, state.v, t=t0))
     for _ in range(20):
         ref = integ.step(model, ref, 5e-4)
         s = integ.step(pm, s, 5e-4)
@@ -103,11 +105,11 @@ def test_packed_steps_equal_grid_steps(integ):
     assert float(st.t) == pytest.approx(ref.t)
 
 
-def test_compiled_implicit_graph_equals_eager_step():
+def test_compiled_implicit_graph_equals_eager_step(device):
     """The compiled implicit Euler's graph (set-up, CG iterations in a while_loop, update), run
     here uncompiled, gives the eager step: a fixed iteration count, a tolerance (the loop
     condition reads the residual) and a Newton iteration."""
-    model, state = _scene(18)
+    model, state = _scene(18, device=device)
     for integ in (
         td.ImplicitEuler(cg_iters=7, cg_tol=0),
         td.ImplicitEuler(cg_iters=40, cg_tol=1e-9),
@@ -116,7 +118,7 @@ def test_compiled_implicit_graph_equals_eager_step():
         cs = CompiledStep(integ, model, 5e-4, enable=False)
         graph = ImplicitGraph(integ, cs.packed, 5e-4, None)
         ps = cs.packed.pack_state(state)
-        x, v, _ = graph(ps.x, ps.v, torch.tensor(0.0, dtype=F64))
+        x, v, _ = graph(ps.x, ps.v, torch.tensor(0.0, dtype=F64, device=device))
         n_graph, rel_graph = integ.last_cg
         ref = integ.step(model, state, 5e-4)
         if integ.cg_tol > 0:
@@ -163,3 +165,27 @@ def test_packed_model_rejects_a_packed_model():
     model, _ = _scene(6)
     with pytest.raises(TypeError):
         PackedModel(PackedModel(model))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("integ", "form"),
+    [(td.SymplecticEuler(), "gather"), (td.SymplecticEuler(), "reduction"), (td.ImplicitEuler(cg_iters=15), None)],
+    ids=["symplectic-gather", "symplectic-reduction", "implicit"],
+)
+def test_compiled_step_equals_eager_step_on_the_device(integ, form, device):
+    """The step under ``torch.compile`` (inductor's C++ on a CPU, Triton on a GPU) on the device,
+    ten steps through the drag, ramped load, anchors and node mask of the scene: the eager grid step."""
+    if form == "gather" and device.type != "cpu":
+        pytest.skip("the gather form is the CPU's: its unrolled Triton kernel takes minutes to compile")
+    model, state = _scene(26, device=device)
+    cs = CompiledStep(integ, model, 5e-4, force_form=form)
+    ref, s = state, cs.packed.pack_state(state)
+    with torch.no_grad():
+        for _ in range(10):
+            ref, s = integ.step(model, ref, 5e-4), cs.step_packed(s)
+    assert cs.compiled, cs.compile_error
+    out = cs.packed.unpack_state(s)
+    assert out.x.device == model.device
+    assert torch.allclose(out.x, ref.x, rtol=0, atol=1e-12)
+    assert torch.allclose(out.v, ref.v, rtol=0, atol=1e-8)

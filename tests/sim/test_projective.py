@@ -19,7 +19,7 @@ EXACT = {"cholesky": {}, "cg": {"cg_tol": 1e-10, "cg_iters": 200}}  # exact glob
 
 
 def body(k=1e3, **kw):
-    """A 5 x 4 x 4 body, 26 neighbours, gravity, fixed base."""
+    """A 5 x 4 x 4 body, 26 neighbours, gravity, fixed base (``device=`` as :class:`td.Model`)."""
     grid = td.Grid((5, 4, 4), spacing=0.01, topology=26)
     kw.setdefault("fixed", grid.face("bottom"))
     return td.Model(grid, stiffness=k, density=1000.0, gravity=(-9.81, 0, 0), dtype=F64, **kw)
@@ -28,7 +28,7 @@ def body(k=1e3, **kw):
 def stretched(model, seed=1):
     """10 % stretch along D plus millimetre noise on the free nodes."""
     g = torch.Generator().manual_seed(seed)
-    x = model.X + 1e-3 * torch.randn(model.X.shape, generator=g, dtype=F64) * model.free
+    x = model.X + 1e-3 * torch.randn(model.X.shape, generator=g, dtype=F64).to(model.device) * model.free
     x[:, 0] = x[:, 0] * 1.1
     x = torch.where(model.free > 0, x, model.X)
     return td.State(x, torch.zeros_like(x), t=0.0)
@@ -44,8 +44,8 @@ def rel_error(out, ref, state):
 
 
 @pytest.mark.parametrize("solver", SOLVERS_CG_SLOW)
-def test_converges_to_implicit_euler(solver):
-    model = body()
+def test_converges_to_implicit_euler(solver, device):
+    model = body(device=device)
     s = stretched(model)
     dt = 10 * td.time_step_bound(model, integrator="symplectic")  # well beyond the explicit bound
     ref = newton(model, s, dt)
@@ -270,17 +270,18 @@ def test_cholesky_refactors_after_an_in_place_cut_and_per_batch_parameters():
 
 
 @pytest.mark.parametrize("solver", SOLVERS)
-def test_packed_model_equals_grid_model(solver):
+def test_packed_model_equals_grid_model(solver, device):
     from torchdeform.sim.packed import PackedModel
 
-    model = body(damping=1.0)
+    model = body(damping=1.0, device=device)
     pm = PackedModel(model)
     s = stretched(model)
     dt = 30 * td.time_step_bound(model, integrator="symplectic")
     out = ProjectiveDynamics(solver=solver).step(model, s, dt)
     packed = pm.unpack_state(ProjectiveDynamics(solver=solver).step(pm, pm.pack_state(s), dt))
-    np.testing.assert_allclose(packed.x.numpy(), out.x.numpy(), rtol=0, atol=1e-12)
-    np.testing.assert_allclose(packed.v.numpy(), out.v.numpy(), rtol=0, atol=1e-9)
+    assert packed.x.device == model.device
+    np.testing.assert_allclose(packed.x.cpu().numpy(), out.x.cpu().numpy(), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(packed.v.cpu().numpy(), out.v.cpu().numpy(), rtol=0, atol=1e-9)
 
 
 @pytest.mark.slow

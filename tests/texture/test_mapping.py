@@ -23,13 +23,17 @@ def test_vertex_colours_are_texture_lookups_at_rest_coordinates():
     assert torch.allclose(vertex_colours(tex, s), tex.at_material(torch.from_numpy(s.rest)).float())
 
 
-def test_every_pixel_shows_the_texture_at_its_material_point_however_the_surface_moved():
+def test_every_pixel_shows_the_texture_at_its_material_point_however_the_surface_moved(device):
     tex = SolidTexture(liver_exemplar(size=16, seed=1).double(), block=8, extent=(24, 24, 24), voxel=0.0005)
     moved = _square(shift=(0.0, 0.003, -0.002))  # a translated surface, same material
     cam = Camera(
         eye=(0.05, 0.008, 0.003), target=(0.0, 0.008, 0.003), up=(0.0, 0.0, 1.0), ortho_height=0.008, size=(32, 32)
     )
-    out = render_textured([moved], tex, cam, light=(1.0, 0.0, 0.0), ambient=0.0, background=(0.0, 0.0, 0.0))
+    out = render_textured(
+        [moved], tex, cam, light=(1.0, 0.0, 0.0), ambient=0.0, background=(0.0, 0.0, 0.0), device=device
+    )
+    assert out["image"].device == device
+    out = {k: v.cpu() for k, v in out.items()}
     hit = out["face"] >= 0
     assert int(hit.sum()) > 500
     # the world point under each pixel (on the plane d = 4.2 mm), moved back to its material point

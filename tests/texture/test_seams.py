@@ -131,8 +131,8 @@ def test_3d_blend_removes_seams_and_keeps_colours(textures, region):
         assert float((u.mean((1, 2, 3)) - vol.mean((1, 2, 3))).abs().max()) < 1e-3
 
 
-def test_seam_measure_reference_and_axis(textures):
-    ex, vol = textures
+def test_seam_measure_reference_and_axis(textures, device):
+    ex, vol = (t.to(device) for t in textures)
     assert seam_measure(ex[:, :32, :32, :32], B) < 1.3  # a crop of the exemplar has no seams
     assert seam_measure(vol, B, reference=ex) == pytest.approx(seam_measure(vol, B), rel=0.1)
     per_axis = [seam_measure(vol, B, axis=a) for a in range(3)]
@@ -195,19 +195,21 @@ def test_quadratic_field_is_a_fixed_point(region):
 # --------------------------------------------------------------------------- (d) normal equations
 @pytest.mark.parametrize("guide", ["mean", "zero"])
 @pytest.mark.parametrize("region", ["all", "seams"])
-def test_cg_matches_scipy_spsolve(guide, region):
+def test_cg_matches_scipy_spsolve(guide, region, device):
     rng = np.random.default_rng(11)
     v = rng.random((3, 6, 6, 6))
-    u = poisson_blend_3d(torch.tensor(v), 3, region=region, margin=1, guide=guide, tol=1e-12).numpy()
+    u = poisson_blend_3d(torch.tensor(v, device=device), 3, region=region, margin=1, guide=guide, tol=1e-12)
+    assert u.device == device
+    u = u.cpu().numpy()
     unknown = seam_band((6, 6, 6), 3, 1).numpy() if region == "seams" else None
     for c in range(3):
         np.testing.assert_allclose(u[c], scipy_blend(v[c], 3, guide, unknown), atol=1e-9)
 
 
-def test_slices_match_scipy_per_slice():
+def test_slices_match_scipy_per_slice(device):
     rng = np.random.default_rng(12)
     v = rng.random((2, 6, 5, 6))
-    u = poisson_blend_slices(torch.tensor(v), 3, axis=1, region="all", tol=1e-12).numpy()
+    u = poisson_blend_slices(torch.tensor(v, device=device), 3, axis=1, region="all", tol=1e-12).cpu().numpy()
     for c in range(2):
         for h in range(5):
             ref = scipy_blend(v[c][:, h : h + 1, :], 3, "mean")
@@ -244,7 +246,7 @@ def test_bad_arguments_raise_one_clear_error(textures):
         poisson_blend_slices(vol, B, axis=3)
 
 
-def test_seam_jump_equals_a_numpy_loop_over_face_edges():
+def test_seam_jump_equals_a_numpy_loop_over_face_edges(device):
     from torchdeform.texture.seams import seam_jump
 
     rng = np.random.default_rng(7)
@@ -263,7 +265,7 @@ def test_seam_jump_equals_a_numpy_loop_over_face_edges():
             else:
                 steps.append(np.abs(d).ravel())
     expect = np.concatenate(jumps).mean() / np.concatenate(steps).mean()
-    assert abs(seam_jump(torch.from_numpy(v), b) - expect) < 1e-12
+    assert abs(seam_jump(torch.from_numpy(v).to(device), b) - expect) < 1e-12
 
 
 def test_poisson_blend_removes_most_of_the_gradient_jump_of_a_tiled_liver():

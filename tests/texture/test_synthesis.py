@@ -45,17 +45,18 @@ def test_blocks_are_exemplar_copies_at_their_offsets(exemplar, extent, block):
                 assert np.array_equal(part, ref)
 
 
-def test_nearest_lookup_is_integer_indexing_and_trilinear_interpolates(exemplar):
+def test_nearest_lookup_is_integer_indexing_and_trilinear_interpolates(exemplar, device):
     tex = SolidTexture(exemplar, block=16, extent=(48, 48, 48), seed=1)
     gen = torch.Generator().manual_seed(0)
     P = torch.randint(0, 48, (500, 3), generator=gen)
-    got = tex.colour(P.float(), mode="nearest")
+    got = tex.colour(P.float().to(device), mode="nearest")
+    assert got.device == device
     o = tex.offsets[P[:, 0] // 16, P[:, 1] // 16, P[:, 2] // 16] + P % 16
-    assert torch.equal(got, exemplar[:, o[:, 0], o[:, 1], o[:, 2]].T)
+    assert torch.equal(got.cpu(), exemplar[:, o[:, 0], o[:, 1], o[:, 2]].T)
     # trilinear inside a block (away from its far face): a hand-written interpolation
     Q = (P // 16 * 16).double() + torch.rand(500, 3, generator=gen, dtype=torch.float64) * 14.9
     tex64 = SolidTexture(exemplar.double(), block=16, extent=(48, 48, 48), seed=1)
-    got = tex64.colour(Q)
+    got = tex64.colour(Q.to(device)).cpu()
     e = exemplar.double().numpy()
     for n in range(0, 500, 25):
         q = Q[n].numpy()
@@ -70,9 +71,10 @@ def test_nearest_lookup_is_integer_indexing_and_trilinear_interpolates(exemplar)
 
 
 @pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 1e-4)])
-def test_trilinear_slice_lookup_equals_3d_grid_sample(dtype, tol):
-    """The slice-atlas lookup against one 3-D ``grid_sample`` (border padding), points inside and
-    outside a non-cubic exemplar; 20,001 points on 3 threads exercise the split into batch elements."""
+def test_trilinear_slice_lookup_equals_3d_grid_sample(dtype, tol, device):
+    """The slice-atlas lookup against one 3-D ``grid_sample`` (border padding, on the CPU), points inside
+    and outside a non-cubic exemplar; 20,001 points on 3 threads exercise the split into batch elements
+    (on the CPU)."""
     import torch.nn.functional as F
 
     from torchdeform.volume import to_grid_sample
@@ -86,13 +88,13 @@ def test_trilinear_slice_lookup_equals_3d_grid_sample(dtype, tol):
     threads = torch.get_num_threads()
     torch.set_num_threads(3)
     try:
-        got = tex._trilinear(q)
+        got = tex._trilinear(q.to(device)).cpu()
     finally:
         torch.set_num_threads(threads)
     assert torch.allclose(got, ref.reshape(3, -1).T, rtol=0, atol=tol)
 
 
-def test_colours_of_a_surface_ignore_rigid_motion(exemplar):
+def test_colours_of_a_surface_ignore_rigid_motion(exemplar, device):
     """The surface of a body moved rigidly carries the same rest coordinates, hence the same colours."""
     from torchdeform.topology import cut_surfaces
 
@@ -108,9 +110,10 @@ def test_colours_of_a_surface_ignore_rigid_motion(exemplar):
     moved = torch.einsum("ij,bjdhw->bidhw", R, X) + t.view(1, 3, 1, 1, 1)
     (a,), (b,) = cut_surfaces(grid, X, labels), cut_surfaces(grid, moved, labels)
     assert np.allclose(b.vertices, a.vertices @ R.numpy().T + t.numpy(), atol=1e-12)  # the surface moved
-    ca = tex.at_material(torch.from_numpy(a.rest))
-    cb = tex.at_material(torch.from_numpy(b.rest))
-    assert torch.allclose(ca, cb, atol=1e-6)
+    ca = tex.at_material(torch.from_numpy(a.rest).to(device))
+    cb = tex.at_material(torch.from_numpy(b.rest).to(device))
+    assert ca.device == device and torch.allclose(ca, cb, atol=1e-6)
+    assert torch.allclose(ca.cpu(), tex.at_material(torch.from_numpy(a.rest)), atol=1e-6)  # as on the CPU
     assert float(ca.std(0).min()) > 0.005  # it is textured
 
 

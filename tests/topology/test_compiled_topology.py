@@ -16,10 +16,17 @@ from torchdeform.topology import Blade, cauterize, cut
 H = 0.01
 
 
-def _model():
+def _model(device=None):
     grid = td.Grid((5, 4, 4), spacing=H, topology=26)
     return td.Model(
-        grid, stiffness=20.0, damping=0.01, mass=1e-3, gravity=(-9.81, 0, 0), fixed=grid.face("bottom"), dtype=F64
+        grid,
+        stiffness=20.0,
+        damping=0.01,
+        mass=1e-3,
+        gravity=(-9.81, 0, 0),
+        fixed=grid.face("bottom"),
+        dtype=F64,
+        device=device,
     )
 
 
@@ -44,8 +51,8 @@ def _tool():
     return Tool(Sphere(0.6 * H), position=(4 * H, 3 * H, 3 * H))  # burns one corner node
 
 
-def test_shared_fields_are_views_of_the_packed_ones():
-    model = _model()
+def test_shared_fields_are_views_of_the_packed_ones(device):
+    model = _model(device)
     step = compiled_step(td.SymplecticEuler(), model, 1e-4, enable=False, editable=True)
     pm = step.packed
     assert model.stiffness.untyped_storage().data_ptr() == pm.stiffness.untyped_storage().data_ptr()
@@ -57,10 +64,10 @@ def test_shared_fields_are_views_of_the_packed_ones():
 @pytest.mark.parametrize(
     "integrator", [td.SymplecticEuler(), td.ImplicitEuler(cg_iters=30, cg_tol=0)], ids=["symplectic", "implicit"]
 )
-def test_packed_step_after_cut_and_cautery_equals_eager_reference(integrator):
-    ref_model = _model()
+def test_packed_step_after_cut_and_cautery_equals_eager_reference(integrator, device):
+    ref_model = _model(device)
     ref = _run(lambda s: integrator.step(ref_model, s, 1e-4), ref_model, ref_model.rest_state(), _blade(), _tool())
-    model = _model()
+    model = _model(device)
     step = compiled_step(integrator, model, 1e-4, enable=False, editable=True)
     state = model.rest_state()
     packed = step.packed
@@ -92,20 +99,20 @@ def test_compiled_step_sees_a_cut_without_recompiling():
     assert torch.allclose(state.x, ref.x, atol=1e-12, rtol=0)
 
 
-def test_coagulation_needs_shared_rest_lengths_and_then_matches_eager():
+def test_coagulation_needs_shared_rest_lengths_and_then_matches_eager(device):
     from torchdeform.errors import ConfigError
     from torchdeform.topology import coagulate
 
     region = torch.zeros((5, 4, 4), dtype=torch.bool)
     region[2:] = True
-    model = _model()
+    model = _model(device)
     step = compiled_step(td.SymplecticEuler(), model, 1e-4, enable=False, editable=True)
     state = model.rest_state()
     with pytest.raises(ConfigError, match="editable=\\('stiffness', 'rest_length'\\)"):
         coagulate(model, state.x + 1e-4, region)
-    ref_model = _model()
+    ref_model = _model(device)
     ref = ref_model.rest_state()
-    model = _model()
+    model = _model(device)
     step = compiled_step(
         td.SymplecticEuler(), model, 1e-4, enable=False, editable=("stiffness", "rest_length", "damping")
     )

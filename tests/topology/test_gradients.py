@@ -25,19 +25,21 @@ def _simulate(model, steps=15):
     return state.x
 
 
-def test_gradcheck_through_the_gape_of_a_cut():
+def test_gradcheck_through_the_gape_of_a_cut(device):
     grid = _grid()
     blade = Blade((1.5 * H, -H, -H), (0.0, 4 * H, 0.0), (0.0, 0.0, 1.5 * H))
 
     def final(gape):
-        model = td.Model(grid, stiffness=20.0, damping=0.02, mass=1e-3, fixed=grid.face("bottom"), dtype=F64)
+        model = td.Model(
+            grid, stiffness=20.0, damping=0.02, mass=1e-3, fixed=grid.face("bottom"), dtype=F64, device=device
+        )
         cut(model, model.X, blade)  # a partial cut: the body stays one piece
-        nodes = torch.zeros(grid.shape, dtype=torch.bool)
+        nodes = torch.zeros(grid.shape, dtype=torch.bool)  # on the CPU: pretension takes any device
         nodes[1:3] = True
         model.rest_length = pretension(model, nodes, gape)
         return _simulate(model)
 
-    gape = torch.tensor(0.1, dtype=F64, requires_grad=True)
+    gape = torch.tensor(0.1, dtype=F64, device=device, requires_grad=True)
     assert torch.autograd.gradcheck(final, (gape,), eps=1e-6, atol=1e-8)
     assert float(torch.autograd.grad(final(gape).sum(), gape)[0].abs()) > 0
 

@@ -14,13 +14,13 @@ from torchdeform.topology import add_node, cauterize, share_mass
 H = 0.01
 
 
-def _moving_body(topology=26):
+def _moving_body(topology=26, device=None):
     grid = td.Grid((4, 4, 4), spacing=H, topology=topology)
     gen = torch.Generator().manual_seed(0)
     mass = 1e-3 * (1 + torch.rand(grid.shape, generator=gen, dtype=F64))
-    model = td.Model(grid, stiffness=15.0, damping=0.02, mass=mass, dtype=F64)
+    model = td.Model(grid, stiffness=15.0, damping=0.02, mass=mass, dtype=F64, device=device)
     state = model.rest_state()
-    state.v = torch.randn(state.x.shape, generator=gen, dtype=F64) * 0.1
+    state.v = torch.randn(state.x.shape, generator=gen, dtype=F64).to(device) * 0.1
     return grid, model, state
 
 
@@ -29,8 +29,8 @@ def _totals(model, state):
     return float(m.sum()), (m * state.v).flatten(2).sum(2)[0]
 
 
-def test_share_mass_is_eq_4_14():
-    m = torch.tensor([2e-3, 1e-3, 4e-3, 3e-3], dtype=F64)
+def test_share_mass_is_eq_4_14(device):
+    m = torch.tensor([2e-3, 1e-3, 4e-3, 3e-3], dtype=F64, device=device)
     m_new, left = share_mass(m)
     assert float(m_new) == pytest.approx(10e-3 / 5, rel=1e-15)
     assert torch.allclose(left, m * 4 / 5, rtol=1e-15)
@@ -38,14 +38,14 @@ def test_share_mass_is_eq_4_14():
 
 
 @pytest.mark.parametrize("topology", [6, 26])
-def test_burn_then_add_keeps_mass_and_momentum(topology):
-    grid, model, state = _moving_body(topology)
+def test_burn_then_add_keeps_mass_and_momentum(topology, device):
+    grid, model, state = _moving_body(topology, device)
     mass0, p0 = _totals(model, state)
     burnt = cauterize(model, state, Tool(Sphere(0.7 * H), position=(H, 2 * H, H)))
     mass1, p1 = _totals(model, state)
     assert burnt["nodes"] == 1
     assert mass1 + burnt["mass_kg"] == pytest.approx(mass0, rel=1e-15, abs=0)
-    assert torch.allclose(p1 + torch.tensor(burnt["momentum"], dtype=F64), p0, rtol=0, atol=1e-18)
+    assert torch.allclose(p1 + torch.tensor(burnt["momentum"], dtype=F64, device=device), p0, rtol=0, atol=1e-18)
     # neighbours before adding, by hand: the node's stencil neighbours in the body
     node = (1, 2, 1)
     nbrs = [tuple(a + b for a, b in zip(node, o)) for d in grid.directions for o in (d, tuple(-c for c in d))]
@@ -63,8 +63,8 @@ def test_burn_then_add_keeps_mass_and_momentum(topology):
     assert not bool(model.removed[node]) and not bool(model.constrained[node])
 
 
-def test_added_node_springs_copy_the_neighbours_and_are_shortened():
-    grid, model, state = _moving_body(6)
+def test_added_node_springs_copy_the_neighbours_and_are_shortened(device):
+    grid, model, state = _moving_body(6, device)
     cauterize(model, state, Tool(Sphere(0.7 * H), position=(2 * H, 2 * H, 2 * H)))
     add_node(model, state, (2, 2, 2), gape=0.1)
     # springs into the node: stiffness 15 (all springs are 15), rest length 0.9 x the distance

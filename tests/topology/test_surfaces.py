@@ -42,10 +42,10 @@ SPACING = (0.01, 0.012, 0.008)  # anisotropic, so the axes cannot be mixed up un
 ORIGIN = (0.1, -0.2, 0.05)
 
 
-def _cut_body(n, k, spacing=SPACING):
+def _cut_body(n, k, spacing=SPACING, device=None):
     """An n^3 body cut between node layers k and k + 1 along D; returns (grid, model, labels)."""
     grid = td.Grid((n, n, n), spacing=spacing, topology=26, origin=ORIGIN)
-    model = td.Model(grid, stiffness=10.0, mass=1e-3, dtype=F64)
+    model = td.Model(grid, stiffness=10.0, mass=1e-3, dtype=F64, device=device)
     sd, sh, sw = spacing
     blade = Blade(
         (ORIGIN[0] + (k + 0.5) * sd, ORIGIN[1] - sh, ORIGIN[2] - sw), (0.0, (n + 1) * sh, 0.0), (0.0, 0.0, (n + 1) * sw)
@@ -102,8 +102,8 @@ def test_box_volume_formula_matches_the_tetrahedron_count(shape):
 
 
 @pytest.mark.parametrize("n, k", [(4, 1), (5, 2)])
-def test_full_cut_sides_are_closed_boxes_and_part_when_pulled_apart(n, k):
-    grid, model, labels = _cut_body(n, k)
+def test_full_cut_sides_are_closed_boxes_and_part_when_pulled_apart(n, k, device):
+    grid, model, labels = _cut_body(n, k, device=device)
     lower, upper = cut_surfaces(grid, model.X, labels)
     assert (lower.label, upper.label) == (0, (k + 1) * n * n)  # smallest flat index per side
     for s, layers in ((lower, k + 1), (upper, n - 1 - k)):
@@ -122,7 +122,7 @@ def test_full_cut_sides_are_closed_boxes_and_part_when_pulled_apart(n, k):
     t = torch.tensor([0.4 * SPACING[0], 0.3 * SPACING[1], -0.2 * SPACING[2]], dtype=F64)
     x = model.X.clone()
     up = labels == upper.label
-    x[0] = torch.where(up, x[0] + t.view(3, 1, 1, 1), x[0])
+    x[0] = torch.where(up, x[0] + t.to(device).view(3, 1, 1, 1), x[0])
     lower2, upper2 = cut_surfaces(grid, x, labels)
     for s, layers in ((lower2, k + 1), (upper2, n - 1 - k)):
         mesh = _mesh(s)
@@ -172,14 +172,14 @@ def test_sides_as_labels_and_a_batch_of_one():
         np.testing.assert_allclose(a.vertices, b.vertices, atol=1e-15)
 
 
-def test_extension_is_linear_one_layer_out_and_nearest_beyond():
-    mask = torch.zeros(6, 3, 3, dtype=torch.bool)
+def test_extension_is_linear_one_layer_out_and_nearest_beyond(device):
+    mask = torch.zeros(6, 3, 3, dtype=torch.bool, device=device)
     mask[:2] = True
-    X = td.Grid((6, 3, 3), spacing=1.0).rest_positions(dtype=F64)[0]
-    A = torch.tensor([[1.1, 0.2, 0.0], [0.0, 0.9, 0.1], [0.05, 0.0, 1.0]], dtype=F64)
-    u = torch.einsum("ij,jdhw->idhw", A - torch.eye(3, dtype=F64), X) * mask
+    X = td.Grid((6, 3, 3), spacing=1.0).rest_positions(dtype=F64, device=device)[0]
+    A = torch.tensor([[1.1, 0.2, 0.0], [0.0, 0.9, 0.1], [0.05, 0.0, 1.0]], dtype=F64, device=device)
+    u = torch.einsum("ij,jdhw->idhw", A - torch.eye(3, dtype=F64, device=device), X) * mask
     out = extend_displacement(u, mask)
-    exact = torch.einsum("ij,jdhw->idhw", A - torch.eye(3, dtype=F64), X)
+    exact = torch.einsum("ij,jdhw->idhw", A - torch.eye(3, dtype=F64, device=device), X)
     torch.testing.assert_close(out[:, :3], exact[:, :3], rtol=0, atol=1e-14)  # the piece + one layer out
     for d in range(3, 6):  # nearest filled: layer 2
         torch.testing.assert_close(out[:, d], exact[:, 2], rtol=0, atol=1e-14)

@@ -25,11 +25,11 @@ from torchdeform.topology import coagulate, components, spring_strain, strain_li
 H = 0.01
 
 
-def _deformed(topology=18, shape=(4, 3, 5), seed=0, amp=0.15):
+def _deformed(topology=18, shape=(4, 3, 5), seed=0, amp=0.15, device=None):
     grid = td.Grid(shape, spacing=H, topology=topology)
-    model = td.Model(grid, stiffness=10.0, damping=0.02, mass=1e-3, dtype=F64)
+    model = td.Model(grid, stiffness=10.0, damping=0.02, mass=1e-3, dtype=F64, device=device)
     gen = torch.Generator().manual_seed(seed)
-    return grid, model, model.X + amp * H * torch.randn(model.X.shape, generator=gen, dtype=F64)
+    return grid, model, model.X + amp * H * torch.randn(model.X.shape, generator=gen, dtype=F64).to(device)
 
 
 def _edge_strains(grid, x, topology):
@@ -39,18 +39,18 @@ def _edge_strains(grid, x, topology):
 
 
 @pytest.mark.parametrize("topology", [6, 26])
-def test_all_at_once_tears_exactly_the_springs_beyond_the_limit(topology):
-    grid, model, x = _deformed(topology)
+def test_all_at_once_tears_exactly_the_springs_beyond_the_limit(topology, device):
+    grid, model, x = _deformed(topology, device=device)
     _, ref = _edge_strains(grid, x, topology)
-    got = spring_strain(model, x)
+    got = spring_strain(model, x).cpu()
     assert np.allclose(np.sort(got[got != 0].numpy()), np.sort(ref), atol=1e-14)
     limit = float(np.quantile(ref, 0.8))
     assert tear(model, x, limit) == int((ref > limit).sum())
     assert float(spring_strain(model, x).max()) <= limit
 
 
-def test_one_per_step_breaks_the_most_strained_spring_first():
-    grid, model, x = _deformed(18)
+def test_one_per_step_breaks_the_most_strained_spring_first(device):
+    grid, model, x = _deformed(18, device=device)
     _, ref = _edge_strains(grid, x, 18)
     order = np.sort(ref)[::-1]
     for k in range(3):
@@ -60,16 +60,16 @@ def test_one_per_step_breaks_the_most_strained_spring_first():
         assert float(before[gone].item()) == pytest.approx(order[k], abs=1e-14)
 
 
-def test_force_limit_is_strain_limit_over_k_l0():
+def test_force_limit_is_strain_limit_over_k_l0(device):
     grid = td.Grid((2, 2, 2), spacing=H, topology=26)
-    model = td.Model(grid, stiffness={"axis": 10.0, "face": 5.0, "body": 2.0}, mass=1e-3, dtype=F64)
-    lim = strain_limit_from_force(model, 0.01)
+    model = td.Model(grid, stiffness={"axis": 10.0, "face": 5.0, "body": 2.0}, mass=1e-3, dtype=F64, device=device)
+    lim = strain_limit_from_force(model, 0.01).cpu()
     l0 = grid.rest_lengths(dtype=F64)
     k = torch.tensor([{"axis": 10.0, "face": 5.0, "body": 2.0}[c] for c in grid.direction_class()], dtype=F64)
     assert torch.allclose(lim[0, :, 0, 0, 0], 0.01 / (k * l0))
 
 
-def test_pulled_chain_tears_at_its_softest_spring():
+def test_pulled_chain_tears_at_its_softest_spring(device):
     grid = td.Grid((6, 1, 1), spacing=H, topology=6)
     k = torch.full((1, grid.S) + grid.shape, 50.0, dtype=F64)
     k[0, 0, 3] = 20.0  # the spring between nodes 3 and 4
@@ -82,6 +82,7 @@ def test_pulled_chain_tears_at_its_softest_spring():
         mass=1e-3,
         fixed=grid.face("bottom"),
         dtype=F64,
+        device=device,
         drags=[td.Drag(top, path=[(0.0, (0.0, 0.0, 0.0)), (0.5, (0.02, 0.0, 0.0))])],
     )
     state, torn = model.rest_state(), 0
@@ -135,20 +136,21 @@ def test_chain_tears_when_the_spring_force_reaches_k_l0_limit_and_not_before():
     assert abs(delta - expect) < 0.01 * expect  # quasi-static (a check every 0.26 %)
 
 
-def test_coagulated_shape_is_the_new_rest_shape():
-    grid, model, x = _deformed(26, amp=0.2)
+def test_coagulated_shape_is_the_new_rest_shape(device):
+    grid, model, x = _deformed(26, amp=0.2, device=device)
     region = torch.zeros(grid.shape, dtype=torch.bool)
     region[:2] = True
-    model = td.Model(grid, stiffness=10.0, damping=0.02, mass=1e-3, dtype=F64)
+    model = td.Model(grid, stiffness=10.0, damping=0.02, mass=1e-3, dtype=F64, device=device)
     changed = coagulate(model, x, torch.ones(grid.shape, dtype=torch.bool), viscosity_factor=3.0)
     assert changed == grid.num_springs
-    assert torch.allclose(model.damping[0][grid.spring_mask()].unique(), torch.tensor([0.06], dtype=F64))
+    assert torch.allclose(model.damping[0].cpu()[grid.spring_mask()].unique(), torch.tensor([0.06], dtype=F64))
     state, _ = td.simulate(model, td.State(x.clone(), torch.zeros_like(x)), dt=2e-4, steps=200)
     assert (state.x - x).abs().max() < 1e-15
     # only a region: springs with an end outside keep the grid's rest lengths
-    part = td.Model(grid, stiffness=10.0, mass=1e-3, dtype=F64)
+    part = td.Model(grid, stiffness=10.0, mass=1e-3, dtype=F64, device=device)
     n = coagulate(part, x, region)
-    p = x[0].numpy()
+    p = x[0].cpu().numpy()
+    rest_length = part.rest_length.cpu()
     count = 0
     for si, d in enumerate(grid.directions):  # every spring slot, checked one by one in numpy
         for ijk in zip(*np.nonzero(grid.spring_mask()[si].numpy())):
@@ -159,7 +161,7 @@ def test_coagulated_shape_is_the_new_rest_shape():
                 if both
                 else H * np.linalg.norm(d)
             )
-            assert abs(float(part.rest_length[0, si][tuple(ijk)]) - expect) < 1e-15
+            assert abs(float(rest_length[0, si][tuple(ijk)]) - expect) < 1e-15
             count += both
     assert n == count > 0
 

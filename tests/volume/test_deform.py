@@ -107,21 +107,21 @@ def test_fixed_point_inverse_round_trip(device):
     assert info["iterations"] < 50
 
 
-def test_jacobian_of_linear_field_and_folding():
+def test_jacobian_of_linear_field_and_folding(device):
     A = torch.tensor([[0.1, 0.05, 0.0], [0.0, -0.2, 0.02], [0.03, 0.0, 0.1]], dtype=torch.float64)
     ax = [torch.arange(6, dtype=torch.float64)] * 3
     p = torch.stack(torch.meshgrid(*ax, indexing="ij"))[None]
-    u = torch.einsum("ij,bjdhw->bidhw", A, p)
-    det = jacobian_determinant(u)
+    u = torch.einsum("ij,bjdhw->bidhw", A, p).to(device)
+    det = jacobian_determinant(u).cpu()
     assert torch.allclose(det, torch.linalg.det(torch.eye(3, dtype=torch.float64) + A).expand_as(det))
     g = torch.Generator().manual_seed(0)
     spacing = 63 / 8
-    small = (torch.rand(3, 9, 9, 9, generator=g) * 2 - 1) * 0.2 * spacing
-    big = (torch.rand(3, 9, 9, 9, generator=g) * 2 - 1) * 1.0 * spacing
+    small = ((torch.rand(3, 9, 9, 9, generator=g) * 2 - 1) * 0.2 * spacing).to(device)
+    big = ((torch.rand(3, 9, 9, 9, generator=g) * 2 - 1) * 1.0 * spacing).to(device)
     assert folding_fraction(small, (64, 64, 64), samples=(64, 64, 64)) == 0.0
     assert 0.05 < folding_fraction(big, (64, 64, 64), samples=(64, 64, 64)) < 0.3  # REFERENCE 5.3: 13.9%
     with pytest.warns(FoldingWarning, match="folds"):
-        warp(torch.zeros(64, 64, 64), big)
+        warp(torch.zeros(64, 64, 64, device=device), big)
 
 
 def test_bspline_texture_is_smooth_and_reproduces_constants(device):

@@ -88,11 +88,27 @@ def test_render_through_offsets_equals_render_of_warped_volume(device):
     assert torch.allclose(a, b, atol=1e-9)
 
 
-def test_early_termination_changes_little_and_stops():
-    vol = torch.full((40, 5, 5), 1.0, dtype=F64)
+def test_early_termination_changes_little_and_stops(device):
+    vol = torch.full((40, 5, 5), 1.0, dtype=F64, device=device)
     full = render(vol, tf=flat_tf(1.0), mode="dvr", view="d", stop=0)
     early = render(vol, tf=flat_tf(1.0), mode="dvr", view="d", stop=1e-3, chunk_points=25)
-    assert torch.allclose(full, early, atol=1e-3)
+    assert early.device == device and torch.allclose(full, early, atol=1e-3)
+
+
+def test_pieces_that_cover_the_body_with_zero_offsets_are_the_plain_render(device):
+    """Two pieces (halves of the node grid along W), unmoved: every sample finds its piece, so the
+    image is the plain render (axis view and orbit camera)."""
+    torch.manual_seed(3)
+    vol = (torch.randn(9, 10, 11, dtype=F64) * 100).to(device)
+    zero = torch.zeros(3, 3, 3, 5, dtype=F64, device=device)
+    left = torch.zeros(3, 3, 5, dtype=F64, device=device)
+    left[..., :3] = 1.0
+    pieces = [(zero, left), (zero, 1.0 - left)]
+    cam = OrbitCamera(azimuth=25.0, elevation=10.0, size=(8, 8))
+    for mode, view in (("mip", "d"), ("average", "-w"), ("mip", cam)):
+        a = render(vol, mode=mode, view=view, pieces=pieces)
+        b = render(vol, mode=mode, view=view)
+        assert a.device == device and torch.allclose(a, b, atol=1e-9), (mode, view)
 
 
 def test_gradcheck_wrt_offsets_and_transfer_function():
@@ -245,14 +261,14 @@ def test_trilinear_flat_equals_map_coordinates(padding, mode):
     assert np.abs(out.numpy() - ref).max() < 1e-12
 
 
-def test_fast_engine_skips_transparent_slabs_and_float32():
+def test_fast_engine_skips_transparent_slabs_and_float32(device):
     from torchdeform.volume import DisplacementField
     from torchdeform.volume.fastpath import _render_axis_fast
     from torchdeform.volume.plan import RenderPlan
 
-    vol = torch.full((40, 12, 12), -1000.0)
+    vol = torch.full((40, 12, 12), -1000.0, device=device)
     vol[25:30, 3:9, 3:9] = 800.0  # bone in a slab of air
-    offsets = torch.zeros(3, 5, 3, 3)
+    offsets = torch.zeros(3, 5, 3, 3, device=device)
     offsets[0, 2] = 1.5
     tf = preset("ct-bone")
     a = render(vol, tf=tf, mode="dvr", view="d", offsets=offsets, engine="eager", chunk_points=144 * 4, stop=0)
@@ -267,7 +283,7 @@ def test_fast_engine_skips_transparent_slabs_and_float32():
         tf=tf,
         lo=lo,
         hi=hi,
-        table=tf.table(dtype=torch.float32),
+        table=tf.table(dtype=torch.float32, device=device),
         stop=0,
         chunk_points=144 * 4,
         engine="eager",

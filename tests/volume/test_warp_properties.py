@@ -7,6 +7,8 @@
   zero padding);
 * composition: warping by ``d1`` and then by ``d2`` equals the numpy shift by ``d1 + d2`` where
   both steps read inside the volume.
+
+The identity and the uniform shift run on the device of the run (``--device``).
 """
 
 from __future__ import annotations
@@ -63,18 +65,18 @@ def test_shifted_oracle():
     inverse_iters=st.integers(0, 3),
     dtype=st.sampled_from([torch.float32, torch.float64]),
 )
-def test_zero_offsets_are_the_identity(data, mode, padding, order, inverse_iters, dtype):
-    vol = torch.from_numpy(data.draw(volumes())).to(dtype)
+def test_zero_offsets_are_the_identity(data, mode, padding, order, inverse_iters, dtype, device):
+    vol = torch.from_numpy(data.draw(volumes())).to(dtype=dtype, device=device)
     nodes = data.draw(node_shapes(vol.shape))
     out = warp(
         vol,
-        torch.zeros((3,) + nodes, dtype=dtype),
+        torch.zeros((3,) + nodes, dtype=dtype, device=device),
         mode=mode,
         padding=padding,
         order=order,
         inverse_iters=inverse_iters,
     )
-    assert out.shape == vol.shape and out.dtype == vol.dtype
+    assert out.shape == vol.shape and out.dtype == vol.dtype and out.device == vol.device
     assert torch.equal(out, vol)
 
 
@@ -99,10 +101,18 @@ OFFSET = st.tuples(*[st.integers(-3, 3)] * 3)
     padding=st.sampled_from(["border", "zeros"]),
     fill=st.floats(-5, 5),
 )
-def test_uniform_integer_offset_shifts_the_volume(data, d, mode, padding, fill):
+def test_uniform_integer_offset_shifts_the_volume(data, d, mode, padding, fill, device):
     vol = data.draw(volumes())
     nodes = data.draw(node_shapes(vol.shape))
-    out = warp(torch.from_numpy(vol), uniform(d, nodes), mode=mode, padding=padding, fill=fill, check=False).numpy()
+    out = warp(
+        torch.from_numpy(vol).to(device),
+        uniform(d, nodes).to(device),
+        mode=mode,
+        padding=padding,
+        fill=fill,
+        check=False,
+    )
+    out = out.cpu().numpy()
     ref, inside = shifted(vol, d)
     tol = 1e-9 * (1 + np.abs(vol).max())
     np.testing.assert_allclose(out[inside], ref[inside], rtol=0, atol=tol)

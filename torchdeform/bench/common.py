@@ -2,7 +2,8 @@
 
 The common options, machine information, progress bars, the output conventions (a table on
 stdout, or exactly one JSON document with ``--json``; ``--out DIR`` writes ``<name>.csv``), and
-the speed scene that :mod:`.speed` and :mod:`.warp_baseline` both time.
+the speed scene that :mod:`.speed`, :mod:`.batch` and :mod:`.warp_baseline` time, and the device's
+copy bandwidth that :mod:`.speed` compares its steps with.
 """
 
 from __future__ import annotations
@@ -11,7 +12,9 @@ import csv
 import json
 import os
 import platform
+import statistics
 import sys
+import time
 from pathlib import Path
 
 import torch
@@ -27,6 +30,7 @@ __all__ = [
     "add_common",
     "machine_info",
     "device_sync",
+    "copy_bandwidth",
     "progress",
     "emit",
     "format_table",
@@ -91,6 +95,40 @@ def device_sync(device: str):
     if device.startswith("cuda"):
         return torch.cuda.synchronize
     return lambda: None
+
+
+def copy_bandwidth(device, *, nbytes: int | None = None, repeats: int = 7) -> float:
+    """The device's copy bandwidth in GB/s (1e9 bytes per second): bytes read plus bytes written.
+
+    The median over ``repeats`` timings of ``dst.copy_(src)`` between two float32 buffers of
+    ``nbytes`` bytes each on ``device`` (default 256 MiB on a CPU, 1 GiB on CUDA: far larger than
+    the caches), after two warm-up copies, the device synchronised (:func:`device_sync`) around
+    each timing. A CUDA timing is of 10 copies back to back (one 1 GiB copy takes under a
+    millisecond). Both buffers are written first, so that their pages exist before the timing.
+    Each copy moves ``2 * nbytes`` bytes; the buffers are freed (on CUDA released from torch's
+    cache) before it returns.
+    """
+    dev = torch.device(device)
+    cuda = dev.type == "cuda"
+    nbytes = int(nbytes or (2**30 if cuda else 2**28))
+    n = max(1, nbytes // 4)
+    src = torch.empty(n, dtype=torch.float32, device=dev).fill_(1.0)
+    dst = torch.empty_like(src).fill_(0.0)
+    sync, inner = device_sync(str(dev)), 10 if cuda else 1
+    for _ in range(2):
+        dst.copy_(src)
+    times = []
+    for _ in range(repeats):
+        sync()
+        t0 = time.perf_counter()
+        for _ in range(inner):
+            dst.copy_(src)
+        sync()
+        times.append((time.perf_counter() - t0) / inner)
+    del src, dst
+    if cuda:
+        torch.cuda.empty_cache()  # the 2 GiB go back to the device before the rows
+    return 2 * n * 4 / statistics.median(times) / 1e9
 
 
 def progress(total: int, desc: str):

@@ -91,8 +91,9 @@ def run(args) -> int:
         raise ConfigError(
             "--iterations", "at least 2 (the first compiled iteration includes the compile)", got=iterations
         )
-    if args.device != "cpu":
-        raise ConfigError("--device", "cpu (the training rollouts of this bench run on the CPU)", got=args.device)
+    device = str(torch.device(args.device))
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise ConfigError("--device", "cpu, or cuda on a machine with CUDA", got=args.device)
     compiled = not (args.no_compile or args.quick)
     saved = torch.get_num_threads()
     torch.set_num_threads(args.threads or 1)  # a 27-node body: one thread is fastest
@@ -103,6 +104,7 @@ def run(args) -> int:
         runs = {}
         for name in engines + ["perturbed"]:
             params, _ = learn.per_spring_start(series, seed=args.seed)
+            params = params.to(device)  # the rollouts run where the parameters are
             if name == "perturbed":
                 with torch.no_grad():
                     for p in params.parameters():
@@ -167,7 +169,7 @@ def run(args) -> int:
     if compiled:
         met = bool(rows[1]["speedup"] >= TARGET_SPEEDUP and max(check.values()) <= TOLERANCE and one <= TOLERANCE)
     extra = {
-        "machine": dict(machine_info("cpu"), threads=threads),
+        "machine": dict(machine_info(device), threads=threads),
         "target_speedup": TARGET_SPEEDUP,
         "tolerance": TOLERANCE,
         "met": met,
@@ -175,7 +177,7 @@ def run(args) -> int:
         "agreement": agreement,
         "perturbation": PERTURBATION,
         "setup": f"Radetzky's cube, 70 springs learned per spring (fit_cube.py --runs 2), 25 windows of 10 "
-        f"steps, L-BFGS, float64, {threads} thread{'s' if threads != 1 else ''}",
+        f"steps, L-BFGS, float64, {device}, {threads} thread{'s' if threads != 1 else ''}",
     }
     if args.out:
         _plot(rows, agreement, args.out, threads)

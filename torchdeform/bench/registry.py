@@ -15,8 +15,14 @@ __all__ = ["BENCHES", "module"]
 #: name -> (help line, module of :mod:`torchdeform.bench`)
 BENCHES = {
     "speed": (
-        "spring-step throughput (Msprings/s, node-steps/s), eager and compiled, against Warp; implicit Euler on a beam",
+        "spring-step throughput (Msprings/s, node-steps/s, GB/s against the copy bandwidth), eager and compiled, "
+        "against Warp; implicit Euler on a beam",
         "speed",
+    ),
+    "batch": (
+        "many bodies in one batch: body-steps/s of an n^3 cube against the batch size, eager and compiled, "
+        "and the speed-up per body over one",
+        "batch",
     ),
     "accuracy": (
         "error against wall time of every integrator on standard scenes, a resolution sweep, Pareto front",

@@ -3,6 +3,24 @@
 Msprings/s, node-steps/s and ms/step for n^3 grids, topologies, eager, native (the C kernel's
 packed step) and compiled, dtypes and thread counts, against NVIDIA Warp's CPU backend (:mod:`.warp_baseline`), and implicit Euler on a
 40 x 10 x 10 beam shaped like SOFA's spring-beam benchmark.
+
+**Memory traffic.** ``bytes_per_step`` (:func:`bytes_per_step`) is the least a symplectic step
+must move: every tensor it reads, read once, and the new state written once::
+
+    bytes_per_step = 4 B 3 N e + sum of the stored bytes of the per-node and per-spring fields read
+
+with ``B`` bodies, ``N`` nodes as the mode stores them (``D H W`` for eager, the packed length
+``P`` with its halo for native and compiled), ``e`` bytes per value (4 for float32); ``4 B 3 N e``
+is x and v read and written. The fields are those of the mode's model as stored: the stiffness,
+rest length and damping (and a strain law's parameters), the inverse mass, the mass where the
+step reads it (gravity, or the native step's fused kernel), home-spring stiffness and rest
+positions where present, and the packed layout's inside-mask. A field counts only where it has a
+value per node or per spring (one value, or one per spring direction, counts 0: it stays in
+cache or in the code). ``gb_per_s = bytes_per_step / (s per step) / 1e9``. ``copy_gb_per_s`` is
+the device's copy bandwidth (:func:`~torchdeform.bench.common.copy_bandwidth`, bytes read plus
+written), measured once in the same run; ``of_copy = gb_per_s / copy_gb_per_s`` says how near a
+step comes to streaming its data at the speed of a plain copy. Eager steps make many passes
+over memory, so theirs is well below 1.
 """
 
 from __future__ import annotations
@@ -23,9 +41,28 @@ from ..outputs import save_figure
 from ..sim.grid import Grid
 from ..sim.integrators import ImplicitEuler, SymplecticEuler
 from ..sim.model import Model
-from .common import busy_neighbour, device_sync, emit, format_table, int_list, machine_info, progress, speed_cube
+from .common import (
+    busy_neighbour,
+    copy_bandwidth,
+    device_sync,
+    emit,
+    format_table,
+    int_list,
+    machine_info,
+    progress,
+    speed_cube,
+)
 
-__all__ = ["add_arguments", "run", "speed_row", "beam_row", "beam_scene", "SPEED_COLUMNS", "BEAM_COLUMNS"]
+__all__ = [
+    "add_arguments",
+    "run",
+    "speed_row",
+    "beam_row",
+    "beam_scene",
+    "bytes_per_step",
+    "SPEED_COLUMNS",
+    "BEAM_COLUMNS",
+]
 
 
 SPEED_COLUMNS = [
@@ -39,6 +76,9 @@ SPEED_COLUMNS = [
     ("ms_per_step", "ms/step", "{:.3f}"),
     ("msprings_per_s", "Msprings/s", "{:.1f}"),
     ("node_steps_per_s", "Mnode-steps/s", None),
+    ("mb_per_step", "MB/step", "{:.2f}"),
+    ("gb_per_s", "GB/s", "{:.2f}"),
+    ("of_copy", "of copy", "{:.3f}"),
     ("vs_warp", "x Warp", "{:.2f}"),
     ("peak_rss_mb", "peak MB", "{:.0f}"),
     ("compile_s", "compile s", "{:.1f}"),
@@ -129,6 +169,48 @@ def beam_scene(*, dtype=torch.float32, device="cpu"):
     return model, model.rest_state(), 0.01
 
 
+def bytes_per_step(model, mode: str, *, batch: int = 1) -> int:
+    """The bytes one symplectic Euler step of ``mode`` must move at the least (see the module docstring).
+
+    Args:
+        model: what the step reads: the grid-layout :class:`~torchdeform.sim.model.Model` for
+            ``"eager"``, the :class:`~torchdeform.sim.packed.PackedModel` for ``"native"`` and
+            ``"compiled"``.
+        mode: ``"eager"``, ``"native"`` or ``"compiled"``.
+        batch: bodies in the state ``B``.
+
+    Returns:
+        bytes: x and v (``(B, 3, N)`` values each) read and written once, plus each per-node or
+        per-spring field the step reads, once (a field shared by the batch counts once).
+    """
+    from ..sim.packed import PackedModel
+
+    packed = isinstance(model, PackedModel)
+    if mode not in ("eager", "native", "compiled") or packed != (mode != "eager"):
+        raise ValueError(f"bytes_per_step: mode {mode!r} with a {type(model).__name__}")
+    nodes = model.P if packed else model.grid.num_nodes
+    itemsize = torch.empty((), dtype=model.dtype).element_size()
+    fields = [model.stiffness, model.rest_length, model.damping, *model.law_params, model.inv_mass]
+    if model.gravity is not None or mode == "native":  # the fused kernel reads the mass always
+        fields.append(model.mass)
+    if model.k_home is not None:
+        fields += [model.k_home, model.X]
+    if packed:
+        fields.append(model.inside)
+
+    def stored(t) -> int:
+        """Bytes of ``t`` as stored, 0 unless it has a value per node (per spring) along its node axes."""
+        if t is None:
+            return 0
+        node_axes = (t.dim() - 1,) if packed else (t.dim() - 3, t.dim() - 2, t.dim() - 1)
+        shape = (model.P,) if packed else model.grid.shape
+        if t.dim() < len(node_axes) or any(t.shape[a] != m or t.stride(a) == 0 for a, m in zip(node_axes, shape)):
+            return 0
+        return math.prod(n for n, st in zip(t.shape, t.stride()) if st != 0) * t.element_size()
+
+    return 4 * batch * 3 * nodes * itemsize + sum(stored(t) for t in fields)
+
+
 def _reset_peak() -> bool:
     """Reset the process's peak resident memory (Linux ``clear_refs``); False where unsupported."""
     try:
@@ -188,6 +270,7 @@ class _Timed:
 
     first: object  # the state after one step, grid layout
     sec: float  # median seconds per step
+    model: object  # the model the step reads: the grid-layout model (eager) or the packed one
     fields: dict  # row fields: threads, steps, compile_s, compile_cache, max_abs_diff, fallback
     retime: object  # () -> seconds per step, the same step timed again (under other conditions)
     governor: object = None  # the compiled step's thread governor (it may take fewer threads beside a busy process)
@@ -243,6 +326,7 @@ def _time_mode(
     return _Timed(
         first,
         sec,
+        model if cs is None else cs.packed,
         dict(
             threads=threads, steps=steps, compile_s=compile_s, compile_cache=cache, max_abs_diff=diff, fallback=fallback
         ),
@@ -272,9 +356,13 @@ def speed_row(
     packed fast path under ``torch.compile``, :class:`~torchdeform.sim.compiled.CompiledStep`);
     the packed modes keep the state packed between steps. ``reference``: the eager state after one step, to report ``max_abs_diff``. Warm-up
     and compilation are excluded from the timing; ``compile_s`` is the first call's wall time.
-    ``peak_rss_mb`` is the process's peak resident memory during the row (Linux), torch included.
+    ``peak_rss_mb`` is the process's peak resident memory during the row (Linux), torch included;
+    on CUDA the peak of the memory torch allocated on the device during the row.
+    ``bytes_per_step``, ``gb_per_s``: :func:`bytes_per_step` and it over the time per step (GB/s).
     """
     reset = _reset_peak()
+    if device.startswith("cuda"):
+        torch.cuda.reset_peak_memory_stats(torch.device(device))
     model, state, dt = speed_cube(n, topology, dtype=dtype, device=device)
     integ = SymplecticEuler()
     sync = device_sync(device)
@@ -293,9 +381,14 @@ def speed_row(
         integ, model, state, dt, mode, steps=steps, repeats=repeats, target_s=target_s, sync=sync, reference=reference
     )
 
+    row["bytes_per_step"] = bytes_per_step(timed.model, mode, batch=state.x.shape[0])
+
     def rates(sec):
         return dict(
-            ms_per_step=sec * 1e3, msprings_per_s=row["springs"] / sec / 1e6, node_steps_per_s=row["nodes"] / sec
+            ms_per_step=sec * 1e3,
+            msprings_per_s=row["springs"] / sec / 1e6,
+            node_steps_per_s=row["nodes"] / sec,
+            gb_per_s=row["bytes_per_step"] / sec / 1e9,
         )
 
     row.update(
@@ -306,7 +399,7 @@ def speed_row(
         contention=False,
     )
     if device.startswith("cuda"):
-        row["peak_rss_mb"] = torch.cuda.max_memory_allocated() / 2**20
+        row["peak_rss_mb"] = torch.cuda.max_memory_allocated(torch.device(device)) / 2**20
     if contention:
         row["_busy"] = _busy_row(row, timed, rates)
     row["_first"] = timed.first
@@ -400,7 +493,8 @@ def _warp_row(n, topology, dtype, steps, repeats, target_s, reference):
         target_s=target_s,
         reference=reference,
     )
-    row.setdefault("peak_rss_mb", None)
+    for key in ("peak_rss_mb", "bytes_per_step", "gb_per_s"):
+        row.setdefault(key, None)
     return row
 
 
@@ -433,8 +527,9 @@ def _plan(args, device, sizes, topologies, dtypes, threads):
     from ..sim import native
 
     modes = ["eager"] if args.no_compile else ["eager", "compiled"]
-    # the C kernel's packed step, uncompiled (the "native" engine): where a C compiler works
-    torch_modes = modes if args.no_compile or native.unavailable() else ["eager", "native", "compiled"]
+    # the C kernel's packed step, uncompiled (the "native" engine): on the CPU, where a C compiler works
+    native_ok = device == "cpu" and not native.unavailable()
+    torch_modes = ["eager", "native", "compiled"] if native_ok and not args.no_compile else modes
     warp_ok, warp_why = (False, "--no-warp") if args.no_warp else (False, "Warp runs on the CPU rows only")
     if not args.no_warp and device == "cpu":
         from .warp_baseline import warp_available
@@ -528,6 +623,7 @@ def run(args) -> int:
     repeats = args.repeats or (3 if args.quick else 5)
     target_s = 0.02 if args.quick else 0.2
     tasks, warp_ok, warp_why = _plan(args, device, sizes, topologies, dtypes, threads)
+    copy_gb_per_s = copy_bandwidth(device)  # before the rows: its buffers are freed again
     rows, beam_rows = _run_tasks(args, tasks, device, repeats, target_s)
 
     warp_by = {
@@ -539,6 +635,7 @@ def run(args) -> int:
         r["node_steps_per_s"] = float(r["node_steps_per_s"])
         w = warp_by.get((r["n"], r["topology"], r["dtype"]))
         r["vs_warp"] = r["msprings_per_s"] / w if w and not r["mode"].startswith("warp") else None
+        r["of_copy"] = None if r.get("gb_per_s") is None else r["gb_per_s"] / copy_gb_per_s
     headline = [
         r
         for r in rows
@@ -546,6 +643,7 @@ def run(args) -> int:
     ]
     headline = max(headline, key=lambda r: r["threads"]) if headline else None
     ratio = headline["vs_warp"] if headline else None
+    bandwidth_case = _bandwidth_case(rows)
     machine = machine_info(device)
     machine.pop("threads")
     extra = {
@@ -555,6 +653,8 @@ def run(args) -> int:
         "ratio_vs_warp_case": "64^3, 26 neighbours, float32, symplectic Euler, compiled (most threads) "
         "over Warp CPU (atomic edge list, 1 thread)",
         "warp": "measured" if warp_ok else f"skipped: {warp_why}",
+        "copy_gb_per_s": copy_gb_per_s,
+        "bandwidth_case": bandwidth_case,
         "beam_scene": _BEAM,
         "beam": beam_rows,
         "targets": _targets(rows, beam_rows),
@@ -566,6 +666,7 @@ def run(args) -> int:
         dict(
             r,
             node_steps_per_s=f"{r['node_steps_per_s'] / 1e6:.2f}",
+            mb_per_step=None if r.get("bytes_per_step") is None else r["bytes_per_step"] / 1e6,
             mode=r["mode"]
             + (" (eager fallback)" if r.get("fallback") else "")
             + (" busy" if r.get("contention") else "")
@@ -576,6 +677,7 @@ def run(args) -> int:
     beam_display = [dict(r, mode=r["mode"] + (" busy" if r.get("contention") else "")) for r in beam_rows]
     if not args.json:
         print(f"symplectic Euler on a damped n^3 cube, {device}, torch {machine['torch']}")
+        print(f"copy bandwidth (read + write): {copy_gb_per_s:.1f} GB/s")
         if not warp_ok:
             print(f"Warp rows skipped: {warp_why}")
     emit("speed", args, rows, SPEED_COLUMNS, extra=extra, display=display)
@@ -587,6 +689,12 @@ def run(args) -> int:
             print(
                 f"\nratio_vs_warp (64^3, 26 neighbours, float32, compiled, {headline['threads']} threads): {ratio:.1f}x"
             )
+        if bandwidth_case is not None:
+            b = bandwidth_case
+            print(
+                f"bandwidth (256^3, 26 neighbours, float32, compiled): {b['gb_per_s']:.1f} GB/s, "
+                f"{b['of_copy']:.2f} of copy ({b['bytes_per_step'] / 1e6:.0f} MB per step in {b['ms_per_step']:.2f} ms)"
+            )
         for name, t in extra["targets"].items():
             print(
                 f"{name}: {t['value']:.3g} (target {t['target']:g}{', busy/idle ' + format(t['busy_vs_idle'], '.2f') if t.get('busy_vs_idle') is not None else ''}): "
@@ -595,6 +703,27 @@ def run(args) -> int:
         if args.out:
             print(f"wrote {Path(args.out) / 'speed.csv'} and {Path(args.out) / 'speed.png'}")
     return 0
+
+
+def _bandwidth_case(rows) -> dict | None:
+    """The 256^3, 26-neighbour, float32 compiled row's memory traffic (most threads, idle), or None."""
+    case = [
+        r
+        for r in rows
+        if (r["n"], r["topology"], r["dtype"], r["mode"]) == (256, 26, "float32", "compiled")
+        and not r.get("contention")
+    ]
+    if not case:
+        return None
+    r = max(case, key=lambda r: r["threads"])
+    return {
+        "case": "256^3, 26 neighbours, float32, symplectic Euler, compiled (most threads)",
+        "bytes_per_step": r["bytes_per_step"],
+        "ms_per_step": r["ms_per_step"],
+        "gb_per_s": r["gb_per_s"],
+        "of_copy": r["of_copy"],
+        "threads": r["threads"],
+    }
 
 
 def _threads_note(row) -> str:
@@ -652,7 +781,9 @@ def _targets(rows, beam_rows) -> dict:
 _SCENE = (
     "symplectic Euler, dt 1e-4 s, damped cube (1 cm spacing, k 100 N/m, c 0.05 N s/m, 1 g nodes), "
     "no gravity; msprings_per_s = springs / (s per step) / 1e6, median over repeats, warm-up excluded; "
-    "peak_rss_mb: peak resident memory of the process during the row"
+    "peak_rss_mb: peak resident memory of the process during the row (CUDA: peak device memory torch allocated); "
+    "bytes_per_step: x and v read and written once plus the per-node and per-spring fields read once; "
+    "gb_per_s = bytes_per_step / (s per step) / 1e9; of_copy = gb_per_s / copy_gb_per_s (device copy, read + write)"
 )
 _BEAM = (
     "40x10x10 nodes, 26 neighbours, k 100/l0, c 1/l0, 20 kg, one end fixed, gravity, dt 0.01 s, "

@@ -35,7 +35,7 @@ import torch
 
 from ..errors import ConfigError
 from ..options import integer, number
-from .common import add_common, emit, machine_info, progress
+from .common import add_common, device_sync, emit, machine_info, progress
 
 __all__ = ["COLUMNS", "PATHS", "add_arguments", "bench_volume", "run"]
 
@@ -71,27 +71,36 @@ def add_arguments(p) -> None:
     p.add_argument("--no-compile", action="store_true", help="leave out the compiled path")
 
 
-def bench_volume(size: int, *, nodes: int = 9, amplitude: float = 3.0, dtype=torch.float32):
-    """The bench's volume ``(size,)*3`` (HU) and node offsets ``(3, nodes, nodes, nodes)`` in voxels."""
+def bench_volume(size: int, *, nodes: int = 9, amplitude: float = 3.0, dtype=torch.float32, device="cpu"):
+    """The bench's volume ``(size,)*3`` (HU) and node offsets ``(3, nodes, nodes, nodes)`` in voxels.
+
+    The phantom is generated on the CPU at half the size (at most 128^3) and upsampled
+    trilinearly on ``device``; both tensors are on ``device``.
+    """
     import torch.nn.functional as F
 
     from ..volume import phantom
 
-    half = max(8, size // 2)
-    vol = phantom(shape=(half,) * 3, dtype=dtype)
+    half = max(8, min(size // 2, 128))
+    vol = phantom(shape=(half,) * 3, dtype=dtype).to(device)
     vol = F.interpolate(vol[None, None], size=(size,) * 3, mode="trilinear", align_corners=True)[0, 0]
     g = torch.Generator().manual_seed(0)
     offsets = (torch.rand(3, nodes, nodes, nodes, generator=g, dtype=torch.float64) * 2 - 1) * amplitude
-    return vol.contiguous(), offsets.to(dtype)
+    return vol.contiguous(), offsets.to(device, dtype)
 
 
-def _time(fn, repeats):
-    """``(median wall s, median process CPU s, first result)``; the first call is a warm-up."""
+def _time(fn, repeats, sync=lambda: None):
+    """``(median wall s, median process CPU s, first result)``; the first call is a warm-up.
+
+    ``sync`` waits for the device (:func:`~.common.device_sync`) before each clock is read.
+    """
     out = fn()
+    sync()
     walls, cpus = [], []
     for _ in range(repeats):
         t0, c0 = time.perf_counter(), time.process_time()
         fn()
+        sync()
         walls.append(time.perf_counter() - t0)
         cpus.append(time.process_time() - c0)
     return statistics.median(walls), statistics.median(cpus), out
@@ -129,7 +138,11 @@ def run(args) -> int:
         paths = ["naive"] + paths
     rows, compile_times = [], {}
     try:
-        vol, offsets = bench_volume(size, nodes=args.nodes, amplitude=args.amplitude, dtype=dtype)
+        device = str(torch.device(args.device))
+        if device.startswith("cuda") and not torch.cuda.is_available():
+            raise ConfigError("--device", "cpu, or cuda on a machine with CUDA", got=args.device)
+        sync = device_sync(device)
+        vol, offsets = bench_volume(size, nodes=args.nodes, amplitude=args.amplitude, dtype=dtype, device=device)
         tf = preset("ct-bone")
         with torch.no_grad(), progress(len(paths) * len(modes), "bench volume") as bar:
             for mode in modes:
@@ -157,9 +170,10 @@ def run(args) -> int:
                     if path == "compiled":
                         t0 = time.perf_counter()
                         fn()  # compiles (once per shape, view and mode)
+                        sync()
                         compile_s = time.perf_counter() - t0
                         compile_times[mode] = compile_s
-                    wall, cpu, img = _time(fn, repeats)
+                    wall, cpu, img = _time(fn, repeats, sync)
                     bar.update(1)
                     if path == "naive":
                         ref, naive_s = img, wall
@@ -179,7 +193,7 @@ def run(args) -> int:
     finally:
         torch.set_num_threads(saved)
     extra = {
-        "machine": machine_info("cpu"),
+        "machine": machine_info(device),
         "compile_s": compile_times,
         "setup": (
             f"phantom {size}^3 (HU), {args.nodes}^3 node offsets up to {args.amplitude:g} voxels, axis view "

@@ -97,9 +97,12 @@ def relax_energy(
         raise ConfigError("mode", '"centroid" or "goal"', got=mode)
     u = positions if offsets else positions - grid.rest_positions(dtype=positions.dtype, device=positions.device)
     u = u if u.dim() == 5 else u.unsqueeze(0)
-    g6 = _grid6(grid)
     lk = _as_links(links, grid, u.device, u.shape[0])
-    goal = _goal_shift(grid, limits, mode, u.dtype, u.device)
+    return _energy(u, _grid6(grid), _goal_shift(grid, limits, mode, u.dtype, u.device), lk)
+
+
+def _energy(u: torch.Tensor, g6: Grid, goal, lk) -> torch.Tensor:
+    """:func:`relax_energy` ``(B,)`` of offsets ``u`` ``(B, 3, D, H, W)`` with the goal and links resolved."""
     total = u.new_zeros(u.shape[0])
     for s, (src, dst) in enumerate(g6.stencil):
         du = u[(..., *dst)] - u[(..., *src)]
@@ -222,13 +225,14 @@ def relax(
     bounds = limits.offset_bounds(dtype=dt, device=dev)
     goal = _goal_shift(grid, limits, mode, dt, dev)
     source = nodes.view(1, 1, *grid.shape)
-    energies = [float(relax_energy(u, grid, limits=limits, mode=mode, offsets=True, links=lk).sum())]
+    # the energies stay on the device until the end: one host sync, not one per step
+    energies = [_energy(u, g6, goal, lk).sum()]
     for _ in range(steps):
         for colour in colours:
             r, deg = _residual(u, g6, goal, lk)
             target = u + omega * r / deg.clamp_min(1)
             lo, hi = neighbour_boxes(u, grid, bounds, source, links=lk)
             u = torch.where(colour, torch.minimum(torch.maximum(target, lo), hi), u)
-        energies.append(float(relax_energy(u, grid, limits=limits, mode=mode, offsets=True, links=lk).sum()))
+        energies.append(_energy(u, g6, goal, lk).sum())
     out = u if offsets else X + u
-    return (out[0] if squeeze else out), energies
+    return (out[0] if squeeze else out), torch.stack(energies).tolist()

@@ -164,17 +164,21 @@ def _hops(picked: torch.Tensor, grid: Grid, moved: torch.Tensor, links=None, box
     reach = picked[_index(box)].clone()
     depth = torch.zeros(picked.shape[0], dtype=torch.long, device=picked.device)
     hop = 0
-    while bool((moved_b & ~reach).any()):
-        grown = _dilate(reach, g, lk_b) & nodes_b
-        if bool((grown == reach).all()):
+    pending = bool((moved_b & ~reach).any())  # a moved element not reached yet
+    while pending:
+        grown = _dilate(reach, g, lk_b) & nodes_b  # holds reach
+        # one host sync per hop: whether the reach grew, whether moved elements are left, the box's sides
+        flags = torch.stack(
+            [(grown != reach).any(), (moved_b & ~grown).any()] + _border_flags(grown.unsqueeze(1), box, shape)
+        ).tolist()
+        if not flags[0]:
             break
         hop += 1
         new = (grown & ~reach & moved_b).flatten(1).any(1)
         depth = torch.where(new, torch.full_like(depth, hop), depth)
-        reach = grown
-        flags = torch.stack(_border_flags(reach.unsqueeze(1), box, shape)).tolist()
-        if any(flags):
-            bigger = _grown(box, flags)
+        reach, pending = grown, flags[1]
+        if any(flags[2:]):
+            bigger = _grown(box, flags[2:])
             reach = _pad(reach.unsqueeze(1), box, bigger)[:, 0]
             box = bigger
             nodes_b, moved_b, lk_b, g = views(box)

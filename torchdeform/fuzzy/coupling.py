@@ -102,8 +102,8 @@ def spring_parameters(fis: MamdaniSystem, grid: Grid, inputs: torch.Tensor, *, d
         dtype: dtype of the results.
 
     Returns:
-        dict of per-spring tensors; also ``"_evaluations"``: how many distinct input rows
-        were evaluated.
+        dict of per-spring tensors on the device of ``inputs`` (the system is evaluated on its
+        own device); also ``"_evaluations"``: how many distinct input rows were evaluated.
     """
     if inputs.dim() != 4 or inputs.shape[0] != len(fis.inputs) or tuple(inputs.shape[1:]) != grid.shape:
         raise ConfigError(
@@ -111,7 +111,7 @@ def spring_parameters(fis: MamdaniSystem, grid: Grid, inputs: torch.Tensor, *, d
         )
     rows = inputs.reshape(len(fis.inputs), -1).T
     unique, inverse = torch.unique(rows, dim=0, return_inverse=True)
-    values = fis(unique.to(fis.dtype)).to(torch.float64)
+    values = fis(unique.to(dtype=fis.dtype, device=fis.device)).to(dtype=torch.float64, device=inputs.device)
     nodes = values[inverse].T.reshape((len(fis.outputs),) + grid.shape)  # (O, D, H, W)
     mean = harmonic_mean_of_ends(nodes, grid)  # (O, S, D, H, W)
     out = {name: mean[o].to(dtype) for o, name in enumerate(fis.output_names())}

@@ -207,6 +207,11 @@ class MamdaniSystem(nn.Module):
         """The dtype of the parameters (follows ``.to()``, ``.double()``)."""
         return self.inputs[0].bounds.dtype
 
+    @property
+    def device(self) -> torch.device:
+        """The device of the parameters (follows ``.to()``): inputs that are not tensors are made there."""
+        return self.inputs[0].bounds.device
+
     def input_names(self) -> list:
         """The input variable names, in order (the columns of ``x``)."""
         return [v.name for v in self.inputs]
@@ -328,7 +333,7 @@ class MamdaniSystem(nn.Module):
         plans = []
         with torch.no_grad():
             for o in range(len(self.outputs)):
-                _, nu, h = self.output_grid(o, self.dtype, self.inputs[0].bounds.device)
+                _, nu, h = self.output_grid(o, self.dtype, self.device)
                 if h is None:
                     plans.append(None)
                     continue
@@ -376,7 +381,7 @@ class MamdaniSystem(nn.Module):
         return [t.detach().clone() for t in list(self.parameters()) + list(self.buffers())]
 
     def _run(self, x, infer, chunk: int, pad: bool) -> torch.Tensor:
-        x = torch.as_tensor(x)
+        x = x if torch.is_tensor(x) else torch.as_tensor(x, device=self.device)
         if not x.is_floating_point():
             x = x.to(torch.get_default_dtype())
         if x.shape[-1] != len(self.inputs):
@@ -459,7 +464,9 @@ class MamdaniSystem(nn.Module):
                 got=f"missing {missing}, unknown {unknown}" if missing else f"unknown {unknown}",
                 show_got=True,
             )
-        cols = torch.broadcast_tensors(*[torch.as_tensor(values[n], dtype=self.dtype) for n in self.input_names()])
+        cols = torch.broadcast_tensors(
+            *[torch.as_tensor(values[n], dtype=self.dtype, device=self.device) for n in self.input_names()]
+        )
         out = self(torch.stack(cols, dim=-1))
         return {n: out[..., k] for k, n in enumerate(self.output_names())}
 

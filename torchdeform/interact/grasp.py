@@ -185,7 +185,7 @@ class Grasp:
             readings,
             self.tool.name,
             "grasped",
-            x.new_tensor(0.0).expand(x.shape[0])
+            x.new_zeros(()).expand(x.shape[0])
             if self.held.mask is None
             else self.held.mask.flatten(1).sum(1).to(x.dtype),
         )

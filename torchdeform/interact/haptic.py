@@ -130,26 +130,38 @@ class HapticLoop:
         self._target = self.pose.cpu().numpy().astype(np.float64)
 
     # ---------------------------------------------------------------- body
-    def advance(self) -> None:
+    def advance(self, *, read: bool = True) -> None:
         """One body step with the tool where the last tick put it; refreshes the force and :meth:`local_model`.
 
         The body thread runs this in a loop in local mode; direct mode runs it in every tick.
+
+        Args:
+            read: hand this step's force (and in local mode its contact stiffness) to the device
+                side, :meth:`local_model`. That read is the one wait for an accelerator per step;
+                direct mode reads after the last step of a tick only.
         """
         with self._lock:
             p = self._target.copy()
-        self.pose.copy_(torch.as_tensor(p, dtype=self.pose.dtype))
+        # a fresh host array: the copy need not wait for the device's queued steps
+        self.pose.copy_(torch.as_tensor(p, dtype=self.pose.dtype), non_blocking=True)
         self.state = self.step.step_packed(self.state)
-        force = self.state.readings[f"{self.tool.name}.force"][0].double().cpu().numpy()
-        K = np.zeros((3, 3))
+        if not read:
+            with self._lock:
+                self._body_steps += 1
+            return
+        force = self.state.readings[f"{self.tool.name}.force"][0].reshape(3)
+        K = torch.zeros((3, 3), dtype=force.dtype, device=force.device)
         if self.mode == "local":
             with torch.no_grad():
                 d, n = self.tool.sdf(self.state.x, self.state.t)
                 touched = (d <= self._touch) & (self.step.packed.free > 0)
                 w = (self._k_node * touched)[0, 0]  # (P,)
                 nn = n[0]  # (3, P)
-                K = torch.einsum("p,ip,jp->ij", w, nn, nn).double().cpu().numpy()
+                K = torch.einsum("p,ip,jp->ij", w, nn, nn)
+        # the force the hand feels goes to the device driver: the host waits for the step here, once
+        out = torch.cat([force.detach(), K.detach().reshape(9)]).double().cpu().numpy()
         with self._lock:
-            self._body = (force, p, K)
+            self._body = (out[:3], p, out[3:].reshape(3, 3))
             self._body_steps += 1
 
     def local_model(self):
@@ -206,8 +218,8 @@ class HapticLoop:
         with self._lock:
             self._target = p
         if self.mode == "direct":
-            for _ in range(self.steps_per_tick):
-                self.advance()
+            for k in range(self.steps_per_tick):
+                self.advance(read=k == self.steps_per_tick - 1)
             force = self._body[0]
         else:
             f_b, p_b, K = self.local_model()

@@ -51,6 +51,7 @@ import torch.nn.functional as F
 
 from ..errors import ConfigError
 from ..mesh import inside_mask, load_mesh
+from ..sim.forces import constant
 from .tools import Shape, _unit
 
 __all__ = ["MeshShape"]
@@ -321,8 +322,8 @@ class MeshShape(Shape):
         B, trailing = p.shape[0], p.shape[2:]
         q = p.reshape(B, 3, -1)  # (B, 3, M)
         M = q.shape[2]
-        lo = q.new_tensor(self.origin).view(1, 3, 1)
-        hi = lo + q.new_tensor([(s - 1) * self.spacing for s in self.shape]).view(1, 3, 1)
+        lo = constant(self.origin, q).view(1, 3, 1)
+        hi = lo + constant([(s - 1) * self.spacing for s in self.shape], q).view(1, 3, 1)
         inner = torch.minimum(torch.maximum(q, lo), hi)  # nearest point of the box
         u = 2 * (inner - lo) / (hi - lo) - 1  # [-1, 1] per channel (D, H, W)
         grid = u.flip(1).permute(0, 2, 1).reshape(1, B * M, 1, 1, 3)  # grid_sample's (x=W, y=H, z=D)

@@ -31,7 +31,7 @@ import math
 import torch
 
 from ..errors import ConfigError, positive_number
-from ..sim.forces import Waypoints, as_vec3
+from ..sim.forces import Waypoints, as_vec3, constant
 
 __all__ = ["Shape", "Sphere", "Capsule", "Box", "HalfSpace", "Tool", "SHAPES"]
 
@@ -146,7 +146,7 @@ class Box(Shape):
 
     def sdf(self, p):
         """Signed distance and outward normal (see :meth:`Shape.sdf`)."""
-        h = p.new_tensor(self.half_extents).view(1, 3, *[1] * (p.dim() - 2))
+        h = constant(self.half_extents, p).view(1, 3, *[1] * (p.dim() - 2))
         q = p.abs() - h  # > 0 outside along that axis
         outside = q.clamp_min(0)
         r_out, n_out = _unit(outside * p.sign())
@@ -180,7 +180,7 @@ class HalfSpace(Shape):
 
     def sdf(self, p):
         """Signed distance and outward normal (see :meth:`Shape.sdf`)."""
-        n = p.new_tensor(self.normal).view(1, 3, *[1] * (p.dim() - 2))
+        n = constant(self.normal, p).view(1, 3, *[1] * (p.dim() - 2))
         return (p * n).sum(1, keepdim=True), n.expand_as(p)
 
 
@@ -201,8 +201,7 @@ def _rotation_matrix(r: torch.Tensor) -> torch.Tensor:
 
 def _field(value, like: torch.Tensor) -> torch.Tensor:
     """A 3-vector ``(3,)`` or one per batch entry ``(B, 3)`` as ``(B|1, 3, 1, ...)`` against fields like ``like``."""
-    t = torch.as_tensor(value, dtype=like.dtype, device=like.device)
-    return t.reshape(-1, 3, *[1] * (like.dim() - 2))
+    return constant(value, like).reshape(-1, 3, *[1] * (like.dim() - 2))
 
 
 def _rotate(R: torch.Tensor, p: torch.Tensor, transpose: bool = False) -> torch.Tensor:
@@ -303,14 +302,14 @@ class Tool:
         """Position at time ``t``: a tuple for a float ``t``, a tensor ``(3,)`` / ``(B, 3)`` for a 0-d tensor."""
         if self._fn is not None:
             p = self._fn(t)
-            return p if torch.is_tensor(p) or not torch.is_tensor(t) else t.new_tensor(p)
+            return p if torch.is_tensor(p) or not torch.is_tensor(t) else constant(p, t)
         return self._path.at(t)
 
     def rotation(self, t):
         """Rotation vector (rad) at time ``t`` as :meth:`position` gives positions, or None (identity)."""
         if self._rot_fn is not None:
             r = self._rot_fn(t)
-            return r if torch.is_tensor(r) or not torch.is_tensor(t) else t.new_tensor(r)
+            return r if torch.is_tensor(r) or not torch.is_tensor(t) else constant(r, t)
         return None if self._rot is None else self._rot.at(t)
 
     @staticmethod
@@ -338,11 +337,7 @@ class Tool:
     def frame(self, t, like: torch.Tensor):
         """``(c, R)``: the position ``(B|1, 3, 1, ...)`` against fields like ``like``, and ``R`` ``(B|1, 3, 3)`` or None."""
         r = self.rotation(t)
-        R = (
-            None
-            if r is None
-            else _rotation_matrix(torch.as_tensor(r, dtype=like.dtype, device=like.device).reshape(-1, 3))
-        )
+        R = None if r is None else _rotation_matrix(constant(r, like).reshape(-1, 3))
         return _field(self.position(t), like), R
 
     def sdf(self, x: torch.Tensor, t) -> tuple[torch.Tensor, torch.Tensor]:

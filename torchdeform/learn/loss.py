@@ -132,6 +132,29 @@ class WindowLoss:
         """Number of teacher-forcing windows (1 for ``window=None``)."""
         return len(self.starts)
 
+    # ---------------------------------------------------------------- data on the model's device
+    def _data(self, device) -> dict:
+        """The series' tensors on ``device`` (copied once per device).
+
+        ``obs`` ``(T, 3, D, H, W)`` and ``weight`` ``(T, 1, D, H, W)`` (the loss's dtype), ``mask``
+        bool ``(T, D, H, W)``, ``free`` bool ``(D, H, W)`` (neither fixed nor dragged), ``steps``
+        int64 ``(T,)``. The rollouts index them with tensors on the same device, so no step of a
+        rollout copies from the host.
+        """
+        device = torch.device(device)
+        cache = self.__dict__.setdefault("_by_device", {})
+        key = str(device)
+        if key not in cache:
+            s = self.series
+            cache[key] = {
+                "obs": self.obs.to(device),
+                "weight": self.weight.to(device),
+                "mask": torch.as_tensor(s.mask).to(device),
+                "free": (~torch.as_tensor(s.constrained())).to(device),
+                "steps": torch.as_tensor(s.steps).to(device),
+            }
+        return cache[key]
+
     # ---------------------------------------------------------------- starting states
     def _start(self, model, starts: list) -> State:
         s = self.series
@@ -139,55 +162,55 @@ class WindowLoss:
         x, v = st.x, st.v
         if all(i == 0 for i in starts):
             return State(x, v, t=0.0)
-        idx = torch.tensor(starts)
-        obs, w = self.obs[idx], torch.as_tensor(s.mask)[idx].unsqueeze(1)
-        later = torch.tensor([i > 0 for i in starts]).view(-1, 1, 1, 1, 1)
-        free = ~torch.as_tensor(s.constrained())
-        use = w & later & free
+        d = self._data(model.device)
+        idx = torch.tensor(starts, device=model.device)
+        obs, w = d["obs"][idx], d["mask"][idx].unsqueeze(1)
+        later = (idx > 0).view(-1, 1, 1, 1, 1)
+        use = w & later & d["free"]
         x = torch.where(use, obs, x)
         tab = s.tables(dtype=model.dtype, device=model.device)
         if tab["drag"] is not None:  # boundary: known prescribed positions
-            steps = torch.as_tensor(s.steps)[idx]
+            steps = d["steps"][idx]
             x = torch.where(tab["drag_mask"], tab["drag"][steps], x)
         if self.smooth:
-            xs, dv, ok = self._smoothed(starts)
+            xs, dv, ok = self._smoothed(starts, d)
             x = torch.where(use & ok, xs, x)
         if self.velocity == "difference":
             prev = (idx - 1).clamp_min(0)
-            both = use & torch.as_tensor(s.mask)[prev].unsqueeze(1)
+            both = use & d["mask"][prev].unsqueeze(1)
             if not self.smooth:
-                dv, ok = (obs - self.obs[prev]) / (self.every * s.dt), both
+                dv, ok = (obs - d["obs"][prev]) / (self.every * s.dt), both
             v = torch.where(use & ok, dv, v)
             if tab["drag"] is not None:
-                steps = torch.as_tensor(s.steps)[idx]
+                steps = d["steps"][idx]
                 vd = (tab["drag"][steps] - tab["drag"][(steps - 1).clamp_min(0)]) / s.dt
                 v = torch.where(tab["drag_mask"] & later, vd, v)
         return State(x, v, t=0.0)
 
-    def _smoothed(self, starts: list):
+    def _smoothed(self, starts: list, data: dict):
         """Savitzky-Golay start states for noisy data.
 
         A quadratic fitted by least squares to the observations ``i - smooth .. i + smooth``
         (clipped to the series) gives the position ``a`` and, with ``b`` and ``c`` its first
         coefficients, the symplectic-Euler velocity ``b - c dt`` (the backward difference of the
         fitted path). Returns ``(x, v, ok)`` with ``ok`` False where a node is unobserved
-        somewhere in the stencil.
+        somewhere in the stencil. ``data``: :meth:`_data` on the device of the rollout.
         """
         h, E, dt = self.smooth, self.every, self.series.dt
         xs, vs, oks = [], [], []
-        mask = torch.as_tensor(self.series.mask)
+        obs, mask = data["obs"], data["mask"]
         for i in starts:
             j = np.arange(max(0, i - h), min(self.T - 1, i + h) + 1)
             tau = (j - i) * E * dt
             V = np.stack([np.ones_like(tau), tau, tau**2], 1)
-            W = torch.as_tensor(np.linalg.pinv(V), dtype=self.dtype)  # (3, len(j))
-            o = self.obs[torch.as_tensor(j)]
+            W = torch.as_tensor(np.linalg.pinv(V), dtype=self.dtype, device=obs.device)  # (3, len(j))
+            o = obs[int(j[0]) : int(j[-1]) + 1]  # the observations j (consecutive)
             a = torch.einsum("j,j...->...", W[0], o)
             b = torch.einsum("j,j...->...", W[1], o)
             c = torch.einsum("j,j...->...", W[2], o)
             xs.append(a)
             vs.append(b - c * dt)
-            oks.append(mask[torch.as_tensor(j)].all(0)[None])
+            oks.append(mask[int(j[0]) : int(j[-1]) + 1].all(0)[None])
         return torch.stack(xs), torch.stack(vs), torch.stack(oks)
 
     # ---------------------------------------------------------------- rollouts
@@ -228,13 +251,14 @@ class WindowLoss:
     def _window_loss(self, model, state: State, starts: list):
         """Loss of the windows starting at observation indices ``starts`` (one batch)."""
         K, E = self.K, self.every
-        idx = torch.tensor(starts)
-        obs_idx = idx.view(-1, 1) + torch.arange(1, K + 1).view(1, -1)  # (B, K)
+        d = self._data(model.device)
+        idx = torch.tensor(starts, device=model.device)
+        obs_idx = idx.view(-1, 1) + torch.arange(1, K + 1, device=model.device).view(1, -1)  # (B, K)
         valid = (obs_idx <= self.T - 1).to(self.dtype).view(len(starts), K, 1, 1, 1, 1)
         obs_idx = obs_idx.clamp_max(self.T - 1)
-        targets = self.obs[obs_idx]  # (B, K, 3, D, H, W)
-        weights = self.weight[obs_idx] * valid  # (B, K, 1, D, H, W)
-        n0 = torch.as_tensor(self.series.steps)[idx]
+        targets = d["obs"][obs_idx]  # (B, K, 3, D, H, W)
+        weights = d["weight"][obs_idx] * valid  # (B, K, 1, D, H, W)
+        n0 = d["steps"][idx]  # on the model's device: the steps index the load tables there
         total = K * E
         seg = self.checkpoint or total
         x, v = state.x, state.v
@@ -273,12 +297,11 @@ class WindowLoss:
         # in sequence: reset observed free positions at each window start, carry the rest
         state = self.series.start_state(model)
         total = state.x.new_zeros(())
-        s = self.series
-        free = ~torch.as_tensor(s.constrained())
+        d = self._data(model.device)
         for i in self.starts:
             if i > 0:
-                w = torch.as_tensor(s.mask)[i][None, None] & free
-                state = State(torch.where(w, self.obs[i : i + 1], state.x), state.v, t=0.0)
+                w = d["mask"][i][None, None] & d["free"]
+                state = State(torch.where(w, d["obs"][i : i + 1], state.x), state.v, t=0.0)
             loss, state = self._window_loss(model, state, [i])
             if i in chosen:
                 total = total + loss

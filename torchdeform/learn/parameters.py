@@ -214,7 +214,7 @@ class SpringParameter(nn.Module):
 
         In the order of ``sharing="spring"`` values.
         """
-        return torch.as_tensor(tensor)[self.mask]
+        return torch.as_tensor(tensor, device=self.mask.device)[self.mask]
 
 
 class NodeParameter(nn.Module):
@@ -248,7 +248,7 @@ class NodeParameter(nn.Module):
         v = self.value()
         if self.sharing == "shared":
             return v[0] * self.nodes.to(v.dtype)
-        return torch.zeros(self.grid.shape, dtype=v.dtype).masked_scatter(self.nodes, v)
+        return torch.zeros(self.grid.shape, dtype=v.dtype, device=v.device).masked_scatter(self.nodes, v)
 
 
 class FuzzySprings(nn.Module):
@@ -342,9 +342,13 @@ class Parameters(nn.Module):
         stiffness, damping: a :class:`SpringParameter` (learned) or fixed values (a number or
             ``(S, D, H, W)``).
         mass: a :class:`NodeParameter` (learned) or fixed kg per node (a number or ``(D, H, W)``).
+        dtype: of the fixed values and the model.
+        device: where the learned modules (moved there) and the fixed values go, and where
+            :meth:`model` builds the model (default: where the learned parameters are). The module
+            follows ``.to(device)`` later on, fixed values included.
     """
 
-    def __init__(self, series: Series, stiffness, damping, mass, *, dtype=torch.float64):
+    def __init__(self, series: Series, stiffness, damping, mass, *, dtype=torch.float64, device=None):
         super().__init__()
         self.series, self.dtype = series, dtype
         self.learned = nn.ModuleDict()
@@ -355,7 +359,22 @@ class Parameters(nn.Module):
             else:
                 self.fixed[name] = torch.as_tensor(
                     np.asarray(value, dtype=np.float64) if not torch.is_tensor(value) else value
-                ).to(dtype)
+                ).to(dtype=dtype, device=device)
+        if device is not None:
+            self.learned.to(device)
+
+    def _apply(self, fn, recurse=True):
+        """``.to()``, ``.cuda()``, ``.double()`` ...: the fixed values follow the learned ones."""
+        super()._apply(fn, recurse)
+        self.fixed = {name: fn(t) for name, t in self.fixed.items()}
+        return self
+
+    @property
+    def device(self) -> torch.device:
+        """Where the learned parameters are (the CPU when nothing is learned): :meth:`model` builds there."""
+        for t in self.parameters():
+            return t.device
+        return next(iter(self.fixed.values())).device if self.fixed else torch.device("cpu")
 
     def physical(self) -> dict:
         """``{"stiffness": (S, D, H, W) or number, "damping": ..., "mass": (D, H, W) or number}``."""
@@ -367,7 +386,7 @@ class Parameters(nn.Module):
     def model(self):
         """The :class:`~torchdeform.sim.model.Model` with the current values (differentiable)."""
         p = self.physical()
-        return self.series.model(p["stiffness"], p["damping"], p["mass"], dtype=self.dtype)
+        return self.series.model(p["stiffness"], p["damping"], p["mass"], dtype=self.dtype, device=self.device)
 
     def summary(self) -> dict:
         """Learned values as plain Python: a float for one value, else a list."""

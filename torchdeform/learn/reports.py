@@ -179,8 +179,8 @@ def plot_spread(learned, truth, path, *, title: str = "per-spring recovery") -> 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    r = np.asarray(torch.as_tensor(learned).detach(), dtype=np.float64) / np.asarray(
-        torch.as_tensor(truth), dtype=np.float64
+    r = np.asarray(torch.as_tensor(learned).detach().cpu(), dtype=np.float64) / np.asarray(
+        torch.as_tensor(truth).detach().cpu(), dtype=np.float64
     )
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.hist(np.log10(r), bins=30)

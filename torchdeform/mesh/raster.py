@@ -62,6 +62,7 @@ Example:
 
 from __future__ import annotations
 
+import bisect
 import math
 
 import torch
@@ -311,15 +312,18 @@ def rasterize(
     zbuf = torch.full((H * W,), math.inf, dtype=dtype, device=device)
     fbuf = torch.full((H * W,), -1, dtype=torch.long, device=device)
     big = torch.iinfo(torch.long).max
-    cum = torch.cumsum(counts[faces_hit], 0)
+    # the chunk ends on the host, read once: no host sync per chunk
+    cum = torch.cumsum(counts[faces_hit], 0).tolist()
     start = 0
-    while start < len(faces_hit):
-        base = int(cum[start - 1]) if start else 0
-        stop = max(int(torch.searchsorted(cum, base + int(chunk_pairs), right=True)), start + 1)
+    while start < len(cum):
+        base = cum[start - 1] if start else 0
+        stop = max(bisect.bisect_right(cum, base + int(chunk_pairs)), start + 1)
+        pairs = cum[stop - 1] - base
         fc = faces_hit[start:stop]
         cnt = counts[fc]
-        fi = torch.repeat_interleave(fc, cnt)  # (P,) face of each pair
-        local = torch.arange(int(cnt.sum()), device=device) - torch.repeat_interleave(torch.cumsum(cnt, 0) - cnt, cnt)
+        fi = torch.repeat_interleave(fc, cnt, output_size=pairs)  # (P,) face of each pair
+        first = torch.repeat_interleave(torch.cumsum(cnt, 0) - cnt, cnt, output_size=pairs)
+        local = torch.arange(pairs, device=device) - first
         col = x0[fi] + local % nx[fi]
         row = y0[fi] + local // nx[fi]
         px, py = col.to(dtype) + 0.5, row.to(dtype) + 0.5

@@ -55,6 +55,7 @@ from .integrators import (
     conjugate_gradient,
 )
 from .laws import LAWS, Exponential, Polynomial, SpringLaw
+from .material import Elastic
 from .model import Model, State, lumped_mass
 from .projective import ProjectiveDynamics
 from .stability import DivergenceMonitor, check_dt, gershgorin_omega2, power_omega2, suggest_dt, time_step_bound
@@ -63,6 +64,7 @@ __all__ = [
     "Grid",
     "Model",
     "State",
+    "Elastic",
     "lumped_mass",
     "Drag",
     "PointForce",

@@ -170,6 +170,8 @@ class Engine:
         """Why the packed engines cannot run this simulation, or None."""
         if self.blocked:
             return self.blocked
+        if getattr(model, "volume", None) is not None:
+            return "the volume term of an Elastic material runs in the eager step"
         if gradient_needed(model, state):
             return "a gradient is needed (the packed engines run without autograd)"
         if callable(loads):
@@ -223,7 +225,9 @@ class Engine:
             self.choice = None
         elif why_not is None:
             self.reason += "; native"
-        elif threads > 1 and not isinstance(integrator, ImplicitEuler):
+        elif (
+            threads > 1 and not isinstance(integrator, ImplicitEuler) and (model is None or model.device.type == "cpu")
+        ):
             extra = self.expected["gather"] - self.expected["reduction"]
             gather = to_come * self.GATHER_SAVES > self.payback * extra
             self.force_form = "gather" if gather else "reduction"

@@ -33,7 +33,29 @@ import torch
 from ..errors import ConfigError
 from .grid import FACES, Grid
 
-__all__ = ["PointForce", "SurfaceForce", "FieldForce", "Drag", "Waypoints", "home_force", "profile_factor", "as_vec3"]
+__all__ = [
+    "PointForce",
+    "SurfaceForce",
+    "FieldForce",
+    "Drag",
+    "Waypoints",
+    "home_force",
+    "profile_factor",
+    "as_vec3",
+    "constant",
+]
+
+
+def constant(value, like: torch.Tensor) -> torch.Tensor:
+    """``value`` (numbers, nested sequences or a tensor) as a tensor of ``like``'s dtype and device.
+
+    Numbers reach an accelerator by a non-blocking copy of a fresh host tensor: the host does not
+    wait for the device's queued work, as ``like.new_tensor(value)`` does on every call.
+    """
+    if torch.is_tensor(value):
+        return value.to(dtype=like.dtype, device=like.device)
+    t = torch.tensor(value, dtype=like.dtype)
+    return t if t.device == like.device else t.to(like.device, non_blocking=True)
 
 
 def as_vec3(value, key) -> tuple:
@@ -256,9 +278,9 @@ class Waypoints:
         """The value at time ``t`` (a tuple, a tensor ``(3,)`` or an array ``(T, 3)``)."""
         ts, os_ = self.times, self.values
         if torch.is_tensor(t):
-            o = t.new_tensor(os_[0])
+            o = constant(os_[0], t)
             for (t0, o0), (t1, o1) in zip(zip(ts, os_), zip(ts[1:], os_[1:])):
-                o = o + ((t - t0) / (t1 - t0)).clamp(0.0, 1.0) * t.new_tensor([q - p for p, q in zip(o0, o1)])
+                o = o + ((t - t0) / (t1 - t0)).clamp(0.0, 1.0) * constant([q - p for p, q in zip(o0, o1)], t)
             return o
         if not isinstance(t, (int, float)):
             t = np.asarray(t, dtype=np.float64)
@@ -278,7 +300,7 @@ class Waypoints:
             vel = t.new_zeros(3)
             for (t0, o0), (t1, o1) in zip(zip(ts, os_), zip(ts[1:], os_[1:])):
                 inside = ((t >= t0) & (t < t1)).to(t.dtype)
-                vel = vel + inside * t.new_tensor([(q - p) / (t1 - t0) for p, q in zip(o0, o1)])
+                vel = vel + inside * constant([(q - p) / (t1 - t0) for p, q in zip(o0, o1)], t)
             return vel
         for (t0, o0), (t1, o1) in zip(zip(ts, os_), zip(ts[1:], os_[1:])):
             if t0 <= t < t1:
@@ -348,7 +370,7 @@ class Drag(_Timed):
             f, o = self.factor(t), self.offset_vector
             assert o is not None  # an offset is given when there is no path
             if torch.is_tensor(t):
-                return t.new_tensor(o) * f
+                return constant(o, t) * f
             if isinstance(t, (int, float)):
                 return tuple(c * f for c in o)
             return np.asarray(f)[:, None] * np.asarray(o)[None]
@@ -390,7 +412,7 @@ class Drag(_Timed):
             else:
                 rate = after * (slope * math.sin(w * (tt - s)) + ramp_v * w * math.cos(w * (tt - s)))
         if tensor:
-            return t.new_tensor(o) * rate
+            return constant(o, t) * rate
         return tuple(c * rate for c in o)
 
 

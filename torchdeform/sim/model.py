@@ -23,6 +23,15 @@ from ..errors import ConfigError
 from .forces import as_vec3, home_force
 from .grid import CLASSES, Grid
 from .laws import as_law
+from .material import (
+    Elastic,
+    VolumeLinearisation,
+    cell_field,
+    cell_mask,
+    spring_stiffness,
+    volume_energy,
+    volume_forces,
+)
 from .springs import Linearisation, node_sums, spring_energy, spring_forces, spring_forces_conv
 
 #: External loads of a step: a force field ``(B, 3, D, H, W)`` (N), a function of time ``t`` (s)
@@ -160,6 +169,9 @@ class Model:
         stiffness: spring stiffness k (N/m); see :func:`spring_param` for the accepted shapes.
             With ``normalize=True`` it is a modulus Y (N) and each spring gets ``k = Y / l0``,
             so a chain keeps its overall stiffness when the resolution changes.
+            Or an :class:`~torchdeform.sim.material.Elastic` (Young's modulus and Poisson ratio):
+            springs assembled from the cells and, above ``nu = 1/4``, the per-cell volume term
+            (:attr:`volume`).
         damping: spring damping (N s/m) like ``stiffness`` (``/ l0`` too when normalised), or None.
         damping_mode: ``"projected"`` (dashpot along the spring) or ``"unprojected"``
             (Radetzky: ``-d (v_i - v_j)``, which also damps rigid rotation of a pair).
@@ -229,7 +241,10 @@ class Model:
         self.X = grid.rest_positions(dtype=dtype, device=dev)
         self.rest_length = grid.rest_lengths(dtype=dtype, device=dev).view(1, grid.S, 1, 1, 1)
 
-        # springs (masked only when some springs are missing)
+        # springs (masked only when some springs are missing); a material gives them from its cells
+        #: the volume term ``(kappa_cells (D-1, H-1, W-1) in Pa, cell side h in m)``, or None
+        self.volume: tuple[torch.Tensor, float] | None
+        stiffness, self.volume = _material_springs(stiffness, normalize, grid, dtype, dev)
         k = spring_param(stiffness, grid, "stiffness", dtype, dev)
         c = None if damping is None else spring_param(damping, grid, "damping", dtype, dev)
         if normalize:
@@ -276,12 +291,12 @@ class Model:
         self.drags = list(drags or [])
         constrained = ~grid.nodes()
         if fixed is not None:
-            fixed = torch.as_tensor(fixed, dtype=torch.bool)
+            fixed = torch.as_tensor(fixed, dtype=torch.bool).cpu()  # a mask on any device
             if tuple(fixed.shape) != grid.shape:
                 raise ConfigError("fixed", f"a bool mask of shape {grid.shape}", got=tuple(fixed.shape))
             constrained = constrained | fixed
         for d in self.drags:
-            constrained = constrained | torch.as_tensor(d.nodes, dtype=torch.bool)
+            constrained = constrained | torch.as_tensor(d.nodes, dtype=torch.bool).cpu()
         self.drag_masks = [torch.as_tensor(d.nodes, dtype=torch.bool, device=dev)[None, None] for d in self.drags]
         self.constrained = constrained.to(dev)
         #: bool ``(D, H, W)`` of nodes removed from the body by a topology change (cautery), or None
@@ -404,6 +419,8 @@ class Model:
             impl: ``"fast"`` (shifted slices) or ``"conv"`` (conv3d reference).
         """
         F = self.spring_forces(x, v, impl=impl)
+        if self.volume is not None:
+            F = F + volume_forces(x, *self.volume)
         if self.k_home is not None:
             F = F + home_force(x, self.X, self.k_home)
         if self.gravity is not None:
@@ -457,21 +474,24 @@ class Model:
         return self.inv_mass * self.forces(x, v, t=t, loads=loads)
 
     def linearise(self, x, *, clamp=True) -> Linearisation:
-        """Springs linearised at ``x`` for stiffness products (implicit Euler, bounds)."""
-        return Linearisation(
+        """Springs (and the volume term) linearised at ``x`` for stiffness products (implicit Euler, bounds)."""
+        lin = Linearisation(
             x, self.grid, self.stiffness, self.rest_length, clamp=clamp, law=self.law, lp=self.law_params
         )
+        return lin if self.volume is None else VolumeLinearisation(lin, x, *self.volume)
 
     # --------------------------------------------------------------- energy
     def energy(self, state: State) -> dict:
         """Energies per batch entry, each ``(B,)``.
 
-        ``kinetic``, ``elastic`` (springs and home springs), ``gravity`` (``-m g . (x - X)``),
+        ``kinetic``, ``elastic`` (springs, the volume term and home springs), ``gravity`` (``-m g . (x - X)``),
         ``total``. External loads are not included.
         """
         x, v = state.x, state.v
         ke = 0.5 * (self.mass * v * v).flatten(1).sum(1)
         el = spring_energy(x, self.grid, self.stiffness, self.rest_length, law=self.law, lp=self.law_params)
+        if self.volume is not None:
+            el = el + volume_energy(x, *self.volume)
         if self.k_home is not None:
             el = el + 0.5 * (self.k_home * (x - self.X) ** 2).flatten(1).sum(1)
         out = {"kinetic": ke, "elastic": el}
@@ -482,6 +502,26 @@ class Model:
             total = total + gp
         out["total"] = total
         return out
+
+
+def _material_springs(stiffness, normalize, grid: Grid, dtype, device):
+    """``(stiffness, volume)``: the springs and volume term of :class:`Model`'s ``stiffness``.
+
+    A stiffness gives itself and no volume term; an :class:`~torchdeform.sim.material.Elastic`
+    gives springs ``(S, D, H, W)`` assembled from its cells and ``(kappa_cells, h)``, or None where
+    it needs no volume term (``nu = 1/4``).
+    """
+    if not isinstance(stiffness, Elastic):
+        return stiffness, None
+    material = stiffness
+    if normalize:
+        raise ConfigError("normalize", "False with an Elastic material (its springs are in N/m)", got=normalize)
+    h = material.check_grid(grid)
+    cells = cell_mask(grid, device=device).to(dtype)
+    mu, _ = material.lame()
+    k = spring_stiffness(grid, cell_field(mu, grid, dtype=dtype, device=device) * cells, h)
+    kappa = cell_field(material.volume_modulus(), grid, dtype=dtype, device=device) * cells
+    return k, (None if not bool((kappa != 0).any()) else (kappa, h))
 
 
 __all__ = ["Model", "State", "spring_param", "node_param", "lumped_mass"]

@@ -235,6 +235,12 @@ class ProjectiveDynamics(Integrator):
         ``"auto"`` takes jacobi for a spring law and in compiled code (the packed model), else
         cholesky up to :data:`CHOLESKY_NODES` free nodes if cholespy is installed.
         """
+        if getattr(model, "volume", None) is not None:
+            raise ConfigError(
+                "integrator",
+                "symplectic, rk4, verlet or implicit for an Elastic material's volume term",
+                got="projective",
+            )
         if self.solver != "auto":
             return self.solver
         if getattr(model, "law", None) is not None or _is_packed(model):

@@ -55,6 +55,10 @@ def gershgorin_omega2(model) -> float:
         (2.0, 1.0)
     """
     ksum = 2 * model.spring_sums(model.stiffness)
+    if model.volume is not None:
+        from .material import volume_row_sums
+
+        ksum = ksum + volume_row_sums(model.volume[0], model.volume[1], model.grid.shape)
     if model.k_home is not None:
         ksum = ksum + model.k_home
     return float((model.inv_mass * ksum).max())

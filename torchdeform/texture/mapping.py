@@ -52,7 +52,15 @@ def framing_camera(vertices, *, direction=(1.2, -1.0, 1.4), fov_deg: float = 40.
 
 
 def render_textured(
-    surfaces, texture, camera, *, light=None, ambient: float = 0.35, per_pixel: bool = True, background=(1.0, 1.0, 1.0)
+    surfaces,
+    texture,
+    camera,
+    *,
+    light=None,
+    ambient: float = 0.35,
+    per_pixel: bool = True,
+    background=(1.0, 1.0, 1.0),
+    device=None,
 ) -> dict:
     """Rasterise surfaces (deformed vertices) coloured by the solid texture at material coordinates.
 
@@ -66,18 +74,20 @@ def render_textured(
         per_pixel: look the texture up at every pixel's interpolated rest coordinates (True) or
             interpolate the vertex colours (False, Chen & He's node colouring alone).
         background: RGB where nothing is hit.
+        device: where to rasterise and look the texture up (default: where the surfaces' tensors
+            are, the CPU for numpy arrays).
 
     Returns:
-        the rasteriser's dict: ``image`` ``(H, W, 3)``, ``depth``, ``face``, ``bary``.
+        the rasteriser's dict: ``image`` ``(H, W, 3)``, ``depth``, ``face``, ``bary``, on that device.
     """
     from ..mesh.raster import rasterize
 
     verts, faces, rest, base = [], [], [], 0
     for s in surfaces:
-        v = torch.as_tensor(s.vertices, dtype=torch.float64)
+        v = torch.as_tensor(s.vertices, dtype=torch.float64, device=device)
         verts.append(v)
-        faces.append(torch.as_tensor(s.faces, dtype=torch.int64) + base)
-        rest.append(torch.as_tensor(s.rest, dtype=torch.float64))
+        faces.append(torch.as_tensor(s.faces, dtype=torch.int64, device=v.device) + base)
+        rest.append(torch.as_tensor(s.rest, dtype=torch.float64, device=v.device))
         base += len(v)
     v, f, r = torch.cat(verts), torch.cat(faces), torch.cat(rest)
     if per_pixel:

@@ -21,6 +21,9 @@ read the blended volume from then on (trilinear, clamped at its border).
 Material coordinates (metres) map to texture voxels by ``(X - origin) / voxel``: a point of the
 tissue keeps its colour however the body moves or is cut (:meth:`SolidTexture.at_material`).
 
+**Devices.** The texture is built on the CPU; a lookup runs on the device of its points, where
+the exemplar (or the blended volume), the block offsets and the origin are copied once and kept.
+
 Examples:
     >>> import torch
     >>> from torchdeform.texture import liver_exemplar
@@ -168,33 +171,48 @@ class SolidTexture:
         self.__dict__.pop("_atlas_by_dtype", None)
 
     # ------------------------------------------------------------------ lookup
-    def _source(self, dtype) -> torch.Tensor:
-        """The volume lookups read, in ``dtype`` (converted once): the exemplar, or the blended texture."""
-        cache = self.__dict__.setdefault("_by_dtype", {})
-        if dtype not in cache:
-            cache[dtype] = (self.exemplar if self.volume is None else self.volume).to(dtype)
-        return cache[dtype]
+    def _source(self, dtype, device=None) -> torch.Tensor:
+        """The volume lookups read, in ``dtype`` on ``device`` (default: its own; copied once).
 
-    def _slice_atlas(self, dtype) -> tuple[torch.Tensor, int]:
+        The exemplar, or the blended texture.
+        """
+        cache = self.__dict__.setdefault("_by_dtype", {})
+        src = self.exemplar if self.volume is None else self.volume
+        device = src.device if device is None else torch.device(device)
+        key = (dtype, str(device))
+        if key not in cache:
+            cache[key] = src.to(dtype=dtype, device=device)
+        return cache[key]
+
+    def _on(self, name: str, device) -> torch.Tensor:
+        """The tensor attribute ``name`` (``"offsets"`` or ``"origin"``) on ``device``, copied once per device."""
+        cache = self.__dict__.setdefault("_by_device", {})
+        key = (name, str(torch.device(device)))
+        if key not in cache:
+            cache[key] = getattr(self, name).to(device)
+        return cache[key]
+
+    def _slice_atlas(self, dtype, device=None) -> tuple[torch.Tensor, int]:
         """The ``d`` slices of :meth:`_source` ``(3, d, h, w)`` tiled side by side in one image.
 
         Tile ``s`` (row ``s // cols``, column ``s % cols``, ``cols = ceil(sqrt(d))``) holds slice
         ``s`` plus one replicated row and column, so a bilinear read never reaches a neighbour tile.
         Square tiling keeps the image's coordinates small (about ``sqrt(d) h``), hence the float32
         rounding of ``grid_sample``'s normalised coordinates near 1e-4 voxel. Returns the image
-        ``(1, 3, rows (h + 1), cols (w + 1))`` and ``cols``; built once per dtype.
+        ``(1, 3, rows (h + 1), cols (w + 1))`` and ``cols``; built once per dtype and device.
         """
         cache = self.__dict__.setdefault("_atlas_by_dtype", {})
-        if dtype not in cache:
-            ex = self._source(dtype)
+        ex = self._source(dtype, device)
+        key = (dtype, str(ex.device))
+        if key not in cache:
             d, h, w = ex.shape[1:]
             cols = math.ceil(math.sqrt(d))
             rows = math.ceil(d / cols)
             padded = F.pad(ex, (0, 1, 0, 1), mode="replicate")  # (3, d, h + 1, w + 1)
             padded = torch.cat([padded, padded.new_zeros(3, rows * cols - d, h + 1, w + 1)], 1)
             image = padded.reshape(3, rows, cols, h + 1, w + 1).permute(0, 1, 3, 2, 4)
-            cache[dtype] = (image.reshape(1, 3, rows * (h + 1), cols * (w + 1)).contiguous(), cols)
-        return cache[dtype]
+            cache[key] = (image.reshape(1, 3, rows * (h + 1), cols * (w + 1)).contiguous(), cols)
+        return cache[key]
 
     def exemplar_points(self, points: torch.Tensor) -> torch.Tensor:
         """Exemplar voxel coordinates ``(N, 3)`` of texture points ``(N, 3)`` (voxels, float)."""
@@ -203,7 +221,7 @@ class SolidTexture:
         n = self.blocks
         idx = [cell[:, a].long().clamp_(0, n[a] - 1) for a in range(3)]
         flat = (idx[0] * n[1] + idx[1]) * n[2] + idx[2]
-        start = self.offsets.view(-1, 3).index_select(0, flat).to(points.dtype)  # (N, 3)
+        start = self._on("offsets", points.device).view(-1, 3).index_select(0, flat).to(points.dtype)  # (N, 3)
         return start + (points - b * cell)
 
     def colour(self, points: torch.Tensor, *, mode: str = "trilinear") -> torch.Tensor:
@@ -220,7 +238,7 @@ class SolidTexture:
             raise ConfigError("texture.mode", '"trilinear" or "nearest"', got=mode)
         q = self.exemplar_points(points) if self.volume is None else points
         if mode == "nearest":
-            ex = self._source(points.dtype)
+            ex = self._source(points.dtype, points.device)
             grid = to_grid_sample(q.T.reshape(1, 3, -1, 1, 1), ex.shape[1:], align_corners=True)
             out = F.grid_sample(ex[None], grid, mode="nearest", padding_mode="border", align_corners=True)
             return out.reshape(3, -1).T
@@ -228,8 +246,8 @@ class SolidTexture:
 
     def _trilinear(self, q: torch.Tensor) -> torch.Tensor:
         """Trilinear colours ``(N, 3)`` at voxel coordinates ``q`` ``(N, 3)`` of :meth:`_source` (see :meth:`colour`)."""
-        image, cols = self._slice_atlas(q.dtype)
-        d, h, w = self._source(q.dtype).shape[1:]
+        image, cols = self._slice_atlas(q.dtype, q.device)
+        d, h, w = self._source(q.dtype, q.device).shape[1:]
         lim = torch.tensor([d - 1, h - 1, w - 1], dtype=q.dtype, device=q.device)
         q = torch.minimum(q.clamp(min=0), lim)  # padding "border"
         d0 = q[:, 0].floor().clamp_(max=max(d - 2, 0))
@@ -252,7 +270,7 @@ class SolidTexture:
 
     def at_material(self, X: torch.Tensor, *, mode: str = "trilinear") -> torch.Tensor:
         """Colours ``(N, 3)`` at material (rest) coordinates ``X`` ``(N, 3)`` (m)."""
-        Xv = (X.double() - self.origin) / self.voxel
+        Xv = (X.double() - self._on("origin", X.device)) / self.voxel
         return self.colour(Xv.to(self.exemplar.dtype if X.dtype != torch.float64 else torch.float64), mode=mode)
 
     def materialise(self, *, lo=(0, 0, 0), hi=None) -> torch.Tensor:

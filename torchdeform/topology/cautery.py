@@ -48,16 +48,20 @@ def cauterize(model, state, tool) -> dict:
     removed = model.removed
     if removed is None:
         removed = torch.zeros(grid.shape, dtype=torch.bool, device=dev)
-    burn = (d[0, 0] < 0) & grid.nodes().to(dev) & ~removed
-    if not bool(burn.any()):
-        return {"nodes": 0, "mass_kg": 0.0, "momentum": (0.0, 0.0, 0.0)}
+    burn = (d[0, 0] < 0) & grid.nodes().to(dev, non_blocking=True) & ~removed
     mass = model.mass.expand(1, 1, *grid.shape)
     b = burn[None, None].to(model.dtype)
-    out = {
-        "nodes": int(burn.sum()),
-        "mass_kg": float((mass * b).sum()),
-        "momentum": tuple(float(p) for p in (mass * b * state.v).flatten(2).sum(2)[0]),
-    }
+    # what leaves the body is reported in numbers: read back in one transfer (one wait for a device)
+    nodes, mass_kg, *momentum = torch.cat(
+        [
+            burn.sum().reshape(1).double(),
+            (mass * b).sum().reshape(1).double(),
+            (mass * b * state.v).flatten(2).sum(2)[0].double(),
+        ]
+    ).tolist()
+    if nodes == 0:
+        return {"nodes": 0, "mass_kg": 0.0, "momentum": (0.0, 0.0, 0.0)}
+    out = {"nodes": int(nodes), "mass_kg": mass_kg, "momentum": tuple(momentum)}
     at_src, at_dst = ends(grid, burn)  # springs with an end burnt
     remove(model, at_src | at_dst)
     if model.k_home is not None:

@@ -20,7 +20,9 @@ nodes of both signs within one layer of each other, and, in that range, the spri
 heights differ in sign; only those get the in-patch test. The search returns the crossed slots as
 indices; :func:`cut` zeroes them in place on an editable model (see :mod:`.masks`), so a full
 cut of a ``64^3`` body costs well under a millisecond and a compiled step that shares the model's
-fields runs on without recompiling.
+fields runs on without recompiling. On an accelerator, where every value read back makes the host
+wait for the device, the search is dense instead: every slot gets both tests at once, the same
+slots are found, and a cut counted as a tensor (``as_tensor=True``) reads nothing back.
 
 **Gaping** (pre-tension, Radetzky): with ``gape > 0`` the springs left at the nodes of the cut
 (the ends of the springs it removed) get their rest lengths multiplied by ``1 - gape``; they
@@ -43,7 +45,7 @@ import torch
 from ..errors import ConfigError
 from ..sim.forces import as_vec3
 from ..sim.model import Model
-from .masks import Slab, alive, assign, ends, full, remove, slot_index
+from .masks import Slab, _union, alive, assign, ends, full, remove, slot_index
 
 __all__ = ["Blade", "Scalpel", "crossing", "crossed_pieces", "crossed_slots", "cut", "sides", "pretension"]
 
@@ -267,7 +269,37 @@ def _heights(x: torch.Tensor, n, c):
     return n[0] * x[0] + n[1] * x[1] + n[2] * x[2] - c
 
 
-def crossed_pieces(grid, x: torch.Tensor, blade: Blade) -> list:
+def _dense_pieces(grid, x: torch.Tensor, blade: Blade) -> list:
+    """:func:`crossed_pieces` without the layer search: every slot tested, one piece per batch entry.
+
+    The same slots, found with no value read back to the host (no layer bounds, no index lists):
+    the form for an accelerator, where each read waits for the device.
+    """
+    D, H, W = grid.shape
+    exists = grid.spring_mask(device=x.device)  # (S, D, H, W)
+    index = _direction_index(grid, x.device)
+    out = []
+    for b in range(x.shape[0]):
+        xb = x[b]
+        # the far end of every slot: the positions padded by one node all round, one strided gather
+        # (far ends outside the grid read zeros; their springs do not exist)
+        pad = torch.nn.functional.pad(xb, (1, 1, 1, 1, 1, 1))  # (3, D+2, H+2, W+2)
+        st = pad.stride()
+        cube = pad.as_strided((3, 3, 3, 3, D, H, W), st + st[1:])
+        q = cube[:, index[0], index[1], index[2]]  # (3, S, D, H, W)
+        p = xb.unsqueeze(1)  # (3, 1, D, H, W)
+        hit = torch.zeros_like(exists)
+        for n, c, patches in blade.planes():
+            hp, hq = _heights(p, n, c), _heights(q, n, c)  # (1, D, H, W), (S, D, H, W)
+            across = ((hp > 0) != (hq > 0)) & exists
+            # where the segment meets the plane (hp != hq on every slot across it)
+            r = p + (hp / torch.where(across, hp - hq, torch.ones_like(hq))) * (q - p)
+            hit = hit | (across & _patch_hits(r, patches))
+        out.append(Slab(b, 0, 0, hit))
+    return out
+
+
+def crossed_pieces(grid, x: torch.Tensor, blade: Blade, *, dense: bool | None = None) -> list:
     """The slots whose springs cross ``blade``, as :class:`~torchdeform.topology.masks.Slab` masks.
 
     Each piece covers the layers of one plane's search (see the module docstring); a slot that
@@ -278,7 +310,14 @@ def crossed_pieces(grid, x: torch.Tensor, blade: Blade) -> list:
         grid: the :class:`~torchdeform.sim.grid.Grid`.
         x: node positions ``(B, 3, D, H, W)`` (rest or deformed: the cut follows the tissue).
         blade: the :class:`Blade`.
+        dense: test every slot, one piece ``(S, D, H, W)`` per batch entry, with no value read
+            back to the host (the same slots); None: dense on an accelerator, the layer search
+            on the CPU.
     """
+    if dense is None:
+        dense = x.device.type != "cpu"
+    if dense:
+        return _dense_pieces(grid, x, blade)
     D, H, W = grid.shape
     N, dev = D * H * W, x.device
     exists = grid.spring_mask(device=dev)
@@ -327,21 +366,21 @@ def crossed_pieces(grid, x: torch.Tensor, blade: Blade) -> list:
     return out
 
 
-def crossed_slots(grid, x: torch.Tensor, blade: Blade) -> tuple:
+def crossed_slots(grid, x: torch.Tensor, blade: Blade, *, dense: bool | None = None) -> tuple:
     """The slots whose springs cross ``blade``, as index tensors ``(b, s, d, h, w)`` (each slot once).
 
     The index form of :func:`crossed_pieces` (arguments as there).
     """
-    return slot_index(grid, crossing(grid, x, blade))
+    return slot_index(grid, crossing(grid, x, blade, dense=dense))
 
 
-def crossing(grid, x: torch.Tensor, blade: Blade) -> torch.Tensor:
+def crossing(grid, x: torch.Tensor, blade: Blade, *, dense: bool | None = None) -> torch.Tensor:
     """Bool ``(B, S, D, H, W)``: the spring stored at each node along each half-direction crosses the blade.
 
     The dense form of :func:`crossed_pieces` (arguments as there).
     """
     out = torch.zeros((x.shape[0], grid.S) + grid.shape, dtype=torch.bool, device=x.device)
-    for piece in crossed_pieces(grid, x, blade):
+    for piece in crossed_pieces(grid, x, blade, dense=dense):
         piece.view(out).logical_or_(piece.mask)
     return out
 
@@ -359,22 +398,28 @@ def pretension(model: Model, nodes: torch.Tensor, gape, *, springs: torch.Tensor
 
     Args:
         model: the model.
-        nodes: bool ``(D, H, W)``: the springs (still alive) with an end here are shortened.
+        nodes: bool ``(D, H, W)`` (on any device): the springs (still alive) with an end here are shortened.
         gape: a number or 0-d tensor in ``[0, 1)``.
         springs: optional bool ``(1, S, D, H, W)`` restricting which of them (default: all).
     """
     if not torch.is_tensor(gape) and not 0 <= float(gape) < 1:
         raise ConfigError("cut.gape", "a fraction in [0, 1) of the rest length", got=gape)
-    at_src, at_dst = ends(model.grid, nodes)
+    dev = model.rest_length.device
+    at_src, at_dst = ends(model.grid, torch.as_tensor(nodes, dtype=torch.bool, device=dev))
     touch = (at_src | at_dst) & alive(model)
     if springs is not None:
-        touch = touch & springs
+        touch = touch & springs.to(dev)
     l0 = full(model, model.rest_length)
     return torch.where(touch, l0 * (1 - gape), l0)
 
 
-def cut(model: Model, x: torch.Tensor, blade: Blade, *, gape: float = 0.0) -> int:
+def cut(
+    model: Model, x: torch.Tensor, blade: Blade, *, gape: float = 0.0, as_tensor: bool = False
+) -> int | torch.Tensor:
     """Remove the springs that cross ``blade`` from ``model`` (in place); returns how many.
+
+    On an accelerator the search is dense (:func:`crossed_pieces`) and, with ``as_tensor``, the
+    whole cut is queued on the device: the host reads nothing back and does not wait for it.
 
     Args:
         model: the :class:`~torchdeform.sim.model.Model` (its ``stiffness`` and ``damping`` change;
@@ -384,6 +429,7 @@ def cut(model: Model, x: torch.Tensor, blade: Blade, *, gape: float = 0.0) -> in
         gape: pre-tension: the springs left at the nodes of the cut get their rest lengths
             multiplied by ``1 - gape`` (once: nodes of earlier cuts are not shortened again;
             ``model.cut_nodes`` collects them).
+        as_tensor: return the count as a 0-d int64 tensor on the model's device (not an int).
 
     Examples:
         >>> import torchdeform as td
@@ -392,14 +438,13 @@ def cut(model: Model, x: torch.Tensor, blade: Blade, *, gape: float = 0.0) -> in
         9
     """
     pieces = crossed_pieces(model.grid, x, blade)
-    count = remove(model, pieces)
+    count = remove(model, pieces, as_tensor=as_tensor)
     if gape or torch.is_tensor(gape):
         grid = model.grid
-        _, s, d, h, w = slot_index(grid, pieces)
-        nodes = torch.zeros(grid.shape, dtype=torch.bool, device=x.device)
-        nodes[d, h, w] = True
-        off = torch.tensor(grid.directions, dtype=torch.int64, device=x.device)[s]
-        nodes[d + off[:, 0], h + off[:, 1], w + off[:, 2]] = True
+        hit = _union(grid, pieces, x.device).any(0)  # (S, D, H, W): the slots the blade crossed
+        nodes = hit.any(0)  # their first ends
+        for s, (src, dst) in enumerate(grid.stencil):  # and their far ends
+            nodes[dst] |= hit[(s, *src)]
         old = model.cut_nodes
         fresh = nodes if old is None else nodes & ~old
         springs = None
@@ -464,11 +509,19 @@ class Scalpel:
         except ConfigError:  # moved only along its own line
             return None
 
-    def update(self, model: Model, state) -> int:
-        """Cut what the edge swept since the previous call (at the state's positions and time)."""
+    def update(self, model: Model, state, *, as_tensor: bool = False) -> int | torch.Tensor:
+        """Cut what the edge swept since the previous call (at the state's positions and time).
+
+        The blade is built on the host from the tool's pose (``state.t`` a float, or a 0-d tensor
+        read once); with ``as_tensor`` the count comes back as a 0-d int64 tensor on the model's
+        device and, on an accelerator, the cut is queued without waiting for the device (see :func:`cut`).
+        """
         t = float(state.t)
         if self._last is None or t == self._last:
             self._last = t
-            return 0
-        blade, self._last = self.swept(self._last, t), t
-        return 0 if blade is None else cut(model, state.x, blade, gape=self.gape)
+            blade = None
+        else:
+            blade, self._last = self.swept(self._last, t), t
+        if blade is not None:
+            return cut(model, state.x, blade, gape=self.gape, as_tensor=as_tensor)
+        return torch.zeros((), dtype=torch.int64, device=state.x.device) if as_tensor else 0

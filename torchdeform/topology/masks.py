@@ -161,13 +161,15 @@ def _slabs(grid, springs) -> list:
     return [Slab(b, 0, 0, springs[b]) for b in range(springs.shape[0])]
 
 
-def remove(model, springs) -> int:
+def remove(model, springs, *, as_tensor: bool = False) -> int | torch.Tensor:
     """Zero the stiffness and damping of the given slots; how many of them held a spring.
 
     Args:
         model: the model (changed in place).
         springs: bool ``(B|1, S, D, H, W)``, index tensors ``(b, s, d, h, w)`` (no repeats) or a
             list of :class:`Slab` (they may overlap).
+        as_tensor: return the count as a 0-d int64 tensor on the model's device instead of an
+            int: on an accelerator the host then does not wait for the edit.
     """
     # A spring with zero stiffness has no damping (spring_law): damping per direction stays as it
     # is; damping stored per spring is zeroed too (so the model reads the same either way).
@@ -176,23 +178,24 @@ def remove(model, springs) -> int:
     pieces = _slabs(model.grid, springs)
     nb = 1 + max((p.batch for p in pieces), default=0)
     if _full_slots(model, k) and nb <= k.shape[0]:
-        count = 0
+        counts = []  # each taken before its slab is zeroed (slabs may overlap); read once at the end
         for piece in pieces:  # two dense operations over the slab's layers
             kv = piece.view(k)
-            count += int(torch.count_nonzero(kv * piece.mask))
+            counts.append(torch.count_nonzero(kv * piece.mask))
             kv.masked_fill_(piece.mask, 0)
             if c is not None:
                 piece.view(c).masked_fill_(piece.mask, 0)
-        return count
+        count = sum(counts) if counts else torch.zeros((), dtype=torch.int64, device=k.device)
+        return count if as_tensor else int(count)
     if model.shared:
         raise ConfigError("remove.springs", f"one cut per batch entry of the model's {k.shape[0]}", got=nb)
     dense = _union(model.grid, pieces, k.device)
-    count = int((dense & alive(model)).sum())
+    count = (dense & alive(model)).sum()
     keep = (~dense).to(model.dtype)
     model.stiffness = full(model, model.stiffness) * keep
     if model.damping is not None:
         model.damping = full(model, model.damping) * keep
-    return count
+    return count if as_tensor else int(count)
 
 
 def ends(grid, nodes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -78,7 +78,10 @@ def add_node(model, state, node, *, neighbours=None, position=None, gape: float 
         raise ConfigError("add_node.state", "one body (batch 1)", got=tuple(state.x.shape))
     if not 0 <= float(gape) < 1:
         raise ConfigError("add_node.gape", "a fraction in [0, 1)", got=gape)
-    body = grid.nodes().to(state.x.device) & ~model.removed
+    # looked up node by node below: on the host (each look-up on a device would wait for it)
+    body = grid.nodes() & ~model.removed.cpu()
+    if torch.is_tensor(neighbours):
+        neighbours = neighbours.cpu()
     # the stencil neighbours: slot (s, node) joins node -> node + d_s; slot (s, node - d_s) joins the other way
     links = []  # (slot index, neighbour)
     for s, d in enumerate(grid.directions):

@@ -51,7 +51,9 @@ def strain_limit_from_force(model, max_force) -> torch.Tensor:
     return torch.as_tensor(max_force, dtype=k.dtype, device=k.device) / (k * l0).clamp_min(torch.finfo(k.dtype).tiny)
 
 
-def tear(model, x: torch.Tensor, max_strain, *, one_per_step: bool = False) -> int:
+def tear(
+    model, x: torch.Tensor, max_strain, *, one_per_step: bool = False, as_tensor: bool = False
+) -> int | torch.Tensor:
     """Break the springs strained beyond ``max_strain`` at positions ``x`` (in place); returns how many.
 
     Args:
@@ -59,6 +61,8 @@ def tear(model, x: torch.Tensor, max_strain, *, one_per_step: bool = False) -> i
         x: positions ``(B, 3, D, H, W)`` (one tear per batch entry).
         max_strain: a number > 0 or a tensor broadcasting against ``(B, S, D, H, W)``.
         one_per_step: break only the most strained spring of each batch entry.
+        as_tensor: return the count as a 0-d int64 tensor on the model's device (not an int):
+            on an accelerator the host then reads nothing back and does not wait for the tear.
     """
     if not torch.is_tensor(max_strain) and (not isinstance(max_strain, (int, float)) or not max_strain > 0):
         raise ConfigError("tear.max_strain", "a positive strain (l / l0 - 1)", got=max_strain)
@@ -68,9 +72,9 @@ def tear(model, x: torch.Tensor, max_strain, *, one_per_step: bool = False) -> i
         flat = torch.where(over, strain, torch.full_like(strain, -torch.inf)).flatten(1)
         top = flat.argmax(1)  # first of the largest
         pick = torch.zeros_like(flat, dtype=torch.bool)
-        pick[torch.arange(flat.shape[0]), top] = True
+        pick[torch.arange(flat.shape[0], device=flat.device), top] = True
         over = over & pick.view_as(over)
-    return remove(model, over)
+    return remove(model, over, as_tensor=as_tensor)
 
 
 def coagulate(model, x: torch.Tensor, region: torch.Tensor, *, viscosity_factor: float = 1.0) -> int:

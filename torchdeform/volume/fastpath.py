@@ -287,11 +287,10 @@ def _fast_supported(plan: RenderPlan) -> bool:
 
 def _transparent_below(table: torch.Tensor, lo: float, hi: float) -> float:
     """Largest value ``t`` such that every value ``<= t`` has zero extinction in ``table``."""
-    sig = table[:, 3]
-    pos = torch.nonzero(sig > 0)
-    if len(pos) == 0:
+    opaque = (table[:, 3] > 0).to(torch.uint8)
+    i, found = torch.stack([opaque.argmax(), opaque.amax().long()]).tolist()  # the first opaque entry; one sync
+    if not found:
         return math.inf
-    i = int(pos[0])
     if i == 0:
         return -math.inf
     return lo + (i - 1) * (hi - lo) / (table.shape[0] - 1)
@@ -300,16 +299,17 @@ def _transparent_below(table: torch.Tensor, lo: float, hi: float) -> float:
 _SLAB_MAX: dict = {}
 
 
-def _slab_max(v: torch.Tensor, others) -> torch.Tensor:
-    """Largest voxel value of each slab across ``others``.
+def _slab_max(v: torch.Tensor, others) -> list:
+    """Largest voxel value of each slab across ``others``, as Python floats ``(N,)``.
 
+    On the host, so that the per-chunk tests of :func:`_empty_chunks` never sync with the device.
     Cached for the last volume: a frame loop renders one volume many times; the key includes the
-    tensor's version counter.
+    tensor's device and version counter.
     """
-    key = (v.data_ptr(), v._version, tuple(v.shape), v.dtype, tuple(others))
+    key = (v.data_ptr(), v.device, v._version, tuple(v.shape), v.dtype, tuple(others))
     if key not in _SLAB_MAX:
         _SLAB_MAX.clear()
-        _SLAB_MAX[key] = v.amax(dim=tuple(others))
+        _SLAB_MAX[key] = v.amax(dim=tuple(others)).tolist()
     return _SLAB_MAX[key]
 
 
@@ -324,17 +324,18 @@ def _empty_chunks(plan: RenderPlan, lat, S: int):
     if not math.isfinite(skip_below):
         return None
     n, dt, N = lat.n, lat.dt, plan.shape[lat.axis]
-    slab_max = _slab_max(plan.volume[0, 0], lat.others)  # (N,)
+    slab_max = _slab_max(plan.volume[0, 0], lat.others)  # (N,) floats on the host
     if plan.padding == "zeros":
-        slab_max = slab_max.clamp(min=plan.fill)
-    reach = math.ceil(float(plan.field.nodes[:, lat.axis].abs().max())) + 1
+        fill = torch.tensor(plan.fill, dtype=plan.dtype).item()  # rounded to the volume's dtype, on the host
+        slab_max = [max(m, fill) for m in slab_max]
+    reach = math.ceil(float(plan.field.nodes[:, lat.axis].abs().max())) + 1  # one host sync per render
 
     def empty(start: int) -> bool:
         ks = [start, min(n, start + S) - 1]
         zs = [-0.5 + ((n - 1 - k if lat.reverse else k) + 0.5) * dt for k in ks]
         a = min(N - 1, max(0, math.floor(min(zs)) - reach))
         b = max(a + 1, min(N, math.ceil(max(zs)) + reach + 1))
-        return a >= b or float(slab_max[a:b].max()) <= skip_below
+        return a >= b or max(slab_max[a:b]) <= skip_below
 
     return empty
 
@@ -407,7 +408,8 @@ def _render_axis_fast(plan: RenderPlan):
         if empty is not None and empty(start):
             skipped += 1
             continue
-        state = fn(v, ctr, pix_b, pix_c, torch.tensor(float(start), dtype=dtype, device=device), state, tab, lohi)
+        # torch.full: a fill on the device, where torch.tensor would copy from the host and sync
+        state = fn(v, ctr, pix_b, pix_c, torch.full((), float(start), dtype=dtype, device=device), state, tab, lohi)
         run += 1
         if mode == "dvr" and plan.stop > 0 and float(state[1].max()) < plan.stop:
             break

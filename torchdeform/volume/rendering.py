@@ -97,16 +97,20 @@ class _Accumulator:
             self.L = self.L + dtb.sum(1)
 
     def done(self, stop: float) -> bool:
+        """Whether every ray's transmittance is below ``stop`` (``dvr``; one host sync per call)."""
         return self.mode == "dvr" and stop > 0 and float(self.T.detach().max()) < stop
 
-    def result(self, background: float = 0.0) -> torch.Tensor:
-        """The image; ``mip``/``average`` pixels whose ray misses the volume get ``background``."""
+    def result(self, background=0.0) -> torch.Tensor:
+        """The image; ``mip``/``average`` pixels whose ray misses the volume get ``background``.
+
+        ``background``: a number, or a 0-d tensor of the image's dtype and device (no host sync).
+        """
         if self.mode == "dvr":
             return torch.cat([self.C, (1 - self.T).unsqueeze(1)], 1)
         if self.mode == "mip":
-            return torch.where(torch.isfinite(self.M), self.M, torch.full_like(self.M, background)).unsqueeze(1)
+            return torch.where(torch.isfinite(self.M), self.M, background).unsqueeze(1)
         hit = self.L > 0
-        return torch.where(hit, self.S / self.L.clamp(min=1e-12), torch.full_like(self.S, background)).unsqueeze(1)
+        return torch.where(hit, self.S / self.L.clamp(min=1e-12), background).unsqueeze(1)
 
 
 def render(
@@ -266,8 +270,7 @@ def _render_axis(plan: RenderPlan) -> torch.Tensor:
     direct = field is None and pieces is None and native and n == N  # samples on voxel centres: read slices
     acc = _Accumulator(plan, img_shape)
     S = plan.slabs_per_chunk(img_shape[0] * img_shape[1])
-    order_k = range(n - 1, -1, -1) if lat.reverse else range(n)
-    ks = list(order_k)
+    dt_t = torch.full((), dt, dtype=dtype, device=device)  # made once: no host-to-device copy per chunk
     if field is not None:
         nodes = field.nodes  # (Bn, 3, nd, nh, nw)
         cc = field.cell_centred
@@ -277,7 +280,8 @@ def _render_axis(plan: RenderPlan) -> torch.Tensor:
         nodes_p = nodes.permute(*perm)  # (Bn, 3, na, nb, nc)
         ctr = torch.einsum("bcaij,Hi,Wj->bcaHW", nodes_p, Wb, Wc) if field.order == "linear" else None
     for start in range(0, n, S):
-        kk = torch.tensor(ks[start : start + S], dtype=dtype, device=device)
+        kk = torch.arange(start, min(n, start + S), dtype=dtype, device=device)  # slab indices, front to back
+        kk = (n - 1) - kk if lat.reverse else kk
         z = -0.5 + (kk + 0.5) * dt  # (S,)
         if direct:
             idx = kk.long()
@@ -304,7 +308,7 @@ def _render_axis(plan: RenderPlan) -> torch.Tensor:
                 v = pieces.sample(p, plan)[:, 0]
             else:
                 v = sample(vol, X, padding=plan.padding, fill=plan.fill)[:, 0]  # (B, S, h, w)
-        acc.add(v, torch.tensor(dt, dtype=dtype, device=device))
+        acc.add(v, dt_t)
         if acc.done(plan.stop):
             break
     return acc.result()
@@ -356,7 +360,7 @@ def _render_orbit(plan: RenderPlan) -> torch.Tensor:
         acc.add(v, seglen.unsqueeze(0))
         if acc.done(plan.stop):
             break
-    return acc.result(float(vol.min()))
+    return acc.result(vol.detach().amin())  # background of the rays that miss: a 0-d tensor, no host sync
 
 
 class _Pieces:

@@ -94,7 +94,7 @@ class TransferFunction:
         if self.relative:
             if volume is None:
                 raise ConfigError("transfer function", "a volume to resolve relative values", got=None)
-            vmin, vmax = float(volume.min()), float(volume.max())
+            vmin, vmax = torch.stack(torch.aminmax(volume.detach())).tolist()  # one host sync
             span = (vmax - vmin) or 1.0
             lo, hi = vmin + lo * span, vmin + hi * span
         return lo, hi
@@ -102,7 +102,8 @@ class TransferFunction:
     def table(self, *, dtype=torch.float32, device=None) -> torch.Tensor:
         """Lookup table ``(resolution, 4)``: RGB and sigma at evenly spaced values over the range."""
         v = self.values.to(device)
-        x = torch.linspace(float(v[0]), float(v[-1]), self.resolution, dtype=torch.float64, device=device)
+        lo, hi = float(self.values[0]), float(self.values[-1])  # read where the values are (the host): no sync
+        x = torch.linspace(lo, hi, self.resolution, dtype=torch.float64, device=device)
         i = torch.searchsorted(v, x, right=True).clamp(1, len(v) - 1)
         f = ((x - v[i - 1]) / (v[i] - v[i - 1])).to(dtype)[:, None]
         knots = torch.cat(
