@@ -21,7 +21,7 @@ Examples:
 
 from . import chainmail, interact, learn, scene, sim, topology, volume
 from .chainmail import ChainMail, Limits, limit_violation, tensor_chainmail
-from .errors import ConfigError, DivergenceError, StabilityWarning, TorchdeformError
+from .errors import ConfigError, ConfigWarning, DivergenceError, StabilityWarning, TorchdeformError
 from .scene import Scene, demo_scene, load_scene, run_scene
 from .sim import (
     INTEGRATORS,
@@ -64,6 +64,7 @@ __all__ = [
     "ConfigError",
     "DivergenceError",
     "StabilityWarning",
+    "ConfigWarning",
     "TorchdeformError",
     "Drag",
     "PointForce",

@@ -14,6 +14,7 @@ __all__ = [
     "DivergenceError",
     "NoRuleFiredError",
     "StabilityWarning",
+    "ConfigWarning",
     "positive_number",
 ]
 
@@ -110,6 +111,20 @@ class StabilityWarning(UserWarning):
         ...     bound = td.check_dt(model, 1.0, "symplectic")          # 1 s: far above the bound
         >>> caught[0].category is td.StabilityWarning, issubclass(td.StabilityWarning, UserWarning)
         (True, True)
+    """
+
+
+class ConfigWarning(UserWarning):
+    """A legal value that is probably not what was meant (a unit mixed up, an old key name).
+
+    Examples:
+        >>> import warnings
+        >>> import torchdeform as td
+        >>> with warnings.catch_warnings(record=True) as w:
+        ...     warnings.simplefilter("always")
+        ...     warnings.warn("material.modulus: renamed spring_modulus", td.ConfigWarning, stacklevel=1)
+        >>> w[0].category.__name__
+        'ConfigWarning'
     """
 
 

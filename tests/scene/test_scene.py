@@ -142,7 +142,7 @@ def test_every_section_and_option(tmp_path):
     origin = [0.1, 0.0, -0.2]
 
     [material]
-    modulus = {axis = 1.0, face = 0.5, body = 0.25}
+    spring_modulus = {axis = 1.0, face = 0.5, body = 0.25}
     damping = 0.001
     damping_mode = "unprojected"
 
@@ -343,6 +343,32 @@ BAD = {
         "stiffness =",
     ),
     "missing section": (_edit("[mass]\ndensity = 1000.0", ""), "mass", "a [mass] section (required)", None),
+    "incompressible": (
+        _edit("stiffness = {axis = 40.0, face = 20.0}", "youngs_modulus = 5000.0\npoisson_ratio = 0.5"),
+        "material.poisson_ratio",
+        "a Poisson ratio in [0.25, 0.5)",
+        "poisson_ratio",
+    ),
+    "poisson without modulus": (
+        _edit("damping = 0.01", "poisson_ratio = 0.45"),
+        "material.poisson_ratio",
+        "no poisson_ratio together with material.youngs_modulus",
+        "poisson_ratio",
+    ),
+    "young's modulus not a number": (
+        _edit("stiffness = {axis = 40.0, face = 20.0}", 'youngs_modulus = "5 kPa"\npoisson_ratio = 0.45'),
+        "material.youngs_modulus",
+        "Young's modulus E in Pa",
+        "youngs_modulus",
+    ),
+    "material on a 6-neighbour grid": (
+        _edit("stiffness = {axis = 40.0, face = 20.0}", "youngs_modulus = 5000.0\npoisson_ratio = 0.45").replace(
+            "topology = 18", "topology = 6"
+        ),
+        "material",
+        "14, 18 or 26",
+        "youngs_modulus",
+    ),
     "missing key": (_edit("steps = 10", ""), "integrator.steps", "(required)", "[integrator]"),
     "zero dt": (_edit('dt = "auto"', "dt = 0"), "integrator.dt", 'a positive number of seconds or "auto"', "dt ="),
     "negative dt": (_edit('dt = "auto"', "dt = -1e-4"), "integrator.dt", "a positive number", "dt ="),
@@ -419,6 +445,28 @@ def test_bad_scene_is_one_line_exit_2(case, bad_dir, capsys):
     assert err.startswith(f"torchdeform: {where}"), err
     assert key in err and "expected" in err and expected in err, err
     assert not (bad_dir / "out" / "summary.json").exists()
+
+
+def test_youngs_modulus_and_poisson_ratio_make_an_elastic_body(tmp_path):
+    text = TINY.replace("stiffness = {axis = 40.0, face = 20.0}", "youngs_modulus = 5000.0\npoisson_ratio = 0.45")
+    model = load_scene(write(tmp_path, text)).build()
+    assert model.volume is not None
+    ref = td.Model(model.grid, td.Elastic(5000.0, 0.45), density=1000.0, dtype=model.dtype)
+    assert torch.equal(model.stiffness, ref.stiffness) and torch.equal(model.volume[0], ref.volume[0])
+
+
+def test_old_modulus_key_and_implausible_springs_warn_in_one_line(tmp_path):
+    old = TINY.replace("stiffness = {axis = 40.0, face = 20.0}", "modulus = 0.4")
+    with pytest.warns(td.ConfigWarning, match="now called material.spring_modulus"):
+        a = load_scene(write(tmp_path, old)).build()
+    new = old.replace("modulus = 0.4", "spring_modulus = 0.4")
+    b = load_scene(write(tmp_path, new, "new.toml")).build()
+    assert torch.equal(a.stiffness, b.stiffness)
+    # E = 5 kPa written as a spring modulus: springs ~1e5 N/m, a lattice of ~1e8 Pa
+    path = write(tmp_path, TINY.replace("stiffness = {axis = 40.0, face = 20.0}", "spring_modulus = 5000.0"), "e.toml")
+    with pytest.warns(td.ConfigWarning, match=r"e\.toml:\d+: material\.spring_modulus = 5000 makes a lattice") as w:
+        load_scene(path)
+    assert "\n" not in str(w[0].message) and "youngs_modulus" in str(w[0].message)
 
 
 def test_missing_scene_file(tmp_path, capsys):

@@ -32,13 +32,18 @@ documentation is generated from this list.
 
 - ``stiffness``: spring stiffness k in N/m: a number, or one per direction class
   ``{axis = .., face = .., body = ..}`` (only the classes of the topology are needed)
-- ``modulus``: instead of ``stiffness``: Y in N, each spring gets ``k = Y / l0``
-  (resolution-independent); a number or a table as for ``stiffness``
+- ``spring_modulus``: instead of ``stiffness``: Y in N, each spring gets ``k = Y / l0``
+  (resolution-independent); a number or a table as for ``stiffness``. (``modulus``, its old
+  name, still works with a warning.) A stiffness or spring modulus whose lattice would have a
+  Young's modulus outside 10 Pa - 10 MPa warns: that is no soft tissue, a unit is probably mixed up
 - ``tissue``: instead of ``stiffness``: words of the fuzzy tissue library (:mod:`torchdeform.fuzzy`):
   a tissue (``"liver"``, ``"fat"``, ...), a consistency term (``"very_soft"`` ... ``"hard"``) or
   a consistency number 0..10; its Young's modulus E becomes ``k = E / lattice_modulus(grid)``
   (``k = E h / 2.7`` for 26 neighbours)
-- ``damping``: dashpot along each spring in N s/m (divided by l0 too with ``modulus``);
+- ``youngs_modulus``, ``poisson_ratio``: instead of ``stiffness``: the elastic solid of Young's
+  modulus E (Pa) and Poisson ratio nu in [0.25, 0.5) (:class:`torchdeform.Elastic`: springs
+  assembled from the cells plus a per-cell volume term; 14, 18 or 26 neighbours, cubic cells)
+- ``damping``: dashpot along each spring in N s/m (divided by l0 too with ``spring_modulus``);
   a number or a class table (none)
 - ``damping_mode``: ``"projected"`` (default) or ``"unprojected"`` (Radetzky)
 - ``law``: ``"hooke"`` (default), ``"exponential"`` (``stiffening`` b) or ``"polynomial"``

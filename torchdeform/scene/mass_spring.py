@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, cast
 import torch
 
 from ..checks import check_memory, usable_device
-from ..errors import ConfigError
+from ..errors import ConfigError, ConfigWarning
 from ..sim.adaptive import PAIRS
 from ..sim.catalog import INTEGRATORS
 from ..sim.engine import ENGINES
@@ -25,6 +25,7 @@ from ..sim.forces import Drag, PointForce, SurfaceForce
 from ..sim.grid import FACES, Grid
 from ..sim.integrators import Integrator, SymplecticEuler
 from ..sim.laws import LAWS
+from ..sim.material import Elastic
 from ..sim.model import Model
 from ..sim.projective import SOLVERS
 from .reader import SECTIONS, Source, Table, drags_section, faces, grid_section, is_number, node_list, region_mask
@@ -262,16 +263,59 @@ def tissue_moduli(values, *, key: str = "tissue") -> list:
     return [float(e) for e in out[:, fis.output_names().index("youngs_modulus")]]
 
 
+#: Young's moduli (Pa) outside which a spring lattice is no soft tissue: a unit is probably mixed up
+PLAUSIBLE_E = (10.0, 1e7)
+
+
+def _plausible(t: Table, which: str, grid: Grid) -> None:
+    """Warn (one line, naming file, line and key) when springs give a lattice no soft tissue has."""
+    value = t.data[which]
+    if not is_number(value):
+        return
+    k = value / grid.spacing[0] if which in ("modulus", "spring_modulus") else value
+    E = k * lattice_modulus(grid)
+    if not PLAUSIBLE_E[0] <= E <= PLAUSIBLE_E[1]:
+        import warnings
+
+        line = t.src.line_of(t.key(which))
+        where = f"{t.src.path}:{line}: " if t.src.path is not None and line else ""
+        warnings.warn(
+            f"{where}material.{which} = {value:g} makes a lattice of Young's modulus {E:.3g} Pa, outside "
+            f"{PLAUSIBLE_E[0]:g}-{PLAUSIBLE_E[1]:g} Pa of soft tissue (for E in Pa use youngs_modulus)",
+            ConfigWarning,
+            stacklevel=2,
+        )
+
+
 def _material(t: Table, grid: Grid) -> dict:
-    which = t.one_of("stiffness", "modulus", "tissue")
-    if which == "tissue":
+    which = t.one_of("stiffness", "spring_modulus", "modulus", "tissue", "youngs_modulus")
+    if which == "modulus":
+        import warnings
+
+        warnings.warn(
+            "material.modulus (Y in N, each spring k = Y / l0) is now called material.spring_modulus; "
+            "for Young's modulus in Pa use material.youngs_modulus",
+            ConfigWarning,
+            stacklevel=2,
+        )
+    if which in ("stiffness", "modulus", "spring_modulus"):
+        _plausible(t, which, grid)
+    if which != "youngs_modulus":
+        t.only_with("poisson_ratio", "youngs_modulus")
+    if which == "youngs_modulus":
+        E = t.num("youngs_modulus", "Young's modulus E in Pa (> 0)", lo=0, lo_open=True)
+        nu = t.num("poisson_ratio", "a Poisson ratio in [0.25, 0.5)", lo=0.25, hi=0.5, hi_open=True)
+        args = {"stiffness": Elastic(E, nu), "normalize": False}
+        with t.src.located(t.key("youngs_modulus")):
+            args["stiffness"].check_grid(grid)
+    elif which == "tissue":
         with t.src.located(t.key("tissue")):
             E = tissue_moduli([t.data["tissue"]])[0]
         args = {"stiffness": E / lattice_modulus(grid), "normalize": False}
     else:
         args = {
             "stiffness": t.per_class(which, "N/m" if which == "stiffness" else "N"),
-            "normalize": which == "modulus",
+            "normalize": which in ("modulus", "spring_modulus"),
         }
     if t.has("damping"):
         args["damping"] = t.per_class("damping", "N s/m")

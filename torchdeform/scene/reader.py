@@ -60,8 +60,11 @@ SECTIONS = {
     "grid": ("shape", "mesh", "spacing", "topology", "origin", "padding", "scale"),
     "material": (
         "stiffness",
+        "spring_modulus",
         "modulus",
         "tissue",
+        "youngs_modulus",
+        "poisson_ratio",
         "damping",
         "damping_mode",
         "law",
