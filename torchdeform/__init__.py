@@ -53,6 +53,7 @@ from .sim import (
     lumped_mass,
     power_omega2,
     simulate,
+    solve_static,
     suggest_dt,
     time_step_bound,
 )
@@ -81,6 +82,7 @@ __all__ = [
     "SymplecticEuler",
     "conjugate_gradient",
     "simulate",
+    "solve_static",
     "Engine",
     "Model",
     "State",

@@ -3,5 +3,8 @@
 * :mod:`tests.oracles.edge_list`: every spring of a grid listed one by one (forces, energies,
   Hessians and damping matrices in plain numpy);
 * :mod:`tests.oracles.fuzzy`: Mamdani systems described as plain data, built in scikit-fuzzy and
-  evaluated in numpy.
+  evaluated in numpy;
+* :mod:`tests.oracles.fem`: linear isotropic elasticity by finite elements (scikit-fem, quadratic
+  hexahedra on graded meshes): uniaxial pull, simple shear, a cantilever under gravity, a bonded
+  punch.
 """

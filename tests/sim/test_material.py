@@ -219,3 +219,50 @@ def test_projective_dynamics_refuses_the_volume_term():
     model = td.Model(grid, td.Elastic(5e3, 0.45), density=1000.0, fixed=grid.face("bottom"), dtype=F64)
     with pytest.raises(ConfigError, match="integrator"):
         td.ProjectiveDynamics().step(model, model.rest_state(), 1e-3)
+
+
+def _voigt_stiffness(model, eps=1e-6):
+    """The body's small-strain stiffness ``C`` (6 x 6 Voigt, Pa) from the energies of affine strains.
+
+    For an Elastic body every cell carries its share exactly, so the energy of ``x = (I + e) X``
+    is ``V e:C:e / 2`` with ``V`` the volume of the cells (here all of the box).
+    """
+    V = float(torch.tensor([(n - 1) * s for n, s in zip(model.grid.shape, model.grid.spacing)]).prod())
+    pairs = [(0, 0), (1, 1), (2, 2), (1, 2), (0, 2), (0, 1)]
+
+    def energy(gamma):
+        e = torch.zeros(3, 3, dtype=F64)
+        for (i, j), g in zip(pairs, gamma):
+            if i == j:
+                e[i, i] += g
+            else:
+                e[i, j] += g / 2
+                e[j, i] += g / 2
+        x = model.X + torch.einsum("ij,bjdhw->bidhw", e, model.X)
+        return float(model.energy(td.State(x, torch.zeros_like(x)))["elastic"][0]) / V
+
+    unit = torch.eye(6, dtype=F64) * eps
+    diag = [2 * energy(unit[i]) / eps**2 for i in range(6)]
+    C = torch.zeros(6, 6, dtype=F64)
+    for i in range(6):
+        for j in range(6):
+            C[i, j] = diag[i] if i == j else energy(unit[i] + unit[j]) / eps**2 - (diag[i] + diag[j]) / 2
+    return C
+
+
+def _modulus_along(C, n):
+    n = torch.tensor(n, dtype=F64)
+    n = n / n.norm()
+    s = torch.stack([n[0] ** 2, n[1] ** 2, n[2] ** 2, n[1] * n[2], n[0] * n[2], n[0] * n[1]])
+    return float(1 / (s @ torch.linalg.solve(C, s)))
+
+
+@pytest.mark.parametrize("topology", [14, 18, 26])
+def test_youngs_modulus_is_the_same_along_axes_face_and_body_diagonals(topology):
+    """Isotropy. Springs alone (26 equal springs, ``C11 = 13 k / 3 h``, ``C12 = C44 = 7 k / 3 h``)
+    are 1.63x as stiff along a face diagonal and 2.06x along a body diagonal as along an axis."""
+    model = td.Model(td.Grid((3, 3, 3), spacing=0.01, topology=topology), td.Elastic(5e3, 0.45), mass=1.0, dtype=F64)
+    C = _voigt_stiffness(model)
+    axis, face, body = (_modulus_along(C, n) for n in ((1, 0, 0), (1, 1, 0), (1, 1, 1)))
+    assert axis == pytest.approx(5e3, rel=1e-4)
+    assert face == pytest.approx(axis, rel=1e-4) and body == pytest.approx(axis, rel=1e-4)

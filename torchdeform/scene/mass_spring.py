@@ -298,8 +298,6 @@ def _material(t: Table, grid: Grid) -> dict:
             ConfigWarning,
             stacklevel=2,
         )
-    if which in ("stiffness", "modulus", "spring_modulus"):
-        _plausible(t, which, grid)
     if which != "youngs_modulus":
         t.only_with("poisson_ratio", "youngs_modulus")
     if which == "youngs_modulus":
@@ -317,6 +315,7 @@ def _material(t: Table, grid: Grid) -> dict:
             "stiffness": t.per_class(which, "N/m" if which == "stiffness" else "N"),
             "normalize": which in ("modulus", "spring_modulus"),
         }
+        _plausible(t, which, grid)  # a valid value, probably not what was meant
     if t.has("damping"):
         args["damping"] = t.per_class("damping", "N s/m")
     args["damping_mode"] = t.text(

@@ -59,6 +59,7 @@ from .material import Elastic
 from .model import Model, State, lumped_mass
 from .projective import ProjectiveDynamics
 from .stability import DivergenceMonitor, check_dt, gershgorin_omega2, power_omega2, suggest_dt, time_step_bound
+from .static import solve_static
 
 __all__ = [
     "Grid",
@@ -96,4 +97,5 @@ __all__ = [
     "Polynomial",
     "LAWS",
     "ProjectiveDynamics",
+    "solve_static",
 ]

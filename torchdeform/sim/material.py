@@ -348,15 +348,18 @@ class VolumeLinearisation:
 
     Args:
         springs: the springs' linearisation at ``x``.
-        x: positions ``(B, 3, D, H, W)``.
+        x: positions ``(B, 3, D, H, W)`` (or None with ``cof``).
         kappa_cells: the volume modulus per cell (Pa).
         h: the cell side (m).
+        alpha: the scale of the volume term's product (``h2`` of :meth:`scaled`).
+        cof: ``cof(F)`` per cell, when already known (instead of ``x``).
     """
 
-    def __init__(self, springs, x, kappa_cells, h, *, alpha: float = 1.0):
+    def __init__(self, springs, x, kappa_cells, h, *, alpha: float = 1.0, cof: torch.Tensor | None = None):
         self.springs, self.kappa, self.h, self.alpha = springs, kappa_cells, h, alpha
         self.grid = springs.grid
-        self.cof = _det_cof(deformation_gradient(x, h))[1] if x is not None else None
+        #: ``cof(F)`` at the state linearised at, per cell ``(B, 3, 3, D-1, H-1, W-1)``
+        self.cof: torch.Tensor = _det_cof(deformation_gradient(x, h))[1] if cof is None else cof
 
     @property
     def combined(self) -> bool:
@@ -365,15 +368,14 @@ class VolumeLinearisation:
 
     def scaled(self, *, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> VolumeLinearisation:
         """The operator ``u -> apply(u, alpha_scale, c, projected, c_scale)``, combined once."""
-        out = VolumeLinearisation(
+        return VolumeLinearisation(
             self.springs.scaled(alpha_scale=alpha_scale, c=c, projected=projected, c_scale=c_scale),
             None,
             self.kappa,
             self.h,
             alpha=self.alpha * alpha_scale,
+            cof=self.cof,
         )
-        out.cof = self.cof
-        return out
 
     def apply(self, u: torch.Tensor, *, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> torch.Tensor:
         """``(h2 K + h C) u`` as a node field ``(B, 3, D, H, W)`` (the volume term has no damping)."""

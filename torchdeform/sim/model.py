@@ -473,7 +473,7 @@ class Model:
         """``M^-1 F``, zero at constrained nodes, ``(B, 3, D, H, W)``."""
         return self.inv_mass * self.forces(x, v, t=t, loads=loads)
 
-    def linearise(self, x, *, clamp=True) -> Linearisation:
+    def linearise(self, x, *, clamp=True) -> Linearisation | VolumeLinearisation:
         """Springs (and the volume term) linearised at ``x`` for stiffness products (implicit Euler, bounds)."""
         lin = Linearisation(
             x, self.grid, self.stiffness, self.rest_length, clamp=clamp, law=self.law, lp=self.law_params

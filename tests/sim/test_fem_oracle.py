@@ -1,0 +1,131 @@
+"""Checks of the finite-element oracle :mod:`tests.oracles.fem` (scikit-fem, quadratic hexahedra).
+
+Independent oracle: closed forms. The uniaxial pull against Hooke's law (``E`` and ``nu`` back);
+simple shear against ``G = E / (2 (1 + nu))``; the cantilever against Timoshenko beam theory,
+``w = q L^4 / (8 E I) + q L^2 / (2 kappa G A)``, ``q = rho g A``, ``I = h^4 / 12`` and
+``A = h^2`` for the square section, ``kappa = 5/6``; the bonded punch against itself (mesh
+convergence) and the linearity of the problem in the depth and in ``E``.
+"""
+
+import math
+
+import pytest
+
+pytest.importorskip("skfem")
+
+from tests.oracles import fem
+
+YOUNG = 5e3  # Pa
+
+
+def _shear_modulus(E, nu):
+    return E / (2 * (1 + nu))
+
+
+def _timoshenko(E, nu, rho, size=(0.01, 0.01, 0.06), g=9.81, kappa=5 / 6):
+    h, b, L = size
+    A, I = h * b, b * h**3 / 12
+    q = rho * g * A
+    return q * L**4 / (8 * E * I) + q * L**2 / (2 * kappa * _shear_modulus(E, nu) * A)
+
+
+@pytest.mark.parametrize("nu", [0.0, 0.3, 0.45, 0.49])
+@pytest.mark.parametrize("size", [(0.01, 0.01, 0.01), (0.004, 0.02, 0.03)])
+def test_uniaxial_gives_E_and_nu_back(nu, size):
+    r = fem.uniaxial_pull(YOUNG, nu, size, 250.0)
+    young = r.E
+    assert young == pytest.approx(YOUNG, rel=1e-6)
+    assert r.nu == pytest.approx(nu, rel=1e-6, abs=1e-9)
+    assert r.strain_axial == pytest.approx(250.0 / YOUNG, rel=1e-6)
+    for lateral in r.strain_lateral:
+        assert lateral == pytest.approx(-nu * 250.0 / YOUNG, rel=1e-6, abs=1e-12)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("nu", [0.3, 0.45, 0.49])
+def test_simple_shear_close_to_G(nu):
+    # L0 / L2 = 0.1: the free ends x2 = 0, L2 carry no shear stress over a layer ~L0 wide, so the
+    # apparent modulus is a few % low (3.2 % at nu = 0.3, 2.2 % at 0.49); never above G.
+    r = fem.simple_shear(YOUNG, nu)
+    ratio = r.G / _shear_modulus(YOUNG, nu)
+    assert 0.95 < ratio < 1.0
+    assert r.force == pytest.approx(r.G * 0.01 * 0.05 * 0.05, rel=1e-12)
+
+
+@pytest.mark.slow
+def test_simple_shear_approaches_G_as_the_box_thins():
+    # the end-layer deficit shrinks about in proportion to L0 / L2
+    thick = fem.simple_shear(YOUNG, 0.3, (0.01, 0.05, 0.05))
+    thin = fem.simple_shear(YOUNG, 0.3, (0.005, 0.05, 0.05))
+    G = _shear_modulus(YOUNG, 0.3)
+    deficit_thick, deficit_thin = 1 - thick.G / G, 1 - thin.G / G
+    assert 0 < deficit_thin < deficit_thick
+    assert deficit_thin / deficit_thick == pytest.approx(0.5, abs=0.15)
+
+
+@pytest.mark.slow
+def test_simple_shear_converged():
+    coarse = fem.simple_shear(YOUNG, 0.49)
+    fine = fem.simple_shear(YOUNG, 0.49, hmin=2.5e-4)
+    assert fine.force == pytest.approx(coarse.force, rel=5e-3)
+
+
+@pytest.mark.parametrize(
+    ("nu", "rel"),
+    [
+        pytest.param(0.0, 0.002, marks=pytest.mark.slow),
+        (0.3, 0.02),
+        pytest.param(0.45, 0.05, marks=pytest.mark.slow),
+        pytest.param(0.49, 0.05, marks=pytest.mark.slow),
+    ],
+)
+def test_cantilever_matches_timoshenko(nu, rel):
+    # the full clamp also stops the Poisson contraction of the root section, which stiffens the
+    # 3D beam as nu grows (1.5 % at nu = 0.3, 4.4 % at 0.49); at nu = 0 only end effects remain.
+    tip = fem.cantilever_tip(YOUNG, nu, 1000.0)
+    w = _timoshenko(YOUNG, nu, 1000.0)
+    assert -tip.mean == pytest.approx(w, rel=rel)
+    assert -tip.mean < w  # the clamp's restraint stiffens, never softens
+    assert tip.centre == pytest.approx(tip.mean, rel=1e-3)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("nu", [0.3])
+def test_cantilever_converged(nu):
+    coarse = fem.cantilever_tip(YOUNG, nu, 1000.0)
+    fine = fem.cantilever_tip(YOUNG, nu, 1000.0, cells=3, hmin=5e-5)
+    assert fine.mean == pytest.approx(coarse.mean, rel=5e-3)
+
+
+def test_cantilever_linear_in_load_over_stiffness():
+    a = fem.cantilever_tip(YOUNG, 0.3, 1000.0)
+    b = fem.cantilever_tip(2 * YOUNG, 0.3, 500.0, g=2 * 9.81)  # the same rho g, twice as stiff
+    assert b.mean == pytest.approx(a.mean / 2, rel=1e-9)
+
+
+@pytest.mark.slow
+def test_punch_force_falls_towards_its_limit_as_the_mesh_refines():
+    # (measured once: 0.1 mm changes the default by 0.44 % at nu = 0.3; see the oracle's docstring)
+    coarse = fem.bonded_punch_force(YOUNG, 0.3, hmin=3 * fem.PUNCH_HMIN)
+    default = fem.bonded_punch_force(YOUNG, 0.3)
+    assert coarse > default > 0  # monotone from above (the discrete body is too stiff)
+    assert default == pytest.approx(coarse, rel=0.02)
+
+
+@pytest.mark.slow
+def test_punch_force_linear_in_depth_and_E():
+    h = 3 * fem.PUNCH_HMIN  # linearity holds on any mesh: a coarse one keeps this fast
+    f = fem.bonded_punch_force(YOUNG, 0.3, depth=5e-4, hmin=h)
+    assert fem.bonded_punch_force(YOUNG, 0.3, depth=1e-3, hmin=h) == pytest.approx(2 * f, rel=1e-9)
+    assert fem.bonded_punch_force(3 * YOUNG, 0.3, depth=5e-4, hmin=h) == pytest.approx(3 * f, rel=1e-9)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("nu", [0.3, 0.49])
+def test_punch_stiffer_than_a_half_space(nu):
+    # a rigid flat circular punch of the same area on a half-space: F = 2 E d a / (1 - nu^2),
+    # a = sqrt(A / pi) (Sneddon); the 20 mm block on a fixed base, pressed by a bonded punch, is
+    # stiffer, but not by orders of magnitude
+    f = fem.bonded_punch_force(YOUNG, nu)
+    half_space = 2 * YOUNG * 5e-4 * math.sqrt(1e-4 / math.pi) / (1 - nu**2)
+    assert half_space < f < 3 * half_space
