@@ -93,7 +93,7 @@ def lattice_cantilever(nu, cells, *, topology=26, rho=1000.0):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("nu", [0.3, 0.49])
+@pytest.mark.parametrize("nu", [0.49])
 def test_simple_shear_within_5_percent_of_the_fem(nu):
     ref = fem.simple_shear(E, nu).force
     coarse, fine = lattice_shear(nu, 0.0025), lattice_shear(nu, 0.00125)

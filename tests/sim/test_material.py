@@ -266,3 +266,16 @@ def test_youngs_modulus_is_the_same_along_axes_face_and_body_diagonals(topology)
     axis, face, body = (_modulus_along(C, n) for n in ((1, 0, 0), (1, 1, 0), (1, 1, 1)))
     assert axis == pytest.approx(5e3, rel=1e-4)
     assert face == pytest.approx(axis, rel=1e-4) and body == pytest.approx(axis, rel=1e-4)
+
+
+def test_cuts_and_domain_decomposition_refuse_what_they_cannot_keep_consistent():
+    """A removed spring would leave its cells' volume term behind; slabs would split cells at the halo."""
+    from torchdeform.distributed.domain import decompose
+    from torchdeform.topology import Blade, cut
+
+    grid = td.Grid((4, 4, 4), spacing=0.01, topology=26)
+    model = td.Model(grid, td.Elastic(5e3, 0.45), density=1000.0, dtype=F64)
+    with pytest.raises(ConfigError, match="material"):
+        cut(model, model.X, Blade((0.015, -0.01, -0.01), (0, 0.06, 0), (0, 0, 0.06)))
+    with pytest.raises(ConfigError, match="material"):
+        decompose(model, 0, 2)

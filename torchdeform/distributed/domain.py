@@ -229,8 +229,15 @@ def decompose(model: Model, rank: int, world: int, *, group=None) -> SlabModel:
         group: the ``torch.distributed`` process group (default the global one).
 
     Raises:
-        ConfigError: more ranks than rows, tool interactions, or a slab without any existing node.
+        ConfigError: more ranks than rows, tool interactions, an Elastic material's volume term, or a
+            slab without any existing node.
     """
+    if getattr(model, "volume", None) is not None:
+        raise ConfigError(
+            "material",
+            "springs without a volume term in a domain-decomposed run (its cells span the halo)",
+            got="Elastic",
+        )
     if model.interactions:
         raise ConfigError(
             "interactions",

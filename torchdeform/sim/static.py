@@ -91,6 +91,16 @@ def solve_static(
     Raises:
         ConfigError: a tolerance or iteration count out of range, or a model whose free nodes
             carry no stiffness.
+
+    Example:
+        >>> import torch
+        >>> import torchdeform as td
+        >>> grid = td.Grid((3, 3, 3), spacing=0.01, topology=26)
+        >>> model = td.Model(grid, stiffness=5.0, mass=1e-3, gravity=(-9.81, 0, 0), fixed=grid.face("bottom"),
+        ...                  dtype=torch.float64)
+        >>> state, info = td.solve_static(model, tol=1e-10)
+        >>> info["converged"], bool((state.x - model.X)[0, 0, -1].mean() < 0)   # the top settles down
+        (True, True)
     """
     if not tol > 0 or int(max_iter) < 1 or int(cg_iters) < 1 or not cg_tol > 0:
         raise ConfigError(

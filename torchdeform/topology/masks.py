@@ -171,6 +171,13 @@ def remove(model, springs, *, as_tensor: bool = False) -> int | torch.Tensor:
         as_tensor: return the count as a 0-d int64 tensor on the model's device instead of an
             int: on an accelerator the host then does not wait for the edit.
     """
+    if getattr(model, "volume", None) is not None:
+        raise ConfigError(
+            "material",
+            "a body given as a stiffness to cut, tear or burn (an Elastic body's springs and volume "
+            "term are assembled from its cells, which a removed spring would leave behind)",
+            got="Elastic",
+        )
     # A spring with zero stiffness has no damping (spring_law): damping per direction stays as it
     # is; damping stored per spring is zeroed too (so the model reads the same either way).
     k, c = model.stiffness, model.damping
