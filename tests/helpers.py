@@ -8,6 +8,8 @@ otherwise. The ``make_model`` fixture is the same factory bound to the device of
 
 from __future__ import annotations
 
+import contextlib
+
 import torch
 
 import torchdeform as td
@@ -34,3 +36,33 @@ def make_model(grid=None, *, stiffness=50.0, mass=1e-3, dtype=F64, device=None, 
     if "density" in kw:
         mass = None
     return td.Model(grid, stiffness=stiffness, mass=mass, dtype=dtype, device=device, **kw)
+
+
+def cg_solve(op, b, *, tol=1e-12, iters=20000):
+    """Plain conjugate gradients on ``op u = b`` (``op`` symmetric positive semi-definite, ``b`` in its
+    range): the test's own small-strain solver, independent of :func:`td.conjugate_gradient`."""
+    u, r = torch.zeros_like(b), b.clone()
+    p, rr = r.clone(), (r * r).sum()
+    for _ in range(iters):
+        Ap = op(p)
+        a = rr / (p * Ap).sum()
+        u, r = u + a * p, r - a * Ap
+        rn = (r * r).sum()
+        if rn.sqrt() < tol * b.norm():
+            break
+        p, rr = r + rn / rr * p, rn
+    return u
+
+
+@contextlib.contextmanager
+def no_host_wait(device):
+    """Inside, on CUDA, any wait of the host for the device raises (torch's sync debug mode); elsewhere nothing."""
+    if device.type != "cuda":
+        yield
+        return
+    torch.cuda.synchronize(device)
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        yield
+    finally:
+        torch.cuda.set_sync_debug_mode("default")

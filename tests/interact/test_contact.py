@@ -15,7 +15,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import math
 
 import numpy as np
@@ -23,6 +22,7 @@ import pytest
 import torch
 
 import torchdeform as td
+from tests.helpers import no_host_wait
 from torchdeform.errors import ConfigError
 from torchdeform.interact import (
     Box,
@@ -249,20 +249,6 @@ def test_packed_layout_gives_the_same_contact_step(device):
     assert torch.allclose(pm.unpack_state(packed).v, state.v, atol=1e-11, rtol=0)
 
 
-@contextlib.contextmanager
-def _no_host_wait(device):
-    """Inside, on CUDA, any wait of the host for the device raises (torch's sync debug mode); elsewhere nothing."""
-    if device.type != "cuda":
-        yield
-        return
-    torch.cuda.synchronize(device)
-    torch.cuda.set_sync_debug_mode("error")
-    try:
-        yield
-    finally:
-        torch.cuda.set_sync_debug_mode("default")
-
-
 def _responses_over_steps(device, steps=3):
     """Every response of torchdeform.interact applied to a body for a few steps: ``(x, v, readings)``."""
     grid = td.Grid((4, 4, 4), spacing=0.01, topology=26)
@@ -282,7 +268,7 @@ def _responses_over_steps(device, steps=3):
     x = model.X + 2e-3 * torch.randn(model.X.shape, generator=gen, dtype=torch.float64).to(device)
     v = 0.01 * torch.randn(x.shape, generator=gen, dtype=torch.float64).to(device)
     readings = {}
-    with _no_host_wait(device):
+    with no_host_wait(device):
         for k in range(1, steps + 1):
             for r in responses:
                 f = r.force(model, x, v, 1e-3 * k)

@@ -24,7 +24,7 @@ import pytest
 import torch
 
 import torchdeform as td
-from tests.helpers import F64
+from tests.helpers import F64, cg_solve
 
 pytest.importorskip("skfem")
 from tests.oracles import fem
@@ -32,25 +32,11 @@ from tests.oracles import fem
 E = 5e3
 
 
-def _cg(op, b, *, tol=1e-10, iters=20000):
-    u, r = torch.zeros_like(b), b.clone()
-    p, rr = r.clone(), (r * r).sum()
-    for _ in range(iters):
-        Ap = op(p)
-        a = rr / (p * Ap).sum()
-        u, r = u + a * p, r - a * Ap
-        rn = (r * r).sum()
-        if rn.sqrt() < tol * b.norm():
-            break
-        p, rr = r + rn / rr * p, rn
-    return u
-
-
 def _prescribed(model, fixed, ub):
     """Small-strain solution with the nodes of ``fixed`` at displacement ``ub``; ``(u, K u)``."""
     free = (~fixed).to(F64)[None, None]
     lin = model.linearise(model.X)
-    u = _cg(lambda p: lin.apply(p * free) * free, -lin.apply(ub) * free) + ub
+    u = cg_solve(lambda p: lin.apply(p * free) * free, -lin.apply(ub) * free) + ub
     return u, lin.apply(u)
 
 
@@ -88,7 +74,7 @@ def lattice_cantilever(nu, cells, *, topology=26, rho=1000.0):
     model = td.Model(grid, td.Elastic(E, nu), density=rho, fixed=grid.face("w-"), dtype=F64)
     f = model.mass * torch.tensor([-9.81, 0.0, 0.0], dtype=F64).view(1, 3, 1, 1, 1) * model.free
     lin = model.linearise(model.X)
-    u = _cg(lambda p: lin.apply(p * model.free) * model.free, f)
+    u = cg_solve(lambda p: lin.apply(p * model.free) * model.free, f)
     return float(u[0, 0, :, :, -1].mean())
 
 

@@ -14,8 +14,6 @@
 
 from __future__ import annotations
 
-import contextlib
-
 import numpy as np
 import pytest
 import torch
@@ -23,7 +21,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 import torchdeform as td
-from tests.helpers import F64, make_grid, make_model
+from tests.helpers import F64, make_grid, make_model, no_host_wait
 from tests.oracles.edge_list import EdgeList
 from torchdeform.errors import ConfigError
 from torchdeform.interact import Sphere, Tool
@@ -165,20 +163,6 @@ def test_dense_search_finds_the_slots_of_the_layer_search(topology, device):
     assert int(cut(model, model.X, blades[0], as_tensor=True)) == 0 and cut(model, model.X, blades[0]) == 0
 
 
-@contextlib.contextmanager
-def _no_host_wait(device):
-    """Inside, on CUDA, any wait of the host for the device raises (torch's sync debug mode); elsewhere nothing."""
-    if device.type != "cuda":
-        yield
-        return
-    torch.cuda.synchronize(device)
-    torch.cuda.set_sync_debug_mode("error")
-    try:
-        yield
-    finally:
-        torch.cuda.set_sync_debug_mode("default")
-
-
 def _cuts_and_tears(device, in_place):
     """A cut, a gaping cut, a scalpel's sweep and two tears of one body, counted on its device."""
     grid = make_grid((6, 5, 4), spacing=H, topology=26)
@@ -193,7 +177,7 @@ def _cuts_and_tears(device, in_place):
     knife = Scalpel(tool, edge=((0.0, 0.0, -0.01), (0.0, 0.0, 0.05)))
     crossing(grid, x, across)  # the grid's tables on the device are built (and copied there) once, before
     counts = []
-    with _no_host_wait(device):
+    with no_host_wait(device):
         counts.append(cut(model, x, across, as_tensor=True))
         counts.append(cut(model, x, oblique, gape=0.1, as_tensor=True))
         for i in range(5):
