@@ -130,28 +130,22 @@ def test_batch_equals_separate_runs(device):
 
 def test_dtypes_run_and_agree(dtype, device):
     g = td.Grid((4, 4, 4), spacing=0.01)
-    m = td.Model(
-        g,
-        stiffness=20.0,
-        damping=0.02,
-        density=1000.0,
-        gravity=(-9.81, 0, 0),
-        fixed=g.face("bottom"),
-        dtype=dtype,
-        device=device,
-    )
+
+    def build(dt):
+        return td.Model(
+            g,
+            stiffness=20.0,
+            damping=0.02,
+            density=1000.0,
+            gravity=(-9.81, 0, 0),
+            fixed=g.face("bottom"),
+            dtype=dt,
+            device=device,
+        )
+
+    m, m64 = build(dtype), build(F64)
     s, _ = td.simulate(m, m.rest_state(), td.suggest_dt(m), 50)
     assert s.x.dtype == dtype and bool(torch.isfinite(s.x).all())
-    m64 = td.Model(
-        g,
-        stiffness=20.0,
-        damping=0.02,
-        density=1000.0,
-        gravity=(-9.81, 0, 0),
-        fixed=g.face("bottom"),
-        dtype=F64,
-        device=device,
-    )
     s64, _ = td.simulate(m64, m64.rest_state(), td.suggest_dt(m), 50)
     assert torch.allclose(s.x.double(), s64.x, atol=1e-6)
 

@@ -64,6 +64,7 @@ Example:
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import torch
@@ -177,19 +178,18 @@ def cell_field(value, grid, *, dtype, device) -> torch.Tensor:
         return t.expand(tuple(n - 1 for n in grid.shape))
     if tuple(t.shape) != grid.shape:
         raise ConfigError("material", f"numbers or per-node fields of shape {grid.shape}", got=tuple(t.shape))
-    t = t[None, None]
-    for axis in (2, 3, 4):
-        n = t.shape[axis]
-        t = 0.5 * (t.narrow(axis, 0, n - 1) + t.narrow(axis, 1, n - 1))
-    return t[0, 0]
+    for axis in range(3):
+        t = _mean2(t, axis)
+    return t
 
 
 def cell_mask(grid, *, device=None) -> torch.Tensor:
     """Bool ``(D-1, H-1, W-1)``: the cell's 8 corners are all nodes of the body."""
     nodes = grid.nodes().to(device)
-    m = nodes[:-1, :-1, :-1].clone()
-    for o in ((0, 0, 1), (0, 1, 0), (0, 1, 1), (1, 0, 0), (1, 0, 1), (1, 1, 0), (1, 1, 1)):
-        m &= nodes[o[0] : nodes.shape[0] - 1 + o[0], o[1] : nodes.shape[1] - 1 + o[1], o[2] : nodes.shape[2] - 1 + o[2]]
+    D, H, W = (n - 1 for n in nodes.shape)
+    m = torch.ones((D, H, W), dtype=torch.bool, device=nodes.device)
+    for a, b, c in itertools.product((0, 1), repeat=3):
+        m &= nodes[a : a + D, b : b + H, c : c + W]
     return m
 
 
@@ -203,17 +203,12 @@ def spring_stiffness(grid, mu_cells: torch.Tensor, h: float) -> torch.Tensor:
     """
     weights = dict(zip(("axis", "face", "body"), CLASS_WEIGHTS[grid.topology]))
     M = F.pad(mu_cells, (1, 1, 1, 1, 1, 1))  # M[c + 1] = mu_c; zero outside the grid
+    D, H, W = grid.shape
     out = []
     for d, cls in zip(grid.directions, grid.direction_class()):
-        total = torch.zeros(grid.shape, dtype=mu_cells.dtype, device=mu_cells.device)
-        zeros = sum(1 for c in d if c == 0)
-        choices = [((1,) if c > 0 else (0,)) if c != 0 else (0, 1) for c in d]
-        for a in choices[0]:
-            for b in choices[1]:
-                for e in choices[2]:
-                    D, H, W = grid.shape
-                    total = total + M[a : a + D, b : b + H, e : e + W]
-        out.append(total * (weights[cls] * h / 2**zeros))
+        starts = [(0, 1) if c == 0 else (1,) if c > 0 else (0,) for c in d]  # of the cells, in M
+        total = sum(M[a : a + D, b : b + H, e : e + W] for a, b, e in itertools.product(*starts))
+        out.append(total * (weights[cls] * h / 2 ** d.count(0)))
     return torch.stack(out)
 
 

@@ -31,6 +31,7 @@ from .material import (
     spring_stiffness,
     volume_energy,
     volume_forces,
+    volume_row_sums,
 )
 from .springs import Linearisation, node_sums, spring_energy, spring_forces, spring_forces_conv
 
@@ -458,6 +459,19 @@ class Model:
         preconditioners).
         """
         return node_sums(self.grid, p)
+
+    def stiffness_row_sums(self) -> torch.Tensor:
+        """Gershgorin row sums of the stiffness at rest per node (N/m), ``(Bp, 1, D, H, W)``.
+
+        ``2 sum_j k_ij`` over the springs, plus the volume term's rows and the home springs:
+        with the masses, a bound on the top eigenvalue; alone, a Jacobi preconditioner.
+        """
+        rows = 2 * self.spring_sums(self.stiffness)
+        if self.volume is not None:
+            rows = rows + volume_row_sums(self.volume[0], self.volume[1], self.grid.shape)
+        if self.k_home is not None:
+            rows = rows + self.k_home
+        return rows
 
     def inner(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         """Inner product of two node fields per batch entry, ``(B, 1, 1, ...)`` broadcasting against ``a``.

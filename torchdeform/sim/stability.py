@@ -54,13 +54,7 @@ def gershgorin_omega2(model) -> float:
         >>> td.gershgorin_omega2(model), round(td.power_omega2(model), 9)   # bound and exact value
         (2.0, 1.0)
     """
-    ksum = 2 * model.spring_sums(model.stiffness)
-    if model.volume is not None:
-        from .material import volume_row_sums
-
-        ksum = ksum + volume_row_sums(model.volume[0], model.volume[1], model.grid.shape)
-    if model.k_home is not None:
-        ksum = ksum + model.k_home
+    ksum = model.stiffness_row_sums()
     return float((model.inv_mass * ksum).max())
 
 

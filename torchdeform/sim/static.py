@@ -117,13 +117,7 @@ def solve_static(
         r = _residual(model, x, t, loads)
         scale = _norm(r).clamp_min(torch.finfo(x.dtype).tiny)  # the load the body must carry
         rel = _norm(r) / scale
-        diag = 2 * model.spring_sums(model.stiffness)  # Jacobi preconditioner (springs' Gershgorin diagonal)
-        if model.volume is not None:
-            from .material import volume_row_sums
-
-            diag = diag + volume_row_sums(model.volume[0], model.volume[1], model.grid.shape)
-        if model.k_home is not None:
-            diag = diag + model.k_home
+        diag = model.stiffness_row_sums()  # Jacobi preconditioner
         if not bool((diag > 0).any()):
             raise ConfigError("solve_static", "a body with stiffness (its free nodes carry no springs)")
         precond = torch.where(diag > 0, 1.0 / diag, torch.zeros_like(diag))
