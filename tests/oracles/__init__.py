@@ -4,7 +4,7 @@
   Hessians and damping matrices in plain numpy);
 * :mod:`tests.oracles.fuzzy`: Mamdani systems described as plain data, built in scikit-fuzzy and
   evaluated in numpy;
-* :mod:`tests.oracles.fem`: linear isotropic elasticity by finite elements (scikit-fem, quadratic
+* :mod:`torchdeform.bench.accuracy.fem`: linear isotropic elasticity by finite elements (scikit-fem, quadratic
   hexahedra on graded meshes): uniaxial pull, simple shear, a cantilever under gravity, a bonded
   punch.
 """

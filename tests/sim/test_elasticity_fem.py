@@ -1,4 +1,4 @@
-"""An Elastic lattice body against finite elements: the FEM is the oracle (:mod:`tests.oracles.fem`,
+"""An Elastic lattice body against finite elements: the FEM is the oracle (:mod:`torchdeform.bench.accuracy.fem`,
 scikit-fem, quadratic hexahedra on graded meshes converged to about 1 %, see its docstring).
 
 The lattice is solved in the small-strain limit (its stiffness at rest, conjugate gradients), as
@@ -27,7 +27,7 @@ import torchdeform as td
 from tests.helpers import F64, cg_solve
 
 pytest.importorskip("skfem")
-from tests.oracles import fem
+from torchdeform.bench.accuracy import fem
 
 E = 5e3
 

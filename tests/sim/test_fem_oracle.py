@@ -1,4 +1,4 @@
-"""Checks of the finite-element oracle :mod:`tests.oracles.fem` (scikit-fem, quadratic hexahedra).
+"""Checks of the finite-element oracle :mod:`torchdeform.bench.accuracy.fem` (scikit-fem, quadratic hexahedra).
 
 Independent oracle: closed forms. The uniaxial pull against Hooke's law (``E`` and ``nu`` back);
 simple shear against ``G = E / (2 (1 + nu))``; the cantilever against Timoshenko beam theory,
@@ -13,7 +13,7 @@ import pytest
 
 pytest.importorskip("skfem")
 
-from tests.oracles import fem
+from torchdeform.bench.accuracy import fem
 
 YOUNG = 5e3  # Pa
 

@@ -1,6 +1,8 @@
-"""Finite-element oracle for small-strain linear isotropic elasticity, built on scikit-fem.
+"""Finite-element reference for small-strain linear isotropic elasticity, built on scikit-fem.
 
-Nothing here calls torchdeform. It solves ``-div sigma(u) = rho b`` with
+The reference of ``torchdeform bench elasticity`` and ``training/fit_fem.py`` and the tests'
+oracle of :class:`~torchdeform.sim.material.Elastic`; it needs the ``fem`` extra
+(``pip install torchdeform[fem]``). Nothing here calls the rest of torchdeform. It solves ``-div sigma(u) = rho b`` with
 ``sigma = lambda tr(eps) I + 2 mu eps``, ``eps = sym grad u`` (skfem.models.elasticity:
 ``linear_elasticity``, ``lame_parameters``) on boxes, in SI units (m, Pa, N, kg/m^3). The
 conventions are the lattice's: coordinates ``(x0, x1, x2)`` are the axes ``(D, H, W)``, ``x0`` is up,
