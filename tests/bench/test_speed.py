@@ -139,13 +139,31 @@ def test_bytes_per_step_hand_count():
 
 
 def test_native_rows_are_planned_on_the_cpu_only():
-    args = argparse.Namespace(no_compile=False, no_warp=True, no_beam=True, quick=False)
+    args = argparse.Namespace(no_compile=False, no_warp=True, no_beam=True, quick=False, materials=["springs"])
     cuda, _, _ = speed._plan(args, "cuda", [16], [26], ["float32"], [1])
-    assert [t[-1] for t in cuda] == ["eager", "compiled"]
+    assert [t[5] for t in cuda] == ["eager", "compiled"]
     cpu, _, _ = speed._plan(args, "cpu", [16], [26], ["float32"], [1])
     from torchdeform.sim import native
 
-    assert [t[-1] for t in cpu] == (["eager", "compiled"] if native.unavailable() else ["eager", "native", "compiled"])
+    assert [t[5] for t in cpu] == (["eager", "compiled"] if native.unavailable() else ["eager", "native", "compiled"])
+
+
+def test_elastic_rows_are_planned_beside_the_springs_and_compared_with_them():
+    args = argparse.Namespace(
+        no_compile=True, no_warp=True, no_beam=True, quick=False, materials=["springs", "elastic"]
+    )
+    tasks, _, _ = speed._plan(args, "cpu", [16], [6, 26], ["float32"], [1])
+    assert [(t[2], t[6]) for t in tasks] == [(6, "springs"), (26, "springs"), (26, "elastic")]  # no 6-neighbour solid
+    row = dict(n=64, topology=26, dtype="float32", threads=2)
+    rows = [
+        dict(row, mode="native", material="springs", msprings_per_s=1200.0),
+        dict(row, mode="native", material="elastic", msprings_per_s=700.0),
+        dict(row, mode="native", material="elastic", msprings_per_s=300.0, contention=True, vs_idle=0.43),
+    ]
+    t = speed._targets(rows, [])["elastic_vs_springs_64"]
+    assert t["value"] == pytest.approx(700 / 1200) and t["busy_vs_idle"] == 0.43 and t["met"]
+    rows[1]["msprings_per_s"] = 500.0
+    assert not speed._targets(rows, [])["elastic_vs_springs_64"]["met"]
 
 
 @pytest.mark.slow  # a bench smoke run

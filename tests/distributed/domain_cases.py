@@ -25,7 +25,14 @@ CUT_AT = 50 * DT
 
 
 #: case -> neighbours
-CASES = {"symplectic6": 6, "rk4_26": 26, "verlet26_law_mask": 26, "implicit6": 6, "implicit26": 26}
+CASES = {
+    "symplectic6": 6,
+    "rk4_26": 26,
+    "verlet26_law_mask": 26,
+    "implicit6": 6,
+    "implicit26": 26,
+    "implicit26_elastic": 26,  # an Elastic body: the volume term's cells span the slab boundaries
+}
 
 
 def build(name: str):
@@ -42,6 +49,8 @@ def build(name: str):
     side[1:, :, -1] = True  # the far w face, over every slab, dragged sideways
     drag = td.Drag(side, path=[(0.0, (0.0, 0.0, 0.0)), (STEPS * DT, (0.0, 0.0, 0.004))])
     stiffness = {6: 400.0, 26: 200.0}[topology]
+    if name == "implicit26_elastic":  # axis springs of about 100 N/m inside, a stiff volume term
+        stiffness = td.Elastic(2e4, 0.45)
     model = td.Model(
         grid,
         stiffness=stiffness,
@@ -63,6 +72,7 @@ def build(name: str):
         # a fixed count of CG iterations: no residual norm to reduce over ranks each iteration
         "implicit6": td.ImplicitEuler(cg_iters=16, cg_tol=0.0),
         "implicit26": td.ImplicitEuler(cg_iters=16, cg_tol=0.0),
+        "implicit26_elastic": td.ImplicitEuler(cg_iters=16, cg_tol=0.0),
     }[name]
     return model, integrator, [(CUT_AT, blade)]
 
@@ -89,8 +99,16 @@ def main(out: Path, names: list) -> None:
             model, integrator, cuts = build(name)
             run = decomposed_simulate(model, start(model), DT, STEPS, integrator=integrator, record_every=10, cuts=cuts)
             if dist.get_rank() == 0:
+                cells = {}
+                if run.whole.volume is not None:  # an Elastic body: its cells and springs, gathered
+                    cells = {
+                        "kappa": run.whole.volume[0].numpy(),
+                        "mu_cells": run.whole.mu_cells.numpy(),
+                        "stiffness": run.whole.stiffness.numpy(),
+                    }
                 np.savez(
                     out / f"{name}.npz",
+                    **cells,
                     x=run.record["x"].numpy(),
                     v=run.record["v"].numpy(),
                     t=run.record["t"].numpy(),

@@ -1,7 +1,8 @@
 """Domain decomposition: 2 and 3 ranks (torchrun, gloo on 127.0.0.1) against one process's
 ``simulate`` (float64, 100 steps, fixed nodes, a drag across every slab, a blade cutting through the
-slab boundaries half way), explicit and implicit, 6 and 26 neighbours; the slab bookkeeping and bad
-input on one process."""
+slab boundaries half way), explicit and implicit, 6 and 26 neighbours, an Elastic body (its cells
+across the slab boundaries, killed by the blade there); the slab bookkeeping and bad input on one
+process."""
 
 from __future__ import annotations
 
@@ -25,7 +26,10 @@ HERE = Path(__file__).parent
 
 
 def reference(name, with_cut=True):
-    """One process: ``simulate`` with the blade applied after the step that reaches its time."""
+    """One process: ``simulate`` with the blade applied after the step that reaches its time.
+
+    Returns the record; ``reference.model`` is the model at the end (cut).
+    """
     model, integrator, ((at, blade),) = cases.build(name)
 
     def cut_once(i, state):
@@ -42,6 +46,7 @@ def reference(name, with_cut=True):
         callback=cut_once,
         warn=False,
     )
+    reference.model = model
     return rec
 
 
@@ -61,8 +66,9 @@ def launch(n, out, names):
     assert done.returncode == 0, done.stderr[:3000] + "\n...\n" + done.stderr[-3000:]
 
 
-# 2 ranks: every case; 3 ranks (a middle slab with two halos): one explicit and one implicit case
-RUNS = {2: list(cases.CASES), 3: ["rk4_26", "implicit6"]}
+# 2 ranks: every case; 3 ranks (a middle slab with two halos): one explicit and one implicit case,
+# and the Elastic body (cells across both of the middle slab's boundaries)
+RUNS = {2: list(cases.CASES), 3: ["rk4_26", "implicit6", "implicit26_elastic"]}
 
 
 @pytest.mark.parametrize("ranks", sorted(RUNS))
@@ -80,6 +86,11 @@ def test_ranks_follow_the_single_process_trajectory(tmp_path, ranks):
         # every exchange sent one layer each way per inner boundary: B x C x H x W doubles
         layer = 3 * cases.SHAPE[1] * cases.SHAPE[2] * 8
         assert int(got["bytes"]) % layer == 0 and int(got["bytes"]) >= int(got["exchanges"]) * layer
+        if "kappa" in got.files:  # an Elastic body: the cells gathered from the slabs are those the blade left
+            whole = reference.model
+            assert (got["kappa"] == 0).any() and np.array_equal(got["kappa"], whole.volume[0].numpy()), name
+            assert np.array_equal(got["mu_cells"], whole.mu_cells.numpy()), name
+            assert np.array_equal(got["stiffness"], whole.stiffness.numpy()), name
 
 
 def test_the_cases_exercise_the_cut_and_the_drag():
@@ -125,6 +136,28 @@ def test_a_slab_is_the_global_model_restricted_to_its_rows():
     model.interactions = [StrainLimit()]
     with pytest.raises(td.ConfigError, match="tool interactions"):
         decompose(model, 0, 2)
+
+
+def test_the_slabs_of_an_elastic_body_keep_its_cells_through_a_cut():
+    """Three slabs of an Elastic body, each cut by the case's blade at the positions the whole body is cut
+    at: forces on owned nodes equal the whole body's to the bit, stiffness products (springs and volume
+    term) to round-off, Gershgorin rows exactly."""
+    model, _, ((_, blade),) = cases.build("implicit26_elastic")
+    gen = torch.Generator().manual_seed(3)
+    x, v, u = (model.X + s * torch.randn(model.X.shape, generator=gen, dtype=torch.float64) for s in (1e-3, 1, 1))
+    slabs = [decompose(model, rank, 3) for rank in range(3)]
+    cut(model, x, blade)
+    assert bool((model.volume[0] == 0).any())  # the blade killed cells across every slab boundary
+    f, ku, rows = model.forces(x, v), model.linearise(x).apply(u), model.stiffness_row_sums()
+    for slab in slabs:
+        (e_lo, e_hi), (lo, hi) = slab.extent, slab.rows
+        xl = x[:, :, e_lo:e_hi].clone()
+        cut(slab, xl, blade)
+        lf = td.Model.forces(slab, xl, v[:, :, e_lo:e_hi].clone())
+        lku = td.Model.linearise(slab, xl).apply(u[:, :, e_lo:e_hi].clone())
+        assert torch.equal(lf[:, :, slab.owned], f[:, :, lo:hi])
+        assert torch.allclose(lku[:, :, slab.owned], ku[:, :, lo:hi], rtol=1e-13, atol=1e-13 * float(ku.abs().max()))
+        assert torch.equal(slab.stiffness_row_sums()[:, :, slab.owned], rows[:, :, lo:hi])
 
 
 def test_one_process_is_simulate(tmp_path):

@@ -218,16 +218,18 @@ def test_grasp_open_never_and_strain_limit_defaults(tmp_path):
 
 
 def test_tissue_words_and_regions_are_the_fuzzy_librarys(tmp_path):
+    """Tissue words in the regions of a body of springs: k = E / lattice_modulus (an elastic body: test_elastic_scene)."""
     region = """
     [[regions]]
     sphere = {center = [0.01, 0.005, 0.01], radius = 0.006}
     tissue = "firm"
     """
-    text = BODY.replace("stiffness = 5.0", 'tissue = "liver"') + region + RUN
-    scene = load_scene(write(tmp_path, text))
-    grid = scene.grid
+    grid = load_scene(write(tmp_path, BODY + RUN, "grid.toml")).grid
     per_k = lattice_modulus(grid)
     assert per_k == pytest.approx(2.7 / 0.005)
+    base = f"stiffness = {tissue_parameters('liver')['youngs_modulus'] / per_k!r}"  # liver's springs
+    text = BODY.replace("stiffness = 5.0", base) + region + RUN
+    scene = load_scene(write(tmp_path, text))
     # independently: the fuzzy library's coupling (per-node consistency -> per-spring E, harmonic means)
     fis = load_preset("tissue_si")
     inputs = node_inputs(
@@ -245,9 +247,8 @@ def test_tissue_words_and_regions_are_the_fuzzy_librarys(tmp_path):
 
     # a later region with its own stiffness wins on its nodes: springs inside it get exactly that
     box = "\n[[regions]]\nbox = {lo = [0.0, 0.0, 0.015], hi = [0.015, 0.015, 0.02]}\nstiffness = 30.0\n"
-    k = load_scene(
-        write(tmp_path, BODY.replace("stiffness = 5.0", 'tissue = "liver"') + region + box + RUN, "box.toml")
-    ).model_args["stiffness"]
+    boxed = BODY.replace("stiffness = 5.0", base) + region + box + RUN
+    k = load_scene(write(tmp_path, boxed, "box.toml")).model_args["stiffness"]
     inside = grid.box_mask((0.0, 0.0, 0.015), (0.015, 0.015, 0.02))
     along_w = grid.directions.index((0, 0, 1))  # springs from w = 15 mm to w = 20 mm
     assert torch.allclose(k[along_w][inside & (torch.arange(5) == 3)], torch.tensor(30.0, dtype=torch.float64))

@@ -124,3 +124,42 @@ def test_coagulation_needs_shared_rest_lengths_and_then_matches_eager(device):
         ref = td.SymplecticEuler().step(ref_model, ref, 1e-4)
         state = packed.unpack_state(step.step_packed(packed.pack_state(state)))
     assert torch.allclose(state.x, ref.x, atol=1e-12, rtol=0)
+
+
+def _elastic_model(device=None):
+    grid = td.Grid((5, 4, 4), spacing=H, topology=26)
+    return td.Model(
+        grid,
+        td.Elastic(5e3, 0.45),
+        density=1000.0,
+        gravity=(-9.81, 0, 0),
+        fixed=grid.face("bottom"),
+        dtype=F64,
+        device=device,
+    )
+
+
+@pytest.mark.parametrize("force_form", ["reduction", "native"])
+def test_a_packed_step_of_an_elastic_body_sees_the_cells_a_cut_and_cautery_kill(force_form, device):
+    from torchdeform.sim import native
+
+    if force_form == "native" and (device == "cuda" or native.unavailable()):
+        pytest.skip("the C kernels run on a CPU with a C compiler")
+    dt = 2e-5
+    integrator = td.SymplecticEuler()
+    ref_model = _elastic_model(device)
+    ref = _run(lambda s: integrator.step(ref_model, s, dt), ref_model, ref_model.rest_state(), _blade(), _tool())
+    model = _elastic_model(device)
+    step = compiled_step(integrator, model, dt, enable=False, editable=True, force_form=force_form)
+    assert (step.fused is not None) == (force_form == "native")
+    packed = step.packed
+    out = _run(
+        lambda s: packed.unpack_state(step.step_packed(packed.pack_state(s))),
+        model,
+        model.rest_state(),
+        _blade(),
+        _tool(),
+    )
+    assert float(ref_model.volume[0].min()) == 0.0  # cells died
+    assert torch.allclose(out.x, ref.x, atol=1e-12, rtol=0)
+    assert float((ref.x - ref_model.X).abs().max()) > 1e-5  # it did move

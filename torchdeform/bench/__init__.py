@@ -1,15 +1,17 @@
 """Benchmarks: ``torchdeform bench <name>``.
 
-=========  ================================================================================
-speed      spring-step throughput of symplectic Euler on a damped cube: Msprings/s,
-           node-steps/s and ms/step for n^3 grids, topologies, eager and compiled, dtypes,
-           thread counts, against NVIDIA Warp's CPU backend; implicit Euler on a beam
-accuracy   error against wall time of every integrator on four standard scenes and a
-           resolution sweep, with the Pareto front and a recommendation
-fuzzy      Mamdani inputs per second, eager and compiled, against scikit-fuzzy
-volume     deform and render a 256^3 volume: frames per second of each rendering path
-chainmail  time of a local ChainMail pull against grid size and moved elements
-=========  ================================================================================
+==========  ================================================================================
+speed       spring-step throughput of symplectic Euler on a damped cube: Msprings/s,
+            node-steps/s and ms/step for n^3 grids, topologies, eager and compiled, dtypes,
+            thread counts, against NVIDIA Warp's CPU backend; implicit Euler on a beam
+accuracy    error against wall time of every integrator on four standard scenes and a
+            resolution sweep, with the Pareto front and a recommendation
+elasticity  an Elastic lattice body against finite elements (scikit-fem) at three
+            resolutions, and the step time of its volume term against springs alone
+fuzzy       Mamdani inputs per second, eager and compiled, against scikit-fuzzy
+volume      deform and render a 256^3 volume: frames per second of each rendering path
+chainmail   time of a local ChainMail pull against grid size and moved elements
+==========  ================================================================================
 
 Each benchmark is one module here with ``add_arguments(parser)`` and ``run(args) -> int`` (a
 subpackage where it is large: :mod:`.accuracy`), and one entry of

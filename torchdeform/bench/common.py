@@ -23,6 +23,7 @@ from .. import options
 from ..options import integer
 from ..outputs import atomic_path
 from ..sim.grid import Grid
+from ..sim.material import Elastic
 from ..sim.model import Model, State
 
 __all__ = [
@@ -170,14 +171,16 @@ def format_table(rows: list, columns: list) -> str:
     return "\n".join(lines)
 
 
-def speed_cube(n: int, topology: int, *, dtype=torch.float32, device="cpu", seed: int = 0):
+def speed_cube(n: int, topology: int, *, dtype=torch.float32, device="cpu", seed: int = 0, material: str = "springs"):
     """The speed scene: an ``n^3`` damped cube, slightly perturbed from rest.
 
-    1 cm spacing, k = 100 N/m, c = 0.05 N s/m, 1 g per node, no gravity. Returns
-    ``(model, state, dt)``.
+    1 cm spacing, c = 0.05 N s/m, 1 g per node, no gravity; ``material`` ``"springs"``: k = 100 N/m;
+    ``"elastic"``: ``td.Elastic(10 kPa, 0.45)`` (springs from the cells plus the cell term).
+    Returns ``(model, state, dt)``.
     """
     grid = Grid((n, n, n), spacing=0.01, topology=topology)
-    model = Model(grid, stiffness=100.0, damping=0.05, mass=1e-3, dtype=dtype, device=device)
+    stiffness = 100.0 if material == "springs" else Elastic(1e4, 0.45)
+    model = Model(grid, stiffness, damping=0.05, mass=1e-3, dtype=dtype, device=device)
     g = torch.Generator().manual_seed(seed)
     x = model.X + (1e-4 * torch.randn(model.X.shape, generator=g, dtype=torch.float64)).to(dtype=dtype, device=device)
     v = (1e-3 * torch.randn(model.X.shape, generator=g, dtype=torch.float64)).to(dtype=dtype, device=device)

@@ -28,6 +28,11 @@ BENCHES = {
         "error against wall time of every integrator on standard scenes, a resolution sweep, Pareto front",
         "accuracy",
     ),
+    "elasticity": (
+        "an Elastic lattice body against finite elements (uniaxial E and nu, shear, cantilever, punch) at three "
+        "resolutions, and ms per step of springs alone against springs with the volume term",
+        "elasticity",
+    ),
     "fuzzy": (
         "Mamdani inputs per second (SUSILAP-G preset by default), eager and compiled, against scikit-fuzzy",
         "fuzzy",

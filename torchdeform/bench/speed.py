@@ -68,6 +68,7 @@ __all__ = [
 SPEED_COLUMNS = [
     ("grid", "grid", None),
     ("topology", "topo", None),
+    ("material", "material", None),
     ("mode", "mode", None),
     ("dtype", "dtype", None),
     ("threads", "thr", None),
@@ -133,6 +134,12 @@ def add_arguments(p) -> None:
         action="store_true",
         help="time every row twice: idle, and with a busy process beside it (rows with "
         "contention: true; the table shows busy/idle)",
+    )
+    p.add_argument(
+        "--materials",
+        default="springs",
+        help="springs,elastic: the cube of equal springs (k 100 N/m; default) and/or an Elastic body "
+        "(E 10 kPa, nu 0.45: springs from the cells plus the cell term); the targets compare the two at 64^3",
     )
     p.add_argument("--no-compile", action="store_true", help="eager rows only")
     p.add_argument("--no-warp", action="store_true", help="skip the NVIDIA Warp rows")
@@ -347,8 +354,9 @@ def speed_row(
     target_s: float = 0.2,
     reference=None,
     contention: bool = False,
+    material: str = "springs",
 ) -> dict:
-    """Time symplectic Euler steps on :func:`speed_cube`; one row of the speed table.
+    """Time symplectic Euler steps on :func:`speed_cube` (of ``material``); one row of the speed table.
 
     ``mode`` is ``"eager"`` (``SymplecticEuler.step``, shifted slices), ``"native"`` (the packed
     step uncompiled, one C kernel per step: :func:`~torchdeform.sim.native.symplectic_step`;
@@ -363,13 +371,14 @@ def speed_row(
     reset = _reset_peak()
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats(torch.device(device))
-    model, state, dt = speed_cube(n, topology, dtype=dtype, device=device)
+    model, state, dt = speed_cube(n, topology, dtype=dtype, device=device, material=material)
     integ = SymplecticEuler()
     sync = device_sync(device)
     row = {
         "grid": f"{n}^3",
         "n": n,
         "topology": topology,
+        "material": material,
         "mode": mode,
         "dtype": str(dtype).replace("torch.", ""),
         "threads": torch.get_num_threads(),
@@ -519,11 +528,15 @@ def _options(args):
         raise ConfigError("--threads", "integers >= 1", got=threads)
     if args.steps is not None and args.steps < 1:
         raise ConfigError("--steps", "an integer >= 1", got=args.steps)
+    materials = [m.strip() for m in str(args.materials).split(",") if m.strip()]
+    if not materials or any(m not in ("springs", "elastic") for m in materials):
+        raise ConfigError("--materials", "springs and/or elastic, comma-separated", got=args.materials)
+    args.materials = materials
     return device, sizes, topologies, dtypes, threads
 
 
 def _plan(args, device, sizes, topologies, dtypes, threads):
-    """``(tasks, warp_ok, warp_why)``: the measurements ``[(kind, n, topology, dtype, threads, mode), ...]``."""
+    """``(tasks, warp_ok, warp_why)``: the measurements ``[(kind, n, topology, dtype, threads, mode, material), ...]``."""
     from ..sim import native
 
     modes = ["eager"] if args.no_compile else ["eager", "compiled"]
@@ -538,17 +551,19 @@ def _plan(args, device, sizes, topologies, dtypes, threads):
     # --quick compiles one shape only (the smallest grid, first topology): compilation costs
     # 10-60 s per shape on 2 cores, the smoke run must stay well under a minute.
     tasks = [
-        ("torch", n, t, d, th, m)
+        ("torch", n, t, d, th, m, mat)
         for d in dtypes
         for th in threads
         for t in topologies
         for n in sizes
+        for mat in args.materials
         for m in torch_modes
         if not (m != "eager" and args.quick and (n, t) != (min(sizes), topologies[0]))
+        and not (mat == "elastic" and t == 6)
     ]
     if warp_ok:
         tasks += [
-            ("warp", n, t, d, 1, "warp")
+            ("warp", n, t, d, 1, "warp", "springs")
             for d in dtypes
             for t in topologies
             for n in sizes
@@ -556,7 +571,7 @@ def _plan(args, device, sizes, topologies, dtypes, threads):
         ]
     if not args.no_beam:
         tasks += [
-            ("beam", None, None, d, th, m)
+            ("beam", None, None, d, th, m, "springs")
             for d in dtypes[:1]
             for th in threads
             for m in modes
@@ -572,8 +587,8 @@ def _run_tasks(args, tasks, device, repeats, target_s):
     redirect = contextlib.redirect_stdout(sys.stderr) if args.json else contextlib.nullcontext()
     try:
         with redirect, progress(len(tasks), "bench speed") as bar:
-            for kind, n, t, d, th, m in tasks:
-                bar.set_postfix_str(f"{kind} {n or ''} {t or ''} {d} {th}thr {m}")
+            for kind, n, t, d, th, m, mat in tasks:
+                bar.set_postfix_str(f"{kind} {n or ''} {t or ''} {mat} {d} {th}thr {m}")
                 torch.set_num_threads(th)
                 dtype = getattr(torch, d)
                 if kind == "beam":
@@ -593,7 +608,7 @@ def _run_tasks(args, tasks, device, repeats, target_s):
                     beam_refs.setdefault(d, first)
                     beam_rows += [row] + ([row.pop("_busy")] if args.contention else [])
                 elif kind == "warp":
-                    row = _warp_row(n, t, dtype, args.steps, repeats, target_s, refs.get((n, t, d)))
+                    row = _warp_row(n, t, dtype, args.steps, repeats, target_s, refs.get((n, t, d, "springs")))
                     rows.append(row)
                 else:
                     row = speed_row(
@@ -605,11 +620,12 @@ def _run_tasks(args, tasks, device, repeats, target_s):
                         steps=args.steps,
                         repeats=repeats,
                         target_s=target_s,
-                        reference=refs.get((n, t, d)),
+                        reference=refs.get((n, t, d, mat)),
                         contention=args.contention,
+                        material=mat,
                     )
                     first = row.pop("_first")
-                    refs.setdefault((n, t, d), first)
+                    refs.setdefault((n, t, d, mat), first)
                     rows += [row] + ([row.pop("_busy")] if args.contention else [])
                 bar.update(1)
     finally:
@@ -632,14 +648,16 @@ def run(args) -> int:
         if r["mode"].startswith("warp") and not r.get("contention")
     }
     for r in rows:
+        r.setdefault("material", "springs")
         r["node_steps_per_s"] = float(r["node_steps_per_s"])
-        w = warp_by.get((r["n"], r["topology"], r["dtype"]))
+        w = warp_by.get((r["n"], r["topology"], r["dtype"])) if r["material"] == "springs" else None
         r["vs_warp"] = r["msprings_per_s"] / w if w and not r["mode"].startswith("warp") else None
         r["of_copy"] = None if r.get("gb_per_s") is None else r["gb_per_s"] / copy_gb_per_s
     headline = [
         r
         for r in rows
-        if (r["n"], r["topology"], r["dtype"], r["mode"]) == (64, 26, "float32", "compiled") and not r.get("contention")
+        if (r["n"], r["topology"], r["dtype"], r["mode"], r["material"]) == (64, 26, "float32", "compiled", "springs")
+        and not r.get("contention")
     ]
     headline = max(headline, key=lambda r: r["threads"]) if headline else None
     ratio = headline["vs_warp"] if headline else None
@@ -736,7 +754,7 @@ def _threads_note(row) -> str:
 
 
 #: speed targets on 2 cores: the implicit beam (SOFA about 110 on a desktop CPU) and 64^3 explicit
-TARGETS = {"beam_steps_per_s": 220.0, "msprings_64": 1000.0, "busy_vs_idle": 0.4}
+TARGETS = {"beam_steps_per_s": 220.0, "msprings_64": 1000.0, "busy_vs_idle": 0.4, "elastic_vs_springs_64": 0.5}
 
 
 def _targets(rows, beam_rows) -> dict:
@@ -758,7 +776,7 @@ def _targets(rows, beam_rows) -> dict:
 
     for name, rs, value in (
         ("beam_steps_per_s", pick(beam_rows), "steps_per_s"),
-        ("msprings_64", pick(rows, n=64, topology=26), "msprings_per_s"),
+        ("msprings_64", pick(rows, n=64, topology=26, material="springs"), "msprings_per_s"),
     ):
         idle = [r for r in rs if not r.get("contention")]
         if not idle:
@@ -775,7 +793,30 @@ def _targets(rows, beam_rows) -> dict:
             "busy_vs_idle": ratio,
             "met": met,
         }
+    elastic = _elastic_target(pick(rows, n=64, topology=26, material="elastic"), out.get("msprings_64"))
+    if elastic is not None:
+        out["elastic_vs_springs_64"] = elastic
     return out
+
+
+def _elastic_target(rows, springs) -> dict | None:
+    """The fastest Elastic 64^3 row's throughput over the fastest springs row's (one run), or None."""
+    idle = [r for r in rows if not r.get("contention")]
+    if not idle or springs is None:
+        return None
+    best = max(idle, key=lambda r: r["msprings_per_s"])
+    busy = [r for r in rows if r.get("contention") and (r["threads"], r["mode"]) == (best["threads"], best["mode"])]
+    ratio = busy[0]["vs_idle"] if busy else None
+    value = best["msprings_per_s"] / springs["value"]
+    target = TARGETS["elastic_vs_springs_64"]
+    return {
+        "value": value,
+        "target": target,
+        "mode": best["mode"],
+        "threads": best["threads"],
+        "busy_vs_idle": ratio,
+        "met": value >= target and (ratio is None or ratio >= TARGETS["busy_vs_idle"]),
+    }
 
 
 _SCENE = (

@@ -12,8 +12,20 @@ products from :meth:`SlabModel.inner`: the sum over owned nodes, all-reduced ove
 What a decomposed run supports: the explicit integrators (explicit and symplectic Euler, damped
 Verlet, RK4) and implicit Euler; every model term that acts node by node or along grid springs
 (fixed nodes, drags, gravity, loads, home and anchor springs, global drag, strain-stiffening laws,
-node masks, springs removed by a cut, blades cutting during the run). Tool interactions
-(contact, grasp, strain limits) need the whole body and are refused.
+node masks, springs removed by a cut, blades cutting during the run) and the volume term of an
+:class:`~torchdeform.sim.material.Elastic` body. Tool interactions (contact, grasp, strain limits)
+need the whole body and are refused.
+
+An Elastic body's cells (8 corners each) need no more halo: a cell at an owned node has its
+corners in the owned rows and the halo, so each slab keeps the cells between its rows
+``[ext_lo, ext_hi)`` (``model.volume`` and ``model.mu_cells`` restricted to them) and computes the
+volume term and its stiffness products on owned nodes as one process does. A blade cutting during
+the run kills the same cells on every slab that holds them (every spring of such a cell lies in the
+slab, and the halo carries the positions the blade is tested at), and each slab re-assembles its
+springs from its cells: right for every spring at an owned node (its cells are all in the slab);
+only springs joining two halo nodes may miss a cell beyond the halo, and those act on halo nodes
+alone, which the next exchange overwrites. At the end, each rank gives the cells whose lower
+corner row it owns.
 
 Bytes per exchange: each inner slab boundary sends ``B x C x H x W`` values each way per field
 (``C = 3``; positions and velocities go in one message when the springs are damped).
@@ -47,6 +59,7 @@ import torch
 from ..errors import ConfigError
 from ..sim.grid import Grid
 from ..sim.integrators import SymplecticEuler
+from ..sim.material import VolumeLinearisation
 from ..sim.model import Model, State
 from ..sim.springs import Linearisation
 from ..sim.stability import DivergenceMonitor
@@ -203,13 +216,14 @@ class SlabModel(Model):
         return super().forces(x, v, t=t, loads=loads, impl=impl)
 
     def linearise(self, x, *, clamp=True):
-        """The springs linearised at ``x`` (halo refreshed); its products refresh their argument's halo."""
+        """Springs (and volume term) linearised at ``x`` (halo refreshed); products refresh their argument's halo."""
         self.halo.exchange(x)
         lin = _SlabLinearisation(
             x, self.grid, self.stiffness, self.rest_length, clamp=clamp, law=self.law, lp=self.law_params
         )
         lin.halo = self.halo
-        return lin
+        # the volume term's product reads its argument after the springs' product refreshed its halo
+        return lin if self.volume is None else VolumeLinearisation(lin, x, *self.volume)
 
 
 def _rows(t, lo: int, hi: int, shape: tuple):
@@ -217,6 +231,11 @@ def _rows(t, lo: int, hi: int, shape: tuple):
     if not torch.is_tensor(t) or t.dim() < 3 or tuple(t.shape[-3:]) != shape:
         return t
     return t[..., lo:hi, :, :].clone()
+
+
+def _cell_rows(t: torch.Tensor, lo: int, hi: int) -> torch.Tensor:
+    """The cells between node rows ``[lo, hi)``: rows ``[lo, hi - 1)`` of ``(..., D-1, H-1, W-1)`` (a copy)."""
+    return t[..., lo : hi - 1, :, :].clone()
 
 
 def decompose(model: Model, rank: int, world: int, *, group=None) -> SlabModel:
@@ -229,15 +248,8 @@ def decompose(model: Model, rank: int, world: int, *, group=None) -> SlabModel:
         group: the ``torch.distributed`` process group (default the global one).
 
     Raises:
-        ConfigError: more ranks than rows, tool interactions, an Elastic material's volume term, or a
-            slab without any existing node.
+        ConfigError: more ranks than rows, tool interactions, or a slab without any existing node.
     """
-    if getattr(model, "volume", None) is not None:
-        raise ConfigError(
-            "material",
-            "springs without a volume term in a domain-decomposed run (its cells span the halo)",
-            got="Elastic",
-        )
     if model.interactions:
         raise ConfigError(
             "interactions",
@@ -275,6 +287,12 @@ def decompose(model: Model, rank: int, world: int, *, group=None) -> SlabModel:
         "constrained",
     ):
         setattr(local, name, _rows(getattr(model, name), e_lo, e_hi, shape))
+    # an Elastic body's cells: those of the slab with its halo (every cell at an owned node)
+    if getattr(model, "mu_cells", None) is not None:
+        local.mu_cells = _cell_rows(model.mu_cells, e_lo, e_hi)
+    if getattr(model, "volume", None) is not None:
+        kappa, h, shear = model.volume
+        local.volume = (_cell_rows(kappa, e_lo, e_hi), h, _cell_rows(shear, e_lo, e_hi))
     local.law_params = tuple(_rows(p, e_lo, e_hi, shape) for p in model.law_params)
     local.drag_masks = [_rows(m, e_lo, e_hi, shape) for m in model.drag_masks]
     local.loads = [(ld, _rows(dense, e_lo, e_hi, shape)) for ld, dense in model.loads]
@@ -456,6 +474,13 @@ def _gather(local: SlabModel, st: State, ts, xs, vs, rank: int, world: int, grou
         for name in EDITED
         if torch.is_tensor(getattr(local, name)) and tuple(getattr(local, name).shape[-3:]) == shape
     }
+    # an Elastic body's cells: each rank gives those whose lower corner row it owns
+    cells = slice(own.start, min(own.stop, shape[0] - 1))
+    if getattr(local, "mu_cells", None) is not None:
+        edited["mu_cells"] = local.mu_cells[..., cells, :, :].cpu()
+    if getattr(local, "volume", None) is not None:
+        edited["volume"] = local.volume[0][..., cells, :, :].cpu()
+        edited["volume_shear"] = local.volume[2][..., cells, :, :].cpu()
     mine = (
         st.x[:, :, own].detach().cpu(),
         st.v[:, :, own].detach().cpu(),
@@ -482,6 +507,18 @@ def _gather(local: SlabModel, st: State, ts, xs, vs, rank: int, world: int, grou
             "v": torch.cat([p[3] for p in parts], 3),
         }
     whole = copy.copy(local.whole)
-    for name in parts[0][4]:
-        setattr(whole, name, torch.cat([p[4][name] for p in parts], -3).to(dev))
+    joined = {name: _cat_rows([p[4][name] for p in parts]).to(dev) for name in parts[0][4]}
+    for name, t in joined.items():
+        if name == "volume":
+            whole.volume = (t, whole.volume[1], joined["volume_shear"])
+        elif name != "volume_shear":
+            setattr(whole, name, t)
     return final, rec, whole
+
+
+def _cat_rows(parts: list) -> torch.Tensor:
+    """Rows along D from each rank, ``(..., rows, H', W')``, joined (batches broadcast to the largest)."""
+    n = max(p.dim() for p in parts)
+    parts = [p.reshape((1,) * (n - p.dim()) + tuple(p.shape)) for p in parts]
+    lead = torch.broadcast_shapes(*(p.shape[:-3] for p in parts))
+    return torch.cat([p.expand(*lead, *p.shape[-3:]) for p in parts], -3)

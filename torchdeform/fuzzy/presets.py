@@ -17,8 +17,8 @@ Units of the Radetzky outputs are not given in the source.
 
 The files live in the repository's top-level ``fuzzy/`` folder, installed as the data package
 ``torchdeform.rulefiles`` (:data:`PRESET_DIR`). ``fuzzy/tissues.toml`` lists tissues with
-their consistency value on the ``tissue_si`` scale, literature Young's-modulus range, density
-and source.
+their consistency value on the ``tissue_si`` scale, literature Young's-modulus range, density,
+Poisson ratio and sources.
 
 Example:
     >>> from torchdeform.fuzzy import load_preset, tissue_parameters
@@ -30,6 +30,8 @@ Example:
     ('soft', (500.0, 10000.0))
     >>> 500.0 <= liver["youngs_modulus"] <= 10000.0
     True
+    >>> liver["poisson_ratio"]                                              # nearly incompressible
+    0.49
 """
 
 from __future__ import annotations
@@ -115,7 +117,8 @@ def _library() -> dict:
 def tissues() -> dict:
     """The tissue library from ``fuzzy/tissues.toml`` (a copy; edit freely).
 
-    ``{name: {"consistency", "term", "youngs_modulus_range" [Pa], "density" [kg/m^3], "source"}}``.
+    ``{name: {"consistency", "term", "youngs_modulus_range" [Pa], "density" [kg/m^3],
+    "poisson_ratio", "source"}}``.
     """
     return copy.deepcopy(_library()["tissues"])
 
@@ -129,8 +132,8 @@ def tissue_parameters(name: str, *, system: MamdaniSystem | None = None) -> dict
 
     Returns:
         ``{"youngs_modulus": E [Pa], "viscosity": eta [Pa*s], "density": rho [kg/m^3],
-        "consistency": input value, "term": its linguistic term,
-        "youngs_modulus_range": (lo, hi) [Pa] from the literature}``.
+        "poisson_ratio": nu (from the literature, nearly incompressible), "consistency": input value,
+        "term": its linguistic term, "youngs_modulus_range": (lo, hi) [Pa] from the literature}``.
     """
     lib = tissues()
     if name not in lib:
@@ -143,6 +146,7 @@ def tissue_parameters(name: str, *, system: MamdaniSystem | None = None) -> dict
         "youngs_modulus": float(out["youngs_modulus"]),
         "viscosity": float(out["viscosity"]),
         "density": float(entry["density"]),
+        "poisson_ratio": float(entry["poisson_ratio"]),
         "consistency": float(entry["consistency"]),
         "term": entry["term"],
         "youngs_modulus_range": (float(lo), float(hi)),

@@ -36,29 +36,47 @@ documentation is generated from this list.
   (resolution-independent); a number or a table as for ``stiffness``. (``modulus``, its old
   name, still works with a warning.) A stiffness or spring modulus whose lattice would have a
   Young's modulus outside 10 Pa - 10 MPa warns: that is no soft tissue, a unit is probably mixed up
-- ``tissue``: instead of ``stiffness``: words of the fuzzy tissue library (:mod:`torchdeform.fuzzy`):
-  a tissue (``"liver"``, ``"fat"``, ...), a consistency term (``"very_soft"`` ... ``"hard"``) or
-  a consistency number 0..10; its Young's modulus E becomes ``k = E / lattice_modulus(grid)``
-  (``k = E h / 2.7`` for 26 neighbours)
 - ``youngs_modulus``, ``poisson_ratio``: instead of ``stiffness``: the elastic solid of Young's
-  modulus E (Pa) and Poisson ratio nu in [0.25, 0.5) (:class:`torchdeform.Elastic`: springs
+  modulus E (Pa, > 0) and Poisson ratio nu in [0.25, 0.5) (:class:`torchdeform.Elastic`: springs
   assembled from the cells plus a per-cell volume term; 14, 18 or 26 neighbours, cubic cells)
+- ``tissue``: instead of ``stiffness``: words of the fuzzy tissue library (:mod:`torchdeform.fuzzy`,
+  ``fuzzy/tissues.toml``), and the elastic solid they name (as ``youngs_modulus``): a tissue
+  (``"liver"``, ``"fat"``, ...) gives the library's Young's modulus E (Pa, from its fuzzy system),
+  Poisson ratio nu (0.475-0.49, nearly incompressible, with its source) and density; a consistency
+  term (``"very_soft"`` ... ``"hard"``) or a consistency number 0..10 gives E and nu = 0.45 (no
+  tissue, no measured ratio: nearly incompressible) and no density. ``poisson_ratio`` given beside
+  ``tissue`` replaces the library's (0.45 doubles the explicit time step of 0.49). Unless
+  ``damping`` is given, each spring gets the tissue's Kelvin-Voigt dashpot ``c = k eta / E`` (N s/m:
+  spring stiffness k in N/m times the retardation time eta / E in s, eta the system's viscosity in
+  Pa s): every spring relaxes with the same time, about 0.2-0.4 ms for the library's tissues (stiff
+  for explicit integrators: ``dt = "auto"`` accounts for it). (Equal springs of Young's modulus E,
+  as ``tissue`` gave before: ``stiffness = E h / 2.7`` for 26 neighbours, ``lattice_modulus``.)
 - ``damping``: dashpot along each spring in N s/m (divided by l0 too with ``spring_modulus``);
-  a number or a class table (none)
+  a number or a class table (none; for ``tissue``, Kelvin-Voigt as above)
 - ``damping_mode``: ``"projected"`` (default) or ``"unprojected"`` (Radetzky)
 - ``law``: ``"hooke"`` (default), ``"exponential"`` (``stiffening`` b) or ``"polynomial"``
   (``quadratic`` c2, ``cubic`` c3): strain-stiffening springs (:mod:`torchdeform.sim.laws`) whose
   small-strain stiffness is ``stiffness``; each parameter a number >= 0 or a class table (0)
 
-``[[regions]]`` (optional, repeatable; needs ``stiffness`` as one number, or ``tissue``, in
-``[material]``): a part of the body with its own stiffness, later regions on top of earlier ones;
-a spring gets the harmonic mean of its two end nodes' stiffness:
+``[[regions]]`` (optional, repeatable; needs ``stiffness`` as one number, ``tissue`` or
+``youngs_modulus`` in ``[material]``): a part of the body with its own material, later regions on
+top of earlier ones:
 
 - ``sphere = {center = [d, h, w], radius = r}`` or ``box = {lo = [..], hi = [..]}``: the region
   (rest positions, m)
-- ``stiffness`` (N/m) or ``tissue`` (as in ``[material]``): its stiffness
+- a body of springs (``[material] stiffness``): ``stiffness`` (N/m) or ``tissue`` (its Young's
+  modulus as springs ``k = E / lattice_modulus(grid)``); a spring gets the harmonic mean of its two
+  end nodes' stiffness
+- an elastic body (``[material] tissue`` or ``youngs_modulus``): ``youngs_modulus`` (Pa),
+  ``poisson_ratio`` and ``tissue`` (as in ``[material]``, its E, nu, Kelvin-Voigt retardation time
+  and density; its own ``poisson_ratio`` wins; not with ``youngs_modulus``) set per-node fields of E
+  and nu (:class:`torchdeform.Elastic`, a cell takes the mean of its corners); keys a region does not
+  give keep the body's values there. ``stiffness`` here, or ``youngs_modulus`` in a body of springs,
+  is an error
 
-``[mass]`` (required, exactly one key):
+``[mass]`` (required unless ``[material] tissue`` names a tissue of the library, whose density it
+then takes, and that of the regions' tissues on their nodes; exactly one key; it wins over the
+tissue's):
 
 - ``mass``: kg per node
 - ``density``: kg/m^3, lumped from cell volumes (each node owns its voxel, halved at the box faces)
@@ -149,7 +167,7 @@ dt]``; a blade (or a scalpel's edge along its path) must reach the body's rest b
 ``[integrator]`` (required):
 
 - ``name``: ``"explicit"``, ``"symplectic"`` (default), ``"verlet"``, ``"rk4"``, ``"implicit"``,
-  ``"projective"``, ``"adaptive"`` or ``"knoche"``
+  ``"projective"``, ``"adaptive"``, ``"knoche"`` or ``"static"`` (below)
 - ``dt``: seconds > 0, or ``"auto"`` (explicit integrators: ``safety`` x the stability bound)
 - ``safety``: fraction of the bound used by ``dt = "auto"`` (0.9)
 - ``steps``: number of steps >= 0 (required)
@@ -169,6 +187,18 @@ dt]``; a blade (or a scalpel's edge along its path) must reach the body's rest b
   options; ``dt`` is then the interval between recorded states, the steps are its own
 - ``material`` (w in [0, 1], a number or a ``[D][H][W]`` array), ``eps`` (1e-3), ``gain``
   (3 / D): ``knoche``'s options (it needs ``topology = 6``)
+- ``name = "static"``: no time steps (no ``dt``, ``steps``, ``safety``, ``engine``): one static
+  solve (:func:`torchdeform.solve_static`, Newton with CG inner solves) for the equilibrium under
+  gravity, the loads and the drags; the run writes the rest state and the equilibrium as two frames
+  of ``trajectory.npz`` (velocities zero), ``summary.json`` with a ``"static"`` part (``residual``,
+  ``converged``, ``iterations``, ``cg_iterations``, ``tol``, ``time_s``), ``energy.png`` and the
+  ``[volume]`` and ``[texture]`` outputs of the equilibrium. Its options: ``tol`` (relative residual
+  ``|F| / |load|`` in (0, 1); 1e-6, or 1e-3 in float32 where rounding stalls Newton near 5e-4),
+  ``max_iter`` (Newton iterations, 50), ``cg_iters`` (500), ``cg_tol`` (1e-3), ``time`` (s: when
+  loads and drags are taken; the end of every ramp and drag path); ``dtype`` is ``"float64"`` by
+  default. A solve that does not converge writes nothing: one line naming ``integrator.max_iter``,
+  exit status 2. No ``[[tools]]``, ``[strain_limit]``, topology sections, ``record_every``,
+  ``surfaces``, ``animation`` or ``palpation`` with it
 
 ``[output]`` (optional):
 

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, cast
 import torch
 
 from ..checks import check_memory, usable_device
-from ..errors import ConfigError, ConfigWarning
+from ..errors import ConfigError, ConfigWarning, TorchdeformError
 from ..sim.adaptive import PAIRS
 from ..sim.catalog import INTEGRATORS
 from ..sim.engine import ENGINES
@@ -42,6 +42,12 @@ __all__ = [
     "demo_scene",
     "lattice_modulus",
     "tissue_moduli",
+    "tissue_properties",
+    "kelvin_voigt_damping",
+    "DEFAULT_POISSON_RATIO",
+    "StaticSolve",
+    "StaticSolveError",
+    "full_load_time",
     "INTEGRATOR_OPTIONS",
     "EXPLICIT",
     "DTYPES",
@@ -77,11 +83,22 @@ INTEGRATOR_OPTIONS = {
         "cg_iters": "an integer >= 1",
         "cg_tol": "a number >= 0",
     },
+    "static": {
+        "tol": "a positive number (relative residual)",
+        "max_iter": "an integer >= 1 (Newton iterations)",
+        "cg_iters": "an integer >= 1",
+        "cg_tol": "a positive number",
+        "time": "a time >= 0 (s)",
+    },
 }
 #: integer options and their least values; text options and their choices
-_INTEGER_OPTIONS = {"cg_iters": 1, "newton_iters": 0, "iterations": 1, "delay": 0}
+_INTEGER_OPTIONS = {"cg_iters": 1, "newton_iters": 0, "iterations": 1, "delay": 0, "max_iter": 1}
 _TEXT_OPTIONS = {"pair": tuple(PAIRS), "solver": SOLVERS}
 EXPLICIT = ("explicit", "symplectic", "verlet", "rk4")
+#: the integrator names of ``[integrator] name``: the time integrators and the static solve
+NAMES = (*INTEGRATORS, "static")
+#: ``[integrator]`` keys of a time integration that a static solve has no use for
+_DYNAMIC_ONLY = ("dt", "safety", "steps", "engine")
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 #: Model keyword -> scene key, to locate errors raised by the core.
 MODEL_KEYS = {
@@ -97,6 +114,57 @@ MODEL_KEYS = {
     "decay": "boundary.decay",
     "fixed": "boundary.fixed",
 }
+
+
+# ------------------------------------------------------------------ the static solve
+@dataclass(kw_only=True)
+class StaticSolve:
+    """``[integrator] name = "static"``: one :func:`~torchdeform.sim.static.solve_static` instead of time steps.
+
+    :func:`~torchdeform.scene.run_scene` finds the equilibrium under the loads and drags at ``time``
+    (Newton's method, CG inner solves) and writes it as the run's last frame (the first is the rest
+    state); a solve that does not reach ``tol`` within ``max_iter`` iterations writes nothing and
+    raises :class:`StaticSolveError`.
+
+    Args:
+        tol: relative residual to reach (``|F| <= tol |load|``); None: 1e-6 in float64 (a static
+            solve's default dtype), 1e-3 in float32 (rounding stalls Newton near 5e-4 there).
+        max_iter: Newton iterations at most.
+        cg_iters: CG iterations per Newton step at most.
+        cg_tol: relative tolerance of each CG solve.
+        time: when the loads and drags are taken (s); None: the end of every ramp and drag path
+            (:func:`full_load_time`, set by the scene reader).
+    """
+
+    tol: float | None = None
+    max_iter: int = 50
+    cg_iters: int = 500
+    cg_tol: float = 1e-3
+    time: float | None = None
+    name: str = "static"
+
+    def tolerance(self, dtype: torch.dtype) -> float:
+        """``tol``, or its default for ``dtype``: 1e-6 in float64, 1e-3 in float32 (where Newton stalls near 5e-4)."""
+        if self.tol is not None:
+            return float(self.tol)
+        return 1e-6 if dtype == torch.float64 else 1e-3
+
+
+class StaticSolveError(TorchdeformError):
+    """A static solve that did not reach its tolerance: one sentence naming the scene key to change."""
+
+
+def full_load_time(loads, drags) -> float:
+    """The time (s) by which every load has ramped up and every drag has reached its last waypoint (0 if none)."""
+    ends = [0.0]
+    for load in loads or []:
+        ends.append(float(load.start) + float(load.ramp))
+    for drag in drags or []:
+        if drag.path is not None:
+            ends.append(float(drag.path[-1][0]))
+        else:
+            ends.append(float(drag.start) + float(drag.ramp))
+    return max(ends)
 
 
 # ------------------------------------------------------------------ the scene
@@ -231,36 +299,108 @@ def lattice_modulus(grid: Grid) -> float:
     return float((1.0 / torch.linalg.inv(C).diagonal()).mean())
 
 
-def tissue_moduli(values, *, key: str = "tissue") -> list:
-    """Young's moduli (Pa) of tissue words or consistency values, from the fuzzy tissue library.
+#: The Poisson ratio of a consistency term or number (no tissue of the library, so no measured ratio):
+#: soft tissue is nearly incompressible; 0.45 keeps explicit time steps about twice those of 0.49
+DEFAULT_POISSON_RATIO = 0.45
+
+
+def tissue_properties(values, *, key: str = "tissue") -> list:
+    """The elastic solid of tissue words or consistency values, from the fuzzy tissue library.
 
     Each value is a tissue of :func:`torchdeform.fuzzy.tissues` (its consistency), a term of the
     ``consistency`` input of the library's system ``tissue_si`` (the middle of the term's plateau)
-    or a consistency number in ``[0, 10]``; the system turns the consistency into a Young's modulus.
-    The system is evaluated once for all values.
+    or a consistency number in ``[0, 10]``; the system turns the consistency into a Young's modulus
+    and a viscosity. The system is evaluated once for all values.
+
+    Returns:
+        one dict per value: ``youngs_modulus`` E (Pa) and ``viscosity`` eta (Pa s) of the system,
+        ``poisson_ratio`` nu (the library's for a tissue, :data:`DEFAULT_POISSON_RATIO` for a term
+        or a number) and ``density`` (kg/m^3, the library's for a tissue, None for a term or a number).
+
+    Raises:
+        ConfigError: (naming ``key``) a value that is none of these.
+
+    Examples:
+        >>> liver, soft = tissue_properties(["liver", "soft"])
+        >>> round(liver["youngs_modulus"]), liver["poisson_ratio"], liver["density"]
+        (3700, 0.49, 1060.0)
+        >>> soft["poisson_ratio"], soft["density"]
+        (0.45, None)
+    """
+    from ..fuzzy.presets import load_preset, tissues
+
+    library, fis = tissues(), load_preset("tissue_si")
+    var = cast("Variable", fis.inputs[0])  # a system's inputs are variables
+    consistency, out = [], []
+    for v in values:
+        if isinstance(v, str) and v in library:
+            entry = library[v]
+            consistency.append(float(entry["consistency"]))
+            out.append({"poisson_ratio": float(entry["poisson_ratio"]), "density": float(entry["density"])})
+            continue
+        if isinstance(v, str) and v in var.term_names:
+            consistency.append(float(cast("MembershipFunction", var.terms[v]).peak()))
+        elif is_number(v) and 0 <= v <= 10:
+            consistency.append(float(v))
+        else:
+            raise ConfigError(key, TISSUE_EXPECTED, got=v)
+        out.append({"poisson_ratio": DEFAULT_POISSON_RATIO, "density": None})
+    if not out:
+        return []
+    y = fis(torch.tensor(consistency, dtype=fis.dtype).view(-1, 1))
+    names = fis.output_names()
+    for row, props in zip(y, out):
+        props["youngs_modulus"] = float(row[names.index("youngs_modulus")])
+        props["viscosity"] = float(row[names.index("viscosity")])
+    return out
+
+
+def tissue_moduli(values, *, key: str = "tissue") -> list:
+    """Young's moduli (Pa) of tissue words or consistency values, from the fuzzy tissue library.
+
+    The ``youngs_modulus`` of :func:`tissue_properties`.
 
     Examples:
         >>> E = tissue_moduli(["fat", "hard", 5.0])
         >>> [round(e / 1000, 1) for e in E]            # kPa
         [2.8, 58.5, 11.0]
     """
-    from ..errors import ConfigError
-    from ..fuzzy.presets import load_preset, tissues
+    return [p["youngs_modulus"] for p in tissue_properties(values, key=key)]
 
-    library, fis = tissues(), load_preset("tissue_si")
-    var = cast("Variable", fis.inputs[0])  # a system's inputs are variables
-    consistency = []
-    for v in values:
-        if isinstance(v, str) and v in library:
-            consistency.append(float(library[v]["consistency"]))
-        elif isinstance(v, str) and v in var.term_names:
-            consistency.append(float(cast("MembershipFunction", var.terms[v]).peak()))
-        elif is_number(v) and 0 <= v <= 10:
-            consistency.append(float(v))
-        else:
-            raise ConfigError(key, TISSUE_EXPECTED, got=v)
-    out = fis(torch.tensor(consistency, dtype=fis.dtype).view(-1, 1))
-    return [float(e) for e in out[:, fis.output_names().index("youngs_modulus")]]
+
+def kelvin_voigt_damping(grid: Grid, youngs_modulus, poisson_ratio, retardation) -> torch.Tensor:
+    r"""Each spring's dashpot (N s/m), ``(S, D, H, W)`` float64: Kelvin-Voigt damping of an elastic body.
+
+    A Kelvin-Voigt solid has stress :math:`\sigma = C \varepsilon + \tau C \dot\varepsilon`:
+    every spring of stiffness ``k`` (N/m) gets a dashpot ``c = k tau`` (N s/m) with the retardation
+    time :math:`\tau = \eta / E` (s) of the tissue (viscosity eta in Pa s, Young's modulus E in Pa).
+    Assembled from the cells as :class:`~torchdeform.sim.material.Elastic` assembles the springs,
+    with the shear modulus ``mu`` of each cell replaced by ``mu tau`` (the corner mean): for one
+    ``tau`` everywhere exactly ``c = k tau``; a body of several tissues gives each cell its own.
+    The volume term gets no dashpot.
+
+    Args:
+        grid: the grid (14, 18 or 26 neighbours, cubic cells).
+        youngs_modulus: E (Pa), a number or per node ``(D, H, W)``.
+        poisson_ratio: nu, a number or per node.
+        retardation: tau = eta / E (s), a number or per node.
+
+    Examples:
+        >>> import torch
+        >>> import torchdeform as td
+        >>> grid = td.Grid((3, 3, 3), spacing=0.01)
+        >>> c = kelvin_voigt_damping(grid, 3700.0, 0.49, 4e-4)
+        >>> k = td.Model(grid, td.Elastic(3700.0, 0.49), density=1000.0, dtype=torch.float64).stiffness[0]
+        >>> bool(torch.allclose(c, 4e-4 * k, rtol=1e-12, atol=0))
+        True
+    """
+    from ..sim.material import cell_field, cell_mask, spring_stiffness
+
+    h = Elastic(youngs_modulus, poisson_ratio).check_grid(grid)
+    E, nu, tau = (torch.as_tensor(v, dtype=torch.float64) for v in (youngs_modulus, poisson_ratio, retardation))
+    viscous = E / (2 * (1 + nu)) * tau  # mu tau (Pa s) per node
+    cells = cell_field(viscous, grid, dtype=torch.float64, device=None) * cell_mask(grid).to(torch.float64)
+    return spring_stiffness(grid, cells, h)
 
 
 #: Young's moduli (Pa) outside which a spring lattice is no soft tissue: a unit is probably mixed up
@@ -287,7 +427,57 @@ def _plausible(t: Table, which: str, grid: Grid) -> None:
         )
 
 
-def _material(t: Table, grid: Grid) -> dict:
+_E_EXPECTED = "Young's modulus E in Pa (> 0)"
+_NU_EXPECTED = (
+    "a Poisson ratio in [0.25, 0.5) (0.5 is incompressible, which the volume term never reaches; "
+    "springs alone already give 0.25)"
+)
+
+
+@dataclass
+class _Solid:
+    """The elastic solid of ``[material]`` (``tissue`` or ``youngs_modulus``), and of its ``[[regions]]``.
+
+    ``E`` (Pa), ``nu`` and ``tau`` (the Kelvin-Voigt retardation time eta / E in s, None: no automatic
+    damping) and ``density`` (kg/m^3, None: none known) are numbers or per-node float64 fields
+    ``(D, H, W)``; ``key`` is the scene key that made it.
+    """
+
+    E: float | torch.Tensor
+    nu: float | torch.Tensor
+    tau: float | torch.Tensor | None
+    density: float | torch.Tensor | None
+    key: str
+
+    def model_args(self, grid: Grid) -> dict:
+        """Model keywords: the :class:`Elastic` stiffness, its Kelvin-Voigt damping, the density if known."""
+        args: dict = {"stiffness": Elastic(self.E, self.nu), "normalize": False}
+        if self.tau is not None:
+            args["damping"] = kelvin_voigt_damping(grid, self.E, self.nu, self.tau)
+        return args
+
+    def mass_args(self, grid: Grid) -> dict | None:
+        """``{"density": rho}`` (one tissue) or ``{"mass": per node}`` (several), None with no density."""
+        if self.density is None:
+            return None
+        if not torch.is_tensor(self.density):
+            return {"density": float(self.density)}
+        from ..sim.model import lumped_mass
+
+        return {"mass": lumped_mass(grid, 1.0)[0, 0] * self.density}
+
+
+def _field(value, grid: Grid) -> torch.Tensor:
+    """A number or a field as a float64 field ``(D, H, W)`` (a copy)."""
+    return torch.as_tensor(value, dtype=torch.float64).expand(grid.shape).clone()
+
+
+def _material(t: Table, grid: Grid) -> tuple[dict, _Solid | None]:
+    """The Model keywords of ``[material]`` and, for an elastic solid (``tissue``, ``youngs_modulus``), the solid.
+
+    The solid's own keywords (stiffness, Kelvin-Voigt damping) come from :meth:`_Solid.model_args`
+    once the regions are on it.
+    """
     which = t.one_of("stiffness", "spring_modulus", "modulus", "tissue", "youngs_modulus")
     if which == "modulus":
         import warnings
@@ -298,18 +488,24 @@ def _material(t: Table, grid: Grid) -> dict:
             ConfigWarning,
             stacklevel=2,
         )
-    if which != "youngs_modulus":
+    solid = None
+    if which not in ("youngs_modulus", "tissue"):
         t.only_with("poisson_ratio", "youngs_modulus")
     if which == "youngs_modulus":
-        E = t.num("youngs_modulus", "Young's modulus E in Pa (> 0)", lo=0, lo_open=True)
-        nu = t.num("poisson_ratio", "a Poisson ratio in [0.25, 0.5)", lo=0.25, hi=0.5, hi_open=True)
-        args = {"stiffness": Elastic(E, nu), "normalize": False}
-        with t.src.located(t.key("youngs_modulus")):
-            args["stiffness"].check_grid(grid)
+        E = t.num("youngs_modulus", _E_EXPECTED, lo=0, lo_open=True)
+        nu = t.num("poisson_ratio", _NU_EXPECTED, lo=0.25, hi=0.5, hi_open=True)
+        solid = _Solid(E, nu, None, None, t.key("youngs_modulus"))
     elif which == "tissue":
         with t.src.located(t.key("tissue")):
-            E = tissue_moduli([t.data["tissue"]])[0]
-        args = {"stiffness": E / lattice_modulus(grid), "normalize": False}
+            props = tissue_properties([t.data["tissue"]])[0]
+        nu = t.num("poisson_ratio", _NU_EXPECTED, default=props["poisson_ratio"], lo=0.25, hi=0.5, hi_open=True)
+        E = props["youngs_modulus"]
+        tau = None if t.has("damping") else props["viscosity"] / E
+        solid = _Solid(E, nu, tau, props["density"], t.key("tissue"))
+    if solid is not None:
+        args: dict = {"normalize": False}
+        with t.src.located(solid.key, keys={"material": solid.key}):
+            Elastic(solid.E, solid.nu).check_grid(grid)
     else:
         args = {
             "stiffness": t.per_class(which, "N/m" if which == "stiffness" else "N"),
@@ -329,22 +525,36 @@ def _material(t: Table, grid: Grid) -> dict:
             t.only_with(key, f'law = "{name}"')
     if name != "hooke":
         args["law"] = LAWS[name](**{key: t.per_class(key, "dimensionless") if t.has(key) else 0.0 for key in own})
-    return args
+    return args, solid
+
+
+def _region_tables(src: Source, items) -> list:
+    if not isinstance(items, list):
+        raise src.error("regions", "[[regions]] tables", got=items)
+    return [Table(src, f"regions[{n}]", item, SECTIONS["regions"]) for n, item in enumerate(items)]
 
 
 def _regions(src: Source, items, grid: Grid, base_stiffness) -> torch.Tensor:
     """Per-spring stiffness ``(S, D, H, W)`` of ``[[regions]]``: each spring the harmonic mean of its ends' k."""
     from ..sim.springs import harmonic_mean_of_ends
 
-    if not isinstance(items, list):
-        raise src.error("regions", "[[regions]] tables", got=items)
+    tables = _region_tables(src, items)
     if not is_number(base_stiffness):
         raise src.error(
-            "material", "stiffness = a number or tissue = .. with [[regions]] (not a class table or modulus)"
+            "material",
+            "stiffness = a number or tissue = .. (or youngs_modulus = ..) with [[regions]] "
+            "(not a class table or modulus)",
         )
     k = torch.full(grid.shape, float(base_stiffness), dtype=torch.float64)
-    for n, item in enumerate(items):
-        t = Table(src, f"regions[{n}]", item, SECTIONS["regions"])
+    for t in tables:
+        for key in ("youngs_modulus", "poisson_ratio"):
+            if t.has(key):
+                raise t.fail(
+                    key,
+                    "stiffness (N/m) or tissue in a region of a body of springs ([material] stiffness); "
+                    f"{key} needs an elastic body ([material] youngs_modulus or tissue)",
+                    got=t.data[key],
+                )
         mask = region_mask(t, grid)
         if t.one_of("stiffness", "tissue") == "stiffness":
             value = t.num("stiffness", "a positive number (N/m)", lo=0, lo_open=True)
@@ -353,6 +563,46 @@ def _regions(src: Source, items, grid: Grid, base_stiffness) -> torch.Tensor:
                 value = tissue_moduli([t.data["tissue"]], key="tissue")[0] / lattice_modulus(grid)
         k[mask] = value
     return harmonic_mean_of_ends(k[None], grid)[0]
+
+
+def _elastic_regions(src: Source, items, grid: Grid, solid: _Solid) -> _Solid:
+    """The solid with the per-node E, nu (and Kelvin-Voigt tau, density) of ``[[regions]]``, later on top.
+
+    A region's ``tissue`` sets E, nu (its own ``poisson_ratio`` wins), tau and density on its nodes;
+    ``youngs_modulus`` and ``poisson_ratio`` set E and nu, the rest of the body's fields stay.
+    """
+    tables = _region_tables(src, items)
+    E, nu = _field(solid.E, grid), _field(solid.nu, grid)
+    tau = None if solid.tau is None else _field(solid.tau, grid)
+    rho = None if solid.density is None else _field(solid.density, grid)
+    for t in tables:
+        if t.has("stiffness"):
+            raise t.fail(
+                "stiffness",
+                "youngs_modulus (Pa), poisson_ratio or tissue in a region of an elastic body "
+                f"({solid.key}); stiffness (N/m) is for a body of springs ([material] stiffness)",
+                got=t.data["stiffness"],
+            )
+        present = [k for k in ("youngs_modulus", "poisson_ratio", "tissue") if t.has(k)]
+        if not present:
+            raise src.error(t.name, "at least one of the keys youngs_modulus, poisson_ratio or tissue")
+        if t.has("tissue") and t.has("youngs_modulus"):
+            raise t.fail("youngs_modulus", "exactly one of youngs_modulus or tissue", got=t.data["youngs_modulus"])
+        mask = region_mask(t, grid)
+        if t.has("tissue"):
+            with src.located(t.key("tissue")):
+                props = tissue_properties([t.data["tissue"]], key="tissue")[0]
+            E[mask] = props["youngs_modulus"]
+            nu[mask] = props["poisson_ratio"]
+            if tau is not None:
+                tau[mask] = props["viscosity"] / props["youngs_modulus"]
+            if rho is not None and props["density"] is not None:
+                rho[mask] = props["density"]
+        if t.has("youngs_modulus"):
+            E[mask] = t.num("youngs_modulus", _E_EXPECTED, lo=0, lo_open=True)
+        if t.has("poisson_ratio"):
+            nu[mask] = t.num("poisson_ratio", _NU_EXPECTED, lo=0.25, hi=0.5, hi_open=True)
+    return _Solid(E, nu, tau, rho, solid.key)
 
 
 def _mass(t: Table) -> dict:
@@ -409,15 +659,48 @@ def _loads(src: Source, items, grid: Grid) -> list:
     return loads
 
 
-def _integrator(t: Table, grid: Grid) -> dict:
-    name = t.text(
-        "name", "one of " + ", ".join(f'"{n}"' for n in INTEGRATORS), default="symplectic", choices=INTEGRATORS
+def _device(t: Table):
+    device = t.text("device", 'a device name such as "cpu" or "cuda"', default=None)
+    if device is not None:  # tried once: torch accepts names it cannot use ("meta", "xpu")
+        try:
+            usable_device(device, key="device")
+        except ConfigError as e:
+            raise t.fail("device", e.expected, got=device) from None
+    return device
+
+
+def _static(t: Table) -> dict:
+    """The run settings of ``[integrator] name = "static"`` (:class:`StaticSolve`)."""
+    for k in _DYNAMIC_ONLY:
+        if t.has(k):
+            raise t.fail(k, f'no {k} with name = "static" (a static solve takes no time steps)', got=t.data[k])
+    opts = INTEGRATOR_OPTIONS["static"]
+    solve = StaticSolve(
+        tol=t.num("tol", opts["tol"], default=None, lo=0, lo_open=True, hi=1, hi_open=True),
+        max_iter=t.integer("max_iter", opts["max_iter"], default=50, lo=1),
+        cg_iters=t.integer("cg_iters", opts["cg_iters"], default=500, lo=1),
+        cg_tol=t.num("cg_tol", opts["cg_tol"], default=1e-3, lo=0, lo_open=True, hi=1, hi_open=True),
+        time=t.num("time", opts["time"], default=None, lo=0),  # None: set from the loads and drags
     )
+    return dict(
+        integrator=solve,
+        dt="auto",
+        steps=0,
+        dtype=DTYPES[t.text("dtype", '"float32" or "float64"', default="float64", choices=DTYPES)],
+        device=_device(t),
+        threads=t.integer("threads", "an integer >= 1 (CPU threads of the run)", default=None, lo=1),
+    )
+
+
+def _integrator(t: Table, grid: Grid) -> dict:
+    name = t.text("name", "one of " + ", ".join(f'"{n}"' for n in NAMES), default="symplectic", choices=NAMES)
     options = INTEGRATOR_OPTIONS[name]
     for k in t.data:
         if k not in SECTIONS["integrator"] and k not in options:
             own = ", ".join(options) if options else "none"
             raise t.fail(k, f"one of the keys {', '.join(SECTIONS['integrator'])} (options of {name}: {own})", got=k)
+    if name == "static":
+        return _static(t)
     kwargs = {}
     for k, expected in options.items():
         if not t.has(k):
@@ -462,12 +745,7 @@ def _integrator(t: Table, grid: Grid) -> dict:
         raise t.fail("dt", 'a positive number of seconds or "auto"', got=dt)
     if t.has("safety") and dt != "auto":
         raise t.fail("safety", 'no safety unless dt = "auto"', got=t.data["safety"])
-    device = t.text("device", 'a device name such as "cpu" or "cuda"', default=None)
-    if device is not None:  # tried once: torch accepts names it cannot use ("meta", "xpu")
-        try:
-            usable_device(device, key="device")
-        except ConfigError as e:
-            raise t.fail("device", e.expected, got=device) from None
+    device = _device(t)
     return dict(
         integrator=integrator,
         dt=dt if dt == "auto" else float(dt),
@@ -483,6 +761,46 @@ def _integrator(t: Table, grid: Grid) -> dict:
             choices=ENGINES,
         ),
     )
+
+
+def _body(src: Source, data: dict, section: dict, grid: Grid) -> dict:
+    """Model keywords of ``[material]``, ``[[regions]]`` and ``[mass]`` (or the tissue's density)."""
+    model_args, solid = _material(section["material"], grid)
+    if "regions" in data:
+        if solid is None:
+            model_args["stiffness"] = _regions(src, data["regions"], grid, model_args["stiffness"])
+        else:
+            solid = _elastic_regions(src, data["regions"], grid, solid)
+    if solid is not None:
+        model_args.update(solid.model_args(grid))
+    if "mass" in section:
+        model_args.update(_mass(section["mass"]))
+        return model_args
+    mass = None if solid is None else solid.mass_args(grid)  # the density of the tissue
+    if mass is None:
+        raise src.error(
+            "mass",
+            "a [mass] section (required) unless [material] tissue names a tissue of the library "
+            "(whose density it then takes)",
+        )
+    return {**model_args, **mass}
+
+
+def _check_static(src: Source, data: dict, out: Table) -> None:
+    """Refuse what a static solve cannot do: tools, topology changes, frames over time, an animation."""
+    for name in ("tools", "strain_limit", *TOPOLOGY):
+        if name in data:
+            raise src.error(
+                name,
+                f'no [{name}] with [integrator] name = "static" (a static solve has no time steps for it to act in)',
+            )
+    for key in ("record_every", "surfaces", "animation", "palpation"):
+        if out.has(key):
+            raise out.fail(
+                key,
+                f'no {key} with [integrator] name = "static" (its run has two frames: rest and equilibrium)',
+                got=out.data[key],
+            )
 
 
 def mass_spring_scene(src: Source, data: dict, base: Path, *, name: str = "scene") -> Scene:
@@ -507,9 +825,7 @@ def mass_spring_scene(src: Source, data: dict, base: Path, *, name: str = "scene
         if name_ in data and name_ not in ("loads", "drags", "regions", "tools", "cuts", "cautery", "coagulate")
     }
     grid = grid_section(section["grid"], base)
-    model_args = {**_material(section["material"], grid), **_mass(section["mass"])}
-    if "regions" in data:
-        model_args["stiffness"] = _regions(src, data["regions"], grid, model_args["stiffness"])
+    model_args = _body(src, data, section, grid)
     if "boundary" in section:
         model_args.update(_boundary(section["boundary"], grid))
     if "loads" in data:
@@ -524,6 +840,10 @@ def mass_spring_scene(src: Source, data: dict, base: Path, *, name: str = "scene
         model_args["interactions"] = tools.interactions()
     run = _integrator(section["integrator"], grid)
     out = section.get("output") or Table(src, "output", {}, SECTIONS["output"])
+    if isinstance(run["integrator"], StaticSolve):
+        _check_static(src, data, out)
+        if run["integrator"].time is None:
+            run["integrator"].time = full_load_time(model_args.get("loads"), model_args.get("drags"))
     palpation = palpation_option(out, tools)
     if palpation is not None:
         assert tools is not None  # palpation names a tool

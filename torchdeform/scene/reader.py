@@ -72,7 +72,7 @@ SECTIONS = {
         "quadratic",
         "cubic",
     ),
-    "regions": ("sphere", "box", "stiffness", "tissue"),
+    "regions": ("sphere", "box", "stiffness", "tissue", "youngs_modulus", "poisson_ratio"),
     "mass": ("mass", "density"),
     "boundary": ("fixed", "fixed_nodes", "home", "anchors", "decay", "gravity"),
     "loads": ("node", "force", "face", "traction", "start", "ramp"),
@@ -122,7 +122,8 @@ SECTIONS = {
         "on_blocked",
     ),
 }
-REQUIRED = ("grid", "material", "mass", "integrator")
+#: sections every mass-spring scene needs (``[mass]`` too, unless ``[material] tissue`` gives the density)
+REQUIRED = ("grid", "material", "integrator")
 #: marks an argument that was not given (``got`` not shown, no default)
 MISSING = object()
 _HEADER = re.compile(r"^\s*\[\[?\s*([A-Za-z0-9_.\-]+)\s*\]\]?")

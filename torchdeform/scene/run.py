@@ -23,8 +23,9 @@ from ..outputs import NonFiniteOutputError, RunFolder, manifest, non_finite_keys
 from ..sim.engine import Engine, simulate
 from ..sim.model import Model, State
 from ..sim.stability import check_dt, time_step_bound
+from ..sim.static import solve_static
 from .chainmail import ChainMailScene, chainmail_scene
-from .mass_spring import EXPLICIT, Scene, mass_spring_scene
+from .mass_spring import EXPLICIT, Scene, StaticSolve, StaticSolveError, mass_spring_scene
 from .reader import read
 from .tools import ToolRecorder, support_series, tool_outputs
 
@@ -244,6 +245,8 @@ def scene_engine(scene: Scene, topology: bool) -> Engine:
 
 def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
     """:func:`run_scene` of a mass-spring scene, with the scene's threads set."""
+    if isinstance(scene.integrator, StaticSolve):
+        return _run_static(scene, out, device)
     model = scene.build(device=device)
     recorder = None
     if scene.tools is not None:  # fresh contacts and grasps: they keep state
@@ -300,7 +303,6 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
     summary, (t, x, v, series) = run_outputs(
         scene, model, integrator, dt, bound, final, rec, wall, engine.summary(), out, series
     )
-    grid = model.grid
     if recorder is not None:
         assert scene.tools is not None  # the recorder records the scene's tools
         summary.update(
@@ -314,18 +316,7 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
         )
     if events is not None:
         summary["topology"] = events.outputs(final, out, title=f"{scene.name}: {integrator.name}, dt = {dt:.3g} s")
-    texture = None
-    if scene.texture:
-        texture, seams = scene_texture(scene.texture, grid)
-        labels = events.pieces() if events is not None else torch.where(grid.nodes(), 0, -1)
-        summary["texture"] = scene_texture_outputs(texture, grid, final.x[:1], labels, out)
-        summary["texture"]["seams"] = seams
-    if scene.volume:
-        spec = dict(scene.volume)
-        cut = None if events is None else (grid, events.pieces())  # a cut body: a carved render
-        summary["volume"] = scene_volume_outputs(
-            spec.pop("file"), final.x[:1], model.X, grid.spacing, out, cut=cut, **spec
-        )
+    texture = _final_state_outputs(scene, model, final, out, summary, None if events is None else events.pieces())
     if scene.animation:
         labels = events.pieces() if events is not None else None
         tools = None if recorder is None else recorder.series()
@@ -333,6 +324,89 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
             scene, model, t, x, v, out, labels=labels, tools=tools, texture=texture, progress=progress
         )
     finish_outputs(summary, out, t, series, f"{scene.name}: {integrator.name}, dt = {dt:.3g} s")
+    return summary
+
+
+def _final_state_outputs(scene: Scene, model: Model, final: State, out: Path, summary: dict, pieces=None):
+    """The texture and volume outputs of the final state (``[texture]``, ``[volume]``); the texture or None.
+
+    ``pieces``: the labels ``(D, H, W)`` of a cut body's pieces, or None (one piece).
+    """
+    grid = model.grid
+    texture = None
+    if scene.texture:
+        texture, seams = scene_texture(scene.texture, grid)
+        labels = pieces if pieces is not None else torch.where(grid.nodes(), 0, -1)
+        summary["texture"] = scene_texture_outputs(texture, grid, final.x[:1], labels, out)
+        summary["texture"]["seams"] = seams
+    if scene.volume:
+        spec = dict(scene.volume)
+        cut = None if pieces is None else (grid, pieces)  # a cut body: a carved render
+        summary["volume"] = scene_volume_outputs(
+            spec.pop("file"), final.x[:1], model.X, grid.spacing, out, cut=cut, **spec
+        )
+    return texture
+
+
+def _run_static(scene: Scene, out: Path, device) -> dict:
+    """:func:`run_scene` of a scene whose integrator is a :class:`StaticSolve`: one static solve.
+
+    Writes what a run writes for its final state: ``trajectory.npz`` with two frames (the rest state
+    and the equilibrium, both at the solve's time, velocities zero), ``summary.json`` (with a
+    ``"static"`` part: residual, convergence, iterations), ``energy.png`` and the ``[volume]`` and
+    ``[texture]`` outputs. A solve that does not converge raises :class:`StaticSolveError` before
+    anything is written.
+    """
+    model = scene.build(device=device)
+    solve = cast(StaticSolve, scene.integrator)
+    t = float(solve.time or 0.0)
+    tol = solve.tolerance(model.dtype)
+    rest = model.rest_state()
+    start = time.perf_counter()
+    final, info = solve_static(
+        model,
+        state=State(rest.x, rest.v, t=t),
+        tol=tol,
+        max_iter=solve.max_iter,
+        cg_iters=solve.cg_iters,
+        cg_tol=solve.cg_tol,
+    )
+    wall = time.perf_counter() - start
+    if not info["converged"] or not bool(torch.isfinite(final.x).all()):
+        key = "integrator.max_iter" if math.isfinite(info["residual"]) else "integrator.tol"
+        line = scene.source.line_of(key) or scene.source.line_of("integrator") if scene.source.path else None
+        where = f"{scene.source.path}:{line}: " if scene.source.path and line else ""
+        raise StaticSolveError(
+            f"{where}{key}: the static solve did not converge: relative residual {info['residual']:.3g} > tol "
+            f"{tol:.3g} after {info['iterations']} Newton iterations (max_iter = {solve.max_iter}); raise "
+            "max_iter or tol, or hold the body (fixed nodes, home springs) so that it has one equilibrium; "
+            "nothing was written"
+        )
+    rec = {
+        "t": torch.tensor([t, t], dtype=torch.float64),
+        "x": torch.stack([rest.x, final.x]).detach().cpu(),
+        "v": torch.zeros((2, *final.x.shape), dtype=final.x.dtype),
+    }
+    engine = {"requested": "static", "ran": "static", "why": "a static solve: Newton iterations, eager"}
+    summary, (t_rec, _, _, series) = run_outputs(scene, model, solve, 0.0, math.inf, final, rec, wall, engine, out)
+    summary.update(
+        steps=0,
+        dt_s=None,
+        dt_auto=False,
+        stability_bound_method="none: a static solve takes no time steps",
+        steps_per_s=None,
+        static={
+            "converged": True,
+            "residual": info["residual"],
+            "tol": tol,
+            "iterations": info["iterations"],
+            "cg_iterations": info["cg_iterations"],
+            "max_iter": solve.max_iter,
+            "time_s": t,
+        },
+    )
+    _final_state_outputs(scene, model, final, out, summary)
+    finish_outputs(summary, out, t_rec, series, f"{scene.name}: static equilibrium")
     return summary
 
 
@@ -454,9 +528,16 @@ def _chain(*callbacks):
 
 def report(summary: dict, out_dir) -> str:
     """One line for the CLI: what ran, how fast, and where the outputs are."""
+    files = summary.get("outputs") or ["trajectory.npz", "summary.json", "energy.png"]
+    if "static" in summary:
+        st = summary["static"]
+        return (
+            f"{summary['name']}: static equilibrium in {st['iterations']} Newton iterations ({st['cg_iterations']} CG) "
+            f"in {summary['wall_time_s']:.2f} s, relative residual {st['residual']:.2g} (tol {st['tol']:.2g}), "
+            f"max displacement {summary['max_displacement_m'] * 1e3:.3g} mm; wrote {', '.join(files)} to {out_dir}"
+        )
     bound = summary["time_step_bound_s"]
     bound = f" (bound {bound:.3g} s)" if bound else ""
-    files = summary.get("outputs") or ["trajectory.npz", "summary.json", "energy.png"]
     tools = ""
     if "tools" in summary:
         tools = ", max tool force " + ", ".join(

@@ -170,8 +170,6 @@ class Engine:
         """Why the packed engines cannot run this simulation, or None."""
         if self.blocked:
             return self.blocked
-        if getattr(model, "volume", None) is not None:
-            return "the volume term of an Elastic material runs in the eager step"
         if gradient_needed(model, state):
             return "a gradient is needed (the packed engines run without autograd)"
         if callable(loads):

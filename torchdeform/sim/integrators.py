@@ -376,6 +376,9 @@ def inverse_diagonal(model, h: float) -> torch.Tensor:
     diag = model.mass + h * h * model.spring_sums(model.stiffness)
     if model.k_home is not None:
         diag = diag + h * h * model.k_home
+    volume = model.volume_diagonal()
+    if volume is not None:
+        diag = diag + h * h * volume
     c = gated_damping(model.damping, model.stiffness)
     if c is not None:
         diag = diag + h * model.spring_sums(c)

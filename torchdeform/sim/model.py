@@ -24,6 +24,7 @@ from .forces import as_vec3, home_force
 from .grid import CLASSES, Grid
 from .laws import as_law
 from .material import (
+    CELL_SHARE,
     Elastic,
     VolumeLinearisation,
     cell_field,
@@ -243,9 +244,14 @@ class Model:
         self.rest_length = grid.rest_lengths(dtype=dtype, device=dev).view(1, grid.S, 1, 1, 1)
 
         # springs (masked only when some springs are missing); a material gives them from its cells
-        #: the volume term ``(kappa_cells (D-1, H-1, W-1) in Pa, cell side h in m)``, or None
-        self.volume: tuple[torch.Tensor, float] | None
-        stiffness, self.volume = _material_springs(stiffness, normalize, grid, dtype, dev)
+        #: the cell term of an Elastic material ``(kappa_cells, h, shear_cells)``: the volume modulus and
+        #: the cells' share of the shear modulus per cell ``(D-1, H-1, W-1)`` (Pa), the cell side (m); or None
+        #: (``kappa_cells`` is 0 at missing and dead cells; ``(B, D-1, H-1, W-1)`` after per-entry cuts)
+        self.volume: tuple[torch.Tensor, float, torch.Tensor] | None
+        #: an Elastic body's shear modulus per cell (Pa), ``(D-1, H-1, W-1)`` (or ``(B, ...)``), 0 at
+        #: missing and dead cells: what a topology change re-assembles the springs from; else None
+        self.mu_cells: torch.Tensor | None
+        stiffness, self.volume, self.mu_cells = _material_springs(stiffness, normalize, grid, dtype, dev)
         k = spring_param(stiffness, grid, "stiffness", dtype, dev)
         c = None if damping is None else spring_param(damping, grid, "damping", dtype, dev)
         if normalize:
@@ -421,7 +427,7 @@ class Model:
         """
         F = self.spring_forces(x, v, impl=impl)
         if self.volume is not None:
-            F = F + volume_forces(x, *self.volume)
+            F = F + self.volume_forces(x)
         if self.k_home is not None:
             F = F + home_force(x, self.X, self.k_home)
         if self.gravity is not None:
@@ -452,6 +458,26 @@ class Model:
             lp=self.law_params,
         )
 
+    def volume_forces(self, x: torch.Tensor) -> torch.Tensor:
+        """Forces of the volume term of an :class:`~torchdeform.sim.material.Elastic` material (N), ``(B, 3, D, H, W)``."""
+        assert self.volume is not None
+        return volume_forces(x, *self.volume)
+
+    def volume_rows(self) -> torch.Tensor | None:
+        """Gershgorin row sums of the volume term at rest per node (N/m), ``(1|B, 1, D, H, W)``, or None without one.
+
+        (:func:`~torchdeform.sim.material.volume_row_sums`.)
+        """
+        return None if self.volume is None else self._volume_rows()
+
+    def _volume_rows(self, *, diagonal: bool = False) -> torch.Tensor:
+        kappa, h, shear = self.volume
+        return volume_row_sums(kappa, h, self.grid.shape, shear, diagonal=diagonal)
+
+    def volume_diagonal(self) -> torch.Tensor | None:
+        """The diagonal of the cell term's stiffness at rest per node (N/m), ``(1|B, 1, D, H, W)``, or None."""
+        return None if self.volume is None else self._volume_rows(diagonal=True)
+
     def spring_sums(self, p: torch.Tensor) -> torch.Tensor:
         """``sum_j p_ij`` over the springs at each node, ``(Bp, 1, D, H, W)``.
 
@@ -467,8 +493,9 @@ class Model:
         with the masses, a bound on the top eigenvalue; alone, a Jacobi preconditioner.
         """
         rows = 2 * self.spring_sums(self.stiffness)
-        if self.volume is not None:
-            rows = rows + volume_row_sums(self.volume[0], self.volume[1], self.grid.shape)
+        volume = self.volume_rows()
+        if volume is not None:
+            rows = rows + volume
         if self.k_home is not None:
             rows = rows + self.k_home
         return rows
@@ -519,23 +546,25 @@ class Model:
 
 
 def _material_springs(stiffness, normalize, grid: Grid, dtype, device):
-    """``(stiffness, volume)``: the springs and volume term of :class:`Model`'s ``stiffness``.
+    """``(stiffness, volume, mu_cells)``: the springs, volume term and cells of :class:`Model`'s ``stiffness``.
 
-    A stiffness gives itself and no volume term; an :class:`~torchdeform.sim.material.Elastic`
-    gives springs ``(S, D, H, W)`` assembled from its cells and ``(kappa_cells, h)``, or None where
-    it needs no volume term (``nu = 1/4``).
+    A stiffness gives itself and no volume term or cells; an
+    :class:`~torchdeform.sim.material.Elastic` gives springs ``(S, D, H, W)`` assembled from its
+    cells, its cell term ``(kappa_cells, h, shear_cells)`` and the shear modulus per cell
+    ``(D-1, H-1, W-1)`` (Pa, 0 where a cell is missing).
     """
     if not isinstance(stiffness, Elastic):
-        return stiffness, None
+        return stiffness, None, None
     material = stiffness
     if normalize:
         raise ConfigError("normalize", "False with an Elastic material (its springs are in N/m)", got=normalize)
     h = material.check_grid(grid)
     cells = cell_mask(grid, device=device).to(dtype)
     mu, _ = material.lame()
-    k = spring_stiffness(grid, cell_field(mu, grid, dtype=dtype, device=device) * cells, h)
+    mu_cells = cell_field(mu, grid, dtype=dtype, device=device) * cells
+    k = spring_stiffness(grid, mu_cells, h)
     kappa = cell_field(material.volume_modulus(), grid, dtype=dtype, device=device) * cells
-    return k, (None if not bool((kappa != 0).any()) else (kappa, h))
+    return k, (kappa, h, CELL_SHARE * mu_cells), mu_cells
 
 
 __all__ = ["Model", "State", "spring_param", "node_param", "lumped_mass"]

@@ -73,12 +73,15 @@ __all__ = [
     "symplectic_step",
     "BLOCK_NODES",
     "name_of",
+    "load_library",
 ]
 
 #: bump when the generated source changes meaning (part of every cache key through the source)
 KERNEL_VERSION = 3
 
 _CTYPE = {torch.float32: "float", torch.float64: "double"}
+#: the C type of each dtype the kernels take (their names)
+CTYPE_NAMES = _CTYPE
 
 #: nodes per block of the kernel's loops (see :func:`source`). Measured at 64^3, 26 neighbours,
 #: float32, one and two threads: 32 nodes 17-21 and 10-13 ns per node, 128 about 15.5 and 8-11,
@@ -104,6 +107,13 @@ class Variant:
             :func:`~torchdeform.sim.springs.gate_damping`).
         update: the kernel also makes the symplectic Euler update (:func:`symplectic_step`)
             instead of writing the forces.
+        extra: the update adds a force field of its own ``(B, 3, P)`` (an Elastic material's
+            volume term, :mod:`.native_volume`) to the springs'.
+        cells: stiffness from cells: the number of cells holding a spring along each direction
+            (an Elastic body's springs, :func:`~torchdeform.sim.material.spring_stiffness`): the
+            kernel reads the shear modulus of each cell (one node field) and makes each spring's
+            stiffness ``k_s = kq[s] sum_cells mu_c`` instead of reading ``S`` per-spring fields;
+            empty for stiffness per direction or per spring.
     """
 
     S: int
@@ -115,6 +125,8 @@ class Variant:
     c_per_spring: bool = False
     gate: bool = False
     update: bool = False
+    extra: bool = False
+    cells: tuple = ()
 
 
 def source(var: Variant) -> str:
@@ -144,9 +156,15 @@ def source(var: Variant) -> str:
     sqrt = "sqrtf" if T == "float" else "sqrt"
     # the update's operands: new velocities U (F holds the new positions), 1 / m and m, g, dt, the drag factor
     upd = (
-        (f", {T}* restrict U, const {T}* restrict IM, const {T}* restrict MS, {T} g0, {T} g1, {T} g2, {T} dt, {T} keep")
-        if var.update
-        else ""
+        (
+            (
+                f", {T}* restrict U, const {T}* restrict IM, const {T}* restrict MS, {T} g0, {T} g1, {T} g2, {T} dt, {T} keep"
+            )
+            if var.update
+            else ""
+        )
+        + (f", const {T}* restrict E" if var.extra else "")
+        + (f", const {T}* restrict MU, const int64_t* restrict coff" if var.cells else "")
     )
     rings = 2 if damp == 2 else 1  # a; and b (Radetzky's damping, per spring)
     lines = [
@@ -182,8 +200,11 @@ def source(var: Variant) -> str:
         w(f"  const {T} *V0 = V, *V1 = V + P, *V2 = V + 2 * P;")
     if var.update:
         w(f"  {T} *U0 = U, *U1 = U + P, *U2 = U + 2 * P;")
+    if var.extra:
+        w(f"  const {T} *E0 = E, *E1 = E + P, *E2 = E + 2 * P;")
     for s in range(S):
         w(f"  const int64_t o{s} = off[{s}];")
+    cell_at = _cell_offset_lines(w, var.cells)
     w("  int64_t R = BLK;")
     w("  while (R < G + 2 * BLK) R <<= 1;")
     w("  const int64_t RS = R + BLK, M = R - 1;         /* a ring per direction, BLK mirrored at its end */")
@@ -205,7 +226,7 @@ def source(var: Variant) -> str:
     for s in range(S):
         w("      { /* forward */")
         w(f"        const int64_t j = i + o{s};")
-        w(f"        const {T} ks = " + (f"kq[{s} * P + i];" if var.k_per_spring else f"kq[{s}];"))
+        w(f"        const {T} ks = {_stiffness_expr(var, s, cell_at)};")
         w(f"        const {T} ls = " + (f"lq[{s} * P + i];" if var.l0_per_spring else f"lq[{s}];"))
         w(f"        const {T} d0 = X0[j] - x0, d1 = X1[j] - x1, d2 = X2[j] - x2;")
         w(f"        const {T} sq = d0 * d0 + d1 * d1 + d2 * d2;")
@@ -257,41 +278,47 @@ def source(var: Variant) -> str:
         else:
             w("        f0 += a * (X0[j] - x0); f1 += a * (X1[j] - x1); f2 += a * (X2[j] - x2);")
         w("      }")
-    w("      F0[i] = f0; F1[i] = f1; F2[i] = f2;") if not var.update else _update_lines(w, T, "      ")
+    w("      F0[i] = f0; F1[i] = f1; F2[i] = f2;") if not var.update else _update_lines(w, T, "      ", var.extra)
     w("    }")
     w("  }")
     w("  return 0;")
     w("}")
     w("")
+    cells_args = f", const {T}* mu, int64_t mub, const int64_t* coff" if var.cells else ""
     w(f"int springs(const {T}* x, const {T}* v, {T}* f, const {T}* inside, const {T}* k, const {T}* l0,")
     w(f"    const {T}* c, const int64_t* off, int64_t B, int64_t P, int64_t G, int64_t kb, int64_t lb,")
     if var.update:
         w(
             f"    int64_t cb, int nt, {T} tiny, {T}* u, const {T}* im, const {T}* ms, int64_t mb, "
-            f"{T} g0, {T} g1, {T} g2, {T} dt, {T} keep) {{"
+            f"{T} g0, {T} g1, {T} g2, {T} dt, {T} keep" + (f", const {T}* e" if var.extra else "") + cells_args + ") {"
         )
     else:
-        w(f"    int64_t cb, int nt, {T} tiny) {{")
+        w(f"    int64_t cb, int nt, {T} tiny" + cells_args + ") {")
     w("  int failed = 0;")
     w("  for (int64_t b = 0; b < B; b++) {")
     w(f"    const {T}* X = x + b * 3 * P; const {T}* V = v + b * 3 * P; {T}* F = f + b * 3 * P;")
+    if var.cells:
+        w(f"    const {T}* MU = mu + b * mub;")
     w(f"    const {T}* kq = k + b * kb; const {T}* lq = l0 + b * lb; const {T}* cq = c + b * cb;")
     if var.update:
         w(f"    {T}* U = u + b * 3 * P; const {T}* IM = im + b * mb; const {T}* MS = ms + b * mb;")
         w(f"    const {T} *X0 = X, *X1 = X + P, *X2 = X + 2 * P, *V0 = V, *V1 = V + P, *V2 = V + 2 * P;")
         w(f"    {T} *F0 = F, *F1 = F + P, *F2 = F + 2 * P, *U0 = U, *U1 = U + P, *U2 = U + 2 * P;")
+        if var.extra:
+            w(f"    const {T}* E = e + b * 3 * P; const {T} *E0 = E, *E1 = E + P, *E2 = E + 2 * P;")
         w("    for (int part = 0; part < 2; part++) {            /* outside the core range: no springs */")
         w("      for (int64_t i = part ? P - G : 0; i < (part ? P : G); i++) {")
         w(f"        const {T} x0 = X0[i], x1 = X1[i], x2 = X2[i], f0 = 0, f1 = 0, f2 = 0;")
-        _update_lines(w, T, "        ")
+        _update_lines(w, T, "        ", var.extra)
         w("      }")
         w("    }")
-        extra = ", U, IM, MS, g0, g1, g2, dt, keep"
+        extra = ", U, IM, MS, g0, g1, g2, dt, keep" + (", E" if var.extra else "")
     else:
         w("    for (int a = 0; a < 3; a++) {                          /* zero outside the core range */")
         w(f"      memset(F + a * P, 0, G * sizeof({T})); memset(F + a * P + P - G, 0, G * sizeof({T}));")
         w("    }")
         extra = ""
+    extra += ", MU, coff" if var.cells else ""
     w("#ifdef _OPENMP")
     w("    if (nt > 1) {")
     w("      #pragma omp parallel num_threads(nt) reduction(|:failed)")
@@ -311,16 +338,38 @@ def source(var: Variant) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _update_lines(w, T: str, ind: str) -> None:
+def _cell_offset_lines(w, counts: tuple) -> list:
+    """Declare the cells' offsets of each direction (``c{s}_{m} = coff[..]``); their names per direction."""
+    names = []
+    for s, n in enumerate(counts):
+        names.append([f"c{s}_{m}" for m in range(n)])
+        for m in range(n):
+            w(f"  const int64_t c{s}_{m} = coff[{sum(counts[:s]) + m}];")
+    return names
+
+
+def _stiffness_expr(var: Variant, s: int, cell_at: list) -> str:
+    """The C expression of direction ``s``'s stiffness at node ``i``: per direction, per spring or from cells."""
+    if var.cells:  # the cells' shear moduli, summed in the order of material.spring_stiffness
+        return f"({' + '.join(f'MU[i + {c}]' for c in cell_at[s])}) * kq[{s}]"
+    return f"kq[{s} * P + i]" if var.k_per_spring else f"kq[{s}]"
+
+
+def _update_lines(w, T: str, ind: str, extra: bool = False) -> None:
     """The symplectic Euler update of node ``i`` from its spring forces ``f0..f2``, in torch's order.
 
-    ``a = (1/m) (f + m g)``, ``u = v + dt a``, ``x' = x + dt u`` (into ``F``), ``v' = keep u`` (into
+    ``a = (1/m) (f + m g)`` (``f`` plus the ``extra`` force ``E`` first, where there is one), ``u = v + dt a``, ``x' = x + dt u`` (into ``F``), ``v' = keep u`` (into
     ``U``; ``keep`` the global drag's ``exp(-decay dt)``), as :class:`~torchdeform.sim.integrators.SymplecticEuler`.
     """
     w(f"{ind}const {T} im = IM[i], ms = MS[i];")
+    if extra:
+        w(f"{ind}const {T} e0 = f0 + E0[i], e1 = f1 + E1[i], e2 = f2 + E2[i];")
+        f0, f1, f2 = "e0", "e1", "e2"
+    else:
+        f0, f1, f2 = "f0", "f1", "f2"
     w(
-        f"{ind}const {T} u0 = V0[i] + dt * (im * (f0 + ms * g0)), u1 = V1[i] + dt * (im * (f1 + ms * g1)), "
-        f"u2 = V2[i] + dt * (im * (f2 + ms * g2));"
+        f"{ind}const {T} u0 = V0[i] + dt * (im * ({f0} + ms * g0)), u1 = V1[i] + dt * (im * ({f1} + ms * g1)), "
+        f"u2 = V2[i] + dt * (im * ({f2} + ms * g2));"
     )
     w(f"{ind}F0[i] = x0 + dt * u0; F1[i] = x1 + dt * u1; F2[i] = x2 + dt * u2;")
     w(f"{ind}U0[i] = u0 * keep; U1[i] = u1 * keep; U2[i] = u2 * keep;")
@@ -380,17 +429,24 @@ def unavailable() -> str | None:
 _kernels: dict = {}  # loaded functions by the custom op's ``kernel`` argument (:func:`kernel`)
 
 
-def _build(var: Variant):
+def load_library(src: str, stem: str) -> ctypes.CDLL:
+    """Build C source ``src`` (or take it from the disk cache) and load it.
+
+    Tries :data:`FLAG_SETS` in order; the library is cached as ``{stem}-{key}.so`` in
+    :func:`cache_dir`, keyed by the source, the compiler, the CPU and the flags.
+
+    Raises:
+        NativeBuildError: no flag set built and loaded (the message has the compiler's words).
+    """
     cmd, version, cpu = _compiler()
-    src = source(var)
     last = ""
     for flags in FLAG_SETS:
         key = hashlib.sha256("\n".join([src, cmd, version, cpu, " ".join(flags)]).encode()).hexdigest()[:20]
-        so = cache_dir() / f"springs-{key}.so"
+        so = cache_dir() / f"{stem}-{key}.so"
         if not so.exists():
             so.parent.mkdir(parents=True, exist_ok=True)
             with tempfile.TemporaryDirectory(dir=so.parent) as tmp:
-                c_file, out = Path(tmp) / "springs.c", Path(tmp) / "springs.so"
+                c_file, out = Path(tmp) / f"{stem}.c", Path(tmp) / f"{stem}.so"
                 c_file.write_text(src)
                 r = subprocess.run(
                     [cmd, *flags, "-fPIC", "-shared", str(c_file), "-o", str(out), "-lm"],
@@ -402,17 +458,27 @@ def _build(var: Variant):
                     continue
                 os.replace(out, so)  # atomic: concurrent builders agree
         try:
-            lib = ctypes.CDLL(str(so))
+            return ctypes.CDLL(str(so))
         except OSError as e:
             last = str(e)
-            continue
-        T = ctypes.c_float if var.dtype == "float" else ctypes.c_double
-        fn = lib.springs
-        i64, ptr = ctypes.c_int64, ctypes.c_void_p
-        fn.argtypes = [ptr] * 8 + [i64] * 6 + [ctypes.c_int, T] + ([ptr] * 3 + [i64] + [T] * 5 if var.update else [])
-        fn.restype = ctypes.c_int
-        return fn
-    raise NativeBuildError(f"could not build the spring kernel {var}: {last}")
+    raise NativeBuildError(last)
+
+
+def _build(var: Variant):
+    try:
+        lib = load_library(source(var), "springs")
+    except NativeBuildError as e:
+        raise NativeBuildError(f"could not build the spring kernel {var}: {e}") from None
+    T = ctypes.c_float if var.dtype == "float" else ctypes.c_double
+    fn = lib.springs
+    i64, ptr = ctypes.c_int64, ctypes.c_void_p
+    fn.argtypes = (
+        ([ptr] * 8 + [i64] * 6 + [ctypes.c_int, T] + ([ptr] * 3 + [i64] + [T] * 5 if var.update else []))
+        + ([ptr] if var.extra else [])
+        + ([ptr, i64, ptr] if var.cells else [])
+    )
+    fn.restype = ctypes.c_int
+    return fn
 
 
 def name_of(var: Variant) -> str:
@@ -427,7 +493,10 @@ def name_of(var: Variant) -> str:
     """
     name = (
         f"S{var.S}-{var.dtype}-d{var.damping}-k{var.k_per_spring:d}-l{var.l0_per_spring:d}"
-        f"-c{var.c_per_spring:d}-g{var.gate:d}" + ("-step" if var.update else "")
+        f"-c{var.c_per_spring:d}-g{var.gate:d}"
+        + ("-step" if var.update else "")
+        + ("-extra" if var.extra else "")
+        + ("-cells" if var.cells else "")
     )
     _variants[name] = var
     return name
@@ -462,11 +531,13 @@ def variant_of(pm) -> Variant:
     per = [p is not None and p.shape[-1] != 1 for p in (pm.stiffness, pm.rest_length, pm.damping)]
     damping = 0 if pm.damping is None else (1 if pm.projected else 2)
     gate = bool(damping) and _needs_gate(pm.stiffness, pm.damping)  # as spring_law gates it
+    cells = getattr(pm, "cell_springs", None)
     return Variant(
         S=len(pm.offsets),
         dtype=_CTYPE[pm.dtype],
         damping=damping,
-        k_per_spring=per[0],
+        cells=() if cells is None else cells.counts,
+        k_per_spring=per[0] and cells is None,
         l0_per_spring=per[1],
         c_per_spring=per[2] and bool(damping),
         gate=gate,
@@ -492,14 +563,32 @@ def spring_forces(pm, x: torch.Tensor, v: torch.Tensor, *, name: str | None = No
     before tracing).
     """
     name = name or kernel(variant_of(pm))
-    return native_springs(x, v, pm.inside, pm.stiffness, pm.rest_length, pm.damping, pm.offset_table, name, pm.G)
+    k, mu, coff = _stiffness_operands(pm)
+    return native_springs(x, v, pm.inside, k, pm.rest_length, pm.damping, pm.offset_table, name, pm.G, mu, coff)
+
+
+def _stiffness_operands(pm) -> tuple:
+    """``(k, mu, cell offsets)`` of a kernel call: the stiffness, or the per-direction factors and the cells."""
+    cells = getattr(pm, "cell_springs", None)
+    if cells is None:
+        return pm.stiffness, None, None
+    return cells.factors, cells.mu, cells.offsets
+
+
+def _cell_args(mu: torch.Tensor | None, coff: torch.Tensor | None, G: int) -> tuple:
+    """The trailing arguments of a kernel with stiffness from cells: ``mu`` (past its ``G`` leading zeros), its batch stride, the offsets."""
+    if mu is None:
+        return ()
+    assert coff is not None and mu.is_contiguous()
+    return (mu.data_ptr() + G * mu.element_size(), _batch_stride(mu), coff.data_ptr())
 
 
 def fused_blocker(pm, integrator, *, loads=None) -> str | None:
     """Why :func:`symplectic_step` cannot make this packed step, or None.
 
     It makes the whole step of :class:`~torchdeform.sim.integrators.SymplecticEuler` for Hooke
-    springs, gravity, fixed nodes and the global drag; home springs, loads, drags along paths and
+    springs, gravity, fixed nodes and the global drag (and an Elastic material's volume term, made
+    by :mod:`.native_volume` first and added as its ``extra`` force: that kernel runs wherever this one does); home springs, loads, drags along paths and
     interactions keep the step in torch around the force kernel.
     """
     from .integrators import SymplecticEuler
@@ -521,32 +610,37 @@ def fused_blocker(pm, integrator, *, loads=None) -> str | None:
     return supports(pm)
 
 
-def symplectic_step(pm, x: torch.Tensor, v: torch.Tensor, dt: float, *, name: str | None = None):
+def symplectic_step(
+    pm, x: torch.Tensor, v: torch.Tensor, dt: float, *, name: str | None = None, extra: torch.Tensor | None = None
+):
     """One :class:`~torchdeform.sim.integrators.SymplecticEuler` step of a packed model in one kernel.
 
     The springs, ``a = (f + m g) / m`` (zero at fixed nodes), ``v' = v + dt a``, ``x' = x + dt v'``
     and the global drag ``v' exp(-decay dt)``, in one pass over the nodes (:func:`fused_blocker`
     says where it applies). No gradient. ``name``: the kernel's name from :func:`kernel` (a variant
-    with ``update``), default built or loaded here.
+    with ``update``), default built or loaded here. ``extra``: a force field ``(B, 3, P)`` added to
+    the springs' (an Elastic material's volume term; a variant with ``extra`` too).
 
     Returns:
         ``(x', v')``, each ``(B, 3, P)``.
     """
-    name = name or kernel(dataclasses.replace(variant_of(pm), update=True))
+    name = name or kernel(dataclasses.replace(variant_of(pm), update=True, extra=extra is not None))
     x, v = x.contiguous(), v.contiguous()
+    extra = None if extra is None else extra.contiguous().expand_as(x).contiguous()
     im, ms = pm.inv_mass.contiguous(), pm.mass.contiguous()
     if im.shape[0] != ms.shape[0]:
         im, ms = (t.expand(max(im.shape[0], ms.shape[0]), *t.shape[1:]).contiguous() for t in (im, ms))
     xo, vo = torch.empty_like(x), torch.empty_like(v)
     g = (0.0, 0.0, 0.0) if pm.gravity is None else tuple(float(a) for a in pm.gravity.flatten())
     keep = 1.0 if pm.decay is None else math.exp(-pm.decay * dt)
+    k, mu, coff = _stiffness_operands(pm)
     _call(
         name,
         x,
         v,
         xo,
         pm.inside,
-        pm.stiffness,
+        k,
         pm.rest_length,
         pm.damping,
         pm.offset_table,
@@ -558,6 +652,8 @@ def symplectic_step(pm, x: torch.Tensor, v: torch.Tensor, dt: float, *, name: st
         *g,
         dt,
         keep,
+        *(() if extra is None else (extra.data_ptr(),)),
+        *_cell_args(mu, coff, pm.G),
     )
     return xo, vo
 
@@ -598,14 +694,19 @@ def native_springs(
     offsets: torch.Tensor,
     kernel: str,
     G: int,
+    mu: torch.Tensor | None = None,
+    coff: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Spring forces ``(B, 3, P)`` by the loaded C kernel named ``kernel`` (see :func:`spring_forces`)."""
+    """Spring forces ``(B, 3, P)`` by the loaded C kernel named ``kernel`` (see :func:`spring_forces`).
+
+    ``mu``, ``coff``: a kernel with stiffness from cells (``k`` then holds the per-direction factors).
+    """
     x = x.contiguous()
     f = torch.empty_like(x)
-    _call(kernel, x, v, f, inside, k, l0, c, offsets, G)
+    _call(kernel, x, v, f, inside, k, l0, c, offsets, G, *_cell_args(mu, coff, G))
     return f
 
 
 @native_springs.register_fake
-def _(x, v, inside, k, l0, c, offsets, kernel, G):
+def _(x, v, inside, k, l0, c, offsets, kernel, G, mu=None, coff=None):
     return torch.empty_like(x)

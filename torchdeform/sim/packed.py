@@ -34,16 +34,16 @@ Example:
 from __future__ import annotations
 
 import copy
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
 
-from ..errors import ConfigError
-from . import native
+from . import material, native, native_volume
 from .model import Model, State
 from .springs import combine_coefficients, gate_damping, spring_law
 
-__all__ = ["BLOCK", "PackedModel", "PackedLinearisation", "TraceContext"]
+__all__ = ["BLOCK", "PackedModel", "PackedLinearisation", "PackedVolumeLinearisation", "TraceContext"]
 
 #: Nodes per block of the linearisation's field layout (one AVX2 vector of float32): a block's
 #: fields for all directions lie together, so a CG product reads them as one stream.
@@ -124,8 +124,6 @@ class PackedModel(Model):
     def __init__(self, model: Model, *, share=False):
         if isinstance(model, PackedModel):
             raise TypeError("PackedModel(model): the model is already packed")
-        if getattr(model, "volume", None) is not None:
-            raise ConfigError("engine", "the eager engine for an Elastic material's volume term", got="a packed step")
         self.__dict__.update(model.__dict__)
         self.source = model
         grid = model.grid
@@ -159,6 +157,14 @@ class PackedModel(Model):
         self.law_params = tuple(self._spring(p) for p in model.law_params)
         #: ``(2 S, N, BLOCK)``: 1 where the spring along each direction from each core node exists
         self.spring_exists = self.exists()[0]
+        #: the volume term: ``kappa`` (Pa) of each cell at its lowest corner ``(Bk, 1, P)`` (0 where no
+        #: cell), the cell side ``h`` (m), and the C kernel's name once chosen (:meth:`traced`)
+        self.volume_kappa = self.volume_shear = self.volume_h = self.volume_kernel = None
+        #: an Elastic body's springs as the C kernel may make them from its cells (:class:`CellSprings`), or None
+        self.cell_springs = None if share else self._cell_springs(model)
+        if self.volume is not None:
+            kappa, self.volume_h, shear = self.volume
+            self.volume_kappa, self.volume_shear = (self._pack_cells(t) for t in (kappa, shear))
         #: the compile-time context (:class:`TraceContext`): inert here; a compiled step traces a
         #: view of this model bound to its own context (:meth:`traced`)
         self.trace = TraceContext()
@@ -202,6 +208,12 @@ class PackedModel(Model):
                 setattr(model, name, self.unpack(t))
         self.constrained = self.free[0, 0] == 0
         model.constrained = self.unpack(self.constrained.view(1, 1, -1))[0, 0]
+        if self.volume is not None:  # the cells' moduli: a cut that kills cells writes them in place
+            views = []
+            for packed, own in zip((self.volume_kappa, self.volume_shear), model.volume[::2]):
+                cells = self.unpack(packed)[:, 0, :-1, :-1, :-1]  # (Bk, D-1, H-1, W-1), a view
+                views.append(cells[0] if own.dim() == 3 else cells)
+            model.volume = (views[0], self.volume_h, views[1])
 
     def keep(self, field: torch.Tensor) -> torch.Tensor:
         """``field`` stored in memory under ``torch.compile`` (see :meth:`TraceContext.keep`)."""
@@ -232,6 +244,8 @@ class PackedModel(Model):
                 view.native_why = str(e)
         if view.force_form == "native" and view.native_kernel is None:
             raise native.NativeBuildError(f"force_form='native': {view.native_why}")
+        if view.force_form == "native" and self.volume is not None and native_volume.supports(self) is None:
+            view.volume_kernel = native_volume.kernel(self.dtype) if build else native.CTYPE_NAMES[self.dtype]
         if view.force_form is None:
             # the gather form only for several CPU threads: on a GPU (Triton) its unrolled kernel
             # took 181 s to compile cold at 16^3 against 13 s for the reduction form, whose step
@@ -448,9 +462,85 @@ class PackedModel(Model):
         """``sum_j p_ij`` per node, ``(Bp, 1, P)``."""
         return self.gather(lambda s, sign, mask: [self.param(p, s, sign) * mask])
 
-    def linearise(self, x, *, clamp=True) -> PackedLinearisation:
-        """Springs linearised at packed positions ``x`` (:class:`PackedLinearisation`)."""
-        return PackedLinearisation(self, x=x, clamp=clamp)
+    def _cell_springs(self, model: Model) -> CellSprings | None:
+        """:class:`CellSprings` where ``model``'s stiffness is exactly that of its cells, else None.
+
+        (Not for a law other than Hooke's, nor once the stiffness was changed after the model was
+        built: a learned scale, a mask; an editable model keeps per-spring stiffness for its cuts.)
+        """
+        mu = getattr(model, "mu_cells", None)
+        if mu is None or model.law is not None or model.stiffness.requires_grad:
+            return None
+        grid, h = model.grid, float(model.grid.spacing[0])
+        k = material.spring_stiffness(grid, mu, h)  # as the model made it (springs from its cells)
+        if k.dim() == 4:
+            k = k.unsqueeze(0)
+        if k.shape[0] != model.stiffness.shape[0] or not torch.equal(k.expand_as(model.stiffness), model.stiffness):
+            return None
+        _D, H, W = grid.shape
+        plane, row = (H + 2) * (W + 2), W + 2
+        counts, offsets = [], []
+        for d in grid.directions:
+            cells = material._cells_of(d)
+            counts.append(len(cells))
+            offsets += [(a - 1) * plane + (b - 1) * row + (e - 1) for a, b, e in cells]
+        factors = material.spring_factors(grid, h)
+        mu = mu.reshape(-1, 1, *mu.shape[-3:])
+        packed = F.pad(self.pack(F.pad(mu, (0, 1, 0, 1, 0, 1))), (self.G, 0)).contiguous()
+        return CellSprings(
+            tuple(counts),
+            torch.tensor(factors, dtype=self.dtype).view(1, -1, 1).to(model.stiffness.dtype),
+            packed,
+            torch.tensor(offsets, dtype=torch.int64),
+        )
+
+    # ------------------------------------------------------------------ the volume term
+    def grid_view(self, t: torch.Tensor) -> torch.Tensor:
+        """``(B, C, P) -> (B, C, D+2, H+2, W+2)``: the padded grid, halo included (a view)."""
+        D, H, W = self.grid.shape
+        return t[..., : self._P_grid].view(*t.shape[:2], D + 2, H + 2, W + 2)
+
+    def from_grid_view(self, t: torch.Tensor) -> torch.Tensor:
+        """The inverse of :meth:`grid_view`: ``(B, C, D+2, H+2, W+2) -> (B, C, P)``."""
+        return F.pad(t.flatten(2), (0, self.P - self._P_grid))
+
+    def _pack_cells(self, cells: torch.Tensor) -> torch.Tensor:
+        """A per-cell field ``(cells)`` or ``(Bk, cells)`` at each cell's lowest corner, packed: ``(Bk, 1, P)``."""
+        return self.pack(F.pad(cells.reshape(-1, 1, *cells.shape[-3:]), (0, 1, 0, 1, 0, 1)))
+
+    def _padded_cells(self, packed: torch.Tensor) -> torch.Tensor:
+        """A packed per-cell field as the cells of the padded grid ``(Bk, D+1, H+1, W+1)`` (0 in the halo)."""
+        return self.grid_view(packed)[:, 0, :-1, :-1, :-1]
+
+    def padded_volume(self) -> tuple:
+        """The cell term on the padded grid's cells: ``(kappa, h, shear)`` (see :meth:`grid_view`)."""
+        return self._padded_cells(self.volume_kappa), self.volume_h, self._padded_cells(self.volume_shear)
+
+    def volume_forces(self, x: torch.Tensor, *, impl: str | None = None) -> torch.Tensor:
+        """The volume term's forces (N) at packed positions ``x``, ``(B, 3, P)``.
+
+        ``impl``: ``"native"`` (the C kernel, :mod:`.native_volume`), ``"torch"``
+        (:func:`~torchdeform.sim.material.volume_forces` on :meth:`grid_view`), or None: the C
+        kernel where :meth:`traced` chose it, else torch.
+        """
+        if impl == "native" or (impl is None and self.volume_kernel is not None):
+            return native_volume.volume_forces(self, x, name=self.volume_kernel)
+        return self.from_grid_view(material.volume_forces(self.grid_view(x), *self.padded_volume()))
+
+    def volume_rows(self) -> torch.Tensor | None:
+        """The volume term's Gershgorin row sums per node (N/m), ``(1, 1, P)``, or None."""
+        rows = self.source.volume_rows()
+        return None if rows is None else self.pack(rows)
+
+    def volume_diagonal(self) -> torch.Tensor | None:
+        """The cell term's stiffness diagonal per node (N/m), ``(1, 1, P)``, or None."""
+        diag = self.source.volume_diagonal()
+        return None if diag is None else self.pack(diag)
+
+    def linearise(self, x, *, clamp=True) -> PackedLinearisation | PackedVolumeLinearisation:
+        """Springs (and the volume term) linearised at packed positions ``x`` (:class:`PackedLinearisation`)."""
+        lin = PackedLinearisation(self, x=x, clamp=clamp)
+        return lin if self.volume is None else PackedVolumeLinearisation(self, lin, x)
 
     def energy(self, state: State) -> dict:
         """Energies of a packed state, as :meth:`~torchdeform.sim.model.Model.energy` (unpacked first)."""
@@ -557,3 +647,52 @@ class PackedLinearisation:
         # the sums are zero there already.
         sums = torch.cat([(alpha * du[:, a] + proj * m[a]).sum(1, keepdim=True) for a in range(3)], 1)
         return -pm.spread(sums.flatten(-2))
+
+
+class CellSprings(NamedTuple):
+    """An Elastic body's springs as the C spring kernel makes them from the cells (:attr:`~.native.Variant.cells`).
+
+    Attributes:
+        counts: the number of cells holding a spring along each half-direction (1, 2 or 4).
+        factors: ``w h / 2^z`` per half-direction ``(1, S, 1)``: a spring's stiffness is its factor
+            times the sum of its cells' shear moduli (:func:`~torchdeform.sim.material.spring_stiffness`).
+        mu: the shear modulus of each cell at its lowest corner, packed, after ``G`` leading zeros
+            ``(Bm, 1, G + P)`` (a spring of a halo node reads before the layout's start).
+        offsets: the cells' linear offsets from a spring's first node, direction by direction ``(sum(counts),)``.
+    """
+
+    counts: tuple
+    factors: torch.Tensor
+    mu: torch.Tensor
+    offsets: torch.Tensor
+
+
+class PackedVolumeLinearisation(material.VolumeLinearisation):
+    """Springs and the volume term linearised at packed positions.
+
+    :class:`PackedLinearisation` plus :func:`~torchdeform.sim.material.volume_product` on the padded
+    grid (:meth:`PackedModel.grid_view`).
+
+    Args:
+        pm: the packed model.
+        springs: the springs' :class:`PackedLinearisation` at ``x``.
+        x: packed positions ``(B, 3, P)`` (or None with ``at``).
+        alpha: the scale of the volume term's product.
+        at: :func:`~torchdeform.sim.material.volume_state` on the padded grid, when already known.
+    """
+
+    def __init__(self, pm: PackedModel, springs, x, *, alpha: float = 1.0, at: tuple | None = None):
+        self.pm, self.springs, self.grid, self.alpha = pm, springs, pm.grid, alpha
+        self.kappa, self.h, self.shear = pm.padded_volume()
+        self.at = material.volume_state(pm.grid_view(x), self.h) if at is None else at
+
+    def scaled(self, *, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> PackedVolumeLinearisation:
+        """The operator ``u -> apply(u, alpha_scale, c, projected, c_scale)``, combined once."""
+        springs = self.springs.scaled(alpha_scale=alpha_scale, c=c, projected=projected, c_scale=c_scale)
+        return PackedVolumeLinearisation(self.pm, springs, None, alpha=self.alpha * alpha_scale, at=self.at)
+
+    def apply(self, u, *, alpha_scale=1.0, c=None, projected=True, c_scale=1.0) -> torch.Tensor:
+        """``(h2 K + h C) u``, ``(B, 3, P)`` (the volume term has no damping)."""
+        y = self.springs.apply(u, alpha_scale=alpha_scale, c=c, projected=projected, c_scale=c_scale)
+        vol = material.volume_product(self.at, self.pm.grid_view(u), self.kappa, self.h, self.shear)
+        return y + (self.alpha * alpha_scale) * self.pm.from_grid_view(vol)

@@ -3,7 +3,10 @@
 Every change is an edit of the model's spring and node fields (stiffness, damping, rest lengths,
 masses, constraints), in place where the model is editable or shared with a compiled step
 (``compiled_step(..., editable=True)``): a compiled step reads the same tensors, so a cut needs
-no recompilation and costs nothing per step afterwards.
+no recompilation and costs nothing per step afterwards. An
+:class:`~torchdeform.sim.material.Elastic` body also loses every cell a change touches (a removed
+spring inside it, a removed corner): its volume term goes and the springs are re-assembled from the
+cells left (:func:`.masks.remove`; the rule and why in :mod:`torchdeform.sim.material`).
 
 =====================  ===========================================================================
 :mod:`.cut`            blades (parallelograms, triangles, the surface a cutting edge sweeps), the

@@ -5,7 +5,9 @@ anchor spring) are gone, its mass is zero and it is constrained, so it neither m
 anything, and gravity no longer acts on it. The mass and momentum that left the body are
 returned, so that they can be accounted for: the body's mass after plus the removed mass is the
 mass before, and likewise for momentum. ``model.removed`` (bool ``(D, H, W)``) collects the
-removed nodes.
+removed nodes. In an :class:`~torchdeform.sim.material.Elastic` body every cell with a removed
+corner dies (no volume term; its springs' shares go, see :mod:`torchdeform.sim.material`), so the
+body left is the one built on a node mask without the burnt nodes.
 
 Examples:
     >>> import torch
@@ -63,7 +65,7 @@ def cauterize(model, state, tool) -> dict:
         return {"nodes": 0, "mass_kg": 0.0, "momentum": (0.0, 0.0, 0.0)}
     out = {"nodes": int(nodes), "mass_kg": mass_kg, "momentum": tuple(momentum)}
     at_src, at_dst = ends(grid, burn)  # springs with an end burnt
-    remove(model, at_src | at_dst)
+    remove(model, at_src | at_dst, nodes=burn)  # an Elastic body's cells with a burnt corner die too
     if model.k_home is not None:
         assign(model, "k_home", model.k_home.expand(1, 1, *grid.shape) * (1 - b))
     # the node leaves the body: no mass, constrained, at rest (written in place where the model is

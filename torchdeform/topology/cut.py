@@ -423,7 +423,8 @@ def cut(
 
     Args:
         model: the :class:`~torchdeform.sim.model.Model` (its ``stiffness`` and ``damping`` change;
-            in place when it is editable or shared with a compiled step, see :mod:`.masks`).
+            in place when it is editable or shared with a compiled step, see :mod:`.masks`; an
+            Elastic body's crossed cells die, see :func:`~torchdeform.topology.masks.remove`).
         x: node positions ``(B, 3, D, H, W)``; a batch of positions gives one cut per batch entry.
         blade: the :class:`Blade`.
         gape: pre-tension: the springs left at the nodes of the cut get their rest lengths

@@ -32,8 +32,9 @@ from typing import NamedTuple
 import torch
 
 from ..errors import ConfigError
+from ..sim.material import corner_cells, reassemble, spring_cells, surviving_cells
 
-__all__ = ["Slab", "full", "alive", "remove", "ends", "editable", "assign", "slot_index"]
+__all__ = ["Slab", "full", "alive", "remove", "drop_cells", "ends", "editable", "assign", "slot_index"]
 
 
 class Slab(NamedTuple):
@@ -97,13 +98,7 @@ def assign(model, name: str, value: torch.Tensor) -> None:
     otherwise the attribute is replaced (a compiled step sharing the old tensor would not see it).
     """
     cur = getattr(model, name)
-    if (
-        cur is not None
-        and tuple(cur.shape) == tuple(value.shape)
-        and cur.dtype == value.dtype
-        and not cur.requires_grad
-        and not value.requires_grad
-    ):
+    if cur is not None and _in_place(cur, value):
         cur.copy_(value)
         return
     if model.shared and name in ("rest_length", "damping"):
@@ -142,6 +137,16 @@ def _union(grid, pieces: list, device=None) -> torch.Tensor:
     return out
 
 
+def _dense_slots(grid, springs, device) -> torch.Tensor:
+    """Slots given in any accepted form as one bool field ``(B, S, D, H, W)``."""
+    if torch.is_tensor(springs):
+        return springs.to(device=device, dtype=torch.bool)
+    if isinstance(springs, tuple):
+        n = int(springs[0].max()) + 1 if springs[0].numel() else 1
+        return _dense(grid, springs, n, device)
+    return _union(grid, springs, device)
+
+
 def _full_slots(model, t) -> bool:
     """``t`` is a full per-slot field that may be written in place."""
     return (
@@ -161,23 +166,36 @@ def _slabs(grid, springs) -> list:
     return [Slab(b, 0, 0, springs[b]) for b in range(springs.shape[0])]
 
 
-def remove(model, springs, *, as_tensor: bool = False) -> int | torch.Tensor:
+def remove(model, springs, *, nodes: torch.Tensor | None = None, as_tensor: bool = False) -> int | torch.Tensor:
     """Zero the stiffness and damping of the given slots; how many of them held a spring.
+
+    An :class:`~torchdeform.sim.material.Elastic` body (``model.mu_cells``) also loses the cells
+    that contain a given slot or a corner in ``nodes``: their volume term goes and the springs are
+    re-assembled from the cells left (:func:`drop_cells`), so springs whose cells all died lose
+    their stiffness too (they are not counted).
 
     Args:
         model: the model (changed in place).
         springs: bool ``(B|1, S, D, H, W)``, index tensors ``(b, s, d, h, w)`` (no repeats) or a
             list of :class:`Slab` (they may overlap).
+        nodes: bool ``(D, H, W)`` of nodes leaving the body (cautery), whose cells die with them;
+            their springs must be among ``springs``.
         as_tensor: return the count as a 0-d int64 tensor on the model's device instead of an
             int: on an accelerator the host then does not wait for the edit.
     """
-    if getattr(model, "volume", None) is not None:
-        raise ConfigError(
-            "material",
-            "a body given as a stiffness to cut, tear or burn (an Elastic body's springs and volume "
-            "term are assembled from its cells, which a removed spring would leave behind)",
-            got="Elastic",
-        )
+    count = _remove_springs(model, springs)
+    if getattr(model, "mu_cells", None) is not None:
+        grid = model.grid
+        dead = spring_cells(grid, _dense_slots(grid, springs, model.mu_cells.device))
+        if nodes is not None:
+            dead = dead | corner_cells(torch.as_tensor(nodes, dtype=torch.bool, device=dead.device))
+        if dead.device.type != "cpu" or bool(dead.any()):  # (an accelerator re-assembles without asking)
+            drop_cells(model, dead)
+    return count if as_tensor else int(count)
+
+
+def _remove_springs(model, springs) -> torch.Tensor:
+    """:func:`remove` of the slots alone: the count as a 0-d tensor."""
     # A spring with zero stiffness has no damping (spring_law): damping per direction stays as it
     # is; damping stored per spring is zeroed too (so the model reads the same either way).
     k, c = model.stiffness, model.damping
@@ -192,8 +210,7 @@ def remove(model, springs, *, as_tensor: bool = False) -> int | torch.Tensor:
             kv.masked_fill_(piece.mask, 0)
             if c is not None:
                 piece.view(c).masked_fill_(piece.mask, 0)
-        count = sum(counts) if counts else torch.zeros((), dtype=torch.int64, device=k.device)
-        return count if as_tensor else int(count)
+        return sum(counts) if counts else torch.zeros((), dtype=torch.int64, device=k.device)
     if model.shared:
         raise ConfigError("remove.springs", f"one cut per batch entry of the model's {k.shape[0]}", got=nb)
     dense = _union(model.grid, pieces, k.device)
@@ -202,7 +219,49 @@ def remove(model, springs, *, as_tensor: bool = False) -> int | torch.Tensor:
     model.stiffness = full(model, model.stiffness) * keep
     if model.damping is not None:
         model.damping = full(model, model.damping) * keep
-    return count if as_tensor else int(count)
+    return count
+
+
+def drop_cells(model, dead: torch.Tensor) -> None:
+    """Kill the ``dead`` cells of an :class:`~torchdeform.sim.material.Elastic` body (in place).
+
+    Their shear and volume moduli become 0 (``model.mu_cells``, ``model.volume[0]`` and ``[2]``) and the
+    springs are re-assembled from the live cells (:func:`~torchdeform.sim.material.reassemble`;
+    springs left without a live cell lose their stiffness, and their damping where it is stored per
+    spring). Written into the existing tensors where the shapes allow it (see :func:`assign`), so a
+    step that shares them sees the change.
+
+    Args:
+        model: a model with ``mu_cells`` (an Elastic body).
+        dead: bool ``(B|1, D-1, H-1, W-1)``: the cells to kill (per batch entry, or for all).
+    """
+    grid = model.grid
+    assign(model, "mu_cells", surviving_cells(model.mu_cells, dead))
+    if model.volume is not None:  # the cells' volume and shear moduli
+        kappa, h, shear = model.volume
+        kept = []
+        for cur in (kappa, shear):
+            value = surviving_cells(cur, dead)
+            if _in_place(cur, value):
+                cur.copy_(value)
+                value = cur
+            kept.append(value)
+        model.volume = (kept[0], h, kept[1])
+    k = reassemble(grid, full(model, model.stiffness), model.mu_cells, grid.spacing[0])
+    assign(model, "stiffness", k)
+    c = model.damping
+    if _full_slots(model, c):
+        assign(model, "damping", torch.where(k != 0, c, torch.zeros_like(c)))
+
+
+def _in_place(cur: torch.Tensor, value: torch.Tensor) -> bool:
+    """``value`` may be written into ``cur`` (same shape and dtype, neither requires grad)."""
+    return (
+        tuple(cur.shape) == tuple(value.shape)
+        and cur.dtype == value.dtype
+        and not cur.requires_grad
+        and not value.requires_grad
+    )
 
 
 def ends(grid, nodes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

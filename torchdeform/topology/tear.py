@@ -57,7 +57,8 @@ def tear(
     """Break the springs strained beyond ``max_strain`` at positions ``x`` (in place); returns how many.
 
     Args:
-        model: the :class:`~torchdeform.sim.model.Model` (its stiffness and damping change).
+        model: the :class:`~torchdeform.sim.model.Model` (its stiffness and damping change; an
+            Elastic body's cells around a torn spring die, see :func:`~torchdeform.topology.masks.remove`).
         x: positions ``(B, 3, D, H, W)`` (one tear per batch entry).
         max_strain: a number > 0 or a tensor broadcasting against ``(B, S, D, H, W)``.
         one_per_step: break only the most strained spring of each batch entry.
