@@ -81,6 +81,7 @@ from .reports import (
     spread_report,
 )
 from .series import FORMAT, Series, load_series
+from .static import POISSON_LIMITS, ElasticRegions, LoadCase, StaticLoss, face_traction, roller_faces
 from .synthetic import (
     SPRING_SETS,
     balloon_series,
@@ -131,4 +132,10 @@ __all__ = [
     "plot_spread",
     "history_dicts",
     "run_script",
+    "LoadCase",
+    "StaticLoss",
+    "ElasticRegions",
+    "face_traction",
+    "roller_faces",
+    "POISSON_LIMITS",
 ]
