@@ -85,7 +85,7 @@ def test_bench_elasticity_quick_json(capsys, tmp_path):
         assert r["springs_threads"] >= 1 and r["volume_threads"] >= 1
     assert rows[0]["tip_ratio"] < rows[1]["tip_ratio"]  # too stiff in bending, less so when finer
     assert rows[0]["nodes"] == 3 * 3 * 13 and rows[1]["nodes"] == 5 * 5 * 25
-    assert set(doc["engines"]) == {"springs alone", "springs + volume term"}
+    assert set(doc["engines"]) == {"springs alone", "springs + cell term"}
     assert (tmp_path / "elasticity.csv").is_file() and (tmp_path / "elasticity.png").is_file()
 
 
@@ -112,8 +112,8 @@ def test_bench_elasticity_refuses_bad_options(capsys, option, value):
 def test_bench_elasticity_quick_table(capsys):
     assert cli.main(argv=["bench", "elasticity", "--quick", "--threads", "1"]) == 0
     out = capsys.readouterr().out
-    assert "shear/FEM" in out and "punch/FEM" in out and "+volume ms" in out
-    assert "springs alone:" in out and "springs + volume term:" in out
+    assert "shear/FEM" in out and "punch/FEM" in out and "+cell term ms" in out
+    assert "springs alone:" in out and "springs + cell term:" in out
 
 
 @pytest.mark.slow

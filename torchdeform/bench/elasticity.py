@@ -1,4 +1,4 @@
-r"""``torchdeform bench elasticity``: an :class:`~torchdeform.sim.material.Elastic` lattice body against finite elements, and what its volume term costs.
+r"""``torchdeform bench elasticity``: an :class:`~torchdeform.sim.material.Elastic` lattice body against finite elements, and what its cell term costs.
 
 **Rows.** One per topology (18, 26 neighbours), Poisson ratio ``nu`` (0.3, 0.45, 0.49) and
 resolution: the cell side ``h = 5 mm / r`` for the refinements ``r`` (1, 2, 4: h = 5, 2.5,
@@ -82,8 +82,8 @@ COLUMNS = [
     ("threads", "thr", None),
     ("springs_engine", "springs on", None),
     ("springs_ms", "springs ms", "{:.3f}"),
-    ("volume_engine", "+volume on", None),
-    ("volume_ms", "+volume ms", "{:.3f}"),
+    ("volume_engine", "+cell term on", None),
+    ("volume_ms", "+cell term ms", "{:.3f}"),
     ("volume_cost", "x", "{:.2f}"),
 ]
 
@@ -204,7 +204,7 @@ def fastest_engine(model, integrator, *, compile: bool = True) -> tuple:
 
 
 def step_times(topology: int, nu: float, refine: int, *, dtype, device, compile, repeats, target_s, cache=None):
-    """Time the beam's symplectic Euler step with springs alone and with the volume term; row fields.
+    """Time the beam's symplectic Euler step with springs alone and with the cell term; row fields.
 
     ``cache``: a dict that keeps the springs-alone timing per ``(topology, refine)`` within a run
     (that model does not depend on ``nu``).
@@ -354,13 +354,13 @@ _SCENES = {
 
 
 def _engines(rows) -> dict:
-    """``{"springs alone": (engine, why), "springs + volume term": (engine, why)}`` of the last row (one line each)."""
+    """``{"springs alone": (engine, why), "springs + cell term": (engine, why)}`` of the last row (one line each)."""
     if not rows:
         return {}
     last = rows[-1]
     return {
         "springs alone": (last["springs_engine"], last["springs_why"]),
-        "springs + volume term": (last["volume_engine"], last["volume_why"]),
+        "springs + cell term": (last["volume_engine"], last["volume_why"]),
     }
 
 
@@ -368,7 +368,7 @@ _STYLE = {"shear": ("tab:blue", "shear"), "cantilever": ("tab:orange", "tip"), "
 
 
 def _plot(rows, out: Path, machine: dict) -> None:
-    """``elasticity.png``: |ratio - 1| against h (left) and against the step time with the volume term (right)."""
+    """``elasticity.png``: |ratio - 1| against h (left) and against the step time with the cell term (right)."""
     fig, (left, right) = axes(figsize=(11, 4.5), ncols=2)
     from matplotlib.ticker import NullLocator
 
@@ -390,7 +390,7 @@ def _plot(rows, out: Path, machine: dict) -> None:
                 left.plot([p[0] for p in pts], [p[2] for p in pts], **kw)
                 right.plot([p[1] for p in pts], [p[2] for p in pts], **kw)
     left.set_xlabel("cell side h (mm)")
-    right.set_xlabel("ms per step, springs + volume term")
+    right.set_xlabel("ms per step, springs + cell term")
     for ax in (left, right):
         ax.set_xscale("log")
         ax.set_yscale("log")

@@ -41,7 +41,6 @@ Example:
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import time
 
@@ -60,7 +59,7 @@ from .._compile import (
     while_loop,
 )
 from ..errors import ConfigError
-from . import native, native_volume
+from . import native
 from .integrators import ImplicitEuler, cg_iteration, cg_start, positive_dt
 from .model import State
 from .packed import PackedLinearisation, PackedModel, TraceContext
@@ -162,9 +161,7 @@ class CompiledStep:
         #: (:func:`~torchdeform.sim.native.symplectic_step`): that kernel's name, else None
         self.fused = None
         if not enable and self.force_form == "native" and native.fused_blocker(pm, integrator, loads=loads) is None:
-            volume = pm.volume is not None  # its forces made by their own kernel first, then added by this one
-            self.fused = native.kernel(dataclasses.replace(native.variant_of(pm), update=True, extra=volume))
-            pm.volume_kernel = native_volume.kernel(pm.dtype) if volume else None
+            self.fused = native.kernel(native.fused_variant(pm))  # springs, an Elastic body's cell term, update
 
         # t enters as a 0-d tensor: ramps and drag paths are evaluated inside the compiled code
         # without branches, and a new t never triggers a recompilation.
@@ -256,9 +253,7 @@ class CompiledStep:
 
     def _eager_step(self, state: State) -> State:
         if self.fused is not None:
-            pm = self.packed
-            extra = None if pm.volume is None else pm.volume_forces(state.x)
-            x, v = native.symplectic_step(pm, state.x, state.v, self.dt, name=self.fused, extra=extra)
+            x, v = native.symplectic_step(self.packed, state.x, state.v, self.dt, name=self.fused)
             return State(x, v, t=state.t + self.dt, readings=None)
         return self.integrator.step(
             self.packed, state, self.dt, loads=self._loads if self._loads is not None else self.loads

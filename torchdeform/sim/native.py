@@ -107,8 +107,8 @@ class Variant:
             :func:`~torchdeform.sim.springs.gate_damping`).
         update: the kernel also makes the symplectic Euler update (:func:`symplectic_step`)
             instead of writing the forces.
-        extra: the update adds a force field of its own ``(B, 3, P)`` (an Elastic material's
-            volume term, :mod:`.native_volume`) to the springs'.
+        cell_term: the kernel also makes an Elastic body's cell term (:mod:`.native_volume`'s
+            loop, in the same pass over the nodes) and adds its forces to the springs'.
         cells: stiffness from cells: the number of cells holding a spring along each direction
             (an Elastic body's springs, :func:`~torchdeform.sim.material.spring_stiffness`): the
             kernel reads the shear modulus of each cell (one node field) and makes each spring's
@@ -125,7 +125,7 @@ class Variant:
     c_per_spring: bool = False
     gate: bool = False
     update: bool = False
-    extra: bool = False
+    cell_term: bool = False
     cells: tuple = ()
 
 
@@ -163,7 +163,11 @@ def source(var: Variant) -> str:
             if var.update
             else ""
         )
-        + (f", const {T}* restrict E" if var.extra else "")
+        + (
+            f", const {T}* restrict KC, const {T}* restrict SC, int64_t sH, int64_t sD, {T} cta, {T} ctb"
+            if var.cell_term
+            else ""
+        )
         + (f", const {T}* restrict MU, const int64_t* restrict coff" if var.cells else "")
     )
     rings = 2 if damp == 2 else 1  # a; and b (Radetzky's damping, per spring)
@@ -200,16 +204,17 @@ def source(var: Variant) -> str:
         w(f"  const {T} *V0 = V, *V1 = V + P, *V2 = V + 2 * P;")
     if var.update:
         w(f"  {T} *U0 = U, *U1 = U + P, *U2 = U + 2 * P;")
-    if var.extra:
-        w(f"  const {T} *E0 = E, *E1 = E + P, *E2 = E + 2 * P;")
     for s in range(S):
         w(f"  const int64_t o{s} = off[{s}];")
     cell_at = _cell_offset_lines(w, var.cells)
     w("  int64_t R = BLK;")
     w("  while (R < G + 2 * BLK) R <<= 1;")
     w("  const int64_t RS = R + BLK, M = R - 1;         /* a ring per direction, BLK mirrored at its end */")
-    w(f"  {T}* restrict A = ring({rings * S} * RS);")
+    nq = 9 if var.cell_term else 0  # the cell term's 9 rings of Q after the springs' rings
+    w(f"  {T}* restrict A = ring({rings * S + nq} * RS);")
     w("  if (!A) return 1;")
+    if var.cell_term:
+        w(f"  {T}* restrict Q = A + {rings * S} * RS;")
     if rings == 2:
         w(f"  {T}* restrict Bc = A + {S} * RS;")
     w(f"  {T} fa[BLK], fb[BLK], fc[BLK];")
@@ -251,11 +256,13 @@ def source(var: Variant) -> str:
         w("      }")
     w("      fa[k] = f0; fb[k] = f1; fc[k] = f2;")
     w("    }")
+    _cell_pass(w, T, var.cell_term)
     w("    if (p0 == 0) {                                 /* the ring's first block, mirrored past its end */")
-    w(f"      for (int r = 0; r < {rings * S}; r++) memcpy(A + r * RS + R, A + r * RS, n * sizeof({T}));")
+    w(f"      for (int r = 0; r < {rings * S + nq}; r++) memcpy(A + r * RS + R, A + r * RS, n * sizeof({T}));")
     w("    }")
     w("    if (i0 + n <= lo) continue;                     /* warm-up: springs only */")
     w("    const int64_t k0 = lo > i0 ? lo - i0 : 0;")
+    _cell_sums(w, T, var.cell_term)
     for s in range(S):
         w(f"    const int64_t q{s} = (i0 + k0 - o{s} - base) & M;")
     w("    #pragma omp simd")
@@ -278,19 +285,24 @@ def source(var: Variant) -> str:
         else:
             w("        f0 += a * (X0[j] - x0); f1 += a * (X1[j] - x1); f2 += a * (X2[j] - x2);")
         w("      }")
-    w("      F0[i] = f0; F1[i] = f1; F2[i] = f2;") if not var.update else _update_lines(w, T, "      ", var.extra)
+    w("      F0[i] = f0; F1[i] = f1; F2[i] = f2;") if not var.update else _update_lines(w, T, "      ")
     w("    }")
     w("  }")
     w("  return 0;")
     w("}")
     w("")
     cells_args = f", const {T}* mu, int64_t mub, const int64_t* coff" if var.cells else ""
+    term_args = (
+        f", const {T}* kc, const {T}* sc, int64_t kcb, int64_t sH, int64_t sD, {T} cta, {T} ctb"
+        if var.cell_term
+        else ""
+    )
     w(f"int springs(const {T}* x, const {T}* v, {T}* f, const {T}* inside, const {T}* k, const {T}* l0,")
     w(f"    const {T}* c, const int64_t* off, int64_t B, int64_t P, int64_t G, int64_t kb, int64_t lb,")
     if var.update:
         w(
             f"    int64_t cb, int nt, {T} tiny, {T}* u, const {T}* im, const {T}* ms, int64_t mb, "
-            f"{T} g0, {T} g1, {T} g2, {T} dt, {T} keep" + (f", const {T}* e" if var.extra else "") + cells_args + ") {"
+            f"{T} g0, {T} g1, {T} g2, {T} dt, {T} keep" + term_args + cells_args + ") {"
         )
     else:
         w(f"    int64_t cb, int nt, {T} tiny" + cells_args + ") {")
@@ -304,15 +316,15 @@ def source(var: Variant) -> str:
         w(f"    {T}* U = u + b * 3 * P; const {T}* IM = im + b * mb; const {T}* MS = ms + b * mb;")
         w(f"    const {T} *X0 = X, *X1 = X + P, *X2 = X + 2 * P, *V0 = V, *V1 = V + P, *V2 = V + 2 * P;")
         w(f"    {T} *F0 = F, *F1 = F + P, *F2 = F + 2 * P, *U0 = U, *U1 = U + P, *U2 = U + 2 * P;")
-        if var.extra:
-            w(f"    const {T}* E = e + b * 3 * P; const {T} *E0 = E, *E1 = E + P, *E2 = E + 2 * P;")
+        if var.cell_term:
+            w(f"    const {T}* KC = kc + b * kcb; const {T}* SC = sc + b * kcb;")
         w("    for (int part = 0; part < 2; part++) {            /* outside the core range: no springs */")
         w("      for (int64_t i = part ? P - G : 0; i < (part ? P : G); i++) {")
         w(f"        const {T} x0 = X0[i], x1 = X1[i], x2 = X2[i], f0 = 0, f1 = 0, f2 = 0;")
-        _update_lines(w, T, "        ", var.extra)
+        _update_lines(w, T, "        ")
         w("      }")
         w("    }")
-        extra = ", U, IM, MS, g0, g1, g2, dt, keep" + (", E" if var.extra else "")
+        extra = ", U, IM, MS, g0, g1, g2, dt, keep" + (", KC, SC, sH, sD, cta, ctb" if var.cell_term else "")
     else:
         w("    for (int a = 0; a < 3; a++) {                          /* zero outside the core range */")
         w(f"      memset(F + a * P, 0, G * sizeof({T})); memset(F + a * P + P - G, 0, G * sizeof({T}));")
@@ -338,6 +350,88 @@ def source(var: Variant) -> str:
     return "\n".join(lines) + "\n"
 
 
+_CORNERS = [(d, h, w) for d in (0, 1) for h in (0, 1) for w in (0, 1)]
+_CORNER_OFFSET = {c: " + ".join(t for t, on in zip(("sD", "sH", "1"), c) if on) or "0" for c in _CORNERS}
+_CORNER_NAME = {c: f"{c[0]}{c[1]}{c[2]}" for c in _CORNERS}
+
+
+def cell_lines(w, T: str, ind: str, *, kappa: str, shear: str, a: str, b: str) -> None:
+    """C lines making the cell term of the cell at node ``i`` into the ring ``Q[r * RS + p0 + k]``.
+
+    The cell's corners are ``i + {0, 1} + {0, sH} + {0, sD}``; ``F`` from its four edges per axis
+    (times ``a = 1 / (4 h)``), ``Q = b (kappa (J - 1) cof F + 2 mu' F E)`` with ``b = h^2 / 4``
+    (:mod:`.native_volume`). ``kappa``, ``shear``: the names of the per-cell fields.
+    """
+    corners, off, name = _CORNERS, _CORNER_OFFSET, _CORNER_NAME
+    for m in range(3):
+        for c in corners:
+            w(f"{ind}const {T} x{m}_{name[c]} = X{m}[i + {off[c]}];")
+    for m in range(3):  # F[m][j]: d x_m / d X_j, j = 0 (D), 1 (H), 2 (W): the four edges along j
+        for j in range(3):
+            terms = []
+            for c in corners:
+                if c[j] == 0:
+                    up = tuple(1 if q == j else c[q] for q in range(3))
+                    terms.append(f"(x{m}_{name[up]} - x{m}_{name[c]})")
+            w(f"{ind}const {T} F{m}{j} = {a} * ({' + '.join(terms)});")
+    for i in range(3):
+        for j in range(3):
+            i1, i2, j1, j2 = (i + 1) % 3, (i + 2) % 3, (j + 1) % 3, (j + 2) % 3
+            w(f"{ind}const {T} C{i}{j} = F{i1}{j1} * F{i2}{j2} - F{i1}{j2} * F{i2}{j1};")
+    w(f"{ind}const {T} J = F00 * C00 + F01 * C01 + F02 * C02;")
+    w(f"{ind}const {T} cs = {b} * {kappa}[i] * (J - 1), ct = {b} * 2 * {shear}[i];")
+    for i in range(3):  # Green-Lagrange strain E = (F^T F - I) / 2, symmetric
+        for j in range(i, 3):
+            sq = " + ".join(f"F{m}{i} * F{m}{j}" for m in range(3))
+            w(f"{ind}const {T} G{i}{j} = ({T})0.5 * ({sq}){' - (' + T + ')0.5' if i == j else ''};")
+    e = {(i, j): f"G{min(i, j)}{max(i, j)}" for i in range(3) for j in range(3)}
+    for r in range(9):
+        i, j = divmod(r, 3)
+        fe = " + ".join(f"F{i}{m} * {e[m, j]}" for m in range(3))
+        w(f"{ind}Q[{r} * RS + p0 + k] = cs * C{i}{j} + ct * ({fe});")
+
+
+def cell_ring_lines(w, ind: str) -> None:
+    """C lines: where in the ring the node pass finds, for its first node, the cell of each of its 8 corners."""
+    for c in _CORNERS:  # the cell whose corner c is the node: lowest corner at i - offset
+        w(f"{ind}const int64_t qc{_CORNER_NAME[c]} = (i0 + k0 - ({_CORNER_OFFSET[c]}) - base) & M;")
+
+
+def cell_gather_lines(w, ind: str) -> None:
+    """C lines subtracting from ``f0..f2`` the forces of node ``i``'s 8 cells: ``f_k -= sum_j Q_kj s_j``."""
+    for c in _CORNERS:
+        w(f"{ind}{{")
+        w(f"{ind}  const int64_t r = qc{_CORNER_NAME[c]} + k - k0;")
+        for m in range(3):
+            terms = "".join(f" {'+' if c[j] else '-'} Q[{3 * m + j} * RS + r]" for j in range(3))
+            w(f"{ind}  f{m} -={terms};")
+        w(f"{ind}}}")
+
+
+def _cell_pass(w, T: str, on: bool) -> None:
+    """The spring kernel's loop making the cells of a block into the ring (an Elastic body's cell term), if ``on``."""
+    if not on:
+        return
+    w("    #pragma omp simd")
+    w("    for (int64_t k = 0; k < n; k++) {                /* the cells at the block's nodes (lowest corners) */")
+    w("      const int64_t i = i0 + k;")
+    cell_lines(w, T, "      ", kappa="KC", shear="SC", a="cta", b="ctb")
+    w("    }")
+
+
+def _cell_sums(w, T: str, on: bool) -> None:
+    """The spring kernel's loop adding each node's 8 cells to its sums ``fa, fb, fc``, if ``on``."""
+    if not on:
+        return
+    cell_ring_lines(w, "    ")
+    w("    #pragma omp simd")
+    w("    for (int64_t k = k0; k < n; k++) {               /* each node: its 8 cells, into its sums */")
+    w(f"      {T} f0 = 0, f1 = 0, f2 = 0;")
+    cell_gather_lines(w, "      ")
+    w("      fa[k] += f0; fb[k] += f1; fc[k] += f2;")
+    w("    }")
+
+
 def _cell_offset_lines(w, counts: tuple) -> list:
     """Declare the cells' offsets of each direction (``c{s}_{m} = coff[..]``); their names per direction."""
     names = []
@@ -355,21 +449,16 @@ def _stiffness_expr(var: Variant, s: int, cell_at: list) -> str:
     return f"kq[{s} * P + i]" if var.k_per_spring else f"kq[{s}]"
 
 
-def _update_lines(w, T: str, ind: str, extra: bool = False) -> None:
-    """The symplectic Euler update of node ``i`` from its spring forces ``f0..f2``, in torch's order.
+def _update_lines(w, T: str, ind: str) -> None:
+    """The symplectic Euler update of node ``i`` from its forces ``f0..f2``, in torch's order.
 
-    ``a = (1/m) (f + m g)`` (``f`` plus the ``extra`` force ``E`` first, where there is one), ``u = v + dt a``, ``x' = x + dt u`` (into ``F``), ``v' = keep u`` (into
+    ``a = (1/m) (f + m g)``, ``u = v + dt a``, ``x' = x + dt u`` (into ``F``), ``v' = keep u`` (into
     ``U``; ``keep`` the global drag's ``exp(-decay dt)``), as :class:`~torchdeform.sim.integrators.SymplecticEuler`.
     """
     w(f"{ind}const {T} im = IM[i], ms = MS[i];")
-    if extra:
-        w(f"{ind}const {T} e0 = f0 + E0[i], e1 = f1 + E1[i], e2 = f2 + E2[i];")
-        f0, f1, f2 = "e0", "e1", "e2"
-    else:
-        f0, f1, f2 = "f0", "f1", "f2"
     w(
-        f"{ind}const {T} u0 = V0[i] + dt * (im * ({f0} + ms * g0)), u1 = V1[i] + dt * (im * ({f1} + ms * g1)), "
-        f"u2 = V2[i] + dt * (im * ({f2} + ms * g2));"
+        f"{ind}const {T} u0 = V0[i] + dt * (im * (f0 + ms * g0)), u1 = V1[i] + dt * (im * (f1 + ms * g1)), "
+        f"u2 = V2[i] + dt * (im * (f2 + ms * g2));"
     )
     w(f"{ind}F0[i] = x0 + dt * u0; F1[i] = x1 + dt * u1; F2[i] = x2 + dt * u2;")
     w(f"{ind}U0[i] = u0 * keep; U1[i] = u1 * keep; U2[i] = u2 * keep;")
@@ -474,7 +563,7 @@ def _build(var: Variant):
     i64, ptr = ctypes.c_int64, ctypes.c_void_p
     fn.argtypes = (
         ([ptr] * 8 + [i64] * 6 + [ctypes.c_int, T] + ([ptr] * 3 + [i64] + [T] * 5 if var.update else []))
-        + ([ptr] if var.extra else [])
+        + ([ptr, ptr, i64, i64, i64, T, T] if var.cell_term else [])
         + ([ptr, i64, ptr] if var.cells else [])
     )
     fn.restype = ctypes.c_int
@@ -495,7 +584,7 @@ def name_of(var: Variant) -> str:
         f"S{var.S}-{var.dtype}-d{var.damping}-k{var.k_per_spring:d}-l{var.l0_per_spring:d}"
         f"-c{var.c_per_spring:d}-g{var.gate:d}"
         + ("-step" if var.update else "")
-        + ("-extra" if var.extra else "")
+        + ("-cellterm" if var.cell_term else "")
         + ("-cells" if var.cells else "")
     )
     _variants[name] = var
@@ -587,8 +676,7 @@ def fused_blocker(pm, integrator, *, loads=None) -> str | None:
     """Why :func:`symplectic_step` cannot make this packed step, or None.
 
     It makes the whole step of :class:`~torchdeform.sim.integrators.SymplecticEuler` for Hooke
-    springs, gravity, fixed nodes and the global drag (and an Elastic material's volume term, made
-    by :mod:`.native_volume` first and added as its ``extra`` force: that kernel runs wherever this one does); home springs, loads, drags along paths and
+    springs, an Elastic body's cell term, gravity, fixed nodes and the global drag; home springs, loads, drags along paths and
     interactions keep the step in torch around the force kernel.
     """
     from .integrators import SymplecticEuler
@@ -610,23 +698,19 @@ def fused_blocker(pm, integrator, *, loads=None) -> str | None:
     return supports(pm)
 
 
-def symplectic_step(
-    pm, x: torch.Tensor, v: torch.Tensor, dt: float, *, name: str | None = None, extra: torch.Tensor | None = None
-):
+def symplectic_step(pm, x: torch.Tensor, v: torch.Tensor, dt: float, *, name: str | None = None):
     """One :class:`~torchdeform.sim.integrators.SymplecticEuler` step of a packed model in one kernel.
 
     The springs, ``a = (f + m g) / m`` (zero at fixed nodes), ``v' = v + dt a``, ``x' = x + dt v'``
     and the global drag ``v' exp(-decay dt)``, in one pass over the nodes (:func:`fused_blocker`
     says where it applies). No gradient. ``name``: the kernel's name from :func:`kernel` (a variant
-    with ``update``), default built or loaded here. ``extra``: a force field ``(B, 3, P)`` added to
-    the springs' (an Elastic material's volume term; a variant with ``extra`` too).
+    with ``update``, and ``cell_term`` for an Elastic body's cell term), default built or loaded here.
 
     Returns:
         ``(x', v')``, each ``(B, 3, P)``.
     """
-    name = name or kernel(dataclasses.replace(variant_of(pm), update=True, extra=extra is not None))
+    name = name or kernel(fused_variant(pm))
     x, v = x.contiguous(), v.contiguous()
-    extra = None if extra is None else extra.contiguous().expand_as(x).contiguous()
     im, ms = pm.inv_mass.contiguous(), pm.mass.contiguous()
     if im.shape[0] != ms.shape[0]:
         im, ms = (t.expand(max(im.shape[0], ms.shape[0]), *t.shape[1:]).contiguous() for t in (im, ms))
@@ -652,10 +736,26 @@ def symplectic_step(
         *g,
         dt,
         keep,
-        *(() if extra is None else (extra.data_ptr(),)),
+        *_cell_term_args(pm, _variants[name]),
         *_cell_args(mu, coff, pm.G),
     )
     return xo, vo
+
+
+def fused_variant(pm) -> Variant:
+    """The :class:`Variant` of :func:`symplectic_step` for a packed model (its cell term made in the kernel)."""
+    return dataclasses.replace(variant_of(pm), update=True, cell_term=pm.volume is not None)
+
+
+def _cell_term_args(pm, var: Variant) -> tuple:
+    """The trailing arguments of a kernel making the cell term: kappa, shear, their batch stride, s_H, s_D, 1/(4h), h^2/4."""
+    if not var.cell_term:
+        return ()
+    kappa, shear = pm.volume_kappa, pm.volume_shear.expand_as(pm.volume_kappa)
+    assert kappa.is_contiguous() and shear.is_contiguous()
+    row = pm.grid.shape[2] + 2
+    h = float(pm.volume_h)
+    return (kappa.data_ptr(), shear.data_ptr(), _batch_stride(kappa), row, pm.G - row - 1, 1.0 / (4.0 * h), h * h / 4.0)
 
 
 def _batch_stride(p: torch.Tensor) -> int:

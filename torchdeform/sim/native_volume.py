@@ -55,9 +55,6 @@ def source(dtype: str) -> str:
         (True, 2)
     """
     T = dtype
-    corners = [(d, h, w) for d in (0, 1) for h in (0, 1) for w in (0, 1)]
-    off = {c: " + ".join(t for t, on in zip(("sD", "sH", "1"), c) if on) or "0" for c in corners}
-    name = {c: f"{c[0]}{c[1]}{c[2]}" for c in corners}
     lines = [
         "/* torchdeform volume term (Elastic), packed layout */",
         "#include <stdint.h>",
@@ -96,52 +93,19 @@ def source(dtype: str) -> str:
         "      const int64_t i = i0 + k;",
     ]
     w = lines.append
-    for m in range(3):
-        for c in corners:
-            w(f"      const {T} x{m}_{name[c]} = X{m}[i + {off[c]}];")
-    # F[m][j]: d x_m / d X_j, j = 0 (D), 1 (H), 2 (W): the four edges along j
-    for m in range(3):
-        for j in range(3):
-            terms = []
-            for c in corners:
-                if c[j] == 0:
-                    up = tuple(1 if q == j else c[q] for q in range(3))
-                    terms.append(f"(x{m}_{name[up]} - x{m}_{name[c]})")
-            w(f"      const {T} F{m}{j} = a * ({' + '.join(terms)});")
-    for i in range(3):
-        for j in range(3):
-            i1, i2, j1, j2 = (i + 1) % 3, (i + 2) % 3, (j + 1) % 3, (j + 2) % 3
-            w(f"      const {T} C{i}{j} = F{i1}{j1} * F{i2}{j2} - F{i1}{j2} * F{i2}{j1};")
-    w(f"      const {T} J = F00 * C00 + F01 * C01 + F02 * C02;")
-    w(f"      const {T} s = b * K[i] * (J - 1), t = b * 2 * MU[i];")
-    for i in range(3):  # Green-Lagrange strain E = (F^T F - I) / 2, symmetric
-        for j in range(i, 3):
-            sq = " + ".join(f"F{m}{i} * F{m}{j}" for m in range(3))
-            w(f"      const {T} E{i}{j} = ({T})0.5 * ({sq}){' - (' + T + ')0.5' if i == j else ''};")
-    e = {(i, j): f"E{min(i, j)}{max(i, j)}" for i in range(3) for j in range(3)}
-    for r in range(9):
-        i, j = divmod(r, 3)
-        fe = " + ".join(f"F{i}{m} * {e[m, j]}" for m in range(3))
-        w(f"      Q[{r} * RS + p0 + k] = s * C{i}{j} + t * ({fe});")
+    native.cell_lines(w, T, "      ", kappa="K", shear="MU", a="a", b="b")
     w("    }")
     w("    if (p0 == 0) {                                   /* the ring's first block, mirrored past its end */")
     w(f"      for (int r = 0; r < 9; r++) memcpy(Q + r * RS + R, Q + r * RS, n * sizeof({T}));")
     w("    }")
     w("    if (i0 + n <= lo) continue;                       /* warm-up: cells only */")
     w("    const int64_t k0 = lo > i0 ? lo - i0 : 0;")
-    for c in corners:  # the cell whose corner c is the node: lowest corner at i - off[c]
-        w(f"    const int64_t q{name[c]} = (i0 + k0 - ({off[c]}) - base) & M;")
+    native.cell_ring_lines(w, "    ")
     w("    #pragma omp simd")
     w("    for (int64_t k = k0; k < n; k++) {               /* each node: its 8 cells */")
     w("      const int64_t i = i0 + k;")
     w(f"      {T} f0 = 0, f1 = 0, f2 = 0;")
-    for c in corners:
-        w("      {")
-        w(f"        const int64_t r = q{name[c]} + k - k0;")
-        for m in range(3):
-            terms = "".join(f" {'+' if c[j] else '-'} Q[{3 * m + j} * RS + r]" for j in range(3))
-            w(f"        f{m} -={terms};")
-        w("      }")
+    native.cell_gather_lines(w, "      ")
     w("      F0[i] = f0; F1[i] = f1; F2[i] = f2;")
     w("    }")
     w("  }")
