@@ -173,25 +173,7 @@ def source(var: Variant) -> str:
     rings = 2 if damp == 2 else 1  # a; and b (Radetzky's damping, per spring)
     lines = [
         f"/* torchdeform spring forces, kernel version {KERNEL_VERSION}: {var} */",
-        "#include <stdint.h>",
-        "#include <stdlib.h>",
-        "#include <string.h>",
-        "#include <math.h>",
-        "#ifdef _OPENMP",
-        "#include <omp.h>",
-        "#endif",
-        f"#define BLK {BLOCK_NODES}",
-        "",
-        f"static __thread {T}* ring_buf = 0;",
-        "static __thread int64_t ring_len = 0;",
-        "",
-        f"static {T}* ring(int64_t n) {{",
-        "  if (n > ring_len) {",
-        f"    free(ring_buf); ring_buf = ({T}*)malloc(n * sizeof({T})); ring_len = ring_buf ? n : 0;",
-        "  }",
-        "  return ring_buf;",
-        "}",
-        "",
+        *preamble(T),
         f"static __attribute__((noinline)) int core(const {T}* restrict X, const {T}* restrict V, "
         f"{T}* restrict F, const {T}* restrict inside,",
         f"    const {T}* restrict kq, const {T}* restrict lq, const {T}* restrict cq, "
@@ -348,6 +330,31 @@ def source(var: Variant) -> str:
     w("  return failed;")
     w("}")
     return "\n".join(lines) + "\n"
+
+
+def preamble(T: str) -> list:
+    """The C lines every kernel starts with: headers, the block size and a per-thread ring buffer ``ring(n)``."""
+    return [
+        "#include <stdint.h>",
+        "#include <stdlib.h>",
+        "#include <string.h>",
+        "#include <math.h>",
+        "#ifdef _OPENMP",
+        "#include <omp.h>",
+        "#endif",
+        f"#define BLK {BLOCK_NODES}",
+        "",
+        f"static __thread {T}* ring_buf = 0;",
+        "static __thread int64_t ring_len = 0;",
+        "",
+        f"static {T}* ring(int64_t n) {{",
+        "  if (n > ring_len) {",
+        f"    free(ring_buf); ring_buf = ({T}*)malloc(n * sizeof({T})); ring_len = ring_buf ? n : 0;",
+        "  }",
+        "  return ring_buf;",
+        "}",
+        "",
+    ]
 
 
 _CORNERS = [(d, h, w) for d in (0, 1) for h in (0, 1) for w in (0, 1)]
