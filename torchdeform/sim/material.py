@@ -268,8 +268,7 @@ def spring_factors(grid, h: float) -> list:
     """
     weights = dict(zip(("axis", "face", "body"), CLASS_WEIGHTS[grid.topology]))
     return [
-        (1 - CELL_SHARE) * weights[cls] * h / 2 ** d.count(0)
-        for d, cls in zip(grid.directions, grid.direction_class())
+        (1 - CELL_SHARE) * weights[cls] * h / 2 ** d.count(0) for d, cls in zip(grid.directions, grid.direction_class())
     ]
 
 

@@ -471,6 +471,7 @@ class Model:
         return None if self.volume is None else self._volume_rows()
 
     def _volume_rows(self, *, diagonal: bool = False) -> torch.Tensor:
+        assert self.volume is not None
         kappa, h, shear = self.volume
         return volume_row_sums(kappa, h, self.grid.shape, shear, diagonal=diagonal)
 

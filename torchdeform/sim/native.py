@@ -359,7 +359,7 @@ def preamble(T: str) -> list:
 
 _CORNERS = [(d, h, w) for d in (0, 1) for h in (0, 1) for w in (0, 1)]
 _CORNER_OFFSET = {c: " + ".join(t for t, on in zip(("sD", "sH", "1"), c) if on) or "0" for c in _CORNERS}
-_CORNER_NAME = {c: f"{c[0]}{c[1]}{c[2]}" for c in _CORNERS}
+_CORNER_NAME: dict[tuple, str] = {c: f"{c[0]}{c[1]}{c[2]}" for c in _CORNERS}
 
 
 def cell_lines(w, T: str, ind: str, *, kappa: str, shear: str, a: str, b: str) -> None:

@@ -208,12 +208,15 @@ class PackedModel(Model):
                 setattr(model, name, self.unpack(t))
         self.constrained = self.free[0, 0] == 0
         model.constrained = self.unpack(self.constrained.view(1, 1, -1))[0, 0]
-        if self.volume is not None:  # the cells' moduli: a cut that kills cells writes them in place
-            views = []
-            for packed, own in zip((self.volume_kappa, self.volume_shear), model.volume[::2]):
+        if model.volume is not None:  # the cells' moduli: a cut that kills cells writes them in place
+            kappa, h, shear = model.volume
+            assert self.volume_kappa is not None and self.volume_shear is not None
+
+            def view(packed: torch.Tensor, own: torch.Tensor) -> torch.Tensor:
                 cells = self.unpack(packed)[:, 0, :-1, :-1, :-1]  # (Bk, D-1, H-1, W-1), a view
-                views.append(cells[0] if own.dim() == 3 else cells)
-            model.volume = (views[0], self.volume_h, views[1])
+                return cells[0] if own.dim() == 3 else cells
+
+            model.volume = (view(self.volume_kappa, kappa), h, view(self.volume_shear, shear))
 
     def keep(self, field: torch.Tensor) -> torch.Tensor:
         """``field`` stored in memory under ``torch.compile`` (see :meth:`TraceContext.keep`)."""
@@ -514,6 +517,7 @@ class PackedModel(Model):
 
     def padded_volume(self) -> tuple:
         """The cell term on the padded grid's cells: ``(kappa, h, shear)`` (see :meth:`grid_view`)."""
+        assert self.volume_kappa is not None and self.volume_shear is not None
         return self._padded_cells(self.volume_kappa), self.volume_h, self._padded_cells(self.volume_shear)
 
     def volume_forces(self, x: torch.Tensor, *, impl: str | None = None) -> torch.Tensor:
