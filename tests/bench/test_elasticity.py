@@ -6,7 +6,6 @@ finite-element reference (:mod:`torchdeform.bench.accuracy.fem`, scikit-fem) for
 the engine choice is checked against what :class:`torchdeform.Engine` refuses.
 """
 
-import csv
 import json
 import sys
 
@@ -109,18 +108,9 @@ def test_bench_elasticity_refuses_bad_options(capsys, option, value):
     assert option in err and "Traceback" not in err
 
 
-@pytest.mark.slow  # the finite-element reference of one nu: ~15-60 s on 2 busy cores
-def test_bench_elasticity_quick_table_and_values(capsys, tmp_path):
-    assert cli.main(argv=["bench", "elasticity", "--quick", "--threads", "1", "--out", str(tmp_path)]) == 0
+def test_bench_elasticity_prints_its_table(capsys):
+    argv = ["bench", "elasticity", "--quick", "--topologies", "26", "--cases", "uniaxial", "--threads", "1"]
+    assert cli.main(argv=argv) == 0
     out = capsys.readouterr().out
-    assert "shear/FEM" in out and "punch/FEM" in out and "+cell term ms" in out
+    assert "E/E" in out and "nu eff" in out and "+cell term ms" in out and "1.000000" in out
     assert "springs alone:" in out and "springs + cell term:" in out
-    with open(tmp_path / "elasticity.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
-    assert [(int(r["topology"]), float(r["h_mm"])) for r in rows] == [(18, 5.0), (18, 2.5), (26, 5.0), (26, 2.5)]
-    for r in rows:
-        assert 1.0 < float(r["punch_ratio"]) < 1.5  # too stiff at the punch's edge
-        if float(r["h_mm"]) == 5.0:
-            assert r["shear_ratio"] in ("", "None")  # no free layer between the plates
-        else:
-            assert abs(float(r["shear_ratio"]) - 1) < 0.05
