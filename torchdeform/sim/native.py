@@ -313,6 +313,20 @@ def source(var: Variant) -> str:
         w("    }")
         extra = ""
     extra += ", MU, coff" if var.cells else ""
+    core_over(w, "core(X, V, F, inside, kq, lq, cq, off, P, G, {lo}, {hi}, tiny" + extra + ")")
+    w("  }")
+    w("  return failed;")
+    w("}")
+    return "\n".join(lines) + "\n"
+
+
+def core_over(w, call: str) -> None:
+    """C lines running ``call`` (with ``{lo}``, ``{hi}``) over the core range ``[G, P - G)``.
+
+    With ``nt > 1`` OpenMP threads each take a contiguous share (starts rounded down to 16 nodes)
+    and ``continue`` the batch loop; otherwise one call covers the range. ``failed`` collects the
+    calls' results.
+    """
     w("#ifdef _OPENMP")
     w("    if (nt > 1) {")
     w("      #pragma omp parallel num_threads(nt) reduction(|:failed)")
@@ -320,16 +334,12 @@ def source(var: Variant) -> str:
     w("        const int64_t n = P - 2 * G, t = omp_get_thread_num(), m = omp_get_num_threads();")
     w("        const int64_t lo = G + ((n * t / m) & ~(int64_t)15);")
     w("        const int64_t hi = t == m - 1 ? P - G : G + ((n * (t + 1) / m) & ~(int64_t)15);")
-    w("        failed |= core(X, V, F, inside, kq, lq, cq, off, P, G, lo, hi, tiny" + extra + ");")
+    w("        failed |= " + call.format(lo="lo", hi="hi") + ";")
     w("      }")
     w("      continue;")
     w("    }")
     w("#endif")
-    w("    failed |= core(X, V, F, inside, kq, lq, cq, off, P, G, G, P - G, tiny" + extra + ");")
-    w("  }")
-    w("  return failed;")
-    w("}")
-    return "\n".join(lines) + "\n"
+    w("    failed |= " + call.format(lo="G", hi="P - G") + ";")
 
 
 def preamble(T: str) -> list:
