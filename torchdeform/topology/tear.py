@@ -72,8 +72,8 @@ def tear(
     if one_per_step:
         flat = torch.where(over, strain, torch.full_like(strain, -torch.inf)).flatten(1)
         top = flat.argmax(1)  # first of the largest
-        pick = torch.zeros_like(flat, dtype=torch.bool)
-        pick[torch.arange(flat.shape[0], device=flat.device), top] = True
+        # scatter, not an indexed assignment: index_put_ checks its indices on the host (a device wait)
+        pick = torch.zeros_like(flat, dtype=torch.bool).scatter_(1, top.unsqueeze(1), True)
         over = over & pick.view_as(over)
     return remove(model, over, as_tensor=as_tensor)
 
