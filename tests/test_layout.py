@@ -25,7 +25,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "torchdeform"
 GROUND_FLOOR = "torchdeform._compile"
-HEAVY = ("matplotlib", "trimesh", "scipy", "warp", "nibabel", "nrrd", "skfuzzy")
+HEAVY = ("matplotlib", "trimesh", "scipy", "warp", "nibabel", "nrrd", "skfuzzy", "pydicom", "skimage")
 
 
 # ------------------------------------------------------------------ the graph

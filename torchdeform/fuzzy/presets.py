@@ -39,12 +39,31 @@ from __future__ import annotations
 import copy
 import functools
 from pathlib import Path
+from typing import TYPE_CHECKING, cast
+
+import torch
 
 from ..errors import ConfigError
 from .fis import parse_fis
 from .system import MamdaniSystem
 
-__all__ = ["PRESET_DIR", "TISSUE_FILE", "list_presets", "preset_path", "load_preset", "tissues", "tissue_parameters"]
+if TYPE_CHECKING:
+    from .membership import MembershipFunction
+    from .rules import Variable
+
+__all__ = [
+    "PRESET_DIR",
+    "TISSUE_FILE",
+    "list_presets",
+    "preset_path",
+    "load_preset",
+    "tissues",
+    "tissue_parameters",
+    "tissue_properties",
+    "tissue_moduli",
+    "TISSUE_EXPECTED",
+    "DEFAULT_POISSON_RATIO",
+]
 
 try:
     import tomllib
@@ -151,3 +170,77 @@ def tissue_parameters(name: str, *, system: MamdaniSystem | None = None) -> dict
         "term": entry["term"],
         "youngs_modulus_range": (float(lo), float(hi)),
     }
+
+
+# ------------------------------------------------------------------ tissue words -> elastic solid
+TISSUE_EXPECTED = (
+    "a tissue of the fuzzy library (brain, fat, liver, ...), a consistency term (very_soft, soft, "
+    "medium, firm, hard) or a consistency value in [0, 10]"
+)
+
+
+#: The Poisson ratio of a consistency term or number (no tissue of the library, so no measured ratio):
+#: soft tissue is nearly incompressible; 0.45 keeps explicit time steps about twice those of 0.49
+DEFAULT_POISSON_RATIO = 0.45
+
+
+def tissue_properties(values, *, key: str = "tissue") -> list:
+    """The elastic solid of tissue words or consistency values, from the fuzzy tissue library.
+
+    Each value is a tissue of :func:`torchdeform.fuzzy.tissues` (its consistency), a term of the
+    ``consistency`` input of the library's system ``tissue_si`` (the middle of the term's plateau)
+    or a consistency number in ``[0, 10]``; the system turns the consistency into a Young's modulus
+    and a viscosity. The system is evaluated once for all values.
+
+    Returns:
+        one dict per value: ``youngs_modulus`` E (Pa) and ``viscosity`` eta (Pa s) of the system,
+        ``poisson_ratio`` nu (the library's for a tissue, :data:`DEFAULT_POISSON_RATIO` for a term
+        or a number) and ``density`` (kg/m^3, the library's for a tissue, None for a term or a number).
+
+    Raises:
+        ConfigError: (naming ``key``) a value that is none of these.
+
+    Examples:
+        >>> liver, soft = tissue_properties(["liver", "soft"])
+        >>> round(liver["youngs_modulus"]), liver["poisson_ratio"], liver["density"]
+        (3700, 0.49, 1060.0)
+        >>> soft["poisson_ratio"], soft["density"]
+        (0.45, None)
+    """
+    library, fis = tissues(), load_preset("tissue_si")
+    var = cast("Variable", fis.inputs[0])  # a system's inputs are variables
+    consistency, out = [], []
+    for v in values:
+        if isinstance(v, str) and v in library:
+            entry = library[v]
+            consistency.append(float(entry["consistency"]))
+            out.append({"poisson_ratio": float(entry["poisson_ratio"]), "density": float(entry["density"])})
+            continue
+        if isinstance(v, str) and v in var.term_names:
+            consistency.append(float(cast("MembershipFunction", var.terms[v]).peak()))
+        elif isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v <= 10:
+            consistency.append(float(v))
+        else:
+            raise ConfigError(key, TISSUE_EXPECTED, got=v)
+        out.append({"poisson_ratio": DEFAULT_POISSON_RATIO, "density": None})
+    if not out:
+        return []
+    y = fis(torch.tensor(consistency, dtype=fis.dtype).view(-1, 1))
+    names = fis.output_names()
+    for row, props in zip(y, out):
+        props["youngs_modulus"] = float(row[names.index("youngs_modulus")])
+        props["viscosity"] = float(row[names.index("viscosity")])
+    return out
+
+
+def tissue_moduli(values, *, key: str = "tissue") -> list:
+    """Young's moduli (Pa) of tissue words or consistency values, from the fuzzy tissue library.
+
+    The ``youngs_modulus`` of :func:`tissue_properties`.
+
+    Examples:
+        >>> E = tissue_moduli(["fat", "hard", 5.0])
+        >>> [round(e / 1000, 1) for e in E]            # kPa
+        [2.8, 58.5, 11.0]
+    """
+    return [p["youngs_modulus"] for p in tissue_properties(values, key=key)]

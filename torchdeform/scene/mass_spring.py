@@ -12,12 +12,12 @@ from __future__ import annotations
 import math
 from dataclasses import KW_ONLY, dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, cast
 
 import torch
 
 from ..checks import check_memory, usable_device
 from ..errors import ConfigError, ConfigWarning, TorchdeformError
+from ..fuzzy.presets import DEFAULT_POISSON_RATIO, TISSUE_EXPECTED, tissue_moduli, tissue_properties
 from ..sim.adaptive import PAIRS
 from ..sim.catalog import INTEGRATORS
 from ..sim.engine import ENGINES
@@ -25,16 +25,12 @@ from ..sim.forces import Drag, PointForce, SurfaceForce
 from ..sim.grid import FACES, Grid
 from ..sim.integrators import Integrator, SymplecticEuler
 from ..sim.laws import LAWS
-from ..sim.material import Elastic
+from ..sim.material import Elastic, kelvin_voigt_damping
 from ..sim.model import Model
 from ..sim.projective import SOLVERS
 from .reader import SECTIONS, Source, Table, drags_section, faces, grid_section, is_number, node_list, region_mask
 from .tools import ToolSet, palpation_option, strain_limit_section
 from .topology import TOPOLOGY, TopologySet, tools_with_cutters, topology_section
-
-if TYPE_CHECKING:
-    from ..fuzzy.membership import MembershipFunction
-    from ..fuzzy.rules import Variable
 
 __all__ = [
     "Scene",
@@ -269,12 +265,6 @@ class Scene:
 
 
 # ------------------------------------------------------------------ tissue words -> stiffness
-TISSUE_EXPECTED = (
-    "a tissue of the fuzzy library (brain, fat, liver, ...), a consistency term (very_soft, soft, "
-    "medium, firm, hard) or a consistency value in [0, 10]"
-)
-
-
 def lattice_modulus(grid: Grid) -> float:
     """Young's modulus (Pa) of the grid's spring lattice per N/m of spring stiffness (all springs equal).
 
@@ -297,110 +287,6 @@ def lattice_modulus(grid: Grid) -> float:
     a = n * n  # the normal part of a_s
     C = (length**2 * a).T @ a / math.prod(grid.spacing)  # (3, 3) per unit k
     return float((1.0 / torch.linalg.inv(C).diagonal()).mean())
-
-
-#: The Poisson ratio of a consistency term or number (no tissue of the library, so no measured ratio):
-#: soft tissue is nearly incompressible; 0.45 keeps explicit time steps about twice those of 0.49
-DEFAULT_POISSON_RATIO = 0.45
-
-
-def tissue_properties(values, *, key: str = "tissue") -> list:
-    """The elastic solid of tissue words or consistency values, from the fuzzy tissue library.
-
-    Each value is a tissue of :func:`torchdeform.fuzzy.tissues` (its consistency), a term of the
-    ``consistency`` input of the library's system ``tissue_si`` (the middle of the term's plateau)
-    or a consistency number in ``[0, 10]``; the system turns the consistency into a Young's modulus
-    and a viscosity. The system is evaluated once for all values.
-
-    Returns:
-        one dict per value: ``youngs_modulus`` E (Pa) and ``viscosity`` eta (Pa s) of the system,
-        ``poisson_ratio`` nu (the library's for a tissue, :data:`DEFAULT_POISSON_RATIO` for a term
-        or a number) and ``density`` (kg/m^3, the library's for a tissue, None for a term or a number).
-
-    Raises:
-        ConfigError: (naming ``key``) a value that is none of these.
-
-    Examples:
-        >>> liver, soft = tissue_properties(["liver", "soft"])
-        >>> round(liver["youngs_modulus"]), liver["poisson_ratio"], liver["density"]
-        (3700, 0.49, 1060.0)
-        >>> soft["poisson_ratio"], soft["density"]
-        (0.45, None)
-    """
-    from ..fuzzy.presets import load_preset, tissues
-
-    library, fis = tissues(), load_preset("tissue_si")
-    var = cast("Variable", fis.inputs[0])  # a system's inputs are variables
-    consistency, out = [], []
-    for v in values:
-        if isinstance(v, str) and v in library:
-            entry = library[v]
-            consistency.append(float(entry["consistency"]))
-            out.append({"poisson_ratio": float(entry["poisson_ratio"]), "density": float(entry["density"])})
-            continue
-        if isinstance(v, str) and v in var.term_names:
-            consistency.append(float(cast("MembershipFunction", var.terms[v]).peak()))
-        elif is_number(v) and 0 <= v <= 10:
-            consistency.append(float(v))
-        else:
-            raise ConfigError(key, TISSUE_EXPECTED, got=v)
-        out.append({"poisson_ratio": DEFAULT_POISSON_RATIO, "density": None})
-    if not out:
-        return []
-    y = fis(torch.tensor(consistency, dtype=fis.dtype).view(-1, 1))
-    names = fis.output_names()
-    for row, props in zip(y, out):
-        props["youngs_modulus"] = float(row[names.index("youngs_modulus")])
-        props["viscosity"] = float(row[names.index("viscosity")])
-    return out
-
-
-def tissue_moduli(values, *, key: str = "tissue") -> list:
-    """Young's moduli (Pa) of tissue words or consistency values, from the fuzzy tissue library.
-
-    The ``youngs_modulus`` of :func:`tissue_properties`.
-
-    Examples:
-        >>> E = tissue_moduli(["fat", "hard", 5.0])
-        >>> [round(e / 1000, 1) for e in E]            # kPa
-        [2.8, 58.5, 11.0]
-    """
-    return [p["youngs_modulus"] for p in tissue_properties(values, key=key)]
-
-
-def kelvin_voigt_damping(grid: Grid, youngs_modulus, poisson_ratio, retardation) -> torch.Tensor:
-    r"""Each spring's dashpot (N s/m), ``(S, D, H, W)`` float64: Kelvin-Voigt damping of an elastic body.
-
-    A Kelvin-Voigt solid has stress :math:`\sigma = C \varepsilon + \tau C \dot\varepsilon`:
-    every spring of stiffness ``k`` (N/m) gets a dashpot ``c = k tau`` (N s/m) with the retardation
-    time :math:`\tau = \eta / E` (s) of the tissue (viscosity eta in Pa s, Young's modulus E in Pa).
-    Assembled from the cells as :class:`~torchdeform.sim.material.Elastic` assembles the springs,
-    with the shear modulus ``mu`` of each cell replaced by ``mu tau`` (the corner mean): for one
-    ``tau`` everywhere exactly ``c = k tau``; a body of several tissues gives each cell its own.
-    The volume term gets no dashpot.
-
-    Args:
-        grid: the grid (14, 18 or 26 neighbours, cubic cells).
-        youngs_modulus: E (Pa), a number or per node ``(D, H, W)``.
-        poisson_ratio: nu, a number or per node.
-        retardation: tau = eta / E (s), a number or per node.
-
-    Examples:
-        >>> import torch
-        >>> import torchdeform as td
-        >>> grid = td.Grid((3, 3, 3), spacing=0.01)
-        >>> c = kelvin_voigt_damping(grid, 3700.0, 0.49, 4e-4)
-        >>> k = td.Model(grid, td.Elastic(3700.0, 0.49), density=1000.0, dtype=torch.float64).stiffness[0]
-        >>> bool(torch.allclose(c, 4e-4 * k, rtol=1e-12, atol=0))
-        True
-    """
-    from ..sim.material import cell_field, cell_mask, spring_stiffness
-
-    h = Elastic(youngs_modulus, poisson_ratio).check_grid(grid)
-    E, nu, tau = (torch.as_tensor(v, dtype=torch.float64) for v in (youngs_modulus, poisson_ratio, retardation))
-    viscous = E / (2 * (1 + nu)) * tau  # mu tau (Pa s) per node
-    cells = cell_field(viscous, grid, dtype=torch.float64, device=None) * cell_mask(grid).to(torch.float64)
-    return spring_stiffness(grid, cells, h)
 
 
 #: Young's moduli (Pa) outside which a spring lattice is no soft tissue: a unit is probably mixed up
@@ -822,12 +708,23 @@ def mass_spring_scene(src: Source, data: dict, base: Path, *, name: str = "scene
     section = {
         name_: Table(src, name_, data[name_], keys + (options if name_ == "integrator" else ()))
         for name_, keys in SECTIONS.items()
-        if name_ in data and name_ not in ("loads", "drags", "regions", "tools", "cuts", "cautery", "coagulate")
+        if name_ in data
+        and name_ not in ("loads", "drags", "regions", "tissues", "tools", "cuts", "cautery", "coagulate")
     }
-    grid = grid_section(section["grid"], base)
-    model_args = _body(src, data, section, grid)
+    if "tissues" in data and not section["grid"].has("labels"):
+        raise src.error("tissues", "[[tissues]] only with [grid] labels (a label volume); else [[regions]]")
+    if section["grid"].has("labels"):
+        from .anatomy import label_body_section
+
+        grid, model_args, _ = label_body_section(src, data, section, base)
+    else:
+        grid = grid_section(section["grid"], base)
+        model_args = _body(src, data, section, grid)
     if "boundary" in section:
+        fixed = model_args.get("fixed")
         model_args.update(_boundary(section["boundary"], grid))
+        if fixed is not None and "fixed" in model_args and model_args["fixed"] is not fixed:
+            model_args["fixed"] = model_args["fixed"] | fixed  # the fixed labels stay fixed
     if "loads" in data:
         model_args["loads"] = _loads(src, data["loads"], grid)
     if "drags" in data:

@@ -57,7 +57,7 @@ __all__ = [
 ]
 
 SECTIONS = {
-    "grid": ("shape", "mesh", "spacing", "topology", "origin", "padding", "scale"),
+    "grid": ("shape", "mesh", "labels", "spacing", "topology", "origin", "padding", "scale", "label_spacing"),
     "material": (
         "stiffness",
         "spring_modulus",
@@ -73,6 +73,7 @@ SECTIONS = {
         "cubic",
     ),
     "regions": ("sphere", "box", "stiffness", "tissue", "youngs_modulus", "poisson_ratio"),
+    "tissues": ("label", "tissue", "youngs_modulus", "poisson_ratio", "density", "fixed", "background"),
     "mass": ("mass", "density"),
     "boundary": ("fixed", "fixed_nodes", "home", "anchors", "decay", "gravity"),
     "loads": ("node", "force", "face", "traction", "start", "ramp"),
@@ -342,7 +343,10 @@ def read(path) -> tuple[Source, dict]:
     for name in data:
         if name not in SECTIONS and name != "model":
             raise src.error(name, "one of the sections " + ", ".join(f"[{s}]" for s in SECTIONS), got=name)
+    labels = isinstance(data.get("grid"), dict) and "labels" in data["grid"]  # the tissues give the material
     for name in ("grid", "chainmail") if model == "chainmail" else REQUIRED:
+        if name == "material" and labels:
+            continue
         if name not in data:
             raise src.error(name, f"a [{name}] section (required)")
     return src, data
@@ -361,7 +365,10 @@ def grid_section(t: Table, base: Path) -> Grid:
     topology = t.integer("topology", "6, 14, 18 or 26", default=26)
     if topology not in TOPOLOGIES:
         raise t.fail("topology", "6, 14, 18 or 26", got=topology)
-    if t.one_of("shape", "mesh") == "mesh":
+    which = t.one_of("shape", "mesh", "labels")
+    if which == "labels":
+        raise t.fail("labels", 'shape or mesh: a body of labels is a mass-spring scene\'s (model = "mass-spring")')
+    if which == "mesh":
         from ..mesh import grid_from_mesh
 
         t.only_with("origin", "mesh")
@@ -370,6 +377,7 @@ def grid_section(t: Table, base: Path) -> Grid:
         scale = t.num("scale", "a positive number (metres per mesh unit)", default=1.0, lo=0, lo_open=True)
         with t.src.located(t.key("mesh"), keys={k: t.key(k) for k in ("spacing", "padding", "scale")}):
             return grid_from_mesh(base / mesh, spacing, topology=topology, padding=padding, scale=scale)
+    t.only_with("label_spacing", "labels")
     t.only_with("padding", "shape")
     t.only_with("scale", "shape")
     shape = t.raw("shape", "three node counts [D, H, W]")

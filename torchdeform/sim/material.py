@@ -113,6 +113,7 @@ __all__ = [
     "CLASS_WEIGHTS",
     "POISSON_RANGE",
     "cell_field",
+    "kelvin_voigt_damping",
     "cell_mask",
     "corner_cells",
     "spring_cells",
@@ -165,9 +166,10 @@ class Elastic:
     docstring for the calibration.
 
     Args:
-        youngs_modulus: E (Pa), a number or a per-node tensor ``(D, H, W)`` (a cell takes the
-            mean of its 8 corners).
-        poisson_ratio: nu, in ``[1/6, 0.5)`` (:data:`POISSON_RANGE`), a number or per node.
+        youngs_modulus: E (Pa), a number, a per-node tensor ``(D, H, W)`` (a cell takes the
+            mean of its 8 corners) or a per-cell tensor ``(D-1, H-1, W-1)`` (cell ``(i, j, k)``
+            between nodes ``(i, j, k)`` and ``(i+1, j+1, k+1)``).
+        poisson_ratio: nu, in ``[1/6, 0.5)`` (:data:`POISSON_RANGE`), a number, per node or per cell.
 
     Example:
         >>> import torchdeform as td
@@ -226,12 +228,17 @@ class Elastic:
 
 
 def cell_field(value, grid, *, dtype, device) -> torch.Tensor:
-    """A number or a per-node field ``(D, H, W)`` as a per-cell field ``(D-1, H-1, W-1)`` (corner mean)."""
+    """A number, a per-node field ``(D, H, W)`` (corner mean) or a per-cell field as a per-cell field ``(D-1, H-1, W-1)``."""
     t = torch.as_tensor(value, dtype=dtype, device=device)
+    cells = tuple(n - 1 for n in grid.shape)
     if t.dim() == 0:
-        return t.expand(tuple(n - 1 for n in grid.shape))
+        return t.expand(cells)
+    if tuple(t.shape) == cells:
+        return t
     if tuple(t.shape) != grid.shape:
-        raise ConfigError("material", f"numbers or per-node fields of shape {grid.shape}", got=tuple(t.shape))
+        raise ConfigError(
+            "material", f"numbers, per-node fields {grid.shape} or per-cell fields {cells}", got=tuple(t.shape)
+        )
     for axis in range(3):
         t = _mean2(t, axis)
     return t
@@ -326,6 +333,39 @@ def reassemble(grid, stiffness: torch.Tensor, mu_cells: torch.Tensor, h: float) 
     """
     k = spring_stiffness(grid, mu_cells, h)
     return torch.where(stiffness != 0, k, torch.zeros_like(k))
+
+
+def kelvin_voigt_damping(grid, youngs_modulus, poisson_ratio, retardation) -> torch.Tensor:
+    r"""Each spring's dashpot (N s/m), ``(S, D, H, W)`` float64: Kelvin-Voigt damping of an elastic body.
+
+    A Kelvin-Voigt solid has stress :math:`\sigma = C \varepsilon + \tau C \dot\varepsilon`:
+    every spring of stiffness ``k`` (N/m) gets a dashpot ``c = k tau`` (N s/m) with the retardation
+    time :math:`\tau = \eta / E` (s) of the tissue (viscosity eta in Pa s, Young's modulus E in Pa).
+    Assembled from the cells as :class:`~torchdeform.sim.material.Elastic` assembles the springs,
+    with the shear modulus ``mu`` of each cell replaced by ``mu tau`` (the corner mean): for one
+    ``tau`` everywhere exactly ``c = k tau``; a body of several tissues gives each cell its own.
+    The volume term gets no dashpot.
+
+    Args:
+        grid: the grid (14, 18 or 26 neighbours, cubic cells).
+        youngs_modulus: E (Pa), a number, per node ``(D, H, W)`` or per cell ``(D-1, H-1, W-1)``.
+        poisson_ratio: nu, a number, per node or per cell.
+        retardation: tau = eta / E (s), a number, per node or per cell.
+
+    Examples:
+        >>> import torch
+        >>> import torchdeform as td
+        >>> grid = td.Grid((3, 3, 3), spacing=0.01)
+        >>> c = kelvin_voigt_damping(grid, 3700.0, 0.49, 4e-4)
+        >>> k = td.Model(grid, td.Elastic(3700.0, 0.49), density=1000.0, dtype=torch.float64).stiffness[0]
+        >>> bool(torch.allclose(c, 4e-4 * k, rtol=1e-12, atol=0))
+        True
+    """
+    h = Elastic(youngs_modulus, poisson_ratio).check_grid(grid)
+    E, nu, tau = (torch.as_tensor(v, dtype=torch.float64) for v in (youngs_modulus, poisson_ratio, retardation))
+    viscous = E / (2 * (1 + nu)) * tau  # mu tau (Pa s) per node
+    cells = cell_field(viscous, grid, dtype=torch.float64, device=None) * cell_mask(grid).to(torch.float64)
+    return spring_stiffness(grid, cells, h)
 
 
 def _diff(x: torch.Tensor, axis: int) -> torch.Tensor:

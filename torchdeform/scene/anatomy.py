@@ -1,0 +1,126 @@
+"""``[grid] labels`` and ``[[tissues]]``: a scene body made from a label volume.
+
+.. code-block:: text
+
+    [grid]
+    labels = "labels.nii.gz"       # NIfTI, NRRD, .npz, .npy (with label_spacing) or a DICOM folder
+    spacing = 0.004                # the lattice's spacing (m; cubic cells)
+
+    [[tissues]]
+    label = 1
+    tissue = "liver"               # or youngs_modulus (Pa), poisson_ratio, density (kg/m^3)
+
+    [[tissues]]
+    label = 3
+    fixed = true                   # bone: its nodes do not move
+
+Label 0 is background unless a ``[[tissues]]`` entry names it; ``background = true`` leaves out
+another label. Every other label of the image needs an entry. ``[material]`` may then hold only
+``damping`` (and ``damping_mode``); without it the springs get the Kelvin-Voigt damping of the
+library tissues. The mass comes from the tissues' densities (no ``[mass]``), and ``[[regions]]`` do
+not apply (the labels are the regions). See :mod:`torchdeform.anatomy.labels`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..sim.grid import Grid
+from .reader import SECTIONS, Source, Table, is_number
+
+__all__ = ["label_body_section"]
+
+_GRID_ONLY = ("shape", "mesh", "origin", "padding", "scale")
+
+
+def _tissue_tables(src: Source, items) -> tuple[dict, list, list]:
+    """``({label: Tissue}, fixed labels, background labels)`` of the ``[[tissues]]`` tables."""
+    from ..anatomy.labels import Tissue
+
+    if not isinstance(items, list) or not items:
+        raise src.error("tissues", "[[tissues]] tables (label = .., tissue = ..) for a body of labels")
+    tissues, fixed, background, seen = {}, [], [], {}
+    for n, item in enumerate(items):
+        t = Table(src, f"tissues[{n}]", item, SECTIONS["tissues"])
+        label = t.integer("label", "an integer label of the image", lo=-(2**31))
+        if label in seen:
+            raise t.fail("label", f"a label not given before (tissues[{seen[label]}] has it)", got=label)
+        seen[label] = n
+        flags = {}
+        for k in ("fixed", "background"):
+            v = t.raw(k, "true or false", default=False)
+            if not isinstance(v, bool):
+                raise t.fail(k, "true or false", got=v)
+            flags[k] = v
+        material = {k: t.data[k] for k in ("tissue", "youngs_modulus", "poisson_ratio", "density") if t.has(k)}
+        if flags["background"]:
+            if material or flags["fixed"]:
+                raise t.fail("background", "a background label alone (no tissue, material or fixed)", got=True)
+            background.append(label)
+            continue
+        if flags["fixed"]:
+            fixed.append(label)
+        if not material:
+            if flags["fixed"]:
+                continue
+            raise src.error(t.name, "tissue = .. or youngs_modulus = .. (or fixed = true, or background = true)")
+        for k in ("youngs_modulus", "poisson_ratio", "density"):
+            if k in material and not is_number(material[k]):
+                raise t.fail(k, "a number", got=material[k])
+        with src.located(t.key("tissue" if "tissue" in material else "youngs_modulus")):
+            tissues[label] = Tissue.of(material, key=t.key("tissue" if "tissue" in material else "youngs_modulus"))
+    if 0 not in seen:
+        background.append(0)
+    return tissues, fixed, background
+
+
+def label_body_section(src: Source, data: dict, section: dict, base: Path):
+    """``(grid, model keywords, body)`` of a scene whose ``[grid]`` has ``labels``."""
+    from ..anatomy.images import read_image
+    from ..anatomy.labels import body_from_labels
+
+    t = section["grid"]
+    for k in _GRID_ONLY:
+        t.only_with(k, "labels")
+    for name in ("mass", "regions"):
+        if name in data:
+            raise src.error(
+                name,
+                f"no [{name}] with [grid] labels (the [[tissues]] give each label its material and density)",
+            )
+    spacing = t.num("spacing", "one positive number (metres; cubic cells)", lo=0, lo_open=True)
+    topology = t.integer("topology", "14, 18 or 26", default=26)
+    if topology not in (14, 18, 26):
+        raise t.fail("topology", "14, 18 or 26 (an elastic body needs shear springs)", got=topology)
+    voxel = None
+    if t.has("label_spacing"):
+        v = t.data["label_spacing"]
+        ok = (is_number(v) and v > 0) or (
+            isinstance(v, list) and len(v) == 3 and all(is_number(c) and c > 0 for c in v)
+        )
+        if not ok:
+            raise t.fail("label_spacing", "the voxel size of a .npy label volume (metres: one or three numbers)", got=v)
+        voxel = v
+    tissues, fixed, background = _tissue_tables(src, data.get("tissues"))
+    path = base / t.text("labels", "a label volume file or a DICOM folder (relative to the scene file)")
+    with src.located(t.key("labels")):
+        image = read_image(path, key=t.key("labels"), spacing=voxel)
+        body = body_from_labels(
+            image, spacing, tissues=tissues, fixed=fixed, background=background, topology=topology, key=t.key("labels")
+        )
+    args: dict = {"stiffness": body.material, "normalize": False, "mass": body.mass}
+    if bool(body.fixed.any()):
+        args["fixed"] = body.fixed
+    if "material" in data:
+        m = Table(src, "material", data["material"], ("damping", "damping_mode"))
+        if m.has("damping"):
+            args["damping"] = m.per_class("damping", "N s/m")
+        args["damping_mode"] = m.text(
+            "damping_mode", '"projected" or "unprojected"', default="projected", choices=("projected", "unprojected")
+        )
+    if "damping" not in args and bool((body.retardation > 0).any()):
+        from ..sim.material import kelvin_voigt_damping
+
+        args["damping"] = kelvin_voigt_damping(body.grid, body.youngs_modulus, body.poisson_ratio, body.retardation)
+    grid: Grid = body.grid
+    return grid, args, body
