@@ -317,3 +317,33 @@ def test_gradients_with_respect_to_colours_and_vertices():
         return rasterize(v, torch.tensor([[0, 1, 2]]), cam, colors=c, light=(0.3, 0.2, 1.0))["image"][hit]
 
     assert torch.autograd.gradcheck(image, (world.clone().requires_grad_(), rgb.clone().requires_grad_()))
+
+
+def test_smooth_normals_shade_a_sphere_as_its_analytic_lambert_and_the_highlight_sits_at_the_half_vector():
+    """Oracle: for a unit sphere under an orthographic camera and a headlight, the smooth-shaded value at
+    a pixel is ambient + (1 - ambient) n.l with n the sphere's analytic normal there; the Blinn-Phong
+    highlight peaks where n is the half vector (the sphere's front point for a headlight)."""
+    import trimesh
+
+    s = trimesh.creation.icosphere(subdivisions=5, radius=1.0)
+    v, f = torch.as_tensor(s.vertices), torch.as_tensor(s.faces)
+    cam = Camera((0.0, 0.0, 5.0), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), ortho_height=2.5, size=(65, 65))
+    out = rasterize(v, f, cam, normals=v, ambient=0.2)
+    flat = rasterize(v, f, cam, ambient=0.2)
+    hit = out["face"] >= 0
+    py, px = torch.nonzero(hit, as_tuple=True)
+    x = (px.double() + 0.5 - 32.5) * 2.5 / 65
+    y = -(py.double() + 0.5 - 32.5) * 2.5 / 65
+    nz = (1 - x**2 - y**2).clamp_min(0).sqrt()
+    expected = 0.2 + 0.8 * nz
+    inner = nz > 0.3
+    err_smooth = (out["image"][py, px, 0] - expected)[inner].abs().max()
+    err_flat = (flat["image"][py, px, 0] - expected)[inner].abs().max()
+    assert float(err_smooth) < 0.01 and float(err_smooth) < float(err_flat) / 2
+    grey = torch.full_like(v, 0.4)  # dark enough that nothing clips at 1
+    dry = rasterize(v, f, cam, colors=grey, normals=v, ambient=0.2)
+    wet = rasterize(v, f, cam, colors=grey, normals=v, ambient=0.2, specular=0.5, shininess=40.0)
+    diff = wet["image"][..., 0] - dry["image"][..., 0]
+    assert float(diff[hit].min()) >= 0 and float(diff.max()) == pytest.approx(0.5, rel=0.02)
+    peak = torch.nonzero(diff == diff.max())[0]
+    assert abs(int(peak[0]) - 32) <= 1 and abs(int(peak[1]) - 32) <= 1  # the front point: h = l = view

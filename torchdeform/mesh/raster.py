@@ -236,6 +236,9 @@ def rasterize(
     ambient: float = 0.2,
     background=(1.0, 1.0, 1.0),
     two_sided: bool = False,
+    normals=None,
+    specular: float = 0.0,
+    shininess: float = 40.0,
     chunk_pairs: int = 1 << 21,
 ) -> dict:
     """Render a triangle mesh with a z-buffer: visibility, barycentrics, colours and Lambert shading.
@@ -255,13 +258,19 @@ def rasterize(
         ambient: the shade of an unlit face, in ``[0, 1]``.
         background: RGB ``(3,)`` where no triangle is hit.
         two_sided: shade with ``|n . l|`` instead of ``max(0, n . l)``.
+        normals: ``(V, 3)`` per-vertex normals, interpolated per pixel and renormalised (smooth
+            shading); default ``None``: each face's own normal (flat shading).
+        specular: the weight of a white Blinn-Phong highlight, ``specular (n . h)^shininess`` with
+            ``h`` half-way between the light and the viewer (0: none; about 0.3 looks wet).
+        shininess: the highlight's exponent (larger: smaller, sharper highlights).
         chunk_pairs: at most this many (triangle, pixel) candidate pairs per chunk (memory bound;
             one triangle larger than this is a chunk of its own).
 
     Returns:
         dict of
 
-        * ``image`` ``(H, W, 3)``: RGB, ``colour * (ambient + (1 - ambient) max(0, n . l))``;
+        * ``image`` ``(H, W, 3)``: RGB, ``colour * (ambient + (1 - ambient) max(0, n . l))`` plus the
+          highlight (clipped to 1);
         * ``depth`` ``(H, W)``: metres along the viewing direction, ``inf`` where nothing is hit;
         * ``face`` ``(H, W)`` int64: index of the visible face, ``-1`` where nothing is hit;
         * ``bary`` ``(H, W, 3)``: barycentric weights of the visible 3-D point in its face's
@@ -359,8 +368,14 @@ def rasterize(
     else:
         depth = (b * zv).sum(1)
     tri = v[f[fh]]  # (P, 3, 3)
-    normal = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    normal = normal / normal.norm(dim=1, keepdim=True)
+    if normals is None:
+        normal = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    else:
+        nv = torch.as_tensor(normals, dtype=dtype, device=device)
+        if nv.shape != v.shape:
+            raise ConfigError("normals", f"per-vertex normals {tuple(v.shape)}", got=tuple(nv.shape))
+        normal = (b[:, :, None] * nv[f[fh]]).sum(1)
+    normal = normal / normal.norm(dim=1, keepdim=True).clamp_min(1e-30)
     if light is None:
         ldir = -camera.frame(dtype=dtype, device=device)[1][2]
     else:
@@ -370,6 +385,17 @@ def rasterize(
         ldir = ldir / ldir.norm()
     ndotl = normal @ ldir
     shade = ambient + (1.0 - ambient) * (ndotl.abs() if two_sided else ndotl.clamp(min=0.0))
+    highlight = None
+    if specular > 0:
+        point = (b[:, :, None] * tri).sum(1)
+        eye, axes = camera.frame(dtype=dtype, device=device)
+        forward = axes[2]
+        view = (eye - point) if camera.perspective else -forward.expand_as(point)
+        view = view / view.norm(dim=1, keepdim=True).clamp_min(1e-30)
+        n = torch.where((normal * view).sum(1, keepdim=True) < 0, -normal, normal) if two_sided else normal
+        half = ldir + view
+        half = half / half.norm(dim=1, keepdim=True).clamp_min(1e-30)
+        highlight = float(specular) * (n * half).sum(1).clamp(min=0.0) ** float(shininess)
     if colors is None:
         rgb = torch.ones(len(hit), 3, dtype=dtype, device=device)
     elif callable(colors):
@@ -380,7 +406,10 @@ def rasterize(
     else:
         rgb = (b[:, :, None] * colors[f[fh]]).sum(1)
 
-    image = bg.expand(H * W, 3).index_put((hit,), rgb * shade[:, None])
+    lit = rgb * shade[:, None]
+    if highlight is not None:
+        lit = (lit + highlight[:, None]).clamp(max=1.0)
+    image = bg.expand(H * W, 3).index_put((hit,), lit)
     depth_img = torch.full((H * W,), math.inf, dtype=dtype, device=device).index_put((hit,), depth)
     bary = torch.zeros(H * W, 3, dtype=dtype, device=device).index_put((hit,), b)
     return {

@@ -356,8 +356,9 @@ def animate(
         labels: int ``(D, H, W)`` pieces of the body (negative outside; default: the grid's nodes, one
             piece), as :func:`~torchdeform.topology.cut_surfaces` takes them.
         texture: a :class:`~torchdeform.texture.SolidTexture`, or the keyword arguments of
-            :func:`body_texture` (``exemplar``, ``block``, ``seed``, ``voxel``), or None (the
-            procedural liver).
+            :func:`body_texture` (``exemplar``, ``block``, ``seed``, ``voxel``) and ``seams`` (a
+            method of :meth:`~torchdeform.texture.SolidTexture.blend`, default ``"3d"``), or None
+            (the procedural liver, its seams blended).
         volume: ``(D', H', W')`` values, a volume file, ``"phantom"`` or ``"phantom:N"``; it fills the
             node grid's bounding box.
         tf: transfer-function preset or file (``dvr``).
@@ -393,7 +394,11 @@ def animate(
     if labels is None:
         labels = torch.where(grid.nodes(), 0, -1)
     if texture is None or isinstance(texture, dict):
-        texture = body_texture(grid, **(texture or {}))
+        spec = dict(texture or {})
+        seams = spec.pop("seams", "3d")
+        texture = body_texture(grid, **spec)
+        if seams != "none":
+            texture.blend(method=seams)  # no square tiles on the surface
     if isinstance(volume, (str, Path)):
         volume = load_volume(str(volume), key="volume.file")
     vol = torch.as_tensor(np.asarray(volume) if not torch.is_tensor(volume) else volume).float()

@@ -816,7 +816,7 @@ def mass_spring_scene(src: Source, data: dict, base: Path, *, name: str = "scene
             "seed": tt.integer("seed", "an integer >= 0", default=0),
             "voxel": tt.num("voxel", "a positive voxel size (m)", default=spacing / 4, lo=0, lo_open=True),
             "seams": tt.text(
-                "seams", " or ".join(f'"{m}"' for m in SEAM_METHODS), default="none", choices=SEAM_METHODS
+                "seams", " or ".join(f'"{m}"' for m in SEAM_METHODS), default="3d", choices=SEAM_METHODS
             ),
         }
     scene.build(device="cpu")

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["vertex_colours", "render_textured", "framing_camera", "body_texture"]
+__all__ = ["vertex_colours", "render_textured", "framing_camera", "body_texture", "MAX_SIDE"]
 
 
 def vertex_colours(texture, surface) -> torch.Tensor:
@@ -60,13 +60,15 @@ def render_textured(
     ambient: float = 0.35,
     per_pixel: bool = True,
     background=(1.0, 1.0, 1.0),
+    specular: float = 0.0,
     device=None,
 ) -> dict:
     """Rasterise surfaces (deformed vertices) coloured by the solid texture at material coordinates.
 
     Args:
         surfaces: a list of surfaces with ``vertices`` ``(V, 3)``, ``faces`` ``(F, 3)`` and
-            ``rest`` ``(V, 3)`` (for instance one per side of a cut).
+            ``rest`` ``(V, 3)`` (for instance one per side of a cut), and optionally ``normals``
+            ``(V, 3)`` (smooth shading; surfaces without them are shaded flat).
         texture: the :class:`~torchdeform.texture.synthesis.SolidTexture`.
         camera: a :class:`~torchdeform.mesh.raster.Camera`.
         light: direction towards the light (default: from the camera).
@@ -74,6 +76,8 @@ def render_textured(
         per_pixel: look the texture up at every pixel's interpolated rest coordinates (True) or
             interpolate the vertex colours (False, Chen & He's node colouring alone).
         background: RGB where nothing is hit.
+        specular: the weight of a white highlight (:func:`~torchdeform.mesh.raster.rasterize`; about
+            0.3 gives wet tissue its sheen).
         device: where to rasterise and look the texture up (default: where the surfaces' tensors
             are, the CPU for numpy arrays).
 
@@ -82,14 +86,18 @@ def render_textured(
     """
     from ..mesh.raster import rasterize
 
-    verts, faces, rest, base = [], [], [], 0
+    verts, faces, rest, normals, base = [], [], [], [], 0
+    smooth = all(getattr(s, "normals", None) is not None for s in surfaces)
     for s in surfaces:
         v = torch.as_tensor(s.vertices, dtype=torch.float64, device=device)
         verts.append(v)
         faces.append(torch.as_tensor(s.faces, dtype=torch.int64, device=v.device) + base)
         rest.append(torch.as_tensor(s.rest, dtype=torch.float64, device=v.device))
+        if smooth:
+            normals.append(torch.as_tensor(s.normals, dtype=torch.float64, device=v.device))
         base += len(v)
     v, f, r = torch.cat(verts), torch.cat(faces), torch.cat(rest)
+    shading = {"normals": torch.cat(normals) if smooth else None, "specular": specular}
     if per_pixel:
         colours = lambda X: texture.at_material(X).to(X.dtype)
         return rasterize(
@@ -102,6 +110,7 @@ def render_textured(
             ambient=ambient,
             background=background,
             two_sided=True,
+            **shading,
         )
     return rasterize(
         v,
@@ -112,7 +121,12 @@ def render_textured(
         ambient=ambient,
         background=background,
         two_sided=True,
+        **shading,
     )
+
+
+#: The longest side of a default body texture (voxels): its seams blend in a few seconds.
+MAX_SIDE = 160
 
 
 def body_texture(grid, *, exemplar="liver:64", block=None, seed: int = 0, voxel=None):
@@ -125,7 +139,8 @@ def body_texture(grid, *, exemplar="liver:64", block=None, seed: int = 0, voxel=
         exemplar: ``(3, E, E, E)`` colours, or ``"liver"`` / ``"liver:N"`` (procedural) or a file.
         block: block size in voxels (default: half the exemplar's smallest side).
         seed: of the block choice (and of a procedural exemplar).
-        voxel: texture voxel size (m; default a quarter of the smallest spacing).
+        voxel: texture voxel size (m; default a quarter of the smallest spacing, coarser where the
+            texture would otherwise be longer than :data:`MAX_SIDE` voxels).
 
     Returns:
         the texture.
@@ -135,10 +150,10 @@ def body_texture(grid, *, exemplar="liver:64", block=None, seed: int = 0, voxel=
 
         exemplar = exemplar_from(exemplar, seed=seed)
     block = block or min(exemplar.shape[1:]) // 2
-    voxel = voxel or min(grid.spacing) / 4
     X = grid.rest_positions(dtype=torch.float64)[0].reshape(3, -1)
     lo, hi = X.min(1).values, X.max(1).values
     pad = 2 * max(grid.spacing)  # the surfaces reach half a cell out
+    voxel = voxel or max(min(grid.spacing) / 4, float((hi - lo).max() + 2 * pad) / MAX_SIDE)
     extent = [int((h - l + 2 * pad) / voxel) + 2 for l, h in zip(lo.tolist(), hi.tolist())]
     from .synthesis import SolidTexture
 
