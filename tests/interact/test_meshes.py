@@ -238,3 +238,25 @@ def test_mesh_tool_in_projection_contact(icosphere, ball, device):
         packed = integ.step(pm, packed, 2e-3)
     assert float(s.x[0, 0, -1].min()) < 0.04 - 0.001
     assert torch.allclose(pm.unpack_state(packed).x, s.x, atol=1e-14, rtol=0)
+
+
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_tool_surfaces_are_the_tool_shapes_where_the_tools_are(axis):
+    """Oracle: each shape's own signed distance is zero on its drawn surface (to the tessellation's
+    chord error), the surface is closed and outward (positive volume), and it moves and turns with the tool."""
+    import trimesh
+
+    from torchdeform.interact import Box, Capsule, Sphere, Tool
+    from torchdeform.interact.meshes import tool_surface
+
+    rot = [0.0, 0.0, 0.0]
+    rot[(axis + 1) % 3] = 0.4
+    for shape in (Sphere(0.01), Capsule(0.005, 0.02, axis=axis), Box((0.01, 0.02, 0.005))):
+        tool = Tool(shape, path=[(0.0, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]), (1.0, [0.1, 0.2, 0.3], rot)])
+        v, f = tool_surface(tool, 1.0, detail=4)
+        mesh = trimesh.Trimesh(v, f, process=False)
+        assert mesh.is_watertight and mesh.volume > 0
+        R = torch.as_tensor(trimesh.transformations.rotation_matrix(0.4, np.eye(3)[(axis + 1) % 3])[:3, :3])
+        local = (torch.as_tensor(v) - torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)) @ R  # R^T (p - c)
+        d, _ = shape.sdf(local.T.reshape(1, 3, -1))
+        assert float(d.abs().max()) < 2e-4  # chord error of the tessellation, metres

@@ -71,6 +71,7 @@ def test_frames_panels_and_motion_follow_the_projected_nodes(tmp_path):
         tmp_path / "a.gif",
         volume="phantom:16",
         frames=4,
+        size=320,
         texture={"exemplar": "liver:16", "block": 8},
     )
     frames = gif_frames(tmp_path / "a.gif")
@@ -211,10 +212,31 @@ def test_demo_writes_demo_gif(tmp_path, monkeypatch):
         scene = td.demo_scene()
         scene.steps, scene.record_every = 20, 10
         scene.volume = dict(scene.volume, file="phantom:16")  # a smaller phantom: faster
+        scene.image_size = 160
         return scene
 
     monkeypatch.setattr(scene_mod, "demo_scene", short_demo)
     assert cli.main(argv=["demo", "--out", str(tmp_path), "--quiet"]) == 0
     assert json.loads((tmp_path / "summary.json").read_text())["animation"]["file"] == "demo.gif"
     with Image.open(tmp_path / "demo.gif") as im:
-        assert im.n_frames == 3 and im.size[0] == 640 and im.size[1] >= 320
+        assert im.n_frames == 3 and im.size[0] == 2 * 160 and im.size[1] >= 160  # two panels: it has a volume
+
+
+def test_without_a_volume_one_panel_shows_the_body_and_the_tool_where_it_is(tmp_path):
+    """Oracle: the tool's projected centre (the camera's own projection of its position at that
+    frame) lies inside the grey pixels drawn for it; a scene without a volume has one panel."""
+    from torchdeform.interact import Sphere, Tool
+
+    model, t, x, _ = dragged_run(steps=40, every=20)
+    centre = x[-1].reshape(3, -1).mean(1).double()
+    top = float(x[-1][0].max())
+    tool = Tool(Sphere(0.002), position=(top + 0.002, float(centre[1]), float(centre[2])), name="probe")
+    info = animate(model.grid, t, x, tmp_path / "a.gif", frames=2, size=200, tools=[tool])
+    frame = gif_frames(tmp_path / "a.gif")[-1]
+    assert frame.shape[1] == 200  # one panel
+    cam = info["camera"]
+    u, v = project(
+        np.array([[top + 0.002, float(centre[1]), float(centre[2])]]), cam.eye, cam.target, cam.fov_deg, 200
+    )[0]
+    r, g, b = (int(c) for c in frame[int(v), int(u)])
+    assert abs(r - g) < 25 and abs(g - b) < 30 and b >= r - 5 and 60 < r < 250  # steel grey, not tissue red

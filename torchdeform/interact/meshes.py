@@ -54,7 +54,7 @@ from ..mesh import inside_mask, load_mesh
 from ..sim.forces import constant
 from .tools import Shape, _unit
 
-__all__ = ["MeshShape"]
+__all__ = ["MeshShape", "tool_surface"]
 
 #: (point, triangle) pairs evaluated at once while building (memory: ~0.5 kB each, ~130 MB)
 _CHUNK = 1 << 18
@@ -341,3 +341,53 @@ class MeshShape(Shape):
         out = (q != inner).any(1, keepdim=True)  # (B, 1, M)
         d, n = torch.where(out, r, d), torch.where(out, m, n)
         return d.reshape(B, 1, *trailing), n.reshape(B, 3, *trailing)
+
+
+def tool_surface(tool, t: float, *, detail: int = 3) -> tuple[np.ndarray, np.ndarray] | None:
+    """The triangles of a tool at time ``t``, in world coordinates: for drawing it beside the body.
+
+    A sphere is an icosphere (``detail`` subdivisions), a capsule trimesh's capsule along its
+    axis, a box its 12 triangles, a mesh shape its own mesh; each is turned by the tool's
+    orientation and moved to its position at ``t`` (batch entry 0). A half-space has no finite
+    surface: None.
+
+    Args:
+        tool: a :class:`~torchdeform.interact.tools.Tool`.
+        t: the time (s).
+        detail: subdivisions of a sphere's icosphere (and a capsule's count of rings, ``8 * detail``).
+
+    Returns:
+        ``(vertices (V, 3) float64 metres, faces (F, 3) int64)``, outward winding, or None.
+
+    Example:
+        >>> from torchdeform.interact import Sphere, Tool
+        >>> v, f = tool_surface(Tool(Sphere(0.01), position=(0.1, 0.0, 0.0)), 0.0)
+        >>> round(float(np.linalg.norm(v - [0.1, 0.0, 0.0], axis=1).max()), 6), len(f)
+        (0.01, 1280)
+    """
+    import trimesh
+
+    from .tools import Box, Capsule, Sphere, _rotation_matrix
+
+    shape = tool.shape
+    if isinstance(shape, Sphere):
+        m = trimesh.creation.icosphere(subdivisions=detail, radius=shape.radius)
+    elif isinstance(shape, Capsule):
+        m = trimesh.creation.capsule(height=2 * shape.half_length, radius=shape.radius, count=[8 * detail, 8 * detail])
+        if shape.axis != 2:  # trimesh's capsule lies along its z: our channel 2
+            perm = [2, 0, 1] if shape.axis == 0 else [0, 2, 1]  # a cycle keeps the winding, a swap flips it
+            m = trimesh.Trimesh(m.vertices[:, perm], m.faces if shape.axis == 0 else m.faces[:, ::-1], process=False)
+    elif isinstance(shape, Box):
+        m = trimesh.creation.box(extents=[2 * h for h in shape.half_extents])
+    elif isinstance(shape, MeshShape):
+        m = trimesh.Trimesh(np.asarray(shape.vertices), np.asarray(shape.faces), process=False)
+    else:
+        return None
+    v = np.asarray(m.vertices, dtype=np.float64)
+    rot = tool.rotation(float(t))
+    if rot is not None:
+        R = _rotation_matrix(torch.as_tensor(np.asarray(rot, dtype=np.float64).reshape(-1, 3)[0])).numpy()
+        v = v @ R.T
+    pos = tool.position(float(t))
+    pos = np.asarray(pos.detach().cpu() if torch.is_tensor(pos) else pos, dtype=np.float64).reshape(-1, 3)[0]
+    return v + pos, np.asarray(m.faces, dtype=np.int64)

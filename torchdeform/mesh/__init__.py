@@ -4,13 +4,16 @@
 :mod:`.surfaces`       closed meshes voxelised into node masks (:func:`voxelize`,
                        :func:`grid_from_mesh`, the ray-parity :func:`inside_mask`), surfaces of
                        bodies and volumes by marching tetrahedra, :func:`save_surface` (trimesh)
+:mod:`.embed`          surfaces carried by the lattice (:class:`EmbeddedSurface`: rest cells, trilinear
+                       weights, deformed positions and normals per frame, .ply/.glb export) and
+                       smooth surfaces of label volumes (:func:`label_surfaces`, scikit-image)
 :mod:`.raster`         a z-buffer rasteriser on torch: :class:`Camera` (orthographic or
                        perspective), :func:`rasterize` (vertex colours or a solid texture, Lambert
                        shading), :func:`save_png`
 =====================  ===========================================================================
 
-trimesh is imported only by the functions that read or write mesh files; the rasteriser needs
-torch alone (PIL for :func:`save_png`).
+trimesh is imported only by the functions that read or write mesh files (scikit-image only by
+:func:`label_surfaces`); the rasteriser needs torch alone (PIL for :func:`save_png`).
 
 Example:
     >>> import torch
@@ -23,6 +26,7 @@ Example:
     254
 """
 
+from .embed import EMBEDDED_SUFFIXES, EmbeddedSurface, label_surfaces
 from .raster import Camera, rasterize, save_png
 from .surfaces import (
     SURFACE_SUFFIXES,
@@ -50,6 +54,9 @@ __all__ = [
     "save_surface",
     "SURFACE_TOL",
     "SURFACE_SUFFIXES",
+    "EmbeddedSurface",
+    "label_surfaces",
+    "EMBEDDED_SUFFIXES",
     "Camera",
     "rasterize",
     "save_png",

@@ -65,6 +65,7 @@ __all__ = [
     "SURFACE_DIRECTION",
     "SURFACE_FOV",
     "LIGHT",
+    "TOOL_COLOUR",
 ]
 
 #: where the surface camera looks from, in units of the body's largest side from its centre
@@ -238,16 +239,17 @@ def _font(size: int):
 
 
 def compose(surface, volume, text: str, *, titles=("surface", "volume")) -> np.ndarray:
-    """One frame: two square panels side by side, a title on each and a caption band underneath.
+    """One frame: one or two square panels side by side, a title on each and a caption band underneath.
 
     Args:
         surface: uint8 ``(S, S, 3)`` the left panel.
-        volume: uint8 ``(S, S, 3)`` the right panel.
+        volume: uint8 ``(S, S, 3)`` the right panel, or None (a scene without a volume: one panel).
         text: the caption (:func:`caption`).
         titles: the panels' titles (top left of each).
 
     Returns:
-        uint8 ``(S + band, 2 S, 3)`` with ``band = max(24, S // 9)`` pixels of caption.
+        uint8 ``(S + band, 2 S, 3)`` (``(S + band, S, 3)`` without a volume) with ``band = max(24, S // 9)``
+        pixels of caption.
 
     Example:
         >>> import numpy as np
@@ -258,15 +260,16 @@ def compose(surface, volume, text: str, *, titles=("surface", "volume")) -> np.n
 
     S = surface.shape[0]
     band = max(24, S // 9)
-    canvas = Image.new("RGB", (2 * S, S + band), (255, 255, 255))
+    canvas = Image.new("RGB", ((1 if volume is None else 2) * S, S + band), (255, 255, 255))
     canvas.paste(Image.fromarray(np.ascontiguousarray(surface)), (0, 0))
-    canvas.paste(Image.fromarray(np.ascontiguousarray(volume)), (S, 0))
     draw = ImageDraw.Draw(canvas)
     small = _font(max(10, S // 24))
     pad = max(3, S // 64)
     draw.text((pad, pad), titles[0], fill=(40, 40, 40), font=small)
-    draw.text((S + pad, pad), titles[1], fill=(235, 235, 235), font=small)
-    draw.line([(S, 0), (S, S - 1)], fill=(255, 255, 255))
+    if volume is not None:
+        canvas.paste(Image.fromarray(np.ascontiguousarray(volume)), (S, 0))
+        draw.text((S + pad, pad), titles[1], fill=(235, 235, 235), font=small)
+        draw.line([(S, 0), (S, S - 1)], fill=(255, 255, 255))
     big = _font(max(10, int(band * 0.6)))
     draw.text((pad, S + band // 2), text, fill=(20, 20, 20), font=big, anchor="lm")
     return np.asarray(canvas)
@@ -327,6 +330,46 @@ def _volume_panel(vol, offsets, tf, mode, view, extent, size, render_scale) -> n
     return np.asarray(panel)
 
 
+class _Piece:
+    """A surface to draw: deformed ``vertices``, ``normals`` and ``rest`` positions ``(V, 3)``, ``faces``."""
+
+    def __init__(self, vertices, normals, faces, rest):
+        self.vertices, self.normals, self.faces, self.rest = vertices, normals, faces, rest
+
+
+#: the colour of a drawn tool (steel)
+TOOL_COLOUR = (0.62, 0.65, 0.7)
+
+
+def _with_tools(out: dict, tools, t: float, camera) -> torch.Tensor:
+    """The rendered body ``out`` with the tools at time ``t`` drawn in front of or behind it (depth test)."""
+    from ..interact.meshes import tool_surface
+    from ..mesh.raster import rasterize
+
+    image, depth = out["image"], out["depth"]
+    for tool in tools:
+        mesh = tool_surface(tool, t)
+        if mesh is None:
+            continue
+        v = torch.as_tensor(mesh[0], dtype=image.dtype)
+        f = torch.as_tensor(mesh[1])
+        normals = v - v.mean(0) if type(tool.shape).__name__ == "Sphere" else None
+        r = rasterize(
+            v,
+            f,
+            camera,
+            colors=torch.tensor(TOOL_COLOUR, dtype=image.dtype).expand(len(v), 3),
+            light=LIGHT,
+            ambient=0.3,
+            normals=normals,
+            specular=0.5,
+        )
+        front = r["depth"] < depth
+        image = torch.where(front[..., None], r["image"], image)
+        depth = torch.where(front, r["depth"], depth)
+    return image
+
+
 def animate(
     grid,
     t,
@@ -335,16 +378,19 @@ def animate(
     *,
     labels=None,
     texture=None,
-    volume="phantom:64",
+    volume=None,
     tf: str = "ct-soft",
     mode: str = "dvr",
     view: str = "h",
     forces: dict | None = None,
     frames: int = 48,
-    size: int = 320,
+    size: int = 512,
     fps: float = 12.0,
     render_scale: float = 0.4,
     progress: bool = False,
+    surfaces=None,
+    tools=None,
+    specular: float = 0.3,
 ) -> dict:
     """Write an animated GIF of recorded frames: textured surface | deformed volume, time and forces.
 
@@ -360,7 +406,7 @@ def animate(
             method of :meth:`~torchdeform.texture.SolidTexture.blend`, default ``"3d"``), or None
             (the procedural liver, its seams blended).
         volume: ``(D', H', W')`` values, a volume file, ``"phantom"`` or ``"phantom:N"``; it fills the
-            node grid's bounding box.
+            node grid's bounding box. None (the default): no volume panel.
         tf: transfer-function preset or file (``dvr``).
         mode: ``"dvr"``, ``"mip"`` or ``"average"``.
         view: the volume's axis view, ``"d"``, ``"h"``, ``"w"``, ``"-d"``, ``"-h"`` or ``"-w"``.
@@ -371,6 +417,11 @@ def animate(
         render_scale: the volume is rendered at this fraction of the panel's resolution and scaled up
             (0.4 by default: a sixth of the rays, for speed).
         progress: show a progress bar.
+        surfaces: :class:`~torchdeform.mesh.embed.EmbeddedSurface` s to show instead of the
+            lattice's own surface (smooth, per-vertex normals), or None.
+        tools: :class:`~torchdeform.interact.tools.Tool` s drawn where they are at each frame
+            (grey, shiny), or None.
+        specular: the weight of the tissue's wet highlight (0: matt).
 
     Returns:
         dict: ``file`` (the GIF's name), ``frames``, ``size`` ``[height, width]`` of a frame (pixels),
@@ -401,20 +452,30 @@ def animate(
             texture.blend(method=seams)  # no square tiles on the surface
     if isinstance(volume, (str, Path)):
         volume = load_volume(str(volume), key="volume.file")
-    vol = torch.as_tensor(np.asarray(volume) if not torch.is_tensor(volume) else volume).float()
+    vol = None
+    if volume is not None:
+        vol = torch.as_tensor(np.asarray(volume) if not torch.is_tensor(volume) else volume).float()
     X = grid.rest_positions(dtype=torch.float64)
     extent = [(n - 1) * s for n, s in zip(grid.shape, grid.spacing)]
     extent = [e if e > 0 else s for e, s in zip(extent, grid.spacing)]
     camera = surface_camera(grid, x[idx], size=size)
     forces = {k: np.asarray(f, dtype=np.float64).reshape(len(t), 3) for k, f in (forces or {}).items()}
     titles = ("surface: solid texture, shaded", f"volume: {mode}, view {view}")
+    if surfaces:
+        titles = ("embedded surfaces: solid texture, smooth, wet", titles[1])
     images, captions = [], []
     for i in tqdm(idx, disable=not progress, desc="animate", unit="frame"):
-        pieces = cut_surfaces(grid, x[i : i + 1], labels)
-        surface = render_textured(pieces, texture, camera, light=LIGHT)["image"]
-        surface = (surface.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
-        offsets = node_offsets(x[i : i + 1], X, grid.spacing, tuple(vol.shape)).float()
-        right = _volume_panel(vol, offsets, tf, mode, view, extent, size, render_scale)
+        if surfaces:
+            pieces = [_Piece(*s.update(x[i]), s.faces, s.rest_vertices) for s in surfaces]
+        else:
+            pieces = cut_surfaces(grid, x[i : i + 1], labels)
+        out = render_textured(pieces, texture, camera, light=LIGHT, specular=specular)
+        surface = _with_tools(out, tools or (), float(t[i]), camera).clamp(0, 1)
+        surface = (surface * 255 + 0.5).to(torch.uint8).numpy()
+        right = None
+        if vol is not None:
+            offsets = node_offsets(x[i : i + 1], X, grid.spacing, tuple(vol.shape)).float()
+            right = _volume_panel(vol, offsets, tf, mode, view, extent, size, render_scale)
         text = caption(float(t[i]), forces={k: f[i] for k, f in forces.items()})
         captions.append(text)
         images.append(compose(surface, right, text, titles=titles))

@@ -229,6 +229,8 @@ class Scene:
     #: optional file name (``"animation.gif"`` for ``[output] animation = true``): ``run_scene`` then writes
     #: an animated GIF of the run there (:func:`torchdeform.scene.animation.animate`)
     animation: str | None = None
+    #: the side (pixels) of each square panel of the animation (``[output] image_size``)
+    image_size: int = 512
     _models: dict = field(default_factory=dict, init=False, repr=False)
 
     def build(self, *, device=None) -> Model:
@@ -772,6 +774,9 @@ def mass_spring_scene(src: Source, data: dict, base: Path, *, name: str = "scene
     if not isinstance(animation, bool):
         raise out.fail("animation", "true or false (write animation.gif)", got=animation)
     scene.animation = "animation.gif" if animation else None
+    scene.image_size = out.integer("image_size", "an integer number of pixels in [64, 2048]", default=512, lo=64)
+    if scene.image_size > 2048:
+        raise out.fail("image_size", "an integer number of pixels in [64, 2048]", got=scene.image_size)
     if "volume" in data:
         vt = Table(src, "volume", data["volume"], SECTIONS["volume"])
         scene.volume = {

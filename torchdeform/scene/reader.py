@@ -106,7 +106,7 @@ SECTIONS = {
     "cautery": ("tool", "at", "every", "start", "stop"),
     "tear": ("max_strain", "max_force", "one_per_step", "start"),
     "coagulate": ("at", "box", "sphere", "viscosity_factor"),
-    "output": ("record_every", "name", "palpation", "surfaces", "animation"),
+    "output": ("record_every", "name", "palpation", "surfaces", "animation", "image_size"),
     "volume": ("file", "tf", "mode", "view"),
     "texture": ("exemplar", "block", "seed", "voxel", "seams"),
     "chainmail": (

@@ -763,9 +763,11 @@ def scene_animation(
         forces.update(tool_forces_at(tools, scene.tools.names, t))
     if model.drags:
         forces["drag" if len(model.drags) == 1 else "drags"] = drag_forces(model, x, v, t)
-    volume: dict[str, Any] = dict(scene.volume or {"file": "phantom:64"})
-    name, base = str(volume.pop("file")), volume.pop("base", None)
-    path = _volume_path(name, base)
+    volume: dict[str, Any] = {}
+    if scene.volume:  # the volume panel only where the scene has a volume
+        volume = dict(scene.volume)
+        name, base = str(volume.pop("file")), volume.pop("base", None)
+        volume["volume"] = _volume_path(name, base)
     info = animate(
         grid,
         t,
@@ -773,9 +775,10 @@ def scene_animation(
         Path(out_dir) / scene.animation,
         labels=labels,
         texture=texture,
-        volume=path,
         forces=forces,
         progress=progress,
+        size=scene.image_size,
+        tools=scene.tools.tools if scene.tools is not None else None,
         **volume,
     )
     return {k: info[k] for k in ("file", "frames", "size", "panel", "bytes")} | {
