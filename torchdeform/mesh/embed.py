@@ -73,7 +73,7 @@ from ..outputs import atomic_path
 from ..sim.grid import Grid
 from .surfaces import SURFACE_TOL, load_mesh, trilinear_weights
 
-__all__ = ["EmbeddedSurface", "label_surfaces", "EMBEDDED_SUFFIXES"]
+__all__ = ["EmbeddedSurface", "label_surfaces", "save_surfaces", "EMBEDDED_SUFFIXES"]
 
 #: The file types :meth:`EmbeddedSurface.save` writes (chosen by the suffix).
 EMBEDDED_SUFFIXES = (".ply", ".glb")
@@ -427,6 +427,67 @@ class EmbeddedSurface:
         """
         vertices, faces = load_mesh(path, scale=scale, key="surface")
         return cls(vertices, faces, grid, dtype=dtype, device=device)
+
+
+def save_surfaces(path, surfaces: dict, x) -> None:
+    """Write several embedded surfaces on one deformed lattice into one file, with vertex normals.
+
+    A ``.glb`` holds one named mesh per surface; a ``.ply`` holds them as one mesh whose vertices
+    carry a ``surface`` property (the index of their surface in ``surfaces``' order). The file
+    appears whole or not at all.
+
+    Args:
+        path: a ``.ply`` or ``.glb`` path in an existing folder.
+        surfaces: ``{name: EmbeddedSurface}`` on the same lattice.
+        x: node positions of one body, ``(3, D, H, W)`` or ``(1, 3, D, H, W)`` (m).
+
+    Example:
+        >>> import torch, trimesh
+        >>> import torchdeform as td
+        >>> grid = td.Grid((4, 4, 4), spacing=0.01)
+        >>> ball = trimesh.creation.icosphere(2, radius=0.01)
+        >>> s = EmbeddedSurface(ball.vertices + 0.015, ball.faces, grid)
+        >>> path = getfixture("tmp_path") / "frame.glb"
+        >>> save_surfaces(path, {"liver": s}, grid.rest_positions())
+        >>> list(trimesh.load(path).geometry)
+        ['liver']
+    """
+    import trimesh
+
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in EMBEDDED_SUFFIXES:
+        raise ConfigError("surface file", "a .ply or .glb path", got=str(path))
+    meshes = {}
+    with torch.no_grad():
+        for name, surface in surfaces.items():
+            p, n = surface.update(x)
+            p, n = p.reshape(-1, 3), n.reshape(-1, 3)
+            meshes[str(name)] = (p.double().cpu().numpy(), surface.faces.cpu().numpy(), n.double().cpu().numpy())
+    with atomic_path(path, key="surface file") as tmp:
+        if suffix == ".glb":
+            scene = trimesh.Scene()
+            for name, (v, f, n) in meshes.items():
+                scene.add_geometry(
+                    trimesh.Trimesh(v, f, vertex_normals=n, process=False), geom_name=name, node_name=name
+                )
+            scene.export(str(tmp), file_type="glb", include_normals=True)
+            return
+        vs, fs, ns, ids, base = [], [], [], [], 0
+        for k, (v, f, n) in enumerate(meshes.values()):
+            vs.append(v)
+            fs.append(f + base)
+            ns.append(n)
+            ids.append(np.full(len(v), float(k)))
+            base += len(v)
+        mesh = trimesh.Trimesh(
+            np.concatenate(vs),
+            np.concatenate(fs),
+            vertex_normals=np.concatenate(ns),
+            vertex_attributes={"surface": np.concatenate(ids)},
+            process=False,
+        )
+        mesh.export(str(tmp), file_type="ply", vertex_normal=True)
 
 
 # ------------------------------------------------------------------------- label surfaces

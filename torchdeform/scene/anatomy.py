@@ -25,6 +25,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from ..sim.grid import Grid
 from .reader import SECTIONS, Source, Table, is_number
 
@@ -75,7 +77,12 @@ def _tissue_tables(src: Source, items) -> tuple[dict, list, list]:
 
 
 def label_body_section(src: Source, data: dict, section: dict, base: Path):
-    """``(grid, model keywords, body)`` of a scene whose ``[grid]`` has ``labels``."""
+    """``(grid, model keywords, embedded surfaces or None)`` of a scene whose ``[grid]`` has ``labels``.
+
+    The surfaces (``{"label<k>": (vertices, faces)}``, :func:`~torchdeform.mesh.embed.label_surfaces`)
+    are made only when the run shows or writes them (``[output] surfaces = "embedded"`` or
+    ``animation = true``), and the body then covers them.
+    """
     from ..anatomy.images import read_image
     from ..anatomy.labels import body_from_labels
 
@@ -103,10 +110,30 @@ def label_body_section(src: Source, data: dict, section: dict, base: Path):
         voxel = v
     tissues, fixed, background = _tissue_tables(src, data.get("tissues"))
     path = base / t.text("labels", "a label volume file or a DICOM folder (relative to the scene file)")
+    out = Table(src, "output", data.get("output", {}), SECTIONS["output"])
+    wanted = out.data.get("surfaces") == "embedded" or out.data.get("animation") is True
+    faces = out.integer("surface_faces", "an integer >= 100 (triangles per label surface)", default=10_000, lo=100)
     with src.located(t.key("labels")):
         image = read_image(path, key=t.key("labels"), spacing=voxel)
+    embedded, cover = None, None
+    if wanted:  # smooth surfaces at image resolution; the body then covers them
+        from ..mesh.embed import label_surfaces
+
+        which = _surface_labels(t, sorted(tissues) + [f for f in fixed if f not in tissues])
+        with src.located(t.key("labels")):
+            found = label_surfaces(image.array, image.affine, which=which, smooth=10, faces=faces)
+        embedded = {f"label{k}": v for k, v in found.items()}
+        cover = np.concatenate([v for v, _ in found.values()]) if found else None
+    with src.located(t.key("labels")):
         body = body_from_labels(
-            image, spacing, tissues=tissues, fixed=fixed, background=background, topology=topology, key=t.key("labels")
+            image,
+            spacing,
+            tissues=tissues,
+            fixed=fixed,
+            background=background,
+            topology=topology,
+            cover=cover,
+            key=t.key("labels"),
         )
     args: dict = {"stiffness": body.material, "normalize": False, "mass": body.mass}
     if bool(body.fixed.any()):
@@ -123,4 +150,14 @@ def label_body_section(src: Source, data: dict, section: dict, base: Path):
 
         args["damping"] = kelvin_voigt_damping(body.grid, body.youngs_modulus, body.poisson_ratio, body.retardation)
     grid: Grid = body.grid
-    return grid, args, body
+    return grid, args, embedded
+
+
+def _surface_labels(t: Table, default: list) -> list:
+    """``[grid] surface_labels``: the labels whose surfaces are embedded (default: every label of the body)."""
+    if not t.has("surface_labels"):
+        return default
+    v = t.data["surface_labels"]
+    if not (isinstance(v, list) and v and all(isinstance(k, int) and k in default for k in v)):
+        raise t.fail("surface_labels", f"a list of labels of the body ({default})", got=v)
+    return list(v)

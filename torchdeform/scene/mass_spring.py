@@ -231,6 +231,13 @@ class Scene:
     animation: str | None = None
     #: the side (pixels) of each square panel of the animation (``[output] image_size``)
     image_size: int = 512
+    #: smooth surfaces embedded in the lattice, ``{name: (rest vertices (V, 3) m, faces (F, 3))}``, or None;
+    #: the animation shows them, and with ``write_surfaces`` the run writes them at every recorded frame
+    embedded: dict | None = None
+    #: ``"glb"`` or ``"ply"``: the format of the embedded surfaces' files
+    surface_format: str = "glb"
+    #: write ``surfaces/frame_NNNN.<format>`` (``[output] surfaces = "embedded"``)
+    write_surfaces: bool = False
     _models: dict = field(default_factory=dict, init=False, repr=False)
 
     def build(self, *, device=None) -> Model:
@@ -691,6 +698,39 @@ def _check_static(src: Source, data: dict, out: Table) -> None:
             )
 
 
+def _grid_and_body(src: Source, data: dict, section: dict, base: Path) -> tuple:
+    """``(grid, model keywords, embedded surfaces or None)`` of ``[grid]`` and the material sections."""
+    if "tissues" in data and not section["grid"].has("labels"):
+        raise src.error("tissues", "[[tissues]] only with [grid] labels (a label volume); else [[regions]]")
+    embedded = None
+    if section["grid"].has("labels"):
+        from .anatomy import label_body_section
+
+        grid, model_args, embedded = label_body_section(src, data, section, base)
+    else:
+        out_ = data.get("output")
+        if isinstance(out_, dict) and out_.get("surfaces") == "embedded":
+            raise src.error(
+                "output.surfaces",
+                'times [t1, t2, ...]; "embedded" needs a body of labels ([grid] labels)',
+                got="embedded",
+            )
+        grid = grid_section(section["grid"], base)
+        model_args = _body(src, data, section, grid)
+    return grid, model_args, embedded
+
+
+def _embedded_outputs(scene: Scene, out: Table, embedded) -> None:
+    """``[output] surfaces = "embedded"``, ``surface_format``: the scene's embedded surfaces and their files."""
+    if embedded is not None:
+        scene.embedded = embedded
+        scene.surface_format = out.text("surface_format", '"glb" or "ply"', default="glb", choices=("glb", "ply"))
+        scene.write_surfaces = out.data.get("surfaces") == "embedded"
+        return
+    for k in ("surface_format", "surface_faces"):
+        out.only_with(k, 'surfaces = "embedded"')
+
+
 def mass_spring_scene(src: Source, data: dict, base: Path, *, name: str = "scene") -> Scene:
     """Build a :class:`Scene` from a parsed scene file whose model is ``"mass-spring"``.
 
@@ -713,15 +753,7 @@ def mass_spring_scene(src: Source, data: dict, base: Path, *, name: str = "scene
         if name_ in data
         and name_ not in ("loads", "drags", "regions", "tissues", "tools", "cuts", "cautery", "coagulate")
     }
-    if "tissues" in data and not section["grid"].has("labels"):
-        raise src.error("tissues", "[[tissues]] only with [grid] labels (a label volume); else [[regions]]")
-    if section["grid"].has("labels"):
-        from .anatomy import label_body_section
-
-        grid, model_args, _ = label_body_section(src, data, section, base)
-    else:
-        grid = grid_section(section["grid"], base)
-        model_args = _body(src, data, section, grid)
+    grid, model_args, embedded = _grid_and_body(src, data, section, base)
     if "boundary" in section:
         fixed = model_args.get("fixed")
         model_args.update(_boundary(section["boundary"], grid))
@@ -748,7 +780,8 @@ def mass_spring_scene(src: Source, data: dict, base: Path, *, name: str = "scene
         assert tools is not None  # palpation names a tool
         tools.palpation = palpation
     topology = None
-    if any(k in data for k in TOPOLOGY) or out.has("surfaces"):  # times checked now if dt is a number
+    timed_surfaces = out.has("surfaces") and out.data["surfaces"] != "embedded"
+    if any(k in data for k in TOPOLOGY) or timed_surfaces:  # times checked now if dt is a number
         end = None if run["dt"] == "auto" else run["steps"] * run["dt"]
         topology = topology_section(src, data, grid, tools, out, end=end)
     scene = Scene(
@@ -774,6 +807,7 @@ def mass_spring_scene(src: Source, data: dict, base: Path, *, name: str = "scene
     if not isinstance(animation, bool):
         raise out.fail("animation", "true or false (write animation.gif)", got=animation)
     scene.animation = "animation.gif" if animation else None
+    _embedded_outputs(scene, out, embedded)
     scene.image_size = out.integer("image_size", "an integer number of pixels in [64, 2048]", default=512, lo=64)
     if scene.image_size > 2048:
         raise out.fail("image_size", "an integer number of pixels in [64, 2048]", got=scene.image_size)
@@ -820,9 +854,7 @@ def mass_spring_scene(src: Source, data: dict, base: Path, *, name: str = "scene
             "block": block,
             "seed": tt.integer("seed", "an integer >= 0", default=0),
             "voxel": tt.num("voxel", "a positive voxel size (m)", default=spacing / 4, lo=0, lo_open=True),
-            "seams": tt.text(
-                "seams", " or ".join(f'"{m}"' for m in SEAM_METHODS), default="3d", choices=SEAM_METHODS
-            ),
+            "seams": tt.text("seams", " or ".join(f'"{m}"' for m in SEAM_METHODS), default="3d", choices=SEAM_METHODS),
         }
     scene.build(device="cpu")
     return scene

@@ -57,7 +57,18 @@ __all__ = [
 ]
 
 SECTIONS = {
-    "grid": ("shape", "mesh", "labels", "spacing", "topology", "origin", "padding", "scale", "label_spacing"),
+    "grid": (
+        "shape",
+        "mesh",
+        "labels",
+        "spacing",
+        "topology",
+        "origin",
+        "padding",
+        "scale",
+        "label_spacing",
+        "surface_labels",
+    ),
     "material": (
         "stiffness",
         "spring_modulus",
@@ -106,7 +117,16 @@ SECTIONS = {
     "cautery": ("tool", "at", "every", "start", "stop"),
     "tear": ("max_strain", "max_force", "one_per_step", "start"),
     "coagulate": ("at", "box", "sphere", "viscosity_factor"),
-    "output": ("record_every", "name", "palpation", "surfaces", "animation", "image_size"),
+    "output": (
+        "record_every",
+        "name",
+        "palpation",
+        "surfaces",
+        "surface_format",
+        "surface_faces",
+        "animation",
+        "image_size",
+    ),
     "volume": ("file", "tf", "mode", "view"),
     "texture": ("exemplar", "block", "seed", "voxel", "seams"),
     "chainmail": (

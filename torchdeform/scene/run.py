@@ -317,14 +317,57 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
     if events is not None:
         summary["topology"] = events.outputs(final, out, title=f"{scene.name}: {integrator.name}, dt = {dt:.3g} s")
     texture = _final_state_outputs(scene, model, final, out, summary, None if events is None else events.pieces())
+    surfaces = embedded_outputs(scene, model.grid, t, x, out, summary) if scene.embedded else None
     if scene.animation:
         labels = events.pieces() if events is not None else None
         tools = None if recorder is None else recorder.series()
         summary["animation"] = scene_animation(
-            scene, model, t, x, v, out, labels=labels, tools=tools, texture=texture, progress=progress
+            scene,
+            model,
+            t,
+            x,
+            v,
+            out,
+            labels=labels,
+            tools=tools,
+            texture=texture,
+            progress=progress,
+            surfaces=surfaces,
         )
     finish_outputs(summary, out, t, series, f"{scene.name}: {integrator.name}, dt = {dt:.3g} s")
     return summary
+
+
+def embedded_outputs(scene: Scene, grid, t, x, out: Path, summary: dict) -> list:
+    """The scene's embedded surfaces on the run's lattice; with ``write_surfaces``, one file per recorded frame.
+
+    Writes ``surfaces/frame_NNNN.glb`` (or ``.ply``): every surface at frame ``NNNN`` of
+    ``trajectory.npz`` (:func:`~torchdeform.mesh.embed.save_surfaces`), and adds ``"embedded_surfaces"``
+    to the summary (names, vertices, triangles, frames, format, seconds).
+
+    Returns:
+        the :class:`~torchdeform.mesh.embed.EmbeddedSurface` s (for the animation).
+    """
+    from ..mesh.embed import EmbeddedSurface, save_surfaces
+
+    assert scene.embedded is not None
+    start = time.perf_counter()
+    surfaces = {name: EmbeddedSurface(v, f, grid) for name, (v, f) in scene.embedded.items()}
+    info: dict = {
+        "surfaces": {n: {"vertices": s.num_vertices, "triangles": s.num_faces} for n, s in surfaces.items()},
+        "frames": 0,
+        "format": scene.surface_format,
+    }
+    if scene.write_surfaces:
+        folder = out / "surfaces"
+        folder.mkdir(exist_ok=True)
+        xs = torch.as_tensor(np.asarray(x))
+        for i in range(len(t)):
+            save_surfaces(folder / f"frame_{i:04d}.{scene.surface_format}", surfaces, xs[i])
+        info["frames"] = len(t)
+    info["wall_time_s"] = time.perf_counter() - start
+    summary["embedded_surfaces"] = info
+    return list(surfaces.values())
 
 
 def _final_state_outputs(scene: Scene, model: Model, final: State, out: Path, summary: dict, pieces=None):
@@ -727,11 +770,14 @@ def scene_animation(
     tools: dict | None = None,
     texture=None,
     progress: bool = False,
+    surfaces=None,
 ) -> dict:
     """Write ``scene.animation`` (a GIF): the run's textured surface beside its deformed volume render.
 
-    See :func:`torchdeform.scene.animation.animate`. The volume is the scene's ``[volume]`` (else the
-    procedural phantom, ``phantom:64``), the texture its ``[texture]`` (else the procedural liver). The
+    See :func:`torchdeform.scene.animation.animate`. The volume panel shows the scene's ``[volume]``
+    (none without one), the texture is its ``[texture]`` (else the procedural liver, seams blended),
+    the scene's tools are drawn where they are, and ``surfaces`` (embedded surfaces) replace the
+    lattice's own surface. The
     caption shows the time and the force of every tool (``tools``) and, for a scene with drags, the
     force the drags exert to hold their nodes (:func:`~torchdeform.scene.animation.drag_forces`).
     A cut body is drawn as the final pieces (``labels``) in every frame, its volume uncarved.
@@ -747,6 +793,7 @@ def scene_animation(
         tools: :meth:`ToolRecorder.series` of the run, or None.
         texture: the scene's texture (:func:`scene_texture`), or None (the procedural liver).
         progress: show a progress bar.
+        surfaces: :class:`~torchdeform.mesh.embed.EmbeddedSurface` s, or None.
 
     Returns:
         a summary dict for ``summary.json``: ``file``, ``frames``, ``size`` ``[height, width]``, ``panel``,
@@ -773,6 +820,7 @@ def scene_animation(
         t,
         x,
         Path(out_dir) / scene.animation,
+        surfaces=surfaces,
         labels=labels,
         texture=texture,
         forces=forces,

@@ -412,9 +412,12 @@ def topology_section(src: Source, data: dict, grid, tools, out: Table, *, end: f
         result.tear = _tear(Table(src, "tear", data["tear"], SECTIONS["tear"]), result)
     for n, item in enumerate(data.get("coagulate", [])):
         result.coagulate.append(_coagulate(Table(src, f"coagulate[{n}]", item, SECTIONS["coagulate"]), grid, result))
-    if out.has("surfaces"):
+    if out.has("surfaces") and out.data["surfaces"] != "embedded":
         v = out.data["surfaces"]
-        expected = "a list of times [t1, t2, ...] (s) at which to write the pieces' surfaces"
+        expected = (
+            "a list of times [t1, t2, ...] (s) at which to write the pieces' surfaces, "
+            'or "embedded" (a body of labels: its smooth surfaces at every recorded frame)'
+        )
         if not (isinstance(v, list) and v and all(is_number(s) for s in v)):
             raise out.fail("surfaces", expected, got=v)
         if min(v) < 0:
