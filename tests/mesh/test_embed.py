@@ -342,3 +342,43 @@ def test_label_surfaces_choose_labels_and_check_inputs(monkeypatch):
     monkeypatch.setitem(sys.modules, "skimage.measure", None)
     with pytest.raises(ConfigError, match=r"scikit-image .*pip install torchdeform\[anatomy\]"):
         label_surfaces(labels, eye)
+
+
+def test_a_full_planar_cut_splits_the_embedded_surface_into_two_pieces_that_separate():
+    """Oracles: the plane itself (no triangle has vertices on both sides); trimesh's connected
+    components; the rest surface (the cut one lies where it was, to 1e-9); after the lattice is cut
+    along the same plane and its ends are pulled apart, the sides' vertex sets are apart by more
+    than the pull's opening minus the lattice's own stretch."""
+    import trimesh
+
+    import torchdeform as td
+    from torchdeform.topology import Blade, cut
+
+    h = 0.005
+    grid = td.Grid((12, 7, 7), spacing=h, topology=26)
+    ell = trimesh.creation.icosphere(4, radius=1.0)
+    rest = ell.vertices * np.array([0.024, 0.013, 0.013]) + np.array([0.0275, 0.015, 0.015])
+    surf = EmbeddedSurface(rest, ell.faces, grid, dtype=torch.float64)
+    x0 = 0.0275 + 0.3 * h  # between node planes 5 and 6
+    c = surf.cut((x0, 0.0, 0.0), (1.0, 0.0, 0.0))
+    d = (c.rest_vertices[:, 0] - x0)[c.faces]
+    assert bool(((d >= -1e-12).all(1) | (d <= 1e-12).all(1)).all())  # nothing straddles the plane
+    at_rest = c.positions(grid.rest_positions(dtype=torch.float64))
+    assert float((at_rest - c.rest_vertices).abs().max()) < 1e-9
+    pieces = trimesh.Trimesh(c.rest_vertices.numpy(), c.faces.numpy(), process=False).split(only_watertight=False)
+    assert len(pieces) == 2
+    # cut the lattice on the same plane, then pull its two ends 4 mm apart, statically
+    model = td.Model(grid, td.Elastic(3e3, 0.45), density=1000.0, dtype=torch.float64)
+    blade = Blade((x0, -0.01, -0.01), (0.0, 0.06, 0.0), (0.0, 0.0, 0.06))
+    assert cut(model, model.X, blade) > 0
+    X = model.X[0]
+    x = X.clone()
+    x[0] = torch.where(X[0] > x0, X[0] + 0.002, X[0] - 0.002)  # each side moved rigidly
+    p = c.positions(x)
+    assert c.side is not None
+    plus = c.side > 0
+    assert bool((c.rest_vertices[plus, 0] >= x0 - 1e-12).all() & (c.rest_vertices[~plus, 0] <= x0 + 1e-12).all())
+    gap = float(p[plus][:, 0].min() - p[~plus][:, 0].max())
+    assert gap == pytest.approx(0.004, abs=1e-9)  # each side follows only its own nodes
+    uncut = surf.positions(x)  # the uncut surface is stretched across the opening instead
+    assert float(uncut[:, 0].max() - uncut[:, 0].min()) > float(rest[:, 0].max() - rest[:, 0].min()) + 0.0039

@@ -179,6 +179,9 @@ class EmbeddedSurface:
         origin: position of node ``(0, 0, 0)`` in metres, only with a shape.
         dtype: dtype of the weights and of what :meth:`update` returns.
         device: device of every tensor the surface holds.
+        cells: optional ``(V, 3)`` lower corners of the cells the vertices take their weights from
+            (default: the cell holding each vertex); a vertex outside its given cell extrapolates
+            (trilinear weights outside ``[0, 1]`` still reproduce affine maps). :meth:`cut` uses it.
 
     Raises:
         ConfigError: bad arrays; a vertex more than one spacing outside the lattice box (key
@@ -204,7 +207,16 @@ class EmbeddedSurface:
     """
 
     def __init__(
-        self, vertices, faces, grid, *, spacing=None, origin=None, dtype: torch.dtype = torch.float32, device=None
+        self,
+        vertices,
+        faces,
+        grid,
+        *,
+        spacing=None,
+        origin=None,
+        dtype: torch.dtype = torch.float32,
+        device=None,
+        cells=None,
     ):
         if isinstance(grid, Grid):
             if spacing is not None or origin is not None:
@@ -235,7 +247,11 @@ class EmbeddedSurface:
                 got=f"{int(far.any(1).sum())} of {V} vertices farther out, by up to {gap:.3g} m",
             )
         mask = None if grid.node_mask is None else grid.node_mask.cpu().numpy()
-        cells, ok = _rest_cells(q, grid.shape, None if mask is None else _full_cells(mask))
+        if cells is None:
+            cells, ok = _rest_cells(q, grid.shape, None if mask is None else _full_cells(mask))
+        else:  # given cells (a cut: each side's own); the weights extrapolate beyond them
+            cells = np.asarray(cells, dtype=np.int64).reshape(V, 3)
+            ok = np.ones(V, dtype=bool)
         if not ok.all():
             raise ConfigError(
                 "surface",
@@ -255,6 +271,8 @@ class EmbeddedSurface:
         self._faces = torch.from_numpy(f).to(self.device)
         self._rest = torch.from_numpy(v).to(dtype=dtype, device=self.device)
         self._fa, self._fb, self._fc = (self._faces[:, k].contiguous() for k in range(3))
+        #: after :meth:`cut`: int8 ``(V,)``, the side of the plane each vertex is on (+1 or -1); else None
+        self.side: torch.Tensor | None = None
         # (V, N): 8 entries a row, column indices ascending (corner order); (V, F): the faces around each vertex
         crow = np.arange(0, 8 * V + 1, 8, dtype=np.int64)
         self._interp = _csr(crow, corners.reshape(-1), weights.reshape(-1), (V, N), dtype=dtype, device=self.device)
@@ -371,6 +389,100 @@ class EmbeddedSurface:
         if batched:
             return p.permute(1, 0, 2).contiguous(), n.permute(1, 0, 2).contiguous()
         return p.view(-1, 3), n.view(-1, 3)
+
+    # ------------------------------------------------------------------ cuts
+    def cut(self, origin, normal) -> EmbeddedSurface:
+        """The surface cut by a plane: triangles split along it, each side following only its own nodes.
+
+        Triangles the plane crosses are split along it (``trimesh.intersections.slice_faces_plane``,
+        once per side), so no triangle straddles the plane and the two sides share no vertex. Each
+        side's vertices take their weights from a cell whose 8 corners are all nodes on that side
+        (the nearest such cell to the vertex, within one cell of its own; the weights extrapolate
+        linearly when the vertex lies outside it), so when the lattice is cut along the same plane
+        (:func:`~torchdeform.topology.cut`) the opening shows on the surface. At rest the cut surface
+        lies where the uncut one did (trilinear weights reproduce the rest positions, an affine map).
+
+        Args:
+            origin: a point of the plane ``(3,)`` (m, LPS).
+            normal: its normal ``(3,)`` (need not be unit).
+
+        Returns:
+            a new :class:`EmbeddedSurface` (the same lattice, dtype and device), the positive side's
+            vertices first; its ``side`` is int8 ``(V,)``, +1 or -1 per vertex.
+
+        Raises:
+            ConfigError: a zero normal; a vertex with no cell of its own side's nodes within reach.
+
+        Example:
+            >>> import torch, trimesh
+            >>> import torchdeform as td
+            >>> grid = td.Grid((6, 6, 6), spacing=0.01)
+            >>> ball = trimesh.creation.icosphere(3, radius=0.018)
+            >>> s = EmbeddedSurface(ball.vertices + 0.025, ball.faces, grid, dtype=torch.float64)
+            >>> c = s.cut((0.0245, 0.0, 0.0), (1.0, 0.0, 0.0))
+            >>> side = (c.rest_vertices[:, 0] - 0.0245)[c.faces]       # (F, 3) signed distances
+            >>> bool(((side >= -1e-12).all(1) | (side <= 1e-12).all(1)).all())    # no triangle straddles
+            True
+        """
+        from trimesh import Trimesh
+        from trimesh.intersections import slice_faces_plane
+
+        o = np.asarray(origin, dtype=np.float64).reshape(3)
+        n = np.asarray(normal, dtype=np.float64).reshape(3)
+        if not np.isfinite(n).all() or np.linalg.norm(n) == 0:
+            raise ConfigError("normal", "a non-zero plane normal (3,)", got=normal)
+        n = n / np.linalg.norm(n)
+        v, f = self._v, self._faces.cpu().numpy()
+        grid = self.grid
+        shape, spacing_, origin_ = np.asarray(grid.shape), np.asarray(grid.spacing), np.asarray(grid.origin)
+        nodes = np.stack(np.meshgrid(*[np.arange(k) for k in grid.shape], indexing="ij"), -1)
+        signed = ((origin_ + nodes * spacing_ - o) @ n).reshape(grid.shape)
+        mask = np.ones(grid.shape, dtype=bool) if grid.node_mask is None else grid.node_mask.cpu().numpy()
+        parts, cells = [], []
+        for sgn in (1.0, -1.0):
+            sv, sf = slice_faces_plane(v, f, plane_normal=sgn * n, plane_origin=o)[:2]
+            mesh = Trimesh(sv, sf, process=False)
+            mesh.merge_vertices()  # the split triangles' new vertices, one per crossing edge
+            mesh.remove_unreferenced_vertices()
+            pv, pf = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+            full = _full_cells(mask & (sgn * signed > 0))
+            cells.append(self._own_cells(pv, full, shape, spacing_, origin_))
+            parts.append((pv, pf))
+        (pv, pf), (mv, mf) = parts
+        out = EmbeddedSurface(
+            np.concatenate([pv, mv]),
+            np.concatenate([pf, mf + len(pv)]),
+            grid,
+            dtype=self.dtype,
+            device=self.device,
+            cells=np.concatenate(cells),
+        )
+        out.side = torch.cat([torch.ones(len(pv), dtype=torch.int8), -torch.ones(len(mv), dtype=torch.int8)])
+        return out
+
+    @staticmethod
+    def _own_cells(p, full, shape, spacing_, origin_) -> np.ndarray:
+        """Per point ``(V, 3)``: the lower corner of the nearest cell within one of its own whose corners are all in ``full``."""
+        q = (p - origin_) / spacing_
+        top = np.maximum(shape - 2, 0)
+        base = np.clip(np.floor(q), 0, top).astype(np.int64)
+        best = np.full(len(p), np.inf)
+        out = base.copy()
+        for step in itertools.product((0, -1, 1), repeat=3):
+            cand = base + np.asarray(step)
+            inside = ((cand >= 0) & (cand <= top)).all(1)
+            good = np.zeros(len(p), dtype=bool)
+            good[inside] = full[tuple(cand[inside].T)]
+            dist = np.linalg.norm(q - (cand + 0.5), axis=1)
+            better = good & (dist < best)
+            out[better], best[better] = cand[better], dist[better]
+        if not np.isfinite(best).all():
+            raise ConfigError(
+                "cut",
+                "a cell of the cut's own side near every vertex (a plane through the body, not along its skin)",
+                got=f"{int((~np.isfinite(best)).sum())} vertices without one",
+            )
+        return out
 
     # ------------------------------------------------------------------ files
     def save(self, path, x) -> None:
