@@ -33,6 +33,11 @@ BENCHES = {
         "resolutions, and ms per step of springs alone against springs with the volume term",
         "elasticity",
     ),
+    "anatomy": (
+        "a 256^3 label volume to a ready 64^3-class body, smooth label surfaces, and a 100k-triangle "
+        "embedded surface per frame, against their targets",
+        "anatomy",
+    ),
     "fuzzy": (
         "Mamdani inputs per second (SUSILAP-G preset by default), eager and compiled, against scikit-fuzzy",
         "fuzzy",
