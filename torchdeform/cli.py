@@ -8,6 +8,7 @@
     torchdeform fuzzy plot FILE.fis --out DIR
     torchdeform data cube --out FILE.npz [--springs 70 | --n 4 --load sine] [--noise 0.01]
     torchdeform data balloon --out FILE.npz              synthetic series for torchdeform.learn
+    torchdeform data phantom --labels DIR [--voxel 0.001] [--seed 0] [--no-dicom]   abdominal phantom: labels, CT
     torchdeform warp VOLUME.npy OFFSETS.npy --out OUT.npy [--mode deform|carve|knoche] [--inverse-iters N]
     torchdeform render VOLUME --out IMAGE.png [--offsets FILE] [--mode mip|dvr|average] [--tf PRESET]
     torchdeform view SCENE.toml [--host 127.0.0.1] [--port 0] [--token T] [--open]
@@ -33,6 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
     Every ``commands`` module is light (torch and the engine only): heavy dependencies are
     imported when a command runs.
     """
+    from .anatomy import commands as anatomy
     from .bench import commands as bench
     from .distributed import commands as distributed
     from .fuzzy import commands as fuzzy
@@ -41,6 +43,12 @@ def build_parser() -> argparse.ArgumentParser:
     from .texture import commands as texture
     from .view import commands as view
     from .volume import commands as volume
+
+    def data_arguments(parser) -> None:  # data cube|balloon (learn), data phantom (anatomy)
+        anatomy.add_phantom_arguments(learn.add_arguments(parser))
+
+    def data_command(args) -> int:
+        return anatomy.phantom_command(args) if args.data_command == "phantom" else learn.command(args)
 
     p = Parser(prog="torchdeform", description="Soft-tissue simulation on PyTorch.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -63,9 +71,9 @@ def build_parser() -> argparse.ArgumentParser:
         ("fuzzy", "Mamdani rule files: show, evaluate, plot", fuzzy.add_arguments, fuzzy.main),
         (
             "data",
-            "generate synthetic time series (.npz): data cube|balloon --out FILE",
-            learn.add_arguments,
-            learn.command,
+            "synthetic data: data cube|balloon|phantom --out ...",
+            data_arguments,
+            data_command,
         ),
         (
             "warp",

@@ -167,3 +167,30 @@ def test_embedded_surfaces_need_a_body_of_labels(tmp_path):
     )
     with pytest.raises(td.ConfigError, match=r"box.toml:\d+: output.surfaces: .*\[grid\] labels"):
         td.scene.load_scene(path)
+
+
+def test_a_phantom_scene_has_its_ct_on_the_lattice_box(tmp_path):
+    """Oracle: the phantom's stated values (liver 60 HU, air -1000 HU): the CT resampled onto the
+    lattice's box reads about 60 HU at the rest positions of the nodes inside the liver."""
+    path = tmp_path / "phantom.toml"
+    path.write_text(
+        '[grid]\nlabels = "phantom:0.004"\nspacing = 0.008\n'
+        '[[tissues]]\nlabel = 1\ntissue = "liver"\n[[tissues]]\nlabel = 2\ntissue = "liver"\n'
+        '[[tissues]]\nlabel = 4\ntissue = "liver"\n[[tissues]]\nlabel = 3\nfixed = true\n'
+        "[[tissues]]\nlabel = 5\nbackground = true\n"
+        '[integrator]\ndt = 1e-4\nsteps = 2\n[volume]\nfile = "phantom"\n'
+    )
+    scene = td.scene.load_scene(path)
+    vol = scene.volume["file"]
+    g = scene.grid
+    assert isinstance(vol, np.ndarray) and vol.ndim == 3 and max(vol.shape) <= 160
+    # the volume fills the lattice's box: node (i, j, k) sits at voxel i (n_v - 1) / (n - 1) along each axis
+    from torchdeform.anatomy.phantom import abdominal_phantom
+
+    labels = abdominal_phantom(voxel=0.004)[0]
+    body = body_from_labels(labels, 0.008, tissues={1: "liver", 2: "liver", 4: "liver"}, fixed=[3], background=[0, 5])
+    inside = torch.nonzero((body.labels == 1) & (body.fraction == 1) & g.nodes())
+    assert len(inside) > 20
+    scale = [(vol.shape[a] - 1) / (g.shape[a] - 1) for a in range(3)]
+    hu = [vol[tuple(round(int(n[a]) * scale[a]) for a in range(3))] for n in inside]
+    assert 40 < float(np.median(hu)) < 80

@@ -14,6 +14,9 @@ converted once, where the file is read or written.
                        (:class:`LabelBody`, :class:`Tissue`)
 :mod:`.frame`          look-ups of voxels at lattice points, :func:`resample_image` (a CT onto the
                        lattice's axes)
+:mod:`.phantom`        :func:`abdominal_phantom`: a procedural abdomen (liver, tumour, vessel, bone,
+                       torso) as labels and a CT in HU, and its tissues (:data:`PHANTOM_TISSUES`)
+:mod:`.commands`       ``torchdeform data phantom --labels DIR``: the phantom as NIfTI and DICOM
 =====================  ===========================================================================
 
 Example:
@@ -29,6 +32,7 @@ Example:
 from .frame import resample_image
 from .images import Image, read_image, write_dicom_series, write_nifti
 from .labels import LabelBody, Tissue, body_from_labels
+from .phantom import PHANTOM_BACKGROUND, PHANTOM_FIXED, PHANTOM_TISSUES, abdominal_phantom
 
 __all__ = [
     "Image",
@@ -39,4 +43,8 @@ __all__ = [
     "LabelBody",
     "Tissue",
     "resample_image",
+    "abdominal_phantom",
+    "PHANTOM_TISSUES",
+    "PHANTOM_FIXED",
+    "PHANTOM_BACKGROUND",
 ]

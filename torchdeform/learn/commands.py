@@ -21,8 +21,8 @@ from .synthetic import balloon_series, cube_grid, cube_series, inclusion_regions
 __all__ = ["add_arguments", "command", "run_script"]
 
 
-def add_arguments(parser) -> None:
-    """``torchdeform data cube|balloon --out FILE.npz [options]``."""
+def add_arguments(parser):
+    """``torchdeform data cube|balloon --out FILE.npz [options]``; returns the sub-parsers, for other ``data`` commands."""
     sub = parser.add_subparsers(dest="data_command", required=True)
     c = sub.add_parser("cube", help="a cube series: Radetzky's cube (--springs) or an n^3 cube (--n)")
     c.add_argument("--out", required=True, help="output file (.npz)")
@@ -47,6 +47,7 @@ def add_arguments(parser) -> None:
     b.add_argument("--dt", type=number(lo=0, lo_open=True, unit="s"), default=0.02)
     b.add_argument("--noise", type=number(lo=0), default=0.0)
     b.add_argument("--seed", type=integer(lo=0), default=0)
+    return sub
 
 
 def _numbers(text, key):

@@ -27,6 +27,17 @@ documentation is generated from this list.
 - ``origin = [od, oh, ow]``: position of node [0, 0, 0] in metres (0; ``shape`` only)
 - ``padding``: extra node layers around the mesh's bounding box (0; ``mesh`` only)
 - ``scale``: metres per mesh unit, e.g. 0.001 for a mesh in mm (1; ``mesh`` only)
+- ``labels = "labels.nii.gz"``: instead of ``shape``: a label volume (NIfTI, NRRD, ``.npz``,
+  ``.npy`` with ``label_spacing``, a DICOM series folder; relative to the scene file) or
+  ``"phantom"`` / ``"phantom:VOXEL"`` (the procedural abdomen, :mod:`torchdeform.anatomy.phantom`);
+  the body is made of its labels (:func:`torchdeform.anatomy.body_from_labels`: positions are LPS
+  metres of the image's patient frame, axes D, H, W = x, y, z; nearest-voxel node labels; cells
+  sampled about once per voxel, moduli in series across labels, modulus and mass scaled by each
+  cell's fill). ``spacing`` is then one number (cubic cells), ``topology`` 14, 18 or 26, and the
+  materials come from ``[[tissues]]``
+- ``label_spacing``: the voxel size in metres of a ``.npy`` label volume (one or three numbers)
+- ``surface_labels = [1, 2]``: the labels whose smooth surfaces are embedded (every label of the
+  body; ``labels`` only)
 
 ``[material]`` (required):
 
@@ -57,6 +68,17 @@ documentation is generated from this list.
 - ``law``: ``"hooke"`` (default), ``"exponential"`` (``stiffening`` b) or ``"polynomial"``
   (``quadratic`` c2, ``cubic`` c3): strain-stiffening springs (:mod:`torchdeform.sim.laws`) whose
   small-strain stiffness is ``stiffness``; each parameter a number >= 0 or a class table (0)
+
+``[[tissues]]`` (with ``[grid] labels``, repeatable; one per label of the image, label 0 is
+background unless given): ``label`` (an integer) and one of
+
+- ``tissue`` (as in ``[material]``) or ``youngs_modulus`` (Pa) with ``poisson_ratio`` (0.45) and
+  ``density`` (kg/m^3, 1000): the label's material; library tissues bring their Kelvin-Voigt
+  damping unless ``[material] damping`` is given (``[material]`` may hold only ``damping`` and
+  ``damping_mode`` then; there is no ``[mass]`` and no ``[[regions]]``)
+- ``fixed = true``: the label's nodes do not move (bone); a material beside it is optional (the
+  stiffest tissue's)
+- ``background = true``: the label is left out (air, the rest of the torso)
 
 ``[[regions]]`` (optional, repeatable; needs ``stiffness`` as one number, ``tissue`` or
 ``youngs_modulus`` in ``[material]``): a part of the body with its own material, later regions on
@@ -207,10 +229,17 @@ dt]``; a blade (or a scalpel's edge along its path) must reach the body's rest b
 - ``palpation``: ``true`` (the first tool with a contact) or a tool's name: analyse its presses,
   write ``palpation.png`` and a ``"palpation"`` part of ``summary.json``
 - ``surfaces = [t1, t2, ...]``: times (s) at which the closed surface of every connected piece
-  (and side of the latest blade) is written as ``surface_<ms>ms_<label>.ply``
-- ``animation``: ``true``: write ``animation.gif``, the textured surface beside the deformed
-  volume render with the time and the tools' forces (as ``torchdeform run --animation``; see
-  :func:`torchdeform.scene.animation.animate`)
+  (and side of the latest blade) is written as ``surface_<ms>ms_<label>.ply``; or, for a body of
+  labels, ``"embedded"``: its smooth label surfaces (marching cubes at image resolution, Taubin
+  smoothing, decimation) carried by the lattice, written at every recorded frame as
+  ``surfaces/frame_NNNN.glb`` (:func:`torchdeform.mesh.embed.save_surfaces`)
+- ``surface_format``: ``"glb"`` (default) or ``"ply"`` (embedded surfaces)
+- ``surface_faces``: triangles per label surface after decimation (10,000)
+- ``animation``: ``true``: write ``animation.gif``, the textured surface (a body of labels: its
+  embedded surfaces, smooth and wet) with the scene's tools, beside the deformed volume render
+  when the scene has a ``[volume]``, with the time and the tools' forces (as ``torchdeform run
+  --animation``; see :func:`torchdeform.scene.animation.animate`)
+- ``image_size``: pixels of each square panel of the animation (512, at most 2048)
 
 ``[volume]`` (optional): a volume filling the grid's bounding box, deformed by the final state;
 the run also writes ``volume_before.png``, ``volume_after.png``, ``volume_deformed.npy``:
@@ -228,7 +257,7 @@ the run also writes ``volume_before.png``, ``volume_after.png``, ``volume_deform
 - ``block``: block size in voxels (half the exemplar's smallest side)
 - ``seed``: random offsets of the blocks (0)
 - ``voxel``: texture voxel size in m (a quarter of the smallest spacing)
-- ``seams``: ``"none"`` (default), ``"3d"`` or ``"slices"``: block seams blended; the seam measure
+- ``seams``: ``"3d"`` (default), ``"slices"`` or ``"none"``: block seams blended; the seam measure
   before and after goes into ``summary.json``
 
 ``model = "chainmail"`` (optional top-level key, before any section): a ChainMail scene instead of

@@ -30,7 +30,7 @@ import numpy as np
 from ..sim.grid import Grid
 from .reader import SECTIONS, Source, Table, is_number
 
-__all__ = ["label_body_section"]
+__all__ = ["label_body_section", "lattice_ct", "CT_SIDE"]
 
 _GRID_ONLY = ("shape", "mesh", "origin", "padding", "scale")
 
@@ -109,12 +109,14 @@ def label_body_section(src: Source, data: dict, section: dict, base: Path):
             raise t.fail("label_spacing", "the voxel size of a .npy label volume (metres: one or three numbers)", got=v)
         voxel = v
     tissues, fixed, background = _tissue_tables(src, data.get("tissues"))
-    path = base / t.text("labels", "a label volume file or a DICOM folder (relative to the scene file)")
+    name = t.text("labels", 'a label volume file, a DICOM folder (relative to the scene file) or "phantom"')
     out = Table(src, "output", data.get("output", {}), SECTIONS["output"])
     wanted = out.data.get("surfaces") == "embedded" or out.data.get("animation") is True
     faces = out.integer("surface_faces", "an integer >= 100 (triangles per label surface)", default=10_000, lo=100)
     with src.located(t.key("labels")):
-        image = read_image(path, key=t.key("labels"), spacing=voxel)
+        image = _phantom(name, t) if name.split(":")[0] == "phantom" else None
+        if image is None:
+            image = read_image(base / name, key=t.key("labels"), spacing=voxel)
     embedded, cover = None, None
     if wanted:  # smooth surfaces at image resolution; the body then covers them
         from ..mesh.embed import label_surfaces
@@ -153,6 +155,19 @@ def label_body_section(src: Source, data: dict, section: dict, base: Path):
     return grid, args, embedded
 
 
+def _phantom(name: str, t: Table):
+    """The labels of :func:`~torchdeform.anatomy.phantom.abdominal_phantom` (``"phantom"`` or ``"phantom:VOXEL"`` in m)."""
+    from ..anatomy.phantom import abdominal_phantom
+
+    voxel = 0.001
+    if ":" in name:
+        try:
+            voxel = float(name.split(":", 1)[1])
+        except ValueError:
+            raise t.fail("labels", '"phantom" or "phantom:VOXEL" (the voxel size in metres)', got=name) from None
+    return abdominal_phantom(voxel=voxel)[0]
+
+
 def _surface_labels(t: Table, default: list) -> list:
     """``[grid] surface_labels``: the labels whose surfaces are embedded (default: every label of the body)."""
     if not t.has("surface_labels"):
@@ -161,3 +176,36 @@ def _surface_labels(t: Table, default: list) -> list:
     if not (isinstance(v, list) and v and all(isinstance(k, int) and k in default for k in v)):
         raise t.fail("surface_labels", f"a list of labels of the body ({default})", got=v)
     return list(v)
+
+
+#: the most voxels along a side of a CT resampled onto a lattice's box (the volume panel's cost)
+CT_SIDE = 160
+
+
+def lattice_ct(name: str, base: Path, t: Table, grid: Grid) -> np.ndarray:
+    """``[volume] file`` of a body of labels: a CT in the labels' frame, resampled onto the lattice's box.
+
+    ``name`` is a CT file or DICOM folder (relative to the scene file) or ``"phantom"`` (the
+    abdominal phantom's CT, at the voxel size of ``[grid] labels = "phantom:VOXEL"``). The volume
+    has the lattice's axes and fills its rest bounding box (what a scene's volume does), at the CT's
+    finest voxel size or coarser, at most :data:`CT_SIDE` voxels a side.
+
+    Returns:
+        float32 ``(D', H', W')`` in the CT's units (HU), -1000 outside the image.
+    """
+    from ..anatomy.frame import resample_image
+    from ..anatomy.images import read_image
+
+    if name.split(":")[0] == "phantom":
+        from ..anatomy.phantom import abdominal_phantom
+
+        label_name = t.data.get("labels", "phantom")
+        voxel = float(label_name.split(":", 1)[1]) if label_name.startswith("phantom:") else 0.001
+        ct = abdominal_phantom(voxel=voxel)[1]
+    else:
+        ct = read_image(base / name, key="volume.file", dtype=np.float32)
+    extent = np.asarray([(n - 1) * s for n, s in zip(grid.shape, grid.spacing)])
+    step = max(float(ct.spacing.min()), float(extent.max()) / (CT_SIDE - 1))
+    shape = tuple(int(v) for v in np.floor(extent / step).astype(int) + 1)
+    step3 = tuple(float(e / (n - 1)) if n > 1 else step for e, n in zip(extent, shape))
+    return resample_image(ct, origin=grid.origin, spacing=step3, shape=shape).numpy()

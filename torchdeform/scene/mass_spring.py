@@ -827,7 +827,12 @@ def mass_spring_scene(src: Source, data: dict, base: Path, *, name: str = "scene
 
         name = scene.volume["file"]  # checked now, not after the simulation
         with src.located("volume.file", keys={"volume": "volume.file", "volume.file": "volume.file"}):
-            check_volume_source(name if name.startswith("phantom") else Path(base) / name, "volume.file")
+            if section["grid"].has("labels"):  # a CT in the labels' frame, onto the lattice's box
+                from .anatomy import lattice_ct
+
+                scene.volume["file"] = lattice_ct(name, Path(base), section["grid"], grid)
+            else:
+                check_volume_source(name if name.startswith("phantom") else Path(base) / name, "volume.file")
         with src.located("volume.tf", keys={"transfer function": "volume.tf", "control point": "volume.tf"}):
             get_tf(scene.volume["tf"])
     if "texture" in data:

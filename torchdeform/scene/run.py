@@ -609,8 +609,10 @@ def report(summary: dict, out_dir) -> str:
     )
 
 
-def _volume_path(name: str, base) -> str:
-    """A scene's ``[volume] file``: ``phantom[:N]`` as it is, a file name relative to the scene's folder ``base``."""
+def _volume_path(name, base):
+    """A scene's ``[volume] file``: ``phantom[:N]`` or an array as it is, a file name relative to the scene's folder ``base``."""
+    if not isinstance(name, str):
+        return name  # a volume already in memory (a body of labels: its CT on the lattice's box)
     return name if name.startswith("phantom") or base is None else str(Path(base) / name)
 
 
@@ -642,7 +644,7 @@ def scene_volume_outputs(
     """
     from ..volume import load_volume, node_offsets, render, save_png, save_volume, to_image, warp
 
-    name = str(volume)
+    name = volume if isinstance(volume, np.ndarray) else str(volume)
     path = _volume_path(name, base)
     vol = torch.from_numpy(load_volume(path, key="volume.file"))
     out = Path(out_dir)
@@ -665,7 +667,7 @@ def scene_volume_outputs(
         save_png(out / "volume_after.png", to_image(after, flip_up=flip))
     save_volume(out / "volume_deformed.npy", deformed.numpy())
     return {
-        "volume": name,
+        "volume": name if isinstance(name, str) else "the CT of the labels, on the lattice's box",
         "shape": list(vol.shape),
         "max_offset_voxels": float(offsets.abs().max()),
         "folded_fraction": info["folded"],
@@ -813,7 +815,7 @@ def scene_animation(
     volume: dict[str, Any] = {}
     if scene.volume:  # the volume panel only where the scene has a volume
         volume = dict(scene.volume)
-        name, base = str(volume.pop("file")), volume.pop("base", None)
+        name, base = volume.pop("file"), volume.pop("base", None)
         volume["volume"] = _volume_path(name, base)
     info = animate(
         grid,

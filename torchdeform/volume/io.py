@@ -100,8 +100,10 @@ def load_volume(path, *, key: str = "volume") -> np.ndarray:
     """A volume ``(D, H, W)`` as float32 numpy (integers converted, NaN/inf rejected).
 
     ``path`` may also be ``"phantom"`` or ``"phantom:N"`` (the procedural phantom, ``N^3`` voxels,
-    default 128).
+    default 128), or an array (checked and returned as float32).
     """
+    if isinstance(path, np.ndarray):  # already in memory
+        return np.ascontiguousarray(check_array(path, key), dtype=np.float32)
     text = str(path)
     if text == "phantom" or text.startswith("phantom:"):
         from .phantoms import phantom
@@ -134,6 +136,8 @@ def check_volume_source(path, key: str = "volume") -> None:
         ...
         torchdeform.errors.ConfigError: volume.file: expected phantom or phantom:N with N >= 8 voxels, got 'phantom:4'
     """
+    if isinstance(path, np.ndarray):  # already in memory
+        return np.ascontiguousarray(check_array(path, key), dtype=np.float32)
     text = str(path)
     if text == "phantom" or text.startswith("phantom:"):
         _phantom_side(text, key)
