@@ -102,7 +102,7 @@ def _cases(args) -> list:
 
     shape = body().grid.shape
     tri = args.triangles or (10_000 if args.quick else 100_000)
-    count = max(8, round((tri / 2) ** 0.5))
+    count = max(8, round((tri / 3.07) ** 0.5))  # trimesh's UV sphere of count [c, c] has about 3.07 c^2 triangles
     sphere = trimesh.creation.uv_sphere(radius=0.017, count=[count, count])
     grid = td.Grid((40, 40, 40), spacing=0.001)
     surf = EmbeddedSurface(sphere.vertices + 0.0195, sphere.faces, grid)
