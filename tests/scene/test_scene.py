@@ -111,6 +111,7 @@ def test_shipped_scenes_load_and_start(path, tmp_path):
     scene = load_scene(path)
     scene.steps = 4
     scene.record_every = 2
+    scene.image_size = 128  # a start: small animation panels
     if scene.texture:  # a start: 8 x fewer texture voxels to synthesise and blend, as 4 steps are fewer steps
         scene.texture = dict(scene.texture, voxel=2 * scene.texture["voxel"])
     summary = run_scene(scene, tmp_path, progress=False)
@@ -306,6 +307,7 @@ def test_cli_demo_wiring(tmp_path, capsys, monkeypatch):
     def short_demo():
         scene = demo_scene()
         scene.steps, scene.record_every = 20, 10
+        scene.image_size = 128  # the wiring, not the pictures
         return scene
 
     monkeypatch.setattr(scene_mod, "demo_scene", short_demo)
