@@ -35,7 +35,7 @@ pytestmark = pytest.mark.slow  # fuzz campaigns (hypothesis, 1,270 cases)
 
 ROOT = Path(__file__).resolve().parents[1]
 #: generated cases per family
-CASES = {"scene": 160, "fis": 250, "csv": 150, "series": 150, "volume": 120, "cli": 200, "options": 150}
+CASES = {"scene": 120, "fis": 250, "csv": 150, "series": 150, "volume": 120, "cli": 200, "options": 150}
 
 
 def fuzz(family: str):

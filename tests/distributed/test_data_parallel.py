@@ -155,7 +155,7 @@ def single_process():
         torch.set_num_threads(n)
 
 
-@pytest.mark.parametrize("ranks", [2, 3])
+@pytest.mark.parametrize("ranks", [3])  # an odd count of ranks; 2 ranks run the same code
 @pytest.mark.slow
 def test_data_parallel_fits_equal_the_single_process_fits(tmp_path, ranks, single_process):
     """L-BFGS on one series and Adam on random window subsets of two series (stopped half-way,

@@ -105,7 +105,7 @@ def test_table_equals_runs_of_edited_scene_files(tmp_path):
     same_rows(table(tmp_path / "list"), rows)
 
 
-@pytest.mark.parametrize("ranks", [2, 3])
+@pytest.mark.parametrize("ranks", [3])  # an odd count of ranks; 2 ranks run the same code
 @pytest.mark.slow
 def test_ranks_gather_the_single_process_table(tmp_path, ranks):
     path = scene_file(tmp_path)
