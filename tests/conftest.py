@@ -19,6 +19,16 @@ if os.environ.get("PYTEST_XDIST_WORKER"):  # two workers on two cores: one threa
     torch.set_num_threads(1)
 
 
+@pytest.fixture
+def one_thread():
+    """One torch thread for the test: small tensors run several times faster on one thread than on
+    two when another process holds a core (OpenMP threads spinning at barriers, DESIGN.md)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 def pytest_addoption(parser):
     parser.addoption("--runslow", action="store_true", default=False, help="also run the tests marked slow")
     parser.addoption(

@@ -15,7 +15,6 @@ import time
 
 import numpy as np
 import pytest
-import torch
 from scipy import ndimage
 
 from torchdeform import cli
@@ -220,14 +219,6 @@ def test_phantom_is_fast():
 
 
 # ------------------------------------------------------------------ a body
-@pytest.fixture
-def one_thread():
-    """One torch thread: the body's many small tensor operations run ~20x slower on two threads
-    when another process holds a core (OpenMP threads spinning at barriers, DESIGN.md)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def test_the_suggested_tissues_build_a_body(phantom, one_thread):

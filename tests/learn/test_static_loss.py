@@ -26,12 +26,7 @@ F64 = torch.float64
 TRUE_E, TRUE_NU = [3e3, 8e3], [0.45, 0.49]
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 def bar():

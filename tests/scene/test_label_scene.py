@@ -100,8 +100,17 @@ def test_a_label_scene_builds_the_body_the_api_builds_and_runs(scene_dir, tmp_pa
         (lambda s: s.replace("spacing = 0.003", "spacing = 0.003\nshape = [4, 4, 4]"), r"grid.shape"),
         (lambda s: s.replace('labels = "labels.nii.gz"', 'labels = "missing.nii.gz"'), r"missing.nii.gz"),
         (lambda s: s.replace("spacing = 0.003", "spacing = 1e-6"), r"fits in memory"),
+        (lambda s: s + '\n[volume]\nfile = "phantom"\n', r"grid.labels: expected \"phantom\" with \[volume\]"),
     ],
-    ids=["label-without-tissue", "unknown-tissue", "mass-section", "shape-and-labels", "missing-file", "too-large"],
+    ids=[
+        "label-without-tissue",
+        "unknown-tissue",
+        "mass-section",
+        "shape-and-labels",
+        "missing-file",
+        "too-large",
+        "phantom-ct-of-other-labels",
+    ],
 )
 def test_bad_label_scenes_name_file_line_and_key(scene_dir, edit, message):
     path = scene_dir / "liver.toml"

@@ -28,7 +28,7 @@ from ..errors import ConfigError
 #: Points per look-up chunk (memory: about 100 bytes each).
 _CHUNK = 1 << 20
 
-__all__ = ["lattice_to_voxel", "voxel_indices", "sample_nearest", "resample_image", "image_box"]
+__all__ = ["lattice_to_voxel", "voxel_slabs", "voxel_indices", "sample_nearest", "resample_image", "image_box"]
 
 
 def lattice_to_voxel(affine, *, origin, spacing) -> tuple[np.ndarray, np.ndarray]:
@@ -79,6 +79,21 @@ def sample_nearest(
         [0, 4, -1]
     """
     flat_vals = values.reshape(-1)
+    out = torch.empty(tuple(shape), dtype=flat_vals.dtype)
+    fill = torch.tensor(outside, dtype=flat_vals.dtype)
+    for d0, q in voxel_slabs(affine, origin=origin, spacing=spacing, shape=shape, offset=offset):
+        flat, inside = voxel_indices(q, shape_in)
+        out[d0 : d0 + len(q)] = torch.where(inside, flat_vals[flat], fill)
+    return out
+
+
+def voxel_slabs(affine, *, origin, spacing, shape, offset=(0.0, 0.0, 0.0)):
+    """The fractional voxel indices of the lattice points ``origin + (n + offset) * spacing``, slab by slab.
+
+    Yields ``(d0, q)``: the first D index of the slab and float64 ``(d, H, W, 3)`` voxel indices of
+    its points (about :data:`_CHUNK` points a slab), built from one base plane and the steps of
+    :func:`lattice_to_voxel`.
+    """
     M, q0 = lattice_to_voxel(affine, origin=origin, spacing=spacing)
     q0 = q0 + M @ np.asarray(offset, dtype=np.float64)
     Mt = torch.as_tensor(M, dtype=torch.float64)
@@ -87,14 +102,10 @@ def sample_nearest(
         torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij"), -1
     )  # (H, W, 2)
     plane = hw[..., 0:1] * Mt[:, 1] + hw[..., 1:2] * Mt[:, 2] + torch.as_tensor(q0)  # (H, W, 3)
-    out = torch.empty((D, H, W), dtype=flat_vals.dtype)
-    fill = torch.tensor(outside, dtype=flat_vals.dtype)
     step = max(1, _CHUNK // max(H * W, 1))  # slabs per chunk
     for d0 in range(0, D, step):
         d = torch.arange(d0, min(D, d0 + step), dtype=torch.float64).view(-1, 1, 1, 1)
-        flat, inside = voxel_indices(plane + d * Mt[:, 0], shape_in)
-        out[d0 : d0 + step] = torch.where(inside, flat_vals[flat], fill)
-    return out
+        yield d0, plane + d * Mt[:, 0]
 
 
 def image_box(affine, index_lo, index_hi) -> tuple[np.ndarray, np.ndarray]:
@@ -135,12 +146,8 @@ def resample_image(image, *, origin, spacing, shape, fill: float = -1000.0, dtyp
     if min(shape) < 1:
         raise ConfigError("image", "a resampling grid of at least one point per axis", got=tuple(shape))
     arr = np.asarray(image.array, dtype=np.float32)
-    M, q0 = lattice_to_voxel(image.affine, origin=origin, spacing=spacing)
-    D, H, W = shape
-    out = np.empty((D, H, W), dtype=np.float32)
-    h, w = np.meshgrid(np.arange(H, dtype=np.float64), np.arange(W, dtype=np.float64), indexing="ij")
-    plane = q0[:, None, None] + M[:, 1, None, None] * h + M[:, 2, None, None] * w  # (3, H, W)
-    for d in range(D):
-        coords = plane + M[:, 0, None, None] * d
-        out[d] = map_coordinates(arr, coords, order=1, mode="constant", cval=fill)
+    out = np.empty(tuple(shape), dtype=np.float32)
+    for d0, q in voxel_slabs(image.affine, origin=origin, spacing=spacing, shape=shape):
+        coords = np.moveaxis(q.numpy(), -1, 0)  # (3, d, H, W)
+        out[d0 : d0 + len(q)] = map_coordinates(arr, coords, order=1, mode="constant", cval=fill)
     return torch.from_numpy(out).to(dtype)

@@ -271,8 +271,8 @@ def body_from_labels(
     in_body = np.isin(arr, body_labels)
     if not in_body.any():
         raise ConfigError(key, "voxels of at least one tissue or fixed label", got=f"{source}: none of {list(table)}")
-    idx_lo = [int(np.flatnonzero(in_body.any(axis=tuple(b for b in range(3) if b != a))).min()) for a in range(3)]
-    idx_hi = [int(np.flatnonzero(in_body.any(axis=tuple(b for b in range(3) if b != a))).max()) for a in range(3)]
+    used = [np.flatnonzero(in_body.any(axis=tuple(b for b in range(3) if b != a))) for a in range(3)]
+    idx_lo, idx_hi = [int(u.min()) for u in used], [int(u.max()) for u in used]
     lo, hi = image_box(image.affine, idx_lo, idx_hi)
     extent = hi - lo
     n = np.ceil(extent / h).astype(int) + 3

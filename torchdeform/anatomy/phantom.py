@@ -45,7 +45,7 @@ fraction of the voxel each covers, ``f = clip(1/2 - d / w, 0, 1)`` for the mean 
 (partial volume) while a voxel one edge inside a structure has the structure's value. Gaussian
 noise of 10 HU (seeded) is added last.
 
-**Values** (:data:`PHANTOM_HU`, HU): air -1000, fat -100, muscle and soft tissue 40, liver 60,
+**Values** (:data:`PHANTOM_HU`, HU): air -1000, fat -100, 40 for muscle and soft tissue, liver 60,
 tumour 30 (hypodense), vessel 160 (contrast-enhanced), bone 700.
 
 **Tissues** (:data:`PHANTOM_TISSUES`, with :data:`PHANTOM_FIXED` and :data:`PHANTOM_BACKGROUND`):

@@ -82,7 +82,7 @@ def _median_ms(fn, repeats: int) -> float:
 
 
 def _cases(args) -> list:
-    """``[(row, size text, fn, repeats)]``: the timed calls, built (and warmed up) once."""
+    """``[(row, size text, fn, repeats, calls per timing)]``: the timed calls, built (and warmed up) once."""
     import trimesh
 
     import torchdeform as td
@@ -120,8 +120,8 @@ def _cases(args) -> list:
         label_surfaces(lab, image.affine, which=[1, 2], smooth=10, faces=20_000)
 
     return [
-        ("labels -> body", f"{n}^3 -> {shape[0]}x{shape[1]}x{shape[2]}", body, repeats),
-        ("label surfaces", f"{n}^3, labels 1, 2", surfaces, max(1, repeats // 2)),
+        ("labels -> body", f"{n}^3 -> {shape[0]}x{shape[1]}x{shape[2]}", body, repeats, 1),
+        ("label surfaces", f"{n}^3, labels 1, 2", surfaces, max(1, repeats // 2), 1),
         ("surface update", f"{surf.num_faces:,} triangles", lambda: [update() for _ in range(frames)], repeats, frames),
     ]
 
@@ -131,9 +131,7 @@ def run(args) -> int:
     torch.set_num_threads(args.threads or 2)
     threads = torch.get_num_threads()
     rows = []
-    for case in _cases(args):
-        name, size, fn, repeats = case[:4]
-        per = case[4] if len(case) > 4 else 1
+    for name, size, fn, repeats, per in _cases(args):
         ms = _median_ms(fn, repeats) / per
         target = TARGETS_MS.get(name) if not args.quick else None
         row = dict(row=name, size=size, threads=threads, ms=ms, target_ms=target)

@@ -114,7 +114,7 @@ def label_body_section(src: Source, data: dict, section: dict, base: Path):
     wanted = out.data.get("surfaces") == "embedded" or out.data.get("animation") is True
     faces = out.integer("surface_faces", "an integer >= 100 (triangles per label surface)", default=10_000, lo=100)
     with src.located(t.key("labels")):
-        image = _phantom(name, t) if name.split(":")[0] == "phantom" else None
+        image = _phantom(t, 0) if name.split(":")[0] == "phantom" else None
         if image is None:
             image = read_image(base / name, key=t.key("labels"), spacing=voxel)
     embedded, cover = None, None
@@ -155,17 +155,21 @@ def label_body_section(src: Source, data: dict, section: dict, base: Path):
     return grid, args, embedded
 
 
-def _phantom(name: str, t: Table):
-    """The labels of :func:`~torchdeform.anatomy.phantom.abdominal_phantom` (``"phantom"`` or ``"phantom:VOXEL"`` in m)."""
+def _phantom(t: Table, which: int):
+    """The abdominal phantom of ``[grid] labels = "phantom[:VOXEL]"``: its labels (``which = 0``) or CT (1).
+
+    :func:`~torchdeform.anatomy.phantom.abdominal_phantom` at that voxel size (m, default 1 mm).
+    """
     from ..anatomy.phantom import abdominal_phantom
 
+    name = t.data["labels"]
     voxel = 0.001
     if ":" in name:
         try:
             voxel = float(name.split(":", 1)[1])
         except ValueError:
             raise t.fail("labels", '"phantom" or "phantom:VOXEL" (the voxel size in metres)', got=name) from None
-    return abdominal_phantom(voxel=voxel)[0]
+    return abdominal_phantom(voxel=voxel)[which]
 
 
 def _surface_labels(t: Table, default: list) -> list:
@@ -197,11 +201,9 @@ def lattice_ct(name: str, base: Path, t: Table, grid: Grid) -> np.ndarray:
     from ..anatomy.images import read_image
 
     if name.split(":")[0] == "phantom":
-        from ..anatomy.phantom import abdominal_phantom
-
-        label_name = t.data.get("labels", "phantom")
-        voxel = float(label_name.split(":", 1)[1]) if label_name.startswith("phantom:") else 0.001
-        ct = abdominal_phantom(voxel=voxel)[1]
+        if t.data["labels"].split(":")[0] != "phantom":
+            raise t.fail("labels", '"phantom" with [volume] file = "phantom" (its CT)', got=t.data["labels"])
+        ct = _phantom(t, 1)
     else:
         ct = read_image(base / name, key="volume.file", dtype=np.float32)
     extent = np.asarray([(n - 1) * s for n, s in zip(grid.shape, grid.spacing)])

@@ -19,7 +19,7 @@ path: minus the sum of the model's forces (springs, gravity, loads, contacts) on
 the inertia of the dragged nodes left out (their path is piecewise linear: no acceleration between
 waypoints).
 
-Only the mesh, texture, topology, volume and sim layers are imported (the scene runner imports this
+Only the mesh, texture, topology, volume, interact (the tools' triangles) and sim layers are imported (the scene runner imports this
 module inside the function that writes the animation). Pillow writes the GIF and the text.
 
 Example:
@@ -344,6 +344,7 @@ TOOL_COLOUR = (0.62, 0.65, 0.7)
 def _with_tools(out: dict, tools, t: float, camera) -> torch.Tensor:
     """The rendered body ``out`` with the tools at time ``t`` drawn in front of or behind it (depth test)."""
     from ..interact.meshes import tool_surface
+    from ..interact.tools import Sphere
     from ..mesh.raster import rasterize
 
     image, depth = out["image"], out["depth"]
@@ -353,7 +354,7 @@ def _with_tools(out: dict, tools, t: float, camera) -> torch.Tensor:
             continue
         v = torch.as_tensor(mesh[0], dtype=image.dtype)
         f = torch.as_tensor(mesh[1])
-        normals = v - v.mean(0) if type(tool.shape).__name__ == "Sphere" else None
+        normals = v - v.mean(0) if isinstance(tool.shape, Sphere) else None  # a ball: smooth; edges stay sharp
         r = rasterize(
             v,
             f,

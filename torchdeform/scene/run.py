@@ -361,9 +361,8 @@ def embedded_outputs(scene: Scene, grid, t, x, out: Path, summary: dict) -> list
     if scene.write_surfaces:
         folder = out / "surfaces"
         folder.mkdir(exist_ok=True)
-        xs = torch.as_tensor(np.asarray(x))
         for i in range(len(t)):
-            save_surfaces(folder / f"frame_{i:04d}.{scene.surface_format}", surfaces, xs[i])
+            save_surfaces(folder / f"frame_{i:04d}.{scene.surface_format}", surfaces, x[i])
         info["frames"] = len(t)
     info["wall_time_s"] = time.perf_counter() - start
     summary["embedded_surfaces"] = info
