@@ -22,7 +22,7 @@ Examples:
 from . import chainmail, interact, learn, scene, sim, topology, volume
 from .chainmail import ChainMail, Limits, limit_violation, tensor_chainmail
 from .errors import ConfigError, ConfigWarning, DivergenceError, StabilityWarning, TorchdeformError
-from .scene import Scene, demo_scene, load_scene, run_scene
+from .scene import Scene, cube_scene, demo_scene, load_scene, run_scene
 from .sim import (
     INTEGRATORS,
     RK4,
@@ -101,6 +101,7 @@ __all__ = [
     "ProjectiveDynamics",
     "Scene",
     "demo_scene",
+    "cube_scene",
     "load_scene",
     "run_scene",
     "ChainMail",

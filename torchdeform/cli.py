@@ -63,7 +63,7 @@ def build_parser() -> argparse.ArgumentParser:
         ),
         (
             "demo",
-            "run the built-in demo: a soft cube, fixed base, top centre dragged",
+            "run the built-in demo: the phantom's liver pressed by a probe over its tumour",
             scene.add_demo_arguments,
             scene.demo_command,
         ),

@@ -9,7 +9,11 @@ Oracles, each independent of the code under test:
 - a plain numpy loop over faces for area-weighted normals;
 - the analytic sphere: an icosphere's normals are radial; a ball of radius ``r`` voxels seen through
   a rotated, anisotropic, mirrored affine has its surface on the mapped sphere, volume
-  ``4/3 pi r^3 |det A|``, outward normals; trimesh for watertightness and file round trips.
+  ``4/3 pi r^3 |det A|``, outward normals; trimesh for watertightness and file round trips;
+- for cuts by a sheet of patches: the lattice's own blade (:class:`torchdeform.topology.Blade`) for
+  the sheet's geometry, points sampled along each triangle's trace on a patch's plane (a split
+  triangle has none strictly inside the patch), ``scipy.sparse.csgraph.connected_components`` for
+  the pieces, the original triangles for what lies beyond the sheet, and the rest surface's area.
 """
 
 from __future__ import annotations
@@ -382,3 +386,174 @@ def test_a_full_planar_cut_splits_the_embedded_surface_into_two_pieces_that_sepa
     assert gap == pytest.approx(0.004, abs=1e-9)  # each side follows only its own nodes
     uncut = surf.positions(x)  # the uncut surface is stretched across the opening instead
     assert float(uncut[:, 0].max() - uncut[:, 0].min()) > float(rest[:, 0].max() - rest[:, 0].min()) + 0.0039
+
+
+# ------------------------------------------------------------------ cuts by sheets of patches
+def pieces(faces: np.ndarray, n_vertices: int) -> int:
+    """Connected pieces of a triangle mesh (vertices joined by its edges), scipy's oracle."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    graph = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n_vertices, n_vertices))
+    labels = connected_components(graph, directed=False)[1]
+    return len(np.unique(labels[np.unique(faces)]))
+
+
+def straddling_inside(v: np.ndarray, faces: np.ndarray, patch, *, margin=1e-6, samples=64) -> np.ndarray:
+    """Bool ``(F,)``: the triangle has corners on both sides of the patch's plane and a point of its trace
+    on that plane strictly inside the patch (``margin`` in patch coordinates), found by sampling the trace."""
+    o, u, w = (np.asarray(a, dtype=np.float64) for a in patch[:3])
+    tri = bool(patch[3])
+    n = np.cross(u, w)
+    n /= np.linalg.norm(n)
+    h = (v - o) @ n
+    scale = 1e-9 * np.ptp(v, axis=0).max()
+    out = np.zeros(len(faces), dtype=bool)
+    G = np.linalg.inv(np.array([[u @ u, u @ w], [u @ w, w @ w]]))
+    for k, f in enumerate(faces):
+        hf = h[f]
+        if not (hf.max() > scale and hf.min() < -scale):
+            continue
+        ends = []
+        for i, j in ((0, 1), (1, 2), (2, 0)):
+            if (hf[i] > scale) != (hf[j] > scale) and (hf[i] < -scale) != (hf[j] < -scale):
+                ends.append(v[f[i]] + hf[i] / (hf[i] - hf[j]) * (v[f[j]] - v[f[i]]))
+            elif abs(hf[i]) <= scale:
+                ends.append(v[f[i]])
+        a, b = ends[0], ends[-1]
+        pts = a + np.linspace(0, 1, samples)[:, None] * (b - a)
+        ab = (pts - o) @ np.stack([u, w], 1) @ G
+        inside = (ab > margin).all(1) & ((ab.sum(1) < 1 - margin) if tri else (ab < 1 - margin).all(1))
+        out[k] = inside.any()
+    return out
+
+
+def area(v, f) -> float:
+    return 0.5 * float(np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1).sum())
+
+
+def test_a_swept_cut_across_part_of_the_surface_splits_only_within_its_patches():
+    """An edge through the whole ball along D, at h = h0, drawn along W over two intervals from before
+    the ball to past its middle: the lattice's swept blade of the same poses gives the patches."""
+    from torchdeform.topology import Blade
+
+    grid = td.Grid((7, 7, 7), spacing=0.005)
+    ball = trimesh.creation.icosphere(3, radius=0.012)
+    rest = ball.vertices + 0.015
+    surf = EmbeddedSurface(rest, ball.faces, grid, dtype=F64)
+    h0, w_end = 0.0153, 0.0187  # the plane between vertices; the sweep ends 3.7 mm past the middle
+    edge = np.array([[-0.001, h0, 0.0], [0.031, h0, 0.0]])
+    poses = np.stack([edge, edge + [0.0, 0.0, 0.01], edge + [0.0, 0.0, w_end]])
+    cut = surf.cut_swept(poses)
+    v, f = cut.rest_vertices.numpy(), cut.faces.numpy()
+    patches = Blade.swept(poses).patches
+    assert len(patches) == 2 and not any(tri for *_, tri in patches)
+    # no triangle straddles the sheet inside a patch ...
+    for patch in patches:
+        assert not straddling_inside(v, f, patch).any()
+    # ... while the uncut surface had triangles there, and those are gone (split)
+    f0 = ball.faces
+    crossed = np.zeros(len(f0), dtype=bool)
+    for patch in patches:
+        crossed |= straddling_inside(rest, f0, patch)
+    assert crossed.sum() > 10
+    kept = {tuple(t) for t in f.tolist()}
+    assert not any(tuple(t) in kept for t in f0[crossed].tolist())
+    # beyond the sheet's end the triangles are the original ones (old vertices keep their indices),
+    # among them triangles that straddle the plane: the surface goes on, uncut
+    beyond = rest[f0][:, :, 2].min(1) > w_end + 1e-4
+    assert beyond.sum() > 100 and all(tuple(t) in kept for t in f0[beyond].tolist())
+    hb = rest[f0[beyond]][:, :, 1] - h0
+    assert ((hb.max(1) > 0) & (hb.min(1) < 0)).sum() >= 2
+    # a partial cut: one piece, opened (new vertices, copies along the split), the same surface at rest
+    assert pieces(f, len(v)) == 1 and cut.num_vertices > surf.num_vertices and cut.num_faces > surf.num_faces
+    assert area(v, f) == pytest.approx(area(rest, f0), rel=1e-12)
+    X = grid.rest_positions(dtype=F64)
+    assert float((cut.positions(X)[0] - cut.rest_vertices).abs().max()) < 1e-12
+    # the same edge drawn across the whole ball cuts it in two
+    through = surf.cut_swept(np.stack([edge, edge + [0.0, 0.0, 0.04]]))
+    assert pieces(through.faces.numpy(), through.num_vertices) == 2
+
+
+def test_a_partial_swept_cut_opens_where_the_lattice_cut_of_the_same_blade_opens():
+    """Cut the lattice with the same blade (torchdeform.topology.cut), then move the nodes on either
+    side of the plane apart only where the sheet reached (w below its end): the split's two lips follow
+    their sides; beyond the sheet's end the surface stays closed."""
+    from torchdeform.topology import Blade, crossing
+
+    grid = td.Grid((7, 7, 7), spacing=0.005)
+    ball = trimesh.creation.icosphere(3, radius=0.012)
+    surf = EmbeddedSurface(ball.vertices + 0.015, ball.faces, grid, dtype=F64)
+    edge = np.array([[-0.001, 0.0163, 0.0], [0.031, 0.0163, 0.0]])
+    poses = np.stack([edge, edge + [0.0, 0.0, 0.0175]])  # the sheet ends at w = 17.5 mm (a node plane is 15)
+    cut = surf.cut_swept(poses)
+    X = grid.rest_positions(dtype=F64)
+    assert bool(crossing(grid, X, Blade.swept(poses)).any())
+    x = X.clone()[0]
+    opened = x[2] < 0.0151  # nodes whose springs across the plane the sheet cut: open them by 2 mm
+    x[1] = torch.where(opened & (x[1] > 0.0163), x[1] + 0.001, torch.where(opened, x[1] - 0.001, x[1]))
+    p = cut.positions(x).numpy()
+    side = cut.side.numpy()
+    lips = (np.abs(cut.rest_vertices[:, 1].numpy() - 0.0163) < 1e-12) & (cut.rest_vertices[:, 2].numpy() < 0.0149)
+    v = cut.rest_vertices.numpy()
+    up_side = 1 if v[(side > 0) & ~lips, 1].mean() > 0.0163 else -1  # the side the patches' normal points to
+    upper, lower = lips & (side == up_side), lips & (side == -up_side)
+    assert upper.sum() >= 4 and lower.sum() >= 4
+    assert np.abs(p[upper, 1] - (0.0163 + 0.001)).max() < 1e-12  # each lip follows its own side
+    assert np.abs(p[lower, 1] - (0.0163 - 0.001)).max() < 1e-12
+    assert pieces(cut.faces.numpy(), cut.num_vertices) == 1
+
+
+def test_cuts_by_patches_check_their_input_and_leave_a_missed_surface_alone():
+    grid = td.Grid((6, 6, 6), spacing=0.01)
+    ball = trimesh.creation.icosphere(2, radius=0.015)
+    surf = EmbeddedSurface(ball.vertices + 0.025, ball.faces, grid, dtype=F64)
+    far = [((0.0, 0.0, 0.0), (0.0, 0.001, 0.0), (0.0, 0.0, 0.001), True)]  # a corner of the box: misses
+    assert surf.cut_patches(far) is surf
+    for bad, match in [
+        ([((0, 0, 0), (1, 0, 0), (2, 0, 0))], "non-degenerate"),
+        ([((0, 0), (1, 0, 0), (0, 1, 0))], "flat patches"),
+        ([], "flat patches"),
+        (3.0, "flat patches"),
+    ]:
+        with pytest.raises(ConfigError, match=match):
+            surf.cut_patches(bad)
+    with pytest.raises(ConfigError, match=r"edges: .*\(K, 2, 3\)"):
+        surf.cut_swept(np.zeros((1, 2, 3)))
+    with pytest.raises(ConfigError, match="only moved along itself"):
+        surf.cut_swept([[(0, 0, 0), (0, 0, 1)], [(0, 0, 0.5), (0, 0, 1.5)]])
+    with pytest.raises(ConfigError, match="node positions of one body"):
+        surf.cut_patches(far, x=torch.zeros(2, 3, 6, 6, 6))
+
+
+def test_a_turning_edge_cuts_patch_by_patch_and_leaves_a_valid_surface():
+    """The edge turns about D while it moves: its triangles lie in different planes. Oracles: the
+    straddle test per patch, every edge of the result in at most two triangles and each directed
+    edge in at most one (a consistently wound 2-manifold with a border), the area at rest."""
+    from torchdeform.topology import Blade
+
+    grid = td.Grid((7, 7, 7), spacing=0.005)
+    ball = trimesh.creation.icosphere(3, radius=0.012)
+    rest = ball.vertices + 0.015
+    surf = EmbeddedSurface(rest, ball.faces, grid, dtype=F64)
+    poses = []
+    for k, angle in enumerate(np.linspace(0.0, 0.6, 5)):
+        centre = np.array([0.015, 0.0153, 0.002 + 0.0045 * k])
+        d = np.array([1.0, 0.0, 0.0]) * 0.016
+        tilt = np.array([0.0, np.sin(angle), 0.0]) * 0.016
+        poses.append([centre - d - tilt, centre + d + tilt])
+    poses = np.array(poses)
+    cut = surf.cut_swept(poses)
+    v, f = cut.rest_vertices.numpy(), cut.faces.numpy()
+    patches = Blade.swept(poses).patches
+    assert len({tuple(np.round(np.cross(u, w) / np.linalg.norm(np.cross(u, w)), 9)) for _, u, w, _ in patches}) > 2
+    assert cut.num_faces > surf.num_faces
+    for patch in patches:
+        assert not straddling_inside(v, f, patch).any()
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), 1)
+    assert np.unique(e, axis=0, return_counts=True)[1].max() <= 2
+    d = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    assert np.unique(d, axis=0, return_counts=True)[1].max() == 1
+    assert area(v, f) == pytest.approx(area(rest, ball.faces), rel=1e-12)
+    assert pieces(f, len(v)) == 1

@@ -16,7 +16,7 @@ import trimesh
 
 import torchdeform as td
 from torchdeform import ConfigError, cli
-from torchdeform.scene import Scene, demo_scene, load_scene, run_scene
+from torchdeform.scene import Scene, cube_scene, load_scene, run_scene
 
 SCENES = Path(__file__).resolve().parents[2] / "scenes"
 
@@ -97,12 +97,18 @@ def assert_same_scene(a: Scene, b: Scene):
 
 
 # ------------------------------------------------------------------ loading
-def test_demo_file_equals_demo_scene():
-    assert_same_scene(load_scene(SCENES / "demo.toml"), demo_scene())
+def test_cube_file_equals_cube_scene():
+    assert_same_scene(load_scene(SCENES / "cube.toml"), cube_scene())
 
 
-def test_demo_dt_is_below_its_bound():
-    scene = demo_scene()
+def test_demo_file_is_the_one_the_package_ships():
+    from importlib.resources import files
+
+    assert (SCENES / "demo.toml").read_text() == (files("torchdeform.scene") / "demo.toml").read_text()
+
+
+def test_cube_dt_is_below_its_bound():
+    scene = cube_scene()
     assert scene.dt < td.time_step_bound(scene.build(), integrator=scene.integrator)
 
 
@@ -299,21 +305,6 @@ def test_cli_run_prints_summary(tmp_path, capsys):
     captured = capsys.readouterr()
     assert "tiny: 10 symplectic steps" in captured.out and captured.err == ""
     assert (tmp_path / "out" / "summary.json").exists()
-
-
-def test_cli_demo_wiring(tmp_path, capsys, monkeypatch):
-    import torchdeform.scene.commands as scene_mod
-
-    def short_demo():
-        scene = demo_scene()
-        scene.steps, scene.record_every = 20, 10
-        scene.image_size = 128  # the wiring, not the pictures
-        return scene
-
-    monkeypatch.setattr(scene_mod, "demo_scene", short_demo)
-    assert cli.main(argv=["demo", "--out", str(tmp_path), "--quiet"]) == 0
-    summary = json.loads((tmp_path / "summary.json").read_text())
-    assert summary["name"] == "demo" and summary["steps"] == 20 and summary["nodes"] == 11**3
 
 
 def test_cli_warning_and_divergence_are_single_lines(tmp_path, capsys):

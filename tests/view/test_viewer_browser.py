@@ -87,6 +87,8 @@ def test_page_draws_the_body(driver, small):
     open_page(driver, small)
     assert js(driver, "window.viewerStats.vertices") == small.session.mesh()["vertices"]
     assert js(driver, "window.viewerStats.meshVersion") == small.session.mesh_version
+    assert js(driver, "window.viewerStats.surface") == "lattice" and js(driver, "window.viewerStats.colored")
+    assert js(driver, "window.viewerStats.tools") == []
     img = canvas_pixels(driver)
     assert img.shape[0] > 100 and img.shape[1] > 100
     body = np.abs(img.astype(int) - BACKGROUND).sum(-1) > 30
@@ -94,6 +96,34 @@ def test_page_draws_the_body(driver, small):
     assert body.mean() > 0.02
     centre = img[img.shape[0] // 2, img.shape[1] // 2]
     assert body[img.shape[0] // 2, img.shape[1] // 2], f"no body at the centre: {centre}"
+
+
+def test_page_draws_embedded_surfaces_and_the_scene_tool(driver, tmp_path):
+    """A label scene: its textured embedded surfaces and its probe, steel-grey, above the body at first."""
+    from tests.view.test_viewer_scene import LABEL_SCENE, _labels
+    from torchdeform.scene import load_scene
+    from torchdeform.view.session import ViewerSession
+
+    np.save(tmp_path / "labels.npy", _labels())
+    (tmp_path / "scene.toml").write_text(LABEL_SCENE)
+    session = ViewerSession(load_scene(tmp_path / "scene.toml"))
+    session.command({"cmd": "pause"})  # the probe where it starts, above the body
+    viewer = Viewer(session).start()
+    try:
+        open_page(driver, viewer, frames=1)
+        assert wait_for(lambda: js(driver, "window.viewerStats.framesShown") >= 1, timeout=10)
+        assert js(driver, "window.viewerStats.surface") == "embedded" and js(driver, "window.viewerStats.colored")
+        assert js(driver, "window.viewerStats.tools") == ["probe"]
+        assert js(driver, "window.viewerStats.vertices") == session.mesh()["vertices"]
+        time.sleep(0.3)
+        img = canvas_pixels(driver).astype(int)
+    finally:
+        viewer.stop()
+    r, g, b = img[..., 0], img[..., 1], img[..., 2]
+    steel = (np.abs(r - g) < 15) & (np.abs(g - b) < 25) & (r > 90)  # grey, lit
+    tissue = (r > g + 25) & (r > 60)  # the liver texture: red-brown
+    print(f"\nlabel scene: {steel.mean():.2%} steel, {tissue.mean():.1%} tissue pixels")
+    assert steel.mean() > 0.002 and tissue.mean() > 0.02
 
 
 def test_mouse_drag_moves_the_body(driver, small):

@@ -14,8 +14,8 @@ label  structure       shape (LPS millimetres; x to the patient's Left, y Poster
                        vertebral bodies it lies against; about 145 x 115 x 100 mm, with gentle
                        bumps of 1.2 mm
 2      tumour          a sphere of 22 mm diameter in the right lobe, centred at x = -45 mm,
-                       z = +5 mm, its top 9 mm below the anterior liver surface (the -y side):
-                       pressing on the front of the liver feels it
+                       z = +5 mm, its top 4 mm below the anterior liver surface (the -y side,
+                       a subcapsular lesion): pressing on the front of the liver feels it
 3      bone            the vertebral column: vertebrae every 32 mm along z (bodies 25 mm tall,
                        38 x 28 mm across, centred at y = +32 mm) with a posterior arch around the
                        spinal canal, a spinous process and transverse processes; and three ribs
@@ -49,9 +49,10 @@ noise of 10 HU (seeded) is added last.
 tumour 30 (hypodense), vessel 160 (contrast-enhanced), bone 700.
 
 **Tissues** (:data:`PHANTOM_TISSUES`, with :data:`PHANTOM_FIXED` and :data:`PHANTOM_BACKGROUND`):
-liver from the tissue library (about 3.7 kPa), the tumour a material 4.3 times stiffer
-(16 kPa), the vessel a softer blood-filled tube (2 kPa); the bone fixed; air and the torso left
-out. As ``[[tissues]]`` of a scene file:
+liver from the tissue library (about 3.7 kPa), the tumour a material about 11 times stiffer
+(40 kPa: malignant liver lesions are several times stiffer than the parenchyma in
+elastography), the vessel a softer blood-filled tube (2 kPa); the bone fixed; air and the torso
+left out. As ``[[tissues]]`` of a scene file:
 
 .. code-block:: toml
 
@@ -61,7 +62,7 @@ out. As ``[[tissues]]`` of a scene file:
 
     [[tissues]]
     label = 2
-    youngs_modulus = 1.6e4
+    youngs_modulus = 4.0e4
     poisson_ratio = 0.45
     density = 1060.0
 
@@ -130,10 +131,10 @@ PHANTOM_HU = {
 }
 
 #: suggested ``tissues=`` of :func:`~torchdeform.anatomy.labels.body_from_labels` for the phantom
-#: (liver from the library, about 3.7 kPa; a tumour about 4.3 times stiffer; a softer vessel)
+#: (liver from the library, about 3.7 kPa; a tumour about 11 times stiffer; a softer vessel)
 PHANTOM_TISSUES = {
     1: "liver",
-    2: {"youngs_modulus": 1.6e4, "poisson_ratio": 0.45, "density": 1060.0},
+    2: {"youngs_modulus": 4.0e4, "poisson_ratio": 0.45, "density": 1060.0},
     4: {"youngs_modulus": 2.0e3, "poisson_ratio": 0.45, "density": 1060.0},
 }
 #: the labels whose nodes are fixed (bone: the spine and the ribs)
@@ -160,7 +161,7 @@ _WALL_MM = 16.0  # the liver stays this far inside the skin (fat, muscle; the ri
 _RIB_HALF_MM, _RIB_OVERLAP_MM, _RIB_ARC, _RIB_PERIOD_MM, _RIB_DROP_MM = (4.5, 5.5), 0.5, (0.35, 2.0), 34.0, 12.0
 _BUMP_MM = 1.2
 # tumour: radius, x and z of its centre, depth of its top below the anterior liver surface (mm)
-_TUMOUR_RADIUS_MM, _TUMOUR_XZ_MM, _TUMOUR_TOP_DEPTH_MM = 11.0, (-45.0, 5.0), 9.0
+_TUMOUR_RADIUS_MM, _TUMOUR_XZ_MM, _TUMOUR_TOP_DEPTH_MM = 11.0, (-45.0, 5.0), 4.0
 _VESSEL_RADIUS_MM = 4.5
 # the vertebral column: body centre (x, y) and semi-axes, vertebra period and heights along z (mm)
 _BODY = ((0.0, 32.0), (19.0, 14.0))

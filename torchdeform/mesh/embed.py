@@ -30,6 +30,17 @@ zero total area (an unused vertex, a collapsed fan) gets the zero vector, never 
 The rest positions are the surface's texture coordinates: a solid texture is looked up at the
 material point a vertex came from, so the texture moves with the tissue.
 
+**Cuts.** :meth:`EmbeddedSurface.cut` splits the surface along a whole plane;
+:meth:`EmbeddedSurface.cut_patches` along a blade of flat patches ``o + a u + b v`` (a
+parallelogram, ``0 <= a, b <= 1``, or a triangle, ``a, b >= 0``, ``a + b <= 1``; the sheet of the
+lattice's cut), and :meth:`EmbeddedSurface.cut_swept` along the sheet a straight edge sweeps. A
+triangle whose trace on a patch's plane (the segment ``p(s) = A + s (B - A)`` where the plane meets
+it) overlaps the patch is split along the overlap ``[s0, s1]``: the patch coordinates are affine in
+the point, so ``s0`` and ``s1`` follow from the trace's two ends, and a point on an edge is inside
+for both triangles that share the edge or for neither (no T-junction). The surface then opens
+along the new edges (a copy of each vertex per fan of triangles they separate), and a vertex whose
+cell has a spring the sheet cuts takes its weights from a cell of its own side's nodes.
+
 The per-frame path is two sparse products (CSR on CPU and CUDA, deterministic, no atomics): the
 ``(V, N)`` weight matrix times the node positions, and the ``(V, F)`` vertex-face incidence matrix
 times the face cross products. On 2 CPU cores a surface of 100k triangles (50k vertices) is
@@ -165,6 +176,420 @@ def _csr(crow: np.ndarray, col: np.ndarray, values: np.ndarray, size: tuple, *, 
         return m.to(device)
 
 
+# ------------------------------------------------------------------------- cutting sheets
+#: the corner offsets of a cell, corner ``4 a + 2 b + c`` at ``(a, b, c)``
+_OFFSETS = np.array([[(k >> 2) & 1, (k >> 1) & 1, k & 1] for k in range(8)], dtype=np.int64)
+#: tolerance of the patch coordinates (dimensionless: a patch spans [0, 1] along u and v)
+_PATCH_TOL = 1e-9
+#: heights within this fraction of the surface's extent count as on the plane
+_HEIGHT_TOL = 1e-9
+#: a triangle whose trace on the plane meets the sheet over less than this fraction of the trace is not opened
+_SPAN_MIN = 1e-6
+_PATCHES = "flat patches (origin (3,), u (3,), v (3,), triangle) in metres, or a blade holding such patches"
+
+# The triangles that replace a crossed triangle, per case, over its named points: a, b, c its corners
+# (counter-clockwise; type I: a alone on its side, type II: a on the plane), S and E the ends of its
+# trace on the plane (type I: on edges ab and ca, type II: a itself and a point of bc), T0 and T1 the
+# tips where the sheet begins and ends inside the triangle, M half-way between them. Each case also
+# names the new edges along which the surface opens.
+_CASES = {
+    # type I (a alone): S on ab, E on ca
+    ("I", "full"): ([("a", "S", "E"), ("S", "b", "c"), ("S", "c", "E")], [("S", "E")]),
+    ("I", "start"): ([("a", "S", "T1"), ("S", "b", "T1"), ("b", "c", "T1"), ("c", "a", "T1")], [("S", "T1")]),
+    ("I", "end"): ([("a", "b", "T0"), ("b", "c", "T0"), ("c", "E", "T0"), ("E", "a", "T0")], [("T0", "E")]),
+    ("I", "slit"): (
+        [
+            ("a", "b", "T0"),
+            ("a", "T0", "M"),
+            ("a", "M", "T1"),
+            ("a", "T1", "c"),
+            ("b", "M", "T0"),
+            ("b", "T1", "M"),
+            ("b", "c", "T1"),
+        ],
+        [("T0", "M"), ("M", "T1")],
+    ),
+    ("I", "split start"): ([("a", "S", "c"), ("S", "b", "c")], []),
+    ("I", "split end"): ([("a", "b", "E"), ("b", "c", "E")], []),
+    # type II (a on the plane): S = a, E on bc
+    ("II", "full"): ([("a", "b", "E"), ("a", "E", "c")], [("a", "E")]),
+    ("II", "start"): ([("a", "b", "T1"), ("b", "c", "T1"), ("c", "a", "T1")], [("a", "T1")]),
+    ("II", "end"): ([("a", "b", "T0"), ("b", "E", "T0"), ("E", "c", "T0"), ("c", "a", "T0")], [("T0", "E")]),
+    ("II", "slit"): (
+        [
+            ("a", "b", "T0"),
+            ("c", "a", "T0"),
+            ("b", "M", "T0"),
+            ("b", "T1", "M"),
+            ("b", "c", "T1"),
+            ("c", "T0", "M"),
+            ("c", "M", "T1"),
+        ],
+        [("T0", "M"), ("M", "T1")],
+    ),
+    ("II", "split end"): ([("a", "b", "E"), ("a", "E", "c")], []),
+}
+
+
+def _as_patches(patches) -> list:
+    """``[(origin, u, v, triangle, unit normal)]`` float64 of patches given as tuples or a blade's ``patches``."""
+    items = getattr(patches, "patches", patches)
+    if isinstance(items, (str, bytes)) or not hasattr(items, "__iter__"):
+        raise ConfigError("patches", _PATCHES, got=type(patches).__name__)
+    out = []
+    for item in items:
+        if not isinstance(item, (tuple, list)) or len(item) not in (3, 4):
+            raise ConfigError("patches", _PATCHES, got=item)
+        try:
+            o, u, v = (
+                (a.detach().cpu().double().numpy() if torch.is_tensor(a) else np.asarray(a, dtype=np.float64)).reshape(
+                    -1
+                )
+                for a in item[:3]
+            )
+        except (TypeError, ValueError, RuntimeError):
+            raise ConfigError("patches", _PATCHES, got=item) from None
+        if any(a.shape != (3,) or not np.isfinite(a).all() for a in (o, u, v)):
+            raise ConfigError("patches", _PATCHES, got=item)
+        n = np.cross(u, v)
+        area, scale = float(np.linalg.norm(n)), float(np.linalg.norm(u) * np.linalg.norm(v))
+        if scale == 0 or not area > 1e-12 * scale:
+            raise ConfigError("patches", "non-degenerate patches (edges u and v non-zero, not parallel)", got=item)
+        out.append((o, u, v, bool(item[3]) if len(item) == 4 else False, n / area))
+    if not out:
+        raise ConfigError("patches", _PATCHES, got="none")
+    return out
+
+
+def _swept_patches(edges) -> list:
+    """The patches a straight edge sweeps through poses ``(K, 2, 3)`` (m).
+
+    Per interval the quadrilateral of the four ends as two triangles, or one parallelogram where the
+    edge translates: the patches of the lattice's swept blade (:meth:`torchdeform.topology.Blade.swept`).
+    """
+    try:
+        e = edges.detach().cpu().double().numpy() if torch.is_tensor(edges) else np.asarray(edges, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ConfigError(
+            "edges", "the edge's two ends at two or more poses, shape (K, 2, 3) in metres", got=edges
+        ) from None
+    if e.ndim != 3 or e.shape[1:] != (2, 3) or e.shape[0] < 2 or not np.isfinite(e).all():
+        raise ConfigError("edges", "the edge's two ends at two or more poses, shape (K, 2, 3) in metres", got=e.shape)
+    out = []
+    for k in range(len(e) - 1):
+        a0, b0, a1, b1 = e[k, 0], e[k, 1], e[k + 1, 0], e[k + 1, 1]
+        u, v, w = b0 - a0, a1 - a0, b1 - b0
+        if not np.cross(u, v).any():  # the edge moved along itself: nothing swept
+            continue
+        if np.all(np.abs(v - w) <= 1e-12 * (1 + np.abs(v))):  # a translation: one parallelogram
+            out.append((a0, u, v, False))
+        else:
+            out += [(a0, u, b1 - a0, True), (a0, b1 - a0, v, True)]
+    if not out:
+        raise ConfigError("edges", "an edge that sweeps a surface (it only moved along itself)", got=e.shape)
+    return out
+
+
+def _plane_groups(patches: list) -> list:
+    """Patches grouped by plane, ``[(unit normal, offset, [patch, ...])]``.
+
+    Normal and offset are compared to 12 digits, as :meth:`torchdeform.topology.Blade.planes` groups
+    them for the lattice.
+    """
+    groups: dict = {}
+    for o, u, v, tri, n in patches:
+        c = float(n @ o)
+        key = tuple(np.round(n, 12).tolist()) + (round(c, 12),)
+        groups.setdefault(key, (n, c, []))[2].append((o, u, v, tri))
+    return list(groups.values())
+
+
+class _Region:
+    """The union of coplanar flat patches: which points lie in it, and which stretch of a segment does.
+
+    A point's *values* are, per patch, the four numbers ``(a, b, 1 - a, 1 - b)`` of a parallelogram
+    or ``(a, b, 1 - a - b, 1)`` of a triangle (``a, b`` its patch coordinates); it lies in a patch when
+    all four are ``>= -_PATCH_TOL``. The values are affine in the point, so the stretch of a segment
+    within a patch follows from its two ends' values alone: a point and the segments ending there
+    always agree on whether it is inside.
+    """
+
+    def __init__(self, patches: list):
+        self.o, self.u, self.v = (np.stack([p[k] for p in patches]) for k in range(3))  # (P, 3)
+        self.tri = np.array([p[3] for p in patches])
+        self.uu, self.uv = (self.u * self.u).sum(1), (self.u * self.v).sum(1)
+        self.vv = (self.v * self.v).sum(1)
+        self.det = self.uu * self.vv - self.uv**2
+
+    def values(self, p: np.ndarray) -> np.ndarray:
+        """``(k, 3)`` points -> ``(k, P, 4)`` values."""
+        d = p[:, None, :] - self.o
+        du, dv = (d * self.u).sum(-1), (d * self.v).sum(-1)
+        a = (self.vv * du - self.uv * dv) / self.det
+        b = (self.uu * dv - self.uv * du) / self.det
+        return np.stack([a, b, np.where(self.tri, 1 - a - b, 1 - a), np.where(self.tri, 1.0, 1 - b)], -1)
+
+    def box(self) -> tuple[np.ndarray, np.ndarray]:
+        """The region's axis-aligned box ``(low (3,), high (3,))``."""
+        far = np.where(self.tri[:, None], self.o, self.o + self.u + self.v)  # a triangle has three corners
+        pts = np.concatenate([self.o, self.o + self.u, self.o + self.v, far])
+        return pts.min(0), pts.max(0)
+
+    @staticmethod
+    def inside(g: np.ndarray) -> np.ndarray:
+        """Bool ``(k,)`` of values ``(k, P, 4)``: in one of the patches (closed)."""
+        return np.asarray((g >= -_PATCH_TOL).all(-1).any(-1))
+
+    @staticmethod
+    def span(ga: np.ndarray, gb: np.ndarray) -> tuple:
+        """``(s0, s1, hit)`` ``(k,)``: the stretch ``[s0, s1]`` of the segments ``a + s (b - a)`` in the region.
+
+        Per patch the stretch within it (``s0 = 0`` exactly when ``a`` is inside); over several
+        patches the span from the first stretch's start to the last one's end.
+        """
+        dg = gb - ga
+        rise, fall = dg > 0, dg < 0
+        bound = np.divide(-_PATCH_TOL - ga, dg, out=np.zeros_like(ga), where=rise | fall)
+        lo = np.maximum(np.where(rise, bound, -np.inf).max(-1), 0.0)
+        hi = np.minimum(np.where(fall, bound, np.inf).min(-1), 1.0)
+        ok = (hi >= lo) & ~(~rise & ~fall & (ga < -_PATCH_TOL)).any(-1)
+        return np.where(ok, lo, np.inf).min(-1), np.where(ok, hi, -np.inf).max(-1), ok.any(-1)
+
+
+def _cut_plane(R: np.ndarray, P: np.ndarray, F: np.ndarray, n: np.ndarray, c: float, region: _Region) -> tuple:
+    """Split the triangles that coplanar patches cross and open the surface along the crossings.
+
+    Args:
+        R: rest vertex positions ``(V, 3)`` (m).
+        P: vertex positions ``(V, 3)`` where the sheet cuts (m).
+        F: triangles ``(F, 3)``.
+        n: the unit normal ``(3,)`` of the patches' plane ``n . p = c``.
+        c: its offset (m).
+        region: the patches.
+
+    Returns:
+        ``(R, P, F, side, parent, points)``: the vertices (the old ones first, unchanged; then the new
+        points on edges and traces; then, from index ``points`` on, the copies made to open the
+        surface), the triangles, int8 ``side`` ``(V',)`` (+1 / -1: the side of the plane the vertex's
+        triangles are on; 0 for a vertex on the plane shared by both sides) and ``parent`` ``(V',)``
+        (the old vertex next to a new point; the vertex a copy copies).
+    """
+    V = len(R)
+    h = P @ n - c
+    tol = _HEIGHT_TOL * max(float(np.ptp(P, axis=0).max()), 1e-300)
+    sg = np.where(h > tol, 1, np.where(h < -tol, -1, 0)).astype(np.int8)
+    h = np.where(sg == 0, 0.0, h)
+    pairs = np.sort(F[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), 1)
+    keys, inv = np.unique(pairs[:, 0] * V + pairs[:, 1], return_inverse=True)  # 1-D keys: far faster than axis=0
+    E, inv = np.stack([keys // V, keys % V], 1), inv.reshape(-1)
+    fe = inv.reshape(-1, 3)  # edge k of a triangle joins its corners k and k + 1
+    # where each edge that crosses the plane meets it, and whether that point is in the sheet
+    ce = np.flatnonzero(sg[E[:, 0]].astype(np.int64) * sg[E[:, 1]] < 0)
+    ea, eb = E[ce, 0], E[ce, 1]
+    t = (h[ea] / (h[ea] - h[eb]))[:, None]
+    Pe, Re = P[ea] + t * (P[eb] - P[ea]), R[ea] + t * (R[eb] - R[ea])
+    ge = region.values(Pe)
+    e_in = region.inside(ge)
+    row = np.full(len(E), -1)
+    row[ce] = np.arange(len(ce))
+    ev = np.full(len(ce), -1)
+    ev[e_in] = V + np.arange(int(e_in.sum()))
+    new_R, new_P, parent = [Re[e_in]], [Pe[e_in]], [ea[e_in]]
+    nv = V + int(e_in.sum())
+
+    # the triangles with corners on both sides, turned so that corner a is alone (I) or on the plane (II)
+    fs = sg[F]
+    sf = np.flatnonzero((fs > 0).any(1) & (fs < 0).any(1))
+    s = fs[sf]
+    two = (s == 0).any(1)
+    lone = np.where(s[:, 1] == s[:, 2], 0, np.where(s[:, 0] == s[:, 2], 1, 2))
+    k = np.where(two, (s == 0).argmax(1), lone)
+    rot = (k[:, None] + np.arange(3)) % 3
+    at = np.arange(len(sf))[:, None]
+    tri, edges = F[sf][at, rot], fe[sf][at, rot]  # edges: ab, bc, ca
+    start, end = row[edges[:, 0]], row[np.where(two, edges[:, 1], edges[:, 2])]
+    gS = np.empty((len(sf),) + ge.shape[1:])
+    PS, RS, iS = np.empty((len(sf), 3)), np.empty((len(sf), 3)), np.empty(len(sf), dtype=np.int64)
+    one = ~two
+    gS[one], PS[one], RS[one], iS[one] = ge[start[one]], Pe[start[one]], Re[start[one]], ev[start[one]]
+    z = tri[two, 0]
+    gS[two], PS[two], RS[two], iS[two] = region.values(P[z]), P[z], R[z], z
+    s_in = region.inside(gS)
+    gE, PE, RE, iE, e_end = ge[end], Pe[end], Re[end], ev[end], e_in[end]
+    s0, s1, hit = region.span(gS, gE)
+    s0, s1 = np.where(hit, s0, 0.0), np.where(hit, s1, 0.0)
+    short = ~hit | (s1 - s0 <= _SPAN_MIN)
+    cases = {
+        "full": s_in & e_end,
+        "start": s_in & ~e_end & ~short,
+        "end": ~s_in & e_end & ~short,
+        "slit": ~s_in & ~e_end & ~short,
+        "split start": s_in & ~e_end & short & one,
+        "split end": ~s_in & e_end & short,
+    }
+
+    def points(mask, at_s):
+        nonlocal nv
+        ids = np.full(len(sf), -1)
+        m = np.flatnonzero(mask)
+        ids[m] = nv + np.arange(len(m))
+        nv += len(m)
+        w = at_s[m][:, None]
+        new_P.append(PS[m] + w * (PE[m] - PS[m]))
+        new_R.append(RS[m] + w * (RE[m] - RS[m]))
+        parent.append(tri[m, 0])
+        return ids
+
+    tips = cases["end"] | cases["slit"]
+    names = {"a": tri[:, 0], "b": tri[:, 1], "c": tri[:, 2], "S": iS, "E": iE}
+    names["T0"] = points(tips, s0)
+    names["T1"] = points(cases["start"] | cases["slit"], s1)
+    names["M"] = points(cases["slit"], (s0 + s1) / 2)
+    keep = np.ones(len(F), dtype=bool)
+    faces, opens = [F], []
+    for (kind, case), (tris, cracks) in _CASES.items():
+        mask = cases[case] & (two if kind == "II" else one)
+        if not mask.any():
+            continue
+        keep[sf[mask]] = False
+        faces += [np.stack([names[q][mask] for q in t_], 1) for t_ in tris]
+        opens += [np.stack([names[q][mask] for q in e_], 1) for e_ in cracks]
+    faces[0] = F[keep]
+    NF = np.concatenate(faces)
+    R2, P2 = np.concatenate([R, *new_R]), np.concatenate([P, *new_P])
+    par = np.concatenate([np.arange(V), *parent])
+    side = np.concatenate([sg, np.zeros(nv - V, dtype=np.int8)])
+
+    # edges already on the plane, in the sheet, between a triangle on each side: they open too
+    count = np.bincount(inv, minlength=len(E))
+    flat = (sg[E[:, 0]] == 0) & (sg[E[:, 1]] == 0) & (count == 2)
+    if flat.any():
+        order = np.argsort(inv, kind="stable")
+        first = np.searchsorted(inv[order], np.flatnonzero(flat))
+        third = F[:, [2, 0, 1]].reshape(-1)  # the corner opposite each triangle edge
+        t1, t2 = sg[third[order[first]]], sg[third[order[first + 1]]]
+        e = E[flat][(t1.astype(np.int64) * t2) < 0]
+        if len(e):
+            e = e[region.inside(region.values((P[e[:, 0]] + P[e[:, 1]]) / 2))]
+            opens.append(e)
+    if opens:
+        R2, P2, NF, side, par = _unzip(R2, P2, NF, side, par, np.sort(np.concatenate(opens), 1))
+    return R2, P2, NF, side, par, nv
+
+
+def _unzip(R, P, F, side, parent, crack: np.ndarray) -> tuple:
+    """Open the surface along the ``crack`` edges ``(m, 2)``.
+
+    Each vertex on them gets one copy per fan of triangles that the crack (or the surface's border)
+    separates around it; a crack's end keeps one vertex.
+    """
+    F = F.copy()
+    cracked = {(int(a), int(b)) for a, b in crack.tolist()}
+    flat = F.reshape(-1)
+    order = np.argsort(flat, kind="stable")
+    sorted_ = flat[order]
+    sides, copied = side.tolist(), []  # copied: the vertex each copy copies
+    for v in np.unique(crack).tolist():
+        lo, hi = np.searchsorted(sorted_, v), np.searchsorted(sorted_, v, side="right")
+        around = (order[lo:hi] // 3).tolist()
+        root = list(range(len(around)))
+
+        def find(i, root=root):
+            while root[i] != i:
+                root[i] = root[root[i]]
+                i = root[i]
+            return i
+
+        seen: dict = {}
+        for i, f in enumerate(around):
+            for w in F[f].tolist():
+                if w == v or (min(v, w), max(v, w)) in cracked:
+                    continue
+                if w in seen:
+                    root[find(i)] = find(seen[w])
+                else:
+                    seen[w] = i
+        fans: dict = {}
+        for i, f in enumerate(around):
+            fans.setdefault(find(i), []).append(f)
+        if len(fans) < 2:
+            continue  # a crack's end: the surface goes on around it
+        for g, tris in enumerate(fans.values()):
+            sign = int(np.sign(sum(sides[w] for w in F[tris].reshape(-1).tolist() if w != v)))
+            if g == 0:
+                sides[v] = sign
+                continue
+            copy = len(sides)
+            tris = np.asarray(tris)
+            F[tris] = np.where(F[tris] == v, copy, F[tris])
+            sides.append(sign)
+            copied.append(v)
+    if copied:
+        R, P = np.concatenate([R, R[copied]]), np.concatenate([P, P[copied]])
+        parent = np.concatenate([parent, np.asarray(copied, dtype=np.int64)])
+    return R, P, F, np.asarray(sides, dtype=np.int8), parent
+
+
+def _spring_pairs(grid: Grid) -> list:
+    """The corner pairs ``(i, j)`` of a cell joined by a spring of the grid's topology."""
+    dirs = {tuple(d) for d in grid.directions}
+    pairs = []
+    for i, j in itertools.combinations(range(8), 2):
+        d = tuple(int(a) for a in _OFFSETS[j] - _OFFSETS[i])
+        if d in dirs or tuple(-a for a in d) in dirs:
+            pairs.append((i, j))
+    return pairs
+
+
+def _cells_cut(cells: np.ndarray, grid: Grid, xn: np.ndarray, hn: np.ndarray, mask: np.ndarray, region) -> np.ndarray:
+    """Bool ``(V,)``: a spring between two corners of the cell ``cells`` ``(V, 3)`` crosses the sheet.
+
+    The lattice's own test (:func:`torchdeform.topology.crossing`): the spring's ends on either side
+    of the plane (a node on it counts as the negative side) and the point where it meets the plane in
+    the sheet. ``xn`` ``(N, 3)`` node positions, ``hn`` ``(N,)`` their heights, ``mask`` ``(N,)`` body nodes.
+    """
+    if not len(cells):
+        return np.zeros(0, dtype=bool)
+    shape = np.asarray(grid.shape)
+    keys, back = np.unique(np.ravel_multi_index(tuple(cells.T), grid.shape), return_inverse=True)
+    U = np.stack(np.unravel_index(keys, grid.shape), 1)
+    idx = np.minimum(U[:, None, :] + _OFFSETS, shape - 1)  # (M, 8, 3): a flat axis repeats its node
+    node = np.asarray(np.ravel_multi_index(tuple(np.moveaxis(idx, -1, 0)), grid.shape), dtype=np.int64)
+    hc, ok = hn[node], mask[node]
+    up = hc > 0
+    cut = np.zeros(len(U), dtype=bool)
+    across = up.any(1) & (~up).any(1)
+    for i, j in _spring_pairs(grid):
+        m = np.flatnonzero(across & ~cut & (up[:, i] != up[:, j]) & ok[:, i] & ok[:, j])
+        if len(m):
+            a, b = hc[m, i], hc[m, j]
+            xa, xb = xn[node[m, i]], xn[node[m, j]]
+            hit = region.inside(region.values(xa + (a / (a - b))[:, None] * (xb - xa)))
+            cut[m[hit]] = True
+    return cut[back.reshape(-1)]
+
+
+def _nearest_cells(p, full, shape, spacing_, origin_) -> tuple[np.ndarray, np.ndarray]:
+    """Per point ``(V, 3)``: the nearest cell within one of its own whose corners are all in ``full``.
+
+    Returns its lower corner ``(V, 3)`` and bool ``(V,)`` whether there is one (else the point's own cell).
+    """
+    q = (p - origin_) / spacing_
+    top = np.maximum(shape - 2, 0)
+    base = np.clip(np.floor(q), 0, top).astype(np.int64)
+    best = np.full(len(p), np.inf)
+    out = base.copy()
+    for step in itertools.product((0, -1, 1), repeat=3):
+        cand = base + np.asarray(step)
+        inside = ((cand >= 0) & (cand <= top)).all(1)
+        good = np.zeros(len(p), dtype=bool)
+        good[inside] = full[tuple(cand[inside].T)]
+        dist = np.linalg.norm(q - (cand + 0.5), axis=1)
+        better = good & (dist < best)
+        out[better], best[better] = cand[better], dist[better]
+    return out, np.isfinite(best)
+
+
 # ---------------------------------------------------------------------------- the surface
 class EmbeddedSurface:
     """A triangle surface carried by a lattice: rest cells, trilinear weights, deformed positions and normals.
@@ -266,6 +691,9 @@ class EmbeddedSurface:
         weights = vals.reshape(8, V).T
         N = math.prod(grid.shape)
         self._v = v
+        self._cells = cells  # (V, 3) lower corners of the cells the weights come from
+        self._w64 = weights  # (V, 8) float64: the cuts locate vertices with these
+        self._corner_np = corners
         self.corners = torch.from_numpy(np.ascontiguousarray(corners)).to(self.device)
         self.weights = torch.from_numpy(np.ascontiguousarray(weights)).to(dtype=dtype, device=self.device)
         self._faces = torch.from_numpy(f).to(self.device)
@@ -410,6 +838,9 @@ class EmbeddedSurface:
             a new :class:`EmbeddedSurface` (the same lattice, dtype and device), the positive side's
             vertices first; its ``side`` is int8 ``(V,)``, +1 or -1 per vertex.
 
+        :meth:`cut_patches` cuts with a blade of finite extent (the lattice's), leaving the surface
+        whole beyond it.
+
         Raises:
             ConfigError: a zero normal; a vertex with no cell of its own side's nodes within reach.
 
@@ -460,27 +891,170 @@ class EmbeddedSurface:
         out.side = torch.cat([torch.ones(len(pv), dtype=torch.int8), -torch.ones(len(mv), dtype=torch.int8)])
         return out
 
+    def cut_patches(self, patches, *, x=None) -> EmbeddedSurface:
+        r"""The surface cut by a sheet of flat patches (a blade), each splitting only the triangles it crosses.
+
+        The sheet is the one the lattice's cut uses (:class:`~torchdeform.topology.Blade`): flat patches
+        ``o + a u + b v`` with ``a, b >= 0`` and ``a, b <= 1`` (a parallelogram) or ``a + b <= 1`` (a
+        triangle). Coplanar patches act together (grouped by plane as the lattice's cut groups them),
+        one plane after another. For each plane, at the vertex positions the lattice ``x`` gives:
+
+        1. A triangle with corners on both sides of the plane meets it along a segment, its *trace*;
+           where the trace lies in the sheet the triangle is split along it: new vertices where the
+           trace leaves the triangle's edges inside the sheet, and where the sheet's border crosses
+           the trace inside the triangle (a *tip*, plus one half-way between two tips). A triangle
+           whose trace misses the sheet is left as it is, and so is every edge whose crossing lies
+           outside it: the surface stays whole beyond the sheet's end, with no T-junction.
+        2. The surface opens along the split: every vertex on it gets one copy per side (the fans of
+           triangles around it that the split separates), a tip keeps one. A partial cut leaves the
+           surface one piece; a full one makes two.
+        3. A vertex whose cell has a spring that the sheet cuts (the lattice's own test: ends on either
+           side, crossing point in the sheet) takes its weights from the nearest cell whose 8
+           corners are body nodes on its side of the plane (within one cell of its own; it keeps its
+           cell if there is none), so it follows only its own side when the lattice opens.
+
+        New vertices get their rest positions by interpolating along the edges and traces they lie
+        on: at rest they are where the surface was; in the deformed lattice a split triangle may
+        move by the (second-order) difference between the trilinear map and its own flatness. A
+        vertex near two cuts with different planes takes its cell from the side of the latest.
+
+        Args:
+            patches: ``[(origin (3,), u (3,), v (3,), triangle), ...]`` (m; ``triangle`` a bool, left
+                out for a parallelogram), or an object holding them as ``patches`` (a
+                :class:`~torchdeform.topology.Blade`).
+            x: node positions where the sheet cuts, ``(3, D, H, W)`` or ``(1, 3, D, H, W)`` (m; the
+                deformed lattice at the moment of the cut), or None for the rest positions.
+
+        Returns:
+            a new :class:`EmbeddedSurface` (the same lattice, dtype and device; old vertices first),
+            or this surface itself when the sheet neither crosses a triangle nor cuts a vertex's cell.
+            Its ``side`` is int8 ``(V,)``: +1 / -1 for the vertices that the last plane puts on its
+            positive / negative side, 0 for the others.
+
+        Raises:
+            ConfigError: bad patches or positions.
+
+        Example:
+            >>> import numpy as np, torch, trimesh
+            >>> import torchdeform as td
+            >>> grid = td.Grid((6, 6, 6), spacing=0.01)
+            >>> ball = trimesh.creation.icosphere(3, radius=0.018)
+            >>> s = EmbeddedSurface(ball.vertices + 0.025, ball.faces, grid, dtype=torch.float64)
+            >>> # a square blade in the plane d = 24.5 mm reaching half-way across the ball (w < 25 mm)
+            >>> c = s.cut_patches([((0.0245, 0.0, 0.0), (0.0, 0.05, 0.0), (0.0, 0.0, 0.025), False)])
+            >>> c.num_faces > s.num_faces, len(trimesh.Trimesh(c.rest_vertices, c.faces, process=False).split(only_watertight=False))
+            (True, 1)
+        """
+        groups = _plane_groups(_as_patches(patches))
+        grid = self.grid
+        shape, spacing_, origin_ = np.asarray(grid.shape), np.asarray(grid.spacing), np.asarray(grid.origin)
+        xn = self._nodes(x)
+        mask = np.ones(grid.shape, dtype=bool) if grid.node_mask is None else grid.node_mask.cpu().numpy()
+        R, F, cells = self._v, self._faces.cpu().numpy(), self._cells
+        P = np.einsum("vk,vkc->vc", self._w64, xn[self._corner_np])
+        side = np.zeros(len(R), dtype=np.int8)
+        changed = False
+        reach = 3.0 * float(np.linalg.norm(spacing_))  # a vertex's cell lies within about one cell of it
+        for n, c, group in groups:
+            region = _Region(group)
+            lo, hi = region.box()
+            # only the triangles whose boxes meet the sheet's can be split, only vertices near it moved
+            slack = 1e-6 * float(np.linalg.norm(hi - lo))  # far wider than the patches' own tolerance
+            near = ((P[F].min(1) <= hi + slack) & (P[F].max(1) >= lo - slack)).all(1)
+            before, kept = len(R), F[~near]
+            R, P, Fn, side, parent, points = _cut_plane(R, P, F[near], n, c, region)
+            F = np.concatenate([kept, Fn])
+            cells = np.concatenate([cells, np.empty((len(R) - before, 3), dtype=np.int64)])
+            new = np.arange(before, points)  # points on edges and traces: the cell holding them (the body's)
+            cells[new] = cells[parent[new]]
+            if len(new):
+                q = (R[new] - origin_) / spacing_
+                own, ok = _rest_cells(q, grid.shape, None if grid.node_mask is None else _full_cells(mask))
+                cells[new[ok]] = own[ok]
+            for v in range(points, len(R)):  # copies of vertices on the opening: their vertex's cell
+                cells[v] = cells[parent[v]]
+            hn = xn @ n - c
+            moved = np.zeros(len(R), dtype=bool)
+            close = (np.abs(P - (lo + hi) / 2) <= (hi - lo) / 2 + reach).all(1)
+            cand = np.flatnonzero((side != 0) & close)
+            moved[cand] = _cells_cut(cells[cand], grid, xn, hn, mask.reshape(-1), region)
+            for sgn in (1, -1):
+                sel = np.flatnonzero(moved & (side == sgn))
+                if len(sel):
+                    mine = (hn > 0).reshape(grid.shape) if sgn > 0 else (hn <= 0).reshape(grid.shape)
+                    own, ok = _nearest_cells(R[sel], _full_cells(mask & mine), shape, spacing_, origin_)
+                    cells[sel[ok]] = own[ok]
+            changed |= len(R) != before or len(Fn) != int(near.sum()) or bool(moved.any())
+        if not changed:
+            return self
+        out = EmbeddedSurface(R, F, grid, dtype=self.dtype, device=self.device, cells=cells)
+        out.side = torch.from_numpy(side.astype(np.int8))
+        return out
+
+    def cut_swept(self, edges, *, x=None) -> EmbeddedSurface:
+        r"""The surface cut by a straight edge swept through poses (a scalpel's path), sheet patch by patch.
+
+        Between poses ``k`` and ``k + 1`` the edge sweeps the quadrilateral of its four ends, taken as
+        two triangles (one parallelogram where the edge translates): the swept blade of
+        :meth:`torchdeform.topology.Blade.swept`, the same sheet the lattice's cut uses. The triangles
+        each patch crosses are split along it, only within the patch (see :meth:`cut_patches`): a
+        path that stops inside the surface leaves it one piece, opened up to the edge's last pose.
+
+        Args:
+            edges: the edge's two ends at each pose, ``(K, 2, 3)`` (m), ``K >= 2``.
+            x: node positions where the sheet cuts, ``(3, D, H, W)`` or ``(1, 3, D, H, W)`` (m), or
+                None for the rest positions.
+
+        Returns:
+            as :meth:`cut_patches`.
+
+        Raises:
+            ConfigError: bad edges (a shape other than ``(K, 2, 3)``, an edge that only moves along
+                itself) or positions.
+
+        Example:
+            >>> import numpy as np, torch, trimesh
+            >>> import torchdeform as td
+            >>> grid = td.Grid((6, 6, 6), spacing=0.01)
+            >>> ball = trimesh.creation.icosphere(3, radius=0.018)
+            >>> s = EmbeddedSurface(ball.vertices + 0.025, ball.faces, grid, dtype=torch.float64)
+            >>> # an edge along d through the whole ball at h = 24.5 mm, drawn along w from 0 to 30 mm
+            >>> edge = np.array([[0.0, 0.0245, 0.0], [0.05, 0.0245, 0.0]])
+            >>> path = np.stack([edge, edge + [0.0, 0.0, 0.015], edge + [0.0, 0.0, 0.03]])   # (3, 2, 3) m
+            >>> c = s.cut_swept(path)
+            >>> h = (c.rest_vertices[:, 1] - 0.0245)[c.faces]                       # (F, 3) heights
+            >>> w = c.rest_vertices[:, 2][c.faces].mean(1)
+            >>> straddle = (h.max(1).values > 1e-12) & (h.min(1).values < -1e-12)
+            >>> bool(straddle[w < 0.029].any()), bool(straddle.any())    # split within the path, not beyond
+            (False, True)
+            >>> len(trimesh.Trimesh(c.rest_vertices, c.faces, process=False).split(only_watertight=False))  # the far side holds it together
+            1
+        """
+        return self.cut_patches(_swept_patches(edges), x=x)
+
+    def _nodes(self, x) -> np.ndarray:
+        """Node positions ``(N, 3)`` float64 of ``x`` (one body), or the rest positions for None."""
+        grid = self.grid
+        if x is None:
+            x = grid.rest_positions(dtype=torch.float64)
+        x = torch.as_tensor(x).detach()
+        if x.dim() == 5 and x.shape[0] == 1:
+            x = x[0]
+        if tuple(x.shape) != (3,) + tuple(grid.shape):
+            raise ConfigError(
+                "x", f"node positions of one body (3, *{grid.shape}) or (1, 3, *{grid.shape})", got=tuple(x.shape)
+            )
+        return x.to(device="cpu", dtype=torch.float64).reshape(3, -1).t().numpy()
+
     @staticmethod
     def _own_cells(p, full, shape, spacing_, origin_) -> np.ndarray:
         """Per point ``(V, 3)``: the lower corner of the nearest cell within one of its own whose corners are all in ``full``."""
-        q = (p - origin_) / spacing_
-        top = np.maximum(shape - 2, 0)
-        base = np.clip(np.floor(q), 0, top).astype(np.int64)
-        best = np.full(len(p), np.inf)
-        out = base.copy()
-        for step in itertools.product((0, -1, 1), repeat=3):
-            cand = base + np.asarray(step)
-            inside = ((cand >= 0) & (cand <= top)).all(1)
-            good = np.zeros(len(p), dtype=bool)
-            good[inside] = full[tuple(cand[inside].T)]
-            dist = np.linalg.norm(q - (cand + 0.5), axis=1)
-            better = good & (dist < best)
-            out[better], best[better] = cand[better], dist[better]
-        if not np.isfinite(best).all():
+        out, found = _nearest_cells(p, full, shape, spacing_, origin_)
+        if not found.all():
             raise ConfigError(
                 "cut",
                 "a cell of the cut's own side near every vertex (a plane through the body, not along its skin)",
-                got=f"{int((~np.isfinite(best)).sum())} vertices without one",
+                got=f"{int((~found).sum())} vertices without one",
             )
         return out
 

@@ -3,7 +3,8 @@
 A scene file only builds the objects of the Python API: :class:`Scene` holds a
 :class:`~torchdeform.sim.grid.Grid`, the keyword arguments of :class:`~torchdeform.sim.model.Model`
 (``scene.model_args``), an :class:`~torchdeform.sim.integrators.Integrator` and the run settings;
-:func:`demo_scene` builds the built-in demo with the API alone. :func:`run_scene` runs a
+:func:`cube_scene` builds a small dragged cube with the API alone, :func:`demo_scene` reads the built-in
+demo (a liver pressed by a probe). :func:`run_scene` runs a
 scene and writes ``trajectory.npz``, ``summary.json`` and ``energy.png``; with ``[[tools]]`` also
 ``tools.npz``, ``forces.png`` and the tools' force series in ``summary.json``
 (:mod:`.tools`).
@@ -79,6 +80,19 @@ background unless given): ``label`` (an integer) and one of
 - ``fixed = true``: the label's nodes do not move (bone); a material beside it is optional (the
   stiffest tissue's)
 - ``background = true``: the label is left out (air, the rest of the torso)
+
+``[[surfaces]]`` (optional, repeatable): your own closed mesh embedded in the lattice
+(:class:`torchdeform.mesh.EmbeddedSurface`), written and animated like the label surfaces of a body
+of labels (``[output] surfaces = "embedded"``, ``animation``) and cut by ``[[cuts]]``:
+
+- ``file``: a closed triangle mesh (``.stl``, ``.obj``, ``.ply``, ...; relative to the scene file;
+  mesh x, y, z -> D, H, W, as for ``[grid] mesh``) (required)
+- ``scale``: metres per mesh unit, e.g. 0.001 for a mesh in mm (1)
+- ``name``: the surface's name in the frame files (the file's stem)
+
+A body of labels or of a mesh grows by the cells the surfaces pass through, so that it covers
+them; a box body covers what lies in its box. A mesh outside the body's lattice is an error naming
+the table's ``file`` and the mesh file.
 
 ``[[regions]]`` (optional, repeatable; needs ``stiffness`` as one number, ``tissue`` or
 ``youngs_modulus`` in ``[material]``): a part of the body with its own material, later regions on
@@ -163,6 +177,10 @@ tissue's):
 - ``gape``: in [0, 1): the springs left at the cut's nodes shorten by this fraction, and the cut
   opens (0)
 
+Every cut also cuts the embedded surfaces (label surfaces, ``[[surfaces]]``) with the same blade,
+at the node positions of that moment (:meth:`torchdeform.mesh.EmbeddedSurface.cut_patches`): a
+blade when it cuts the springs, a scalpel's sweep at every recorded frame and when it stops.
+
 ``[[cautery]]`` (optional, repeatable):
 
 - ``tool``: the nodes inside this tool are burnt away, with their springs
@@ -230,9 +248,10 @@ dt]``; a blade (or a scalpel's edge along its path) must reach the body's rest b
   write ``palpation.png`` and a ``"palpation"`` part of ``summary.json``
 - ``surfaces = [t1, t2, ...]``: times (s) at which the closed surface of every connected piece
   (and side of the latest blade) is written as ``surface_<ms>ms_<label>.ply``; or, for a body of
-  labels, ``"embedded"``: its smooth label surfaces (marching cubes at image resolution, Taubin
-  smoothing, decimation) carried by the lattice, written at every recorded frame as
-  ``surfaces/frame_NNNN.glb`` (:func:`torchdeform.mesh.embed.save_surfaces`)
+  labels or with ``[[surfaces]]``, ``"embedded"``: the smooth surfaces carried by the lattice (the
+  label surfaces: marching cubes at image resolution, Taubin smoothing, decimation; the
+  ``[[surfaces]]`` meshes), written at every recorded frame as ``surfaces/frame_NNNN.glb``
+  (:func:`torchdeform.mesh.embed.save_surfaces`), cut as the cuts left them by that frame's time
 - ``surface_format``: ``"glb"`` (default) or ``"ply"`` (embedded surfaces)
 - ``surface_faces``: triangles per label surface after decimation (10,000)
 - ``animation``: ``true``: write ``animation.gif``, the textured surface (a body of labels: its
@@ -240,6 +259,10 @@ dt]``; a blade (or a scalpel's edge along its path) must reach the body's rest b
   when the scene has a ``[volume]``, with the time and the tools' forces (as ``torchdeform run
   --animation``; see :func:`torchdeform.scene.animation.animate`)
 - ``image_size``: pixels of each square panel of the animation (512, at most 2048)
+- ``camera``: ``[x, y, z]``, where the animation's surface panel looks from (from the body's
+  centre, its length fitted); ``camera_up``: the direction upwards in that panel. Defaults: a
+  view along ``(1.3, -1.1, 0.9)`` with axis D up; a body of labels (the LPS patient frame) is seen
+  from the patient's right, in front and above, ``(-1.2, -0.9, 0.5)``, anterior (``-y``) up
 
 ``[volume]`` (optional): a volume filling the grid's bounding box, deformed by the final state;
 the run also writes ``volume_before.png``, ``volume_after.png``, ``volume_deformed.npy``:
@@ -282,11 +305,11 @@ Modules: :mod:`.reader` (files, located errors, typed values and the shared sect
 new model kind builds on), :mod:`.mass_spring`, :mod:`.tools` (``[[tools]]``, ``[strain_limit]``
 and the tool outputs of a run), :mod:`.topology` (cuts, cautery, tearing, coagulation and their outputs), :mod:`.chainmail`, :mod:`.run` (load and run),
 :mod:`.animation` (a run's frames, textured surface beside the deformed volume, into an animated GIF),
-:mod:`.commands` (``torchdeform run`` and ``demo``).
+:mod:`.demo` (the built-in demo), :mod:`.commands` (``torchdeform run`` and ``demo``).
 
 Example:
-    >>> from torchdeform.scene import demo_scene, run_scene
-    >>> scene = demo_scene()
+    >>> from torchdeform.scene import cube_scene, run_scene
+    >>> scene = cube_scene()
     >>> scene.steps = 20
     >>> scene.volume = None              # skip the volume renders (about a second)
     >>> summary = run_scene(scene, getfixture("tmp_path"), progress=False)
@@ -295,7 +318,8 @@ Example:
 """
 
 from .chainmail import ChainMailScene, chainmail_scene
-from .mass_spring import Scene, demo_scene, mass_spring_scene
+from .demo import demo_scene
+from .mass_spring import Scene, cube_scene, mass_spring_scene
 from .reader import SECTIONS, Source, Table
 from .run import energy_series, load_scene, one_line_warnings, plot_energy, report, run_scene, scene_volume_outputs
 from .topology import TopologySet
@@ -307,6 +331,7 @@ __all__ = [
     "Table",
     "load_scene",
     "demo_scene",
+    "cube_scene",
     "run_scene",
     "mass_spring_scene",
     "chainmail_scene",

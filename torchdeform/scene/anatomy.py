@@ -1,4 +1,4 @@
-"""``[grid] labels`` and ``[[tissues]]``: a scene body made from a label volume.
+"""``[grid] labels`` and ``[[tissues]]`` (a body made from a label volume); ``[[surfaces]]`` (meshes embedded in it).
 
 .. code-block:: text
 
@@ -19,6 +19,19 @@ another label. Every other label of the image needs an entry. ``[material]`` may
 ``damping`` (and ``damping_mode``); without it the springs get the Kelvin-Voigt damping of the
 library tissues. The mass comes from the tissues' densities (no ``[mass]``), and ``[[regions]]`` do
 not apply (the labels are the regions). See :mod:`torchdeform.anatomy.labels`.
+
+``[[surfaces]]`` (any mass-spring body) embeds the user's own closed meshes in the lattice
+(:class:`~torchdeform.mesh.embed.EmbeddedSurface`), written and animated like the label surfaces:
+
+.. code-block:: text
+
+    [[surfaces]]
+    file = "liver.stl"             # .stl, .obj, .ply, ... (relative to the scene file); x, y, z -> D, H, W
+    scale = 0.001                  # metres per mesh unit (1)
+    name = "liver"                 # the surface's name in the files (the file's stem)
+
+A body of labels or of a mesh (``[grid] mesh``) grows by the cells the surfaces pass through, so
+that it covers them; a box body (``[grid] shape``) covers what lies in its box.
 """
 
 from __future__ import annotations
@@ -27,10 +40,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import ConfigError
 from ..sim.grid import Grid
 from .reader import SECTIONS, Source, Table, is_number
 
-__all__ = ["label_body_section", "lattice_ct", "CT_SIDE"]
+__all__ = ["label_body_section", "lattice_ct", "CT_SIDE", "surfaces_section", "cover_surfaces", "check_surfaces"]
 
 _GRID_ONLY = ("shape", "mesh", "origin", "padding", "scale")
 
@@ -76,12 +90,15 @@ def _tissue_tables(src: Source, items) -> tuple[dict, list, list]:
     return tissues, fixed, background
 
 
-def label_body_section(src: Source, data: dict, section: dict, base: Path):
+def label_body_section(
+    src: Source, data: dict, section: dict, base: Path, *, user: dict | None = None, surfaces: bool = False
+):
     """``(grid, model keywords, embedded surfaces or None)`` of a scene whose ``[grid]`` has ``labels``.
 
     The surfaces (``{"label<k>": (vertices, faces)}``, :func:`~torchdeform.mesh.embed.label_surfaces`)
     are made only when the run shows or writes them (``[output] surfaces = "embedded"`` or
-    ``animation = true``), and the body then covers them.
+    ``animation = true``), and the body then covers them; it also covers the ``user`` surfaces
+    (:func:`surfaces_section`, ``{name: (vertices, faces, key, file)}``), which it does not return.
     """
     from ..anatomy.images import read_image
     from ..anatomy.labels import body_from_labels
@@ -111,7 +128,7 @@ def label_body_section(src: Source, data: dict, section: dict, base: Path):
     tissues, fixed, background = _tissue_tables(src, data.get("tissues"))
     name = t.text("labels", 'a label volume file, a DICOM folder (relative to the scene file) or "phantom"')
     out = Table(src, "output", data.get("output", {}), SECTIONS["output"])
-    wanted = out.data.get("surfaces") == "embedded" or out.data.get("animation") is True
+    wanted = surfaces or out.data.get("surfaces") == "embedded" or out.data.get("animation") is True
     faces = out.integer("surface_faces", "an integer >= 100 (triangles per label surface)", default=10_000, lo=100)
     with src.located(t.key("labels")):
         image = _phantom(t, 0) if name.split(":")[0] == "phantom" else None
@@ -126,17 +143,30 @@ def label_body_section(src: Source, data: dict, section: dict, base: Path):
             found = label_surfaces(image.array, image.affine, which=which, smooth=10, faces=faces)
         embedded = {f"label{k}": v for k, v in found.items()}
         cover = np.concatenate([v for v, _ in found.values()]) if found else None
-    with src.located(t.key("labels")):
-        body = body_from_labels(
-            image,
-            spacing,
-            tissues=tissues,
-            fixed=fixed,
-            background=background,
-            topology=topology,
-            cover=cover,
-            key=t.key("labels"),
-        )
+    if user:
+        cover = np.concatenate(([] if cover is None else [cover]) + [u[0] for u in user.values()])
+    try:
+        with src.located(t.key("labels")):
+            body = body_from_labels(
+                image,
+                spacing,
+                tissues=tissues,
+                fixed=fixed,
+                background=background,
+                topology=topology,
+                cover=cover,
+                key=t.key("labels"),
+            )
+    except ConfigError as e:
+        if not user or e.key != t.key("labels") or "points inside the labels' box" not in e.expected:
+            raise
+        keys = [u[2] for u in user.values()]
+        raise src.error(
+            keys[0] if len(keys) == 1 else "surfaces",
+            "meshes inside the box of the labels' lattice (their tissue voxels, one spacing around; "
+            "a mesh in millimetres needs scale = 0.001)",
+            got=f"{', '.join(u[3] for u in user.values())}: {e.got}",
+        ) from None
     args: dict = {"stiffness": body.material, "normalize": False, "mass": body.mass}
     if bool(body.fixed.any()):
         args["fixed"] = body.fixed
@@ -211,3 +241,96 @@ def lattice_ct(name: str, base: Path, t: Table, grid: Grid) -> np.ndarray:
     shape = tuple(int(v) for v in np.floor(extent / step).astype(int) + 1)
     step3 = tuple(float(e / (n - 1)) if n > 1 else step for e, n in zip(extent, shape))
     return resample_image(ct, origin=grid.origin, spacing=step3, shape=shape).numpy()
+
+
+# ------------------------------------------------------------------ [[surfaces]]: the user's meshes
+def surfaces_section(src: Source, items, base: Path) -> dict:
+    """The meshes of the ``[[surfaces]]`` tables: ``{name: (vertices (V, 3) m, faces (F, 3), key, file)}``.
+
+    Each table: ``file`` (a closed mesh trimesh reads, relative to the scene file ``base``; mesh
+    x, y, z are D, H, W, as for ``[grid] mesh``), ``scale`` (metres per mesh unit, 1) and ``name``
+    (the file's stem). ``key`` is the table's ``file`` key (``surfaces[0].file``) for later errors.
+
+    Raises:
+        ConfigError: naming the scene file, the line and the key: a missing, unreadable or open
+            mesh (with the mesh file's path), a bad scale, two surfaces of one name.
+    """
+    from ..mesh.surfaces import load_mesh
+
+    if not isinstance(items, list) or not items:
+        raise src.error("surfaces", '[[surfaces]] tables (file = "organ.stl")', got=items)
+    out: dict = {}
+    for n, item in enumerate(items):
+        t = Table(src, f"surfaces[{n}]", item, SECTIONS["surfaces"])
+        name = t.text("file", "a closed mesh file (.stl, .obj, .ply, ...; relative to the scene file)")
+        scale = t.num("scale", "a positive number (metres per mesh unit)", default=1.0, lo=0, lo_open=True)
+        label = t.text("name", "a name for the surface", default=Path(name).stem)
+        if label in out or (label.startswith("label") and label[5:].lstrip("-").isdigit()):
+            taken = "another [[surfaces]] table's" if label in out else "a label surface's"
+            raise t.fail("name", f"a name of its own (this one is {taken}; give name = ..)", got=label)
+        with src.located(t.key("file")):
+            vertices, faces = load_mesh(base / name, scale=scale, key="surface")
+        out[label] = (vertices, faces, t.key("file"), name)
+    return out
+
+
+def cover_surfaces(grid: Grid, user: dict) -> Grid:
+    """``grid`` with the corners of the cells that hold the ``user`` surfaces' vertices added to its nodes.
+
+    A body with a node mask (a voxelised mesh) leaves out the cells its own surface passes through;
+    an embedded surface needs them. Vertices outside the lattice's box add nothing (the check after
+    names them). A grid without a mask is returned as it is.
+    """
+    if grid.node_mask is None or not user:
+        return grid
+    import torch
+
+    shape = np.asarray(grid.shape)
+    mask = grid.node_mask.cpu().numpy().copy()
+    for vertices, *_ in user.values():
+        q = (vertices - np.asarray(grid.origin)) / np.asarray(grid.spacing)
+        base = np.clip(np.floor(q), 0, np.maximum(shape - 2, 0)).astype(np.int64)
+        for a, b, c in np.ndindex(2, 2, 2):
+            corner = np.minimum(base + (a, b, c), shape - 1)
+            mask[tuple(corner.T)] = True
+    if mask.sum() == grid.node_mask.sum():
+        return grid
+    return Grid(
+        grid.shape,
+        spacing=grid.spacing,
+        origin=grid.origin,
+        topology=grid.topology,
+        node_mask=torch.from_numpy(mask),
+    )
+
+
+def check_surfaces(src: Source, grid: Grid, user: dict) -> dict:
+    """The ``user`` surfaces as the scene keeps them, ``{name: (vertices, faces)}``, once each embeds in ``grid``.
+
+    Raises:
+        ConfigError: naming the scene file, the line, the table's ``file`` key and the mesh file: a
+            mesh more than one spacing outside the lattice's box, or with vertices in cells the body
+            does not fill.
+    """
+    import torch
+
+    from ..mesh.embed import EmbeddedSurface
+
+    lo = np.asarray(grid.origin)
+    hi = lo + (np.asarray(grid.shape) - 1) * np.asarray(grid.spacing)
+    box = "[" + ", ".join(f"{a:g}..{b:g}" for a, b in zip(lo, hi)) + "] m"
+    out = {}
+    for name, (vertices, faces, key, file) in user.items():
+        try:
+            EmbeddedSurface(vertices, faces, grid, dtype=torch.float64)
+        except ConfigError as e:
+            if "millimetres" in e.expected:
+                expected = (
+                    f"a mesh within one spacing of the body's lattice (its box is {box}; a mesh in "
+                    "millimetres needs scale = 0.001)"
+                )
+            else:
+                expected = "a mesh inside the body: " + e.expected
+            raise src.error(key, expected, got=f"{file}: {e.got}") from None
+        out[name] = (vertices, faces)
+    return out

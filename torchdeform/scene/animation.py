@@ -44,6 +44,7 @@ Example:
 from __future__ import annotations
 
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import torch
@@ -146,7 +147,14 @@ def drag_forces(model, x, v, t) -> np.ndarray:
 
 
 def surface_camera(
-    grid, x, *, size: int = 320, direction=SURFACE_DIRECTION, fov_deg: float = SURFACE_FOV, fill: float = 0.9
+    grid,
+    x,
+    *,
+    size: int = 320,
+    direction=SURFACE_DIRECTION,
+    fov_deg: float = SURFACE_FOV,
+    fill: float = 0.9,
+    up=(1.0, 0.0, 0.0),
 ):
     """The perspective camera of the surface panel: it frames the body in every frame of ``x``.
 
@@ -162,6 +170,7 @@ def surface_camera(
         direction: from the box centre towards the eye (its length is adjusted).
         fov_deg: vertical field of view (degrees).
         fill: the largest distance of a projected box corner from the image centre, in half image sides.
+        up: the direction that appears upwards in the image (default axis D).
 
     Returns:
         a :class:`~torchdeform.mesh.Camera` of ``size x size`` pixels.
@@ -188,7 +197,9 @@ def surface_camera(
     d = torch.tensor(direction, dtype=torch.float64)
     d = d / d.norm()
     for _ in range(8):  # the projected size is about inverse to the distance
-        cam = framing_camera(corners, direction=tuple(d.tolist()), fov_deg=fov_deg, size=(int(size), int(size)))
+        cam = framing_camera(
+            corners, direction=tuple(d.tolist()), fov_deg=fov_deg, size=(int(size), int(size)), up=tuple(up)
+        )
         reach = float((cam.project(corners)[0] - size / 2).abs().max()) / (size / 2)
         if abs(reach - fill) < 1e-3:
             break
@@ -341,7 +352,7 @@ class _Piece:
 TOOL_COLOUR = (0.62, 0.65, 0.7)
 
 
-def _with_tools(out: dict, tools, t: float, camera) -> torch.Tensor:
+def _with_tools(out: dict, tools, t: float, camera, light=LIGHT) -> torch.Tensor:
     """The rendered body ``out`` with the tools at time ``t`` drawn in front of or behind it (depth test)."""
     from ..interact.meshes import tool_surface
     from ..interact.tools import Sphere
@@ -360,7 +371,7 @@ def _with_tools(out: dict, tools, t: float, camera) -> torch.Tensor:
             f,
             camera,
             colors=torch.tensor(TOOL_COLOUR, dtype=image.dtype).expand(len(v), 3),
-            light=LIGHT,
+            light=light,
             ambient=0.3,
             normals=normals,
             specular=0.5,
@@ -392,6 +403,8 @@ def animate(
     surfaces=None,
     tools=None,
     specular: float = 0.3,
+    camera=None,
+    camera_up=None,
 ) -> dict:
     """Write an animated GIF of recorded frames: textured surface | deformed volume, time and forces.
 
@@ -419,10 +432,15 @@ def animate(
             (0.4 by default: a sixth of the rays, for speed).
         progress: show a progress bar.
         surfaces: :class:`~torchdeform.mesh.embed.EmbeddedSurface` s to show instead of the
-            lattice's own surface (smooth, per-vertex normals), or None.
+            lattice's own surface (smooth, per-vertex normals), a function of the recorded frame's
+            index giving them (surfaces cut during the run), or None.
         tools: :class:`~torchdeform.interact.tools.Tool` s drawn where they are at each frame
             (grey, shiny), or None.
         specular: the weight of the tissue's wet highlight (0: matt).
+        camera: where the surface panel looks from ``(3,)``, from the body's centre (its length is
+            fitted), or None (:data:`SURFACE_DIRECTION`, lit by :data:`LIGHT`). A given camera is lit
+            from just above it (along ``camera_up``).
+        camera_up: the direction ``(3,)`` upwards in the surface panel, or None (axis D).
 
     Returns:
         dict: ``file`` (the GIF's name), ``frames``, ``size`` ``[height, width]`` of a frame (pixels),
@@ -459,7 +477,14 @@ def animate(
     X = grid.rest_positions(dtype=torch.float64)
     extent = [(n - 1) * s for n, s in zip(grid.shape, grid.spacing)]
     extent = [e if e > 0 else s for e, s in zip(extent, grid.spacing)]
-    camera = surface_camera(grid, x[idx], size=size)
+    up = (1.0, 0.0, 0.0) if camera_up is None else tuple(float(c) for c in camera_up)
+    light = LIGHT
+    if camera is not None:  # lit from just above the eye
+        d, u = np.asarray(camera, dtype=np.float64), np.asarray(up, dtype=np.float64)
+        light = tuple((d / np.linalg.norm(d) + 0.5 * u / np.linalg.norm(u)).tolist())
+    camera = surface_camera(
+        grid, x[idx], size=size, up=up, direction=SURFACE_DIRECTION if camera is None else tuple(camera)
+    )
     forces = {k: np.asarray(f, dtype=np.float64).reshape(len(t), 3) for k, f in (forces or {}).items()}
     titles = ("surface: solid texture, shaded", f"volume: {mode}, view {view}")
     if surfaces:
@@ -467,11 +492,14 @@ def animate(
     images, captions = [], []
     for i in tqdm(idx, disable=not progress, desc="animate", unit="frame"):
         if surfaces:
-            pieces = [_Piece(*s.update(x[i]), s.faces, s.rest_vertices) for s in surfaces]
+            pieces = []
+            for s in cast("list", surfaces(i) if callable(surfaces) else surfaces):
+                p, n = s.update(x[i])
+                pieces.append(_Piece(p, n, s.faces, s.rest_vertices))
         else:
             pieces = cut_surfaces(grid, x[i : i + 1], labels)
-        out = render_textured(pieces, texture, camera, light=LIGHT, specular=specular)
-        surface = _with_tools(out, tools or (), float(t[i]), camera).clamp(0, 1)
+        out = render_textured(pieces, texture, camera, light=light, specular=specular)
+        surface = _with_tools(out, tools or (), float(t[i]), camera, light).clamp(0, 1)
         surface = (surface * 255 + 0.5).to(torch.uint8).numpy()
         right = None
         if vol is not None:

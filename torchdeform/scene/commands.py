@@ -5,7 +5,8 @@ from __future__ import annotations
 from ..checks import usable_device
 from ..errors import ConfigError
 from ..sim.engine import ENGINES
-from .mass_spring import Scene, demo_scene
+from .demo import demo_scene
+from .mass_spring import Scene
 from .run import load_scene, report, run_scene
 
 __all__ = ["add_run_arguments", "add_demo_arguments", "add_force_argument", "run_command", "demo_command"]

@@ -3,7 +3,7 @@
 The ``[material]`` (a stiffness, a modulus, or tissue words through the fuzzy tissue library:
 :func:`tissue_moduli`, :func:`lattice_modulus`), ``[[regions]]``, ``[mass]``, ``[boundary]``,
 ``[[loads]]``, ``[integrator]``, ``[output]`` and ``[volume]`` sections, the :class:`Scene` they
-build, and the built-in demo (:func:`demo_scene`). ``[[tools]]`` and ``[strain_limit]`` are read
+build, and a small dragged cube (:func:`cube_scene`). ``[[tools]]`` and ``[strain_limit]`` are read
 by :mod:`.tools`, ``[[cuts]]``, ``[[cautery]]``, ``[tear]``, ``[[coagulate]]`` by :mod:`.topology`.
 """
 
@@ -13,6 +13,7 @@ import math
 from dataclasses import KW_ONLY, dataclass, field
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from ..checks import check_memory, usable_device
@@ -35,7 +36,7 @@ from .topology import TOPOLOGY, TopologySet, tools_with_cutters, topology_sectio
 __all__ = [
     "Scene",
     "mass_spring_scene",
-    "demo_scene",
+    "cube_scene",
     "lattice_modulus",
     "tissue_moduli",
     "tissue_properties",
@@ -231,6 +232,10 @@ class Scene:
     animation: str | None = None
     #: the side (pixels) of each square panel of the animation (``[output] image_size``)
     image_size: int = 512
+    #: where the animation's surface panel looks from, ``(3,)`` from the body's centre (``[output] camera``),
+    #: and the direction upwards in it (``camera_up``); None: the animation's defaults
+    camera: tuple | None = None
+    camera_up: tuple | None = None
     #: smooth surfaces embedded in the lattice, ``{name: (rest vertices (V, 3) m, faces (F, 3))}``, or None;
     #: the animation shows them, and with ``write_surfaces`` the run writes them at every recorded frame
     embedded: dict | None = None
@@ -698,25 +703,37 @@ def _check_static(src: Source, data: dict, out: Table) -> None:
             )
 
 
-def _grid_and_body(src: Source, data: dict, section: dict, base: Path) -> tuple:
+def _grid_and_body(src: Source, data: dict, section: dict, base: Path, *, surfaces: bool = False) -> tuple:
     """``(grid, model keywords, embedded surfaces or None)`` of ``[grid]`` and the material sections."""
     if "tissues" in data and not section["grid"].has("labels"):
         raise src.error("tissues", "[[tissues]] only with [grid] labels (a label volume); else [[regions]]")
-    embedded = None
+    embedded, user = None, None
+    if "surfaces" in data:  # the user's meshes, embedded in the lattice (scene.anatomy)
+        from .anatomy import surfaces_section
+
+        user = surfaces_section(src, data["surfaces"], base)
     if section["grid"].has("labels"):
         from .anatomy import label_body_section
 
-        grid, model_args, embedded = label_body_section(src, data, section, base)
+        grid, model_args, embedded = label_body_section(src, data, section, base, user=user, surfaces=surfaces)
     else:
         out_ = data.get("output")
-        if isinstance(out_, dict) and out_.get("surfaces") == "embedded":
+        if isinstance(out_, dict) and out_.get("surfaces") == "embedded" and user is None:
             raise src.error(
                 "output.surfaces",
-                'times [t1, t2, ...]; "embedded" needs a body of labels ([grid] labels)',
+                'times [t1, t2, ...]; "embedded" needs a body of labels ([grid] labels) or [[surfaces]]',
                 got="embedded",
             )
         grid = grid_section(section["grid"], base)
+        if user:
+            from .anatomy import cover_surfaces
+
+            grid = cover_surfaces(grid, user)
         model_args = _body(src, data, section, grid)
+    if user:
+        from .anatomy import check_surfaces
+
+        embedded = {**(embedded or {}), **check_surfaces(src, grid, user)}
     return grid, model_args, embedded
 
 
@@ -731,7 +748,7 @@ def _embedded_outputs(scene: Scene, out: Table, embedded) -> None:
         out.only_with(k, 'surfaces = "embedded"')
 
 
-def mass_spring_scene(src: Source, data: dict, base: Path, *, name: str = "scene") -> Scene:
+def mass_spring_scene(src: Source, data: dict, base: Path, *, name: str = "scene", surfaces: bool = False) -> Scene:
     """Build a :class:`Scene` from a parsed scene file whose model is ``"mass-spring"``.
 
     The file is parsed by :func:`~torchdeform.scene.reader.read`; this is called by
@@ -743,6 +760,8 @@ def mass_spring_scene(src: Source, data: dict, base: Path, *, name: str = "scene
         data: its parsed TOML.
         base: the folder that relative paths (mesh, volume) start from.
         name: the default title of the run.
+        surfaces: make a body of labels' smooth surfaces even when the scene neither writes nor
+            animates them (:func:`~torchdeform.scene.load_scene`).
     """
     if "chainmail" in data:
         raise src.error("chainmail", 'model = "chainmail" (a top-level key) for a [chainmail] section')
@@ -751,9 +770,9 @@ def mass_spring_scene(src: Source, data: dict, base: Path, *, name: str = "scene
         name_: Table(src, name_, data[name_], keys + (options if name_ == "integrator" else ()))
         for name_, keys in SECTIONS.items()
         if name_ in data
-        and name_ not in ("loads", "drags", "regions", "tissues", "tools", "cuts", "cautery", "coagulate")
+        and name_ not in ("loads", "drags", "regions", "tissues", "tools", "cuts", "cautery", "coagulate", "surfaces")
     }
-    grid, model_args, embedded = _grid_and_body(src, data, section, base)
+    grid, model_args, embedded = _grid_and_body(src, data, section, base, surfaces=surfaces)
     if "boundary" in section:
         fixed = model_args.get("fixed")
         model_args.update(_boundary(section["boundary"], grid))
@@ -811,6 +830,7 @@ def mass_spring_scene(src: Source, data: dict, base: Path, *, name: str = "scene
     scene.image_size = out.integer("image_size", "an integer number of pixels in [64, 2048]", default=512, lo=64)
     if scene.image_size > 2048:
         raise out.fail("image_size", "an integer number of pixels in [64, 2048]", got=scene.image_size)
+    _camera_keys(scene, out, patient=section["grid"].has("labels"))
     if "volume" in data:
         vt = Table(src, "volume", data["volume"], SECTIONS["volume"])
         scene.volume = {
@@ -865,24 +885,46 @@ def mass_spring_scene(src: Source, data: dict, base: Path, *, name: str = "scene
     return scene
 
 
-# ------------------------------------------------------------------ the demo
-def demo_scene() -> Scene:
-    """The built-in demo (same as ``scenes/demo.toml``), built with the Python API.
+#: the surface camera of a body of labels (LPS patient frame, lying on the back): from the patient's
+#: right, in front and a little above the head end, anterior (-y) up in the image
+PATIENT_CAMERA, PATIENT_UP = (-1.2, -0.9, 0.5), (0.0, -1.0, 0.0)
+
+
+def _camera_keys(scene: Scene, out: Table, *, patient: bool) -> None:
+    """``[output] camera`` and ``camera_up``: the animation's surface view (patient scenes: from the right)."""
+    expected = "[x, y, z]: a direction from the body's centre, not zero"
+    camera = out.vec("camera", expected, default=PATIENT_CAMERA if patient else None)
+    up = out.vec("camera_up", "[x, y, z]: the direction upwards in the image, not zero", default=None)
+    if up is None and patient:
+        up = PATIENT_UP
+    for k, v in (("camera", camera), ("camera_up", up)):
+        if v is not None and not any(v):
+            raise out.fail(k, expected if k == "camera" else "a direction [x, y, z], not zero", got=list(v))
+    if camera is not None and up is not None:
+        c, u = np.asarray(camera, float), np.asarray(up, float)
+        if np.linalg.norm(np.cross(c, u)) < 1e-6 * np.linalg.norm(c) * np.linalg.norm(u):
+            raise out.fail("camera_up", "a direction not parallel to camera", got=list(up))
+    scene.camera, scene.camera_up = camera, up
+
+
+# ------------------------------------------------------------------ a small cube
+def cube_scene() -> Scene:
+    """A small dragged cube (same as ``scenes/cube.toml``), built with the Python API.
 
     A 1 cm cube of liver-like tissue (11 x 11 x 11 nodes, 1 mm apart, 26 neighbours,
     density 1000 kg/m^3, k = 3 N/m, i.e. E of roughly 8 kPa), its base fixed, sagging under
     gravity (along -D), its top centre node dragged 2 mm up and 1 mm sideways within 50 ms
     and then held; symplectic Euler at dt = 0.1 ms (below the bound of about 0.12 ms) for
-    0.15 s, with global drag so it settles. ``run_scene`` also writes ``demo.gif``, the animation of
+    0.15 s, with global drag so it settles. ``run_scene`` also writes ``animation.gif``, the animation of
     the run (the textured surface beside the deformed phantom, time and drag force written on it).
 
     Examples:
         >>> import torchdeform as td
-        >>> scene = td.demo_scene()
+        >>> scene = td.cube_scene()
         >>> scene.grid.shape, scene.integrator.name, scene.dt, scene.steps
         ((11, 11, 11), 'symplectic', 0.0001, 1500)
         >>> len(scene.model_args["drags"]), scene.volume["file"], scene.animation
-        (1, 'phantom:64', 'demo.gif')
+        (1, 'phantom:64', 'animation.gif')
     """
     grid = Grid((11, 11, 11), spacing=(0.001, 0.001, 0.001), topology=26)
     top_centre = Drag(grid.index_mask([(10, 5, 5)]), path=[(0.0, (0.0, 0.0, 0.0)), (0.05, (0.002, 0.001, 0.0))])
@@ -906,7 +948,7 @@ def demo_scene() -> Scene:
         dt=1e-4,
         steps=1500,
         record_every=15,
-        name="demo",
+        name="cube",
         volume=volume,
-        animation="demo.gif",
+        animation="animation.gif",
     )

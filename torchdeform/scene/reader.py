@@ -117,6 +117,7 @@ SECTIONS = {
     "cautery": ("tool", "at", "every", "start", "stop"),
     "tear": ("max_strain", "max_force", "one_per_step", "start"),
     "coagulate": ("at", "box", "sphere", "viscosity_factor"),
+    "surfaces": ("file", "scale", "name"),
     "output": (
         "record_every",
         "name",
@@ -126,6 +127,8 @@ SECTIONS = {
         "surface_faces",
         "animation",
         "image_size",
+        "camera",
+        "camera_up",
     ),
     "volume": ("file", "tf", "mode", "view"),
     "texture": ("exemplar", "block", "seed", "voxel", "seams"),

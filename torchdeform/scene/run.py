@@ -45,7 +45,7 @@ __all__ = [
 ]
 
 
-def load_scene(path) -> Scene | ChainMailScene:
+def load_scene(path, *, surfaces: bool = False) -> Scene | ChainMailScene:
     """Read a TOML scene file (see :mod:`torchdeform.scene` for its keys).
 
     The result is a :class:`Scene` (mass-spring, the default) or a :class:`ChainMailScene`
@@ -53,6 +53,8 @@ def load_scene(path) -> Scene | ChainMailScene:
 
     Args:
         path: the scene file (.toml); relative paths in it (mesh, volume) start from its folder.
+        surfaces: make a body of labels' smooth surfaces (``scene.embedded``) even when the scene
+            neither writes nor animates them (the viewer shows them).
 
     Raises:
         ConfigError: naming the file, the line (best effort), the dotted key and what was
@@ -91,7 +93,7 @@ def load_scene(path) -> Scene | ChainMailScene:
     base, name = Path(path).parent, Path(path).stem
     if data.get("model") == "chainmail":
         return chainmail_scene(src, data, base, name=name)
-    return mass_spring_scene(src, data, base, name=name)
+    return mass_spring_scene(src, data, base, name=name, surfaces=surfaces)
 
 
 def energy_series(model: Model, x: torch.Tensor, v: torch.Tensor, *, chunk: int = 1) -> dict:
@@ -265,7 +267,10 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
         if scene.topology.checked_end is None:  # dt = "auto": the run's length is known now
             scene.topology.check(scene.steps * dt)
         model = scene.topology.prepare(model)
-        events = scene.topology.events(model, dt, scene.steps * dt, out_dir=out)
+        embedded = embedded_surfaces(scene, model.grid, dtype=model.dtype) if scene.embedded else None  # cut with it
+        events = scene.topology.events(
+            model, dt, scene.steps * dt, out_dir=out, embedded=embedded, every=scene.frames_every
+        )
 
     engine = scene_engine(scene, events is not None)
     start = time.perf_counter()
@@ -317,7 +322,8 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
     if events is not None:
         summary["topology"] = events.outputs(final, out, title=f"{scene.name}: {integrator.name}, dt = {dt:.3g} s")
     texture = _final_state_outputs(scene, model, final, out, summary, None if events is None else events.pieces())
-    surfaces = embedded_outputs(scene, model.grid, t, x, out, summary) if scene.embedded else None
+    versions = events.embedded_versions if events is not None else None
+    surfaces = embedded_outputs(scene, model.grid, t, x, out, summary, versions=versions) if scene.embedded else None
     if scene.animation:
         labels = events.pieces() if events is not None else None
         tools = None if recorder is None else recorder.series()
@@ -338,35 +344,69 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
     return summary
 
 
-def embedded_outputs(scene: Scene, grid, t, x, out: Path, summary: dict) -> list:
+def embedded_surfaces(scene: Scene, grid, *, dtype=torch.float32, device=None) -> dict:
+    """The scene's embedded surfaces on the run's lattice, ``{name: EmbeddedSurface}`` (``dtype``, ``device``)."""
+    from ..mesh.embed import EmbeddedSurface
+
+    assert scene.embedded is not None
+    return {name: EmbeddedSurface(v, f, grid, dtype=dtype, device=device) for name, (v, f) in scene.embedded.items()}
+
+
+def embedded_outputs(scene: Scene, grid, t, x, out: Path, summary: dict, *, versions: list | None = None):
     """The scene's embedded surfaces on the run's lattice; with ``write_surfaces``, one file per recorded frame.
 
     Writes ``surfaces/frame_NNNN.glb`` (or ``.ply``): every surface at frame ``NNNN`` of
     ``trajectory.npz`` (:func:`~torchdeform.mesh.embed.save_surfaces`), and adds ``"embedded_surfaces"``
-    to the summary (names, vertices, triangles, frames, format, seconds).
+    to the summary (names, vertices, triangles, frames, format, seconds; after cuts also ``cut_at_s``,
+    the times the cuts changed them, and ``after_cuts``, their final vertices and triangles).
+
+    Args:
+        scene: the :class:`Scene` (its ``embedded`` surfaces, ``write_surfaces``, ``surface_format``).
+        grid: the run's grid.
+        t: frame times ``(T,)`` (s).
+        x: node positions of the frames ``(T, 3, D, H, W)`` (m).
+        out: the output folder.
+        summary: the run's summary (gets ``"embedded_surfaces"``).
+        versions: the surfaces of a run whose cuts cut them,
+            :attr:`~torchdeform.scene.topology.TopologyEvents.embedded_versions` (``[(t, {name:
+            surface})]``, the first at the start); each frame shows the last version cut at or
+            before its time. None or empty: the scene's surfaces, uncut.
 
     Returns:
-        the :class:`~torchdeform.mesh.embed.EmbeddedSurface` s (for the animation).
+        the :class:`~torchdeform.mesh.embed.EmbeddedSurface` s (for the animation): a list, or after
+        cuts a function of the frame index giving that frame's list.
     """
-    from ..mesh.embed import EmbeddedSurface, save_surfaces
+    from ..mesh.embed import save_surfaces
 
-    assert scene.embedded is not None
     start = time.perf_counter()
-    surfaces = {name: EmbeddedSurface(v, f, grid) for name, (v, f) in scene.embedded.items()}
+    if not versions:
+        versions = [(None, embedded_surfaces(scene, grid, dtype=x.dtype))]
+    first, last = versions[0][1], versions[-1][1]
     info: dict = {
-        "surfaces": {n: {"vertices": s.num_vertices, "triangles": s.num_faces} for n, s in surfaces.items()},
+        "surfaces": {n: {"vertices": s.num_vertices, "triangles": s.num_faces} for n, s in first.items()},
         "frames": 0,
         "format": scene.surface_format,
     }
+    if len(versions) > 1:
+        info["cut_at_s"] = [tv for tv, _ in versions[1:]]
+        info["after_cuts"] = {n: {"vertices": s.num_vertices, "triangles": s.num_faces} for n, s in last.items()}
+    times = np.array([-np.inf] + [tv for tv, _ in versions[1:]])
+
+    def at(i: int) -> dict:  # the surfaces of frame i: cut by everything applied by its time
+        tol = 1e-9 * max(1.0, abs(float(t[i])))
+        return versions[int(np.searchsorted(times, float(t[i]) + tol, side="right")) - 1][1]
+
     if scene.write_surfaces:
         folder = out / "surfaces"
         folder.mkdir(exist_ok=True)
         for i in range(len(t)):
-            save_surfaces(folder / f"frame_{i:04d}.{scene.surface_format}", surfaces, x[i])
+            save_surfaces(folder / f"frame_{i:04d}.{scene.surface_format}", at(i), x[i])
         info["frames"] = len(t)
     info["wall_time_s"] = time.perf_counter() - start
     summary["embedded_surfaces"] = info
-    return list(surfaces.values())
+    if len(versions) == 1:
+        return list(first.values())
+    return lambda i: list(at(i).values())
 
 
 def _final_state_outputs(scene: Scene, model: Model, final: State, out: Path, summary: dict, pieces=None):
@@ -827,6 +867,8 @@ def scene_animation(
         forces=forces,
         progress=progress,
         size=scene.image_size,
+        camera=scene.camera,
+        camera_up=scene.camera_up,
         tools=scene.tools.tools if scene.tools is not None else None,
         **volume,
     )

@@ -10,6 +10,14 @@ Timing: events happen between steps, at the first state whose time ``t`` reaches
 moment they run in the order cuts (blades, then scalpels), cautery, coagulation, tearing, and then
 the surfaces of that moment are written, so they show what just happened.
 
+Embedded surfaces (a body of labels, ``[[surfaces]]``) are cut with the lattice: every blade cuts
+them with its own patches at the node positions of the moment it cuts the springs
+(:meth:`~torchdeform.mesh.embed.EmbeddedSurface.cut_patches`); a scalpel cuts the springs at every
+step and its sweep reaches the surfaces at every recorded frame and when it stops (the patches of
+the steps since, at the positions of that moment: the frames show the same opening, without the
+slivers of triangles a cut per step would leave). :attr:`TopologyEvents.embedded_versions` keeps
+the surfaces after each change for the frames.
+
 Keys
 ----
 ``[[cuts]]`` (repeatable), one blade per table, one of
@@ -222,9 +230,15 @@ class TopologySet:
         model.cut_nodes = model.cut_nodes.clone() if model.cut_nodes is not None else None
         return model
 
-    def events(self, model, dt: float, end: float, *, out_dir=None) -> TopologyEvents:
-        """Fresh :class:`TopologyEvents` for one run of ``model`` (from :meth:`prepare`)."""
-        return TopologyEvents(self, model, dt, end, out_dir=out_dir)
+    def events(
+        self, model, dt: float, end: float, *, out_dir=None, embedded: dict | None = None, every: int = 1
+    ) -> TopologyEvents:
+        """Fresh :class:`TopologyEvents` for one run of ``model`` (from :meth:`prepare`).
+
+        ``embedded``: the run's embedded surfaces ``{name: EmbeddedSurface}`` (cut with the lattice),
+        ``every``: the steps between recorded frames (when a scalpel's sweep reaches them).
+        """
+        return TopologyEvents(self, model, dt, end, out_dir=out_dir, embedded=embedded, every=every)
 
 
 def _meets(a, b) -> bool:
@@ -443,15 +457,27 @@ class TopologyEvents:
         dt: the time step (s).
         end: the run's length (s).
         out_dir: where surface files go (None: not written).
+        embedded: the run's embedded surfaces ``{name: EmbeddedSurface}``, or None: every cut cuts
+            them too (:meth:`~torchdeform.mesh.embed.EmbeddedSurface.cut_patches`), with the same
+            blade and at the same node positions as the lattice. A blade cuts them when it cuts the
+            springs; a scalpel's sweep reaches them at every recorded frame (``every`` steps) and when
+            it stops: the blade it swept since, patch by patch, at the positions of that moment.
+        every: the steps between recorded frames.
 
     Attributes:
         totals: ``{"cut", "tear", "nodes", "mass_kg", "momentum", "coagulated"}`` so far.
         history: ``[(t, springs removed by cuts, by tearing, nodes burnt)]`` (cumulative), one row per
             moment something changed.
+        embedded_versions: ``[(t, {name: EmbeddedSurface})]``: the embedded surfaces from the start
+            (``t`` None) and after every cut that changed them (``t`` the time it was applied, s).
     """
 
-    def __init__(self, spec: TopologySet, model, dt: float, end: float, *, out_dir=None):
+    def __init__(self, spec: TopologySet, model, dt: float, end: float, *, out_dir=None, embedded=None, every: int = 1):
         self.spec, self.model, self.dt, self.end = spec, model, float(dt), float(end)
+        self.embedded_versions: list = [(None, dict(embedded))] if embedded else []
+        self.every = max(int(every), 1)
+        self._swept_to: list = [None] * len(spec.cuts)  # a scalpel's time swept into the surfaces' pending blade
+        self._pending: list = [[] for _ in spec.cuts]  # its patches swept since they were last cut
         self.out = None if out_dir is None else Path(out_dir)
         self.scalpels = [
             Scalpel(spec.tools[c["tool"]], c["edge"], pieces=c["pieces"], gape=c["gape"]) if "tool" in c else None
@@ -494,7 +520,7 @@ class TopologyEvents:
         t = float(state.t)
         before = (self.totals["cut"], self.totals["tear"], self.totals["nodes"])
         with torch.no_grad():
-            self._cuts(t, state)
+            self._cuts(step, t, state)
             self._cautery(step, t, state)
             self._coagulate(t, state)
             self._tear(t, state)
@@ -506,13 +532,14 @@ class TopologyEvents:
                 self.done["surfaces"][i] = True
                 self._surfaces(state, ts, t)
 
-    def _cuts(self, t: float, state: State) -> None:
+    def _cuts(self, step: int, t: float, state: State) -> None:
         """Blades due at ``t`` cut at once; scalpels sweep from ``start`` to ``stop``."""
         model = self.model
         for i, c in enumerate(self.spec.cuts):
             if "blade" in c:
                 if not self.done["cuts"][i] and self._due(t, c["at"]):
                     n = cut(model, state.x, c["blade"], gape=c["gape"])
+                    self._cut_embedded(c["blade"].patches, state, t)
                     self.blade = c["blade"]
                     self.done["cuts"][i] = True
                     self.totals["cut"] += n
@@ -530,8 +557,25 @@ class TopologyEvents:
             self.blade = knife.swept(c["start"], min(t, stop)) or self.blade
             self.totals["cut"] += n
             self._note(c["key"], t, springs=n)
+            if self.embedded_versions:  # the sheet of this step: the blade knife.update just cut with
+                since = c["start"] if self._swept_to[i] is None else self._swept_to[i]
+                piece = knife.swept(since, min(t, stop)) if min(t, stop) > since else None
+                self._pending[i] += piece.patches if piece is not None else []
+                self._swept_to[i] = min(t, stop)
+                if self._pending[i] and (step % self.every == 0 or self._due(t, stop) or self._due(t, self.end)):
+                    self._cut_embedded(self._pending[i], state, t)
+                    self._pending[i] = []
             if self._due(t, stop):
                 self.done["cuts"][i] = True
+
+    def _cut_embedded(self, patches, state: State, t: float) -> None:
+        """Cut the embedded surfaces with a blade's ``patches`` at the positions of ``state``."""
+        if not self.embedded_versions:
+            return
+        current = self.embedded_versions[-1][1]
+        cut_now = {name: s.cut_patches(patches, x=state.x[:1]) for name, s in current.items()}
+        if any(cut_now[name] is not s for name, s in current.items()):
+            self.embedded_versions.append((t, cut_now))
 
     def _cautery(self, step: int, t: float, state: State) -> None:
         """Burns due at ``t``: once (``at``) or every ``every`` steps from ``start`` to ``stop``."""

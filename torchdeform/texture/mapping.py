@@ -37,10 +37,11 @@ def vertex_colours(texture, surface) -> torch.Tensor:
     return texture.at_material(torch.as_tensor(surface.rest, dtype=torch.float64)).float()
 
 
-def framing_camera(vertices, *, direction=(1.2, -1.0, 1.4), fov_deg: float = 40.0, size=(384, 512)):
+def framing_camera(vertices, *, direction=(1.2, -1.0, 1.4), fov_deg: float = 40.0, size=(384, 512), up=(1.0, 0.0, 0.0)):
     """A perspective camera looking at the centre of ``vertices`` ``(N, 3)`` from ``direction`` times their size.
 
-    ``direction`` is in units of the largest side of the vertices' bounding box (m), from its centre.
+    ``direction`` is in units of the largest side of the vertices' bounding box (m), from its centre;
+    ``up`` appears upwards in the image (default axis D).
     """
     from ..mesh.raster import Camera
 
@@ -48,7 +49,7 @@ def framing_camera(vertices, *, direction=(1.2, -1.0, 1.4), fov_deg: float = 40.
     lo, hi = v.min(0).values, v.max(0).values
     centre, extent = (hi + lo) / 2, float((hi - lo).max())
     eye = centre + torch.tensor(direction, dtype=torch.float64) * extent
-    return Camera(eye=tuple(eye.tolist()), target=tuple(centre.tolist()), fov_deg=fov_deg, size=size)
+    return Camera(eye=tuple(eye.tolist()), target=tuple(centre.tolist()), fov_deg=fov_deg, size=size, up=up)
 
 
 def render_textured(

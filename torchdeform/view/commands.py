@@ -74,7 +74,7 @@ def command(args) -> int:
     from .session import ViewerSession
 
     with one_line_warnings():
-        scene = load_scene(args.scene)
+        scene = load_scene(args.scene, surfaces=True)  # a body of labels: its smooth surfaces
         session = ViewerSession(scene, device=args.device)
     return serve(
         session,

@@ -3,10 +3,17 @@
 The simulation (a :class:`~torchdeform.view.session.ViewerSession`) runs in a worker thread at its
 own rate; an asyncio loop serves the page and, to every connected page, sends
 
-* a ``"mesh"`` JSON text message (faces, bounds, tissue terms) on connect and whenever the
-  session's ``mesh_version`` changes (a cut);
-* a binary message per frame (up to ``frame_rate`` Hz): the surface vertex positions, float32
-  little endian, ``V * 3`` values in metres, axis order (D, H, W). Only the latest frame is ever
+* a ``"mesh"`` JSON text message on connect and whenever the session's ``mesh_version`` changes
+  (a cut): what is drawn and does not move (:meth:`~torchdeform.view.session.ViewerSession.mesh`):
+  ``surface`` (``"embedded"``: the scene's smooth embedded surfaces, or ``"lattice"``), the
+  vertex count ``V``, the triangles, per-vertex colours of the solid texture at the rest positions
+  (0-255), the rest bounds, the tissue terms, and ``tools``: each scene tool's triangles in its own
+  frame;
+* a binary message per frame (up to ``frame_rate`` Hz), float32 little endian
+  (:meth:`~torchdeform.view.session.ViewerSession.positions`): the ``V * 3`` vertex positions in
+  metres, axis order (D, H, W), then 12 values per tool, its pose at the simulated time (position
+  ``c``, m, and rotation ``R`` row-major: a tool vertex ``p`` is drawn at ``c + R p``); in all
+  :func:`~torchdeform.view.session.frame_size` bytes. Only the latest frame is ever
   sent: a slow page skips frames, it never receives stale ones from a queue. A page that sends
   ``{"cmd": "next"}`` is sent frames only when it asks (at most two ahead): the bundled page asks
   once per frame it draws, so no frame is encoded, sent and dropped for nothing;
@@ -58,7 +65,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
-from .session import _number, _point
+from .session import _number, _point, frame_size
 
 __all__ = ["Viewer", "serve", "validate", "check_token", "allowed_origins", "STATIC_FILES", "MAX_MESSAGE"]
 
@@ -291,6 +298,7 @@ class Viewer:
         self._mesh_json: str | None = None
         self._mesh_version: int | None = None
         self._vertices: int | None = None
+        self._frame_size = 0  # bytes of a frame of the mesh last sent
         self._frame: tuple[int, bytes] | None = None  # (sequence number, positions) of the last snapshot
         self._changed = False  # a command may have moved the body
 
@@ -417,6 +425,7 @@ class Viewer:
         mesh = await asyncio.to_thread(self.session.mesh)
         self._mesh_version = mesh.get("version", self.session.mesh_version)
         self._vertices = int(mesh["vertices"])
+        self._frame_size = frame_size(mesh)
         self._mesh_json = json.dumps(mesh, separators=(",", ":"))
         for page in self.pages:
             page.post(mesh=self._mesh_json)
@@ -441,8 +450,8 @@ class Viewer:
                     for page in self.pages:
                         page.post(stats=last_stats)
                 seq, frame = self._frame or (None, b"")
-                # a frame of another vertex count belongs to a mesh not yet sent: wait for the next
-                if seq is not None and len(frame) == 12 * (self._vertices or 0):
+                # a frame of another size belongs to a mesh not yet sent: wait for the next
+                if seq is not None and len(frame) == self._frame_size:
                     fresh = seq != last
                     last = seq
                     for page in list(self.pages):

@@ -22,23 +22,52 @@ Model and time step
     value is undone and the time step halved (the body never blows up on screen).
 
 Surface
-    The page draws the closed surface of every piece (:func:`~torchdeform.topology.cut_surfaces`:
-    connected components, each split by the plane of every blade that cut something, so a cut's
-    faces show). Its vertices are a fixed linear function of the node positions: marching
-    tetrahedra puts each vertex at fractional node indices ``q``; the vertex is the trilinear
-    interpolation ``T`` at ``q`` of the piece's own positions ``x_L = X + E (x - X)``, where ``E``
-    extends the piece's displacement one layer beyond it (the linear extrapolation of
-    :func:`~torchdeform.topology.extend_displacement`; every cell a vertex reads lies within
-    that layer). So ``vertices = rest + (T E) (x - X)`` (:func:`~torchdeform.topology.surfaces.surface_map`),
-    one sparse ``(V, N)`` product per frame, exactly the vertices
-    :func:`~torchdeform.topology.cut_surfaces` computes (to float32 rounding).
+    A scene with embedded surfaces (``scene.embedded``: the smooth label surfaces of a
+    ``[grid] labels`` body, :mod:`torchdeform.scene.anatomy`) is drawn as those surfaces: each an
+    :class:`~torchdeform.mesh.embed.EmbeddedSurface`, whose vertices are the trilinear interpolation
+    of the node positions at their rest cell (:meth:`~torchdeform.mesh.embed.EmbeddedSurface.positions`,
+    one sparse ``(V, N)`` product per frame). A cut splits them along the blade's plane (at rest,
+    :meth:`~torchdeform.mesh.embed.EmbeddedSurface.cut`), each side then following its own nodes;
+    where that is not possible (a plane along the skin) the lattice surface below is drawn instead,
+    until a reset.
+
+    Otherwise the page draws the closed surface of every piece of the lattice
+    (:func:`~torchdeform.topology.cut_surfaces`: connected components, each split by the plane of
+    every blade that cut something, so a cut's faces show). Its vertices are a fixed linear function
+    of the node positions: marching tetrahedra puts each vertex at fractional node indices ``q``; the
+    vertex is the trilinear interpolation ``T`` at ``q`` of the piece's own positions
+    ``x_L = X + E (x - X)``, where ``E`` extends the piece's displacement one layer beyond it (the
+    linear extrapolation of :func:`~torchdeform.topology.extend_displacement`; every cell a vertex
+    reads lies within that layer). So ``vertices = rest + (T E) (x - X)``
+    (:func:`~torchdeform.topology.surfaces.surface_map`), one sparse ``(V, N)`` product per frame,
+    exactly the vertices :func:`~torchdeform.topology.cut_surfaces` computes (to float32 rounding).
+
+    Either surface shares its vertices between its triangles: the page shades it smoothly with
+    per-vertex normals it computes from the positions (area-weighted, as
+    :meth:`~torchdeform.mesh.embed.EmbeddedSurface.normals` does).
+
+Texture
+    Every vertex is coloured once (after a topology change) by the solid texture at its rest position,
+    its material coordinates (:func:`~torchdeform.texture.mapping.vertex_colours`, the node colouring
+    of the animation and ``textured.png``): the scene's ``[texture]``
+    (:func:`~torchdeform.scene.run.scene_texture`, seams blended as the section says), else the
+    procedural liver of the animation (``liver:64``) with its seams not blended (blending a large
+    body's texture takes tens of seconds).
+
+Tools
+    The scene's ``[[tools]]`` are drawn where they are: each tool's triangles in its own frame
+    (:func:`~torchdeform.interact.meshes.tool_surface` of its shape, sent once) and, every frame,
+    its pose at the simulated time ``t``: position ``c`` and rotation ``R``
+    (:meth:`~torchdeform.interact.tools.Tool.frame`), a vertex ``p`` of its own frame drawn at
+    ``c + R p``. A half-space has no finite surface and is not drawn.
 
 Messages (JSON objects; any other key, type or value raises ``ValueError`` with one line, and
 nothing changes)
     ``{"cmd": "play"}``, ``{"cmd": "pause"}``, ``{"cmd": "reset"}`` (rest state, the scene's
     model, no tool, no drag, the initial terms); ``{"cmd": "drag", "vertex": i, "target": [d, h,
-    w]}``: the free node of vertex ``i``'s piece nearest to the vertex (rest positions) is held at
-    the target (m) from the next step on, ``{"cmd": "release"}`` lets it go; ``{"cmd": "tool",
+    w]}``: the free node of vertex ``i``'s piece (for an embedded surface: the piece of the node
+    that weighs most in the vertex) nearest to the vertex (rest positions) is held at the target
+    (m) from the next step on, ``{"cmd": "release"}`` lets it go; ``{"cmd": "tool",
     "position": [d, h, w] | null}``: the sphere tool (radius :attr:`~ViewerSession.tool_radius`,
     penalty contact) placed or removed; ``{"cmd": "cut", "origin": [..], "u": [..], "v": [..]}``:
     a parallelogram blade (:class:`~torchdeform.topology.Blade`) cuts the springs it crosses at
@@ -48,20 +77,28 @@ nothing changes)
     ``E(c) / E_0`` (``E_0``: the scene's modulus, ``lattice_modulus * median k``; for a uniform
     body ``k = E(c) / lattice_modulus``). Points must lie within twice the body's size of it.
 
+Outputs
+    :meth:`~ViewerSession.mesh` (a dict for JSON: faces, colours, the tools' triangles) and
+    :meth:`~ViewerSession.positions` (bytes: vertex positions, then the tools' poses); their layouts
+    are in their docstrings and :func:`frame_size` gives the size of the second.
+
 Shapes: node positions ``(1, 3, D, H, W)`` (m); vertex positions ``(V, 3)`` in the axis order
 ``(D, H, W)``.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import threading
 import time
+from types import SimpleNamespace
 
 import numpy as np
 import torch
 
-from ..interact import PenaltyContact, Sphere, Tool
+from ..errors import ConfigError
+from ..interact import Capsule, PenaltyContact, Sphere, Tool
 from ..interact.reactions import report_momentum
 from ..scene.mass_spring import Scene, lattice_modulus, tissue_moduli
 from ..scene.topology import TopologySet
@@ -71,10 +108,13 @@ from ..topology import Blade, components, cut, sides
 from ..topology.masks import alive, full
 from ..topology.surfaces import FrameSurface
 
-__all__ = ["ViewerSession", "TERM_RANGE"]
+__all__ = ["ViewerSession", "TERM_RANGE", "DEFAULT_TEXTURE", "frame_size"]
 
 #: the range of the ``consistency`` term (the input of the fuzzy tissue system)
 TERM_RANGE = (0.0, 10.0)
+#: the texture of a scene without ``[texture]`` (a ``[texture]`` spec): the animation's procedural
+#: liver, its seams not blended (a large body's blend takes tens of seconds)
+DEFAULT_TEXTURE = {"exemplar": "liver:64", "block": None, "seed": 0, "voxel": None, "seams": "none"}
 #: the integrators the session keeps from a scene (others run with symplectic Euler)
 _KEPT = ("symplectic", "verlet", "rk4")
 _TOOL, _DRAG = "viewer_tool", "viewer_drag"
@@ -88,6 +128,26 @@ _KEYS = {
     "cut": ("origin", "u", "v"),
     "term": ("name", "value"),
 }
+
+
+def frame_size(mesh: dict) -> int:
+    """The bytes of a frame (:meth:`ViewerSession.positions`) of the surface a :meth:`ViewerSession.mesh` describes.
+
+    ``4 * (3 V + 12 T)``: float32 positions of its ``V`` vertices, then a pose (12 values) per drawn tool.
+
+    Example:
+        >>> frame_size({"vertices": 10, "tools": [{}, {}]}), frame_size({"vertices": 10})
+        (216, 120)
+    """
+    return 4 * (3 * int(mesh["vertices"]) + 12 * len(mesh.get("tools", ())))
+
+
+@functools.lru_cache(maxsize=4)
+def _exemplar(spec: str, seed: int) -> torch.Tensor:
+    """A procedural exemplar ``(3, E, E, E)``, made once per process (a second or more each)."""
+    from ..texture.exemplar import exemplar_from
+
+    return exemplar_from(spec, seed=seed)
 
 
 # ------------------------------------------------------------------ a node held at a target
@@ -147,9 +207,11 @@ class ViewerSession:
 
     Args:
         scene: a mass-spring :class:`~torchdeform.scene.Scene` (:func:`~torchdeform.scene.load_scene`,
-            :func:`~torchdeform.demo_scene`).
+            :func:`~torchdeform.cube_scene`).
         device: where to simulate (default: the scene's, else the CPU).
         max_nodes: refuse (``ValueError``) a grid with more nodes than this (None: any size).
+        texture: the :class:`~torchdeform.texture.SolidTexture` the surfaces are coloured with
+            (default: the scene's ``[texture]``, else :data:`DEFAULT_TEXTURE`; module docstring).
 
     Attributes:
         model: the live :class:`~torchdeform.sim.model.Model` (editable: cuts and terms change it in place).
@@ -159,14 +221,18 @@ class ViewerSession:
         dt: the time step (s).
         tool_radius: the sphere tool's radius (m): three node spacings (the largest).
         labels: int ``(D, H, W)``: the piece of every node whose surface is drawn (negative: none).
+        texture: the solid texture the vertices are coloured with.
+        surface: ``"embedded"`` (the scene's embedded surfaces are drawn) or ``"lattice"``.
 
     Examples:
         >>> import torchdeform as td
         >>> from torchdeform.view.session import ViewerSession
-        >>> s = ViewerSession(td.demo_scene())                       # an 11^3 cube, base fixed
+        >>> s = ViewerSession(td.cube_scene())                       # an 11^3 cube, base fixed
         >>> m = s.mesh()
-        >>> m["type"], len(m["faces"]) % 3, len(s.positions()) == 4 * 3 * m["vertices"]
-        ('mesh', 0, True)
+        >>> m["type"], m["surface"], len(m["faces"]) % 3, len(m["colors"]) == 3 * m["vertices"], m["tools"]
+        ('mesh', 'lattice', 0, True, [])
+        >>> len(s.positions()) == 4 * 3 * m["vertices"] == frame_size(m)
+        True
         >>> s.command({"cmd": "tool", "position": [0.011, 0.005, 0.005]})     # pressed into the top
         >>> s.command({"cmd": "cut", "origin": [0.0055, -0.001, -0.001], "u": [0, 0.012, 0], "v": [0, 0, 0.006]})
         >>> s.mesh_version, s.advance(0.0) >= 1, s.stats()["force"] > 0
@@ -178,7 +244,7 @@ class ViewerSession:
         value: expected a number in [0, 10], got 11
     """
 
-    def __init__(self, scene, *, device=None, max_nodes=None):
+    def __init__(self, scene, *, device=None, max_nodes=None, texture=None):
         if not isinstance(scene, Scene):
             _fail(f"scene: expected a mass-spring Scene, got {type(scene).__name__}")
         grid = scene.grid
@@ -202,6 +268,9 @@ class ViewerSession:
             self._lattice = lattice_modulus(grid)
             self._E0 = float(k.double().median()) * self._lattice if k.numel() else 0.0
         self._c0 = self._scene_consistency() if self._E0 > 0 else None
+        self.texture = texture if texture is not None else self._scene_texture()
+        self._embedded = self._embedded_surfaces()
+        self._tools = self._tool_meshes()
         self._timing = None  # (dt, tool stiffness) of the scene's model
         self._reset()
         self._retime()
@@ -235,6 +304,45 @@ class ViewerSession:
             return float(grid[min(i, len(E) - 1)])
         a, b = E[i - 1], E[i]
         return float(grid[i - 1] + (grid[i] - grid[i - 1]) * (self._E0 - a) / (b - a))
+
+    def _scene_texture(self):
+        """The scene's ``[texture]`` (:func:`~torchdeform.scene.run.scene_texture`), else :data:`DEFAULT_TEXTURE`."""
+        from ..scene.run import scene_texture
+
+        spec = self.scene.texture
+        if spec is None:
+            spec = {**DEFAULT_TEXTURE, "exemplar": _exemplar(DEFAULT_TEXTURE["exemplar"], DEFAULT_TEXTURE["seed"])}
+        return scene_texture(spec, self.grid)[0]
+
+    def _embedded_surfaces(self) -> list | None:
+        """``[(name, EmbeddedSurface)]`` of ``scene.embedded`` on the model's dtype and device, or None."""
+        if not self.scene.embedded:
+            return None
+        from ..scene.run import embedded_surfaces
+
+        base = self._base
+        return list(embedded_surfaces(self.scene, self.grid, dtype=base.dtype, device=base.device).items())
+
+    def _tool_meshes(self) -> list:
+        """``[(tool, message part)]``: each drawable scene tool and its triangles in its own frame (metres)."""
+        from ..interact.meshes import tool_surface
+        from ..scene.animation import TOOL_COLOUR
+
+        out = []
+        for tool in self.scene.tools.tools if self.scene.tools is not None else ():
+            mesh = tool_surface(Tool(tool.shape, position=(0.0, 0.0, 0.0)), 0.0)
+            if mesh is None:  # a half-space: no finite surface
+                continue
+            v, f = mesh
+            part = {
+                "name": tool.name,
+                "vertices": np.round(v, 7).reshape(-1).tolist(),
+                "faces": f.reshape(-1).tolist(),
+                "smooth": isinstance(tool.shape, (Sphere, Capsule)),
+                "color": list(TOOL_COLOUR),
+            }
+            out.append((tool, part))
+        return out
 
     def _reset(self) -> None:
         """The scene's model (a fresh editable copy, fresh scene tools), at rest; no tool, no drag."""
@@ -289,16 +397,44 @@ class ViewerSession:
             labels = torch.where(split >= 0, torch.searchsorted(ids, split), split)
         return labels
 
-    def _build_surface(self) -> None:
+    def _build_surface(self, blade: Blade | None = None) -> None:
+        """The surface drawn for the current pieces and its vertex colours; ``blade``: the cut that changed them."""
+        from ..texture.mapping import vertex_colours
+
         self.labels = self._pieces().cpu()
-        self._surface = FrameSurface(
-            self.grid, labels=self.labels.numpy(), dtype=self.model.dtype, device=self.model.device
-        )
-        surf = self._surface.source
-        self._rest_np = surf["rest"]
-        self._faces = surf["faces"]
-        self._vlabel = surf["label"]
+        parts = self._embedded if blade is None else self._cut_parts(blade)
+        self._parts = parts
+        if parts is not None:
+            self.surface, self._surface = "embedded", None
+            sizes = [s.num_vertices for _, s in parts]
+            starts = np.cumsum([0] + sizes[:-1])
+            rest = torch.cat([s.rest_vertices for _, s in parts]).double().cpu().numpy()
+            faces = np.concatenate([s.faces.cpu().numpy() + k for (_, s), k in zip(parts, starts)])
+            # the piece of a vertex: that of the node weighing most in it (its rest cell is of one piece)
+            heaviest = torch.cat([s.corners.gather(1, s.weights.argmax(1, keepdim=True)) for _, s in parts])
+            vlabel = self.labels.reshape(-1)[heaviest.view(-1).cpu()].numpy()
+            self._part_info = [{"name": name, "vertices": n} for (name, _), n in zip(parts, sizes)]
+        else:
+            self.surface = "lattice"
+            self._surface = FrameSurface(
+                self.grid, labels=self.labels.numpy(), dtype=self.model.dtype, device=self.model.device
+            )
+            surf = self._surface.source
+            rest, faces, vlabel = surf["rest"], surf["faces"], surf["label"]
+            self._part_info = [{"name": "lattice", "vertices": len(rest)}]
+        self._rest_np, self._faces, self._vlabel = rest, faces, vlabel
+        colours = vertex_colours(self.texture, SimpleNamespace(rest=rest)).clamp(0, 1)
+        self._colours = (colours * 255 + 0.5).to(torch.uint8).numpy()
         self.mesh_version = getattr(self, "mesh_version", -1) + 1
+
+    def _cut_parts(self, blade: Blade) -> list | None:
+        """The drawn embedded surfaces split where the blade cut the lattice, or None (draw the lattice's)."""
+        if self._parts is None:
+            return None
+        try:
+            return [(name, s.cut_patches(blade, x=self.state.x)) for name, s in self._parts]
+        except ConfigError:  # a plane along the skin: no cell of a side's own nodes near some vertex
+            return None
 
     def _set_interactions(self) -> None:
         extra = [c for c in (self._contact, self._hold) if c is not None]
@@ -358,7 +494,7 @@ class ViewerSession:
         d = ((X - r) ** 2).sum(0)
         d = torch.where(free, d, torch.full_like(d, math.inf))
         node = int(d.argmin())
-        mask = torch.zeros(self.grid.num_nodes, dtype=torch.bool)
+        mask = torch.zeros(math.prod(self.grid.shape), dtype=torch.bool)  # every grid point, body or not
         mask[node] = True
         dev, dtype = self.model.device, self.model.dtype
         self._hold = _Hold(
@@ -391,7 +527,7 @@ class ViewerSession:
         if n:
             self._blades.append(blade)
             self._springs -= n
-            self._build_surface()
+            self._build_surface(blade)
 
     def _cmd_term(self, msg):
         name = msg["name"]
@@ -448,11 +584,18 @@ class ViewerSession:
 
     # ---------------------------------------------------------- outputs
     def mesh(self) -> dict:
-        """The surface to draw (after a topology change): counts, faces, rest bounds, terms, tool radius.
+        """The surface to draw (after a topology change): faces, colours, rest bounds, terms, the tools' triangles.
 
         Returns:
-            ``{"type": "mesh", "version", "vertices" (V), "faces" (flat, 3 per triangle), "bounds"
-            ([[min d, h, w], [max d, h, w]] of the rest surface, m), "terms", "tool_radius" (m)}``.
+            ``{"type": "mesh", "version", "surface" ("embedded" or "lattice"), "vertices" (V),
+            "faces" (flat, 3 per triangle, counter-clockwise seen from outside), "colors" (flat, 3
+            per vertex: the texture's sRGB at the vertex's rest position, integers 0-255), "parts"
+            (``[{"name", "vertices"}]``: the surfaces, their vertices consecutive in this order),
+            "bounds" ([[min d, h, w], [max d, h, w]] of the rest surface, m), "terms",
+            "tool_radius" (m, the page's sphere tool), "tools"}``. ``tools`` lists the scene's drawn
+            tools, in the order of their poses in a frame: ``{"name", "vertices" (flat, 3 per vertex,
+            m, the tool's own frame), "faces" (flat, 3 per triangle, outward), "smooth" (shade with
+            vertex normals, else flat), "color" ([r, g, b] in [0, 1], sRGB)}``.
         """
         with self._lock:
             rest = self._rest_np
@@ -460,22 +603,54 @@ class ViewerSession:
             return {
                 "type": "mesh",
                 "version": self.mesh_version,
+                "surface": self.surface,
                 "vertices": len(rest),
                 "faces": self._faces.reshape(-1).tolist(),
+                "colors": self._colours.reshape(-1).tolist(),
+                "parts": [dict(p) for p in self._part_info],
                 "bounds": bounds,
                 "terms": self._terms(),
                 "tool_radius": self.tool_radius,
+                "tools": [part for _, part in self._tools],
             }
 
+    def _vertices(self) -> torch.Tensor:
+        """The drawn surface's vertex positions now ``(V, 3)`` (m); under the lock."""
+        x = self.state.x[0]
+        if self._parts is not None:
+            return torch.cat([s.positions(x) for _, s in self._parts])
+        assert self._surface is not None  # the lattice's surface is built whenever no embedded one is drawn
+        return self._surface.vertices(x)
+
+    def _poses(self) -> np.ndarray:
+        """float64 ``(T, 12)``: each drawn tool's position ``c`` (m) and rotation ``R`` (row-major) now."""
+        like = torch.zeros(1, 3, dtype=torch.float64)
+        t = float(self.state.t)
+        out = np.zeros((len(self._tools), 12))
+        for k, (tool, _) in enumerate(self._tools):
+            c, R = tool.frame(t, like)
+            out[k, :3] = c.reshape(-1, 3)[0].detach().double().cpu().numpy()
+            out[k, 3:] = np.eye(3).reshape(-1) if R is None else R[0].detach().double().cpu().numpy().reshape(-1)
+        return out
+
     def positions(self) -> bytes:
-        """The surface's vertex positions now: ``V * 3`` float32 little-endian values (m, axes D, H, W)."""
+        """A frame: the surface's vertex positions and the tools' poses now, float32 little-endian.
+
+        ``V * 3`` vertex positions (m, axes D, H, W; :meth:`mesh` lists the vertices), then per drawn
+        tool (:meth:`mesh`'s ``tools``, in order) 12 values: its position ``c`` (3, m) and rotation
+        ``R`` (3 x 3, row-major) at the simulated time, a vertex ``p`` of the tool's own frame being at
+        ``c + R p``. :func:`frame_size` bytes in all.
+        """
         with self._lock, torch.no_grad():
-            v = self._surface.vertices(self.state.x[0])
-            return v.to(torch.float32).cpu().numpy().astype("<f4", copy=False).tobytes()
+            v = self._vertices().to(torch.float32).cpu().numpy().reshape(-1)
+            if self._tools:
+                v = np.concatenate([v, self._poses().reshape(-1).astype(np.float32)])
+            return v.astype("<f4", copy=False).tobytes()
 
     def vertices(self) -> torch.Tensor:
-        """The surface's vertex positions now, ``(V, 3)`` float32 (m): :meth:`positions` as a tensor."""
-        return torch.from_numpy(np.frombuffer(self.positions(), dtype="<f4").copy()).view(-1, 3)
+        """The surface's vertex positions now, ``(V, 3)`` float32 (m): the first part of :meth:`positions`."""
+        with self._lock, torch.no_grad():
+            return self._vertices().to(torch.float32).cpu()
 
     def stats(self) -> dict:
         """Time, speed, forces and state for the page.

@@ -12,7 +12,7 @@ the rendered volume's ``[min, max]``.
 
 =====================  ===========================================================================
 :class:`TransferFunction`  control points, table, lookup, the text file format
-:data:`PRESETS`        ``"ct-bone"``, ``"ct-soft"`` (Hounsfield units), ``"grey"`` (relative ramp)
+:data:`PRESETS`        ``"ct-bone"``, ``"ct-soft"``, ``"ct-liver"`` (Hounsfield units), ``"grey"`` (relative ramp)
 :func:`preset`         a preset by name
 :func:`load_tf`        a transfer-function file (errors name the file and line)
 :func:`get_tf`         a transfer function from itself, a preset name or a file
@@ -171,6 +171,21 @@ PRESETS = {
             [1, 1, 1],
         ],
         [0.0, 0.0, 0.004, 0.004, 0.01, 0.03, 0.06, 0.1, 0.5, 1.0],
+        False,
+    ),
+    "ct-liver": (
+        [-1000, 48, 55, 70, 120, 200, 400, 3000],
+        [
+            [0, 0, 0],
+            [0, 0, 0],
+            [0.55, 0.18, 0.12],
+            [0.7, 0.25, 0.18],
+            [1.0, 0.45, 0.35],
+            [1.0, 0.6, 0.5],
+            [1, 1, 0.95],
+            [1, 1, 1],
+        ],
+        [0.0, 0.0, 0.02, 0.04, 0.08, 0.15, 0.5, 1.0],
         False,
     ),
     "grey": ([0.0, 1.0], [[0, 0, 0], [1, 1, 1]], [0.0, 0.05], True),

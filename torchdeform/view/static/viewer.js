@@ -2,14 +2,21 @@
 //
 // The socket lives in a worker (socket-worker.js): big frames arrive while this thread renders; each
 // animation frame asks it for the newest one.
-// Server -> page: a "mesh" JSON message (faces, bounds, tissue terms, tool radius), binary frames
-// (float32 little endian, V * 3 vertex positions in metres, axis order D, H, W) and "stats" JSON.
+// Server -> page (see torchdeform/view/server.py and session.py):
+//   a "mesh" JSON message: surface ("embedded" smooth label surfaces or the "lattice" surface),
+//     vertices V, faces, colors (3 per vertex, sRGB 0-255: the solid texture at the rest positions),
+//     bounds, tissue terms, tool radius, and tools: [{name, vertices (own frame, m), faces, smooth, color}];
+//   binary frames, float32 little endian: V * 3 vertex positions in metres (axis order D, H, W), then
+//     12 values per tool: its position c (m) and rotation R (row-major), a tool vertex p at c + R p;
+//   "stats" JSON.
 // Page -> server: {"cmd": play|pause|reset|drag|release|tool|cut|term|fps, ...} JSON messages.
 // Library axes (D, H, W) are shown as three.js (y, z, x): D (gravity's axis) is up; the mapping is a
 // cyclic permutation (a rotation), so the triangles keep their winding.
-// The surface (of each piece, after cuts) is closed with outward (counter-clockwise) faces, so only
-// front faces are drawn. Where drawing is slow (software WebGL, a busy laptop) the page lowers its
-// drawing resolution, down to half, to keep 30 frames a second, and raises it again when it can.
+// The lattice surface (of each piece, after cuts) is closed with outward (counter-clockwise) faces, so
+// only its front faces are drawn; embedded surfaces are drawn two-sided (a cut opens them). Vertex
+// normals are recomputed each frame (smooth shading), the tissue is Phong-shaded with a specular
+// highlight (wet), the tools steel-grey. Where drawing is slow (software WebGL, a busy laptop) the page
+// lowers its drawing resolution, down to half, to keep 30 frames a second, and raises it again when it can.
 import * as THREE from "./three.module.min.js";
 
 const token = new URLSearchParams(location.search).get("token") || "";
@@ -18,7 +25,7 @@ const canvas = $("view");
 
 // ------------------------------------------------------------------ exposed for tests
 const stats = { fps: 0, resolution: 1, framesReceived: 0, framesShown: 0, framesSkipped: 0, lastStats: null, meshVersion: null, vertices: 0,
-                connected: false, sent: 0, mode: "drag",
+                surface: null, colored: false, tools: [], connected: false, sent: 0, mode: "drag",
                 ms: { normals: 0, render: 0, frame: 0, message: 0 } };
 window.viewerStats = stats;
 
@@ -46,9 +53,20 @@ const body = new THREE.Group();          // holds the surface in library coordin
 body.matrixAutoUpdate = false;
 body.matrix.copy(LIB_TO_WORLD);
 scene.add(body);
-const material = new THREE.MeshLambertMaterial({ color: 0xc4736b, side: THREE.FrontSide });
+// tissue: the texture's colours per vertex (one colour where a server sends none) and a wet highlight,
+// white of weight 0.3 as in the animation (Color(r, g, b) takes linear values); tools: steel, 0.5
+const WET = new THREE.Color(0.3, 0.3, 0.3), STEEL_SHINE = new THREE.Color(0.5, 0.5, 0.5);
+const material = new THREE.MeshPhongMaterial({ color: 0xffffff, specular: WET, shininess: 40,
+                                               side: THREE.FrontSide, vertexColors: true });
+const plainMaterial = new THREE.MeshPhongMaterial({ color: 0xc4736b, specular: WET, shininess: 40,
+                                                    side: THREE.FrontSide });
 let surface = null;                      // THREE.Mesh, geometry in library coordinates
 let positionsDirty = false;
+let toolMeshes = [];                     // THREE.Mesh per scene tool, in library coordinates, posed per frame
+
+// sRGB byte -> linear (three.js renders in linear space and encodes sRGB on output)
+const SRGB_TO_LINEAR = new Float32Array(256).map((_, i) => new THREE.Color().setRGB(i / 255, 0, 0,
+                                                                                 THREE.SRGBColorSpace).r);
 
 const toolMaterial = new THREE.MeshLambertMaterial({ color: 0x8fc1ff, transparent: true, opacity: 0.45,
                                                      depthWrite: false });
@@ -126,15 +144,26 @@ function onMesh(msg) {
   if (old && old.count === V) pos.set(old.array);
   geometry.setAttribute("position", new THREE.BufferAttribute(pos, 3).setUsage(THREE.DynamicDrawUsage));
   geometry.setIndex(new THREE.BufferAttribute(Uint32Array.from(msg.faces), 1));
+  const colored = Array.isArray(msg.colors) && msg.colors.length === 3 * V;
+  if (colored) {
+    const rgb = new Float32Array(3 * V);
+    for (let i = 0; i < rgb.length; i++) rgb[i] = SRGB_TO_LINEAR[msg.colors[i] & 255];
+    geometry.setAttribute("color", new THREE.BufferAttribute(rgb, 3));
+  }
   if (surface) {
     body.remove(surface);
     surface.geometry.dispose();
   }
-  surface = new THREE.Mesh(geometry, material);
+  const side = msg.surface === "embedded" ? THREE.DoubleSide : THREE.FrontSide;
+  for (const m of [material, plainMaterial]) if (m.side !== side) { m.side = side; m.needsUpdate = true; }
+  surface = new THREE.Mesh(geometry, colored ? material : plainMaterial);
   body.add(surface);
   positionsDirty = !!(old && old.count === V);
   stats.meshVersion = msg.version;
   stats.vertices = V;
+  stats.surface = msg.surface || "lattice";
+  stats.colored = colored;
+  buildTools(msg.tools || []);
   toolRadius = msg.tool_radius || toolRadius;
   toolSphere.scale.setScalar(toolRadius);
   const lo = toWorld(msg.bounds[0]), hi = toWorld(msg.bounds[1]);
@@ -149,14 +178,51 @@ function onMesh(msg) {
   buildTerms(msg.terms || {});
 }
 
+// the scene's tools: steel, shiny; smooth (a sphere, a capsule) or flat (a box, a mesh's edges)
+function buildTools(tools) {
+  for (const m of toolMeshes) {
+    body.remove(m);
+    m.geometry.dispose();
+    m.material.dispose();
+  }
+  toolMeshes = tools.map((t) => {
+    const geometry = new THREE.BufferGeometry();
+    geometry.setAttribute("position", new THREE.BufferAttribute(Float32Array.from(t.vertices), 3));
+    geometry.setIndex(new THREE.BufferAttribute(Uint32Array.from(t.faces), 1));
+    geometry.computeVertexNormals();
+    const c = t.color || [0.6, 0.6, 0.6];          // the server sends the animation's steel
+    const mesh = new THREE.Mesh(geometry, new THREE.MeshPhongMaterial({
+      color: new THREE.Color().setRGB(c[0], c[1], c[2], THREE.SRGBColorSpace), specular: STEEL_SHINE,
+      shininess: 60, flatShading: !t.smooth }));
+    mesh.name = t.name;
+    mesh.matrixAutoUpdate = false;
+    mesh.visible = false;                // until a frame gives its pose
+    body.add(mesh);
+    return mesh;
+  });
+  stats.tools = tools.map((t) => t.name);
+}
+
 function onFrame(buffer) {
-  if (!surface || buffer.byteLength !== 12 * stats.vertices) {     // a frame of an older mesh
+  const V = stats.vertices, T = toolMeshes.length;
+  if (!surface || buffer.byteLength !== 4 * (3 * V + 12 * T)) {     // a frame of an older mesh
     stats.framesSkipped++;
     return;
   }
   stats.framesShown++;
   const t0 = performance.now();
-  surface.geometry.getAttribute("position").array.set(new Float32Array(buffer));
+  const data = new Float32Array(buffer);
+  surface.geometry.getAttribute("position").array.set(data.subarray(0, 3 * V));
+  for (let k = 0; k < T; k++) {
+    const p = data.subarray(3 * V + 12 * k, 3 * V + 12 * (k + 1));   // c (3), R (9, row-major)
+    const m = toolMeshes[k];
+    m.matrix.set(p[3], p[4], p[5], p[0],
+                 p[6], p[7], p[8], p[1],
+                 p[9], p[10], p[11], p[2],
+                 0, 0, 0, 1);
+    m.matrixWorldNeedsUpdate = true;
+    m.visible = true;
+  }
   stats.ms.message = 0.9 * stats.ms.message + 0.1 * (performance.now() - t0);
   positionsDirty = true;
 }
