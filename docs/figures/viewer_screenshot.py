@@ -16,13 +16,13 @@ from torchdeform.view.session import ViewerSession
 
 
 def main(path: str) -> None:
-    """Serve the demo scene, open its page, let it run 4 s and save a screenshot to ``path``."""
-    viewer = Viewer(ViewerSession(td.load_scene("scenes/demo.toml"))).start()
+    """Serve the demo scene, open its page, let it run 6 s and save a screenshot to ``path``."""
+    viewer = Viewer(ViewerSession(td.load_scene("scenes/demo.toml", surfaces=True))).start()
     with tempfile.TemporaryDirectory() as profile:
         driver = browser.start(profile, width=900, height=600)
         try:
             browser.open_page(driver, viewer.url)
-            time.sleep(4)
+            time.sleep(6)
             driver.save_screenshot(path)
         finally:
             driver.quit()

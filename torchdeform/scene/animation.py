@@ -155,6 +155,7 @@ def surface_camera(
     fov_deg: float = SURFACE_FOV,
     fill: float = 0.9,
     up=(1.0, 0.0, 0.0),
+    points=None,
 ):
     """The perspective camera of the surface panel: it frames the body in every frame of ``x``.
 
@@ -171,6 +172,7 @@ def surface_camera(
         fov_deg: vertical field of view (degrees).
         fill: the largest distance of a projected box corner from the image centre, in half image sides.
         up: the direction that appears upwards in the image (default axis D).
+        points: ``(N, 3)`` positions (m) to frame instead of the nodes (embedded surfaces' vertices).
 
     Returns:
         a :class:`~torchdeform.mesh.Camera` of ``size x size`` pixels.
@@ -188,7 +190,10 @@ def surface_camera(
     """
     from ..texture.mapping import framing_camera
 
-    p = torch.as_tensor(x).detach().double().cpu().transpose(0, 1).reshape(3, -1)
+    if points is not None:
+        p = torch.as_tensor(points).detach().double().cpu().reshape(-1, 3).t()
+    else:
+        p = torch.as_tensor(x).detach().double().cpu().transpose(0, 1).reshape(3, -1)
     half = torch.tensor(grid.spacing, dtype=torch.float64) / 2
     lo, hi = p.min(1).values - half, p.max(1).values + half
     corners = torch.stack(
@@ -482,8 +487,20 @@ def animate(
     if camera is not None:  # lit from just above the eye
         d, u = np.asarray(camera, dtype=np.float64), np.asarray(up, dtype=np.float64)
         light = tuple((d / np.linalg.norm(d) + 0.5 * u / np.linalg.norm(u)).tolist())
+    shown = {}  # the embedded surfaces of each shown frame: the camera frames them, not the lattice
+    for i in idx if surfaces else ():
+        shown[i] = []
+        for s in cast("list", surfaces(i) if callable(surfaces) else surfaces):
+            p, n = s.update(x[i])
+            shown[i].append(_Piece(p, n, s.faces, s.rest_vertices))
+    points = torch.cat([q.vertices for i in shown for q in shown[i]]) if shown else None
     camera = surface_camera(
-        grid, x[idx], size=size, up=up, direction=SURFACE_DIRECTION if camera is None else tuple(camera)
+        grid,
+        x[idx],
+        size=size,
+        up=up,
+        direction=SURFACE_DIRECTION if camera is None else tuple(camera),
+        points=points,
     )
     forces = {k: np.asarray(f, dtype=np.float64).reshape(len(t), 3) for k, f in (forces or {}).items()}
     titles = ("surface: solid texture, shaded", f"volume: {mode}, view {view}")
@@ -491,13 +508,7 @@ def animate(
         titles = ("embedded surfaces: solid texture, smooth, wet", titles[1])
     images, captions = [], []
     for i in tqdm(idx, disable=not progress, desc="animate", unit="frame"):
-        if surfaces:
-            pieces = []
-            for s in cast("list", surfaces(i) if callable(surfaces) else surfaces):
-                p, n = s.update(x[i])
-                pieces.append(_Piece(p, n, s.faces, s.rest_vertices))
-        else:
-            pieces = cut_surfaces(grid, x[i : i + 1], labels)
+        pieces = shown[i] if surfaces else cut_surfaces(grid, x[i : i + 1], labels)
         out = render_textured(pieces, texture, camera, light=light, specular=specular)
         surface = _with_tools(out, tools or (), float(t[i]), camera, light).clamp(0, 1)
         surface = (surface * 255 + 0.5).to(torch.uint8).numpy()
