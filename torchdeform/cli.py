@@ -1,6 +1,7 @@
 """The ``torchdeform`` command.
 
-    torchdeform run SCENE.toml --out DIR     run a scene file (torchrun ... -m torchdeform run: split over ranks)
+    torchdeform --version
+    torchdeform run SCENE.toml --out DIR [--set KEY=VALUE ...]   run a scene file (torchrun ... -m torchdeform run: split over ranks)
     torchdeform demo --out DIR               run the built-in demo scene
     torchdeform bench speed [--quick] [--json]
     torchdeform fuzzy show FILE.fis                      variables, terms, rules
@@ -25,7 +26,18 @@ import sys
 
 from .options import Parser, guarded
 
-__all__ = ["build_parser", "main"]
+__all__ = ["build_parser", "main", "EXAMPLES"]
+
+_SCENES = "scene files: docs/scenes.md (every section and key), examples in scenes/"
+
+#: the example at the end of a command's ``--help``
+EXAMPLES = {
+    "run": "example:\n  torchdeform run scenes/cube.toml --out out/cube --set integrator.steps=200\n\n" + _SCENES,
+    "demo": "example:\n  torchdeform demo --out demo-out\n\nthe demo is a scene too; " + _SCENES,
+    "view": "example:\n  torchdeform view scenes/cube.toml --open\n\n" + _SCENES,
+    "sweep": "example:\n  torchdeform sweep scenes/cube.toml --set material.stiffness=10,20,40 --out out/sweep\n\n"
+    + _SCENES,
+}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -50,7 +62,10 @@ def build_parser() -> argparse.ArgumentParser:
     def data_command(args) -> int:
         return anatomy.phantom_command(args) if args.data_command == "phantom" else learn.command(args)
 
+    from . import __version__
+
     p = Parser(prog="torchdeform", description="Soft-tissue simulation on PyTorch.")
+    p.add_argument("--version", action="version", version=f"torchdeform {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
     # name, help line, adds the arguments, runs the command
@@ -107,7 +122,13 @@ def build_parser() -> argparse.ArgumentParser:
         ),
     ]
     for name, help_, add_arguments, func in commands:
-        c = sub.add_parser(name, help=help_)
+        c = sub.add_parser(
+            name,
+            help=help_,
+            description=help_[:1].upper() + help_[1:] + ".",
+            epilog=EXAMPLES.get(name),
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
         add_arguments(c)
         c.set_defaults(func=func)
     return p

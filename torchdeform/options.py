@@ -244,8 +244,10 @@ def guarded(prog: str, func, *args, echo: bool = True) -> int:
     from .errors import TorchdeformError
 
     def say(text: object) -> None:
-        if echo:
-            print(f"{prog}: {' '.join(str(text).split())}", file=sys.stderr)
+        if echo:  # one line per problem (several problems of one file: a few lines)
+            for line in str(text).splitlines() or [""]:
+                if line.strip():
+                    print(f"{prog}: {' '.join(line.split())}", file=sys.stderr)
 
     try:
         with one_line_warnings(prefix=f"{prog}: warning: "):

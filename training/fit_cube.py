@@ -289,7 +289,8 @@ def per_spring_run(series, args, out, with_mass: bool) -> dict:
     )
     if not args.no_curvature:
         res["curvature"] = learn.curvature_report(params, loss)
-        res["curvature"]["eigenvalues"] = [float(f"{e:.4g}") for e in res["curvature"]["eigenvalues"]]
+        if "eigenvalues" in res["curvature"]:  # (skipped for many parameters: a reason instead)
+            res["curvature"]["eigenvalues"] = [float(f"{e:.4g}") for e in res["curvature"]["eigenvalues"]]
     res["learned"] = params.summary()
     return res
 
@@ -345,12 +346,28 @@ def main(argv=None) -> int:
         return learn.run_script("fit_cube.py", args, fit, summary)
 
 
+def check_truth(series, path) -> None:
+    """Refuse a series without the true values a fit starts from and is scored against (one line)."""
+    missing = [f"true_{k}" for k in ("stiffness", "damping", "mass") if k not in series.truth]
+    truth = series.meta.get("truth")
+    if not (isinstance(truth, dict) and "stiffness" in truth and "damping" in truth):
+        missing.append("meta truth {stiffness, damping}")
+    if missing:
+        raise td.ConfigError(
+            "--data",
+            "a series with its true values, as torchdeform data cube writes them (this script starts "
+            f"from and scores against them); missing {', '.join(missing)}",
+            got=str(path),
+        )
+
+
 def fit(args, out) -> dict:
     if args.long:
         result = {"long_rollout": long_run(args, out)}
     else:
         if args.data:
             series = learn.load_series(args.data)
+            check_truth(series, args.data)
         elif args.integrator == "implicit":
             series = stiff_cube(args)
         else:

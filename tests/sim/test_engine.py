@@ -12,8 +12,10 @@ import torch
 import torchdeform as td
 from tests.helpers import F64, make_grid, make_model
 from torchdeform.errors import ConfigError
+from torchdeform.sim import engine as engine_mod
 from torchdeform.sim import native
 from torchdeform.sim.engine import Engine, gradient_needed
+from torchdeform.sim.packed import PackedModel
 
 
 def body(n=4, dtype=F64, drags=True, device=None):
@@ -57,7 +59,8 @@ def test_compiled_engine_equals_eager(integrator, device):
     assert torch.allclose(rec["x"], rec_ref["x"], atol=1e-12, rtol=0)
 
 
-def test_auto_stays_eager_on_a_short_run():
+def test_auto_stays_eager_on_a_short_run(monkeypatch):
+    monkeypatch.setattr(engine_mod, "_kernel_built", lambda model: False)  # a kernel still to build
     engine = Engine(mode="auto")
     run(body(), engine, steps=40)
     assert engine.ran == "eager" and engine.reason.startswith("auto: ")
@@ -110,7 +113,12 @@ def test_auto_decides_native_then_compiled_by_hand():
     6 ms native steps -> 16 s / 1.5 ms = 10,667 steps."""
     model = body()
     engine = Engine(mode="auto")
-    assert not engine.decide(td.SymplecticEuler(), [0.05, 0.03, 0.03], 100, threads=2, model=model)
+    built = engine_mod._kernel_built
+    engine_mod._kernel_built = lambda model: False  # a kernel still to build
+    try:
+        assert not engine.decide(td.SymplecticEuler(), [0.05, 0.03, 0.03], 100, threads=2, model=model)
+    finally:
+        engine_mod._kernel_built = built
     assert engine.choice is None and "<= 2 x ~2 s C kernel build" in engine.reason
     assert engine.decide(td.SymplecticEuler(), [0.05, 0.03, 0.03], 200, threads=2, model=model)
     assert engine.choice == "native" and engine.force_form is None
@@ -121,6 +129,18 @@ def test_auto_decides_native_then_compiled_by_hand():
     engine = Engine(mode="auto")  # an implicit step compiles directly
     assert engine.decide(td.ImplicitEuler(), [0.05, 0.03, 0.03], 200_000, threads=2, model=model)
     assert engine.choice == "compiled"
+
+
+@needs_cc
+def test_auto_goes_native_at_once_when_the_kernel_is_already_built():
+    """A kernel in the disk cache costs no build: a run whose eager time to come exceeds twice
+    loading it goes native (the same 100 steps that stay eager while the kernel is to be built)."""
+    model = body()
+    native.kernel(native.variant_of(PackedModel(model)))  # built and cached now
+    assert engine_mod._kernel_built(model)
+    engine = Engine(mode="auto")
+    assert engine.decide(td.SymplecticEuler(), [0.05, 0.03, 0.03], 100, threads=2, model=model)
+    assert engine.choice == "native" and "(built before)" in engine.reason
 
 
 def test_auto_on_the_device_picks_an_engine_that_runs_there(device):

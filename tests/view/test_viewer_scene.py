@@ -51,6 +51,7 @@ name = "probe"
 shape = "sphere"
 radius = {RADIUS}
 path = {json.dumps(PATH)}
+start_inside = true           # it starts at the surface: the test is what is drawn, not the contact
 
 [integrator]
 name = "symplectic"

@@ -374,7 +374,9 @@ def test_command_line(tmp_path):
             cwd=root,
             timeout=120,
         )
-        assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        lines = r.stderr.strip().splitlines()  # one line per problem of the file, each naming it
+        assert r.returncode == 2 and lines and all(ln.startswith("torchdeform: ") for ln in lines), r.stderr
+        assert all(scene.name in ln for ln in lines) and "Traceback" not in r.stderr
     good = tmp_path / "cube.toml"
     good.write_text(SCENE.format(n=4))
     p = subprocess.Popen(

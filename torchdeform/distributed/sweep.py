@@ -18,8 +18,8 @@ rows are gathered to rank 0 with ``torch.distributed`` (gloo), which writes the 
 (``sweep.csv``) and the plot (``sweep.png``). Each rank writes its own record file, so ``DIR``
 must be on storage every rank sees for a resume across machines.
 
-Figures per point: ``max_displacement_m`` (largest node displacement at the end),
-``peak_displacement_m`` (largest over the recorded frames), ``max_free_displacement_m``,
+Figures per point: ``max_displacement_m`` and ``peak_displacement_m`` (largest node displacement
+over the recorded frames, as in a run's ``summary.json``), ``max_free_displacement_m``,
 ``kinetic_J`` and ``total_J`` (final energies), ``steps``, ``dt_s``, ``engine``, ``batch`` (the
 points simulated together), ``wall_s`` and ``status`` (``ok`` or the one-line divergence message).
 
@@ -35,7 +35,6 @@ Examples:
 
 from __future__ import annotations
 
-import copy
 import csv
 import io
 import itertools
@@ -43,10 +42,10 @@ import json
 import time
 from pathlib import Path
 
-import tomllib
-
 from ..checks import read_text
 from ..errors import ConfigError, DivergenceError
+from ..scene.commands import check_key  # shared with ``torchdeform run --set``
+from ..scene.reader import parse_set, parse_value
 
 __all__ = [
     "parse_set",
@@ -82,26 +81,6 @@ FIGURES = (
 )
 #: the keys whose points run batched (stacked along the models' batch axis)
 BATCHED = ("material.stiffness", "material.damping")
-#: sections a sweep key may name (the array-of-tables sections hold lists, not keys)
-_LISTS = ("loads", "drags", "regions", "tools", "cuts", "cautery", "coagulate")
-
-
-def parse_value(text: str):
-    """A TOML scalar (``1`` int, ``2.5`` float, ``true``, ``"name"``), else the text as a string."""
-    text = text.strip()
-    try:
-        return tomllib.loads(f"v = {text}")["v"]
-    except tomllib.TOMLDecodeError:
-        return text
-
-
-def parse_set(text: str) -> tuple[str, list]:
-    """``KEY=V1,V2,...`` (``--set``) -> ``(key, [values])``; values as :func:`parse_value`."""
-    key, sep, values = str(text).partition("=")
-    key = key.strip()
-    if not sep or not key or not values.strip():
-        raise ConfigError("--set", "KEY=V1,V2,... (e.g. material.stiffness=1,2,4)", got=text)
-    return key, [parse_value(v) for v in values.split(",")]
 
 
 def product(sets: list) -> list:
@@ -129,24 +108,6 @@ def read_points(path) -> list:
     return points
 
 
-def check_key(key: str) -> None:
-    """Raise a :class:`ConfigError` unless ``key`` is ``section.key`` of a mass-spring scene file."""
-    from ..scene.mass_spring import INTEGRATOR_OPTIONS
-    from ..scene.reader import SECTIONS
-
-    section, _, name = key.partition(".")
-    known = SECTIONS.get(section, ())
-    if section == "integrator":
-        known = known + tuple(k for opts in INTEGRATOR_OPTIONS.values() for k in opts)
-    if section in _LISTS or name not in known or "." in name:
-        sections = ", ".join(s for s in SECTIONS if s not in _LISTS)
-        raise ConfigError(
-            "--set",
-            f"SECTION.KEY of a scene file (sections {sections}; {section}: {', '.join(known) or 'no such section'})",
-            got=key,
-        )
-
-
 def point_id(values: dict) -> str:
     """The identity of a point: its values as canonical JSON (what resumes match on)."""
     return json.dumps(values, sort_keys=True)
@@ -158,12 +119,9 @@ def point_scene(src, data: dict, base: Path, name: str, values: dict):
     A bad value raises a :class:`ConfigError` naming ``--set KEY`` and the value.
     """
     from ..scene.mass_spring import mass_spring_scene
-    from ..scene.reader import Source
+    from ..scene.reader import Source, with_values
 
-    data = copy.deepcopy(data)
-    for key, value in values.items():
-        section, _, k = key.partition(".")
-        data.setdefault(section, {})[k] = value
+    data = with_values(data, values)
     try:
         scene = mass_spring_scene(Source(), data, base, name=name)
     except ConfigError as e:
@@ -200,9 +158,9 @@ def _figures(model, rec, final, b: int) -> dict:
     series = energy_series(model, x, v)
     return dict(
         status="ok",
-        max_displacement_m=float(series["max_displacement"][-1]),
+        max_displacement_m=float(series["max_displacement"].max()),
         peak_displacement_m=float(series["max_displacement"].max()),
-        max_free_displacement_m=float(series["max_free_displacement"][-1]),
+        max_free_displacement_m=float(series["max_free_displacement"].max()),
         kinetic_J=float(series["kinetic"][-1]),
         total_J=float(series["total"][-1]),
     )

@@ -28,6 +28,7 @@ __all__ = [
     "load",
     "describe",
     "parse_assignments",
+    "warn_out_of_range",
     "read_inputs_csv",
     "evaluate_rows",
     "format_rows",
@@ -140,6 +141,31 @@ def read_inputs_csv(fis: MamdaniSystem, path) -> torch.Tensor:
     return torch.tensor(rows, dtype=torch.float64)
 
 
+def warn_out_of_range(fis: MamdaniSystem, x: torch.Tensor) -> None:
+    """Warn (a :class:`~torchdeform.errors.ConfigWarning`, one per input) for values outside an input's range.
+
+    ``x`` is ``(N, n_inputs)``. The rules were written for the range: outside it the result is
+    an extrapolation of the edge's memberships, rarely what was meant (a unit mixed up).
+    """
+    import warnings
+
+    from ..errors import ConfigWarning
+
+    for i, v in enumerate(fis.inputs):
+        lo, hi = v.range
+        col = x[:, i]
+        out = (col < lo) | (col > hi)
+        if bool(out.any()):
+            bad = col[out]
+            where = f"{int(out.sum())} of {len(col)} rows" if len(col) > 1 else f"{float(bad[0]):g}"
+            warnings.warn(
+                f"input {v.name}: {where} outside its range [{lo:g}, {hi:g}]; the rules were written for that "
+                "range (is a unit mixed up?)",
+                ConfigWarning,
+                stacklevel=2,
+            )
+
+
 def evaluate_rows(fis: MamdaniSystem, x: torch.Tensor) -> list:
     """One dict per row: inputs and crisp outputs (float64 evaluation)."""
     fis = fis.double()
@@ -227,6 +253,7 @@ def main(args) -> int:
                 [[parse_assignments(fis, args.values)[n] for n in fis.input_names()]], dtype=torch.float64
             )
         )
+        warn_out_of_range(fis, x)
         print(format_rows(fis, evaluate_rows(fis, x), args.json))
     else:
         for path in plot(fis, args.out):

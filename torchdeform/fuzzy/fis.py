@@ -104,7 +104,53 @@ _SYSTEM_KEYS = {
 _VAR_KEYS = {"Name", "Range", "NumMFs"}
 _NUM = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
 _MF_LINE = re.compile(r"^'([^']*)'\s*:\s*'([^']*)'\s*,\s*\[([^\]]*)\]$")
-_RULE_LINE = re.compile(rf"^((?:\s*{_NUM}\s*,?)+?)\s*,\s*((?:\s*{_NUM}\s*,?)+?)\s*\(\s*({_NUM})\s*\)\s*:\s*(\S+)\s*$")
+_NUM_RE = re.compile(_NUM)
+
+
+def _indices(text: str) -> bool:
+    """True for numbers separated by spaces or single commas (a trailing comma allowed), at least one."""
+    body = text.strip()
+    if body.endswith(","):
+        body = body[:-1]
+    tokens = re.split(r"\s*,\s*|\s+", body.strip())
+    return bool(body.strip()) and all(_NUM_RE.fullmatch(t) for t in tokens)
+
+
+class _RuleMatch:
+    """The parts of a rule line ``i1 .. in, o1 .. om (weight) : connective`` (the groups 1-4 of a match)."""
+
+    def __init__(self, parts):
+        self.parts = parts
+
+    def group(self, k: int) -> str:
+        return self.parts[k - 1]
+
+
+class _RuleLine:
+    """A rule line's parser in linear time (a backtracking pattern took seconds on a garbled line)."""
+
+    @staticmethod
+    def match(line: str) -> _RuleMatch | None:
+        head, sep, connective = line.rpartition(":")
+        connective = connective.strip()
+        if not sep or not connective or re.search(r"\s", connective):
+            return None
+        head = head.rstrip()
+        if not head.endswith(")") or "(" not in head:
+            return None
+        i = head.rfind("(")
+        weight, body = head[i + 1 : -1].strip(), head[:i]
+        if not _NUM_RE.fullmatch(weight):
+            return None
+        pieces = body.split(",")
+        for k in range(1, len(pieces)):  # the first comma with numbers on both sides splits them
+            ante, cons = ",".join(pieces[:k]), ",".join(pieces[k:])
+            if _indices(ante) and _indices(cons):
+                return _RuleMatch((ante, cons, weight, connective))
+        return None
+
+
+_RULE_LINE = _RuleLine()
 
 
 class _Section:
@@ -194,6 +240,11 @@ def _method(sec, key, allowed, default, path):
     return value
 
 
+def _numbered(found: list, num: int | None) -> bool:
+    """True when the sorted numbers ``found`` are exactly 1 .. ``num`` (a huge ``num`` costs nothing)."""
+    return len(found) == num and all(k == i for i, k in enumerate(found, start=1))
+
+
 def _variable(sec, path, output: bool) -> Variable:
     for key, (_, n) in sec.items.items():
         if key not in _VAR_KEYS and not re.fullmatch(r"MF\d+", key) and not (output and key == "Default"):
@@ -215,7 +266,7 @@ def _variable(sec, path, output: bool) -> Variable:
         raise _err(path, n, f"[{sec.name}] Range", f"[lo hi] with {RANGE_TEXT[4:]}", text)
     num = _int(sec, "NumMFs", path)
     keys = sorted((k for k in sec.items if re.fullmatch(r"MF\d+", k)), key=lambda k: int(k[2:]))
-    if [int(k[2:]) for k in keys] != list(range(1, num + 1)):
+    if not _numbered([int(k[2:]) for k in keys], num):
         raise _err(
             path,
             sec.items["NumMFs"][1],
@@ -279,6 +330,23 @@ def _clause(code: float, var: Variable, path, n, where) -> Clause | None:
     return Clause(var.name, var.term_names[idx - 1], hedges=hedges)
 
 
+def _distinct_names(by: dict, counts: dict, variables: list, path) -> None:
+    """Refuse a variable name given twice, naming the second ``Name`` line."""
+    sections = [by[f"Input{k}"] for k in range(1, counts["Input"] + 1)]
+    sections += [by[f"Output{k}"] for k in range(1, counts["Output"] + 1)]
+    seen = {}
+    for sec, var in zip(sections, variables):
+        if var.name in seen:
+            raise _err(
+                path,
+                sec.items["Name"][1],
+                f"[{sec.name}] Name",
+                f"a name no other input or output has ([{seen[var.name]}] is named so too)",
+                var.name,
+            )
+        seen[var.name] = sec.name
+
+
 def parse_fis(text: str, *, path="<string>") -> MamdaniSystem:
     """A :class:`MamdaniSystem` from the text of a ``.fis`` file (``path`` names it in errors)."""
     sections = _sections(text, path)
@@ -297,7 +365,7 @@ def parse_fis(text: str, *, path="<string>") -> MamdaniSystem:
     for key, prefix in (("NumInputs", "Input"), ("NumOutputs", "Output")):
         num = _int(sysec, key, path)
         found = sorted(int(s.name[len(prefix) :]) for s in sections if re.fullmatch(prefix + r"\d+", s.name))
-        if found != list(range(1, num + 1)):
+        if not _numbered(found, num):
             raise _err(
                 path,
                 sysec.items[key][1],
@@ -310,6 +378,7 @@ def parse_fis(text: str, *, path="<string>") -> MamdaniSystem:
         counts[prefix] = num
     inputs = [_variable(by[f"Input{k}"], path, False) for k in range(1, counts["Input"] + 1)]
     outputs = [_variable(by[f"Output{k}"], path, True) for k in range(1, counts["Output"] + 1)]
+    _distinct_names(by, counts, inputs + outputs, path)
     methods = dict(
         and_method=_method(sysec, "AndMethod", AND_METHODS, "min", path),
         or_method=_method(sysec, "OrMethod", OR_METHODS, "max", path),

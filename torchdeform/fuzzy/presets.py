@@ -60,6 +60,7 @@ __all__ = [
     "tissues",
     "tissue_parameters",
     "tissue_properties",
+    "tissue_expected",
     "tissue_moduli",
     "TISSUE_EXPECTED",
     "DEFAULT_POISSON_RATIO",
@@ -146,7 +147,7 @@ def tissue_parameters(name: str, *, system: MamdaniSystem | None = None) -> dict
     """Material parameters of tissue ``name`` in SI units, from the tissue library's fuzzy system.
 
     Args:
-        name: a key of :func:`tissues` (``"liver"``, ``"brain"``, ...).
+        name: a key of :func:`tissues` (``"liver"``, ``"brain"``, ...; any case: ``"Liver"``).
         system: the system to evaluate; default the library's own (``tissue_si``).
 
     Returns:
@@ -155,9 +156,10 @@ def tissue_parameters(name: str, *, system: MamdaniSystem | None = None) -> dict
         "term": its linguistic term, "youngs_modulus_range": (lo, hi) [Pa] from the literature}``.
     """
     lib = tissues()
-    if name not in lib:
-        raise ConfigError("tissue", f"one of {', '.join(sorted(lib))}", got=name)
-    entry = lib[name]
+    key = name.strip().lower() if isinstance(name, str) else name
+    if key not in lib:
+        raise ConfigError("tissue", f"one of {', '.join(sorted(lib))} (any case)", got=name)
+    entry = lib[key]
     fis = system if system is not None else load_preset(_library()["system"])
     out = fis.evaluate(consistency=float(entry["consistency"]))
     lo, hi = entry["youngs_modulus_range"]
@@ -177,6 +179,20 @@ TISSUE_EXPECTED = (
     "a tissue of the fuzzy library (brain, fat, liver, ...), a consistency term (very_soft, soft, "
     "medium, firm, hard) or a consistency value in [0, 10]"
 )
+
+
+def tissue_expected() -> str:
+    """What a tissue value may be, with every tissue and term name (for errors).
+
+    Examples:
+        >>> "liver_cirrhotic" in tissue_expected() and "very_soft" in tissue_expected()
+        True
+    """
+    var = cast("Variable", load_preset(_library()["system"]).inputs[0])
+    return (
+        f"a tissue of the fuzzy library ({', '.join(sorted(_library()['tissues']))}), a consistency term "
+        f"({', '.join(var.term_names)}) or a consistency value in [0, 10] (names in any case)"
+    )
 
 
 #: The Poisson ratio of a consistency term or number (no tissue of the library, so no measured ratio):
@@ -210,7 +226,10 @@ def tissue_properties(values, *, key: str = "tissue") -> list:
     library, fis = tissues(), load_preset("tissue_si")
     var = cast("Variable", fis.inputs[0])  # a system's inputs are variables
     consistency, out = [], []
-    for v in values:
+    for original in values:
+        v = original
+        if isinstance(v, str):  # names in any case: "Liver" is "liver"
+            v = v.strip().lower()
         if isinstance(v, str) and v in library:
             entry = library[v]
             consistency.append(float(entry["consistency"]))
@@ -221,7 +240,7 @@ def tissue_properties(values, *, key: str = "tissue") -> list:
         elif isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v <= 10:
             consistency.append(float(v))
         else:
-            raise ConfigError(key, TISSUE_EXPECTED, got=v)
+            raise ConfigError(key, tissue_expected(), got=original)
         out.append({"poisson_ratio": DEFAULT_POISSON_RATIO, "density": None})
     if not out:
         return []

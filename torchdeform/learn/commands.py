@@ -60,6 +60,21 @@ def _numbers(text, key):
     return vals[0] if len(vals) == 1 else vals
 
 
+def _check_cube_memory(args) -> None:
+    """Refuse an ``--n`` cube whose simulation and series cannot fit in memory, before allocating anything."""
+    from ..checks import check_grid, check_memory
+
+    n = args.n
+    check_grid("--n", (n, n, n), topology=args.topology, itemsize=8)
+    frames = args.steps + 1  # the true run keeps every step (float64), then the observed copy
+    check_memory(
+        "--n",
+        float(n) ** 3 * 3 * 8 * (frames + (args.steps // args.every + 1)),
+        f"a series of {frames} steps of {n}^3 nodes",
+        got=n,
+    )
+
+
 def command(args) -> int:
     """Run ``torchdeform data ...``; prints a one-line summary."""
     if args.data_command == "balloon":
@@ -85,6 +100,7 @@ def command(args) -> int:
                 raise ConfigError(
                     "--springs", "not together with --n (Radetzky's sets are 3 x 3 x 3)", got=args.springs
                 )
+            _check_cube_memory(args)
             regions = None
             if args.regions is not None:
                 g, _ = cube_grid(n=args.n, spacing=0.01, springs=None, topology=args.topology)

@@ -124,6 +124,7 @@ def _simulate_truth(
     with torch.no_grad():
         model = series.model(k, c, m, dtype=dtype)
         xs = series.simulate(model, integrator=integrator)[:, 0].to(torch.float64).numpy()  # (N + 1, 3, D, H, W)
+    _check_diverged(series, model, xs, integrator)
     N = xs.shape[0] - 1
     steps = np.arange(0, N + 1, int(every))
     clean = xs[steps]
@@ -144,6 +145,37 @@ def _simulate_truth(
     series.positions, series.steps, series.mask = pos, steps, obs
     series.meta.update({"noise": float(noise), "seed": int(seed), "every": int(every)})
     return series
+
+
+#: a synthetic body that moved farther than this many body sizes from rest has diverged
+RUNAWAY_SIZES = 10.0
+
+
+def _check_diverged(series: Series, model, xs: np.ndarray, integrator) -> None:
+    """Raise :class:`~torchdeform.errors.DivergenceError` when the true run blew up.
+
+    Non-finite positions, or a node farther than :data:`RUNAWAY_SIZES` body sizes from its rest
+    position (an explicit step past its stability bound grows geometrically: 1e117 m is finite but
+    no data); names the first such step and a safe time step.
+    """
+    from ..errors import DivergenceError
+
+    X = series.grid.rest_positions(dtype=torch.float64)[0].numpy()
+    size = max(n * h for n, h in zip(series.grid.shape, series.grid.spacing))
+    with np.errstate(invalid="ignore", over="ignore"):
+        far = np.abs(xs - X[None]).reshape(len(xs), -1).max(1)
+    bad = ~np.isfinite(far) | (far > RUNAWAY_SIZES * size)
+    if not bad.any():
+        return
+    step = int(np.argmax(bad))
+    safe = None
+    try:
+        from ..sim.stability import time_step_bound
+
+        safe = 0.9 * time_step_bound(model, integrator=integrator or series.integrator)
+    except Exception:  # a bound is a hint only
+        safe = None
+    raise DivergenceError(step, "displacement (m)", float(far[step]), float(series.dt), safe)
 
 
 def _truth_meta(stiffness, damping, mass) -> dict:

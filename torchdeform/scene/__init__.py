@@ -11,7 +11,10 @@ scene and writes ``trajectory.npz``, ``summary.json`` and ``energy.png``; with `
 
 Units are SI (m, kg, s, N). Vectors are in channel order ``(D, H, W)``; axis D is "up" in
 the built-in scenes (face ``"bottom"`` = ``"d-"``, ``"top"`` = ``"d+"``). Node indices are
-``[i, j, k]`` along ``(D, H, W)``, from 0.
+``[i, j, k]`` along ``(D, H, W)``, from 0. A body of labels is in the image's patient frame
+instead (LPS metres; :mod:`torchdeform.anatomy`). Keys that switch something on take ``true`` or
+``false`` only (a string such as ``"no"`` is refused), and tissue names match in any case
+(``"Liver"`` is ``"liver"``).
 
 Keys
 ----
@@ -22,8 +25,14 @@ documentation is generated from this list.
 
 - ``shape = [D, H, W]``: node counts, each >= 1 (or ``mesh``)
 - ``mesh = "organ.stl"``: a closed triangle mesh voxelised into the node mask (instead of
-  ``shape``; path relative to the scene file; mesh x, y, z -> D, H, W)
-- ``spacing``: metres, one number or ``[sd, sh, sw]`` (required)
+  ``shape``; path relative to the scene file; mesh x, y, z -> D, H, W unless ``up`` says otherwise)
+- ``up``: the mesh axis that points up, which becomes the lattice's axis D ("up", as in box scenes,
+  where ``"bottom"`` is ``"d-"``): ``"x"`` (default: x, y, z -> D, H, W), ``"y"`` (y, z, x -> D, H, W),
+  ``"z"`` (z, x, y -> D, H, W; most CAD and scanner meshes), or ``"-x"``, ``"-y"``, ``"-z"`` (the same
+  turned upside down); the turn is a rotation, so the mesh keeps its inside (``mesh`` only)
+- ``spacing``: metres, one number or ``[sd, sh, sw]`` (required). A body less than 1 mm or more than
+  1 m across warns, naming the key: lengths are in metres (``spacing = 2`` meant as mm is a block
+  metres wide; 2 mm is 0.002)
 - ``topology``: 6, 14, 18 or 26 neighbours (26)
 - ``origin = [od, oh, ow]``: position of node [0, 0, 0] in metres (0; ``shape`` only)
 - ``padding``: extra node layers around the mesh's bounding box (0; ``mesh`` only)
@@ -88,6 +97,7 @@ of labels (``[output] surfaces = "embedded"``, ``animation``) and cut by ``[[cut
 - ``file``: a closed triangle mesh (``.stl``, ``.obj``, ``.ply``, ...; relative to the scene file;
   mesh x, y, z -> D, H, W, as for ``[grid] mesh``) (required)
 - ``scale``: metres per mesh unit, e.g. 0.001 for a mesh in mm (1)
+- ``up``: the mesh axis that becomes the lattice's axis D (up), as ``[grid] up`` (``"x"``)
 - ``name``: the surface's name in the frame files (the file's stem)
 
 A body of labels or of a mesh grows by the cells the surfaces pass through, so that it covers
@@ -120,7 +130,11 @@ tissue's):
 ``[boundary]`` (optional):
 
 - ``fixed``: a face name or a list of them: ``"bottom"``, ``"top"``, ``"d-"``, ``"d+"``,
-  ``"h-"``, ``"h+"``, ``"w-"``, ``"w+"``
+  ``"h-"``, ``"h+"``, ``"w-"``, ``"w+"``. A face is every node seen from that side: on a mesh body
+  ``"bottom"`` is the first node of each column along D, i.e. the whole lower half-shell (half a
+  sphere for a ball). A base patch instead: ``fixed = {below = h}``, the nodes within ``h`` metres
+  of the body's lowest node along D, or a region ``fixed = {box = {lo = [..], hi = [..]}}`` or
+  ``{sphere = {center = [..], radius = r}}`` (rest positions, m)
 - ``fixed_nodes = [[i, j, k], ...]``: more fixed nodes
 - ``home``: stiffness (N/m) of home springs to every node's rest position (Punak)
 - ``anchors = {stiffness = .., every = ..}``: anchor springs (N/m) on the nodes with
@@ -158,6 +172,10 @@ tissue's):
   ``"none"`` (a grasp, or a tool that only cuts or burns)
 - ``grasp = {close = t1, open = t2, margin = m}``: forceps: what lies in the shape (plus
   ``margin``) at ``close`` follows the tool until ``open`` (s; ``inf`` for never)
+- ``start_inside``: true: the tool may start inside the body (false). A tool with a contact that holds
+  rest nodes deeper than half the spacing at t = 0 is otherwise an error (the contact would fling
+  them out in the first step); one that never comes within the spacing (plus a grasp's ``margin``)
+  of the body over its path warns (positions are metres: a path in millimetres misses the body)
 
 ``[strain_limit]`` (optional): every spring's length kept within bounds of its rest length:
 
@@ -210,6 +228,11 @@ dt]``; a blade (or a scalpel's edge along its path) must reach the body's rest b
   ``"projective"``, ``"adaptive"``, ``"knoche"`` or ``"static"`` (below)
 - ``dt``: seconds > 0, or ``"auto"`` (explicit integrators: ``safety`` x the stability bound)
 - ``safety``: fraction of the bound used by ``dt = "auto"`` (0.9)
+- ``settle``: ``true`` or seconds: before the run, the body settles under gravity alone (no loads,
+  tools or drag motion yet; fixed and dragged nodes where they are at t = 0): the static solve
+  (:func:`torchdeform.solve_static`, float64) where it converges, else damped steps of this
+  integrator for ``settle`` seconds (0.2 for ``true``). The run, and its first recorded frame, start
+  from that state at rest; ``summary.json`` says how in ``"settle"`` (false)
 - ``steps``: number of steps >= 0 (required)
 - ``dtype``: ``"float32"`` (default) or ``"float64"``
 - ``device``: ``"cpu"`` (default) or ``"cuda"`` (``--device`` overrides it)

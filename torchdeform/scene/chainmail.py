@@ -126,7 +126,8 @@ class ChainMailScene:
             "nodes": g.num_nodes,
             "grid": {"shape": list(g.shape), "spacing": list(g.spacing), "origin": list(g.origin), "topology": 6},
             "frames": len(times),
-            "max_displacement_m": float(disp[-1]),
+            "max_displacement_m": float(disp.max()),  # the peak over the run
+            "final_displacement_m": float(disp[-1]),
             "peak_displacement_m": float(disp.max()),
             "max_violation_m": float(max(violation)),
             "blocked_frames": int(sum(f < 1.0 for f in fraction)),
@@ -211,7 +212,7 @@ def chainmail_scene(src, data: dict, base, *, name: str = "chainmail") -> ChainM
         frames=t.integer("frames", "an integer >= 1 (moves along the drag paths)", default=20, lo=1),
         relax_steps=t.integer("relax_steps", "an integer >= 0", default=0),
         relax_mode=t.text("relax_mode", '"centroid" or "goal"', default="centroid", choices=RELAX_MODES),
-        relax_moved_only=bool(t.raw("relax_moved_only", "true or false", default=False)),
+        relax_moved_only=t.flag("relax_moved_only", default=False),
         on_blocked=t.text("on_blocked", '"scale" or "error"', default="scale", choices=("scale", "error")),
         name=out.text("name", "a string", default=name),
         source=src,

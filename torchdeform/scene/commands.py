@@ -9,7 +9,14 @@ from .demo import demo_scene
 from .mass_spring import Scene
 from .run import load_scene, report, run_scene
 
-__all__ = ["add_run_arguments", "add_demo_arguments", "add_force_argument", "run_command", "demo_command"]
+__all__ = [
+    "add_run_arguments",
+    "add_demo_arguments",
+    "add_force_argument",
+    "run_command",
+    "demo_command",
+    "scene_with_values",
+]
 
 
 def add_run_arguments(p) -> None:
@@ -30,6 +37,14 @@ def add_run_arguments(p) -> None:
         default=None,
         help="auto: compiled steps when the run repays the compile (the default); eager; compiled "
         "(overrides [integrator] engine; the summary says which ran and why)",
+    )
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="set a scene key for this run (repeatable; a TOML value): --set integrator.steps=200 "
+        "--set integrator.dt=1e-4 --set output.name=x",
     )
     add_force_argument(p)
 
@@ -60,7 +75,7 @@ def run_command(args) -> int:
     """Run a scene file; prints one line (what ran, how fast, where the outputs are)."""
     if args.device is not None:
         usable_device(args.device, key="--device")
-    scene = load_scene(args.scene)
+    scene = scene_with_values(args.scene, getattr(args, "set", None) or [])
     if getattr(args, "animation", False):
         if not isinstance(scene, Scene):
             raise ConfigError(
@@ -74,6 +89,77 @@ def run_command(args) -> int:
     summary = run_scene(scene, args.out, progress=not args.quiet, device=args.device, force=args.force)
     print(report(summary, args.out))
     return 0
+
+
+def check_key(key: str) -> None:
+    """Raise a :class:`ConfigError` unless ``key`` is ``section.key`` of a scene file (no array tables).
+
+    ``torchdeform run --set`` and ``torchdeform sweep --set`` take these keys.
+
+    Examples:
+        >>> check_key("integrator.steps")
+        >>> check_key("integrator.stepz")
+        Traceback (most recent call last):
+        ...
+        torchdeform.errors.ConfigError: --set: expected SECTION.KEY of a scene file (...), got 'integrator.stepz'
+    """
+    from .mass_spring import INTEGRATOR_OPTIONS
+    from .reader import LISTS, SECTIONS
+
+    section, _, name = key.partition(".")
+    known = SECTIONS.get(section, ())
+    if section == "integrator":
+        known = tuple(dict.fromkeys(known + tuple(k for opts in INTEGRATOR_OPTIONS.values() for k in opts)))
+    if section in LISTS or name not in known or "." in name:
+        sections = ", ".join(s for s in SECTIONS if s not in LISTS)
+        raise ConfigError(
+            "--set",
+            f"SECTION.KEY of a scene file (sections {sections}; {section}: {', '.join(known) or 'no such section'})",
+            got=key,
+        )
+
+
+def scene_with_values(path, sets: list):
+    """The scene of file ``path`` with the ``--set KEY=VALUE`` texts of ``sets`` applied (built, so checked).
+
+    A key that is not ``section.key`` of a scene file, or a value the key does not take, raises a
+    :class:`ConfigError` naming ``--set KEY``; other problems name the file and line as usual.
+    """
+    if not sets:
+        return load_scene(path)
+    from pathlib import Path
+
+    from .chainmail import chainmail_scene
+    from .mass_spring import mass_spring_scene
+    from .reader import Source, check_sections, parse_set, read, with_values
+
+    values = {}
+    for text in sets:
+        key, value = parse_set(text, several=False)
+        check_key(key)
+        if key in values:
+            raise ConfigError("--set", "each key once", got=key)
+        values[key] = value
+    src, data = read(path)
+    data = with_values(data, values)
+    check_sections(src, data)  # a set key may make a section or an integrator option required
+    base, name = Path(path).parent, Path(path).stem
+    build = chainmail_scene if data.get("model") == "chainmail" else mass_spring_scene
+    try:
+        scene = build(Source(), data, base, name=name)
+    except ConfigError as e:
+        if e.key in values:
+            raise ConfigError(f"--set {e.key}", e.expected, got=values[e.key]) from None
+        raise ConfigError(
+            e.key,
+            e.expected,
+            got=e.got if e.show_got else None,
+            file=src.path,
+            line=src.line_of(e.key),
+            show_got=e.show_got,
+        ) from None
+    scene.source = src  # later errors (a run's) name the file
+    return scene
 
 
 def demo_command(args) -> int:

@@ -10,6 +10,7 @@ by :mod:`.tools`, ``[[cuts]]``, ``[[cautery]]``, ``[tear]``, ``[[coagulate]]`` b
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
 from dataclasses import KW_ONLY, dataclass, field
 from pathlib import Path
 
@@ -30,7 +31,7 @@ from ..sim.material import Elastic, kelvin_voigt_damping
 from ..sim.model import Model
 from ..sim.projective import SOLVERS
 from .reader import SECTIONS, Source, Table, drags_section, faces, grid_section, is_number, node_list, region_mask
-from .tools import ToolSet, palpation_option, strain_limit_section
+from .tools import ToolSet, check_tool_reach, palpation_option, strain_limit_section
 from .topology import TOPOLOGY, TopologySet, tools_with_cutters, topology_section
 
 __all__ = [
@@ -214,6 +215,10 @@ class Scene:
     safety: float = 0.9
     threads: int | None = None
     engine: str = "auto"
+    #: ``[integrator] settle``: settle the body under gravity before the run starts (``True``: the static
+    #: solve, else damped steps for a default time; seconds: damped steps for that long where the static
+    #: solve does not converge), or False
+    settle: bool | float = False
     source: Source = field(default_factory=Source)
     #: optional ``{"file": .., "tf": .., "mode": .., "view": ..}``: a volume (file or ``"phantom:N"``)
     #: deformed by the final state; ``run_scene`` then writes before/after renders and the deformed volume
@@ -325,6 +330,34 @@ def _plausible(t: Table, which: str, grid: Grid) -> None:
             ConfigWarning,
             stacklevel=2,
         )
+
+
+#: the extent (m) of a body outside which it is no piece of soft tissue: a length unit is probably mixed up
+PLAUSIBLE_EXTENT = (1e-3, 1.0)
+
+
+def _plausible_size(t: Table, grid: Grid) -> None:
+    """Warn (one line, naming file, line and key) when the body is smaller than 1 mm or larger than 1 m."""
+    nodes = grid.nodes()
+    if not bool(nodes.any()):
+        return
+    X = grid.rest_positions(dtype=torch.float64)[0].flatten(1)[:, nodes.flatten()]
+    extent = float((X.amax(1) - X.amin(1)).max())
+    if extent == 0 or PLAUSIBLE_EXTENT[0] <= extent <= PLAUSIBLE_EXTENT[1]:
+        return
+    import warnings
+
+    which = "scale" if t.has("mesh") and t.has("scale") else "spacing"
+    value = t.data.get(which)
+    line = t.src.line_of(t.key(which))
+    where = f"{t.src.path}:{line}: " if t.src.path is not None and line else ""
+    warnings.warn(
+        f"{where}grid.{which} = {value} makes a body {extent:.3g} metres across, outside "
+        f"{PLAUSIBLE_EXTENT[0] * 1e3:g} mm - {PLAUSIBLE_EXTENT[1]:g} m of a piece of soft tissue: lengths are in "
+        f"metres (2 mm is 0.002)",
+        ConfigWarning,
+        stacklevel=2,
+    )
 
 
 _E_EXPECTED = "Young's modulus E in Pa (> 0)"
@@ -511,11 +544,30 @@ def _mass(t: Table) -> dict:
     return {which: t.num(which, f"a positive number ({unit})", lo=0, lo_open=True)}
 
 
+def _fixed_patch(t: Table, grid: Grid) -> torch.Tensor:
+    """``[boundary] fixed = {below = h}`` (the nodes within h of the body's lowest node along D) or a region.
+
+    A face of a mesh body is every node seen from that side (the whole lower half-shell for
+    ``"bottom"``); a base patch fixes only what the body stands on.
+    """
+    p = Table(t.src, t.key("fixed"), t.data["fixed"], ("below", "box", "sphere"))
+    if p.has("below"):
+        for k in ("box", "sphere"):
+            if p.has(k):
+                raise p.fail(k, "one of below, box or sphere", got=p.data[k])
+        h = p.num("below", "a height in metres >= 0 above the body's lowest node (along D)", lo=0)
+        nodes = grid.nodes()
+        d = grid.rest_positions(dtype=torch.float64)[0, 0]
+        lowest = float(d[nodes].min())
+        return nodes & (d <= lowest + h + 1e-9 * max(grid.spacing))
+    return region_mask(p, grid)
+
+
 def _boundary(t: Table, grid: Grid) -> dict:
     args = {}
     fixed = None
     if t.has("fixed"):
-        fixed = faces(t, "fixed", grid)
+        fixed = _fixed_patch(t, grid) if isinstance(t.data["fixed"], dict) else faces(t, "fixed", grid)
     if t.has("fixed_nodes"):
         nodes = node_list(t, "fixed_nodes", grid)
         fixed = nodes if fixed is None else fixed | nodes
@@ -592,6 +644,22 @@ def _static(t: Table) -> dict:
     )
 
 
+def _settle(t: Table) -> bool | float:
+    """``[integrator] settle``: true, a positive number of seconds, or false (the default)."""
+    settle = t.data.get("settle", False)
+    if settle is not False and not (settle is True or (is_number(settle) and settle > 0)):
+        raise t.fail("settle", "true or a positive number of seconds (settle under gravity before the run)", got=settle)
+    return settle if isinstance(settle, bool) else float(settle)
+
+
+def _knoche_needs(t: Table, grid: Grid) -> None:
+    """The knoche integrator's ``material`` (also where a sweep edits a scene past the reader's check) and 6 neighbours."""
+    if not t.has("material"):
+        raise t.fail("material", INTEGRATOR_OPTIONS["knoche"]["material"] + " (the knoche integrator needs it)")
+    if grid.topology != 6:
+        raise t.src.error("grid.topology", "6 for the knoche integrator", got=grid.topology)
+
+
 def _integrator(t: Table, grid: Grid) -> dict:
     name = t.text("name", "one of " + ", ".join(f'"{n}"' for n in NAMES), default="symplectic", choices=NAMES)
     options = INTEGRATOR_OPTIONS[name]
@@ -600,6 +668,10 @@ def _integrator(t: Table, grid: Grid) -> dict:
             own = ", ".join(options) if options else "none"
             raise t.fail(k, f"one of the keys {', '.join(SECTIONS['integrator'])} (options of {name}: {own})", got=k)
     if name == "static":
+        if t.has("settle"):
+            raise t.fail(
+                "settle", 'no settle with name = "static" (its solve already starts from rest)', got=t.data["settle"]
+            )
         return _static(t)
     kwargs = {}
     for k, expected in options.items():
@@ -630,8 +702,8 @@ def _integrator(t: Table, grid: Grid) -> dict:
             kwargs[k] = float(w) if w.dim() == 0 else w
         else:
             kwargs[k] = t.num(k, expected, lo=0, lo_open=True)
-    if name == "knoche" and grid.topology != 6:
-        raise t.src.error("grid.topology", "6 for the knoche integrator", got=grid.topology)
+    if name == "knoche":
+        _knoche_needs(t, grid)
     with t.src.located(t.name):
         integrator = INTEGRATORS[name](**kwargs)
 
@@ -648,6 +720,7 @@ def _integrator(t: Table, grid: Grid) -> dict:
     device = _device(t)
     return dict(
         integrator=integrator,
+        settle=_settle(t),
         dt=dt if dt == "auto" else float(dt),
         safety=t.num("safety", "a number in (0, 1]", default=0.9, lo=0, hi=1, lo_open=True),
         steps=t.integer("steps", "an integer >= 0 (number of steps)"),
@@ -703,6 +776,78 @@ def _check_static(src: Source, data: dict, out: Table) -> None:
             )
 
 
+#: ``up``: the mesh axis that becomes the lattice's axis D ("up"), with a sign
+UP_AXES = ("x", "y", "z", "-x", "-y", "-z")
+
+
+def _up_rotation(up: str) -> np.ndarray:
+    """The rotation ``(3, 3)`` taking mesh ``(x, y, z)`` to lattice ``(D, H, W)`` with mesh axis ``up`` along +D.
+
+    ``"x"``: D, H, W = x, y, z; ``"y"``: y, z, x; ``"z"``: z, x, y (cyclic, so a proper rotation that keeps
+    the mesh's inside in); a minus sign turns D and H round.
+    """
+    axis = "xyz".index(up[-1])
+    R = np.zeros((3, 3))
+    for row in range(3):
+        R[row, (axis + row) % 3] = 1.0
+    if up.startswith("-"):
+        R[:2] *= -1.0
+    return R
+
+
+def _up_value(src: Source, key: str, value) -> str:
+    if value not in UP_AXES:
+        raise src.error(
+            key,
+            'the mesh axis that points up (becomes the lattice axis D): "x" (default), "y", "z", "-x", "-y" or "-z"',
+            got=value,
+        )
+    return value
+
+
+def _surface_ups(src: Source, items) -> list | None:
+    """The ``up`` of each ``[[surfaces]]`` table (``"x"`` where not given), or None when no table gives one."""
+    if not isinstance(items, list) or not any(isinstance(i, dict) and "up" in i for i in items):
+        return None
+    return [
+        _up_value(src, f"surfaces[{n}].up", i.get("up", "x")) if isinstance(i, dict) else "x"
+        for n, i in enumerate(items)
+    ]
+
+
+@contextmanager
+def _up_mesh(t: Table, base):
+    """A ``[grid]`` table and folder whose ``mesh`` is turned so that its ``up`` axis is D (a context).
+
+    Without ``up`` (or ``up = "x"``) the table (less ``up``) and the folder; else a copy of the table
+    naming the turned mesh, written to a temporary folder that is removed afterwards.
+    """
+    if not t.has("up"):
+        yield t, Path(base)
+        return
+    if not t.has("mesh"):
+        raise t.fail("up", "no up without mesh (a box body has axis D up)", got=t.data["up"])
+    up = _up_value(t.src, t.key("up"), t.data["up"])
+    data = {k: v for k, v in t.data.items() if k != "up"}
+    if up == "x":
+        yield Table(t.src, t.name, data, tuple(data)), Path(base)
+        return
+    import tempfile
+
+    import trimesh
+
+    from ..mesh.surfaces import load_mesh
+
+    mesh = t.text("mesh", "a mesh file name (relative to the scene file)")
+    with t.src.located(t.key("mesh")):
+        v, f = load_mesh(Path(base) / mesh)
+    with tempfile.TemporaryDirectory(prefix="torchdeform-up-") as folder:
+        turned = Path(folder) / (Path(mesh).stem + ".ply")
+        trimesh.Trimesh(vertices=v @ _up_rotation(up).T, faces=f, process=False).export(turned)
+        data["mesh"] = str(turned)
+        yield Table(t.src, t.name, data, tuple(data)), Path(base)
+
+
 def _grid_and_body(src: Source, data: dict, section: dict, base: Path, *, surfaces: bool = False) -> tuple:
     """``(grid, model keywords, embedded surfaces or None)`` of ``[grid]`` and the material sections."""
     if "tissues" in data and not section["grid"].has("labels"):
@@ -711,9 +856,20 @@ def _grid_and_body(src: Source, data: dict, section: dict, base: Path, *, surfac
     if "surfaces" in data:  # the user's meshes, embedded in the lattice (scene.anatomy)
         from .anatomy import surfaces_section
 
-        user = surfaces_section(src, data["surfaces"], base)
+        ups = _surface_ups(src, data["surfaces"])
+        items = [{k: v for k, v in item.items() if k != "up"} for item in data["surfaces"]] if ups else data["surfaces"]
+        user = surfaces_section(src, items, base)
+        for n, name in enumerate(list(user)):
+            if ups and ups[n] != "x":
+                v, f, key, file = user[name]
+                user[name] = (np.ascontiguousarray(np.asarray(v) @ _up_rotation(ups[n]).T), f, key, file)
     if section["grid"].has("labels"):
         from .anatomy import label_body_section
+
+        if section["grid"].has("up"):
+            raise section["grid"].fail(
+                "up", "no up with labels (a body of labels keeps its LPS frame)", got=section["grid"].data["up"]
+            )
 
         grid, model_args, embedded = label_body_section(src, data, section, base, user=user, surfaces=surfaces)
     else:
@@ -724,7 +880,9 @@ def _grid_and_body(src: Source, data: dict, section: dict, base: Path, *, surfac
                 'times [t1, t2, ...]; "embedded" needs a body of labels ([grid] labels) or [[surfaces]]',
                 got="embedded",
             )
-        grid = grid_section(section["grid"], base)
+        with _up_mesh(section["grid"], base) as (table, folder):
+            grid = grid_section(table, folder)
+        _plausible_size(section["grid"], grid)
         if user:
             from .anatomy import cover_surfaces
 
@@ -882,6 +1040,8 @@ def mass_spring_scene(src: Source, data: dict, base: Path, *, name: str = "scene
             "seams": tt.text("seams", " or ".join(f'"{m}"' for m in SEAM_METHODS), default="3d", choices=SEAM_METHODS),
         }
     scene.build(device="cpu")
+    if tools is not None:  # last: a scene with a mistake says that first, and only that
+        check_tool_reach(src, tools, grid)
     return scene
 
 

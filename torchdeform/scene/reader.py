@@ -5,7 +5,7 @@ This is the public sibling API of the scene modules: :mod:`.mass_spring` and
 
 * :class:`Source`: a file's path and text; builds :class:`~torchdeform.errors.ConfigError` s that
   name the file and the line of a dotted key (``loads[1].force``).
-* :class:`Table`: one TOML table with typed getters (``num``, ``integer``, ``text``, ``vec``,
+* :class:`Table`: one TOML table with typed getters (``num``, ``integer``, ``text``, ``flag``, ``vec``,
   ``index``, ``per_class``, ``one_of``) that raise located errors.
 * :func:`read`: the file, parsed and checked for known sections.
 * the shared sections: :func:`grid_section` (``[grid]``), :func:`faces`, :func:`node_list`
@@ -51,6 +51,13 @@ __all__ = [
     "node_list",
     "drags_section",
     "region_mask",
+    "parse_value",
+    "parse_set",
+    "with_values",
+    "LISTS",
+    "check_sections",
+    "SceneErrors",
+    "REQUIRED_OPTIONS",
     "SECTIONS",
     "REQUIRED",
     "MISSING",
@@ -68,6 +75,7 @@ SECTIONS = {
         "scale",
         "label_spacing",
         "surface_labels",
+        "up",
     ),
     "material": (
         "stiffness",
@@ -89,7 +97,7 @@ SECTIONS = {
     "boundary": ("fixed", "fixed_nodes", "home", "anchors", "decay", "gravity"),
     "loads": ("node", "force", "face", "traction", "start", "ramp"),
     "drags": ("nodes", "face", "box", "path"),
-    "integrator": ("name", "dt", "safety", "steps", "dtype", "device", "threads", "engine"),
+    "integrator": ("name", "dt", "safety", "steps", "dtype", "device", "threads", "engine", "settle"),
     "tools": (
         "name",
         "shape",
@@ -111,13 +119,14 @@ SECTIONS = {
         "stiffness",
         "damping",
         "grasp",
+        "start_inside",
     ),
     "strain_limit": ("min", "max", "passes", "update_velocity"),
     "cuts": ("origin", "u", "v", "triangle", "edges", "at", "gape", "tool", "edge", "start", "stop", "pieces"),
     "cautery": ("tool", "at", "every", "start", "stop"),
     "tear": ("max_strain", "max_force", "one_per_step", "start"),
     "coagulate": ("at", "box", "sphere", "viscosity_factor"),
-    "surfaces": ("file", "scale", "name"),
+    "surfaces": ("file", "scale", "name", "up"),
     "output": (
         "record_every",
         "name",
@@ -288,6 +297,15 @@ class Table:
             raise self.fail(k, expected, got=v)
         return v
 
+    def flag(self, k, *, expected="true or false", default=MISSING) -> bool:
+        """A TOML boolean (``true``/``false``); a string (``"no"``), number or anything else is refused."""
+        if k not in self.data:
+            return self.raw(k, expected, default=default)
+        v = self.data[k]
+        if not isinstance(v, bool):
+            raise self.fail(k, expected + " (a TOML boolean, without quotes)", got=v)
+        return v
+
     def vec(self, k, expected, *, default=MISSING):
         """Three finite numbers."""
         if k not in self.data:
@@ -338,6 +356,68 @@ class Table:
             raise self.fail(k, f"no {k} together with {self.name}.{other}", got=self.data[k])
 
 
+# ------------------------------------------------------------------ values from the command line
+#: sections of array tables (``[[loads]]``): they hold lists, not keys a ``--set`` could name
+LISTS = ("loads", "drags", "regions", "tissues", "tools", "cuts", "cautery", "coagulate", "surfaces")
+
+
+def parse_value(text: str):
+    """A TOML value (``1`` int, ``2.5`` float, ``true``, ``"name"``, ``[4, 4, 8]``), else the text as a string.
+
+    Examples:
+        >>> parse_value("2e-4"), parse_value("true"), parse_value("liver"), parse_value("[4, 4, 8]")
+        (0.0002, True, 'liver', [4, 4, 8])
+    """
+    text = text.strip()
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def parse_set(text: str, *, several: bool = True) -> tuple[str, Any]:
+    """``KEY=V1,V2,...`` (``torchdeform sweep --set``) -> ``(key, [values])``; values as :func:`parse_value`.
+
+    With ``several=False`` (``torchdeform run --set KEY=VALUE``) the value is one TOML value (commas
+    and all: ``grid.shape=[4,4,8]``) and is returned as is.
+
+    Examples:
+        >>> parse_set("material.stiffness=1,2.5,4e3")
+        ('material.stiffness', [1, 2.5, 4000.0])
+        >>> parse_set("grid.shape=[4,4,8]", several=False)
+        ('grid.shape', [4, 4, 8])
+    """
+    key, sep, values = str(text).partition("=")
+    key = key.strip()
+    if not sep or not key or not values.strip():
+        example = (
+            "KEY=V1,V2,... (e.g. material.stiffness=1,2,4)" if several else "KEY=VALUE (e.g. integrator.steps=200)"
+        )
+        raise ConfigError("--set", example, got=text)
+    if not several:
+        return key, parse_value(values)
+    return key, [parse_value(v) for v in values.split(",")]
+
+
+def with_values(data: dict, values: dict) -> dict:
+    """A copy of a parsed scene file ``data`` with the dotted keys of ``values`` set (sections made as needed).
+
+    Examples:
+        >>> with_values({"integrator": {"steps": 10}}, {"integrator.steps": 200, "output.name": "x"})
+        {'integrator': {'steps': 200}, 'output': {'name': 'x'}}
+    """
+    import copy
+
+    data = copy.deepcopy(data)
+    for key, value in values.items():
+        section, _, k = key.partition(".")
+        table = data.setdefault(section, {})
+        if not isinstance(table, dict):
+            raise ConfigError(f"--set {key}", f"a scene whose [{section}] is a table", got=table)
+        table[k] = value
+    return data
+
+
 # ------------------------------------------------------------------ reading files
 def read(path) -> tuple[Source, dict]:
     """Read and parse a scene file; check its top-level ``model`` key and its sections.
@@ -360,19 +440,116 @@ def read(path) -> tuple[Source, dict]:
         line = int(m.group(1)) if m else None
         msg = re.sub(r"\s*\(at line \d+, column \d+\)", "", msg) + (f" at column {m.group(2)}" if m else "")
         raise ConfigError("toml", f"valid TOML syntax ({msg})", file=str(path), line=line) from None
+    check_sections(src, data)
+    return src, data
+
+
+#: the sections and their keys of a ChainMail scene (``model = "chainmail"``)
+CHAINMAIL_SECTIONS = {
+    "grid": SECTIONS["grid"],
+    "chainmail": SECTIONS["chainmail"],
+    "boundary": ("fixed", "fixed_nodes"),
+    "drags": SECTIONS["drags"],
+    "output": ("name",),
+}
+#: keys an integrator cannot run without: integrator name -> keys of ``[integrator]``
+REQUIRED_OPTIONS = {"knoche": ("material",)}
+
+
+class SceneErrors(ConfigError):
+    """Several problems of one scene file, reported together: one line each (``errors``, in file order).
+
+    ``key``, ``file`` and ``line`` are those of the first problem.
+    """
+
+    def __init__(self, errors: list):
+        first = errors[0]
+        super().__init__(
+            first.key, first.expected, got=first.got, file=first.file, line=first.line, show_got=first.show_got
+        )
+        self.errors = list(errors)
+        self.args = ("\n".join(str(e) for e in self.errors),)
+
+    def __str__(self) -> str:
+        return self.args[0]
+
+
+def _sorted_by_line(errors: list) -> list:
+    return sorted(errors, key=lambda e: (e.line is None, e.line or 0))
+
+
+def check_sections(src: Source, data: dict) -> None:
+    r"""Check a parsed scene file's model, sections and keys all at once (before any value is read).
+
+    Every unknown section, unknown key (of each table and each entry of an array table), missing
+    required section and missing key that the chosen integrator needs is collected; one problem
+    raises its :class:`ConfigError`, several raise a :class:`SceneErrors` of one line each.
+
+    Examples:
+        >>> src = Source(path="s.toml", text="[grid]\nshap = [2, 2, 2]\n[integrater]\n")
+        >>> try:
+        ...     check_sections(src, {"grid": {"shap": [2, 2, 2]}, "integrater": {}})
+        ... except SceneErrors as e:
+        ...     print(str(e))
+        s.toml:2: grid.shap: expected one of the keys shape, mesh, ..., got 'shap'
+        s.toml:3: integrater: expected one of the sections [grid], ..., got 'integrater'
+        s.toml: material: expected a [material] section (required)
+        s.toml: integrator: expected a [integrator] section (required)
+    """
     model = data.get("model", "mass-spring")  # top-level key: which deformation model
     if model not in ("mass-spring", "chainmail"):
         raise src.error("model", '"mass-spring" (default) or "chainmail"', got=model)
-    for name in data:
-        if name not in SECTIONS and name != "model":
-            raise src.error(name, "one of the sections " + ", ".join(f"[{s}]" for s in SECTIONS), got=name)
+    sections = CHAINMAIL_SECTIONS if model == "chainmail" else SECTIONS
+    errors = _sorted_by_line(_unknown(src, data, sections, chainmail=model == "chainmail"))
     labels = isinstance(data.get("grid"), dict) and "labels" in data["grid"]  # the tissues give the material
     for name in ("grid", "chainmail") if model == "chainmail" else REQUIRED:
         if name == "material" and labels:
             continue
         if name not in data:
-            raise src.error(name, f"a [{name}] section (required)")
-    return src, data
+            errors.append(src.error(name, f"a [{name}] section (required)"))
+    integrator = data.get("integrator")
+    if model != "chainmail" and isinstance(integrator, dict):
+        for k in REQUIRED_OPTIONS.get(str(integrator.get("name")), ()):
+            if k not in integrator:
+                errors.append(src.error(f"integrator.{k}", f"the {integrator['name']} integrator's {k} (required)"))
+    if len(errors) == 1:
+        raise errors[0]
+    if errors:
+        raise SceneErrors(errors)
+
+
+def _unknown(src: Source, data: dict, sections: dict, *, chainmail: bool) -> list:
+    """The errors of unknown sections and of unknown keys in known ones (array tables entry by entry)."""
+    errors = []
+    for name in data:
+        if name == "model":
+            continue
+        if name not in sections:
+            expected = "one of the sections " + ", ".join(f"[{s}]" for s in sections)
+            if chainmail and name in SECTIONS:
+                expected += ' (no such section in a scene with model = "chainmail")'
+            errors.append(src.error(name, expected, got=name))
+    for name, value in data.items():
+        if name not in sections:
+            continue
+        if name == "integrator":  # its keys depend on the integrator: the model kind checks them
+            continue
+        allowed = sections[name]
+        tables = [(name, value)] if name not in LISTS else None
+        if tables is None:
+            if not isinstance(value, list):
+                errors.append(src.error(name, f"[[{name}]] tables", got=value))
+                continue
+            tables = [(f"{name}[{n}]", item) for n, item in enumerate(value)]
+        for where, table in tables:
+            if not isinstance(table, dict):
+                errors.append(src.error(where, "a table", got=table))
+                continue
+            known = ", ".join(k for k in sections[name] if k in allowed)
+            for k in table:
+                if k not in allowed:
+                    errors.append(src.error(f"{where}.{k}", "one of the keys " + known, got=k))
+    return errors
 
 
 def grid_section(t: Table, base: Path) -> Grid:

@@ -18,12 +18,14 @@ from typing import Any, cast
 import numpy as np
 import torch
 
+from ..errors import TorchdeformError
 from ..options import one_line_warnings
 from ..outputs import NonFiniteOutputError, RunFolder, manifest, non_finite_keys, require_finite, save_figure
 from ..sim.engine import Engine, simulate
 from ..sim.model import Model, State
 from ..sim.stability import check_dt, time_step_bound
 from ..sim.static import solve_static
+from ..sim.threads import after_step_threads
 from .chainmail import ChainMailScene, chainmail_scene
 from .mass_spring import EXPLICIT, Scene, StaticSolve, StaticSolveError, mass_spring_scene
 from .reader import read
@@ -42,6 +44,7 @@ __all__ = [
     "scene_animation",
     "tool_forces_at",
     "scene_engine",
+    "settle_state",
 ]
 
 
@@ -262,6 +265,9 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
     if integrator.name in EXPLICIT:
         check_dt(model, dt, integrator, bound=bound)
     state = model.rest_state()
+    settled = None
+    if scene.settle:
+        state, settled = settle_state(scene, model, dt)
     callback, events = recorder, None
     if scene.topology is not None:  # topology changes edit a copy of the model
         if scene.topology.checked_end is None:  # dt = "auto": the run's length is known now
@@ -299,6 +305,7 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
         engine=engine,
     )
     wall = time.perf_counter() - start
+    torch.set_num_threads(after_step_threads())  # outputs beside a busy process: one thread (run_scene restores)
     series = None
     if energies is not None:
         if scene.steps % scene.frames_every:  # the final frame, appended by run_outputs
@@ -308,6 +315,8 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
     summary, (t, x, v, series) = run_outputs(
         scene, model, integrator, dt, bound, final, rec, wall, engine.summary(), out, series
     )
+    if settled is not None:
+        summary["settle"] = settled
     if recorder is not None:
         assert scene.tools is not None  # the recorder records the scene's tools
         summary.update(
@@ -342,6 +351,52 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
         )
     finish_outputs(summary, out, t, series, f"{scene.name}: {integrator.name}, dt = {dt:.3g} s")
     return summary
+
+
+#: seconds of damped settling for ``settle = true`` where the static solve does not converge
+SETTLE_TIME = 0.2
+
+
+def settle_state(scene: Scene, model: Model, dt: float) -> tuple:
+    """The state a run with ``[integrator] settle`` starts from: the body at rest under gravity alone.
+
+    Loads and tools are left out (they start with the run); fixed and dragged nodes stay where they
+    are at ``t = 0``. The static solve (:func:`~torchdeform.sim.static.solve_static`, float64, relative
+    residual 1e-6) gives the equilibrium; where it does not converge (a body that is not held, a term
+    it does not support), damped steps of the scene's integrator and ``dt`` do, for ``settle`` seconds
+    (``SETTLE_TIME`` for ``true``) with a velocity decay of 20 / that time. Velocities are then zero
+    and the time 0.
+
+    Returns:
+        ``(state, info)``: the start state and ``{"method": "static" | "steps", ...}`` for ``summary.json``.
+    """
+    args = {**scene.model_args, "loads": None, "interactions": None}
+    rest = model.rest_state()
+    start = time.perf_counter()
+    info: dict = {}
+    x = None
+    held = any(args.get(k) is not None for k in ("fixed", "home", "anchors")) or bool(args.get("drags"))
+    try:
+        if not held:  # nothing holds the body: it falls, there is no equilibrium to solve for
+            raise TorchdeformError("a body held by nothing has no static equilibrium")
+        body = Model(scene.grid, **args, dtype=torch.float64, device=model.device)
+        eq, res = solve_static(
+            body, state=State(body.X.clone(), torch.zeros_like(body.X), t=0.0), tol=1e-6, max_iter=30
+        )
+        if res["converged"] and bool(torch.isfinite(eq.x).all()):
+            x = eq.x.to(model.dtype)
+            info = {"method": "static", "residual": res["residual"], "iterations": res["iterations"]}
+    except TorchdeformError:
+        x = None
+    if x is None:
+        seconds = SETTLE_TIME if scene.settle is True else float(scene.settle)
+        decay = max(float(args.get("decay") or 0.0), 20.0 / seconds)
+        body = Model(scene.grid, **{**args, "decay": decay}, dtype=model.dtype, device=model.device)
+        end, _ = simulate(body, rest, dt, None, duration=seconds, integrator=scene.integrator, warn=False)
+        x = end.x.detach()
+        info = {"method": "steps", "time_s": seconds, "decay_per_s": decay}
+    info["wall_time_s"] = time.perf_counter() - start
+    return model.start(State(x, torch.zeros_like(x), t=0.0)), info
 
 
 def embedded_surfaces(scene: Scene, grid, *, dtype=torch.float32, device=None) -> dict:
@@ -590,9 +645,12 @@ def run_outputs(
         **({"threads": scene.threads} if scene.threads else {}),
         "frames": len(t),
         "final_energy_J": {k: float(series[k][-1]) for k in ("kinetic", "elastic", "gravity", "total") if k in series},
-        "max_displacement_m": float(series["max_displacement"][-1]),
+        # the largest over the run (the peak); the last frame's under its own name
+        "max_displacement_m": float(series["max_displacement"].max()),
+        "final_displacement_m": float(series["max_displacement"][-1]),
         "peak_displacement_m": float(series["max_displacement"].max()),
-        "max_free_displacement_m": float(series["max_free_displacement"][-1]),
+        "max_free_displacement_m": float(series["max_free_displacement"].max()),
+        "final_free_displacement_m": float(series["max_free_displacement"][-1]),
     }
     return summary, (t, x, v, series)
 
@@ -644,7 +702,9 @@ def report(summary: dict, out_dir) -> str:
     return (
         f"{summary['name']}: {summary['steps']} {summary['integrator']['name']} steps of "
         f"{summary['dt_s']:.3g} s{bound} in {summary['wall_time_s']:.2f} s{ran}, max displacement "
-        f"{summary['max_displacement_m'] * 1e3:.3g} mm{tools}; wrote {', '.join(files)} to {out_dir}"
+        f"{summary['max_displacement_m'] * 1e3:.3g} mm (peak), final displacement "
+        f"{summary.get('final_displacement_m', summary['max_displacement_m']) * 1e3:.3g} mm{tools}; "
+        f"wrote {', '.join(files)} to {out_dir}"
     )
 
 

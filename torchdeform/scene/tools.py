@@ -59,6 +59,7 @@ Example:
 
 from __future__ import annotations
 
+import itertools
 import math
 import re
 from dataclasses import dataclass, field
@@ -67,6 +68,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..errors import ConfigWarning
 from ..interact.contact import DIRECTIONS, PenaltyContact, ProjectionContact
 from ..interact.grasp import Grasp
 from ..interact.palpation import block_means, palpation, plot_palpation, significant, work_direction
@@ -82,6 +84,7 @@ __all__ = [
     "CONTACTS",
     "ToolSet",
     "tools_section",
+    "check_tool_reach",
     "strain_limit_section",
     "palpation_option",
     "ToolRecorder",
@@ -142,6 +145,10 @@ class ToolSet:
     grasps: list = field(default_factory=list)
     strain_limit: dict | None = None
     palpation: str | None = None
+    #: per tool: ``start_inside = true`` (the tool may start inside the body)
+    start_inside: list = field(default_factory=list)
+    #: per tool: True when its table gives a ``path`` (else a ``position``)
+    paths: list = field(default_factory=list)
 
     @property
     def names(self) -> list:
@@ -320,7 +327,74 @@ def tools_section(src: Source, items, base) -> ToolSet:
         out.tools.append(tool)
         out.contacts.append((contact, kwargs))
         out.grasps.append(grasp)
+        out.start_inside.append(_flag(t, "start_inside", False))
+        out.paths.append("path" in pose)
     return out
+
+
+def _warn(src: Source, key: str, message: str) -> None:
+    """A one-line :class:`~torchdeform.errors.ConfigWarning` naming the file, the line and ``key``."""
+    import warnings
+
+    line = src.line_of(key) if src.path is not None else None
+    where = f"{src.path}:{line}: " if src.path is not None and line else ""
+    warnings.warn(f"{where}{key}: {message}", ConfigWarning, stacklevel=3)
+
+
+def _pose_times(tool: Tool) -> list:
+    """Times (s) at which to look at a tool: its waypoints and 16 points within each segment (a pose: 0)."""
+    times = list(getattr(tool._path, "times", None) or [0.0]) if tool._fn is None else [0.0]
+    out = [times[0]]
+    for a, b in itertools.pairwise(times):
+        out += [a + (b - a) * i / 16 for i in range(1, 17)]
+    return out
+
+
+@torch.no_grad()
+def check_tool_reach(src: Source, tools: ToolSet, grid) -> None:
+    """Refuse a tool that starts inside the body, warn about one that never comes near it.
+
+    At ``t = 0`` a contact tool must not hold a rest node deeper than half the spacing unless its table
+    says ``start_inside = true`` (a grasp, ``contact = "none"``, may start around the tissue): the
+    contact would fling those nodes out in the first step. Over its whole path (waypoints and 16
+    points between each two) a tool should come within the spacing (plus a grasp's margin) of a
+    rest node; one that never does touches nothing (a path in millimetres, a body in metres). A tool
+    that only cuts or burns (``contact = "none"``, no grasp) is left to the cuts' own checks.
+
+    Raises:
+        ConfigError: ``tools[n].position`` (or ``.path``) of a tool that starts inside the body.
+    """
+    X = grid.rest_positions(dtype=torch.float64)
+    nodes = grid.nodes()
+    h = min(grid.spacing)
+    far = torch.full_like(X[:, 0], math.inf)
+    for n, tool in enumerate(tools.tools):
+        kind = tools.contacts[n][0]
+        grasp = tools.grasps[n]
+        key = f"tools[{n}].{'path' if tools.paths and tools.paths[n] else 'position'}"
+        d0 = torch.where(nodes, tool.sdf(X, 0.0)[0][:, 0], far)
+        depth = -float(d0.min())
+        if kind != "none" and depth > 0.5 * h and not (tools.start_inside and tools.start_inside[n]):
+            raise src.error(
+                key,
+                f"a start pose outside the body: tool {tool.name!r} holds rest nodes {depth * 1e3:.3g} mm deep at "
+                f"t = 0 (spacing {h * 1e3:.3g} mm), and its contact would fling them out in the first step; "
+                f"move it out, or set tools[{n}].start_inside = true if that is meant",
+            )
+        if kind == "none" and grasp is None:
+            continue  # a tool that only cuts or burns: its blade's reach is checked with the cuts
+        reach = h + (grasp.get("margin", 0.0) if grasp else 0.0)
+        nearest = min(float(torch.where(nodes, tool.sdf(X, s)[0][:, 0], far).min()) for s in _pose_times(tool))
+        if nearest > reach:
+            lo = [float(c) for c in X[0].flatten(1)[:, nodes.flatten()].amin(1)]
+            hi = [float(c) for c in X[0].flatten(1)[:, nodes.flatten()].amax(1)]
+            _warn(
+                src,
+                key,
+                f"tool {tool.name!r} never comes within {reach * 1e3:.3g} mm of the body (it stays {nearest:.3g} m "
+                f"away; the body spans [{', '.join(f'{c:.3g}' for c in lo)}] .. [{', '.join(f'{c:.3g}' for c in hi)}]"
+                " m): positions are in metres, a path in millimetres needs the factor 0.001",
+            )
 
 
 def strain_limit_section(t: Table) -> dict:

@@ -41,6 +41,8 @@ Example:
 
 from __future__ import annotations
 
+import functools
+import math
 import statistics
 import time
 from typing import ClassVar
@@ -112,15 +114,22 @@ class Engine:
         ('eager', 'auto: a gradient is needed (the packed engines run without autograd)')
     """
 
-    #: expected start-up costs (s) on 2 cores: ``"native"``, building the C spring kernel (1-3 s,
-    #: nothing once it is in the disk cache); ``"explicit"``, compiling an explicit step around
+    #: expected start-up costs (s) on 2 cores: ``"native"``, building the C spring kernel (1-3 s);
+    #: ``"native_built"``, loading it from the disk cache and packing the model; ``"explicit"``, compiling an explicit step around
     #: that kernel (64^3, 26 neighbours: 3 s per grid shape, 6.7 s with empty caches, plus ~3 s
     #: to import inductor); where the kernel cannot run, ``"reduction"`` and ``"gather"``, the
     #: explicit step in inductor's two spring sums (7-14 s and 24-60 s); ``"implicit"``, the
     #: implicit step's one graph with its CG loop (the 40 x 10 x 10 beam: 27-34 s to build, 2-7 s
     #: when inductor's disk cache holds it from an earlier process; a Newton iteration doubles the
     #: graph, and this cost has no way to know beforehand which case it is)
-    COMPILE_S: ClassVar[dict] = {"native": 2.0, "explicit": 8.0, "reduction": 15.0, "gather": 40.0, "implicit": 60.0}
+    COMPILE_S: ClassVar[dict] = {
+        "native": 2.0,
+        "native_built": 0.05,
+        "explicit": 8.0,
+        "reduction": 15.0,
+        "gather": 40.0,
+        "implicit": 60.0,
+    }
     #: what the gather form saves per step against the reduction form, as a fraction of an eager
     #: step, when compiled for several threads (64^3, 26 neighbours, 2 cores: eager 27 ms,
     #: reduction 3.6 ms, gather 2.45 ms)
@@ -212,12 +221,15 @@ class Engine:
         to_come = remaining * self.eager_ms / 1e3
         why_not = "no model given" if model is None else self.native_blocker(model, integrator)
         self.choice = "native" if why_not is None else "compiled"
+        built = why_not is None and model is not None and _kernel_built(model)  # cached: nothing to wait for
         expected = self.expected["native"] if why_not is None else self.expected_compile_s(integrator, model=model)
+        expected = min(expected, self.expected["native_built"]) if built else expected
         worth = to_come > self.payback * expected
         self.reason = (
             f"auto: {remaining:,} steps x {self.eager_ms:.3g} ms eager = {to_come:.3g} s "
             f"{'>' if worth else '<='} {self.payback:g} x ~{expected:g} s "
             f"{'C kernel build' if why_not is None else 'compile'}"
+            f"{' (built before)' if built else ''}"
         )
         if not worth:
             self.choice = None
@@ -396,6 +408,16 @@ class Engine:
         return self.step
 
 
+def _kernel_built(model: Model) -> bool:
+    """Whether ``model``'s C spring kernel is already built (loaded, or in the disk cache)."""
+    from .packed import PackedModel
+
+    try:
+        return native.is_built(model if isinstance(model, PackedModel) else PackedModel(model, share=True))
+    except (ValueError, TypeError, NotImplementedError):  # a model the packed layout does not take
+        return False
+
+
 def _median_ms(samples: list) -> float:
     """Median step time (ms) of a probe, its first step (a warm-up) left out."""
     return 1e3 * statistics.median(samples[1:] if len(samples) > 1 else samples)
@@ -405,12 +427,51 @@ def _reads_positions(callback) -> bool:
     return callback is not None and getattr(callback, "reads_positions", True)
 
 
+def _steps_of(steps, duration, dt: float) -> int:
+    """The number of steps of :func:`simulate`: ``steps``, or those that cover ``duration`` seconds."""
+    if (steps is None) == (duration is None):
+        raise ConfigError(
+            "steps",
+            "exactly one of steps (a number of steps) or duration (seconds)",
+            got="both" if steps else "neither",
+        )
+    if duration is None:
+        return int(steps)
+    if (
+        isinstance(duration, bool)
+        or not isinstance(duration, (int, float))
+        or not math.isfinite(duration)
+        or duration < 0
+    ):
+        raise ConfigError("duration", "a simulated time in seconds >= 0", got=duration)
+    n = duration / dt
+    return max(0, round(n) if abs(n - round(n)) < 1e-6 else math.ceil(n))
+
+
+def _steps_or_duration(fn):
+    """``fn(model, state, dt, steps, *, duration=None, ...)`` callable without ``steps`` when ``duration`` is given.
+
+    ``steps`` stays the one positional run length (the public signature shows it so); a call without
+    it passes ``steps=None`` (then ``duration`` must be given).
+    """
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        if len(args) < 4 and "steps" not in kwargs:  # duration alone (neither: one clear error)
+            kwargs["steps"] = None
+        return fn(*args, **kwargs)
+
+    return call
+
+
+@_steps_or_duration
 def simulate(
     model: Model,
     state: State,
     dt: float,
-    steps: int,
+    steps: int | None,
     *,
+    duration: float | None = None,
     integrator: Integrator | None = None,
     loads=None,
     record_every: int | None = None,
@@ -427,7 +488,10 @@ def simulate(
         model: the :class:`~torchdeform.sim.model.Model`.
         state: the start state, positions and velocities ``(B, 3, D, H, W)``.
         dt: time step (s), > 0.
-        steps: number of steps (>= 0).
+        steps: number of steps (>= 0); may be left out (or None) when ``duration`` is given.
+        duration: instead of ``steps``: the simulated time (s, >= 0), ``ceil(duration / dt)`` steps (a
+            duration within a millionth of a step of a whole number of steps takes that number):
+            ``simulate(model, state, dt, duration=0.5)``.
         integrator: default :class:`~torchdeform.sim.integrators.SymplecticEuler`.
         loads: extra node forces as for :meth:`Integrator.step`, or None.
         record_every: keep every k-th state (positions and velocities) on the CPU, or None.
@@ -479,13 +543,17 @@ def simulate(
     integrator = integrator or SymplecticEuler()
     engine = engine if isinstance(engine, Engine) else Engine(mode=engine)
     dt = positive_dt(dt)
-    steps = int(steps)
+    steps = _steps_of(steps, duration, dt)
     if steps < 0:
         raise ConfigError("steps", "an integer >= 0", got=steps)
     if warn and integrator.name not in ("implicit", "knoche", "adaptive", "projective"):
         check_dt(model, dt, integrator)
     monitor = DivergenceMonitor(model, dt, integrator)
     state = model.start(state)  # fixed nodes at rest, dragged nodes on their path
+    for name, value in (("state.x", state.x), ("state.v", state.v)):  # even 0 steps return no NaN
+        bad = int((~torch.isfinite(value.detach())).sum())
+        if bad:
+            raise ConfigError(name, "a finite start state", got=f"{bad} non-finite values")
     ts, xs, vs = [], [], []
 
     def record(st):

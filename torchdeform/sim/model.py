@@ -21,7 +21,7 @@ import torch
 
 from ..errors import ConfigError
 from .forces import as_vec3, home_force
-from .grid import CLASSES, Grid
+from .grid import CLASSES, FACES, Grid
 from .laws import as_law
 from .material import (
     CELL_SHARE,
@@ -82,6 +82,26 @@ def _as_tensor(value, key, dtype, device) -> torch.Tensor:
     if not bool(torch.isfinite(t).all()):
         raise ConfigError(key, "finite values (no NaN or inf)", got="non-finite values", show_got=True)
     return t
+
+
+def _fixed_mask(fixed, grid: Grid) -> torch.Tensor:
+    """The fixed nodes, bool ``(D, H, W)`` on the CPU, of a mask or of face names (one or a list)."""
+    names = [fixed] if isinstance(fixed, str) else fixed
+    if isinstance(names, (list, tuple)) and names and all(isinstance(n, str) for n in names):
+        mask = torch.zeros(grid.shape, dtype=torch.bool)
+        for name in names:
+            if name not in FACES:
+                raise ConfigError(
+                    "fixed", "a face name (" + ", ".join(FACES) + "), a list of them or a bool mask", got=name
+                )
+            mask = mask | grid.face(name)
+        return mask
+    try:
+        return torch.as_tensor(fixed, dtype=torch.bool).cpu()
+    except (TypeError, ValueError, RuntimeError):
+        raise ConfigError(
+            "fixed", f"a bool mask of shape {grid.shape}, a face name or a list of them", got=fixed
+        ) from None
 
 
 def spring_param(value, grid: Grid, key: str, dtype, device, *, allow_zero=True) -> torch.Tensor:
@@ -184,7 +204,9 @@ class Model:
         mass: node mass (kg): a number, ``(D, H, W)`` or ``(B, 1, D, H, W)``; or
         density: kg/m^3, lumped from cell volumes (:func:`lumped_mass`). Exactly one of the two.
         gravity: acceleration ``(gd, gh, gw)`` m/s^2, or None.
-        fixed: bool ``(D, H, W)`` of nodes that never move, or None.
+        fixed: bool ``(D, H, W)`` of nodes that never move, a face name (``"bottom"`` = ``"d-"``,
+            ``"top"`` = ``"d+"``, ``"h-"`` ... ``"w+"``, as ``[boundary] fixed`` of a scene) or a list of
+            them, or None.
         drags: list of :class:`~torchdeform.sim.forces.Drag` (prescribed motion), or None.
         home: stiffness (N/m) of home springs to every node's rest position (Punak), or None.
         anchors: ``(stiffness, every)`` anchor springs on every k-th node (Radetzky), or None.
@@ -298,7 +320,7 @@ class Model:
         self.drags = list(drags or [])
         constrained = ~grid.nodes()
         if fixed is not None:
-            fixed = torch.as_tensor(fixed, dtype=torch.bool).cpu()  # a mask on any device
+            fixed = _fixed_mask(fixed, grid)  # a mask on any device, or face names as scenes give them
             if tuple(fixed.shape) != grid.shape:
                 raise ConfigError("fixed", f"a bool mask of shape {grid.shape}", got=tuple(fixed.shape))
             constrained = constrained | fixed
@@ -383,6 +405,14 @@ class Model:
             >>> float(v[0, :, 0].abs().max()), round(float(v[0, :, 1:].min()), 6)    # fixed base at rest
             (0.0, 0.1)
         """
+        x = getattr(state, "x", None)
+        if torch.is_tensor(x) and (x.dim() == 4 or (x.dim() == 5 and tuple(x.shape[1:]) != (3, *self.grid.shape))):
+            raise ConfigError(
+                "state",
+                f"positions and velocities of shape (B, 3, D, H, W) = (B, 3, {', '.join(map(str, self.grid.shape))})"
+                + (": add the batch dimension, State(x[None], v[None])" if x.dim() == 4 else ""),
+                got=tuple(x.shape),
+            )
         if self.free is None:
             return state
         v = state.v * self.free

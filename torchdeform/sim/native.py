@@ -535,6 +535,13 @@ def unavailable() -> str | None:
 _kernels: dict = {}  # loaded functions by the custom op's ``kernel`` argument (:func:`kernel`)
 
 
+def _library_path(src: str, stem: str, flags) -> Path:
+    """Where :func:`load_library` caches ``src`` built with ``flags``: keyed by source, compiler, CPU and flags."""
+    cmd, version, cpu = _compiler()
+    key = hashlib.sha256("\n".join([src, str(cmd), version, cpu, " ".join(flags)]).encode()).hexdigest()[:20]
+    return cache_dir() / f"{stem}-{key}.so"
+
+
 def load_library(src: str, stem: str) -> ctypes.CDLL:
     """Build C source ``src`` (or take it from the disk cache) and load it.
 
@@ -544,11 +551,9 @@ def load_library(src: str, stem: str) -> ctypes.CDLL:
     Raises:
         NativeBuildError: no flag set built and loaded (the message has the compiler's words).
     """
-    cmd, version, cpu = _compiler()
-    last = ""
+    cmd, last = _compiler()[0], ""
     for flags in FLAG_SETS:
-        key = hashlib.sha256("\n".join([src, cmd, version, cpu, " ".join(flags)]).encode()).hexdigest()[:20]
-        so = cache_dir() / f"{stem}-{key}.so"
+        so = _library_path(src, stem, flags)
         if not so.exists():
             so.parent.mkdir(parents=True, exist_ok=True)
             with tempfile.TemporaryDirectory(dir=so.parent) as tmp:
@@ -620,6 +625,27 @@ def kernel(var: Variant) -> str:
     name = name_of(var)
     _function(name)
     return name
+
+
+def is_built(pm) -> bool:
+    """Whether the spring kernel of packed model ``pm`` is loaded or in the disk cache (no build to wait for).
+
+    Examples:
+        >>> import torch
+        >>> import torchdeform as td
+        >>> from torchdeform.sim.packed import PackedModel
+        >>> pm = PackedModel(td.Model(td.Grid((3, 3, 3), spacing=0.01), stiffness=10.0, mass=1e-3))
+        >>> _ = kernel(variant_of(pm)) if unavailable() is None else None
+        >>> is_built(pm) == (unavailable() is None)
+        True
+    """
+    if unavailable() is not None:
+        return False
+    var = variant_of(pm)
+    if name_of(var) in _kernels:
+        return True
+    src = source(var)
+    return any(_library_path(src, "springs", flags).exists() for flags in FLAG_SETS)
 
 
 def _function(name: str):

@@ -38,6 +38,7 @@ __all__ = [
     "suggest_dt",
     "check_dt",
     "DivergenceMonitor",
+    "likely_causes",
 ]
 
 
@@ -261,10 +262,12 @@ class DivergenceMonitor:
             e_grav = float(model.mass.expand(-1, -1, *model.grid.shape).sum()) * g * size
         self.limit = factor * max(e_springs + e_grav, 1e-30)
 
-    def fail(self, step: int, quantity: str, value: float):
+    def fail(self, step: int, quantity: str, value: float, *, state=None):
         """Raise the :class:`DivergenceError` of ``quantity`` at ``step`` (runners that check their own way).
 
-        Above the stability bound it names a safe dt; within it, the likely cause (loads, start state).
+        Above the stability bound it names a safe dt; within it, the likely cause among the model's terms
+        (:func:`likely_causes`: tools, damping, strain limits, loads, drags, gravity), read at ``state``
+        (the diverged state, or None).
         """
         name = _name(self.integrator)
         implicit = name in ("implicit", "knoche", "projective")
@@ -277,9 +280,14 @@ class DivergenceMonitor:
         if implicit or (math.isfinite(bound) and self.dt <= bound) or bound == math.inf:
             # the linear stability bound holds (or there is none): the time step is not what diverged
             within = "an implicit integrator" if implicit else f"dt within the stability bound ({bound:.3g} s)"
-            cause = (
-                f"with {within} the time step is not the cause: look for a load, drag, gravity or start "
-                "state too large for this body, or a spring law that stiffens without limit"
+            try:
+                likely = likely_causes(self.model, step * self.dt if state is None else state.t, self.dt, state=state)
+            except Exception:  # pragma: no cover - a diagnosis never hides the divergence itself
+                likely = ""
+            cause = f"with {within} the time step is not the cause: " + (
+                likely
+                or "look for a load, drag, gravity or start state too large for this body, or a spring law "
+                "that stiffens without limit"
             )
             safe = None
         raise DivergenceError(step, quantity, value, self.dt, safe, cause=cause)
@@ -299,7 +307,116 @@ class DivergenceMonitor:
                 for quantity, t in (("position", state.x), ("velocity", state.v)):
                     if not bool(torch.isfinite(t).all()):
                         bad = t[~torch.isfinite(t)]
-                        self.fail(step, quantity, float(bad[0]))
+                        self.fail(step, quantity, float(bad[0]), state=_plain(state))
             ke = float(ke_all.max())
             if ke > self.limit:
-                self.fail(step, "kinetic energy (runaway)", ke)
+                self.fail(step, "kinetic energy (runaway)", ke, state=_plain(state))
+
+
+def _plain(state):
+    """``state`` if its positions are laid out as the grid's ``(B, 3, D, H, W)``, else None (a packed state)."""
+    return state if getattr(state, "x", None) is not None and state.x.dim() == 5 else None
+
+
+def _speed(fn, t: float, dt: float) -> float:
+    """|d fn / dt| (m/s) at ``t`` of a position function ``t -> (3,)``, by a difference over one step."""
+    a, b = (torch.as_tensor(fn(s), dtype=torch.float64).reshape(-1, 3)[0] for s in (t, t + dt))
+    return float((b - a).norm()) / dt
+
+
+@torch.no_grad()
+def likely_causes(model, t: float, dt: float, *, state=None) -> str:
+    """One sentence naming the model's terms that most likely made a run diverge, the likeliest first.
+
+    Every term the model has is weighed: tools in contact (how deep they are in the body, how far they
+    move per step against the spacing, whether they swallow the body), grasps, strain limits, damping
+    (none: said so), loads, drags and gravity. A term the model does not have is not named.
+
+    Args:
+        model: the :class:`~torchdeform.sim.model.Model` of the run (its ``interactions`` read by duck
+            typing: contacts have ``tools``, grasps a ``tool``).
+        t: the time of the divergence (s).
+        dt: the time step (s).
+        state: the state that diverged, or None (then the rest positions are used).
+
+    Returns:
+        ``"likely cause: ...; also in this scene: ..."``, or ``""`` for a model with no term to name.
+
+    Examples:
+        >>> import torchdeform as td
+        >>> grid = td.Grid((3, 3, 3), spacing=0.01)
+        >>> model = td.Model(grid, stiffness=10.0, mass=1e-3, gravity=(-9.81, 0, 0))
+        >>> likely_causes(model, 0.0, 1e-4)
+        'likely cause: no damping (add [material] damping or [boundary] decay), with gravity'
+    """
+    h = min(model.grid.spacing)
+    X = model.X
+    x = X
+    if state is not None and bool(torch.isfinite(state.x).all()):
+        x = state.x
+    nodes = model.grid.nodes().to(X.device)
+    n_nodes = max(int(nodes.sum()), 1)
+    undamped = model.damping is None and not model.decay
+    strong, weak = [], []
+    for obj in model.interactions:
+        kind = type(obj).__name__
+        tools = list(getattr(obj, "tools", None) or ([obj.tool] if getattr(obj, "tool", None) is not None else []))
+        if not tools:
+            if kind == "StrainLimit":
+                weak.append("strain limiting (its projections add energy when a step stretches springs far)")
+            continue
+        for tool in tools:
+            what = f'grasp of tool "{tool.name}"' if kind == "Grasp" else f'tool "{tool.name}"'
+            d_rest, _ = tool.sdf(X, t)
+            inside = float(((d_rest[:, 0] < 0) & nodes).sum()) / n_nodes
+            if inside > 0.5 and kind != "Grasp":
+                strong.insert(
+                    0,
+                    f"{what} swallows the body ({inside:.0%} of its rest nodes are inside the tool at "
+                    f"t = {t:.3g} s): move the tool out of the body (its position or path, its size)",
+                )
+                continue
+            k_pen = getattr(obj, "stiffness", None) if kind == "PenaltyContact" else None
+            if k_pen is not None:
+                m = float(model.mass.expand(1, 1, *model.grid.shape)[0, 0][nodes].min())
+                limit = 2.0 * math.sqrt(m / float(k_pen))  # symplectic Euler on one node against the tool
+                if dt > limit:
+                    strong.append(
+                        f"{what}'s penalty stiffness {float(k_pen):.3g} N/m, which needs dt < {limit:.3g} s on "
+                        f"nodes of {m:.3g} kg: lower the tool's stiffness or the time step"
+                    )
+                    continue
+            d, _ = tool.sdf(x, t)
+            depth = max(0.0, -float(torch.where(nodes, d[:, 0], torch.zeros_like(d[:, 0])).min()))
+            step = _speed(tool.position, t, dt) * dt
+            if kind != "Grasp" and (depth > h or step > 0.5 * h):
+                strong.append(
+                    f"{what}, {depth * 1e3:.3g} mm deep in the body, moving {step * 1e3:.3g} mm per step "
+                    f"({step / h:.2g} x the spacing {h * 1e3:.3g} mm): slow it down or take smaller steps"
+                )
+            else:
+                (strong if undamped else weak).append(f"{what} pressing the body")
+    for drag in model.drags:
+        step = _speed(drag.at, t, dt) * dt
+        text = f"a drag moving {step * 1e3:.3g} mm per step ({step / h:.2g} x the spacing)"
+        (strong if step > 0.5 * h else weak).append(text)
+    if model.loads:
+        peak = max(float(dense.norm(dim=1).max()) for _, dense in model.loads)
+        weak.append(f"loads (up to {peak:.3g} N on a node)")
+    if model.gravity is not None and bool((model.gravity != 0).any()):
+        weak.append("gravity")
+    if undamped:
+        fix = "no damping (add [material] damping or [boundary] decay)"
+        if strong:
+            strong.append(fix)
+        else:
+            strong.insert(0, fix)
+    if not strong and not weak:
+        return ""
+    if not strong:
+        return "likely cause, among " + ", ".join(weak) + ": one of them too large for this body"
+    text = "likely cause: " + "; ".join(strong)
+    if weak:
+        text += ", with " if len(strong) == 1 and strong[0].startswith("no damping") else "; also in this scene: "
+        text += ", ".join(weak)
+    return text

@@ -49,7 +49,7 @@ from collections import Counter, deque
 
 import torch
 
-__all__ = ["ThreadGovernor", "others_busy", "omp_threads"]
+__all__ = ["ThreadGovernor", "others_busy", "omp_threads", "after_step_threads"]
 
 
 def _machine_jiffies():
@@ -233,3 +233,22 @@ class ThreadGovernor:
             "steps_per_threads": dict(sorted(self.steps.items())),
             "switches": self.switches,
         }
+
+
+def after_step_threads(*, busy: float | None = None) -> int:
+    """Threads for the work after a simulation (outputs, plots, renders): one beside a busy process.
+
+    Small tensor operations on several OpenMP threads wait at every barrier for the thread that
+    shares its core with another process (a thousand times longer than on one thread), so the
+    post-processing of a run takes one thread when other processes keep at least half a core busy
+    (``busy``: cores, :func:`others_busy` over 0.1 s when None), and torch's setting otherwise.
+
+    Examples:
+        >>> after_step_threads(busy=1.0)
+        1
+        >>> after_step_threads(busy=0.0) == torch.get_num_threads()
+        True
+    """
+    if busy is None:
+        busy = others_busy(seconds=0.1)
+    return 1 if busy is not None and busy >= 0.5 else torch.get_num_threads()
