@@ -118,23 +118,11 @@ def point_scene(src, data: dict, base: Path, name: str, values: dict):
 
     A bad value raises a :class:`ConfigError` naming ``--set KEY`` and the value.
     """
+    from ..scene.commands import build_with_values
     from ..scene.mass_spring import mass_spring_scene
-    from ..scene.reader import Source, with_values
+    from ..scene.reader import with_values
 
-    data = with_values(data, values)
-    try:
-        scene = mass_spring_scene(Source(), data, base, name=name)
-    except ConfigError as e:
-        if e.key in values:
-            raise ConfigError(f"--set {e.key}", e.expected, got=values[e.key]) from None
-        raise ConfigError(
-            e.key,
-            e.expected,
-            got=e.got if e.show_got else None,
-            file=src.path,
-            show_got=e.show_got,
-            line=src.line_of(e.key),
-        ) from None
+    scene = build_with_values(src, with_values(data, values), base, name, values, build=mass_spring_scene)
     if scene.tools is not None or scene.topology is not None:
         raise ConfigError(
             "sweep", "a scene without [[tools]], [strain_limit] or topology sections (not swept yet)", got=src.path

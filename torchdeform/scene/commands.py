@@ -131,7 +131,7 @@ def scene_with_values(path, sets: list):
 
     from .chainmail import chainmail_scene
     from .mass_spring import mass_spring_scene
-    from .reader import Source, check_sections, parse_set, read, with_values
+    from .reader import check_sections, parse_set, read, with_values
 
     values = {}
     for text in sets:
@@ -145,8 +145,21 @@ def scene_with_values(path, sets: list):
     check_sections(src, data)  # a set key may make a section or an integrator option required
     base, name = Path(path).parent, Path(path).stem
     build = chainmail_scene if data.get("model") == "chainmail" else mass_spring_scene
+    scene = build_with_values(src, data, base, name, values, build=build)
+    scene.source = src  # later errors (a run's) name the file
+    return scene
+
+
+def build_with_values(src, data: dict, base, name: str, values: dict, *, build):
+    """``build(Source(), data, base, name=name)`` of a file's ``data`` with ``values`` set in it.
+
+    An error of a set key names ``--set KEY`` and its value; any other names the file ``src`` and
+    the key's line there (the data no longer has the file's own lines).
+    """
+    from .reader import Source
+
     try:
-        scene = build(Source(), data, base, name=name)
+        return build(Source(), data, base, name=name)
     except ConfigError as e:
         if e.key in values:
             raise ConfigError(f"--set {e.key}", e.expected, got=values[e.key]) from None
@@ -158,8 +171,6 @@ def scene_with_values(path, sets: list):
             line=src.line_of(e.key),
             show_got=e.show_got,
         ) from None
-    scene.source = src  # later errors (a run's) name the file
-    return scene
 
 
 def demo_command(args) -> int:
