@@ -19,6 +19,7 @@ import pytest
 import torch
 
 import torchdeform as td
+from tests.test_fuzz import CHAINMAIL as FUZZ_CHAINMAIL
 from torchdeform import cli
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -43,22 +44,7 @@ CUBE = textwrap.dedent("""\
     steps = 10
     """)
 
-CHAINMAIL = textwrap.dedent("""\
-    model = "chainmail"
-
-    [grid]
-    shape = [3, 3, 3]
-    spacing = 0.01
-
-    [chainmail]
-    frames = 2
-    relax_steps = 1
-    relax_moved_only = "no"
-
-    [[drags]]
-    nodes = [[2, 1, 1]]
-    path = [[0.0, [0.0, 0.0, 0.0]], [1.0, [0.001, 0.0, 0.0]]]
-    """)
+CHAINMAIL = FUZZ_CHAINMAIL.replace("relax_steps = 1\n", 'relax_steps = 1\nrelax_moved_only = "no"\n')
 
 FIS = textwrap.dedent("""\
     [System]

@@ -62,12 +62,7 @@ def _tissue_tables(src: Source, items) -> tuple[dict, list, list]:
         if label in seen:
             raise t.fail("label", f"a label not given before (tissues[{seen[label]}] has it)", got=label)
         seen[label] = n
-        flags = {}
-        for k in ("fixed", "background"):
-            v = t.raw(k, "true or false", default=False)
-            if not isinstance(v, bool):
-                raise t.fail(k, "true or false", got=v)
-            flags[k] = v
+        flags = {k: t.flag(k, default=False) for k in ("fixed", "background")}
         material = {k: t.data[k] for k in ("tissue", "youngs_modulus", "poisson_ratio", "density") if t.has(k)}
         if flags["background"]:
             if material or flags["fixed"]:

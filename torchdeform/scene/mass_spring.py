@@ -980,9 +980,7 @@ def mass_spring_scene(src: Source, data: dict, base: Path, *, name: str = "scene
             f"{frames} recorded frames of {grid.num_nodes} nodes",
             got=scene.record_every or scene.steps,
         )
-    animation = out.data.get("animation", False)
-    if not isinstance(animation, bool):
-        raise out.fail("animation", "true or false (write animation.gif)", got=animation)
+    animation = out.flag("animation", expected="true or false (write animation.gif)", default=False)
     scene.animation = "animation.gif" if animation else None
     _embedded_outputs(scene, out, embedded)
     scene.image_size = out.integer("image_size", "an integer number of pixels in [64, 2048]", default=512, lo=64)

@@ -167,13 +167,6 @@ class ToolSet:
         return out
 
 
-def _flag(t: Table, k: str, default: bool) -> bool:
-    v = t.data.get(k, default)
-    if not isinstance(v, bool):
-        raise t.fail(k, "true or false", got=v)
-    return v
-
-
 def _shape(t: Table, kind: str, base: Path):
     for k in (k for keys in SHAPE_KEYS.values() for k in keys):
         if t.has(k) and k not in SHAPE_KEYS[kind]:
@@ -307,7 +300,7 @@ def tools_section(src: Source, items, base) -> ToolSet:
                 "direction": t.text(
                     "direction", " or ".join(f'"{d}"' for d in DIRECTIONS), default="normal", choices=DIRECTIONS
                 ),
-                "hold": _flag(t, "hold", False),
+                "hold": t.flag("hold", default=False),
                 "haptic_gain": t.num("haptic_gain", "a gain >= 0 (N/m)", default=None, lo=0),
             }
         elif contact == "penalty":
@@ -327,7 +320,7 @@ def tools_section(src: Source, items, base) -> ToolSet:
         out.tools.append(tool)
         out.contacts.append((contact, kwargs))
         out.grasps.append(grasp)
-        out.start_inside.append(_flag(t, "start_inside", False))
+        out.start_inside.append(t.flag("start_inside", default=False))
         out.paths.append("path" in pose)
     return out
 
@@ -409,7 +402,7 @@ def strain_limit_section(t: Table) -> dict:
         ),
         "max_ratio": t.num("max", "a ratio >= 1 (longest length / rest length)", default=1.1, lo=1),
         "passes": t.integer("passes", "an integer >= 1 (Jacobi passes per step)", default=4, lo=1),
-        "update_velocity": _flag(t, "update_velocity", True),
+        "update_velocity": t.flag("update_velocity", default=True),
     }
     keys = {
         "strain_limit.min_ratio": t.key("min"),

@@ -251,13 +251,6 @@ def _box_text(box) -> str:
     return "[" + ", ".join(f"{lo:g}..{hi:g}" for lo, hi in zip(*box)) + "] m"
 
 
-def _flag(t: Table, k: str, default: bool) -> bool:
-    v = t.data.get(k, default)
-    if not isinstance(v, bool):
-        raise t.fail(k, "true or false", got=v)
-    return v
-
-
 def _points(t: Table, k: str, n: int, expected: str) -> list:
     """A list of ``n`` points ``[d, h, w]`` (``n`` None: two or more)."""
     v = t.raw(k, expected)
@@ -383,7 +376,7 @@ def _tear(t: Table, out: TopologySet) -> dict:
     return {
         "key": t.name,
         which: t.num(which, expected, lo=0, lo_open=True),
-        "one_per_step": _flag(t, "one_per_step", False),
+        "one_per_step": t.flag("one_per_step", default=False),
         "start": _time(t, "start", out.times),
     }
 
