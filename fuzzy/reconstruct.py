@@ -318,15 +318,15 @@ def write_all(directory: Path = HERE) -> None:
                                 ("robo_sim_ventricle", robo_system, robo_header)):
         p = fit(name)
         system = build(p)                      # float32, as users load it
-        text = fis_text(system, "")            # the numbers exactly as the file will hold them
+        text = fis_text(system)                # the numbers exactly as the file will hold them
         errors = golden_errors(parse_fis(text), name)
         if np.abs(errors).max() >= 1e-4:
             raise RuntimeError(f"{name}: rounded file misses the published values: {errors}")
         path = directory / f"{name}.fis"
-        path.write_text(fis_text(system, header(p, errors)), encoding="utf-8")
+        path.write_text(fis_text(system, comments=header(p, errors)), encoding="utf-8")
         print(f"{path}: fitted {_fmt(p)}; relative errors {np.array2string(errors, precision=2)}")
     path = directory / "tissue_si.fis"
-    path.write_text(fis_text(tissue_si_system(), TISSUE_HEADER), encoding="utf-8")
+    path.write_text(fis_text(tissue_si_system(), comments=TISSUE_HEADER), encoding="utf-8")
     print(path)
 
 

@@ -1,9 +1,7 @@
 """``python -m torchdeform``: the ``torchdeform`` command (:func:`torchdeform.cli.main`)."""
 
-import sys
-
-from .cli import main
+from .cli import entry
 
 __all__: list = []
 
-sys.exit(main())
+entry()

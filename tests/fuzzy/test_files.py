@@ -87,7 +87,8 @@ def test_tipper_file_matches_skfuzzy_and_matlab():
 # ------------------------------------------------------------------ round trip
 
 
-def _random_system(seed: int) -> MamdaniSystem:
+def _random_system(seed: int, dialect: str = "octave") -> MamdaniSystem:
+    """Hedges the ``dialect``'s rule codes encode; fuzzylite's codes hedge no consequent."""
     g = torch.Generator().manual_seed(seed)
 
     def r(lo, hi):
@@ -113,14 +114,18 @@ def _random_system(seed: int) -> MamdaniSystem:
         Variable("y", (-5, 5), {f"o{k}": term(k, -5, 5) for k in range(4)}, default=1.25),
         Variable("s", (0, 1), {f"p{k}": Singleton(r(0, 1)) for k in range(3)}),
     ]
-    hedge = ["", "very ", "not ", "somewhat ", "extremely ", "seldom ", "not very "]
+    if dialect == "octave":
+        hedge = ["", "very ", "not ", "somewhat ", "cubed ", "very very ", "not very "]
+    else:
+        hedge = ["", "very ", "not ", "somewhat ", "extremely ", "seldom ", "not very "]
+    out_hedge = ["", "very ", "not "] if dialect == "octave" else [""]
     rules = []
     for k in range(6):
         i0, i1 = int(torch.randint(3, (), generator=g)), int(torch.randint(3, (), generator=g))
         conn = "AND" if k % 2 else "OR"
         rules.append(
             f"IF in0 IS {hedge[k % 7]}t{i0} {conn} in1 IS {hedge[(k + 3) % 7]}t{i1} "
-            f"THEN y IS {hedge[(k * 2) % 3]}o{k % 4} AND s IS p{k % 3} WITH {0.5 + 0.1 * k:g}"
+            f"THEN y IS {out_hedge[(k * 2) % len(out_hedge)]}o{k % 4} AND s IS p{k % 3} WITH {0.5 + 0.1 * k:g}"
         )
     methods = [
         dict(),
@@ -133,12 +138,13 @@ def _random_system(seed: int) -> MamdaniSystem:
     return MamdaniSystem(f"random{seed}", inputs, outputs, rules, **methods)
 
 
+@pytest.mark.parametrize("dialect", ["octave", "fuzzylite"])
 @pytest.mark.parametrize("seed", range(12))
-def test_write_then_read_gives_identical_outputs(tmp_path, seed, dtype):
-    fis = _random_system(seed).to(dtype)
-    path = write_fis(fis, tmp_path / "sys.fis", comments="round trip\ntest")
-    back = read_fis(path).to(dtype)
-    assert fis_text(back) == fis_text(fis)
+def test_write_then_read_gives_identical_outputs(tmp_path, seed, dtype, dialect):
+    fis = _random_system(seed, dialect).to(dtype)
+    path = write_fis(fis, tmp_path / "sys.fis", comments="round trip\ntest", hedges=dialect)
+    back = read_fis(path, hedges=dialect).to(dtype)
+    assert fis_text(back, hedges=dialect) == fis_text(fis, hedges=dialect)
     x = torch.rand(300, 2, dtype=dtype, generator=torch.Generator().manual_seed(seed)) * 12 - 1
     assert torch.equal(fis(x), back(x))
     assert [str(r) for r in back.rules] == [str(r) for r in fis.rules]

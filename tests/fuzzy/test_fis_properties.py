@@ -4,9 +4,11 @@ The systems come from the oracle's descriptions (:func:`tests.oracles.fuzzy.rand
 by :func:`tests.oracles.fuzzy.build_torch` from the rule sentences) with random inference methods,
 resolutions and hedges. What is read back is checked against the description (names, ranges,
 term kinds and parameters, defaults, rule clauses, connectives and weights) and must give
-bit-identical outputs to the system that was written. Systems with hedge combinations that the
-format cannot encode (anything but an optional leading NOT followed by seldom, somewhat, very,
-extremely, very very or any) must be refused with a :class:`ConfigError`.
+bit-identical outputs to the system that was written, in either dialect of rule codes. Systems
+with hedge combinations that the dialect cannot encode (Octave's: anything but an optional
+leading NOT followed by somewhat, very, cubed or very very, on inputs and outputs; fuzzylite's:
+an optional NOT followed by seldom, somewhat, very, extremely, very very or any, on inputs only)
+must be refused with a :class:`ConfigError`.
 """
 
 from __future__ import annotations
@@ -21,8 +23,11 @@ from tests.oracles.fuzzy import build_torch, default_dtype, random_points, rando
 from torchdeform.errors import ConfigError
 from torchdeform.fuzzy.fis import fis_text, parse_fis, read_fis, write_fis
 
-#: What a .fis rule can say about a clause after an optional leading NOT (the file format's codes).
-ENCODABLE = {(), ("seldom",), ("somewhat",), ("very",), ("extremely",), ("very", "very"), ("any",)}
+#: What a .fis rule can say about a clause after an optional leading NOT, per dialect of codes.
+ENCODABLE = {
+    "octave": {(), ("somewhat",), ("very",), ("cubed",), ("very", "very")},
+    "fuzzylite": {(), ("seldom",), ("somewhat",), ("very",), ("extremely",), ("very", "very"), ("any",)},
+}
 
 METHODS = st.fixed_dictionaries(
     {
@@ -35,11 +40,13 @@ METHODS = st.fixed_dictionaries(
 )
 
 
-def _encodable(spec) -> bool:
+def _encodable(spec, dialect: str) -> bool:
     for rule in spec.rules:
+        if dialect == "fuzzylite" and any(c.hedges for c in rule.cons):
+            return False  # fuzzylite hedges a consequent's activation, not its term: refused
         for clause in rule.ante + rule.cons:
             h = tuple(clause.hedges)
-            if (h[1:] if h[:1] == ("not",) else h) not in ENCODABLE:
+            if (h[1:] if h[:1] == ("not",) else h) not in ENCODABLE[dialect]:
                 return False
     return True
 
@@ -77,15 +84,16 @@ def _check_against_spec(back, spec, dtype):
         assert var.default == vs.fallback
     assert len(back.rules) == len(spec.rules)
     for rule, rs in zip(back.rules, spec.rules):
-        assert {(c.variable, c.term, tuple(c.hedges)) for c in rule.antecedent} == {
-            (c.var, c.term, tuple(c.hedges)) for c in rs.ante
-        }
+        # "any" (fuzzylite's 0.99) names no term: it reads back on the first, to the same degree 1
+        assert {
+            (c.variable, c.term if c.hedges[-1:] != ("any",) else "", tuple(c.hedges)) for c in rule.antecedent
+        } == {(c.var, c.term if c.hedges[-1:] != ("any",) else "", tuple(c.hedges)) for c in rs.ante}
         assert {(c.variable, c.term) for c in rule.consequent} == {(c.var, c.term) for c in rs.cons}
         assert rule.weight == rs.weight
         assert len(rs.ante) == 1 or rule.connective == rs.connective  # one clause: no connective
 
 
-HEDGES = sorted(ENCODABLE) + [("not",) + h for h in sorted(ENCODABLE)]
+HEDGES = {d: sorted(e) + [("not",) + h for h in sorted(e)] for d, e in ENCODABLE.items()}
 UNENCODABLE = [("somewhat", "very"), ("very", "not"), ("not", "not"), ("extremely", "seldom"), ("any", "very")]
 
 
@@ -93,34 +101,35 @@ UNENCODABLE = [("somewhat", "very"), ("very", "not"), ("not", "not"), ("extremel
 @given(
     seed=st.integers(0, 2**32 - 1),
     hedges=st.sampled_from(["oracle", "encodable", "any"]),
+    dialect=st.sampled_from(["octave", "fuzzylite"]),
     methods=METHODS,
     resolution=st.sampled_from([300, 1000, 3000]),
     dtype=st.sampled_from([torch.float32, torch.float64]),
     data=st.data(),
 )
-def test_fis_round_trip_gives_identical_outputs(seed, hedges, methods, resolution, dtype, data):
+def test_fis_round_trip_gives_identical_outputs(seed, hedges, dialect, methods, resolution, dtype, data):
     """``hedges``: the oracle's own choice (a few NOTs), or hedges drawn here for every clause
     (outputs included) from the encodable set, or from it and some combinations that are not."""
     spec = in_input_order(random_system(seed, methods=methods))
     if hedges != "oracle":
-        choice = st.sampled_from(HEDGES + (UNENCODABLE if hedges == "any" else []))
+        choice = st.sampled_from(HEDGES[dialect] + (UNENCODABLE if hedges == "any" else []))
         for rule in spec.rules:
             for clause in rule.ante + rule.cons:
                 clause.hedges = data.draw(choice)
     system = build_torch(spec, dtype=dtype, resolution=resolution)
-    if not _encodable(spec):
-        with pytest.raises(ConfigError, match="hedges"):
-            fis_text(system)
+    if not _encodable(spec, dialect):
+        with pytest.raises(ConfigError, match="hedge"):
+            fis_text(system, hedges=dialect)
         return
-    text = fis_text(system, comments=f"seed {seed}")
+    text = fis_text(system, comments=f"seed {seed}", hedges=dialect)
     with default_dtype(dtype):  # read the parameters in the system's dtype
-        back = parse_fis(text, path=f"random{seed}.fis")
+        back = parse_fis(text, path=f"random{seed}.fis", hedges=dialect)
     _check_against_spec(back, spec, dtype)
     assert back.resolution == resolution
     assert (back.and_method, back.or_method, back.implication, back.aggregation, back.defuzzification) == tuple(
         methods[k] for k in ("and_method", "or_method", "implication", "aggregation", "defuzzification")
     )
-    assert fis_text(back, comments=f"seed {seed}") == text
+    assert fis_text(back, comments=f"seed {seed}", hedges=dialect) == text
     x = torch.tensor(random_points(spec, seed, 64), dtype=dtype)
     assert torch.equal(back(x), system(x))
 

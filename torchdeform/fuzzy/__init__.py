@@ -12,7 +12,32 @@ files), :mod:`.presets` (the shipped rule files), :mod:`.coupling` (per-node and
 inputs to per-spring stiffness and damping).
 """
 
-from .membership import HEDGES, KINDS, Bell, Gaussian, MembershipFunction, Sigmoid, Singleton, Trapezoid, Triangle
+from .membership import (
+    HEDGES,
+    KINDS,
+    Bell,
+    Binary,
+    Concave,
+    Cosine,
+    DiffSigmoid,
+    Discrete,
+    Gaussian,
+    Gaussian2,
+    LinS,
+    LinZ,
+    MembershipFunction,
+    PiShape,
+    ProdSigmoid,
+    Ramp,
+    Rectangle,
+    Sigmoid,
+    Singleton,
+    Spike,
+    SShape,
+    Trapezoid,
+    Triangle,
+    ZShape,
+)
 from .presets import list_presets, load_preset, tissue_parameters, tissues
 from .rules import Clause, Rule, Variable
 from .system import (
@@ -37,6 +62,21 @@ __all__ = [
     "Singleton",
     "Trapezoid",
     "Triangle",
+    "ZShape",
+    "SShape",
+    "PiShape",
+    "DiffSigmoid",
+    "ProdSigmoid",
+    "Gaussian2",
+    "LinS",
+    "LinZ",
+    "Ramp",
+    "Rectangle",
+    "Concave",
+    "Cosine",
+    "Spike",
+    "Binary",
+    "Discrete",
     "Clause",
     "Rule",
     "Variable",

@@ -14,6 +14,7 @@ import csv
 import io
 import json
 import math
+import sys
 from pathlib import Path
 
 import torch
@@ -21,7 +22,7 @@ import torch
 from ..checks import read_text
 from ..errors import ConfigError
 from ..outputs import save_figure
-from .fis import read_fis
+from .fis import DIALECTS, read_fis
 from .system import MamdaniSystem
 
 __all__ = [
@@ -38,11 +39,11 @@ __all__ = [
 ]
 
 
-def load(name_or_path) -> MamdaniSystem:
-    """A system from a ``.fis`` path, or from a preset name when no such file exists."""
+def load(name_or_path, *, hedges: str = "octave") -> MamdaniSystem:
+    """A system from a ``.fis`` path (``hedges``: its rule codes' dialect), or a preset name when no such file exists."""
     p = Path(name_or_path)
     if p.exists() or p.suffix == ".fis" or "/" in str(name_or_path):
-        return read_fis(p)
+        return read_fis(p, hedges=hedges)
     try:
         from .presets import load_preset
     except ImportError:  # the preset library has not landed yet
@@ -238,7 +239,16 @@ def plot(fis: MamdaniSystem, out_dir, *, points: int = 401) -> list:
 
 def main(args) -> int:
     """Entry point of ``torchdeform fuzzy``; returns the exit status."""
-    fis = load(args.file)
+    if args.fuzzy_command == "vocabulary":
+        from .vocabulary import plot_kinds, vocabulary_table
+
+        print(vocabulary_table())
+        if args.out:
+            out = Path(args.out)
+            out.mkdir(parents=True, exist_ok=True)
+            print(plot_kinds(out / "membership_kinds.png"), file=sys.stderr)
+        return 0
+    fis = load(args.file, hedges=args.hedges)
     if args.fuzzy_command == "show":
         print(describe(fis))
     elif args.fuzzy_command == "eval":
@@ -274,3 +284,15 @@ def add_arguments(parser) -> None:
     p = sub.add_parser("plot", help="membership functions and input-output curves as PNG")
     p.add_argument("file", help=".fis file or preset name")
     p.add_argument("--out", required=True, help="output folder")
+    v = sub.add_parser(
+        "vocabulary", help="the membership kinds, hedges and operators read here, against MATLAB, Octave, ..."
+    )
+    v.add_argument("--out", default=None, help="also draw every membership kind: OUT/membership_kinds.png")
+    for command in (s, e, p):
+        command.add_argument(
+            "--hedges",
+            choices=DIALECTS,
+            default="octave",
+            help="what the fraction of a rule's term index means: Octave's hedge powers (default) or "
+            "fuzzylite's hedge codes (.01 seldom, .3 extremely, .99 any)",
+        )

@@ -5,11 +5,29 @@ A rule reads like the sentence a surgeon would say::
     IF consistency IS very soft AND sensitiveness IS NOT large THEN spring_const IS small
     AND viscosity IS large WITH 0.5
 
-``IS`` may be followed by hedges (``very``, ``somewhat``, ``extremely``, ``seldom``, ``not``;
-several in a row, read left to right: "not very soft" = not(very(soft))), ``AND`` / ``OR``
-join the antecedent clauses (one connective per rule, as in MATLAB), ``AND`` joins the
-consequents, and ``WITH w`` (optional) is the rule weight in ``[0, 1]``. Keywords are
-case-insensitive; variable and term names are not.
+``IS`` may be followed by hedges (``very``, ``somewhat``, ``extremely``, ``seldom``, ``any``,
+``cubed``, ``not``; several in a row, read left to right: "not very soft" = not(very(soft))),
+in conditions and conclusions alike (a hedged conclusion implies the hedged set, as in Octave
+and fuzzylite), ``AND`` / ``OR`` join the antecedent clauses (one connective per rule, as in
+MATLAB), ``AND`` joins the consequents, and ``WITH w`` (optional) is the rule weight in
+``[0, 1]``. Keywords and hedges are case-insensitive; variable and term names are not.
+
+The hedges are fuzzylite's (``extremely`` is its contrast intensifier) plus ``cubed`` (``m^3``).
+Octave's fuzzy-logic-toolkit writes a hedge as the fraction of a rule's membership-function
+index and raises the degree to a power, NOT (a minus sign) applied after it; in these words:
+
+=============  ===========================  =================================
+Octave code    Octave's name and degree     hedges here
+=============  ===========================  =================================
+``k.05``       somewhat, ``m^0.5``          ``somewhat``
+``k.2``        very, ``m^2``                ``very``
+``k.3``        extremely, ``m^3``           ``cubed`` (not ``extremely``)
+``k.4``        very very, ``m^4``           ``very very``
+``-k``         not, ``1 - m``               ``not``
+``-k.2``       ``1 - m^2``                  ``not very``
+=============  ===========================  =================================
+
+(see :data:`~torchdeform.fuzzy.membership.HEDGES`).
 """
 
 from __future__ import annotations

