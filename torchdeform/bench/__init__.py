@@ -11,6 +11,8 @@ elasticity  an Elastic lattice body against finite elements (scikit-fem) at thre
 fuzzy       Mamdani inputs per second, eager and compiled, against scikit-fuzzy
 volume      deform and render a 256^3 volume: frames per second of each rendering path
 chainmail   time of a local ChainMail pull against grid size and moved elements
+bodies      two n^3 bodies, one resting on the other against the same two apart: steps/s
+            of ``Bodies.step`` and how many times slower contact makes it
 ==========  ================================================================================
 
 Each benchmark is one module here with ``add_arguments(parser)`` and ``run(args) -> int`` (a

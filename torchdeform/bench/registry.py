@@ -56,6 +56,11 @@ BENCHES = {
         "(compiled), and the haptic loop's force rate on 64^3",
         "interaction",
     ),
+    "bodies": (
+        "two n^3 bodies, one resting on the other (base fixed) against the same two apart: steps/s of "
+        "Bodies.step and how many times slower contact makes it",
+        "bodies",
+    ),
     "topology": (
         "a full cut between two layers of an n^3 body under its compiled step: springs removed vs "
         "the analytic count, cut time, step time before and after, recompilations",

@@ -81,6 +81,10 @@ def _on_every_rank(work, args) -> int:
     except TorchdeformError as e:
         if rank == 0:
             print(f"torchdeform: {e}", file=sys.stderr)
+        else:  # torchrun stops the group when the first rank ends: let rank 0 print its line first
+            import time
+
+            time.sleep(2.0)
         return 2
 
 

@@ -306,6 +306,13 @@ the run also writes ``volume_before.png``, ``volume_after.png``, ``volume_deform
 - ``seams``: ``"3d"`` (default), ``"slices"`` or ``"none"``: block seams blended; the seam measure
   before and after goes into ``summary.json``
 
+``[[bodies]]`` (optional, repeatable; instead of the body sections above): several bodies touching
+each other (:mod:`.bodies`): each entry has a ``name`` and the sections of one body as sub-tables
+(``[bodies.grid]`` with ``origin``, ``[bodies.material]``, ``[bodies.mass]``, ``[bodies.boundary]``,
+``[[bodies.regions]]``, ``[[bodies.tissues]]``, ``[[bodies.loads]]``, ``[[bodies.drags]]``,
+``[[bodies.tools]]``, ``[bodies.strain_limit]``); ``[integrator]``, ``[output]`` (``record_every``,
+``name``) and ``[contact]`` (``friction``, 0) are global
+
 ``model = "chainmail"`` (optional top-level key, before any section): a ChainMail scene instead of
 a mass-spring one, with ``[grid]`` (its topology ignored: ChainMail links face neighbours),
 ``[boundary]`` (``fixed``, ``fixed_nodes``), ``[[drags]]`` (the picked elements and their paths),
@@ -326,7 +333,8 @@ tables count from 0) and what was expected.
 
 Modules: :mod:`.reader` (files, located errors, typed values and the shared sections: the API a
 new model kind builds on), :mod:`.mass_spring`, :mod:`.tools` (``[[tools]]``, ``[strain_limit]``
-and the tool outputs of a run), :mod:`.topology` (cuts, cautery, tearing, coagulation and their outputs), :mod:`.chainmail`, :mod:`.run` (load and run),
+and the tool outputs of a run), :mod:`.topology` (cuts, cautery, tearing, coagulation and their outputs), :mod:`.chainmail`, :mod:`.bodies`
+(several bodies in one scene, and their run), :mod:`.run` (load and run),
 :mod:`.animation` (a run's frames, textured surface beside the deformed volume, into an animated GIF),
 :mod:`.demo` (the built-in demo), :mod:`.commands` (``torchdeform run`` and ``demo``).
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from ..checks import usable_device
 from ..errors import ConfigError
 from ..sim.engine import ENGINES
+from .bodies import BodiesScene
 from .demo import demo_scene
 from .mass_spring import Scene
 from .run import load_scene, report, run_scene
@@ -78,13 +79,25 @@ def run_command(args) -> int:
     scene = scene_with_values(args.scene, getattr(args, "set", None) or [])
     if getattr(args, "animation", False):
         if not isinstance(scene, Scene):
+            several = isinstance(scene, BodiesScene)
             raise ConfigError(
-                "--animation", "a mass-spring scene (ChainMail scenes write no animation)", got="chainmail"
+                "--animation",
+                "a mass-spring scene of one body (several bodies are not animated yet)"
+                if several
+                else "a mass-spring scene (ChainMail scenes write no animation)",
+                got="[[bodies]]" if several else "chainmail",
             )
         scene.animation = scene.animation or "animation.gif"
     if getattr(args, "engine", None):
         if not isinstance(scene, Scene):
-            raise ConfigError("--engine", "a mass-spring scene (ChainMail scenes have no engine)", got="chainmail")
+            several = isinstance(scene, BodiesScene)
+            raise ConfigError(
+                "--engine",
+                "a mass-spring scene of one body (several bodies step eagerly)"
+                if several
+                else "a mass-spring scene (ChainMail scenes have no engine)",
+                got="[[bodies]]" if several else "chainmail",
+            )
         scene.engine = args.engine
     summary = run_scene(scene, args.out, progress=not args.quiet, device=args.device, force=args.force)
     print(report(summary, args.out))
@@ -129,9 +142,10 @@ def scene_with_values(path, sets: list):
         return load_scene(path)
     from pathlib import Path
 
+    from .bodies import bodies_scene, check_bodies_sections, read_scene
     from .chainmail import chainmail_scene
     from .mass_spring import mass_spring_scene
-    from .reader import check_sections, parse_set, read, with_values
+    from .reader import check_sections, parse_set, with_values
 
     values = {}
     for text in sets:
@@ -140,11 +154,12 @@ def scene_with_values(path, sets: list):
         if key in values:
             raise ConfigError("--set", "each key once", got=key)
         values[key] = value
-    src, data = read(path)
+    src, data = read_scene(path)
     data = with_values(data, values)
-    check_sections(src, data)  # a set key may make a section or an integrator option required
+    several = "bodies" in data
+    (check_bodies_sections if several else check_sections)(src, data)  # a set key may make a section required
     base, name = Path(path).parent, Path(path).stem
-    build = chainmail_scene if data.get("model") == "chainmail" else mass_spring_scene
+    build = bodies_scene if several else chainmail_scene if data.get("model") == "chainmail" else mass_spring_scene
     scene = build_with_values(src, data, base, name, values, build=build)
     scene.source = src  # later errors (a run's) name the file
     return scene

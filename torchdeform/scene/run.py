@@ -26,9 +26,9 @@ from ..sim.model import Model, State
 from ..sim.stability import check_dt, time_step_bound
 from ..sim.static import solve_static
 from ..sim.threads import after_step_threads
+from .bodies import BodiesScene, bodies_report, bodies_scene, read_scene
 from .chainmail import ChainMailScene, chainmail_scene
 from .mass_spring import EXPLICIT, Scene, StaticSolve, StaticSolveError, mass_spring_scene
-from .reader import read
 from .tools import ToolRecorder, support_series, tool_outputs
 
 __all__ = [
@@ -48,11 +48,13 @@ __all__ = [
 ]
 
 
-def load_scene(path, *, surfaces: bool = False) -> Scene | ChainMailScene:
+def load_scene(path, *, surfaces: bool = False) -> Scene | ChainMailScene | BodiesScene:
     """Read a TOML scene file (see :mod:`torchdeform.scene` for its keys).
 
     The result is a :class:`Scene` (mass-spring, the default) or a :class:`ChainMailScene`
-    (``model = "chainmail"``). The model is built once (on the CPU) to check every value.
+    (``model = "chainmail"``), or a :class:`~torchdeform.scene.bodies.BodiesScene` (``[[bodies]]``:
+    several bodies, :mod:`torchdeform.scene.bodies`). The model is built once (on the CPU) to check
+    every value.
 
     Args:
         path: the scene file (.toml); relative paths in it (mesh, volume) start from its folder.
@@ -92,8 +94,10 @@ def load_scene(path, *, surfaces: bool = False) -> Scene | ChainMailScene:
         ...     print(e.key, "on line", e.line)
         integrator.dt on line 13
     """
-    src, data = read(path)
+    src, data = read_scene(path)
     base, name = Path(path).parent, Path(path).stem
+    if "bodies" in data:
+        return bodies_scene(src, data, base, name=name)
     if data.get("model") == "chainmail":
         return chainmail_scene(src, data, base, name=name)
     return mass_spring_scene(src, data, base, name=name, surfaces=surfaces)
@@ -167,7 +171,7 @@ def _bound_method(name: str) -> str:
 
 
 def run_scene(
-    scene: Scene | ChainMailScene, out_dir, *, progress: bool = True, device=None, force: bool = False
+    scene: Scene | ChainMailScene | BodiesScene, out_dir, *, progress: bool = True, device=None, force: bool = False
 ) -> dict:
     """Run a scene and write ``trajectory.npz``, ``summary.json`` and ``energy.png`` to ``out_dir``.
 
@@ -221,7 +225,7 @@ def run_scene(
         >>> json.loads((out / "summary.json").read_text())["name"]
         'cube'
     """
-    if not isinstance(scene, Scene):  # a ChainMail scene runs itself
+    if not isinstance(scene, Scene):  # a ChainMail scene, or one of several bodies, runs itself
         with RunFolder(out_dir, force=force) as stage:
             return scene.run(stage, progress=progress, device=device)
     threads = torch.get_num_threads()
@@ -668,6 +672,8 @@ def _chain(*callbacks):
 
 def report(summary: dict, out_dir) -> str:
     """One line for the CLI: what ran, how fast, and where the outputs are."""
+    if "bodies" in summary:
+        return bodies_report(summary, out_dir)
     files = summary.get("outputs") or ["trajectory.npz", "summary.json", "energy.png"]
     if "static" in summary:
         st = summary["static"]

@@ -117,15 +117,28 @@ class Integrator:
         measure is the new state's ``readings`` (None without interactions). The global drag is
         left out where the integrator's stages included it (:attr:`drag_in_rates`).
         """
+        state = self.respond(model, state, x, v, dt)
+        return State(state.x, self.drag(model, state.v, dt), t=state.t, readings=state.readings)
+
+    def respond(self, model: Model, state: State, x, v, dt: float) -> State:
+        """The first part of :meth:`finish`: dragged nodes onto their path, then the interactions.
+
+        Returns the state at ``t + dt`` before the global drag (:meth:`drag`); contact between
+        bodies (:mod:`torchdeform.interact.bodies`) acts between the two.
+        """
         t1 = state.t + dt
         if model.drags:
             x, v = model.constrain(x, v, t1)
         readings = {} if model.interactions else None
         for interaction in model.interactions:
             x, v = interaction.project(model, x, v, t1, dt, readings=readings)
+        return State(x, v, t=t1, readings=readings or None)
+
+    def drag(self, model: Model, v, dt: float):
+        """The last part of :meth:`finish`: the global drag ``v exp(-c dt)`` (unless the stages had it)."""
         if model.decay is not None and not self.drag_in_rates:
             v = v * math.exp(-model.decay * dt)
-        return State(x, v, t=t1, readings=readings or None)
+        return v
 
     def advance(self, model, state, dt, loads):  # pragma: no cover
         """The update of one step: ``(x, v)`` at ``t + dt``, before constraints and global drag."""
