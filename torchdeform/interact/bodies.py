@@ -53,7 +53,7 @@ Examples:
     >>> upper = td.Model(td.Grid((3, 3, 3), spacing=0.01, origin=(0.0305, 0.005, 0.005)), stiffness=50.0,
     ...                  mass=1e-3, gravity=(-9.81, 0, 0), decay=50.0, dtype=torch.float64)
     >>> scene = Bodies([Body("lower", lower), Body("upper", upper)], friction=0.5)
-    >>> states = scene.simulate(scene.rest_states(), dt=1e-3, steps=1500)
+    >>> states = scene.simulate(scene.rest_states(), dt=1e-3, steps=600)
     >>> round(float(states[1].readings["lower/upper.force"][0, 0]), 5)     # carries the upper block: 27 g
     0.26487
     >>> round(float(support_reaction(lower, states[0])[0, 0]), 5)          # the base carries both: 91 g
