@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import shutil
 import sys
 from contextlib import contextmanager
@@ -27,6 +28,7 @@ import numpy as np
 from .errors import ConfigError, TorchdeformError
 
 __all__ = [
+    "summary_json",
     "atomic_path",
     "save_figure",
     "axes",
@@ -158,6 +160,34 @@ def save_plot(fig, out_dir, name: str) -> None:
     save_figure(fig, path, dpi=110)
     plt.close(fig)
     print(f"wrote {path}", file=sys.stderr)
+
+
+def summary_json(summary: dict, *, series_on_one_line: bool = True) -> str:
+    """``summary`` as indented JSON; each series (a list of numbers, or of such lists) on one line.
+
+    Raises :class:`NonFiniteOutputError` naming the keys where a figure is NaN or inf.
+
+    Example:
+        >>> print(summary_json({"t": [0.0, 0.5], "force": [[1, 2], [3, 4]]}))
+        {
+          "t": [0.0, 0.5],
+          "force": [[1, 2], [3, 4]]
+        }
+    """
+    try:
+        text = json.dumps(summary, indent=2, allow_nan=False)
+    except ValueError:
+        raise NonFiniteOutputError(
+            f"refusing to write summary.json: a figure of the run is NaN or inf ({', '.join(non_finite_keys(summary))})"
+        ) from None
+    if not series_on_one_line:
+        return text
+    text = re.sub(r"\[\s+([-+\d.eE,\s]+?)\s+\]", lambda m: "[" + ", ".join(re.split(r",\s*", m.group(1))) + "]", text)
+    return re.sub(
+        r"\[\s+(\[[^\[\]]*\](?:,\s+\[[^\[\]]*\])*)\s+\]",
+        lambda m: "[" + ", ".join(re.split(r"(?<=\]),\s+", m.group(1))) + "]",
+        text,
+    )
 
 
 def manifest(folder, *, also=("summary.json",)) -> list:

@@ -216,6 +216,14 @@ class Body:
         out = torch.bmm(xc.transpose(1, 2), wd)  # (M, 3, 4): x(s) and the three columns of J
         return out[:, :, 0], out[:, :, 1:], corners, wd[:, :, 0], wd[:, :, 1:]
 
+    def near(self, x: torch.Tensor, p: torch.Tensor, member: torch.Tensor) -> torch.Tensor:
+        """Indices ``(M,)`` of the points ``p`` ``(N, 3)`` (where ``member``) inside this body's deformed bounding box.
+
+        Only these can be inside the body: the others are not located (:meth:`locate`).
+        """
+        lo, hi = self.box(x)
+        return (((p > lo) & (p < hi)).all(1) & member).nonzero().squeeze(1)
+
     def box(self, x: torch.Tensor) -> tuple:
         """The deformed lattice's bounding box ``(lo (3,), hi (3,))`` of batch entry ``x`` ``(3, D, H, W)``."""
         pts = x.reshape(3, -1)
@@ -288,11 +296,9 @@ class BodyContact:
     def _pair(self, a: Body, b: Body, xs, vs, ia: int, ib: int, n: int, dt: float):
         """Nodes of ``a`` inside ``b``, batch entry ``n``; returns (force of a on b (3,), count, depth)."""
         xa, va, xb, vb = (t[n].reshape(3, -1) for t in (xs[ia], vs[ia], xs[ib], vs[ib]))  # views (3, N)
-        lo, hi = b.box(xb)  # a node inside b is inside b's bounding box
         pa = xa.T  # (N, 3)
-        near = ((pa > lo) & (pa < hi)).all(1) & a._member
         zero = torch.zeros(3, dtype=xa.dtype, device=xa.device)
-        idx = near.nonzero().squeeze(1)
+        idx = b.near(xb, pa, a._member)
         if idx.numel() == 0:
             return zero, 0.0, torch.zeros((), dtype=xa.dtype, device=xa.device)
         inside, d, nrm, corners, w = b.locate(xb, pa[idx])
@@ -369,10 +375,9 @@ class Bodies:
         for a, b in itertools.permutations(range(len(self.bodies)), 2):
             A, B = self.bodies[a], self.bodies[b]
             for n in range(states[a].x.shape[0]):
-                pa = states[a].x[n].reshape(3, -1).T[A._member]
-                lo, hi = B.box(states[b].x[n])
-                near = ((pa >= lo) & (pa <= hi)).all(1)
-                if bool(near.any()) and bool(B.locate(states[b].x[n], pa[near])[0].any()):
+                pa, xb = states[a].x[n].reshape(3, -1).T, states[b].x[n]
+                idx = B.near(xb, pa, A._member)
+                if idx.numel() and bool(B.locate(xb, pa[idx])[0].any()):
                     raise ConfigError(
                         f"bodies.{A.name}",
                         f"bodies that start apart ({A.name} starts inside {B.name})",

@@ -33,7 +33,6 @@ steps), with their maxima. The animation and the browser viewer of several bodie
 from __future__ import annotations
 
 import copy
-import json
 import math
 import re
 import time
@@ -47,7 +46,7 @@ from ..checks import read_text
 from ..errors import ConfigError, DivergenceError
 from ..interact.bodies import Bodies, Body, rest_member
 from ..interact.reactions import support_reaction
-from ..outputs import NonFiniteOutputError, manifest, non_finite_keys, require_finite, save_figure
+from ..outputs import manifest, require_finite, save_figure, summary_json
 from ..sim.integrators import Integrator
 from ..sim.stability import check_dt, time_step_bound
 from .mass_spring import EXPLICIT, mass_spring_scene
@@ -630,24 +629,8 @@ def _run(scene: BodiesScene, out: Path, progress: bool, device) -> dict:
         "not_drawn": "the animation and the browser viewer of several bodies are not drawn yet",
     }
     summary["outputs"] = manifest(out)
-    (out / "summary.json").write_text(_json(summary) + "\n")
+    (out / "summary.json").write_text(summary_json(summary) + "\n")
     return summary
-
-
-def _json(summary: dict) -> str:
-    """``summary`` as indented JSON, each series (a list of numbers, or of such lists) on one line."""
-    try:
-        text = json.dumps(summary, indent=2, allow_nan=False)
-    except ValueError:
-        raise NonFiniteOutputError(
-            f"refusing to write summary.json: a figure of the run is NaN or inf ({', '.join(non_finite_keys(summary))})"
-        ) from None
-    text = re.sub(r"\[\s+([-+\d.eE,\s]+?)\s+\]", lambda m: "[" + ", ".join(re.split(r",\s*", m.group(1))) + "]", text)
-    return re.sub(
-        r"\[\s+(\[[^\[\]]*\](?:,\s+\[[^\[\]]*\])*)\s+\]",
-        lambda m: "[" + ", ".join(re.split(r"(?<=\]),\s+", m.group(1))) + "]",
-        text,
-    )
 
 
 def plot_contact(path, t: np.ndarray, contact: dict, *, title: str = "") -> None:

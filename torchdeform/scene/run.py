@@ -8,9 +8,7 @@ renders), and the pieces the command line shows.
 from __future__ import annotations
 
 import copy
-import json
 import math
-import re
 import time
 from pathlib import Path
 from typing import Any, cast
@@ -20,7 +18,7 @@ import torch
 
 from ..errors import TorchdeformError
 from ..options import one_line_warnings
-from ..outputs import NonFiniteOutputError, RunFolder, manifest, non_finite_keys, require_finite, save_figure
+from ..outputs import RunFolder, manifest, require_finite, save_figure, summary_json
 from ..sim.engine import Engine, simulate
 from ..sim.model import Model, State
 from ..sim.stability import check_dt, time_step_bound
@@ -558,21 +556,7 @@ def finish_outputs(summary: dict, out: Path, t: np.ndarray, series: dict, title:
     """
     plot_energy(out / "energy.png", t, series, title=title)
     summary["outputs"] = manifest(out)
-    try:
-        text = json.dumps(summary, indent=2, allow_nan=False)
-    except ValueError:
-        raise NonFiniteOutputError(
-            f"refusing to write summary.json: a figure of the run is NaN or inf ({', '.join(non_finite_keys(summary))})"
-        ) from None
-    if "tools" in summary:  # each series (lists of numbers, lists of those) on one line
-        text = re.sub(
-            r"\[\s+([-+\d.eE,\s]+?)\s+\]", lambda m: "[" + ", ".join(re.split(r",\s*", m.group(1))) + "]", text
-        )
-        text = re.sub(
-            r"\[\s+(\[[^\[\]]*\](?:,\s+\[[^\[\]]*\])*)\s+\]",
-            lambda m: "[" + ", ".join(re.split(r"(?<=\]),\s+", m.group(1))) + "]",
-            text,
-        )
+    text = summary_json(summary, series_on_one_line="tools" in summary)
     (out / "summary.json").write_text(text + "\n")
 
 
