@@ -15,6 +15,7 @@ Imports by computed name (``importlib.import_module`` in the bench registry) are
 from __future__ import annotations
 
 import ast
+import functools
 import json
 import subprocess
 import sys
@@ -93,8 +94,16 @@ def imports_of(name: str):
                     yield base, alias.name, node.lineno
 
 
-IMPORTS = {name: list(imports_of(name)) for name in MODULES}
-GRAPH = {name: sorted({target for target, _, _ in found}) for name, found in IMPORTS.items()}
+@functools.cache
+def import_table() -> dict:
+    """Every module's torchdeform imports (parsed once, when a test first needs them)."""
+    return {name: list(imports_of(name)) for name in MODULES}
+
+
+@functools.cache
+def import_graph() -> dict:
+    """Module -> the torchdeform modules it imports."""
+    return {name: sorted({target for target, _, _ in found}) for name, found in import_table().items()}
 
 
 def find_cycle(graph: dict) -> list | None:
@@ -137,7 +146,7 @@ def _private(name: str) -> bool:
 def private_imports() -> list:
     """Every import of a private name or private module across subpackages, as readable lines."""
     bad = []
-    for importer, found in IMPORTS.items():
+    for importer, found in import_table().items():
         for target, name, line in found:
             if group(importer) == group(target):
                 continue
@@ -154,8 +163,8 @@ def test_graph_sees_the_package():
     assert {"torchdeform", "torchdeform.sim", "torchdeform.sim.springs", "torchdeform.cli", GROUND_FLOOR} <= set(
         MODULES
     )
-    assert "torchdeform.sim" in GRAPH["torchdeform"]
-    unknown = [(m, t) for m, found in IMPORTS.items() for t, _, _ in found if t not in MODULES]
+    assert "torchdeform.sim" in import_graph()["torchdeform"]
+    unknown = [(m, t) for m, found in import_table().items() for t, _, _ in found if t not in MODULES]
     assert not unknown, f"imports that resolve to no module of the package: {unknown}"
 
 
@@ -174,7 +183,7 @@ def test_cycle_finder_finds_cycles():
 
 
 def test_import_graph_is_acyclic():
-    cycle = find_cycle(GRAPH)
+    cycle = find_cycle(import_graph())
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
 
 
@@ -238,7 +247,7 @@ FLOOR = {group: n for n, floor in enumerate(LAYERS) for group in floor}
 def upward_imports(imports=None) -> list:
     """Every import from a lower floor to a higher one, and every import of ``bench`` outside ``cli``."""
     bad = []
-    for importer, found in (IMPORTS if imports is None else imports).items():
+    for importer, found in (import_table() if imports is None else imports).items():
         for target, _, line in found:
             a, b = group(importer), group(target)
             where = f"{MODULES[importer].relative_to(ROOT) if importer in MODULES else importer}:{line}"
