@@ -69,9 +69,10 @@ from dataclasses import dataclass, field
 import torch
 from tqdm import tqdm
 
-from ..errors import ConfigError
+from ..errors import ConfigError, DivergenceError
 from ..sim.integrators import Integrator, SymplecticEuler
 from ..sim.model import Model, State
+from ..sim.stability import DivergenceMonitor
 from .reactions import report
 
 __all__ = ["Body", "BodyContact", "Bodies", "rest_distance", "rest_member"]
@@ -159,7 +160,18 @@ class Body:
         self._member = member.to(dev)
         self._whole = bool(member.all())
         self._fit = torch.linalg.pinv(Xh).to(dt)  # (4, M)
-        self._inv_mass = self.model.inv_mass.expand(1, 1, *grid.shape).reshape(-1)
+        self._inv_mass = self.model.inv_mass.expand(1, 1, *grid.shape).reshape(-1).contiguous()
+        self._member_u8 = self._member.to(torch.uint8).contiguous()  # for the C kernel
+        self._solid_u8 = self.solid.to(torch.uint8).contiguous()
+
+    def affine(self, x: torch.Tensor) -> tuple:
+        """The least-squares affine map of the deformed lattice ``x`` ``(3, D, H, W)`` (or ``(3, N)``) as ``x = X A + b``.
+
+        Returns ``(A^-1 (3, 3), b (3,))``: a rest point's first guess is ``X = (p - b) A^-1``.
+        """
+        nodes = x.reshape(3, -1).T
+        P = self._fit @ (nodes if self._whole else nodes[self._member])  # (4, 3)
+        return torch.linalg.inv_ex(P[:3])[0].contiguous(), P[3].contiguous()  # NaN in, NaN out: the monitor reports it
 
     def locate(self, x: torch.Tensor, p: torch.Tensor) -> tuple:
         """Points ``p`` ``(M, 3)`` in this body's deformed lattice ``x`` ``(3, D, H, W)``.
@@ -168,9 +180,8 @@ class Body:
         indices, weights (M, 8))``.
         """
         nodes = x.reshape(3, -1).T  # (N, 3)
-        P = self._fit @ (nodes if self._whole else nodes[self._member])  # (4, 3): x = X P[:3] + P[3]
-        A, b = P[:3], P[3]
-        X = torch.linalg.lstsq(A.T, (p - b).T).solution.T  # (M, 3) rest positions, first guess
+        A_inv, b = self.affine(x)
+        X = (p - b) @ A_inv  # (M, 3) rest positions, first guess
         top = (self._shape - 2).to(p.dtype)
         tol = 1e-4 if p.dtype == torch.float32 else 1e-9  # cells: rounding of the positions
         for _ in range(NEWTON):
@@ -259,9 +270,13 @@ class BodyContact:
 
     Args:
         friction: Coulomb coefficient ``mu >= 0`` between every pair (0: frictionless).
+        engine: ``"native"`` (the C kernel of :mod:`~torchdeform.interact.native_contact`:
+            constraints resolved one after another), ``"torch"`` (tensor code, constraints that share
+            no corner resolved together, colour by colour; any device) or ``"auto"`` (the kernel
+            where it can run: CPU, float32/float64, a C compiler).
     """
 
-    def __init__(self, *, friction: float = 0.0):
+    def __init__(self, *, friction: float = 0.0, engine: str = "auto"):
         if (
             not isinstance(friction, (int, float))
             or isinstance(friction, bool)
@@ -269,7 +284,23 @@ class BodyContact:
             or friction < 0
         ):
             raise ConfigError("contact.friction", "a Coulomb coefficient >= 0", got=friction)
+        if engine not in ("auto", "native", "torch"):
+            raise ConfigError("contact.engine", "one of auto, native, torch", got=engine)
         self.friction = float(friction)
+        self.engine = engine
+
+    def engine_for(self, x: torch.Tensor) -> str:
+        """The engine that resolves bodies with positions like ``x``: ``"native"`` or ``"torch"``."""
+        if self.engine == "torch":
+            return "torch"
+        from . import native_contact
+
+        why = native_contact.supports(x.dtype, x.device)
+        if why is None:
+            return "native"
+        if self.engine == "native":
+            raise ConfigError("contact.engine", "a body the C contact kernel can resolve", got=why, show_got=True)
+        return "torch"
 
     def resolve(self, bodies: list, xs: list, vs: list, dt: float, *, readings: list | None = None) -> None:
         """Project every pair's penetrations: replaces the entries of the lists ``xs``, ``vs`` (``(B, 3, D, H, W)`` each)."""
@@ -281,9 +312,12 @@ class BodyContact:
             force = torch.zeros(xs[i].shape[0], 3, dtype=xs[i].dtype, device=xs[i].device)
             count = torch.zeros(xs[i].shape[0], dtype=xs[i].dtype, device=xs[i].device)
             depth = torch.zeros_like(count)
+            pair = self._pair
+            if self.engine_for(xs[i]) == "native":
+                pair = self._native_pair
             for q, r, sign in ((i, j, 1.0), (j, i, -1.0)):  # nodes of q in r, then of r in q
                 for n in range(xs[q].shape[0]):
-                    f, c, d = self._pair(bodies[q], bodies[r], xs, vs, q, r, n, dt)
+                    f, c, d = pair(bodies[q], bodies[r], xs, vs, q, r, n, dt)
                     force[n] += sign * f
                     count[n] += c
                     depth[n] = torch.maximum(depth[n], d)
@@ -292,6 +326,13 @@ class BodyContact:
                     report(readings[k], key, "force", force)
                     report(readings[k], key, "contacts", count)
                     report(readings[k], key, "penetration", depth)
+
+    def _native_pair(self, a: Body, b: Body, xs, vs, ia: int, ib: int, n: int, dt: float):
+        """:meth:`_pair` by the C kernel (one constraint after another)."""
+        from .native_contact import resolve_pair
+
+        xa, va, xb, vb = (t[n].reshape(3, -1) for t in (xs[ia], vs[ia], xs[ib], vs[ib]))  # contiguous views
+        return resolve_pair(a, b, xa, va, xb, vb, dt, self.friction)
 
     def _pair(self, a: Body, b: Body, xs, vs, ia: int, ib: int, n: int, dt: float):
         """Nodes of ``a`` inside ``b``, batch entry ``n``; returns (force of a on b (3,), count, depth)."""
@@ -352,9 +393,10 @@ class Bodies:
         integrator: the :class:`~torchdeform.sim.integrators.Integrator` of every body
             (default symplectic Euler).
         friction: Coulomb coefficient between bodies (:class:`BodyContact`).
+        engine: how the contacts are resolved, ``"auto"``, ``"native"`` or ``"torch"`` (:class:`BodyContact`).
     """
 
-    def __init__(self, bodies, *, integrator: Integrator | None = None, friction: float = 0.0):
+    def __init__(self, bodies, *, integrator: Integrator | None = None, friction: float = 0.0, engine: str = "auto"):
         bodies = list(bodies)
         if not bodies or not all(isinstance(b, Body) for b in bodies):
             raise ConfigError("bodies", "a list of Body", got=bodies)
@@ -364,7 +406,7 @@ class Bodies:
                 raise ConfigError("bodies.name", "a name no other body has", got=name)
         self.bodies = bodies
         self.integrator = integrator or SymplecticEuler()
-        self.contact = BodyContact(friction=friction)
+        self.contact = BodyContact(friction=friction, engine=engine)
 
     def rest_states(self, *, batch: int = 1) -> list:
         """Every body at rest, ``[State]``."""
@@ -397,11 +439,41 @@ class Bodies:
             for b, x, v, s, r in zip(self.bodies, xs, vs, new, readings)
         ]
 
-    def simulate(self, states: list, *, dt: float, steps: int, callback=None, progress: bool = False) -> list:
-        """``steps`` steps of ``dt`` (s) from ``states``; ``callback(step, states)`` after each."""
+    def simulate(
+        self, states: list, *, dt: float, steps: int, callback=None, progress: bool = False, check_every: int = 10
+    ) -> list:
+        """``steps`` steps of ``dt`` (s) from ``states``; ``callback(step, states)`` after each.
+
+        Every ``check_every`` steps and at the last, each body's state is checked
+        (:class:`~torchdeform.sim.stability.DivergenceMonitor`): a non-finite or runaway body stops
+        the run with :class:`~torchdeform.errors.DivergenceError` naming it.
+
+        Raises:
+            ConfigError: a start state that is not finite, or bodies that start inside each other.
+        """
+        for body, s in zip(self.bodies, states):
+            for name, value in (("x", s.x), ("v", s.v)):
+                bad = int((~torch.isfinite(value.detach())).sum())
+                if bad:
+                    raise ConfigError(
+                        f"bodies.{body.name}.state.{name}", "a finite start state", got=f"{bad} non-finite values"
+                    )
         self.check_apart(states)
+        monitors = [DivergenceMonitor(b.model, dt, self.integrator) for b in self.bodies]
         for k in tqdm(range(1, steps + 1), disable=not progress, desc="simulate", unit="step"):
             states = self.step(states, dt)
+            if k % check_every == 0 or k == steps:
+                self.check(monitors, states, k)
             if callback is not None:
                 callback(k, states)
         return states
+
+    def check(self, monitors: list, states: list, step: int) -> None:
+        """Raise :class:`~torchdeform.errors.DivergenceError` naming the first body whose state diverged."""
+        for body, monitor, s in zip(self.bodies, monitors, states):
+            try:
+                monitor.check(s, step)
+            except DivergenceError as e:
+                raise DivergenceError(
+                    e.step, f"body {body.name!r}: {e.quantity}", e.value, e.dt, e.safe_dt, cause=e.cause
+                ) from None
