@@ -55,8 +55,8 @@ def organs(tmp_path_factory):
 def test_organs_runs_and_writes_its_outputs(organs):
     stdout, summary, traj, scene, out = organs
     assert len(stdout.strip().splitlines()) == 1 and "2 bodies" in stdout and "not animated" not in stdout
-    assert "no animation or viewer for several bodies yet" in stdout
-    assert sorted(summary["outputs"]) == ["contact.png", "summary.json", "trajectory.npz"]
+    assert "animation.gif" in stdout
+    assert sorted(summary["outputs"]) == ["animation.gif", "contact.png", "summary.json", "trajectory.npz"]
     assert (out / "contact.png").stat().st_size > 10_000
     assert scene.names == ["kidney", "liver"] and summary["steps"] == scene.steps == 900
     T = len(summary["t_s"])
@@ -71,7 +71,50 @@ def test_organs_runs_and_writes_its_outputs(organs):
     # the liver fell its 3 mm gap and more; the stiffer kidney gave less than half a millimetre
     assert summary["bodies"]["liver"]["final_displacement_m"] > 3e-3
     assert summary["bodies"]["kidney"]["peak_displacement_m"] < 0.5e-3
-    assert "not drawn yet" in summary["not_drawn"]
+    assert "not_drawn" not in summary
+
+
+def _hue_masks(frame: np.ndarray) -> tuple:
+    """Pixels of the surface panel (left half, above the caption) of the kidney's and of the liver's colour."""
+    from torchdeform.scene.animation import BODY_COLOURS
+
+    rgb = frame.astype(float)
+    panel = np.zeros(frame.shape[:2], bool)
+    panel[: frame.shape[1] // 2, : frame.shape[1] // 2] = True
+    masks = []
+    for colour in BODY_COLOURS[:2]:  # shaded: the hue kept, the brightness not; chroma well above grey
+        c = np.asarray(colour) / np.linalg.norm(colour)
+        norm = np.linalg.norm(rgb, axis=-1) + 1e-9
+        chroma = rgb.max(-1) - rgb.min(-1)
+        masks.append(panel & ((rgb @ c) / norm > 0.99) & (chroma > 40))
+    return tuple(masks)
+
+
+def test_organs_animation_shows_both_bodies_and_the_drop(organs):
+    """Oracle: pixel colours. Both organs' colours (kidney, liver in BODY_COLOURS order) are in the frames;
+    the liver's pixels move down the image while it drops its 3 mm gap, the kidney's base stays."""
+    from PIL import Image
+
+    _, summary, _, _, out = organs
+    anim = summary["animation"]
+    assert anim["colours"] == {"kidney": [204, 107, 92], "liver": [102, 148, 209]}
+    assert anim["frames"] >= 20 and anim["size"] == [256 + 28, 512]
+    frames = []
+    with Image.open(out / "animation.gif") as gif:
+        assert gif.n_frames == anim["frames"]
+        for k in range(gif.n_frames):
+            gif.seek(k)
+            frames.append(np.asarray(gif.convert("RGB")))
+    t = np.linspace(0.0, summary["t_s"][-1], len(frames))
+    settled = int(np.searchsorted(t, SETTLED[1]))  # before the probe presses
+    rows = {}
+    for k in (0, settled):
+        kidney, liver = _hue_masks(frames[k])
+        assert kidney.sum() > 500 and liver.sum() > 500, (k, kidney.sum(), liver.sum())
+        rows[k] = (np.nonzero(kidney.any(1))[0].max(), np.nonzero(liver.any(1))[0].min(), np.nonzero(liver)[0].mean())
+    # the liver fell: its top edge and its pixels' mean row lower in the image (rows grow downwards)
+    assert rows[settled][1] >= rows[0][1] + 5 and rows[settled][2] >= rows[0][2] + 3, rows
+    assert abs(int(rows[settled][0]) - int(rows[0][0])) <= 1  # the kidney's base is fixed
 
 
 def test_organs_do_not_interpenetrate(organs):
@@ -197,7 +240,7 @@ BAD = {
         "bodies[1].integrator",
         ("[bodies.integrator]", 0),
     ),
-    "animation": (("[integrator]", "[output]\nanimation = true\n\n[integrator]"), "output.animation", ("animation", 0)),
+    "surfaces": (("[integrator]", "[output]\nsurfaces = true\n\n[integrator]"), "output.surfaces", ("surfaces", 0)),
 }
 
 

@@ -126,6 +126,36 @@ def test_page_draws_embedded_surfaces_and_the_scene_tool(driver, tmp_path):
     assert steel.mean() > 0.002 and tissue.mean() > 0.02
 
 
+def test_page_draws_several_bodies_each_in_its_colour(driver, tmp_path):
+    """A scene of two bodies: one mesh per body, the lower one red, the upper one blue; no drag, tool, cut."""
+    from tests.view.test_bodies_session import TWO
+    from torchdeform.scene import load_scene
+    from torchdeform.view.bodies import BodiesSession
+
+    (tmp_path / "two.toml").write_text(TWO)
+    session = BodiesSession(load_scene(tmp_path / "two.toml"))
+    session.command({"cmd": "pause"})
+    viewer = Viewer(session).start()
+    try:
+        open_page(driver, viewer, frames=1)
+        assert wait_for(lambda: js(driver, "window.viewerStats.framesShown") >= 1, timeout=10)
+        assert js(driver, "window.viewerStats.surface") == "bodies"
+        assert js(driver, "window.viewerStats.parts") == ["lower", "upper"]
+        assert js(driver, "window.viewerStats.mode") == "none"
+        assert js(driver, "document.getElementById('mode-drag').parentElement.style.display") == "none"
+        time.sleep(0.3)
+        img = canvas_pixels(driver).astype(int)
+    finally:
+        viewer.stop()
+    r, g, b = img[..., 0], img[..., 1], img[..., 2]
+    red = (r > g + 30) & (r > b + 30)  # BODY_COLOURS[0], shaded
+    blue = (b > r + 30) & (b > g + 10)  # BODY_COLOURS[1], shaded
+    print(f"\ntwo bodies: {red.mean():.1%} red, {blue.mean():.1%} blue pixels")
+    assert red.mean() > 0.01 and blue.mean() > 0.01
+    rows = np.arange(img.shape[0])[:, None]
+    assert rows[blue.any(1)].mean() < rows[red.any(1)].mean()  # the upper body above the lower one
+
+
 def test_mouse_drag_moves_the_body(driver, small):
     open_page(driver, small)
     session = small.session

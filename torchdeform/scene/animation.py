@@ -14,6 +14,11 @@ them:
 * the **caption**: the simulated time and the force of every tool or drag at that frame
   (:func:`caption`).
 
+A scene of several bodies (:func:`animate_bodies`) has the same surface panel, every body in its
+own flat colour (:data:`BODY_COLOURS`; :func:`render_surfaces` keeps the nearest body at each
+pixel, :func:`surface_panel` adds the tools), beside a panel of the contact force per pair over time
+(:func:`curve_panel`).
+
 The force a drag shows (:func:`drag_forces`) is the force it exerts to hold its nodes on their
 path: minus the sum of the model's forces (springs, gravity, loads, contacts) on the dragged nodes,
 the inertia of the dragged nodes left out (their path is piecewise linear: no acceleration between
@@ -55,6 +60,11 @@ from ..texture.mapping import body_texture
 
 __all__ = [
     "animate",
+    "animate_bodies",
+    "render_surfaces",
+    "surface_panel",
+    "curve_panel",
+    "BODY_COLOURS",
     "frame_indices",
     "drag_forces",
     "body_texture",
@@ -357,6 +367,85 @@ class _Piece:
 TOOL_COLOUR = (0.62, 0.65, 0.7)
 
 
+class _Flat:
+    """A paint of one colour: :func:`~torchdeform.texture.render_textured` looks it up as a texture."""
+
+    def __init__(self, colour):
+        self.colour = torch.as_tensor(colour, dtype=torch.float64)
+
+    def at_material(self, X: torch.Tensor) -> torch.Tensor:
+        """The colour at every material point ``X`` ``(N, 3)``: ``(N, 3)``."""
+        return self.colour.to(X.device, X.dtype).expand(len(X), 3)
+
+
+def render_surfaces(layers, camera, *, light=LIGHT, specular: float = 0.3) -> dict:
+    """Several bodies' surfaces in one image: each rendered with its own paint, the nearest kept (depth test).
+
+    Args:
+        layers: ``[(pieces, paint)]``: per body the surfaces to draw (``vertices``, ``faces``, ``rest``,
+            optionally ``normals``, as :func:`~torchdeform.texture.render_textured` takes them) and a
+            :class:`~torchdeform.texture.SolidTexture` or an RGB colour ``(3,)`` in [0, 1].
+        camera: the :class:`~torchdeform.mesh.Camera`.
+        light: direction towards the light.
+        specular: the weight of the wet highlight.
+
+    Returns:
+        ``{"image": (H, W, 3), "depth": (H, W)}`` (``inf`` where nothing is hit; white there).
+
+    Example:
+        >>> import torch
+        >>> import torchdeform as td
+        >>> from torchdeform.topology import cut_surfaces
+        >>> a, b = td.Grid((2, 2, 2), spacing=0.01), td.Grid((2, 2, 2), spacing=0.01, origin=(0.0, 0.02, 0.0))
+        >>> pa = cut_surfaces(a, a.rest_positions(dtype=torch.float64), torch.zeros(2, 2, 2, dtype=torch.long))
+        >>> pb = cut_surfaces(b, b.rest_positions(dtype=torch.float64), torch.zeros(2, 2, 2, dtype=torch.long))
+        >>> both = torch.cat([a.rest_positions(dtype=torch.float64), b.rest_positions(dtype=torch.float64)], 2)
+        >>> cam = surface_camera(a, both[None], size=48)
+        >>> out = render_surfaces([(pa, (1.0, 0.0, 0.0)), (pb, (0.0, 0.0, 1.0))], cam, specular=0.0)
+        >>> img = out["image"]
+        >>> bool(((img[..., 0] > 0.2) & (img[..., 2] < 0.05)).any()), bool(((img[..., 2] > 0.2) & (img[..., 0] < 0.05)).any())
+        (True, True)
+    """
+    from ..texture import render_textured
+
+    image = depth = None
+    for pieces, paint in layers:
+        if not len(pieces):
+            continue
+        texture = paint if hasattr(paint, "at_material") else _Flat(paint)
+        out = render_textured(pieces, texture, camera, light=light, specular=specular)
+        if image is None or depth is None:
+            image, depth = out["image"], out["depth"]
+            continue
+        front = out["depth"] < depth
+        image = torch.where(front[..., None], out["image"], image)
+        depth = torch.where(front, out["depth"], depth)
+    if image is None:  # nothing to draw: a white panel
+        h, w = camera.size
+        image = torch.ones(h, w, 3, dtype=torch.float64)
+        depth = torch.full((h, w), torch.inf, dtype=torch.float64)
+    return {"image": image, "depth": depth}
+
+
+def surface_panel(layers, camera, *, t: float = 0.0, tools=(), light=LIGHT, specular: float = 0.3) -> np.ndarray:
+    """The surface panel of a frame: the bodies' surfaces (:func:`render_surfaces`) and the tools at ``t``.
+
+    Args:
+        layers: ``[(pieces, paint)]`` as :func:`render_surfaces` takes them.
+        camera: the :class:`~torchdeform.mesh.Camera`.
+        t: the simulated time (s): where the tools are.
+        tools: :class:`~torchdeform.interact.tools.Tool` s drawn in front of or behind the bodies.
+        light: direction towards the light.
+        specular: the weight of the tissue's wet highlight.
+
+    Returns:
+        uint8 ``(H, W, 3)``.
+    """
+    out = render_surfaces(layers, camera, light=light, specular=specular)
+    image = _with_tools(out, tools or (), float(t), camera, light).clamp(0, 1)
+    return (image * 255 + 0.5).to(torch.uint8).numpy()
+
+
 def _with_tools(out: dict, tools, t: float, camera, light=LIGHT) -> torch.Tensor:
     """The rendered body ``out`` with the tools at time ``t`` drawn in front of or behind it (depth test)."""
     from ..interact.meshes import tool_surface
@@ -385,6 +474,16 @@ def _with_tools(out: dict, tools, t: float, camera, light=LIGHT) -> torch.Tensor
         image = torch.where(front[..., None], r["image"], image)
         depth = torch.where(front, r["depth"], depth)
     return image
+
+
+def _view(camera, camera_up) -> tuple:
+    """``(up, light)`` of the surface panel: axis D up and :data:`LIGHT`, or lit from just above a given eye."""
+    up = (1.0, 0.0, 0.0) if camera_up is None else tuple(float(c) for c in camera_up)
+    light = LIGHT
+    if camera is not None:
+        d, u = np.asarray(camera, dtype=np.float64), np.asarray(up, dtype=np.float64)
+        light = tuple((d / np.linalg.norm(d) + 0.5 * u / np.linalg.norm(u)).tolist())
+    return up, light
 
 
 def animate(
@@ -454,7 +553,6 @@ def animate(
     """
     from tqdm.auto import tqdm
 
-    from ..texture import render_textured
     from ..topology import cut_surfaces
     from ..volume import load_volume, node_offsets
 
@@ -482,11 +580,7 @@ def animate(
     X = grid.rest_positions(dtype=torch.float64)
     extent = [(n - 1) * s for n, s in zip(grid.shape, grid.spacing)]
     extent = [e if e > 0 else s for e, s in zip(extent, grid.spacing)]
-    up = (1.0, 0.0, 0.0) if camera_up is None else tuple(float(c) for c in camera_up)
-    light = LIGHT
-    if camera is not None:  # lit from just above the eye
-        d, u = np.asarray(camera, dtype=np.float64), np.asarray(up, dtype=np.float64)
-        light = tuple((d / np.linalg.norm(d) + 0.5 * u / np.linalg.norm(u)).tolist())
+    up, light = _view(camera, camera_up)
     shown = {}  # the embedded surfaces of each shown frame: the camera frames them, not the lattice
     for i in idx if surfaces else ():
         shown[i] = []
@@ -509,9 +603,7 @@ def animate(
     images, captions = [], []
     for i in tqdm(idx, disable=not progress, desc="animate", unit="frame"):
         pieces = shown[i] if surfaces else cut_surfaces(grid, x[i : i + 1], labels)
-        out = render_textured(pieces, texture, camera, light=light, specular=specular)
-        surface = _with_tools(out, tools or (), float(t[i]), camera, light).clamp(0, 1)
-        surface = (surface * 255 + 0.5).to(torch.uint8).numpy()
+        surface = surface_panel([(pieces, texture)], camera, t=float(t[i]), tools=tools, light=light, specular=specular)
         right = None
         if vol is not None:
             offsets = node_offsets(x[i : i + 1], X, grid.spacing, tuple(vol.shape)).float()
@@ -530,4 +622,191 @@ def animate(
         "captions": captions,
         "bytes": nbytes,
         "camera": camera,
+    }
+
+
+#: the colours of the bodies of a scene of several bodies, in the order of ``[[bodies]]`` (sRGB in [0, 1]):
+#: the animation and the viewer draw body ``n`` in ``BODY_COLOURS[n % len(BODY_COLOURS)]``
+BODY_COLOURS = (
+    (0.80, 0.42, 0.36),  # liver red
+    (0.40, 0.58, 0.82),  # blue
+    (0.55, 0.76, 0.42),  # green
+    (0.88, 0.72, 0.36),  # ochre
+    (0.66, 0.48, 0.78),  # violet
+    (0.40, 0.76, 0.74),  # teal
+)
+#: the colours of the curves of the contact panel (sRGB bytes), one per pair
+_CURVES = ((255, 196, 92), (120, 200, 255), (160, 230, 120), (255, 130, 160), (200, 170, 255))
+
+
+def curve_panel(t, curves: dict, now: float, *, size: int = 320, unit: str = "N") -> np.ndarray:
+    """A small dark panel: each named series over time, and a vertical line at the time ``now``.
+
+    Args:
+        t: times ``(T,)`` (s).
+        curves: ``{name: values (T,)}`` (e.g. the contact force's magnitude per pair, N).
+        now: the frame's time (s): the curves are drawn up to it, the line marks it.
+        size: the square panel's side (pixels).
+        unit: ``"N"`` (values as :func:`format_force` writes them) or any unit written after the number.
+
+    Returns:
+        uint8 ``(size, size, 3)``.
+
+    Example:
+        >>> panel = curve_panel([0.0, 0.1, 0.2], {"a/b": [0.0, 0.5, 1.0]}, 0.1, size=64)
+        >>> panel.shape, bool((panel == (255, 196, 92)).all(-1).any())
+        ((64, 64, 3), True)
+    """
+    from PIL import Image, ImageDraw
+
+    t = np.asarray(t, dtype=np.float64).reshape(-1)
+    size = int(size)
+    im = Image.new("RGB", (size, size), (30, 34, 39))
+    draw = ImageDraw.Draw(im)
+    small = _font(max(9, size // 28))
+    left, right, top, bottom = size // 12, size - size // 24, size // 6, size - size // 9
+    top_value = max((float(np.nanmax(np.asarray(v, dtype=np.float64))) for v in curves.values()), default=0.0)
+    top_value = top_value * 1.1 if top_value > 0 else 1.0
+    t0, t1 = (float(t[0]), float(t[-1])) if len(t) else (0.0, 1.0)
+    span = t1 - t0 if t1 > t0 else 1.0
+
+    def px(ti, vi):
+        return left + (right - left) * (ti - t0) / span, bottom - (bottom - top) * vi / top_value
+
+    draw.rectangle([left, top, right, bottom], outline=(110, 116, 124))
+    fmt = format_force if unit == "N" else (lambda v: f"{float(np.asarray(v).reshape(-1)[0]):.3g} {unit}")
+    draw.text((left, top - 3), fmt([top_value, 0, 0]), fill=(200, 200, 200), font=small, anchor="ld")
+    draw.text((left - 2, bottom), "0", fill=(200, 200, 200), font=small, anchor="rm")
+    draw.text((right, bottom + 2), f"{t1:.2f} s", fill=(200, 200, 200), font=small, anchor="ra")
+    shown = t <= now + 1e-12
+    for k, (name, values) in enumerate(curves.items()):
+        colour = _CURVES[k % len(_CURVES)]
+        v = np.nan_to_num(np.asarray(values, dtype=np.float64).reshape(-1))
+        points = [px(ti, vi) for ti, vi in zip(t[shown], v[shown])]
+        if len(points) > 1:
+            draw.line(points, fill=colour, width=max(1, size // 160))
+        elif points:
+            draw.point(points, fill=colour)
+        draw.text((left + 4, top + 4 + k * (size // 22 + 2)), name, fill=colour, font=small)
+    x_now = px(min(max(float(now), t0), t1), 0.0)[0]
+    draw.line([(x_now, top), (x_now, bottom)], fill=(235, 235, 235))
+    return np.asarray(im)
+
+
+def animate_bodies(
+    grids,
+    t,
+    xs,
+    out_path,
+    *,
+    names=None,
+    colours=None,
+    tools=None,
+    forces: dict | None = None,
+    contact: dict | None = None,
+    frames: int = 48,
+    size: int = 512,
+    fps: float = 12.0,
+    progress: bool = False,
+    specular: float = 0.3,
+    camera=None,
+    camera_up=None,
+) -> dict:
+    """Write an animated GIF of several bodies: their surfaces, each in its own colour, and the contact forces.
+
+    Each frame has the surface panel (every body's closed lattice surface,
+    :func:`~torchdeform.topology.cut_surfaces` of its recorded node positions, flat-shaded in its own
+    colour, the tools drawn where they are; one camera frames every body in every shown frame) and,
+    with ``contact``, a panel of the contact force per pair over time up to the frame
+    (:func:`curve_panel`), and the caption (time, tool forces).
+
+    Args:
+        grids: per body its :class:`~torchdeform.sim.grid.Grid` (placed in the world by its origin).
+        t: times ``(T,)`` (s) of the recorded frames.
+        xs: per body its node positions ``(T, 3, D, H, W)`` (m).
+        out_path: the ``.gif`` file (its folder must exist).
+        names: the bodies' names (the panel's title), or None.
+        colours: per body an RGB colour in [0, 1] (default :data:`BODY_COLOURS` in turn).
+        tools: :class:`~torchdeform.interact.tools.Tool` s of every body, drawn at each frame.
+        forces: ``{name: (T, 3)}`` forces (N) of the tools at the recorded frames (the caption), or None.
+        contact: ``{"<a>/<b>": (T, 3)}`` contact force (N) per pair at the recorded frames, or None (no
+            curve panel).
+        frames: the most frames shown (:func:`frame_indices`).
+        size: side of each square panel (pixels).
+        fps: frames per second of the GIF.
+        progress: show a progress bar.
+        specular: the weight of the tissue's wet highlight (0: matt).
+        camera: where the surface panel looks from ``(3,)``, from the bodies' centre, or None
+            (:data:`SURFACE_DIRECTION`).
+        camera_up: the direction ``(3,)`` upwards in the surface panel, or None (axis D).
+
+    Returns:
+        dict: ``file``, ``frames``, ``size`` ``[height, width]``, ``panel``, ``indices``, ``times_s``,
+        ``captions``, ``bytes``, ``camera``, ``colours`` (per body, sRGB bytes).
+
+    Example:
+        >>> import torch
+        >>> import torchdeform as td
+        >>> lower, upper = td.Grid((3, 3, 3), spacing=0.01), td.Grid((2, 2, 2), spacing=0.01, origin=(0.03, 0.005, 0.005))
+        >>> xl = lower.rest_positions(dtype=torch.float32)[0].expand(2, 3, 3, 3, 3)
+        >>> xu = torch.stack([upper.rest_positions(dtype=torch.float32)[0]] * 2)
+        >>> xu[1, 0] -= 0.005                                   # the upper body falls 5 mm
+        >>> info = animate_bodies([lower, upper], [0.0, 0.1], [xl, xu], getfixture("tmp_path") / "b.gif",
+        ...                       size=64, contact={"lower/upper": [[0, 0, 0], [0.01, 0, 0]]})
+        >>> info["frames"], info["size"], info["colours"]
+        (2, [88, 128], [[204, 107, 92], [102, 148, 209]])
+    """
+    from tqdm.auto import tqdm
+
+    from ..topology import cut_surfaces
+
+    t = np.asarray(t, dtype=np.float64).reshape(-1)
+    grids = list(grids)
+    xs = [torch.as_tensor(x).detach().double().cpu() for x in xs]
+    if not grids or len(xs) != len(grids):
+        raise ConfigError("xs", f"node positions of every body ({len(grids)})", got=len(xs))
+    for n, (grid, x) in enumerate(zip(grids, xs)):
+        if x.dim() != 5 or x.shape[1] != 3 or tuple(x.shape[2:]) != grid.shape or len(x) != len(t):
+            raise ConfigError(
+                f"xs[{n}]", f"node positions (T, 3) + {grid.shape} with T = len(t) = {len(t)}", got=tuple(x.shape)
+            )
+    names = list(names) if names is not None else [f"body {n}" for n in range(len(grids))]
+    colours = [tuple(c) for c in colours] if colours is not None else []
+    colours += [BODY_COLOURS[n % len(BODY_COLOURS)] for n in range(len(colours), len(grids))]
+    size = int(size)
+    idx = frame_indices(len(t), frames)
+    labels = [torch.where(grid.nodes(), 0, -1) for grid in grids]
+    up, light = _view(camera, camera_up)
+    points = torch.cat([x[idx].transpose(1, 2).reshape(-1, 3) for x in xs])
+    widest = max(grids, key=lambda g: max(g.spacing))
+    camera = surface_camera(
+        widest, None, size=size, up=up, direction=SURFACE_DIRECTION if camera is None else tuple(camera), points=points
+    )
+    forces = {k: np.asarray(f, dtype=np.float64).reshape(len(t), 3) for k, f in (forces or {}).items()}
+    curves = None
+    if contact:
+        curves = {
+            k: np.linalg.norm(np.asarray(f, dtype=np.float64).reshape(len(t), 3), axis=1) for k, f in contact.items()
+        }
+    titles = (", ".join(names) + ": surfaces, shaded", "contact force per pair")
+    images, captions = [], []
+    for i in tqdm(idx, disable=not progress, desc="animate", unit="frame"):
+        layers = [(cut_surfaces(g, x[i : i + 1], lab), c) for g, x, lab, c in zip(grids, xs, labels, colours)]
+        surface = surface_panel(layers, camera, t=float(t[i]), tools=tools, light=light, specular=specular)
+        right = curve_panel(t, curves, float(t[i]), size=size) if curves is not None else None
+        text = caption(float(t[i]), forces={k: f[i] for k, f in forces.items()})
+        captions.append(text)
+        images.append(compose(surface, right, text, titles=titles))
+    nbytes = write_gif(images, out_path, fps=fps)
+    return {
+        "file": Path(out_path).name,
+        "frames": len(images),
+        "size": list(images[0].shape[:2]),
+        "panel": size,
+        "indices": idx,
+        "times_s": [float(t[i]) for i in idx],
+        "captions": captions,
+        "bytes": nbytes,
+        "camera": camera,
+        "colours": [[round(255 * v) for v in c] for c in colours],
     }

@@ -9,9 +9,11 @@ the sections of one body as its sub-tables: :data:`PER_BODY` (``[bodies.grid]``,
 ``[bodies.material]``, ``[bodies.mass]``, ``[bodies.boundary]``, ``[[bodies.regions]]``,
 ``[[bodies.tissues]]``, ``[[bodies.loads]]``, ``[[bodies.drags]]``, ``[[bodies.tools]]``,
 ``[bodies.strain_limit]``). ``[integrator]`` (required), ``[output]`` (``record_every``, ``name``) and
-``[contact]`` (``friction``, the Coulomb coefficient between bodies, 0) are global. A tool touches
-only the body that lists it. Topology changes, volumes, textures, embedded surfaces, the animation,
-palpation, ``settle`` and the static solve are single-body features, refused here with one line.
+``[contact]`` (``friction``, the Coulomb coefficient between bodies, 0) are global; ``[output]`` also
+takes the animation's keys (``animation``, ``image_size``, ``camera``, ``camera_up``, as for one body).
+A tool touches only the body that lists it. Topology changes, volumes, textures, embedded surfaces,
+surface files, palpation, ``settle`` and the static solve are single-body features, refused here with
+one line.
 
 **Building.** Each body is a single-body document (its sub-tables plus the global
 ``[integrator]`` and ``[output]``) built by :func:`~torchdeform.scene.mass_spring.mass_spring_scene`,
@@ -27,7 +29,9 @@ final support reaction (N, bodies with fixed nodes) and tool forces; per pair ``
 at the recorded frames (``t_s``): ``force_N`` ``(T, 3)`` (the force ``a`` exerts on ``b``, averaged over
 the steps since the previous frame: momentum over time), ``contacts`` (nodes of either body inside
 the other, at the frame's step) and ``penetration_m`` (the deepest before projection over those
-steps), with their maxima. The animation and the browser viewer of several bodies are not drawn yet.
+steps), with their maxima. With ``[output] animation = true``, ``animation.gif`` (:func:`animate_bodies`):
+every body's surface in its own colour, the tools, and the contact force per pair over time. The
+browser viewer (``torchdeform view``) shows such a scene too (:mod:`torchdeform.view.bodies`).
 """
 
 from __future__ import annotations
@@ -51,7 +55,7 @@ from ..sim.integrators import Integrator
 from ..sim.stability import check_dt, time_step_bound
 from .mass_spring import EXPLICIT, mass_spring_scene
 from .reader import LISTS, MISSING, SECTIONS, Source, Table, check_sections, read
-from .tools import ToolRecorder
+from .tools import ToolRecorder, tool_forces_at
 
 try:
     import tomllib
@@ -65,6 +69,7 @@ __all__ = [
     "bodies_scene",
     "run_bodies",
     "bodies_report",
+    "animate_bodies",
     "read_scene",
     "check_bodies_sections",
     "PER_BODY",
@@ -74,7 +79,11 @@ __all__ = [
 #: the sections each ``[[bodies]]`` entry holds as sub-tables (those of one mass-spring body)
 PER_BODY = ("grid", "material", "regions", "tissues", "mass", "boundary", "loads", "drags", "tools", "strain_limit")
 #: the global sections of a scene of several bodies, and their keys (``[integrator]``: as for one body)
-GLOBAL = {"integrator": None, "output": ("record_every", "name"), "contact": ("friction",)}
+GLOBAL = {
+    "integrator": None,
+    "output": ("record_every", "name", "animation", "image_size", "camera", "camera_up"),
+    "contact": ("friction",),
+}
 #: ``[integrator]`` settings a scene of several bodies refuses, and why
 _NO_INTEGRATOR = {
     "settle": "no settle with several bodies (start them apart and let them fall, with [bodies.boundary] decay)",
@@ -237,7 +246,7 @@ def _global_errors(src: Source, data: dict) -> list:
                 if k in GLOBAL[name]:
                     continue
                 if name == "output" and k in SECTIONS["output"]:
-                    expected = f"no {k} with several bodies (their animation, surfaces and viewer are not drawn yet)"
+                    expected = f"no {k} with several bodies (surface files and palpation are single-body features)"
                 else:
                     expected = "one of the keys " + ", ".join(GLOBAL[name])
                 errors.append(src.error(f"{name}.{k}", expected, got=k))
@@ -329,11 +338,17 @@ class BodiesScene:
     source: Source = field(default_factory=Source)
     #: per body: True where its ``[bodies.grid]`` gives an ``origin`` (errors of bodies that overlap name it)
     placed: list = field(default_factory=list)
+    #: ``"animation.gif"`` for ``[output] animation = true`` (:func:`animate_bodies`), else None
+    animation: str | None = None
+    #: the side (pixels) of each square panel of the animation (``[output] image_size``)
+    image_size: int = 512
+    #: the animation's view, ``(3,)`` from the bodies' centre, and the direction upwards in it (``[output]
+    #: camera``, ``camera_up``); None: the animation's defaults
+    camera: tuple | None = None
+    camera_up: tuple | None = None
     #: single-body outputs that a scene of several bodies does not write (yet): always None
     volume: None = None
     texture: None = None
-    animation: None = None
-    image_size: int = 512
 
     @property
     def grid(self):
@@ -432,6 +447,10 @@ def bodies_scene(src: Source, data: dict, base: Path, *, name: str = "scene") ->
         threads=first.threads,
         source=src,
         placed=placed,
+        animation=first.animation,
+        image_size=first.image_size,
+        camera=first.camera,
+        camera_up=first.camera_up,
     )
     bodies = scene.bodies(device="cpu")
     scene.check_apart(bodies, bodies.rest_states())
@@ -601,6 +620,9 @@ def _run(scene: BodiesScene, out: Path, progress: bool, device) -> dict:
     title = f"{scene.name}: {integrator.name}, dt = {dt:.3g} s"
     if contact:
         plot_contact(out / "contact.png", t, contact, title=title)
+    animation = None
+    if scene.animation:
+        animation = animate_bodies(scene, bodies, t, xs, tools, contact, out, progress=progress)
     options = {k: v for k, v in vars(integrator).items() if isinstance(v, (int, float, str)) and not k.startswith("_")}
     summary = {
         "name": scene.name,
@@ -626,11 +648,74 @@ def _run(scene: BodiesScene, out: Path, progress: bool, device) -> dict:
         "final_energy_J": energy,
         "max_displacement_m": max(b["peak_displacement_m"] for b in summary_bodies.values()),
         "final_displacement_m": max(b["final_displacement_m"] for b in summary_bodies.values()),
-        "not_drawn": "the animation and the browser viewer of several bodies are not drawn yet",
     }
+    if animation is not None:
+        summary["animation"] = animation
     summary["outputs"] = manifest(out)
     (out / "summary.json").write_text(summary_json(summary) + "\n")
     return summary
+
+
+def animate_bodies(
+    scene: BodiesScene,
+    bodies: Bodies,
+    t: np.ndarray,
+    xs: list,
+    tools: list,
+    contact: dict,
+    out: Path,
+    *,
+    progress=False,
+) -> dict:
+    """Write ``scene.animation`` (a GIF of every body, :func:`torchdeform.scene.animation.animate_bodies`).
+
+    Each body is drawn in its colour of :data:`~torchdeform.scene.animation.BODY_COLOURS` (in the
+    order of ``[[bodies]]``), the tools of every body where they are, the caption gives each tool's
+    force and a panel the contact force per pair over time.
+
+    Args:
+        scene: the :class:`BodiesScene`.
+        bodies: the :class:`~torchdeform.interact.bodies.Bodies` of the run (their grids).
+        t: frame times ``(T,)`` (s).
+        xs: per body its positions ``(T, 3, D, H, W)`` (m).
+        tools: per body its :class:`~torchdeform.scene.tools.ToolRecorder`, or None.
+        contact: per pair ``{"force": (T, 3), ...}`` (:meth:`_PairRecorder.at_frames`).
+        out: the output folder.
+        progress: show a progress bar.
+
+    Returns:
+        a summary dict for ``summary.json``: ``file``, ``frames``, ``size``, ``panel``, ``bytes``,
+        ``colours`` (per body name, sRGB bytes), ``wall_time_s``.
+    """
+    from .animation import animate_bodies as animate
+
+    start = time.perf_counter()
+    assert scene.animation is not None  # the file name of the animation asked for
+    forces, drawn = {}, []
+    for s, recorder in zip(scene.scenes, tools):
+        if s.tools is None:
+            continue
+        drawn += list(s.tools.tools)
+        if recorder is not None:
+            forces.update(tool_forces_at(recorder.series(), s.tools.names, t))
+    info = animate(
+        [b.model.grid for b in bodies.bodies],
+        t,
+        xs,
+        out / scene.animation,
+        names=scene.names,
+        tools=drawn,
+        forces=forces,
+        contact={k: c["force"] for k, c in contact.items()} or None,
+        size=scene.image_size,
+        camera=scene.camera,
+        camera_up=scene.camera_up,
+        progress=progress,
+    )
+    return {k: info[k] for k in ("file", "frames", "size", "panel", "bytes")} | {
+        "colours": dict(zip(scene.names, info["colours"])),
+        "wall_time_s": time.perf_counter() - start,
+    }
 
 
 def plot_contact(path, t: np.ndarray, contact: dict, *, title: str = "") -> None:
@@ -678,5 +763,5 @@ def bodies_report(summary: dict, out_dir) -> str:
         f"{summary['name']}: {len(summary['bodies'])} bodies, {summary['steps']} {summary['integrator']['name']} "
         f"steps of {summary['dt_s']:.3g} s{bound} in {summary['wall_time_s']:.2f} s, max displacement "
         f"{summary['max_displacement_m'] * 1e3:.3g} mm (peak){'; ' + contacts if contacts else ''}; "
-        f"no animation or viewer for several bodies yet; wrote {', '.join(files)} to {out_dir}"
+        f"wrote {', '.join(files)} to {out_dir}"
     )

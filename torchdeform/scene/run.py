@@ -27,7 +27,7 @@ from ..sim.threads import after_step_threads
 from .bodies import BodiesScene, bodies_report, bodies_scene, read_scene
 from .chainmail import ChainMailScene, chainmail_scene
 from .mass_spring import EXPLICIT, Scene, StaticSolve, StaticSolveError, mass_spring_scene
-from .tools import ToolRecorder, support_series, tool_outputs
+from .tools import ToolRecorder, support_series, tool_forces_at, tool_outputs
 
 __all__ = [
     "load_scene",
@@ -40,7 +40,6 @@ __all__ = [
     "scene_texture",
     "scene_texture_outputs",
     "scene_animation",
-    "tool_forces_at",
     "scene_engine",
     "settle_state",
 ]
@@ -819,34 +818,6 @@ def scene_texture_outputs(tex, grid, x, labels, out_dir) -> dict:
         "pieces": len(pieces),
         "outputs": ["textured.png"],
     }
-
-
-def tool_forces_at(series: dict, names, t: np.ndarray) -> dict:
-    """The tools' forces at recorded frame times, from the per-step series of :class:`ToolRecorder`.
-
-    Args:
-        series: :meth:`ToolRecorder.series` (``"t"`` ``(steps,)``, ``"<name>.force"`` ``(steps, 3)``).
-        names: the tools' names.
-        t: frame times ``(T,)`` (s).
-
-    Returns:
-        ``{name: (T, 3)}`` (N): the reading of the step nearest each frame (zero before the first step).
-
-    Examples:
-        >>> import numpy as np
-        >>> series = {"t": np.array([0.1, 0.2, 0.3]), "probe.force": np.array([[1.0, 0, 0], [2, 0, 0], [3, 0, 0]])}
-        >>> tool_forces_at(series, ["probe"], np.array([0.0, 0.2, 0.3]))["probe"][:, 0].tolist()
-        [0.0, 2.0, 3.0]
-    """
-    st = np.asarray(series["t"], dtype=np.float64)
-    t = np.asarray(t, dtype=np.float64)
-    if not len(st):
-        return {name: np.zeros((len(t), 3)) for name in names}
-    k = np.clip(np.searchsorted(st, t), 0, len(st) - 1)
-    prev = np.clip(k - 1, 0, len(st) - 1)
-    k = np.where(np.abs(st[prev] - t) < np.abs(st[k] - t), prev, k)
-    before = t < st[0] / 2  # the start frame: no step yet
-    return {name: np.where(before[:, None], 0.0, np.asarray(series[f"{name}.force"])[k]) for name in names}
 
 
 def scene_animation(

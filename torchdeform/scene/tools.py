@@ -90,6 +90,7 @@ __all__ = [
     "ToolRecorder",
     "tool_outputs",
     "support_series",
+    "tool_forces_at",
     "plot_forces",
     "MAX_POINTS",
 ]
@@ -636,3 +637,31 @@ def support_series(model, t: np.ndarray, x: torch.Tensor, v: torch.Tensor) -> np
             )
             out.append(support_reaction(model, state)[0].double().cpu())
     return torch.stack(out).numpy() if out else np.zeros((0, 3))
+
+
+def tool_forces_at(series: dict, names, t: np.ndarray) -> dict:
+    """The tools' forces at recorded frame times, from the per-step series of :class:`ToolRecorder`.
+
+    Args:
+        series: :meth:`ToolRecorder.series` (``"t"`` ``(steps,)``, ``"<name>.force"`` ``(steps, 3)``).
+        names: the tools' names.
+        t: frame times ``(T,)`` (s).
+
+    Returns:
+        ``{name: (T, 3)}`` (N): the reading of the step nearest each frame (zero before the first step).
+
+    Examples:
+        >>> import numpy as np
+        >>> series = {"t": np.array([0.1, 0.2, 0.3]), "probe.force": np.array([[1.0, 0, 0], [2, 0, 0], [3, 0, 0]])}
+        >>> tool_forces_at(series, ["probe"], np.array([0.0, 0.2, 0.3]))["probe"][:, 0].tolist()
+        [0.0, 2.0, 3.0]
+    """
+    st = np.asarray(series["t"], dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64)
+    if not len(st):
+        return {name: np.zeros((len(t), 3)) for name in names}
+    k = np.clip(np.searchsorted(st, t), 0, len(st) - 1)
+    prev = np.clip(k - 1, 0, len(st) - 1)
+    k = np.where(np.abs(st[prev] - t) < np.abs(st[k] - t), prev, k)
+    before = t < st[0] / 2  # the start frame: no step yet
+    return {name: np.where(before[:, None], 0.0, np.asarray(series[f"{name}.force"])[k]) for name in names}

@@ -1,6 +1,7 @@
 """Command-line code of the viewer: ``torchdeform view SCENE.toml``.
 
-Loads the scene, serves the viewer on loopback (a random token in the URL) and prints one line:
+Loads the scene (one body: :class:`~torchdeform.view.session.ViewerSession`; several,
+``[[bodies]]``: :class:`~torchdeform.view.bodies.BodiesSession`), serves the viewer on loopback (a random token in the URL) and prints one line:
 the page's URL. Ctrl-C stops it (exit status 0). A bad scene file is a
 :class:`~torchdeform.errors.ConfigError`: one line on stderr and exit status 2.
 """
@@ -71,11 +72,16 @@ def command(args) -> int:
     from .server import serve
 
     torch.set_num_threads(args.threads or default_threads())
+    from ..scene.bodies import BodiesScene
+    from .bodies import BodiesSession
     from .session import ViewerSession
 
     with one_line_warnings():
         scene = load_scene(args.scene, surfaces=True)  # a body of labels: its smooth surfaces
-        session = ViewerSession(scene, device=args.device)
+        if isinstance(scene, BodiesScene):  # several bodies: play, pause, reset and the scene's tools
+            session = BodiesSession(scene, device=args.device)
+        else:
+            session = ViewerSession(scene, device=args.device)
     return serve(
         session,
         host=args.host,

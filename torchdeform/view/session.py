@@ -108,7 +108,7 @@ from ..topology import Blade, components, cut, sides
 from ..topology.masks import alive, full
 from ..topology.surfaces import FrameSurface
 
-__all__ = ["ViewerSession", "TERM_RANGE", "DEFAULT_TEXTURE", "frame_size"]
+__all__ = ["ViewerSession", "TERM_RANGE", "DEFAULT_TEXTURE", "frame_size", "tool_parts", "tool_poses"]
 
 #: the range of the ``consistency`` term (the input of the fuzzy tissue system)
 TERM_RANGE = (0.0, 10.0)
@@ -128,6 +128,54 @@ _KEYS = {
     "cut": ("origin", "u", "v"),
     "term": ("name", "value"),
 }
+
+
+def tool_parts(tools) -> list:
+    """``[(tool, message part)]``: each drawable tool and its triangles in its own frame (metres).
+
+    A part is ``{"name", "vertices" (flat, 3 per vertex, m), "faces" (flat, 3 per triangle),
+    "smooth", "color"}`` (:meth:`ViewerSession.mesh`'s ``tools``); a half-space is left out.
+
+    Example:
+        >>> from torchdeform.interact import Sphere, Tool
+        >>> [(t.name, p["smooth"], len(p["faces"]) % 3) for t, p in tool_parts([Tool(Sphere(0.01), position=(0, 0, 0), name="s")])]
+        [('s', True, 0)]
+    """
+    from ..interact.meshes import tool_surface
+    from ..scene.animation import TOOL_COLOUR
+
+    out = []
+    for tool in tools:
+        mesh = tool_surface(Tool(tool.shape, position=(0.0, 0.0, 0.0)), 0.0)
+        if mesh is None:  # a half-space: no finite surface
+            continue
+        v, f = mesh
+        part = {
+            "name": tool.name,
+            "vertices": np.round(v, 7).reshape(-1).tolist(),
+            "faces": f.reshape(-1).tolist(),
+            "smooth": isinstance(tool.shape, (Sphere, Capsule)),
+            "color": list(TOOL_COLOUR),
+        }
+        out.append((tool, part))
+    return out
+
+
+def tool_poses(tools, t: float) -> np.ndarray:
+    """float64 ``(T, 12)``: each tool's position ``c`` (m) and rotation ``R`` (row-major) at time ``t`` (s).
+
+    Example:
+        >>> from torchdeform.interact import Sphere, Tool
+        >>> tool_poses([Tool(Sphere(0.01), position=(0.01, 0.02, 0.03))], 0.0)[0, :6].tolist()
+        [0.01, 0.02, 0.03, 1.0, 0.0, 0.0]
+    """
+    like = torch.zeros(1, 3, dtype=torch.float64)
+    out = np.zeros((len(tools), 12))
+    for k, tool in enumerate(tools):
+        c, R = tool.frame(float(t), like)
+        out[k, :3] = c.reshape(-1, 3)[0].detach().double().cpu().numpy()
+        out[k, 3:] = np.eye(3).reshape(-1) if R is None else R[0].detach().double().cpu().numpy().reshape(-1)
+    return out
 
 
 def frame_size(mesh: dict) -> int:
@@ -325,24 +373,7 @@ class ViewerSession:
 
     def _tool_meshes(self) -> list:
         """``[(tool, message part)]``: each drawable scene tool and its triangles in its own frame (metres)."""
-        from ..interact.meshes import tool_surface
-        from ..scene.animation import TOOL_COLOUR
-
-        out = []
-        for tool in self.scene.tools.tools if self.scene.tools is not None else ():
-            mesh = tool_surface(Tool(tool.shape, position=(0.0, 0.0, 0.0)), 0.0)
-            if mesh is None:  # a half-space: no finite surface
-                continue
-            v, f = mesh
-            part = {
-                "name": tool.name,
-                "vertices": np.round(v, 7).reshape(-1).tolist(),
-                "faces": f.reshape(-1).tolist(),
-                "smooth": isinstance(tool.shape, (Sphere, Capsule)),
-                "color": list(TOOL_COLOUR),
-            }
-            out.append((tool, part))
-        return out
+        return tool_parts(self.scene.tools.tools if self.scene.tools is not None else ())
 
     def _reset(self) -> None:
         """The scene's model (a fresh editable copy, fresh scene tools), at rest; no tool, no drag."""
@@ -624,14 +655,7 @@ class ViewerSession:
 
     def _poses(self) -> np.ndarray:
         """float64 ``(T, 12)``: each drawn tool's position ``c`` (m) and rotation ``R`` (row-major) now."""
-        like = torch.zeros(1, 3, dtype=torch.float64)
-        t = float(self.state.t)
-        out = np.zeros((len(self._tools), 12))
-        for k, (tool, _) in enumerate(self._tools):
-            c, R = tool.frame(t, like)
-            out[k, :3] = c.reshape(-1, 3)[0].detach().double().cpu().numpy()
-            out[k, 3:] = np.eye(3).reshape(-1) if R is None else R[0].detach().double().cpu().numpy().reshape(-1)
-        return out
+        return tool_poses([tool for tool, _ in self._tools], float(self.state.t))
 
     def positions(self) -> bytes:
         """A frame: the surface's vertex positions and the tools' poses now, float32 little-endian.

@@ -3,9 +3,12 @@
 // The socket lives in a worker (socket-worker.js): big frames arrive while this thread renders; each
 // animation frame asks it for the newest one.
 // Server -> page (see torchdeform/view/server.py and session.py):
-//   a "mesh" JSON message: surface ("embedded" smooth label surfaces or the "lattice" surface),
-//     vertices V, faces, colors (3 per vertex, sRGB 0-255: the solid texture at the rest positions),
-//     bounds, tissue terms, tool radius, and tools: [{name, vertices (own frame, m), faces, smooth, color}];
+//   a "mesh" JSON message: surface ("embedded" smooth label surfaces, the "lattice" surface, or
+//     "bodies": the lattice surfaces of several bodies), vertices V, faces, colors (3 per vertex, sRGB
+//     0-255: the solid texture at the rest positions, or each body's colour), bounds, tissue terms, tool
+//     radius, tools: [{name, vertices (own frame, m), faces, smooth, color}], and optionally parts:
+//     [{name, vertices, triangles}] (several bodies: one mesh drawn per part, its vertices and triangles
+//     consecutive in that order) and commands (the accepted ones; the others' controls are hidden);
 //   binary frames, float32 little endian: V * 3 vertex positions in metres (axis order D, H, W), then
 //     12 values per tool: its position c (m) and rotation R (row-major), a tool vertex p at c + R p;
 //   "stats" JSON.
@@ -25,7 +28,7 @@ const canvas = $("view");
 
 // ------------------------------------------------------------------ exposed for tests
 const stats = { fps: 0, resolution: 1, framesReceived: 0, framesShown: 0, framesSkipped: 0, lastStats: null, meshVersion: null, vertices: 0,
-                surface: null, colored: false, tools: [], connected: false, sent: 0, mode: "drag",
+                surface: null, colored: false, tools: [], parts: [], connected: false, sent: 0, mode: "drag",
                 ms: { normals: 0, render: 0, frame: 0, message: 0 } };
 window.viewerStats = stats;
 
@@ -61,6 +64,7 @@ const material = new THREE.MeshPhongMaterial({ color: 0xffffff, specular: WET, s
 const plainMaterial = new THREE.MeshPhongMaterial({ color: 0xc4736b, specular: WET, shininess: 40,
                                                     side: THREE.FrontSide });
 let surface = null;                      // THREE.Mesh, geometry in library coordinates
+let partMeshes = [];                     // several bodies: one THREE.Mesh per body, sharing surface's attributes
 let positionsDirty = false;
 let toolMeshes = [];                     // THREE.Mesh per scene tool, in library coordinates, posed per frame
 
@@ -154,15 +158,22 @@ function onMesh(msg) {
     body.remove(surface);
     surface.geometry.dispose();
   }
+  for (const m of partMeshes) {
+    body.remove(m);
+    m.geometry.dispose();
+  }
   const side = msg.surface === "embedded" ? THREE.DoubleSide : THREE.FrontSide;
   for (const m of [material, plainMaterial]) if (m.side !== side) { m.side = side; m.needsUpdate = true; }
   surface = new THREE.Mesh(geometry, colored ? material : plainMaterial);
-  body.add(surface);
+  partMeshes = buildParts(msg, geometry, colored ? material : plainMaterial);
+  if (!partMeshes.length) body.add(surface);   // else the parts draw it, body by body
   positionsDirty = !!(old && old.count === V);
   stats.meshVersion = msg.version;
   stats.vertices = V;
   stats.surface = msg.surface || "lattice";
   stats.colored = colored;
+  stats.parts = partMeshes.map((m) => m.name);
+  showCommands(msg.commands || null);
   buildTools(msg.tools || []);
   toolRadius = msg.tool_radius || toolRadius;
   toolSphere.scale.setScalar(toolRadius);
@@ -177,6 +188,42 @@ function onMesh(msg) {
   }
   buildTerms(msg.terms || {});
 }
+
+// several bodies: one mesh per part (body), each with its own triangles; the positions, normals and
+// colours are the whole surface's attributes, shared, so a frame updates them once for all
+function buildParts(msg, geometry, mat) {
+  const parts = Array.isArray(msg.parts) ? msg.parts : [];
+  if (!parts.length || !parts.every((p) => Number.isInteger(p.triangles))) return [];
+  vertexNormals(geometry);               // the shared normal attribute
+  const faces = geometry.getIndex().array;
+  let first = 0;
+  return parts.map((p) => {
+    const g = new THREE.BufferGeometry();
+    for (const name of ["position", "normal", "color"]) {
+      const a = geometry.getAttribute(name);
+      if (a) g.setAttribute(name, a);
+    }
+    g.setIndex(new THREE.BufferAttribute(faces.slice(3 * first, 3 * (first + p.triangles)), 1));
+    first += p.triangles;
+    const mesh = new THREE.Mesh(g, mat);
+    mesh.name = String(p.name);
+    mesh.frustumCulled = false;          // its bounds move with the frames
+    body.add(mesh);
+    return mesh;
+  });
+}
+
+// the controls of the commands the server accepts (null: all); several bodies: play, pause, reset
+function showCommands(commands) {
+  const modes = ["drag", "tool", "cut"];
+  const allowed = commands === null ? modes : modes.filter((m) => commands.includes(m));
+  $("mode-drag").parentElement.style.display = allowed.length ? "" : "none";
+  for (const m of modes) $(`mode-${m}`).style.display = allowed.includes(m) ? "" : "none";
+  if (!allowed.includes(stats.mode)) stats.mode = allowed.length ? allowed[0] : "none";
+  $("help").textContent = allowed.length ? HELP
+    : "Several bodies: play, pause and reset; the scene's tools follow their paths. Right- or left-drag: orbit. Wheel: zoom.";
+}
+const HELP = $("help").textContent;
 
 // the scene's tools: steel, shiny; smooth (a sphere, a capsule) or flat (a box, a mesh's edges)
 function buildTools(tools) {
@@ -350,7 +397,7 @@ let pending = null;      // the latest drag/tool command, sent once per animatio
 canvas.addEventListener("contextmenu", (ev) => ev.preventDefault());
 canvas.addEventListener("pointerdown", (ev) => {
   canvas.setPointerCapture(ev.pointerId);
-  if (ev.button === 2 || ev.shiftKey) {
+  if (ev.button === 2 || ev.shiftKey || stats.mode === "none") {
     gesture = { kind: "orbit", x: ev.clientX, y: ev.clientY };
     return;
   }
