@@ -86,6 +86,11 @@ BENCHES = {
         "time, ms per step, communication share, halo bytes",
         "distributed",
     ),
+    "endoscope": (
+        "virtual endoscopy by the native ray marcher: frames per second of overview, endoscopic, VOI and "
+        "deforming views of a 256x256x128 CT in a 700x600 window, against Radetzky's Table 3.1",
+        "endoscope",
+    ),
     "learn": (
         "a training iteration of Radetzky's per-spring run, eager and compiled: seconds, speed-up, and how "
         "far the learned values agree after each iteration",

@@ -290,10 +290,23 @@ dt]``; a blade (or a scalpel's edge along its path) must reach the body's rest b
 ``[volume]`` (optional): a volume filling the grid's bounding box, deformed by the final state;
 the run also writes ``volume_before.png``, ``volume_after.png``, ``volume_deformed.npy``:
 
-- ``file``: a volume file (.npy, .npz, .nii, .nrrd; relative to the scene file) or ``"phantom:N"``
+- ``file``: a volume file (.npy, .npz, .nii, .nrrd; relative to the scene file), ``"phantom:N"``
+  or ``"phantom-lumen:N"`` (the phantom with an air-filled bowel loop)
 - ``tf``: transfer-function preset or file (``"ct-soft"``)
 - ``mode``: ``"dvr"`` (default), ``"mip"`` or ``"average"``
 - ``view``: axis view (``"h"``)
+
+``[camera]`` (optional, with ``[volume]`` and ``[[tools]]``): an endoscope riding a tool, looking
+through the volume deformed at every recorded frame; the run writes ``endoscope.gif`` and
+``endoscope.png`` (:mod:`.camera`):
+
+- ``kind``: ``"endoscope"``; ``tool``: the tool it rides (required; it may have ``contact = "none"``)
+- ``look``: a fixed view direction ``[d, h, w]`` (default: along the tool's motion); ``up``
+- ``ahead``: m, the lens in front of the tool's centre (0); ``fov``: degrees in (0, 180) (100)
+- ``size``: ``[height, width]`` pixels (``[192, 192]``); ``far``: m, the depth of view (all)
+- ``distortion``: barrel coefficient ``k1`` (0); ``every``: every k-th recorded frame (1);
+  ``step``: voxels between samples (0.5); ``inside``: ``"require"`` (the lens inside the
+  volume at every frame) or ``"allow"``
 
 ``[texture]`` (optional): a solid texture on the body's material points; the run writes
 ``textured.png`` of the final surfaces, cut faces showing the interior:
@@ -334,7 +347,8 @@ tables count from 0) and what was expected.
 Modules: :mod:`.reader` (files, located errors, typed values and the shared sections: the API a
 new model kind builds on), :mod:`.mass_spring`, :mod:`.tools` (``[[tools]]``, ``[strain_limit]``
 and the tool outputs of a run), :mod:`.topology` (cuts, cautery, tearing, coagulation and their outputs), :mod:`.chainmail`, :mod:`.bodies`
-(several bodies in one scene, and their run), :mod:`.run` (load and run),
+(several bodies in one scene, and their run), :mod:`.camera` (``[camera]``: the endoscope's view),
+:mod:`.run` (load and run),
 :mod:`.animation` (a run's frames, textured surface beside the deformed volume, into an animated GIF),
 :mod:`.demo` (the built-in demo), :mod:`.commands` (``torchdeform run`` and ``demo``).
 

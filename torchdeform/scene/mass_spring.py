@@ -226,6 +226,9 @@ class Scene:
     #: optional ``{"exemplar": .., "block": .., "seed": .., "voxel": ..}``: a solid texture on the body's
     #: material coordinates; ``run_scene`` then writes ``textured.png`` of the final surfaces
     texture: dict | None = None
+    #: optional ``[camera]`` (:func:`~torchdeform.scene.camera.camera_section`): an endoscope riding a
+    #: tool, looking through the deformed ``[volume]``; ``run_scene`` writes ``endoscope.gif``
+    camera_view: dict | None = None
     #: optional :class:`~torchdeform.scene.tools.ToolSet` (``[[tools]]``, ``[strain_limit]``): ``run_scene``
     #: runs fresh interactions built from it and writes the tools' force series and plots
     tools: ToolSet | None = None
@@ -1011,6 +1014,10 @@ def mass_spring_scene(src: Source, data: dict, base: Path, *, name: str = "scene
                 check_volume_source(name if name.startswith("phantom") else Path(base) / name, "volume.file")
         with src.located("volume.tf", keys={"transfer function": "volume.tf", "control point": "volume.tf"}):
             get_tf(scene.volume["tf"])
+    if "camera" in data:
+        from .camera import camera_section
+
+        scene.camera_view = camera_section(src, data, scene.tools, has_volume=scene.volume is not None)
     if "texture" in data:
         from ..texture.synthesis import SEAM_METHODS
 

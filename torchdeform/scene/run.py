@@ -332,6 +332,8 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
     if events is not None:
         summary["topology"] = events.outputs(final, out, title=f"{scene.name}: {integrator.name}, dt = {dt:.3g} s")
     texture = _final_state_outputs(scene, model, final, out, summary, None if events is None else events.pieces())
+    if scene.camera_view is not None:
+        summary["camera"] = _endoscope_outputs(scene, model, t, x, out, progress)
     versions = events.embedded_versions if events is not None else None
     surfaces = embedded_outputs(scene, model.grid, t, x, out, summary, versions=versions) if scene.embedded else None
     if scene.animation:
@@ -484,6 +486,19 @@ def _final_state_outputs(scene: Scene, model: Model, final: State, out: Path, su
             spec.pop("file"), final.x[:1], model.X, grid.spacing, out, cut=cut, **spec
         )
     return texture
+
+
+def _endoscope_outputs(scene: Scene, model: Model, t, x, out: Path, progress: bool) -> dict:
+    """``[camera]``: the endoscope's view of the deformed ``[volume]`` at the recorded frames (:mod:`.camera`)."""
+    from ..volume import load_volume
+    from .camera import scene_endoscope
+
+    assert scene.camera_view is not None and scene.volume is not None and scene.tools is not None  # it needs both
+    spec = scene.volume
+    volume = load_volume(_volume_path(spec["file"], spec.get("base")), key="volume.file")
+    return scene_endoscope(
+        scene.camera_view, scene.tools, volume, model.grid, t, x, model.X, out, tf=spec["tf"], progress=progress
+    )
 
 
 def _run_static(scene: Scene, out: Path, device) -> dict:

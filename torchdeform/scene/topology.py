@@ -122,9 +122,9 @@ _METRES = "three numbers [d, h, w] in metres"
 def tools_with_cutters(src: Source, data: dict, base):
     """The :class:`~torchdeform.scene.tools.ToolSet` of ``data["tools"]``; cutting tools need no contact.
 
-    A tool used by ``[[cuts]]`` or ``[[cautery]]`` may have ``contact = "none"`` without a grasp
-    (it touches nothing, it cuts or burns); any other tool is read by
-    :func:`~torchdeform.scene.tools.tools_section` unchanged.
+    A tool used by ``[[cuts]]`` or ``[[cautery]]``, or ridden by the ``[camera]``, may have
+    ``contact = "none"`` without a grasp (it touches nothing: it cuts, burns or carries the
+    camera); any other tool is read by :func:`~torchdeform.scene.tools.tools_section` unchanged.
     """
     from .tools import CONTACTS, tools_section
 
@@ -136,6 +136,8 @@ def tools_with_cutters(src: Source, data: dict, base):
         for e in data[s]
         if isinstance(e, dict)
     }
+    if isinstance(data.get("camera"), dict):
+        users.add(data["camera"].get("tool"))
     options = {k for keys in CONTACTS.values() for k in keys}
     quiet = []
     if isinstance(items, list):

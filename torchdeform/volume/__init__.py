@@ -8,6 +8,9 @@ rendered, differentiable end to end.
                        Knoche's lookup), fixed-point inverse, folding detection, node offsets
 :mod:`.transfer`       transfer functions: control points, lookup table, presets, files
 :mod:`.cameras`        axis views and the perspective :class:`OrbitCamera`
+:mod:`.endoscope`      the virtual endoscope :class:`EndoscopeCamera` (wide angle, round mask, distortion)
+:mod:`.interior`       :func:`render_endoscope`: headlit rendering from inside a (deformed) volume,
+                       analytic opaque surfaces (:class:`Sphere`, :class:`Capsule`), depth
 :mod:`.plan`           the render plan: :func:`render`'s arguments resolved once, for every path
 :mod:`.rendering`      :func:`render` (MIP, average, emission-absorption; axis views and orbit
                        views; through offsets or the pieces of a cut)
@@ -15,7 +18,10 @@ rendered, differentiable end to end.
                        :func:`trilinear_flat`
 :mod:`.images`         display mapping, PNG and GIF files, turntables
 :mod:`.io`             ``.npy``/``.npz``/NIfTI/NRRD volumes (nibabel and pynrrd imported on use)
-:mod:`.phantoms`       the procedural CT phantom
+:mod:`.native_march`   the endoscope's march as a C kernel (``engine="auto"`` without gradients)
+:mod:`.planning`       :class:`Trajectory`, :func:`check_trajectory` (labels passed, clearance of
+                       structures), :func:`fly_through`
+:mod:`.phantoms`       the procedural CT phantom (``lumen=True``: with a bowel loop)
 :mod:`.commands`       ``torchdeform warp`` and ``torchdeform render``
 =====================  ===========================================================================
 
@@ -52,11 +58,14 @@ from .deform import (
     to_grid_sample,
     warp,
 )
+from .endoscope import INSIDE_MODES, EndoscopeCamera
 from .fastpath import RenderCompileWarning, trilinear_flat
 from .images import orbit_frames, save_gif, save_png, to_image
+from .interior import Capsule, Headlight, Sphere, render_endoscope
 from .io import SUFFIXES, check_array, load_volume, read_array, save_volume
-from .phantoms import phantom
+from .phantoms import lumen_centre, phantom
 from .plan import AXIS_VIEWS, ENGINES, RENDER_MODES
+from .planning import Trajectory, TrajectoryReport, check_trajectory, fly_through
 from .rendering import render
 from .transfer import PRESETS, TransferFunction, get_tf, load_tf, preset
 
@@ -102,4 +111,15 @@ __all__ = [
     "ENGINES",
     "trilinear_flat",
     "RenderCompileWarning",
+    "EndoscopeCamera",
+    "INSIDE_MODES",
+    "render_endoscope",
+    "Headlight",
+    "Sphere",
+    "Capsule",
+    "lumen_centre",
+    "Trajectory",
+    "TrajectoryReport",
+    "check_trajectory",
+    "fly_through",
 ]

@@ -6,13 +6,14 @@ volume) is a :class:`~torchdeform.errors.ConfigError`: one line on stderr and ex
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from ..errors import ConfigError
-from ..options import integer, number
+from ..options import int_list, integer, number, number_list
 from .cameras import OrbitCamera
 from .deform import as_offsets, warp
 from .images import orbit_frames, save_gif, save_png, to_image
@@ -100,6 +101,80 @@ def add_render_arguments(p) -> None:
         help="axis views through --offsets: grid_sample (default), or the fused fast path, "
         "compiled (~10x faster per frame, 30-60 s to compile once) or eager",
     )
+    e = p.add_argument_group(
+        "endoscope",
+        "--camera endoscope: a wide-angle camera inside the volume (voxel coordinates D,H,W), headlit. "
+        "Example: torchdeform render phantom-lumen:128 --camera endoscope --eye 40,53.4,35 --look 42,49,45 "
+        "--tf ct-lumen --out scope.png",
+    )
+    e.add_argument("--camera", choices=("endoscope",), default=None, help="the endoscope instead of --view")
+    e.add_argument("--eye", type=number_list(count=3), default=None, help="camera position D,H,W (voxels)")
+    e.add_argument("--look", type=number_list(count=3), default=None, help="a point it looks at, D,H,W (voxels)")
+    e.add_argument(
+        "--path",
+        default=None,
+        help="a .gif: the fly-through along points 'D,H,W;D,H,W;...' (voxels; at least two), one frame per --frames",
+    )
+    e.add_argument("--fov", type=number(lo=0, hi=180, lo_open=True, hi_open=True), default=100.0, help="degrees")
+    e.add_argument("--far", type=number(lo=0, lo_open=True), default=None, help="depth of view in voxels (default all)")
+    e.add_argument("--distortion", type=number(), default=0.0, help="barrel coefficient k1 (negative: barrel)")
+    e.add_argument("--labels", default=None, help="a label volume: print what the path passes through")
+    e.add_argument("--avoid", type=int_list(), default=None, help="labels the path must keep --min-distance from")
+    e.add_argument("--min-distance", type=number(lo=0), default=0.0, help="mm from the --avoid labels")
+    e.add_argument(
+        "--spacing", type=number_list(count=3, lo=0, lo_open=True), default=None, help="voxel size D,H,W in mm"
+    )
+
+
+def _path_points(text: str) -> list:
+    """``--path``: ``'D,H,W;D,H,W;...'`` as a list of points (at least two)."""
+    parse = number_list(count=3)
+    try:
+        points = [parse(p) for p in str(text).split(";") if p.strip()]
+    except Exception:
+        points = []
+    if len(points) < 2:
+        raise ConfigError("--path", "at least two points 'D,H,W;D,H,W' in voxels", got=text)
+    return points
+
+
+def _endoscope_command(args, out: Path) -> int:
+    """``torchdeform render --camera endoscope``: one view (PNG) or a fly-through (GIF and its frames)."""
+    from .endoscope import EndoscopeCamera
+    from .interior import render_endoscope
+    from .planning import Trajectory, check_trajectory, fly_through
+
+    vol = torch.from_numpy(load_volume(args.volume))
+    offsets = load_offsets(args.offsets, volume_shape=tuple(vol.shape)) if args.offsets else None
+    far = math.inf if args.far is None else args.far
+    size = (args.size, args.size)
+    kw = dict(fov=args.fov, size=size, far=far, distortion=args.distortion)
+    if args.path is not None:
+        trajectory = Trajectory.from_points(_path_points(args.path))
+    elif args.eye is not None and args.look is not None:
+        trajectory = Trajectory(args.eye, args.look)
+    else:
+        raise ConfigError("--eye", "--eye and --look (or --path) with --camera endoscope", got=None)
+    if args.labels is not None:
+        labels = load_volume(args.labels, key="--labels")
+        report = check_trajectory(
+            labels, trajectory, spacing=args.spacing, avoid=args.avoid, min_distance=args.min_distance, kind="labels"
+        )
+        print("\n".join(report.lines()))
+    with torch.no_grad():
+        if out.suffix.lower() == ".gif":
+            folder = out.with_name(out.stem + "-frames")  # frame_000.png, ... and the GIF
+            frames = fly_through(vol, trajectory, frames=args.frames, tf=args.tf, offsets=offsets, out=folder, **kw)
+            save_gif(out, frames)
+            print(
+                f"flew through {args.volume} along {len(trajectory.vertices)} points: {len(frames)} frames -> {out}, {folder}"
+            )
+            return 0
+        cam = EndoscopeCamera.look_at(args.eye, args.look, **kw)
+        img = render_endoscope(vol, cam, tf=args.tf, offsets=offsets, step=min(args.step, 0.5))
+        save_png(out, to_image(img))
+    print(f"rendered {args.volume} (endoscope at {args.eye}, fov {args.fov:g} deg) -> {out}")
+    return 0
 
 
 def render_command(args) -> int:
@@ -107,6 +182,8 @@ def render_command(args) -> int:
     out = Path(args.out)
     if out.suffix.lower() not in (".png", ".gif"):
         raise ConfigError("--out", "an image file ending in .png or .gif", got=str(out))
+    if args.camera == "endoscope":
+        return _endoscope_command(args, out)
     if args.view not in AXIS_VIEWS + ("orbit",):
         raise ConfigError("--view", "one of " + ", ".join(AXIS_VIEWS + ("orbit",)), got=args.view)
     if args.size < 8 or args.frames < 1:

@@ -100,17 +100,23 @@ def load_volume(path, *, key: str = "volume") -> np.ndarray:
     """A volume ``(D, H, W)`` as float32 numpy (integers converted, NaN/inf rejected).
 
     ``path`` may also be ``"phantom"`` or ``"phantom:N"`` (the procedural phantom, ``N^3`` voxels,
-    default 128), or an array (checked and returned as float32).
+    default 128), ``"phantom-lumen[:N]"`` (the same with an air-filled bowel loop, for endoscopy),
+    or an array (checked and returned as float32).
     """
     if isinstance(path, np.ndarray):  # already in memory
         return np.ascontiguousarray(check_array(path, key), dtype=np.float32)
     text = str(path)
-    if text == "phantom" or text.startswith("phantom:"):
+    if is_phantom(text):
         from .phantoms import phantom
 
-        return phantom(shape=(_phantom_side(text, key),) * 3).numpy()
+        return phantom(shape=(_phantom_side(text, key),) * 3, lumen=text.startswith("phantom-lumen")).numpy()
     arr = check_array(read_array(path, key=key), key, path=path)
     return np.ascontiguousarray(arr, dtype=np.float32)
+
+
+def is_phantom(text: str) -> bool:
+    """Whether a volume source names the procedural phantom (``phantom[:N]``, ``phantom-lumen[:N]``)."""
+    return text.split(":", 1)[0] in ("phantom", "phantom-lumen")
 
 
 def _phantom_side(text: str, key: str) -> int:
@@ -120,7 +126,7 @@ def _phantom_side(text: str, key: str) -> int:
     except ValueError:
         n = 0
     if n < 8:
-        raise ConfigError(key, "phantom or phantom:N with N >= 8 voxels", got=text)
+        raise ConfigError(key, "phantom[:N] or phantom-lumen[:N] with N >= 8 voxels", got=text)
     # the volume, its warped copy and the render's sample buffers: about 6 float32 copies
     check_memory(key, 24.0 * n**3, f"a phantom of {n}^3 voxels", got=text)
     return n
@@ -134,12 +140,12 @@ def check_volume_source(path, key: str = "volume") -> None:
         >>> check_volume_source("phantom:4", "volume.file")
         Traceback (most recent call last):
         ...
-        torchdeform.errors.ConfigError: volume.file: expected phantom or phantom:N with N >= 8 voxels, got 'phantom:4'
+        torchdeform.errors.ConfigError: volume.file: expected phantom[:N] or phantom-lumen[:N] with N >= 8 voxels, got 'phantom:4'
     """
     if isinstance(path, np.ndarray):  # already in memory
         return np.ascontiguousarray(check_array(path, key), dtype=np.float32)
     text = str(path)
-    if text == "phantom" or text.startswith("phantom:"):
+    if is_phantom(text):
         _phantom_side(text, key)
     else:
         load_volume(path, key=key)

@@ -12,7 +12,7 @@ the rendered volume's ``[min, max]``.
 
 =====================  ===========================================================================
 :class:`TransferFunction`  control points, table, lookup, the text file format
-:data:`PRESETS`        ``"ct-bone"``, ``"ct-soft"``, ``"ct-liver"`` (Hounsfield units), ``"grey"`` (relative ramp)
+:data:`PRESETS`        ``"ct-bone"``, ``"ct-soft"``, ``"ct-liver"``, ``"ct-lumen"`` (Hounsfield units), ``"grey"`` (relative ramp)
 :func:`preset`         a preset by name
 :func:`load_tf`        a transfer-function file (errors name the file and line)
 :func:`get_tf`         a transfer function from itself, a preset name or a file
@@ -188,12 +188,29 @@ PRESETS = {
         [0.0, 0.0, 0.02, 0.04, 0.08, 0.15, 0.5, 1.0],
         False,
     ),
+    # from inside a lumen (virtual endoscopy): air clear, the wall opaque within a voxel or two;
+    # mucosa pink, fat yellowish, vessels red, bone white
+    "ct-lumen": (
+        [-1000, -600, -300, -100, 40, 150, 300, 3000],
+        [
+            [0, 0, 0],
+            [0.95, 0.6, 0.55],
+            [0.95, 0.6, 0.55],
+            [0.95, 0.85, 0.5],
+            [0.9, 0.5, 0.45],
+            [0.85, 0.2, 0.2],
+            [1, 1, 0.95],
+            [1, 1, 1],
+        ],
+        [0.0, 0.0, 2.0, 5.0, 6.0, 6.0, 8.0, 8.0],
+        False,
+    ),
     "grey": ([0.0, 1.0], [[0, 0, 0], [1, 1, 1]], [0.0, 0.05], True),
 }
 
 
 def preset(name: str, *, resolution: int = 4096) -> TransferFunction:
-    """A built-in transfer function: ``"ct-bone"``, ``"ct-soft"`` or ``"grey"`` (relative ramp)."""
+    """A built-in transfer function: ``"ct-bone"``, ``"ct-soft"``, ``"ct-liver"``, ``"ct-lumen"`` or ``"grey"`` (relative ramp)."""
     if name not in PRESETS:
         raise ConfigError("--tf", "a preset (" + ", ".join(PRESETS) + ") or a transfer-function file", got=name)
     v, c, s, rel = PRESETS[name]
