@@ -1,7 +1,9 @@
 """The README and the documentation stay true: their code runs, their scene files load, their layout is the tree.
 
 - Every ```python block of ``README.md`` and ``docs/**/*.md`` runs on its own in a fresh Python
-  process, as a user would paste it: nothing is shared between blocks. The working directory is a
+  process, as a user would paste it: nothing is shared between blocks (each process is forked from
+  one that has imported torch and torchdeform and done nothing else, so that the 1-2 s import is
+  paid once per test worker, not once per block). The working directory is a
   temporary folder that links the repository's top-level folders (``data/``, ``tests/``,
   ``scenes/``, ...), so paths in the pages are written relative to the repository root, as users
   type them, and whatever a block writes (``loss.png``, ``view.png``, ``body.stl``) lands in the
@@ -19,6 +21,7 @@ The oracle is the library itself (the blocks' own prints and a clean exit) and t
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
@@ -85,8 +88,82 @@ def test_pages_have_blocks():
     assert TOML_BLOCKS, "no ```toml blocks found in README.md and docs/"
 
 
+#: the parent of every block's process: imports once, then forks a child per job read from stdin
+#: (``{"script", "cwd", "out", "err", "timeout"}``) and answers ``{"status": exit status or "timeout"}``
+ZYGOTE = r"""
+import json, os, runpy, sys, time, traceback
+import matplotlib
+matplotlib.use("Agg")
+import torch, torchdeform  # noqa: F401  (nothing else runs here: a fork of this process is a fresh one)
+for line in sys.stdin:
+    job = json.loads(line)
+    pid = os.fork()
+    if pid == 0:
+        code = 1
+        try:
+            null = os.open(os.devnull, os.O_RDONLY)
+            os.dup2(null, 0)
+            for fd, name in ((1, "out"), (2, "err")):
+                os.dup2(os.open(job[name], os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644), fd)
+            os.chdir(job["cwd"])
+            sys.path[0] = os.path.dirname(job["script"])
+            sys.argv = [job["script"]]
+            runpy.run_path(job["script"], run_name="__main__")
+            code = 0
+        except SystemExit as e:
+            code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+        except BaseException:
+            traceback.print_exc()
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(code)
+    deadline = time.monotonic() + job["timeout"]
+    while True:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            answer = os.waitstatus_to_exitcode(status)
+            break
+        if time.monotonic() > deadline:
+            os.kill(pid, 9)
+            os.waitpid(pid, 0)
+            answer = "timeout"
+            break
+        time.sleep(0.005)
+    print(json.dumps({"status": answer}), flush=True)
+"""
+
+
+@pytest.fixture(scope="module")
+def zygote():
+    env = dict(
+        os.environ,
+        MPLBACKEND="Agg",
+        PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", ZYGOTE], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env, cwd=ROOT
+    )
+    yield proc
+    assert proc.stdin is not None
+    proc.stdin.close()
+    proc.wait(timeout=60)
+
+
+def run_block(zygote, script: Path, cwd: Path) -> tuple:
+    """``(exit status or "timeout", stdout, stderr)`` of ``script`` run in a fresh process forked by ``zygote``."""
+    out, err = script.with_suffix(".out"), script.with_suffix(".err")
+    job = {"script": str(script), "cwd": str(cwd), "out": str(out), "err": str(err), "timeout": TIMEOUT_S}
+    assert zygote.stdin is not None and zygote.stdout is not None
+    zygote.stdin.write(json.dumps(job) + "\n")
+    zygote.stdin.flush()
+    status = json.loads(zygote.stdout.readline())["status"]
+    read = lambda p: p.read_text(errors="replace") if p.exists() else ""
+    return status, read(out), read(err)
+
+
 @pytest.mark.parametrize("where, source", PYTHON_BLOCKS, ids=[w for w, _ in PYTHON_BLOCKS])
-def test_python_block_runs(where, source, tmp_path):
+def test_python_block_runs(where, source, tmp_path, zygote):
     assert not COMPILES.search(source), (
         f"{where}: the python block compiles (torch.compile costs 20-60 s per shape): "
         "show compiling code in the prose, not in a ```python block"
@@ -94,25 +171,26 @@ def test_python_block_runs(where, source, tmp_path):
     work = work_folder(tmp_path)
     script = tmp_path / "block.py"  # outside the working folder: a clean sys.path[0]
     script.write_text(source, encoding="utf-8")
-    env = dict(
-        os.environ,
-        MPLBACKEND="Agg",
-        PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
-    )
-    try:
-        proc = subprocess.run(
-            [sys.executable, str(script)], cwd=work, env=env, capture_output=True, text=True, timeout=TIMEOUT_S
-        )
-    except subprocess.TimeoutExpired as e:  # captured output is bytes here, whatever text= says
-        err = e.stderr.decode(errors="replace") if isinstance(e.stderr, bytes) else e.stderr or ""
+    status, out, err = run_block(zygote, script, work)
+    if status == "timeout":
         pytest.fail(
             f"{where}: the python block ran longer than {TIMEOUT_S} s (blocks must take a few "
             f"seconds)\n--- block ---\n{source}\n--- stderr ---\n{err[-4000:]}"
         )
-    assert proc.returncode == 0, (
-        f"{where}: the python block failed with exit status {proc.returncode}\n"
-        f"--- block ---\n{source}\n--- stdout ---\n{proc.stdout[-2000:]}\n--- stderr ---\n{proc.stderr[-6000:]}"
+    assert status == 0, (
+        f"{where}: the python block failed with exit status {status}\n"
+        f"--- block ---\n{source}\n--- stdout ---\n{out[-2000:]}\n--- stderr ---\n{err[-6000:]}"
     )
+
+
+def test_a_failing_block_fails(tmp_path, zygote):
+    """The runner can fail: a block that raises, one that exits with a status, one that prints and exits 0."""
+    for source, expected in (("raise ValueError('boom')", 1), ("import sys; sys.exit(3)", 3), ("print('hi')", 0)):
+        script = tmp_path / "block.py"
+        script.write_text(source)
+        status, out, err = run_block(zygote, script, tmp_path)
+        assert status == expected, (source, status, err)
+    assert "boom" not in out and out == "hi\n"
 
 
 @pytest.mark.parametrize("where, source", TOML_BLOCKS, ids=[w for w, _ in TOML_BLOCKS])
