@@ -9,6 +9,7 @@ otherwise. The ``make_model`` fixture is the same factory bound to the device of
 from __future__ import annotations
 
 import contextlib
+import io
 
 import torch
 
@@ -66,3 +67,16 @@ def no_host_wait(device):
         yield
     finally:
         torch.cuda.set_sync_debug_mode("default")
+
+
+def cli_call(argv) -> tuple[int, str, str]:
+    """``torchdeform ARGV`` in-process: (exit status, stdout, stderr); argparse's exits are statuses too."""
+    from torchdeform import cli
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            status = cli.main(argv=[str(a) for a in argv])
+        except SystemExit as e:  # argparse: usage errors, --help, --version
+            status = e.code
+    return status, out.getvalue(), err.getvalue()

@@ -28,6 +28,7 @@ import pytest
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
+from tests.helpers import cli_call
 from torchdeform import cli
 from torchdeform.errors import TorchdeformError
 from torchdeform.learn import load_series
@@ -61,15 +62,7 @@ def fuzz(family: str):
     )
 
 
-def call(argv) -> tuple[int, str, str]:
-    """``torchdeform ARGV`` in-process: (exit status, stdout, stderr)."""
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            status = cli.main(argv=[str(a) for a in argv])
-        except SystemExit as e:  # argparse: usage errors and --help
-            status = e.code
-    return status, out.getvalue(), err.getvalue()
+call = cli_call  # ``torchdeform ARGV`` in-process: (exit status, stdout, stderr)
 
 
 def holds(status, err: str, folder: Path | None = None) -> None:

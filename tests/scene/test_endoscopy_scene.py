@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import json
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +16,7 @@ import pytest
 import torch
 from PIL import Image
 
+from tests.helpers import cli_call
 from torchdeform.scene import load_scene, run_scene
 from torchdeform.scene.camera import world_to_voxel
 
@@ -111,15 +110,10 @@ def test_bad_camera_keys_are_one_line_and_exit_status_2(tmp_path, edit, message)
     assert edit[0] in text
     f = tmp_path / "bad.toml"
     f.write_text(text.replace(*edit))
-    r = subprocess.run(
-        [sys.executable, "-m", "torchdeform", "run", str(f), "--out", str(tmp_path / "o")],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert r.returncode == 2, r.stderr
-    lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and message in lines[0], r.stderr
+    status, _, err = cli_call(["run", f, "--out", tmp_path / "o"])
+    assert status == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], err
 
 
 def test_a_camera_without_a_volume_is_refused(tmp_path):
