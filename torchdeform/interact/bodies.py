@@ -74,6 +74,7 @@ from ..sim.integrators import Integrator, SymplecticEuler
 from ..sim.model import Model, State
 from ..sim.stability import DivergenceMonitor
 from .reactions import report
+from .stacking import stack_key, stack_models
 
 __all__ = ["Body", "BodyContact", "Bodies", "rest_distance", "rest_member"]
 
@@ -244,6 +245,20 @@ class Body:
         return lo, hi
 
 
+def _padded_boxes(body: Body, x: torch.Tensor) -> tuple:
+    """The deformed bounding boxes of ``body`` at positions ``x`` ``(B, 3, D, H, W)``: ``(lo, hi)``, ``(B, 3)`` each.
+
+    Widened by one spacing of the body on every side: the contacts resolved before a pair is
+    looked at move nodes by less than that, so two bodies whose boxes stay apart cannot touch.
+    """
+    pts = x.reshape(x.shape[0], 3, -1)
+    if not body._whole:
+        pts = pts[:, :, body._member]
+    lo, hi = pts.amin(2), pts.amax(2)
+    pad = float(body._h.max())
+    return lo - pad, hi + pad
+
+
 def _colours(corners: torch.Tensor, strides: torch.Tensor) -> list:
     """Masks ``(M,)`` of constraints that share no corner, in order: one colour after another.
 
@@ -306,6 +321,7 @@ class BodyContact:
         """Project every pair's penetrations: replaces the entries of the lists ``xs``, ``vs`` (``(B, 3, D, H, W)`` each)."""
         for k in range(len(xs)):  # corrected in place below: copies, the integrator's tensors stay as they were
             xs[k], vs[k] = xs[k].clone(), vs[k].clone()
+        boxes = [_padded_boxes(b, x) for b, x in zip(bodies, xs)]  # the broad phase: (B, 3) each
         for i, j in itertools.combinations(range(len(bodies)), 2):
             a, b = bodies[i], bodies[j]
             key = f"{a.name}/{b.name}"
@@ -315,8 +331,12 @@ class BodyContact:
             pair = self._pair
             if self.engine_for(xs[i]) == "native":
                 pair = self._native_pair
+            (lo_i, hi_i), (lo_j, hi_j) = boxes[i], boxes[j]
+            near = ((lo_i < hi_j) & (lo_j < hi_i)).all(1).tolist()  # per batch entry: the boxes overlap
             for q, r, sign in ((i, j, 1.0), (j, i, -1.0)):  # nodes of q in r, then of r in q
                 for n in range(xs[q].shape[0]):
+                    if not near[n if len(near) > 1 else 0]:
+                        continue
                     f, c, d = pair(bodies[q], bodies[r], xs, vs, q, r, n, dt)
                     force[n] += sign * f
                     count[n] += c
@@ -328,7 +348,7 @@ class BodyContact:
                     report(readings[k], key, "penetration", depth)
 
     def _native_pair(self, a: Body, b: Body, xs, vs, ia: int, ib: int, n: int, dt: float):
-        """:meth:`_pair` by the C kernel (one constraint after another)."""
+        """:meth:`_pair` by the C kernel (:mod:`~torchdeform.interact.native_contact`)."""
         from .native_contact import resolve_pair
 
         xa, va, xb, vb = (t[n].reshape(3, -1) for t in (xs[ia], vs[ia], xs[ib], vs[ib]))  # contiguous views
@@ -385,6 +405,15 @@ class BodyContact:
         return -impulse / dt, float(idx.numel()), (-d).max()
 
 
+def _groups(models: list, integrator) -> list:
+    """Lists of the indices of models that can be stepped in one batch (:func:`~torchdeform.interact.stacking.stack_key`)."""
+    groups: dict = {}
+    for k, m in enumerate(models):
+        key = stack_key(m, integrator)
+        groups.setdefault(("alone", k) if key is None else key, []).append(k)
+    return sorted(groups.values())
+
+
 class Bodies:
     """Several bodies stepped by one integrator, with the contacts between them.
 
@@ -394,9 +423,19 @@ class Bodies:
             (default symplectic Euler).
         friction: Coulomb coefficient between bodies (:class:`BodyContact`).
         engine: how the contacts are resolved, ``"auto"``, ``"native"`` or ``"torch"`` (:class:`BodyContact`).
+        batch: step bodies whose grids share a shape in one batch (:mod:`~torchdeform.interact.stacking`:
+            the same arithmetic per body, one integrator call for all of them); False: one after the other.
     """
 
-    def __init__(self, bodies, *, integrator: Integrator | None = None, friction: float = 0.0, engine: str = "auto"):
+    def __init__(
+        self,
+        bodies,
+        *,
+        integrator: Integrator | None = None,
+        friction: float = 0.0,
+        engine: str = "auto",
+        batch: bool = True,
+    ):
         bodies = list(bodies)
         if not bodies or not all(isinstance(b, Body) for b in bodies):
             raise ConfigError("bodies", "a list of Body", got=bodies)
@@ -407,6 +446,11 @@ class Bodies:
         self.bodies = bodies
         self.integrator = integrator or SymplecticEuler()
         self.contact = BodyContact(friction=friction, engine=engine)
+        #: lists of body indices stepped together (one integrator call each), in body order
+        self.groups = (
+            _groups([b.model for b in bodies], self.integrator) if batch else [[k] for k in range(len(bodies))]
+        )
+        self._stacked: dict = {}
 
     def rest_states(self, *, batch: int = 1) -> list:
         """Every body at rest, ``[State]``."""
@@ -430,7 +474,7 @@ class Bodies:
     def step(self, states: list, dt: float) -> list:
         """Advance every body by ``dt`` (s), then resolve their contacts; returns the new states."""
         integ = self.integrator
-        new = [integ.respond(b.model, s, *integ.advance(b.model, s, dt, None), dt) for b, s in zip(self.bodies, states)]
+        new = self._advance(states, dt)
         xs, vs = [s.x for s in new], [s.v for s in new]
         readings = [dict(s.readings or {}) for s in new]
         self.contact.resolve(self.bodies, xs, vs, dt, readings=readings)  # before the global drag, as tool contact
@@ -438,6 +482,38 @@ class Bodies:
             State(x, integ.drag(b.model, v, dt), t=s.t, readings=r or None)
             for b, x, v, s, r in zip(self.bodies, xs, vs, new, readings)
         ]
+
+    def _advance(self, states: list, dt: float) -> list:
+        """Every body's state after the integrator's step (before contact), one call per group."""
+        integ = self.integrator
+        new: list = [None] * len(states)
+        for group in self.groups:
+            if len(group) == 1:
+                (k,) = group
+                m, s = self.bodies[k].model, states[k]
+                new[k] = integ.respond(m, s, *integ.advance(m, s, dt, None), dt)
+                continue
+            sizes = [states[k].x.shape[0] for k in group]
+            model = self._stacked_model(group, sizes)
+            s = State(
+                torch.cat([states[k].x for k in group]), torch.cat([states[k].v for k in group]), t=states[group[0]].t
+            )
+            out = integ.respond(model, s, *integ.advance(model, s, dt, None), dt)
+            for k, x, v in zip(group, out.x.split(sizes), out.v.split(sizes)):
+                new[k] = State(x, v, t=out.t)
+        return new
+
+    def _stacked_model(self, group: list, sizes: list) -> Model:
+        """The group's models stacked for batches of ``sizes`` (built once; again if a model's fields change)."""
+        models = [self.bodies[k].model for k in group]
+        key = (
+            tuple(group),
+            tuple(sizes),
+            tuple(id(t) for m in models for t in (m.stiffness, m.mass, m.damping, m.volume)),
+        )
+        if key not in self._stacked:
+            self._stacked = {key: stack_models(models, sizes)}
+        return self._stacked[key]
 
     def simulate(
         self, states: list, *, dt: float, steps: int, callback=None, progress: bool = False, check_every: int = 10
