@@ -61,7 +61,7 @@ from .deform import (
 from .endoscope import INSIDE_MODES, EndoscopeCamera
 from .fastpath import RenderCompileWarning, trilinear_flat
 from .images import orbit_frames, save_gif, save_png, to_image
-from .interior import Capsule, Headlight, Sphere, render_endoscope
+from .interior import Capsule, Headlight, Mesh, Sphere, render_endoscope
 from .io import SUFFIXES, check_array, load_volume, read_array, save_volume
 from .phantoms import lumen_centre, phantom
 from .plan import AXIS_VIEWS, ENGINES, RENDER_MODES
@@ -117,6 +117,7 @@ __all__ = [
     "Headlight",
     "Sphere",
     "Capsule",
+    "Mesh",
     "lumen_centre",
     "Trajectory",
     "TrajectoryReport",
