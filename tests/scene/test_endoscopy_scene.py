@@ -148,3 +148,40 @@ def test_a_camera_on_an_unknown_tool_is_refused():
         camera_section(Source(path="s.toml", text=""), {"camera": {"tool": "scope"}}, tools, has_volume=True)["fov"]
         == 100.0
     )
+
+
+def test_embedded_organ_surfaces_are_drawn_where_the_body_moved_them():
+    """An embedded sphere in a translated body: the endoscope sees it where the analytic sphere,
+    moved with the body, is (pixels agree but for the silhouette of the triangulation)."""
+    import trimesh
+
+    from torchdeform.interact import Sphere as SphereShape
+    from torchdeform.interact import Tool
+    from torchdeform.mesh.embed import EmbeddedSurface
+    from torchdeform.scene.camera import SceneEndoscope, camera_section
+    from torchdeform.scene.reader import Source
+    from torchdeform.scene.tools import ToolSet
+    from torchdeform.sim.grid import Grid
+    from torchdeform.volume import Sphere
+
+    grid = Grid((5, 5, 5), spacing=0.01)
+    ico = trimesh.creation.icosphere(subdivisions=3, radius=0.008)
+    centre = np.array([0.02, 0.02, 0.025])
+    ball = EmbeddedSurface(ico.vertices + centre, ico.faces, grid, dtype=torch.float64)
+    tools = ToolSet(tools=[Tool(SphereShape(0.001), position=(0.02, 0.02, 0.004), name="scope")])
+    data = {"camera": {"tool": "scope", "look": [0.0, 0.0, 1.0], "fov": 70.0, "size": [48, 48]}}
+    spec = camera_section(Source(path="s.toml", text=""), data, tools, has_volume=True)
+    air = np.full((41, 41, 41), -1000.0, dtype=np.float32)
+    rig = SceneEndoscope(spec, tools, air, grid=grid, tf="ct-lumen", meshes={"ball": ball})
+    X = grid.rest_positions(dtype=torch.float64)
+    shift = torch.tensor([0.0, 0.004, 0.0], dtype=torch.float64).view(1, 3, 1, 1, 1)
+    img = rig.render(0.0, X + shift, X)
+    seen = img.max(axis=2) > 0
+    cam = rig.camera(0.0, rig.look(0.0))
+    eye, d, valid = cam.rays(air.shape, dtype=torch.float64)
+    moved = rig.to_voxel(centre + shift.flatten().numpy())
+    t, _ = Sphere(moved.tolist(), 0.008 * rig.voxel_per_m, (1, 1, 1)).hit(eye, d.reshape(3, -1))
+    expected = (torch.isfinite(t).view(48, 48) & valid).numpy()
+    assert expected.sum() > 200 and (seen == expected).mean() > 0.97, (seen == expected).mean()
+    still = rig.render(0.0, X, X).max(axis=2) > 0
+    assert (still != seen).sum() > 20  # the body's move moved the organ in view

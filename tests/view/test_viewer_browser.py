@@ -54,10 +54,10 @@ def open_page(driver, viewer: Viewer, frames: int = 5, timeout: float = 30):
     browser.open_page(driver, viewer.url, frames=frames, timeout=timeout)
 
 
-def canvas_pixels(driver) -> np.ndarray:
+def canvas_pixels(driver, canvas: str = "view") -> np.ndarray:
     from PIL import Image
 
-    url = js(driver, "document.getElementById('view').toDataURL('image/png')")
+    url = js(driver, f"document.getElementById('{canvas}').toDataURL('image/png')")
     data = base64.b64decode(url.split(",", 1)[1])
     return np.asarray(Image.open(io.BytesIO(data)).convert("RGB"))
 
@@ -89,6 +89,8 @@ def test_page_draws_the_body(driver, small):
     assert js(driver, "window.viewerStats.meshVersion") == small.session.mesh_version
     assert js(driver, "window.viewerStats.surface") == "lattice" and js(driver, "window.viewerStats.colored")
     assert js(driver, "window.viewerStats.tools") == []
+    assert js(driver, "document.getElementById('scope').hidden") is True  # no [camera]: no endoscope pane
+    assert js(driver, "window.viewerStats.endoscope.received") == 0
     img = canvas_pixels(driver)
     assert img.shape[0] > 100 and img.shape[1] > 100
     body = np.abs(img.astype(int) - BACKGROUND).sum(-1) > 30
@@ -124,6 +126,33 @@ def test_page_draws_embedded_surfaces_and_the_scene_tool(driver, tmp_path):
     tissue = (r > g + 25) & (r > 60)  # the liver texture: red-brown
     print(f"\nlabel scene: {steel.mean():.2%} steel, {tissue.mean():.1%} tissue pixels")
     assert steel.mean() > 0.002 and tissue.mean() > 0.02
+
+
+def test_the_endoscope_pane_shows_the_scopes_view(driver):
+    """scenes/endoscopy.toml: the round pane is shown, named after the tool, and holds the session's image."""
+    from tests.view.test_endoscope_pane import SCENE, _session
+
+    session = _session(SCENE)
+    session.command({"cmd": "pause"})  # one state: the pane must show exactly its image
+    scoped = session.endoscope()
+    assert scoped is not None
+    _, expected = scoped
+    viewer = Viewer(session).start()
+    try:
+        open_page(driver, viewer, frames=1)
+        assert wait_for(lambda: js(driver, "window.viewerStats.endoscope.shown") >= 1, timeout=15)
+        assert js(driver, "document.getElementById('scope').hidden") is False
+        assert js(driver, "window.viewerStats.endoscope.tool") == "scope"
+        assert driver.find_element(By.ID, "scope-name").text == "endoscope: scope"
+        box = driver.find_element(By.ID, "scope-view").rect
+        img = canvas_pixels(driver, "scope-view")
+    finally:
+        viewer.stop()
+    lit = (img.max(axis=2) > 30).mean()
+    print(f"\nendoscope pane: {box['width']:.0f} x {box['height']:.0f} px on the page, {lit:.0%} lit")
+    assert box["width"] > 100 and box["height"] > 100
+    assert img.shape == expected.shape and lit > 0.2
+    np.testing.assert_array_equal(img, expected)
 
 
 def test_page_draws_several_bodies_each_in_its_colour(driver, tmp_path):

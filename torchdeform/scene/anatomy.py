@@ -91,8 +91,8 @@ def label_body_section(
     """``(grid, model keywords, embedded surfaces or None)`` of a scene whose ``[grid]`` has ``labels``.
 
     The surfaces (``{"label<k>": (vertices, faces)}``, :func:`~torchdeform.mesh.embed.label_surfaces`)
-    are made only when the run shows or writes them (``[output] surfaces = "embedded"`` or
-    ``animation = true``), and the body then covers them; it also covers the ``user`` surfaces
+    are made only when the run shows or writes them (``[output] surfaces = "embedded"``,
+    ``animation = true`` or a ``[camera]``), and the body then covers them; it also covers the ``user`` surfaces
     (:func:`surfaces_section`, ``{name: (vertices, faces, key, file)}``), which it does not return.
     """
     from ..anatomy.images import read_image
@@ -123,7 +123,12 @@ def label_body_section(
     tissues, fixed, background = _tissue_tables(src, data.get("tissues"))
     name = t.text("labels", 'a label volume file, a DICOM folder (relative to the scene file) or "phantom"')
     out = Table(src, "output", data.get("output", {}), SECTIONS["output"])
-    wanted = surfaces or out.data.get("surfaces") == "embedded" or out.data.get("animation") is True
+    wanted = (
+        surfaces
+        or out.data.get("surfaces") == "embedded"
+        or out.data.get("animation") is True
+        or isinstance(data.get("camera"), dict)  # the endoscope draws them
+    )
     faces = out.integer("surface_faces", "an integer >= 100 (triangles per label surface)", default=10_000, lo=100)
     with src.located(t.key("labels")):
         image = _phantom(t, 0) if name.split(":")[0] == "phantom" else None

@@ -611,6 +611,11 @@ def animate(
         text = caption(float(t[i]), forces={k: f[i] for k, f in forces.items()})
         captions.append(text)
         images.append(compose(surface, right, text, titles=titles))
+    return _written(images, out_path, fps, size, idx, t, captions, camera)
+
+
+def _written(images, out_path, fps, size, idx, t, captions, camera) -> dict:
+    """Write the animation's frames ``images`` as a GIF; its part of ``summary.json``."""
     nbytes = write_gif(images, out_path, fps=fps)
     return {
         "file": Path(out_path).name,
@@ -797,16 +802,6 @@ def animate_bodies(
         text = caption(float(t[i]), forces={k: f[i] for k, f in forces.items()})
         captions.append(text)
         images.append(compose(surface, right, text, titles=titles))
-    nbytes = write_gif(images, out_path, fps=fps)
-    return {
-        "file": Path(out_path).name,
-        "frames": len(images),
-        "size": list(images[0].shape[:2]),
-        "panel": size,
-        "indices": idx,
-        "times_s": [float(t[i]) for i in idx],
-        "captions": captions,
-        "bytes": nbytes,
-        "camera": camera,
-        "colours": [[round(255 * v) for v in c] for c in colours],
-    }
+    summary = _written(images, out_path, fps, size, idx, t, captions, camera)
+    summary["colours"] = [[round(255 * v) for v in c] for c in colours]
+    return summary

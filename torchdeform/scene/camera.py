@@ -22,6 +22,11 @@ they are in view. Keys (world axes ``(D, H, W)``, metres)::
 
 It writes ``endoscope.gif`` (one image per used frame) and ``endoscope.png`` (the last).
 
+One frame is :meth:`SceneEndoscope.render`: the camera's pose from the tool at time ``t``, the node
+offsets of the positions, the other tools, the render. :func:`scene_endoscope` (the run's GIF) and the
+live viewer's endoscope pane (:meth:`~torchdeform.view.session.ViewerSession.endoscope`) both call it;
+:func:`load_scene_endoscope` makes one from a loaded scene, its volume loaded once.
+
 Example:
     >>> import numpy as np
     >>> world_to_voxel(np.array([0.01, 0.0, 0.02]), origin=(0, 0, 0), spacing=(0.01, 0.01, 0.01),
@@ -41,7 +46,14 @@ import torch
 from ..errors import ConfigError
 from .reader import Source, Table
 
-__all__ = ["camera_section", "scene_endoscope", "world_to_voxel", "CAMERA_KINDS"]
+__all__ = [
+    "camera_section",
+    "scene_endoscope",
+    "load_scene_endoscope",
+    "SceneEndoscope",
+    "world_to_voxel",
+    "CAMERA_KINDS",
+]
 
 CAMERA_KINDS = ("endoscope",)
 
@@ -108,28 +120,181 @@ def camera_section(src: Source, data: dict, tools, *, has_volume: bool) -> dict 
     return spec
 
 
-def _poses(spec: dict, tool, times: np.ndarray, to_voxel) -> tuple:
-    """Lens positions ``(F, 3)`` and view directions ``(F, 3)`` in voxels at ``times`` (s)."""
-    world = np.array([[float(c) for c in tool.position(float(t))] for t in times])  # (F, 3) m
-    if spec["look"] is not None:
-        look = np.tile(np.asarray(spec["look"], dtype=np.float64), (len(times), 1))
-    else:  # along the motion: the path's direction around each frame (held: the last one)
+class SceneEndoscope:
+    """A scene's endoscope ready to render any frame: the volume, the tool it rides, the voxel mapping.
+
+    One frame (:meth:`render`) is the camera's pose from the tool at time ``t`` (:meth:`look`,
+    :meth:`camera`), the node offsets of the positions ``x`` (:func:`~torchdeform.volume.node_offsets`),
+    the scene's other sphere and capsule tools at ``t`` as opaque surfaces, and the render
+    (:func:`~torchdeform.volume.render_endoscope`, float32). :func:`scene_endoscope` renders a run's
+    recorded frames with it; the live viewer (:class:`~torchdeform.view.session.ViewerSession`) its
+    current state.
+
+    Looking along the motion (no ``look``): the direction of the tool's path at ``t`` (a forward
+    difference of 1 ms); where the tool is still, the last direction it moved in (:attr:`held`),
+    or before it has moved the first one of :meth:`prime`. The image's up (default ``+D``, or ``+W``
+    when the first frame looks along D) is chosen at the first frame after construction or
+    :meth:`reset` and kept, so the image never flips.
+
+    Args:
+        spec: the ``[camera]`` of :func:`camera_section`.
+        tools: the scene's :class:`~torchdeform.scene.tools.ToolSet`.
+        volume: the ``(D, H, W)`` volume (a numpy array or tensor), filling the node grid's box.
+        grid: the body's :class:`~torchdeform.sim.grid.Grid`.
+        tf: the transfer function (the ``[volume]`` section's).
+        meshes: embedded surfaces ``{name:`` :class:`~torchdeform.mesh.embed.EmbeddedSurface` ``}``
+            on the body's lattice, drawn opaque where the body has moved them (one colour each), or None.
+
+    Attributes:
+        volume: the float32 volume ``(D, H, W)`` on the CPU.
+        tool: the :class:`~torchdeform.interact.tools.Tool` the camera rides.
+        size: the image's ``(height, width)`` in pixels.
+        held: the view direction (world, unit ``(3,)``) kept while the tool is still, or None.
+        seconds: the wall time of the last render (s).
+    """
+
+    def __init__(self, spec: dict, tools, volume, *, grid, tf, meshes: dict | None = None):
+        self.spec, self.tools, self.grid, self.tf = spec, tools, grid, tf
+        self.meshes = dict(meshes or {})
+        self.volume = torch.as_tensor(np.asarray(volume, dtype=np.float32))
+        self.shape = tuple(self.volume.shape)
+        self.tool = next(tl for tl in tools.tools if tl.name == spec["tool"])
+        self.size = tuple(spec["size"])
+        self.voxel_per_m = float(np.mean(self.to_voxel(np.ones(3)) - self.to_voxel(np.zeros(3))))
+        self.far = spec["far"] * self.voxel_per_m if math.isfinite(spec["far"]) else math.inf
+        self.seconds = 0.0
+        self.reset()
+
+    def to_voxel(self, p) -> np.ndarray:
+        """World points ``(..., 3)`` (m) as voxel coordinates of the volume (:func:`world_to_voxel`)."""
+        g = self.grid
+        return world_to_voxel(p, origin=g.origin, spacing=g.spacing, nodes=g.shape, volume_shape=self.shape)
+
+    def reset(self, *, held=None) -> None:
+        """Forget the held view direction (or hold ``held``) and the image's up (chosen again at the next frame)."""
+        self.held = None if held is None else np.asarray(held, dtype=np.float64)
+        self._up = None
+
+    def motion(self, t: float) -> np.ndarray | None:
+        """The unit direction ``(3,)`` the tool moves in at ``t`` (s), or None where it is still."""
         eps = 1e-3
-        ahead = np.array([[float(c) for c in tool.position(float(t) + eps)] for t in times])
-        look = ahead - world
-        moving = np.linalg.norm(look, axis=1) > 1e-12
-        if not moving.any():
+        a = np.array([float(c) for c in self.tool.position(float(t))])
+        d = np.array([float(c) for c in self.tool.position(float(t) + eps)]) - a
+        n = float(np.linalg.norm(d))
+        return d / n if n > 1e-12 else None
+
+    def prime(self, times) -> None:
+        """Hold the first direction the tool moves in at ``times`` (s), for the frames before it moves.
+
+        Raises:
+            ConfigError: no ``look`` and the tool moves at none of ``times``.
+        """
+        if self.spec["look"] is not None:
+            return
+        for t in times:
+            d = self.motion(float(t))
+            if d is not None:
+                self.held = d
+                return
+        raise ConfigError("camera.look", "a view direction (the tool does not move)", got=None)
+
+    def look(self, t: float) -> np.ndarray:
+        """The unit view direction ``(3,)`` (world) at ``t``: ``look``, or along the motion (class docstring)."""
+        if self.spec["look"] is not None:
+            d = np.asarray(self.spec["look"], dtype=np.float64)
+            return d / np.linalg.norm(d)
+        d = self.motion(t)
+        if d is not None:
+            self.held = d
+        elif self.held is None:
             raise ConfigError("camera.look", "a view direction (the tool does not move)", got=None)
-        last = look[np.flatnonzero(moving)[0]]
-        for k in range(len(look)):
-            if moving[k]:
-                last = look[k]
-            look[k] = last
-    look = look / np.linalg.norm(look, axis=1, keepdims=True)
-    lens = world + spec["ahead"] * look
-    lens_v = to_voxel(lens)
-    dir_v = to_voxel(world + look * 1e-3) - to_voxel(world)  # a direction through the anisotropic scale
-    return lens_v, dir_v / np.linalg.norm(dir_v, axis=1, keepdims=True)
+        assert self.held is not None
+        return self.held
+
+    def camera(self, t: float, look: np.ndarray):
+        """The :class:`~torchdeform.volume.EndoscopeCamera` (voxels) at ``t`` looking along ``look`` (world).
+
+        Raises:
+            ConfigError: the lens outside the volume with ``inside = "require"`` (naming ``t``).
+        """
+        from ..volume import EndoscopeCamera
+
+        spec = self.spec
+        world = np.array([float(c) for c in self.tool.position(float(t))])
+        lens_v = self.to_voxel(world + spec["ahead"] * look)
+        dir_v = self.to_voxel(world + look * 1e-3) - self.to_voxel(world)  # through the anisotropic scale
+        dir_v = dir_v / np.linalg.norm(dir_v)
+        if self._up is None:
+            up = spec["up"]
+            if up is None:  # +D, or +W where the view runs along D
+                up = (0.0, 0.0, 1.0) if abs(dir_v[0]) > 0.99 else (1.0, 0.0, 0.0)
+            self._up = self.to_voxel(np.asarray(up, dtype=np.float64) * 1e-3) - self.to_voxel(np.zeros(3))
+        camera = EndoscopeCamera(
+            position=lens_v.tolist(),
+            direction=dir_v.tolist(),
+            up=self._up.tolist(),
+            fov=spec["fov"],
+            size=spec["size"],
+            far=self.far,
+            distortion=spec["distortion"],
+            inside=spec["inside"],
+        )
+        try:
+            camera.check_inside(self.shape)
+        except ConfigError:
+            raise ConfigError(
+                "camera.tool",
+                f'a tool whose lens stays inside the volume (at t = {t:.4g} s it is outside; or inside = "allow")',
+                got=spec["tool"],
+            ) from None
+        return camera
+
+    def surfaces(self, t: float) -> list:
+        """The scene's other sphere and capsule tools at time ``t`` as opaque surfaces of the renderer."""
+        return _surfaces(self.tools, self.spec["tool"], float(t), self.to_voxel, self.voxel_per_m)
+
+    def render(self, t: float, x: torch.Tensor, X: torch.Tensor, *, extra=()) -> np.ndarray:
+        """The endoscope's image at time ``t`` of the body at positions ``x``: uint8 ``(h, w, 3)``.
+
+        Args:
+            t: the simulated time (s): the tool's pose and the other tools'.
+            x: node positions ``(1, 3, n_d, n_h, n_w)`` (m).
+            X: rest positions ``(1, 3, n_d, n_h, n_w)`` (m).
+            extra: more spheres to draw, ``[(centre (3,) m, radius m)]`` (the viewer's own tool).
+
+        Raises:
+            ConfigError: the lens outside the volume (``inside = "require"``), or no view direction.
+        """
+        from ..volume import Mesh, Sphere, node_offsets, render_endoscope, to_image
+
+        look = self.look(t)
+        camera = self.camera(t, look)
+        surfaces = self.surfaces(t)
+        for k, embedded in enumerate(self.meshes.values()):  # the organs' surfaces where the body moved them
+            p = embedded.positions(x[0].detach())  # (V, 3) m
+            colour = _ORGANS[k % len(_ORGANS)]
+            surfaces.append(Mesh(self.to_voxel(p.cpu().numpy()), embedded.faces.cpu(), colour))
+        for centre, radius in extra:
+            c = self.to_voxel(np.asarray(centre, dtype=np.float64))
+            surfaces.append(Sphere(c.tolist(), float(radius) * self.voxel_per_m, _STEEL))
+        with torch.no_grad():
+            offsets = node_offsets(x.detach().double().cpu(), X.detach().double().cpu(), self.grid.spacing, self.shape)
+            t0 = time.perf_counter()
+            img = render_endoscope(
+                self.volume,
+                camera,
+                tf=self.tf,
+                offsets=offsets.float()[0],
+                step=self.spec["step"],
+                surfaces=surfaces or None,
+            )
+            self.seconds = time.perf_counter() - t0
+        assert isinstance(img, torch.Tensor)  # no depth asked for: the image alone
+        return to_image(img)
+
+
+_STEEL = (0.75, 0.75, 0.8)  # the tools' colour in the endoscope's view
+_ORGANS = ((0.75, 0.35, 0.3), (0.9, 0.75, 0.45), (0.55, 0.25, 0.45), (0.45, 0.6, 0.35))  # embedded surfaces
 
 
 def _surfaces(tools, skip: str, t: float, to_voxel, voxel_per_m: float) -> list:
@@ -144,28 +309,43 @@ def _surfaces(tools, skip: str, t: float, to_voxel, voxel_per_m: float) -> list:
             continue
         c = np.array([float(v) for v in tool.position(t)])
         if isinstance(tool.shape, SphereShape):
-            out.append(Sphere(to_voxel(c).tolist(), tool.shape.radius * voxel_per_m, (0.75, 0.75, 0.8)))
+            out.append(Sphere(to_voxel(c).tolist(), tool.shape.radius * voxel_per_m, _STEEL))
         elif isinstance(tool.shape, CapsuleShape):
             axis = np.zeros(3)
             axis[tool.shape.axis] = tool.shape.half_length
             a, b = to_voxel(c - axis), to_voxel(c + axis)
-            out.append(Capsule(a.tolist(), b.tolist(), tool.shape.radius * voxel_per_m, (0.75, 0.75, 0.8)))
+            out.append(Capsule(a.tolist(), b.tolist(), tool.shape.radius * voxel_per_m, _STEEL))
     return out
 
 
-def scene_endoscope(spec: dict, tools, volume, grid, t: np.ndarray, x: torch.Tensor, X, out_dir, *, tf, progress=True):
+def load_scene_endoscope(scene, *, meshes: dict | None = None) -> SceneEndoscope | None:
+    """The :class:`SceneEndoscope` of a loaded scene's ``[camera]`` and ``[volume]`` (the volume loaded once), or None.
+
+    Args:
+        scene: a :class:`~torchdeform.scene.Scene` (``scene.camera_view``, ``scene.volume``, ``scene.tools``).
+        meshes: the scene's embedded surfaces on its lattice, ``{name:``
+            :class:`~torchdeform.mesh.embed.EmbeddedSurface` ``}``, drawn opaque in the view; or None.
+    """
+    if scene.camera_view is None:
+        return None
+    from ..volume import load_volume
+    from .reader import volume_path
+
+    assert scene.volume is not None and scene.tools is not None  # camera_section requires both
+    spec = scene.volume
+    volume = load_volume(volume_path(spec["file"], spec.get("base")), key="volume.file")
+    return SceneEndoscope(scene.camera_view, scene.tools, volume, grid=scene.grid, tf=spec["tf"], meshes=meshes)
+
+
+def scene_endoscope(rig: SceneEndoscope, t: np.ndarray, x: torch.Tensor, X, out_dir, *, progress=True) -> dict:
     """Render the endoscope's view at the recorded frames and write ``endoscope.gif`` and ``endoscope.png``.
 
     Args:
-        spec: the ``[camera]`` of :func:`camera_section`.
-        tools: the scene's :class:`~torchdeform.scene.tools.ToolSet`.
-        volume: the ``(D, H, W)`` volume (a numpy array or tensor).
-        grid: the body's :class:`~torchdeform.sim.grid.Grid` (its box holds the volume).
+        rig: the scene's :class:`SceneEndoscope` (:func:`load_scene_endoscope`).
         t: frame times ``(F,)`` s.
         x: node positions of the frames ``(F, 3, n_d, n_h, n_w)`` m.
         X: rest positions ``(1, 3, n_d, n_h, n_w)`` m.
         out_dir: the run's output folder.
-        tf: the transfer function (the ``[volume]`` section's).
         progress: a progress bar over the frames.
 
     Returns:
@@ -173,59 +353,17 @@ def scene_endoscope(spec: dict, tools, volume, grid, t: np.ndarray, x: torch.Ten
     """
     from tqdm import tqdm
 
-    from ..volume import EndoscopeCamera, node_offsets, render_endoscope, save_gif, save_png, to_image
+    from ..volume import save_gif, save_png
 
-    vol = torch.as_tensor(np.asarray(volume, dtype=np.float32))
-    shape = tuple(vol.shape)
-    tool = next(tl for tl in tools.tools if tl.name == spec["tool"])
-
-    def to_voxel(p):
-        return world_to_voxel(p, origin=grid.origin, spacing=grid.spacing, nodes=grid.shape, volume_shape=shape)
-
-    voxel_per_m = float(np.mean(to_voxel(np.ones(3)) - to_voxel(np.zeros(3))))
+    spec = rig.spec
     use = list(range(0, len(t), spec["every"]))
     if use[-1] != len(t) - 1:
         use.append(len(t) - 1)
-    lens, look = _poses(spec, tool, t[use], to_voxel)
-    far = spec["far"] * voxel_per_m if math.isfinite(spec["far"]) else math.inf
-    up = spec["up"]
-    if up is None:  # +D, or +W where the view runs along D
-        up = (0.0, 0.0, 1.0) if abs(look[0][0]) > 0.99 else (1.0, 0.0, 0.0)
-    up_v = to_voxel(np.asarray(up, dtype=np.float64) * 1e-3) - to_voxel(np.zeros(3))
+    rig.prime([float(t[i]) for i in use])  # frames before the tool moves look where it first goes
     frames, seconds = [], []
-    for k, i in enumerate(tqdm(use, disable=not progress, desc="endoscope", unit="frame")):
-        camera = EndoscopeCamera(
-            position=lens[k].tolist(),
-            direction=look[k].tolist(),
-            up=up_v.tolist(),
-            fov=spec["fov"],
-            size=spec["size"],
-            far=far,
-            distortion=spec["distortion"],
-            inside=spec["inside"],
-        )
-        try:
-            camera.check_inside(shape)
-        except ConfigError:
-            raise ConfigError(
-                "camera.tool",
-                f'a tool whose lens stays inside the volume (at t = {t[i]:.4g} s it is outside; or inside = "allow")',
-                got=spec["tool"],
-            ) from None
-        with torch.no_grad():
-            offsets = node_offsets(x[i : i + 1].double(), X.double().cpu(), grid.spacing, shape).float()
-            t0 = time.perf_counter()
-            img = render_endoscope(
-                vol,
-                camera,
-                tf=tf,
-                offsets=offsets[0],
-                step=spec["step"],
-                surfaces=_surfaces(tools, spec["tool"], float(t[i]), to_voxel, voxel_per_m) or None,
-            )
-            seconds.append(time.perf_counter() - t0)
-        assert isinstance(img, torch.Tensor)  # no depth asked for: the image alone
-        frames.append(to_image(img))
+    for i in tqdm(use, disable=not progress, desc="endoscope", unit="frame"):
+        frames.append(rig.render(float(t[i]), x[i : i + 1], X))
+        seconds.append(rig.seconds)
     out = Path(out_dir)
     save_gif(out / "endoscope.gif", frames)
     save_png(out / "endoscope.png", frames[-1])

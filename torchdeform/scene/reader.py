@@ -63,6 +63,14 @@ __all__ = [
     "MISSING",
 ]
 
+
+def volume_path(name, base):
+    """A scene's ``[volume] file``: ``phantom[:N]`` or an array as it is, a file name relative to the scene's folder ``base``."""
+    if not isinstance(name, str):
+        return name  # a volume already in memory (a body of labels: its CT on the lattice's box)
+    return name if name.startswith("phantom") or base is None else str(Path(base) / name)
+
+
 SECTIONS = {
     "grid": (
         "shape",

@@ -27,6 +27,7 @@ from ..sim.threads import after_step_threads
 from .bodies import BodiesScene, bodies_report, bodies_scene, read_scene
 from .chainmail import ChainMailScene, chainmail_scene
 from .mass_spring import EXPLICIT, Scene, StaticSolve, StaticSolveError, mass_spring_scene
+from .reader import volume_path
 from .tools import ToolRecorder, support_series, tool_forces_at, tool_outputs
 
 __all__ = [
@@ -490,15 +491,12 @@ def _final_state_outputs(scene: Scene, model: Model, final: State, out: Path, su
 
 def _endoscope_outputs(scene: Scene, model: Model, t, x, out: Path, progress: bool) -> dict:
     """``[camera]``: the endoscope's view of the deformed ``[volume]`` at the recorded frames (:mod:`.camera`)."""
-    from ..volume import load_volume
-    from .camera import scene_endoscope
+    from .camera import load_scene_endoscope, scene_endoscope
 
-    assert scene.camera_view is not None and scene.volume is not None and scene.tools is not None  # it needs both
-    spec = scene.volume
-    volume = load_volume(_volume_path(spec["file"], spec.get("base")), key="volume.file")
-    return scene_endoscope(
-        scene.camera_view, scene.tools, volume, model.grid, t, x, model.X, out, tf=spec["tf"], progress=progress
-    )
+    meshes = embedded_surfaces(scene, model.grid, dtype=torch.float64) if scene.embedded else None
+    rig = load_scene_endoscope(scene, meshes=meshes)
+    assert rig is not None  # the scene has a [camera]
+    return scene_endoscope(rig, t, x, model.X, out, progress=progress)
 
 
 def _run_static(scene: Scene, out: Path, device) -> dict:
@@ -712,13 +710,6 @@ def report(summary: dict, out_dir) -> str:
     )
 
 
-def _volume_path(name, base):
-    """A scene's ``[volume] file``: ``phantom[:N]`` or an array as it is, a file name relative to the scene's folder ``base``."""
-    if not isinstance(name, str):
-        return name  # a volume already in memory (a body of labels: its CT on the lattice's box)
-    return name if name.startswith("phantom") or base is None else str(Path(base) / name)
-
-
 def scene_volume_outputs(
     volume, x, X, spacing, out_dir, *, tf: str = "ct-soft", mode: str = "dvr", view: str = "h", base=None, cut=None
 ) -> dict:
@@ -748,7 +739,7 @@ def scene_volume_outputs(
     from ..volume import load_volume, node_offsets, render, save_png, save_volume, to_image, warp
 
     name = volume if isinstance(volume, np.ndarray) else str(volume)
-    path = _volume_path(name, base)
+    path = volume_path(name, base)
     vol = torch.from_numpy(load_volume(path, key="volume.file"))
     out = Path(out_dir)
     with torch.no_grad():
@@ -891,7 +882,7 @@ def scene_animation(
     if scene.volume:  # the volume panel only where the scene has a volume
         volume = dict(scene.volume)
         name, base = volume.pop("file"), volume.pop("base", None)
-        volume["volume"] = _volume_path(name, base)
+        volume["volume"] = volume_path(name, base)
     info = animate(
         grid,
         t,

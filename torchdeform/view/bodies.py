@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import math
 import threading
-import time
 
 import numpy as np
 import torch
@@ -50,7 +49,7 @@ from ..scene.bodies import BodiesScene
 from ..sim.stability import time_step_bound
 from ..topology.masks import alive
 from ..topology.surfaces import FrameSurface
-from .session import _fail, _number, tool_parts, tool_poses
+from .session import _fail, run_for, tool_parts, tool_poses
 
 __all__ = ["BodiesSession", "COMMANDS"]
 
@@ -167,25 +166,14 @@ class BodiesSession:
         Args:
             seconds: wall time to spend (s), >= 0.
         """
-        seconds = _number(seconds, "seconds", 0.0)
-        start, steps = time.perf_counter(), 0
-        while True:
-            with self._lock, torch.no_grad():
-                if not self.playing:
-                    break
-                new = self.bodies.step(self.states, self.dt)
-                if all(bool(torch.isfinite(s.x).all()) and bool(torch.isfinite(s.v).all()) for s in new):
-                    self.states = new
-                else:  # undo the step, halve dt
-                    self.dt *= 0.5
-            steps += 1
-            if time.perf_counter() - start >= seconds:
-                break
-        elapsed = time.perf_counter() - start
-        if steps:
-            rate = steps / max(elapsed, 1e-9)
-            self._rate = rate if not self._rate else 0.7 * self._rate + 0.3 * rate
-        return steps
+        return run_for(self, seconds, self._try_step)
+
+    def _try_step(self) -> None:
+        new = self.bodies.step(self.states, self.dt)
+        if all(bool(torch.isfinite(s.x).all()) and bool(torch.isfinite(s.v).all()) for s in new):
+            self.states = new
+        else:  # undo the step, halve dt
+            self.dt *= 0.5
 
     # ---------------------------------------------------------- outputs
     def mesh(self) -> dict:

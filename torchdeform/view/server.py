@@ -18,7 +18,19 @@ own rate; an asyncio loop serves the page and, to every connected page, sends
   ``{"cmd": "next"}`` is sent frames only when it asks (at most two ahead): the bundled page asks
   once per frame it draws, so no frame is encoded, sent and dropped for nothing;
 * a ``"stats"`` JSON text message about ``stats_rate`` times a second (simulated time, sim rate,
-  tool force, springs, the page's frame rate as ``page_fps``).
+  tool force, springs, the page's frame rate as ``page_fps``);
+* for a scene with ``[camera]`` only (the mesh message then has ``camera``: ``{"kind", "tool",
+  "size": [h, w], "fov"}``), an endoscope image as a binary message, at most ``endoscope_rate`` Hz
+  (10) and only when the state changed (or to a page that has none yet): what the endoscope riding
+  the tool sees of the current state
+  (:meth:`~torchdeform.view.session.ViewerSession.endoscope`). It is rendered in its own thread,
+  pushed rather than pulled, and like the frames never queued: only the latest unsent image is
+  sent. Its layout (:func:`endoscope_message`), little endian: a 16-byte header, ``uint32`` magic
+  ``0x7FC44E45`` (the bytes ``45 4E C4 7F``: as float32 a NaN, which no frame starts with, a
+  frame's values being finite; a frame is told from an image by this alone), ``uint16`` height
+  ``h``, ``uint16`` width ``w``, ``float32`` simulated time ``t`` (s), ``uint32`` sequence number;
+  then ``h * w * 3`` bytes of RGB, rows from the top, 0 outside the round mask. A scene without
+  ``[camera]`` sends none and renders nothing.
 
 Safe by default:
 
@@ -59,7 +71,9 @@ import json
 import logging
 import math
 import secrets
+import struct
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -67,7 +81,18 @@ from urllib.parse import parse_qs, urlsplit
 
 from .session import _number, _point, frame_size
 
-__all__ = ["Viewer", "serve", "validate", "check_token", "allowed_origins", "STATIC_FILES", "MAX_MESSAGE"]
+__all__ = [
+    "Viewer",
+    "serve",
+    "validate",
+    "check_token",
+    "allowed_origins",
+    "endoscope_message",
+    "STATIC_FILES",
+    "MAX_MESSAGE",
+    "ENDOSCOPE_MAGIC",
+    "ENDOSCOPE_HEADER",
+]
 
 logger = logging.getLogger("torchdeform.view")
 
@@ -85,6 +110,12 @@ MAX_MESSAGE = 16 * 1024
 MAX_COORDINATE = 1e3
 LOOPBACK = {"127.0.0.1", "localhost", "::1"}
 COMMANDS = ("play", "pause", "reset", "drag", "release", "tool", "cut", "term", "fps", "next")
+#: The first four bytes of an endoscope message (``uint32`` little endian; as float32 a NaN, which no
+#: frame of finite positions starts with).
+ENDOSCOPE_MAGIC = 0x7FC44E45
+#: The bytes of an endoscope message's header: magic, height, width, simulated time, sequence number.
+ENDOSCOPE_HEADER = 16
+_ENDOSCOPE = struct.Struct("<IHHfI")
 _PAGE_HEADERS = {
     "Content-Security-Policy": "default-src 'self'; connect-src 'self'; style-src 'self' 'unsafe-inline'; "
     "img-src 'self' data:; frame-ancestors 'none'; base-uri 'none'; form-action 'none'",
@@ -131,6 +162,30 @@ def allowed_origins(host: str, port: int, *, request_host: str | None = None) ->
     else:
         names = {f"[{host}]" if ":" in host else host}
     return {f"http://{n}:{port}" for n in names}
+
+
+def endoscope_message(image, t: float, *, seq: int = 0) -> bytes:
+    """An endoscope image as the binary message to the page (module docstring).
+
+    Args:
+        image: uint8 RGB ``(h, w, 3)`` (a numpy array).
+        t: the simulated time of the image (s).
+        seq: its sequence number (wraps at ``2**32``).
+
+    Returns:
+        ``ENDOSCOPE_HEADER + 3 h w`` bytes.
+
+    Example:
+        >>> import numpy as np
+        >>> m = endoscope_message(np.zeros((16, 20, 3), np.uint8), 0.5, seq=3)
+        >>> len(m), m[:4].hex(), struct.unpack("<IHHfI", m[:16])[1:]
+        (976, '454ec47f', (16, 20, 0.5, 3))
+    """
+    h, w, c = image.shape
+    if c != 3 or image.dtype.name != "uint8":
+        raise ValueError(f"image: expected uint8 (h, w, 3), got {image.dtype.name} {tuple(image.shape)}")
+    header = _ENDOSCOPE.pack(ENDOSCOPE_MAGIC, h, w, float(t), int(seq) & 0xFFFFFFFF)
+    return header + image.tobytes(order="C")
 
 
 # ------------------------------------------------------------------ messages from the page
@@ -214,6 +269,8 @@ class _Page:
         self.mesh: str | None = None
         self.stats: str | None = None
         self.frame: bytes | None = None
+        self.endoscope: bytes | None = None
+        self.scoped = False  # has been posted an endoscope image
         self.wake = asyncio.Event()
         self.sent_frames = 0
         self.primed = False  # has been posted a frame of the current body
@@ -226,7 +283,13 @@ class _Page:
         self.credit = min(self.credit + 1, 2)
         self.wake.set()
 
-    def post(self, mesh: str | None = None, stats: str | None = None, frame: bytes | None = None) -> None:
+    def post(
+        self,
+        mesh: str | None = None,
+        stats: str | None = None,
+        frame: bytes | None = None,
+        endoscope: bytes | None = None,
+    ) -> None:
         if mesh is not None:
             self.mesh, self.frame = mesh, None  # a frame of the old mesh is stale
             self.primed = False
@@ -234,13 +297,15 @@ class _Page:
             self.stats = stats
         if frame is not None:
             self.frame = frame  # replaces an unsent one: the page skips it
+        if endoscope is not None:
+            self.endoscope = endoscope  # likewise
         self.wake.set()
 
     async def send_loop(self) -> None:
         while True:
             await self.wake.wait()
             self.wake.clear()
-            for name in ("mesh", "stats", "frame"):
+            for name in ("mesh", "stats", "frame", "endoscope"):
                 data = getattr(self, name)
                 if data is None or (name == "frame" and self.pull and self.credit <= 0):
                     continue  # a pulling page gets the newest frame when it asks
@@ -263,6 +328,7 @@ class Viewer:
         token: the URL's secret (default: a fresh ``secrets.token_urlsafe(24)``).
         frame_rate: the most frames per second sent to a page.
         stats_rate: stats messages per second.
+        endoscope_rate: the most endoscope images per second (a session with a ``camera`` only).
 
     Use :meth:`run` (blocking, Ctrl-C stops it) or :meth:`start` / :meth:`stop` (a background
     thread, as the tests do).
@@ -277,6 +343,7 @@ class Viewer:
         token: str | None = None,
         frame_rate: float = 60.0,
         stats_rate: float = 5.0,
+        endoscope_rate: float = 10.0,
     ):
         self.session = session
         self.host = host
@@ -284,6 +351,13 @@ class Viewer:
         self.token = token or secrets.token_urlsafe(24)
         self.frame_rate = float(frame_rate)
         self.stats_rate = float(stats_rate)
+        self.endoscope_rate = float(endoscope_rate)
+        # the endoscope pane: a session with a camera (ViewerSession of a [camera] scene) and a rate
+        self.scoped = (
+            getattr(session, "camera", None) is not None
+            and callable(getattr(session, "endoscope", None))
+            and self.endoscope_rate > 0
+        )
         self.page_fps: float | None = None
         self.frames = 0  # frames taken from the session and posted to the pages
         self.ignored = 0  # messages ignored (logged)
@@ -301,6 +375,10 @@ class Viewer:
         self._frame_size = 0  # bytes of a frame of the mesh last sent
         self._frame: tuple[int, bytes] | None = None  # (sequence number, positions) of the last snapshot
         self._changed = False  # a command may have moved the body
+        self._endoscope: tuple[int, bytes] | None = None  # (sequence number, message) of the last image
+        self._scope_dirty = True  # the state changed since the last endoscope image
+        self._scope_thread: threading.Thread | None = None
+        self.endoscope_images = 0  # endoscope images rendered
 
     # -------------------------------------------------------------- addresses
     @property
@@ -416,6 +494,7 @@ class Viewer:
         except Exception as e:  # a session bug must not stop the server
             return self._ignore(raw, f"{type(e).__name__}: {e}")
         self._changed = True
+        self._scope_dirty = True  # e.g. the viewer's tool placed while paused
         await self._refresh_mesh()
 
     # -------------------------------------------------------------- broadcasting
@@ -438,7 +517,7 @@ class Viewer:
 
     async def _broadcast(self) -> None:
         period, stats_period = 1.0 / self.frame_rate, 1.0 / self.stats_rate
-        last, last_stats, next_stats = None, None, 0.0
+        last, last_stats, next_stats, last_scope = None, None, 0.0, None
         loop = asyncio.get_running_loop()
         while True:
             start = loop.time()
@@ -459,8 +538,15 @@ class Viewer:
                             page.primed = True
                             page.post(frame=frame)
                     self.frames += fresh
+                if self._endoscope is not None:
+                    seq, image = self._endoscope
+                    fresh, last_scope = seq != last_scope, seq
+                    for page in list(self.pages):
+                        if fresh or not page.scoped:
+                            page.scoped = True
+                            page.post(endoscope=image)
             else:
-                last = None
+                last = last_scope = None
             await asyncio.sleep(max(0.0, start + period - loop.time()))
 
     # -------------------------------------------------------------- the simulation thread
@@ -481,6 +567,8 @@ class Viewer:
                     self.session.command({"cmd": "pause"})
                 steps = 0
             changed, self._changed = self._changed, False
+            if steps:
+                self._scope_dirty = True  # the endoscope's view moved too
             if self.pages and (steps or changed or self._frame is None):
                 try:
                     frame = self.session.positions()
@@ -491,6 +579,30 @@ class Viewer:
                     self._frame = (seq, frame)
             if not steps:
                 self._stop_sim.wait(chunk)
+
+    def _watch_endoscope(self) -> None:
+        """The endoscope thread (a session with a camera): the current state's image, at a modest rate.
+
+        It renders at most ``endoscope_rate`` times a second, while pages are connected and the
+        state changed. A failed render (e.g. the lens left the volume) is logged once until one succeeds again.
+        """
+        period, seq, failing = 1.0 / self.endoscope_rate, 0, False
+        while not self._stop_sim.is_set():
+            start = time.perf_counter()
+            if self.pages and (self._scope_dirty or self._endoscope is None):
+                self._scope_dirty = False
+                try:
+                    t, image = self.session.endoscope()
+                except Exception as e:
+                    if not failing:
+                        logger.error("no endoscope image: %s: %s", type(e).__name__, e)
+                    failing = True
+                else:
+                    failing = False
+                    seq += 1
+                    self.endoscope_images += 1
+                    self._endoscope = (seq, endoscope_message(image, t, seq=seq))
+            self._stop_sim.wait(max(0.0, start + period - time.perf_counter()))
 
     # -------------------------------------------------------------- life cycle
     async def serve_async(self, *, ready: Callable[[Viewer], None] | None = None) -> None:
@@ -505,6 +617,10 @@ class Viewer:
         self._stopped = asyncio.Event()
         self._stop_sim.clear()
         self._sim_thread = threading.Thread(target=self._simulate, name="torchdeform-view-sim", daemon=True)
+        if self.scoped:
+            self._scope_thread = threading.Thread(
+                target=self._watch_endoscope, name="torchdeform-view-endoscope", daemon=True
+            )
         async with ws_serve(
             self._handler,
             self.host,
@@ -517,6 +633,8 @@ class Viewer:
         ) as server:
             self.port = server.sockets[0].getsockname()[1]
             self._sim_thread.start()
+            if self._scope_thread is not None:
+                self._scope_thread.start()
             broadcaster = asyncio.create_task(self._broadcast())
             try:
                 if ready is not None:
@@ -528,6 +646,8 @@ class Viewer:
                 server.close()
                 self._stop_sim.set()
                 await asyncio.to_thread(self._sim_thread.join)
+                if self._scope_thread is not None:
+                    await asyncio.to_thread(self._scope_thread.join)
 
     def run(self, *, ready: Callable[[Viewer], None] | None = None) -> None:
         """Serve in this thread until :meth:`stop` or Ctrl-C (which stops cleanly).
@@ -541,8 +661,9 @@ class Viewer:
             logger.info("interrupted: viewer stopped")
         finally:
             self._stop_sim.set()
-            if self._sim_thread is not None and self._sim_thread.is_alive():
-                self._sim_thread.join()
+            for thread in (self._sim_thread, self._scope_thread):
+                if thread is not None and thread.is_alive():
+                    thread.join()
 
     def start(self, *, timeout: float = 30.0) -> Viewer:
         """Serve in a background thread; returns once it listens.

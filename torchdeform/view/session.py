@@ -61,6 +61,16 @@ Tools
     (:meth:`~torchdeform.interact.tools.Tool.frame`), a vertex ``p`` of its own frame drawn at
     ``c + R p``. A half-space has no finite surface and is not drawn.
 
+Endoscope
+    A scene with ``[camera]`` (and so ``[volume]``) loads its volume once
+    (:func:`~torchdeform.scene.camera.load_scene_endoscope`); :meth:`~ViewerSession.endoscope`
+    renders what the endoscope riding its tool sees of the current state, by the same per-frame
+    function as the run's ``endoscope.gif`` (:meth:`~torchdeform.scene.camera.SceneEndoscope.render`:
+    the camera's pose from the tool at the simulated time, the node offsets of the current positions,
+    the other tools), plus the viewer's sphere tool when placed. Looking along the motion, the view
+    before the tool first moves is the first direction it moves in over the scene's run (its
+    ``steps``); a reset restores it. A scene without ``[camera]`` loads and renders nothing.
+
 Messages (JSON objects; any other key, type or value raises ``ValueError`` with one line, and
 nothing changes)
     ``{"cmd": "play"}``, ``{"cmd": "pause"}``, ``{"cmd": "reset"}`` (rest state, the scene's
@@ -248,6 +258,29 @@ def _point(value, key: str, lo, hi) -> tuple:
 
 
 # ------------------------------------------------------------------ the session
+def run_for(session, seconds: float, try_step) -> int:
+    """While ``session.playing``, call ``try_step()`` for about ``seconds`` of wall time (at least once).
+
+    Each call holds the session's lock and runs without autograd; the session's step rate
+    (``session._rate``, steps per second) follows the measured one. Returns the number of steps.
+    """
+    seconds = _number(seconds, "seconds", 0.0)
+    start, steps = time.perf_counter(), 0
+    while True:
+        with session._lock, torch.no_grad():
+            if not session.playing:
+                break
+            try_step()
+        steps += 1
+        if time.perf_counter() - start >= seconds:
+            break
+    elapsed = time.perf_counter() - start
+    if steps:
+        rate = steps / max(elapsed, 1e-9)
+        session._rate = rate if not session._rate else 0.7 * session._rate + 0.3 * rate
+    return steps
+
+
 class ViewerSession:
     """A mass-spring scene stepped live, with the viewer's drag, sphere tool, cuts and tissue slider.
 
@@ -271,6 +304,7 @@ class ViewerSession:
         labels: int ``(D, H, W)``: the piece of every node whose surface is drawn (negative: none).
         texture: the solid texture the vertices are coloured with.
         surface: ``"embedded"`` (the scene's embedded surfaces are drawn) or ``"lattice"``.
+        camera: the endoscope pane of a scene with ``[camera]`` (:meth:`mesh`'s ``camera``), else None.
 
     Examples:
         >>> import torchdeform as td
@@ -319,10 +353,15 @@ class ViewerSession:
         self.texture = texture if texture is not None else self._scene_texture()
         self._embedded = self._embedded_surfaces()
         self._tools = self._tool_meshes()
+        self._scope, self.camera = self._scene_endoscope()
+        self._scope_lock = threading.Lock()  # one endoscope render at a time (it keeps the held view)
         self._timing = None  # (dt, tool stiffness) of the scene's model
         self._reset()
         self._retime()
         self._timing = (self.dt, self._tool_k)
+        if self._scope is not None:  # the direction before the tool first moves, over the scene's run
+            self._scope.prime(np.linspace(0.0, max(int(self.scene.steps), 1) * self.dt, 1001))
+            self._held = self._scope.held
 
     # ---------------------------------------------------------- set-up
     def _scene_consistency(self) -> float:
@@ -375,6 +414,21 @@ class ViewerSession:
         """``[(tool, message part)]``: each drawable scene tool and its triangles in its own frame (metres)."""
         return tool_parts(self.scene.tools.tools if self.scene.tools is not None else ())
 
+    def _scene_endoscope(self) -> tuple:
+        """``(endoscope, pane)``: the scene's endoscope, its volume loaded, and the pane for :meth:`mesh`.
+
+        :class:`~torchdeform.scene.camera.SceneEndoscope` and :meth:`mesh`'s ``camera``, or
+        ``(None, None)`` without ``[camera]``.
+        """
+        if self.scene.camera_view is None:
+            return None, None
+        from ..scene.camera import load_scene_endoscope
+
+        scope = load_scene_endoscope(self.scene)
+        assert scope is not None
+        spec = self.scene.camera_view
+        return scope, {"kind": spec["kind"], "tool": spec["tool"], "size": list(scope.size), "fov": spec["fov"]}
+
     def _reset(self) -> None:
         """The scene's model (a fresh editable copy, fresh scene tools), at rest; no tool, no drag."""
         model = TopologySet(self.grid).prepare(self._base)
@@ -393,6 +447,8 @@ class ViewerSession:
         self._springs = int(alive(model)[0].sum())
         if self._timing is not None:
             self.dt, self._tool_k = self._timing
+        if self._scope is not None and self._timing is not None:  # the view as at the start
+            self._scope.reset(held=self._held)
         self._build_surface()
 
     def _retime(self) -> None:
@@ -593,25 +649,14 @@ class ViewerSession:
         Args:
             seconds: wall time to spend (s), >= 0.
         """
-        seconds = _number(seconds, "seconds", 0.0)
-        start, steps = time.perf_counter(), 0
-        while True:
-            with self._lock, torch.no_grad():
-                if not self.playing:
-                    break
-                new = self.integrator.step(self.model, self.state, self.dt)
-                if bool(torch.isfinite(new.x).all()) and bool(torch.isfinite(new.v).all()):
-                    self.state = new
-                else:  # undo the step, halve dt
-                    self.dt *= 0.5
-            steps += 1
-            if time.perf_counter() - start >= seconds:
-                break
-        elapsed = time.perf_counter() - start
-        if steps:
-            rate = steps / max(elapsed, 1e-9)
-            self._rate = rate if not self._rate else 0.7 * self._rate + 0.3 * rate
-        return steps
+        return run_for(self, seconds, self._try_step)
+
+    def _try_step(self) -> None:
+        new = self.integrator.step(self.model, self.state, self.dt)
+        if bool(torch.isfinite(new.x).all()) and bool(torch.isfinite(new.v).all()):
+            self.state = new
+        else:  # undo the step, halve dt
+            self.dt *= 0.5
 
     # ---------------------------------------------------------- outputs
     def mesh(self) -> dict:
@@ -626,7 +671,9 @@ class ViewerSession:
             "tool_radius" (m, the page's sphere tool), "tools"}``. ``tools`` lists the scene's drawn
             tools, in the order of their poses in a frame: ``{"name", "vertices" (flat, 3 per vertex,
             m, the tool's own frame), "faces" (flat, 3 per triangle, outward), "smooth" (shade with
-            vertex normals, else flat), "color" ([r, g, b] in [0, 1], sRGB)}``.
+            vertex normals, else flat), "color" ([r, g, b] in [0, 1], sRGB)}``. A scene with ``[camera]``
+            adds ``"camera": {"kind", "tool", "size" ([h, w] pixels), "fov" (degrees)}``: the endoscope
+            pane's (:meth:`endoscope`).
         """
         with self._lock:
             rest = self._rest_np
@@ -643,6 +690,7 @@ class ViewerSession:
                 "terms": self._terms(),
                 "tool_radius": self.tool_radius,
                 "tools": [part for _, part in self._tools],
+                **({"camera": dict(self.camera)} if self.camera is not None else {}),
             }
 
     def _vertices(self) -> torch.Tensor:
@@ -675,6 +723,27 @@ class ViewerSession:
         """The surface's vertex positions now, ``(V, 3)`` float32 (m): the first part of :meth:`positions`."""
         with self._lock, torch.no_grad():
             return self._vertices().to(torch.float32).cpu()
+
+    def endoscope(self) -> tuple[float, np.ndarray] | None:
+        """The endoscope's view of the current state: ``(t, image)``, or None for a scene without ``[camera]``.
+
+        The state is copied under the lock and rendered outside it (the simulation goes on meanwhile):
+        :meth:`~torchdeform.scene.camera.SceneEndoscope.render` at the simulated time ``t`` (s) of the
+        node positions now, float32; the viewer's sphere tool, when placed, is drawn too.
+
+        Returns:
+            ``t`` and the image, uint8 RGB ``(h, w, 3)`` (``[camera] size``), 0 outside the round mask.
+
+        Raises:
+            ConfigError: the lens outside the volume (``inside = "require"``).
+        """
+        if self._scope is None:
+            return None
+        with self._lock, torch.no_grad():
+            x, X, t = self.state.x.detach().cpu().clone(), self.model.X.detach().cpu(), float(self.state.t)
+            extra = [(self._tool_pos.tolist(), self.tool_radius)] if self._tool is not None else []
+        with self._scope_lock:
+            return t, self._scope.render(t, x, X, extra=extra)
 
     def stats(self) -> dict:
         """Time, speed, forces and state for the page.

@@ -11,7 +11,11 @@
 //     consecutive in that order) and commands (the accepted ones; the others' controls are hidden);
 //   binary frames, float32 little endian: V * 3 vertex positions in metres (axis order D, H, W), then
 //     12 values per tool: its position c (m) and rotation R (row-major), a tool vertex p at c + R p;
-//   "stats" JSON.
+//   "stats" JSON;
+//   with a camera in the mesh message ({kind, tool, size: [h, w], fov}): endoscope images, binary, a 16-byte
+//     header (uint32 magic 0x7FC44E45, uint16 h, uint16 w, float32 t, uint32 sequence) then h * w RGB
+//     bytes, rows from the top; the socket worker tells them from frames by the magic. They are drawn in
+//     the round pane at the bottom right, hidden when the scene has no camera.
 // Page -> server: {"cmd": play|pause|reset|drag|release|tool|cut|term|fps, ...} JSON messages.
 // Library axes (D, H, W) are shown as three.js (y, z, x): D (gravity's axis) is up; the mapping is a
 // cyclic permutation (a rotation), so the triangles keep their winding.
@@ -29,6 +33,7 @@ const canvas = $("view");
 // ------------------------------------------------------------------ exposed for tests
 const stats = { fps: 0, resolution: 1, framesReceived: 0, framesShown: 0, framesSkipped: 0, lastStats: null, meshVersion: null, vertices: 0,
                 surface: null, colored: false, tools: [], parts: [], connected: false, sent: 0, mode: "drag",
+                endoscope: { tool: null, size: null, received: 0, shown: 0, t: null },
                 ms: { normals: 0, render: 0, frame: 0, message: 0 } };
 window.viewerStats = stats;
 
@@ -187,6 +192,47 @@ function onMesh(msg) {
     placeCamera();
   }
   buildTerms(msg.terms || {});
+  showEndoscope(msg.camera || null);
+}
+
+// ------------------------------------------------------------------ the endoscope pane
+const scopeCanvas = $("scope-view");
+const scopeContext = scopeCanvas.getContext("2d");
+let scopePixels = null;                  // ImageData of the pane's size, reused
+
+function showEndoscope(camera) {
+  const size = camera && Array.isArray(camera.size) ? camera.size.map((v) => v | 0) : null;
+  $("scope").hidden = !size;
+  stats.endoscope.tool = size ? String(camera.tool) : null;
+  stats.endoscope.size = size;
+  if (!size) return;
+  $("scope-name").textContent = `endoscope: ${camera.tool}`;
+  if (scopeCanvas.height !== size[0] || scopeCanvas.width !== size[1]) {
+    scopeCanvas.height = size[0];
+    scopeCanvas.width = size[1];
+  }
+  if (!scopePixels || scopePixels.height !== size[0] || scopePixels.width !== size[1]) {
+    scopePixels = scopeContext.createImageData(size[1], size[0]);
+  }
+}
+
+function onEndoscope(buffer) {
+  stats.endoscope.received++;
+  const header = new DataView(buffer);
+  const h = header.getUint16(4, true), w = header.getUint16(6, true);
+  if (!scopePixels || h !== scopePixels.height || w !== scopePixels.width || buffer.byteLength !== 16 + 3 * h * w) {
+    return;                              // not this scene's camera (an older message): skip it
+  }
+  const rgb = new Uint8Array(buffer, 16), rgba = scopePixels.data;
+  for (let i = 0, j = 0; i < rgb.length; i += 3, j += 4) {
+    rgba[j] = rgb[i];
+    rgba[j + 1] = rgb[i + 1];
+    rgba[j + 2] = rgb[i + 2];
+    rgba[j + 3] = 255;
+  }
+  scopeContext.putImageData(scopePixels, 0, 0);
+  stats.endoscope.shown++;
+  stats.endoscope.t = header.getFloat32(8, true);
 }
 
 // several bodies: one mesh per part (body), each with its own triangles; the positions, normals and
@@ -303,6 +349,8 @@ socket.onmessage = (ev) => {
     asked = false;
     stats.framesReceived = m.received;
     onFrame(m.buffer);
+  } else if (m.type === "endoscope") {
+    onEndoscope(m.buffer);
   } else if (m.type === "text") {
     let msg;
     try { msg = JSON.parse(m.text); } catch (e) { return; }
