@@ -276,3 +276,41 @@ def test_single_body_scene_runs_as_before(tmp_path, capsys):
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert "bodies" not in summary and summary["steps"] == 10
     assert "energy.png" in summary["outputs"] and captured.out.startswith("beam")
+
+
+# ------------------------------------------------------------------ --set on a scene of several bodies
+def test_run_set_takes_the_contact_and_a_named_bodys_keys(tmp_path):
+    from tests.helpers import cli_call
+
+    base = ["run", ORGANS, "--set", "integrator.steps=20", "--quiet"]
+    status, _, err = cli_call([*base, "--out", tmp_path / "a"])
+    assert status == 0, err
+    status, _, err = cli_call(
+        [
+            *base,
+            "--set",
+            "contact.friction=0.1",
+            "--set",
+            "bodies.kidney.material.poisson_ratio=0.4",
+            "--out",
+            tmp_path / "b",
+        ]
+    )
+    assert status == 0, err
+    a, b = (json.loads((tmp_path / n / "summary.json").read_text()) for n in "ab")
+    assert a["friction"] == 0.3 and b["friction"] == 0.1
+    assert b["time_step_bound_s"] > 1.05 * a["time_step_bound_s"]  # a lower Poisson ratio: a longer stable step
+    for args, key in (
+        (["--set", "bodies.spleen.material.poisson_ratio=0.4"], "kidney, liver"),
+        (["--set", "bodies.kidney.material.poisson_ratio=0.7"], "--set bodies.kidney.material.poisson_ratio"),
+        (["--set", "bodies.kidney.tools.radius=0.1"], "bodies.NAME.SECTION.KEY"),
+    ):
+        status, _, err = cli_call([*base, *args, "--out", tmp_path / "c"])
+        assert status == 2 and len(err.strip().splitlines()) == 1 and key in err, err
+
+
+def test_sweep_refuses_a_scene_of_several_bodies_in_one_line(tmp_path):
+    from tests.helpers import cli_call
+
+    status, _, err = cli_call(["sweep", ORGANS, "--set", "integrator.steps=10,20", "--out", tmp_path / "s", "--quiet"])
+    assert status == 2 and len(err.strip().splitlines()) == 1 and "[[bodies]] scene is not swept yet" in err, err

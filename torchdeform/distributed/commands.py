@@ -255,11 +255,17 @@ def _sweep(args, rank: int, world: int) -> int:
     import torch
 
     from ..errors import ConfigError
-    from ..scene.reader import read
+    from ..scene.bodies import read_scene
     from .sweep import batches, done_points, plot, point_id, point_scene, record, run_batch, write_table
 
     keys, points = _points(args)
-    src, data = read(args.scene)
+    src, data = read_scene(args.scene)
+    if "bodies" in data:
+        raise ConfigError(
+            "sweep",
+            "a scene of one body (a [[bodies]] scene is not swept yet; torchdeform run --set takes its keys)",
+            got=str(args.scene),
+        )
     if data.get("model", "mass-spring") != "mass-spring":
         raise ConfigError("sweep", "a mass-spring scene file", got=data.get("model"))
     base, name = Path(args.scene).parent, Path(args.scene).stem

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 from ..checks import usable_device
 from ..errors import ConfigError
 from ..sim.engine import ENGINES
@@ -107,7 +109,8 @@ def run_command(args) -> int:
 def check_key(key: str) -> None:
     """Raise a :class:`ConfigError` unless ``key`` is ``section.key`` of a scene file (no array tables).
 
-    ``torchdeform run --set`` and ``torchdeform sweep --set`` take these keys.
+    ``torchdeform run --set`` and ``torchdeform sweep --set`` take these keys; a scene of several
+    bodies also ``contact.friction`` and ``bodies.NAME.SECTION.KEY`` (the body of that name).
 
     Examples:
         >>> check_key("integrator.steps")
@@ -116,9 +119,18 @@ def check_key(key: str) -> None:
         ...
         torchdeform.errors.ConfigError: --set: expected SECTION.KEY of a scene file (...), got 'integrator.stepz'
     """
+    from .bodies import GLOBAL, PER_BODY
     from .mass_spring import INTEGRATOR_OPTIONS
     from .reader import LISTS, SECTIONS
 
+    if key.startswith("bodies."):  # a scene of several bodies: bodies.NAME.SECTION.KEY
+        parts = key.split(".")
+        sub = [s for s in PER_BODY if s not in LISTS]
+        if len(parts) != 4 or parts[2] not in sub or parts[3] not in SECTIONS[parts[2]]:
+            raise ConfigError("--set", f"bodies.NAME.SECTION.KEY (sections {', '.join(sub)})", got=key)
+        return
+    if key == "contact.friction" or (key.partition(".")[0] == "output" and key.partition(".")[2] in GLOBAL["output"]):
+        return
     section, _, name = key.partition(".")
     known = SECTIONS.get(section, ())
     if section == "integrator":
@@ -176,8 +188,12 @@ def build_with_values(src, data: dict, base, name: str, values: dict, *, build):
     try:
         return build(Source(), data, base, name=name)
     except ConfigError as e:
-        if e.key in values:
-            raise ConfigError(f"--set {e.key}", e.expected, got=values[e.key]) from None
+        key = e.key
+        entry = re.fullmatch(r"bodies\[(\d+)\]\.(.+)", key or "")
+        if entry and isinstance(data.get("bodies"), list) and int(entry.group(1)) < len(data["bodies"]):
+            key = f"bodies.{data['bodies'][int(entry.group(1))].get('name')}.{entry.group(2)}"  # as --set names it
+        if key in values:
+            raise ConfigError(f"--set {key}", e.expected, got=values[key]) from None
         raise ConfigError(
             e.key,
             e.expected,

@@ -432,6 +432,17 @@ def with_values(data: dict, values: dict) -> dict:
 
     data = copy.deepcopy(data)
     for key, value in values.items():
+        if key.startswith("bodies.") and isinstance(data.get("bodies"), list):  # bodies.NAME.SECTION.KEY
+            _, name, section, k = key.split(".", 3)
+            entries = [b for b in data["bodies"] if isinstance(b, dict) and b.get("name") == name]
+            if not entries:
+                names = ", ".join(str(b.get("name")) for b in data["bodies"] if isinstance(b, dict))
+                raise ConfigError("--set", f"bodies.NAME.SECTION.KEY with a body's name ({names})", got=key)
+            table = entries[0].setdefault(section, {})
+            if not isinstance(table, dict):
+                raise ConfigError(f"--set {key}", f"a body whose [bodies.{section}] is a table", got=table)
+            table[k] = value
+            continue
         section, _, k = key.partition(".")
         table = data.setdefault(section, {})
         if not isinstance(table, dict):
