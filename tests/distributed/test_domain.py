@@ -321,3 +321,16 @@ def test_what_a_decomposed_run_cannot_do_is_refused(tmp_path, edit, match):
     scene.write_text(SCENE.replace("{name}", "rk4").replace(*edit))
     with pytest.raises(td.ConfigError, match=match):
         scene_cuts(td.load_scene(scene))
+
+
+def test_a_scene_of_several_bodies_is_refused_before_any_rank_work(tmp_path):
+    """The decomposed run reads the scene before any collective: a [[bodies]] scene is one line."""
+    import argparse
+
+    from torchdeform.distributed.commands import _run_decomposed
+
+    args = argparse.Namespace(
+        scene=str(HERE.parents[1] / "scenes" / "organs.toml"), out=str(tmp_path / "o"), force=False, device=None
+    )
+    with pytest.raises(td.ConfigError, match=r"bodies: .* runs in one process"):
+        _run_decomposed(args, 0, 2)

@@ -151,7 +151,13 @@ def _run_decomposed(args, rank: int, world: int) -> int:
     folder.check()  # every rank, before any collective
     scene = load_scene(args.scene)
     if not isinstance(scene, Scene):
-        raise ConfigError("model", "a mass-spring scene in a domain-decomposed run", got="chainmail")
+        several = type(scene).__name__ == "BodiesScene"
+        raise ConfigError(
+            "bodies" if several else "model",
+            "a scene of one mass-spring body in a domain-decomposed run"
+            + (" (a scene of several bodies runs in one process: torchdeform run without torchrun)" if several else ""),
+            got="[[bodies]]" if several else "chainmail",
+        )
     if getattr(args, "animation", False) or scene.animation or scene.volume or scene.texture:
         raise ConfigError(
             "run",
