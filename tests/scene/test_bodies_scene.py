@@ -314,3 +314,24 @@ def test_sweep_refuses_a_scene_of_several_bodies_in_one_line(tmp_path):
 
     status, _, err = cli_call(["sweep", ORGANS, "--set", "integrator.steps=10,20", "--out", tmp_path / "s", "--quiet"])
     assert status == 2 and len(err.strip().splitlines()) == 1 and "[[bodies]] scene is not swept yet" in err, err
+
+
+def test_a_tool_out_of_reach_is_named_inside_its_body(tmp_path):
+    """A probe path in millimetres: the warning names bodies[1].tools[0].path and its line."""
+    import warnings
+
+    from torchdeform.errors import ConfigWarning
+
+    text = ORGANS.read_text()
+    old = "path = [[0.0, [0.0453, 0.012, 0.012]], [0.2, [0.0453, 0.012, 0.012]], [0.3, [0.041, 0.012, 0.012]]]"
+    assert old in text
+    f = tmp_path / "mm.toml"
+    f.write_text(text.replace(old, "path = [[0.0, [45.3, 12.0, 12.0]], [0.3, [41.0, 12.0, 12.0]]]"))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        load_scene(f)
+    lines = [str(w.message) for w in caught if issubclass(w.category, ConfigWarning)]
+    line = next(n for n, s in enumerate(f.read_text().splitlines(), 1) if s.startswith("path = [[0.0, [45.3"))
+    assert any(m.startswith(f"{f}:{line}: bodies[1].tools[0].path: tool 'probe' never comes within") for m in lines), (
+        lines
+    )

@@ -332,7 +332,8 @@ def _warn(src: Source, key: str, message: str) -> None:
 
     line = src.line_of(key) if src.path is not None else None
     where = f"{src.path}:{line}: " if src.path is not None and line else ""
-    warnings.warn(f"{where}{key}: {message}", ConfigWarning, stacklevel=3)
+    named = getattr(src, "scene_key", lambda k: k)(key)  # a body of several: bodies[n].tools[k]...
+    warnings.warn(f"{where}{named}: {message}", ConfigWarning, stacklevel=3)
 
 
 def _pose_times(tool: Tool) -> list:
