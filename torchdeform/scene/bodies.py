@@ -736,7 +736,14 @@ def plot_contact(path, t: np.ndarray, contact: dict, *, title: str = "") -> None
     fig.subplots_adjust(left=0.12, right=0.97, top=0.94, bottom=0.08, hspace=0.1)
     for key, s in contact.items():
         (line,) = axes[0].plot(t, np.linalg.norm(s["force"], axis=1), label=f"{key}: |F|")
-        axes[0].plot(t, -s["force"][:, 0], ls="--", color=line.get_color(), lw=1, label=f"{key}: force on the second body along -D")
+        axes[0].plot(
+            t,
+            -s["force"][:, 0],
+            ls="--",
+            color=line.get_color(),
+            lw=1,
+            label=f"{key}: force on the second body along -D",
+        )
         axes[1].plot(t, s["contacts"], color=line.get_color(), label=key)
         axes[2].plot(t, s["penetration"] * 1e3, color=line.get_color(), label=key)
     axes[0].set_ylabel("contact force (N)")
