@@ -106,6 +106,7 @@ for line in sys.stdin:
             for fd, name in ((1, "out"), (2, "err")):
                 os.dup2(os.open(job[name], os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644), fd)
             os.chdir(job["cwd"])
+            torch.set_num_threads(1)  # the suite runs a test per core: a second thread would only spin
             sys.path[0] = os.path.dirname(job["script"])
             sys.argv = [job["script"]]
             runpy.run_path(job["script"], run_name="__main__")
