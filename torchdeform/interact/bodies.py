@@ -233,30 +233,28 @@ class Body:
 
         Only these can be inside the body: the others are not located (:meth:`locate`).
         """
-        lo, hi = self.box(x)
-        return (((p > lo) & (p < hi)).all(1) & member).nonzero().squeeze(1)
+        lo, hi = self.boxes(x[None])
+        return (((p > lo[0]) & (p < hi[0])).all(1) & member).nonzero().squeeze(1)
 
-    def box(self, x: torch.Tensor) -> tuple:
-        """The deformed lattice's bounding box ``(lo (3,), hi (3,))`` of batch entry ``x`` ``(3, D, H, W)``."""
-        pts = x.reshape(3, -1)
+    def boxes(self, x: torch.Tensor, *, pad: float = 0.0) -> tuple:
+        """The deformed lattice's bounding boxes ``(lo, hi)``, ``(B, 3)`` each, of positions ``x`` ``(B, 3, D, H, W)``.
+
+        ``pad`` (m) widens them on every side.
+        """
+        pts = x.reshape(x.shape[0], 3, -1)
         if not self._whole:
-            pts = pts[:, self._member]
-        lo, hi = torch.aminmax(pts, dim=1)
-        return lo, hi
+            pts = pts[:, :, self._member]
+        lo, hi = torch.aminmax(pts, dim=2)
+        return lo - pad, hi + pad
 
 
 def _padded_boxes(body: Body, x: torch.Tensor) -> tuple:
-    """The deformed bounding boxes of ``body`` at positions ``x`` ``(B, 3, D, H, W)``: ``(lo, hi)``, ``(B, 3)`` each.
+    """:meth:`Body.boxes` widened by one spacing of the body.
 
-    Widened by one spacing of the body on every side: the contacts resolved before a pair is
-    looked at move nodes by less than that, so two bodies whose boxes stay apart cannot touch.
+    The contacts resolved before a pair is looked at move nodes by less than that, so two bodies
+    whose boxes stay apart cannot touch.
     """
-    pts = x.reshape(x.shape[0], 3, -1)
-    if not body._whole:
-        pts = pts[:, :, body._member]
-    lo, hi = pts.amin(2), pts.amax(2)
-    pad = float(body._h.max())
-    return lo - pad, hi + pad
+    return body.boxes(x, pad=float(body._h.max()))
 
 
 def _colours(corners: torch.Tensor, strides: torch.Tensor) -> list:

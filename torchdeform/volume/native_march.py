@@ -637,19 +637,10 @@ def render_endoscope_native(plan):
     d_all = dirs.reshape(3, -1)
     t_hit = s_rgb = None
     if plan.surfaces:
+        from .interior import surface_hits
+
         t0, t1 = clip_rays(eye, dirs, tuple(vol.shape[2:]), near=float(cam.near), far=float(cam.far))
-        n = d_all.shape[1]
-        t_hit = torch.full((n,), math.inf, dtype=vol.dtype)
-        s_rgb = torch.zeros(3, n, dtype=vol.dtype)
-        for s in plan.surfaces:
-            t_s, n_s = s.hit(eye, d_all, tmin=max(float(cam.near), 0.0))
-            t_s = torch.where(t_s <= cam.far, t_s, torch.full_like(t_s, math.inf))
-            col = torch.tensor(s.colour, dtype=vol.dtype).view(3, 1)
-            if light is not None:
-                col = col * (light.ambient + light.diffuse * (n_s * d_all).sum(0).abs())
-            closer = t_s < t_hit
-            s_rgb = torch.where(closer, col.expand(3, n), s_rgb)
-            t_hit = torch.where(closer, t_s, t_hit)
+        t_hit, s_rgb = surface_hits(plan, eye, d_all)
         t_hit = t_hit.view(h, w)
         t1 = torch.minimum(t1, t_hit)
     kw = dict(light=None) if light is None else dict(light=True, ambient=light.ambient, diffuse=light.diffuse)
