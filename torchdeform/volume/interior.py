@@ -389,6 +389,26 @@ class EndoscopePlan:
     chunk_rays: int
     chunk_points: int
 
+    def surface_hits(self, eye: torch.Tensor, dirs: torch.Tensor) -> tuple:
+        """The first opaque surface along each ray within ``[near, far]``: ``(t_hit (R,), colour (3, R))``.
+
+        ``t_hit`` is inf where the ray meets none; the colour is headlit (unlit without a light);
+        ``dirs`` ``(3, R)``. Both engines composite it behind the volume.
+        """
+        cam, n_rays = self.camera, dirs.shape[1]
+        t_hit = torch.full((n_rays,), math.inf, dtype=dirs.dtype, device=dirs.device)
+        s_rgb = torch.zeros(3, n_rays, dtype=dirs.dtype, device=dirs.device)
+        for s in self.surfaces:
+            t_s, n_s = s.hit(eye, dirs, tmin=max(float(cam.near), 0.0))
+            t_s = torch.where(t_s <= cam.far, t_s, torch.full_like(t_s, math.inf))
+            col = torch.tensor(s.colour, dtype=dirs.dtype, device=dirs.device).view(3, 1)
+            if self.light is not None:
+                col = col * (self.light.ambient + self.light.diffuse * (n_s * dirs).sum(0).abs())
+            closer = t_s < t_hit
+            s_rgb = torch.where(closer, col.expand(3, n_rays), s_rgb)
+            t_hit = torch.where(closer, t_s, t_hit)
+        return t_hit, s_rgb
+
 
 def render_endoscope(
     volume,
@@ -553,27 +573,6 @@ def _native_render(plan: EndoscopePlan):
     return fn(plan)
 
 
-def surface_hits(plan: EndoscopePlan, eye: torch.Tensor, dirs: torch.Tensor) -> tuple:
-    """The first opaque surface along each ray within ``[near, far]``: ``(t_hit (R,), colour (3, R))``.
-
-    ``t_hit`` is inf where the ray meets none; the colour is headlit (unlit without a light);
-    ``dirs`` ``(3, R)``. Both engines composite it behind the volume.
-    """
-    cam, n_rays = plan.camera, dirs.shape[1]
-    t_hit = torch.full((n_rays,), math.inf, dtype=dirs.dtype, device=dirs.device)
-    s_rgb = torch.zeros(3, n_rays, dtype=dirs.dtype, device=dirs.device)
-    for s in plan.surfaces:
-        t_s, n_s = s.hit(eye, dirs, tmin=max(float(cam.near), 0.0))
-        t_s = torch.where(t_s <= cam.far, t_s, torch.full_like(t_s, math.inf))
-        col = torch.tensor(s.colour, dtype=dirs.dtype, device=dirs.device).view(3, 1)
-        if plan.light is not None:
-            col = col * (plan.light.ambient + plan.light.diffuse * (n_s * dirs).sum(0).abs())
-        closer = t_s < t_hit
-        s_rgb = torch.where(closer, col.expand(3, n_rays), s_rgb)
-        t_hit = torch.where(closer, t_s, t_hit)
-    return t_hit, s_rgb
-
-
 # ------------------------------------------------------------------ the torch path
 def _ray_box(eye, d, shape, near: float, far: float):
     """``t0 = max(near, box entry, 0)`` and ``t1 = min(far, box exit)`` of rays ``(3, R)``."""
@@ -678,7 +677,7 @@ def _render_torch(plan: EndoscopePlan):
     eye = plan.eye
     t0_all, t1_all = _ray_box(eye, d_all, shape, cam.near, cam.far)
     n_rays = d_all.shape[1]
-    t_hit, s_rgb = surface_hits(plan, eye, d_all)
+    t_hit, s_rgb = plan.surface_hits(eye, d_all)
     t_end = torch.minimum(t1_all, t_hit)
     length_all = (t_end - t0_all).clamp(min=0)
     skip = plan.skip_empty and not plan.needs_grad

@@ -637,10 +637,8 @@ def render_endoscope_native(plan):
     d_all = dirs.reshape(3, -1)
     t_hit = s_rgb = None
     if plan.surfaces:
-        from .interior import surface_hits
-
         t0, t1 = clip_rays(eye, dirs, tuple(vol.shape[2:]), near=float(cam.near), far=float(cam.far))
-        t_hit, s_rgb = surface_hits(plan, eye, d_all)
+        t_hit, s_rgb = plan.surface_hits(eye, d_all)
         t_hit = t_hit.view(h, w)
         t1 = torch.minimum(t1, t_hit)
     kw = dict(light=None) if light is None else dict(light=True, ambient=light.ambient, diffuse=light.diffuse)
