@@ -17,6 +17,8 @@ from tests import helpers
 
 if os.environ.get("PYTEST_XDIST_WORKER"):  # two workers on two cores: one thread each, no spinning
     torch.set_num_threads(1)
+    # and so do the processes the tests start (the CLI, scripts, torchrun ranks), unless a test asks
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 
 @pytest.fixture

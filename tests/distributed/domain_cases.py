@@ -20,8 +20,9 @@ from torchdeform.topology import Blade
 SHAPE = (7, 4, 5)  # 3 ranks: slabs of 3, 2 and 2 rows
 H = 0.01
 DT = 2e-4
-STEPS = 100
-CUT_AT = 50 * DT
+STEPS = 50
+RECORD_EVERY = 5  # 11 frames
+CUT_AT = 25 * DT
 
 
 #: case -> neighbours
@@ -97,7 +98,9 @@ def main(out: Path, names: list) -> None:
     try:
         for name in names:
             model, integrator, cuts = build(name)
-            run = decomposed_simulate(model, start(model), DT, STEPS, integrator=integrator, record_every=10, cuts=cuts)
+            run = decomposed_simulate(
+                model, start(model), DT, STEPS, integrator=integrator, record_every=RECORD_EVERY, cuts=cuts
+            )
             if dist.get_rank() == 0:
                 cells = {}
                 if run.whole.volume is not None:  # an Elastic body: its cells and springs, gathered

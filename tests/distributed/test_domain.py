@@ -42,7 +42,7 @@ def reference(name, with_cut=True):
         cases.DT,
         cases.STEPS,
         integrator=integrator,
-        record_every=10,
+        record_every=cases.RECORD_EVERY,
         callback=cut_once,
         warn=False,
     )

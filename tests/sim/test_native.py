@@ -6,6 +6,8 @@ are built by the system C compiler; without one the tests that need a kernel are
 the reason, and the fall-back is tested instead.
 """
 
+import ctypes
+
 import pytest
 import torch
 
@@ -148,6 +150,18 @@ def test_kernels_are_cached_on_disk(tmp_path, monkeypatch):
     stamp = built[0].stat().st_mtime_ns
     native.kernel(var)  # loaded, not built again
     assert sorted(native.cache_dir().glob("springs-*.so")) == built and built[0].stat().st_mtime_ns == stamp
+
+
+def test_a_failed_build_names_the_kernel_and_keeps_the_compilers_words(tmp_path, monkeypatch):
+    """A C source that does not compile: the error names the kernel and quotes the compiler; a
+    source that does gives its function typed for ctypes (it runs)."""
+    if native.unavailable():
+        pytest.skip(native.unavailable())
+    monkeypatch.setenv("TORCHDEFORM_CACHE_DIR", str(tmp_path))
+    with pytest.raises(native.NativeBuildError, match=r"(?s)could not build the probe kernel: .*error"):
+        native.entry("int probe(int a) { return a + ; }\n", "probe", [ctypes.c_int], what="the probe kernel")
+    fn = native.entry("int probe(int a) { return 3 * a; }\n", "probe", [ctypes.c_int], what="the probe kernel")
+    assert fn(14) == 42 and fn.restype is ctypes.c_int
 
 
 def test_no_compiler_says_why_and_the_compiled_step_uses_inductors_forms(monkeypatch):

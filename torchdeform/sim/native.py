@@ -575,21 +575,33 @@ def load_library(src: str, stem: str) -> ctypes.CDLL:
     raise NativeBuildError(last)
 
 
-def _build(var: Variant):
+def entry(src: str, stem: str, argtypes: list, *, what: str):
+    """The function ``stem`` of C source ``src`` (built or taken from the disk cache), typed for ctypes.
+
+    ``argtypes`` are its ctypes parameter types; it returns a C ``int`` (0: done).
+
+    Raises:
+        NativeBuildError: naming ``what`` (e.g. "the contact kernel (float)") and the compiler's words.
+    """
     try:
-        lib = load_library(source(var), "springs")
+        lib = load_library(src, stem)
     except NativeBuildError as e:
-        raise NativeBuildError(f"could not build the spring kernel {var}: {e}") from None
+        raise NativeBuildError(f"could not build {what}: {e}") from None
+    fn = getattr(lib, stem)
+    fn.argtypes = argtypes
+    fn.restype = ctypes.c_int
+    return fn
+
+
+def _build(var: Variant):
     T = ctypes.c_float if var.dtype == "float" else ctypes.c_double
-    fn = lib.springs
     i64, ptr = ctypes.c_int64, ctypes.c_void_p
-    fn.argtypes = (
+    argtypes = (
         ([ptr] * 8 + [i64] * 6 + [ctypes.c_int, T] + ([ptr] * 3 + [i64] + [T] * 5 if var.update else []))
         + ([ptr, ptr, i64, i64, i64, T, T] if var.cell_term else [])
         + ([ptr, i64, ptr] if var.cells else [])
     )
-    fn.restype = ctypes.c_int
-    return fn
+    return entry(source(var), "springs", argtypes, what=f"the spring kernel {var}")
 
 
 def name_of(var: Variant) -> str:

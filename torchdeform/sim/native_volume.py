@@ -113,16 +113,10 @@ def source(dtype: str) -> str:
 
 @functools.cache
 def _function(dtype: str):
-    try:
-        lib = native.load_library(source(dtype), "volume")
-    except native.NativeBuildError as e:
-        raise native.NativeBuildError(f"could not build the volume kernel ({dtype}): {e}") from None
     T = ctypes.c_float if dtype == "float" else ctypes.c_double
-    fn = lib.volume
     i64, ptr = ctypes.c_int64, ctypes.c_void_p
-    fn.argtypes = [ptr] * 4 + [i64] * 6 + [ctypes.c_int, T, T]
-    fn.restype = ctypes.c_int
-    return fn
+    argtypes = [ptr] * 4 + [i64] * 6 + [ctypes.c_int, T, T]
+    return native.entry(source(dtype), "volume", argtypes, what=f"the volume kernel ({dtype})")
 
 
 def kernel(dtype: torch.dtype) -> str:

@@ -319,13 +319,8 @@ def unavailable() -> str | None:
 
 @functools.cache
 def _function():
-    try:
-        lib = native.load_library(_SOURCE, "march")
-    except native.NativeBuildError as e:
-        raise native.NativeBuildError(f"could not build the ray-marching kernel: {e}") from None
-    fn = lib.march
     i64, ptr, f32, cint = ctypes.c_int64, ctypes.c_void_p, ctypes.c_float, ctypes.c_int
-    fn.argtypes = (
+    argtypes = (
         [ptr, i64, i64, i64]  # volume
         + [ptr, i64, f32, f32]  # table
         + [ptr, ptr, ptr, ptr, ptr, f32, f32]  # eye, dirs, valid, t0, t1, near, far
@@ -335,8 +330,7 @@ def _function():
         + [cint, f32, f32, f32]  # light
         + [ptr, ptr, cint, i64]  # out, depth, threads, tile
     )
-    fn.restype = ctypes.c_int
-    return fn
+    return native.entry(_SOURCE, "march", argtypes, what="the ray-marching kernel")
 
 
 # ------------------------------------------------------------------ per-volume data (cached)
