@@ -63,8 +63,10 @@ def _rays(eye, forward, shape_img, fov_deg, *, mask=True):
     return torch.tensor(eye, dtype=torch.float32), torch.tensor(d, dtype=torch.float32), torch.tensor(valid)
 
 
-def _oracle(vol, tf, eye, dirs, valid, t0, t1, *, step, stop, offsets=None, light=True, ambient=0.2, diffuse=0.8):
-    """Brute-force float64 march: image (4, h, w) and depth (h, w)."""
+def _oracle(
+    vol, tf, eye, dirs, valid, t0, t1, *, step, stop, offsets=None, light=True, ambient=0.2, diffuse=0.8, origins=None
+):
+    """Brute-force float64 march: image (4, h, w) and depth (h, w); rays from ``eye`` or their ``origins``."""
     from scipy.ndimage import map_coordinates
 
     V = vol.double().numpy()
@@ -73,7 +75,7 @@ def _oracle(vol, tf, eye, dirs, valid, t0, t1, *, step, stop, offsets=None, ligh
     table = tf.table(dtype=torch.float64).numpy()
     R = table.shape[0]
     h, w = valid.shape
-    e = eye.double().numpy()
+    e = eye.double().numpy()[:, None] if origins is None else origins.double().numpy().reshape(3, -1)
     d = dirs.double().numpy().reshape(3, -1)
     a = t0.double().numpy().reshape(-1)
     b = t1.double().numpy().reshape(-1)
@@ -94,7 +96,7 @@ def _oracle(vol, tf, eye, dirs, valid, t0, t1, *, step, stop, offsets=None, ligh
         s0 = k * step
         sl = np.clip(length - s0, 0.0, step)
         t = a + s0 + sl / 2
-        p = e[:, None] + d * t[None]
+        p = e + d * t[None]
         X = p
         if U is not None:
             q = np.stack([p[c] * (U.shape[1 + c] - 1) / max(shape[c] - 1, 1) for c in range(3)])
@@ -297,3 +299,91 @@ def test_native_march_matches_render_endoscope_torch(with_offsets, light, monkey
             assert torch.equal(torch.isinf(depth[known]), torch.isinf(rdepth[known]))
             fin = torch.isfinite(depth) & known
             assert not bool(fin.any()) or float((depth[fin] - rdepth[fin]).abs().max()) < 1e-3
+
+
+# ------------------------------------------------------------------ axis views of render(engine="native")
+def _axis_rays(view, shape, size):
+    """The test's own parallel rays of an axis view: origins on the entry face, directions, step."""
+    axis = "dhw".index(view[-1])
+    others = [a for a in range(3) if a != axis]
+    h, w = size or tuple(shape[a] for a in others)
+    pix = [(np.arange(m) + 0.5) * shape[a] / m - 0.5 for m, a in zip((h, w), others)]
+    A, B = np.meshgrid(*pix, indexing="ij")
+    o = np.zeros((3, h, w))
+    o[others[0]], o[others[1]] = A, B
+    o[axis] = shape[axis] - 0.5 if view.startswith("-") else -0.5
+    d = np.zeros((3, h, w))
+    d[axis] = -1.0 if view.startswith("-") else 1.0
+    n = shape[axis]  # step 1: one slab per voxel layer
+    return torch.tensor(o), torch.tensor(d), torch.zeros(h, w), torch.full((h, w), float(n))
+
+
+@pytest.mark.parametrize("view", ["d", "-d", "h", "-h", "w", "-w"])
+@pytest.mark.parametrize("with_offsets", [False, True])
+def test_axis_views_match_the_float64_oracle_and_grid_sample(view, with_offsets):
+    """``render(engine="native")``: parallel rays from the entry face, one sample per slab; the float64
+    oracle marching the same rays, and the ``grid_sample`` engine, agree to 1e-4 (no early stop)."""
+    from torchdeform.volume import render
+
+    vol, tf = _smooth_volume(SHAPE), _tf()
+    offsets = None
+    if with_offsets:
+        g = torch.Generator().manual_seed(2)
+        offsets = (torch.rand(3, 4, 5, 5, generator=g) * 2 - 1) * 1.5
+    for size in (None, (9, 13)):
+        got = render(vol, tf=tf, view=view, offsets=offsets, size=size, stop=0, engine="native")
+        ref = render(vol, tf=tf, view=view, offsets=offsets, size=size, stop=0, engine="grid_sample")
+        o, d, t0, t1 = _axis_rays(view, SHAPE, size)
+        want, _ = _oracle(
+            vol, tf, torch.zeros(3), d, torch.ones(t0.shape, dtype=torch.bool), t0, t1, step=1.0, stop=0.0,
+            offsets=offsets, light=False, origins=o,
+        )  # fmt: skip
+        assert got.dtype == torch.float32 and tuple(got.shape) == (1, 4, *t0.shape)
+        assert want[3].max() > 0.9 and want[3].min() < 0.5  # opaque and see-through pixels
+        assert np.abs(got[0].double().numpy() - want).max() < 1e-4
+        assert float((got - ref).abs().max()) < 1e-4
+
+
+def test_axis_views_stop_each_ray_and_batch_offsets():
+    """With early termination each ray stops at ``stop`` (alpha within ``stop`` of the torch engine's);
+    a batch of offsets gives the batch of single renders."""
+    from torchdeform.volume import render
+
+    vol, tf = _smooth_volume(SHAPE), _tf()
+    g = torch.Generator().manual_seed(3)
+    offsets = (torch.rand(2, 3, 4, 5, 5, generator=g) * 2 - 1) * 1.5
+    got = render(vol, tf=tf, view="-h", offsets=offsets, stop=0.05, engine="native")
+    ref = render(vol, tf=tf, view="-h", offsets=offsets, stop=0.05, engine="grid_sample")
+    assert tuple(got.shape) == (2, 4, 12, 16) and float((got - ref).abs().max()) <= 0.05 + 1e-5
+    for b in range(2):
+        one = render(vol, tf=tf, view="-h", offsets=offsets[b], stop=0.05, engine="native")
+        assert torch.equal(one[0], got[b])
+
+
+def test_axis_engine_auto_falls_back_and_native_says_why():
+    """``auto`` takes grid_sample (the same tensor) where the kernel does not apply; ``native`` there
+    is one ConfigError naming the reason."""
+    from torchdeform.errors import ConfigError
+    from torchdeform.volume import render
+
+    vol, tf = _smooth_volume(SHAPE), _tf()
+    u = torch.zeros(3, 4, 5, 5)
+    cases = [
+        (dict(mode="mip"), "mode 'mip'"),
+        (dict(volume=vol.double()), "float32"),
+        (dict(offsets=u, warp_mode="knoche"), "warp_mode"),
+        (dict(offsets=u, inverse_iters=2), "inverse_iters"),
+        (dict(padding="zeros"), "padding"),
+        (dict(offsets=u.clone().requires_grad_()), "gradient"),
+    ]
+    for kw, why in cases:
+        kw = dict(kw)
+        v = kw.pop("volume", vol)
+        base = dict(tf=tf if kw.get("mode", "dvr") == "dvr" else None, view="d")
+        auto = render(v, engine="auto", **base, **kw)
+        assert torch.equal(auto, render(v, engine="grid_sample", **base, **kw)), why
+        with pytest.raises(ConfigError, match=why):
+            render(v, engine="native", **base, **kw)
+    grad = u.clone().requires_grad_()
+    render(vol, tf=tf, view="d", offsets=grad, engine="auto")[:, 3].sum().backward()
+    assert grad.grad is not None and float(grad.grad.abs().sum()) > 0  # auto kept the gradient

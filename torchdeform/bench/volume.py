@@ -13,7 +13,10 @@ voxels) and rendered along axis H to a ``size x size`` image, one sample per vox
                  the node grid, eight indexed loads from the flat volume), compositing per chunk of
                  slabs, chunks that can only read fully transparent values skipped (``dvr``);
 ``compiled``     the same code under ``torch.compile`` (one fused loop per chunk); the first call
-                 compiles (``compile_s`` in the rows and the JSON ``extra``).
+                 compiles (``compile_s`` in the rows and the JSON ``extra``);
+``native``       the C ray marcher (``engine="native"``, :mod:`torchdeform.volume.native_march`):
+                 parallel rays, the same slab samples, empty-space leaping, per-ray early
+                 termination (``dvr`` of a float32 volume on the CPU only: no row otherwise).
 
 Modes ``mip`` and ``dvr`` (``ct-bone`` transfer function). Each row: median wall seconds per
 frame over ``--repeats`` after a warm-up, ``fps`` = 1 / that, ``cpu_ms`` (process CPU time per
@@ -52,7 +55,7 @@ COLUMNS = [
     ("max_abs_diff", "max|diff|", "{:.1e}"),
     ("compile_s", "compile s", "{:.0f}"),
 ]
-PATHS = ("naive", "grid_sample", "eager", "compiled")
+PATHS = ("naive", "grid_sample", "eager", "compiled", "native")
 
 
 def add_arguments(p) -> None:
@@ -126,7 +129,7 @@ def run(args) -> int:
     dtype = getattr(torch, args.dtype)
     paths = [
         q.strip()
-        for q in (args.paths or ("naive,grid_sample,eager" if args.quick else ",".join(PATHS))).split(",")
+        for q in (args.paths or ("naive,grid_sample,eager,native" if args.quick else ",".join(PATHS))).split(",")
         if q.strip()
     ]
     if args.no_compile:
@@ -159,6 +162,9 @@ def run(args) -> int:
                 ref = naive_s = None
                 for path in paths:
                     compile_s = None
+                    if path == "native" and (mode != "dvr" or dtype != torch.float32 or device != "cpu"):
+                        bar.update(1)  # the kernel composites dvr of float32 CPU volumes
+                        continue
                     if path == "naive":
                         fn = lambda t=t, mode=mode: render(
                             warp(vol, offsets, check=False), tf=t, mode=mode, view="h", stop=1e-3

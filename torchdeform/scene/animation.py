@@ -346,7 +346,7 @@ def _volume_panel(vol, offsets, tf, mode, view, extent, size, render_scale) -> n
     ph, pw = (size, max(1, round(size * ec / er))) if er >= ec else (max(1, round(size * er / ec)), size)
     rh, rw = max(1, round(ph * render_scale)), max(1, round(pw * render_scale))
     with torch.no_grad():
-        img = render(vol, tf=tf, mode=mode, view=view, offsets=offsets, size=(rh, rw))
+        img = render(vol, tf=tf, mode=mode, view=view, offsets=offsets, size=(rh, rw), engine="auto")
     rgb = to_image(img, flip_up=view.lstrip("-") in ("h", "w"))
     im = Image.fromarray(rgb)
     if (rh, rw) != (ph, pw):

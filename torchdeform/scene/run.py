@@ -748,9 +748,11 @@ def scene_volume_outputs(
         # with return_info, warp returns (volume, info dict)
         deformed, info = cast("tuple[torch.Tensor, dict]", warp(vol, offsets, return_info=True))
         flip = view in ("h", "-h", "w", "-w")
-        save_png(out / "volume_before.png", to_image(render(vol, tf=tf, mode=mode, view=view), flip_up=flip))
+        save_png(
+            out / "volume_before.png", to_image(render(vol, tf=tf, mode=mode, view=view, engine="auto"), flip_up=flip)
+        )
         if cut is None:
-            after = render(vol, tf=tf, mode=mode, view=view, offsets=offsets)
+            after = render(vol, tf=tf, mode=mode, view=view, offsets=offsets, engine="auto")
         else:
             from ..topology import cut_pieces
 

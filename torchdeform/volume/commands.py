@@ -96,10 +96,11 @@ def add_render_arguments(p) -> None:
     p.add_argument("--inverse-iters", type=integer(lo=0), default=0)
     p.add_argument(
         "--engine",
-        choices=("grid_sample", "eager", "compiled"),
-        default="grid_sample",
-        help="axis views through --offsets: grid_sample (default), or the fused fast path, "
-        "compiled (~10x faster per frame, 30-60 s to compile once) or eager",
+        choices=("auto", "native", "grid_sample", "eager", "compiled"),
+        default="auto",
+        help="axis views: auto (default: the C ray marcher for dvr of a float32 volume, else "
+        "grid_sample), native, grid_sample, or through --offsets the fused fast path, compiled "
+        "(30-60 s to compile once) or eager",
     )
     e = p.add_argument_group(
         "endoscope",

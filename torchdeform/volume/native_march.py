@@ -58,6 +58,9 @@ Speed
 * :func:`render`: the image and depth of a batch of volumes for given rays;
 * :func:`render_endoscope_native`: a :func:`~torchdeform.volume.render_endoscope` plan by the kernel
   (the hook of its ``auto`` engine);
+* :func:`render_axis_native`: an axis view of :func:`~torchdeform.volume.render` by the kernel
+  (its ``"native"`` and ``"auto"`` engines): parallel rays, each from its own origin on the face
+  the view enters, sampled on the slabs the ``grid_sample`` engine samples;
 * :func:`clip_rays`: ``t0, t1`` of rays clipped to the volume's box and to near/far;
 * :func:`unavailable`: why the kernel cannot be built here (no C compiler ...), or None;
 * :func:`source`: the C source.
@@ -90,7 +93,18 @@ import torch.nn.functional as F
 
 from ..sim import native
 
-__all__ = ["render", "render_endoscope_native", "clip_rays", "unavailable", "source", "BLOCK", "TILE", "MAX_LEAP"]
+__all__ = [
+    "render",
+    "render_endoscope_native",
+    "render_axis_native",
+    "axis_blocker",
+    "clip_rays",
+    "unavailable",
+    "source",
+    "BLOCK",
+    "TILE",
+    "MAX_LEAP",
+]
 
 #: voxels per side of an empty-space block
 BLOCK = 2
@@ -242,7 +256,7 @@ static void ray(const Ctx* c, const float* e, const float* d, float t0, float t1
 
 int march(const float* vol, int64_t D, int64_t H, int64_t W,
           const float* tab, int64_t R, float lo, float tscale,
-          const float* eye, const float* dirs, const uint8_t* valid, const float* t0s, const float* t1s,
+          const float* eye, const float* orgs, const float* dirs, const uint8_t* valid, const float* t0s, const float* t1s,
           float near, float far, int64_t h, int64_t w, float step, float stop,
           const float* nodes, int64_t nd, int64_t nh, int64_t nw, float ncD, float ncH, float ncW,
           const uint8_t* leap, int64_t bs, int64_t BD, int64_t BH, int64_t BW, int64_t dil,
@@ -270,6 +284,9 @@ int march(const float* vol, int64_t D, int64_t H, int64_t W,
         float rgba[4] = {0.f, 0.f, 0.f, 0.f}, dp = INFINITY;
         if (!valid || valid[px]) {
           const float d[3] = {dirs[px], dirs[P + px], dirs[2 * P + px]};
+          float eo[3];                             /* this ray's origin: its own (orgs) or the eye */
+          const float* e = eye;
+          if (orgs) { eo[0] = orgs[px]; eo[1] = orgs[P + px]; eo[2] = orgs[2 * P + px]; e = eo; }
           float t0, t1;
           if (t0s) { t0 = t0s[px]; t1 = t1s[px]; }
           else {                                   /* the box [-0.5, N - 0.5] and [max(near, 0), far] */
@@ -278,10 +295,10 @@ int march(const float* vol, int64_t D, int64_t H, int64_t W,
             for (int k = 0; k < 3; k++) {
               float a, b;
               if (fabsf(d[k]) < 1e-12f) {
-                const int in = eye[k] >= -0.5f && eye[k] <= hi[k];
+                const int in = e[k] >= -0.5f && e[k] <= hi[k];
                 a = in ? -INFINITY : INFINITY; b = in ? INFINITY : -INFINITY;
               } else {
-                const float inv = 1.0f / d[k], ta = (-0.5f - eye[k]) * inv, tb = (hi[k] - eye[k]) * inv;
+                const float inv = 1.0f / d[k], ta = (-0.5f - e[k]) * inv, tb = (hi[k] - e[k]) * inv;
                 a = ta < tb ? ta : tb; b = ta < tb ? tb : ta;
               }
               if (a > tin) tin = a;
@@ -290,7 +307,7 @@ int march(const float* vol, int64_t D, int64_t H, int64_t W,
             const float nr = near > 0.f ? near : 0.f;
             t0 = tin > nr ? tin : nr; t1 = tout < far ? tout : far;
           }
-          ray(&c, eye, d, t0, t1, rgba, &dp);
+          ray(&c, e, d, t0, t1, rgba, &dp);
         }
         out[px] = rgba[0]; out[P + px] = rgba[1]; out[2 * P + px] = rgba[2]; out[3 * P + px] = rgba[3];
         depth[px] = dp;
@@ -323,7 +340,7 @@ def _function():
     argtypes = (
         [ptr, i64, i64, i64]  # volume
         + [ptr, i64, f32, f32]  # table
-        + [ptr, ptr, ptr, ptr, ptr, f32, f32]  # eye, dirs, valid, t0, t1, near, far
+        + [ptr, ptr, ptr, ptr, ptr, ptr, f32, f32]  # eye, origins, dirs, valid, t0, t1, near, far
         + [i64, i64, f32, f32]  # h, w, step, stop
         + [ptr, i64, i64, i64, f32, f32, f32]  # nodes
         + [ptr, i64, i64, i64, i64, i64]  # leap
@@ -467,6 +484,7 @@ def render(
     t0=None,
     t1=None,
     valid=None,
+    origins=None,
     near: float = 0.0,
     far: float = math.inf,
     step: float = 0.5,
@@ -487,7 +505,9 @@ def render(
             (:meth:`~torchdeform.volume.TransferFunction.table`, ``tf.range(volume=...)``).
         lo: the value of the table's first entry (volume units).
         hi: the value of its last entry.
-        eye: ``(3,)`` voxel coordinates.
+        eye: ``(3,)`` voxel coordinates: where every ray starts (a perspective view).
+        origins: ``(3, h, w)`` voxel coordinates, each ray's own start (an orthographic view: the
+            same direction from a plane of origins), or None (every ray starts at ``eye``).
         dirs: unit directions ``(3, h, w)`` (or ``(3, h w)``, ``(h, w, 3)``, ``(h w, 3)`` with ``valid``
             or ``t0`` giving ``(h, w)``); ``(3, h, w)`` float32 contiguous is read without a copy.
         t0: ``(h, w)`` where the rays start, in voxels (:func:`clip_rays`), or None: the kernel clips
@@ -535,6 +555,11 @@ def render(
         raise ValueError(f"t0 and t1 of shape ({h}, {w}), got {tuple(t0.shape)} and {tuple(t1.shape)}")
     d = _as_rays(dirs, h, w)
     e = torch.as_tensor(eye).detach().to(dtype=torch.float32, device="cpu").reshape(3).contiguous()
+    orgs = None
+    if origins is not None:
+        orgs = torch.as_tensor(origins).detach().to(dtype=torch.float32, device="cpu").contiguous()
+        if tuple(orgs.shape) != (3, h, w):
+            raise ValueError(f"origins of shape (3, {h}, {w}), got {tuple(orgs.shape)}")
     tab = torch.as_tensor(table).detach().to(dtype=torch.float32, device="cpu").contiguous()
     if tab.dim() != 2 or tab.shape[1] != 4 or tab.shape[0] < 2:
         raise ValueError(f"a transfer-function table (R >= 2, 4), got {tuple(tab.shape)}")
@@ -576,6 +601,7 @@ def render(
             lo,
             (tab.shape[0] - 1) / (hi - lo),
             e.data_ptr(),
+            null if orgs is None else orgs.data_ptr(),
             d.data_ptr(),
             null if v8 is None else v8.data_ptr(),
             null if t0 is None else t0.data_ptr(),
@@ -664,3 +690,71 @@ def render_endoscope_native(plan):
     if img.shape[0] != plan.batch:
         img, depth = img.expand(plan.batch, *img.shape[1:]), depth.expand(plan.batch, *depth.shape[1:])
     return img, depth
+
+
+# ------------------------------------------------------------------ axis views of render()
+def axis_blocker(plan) -> str | None:
+    """Why the kernel cannot render :func:`~torchdeform.volume.render`'s resolved ``plan``, or None.
+
+    It renders ``dvr`` axis views of float32 CPU volumes, directly or through linear node offsets
+    (``warp_mode="deform"``, ``inverse_iters=0``) with the edge voxels repeated
+    (``padding="border"``), no cut pieces, no gradient.
+    """
+    from .plan import AXIS_VIEWS
+
+    field, vol = plan.field, plan.volume
+    if not (isinstance(plan.view, str) and plan.view in AXIS_VIEWS):
+        return "the kernel renders axis views (an OrbitCamera takes grid_sample)"
+    if plan.mode != "dvr":
+        return f"the kernel composites dvr (mode {plan.mode!r} takes grid_sample)"
+    if plan.pieces is not None:
+        return "a cut body's pieces take grid_sample"
+    if field is not None and (field.order != "linear" or field.cell_centred or plan.inverse_iters):
+        return "the kernel reads linear offsets, warp_mode='deform', inverse_iters=0"
+    if plan.padding != "border":
+        return "the kernel repeats the edge voxels (padding='border')"
+    if vol.device.type != "cpu" or vol.dtype != torch.float32:
+        return f"the kernel takes a float32 volume on the CPU (this one is {vol.dtype} on {vol.device.type})"
+    needs = [vol, plan.table] + ([field.nodes] if field is not None else [])
+    if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in needs):
+        return "a gradient is needed (the kernel has none)"
+    return unavailable()
+
+
+def render_axis_native(plan) -> torch.Tensor:
+    """An axis view of :func:`~torchdeform.volume.render`'s resolved ``plan`` by the kernel: ``(B, 4, h, w)``.
+
+    Parallel rays along the view's axis, one per pixel, each from its pixel's point on the face of
+    the box ``[-0.5, N - 0.5]`` the view enters; ``step`` the slab thickness of
+    :meth:`~torchdeform.volume.plan.RenderPlan.axis_samples`, so the kernel's midpoint samples are
+    the slab centres the ``grid_sample`` engine reads. Early ray termination is per ray (the
+    torch engines stop a chunk of slabs once every ray is below ``stop``): pixels differ by at most
+    ``stop`` in alpha. Call :func:`axis_blocker` first.
+    """
+    lat = plan.axis_samples()
+    shape, h, w = plan.shape, *lat.img_shape
+    N = shape[lat.axis]
+    grid = torch.meshgrid(lat.pix[0].float(), lat.pix[1].float(), indexing="ij")
+    origins = torch.empty(3, h, w, dtype=torch.float32)
+    origins[lat.others[0]], origins[lat.others[1]] = grid
+    origins[lat.axis] = N - 0.5 if lat.reverse else -0.5
+    dirs = torch.zeros(3, h, w, dtype=torch.float32)
+    dirs[lat.axis] = -1.0 if lat.reverse else 1.0
+    t0, t1 = torch.zeros(h, w), torch.full((h, w), float(N))
+    assert plan.table is not None and plan.lo is not None and plan.hi is not None  # dvr
+    image, _ = render(
+        plan.volume,
+        plan.table,
+        plan.lo,
+        plan.hi,
+        torch.zeros(3),
+        dirs,
+        t0=t0,
+        t1=t1,
+        origins=origins,
+        step=lat.dt,
+        stop=plan.stop,
+        offsets=None if plan.field is None else plan.field.nodes,
+        light=None,
+    )
+    return image

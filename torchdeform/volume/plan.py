@@ -41,9 +41,10 @@ __all__ = ["RENDER_MODES", "AXIS_VIEWS", "ENGINES", "RenderPlan"]
 RENDER_MODES = ("dvr", "mip", "average")
 #: Axis views: rays along +D, +H, +W, or along -D, -H, -W.
 AXIS_VIEWS = ("d", "h", "w", "-d", "-h", "-w")
-#: How an axis view through offsets samples the volume: ``grid_sample`` (every option, differentiable)
-#: or the fast path, ``eager`` or ``compiled`` (:mod:`torchdeform.volume.fastpath`).
-ENGINES = ("grid_sample", "eager", "compiled")
+#: How an axis view samples the volume: ``grid_sample`` (every option, differentiable), the fast
+#: path through offsets, ``eager`` or ``compiled`` (:mod:`torchdeform.volume.fastpath`), the C
+#: kernel (``native``, :mod:`torchdeform.volume.native_march`), or ``auto`` (native where it applies).
+ENGINES = ("grid_sample", "eager", "compiled", "native", "auto")
 
 
 class _AxisSamples(NamedTuple):

@@ -160,7 +160,12 @@ def render(
             ``"compiled"`` runs it under ``torch.compile``, compiling once per shape and view,
             20-60 s, with the eager code as fallback). The fast path takes batch 1, linear
             offsets, ``inverse_iters=0`` and no gradient; anything else uses ``grid_sample``.
-            Same image either way up to rounding.
+            Same image either way up to rounding. ``"native"``: the C ray marcher
+            (:mod:`~torchdeform.volume.native_march`; ``dvr`` of a float32 CPU volume, directly or
+            through linear offsets, ``padding="border"``, no gradient; else a ConfigError saying
+            why); ``"auto"``: native where it applies, else ``grid_sample``. The kernel stops each
+            ray at ``stop`` (the others a chunk of slabs once every ray is below it): alpha within
+            ``stop`` of theirs, the same with ``stop=0`` up to float32 rounding.
         pieces: instead of ``offsets``, a cut body: a list of ``(offsets, material)`` pairs, one per
             piece, with node offsets ``(3, n_d, n_h, n_w)`` / ``(B, 3, ...)`` in voxels (extended
             over the whole node grid) and the piece's rest-space material ``(n_d, n_h, n_w)`` (1 at
@@ -240,6 +245,15 @@ def render(
         return _render_orbit(plan)
     if view not in AXIS_VIEWS:
         raise ConfigError("view", "an axis (" + ", ".join(AXIS_VIEWS) + ") or an OrbitCamera", got=view)
+    if engine in ("native", "auto"):
+        from . import native_march  # a C build on first use: only when asked for
+
+        why = native_march.axis_blocker(plan)
+        if why is None:
+            return native_march.render_axis_native(plan).to(plan.dtype)
+        if engine == "native":
+            raise ConfigError("engine", "a plan the C kernel renders (or engine='auto')", got=f"native: {why}")
+        return _render_axis(plan)
     if engine != "grid_sample" and _fast_supported(plan):
         return _render_axis_fast(plan)[0]
     return _render_axis(plan)
