@@ -223,6 +223,27 @@ def test_heavy_libraries_are_not_loaded(statement):
     assert _loaded_compiler(statement) == []  # every command's start-up would pay for it
 
 
+def test_eager_native_steps_do_not_load_the_compiler():
+    """The C kernels' eager calls skip their custom ops (whose first call imports torch._dynamo, 1.2 s):
+    a native run of an Elastic body (springs and cell term by C) loads no compiler module."""
+    from torchdeform.sim import native
+
+    if native.unavailable():
+        pytest.skip(native.unavailable())
+    run = (
+        "import torch, torchdeform as td\n"
+        "g = td.Grid((4, 4, 4), spacing=0.01, topology=26)\n"
+        "drag = td.Drag(g.face('top'), offset=(0.001, 0.0, 0.0), period=0.1)\n"  # not the fused step
+        "m = td.Model(g, stiffness=td.Elastic(5e3, 0.45), density=1000.0, fixed=g.face('bottom'), drags=[drag])\n"
+        "e = td.Engine(mode='native')\n"
+        "td.simulate(m, m.rest_state(), 1e-4, 5, engine=e, warn=False)\n"
+        "assert e.ran == 'native' and e.step.fused is None and e.step.packed.volume_kernel, e.reason"
+    )
+    torch_compiler = [m for m in _loaded_compiler(run) if m.startswith("torch.")]
+    assert torch_compiler == []
+    assert "torch._dynamo" in _loaded_compiler(run + "\nimport torch._dynamo")  # the check sees it loaded
+
+
 def test_heavy_library_check_can_fail():
     assert "scipy" in _loaded_heavy("import scipy")
 

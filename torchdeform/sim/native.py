@@ -708,7 +708,8 @@ def spring_forces(pm, x: torch.Tensor, v: torch.Tensor, *, name: str | None = No
     """
     name = name or kernel(variant_of(pm))
     k, mu, coff = _stiffness_operands(pm)
-    return native_springs(x, v, pm.inside, k, pm.rest_length, pm.damping, pm.offset_table, name, pm.G, mu, coff)
+    op = native_springs if torch.compiler.is_compiling() else _springs  # see native_springs
+    return op(x, v, pm.inside, k, pm.rest_length, pm.damping, pm.offset_table, name, pm.G, mu, coff)
 
 
 def _stiffness_operands(pm) -> tuple:
@@ -838,8 +839,7 @@ def _call(name: str, x, v, out, inside, k, l0, c, offsets, G: int, *update) -> N
         raise MemoryError(f"native spring kernel {name}: a thread could not allocate its ring of springs")
 
 
-@torch.library.custom_op("torchdeform::native_springs", mutates_args=())
-def native_springs(
+def _springs(
     x: torch.Tensor,
     v: torch.Tensor,
     inside: torch.Tensor,
@@ -860,6 +860,12 @@ def native_springs(
     f = torch.empty_like(x)
     _call(kernel, x, v, f, inside, k, l0, c, offsets, G, *_cell_args(mu, coff, G))
     return f
+
+
+#: :func:`_springs` as the custom op ``torchdeform::native_springs``, for compiled graphs. Eager code
+#: calls :func:`_springs` itself: the op's first call imports ``torch._dynamo`` (1.2 s of every run
+#: that does not compile, on 2 cores), which the plain function never needs.
+native_springs = torch.library.custom_op("torchdeform::native_springs", mutates_args=())(_springs)
 
 
 @native_springs.register_fake

@@ -146,11 +146,11 @@ def volume_forces(pm, x: torch.Tensor, *, name: str | None = None) -> torch.Tens
     """The volume term's forces of a packed model (N), ``(B, 3, P)``, by the C kernel (no gradient)."""
     name = name or kernel(pm.dtype)
     W = pm.grid.shape[2]
-    return native_volume(x, pm.volume_kappa, pm.volume_shear, name, W + 2, pm.G, pm.volume_h)
+    op = native_volume if torch.compiler.is_compiling() else _volume  # eager: no torch._dynamo import
+    return op(x, pm.volume_kappa, pm.volume_shear, name, W + 2, pm.G, pm.volume_h)
 
 
-@torch.library.custom_op("torchdeform::native_volume", mutates_args=())
-def native_volume(
+def _volume(
     x: torch.Tensor, kappa: torch.Tensor, shear: torch.Tensor, kernel: str, row: int, G: int, h: float
 ) -> torch.Tensor:
     """Cell-term forces ``(B, 3, P)`` of positions ``x`` ``(B, 3, P)``, per-cell ``kappa`` and ``shear`` ``(Bk, 1, P)``.
@@ -181,6 +181,11 @@ def native_volume(
     ):
         raise MemoryError("native volume kernel: a thread could not allocate its ring of cells")
     return out
+
+
+#: :func:`_volume` as the custom op ``torchdeform::native_volume``, for compiled graphs (eager code
+#: calls :func:`_volume`: the op's first call imports ``torch._dynamo``, see ``native.native_springs``).
+native_volume = torch.library.custom_op("torchdeform::native_volume", mutates_args=())(_volume)
 
 
 @native_volume.register_fake
