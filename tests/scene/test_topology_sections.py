@@ -435,3 +435,86 @@ def test_energies_of_each_frame_use_the_springs_of_that_frame(tmp_path):
     # after the cut the removed springs hold no energy: less elastic energy than the uncut model gives
     assert (rec["elastic"][after] < oracle["elastic"][after] - 1e-9).all()
     assert summary["final_energy_J"]["elastic"] == pytest.approx(float(rec["elastic"][-1]))
+
+
+# ------------------------------------------------------------------ every engine
+EVERY_CHANGE = (
+    body((5, 4, 4), 26)
+    + BLADE.replace("at = 0.002", "at = 0.002\ngape = 0.25")
+    + """
+[[tools]]
+name = "cautery"
+shape = "sphere"
+radius = 0.012
+contact = "none"
+position = [0.04, 0.015, 0.015]
+
+[[cautery]]
+tool = "cautery"
+at = 0.003
+
+[[coagulate]]
+at = 0.004
+box = {lo = [0.0, 0.0, 0.0], hi = [0.01, 0.03, 0.03]}
+viscosity_factor = 3.0
+
+[[drags]]
+face = "w+"
+path = [[0.0, [0.0, 0.0, 0.0]], [0.008, [0.0, 0.0, 0.006]]]
+
+[tear]
+max_strain = 0.6
+"""
+    + run_part(steps=40)
+)
+
+
+# a gaping cut alone through an Elastic body (cells die, springs are re-assembled, damping zeroed)
+ELASTIC_CUT = (
+    body((5, 4, 4), 26).replace(
+        "stiffness = 20.0\ndamping = 1e-3", 'tissue = "liver"\npoisson_ratio = 0.45\ndamping = 2e-4'
+    )
+    + BLADE.replace("at = 0.002", "at = 0.002\ngape = 0.25")
+    + """
+[[drags]]
+face = "w+"
+path = [[0.0, [0.0, 0.0, 0.0]], [0.008, [0.0, 0.0, 0.004]]]
+"""
+    + run_part(steps=40)
+)
+SCENE_TEXTS = {"every change": EVERY_CHANGE, "elastic cut": ELASTIC_CUT}
+
+
+@pytest.mark.parametrize(
+    "engine, scene",
+    [
+        ("native", "every change"),
+        ("native", "elastic cut"),
+        pytest.param("compiled", "elastic cut", marks=pytest.mark.slow),
+    ],
+)
+def test_topology_changes_on_a_packed_engine_follow_the_eager_run(tmp_path, engine, scene):
+    """A gaping cut, cautery, coagulation and tears, or a gaping cut of an Elastic body, on the
+    native (or compiled) engine: the packed step shares the model's fields, so the run equals the
+    eager one (float32 rounding) with the same changes counted."""
+    from torchdeform.sim import native
+
+    if native.unavailable():
+        pytest.skip(native.unavailable())
+    if engine == "compiled":
+        pytest.importorskip("torch._inductor")
+    runs = {}
+    for name in ("eager", engine):
+        text = SCENE_TEXTS[scene].replace("threads = 1", f'threads = 1\nengine = "{name}"')
+        (tmp_path / name).mkdir()
+        summary, out = run(tmp_path / name, text)
+        assert summary["engine"]["ran"] == name
+        runs[name] = summary, np.load(out / "trajectory.npz")
+    (ref, ref_traj), (got, traj) = runs["eager"], runs[engine]
+    counts = ("springs_removed_by_cuts", "springs_removed_by_tear", "cautery_nodes_removed", "coagulated_springs")
+    if scene == "every change":
+        assert all(ref["topology"][k] > 0 for k in counts), ref["topology"]  # every change happened
+    else:
+        assert ref["topology"]["springs_removed_by_cuts"] > 0
+    assert {k: got["topology"][k] for k in counts} == {k: ref["topology"][k] for k in counts}
+    assert np.abs(traj["x"] - ref_traj["x"]).max() < 1e-6  # m, float32 rounding over 40 steps

@@ -237,18 +237,20 @@ def run_scene(
         torch.set_num_threads(threads)
 
 
+#: the spring fields a packed step shares with a scene's model under topology changes: all three,
+#: as :meth:`~torchdeform.scene.topology.TopologySet.prepare` stores them per spring (a cut zeroes the
+#: damping of what it removes, a gaping cut and coagulation change rest lengths, coagulation the damping)
+TOPOLOGY_FIELDS = ("stiffness", "rest_length", "damping")
+
+
 def scene_engine(scene: Scene, topology: bool) -> Engine:
-    """The scene's :class:`~torchdeform.sim.engine.Engine`; topology changes between steps run eagerly."""
-    if topology and scene.engine in ("native", "compiled"):
-        raise scene.source.error(
-            "integrator.engine",
-            '"auto" or "eager" for a scene with topology changes '
-            "(they edit the model between steps, which the eager step reads)",
-            got="compiled",
-        )
-    return Engine(
-        mode=scene.engine, blocked="topology changes between steps run in the eager step" if topology else None
-    )
+    """The scene's :class:`~torchdeform.sim.engine.Engine`.
+
+    With topology changes a packed step shares the model's node and spring fields (``editable``,
+    :data:`TOPOLOGY_FIELDS`): a cut, tear, cautery or coagulation between steps edits the tensors
+    the step reads, with no repacking or recompilation.
+    """
+    return Engine(mode=scene.engine, editable=TOPOLOGY_FIELDS if topology else False)
 
 
 def _run(scene: Scene, out: Path, progress: bool, device) -> dict:

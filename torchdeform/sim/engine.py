@@ -501,6 +501,8 @@ def simulate(
         callback: ``callback(step, state)`` after every step, or None. A callback with the
             attribute ``reads_positions = False`` (it reads only ``t`` and ``readings``) is handed
             the compiled engine's packed state as it is, without unpacking positions every step.
+            A callback may change the state in place (cautery stops the nodes it burns): the packed
+            engines take the change into their layout.
         engine: an :class:`Engine` (read its :attr:`~Engine.ran` and :attr:`~Engine.reason`
             afterwards) or its mode, ``"eager"`` (default), ``"native"``, ``"compiled"`` or ``"auto"``.
         rtol: ask for an accuracy instead of a step: ``dt`` becomes the interval between the
@@ -584,7 +586,10 @@ def simulate(
         if record_every and i % record_every == 0:
             record(state)
         if callback is not None:
+            seen = (state.x._version, state.v._version)
             callback(i, state)
+            if compiled is not None and state is not packed and (state.x._version, state.v._version) != seen:
+                packed = compiled.packed.pack_state(state)  # the callback changed the unpacked state in place
     rec = {}
     if xs:
         rec = {"t": torch.tensor(ts, dtype=torch.float64), "x": torch.stack(xs), "v": torch.stack(vs)}
