@@ -117,7 +117,7 @@ class CompiledStep:
         mode: str | None = None,
         enable: bool = True,
         options: dict | None = None,
-        editable=False,
+        editable: bool | tuple[str, ...] = False,
         threads: int | None = None,
         force_form: str | None = None,
     ):
@@ -389,7 +389,7 @@ def compiled_step(
     loads=None,
     mode: str | None = None,
     enable: bool = True,
-    editable=False,
+    editable: bool | tuple[str, ...] = False,
     threads: int | None = None,
     force_form: str | None = None,
 ) -> CompiledStep:

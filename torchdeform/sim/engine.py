@@ -147,7 +147,7 @@ class Engine:
         probe_steps: int = 3,
         payback: float = 2.0,
         compile_s: dict | None = None,
-        editable=False,
+        editable: bool | tuple[str, ...] = False,
         blocked: str | None = None,
         compile: bool = True,
     ):

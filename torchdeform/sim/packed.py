@@ -121,7 +121,7 @@ class PackedModel(Model):
             and gaping cuts, ``"damping"`` for coagulation's viscosity rise).
     """
 
-    def __init__(self, model: Model, *, share=False):
+    def __init__(self, model: Model, *, share: bool | tuple[str, ...] = False):
         if isinstance(model, PackedModel):
             raise TypeError("PackedModel(model): the model is already packed")
         self.__dict__.update(model.__dict__)
