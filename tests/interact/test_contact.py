@@ -249,7 +249,7 @@ def test_packed_layout_gives_the_same_contact_step(device):
     assert torch.allclose(pm.unpack_state(packed).v, state.v, atol=1e-11, rtol=0)
 
 
-def _responses_over_steps(device, steps=3):
+def _responses_over_steps(device, steps=3, batch=1):
     """Every response of torchdeform.interact applied to a body for a few steps: ``(x, v, readings)``."""
     grid = td.Grid((4, 4, 4), spacing=0.01, topology=26)
     model = td.Model(grid, stiffness=20.0, mass=1e-3, fixed=grid.face("bottom"), dtype=torch.float64, device=device)
@@ -265,7 +265,7 @@ def _responses_over_steps(device, steps=3):
         StrainLimit(min_ratio=0.95, max_ratio=1.05, passes=2),
     ]
     gen = torch.Generator().manual_seed(5)
-    x = model.X + 2e-3 * torch.randn(model.X.shape, generator=gen, dtype=torch.float64).to(device)
+    x = model.X + 2e-3 * torch.randn((batch, *model.X.shape[1:]), generator=gen, dtype=torch.float64).to(device)
     v = 0.01 * torch.randn(x.shape, generator=gen, dtype=torch.float64).to(device)
     readings = {}
     with no_host_wait(device):
@@ -275,6 +275,32 @@ def _responses_over_steps(device, steps=3):
                 v = v if f is None else v + 1e-3 * f / model.mass
                 x, v = r.project(model, x, v, 1e-3 * k, 1e-3, readings=readings)
     return x, v, readings
+
+
+@pytest.mark.parametrize("batch", [1, 2])
+def test_responses_on_the_reached_nodes_equal_the_dense_responses(monkeypatch, batch):
+    """Eager CPU contact responds on the nodes a tool reaches (gathered, written back): the same
+    positions, velocities and readings (forces, torques, contacts, haptic) as the dense response
+    over every node, which compiled and differentiated steps take."""
+    from torchdeform.interact import contact
+
+    cpu = torch.device("cpu")
+    calls, reached = [], contact.ProjectionContact._respond_reached
+
+    def counted(self, *args):
+        calls.append(1)
+        return reached(self, *args)
+
+    monkeypatch.setattr(contact.ProjectionContact, "_respond_reached", counted)
+    x, v, got = _responses_over_steps(cpu, steps=4, batch=batch)
+    assert len(calls) == 4 * 4  # four tools of two projections, every step: the gathered path ran
+    monkeypatch.setattr(contact, "_gathered", lambda *args: False)
+    xd, vd, dense = _responses_over_steps(cpu, steps=4, batch=batch)
+    assert torch.allclose(x, xd, atol=1e-15, rtol=0) and torch.allclose(v, vd, atol=1e-13, rtol=0)
+    assert set(got) == set(dense) and float(dense["probe.contacts"].sum()) > 0
+    for key, value in dense.items():
+        assert torch.allclose(got[key], value, rtol=1e-12, atol=1e-15), key
+    assert float(dense["probe.force"].abs().max()) > 0 and float(dense["probe.haptic"].abs().max()) > 0
 
 
 def test_responses_queue_on_the_device_without_waiting_for_it(device):

@@ -147,6 +147,9 @@ class ProjectionContact:
     def project(self, model, x, v, t, dt, *, readings=None):
         """Nodes inside a tool moved to its surface at time ``t``, velocities corrected.
 
+        Eager steps on the CPU without a gradient respond on the nodes some tool reaches alone
+        (gathered, then written back): the same arithmetic per node, a few instead of every node.
+
         Args:
             model: the model (its ``free`` mask: fixed and dragged nodes are not moved).
             x: positions ``(B, 3, ...)`` at the end of the step.
@@ -155,59 +158,109 @@ class ProjectionContact:
             dt: the step (s): the slip that friction takes back is ``dt`` times the removed speed.
             readings: the step's readings dict (forces are added to it), or None.
         """
-        free = model.free
+        free, mass = model.free, model.mass
         for k, tool in enumerate(self.tools):
             # each tool reads the state many times: under torch.compile it is stored once first,
             # or every read would recompute the step and the tools before (compile time explodes)
             x, v = model.keep(x), model.keep(v)
-            x0, v0 = x, v
-            held = None
             if self.hold:
                 if torch.is_tensor(t):
                     raise ConfigError(
                         "contact.hold", "the eager step (held nodes are kept in Python)", got="a compiled step"
                     )
                 att = self._held[k]
+                x0, v0 = x, v
                 if att.mask is not None:  # release the held nodes whose motion leaves the tool
-                    d, n = tool.sdf(x, t)
+                    _, n = tool.sdf(x, t)
                     leaving = ((v - tool.point_velocity(x, t)) * n).sum(1, keepdim=True) > 0
                     att.release(which=leaving)
                     x, v = att.follow(tool, x, v, t)
-                held = att.mask
-            d, n = tool.sdf(x, t)
-            inside = d < 0
-            if free is not None:
-                inside = inside & (free > 0)
-            if held is not None:
-                inside = inside & ~held
-            x = self._push_out(tool, x, d, n, t, inside)
-            if self.direction != "normal":
-                _, n = tool.sdf(x, t)
-            vt = tool.point_velocity(x, t)
-            vr = v - vt
-            vn = (vr * n).sum(1, keepdim=True)
-            hit = inside & (vn < 0)
-            tangential = vr - vn * n
-            if self.friction > 0:
-                speed = length(tangential)
-                keep = (1 - self.friction * (-vn) / speed.clamp_min(torch.finfo(v.dtype).tiny)).clamp_min(0)
-                # the step moved the node by dt * v along the surface (x1 = x0 + dt v1): friction
-                # takes back the part of that slip it removes from the velocity
-                x = torch.where(hit, x - dt * (1 - keep) * tangential, x)
-                tangential = tangential * keep
-            v = torch.where(hit, tangential + vt, v)
-            if self.hold:
-                self._held[k].attach(tool, inside, x, t)
-            if readings is not None:
-                c, _ = tool.frame(t, x)
-                report_momentum(readings, tool.name, model.mass, v - v0, x, c, dt)
-                touched = inside if held is None else inside | held
-                report(readings, tool.name, "contacts", touched.flatten(1).sum(1).to(x.dtype))
-                if self.haptic_gain is not None:
-                    n_in = inside.flatten(2).sum(2).to(x.dtype)  # (B, 1)
-                    push = torch.where(inside, x - x0, torch.zeros_like(x)).flatten(2).sum(2)
-                    report(readings, tool.name, "haptic", -self.haptic_gain * push / n_in.clamp_min(1))
+                x, v = self._respond(k, tool, x, v, t, dt, free, mass, readings, held=att.mask, x0=x0, v0=v0)
+            elif _gathered(x, v, t):
+                x, v = self._respond_reached(k, tool, x, v, t, dt, free, mass, readings)
+            else:
+                x, v = self._respond(k, tool, x, v, t, dt, free, mass, readings)
         return x, v
+
+    def _respond_reached(self, k, tool, x, v, t, dt, free, mass, readings):
+        """:meth:`_respond` on the nodes tool ``k`` reaches in any batch entry, gathered and written back."""
+        d, _ = tool.sdf(x, t)
+        reach = d < 0 if free is None else (d < 0) & (free > 0)
+        idx = reach.flatten(2).any(1).any(0).nonzero()[:, 0]
+        shape = x.shape[2:]
+        xs, vs = self._respond(
+            k,
+            tool,
+            _take(x, idx, shape),
+            _take(v, idx, shape),
+            t,
+            dt,
+            None if free is None else _take(free, idx, shape),
+            _take(mass, idx, shape),
+            readings,
+        )
+        return x.flatten(2).index_copy(2, idx, xs).view_as(x), v.flatten(2).index_copy(2, idx, vs).view_as(v)
+
+    def _respond(self, k, tool, x, v, t, dt, free, mass, readings, *, held=None, x0=None, v0=None):
+        """Tool ``k``'s response on nodes ``x``, ``v`` ``(B, 3, ...)`` (all, or those gathered): ``(x, v)``.
+
+        ``x0``, ``v0``: the state before a held contact's nodes followed the tool (default ``x``, ``v``).
+        """
+        x0 = x if x0 is None else x0
+        v0 = v if v0 is None else v0
+        d, n = tool.sdf(x, t)
+        inside = d < 0
+        if free is not None:
+            inside = inside & (free > 0)
+        if held is not None:
+            inside = inside & ~held
+        x = self._push_out(tool, x, d, n, t, inside)
+        if self.direction != "normal":
+            _, n = tool.sdf(x, t)
+        vt = tool.point_velocity(x, t)
+        vr = v - vt
+        vn = (vr * n).sum(1, keepdim=True)
+        hit = inside & (vn < 0)
+        tangential = vr - vn * n
+        if self.friction > 0:
+            speed = length(tangential)
+            keep = (1 - self.friction * (-vn) / speed.clamp_min(torch.finfo(v.dtype).tiny)).clamp_min(0)
+            # the step moved the node by dt * v along the surface (x1 = x0 + dt v1): friction
+            # takes back the part of that slip it removes from the velocity
+            x = torch.where(hit, x - dt * (1 - keep) * tangential, x)
+            tangential = tangential * keep
+        v = torch.where(hit, tangential + vt, v)
+        if self.hold:
+            self._held[k].attach(tool, inside, x, t)
+        if readings is not None:
+            c, _ = tool.frame(t, x)
+            report_momentum(readings, tool.name, mass, v - v0, x, c, dt)
+            touched = inside if held is None else inside | held
+            report(readings, tool.name, "contacts", touched.flatten(1).sum(1).to(x.dtype))
+            if self.haptic_gain is not None:
+                n_in = inside.flatten(2).sum(2).to(x.dtype)  # (B, 1)
+                push = torch.where(inside, x - x0, torch.zeros_like(x)).flatten(2).sum(2)
+                report(readings, tool.name, "haptic", -self.haptic_gain * push / n_in.clamp_min(1))
+        return x, v
+
+
+def _take(field: torch.Tensor, idx: torch.Tensor, shape) -> torch.Tensor:
+    """The nodes ``idx`` of a node field ``(B|1, C, ...)`` (broadcast to the nodes ``shape``): ``(B|1, C, K)``."""
+    return field.expand(*field.shape[:2], *shape).flatten(2).index_select(2, idx)
+
+
+def _gathered(x: torch.Tensor, v: torch.Tensor, t) -> bool:
+    """Whether a response may run on the touched nodes alone: an eager CPU step without a gradient.
+
+    (Finding them reads a count on the host: free on the CPU, a wait on an accelerator; a compiled
+    graph keeps dense shapes; autograd keeps the whole fields.)
+    """
+    return (
+        x.device.type == "cpu"
+        and not torch.is_tensor(t)
+        and not torch.compiler.is_compiling()
+        and not (torch.is_grad_enabled() and (x.requires_grad or v.requires_grad))
+    )
 
 
 class PenaltyContact:
