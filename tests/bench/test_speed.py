@@ -138,14 +138,23 @@ def test_bytes_per_step_hand_count():
         speed.bytes_per_step(model, "compiled")  # a packed mode reads a packed model
 
 
-def test_native_rows_are_planned_on_the_cpu_only():
-    args = argparse.Namespace(no_compile=False, no_warp=True, no_beam=True, quick=False, materials=["springs"])
-    cuda, _, _ = speed._plan(args, "cuda", [16], [26], ["float32"], [1])
-    assert [t[5] for t in cuda] == ["eager", "compiled"]
-    cpu, _, _ = speed._plan(args, "cpu", [16], [26], ["float32"], [1])
-    from torchdeform.sim import native
+def test_native_rows_are_planned_where_the_kernel_runs_and_modes_pick_rows():
+    """Native rows where the device's kernel runs (C on the CPU, Triton on CUDA); ``--modes`` keeps a subset."""
+    from torchdeform.sim import native, native_cuda
 
-    assert [t[5] for t in cpu] == (["eager", "compiled"] if native.unavailable() else ["eager", "native", "compiled"])
+    args = argparse.Namespace(no_compile=False, no_warp=True, no_beam=True, quick=False, materials=["springs"])
+    for device, why in (("cuda", native_cuda.unavailable()), ("cpu", native.unavailable())):
+        tasks, _, _ = speed._plan(args, device, [16], [26], ["float32"], [1])
+        assert [t[5] for t in tasks] == (["eager", "compiled"] if why else ["eager", "native", "compiled"])
+    args.modes = ["compiled", "eager"]
+    tasks, _, _ = speed._plan(args, "cpu", [16, 32], [26], ["float32"], [1])
+    assert [(t[1], t[5]) for t in tasks] == [(16, "eager"), (16, "compiled"), (32, "eager"), (32, "compiled")]
+
+
+def test_an_unknown_mode_is_refused_by_name(capsys):
+    assert cli.main(argv=["bench", "speed", "--quick", "--modes", "eager,fast"]) == 2
+    out, err = capsys.readouterr()
+    assert "--modes" in err and "fast" in err and "Traceback" not in err and out == ""
 
 
 def test_elastic_rows_are_planned_beside_the_springs_and_compared_with_them():

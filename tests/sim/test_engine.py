@@ -13,7 +13,7 @@ import torchdeform as td
 from tests.helpers import F64, make_grid, make_model
 from torchdeform.errors import ConfigError
 from torchdeform.sim import engine as engine_mod
-from torchdeform.sim import native
+from torchdeform.sim import native, native_cuda
 from torchdeform.sim.engine import Engine, gradient_needed
 from torchdeform.sim.packed import PackedModel
 
@@ -144,21 +144,26 @@ def test_auto_goes_native_at_once_when_the_kernel_is_already_built():
 
 
 def test_auto_on_the_device_picks_an_engine_that_runs_there(device):
-    """The C kernel runs on the CPU only: on a GPU ``"auto"`` goes from eager straight to the
-    compiled step (Triton), with the spring sum the packed model picks there (the reduction form,
-    whose Triton kernel compiles in seconds)."""
+    """The spring kernel is C on the CPU and Triton on CUDA: ``"auto"`` goes native where that
+    kernel can run (else straight to the compiled step), and the native engine's steps (dragged,
+    so the update stays in torch around the kernel; and without drags, one fused kernel per step)
+    follow the eager steps on the device."""
     model = body(device=device)
     engine = Engine(mode="auto")
     assert engine.decide(td.SymplecticEuler(), [0.05, 0.03, 0.03], 200_000, threads=2, model=model)
-    if device.type == "cuda":
-        assert (
-            Engine.native_blocker(model, td.SymplecticEuler()) == "the C kernel runs on the CPU (the model is on cuda)"
-        )
-        assert engine.choice == "compiled" and engine.force_form is None and engine.reason.endswith("; compiled")
-        engine._compile(model, td.SymplecticEuler(), 1e-4, None)
-        assert engine.step.packed.force_form is None and engine.step.force_form == "reduction"
-    else:
-        assert engine.choice == ("native" if native.unavailable() is None else "compiled")
+    why = native.unavailable() if device.type == "cpu" else native_cuda.unavailable()
+    assert Engine.native_blocker(model, td.SymplecticEuler()) == why
+    assert engine.choice == ("native" if why is None else "compiled")
+    if why is not None:
+        return
+    for drags in (True, False):
+        model = body(device=device, drags=drags)
+        ref, _ = run(model, "eager")
+        engine = Engine(mode="native")
+        out, _ = run(model, engine)
+        assert engine.ran == "native" and (engine.step.fused is None) == drags
+        assert out.x.device == model.device
+        assert torch.allclose(out.x, ref.x, rtol=0, atol=1e-12) and torch.allclose(out.v, ref.v, rtol=0, atol=1e-9)
 
 
 def test_auto_picks_the_gather_form_only_when_the_steps_to_come_repay_its_compile():

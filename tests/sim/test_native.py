@@ -1,9 +1,10 @@
-"""The C spring kernel (torchdeform.sim.native) against the grid-layout model's shifted-slice springs.
+"""The spring kernels (torchdeform.sim.native: C on the CPU, Triton on CUDA) against the grid-layout model's shifted-slice springs.
 
 The oracle is :meth:`Model.spring_forces` (shifted slices, itself tested against the numpy edge
 list in test_stencil / test_physics) and :meth:`SymplecticEuler.step` on the grid layout. Kernels
-are built by the system C compiler; without one the tests that need a kernel are skipped with
-the reason, and the fall-back is tested instead.
+are built by the system C compiler (on CUDA by Triton); without one the tests that need a kernel
+are skipped with the reason, and the fall-back is tested instead. The tests that take the
+``kernel_device`` fixture run on the suite's ``--device``.
 """
 
 import ctypes
@@ -13,14 +14,33 @@ import torch
 
 import torchdeform as td
 from tests.helpers import F64
-from torchdeform.sim import native
+from torchdeform.sim import native, native_cuda
 from torchdeform.sim.compiled import CompiledStep
 from torchdeform.sim.packed import PackedModel
 
 needs_cc = pytest.mark.skipif(native.unavailable() is not None, reason=f"no C kernel here: {native.unavailable()}")
 
 
-def _body(topology=26, damping=0.05, mode="projected", dtype=F64, batch=1, per_spring=False, decay=None, box=False):
+@pytest.fixture
+def kernel_device(device):
+    """The run's device, where its spring kernel can run (C on the CPU, Triton on CUDA); else the test skips."""
+    why = native.unavailable() if device.type == "cpu" else native_cuda.unavailable()
+    if why:
+        pytest.skip(f"no spring kernel on {device.type}: {why}")
+    return device
+
+
+def _body(
+    topology=26,
+    damping=0.05,
+    mode="projected",
+    dtype=F64,
+    batch=1,
+    per_spring=False,
+    decay=None,
+    box=False,
+    device="cpu",
+):
     node_mask = torch.ones(6, 5, 7, dtype=torch.bool)
     if not box:
         node_mask[4:, 3:, :3] = False  # an L-shaped body: holes in `inside`
@@ -39,10 +59,12 @@ def _body(topology=26, damping=0.05, mode="projected", dtype=F64, batch=1, per_s
         fixed=grid.face("bottom") & grid.nodes(),
         decay=decay,
         dtype=dtype,
+        device=device,
     )
-    x = model.X + 2e-4 * torch.randn((batch, 3) + grid.shape, generator=g, dtype=F64).to(dtype)
-    v = 1e-2 * torch.randn((batch, 3) + grid.shape, generator=g, dtype=F64).to(dtype)
-    return model, td.State(x * grid.nodes(), v * grid.nodes(), t=0.0)
+    x = model.X + 2e-4 * torch.randn((batch, 3) + grid.shape, generator=g, dtype=F64).to(dtype=dtype, device=device)
+    v = 1e-2 * torch.randn((batch, 3) + grid.shape, generator=g, dtype=F64).to(dtype=dtype, device=device)
+    inside = grid.nodes().to(device)
+    return model, td.State(x * inside, v * inside, t=0.0)
 
 
 def _close(a, b, dtype):
@@ -50,13 +72,12 @@ def _close(a, b, dtype):
     return torch.allclose(a, b, rtol=tol, atol=tol * float(b.abs().max()))
 
 
-@needs_cc
 @pytest.mark.parametrize("topology,dtype", [(6, torch.float32), (14, F64), (18, F64), (26, torch.float32), (26, F64)])
 @pytest.mark.parametrize("damping,mode", [(None, "projected"), (0.05, "projected"), (0.05, "unprojected")])
-def test_kernel_forces_equal_the_grid_springs(topology, damping, mode, dtype):
+def test_kernel_forces_equal_the_grid_springs(topology, damping, mode, dtype, kernel_device):
     """Every topology and damping mode; both dtypes on the 26-neighbour stencil (each case is a
     kernel built once per machine, ~1.5 s: the dtype changes only the C type)."""
-    model, state = _body(topology, damping, mode, dtype, batch=2)
+    model, state = _body(topology, damping, mode, dtype, batch=2, device=kernel_device)
     pm = PackedModel(model)
     ps = pm.pack_state(state)
     f = native.spring_forces(pm, ps.x, ps.v)
@@ -66,14 +87,13 @@ def test_kernel_forces_equal_the_grid_springs(topology, damping, mode, dtype):
     assert torch.equal(f, pm.pack(pm.unpack(f)))
 
 
-@needs_cc
 @pytest.mark.parametrize("share", [True, ("stiffness", "rest_length", "damping")])
 @pytest.mark.parametrize("mode", ["projected", "unprojected"])
-def test_kernel_with_fields_per_spring_and_per_batch_entry(share, mode):
+def test_kernel_with_fields_per_spring_and_per_batch_entry(share, mode, kernel_device):
     """Stiffness per spring and per batch entry (``Bp = B = 2``), cut springs (stiffness 0: their
     damping gated out where the damping is per direction), rest lengths per spring. A box: on an
     L-shaped body every spring field is per spring already (the missing springs masked)."""
-    model, state = _body(26, 0.05, mode, F64, batch=2, per_spring=True, box=True)
+    model, state = _body(26, 0.05, mode, F64, batch=2, per_spring=True, box=True, device=kernel_device)
     model.stiffness[:, 3, 2, 1:4] = 0.0  # cut springs
     pm = PackedModel(model, share=share)  # model's fields: views of pm's
     if "rest_length" in pm.source.shared:
@@ -103,10 +123,9 @@ def test_kernel_is_the_same_on_any_thread_count(threads):
         torch.set_num_threads(before)
 
 
-@needs_cc
 @pytest.mark.parametrize("damping", [None, 0.05])
-def test_fused_symplectic_step_equals_the_eager_step(dtype, damping):
-    model, state = _body(26, damping, "projected", dtype, batch=2, decay=50.0)
+def test_fused_symplectic_step_equals_the_eager_step(dtype, damping, kernel_device):
+    model, state = _body(26, damping, "projected", dtype, batch=2, decay=50.0, device=kernel_device)
     state = model.start(state)
     pm = PackedModel(model)
     assert native.fused_blocker(pm, td.SymplecticEuler()) is None
@@ -116,6 +135,20 @@ def test_fused_symplectic_step_equals_the_eager_step(dtype, damping):
     assert _close(pm.unpack(x), ref.x, dtype) and _close(pm.unpack(v), ref.v, dtype)
     # halo nodes stay where they are
     assert torch.equal(x, pm.pack(pm.unpack(x)) + (ps.x - pm.pack(pm.unpack(ps.x))))
+
+
+def test_neighbour_bits_say_which_springs_exist():
+    """The GPU kernel's one word per node against both ends' node mask, node by node (an L-shaped body)."""
+    model, _ = _body(26)
+    pm = PackedModel(model)
+    bits = native_cuda.neighbour_bits(pm.inside, pm.offset_table)
+    assert native_cuda.neighbour_bits(pm.inside, pm.offset_table) is bits  # kept on the mask
+    inside, words, P = pm.inside.tolist(), bits.tolist(), pm.P
+    for i in range(P):
+        for s, o in enumerate(pm.offsets):
+            for sign, j in ((0, i + o), (1, i - o)):
+                exists = 0 <= j < P and inside[i] > 0 and inside[j] > 0
+                assert bool(words[i] >> (2 * s + sign) & 1) == exists, (i, s, sign)
 
 
 def test_fused_step_is_only_for_what_it_computes():

@@ -7,8 +7,10 @@ model. Body 0 is the speed scene's own start; the others start from their own sm
 perturbations (:func:`batch_state`).
 
 **Engines.** ``eager`` (:meth:`SymplecticEuler.step <torchdeform.sim.integrators.Integrator.step>`
-on the grid layout) and ``compiled`` (:class:`~torchdeform.sim.compiled.CompiledStep` on the
-packed layout, the state kept packed between steps; one compilation per batch size). Each row
+on the grid layout), ``native`` (one kernel per step: C on the CPU, Triton on CUDA,
+:func:`~torchdeform.sim.native.symplectic_step`; where that kernel runs) and ``compiled``
+(:class:`~torchdeform.sim.compiled.CompiledStep` on the packed layout, the state kept packed
+between steps; one compilation per batch size). Each row
 is timed as in ``bench speed`` (warm-up and compilation excluded, the median of the repeats, the
 device synchronised before and after each timed run of steps, none inside it).
 
@@ -126,7 +128,7 @@ def batch_row(
     repeats: int = 5,
     target_s: float = 0.2,
 ) -> dict:
-    """Time ``engine`` (``"eager"`` or ``"compiled"``) stepping the batch ``state``; one row.
+    """Time ``engine`` (``"eager"``, ``"native"`` or ``"compiled"``) stepping the batch ``state``; one row.
 
     ``state``: ``(B, 3, D, H, W)`` on ``model``'s device. The row has ``bodies``, ``ms_per_step``,
     ``body_steps_per_s`` (B / s per step), ``peak_mb`` (the process's peak resident memory on a
@@ -136,8 +138,8 @@ def batch_row(
     """
     from .speed import _peak_rss_mb, _reset_peak, _time_mode
 
-    if engine not in ("eager", "compiled"):
-        raise ValueError(f"batch_row: engine 'eager' or 'compiled', got {engine!r}")
+    if engine not in ("eager", "native", "compiled"):
+        raise ValueError(f"batch_row: engine 'eager', 'native' or 'compiled', got {engine!r}")
     cuda = device.startswith("cuda")
     reset = _reset_peak()
     if cuda:
@@ -200,7 +202,12 @@ def _options(args):
 def run(args) -> int:
     """Run ``torchdeform bench batch``; returns the exit status."""
     device, n, topology, bodies, dtype = _options(args)
+    from ..sim import native, native_cuda
+
     engines = ["eager"] if args.no_compile else ["eager", "compiled"]
+    # the kernel's fused step (C on the CPU, Triton on CUDA), where it runs
+    if not args.no_compile and not (native.unavailable() if device == "cpu" else native_cuda.unavailable()):
+        engines.insert(1, "native")
     repeats = args.repeats or (3 if args.quick else 5)
     target_s = 0.02 if args.quick else 0.2
     saved = torch.get_num_threads()

@@ -141,6 +141,12 @@ def add_arguments(p) -> None:
         help="springs,elastic: the cube of equal springs (k 100 N/m; default) and/or an Elastic body "
         "(E 10 kPa, nu 0.45: springs from the cells plus the cell term); the targets compare the two at 64^3",
     )
+    p.add_argument(
+        "--modes",
+        default=None,
+        help="eager,native,compiled: the packed-step modes timed (default all that run here; "
+        "native: the C kernel on the CPU, the Triton kernel on CUDA)",
+    )
     p.add_argument("--no-compile", action="store_true", help="eager rows only")
     p.add_argument("--no-warp", action="store_true", help="skip the NVIDIA Warp rows")
     p.add_argument("--no-beam", action="store_true", help="skip the implicit-Euler beam")
@@ -532,17 +538,23 @@ def _options(args):
     if not materials or any(m not in ("springs", "elastic") for m in materials):
         raise ConfigError("--materials", "springs and/or elastic, comma-separated", got=args.materials)
     args.materials = materials
+    modes = [m.strip() for m in str(args.modes or "eager,native,compiled").split(",") if m.strip()]
+    if not modes or any(m not in ("eager", "native", "compiled") for m in modes):
+        raise ConfigError("--modes", "eager, native and/or compiled, comma-separated", got=args.modes)
+    args.modes = modes
     return device, sizes, topologies, dtypes, threads
 
 
 def _plan(args, device, sizes, topologies, dtypes, threads):
     """``(tasks, warp_ok, warp_why)``: the measurements ``[(kind, n, topology, dtype, threads, mode, material), ...]``."""
-    from ..sim import native
+    from ..sim import native, native_cuda
 
     modes = ["eager"] if args.no_compile else ["eager", "compiled"]
-    # the C kernel's packed step, uncompiled (the "native" engine): on the CPU, where a C compiler works
-    native_ok = device == "cpu" and not native.unavailable()
+    # the kernel's packed step, uncompiled (the "native" engine): C on the CPU where a C compiler
+    # works, Triton on CUDA
+    native_ok = not (native.unavailable() if device == "cpu" else native_cuda.unavailable())
     torch_modes = ["eager", "native", "compiled"] if native_ok and not args.no_compile else modes
+    torch_modes = [m for m in torch_modes if m in getattr(args, "modes", torch_modes)]
     warp_ok, warp_why = (False, "--no-warp") if args.no_warp else (False, "Warp runs on the CPU rows only")
     if not args.no_warp and device == "cpu":
         from .warp_baseline import warp_available
@@ -676,6 +688,7 @@ def run(args) -> int:
         "beam_scene": _BEAM,
         "beam": beam_rows,
         "targets": _targets(rows, beam_rows),
+        "launch_shapes": _launch_shapes(),
     }
     if args.out:
         Path(args.out).mkdir(parents=True, exist_ok=True)
@@ -707,10 +720,18 @@ def run(args) -> int:
             print(
                 f"\nratio_vs_warp (64^3, 26 neighbours, float32, compiled, {headline['threads']} threads): {ratio:.1f}x"
             )
+        for shape in extra["launch_shapes"]:
+            print(
+                f"Triton launch shapes, {shape['kernel']} at P = {shape['P']:,} x {shape['bodies']} (block, planes, warps: ms): "
+                + ", ".join(
+                    f"{c['block']},{c['planes']},{c['warps']}{',bits' if c['bits'] else ''}: {c['ms']:.3f}"
+                    for c in shape["timed"]
+                )
+            )
         if bandwidth_case is not None:
             b = bandwidth_case
             print(
-                f"bandwidth (256^3, 26 neighbours, float32, compiled): {b['gb_per_s']:.1f} GB/s, "
+                f"bandwidth (256^3, 26 neighbours, float32, {b['mode']}): {b['gb_per_s']:.1f} GB/s, "
                 f"{b['of_copy']:.2f} of copy ({b['bytes_per_step'] / 1e6:.0f} MB per step in {b['ms_per_step']:.2f} ms)"
             )
         for name, t in extra["targets"].items():
@@ -724,24 +745,44 @@ def run(args) -> int:
 
 
 def _bandwidth_case(rows) -> dict | None:
-    """The 256^3, 26-neighbour, float32 compiled row's memory traffic (most threads, idle), or None."""
+    """The memory traffic of the fastest packed row (native or compiled) at 256^3, 26 neighbours, float32 (most threads, idle), or None."""
     case = [
         r
         for r in rows
-        if (r["n"], r["topology"], r["dtype"], r["mode"]) == (256, 26, "float32", "compiled")
+        if (r["n"], r["topology"], r["dtype"]) == (256, 26, "float32")
+        and r["mode"] in ("native", "compiled")
+        and r["material"] == "springs"
         and not r.get("contention")
     ]
     if not case:
         return None
-    r = max(case, key=lambda r: r["threads"])
+    most = max(r["threads"] for r in case)
+    r = min((r for r in case if r["threads"] == most), key=lambda r: r["ms_per_step"])
     return {
-        "case": "256^3, 26 neighbours, float32, symplectic Euler, compiled (most threads)",
+        "case": f"256^3, 26 neighbours, float32, symplectic Euler, {r['mode']} (most threads)",
+        "mode": r["mode"],
         "bytes_per_step": r["bytes_per_step"],
         "ms_per_step": r["ms_per_step"],
         "gb_per_s": r["gb_per_s"],
         "of_copy": r["of_copy"],
         "threads": r["threads"],
     }
+
+
+def _launch_shapes() -> list:
+    """The Triton kernel's launch shapes timed in this process (:data:`~torchdeform.sim.native_cuda.timings`), per kernel and size."""
+    from ..sim import native_cuda
+
+    return [
+        {
+            "kernel": kernel,
+            "P": P,
+            "bodies": B,
+            "timed": [dict(c._asdict(), ms=ms) for c, ms in times],
+            "chosen": native_cuda.chosen[(kernel, P, plane, B)]._asdict(),
+        }
+        for (kernel, P, plane, B), times in native_cuda.timings.items()
+    ]
 
 
 def _threads_note(row) -> str:

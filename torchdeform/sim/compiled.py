@@ -82,7 +82,8 @@ __all__ = [
 #: buffers and checks its inputs' strides from Python), and the stride checks are dropped
 #: (dynamo's guards already check the step's own inputs). Measured on the beam of ``bench speed``
 #: with the earlier per-direction spring kernel, variants interleaved in one process: 5.09 ms per
-#: step with both, 5.55 without the C++ wrapper, 5.63 with neither (medians of 30).
+#: step with both, 5.55 without the C++ wrapper, 5.63 with neither (medians of 30). On a GPU the
+#: C++ wrapper is left out (it failed to build on a CUDA machine without the toolkit's headers).
 IMPLICIT_OPTIONS = {"cpp_wrapper": True, "size_asserts": False, "alignment_asserts": False}
 
 #: Options of every compiled spring step, under the caller's. Inductor unrolls a reduction of at
@@ -185,6 +186,8 @@ class CompiledStep:
                 opts = dict(STEP_OPTIONS, **(options or INDUCTOR_OPTIONS))
                 if implicit:  # its while_loop graph kept in the on-disk cache too
                     opts.update(IMPLICIT_OPTIONS, **loop_cache_options())
+                if model.device.type != "cpu":  # inductor's C++ wrapper of a GPU graph needs the CUDA toolkit's headers
+                    opts.pop("cpp_wrapper", None)
                 if self.governor is not None:  # the thread count is read when the code runs
                     opts["cpp.dynamic_threads"] = True
                 compile_ = functools.partial(

@@ -57,6 +57,7 @@ from pathlib import Path
 
 import torch
 
+from . import native_cuda
 from .springs import _needs_gate
 
 __all__ = [
@@ -114,6 +115,7 @@ class Variant:
             kernel reads the shear modulus of each cell (one node field) and makes each spring's
             stiffness ``k_s = kq[s] sum_cells mu_c`` instead of reading ``S`` per-spring fields;
             empty for stiffness per direction or per spring.
+        cuda: the Triton kernel for CUDA tensors (:mod:`.native_cuda`) instead of the C one.
     """
 
     S: int
@@ -127,6 +129,7 @@ class Variant:
     update: bool = False
     cell_term: bool = False
     cells: tuple = ()
+    cuda: bool = False
 
 
 def source(var: Variant) -> str:
@@ -620,6 +623,7 @@ def name_of(var: Variant) -> str:
         + ("-step" if var.update else "")
         + ("-cellterm" if var.cell_term else "")
         + ("-cells" if var.cells else "")
+        + ("-cuda" if var.cuda else "")
     )
     _variants[name] = var
     return name
@@ -635,6 +639,11 @@ def kernel(var: Variant) -> str:
         NativeBuildError: no compiler, or the build failed.
     """
     name = name_of(var)
+    if var.cuda:  # Triton builds it on its first launch
+        why = native_cuda.unavailable()
+        if why:
+            raise NativeBuildError(why)
+        return name
     _function(name)
     return name
 
@@ -651,6 +660,8 @@ def is_built(pm) -> bool:
         >>> is_built(pm) == (unavailable() is None)
         True
     """
+    if _triton(pm.device):
+        return native_cuda.unavailable() is None
     if unavailable() is not None:
         return False
     var = variant_of(pm)
@@ -670,12 +681,19 @@ def _function(name: str):
 
 
 # ------------------------------------------------------------------------------ the model side
+def _triton(device: torch.device) -> bool:
+    """Whether tensors on ``device`` go to the Triton kernel (:mod:`.native_cuda`) rather than the C one."""
+    return device.type == "cuda"
+
+
 def variant_of(pm) -> Variant:
     """The kernel :class:`Variant` of a :class:`~torchdeform.sim.packed.PackedModel`."""
     per = [p is not None and p.shape[-1] != 1 for p in (pm.stiffness, pm.rest_length, pm.damping)]
     damping = 0 if pm.damping is None else (1 if pm.projected else 2)
     gate = bool(damping) and _needs_gate(pm.stiffness, pm.damping)  # as spring_law gates it
-    cells = getattr(pm, "cell_springs", None)
+    cuda = _triton(pm.device)
+    # the GPU reads an Elastic body's stored springs (faster there than summing its cells)
+    cells = None if cuda else getattr(pm, "cell_springs", None)
     return Variant(
         S=len(pm.offsets),
         dtype=_CTYPE[pm.dtype],
@@ -685,17 +703,20 @@ def variant_of(pm) -> Variant:
         l0_per_spring=per[1],
         c_per_spring=per[2] and bool(damping),
         gate=gate,
+        cuda=cuda,
     )
 
 
 def supports(pm) -> str | None:
-    """Why the C kernel cannot compute this packed model's forces, or None when it can."""
+    """Why the kernel (C on the CPU, Triton on CUDA) cannot compute this packed model's forces, or None when it can."""
     if pm.law is not None:
         return f"the {type(pm.law).__name__} law runs in inductor's forms"
-    if pm.device.type != "cpu":
-        return f"the C kernel runs on the CPU (the model is on {pm.device.type})"
     if pm.dtype not in _CTYPE:
-        return f"the C kernel takes float32 or float64 (the model is {pm.dtype})"
+        return f"the spring kernels take float32 or float64 (the model is {pm.dtype})"
+    if _triton(pm.device):
+        return native_cuda.unavailable()
+    if pm.device.type != "cpu":
+        return f"the spring kernels run on the CPU or CUDA (the model is on {pm.device.type})"
     return unavailable()
 
 
@@ -709,13 +730,14 @@ def spring_forces(pm, x: torch.Tensor, v: torch.Tensor, *, name: str | None = No
     name = name or kernel(variant_of(pm))
     k, mu, coff = _stiffness_operands(pm)
     op = native_springs if torch.compiler.is_compiling() else _springs  # see native_springs
-    return op(x, v, pm.inside, k, pm.rest_length, pm.damping, pm.offset_table, name, pm.G, mu, coff)
+    _D, H, W = pm.grid.shape
+    return op(x, v, pm.inside, k, pm.rest_length, pm.damping, pm.offset_table, name, pm.G, mu, coff, (H + 2) * (W + 2))
 
 
 def _stiffness_operands(pm) -> tuple:
     """``(k, mu, cell offsets)`` of a kernel call: the stiffness, or the per-direction factors and the cells."""
     cells = getattr(pm, "cell_springs", None)
-    if cells is None:
+    if cells is None or _triton(pm.device):
         return pm.stiffness, None, None
     return cells.factors, cells.mu, cells.offsets
 
@@ -751,6 +773,8 @@ def fused_blocker(pm, integrator, *, loads=None) -> str | None:
     ]
     if extras:
         return ", ".join(extras)
+    if _triton(pm.device) and pm.volume is not None:
+        return "an Elastic body's cell term (on CUDA the fused kernel makes the springs only)"
     return supports(pm)
 
 
@@ -766,13 +790,15 @@ def symplectic_step(pm, x: torch.Tensor, v: torch.Tensor, dt: float, *, name: st
         ``(x', v')``, each ``(B, 3, P)``.
     """
     name = name or kernel(fused_variant(pm))
+    keep = 1.0 if pm.decay is None else math.exp(-pm.decay * dt)
+    if _triton(x.device):
+        return native_cuda.symplectic_step(pm, x, v, dt, _variants[name], keep=keep)
     x, v = x.contiguous(), v.contiguous()
     im, ms = pm.inv_mass.contiguous(), pm.mass.contiguous()
     if im.shape[0] != ms.shape[0]:
         im, ms = (t.expand(max(im.shape[0], ms.shape[0]), *t.shape[1:]).contiguous() for t in (im, ms))
     xo, vo = torch.empty_like(x), torch.empty_like(v)
     g = (0.0, 0.0, 0.0) if pm.gravity is None else tuple(float(a) for a in pm.gravity.flatten())
-    keep = 1.0 if pm.decay is None else math.exp(-pm.decay * dt)
     k, mu, coff = _stiffness_operands(pm)
     _call(
         name,
@@ -851,11 +877,15 @@ def _springs(
     G: int,
     mu: torch.Tensor | None = None,
     coff: torch.Tensor | None = None,
+    plane: int = 0,
 ) -> torch.Tensor:
     """Spring forces ``(B, 3, P)`` by the loaded C kernel named ``kernel`` (see :func:`spring_forces`).
 
     ``mu``, ``coff``: a kernel with stiffness from cells (``k`` then holds the per-direction factors).
+    CUDA tensors go to the Triton kernel (:mod:`.native_cuda`), which walks ``plane`` nodes at a time.
     """
+    if _triton(x.device):
+        return native_cuda.spring_forces(x, v, inside, k, l0, c, offsets, _variants[kernel], G=G, plane=plane or G)
     x = x.contiguous()
     f = torch.empty_like(x)
     _call(kernel, x, v, f, inside, k, l0, c, offsets, G, *_cell_args(mu, coff, G))
@@ -869,5 +899,5 @@ native_springs = torch.library.custom_op("torchdeform::native_springs", mutates_
 
 
 @native_springs.register_fake
-def _(x, v, inside, k, l0, c, offsets, kernel, G, mu=None, coff=None):
+def _(x, v, inside, k, l0, c, offsets, kernel, G, mu=None, coff=None, plane=0):
     return torch.empty_like(x)
