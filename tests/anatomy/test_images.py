@@ -21,13 +21,14 @@ import shutil
 import nibabel as nib
 import nrrd
 import numpy as np
-import pydicom
 import pytest
 
 import torchdeform.anatomy.images as images
 from torchdeform.anatomy import Image, read_image, write_dicom_series, write_nifti
 from torchdeform.errors import ConfigError
 from torchdeform.outputs import STAGING
+
+pydicom = pytest.importorskip("pydicom", reason="DICOM needs the optional package pydicom (torchdeform[anatomy])")
 
 KEY = "anatomy.image"
 

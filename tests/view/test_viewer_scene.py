@@ -107,6 +107,7 @@ def _labels() -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def label_scene(tmp_path_factory):
+    pytest.importorskip("fast_simplification", reason="label surfaces need the optional package (torchdeform[anatomy])")
     folder = tmp_path_factory.mktemp("label-scene")
     np.save(folder / "labels.npy", _labels())
     (folder / "scene.toml").write_text(LABEL_SCENE)

@@ -7,7 +7,8 @@ An engine runs a simulation's steps as
 * ``"native"``: the same integrator, eagerly, on the packed layout with the spring forces from a
   small C kernel (:mod:`~torchdeform.sim.native`; built in 1-3 s once per kind of model and cached
   on disk): about 5x faster than eager at 64^3 with nothing to compile per grid shape; explicit
-  integrators, Hooke springs on a CPU with a C compiler;
+  integrators, Hooke springs on a CPU with a C compiler, or on CUDA with Triton
+  (:mod:`~torchdeform.sim.native_cuda`, compiled by Triton on first use);
 * ``"compiled"``: :func:`~torchdeform.sim.compiled.compiled_step` on the packed layout, the whole
   step under ``torch.compile`` (for explicit steps around the C kernel: about 3 s per grid shape
   plus ~3 s to load inductor; an implicit step 27-34 s, 2-7 s once inductor's disk cache holds
@@ -121,9 +122,12 @@ class Engine:
     #: explicit step in inductor's two spring sums (7-14 s and 24-60 s); ``"implicit"``, the
     #: implicit step's one graph with its CG loop (the 40 x 10 x 10 beam: 27-34 s to build, 2-7 s
     #: when inductor's disk cache holds it from an earlier process; a Newton iteration doubles the
-    #: graph, and this cost has no way to know beforehand which case it is)
+    #: graph, and this cost has no way to know beforehand which case it is); ``"native_cuda"``, the
+    #: Triton kernel's compile on first use (about 10 s per launch shape on a 16-core GPU host,
+    #: three shapes timed for a large body; Triton's own disk cache is not looked into)
     COMPILE_S: ClassVar[dict] = {
         "native": 2.0,
+        "native_cuda": 12.0,
         "native_built": 0.05,
         "explicit": 8.0,
         "reduction": 15.0,
@@ -222,13 +226,15 @@ class Engine:
         why_not = "no model given" if model is None else self.native_blocker(model, integrator)
         self.choice = "native" if why_not is None else "compiled"
         built = why_not is None and model is not None and _kernel_built(model)  # cached: nothing to wait for
-        expected = self.expected["native"] if why_not is None else self.expected_compile_s(integrator, model=model)
+        cuda = model is not None and model.device.type == "cuda"
+        native_s = self.expected["native_cuda" if cuda else "native"]
+        expected = native_s if why_not is None else self.expected_compile_s(integrator, model=model)
         expected = min(expected, self.expected["native_built"]) if built else expected
         worth = to_come > self.payback * expected
         self.reason = (
             f"auto: {remaining:,} steps x {self.eager_ms:.3g} ms eager = {to_come:.3g} s "
             f"{'>' if worth else '<='} {self.payback:g} x ~{expected:g} s "
-            f"{'C kernel build' if why_not is None else 'compile'}"
+            f"{('Triton kernel compile' if cuda else 'C kernel build') if why_not is None else 'compile'}"
             f"{' (built before)' if built else ''}"
         )
         if not worth:

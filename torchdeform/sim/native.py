@@ -660,8 +660,8 @@ def is_built(pm) -> bool:
         >>> is_built(pm) == (unavailable() is None)
         True
     """
-    if _triton(pm.device):
-        return native_cuda.unavailable() is None
+    if _triton(pm.device):  # Triton keeps its own disk cache, not looked into here
+        return False
     if unavailable() is not None:
         return False
     var = variant_of(pm)

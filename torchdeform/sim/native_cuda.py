@@ -15,7 +15,8 @@ ends: twice the arithmetic, no scatter, no atomics). A program takes ``BLOCK`` c
 nodes of one ``(H+2)(W+2)`` plane of the packed layout and walks ``DC`` planes down the ``D``
 axis with that footprint, so the neighbours it reads in planes ``d - 1`` and ``d`` were read a
 moment ago by itself (in L1) and each value comes from the card's memory about once per step:
-a step moves little more than x and v read and written once. The grid is
+a step moves little more than x and v read and written once (a plane smaller than a block is
+walked as blocks of consecutive nodes instead, so small bodies keep every lane busy). The grid is
 ``(plane chunks, plane slabs, bodies)``; the whole packed range, halo and end padding included,
 is written (halo nodes have no springs and no free degree of freedom).
 
@@ -312,7 +313,8 @@ def launch(var, x, v, out, vout, inside, k, l0, c, offsets, im, ms, *, G: int, p
     off = _on_device(tuple(int(o) for o in offsets.tolist()), torch.int64, dev)
     mb = _stride(im) if var.update else 0
     head = (x, v, out, out if vout is None else vout, inside)
-    tail = (k, l0, c, off, im, ms, sc, P, G, plane, _stride(k), _stride(l0), _stride(c), mb)
+    tail = (k, l0, c, off, im, ms, sc, P, G)
+    strides = (_stride(k), _stride(l0), _stride(c), mb)
     flags = dict(
         S=var.S,
         DAMP=var.damping,
@@ -325,13 +327,18 @@ def launch(var, x, v, out, vout, inside, k, l0, c, offsets, im, ms, *, G: int, p
     kern = _kernel()
 
     def run(cfg: Config) -> None:
-        planes = -(-P // plane)
-        grid = (-(-plane // cfg.block), -(-planes // cfg.planes), B)
+        # a plane smaller than a block (small bodies, batches of them): programs walk blocks of
+        # consecutive nodes instead, every lane busy (the sums do not depend on the span)
+        span = max(plane, cfg.block)
+        planes = -(-P // span)
+        grid = (-(-span // cfg.block), -(-planes // cfg.planes), B)
         nb = neighbour_bits(inside, offsets) if cfg.bits else inside
         kern[grid](  # pyright: ignore[reportIndexIssue]
             *head,
             nb,
             *tail,
+            span,
+            *strides,
             **flags,
             BLOCK=cfg.block,
             DC=cfg.planes,
