@@ -137,6 +137,33 @@ def test_fused_symplectic_step_equals_the_eager_step(dtype, damping, kernel_devi
     assert torch.equal(x, pm.pack(pm.unpack(x)) + (ps.x - pm.pack(pm.unpack(ps.x))))
 
 
+@pytest.mark.parametrize("shape,batch", [((5, 40, 30), 1), ((4, 5, 6), 3)], ids=["large-planes", "small-batch"])
+def test_every_launch_shape_makes_the_same_step(shape, batch, kernel_device):
+    """The Triton kernel's launch shapes (block, planes walked, bit words, offsets compiled in), on
+    planes larger than a block and on a batch of small bodies: the grid-layout step."""
+    if kernel_device.type == "cpu":
+        pytest.skip("launch shapes are the Triton kernel's (CUDA); the CPU runs the C kernel")
+    grid = td.Grid(shape, spacing=0.01, topology=26)
+    model = td.Model(grid, 40.0, damping=0.05, density=1000.0, gravity=(-9.81, 0, 0), device=kernel_device)
+    g = torch.Generator().manual_seed(1)
+    x = model.X + 2e-4 * torch.randn((batch, 3, *shape), generator=g, dtype=F64).to(kernel_device, model.dtype)
+    v = 1e-2 * torch.randn((batch, 3, *shape), generator=g, dtype=F64).to(kernel_device, model.dtype)
+    state = td.State(x, v, t=0.0)
+    ref = td.SymplecticEuler().step(model, state, 2e-4)
+    pm = PackedModel(model)
+    ps = pm.pack_state(state)
+    var = native.fused_variant(pm)
+    _D, H, W = shape
+    shapes = [*native_cuda.CONFIGS, native_cuda.Config(512, 1, 4)]  # each one compiled by Triton (~10 s)
+    for cfg in shapes:
+        xo, vo = torch.empty_like(ps.x), torch.empty_like(ps.v)
+        native_cuda.launch(
+            var, ps.x, ps.v, xo, vo, pm.inside, pm.stiffness, pm.rest_length, pm.damping, pm.offset_table,
+            pm.inv_mass, pm.mass, G=pm.G, plane=(H + 2) * (W + 2), scalars=(-9.81, 0.0, 0.0, 2e-4, 1.0), config=cfg,
+        )  # fmt: skip
+        assert _close(pm.unpack(xo), ref.x, model.dtype) and _close(pm.unpack(vo), ref.v, model.dtype), cfg
+
+
 def test_neighbour_bits_say_which_springs_exist():
     """The GPU kernel's one word per node against both ends' node mask, node by node (an L-shaped body)."""
     model, _ = _body(26)
