@@ -139,7 +139,7 @@ def test_fused_symplectic_step_equals_the_eager_step(dtype, damping, kernel_devi
 
 @pytest.mark.parametrize("shape,batch", [((5, 40, 30), 1), ((4, 5, 6), 3)], ids=["large-planes", "small-batch"])
 def test_every_launch_shape_makes_the_same_step(shape, batch, kernel_device):
-    """The Triton kernel's launch shapes (block, planes walked, bit words, offsets compiled in), on
+    """The Triton kernel's launch shapes (block, planes walked, bit words), on
     planes larger than a block and on a batch of small bodies: the grid-layout step."""
     if kernel_device.type == "cpu":
         pytest.skip("launch shapes are the Triton kernel's (CUDA); the CPU runs the C kernel")

@@ -66,31 +66,23 @@ class Config(NamedTuple):
     """One launch shape: ``block`` nodes per program (a power of two), ``planes`` walked, ``warps``.
 
     ``bits``: read which springs exist from one 32-bit word per node (:func:`neighbour_bits`)
-    instead of the node mask at both ends of every spring (27 loads per node). ``const``: the
-    grid's linear offsets compiled into the kernel (a compile per grid shape; every neighbour load
-    at a fixed distance from one address) instead of read at run time.
+    instead of the node mask at both ends of every spring (27 loads per node).
     """
 
     block: int
     planes: int
     warps: int
     bits: bool = False
-    const: bool = False
-
-
-#: the offsets of a kernel that reads them at run time (one compiled kernel for every grid shape)
-ZERO_OFFSETS = {f"O{s}": 0 for s in range(13)}
 
 
 #: the launch shapes timed on a kernel's first call for a shape (Triton compiles each, ~10 s per
 #: shape on the GPU machine's host). Measured at 256^3, 26 neighbours, float32, damped (H200):
 #: blocks of 1024 nodes walking 8 planes 1.52 ms, of 512 nodes 1.76 ms (1.67 with the bit
-#: words), walking 32 planes 2.08 ms, one plane per program 29.6 ms. The third shape (offsets
-#: compiled in, unmasked loads) is not measured on a card yet
+#: words), walking 32 planes 2.08 ms, one plane per program 29.6 ms
 CONFIGS = (
     Config(1024, 8, 8),
     Config(1024, 8, 8, True),
-    Config(1024, 8, 8, True, True),
+    Config(1024, 16, 8, True),
 )
 
 #: the least nodes (bodies times packed nodes) for which the launch shapes are timed: smaller
@@ -116,13 +108,13 @@ def unavailable() -> str | None:
 
 
 @functools.cache
-def _kernel():  # noqa: C901 (one kernel, its variants as compile-time branches)
+def _kernel():
     """The ``@triton.jit`` kernel (built here: Triton is imported only where a CUDA step runs)."""
     import triton  # pyright: ignore[reportMissingImports]
     import triton.language as tl  # pyright: ignore[reportMissingImports]
 
     @triton.jit
-    def springs_kernel(  # noqa: C901
+    def springs_kernel(
         X,
         V,
         XO,
@@ -154,20 +146,6 @@ def _kernel():  # noqa: C901 (one kernel, its variants as compile-time branches)
         DC: tl.constexpr,
         BITS: tl.constexpr,
         FAST: tl.constexpr,
-        CONST: tl.constexpr,
-        O0: tl.constexpr,
-        O1: tl.constexpr,
-        O2: tl.constexpr,
-        O3: tl.constexpr,
-        O4: tl.constexpr,
-        O5: tl.constexpr,
-        O6: tl.constexpr,
-        O7: tl.constexpr,
-        O8: tl.constexpr,
-        O9: tl.constexpr,
-        O10: tl.constexpr,
-        O11: tl.constexpr,
-        O12: tl.constexpr,
     ):
         chunk = tl.program_id(0)
         slab = tl.program_id(1)
@@ -185,15 +163,6 @@ def _kernel():  # noqa: C901 (one kernel, its variants as compile-time branches)
             i = (slab * DC + dd) * plane + r
             m = in_plane & (i < P)
             core = m & (i >= G) & (i < P - G)
-            # lanes outside the core range read around node G instead (in range, unmasked loads);
-            # their sums are dropped below
-            isafe = tl.where(core, i, G)
-            px0 = xb + isafe
-            px1 = px0 + P
-            px2 = px1 + P
-            pv0 = vb + isafe
-            pv1 = pv0 + P
-            pv2 = pv1 + P
             x0 = tl.load(xb + i, mask=m, other=0.0)
             x1 = tl.load(xb + P + i, mask=m, other=0.0)
             x2 = tl.load(xb + 2 * P + i, mask=m, other=0.0)
@@ -212,58 +181,30 @@ def _kernel():  # noqa: C901 (one kernel, its variants as compile-time branches)
             f1 = tl.zeros_like(x0)
             f2 = tl.zeros_like(x0)
             for s in tl.static_range(S):
-                if CONST:  # the offsets compiled in: loads at fixed distances from one address
-                    if s == 0:
-                        o = O0
-                    elif s == 1:
-                        o = O1
-                    elif s == 2:
-                        o = O2
-                    elif s == 3:
-                        o = O3
-                    elif s == 4:
-                        o = O4
-                    elif s == 5:
-                        o = O5
-                    elif s == 6:
-                        o = O6
-                    elif s == 7:
-                        o = O7
-                    elif s == 8:
-                        o = O8
-                    elif s == 9:
-                        o = O9
-                    elif s == 10:
-                        o = O10
-                    elif s == 11:
-                        o = O11
-                    elif s == 12:
-                        o = O12
-                else:
-                    o = tl.load(OFF + s).to(tl.int32)
+                o = tl.load(OFF + s).to(tl.int32)
                 for sign in tl.static_range(2):
                     # the spring along +d_s is stored at its node i, the one along -d_s at j = i - o
                     if sign == 0:
-                        so = o
-                        at = isafe
+                        j = i + o
+                        at = i
                     else:
-                        so = -o  # pyright: ignore[reportOperatorIssue]
-                        at = isafe - o
+                        j = i - o
+                        at = j
                     if KPS:  # noqa: SIM108 (Triton: a compile-time branch)
-                        ks = tl.load(kq + s * P + at)
+                        ks = tl.load(kq + s * P + at, mask=core, other=0.0)
                     else:
                         ks = tl.load(kq + s)
                     if LPS:  # noqa: SIM108
-                        ls = tl.load(lq + s * P + at)
+                        ls = tl.load(lq + s * P + at, mask=core, other=0.0)
                     else:
                         ls = tl.load(lq + s)
-                    d0 = tl.load(px0 + so) - x0
-                    d1 = tl.load(px1 + so) - x1
-                    d2 = tl.load(px2 + so) - x2
-                    if BITS:  # noqa: SIM108
-                        mm = ((nb >> (2 * s + sign)) & 1).to(x0.dtype)  # pyright: ignore[reportAttributeAccessIssue]
+                    d0 = tl.load(xb + j, mask=core, other=0.0) - x0
+                    d1 = tl.load(xb + P + j, mask=core, other=0.0) - x1
+                    d2 = tl.load(xb + 2 * P + j, mask=core, other=0.0) - x2
+                    if BITS:
+                        mm = ((nb >> (2 * s + sign)) & 1).to(x0.dtype)
                     else:
-                        mm = own * tl.load(INSIDE + isafe + so)
+                        mm = own * tl.load(INSIDE + j, mask=core, other=0.0)
                     sq = d0 * d0 + d1 * d1 + d2 * d2
                     sq = tl.where(sq > tiny, sq, tiny)
                     if FAST:  # float32: one reciprocal square root (the hardware's, within 2 ulp)
@@ -274,14 +215,14 @@ def _kernel():  # noqa: C901 (one kernel, its variants as compile-time branches)
                         il = 1.0 / ln
                     if DAMP:
                         if CPS:  # noqa: SIM108
-                            cs = tl.load(cq + s * P + at)
+                            cs = tl.load(cq + s * P + at, mask=core, other=0.0)
                         else:
                             cs = tl.load(cq + s)
                         if GATE:
                             cs = tl.where(ks != 0.0, cs, 0.0)
-                        w0 = tl.load(pv0 + so) - v0
-                        w1 = tl.load(pv1 + so) - v1
-                        w2 = tl.load(pv2 + so) - v2
+                        w0 = tl.load(vb + j, mask=core, other=0.0) - v0
+                        w1 = tl.load(vb + P + j, mask=core, other=0.0) - v1
+                        w2 = tl.load(vb + 2 * P + j, mask=core, other=0.0) - v2
                         if DAMP == 1:
                             a = (ks * (ln - ls) + cs * (d0 * w0 + d1 * w1 + d2 * w2) * il) * (il * mm)
                             f0 += a * d0
@@ -298,10 +239,6 @@ def _kernel():  # noqa: C901 (one kernel, its variants as compile-time branches)
                         f0 += a * d0
                         f1 += a * d1
                         f2 += a * d2
-            # outside the core range: no springs (whatever the lanes read)
-            f0 = tl.where(core, f0, 0.0)
-            f1 = tl.where(core, f1, 0.0)
-            f2 = tl.where(core, f2, 0.0)
             if UPDATE:
                 im = tl.load(IM + b * mb + i, mask=m, other=0.0)
                 ms = tl.load(MS + b * mb + i, mask=m, other=0.0)
@@ -388,7 +325,6 @@ def launch(var, x, v, out, vout, inside, k, l0, c, offsets, im, ms, *, G: int, p
         UPDATE=var.update,
     )
     kern = _kernel()
-    consts = {f"O{s}": o for s, o in enumerate(offsets.tolist() + [0] * (13 - len(offsets)))}
 
     def run(cfg: Config) -> None:
         # a plane smaller than a block (small bodies, batches of them): programs walk blocks of
@@ -408,8 +344,6 @@ def launch(var, x, v, out, vout, inside, k, l0, c, offsets, im, ms, *, G: int, p
             DC=cfg.planes,
             BITS=cfg.bits,
             FAST=dtype == torch.float32,
-            CONST=cfg.const,
-            **(consts if cfg.const else ZERO_OFFSETS),
             num_warps=cfg.warps,
         )
 
