@@ -59,7 +59,7 @@ def test_a_busy_neighbour_moves_the_step_to_one_thread_and_back():
 
 
 def test_a_machine_busy_from_the_start_is_noticed(monkeypatch):
-    monkeypatch.setattr(T._Sampler, "others", lambda self: 1.0)  # /proc/stat: one core busy elsewhere
+    monkeypatch.setattr(T.CpuSampler, "others", lambda self: 1.0)  # /proc/stat: one core busy elsewhere
     gov, machine = ThreadGovernor(2), Machine(2)
     machine.busy = True  # no jump to see: it was busy all along
     _run(gov, machine, 200)
@@ -119,3 +119,23 @@ def test_a_compiled_step_on_either_thread_count_equals_the_eager_step():
     got = cs.packed.unpack_state(ps)
     assert torch.allclose(got.x, ref.x, rtol=0, atol=1e-12) and torch.allclose(got.v, ref.v, rtol=0, atol=1e-9)
     assert float((ref.x - model.X).abs().max()) > 1e-9  # it moved
+
+
+def test_outputs_take_one_thread_after_a_busy_run_measured_without_a_wait(monkeypatch):
+    """After a run, the sampler started before it says how busy the machine was; one thread needs no measure."""
+    before = torch.get_num_threads()
+    waited = []
+    monkeypatch.setattr(T, "others_busy", lambda seconds: waited.append(seconds) or 0.0)
+    try:
+        torch.set_num_threads(2)
+        monkeypatch.setattr(T.CpuSampler, "others", lambda self: 1.0)  # a core busy elsewhere during the run
+        assert T.after_step_threads(since=T.CpuSampler()) == 1
+        monkeypatch.setattr(T.CpuSampler, "others", lambda self: 0.1)  # idle
+        assert T.after_step_threads(since=T.CpuSampler()) == 2
+        assert waited == []  # the run's own sample: no 0.1 s sample of its own
+        monkeypatch.setattr(T.CpuSampler, "others", lambda self: None)  # a run too short to tell
+        assert T.after_step_threads(since=T.CpuSampler()) == 2 and waited == [0.1]
+        torch.set_num_threads(1)
+        assert T.after_step_threads() == 1 and waited == [0.1]  # nothing to choose, nothing measured
+    finally:
+        torch.set_num_threads(before)

@@ -24,7 +24,7 @@ from ..sim.engine import Engine, simulate
 from ..sim.model import Model, State
 from ..sim.stability import check_dt, time_step_bound
 from ..sim.static import solve_static
-from ..sim.threads import after_step_threads
+from ..sim.threads import CpuSampler, after_step_threads
 from .bodies import BodiesScene, bodies_report, bodies_scene, read_scene
 from .chainmail import ChainMailScene, chainmail_scene
 from .mass_spring import EXPLICIT, Scene, StaticSolve, StaticSolveError, mass_spring_scene
@@ -284,7 +284,7 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
         )
 
     engine = scene_engine(scene, events is not None)
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), CpuSampler()  # how busy the machine is, measured over the run
     energies = None
     if events is not None:
         events.begin(state)
@@ -310,7 +310,9 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
         engine=engine,
     )
     wall = time.perf_counter() - start
-    torch.set_num_threads(after_step_threads())  # outputs beside a busy process: one thread (run_scene restores)
+    torch.set_num_threads(
+        after_step_threads(since=cpu)
+    )  # outputs beside a busy process: one thread (run_scene restores)
     series = None
     if energies is not None:
         if scene.steps % scene.frames_every:  # the final frame, appended by run_outputs

@@ -49,7 +49,7 @@ from collections import Counter, deque
 
 import torch
 
-__all__ = ["ThreadGovernor", "others_busy", "omp_threads", "after_step_threads"]
+__all__ = ["ThreadGovernor", "CpuSampler", "others_busy", "omp_threads", "after_step_threads"]
 
 
 def _machine_jiffies():
@@ -63,8 +63,12 @@ def _machine_jiffies():
     return sum(vals) - idle, sum(vals)
 
 
-class _Sampler:
-    """CPU use of the machine and of this process between two readings (see :func:`others_busy`)."""
+class CpuSampler:
+    """CPU use of the machine and of this process since construction (see :func:`others_busy`).
+
+    Start one before some work and ask :meth:`others` after it: how many cores other processes kept
+    busy meanwhile, with no wait of its own.
+    """
 
     def __init__(self):
         self.start = (_machine_jiffies(), time.process_time(), time.perf_counter())
@@ -87,7 +91,7 @@ def others_busy(*, seconds: float = 0.2) -> float | None:
         >>> busy is None or busy > -1.0
         True
     """
-    s = _Sampler()
+    s = CpuSampler()
     time.sleep(seconds)
     return s.others()
 
@@ -155,7 +159,7 @@ class ThreadGovernor:
         self.switches = 0
         self.slow = 0  # steps in a row whose window is above jump x best
         #: started at the first recorded step (not during the compile, whose compiler runs beside it)
-        self._sampler: _Sampler | None = None
+        self._sampler: CpuSampler | None = None
         self._sample = self.full > 1 and busy_cores is not None
 
     def choose(self) -> int:
@@ -166,7 +170,7 @@ class ThreadGovernor:
         """Account one step of ``seconds`` on ``threads`` threads (the count :meth:`choose` gave)."""
         self.steps[threads] += 1
         if self._sample and self._sampler is None:
-            self._sampler = _Sampler()
+            self._sampler = CpuSampler()
         if threads not in self.seen:  # the first step on a count traces it again
             self.seen.add(threads)
             return
@@ -235,13 +239,15 @@ class ThreadGovernor:
         }
 
 
-def after_step_threads(*, busy: float | None = None) -> int:
+def after_step_threads(*, busy: float | None = None, since: CpuSampler | None = None) -> int:
     """Threads for the work after a simulation (outputs, plots, renders): one beside a busy process.
 
     Small tensor operations on several OpenMP threads wait at every barrier for the thread that
     shares its core with another process (a thousand times longer than on one thread), so the
     post-processing of a run takes one thread when other processes keep at least half a core busy
-    (``busy``: cores, :func:`others_busy` over 0.1 s when None), and torch's setting otherwise.
+    (``busy``: cores; else measured by ``since``, a :class:`CpuSampler` started before the
+    simulation, at no cost; else :func:`others_busy` over 0.1 s), and torch's setting otherwise.
+    On one thread already there is nothing to choose (and nothing is measured).
 
     Examples:
         >>> after_step_threads(busy=1.0)
@@ -249,6 +255,10 @@ def after_step_threads(*, busy: float | None = None) -> int:
         >>> after_step_threads(busy=0.0) == torch.get_num_threads()
         True
     """
+    if torch.get_num_threads() == 1:
+        return 1
+    if busy is None and since is not None:
+        busy = since.others()  # None when the run was too short to tell
     if busy is None:
         busy = others_busy(seconds=0.1)
     return 1 if busy is not None and busy >= 0.5 else torch.get_num_threads()
