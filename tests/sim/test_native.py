@@ -8,6 +8,7 @@ are skipped with the reason, and the fall-back is tested instead. The tests that
 """
 
 import ctypes
+import time
 
 import pytest
 import torch
@@ -162,6 +163,26 @@ def test_every_launch_shape_makes_the_same_step(shape, batch, kernel_device):
             pm.inv_mass, pm.mass, G=pm.G, plane=(H + 2) * (W + 2), scalars=(-9.81, 0.0, 0.0, 2e-4, 1.0), config=cfg,
         )  # fmt: skip
         assert _close(pm.unpack(xo), ref.x, model.dtype) and _close(pm.unpack(vo), ref.v, model.dtype), cfg
+
+
+def test_tuning_keeps_the_fastest_launch_shape_and_leaves_out_one_that_fails(monkeypatch):
+    """Launch shapes timed by the clock (off a GPU): one that cannot launch is left out, its time None."""
+    shapes = (native_cuda.Config(256, 1, 2), native_cuda.Config(512, 1, 2), native_cuda.Config(1024, 1, 2))
+    monkeypatch.setattr(native_cuda, "CONFIGS", shapes)
+    monkeypatch.setattr(native_cuda, "timings", {})
+    cost = {shapes[0]: 3e-3, shapes[2]: 1e-3}
+
+    def run(cfg):
+        if cfg == shapes[1]:
+            raise RuntimeError("out of resources")
+        time.sleep(cost[cfg])
+
+    assert native_cuda._tune(run, "key", torch.device("cpu")) == shapes[2]
+    times = dict(native_cuda.timings["key"])
+    assert times[shapes[1]] is None and times[shapes[0]] > times[shapes[2]] >= 1.0  # ms
+    monkeypatch.setattr(native_cuda, "CONFIGS", shapes[1:2])
+    with pytest.raises(RuntimeError, match="out of resources"):
+        native_cuda._tune(run, "other", torch.device("cpu"))
 
 
 def test_neighbour_bits_say_which_springs_exist():

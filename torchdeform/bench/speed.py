@@ -724,7 +724,8 @@ def run(args) -> int:
             print(
                 f"Triton launch shapes, {shape['kernel']} at P = {shape['P']:,} x {shape['bodies']} (block, planes, warps: ms): "
                 + ", ".join(
-                    f"{c['block']},{c['planes']},{c['warps']}{',bits' if c['bits'] else ''}: {c['ms']:.3f}"
+                    f"{c['block']},{c['planes']},{c['warps']}{',bits' if c['bits'] else ''}: "
+                    + ("failed" if c["ms"] is None else f"{c['ms']:.3f}")
                     for c in shape["timed"]
                 )
             )

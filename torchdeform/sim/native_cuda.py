@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import functools
 import os
+import time
 from typing import NamedTuple
 
 import torch
@@ -352,26 +353,47 @@ def launch(var, x, v, out, vout, inside, k, l0, c, offsets, im, ms, *, G: int, p
         return
     key = (str(var), P, plane, B)
     if key not in chosen:
-        chosen[key] = _tune(run, key, dev) if B * P >= TUNE_NODES else CONFIGS[0]
+        # the interpreter (tests on a CPU) and small steps take the first shape
+        chosen[key] = _tune(run, key, dev) if B * P >= TUNE_NODES and dev.type == "cuda" else CONFIGS[0]
     run(chosen[key])
 
 
 def _tune(run, key, device) -> Config:
-    """The fastest of :data:`CONFIGS` for ``run`` (each compiled, warmed and timed over 5 launches)."""
-    if device.type != "cuda":  # the interpreter (tests on the CPU): the first
-        return CONFIGS[0]
-    times = []
+    """The fastest of :data:`CONFIGS` for ``run`` (each compiled, warmed and timed over 5 launches).
+
+    A launch shape that fails to build or launch here (registers or shared memory another card
+    lacks) is left out, its time None in :data:`timings`; when every one fails, the last error is raised.
+    """
+    times, errors = [], []
     for cfg in CONFIGS:
-        run(cfg)
-        start, stop = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-        start.record()
-        for _ in range(5):
-            run(cfg)
-        stop.record()
-        stop.synchronize()
-        times.append((cfg, start.elapsed_time(stop) / 5))
+        try:
+            run(cfg)  # Triton compiles it
+        except Exception as e:  # the other shapes may run
+            errors.append(e)
+            times.append((cfg, None))
+            continue
+        times.append((cfg, _ms(run, cfg, device)))
     timings[key] = times
-    return min(times, key=lambda t: t[1])[0]
+    ok = [(cfg, ms) for cfg, ms in times if ms is not None]
+    if not ok:
+        raise errors[-1]
+    return min(ok, key=lambda t: t[1])[0]
+
+
+def _ms(run, cfg: Config, device: torch.device, repeats: int = 5) -> float:
+    """Milliseconds per launch of ``cfg`` (CUDA events on a GPU, the clock elsewhere)."""
+    if device.type != "cuda":
+        t0 = time.perf_counter()
+        for _ in range(repeats):
+            run(cfg)
+        return (time.perf_counter() - t0) * 1e3 / repeats
+    start, stop = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+    start.record()
+    for _ in range(repeats):
+        run(cfg)
+    stop.record()
+    stop.synchronize()
+    return start.elapsed_time(stop) / repeats
 
 
 def spring_forces(x, v, inside, k, l0, c, offsets, var, *, G: int, plane: int) -> torch.Tensor:
