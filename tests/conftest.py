@@ -38,11 +38,18 @@ def pytest_addoption(parser):
     )
 
 
+#: modules whose tests run first: their long tests (a whole inductor compile in a fresh process,
+#: about 40 s on 2 cores; fuzz campaigns) would otherwise come last in the collection and run alone at the end,
+#: with the other worker idle
+FIRST = ("tests/test_compile.py", "tests/test_fuzz.py")
+
+
 def pytest_collection_modifyitems(config, items):
     # every test that takes the device fixture is device-aware: `-m device` selects them (the GPU check)
     for item in items:
         if "device" in getattr(item, "fixturenames", ()):
             item.add_marker(pytest.mark.device)
+    items.sort(key=lambda item: item.nodeid.split("::")[0] not in FIRST)  # stable: the rest keep their order
     if config.getoption("--runslow"):
         return
     skip_slow = pytest.mark.skip(reason="slow: pass --runslow")
