@@ -202,11 +202,11 @@ def _options(args):
 def run(args) -> int:
     """Run ``torchdeform bench batch``; returns the exit status."""
     device, n, topology, bodies, dtype = _options(args)
-    from ..sim import native, native_cuda
+    from ..sim import native
 
     engines = ["eager"] if args.no_compile else ["eager", "compiled"]
     # the kernel's fused step (C on the CPU, Triton on CUDA), where it runs
-    if not args.no_compile and not (native.unavailable() if device == "cpu" else native_cuda.unavailable()):
+    if not args.no_compile and not native.unavailable_on(device):
         engines.insert(1, "native")
     repeats = args.repeats or (3 if args.quick else 5)
     target_s = 0.02 if args.quick else 0.2

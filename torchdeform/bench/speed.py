@@ -547,12 +547,12 @@ def _options(args):
 
 def _plan(args, device, sizes, topologies, dtypes, threads):
     """``(tasks, warp_ok, warp_why)``: the measurements ``[(kind, n, topology, dtype, threads, mode, material), ...]``."""
-    from ..sim import native, native_cuda
+    from ..sim import native
 
     modes = ["eager"] if args.no_compile else ["eager", "compiled"]
     # the kernel's packed step, uncompiled (the "native" engine): C on the CPU where a C compiler
     # works, Triton on CUDA
-    native_ok = not (native.unavailable() if device == "cpu" else native_cuda.unavailable())
+    native_ok = not native.unavailable_on(device)
     torch_modes = ["eager", "native", "compiled"] if native_ok and not args.no_compile else modes
     torch_modes = [m for m in torch_modes if m in getattr(args, "modes", torch_modes)]
     warp_ok, warp_why = (False, "--no-warp") if args.no_warp else (False, "Warp runs on the CPU rows only")

@@ -310,9 +310,8 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
         engine=engine,
     )
     wall = time.perf_counter() - start
-    torch.set_num_threads(
-        after_step_threads(since=cpu)
-    )  # outputs beside a busy process: one thread (run_scene restores)
+    # outputs beside a busy process: one thread (run_scene restores)
+    torch.set_num_threads(after_step_threads(since=cpu))
     series = None
     if energies is not None:
         if scene.steps % scene.frames_every:  # the final frame, appended by run_outputs

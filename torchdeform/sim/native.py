@@ -75,6 +75,7 @@ __all__ = [
     "BLOCK_NODES",
     "name_of",
     "load_library",
+    "unavailable_on",
 ]
 
 #: bump when the generated source changes meaning (part of every cache key through the source)
@@ -686,14 +687,31 @@ def _triton(device: torch.device) -> bool:
     return device.type == "cuda"
 
 
+def _cells(pm):
+    """The :class:`~torchdeform.sim.packed.CellSprings` a kernel makes the stiffness from, or None.
+
+    None on a GPU: the Triton kernel reads an Elastic body's stored springs (faster there than
+    summing its cells).
+    """
+    return None if _triton(pm.device) else getattr(pm, "cell_springs", None)
+
+
+def unavailable_on(device) -> str | None:
+    """Why no spring kernel runs on ``device`` (C on a CPU: :func:`unavailable`; Triton on CUDA), or None."""
+    device = torch.device(device)
+    if _triton(device):
+        return native_cuda.unavailable()
+    if device.type != "cpu":
+        return f"the spring kernels run on the CPU or CUDA (not {device.type})"
+    return unavailable()
+
+
 def variant_of(pm) -> Variant:
     """The kernel :class:`Variant` of a :class:`~torchdeform.sim.packed.PackedModel`."""
     per = [p is not None and p.shape[-1] != 1 for p in (pm.stiffness, pm.rest_length, pm.damping)]
     damping = 0 if pm.damping is None else (1 if pm.projected else 2)
     gate = bool(damping) and _needs_gate(pm.stiffness, pm.damping)  # as spring_law gates it
-    cuda = _triton(pm.device)
-    # the GPU reads an Elastic body's stored springs (faster there than summing its cells)
-    cells = None if cuda else getattr(pm, "cell_springs", None)
+    cells = _cells(pm)
     return Variant(
         S=len(pm.offsets),
         dtype=_CTYPE[pm.dtype],
@@ -703,7 +721,7 @@ def variant_of(pm) -> Variant:
         l0_per_spring=per[1],
         c_per_spring=per[2] and bool(damping),
         gate=gate,
-        cuda=cuda,
+        cuda=_triton(pm.device),
     )
 
 
@@ -713,11 +731,7 @@ def supports(pm) -> str | None:
         return f"the {type(pm.law).__name__} law runs in inductor's forms"
     if pm.dtype not in _CTYPE:
         return f"the spring kernels take float32 or float64 (the model is {pm.dtype})"
-    if _triton(pm.device):
-        return native_cuda.unavailable()
-    if pm.device.type != "cpu":
-        return f"the spring kernels run on the CPU or CUDA (the model is on {pm.device.type})"
-    return unavailable()
+    return unavailable_on(pm.device)
 
 
 def spring_forces(pm, x: torch.Tensor, v: torch.Tensor, *, name: str | None = None) -> torch.Tensor:
@@ -730,14 +744,13 @@ def spring_forces(pm, x: torch.Tensor, v: torch.Tensor, *, name: str | None = No
     name = name or kernel(variant_of(pm))
     k, mu, coff = _stiffness_operands(pm)
     op = native_springs if torch.compiler.is_compiling() else _springs  # see native_springs
-    _D, H, W = pm.grid.shape
-    return op(x, v, pm.inside, k, pm.rest_length, pm.damping, pm.offset_table, name, pm.G, mu, coff, (H + 2) * (W + 2))
+    return op(x, v, pm.inside, k, pm.rest_length, pm.damping, pm.offset_table, name, pm.G, mu, coff, pm.plane)
 
 
 def _stiffness_operands(pm) -> tuple:
     """``(k, mu, cell offsets)`` of a kernel call: the stiffness, or the per-direction factors and the cells."""
-    cells = getattr(pm, "cell_springs", None)
-    if cells is None or _triton(pm.device):
+    cells = _cells(pm)
+    if cells is None:
         return pm.stiffness, None, None
     return cells.factors, cells.mu, cells.offsets
 
@@ -790,15 +803,11 @@ def symplectic_step(pm, x: torch.Tensor, v: torch.Tensor, dt: float, *, name: st
         ``(x', v')``, each ``(B, 3, P)``.
     """
     name = name or kernel(fused_variant(pm))
-    keep = 1.0 if pm.decay is None else math.exp(-pm.decay * dt)
+    im, ms, scalars = _update_operands(pm, dt)
     if _triton(x.device):
-        return native_cuda.symplectic_step(pm, x, v, dt, _variants[name], keep=keep)
+        return native_cuda.symplectic_step(pm, x, v, _variants[name], im=im, ms=ms, scalars=scalars)
     x, v = x.contiguous(), v.contiguous()
-    im, ms = pm.inv_mass.contiguous(), pm.mass.contiguous()
-    if im.shape[0] != ms.shape[0]:
-        im, ms = (t.expand(max(im.shape[0], ms.shape[0]), *t.shape[1:]).contiguous() for t in (im, ms))
     xo, vo = torch.empty_like(x), torch.empty_like(v)
-    g = (0.0, 0.0, 0.0) if pm.gravity is None else tuple(float(a) for a in pm.gravity.flatten())
     k, mu, coff = _stiffness_operands(pm)
     _call(
         name,
@@ -815,13 +824,28 @@ def symplectic_step(pm, x: torch.Tensor, v: torch.Tensor, dt: float, *, name: st
         im.data_ptr(),
         ms.data_ptr(),
         _batch_stride(im),
-        *g,
-        dt,
-        keep,
+        *scalars,
         *_cell_term_args(pm, _variants[name]),
         *_cell_args(mu, coff, pm.G),
     )
     return xo, vo
+
+
+def _update_operands(pm, dt: float) -> tuple:
+    """``(1/m, m, (g0, g1, g2, dt, keep))`` of a fused step: the masses with one batch size, the scalars.
+
+    ``keep`` is the global drag's ``exp(-decay dt)``. The gravity is read once per model (on a GPU
+    a read is a wait for the device).
+    """
+    im, ms = pm.inv_mass.contiguous(), pm.mass.contiguous()
+    if im.shape[0] != ms.shape[0]:
+        im, ms = (t.expand(max(im.shape[0], ms.shape[0]), *t.shape[1:]).contiguous() for t in (im, ms))
+    g = pm.__dict__.get("_gravity_values")
+    if g is None:
+        g = (0.0, 0.0, 0.0) if pm.gravity is None else tuple(float(a) for a in pm.gravity.flatten())
+        pm.__dict__["_gravity_values"] = g
+    keep = 1.0 if pm.decay is None else math.exp(-pm.decay * dt)
+    return im, ms, (*g, dt, keep)
 
 
 def fused_variant(pm) -> Variant:

@@ -404,20 +404,14 @@ def spring_forces(x, v, inside, k, l0, c, offsets, var, *, G: int, plane: int) -
     return f
 
 
-def symplectic_step(pm, x: torch.Tensor, v: torch.Tensor, dt: float, var, *, keep: float = 1.0):
-    """One symplectic Euler step of packed model ``pm`` from ``x``, ``v`` ``(B, 3, P)`` in one kernel: ``(x', v')``."""
+def symplectic_step(pm, x: torch.Tensor, v: torch.Tensor, var, *, im, ms, scalars):
+    """One symplectic Euler step of packed model ``pm`` from ``x``, ``v`` ``(B, 3, P)`` in one kernel: ``(x', v')``.
+
+    ``im``, ``ms``: 1/m and m ``(B|1, 1, P)``; ``scalars``: ``(g0, g1, g2, dt, keep)`` (see :func:`launch`).
+    """
     x, v = x.contiguous(), v.contiguous()
     xo, vo = torch.empty_like(x), torch.empty_like(v)
-    im, ms = pm.inv_mass.contiguous(), pm.mass.contiguous()
-    if im.shape[0] != ms.shape[0]:
-        im, ms = (t.expand(max(im.shape[0], ms.shape[0]), *t.shape[1:]).contiguous() for t in (im, ms))
-    g = pm.__dict__.get("_gravity_values")
-    if g is None:  # read from the device once per model, not once per step
-        g = (0.0, 0.0, 0.0) if pm.gravity is None else tuple(float(a) for a in pm.gravity.flatten())
-        pm.__dict__["_gravity_values"] = g
-    k, l0 = pm.stiffness, pm.rest_length
-    c = k if pm.damping is None else pm.damping
-    _D, H, W = pm.grid.shape
+    c = pm.stiffness if pm.damping is None else pm.damping
     launch(
         var,
         x,
@@ -425,14 +419,14 @@ def symplectic_step(pm, x: torch.Tensor, v: torch.Tensor, dt: float, var, *, kee
         xo,
         vo,
         pm.inside,
-        k,
-        l0,
+        pm.stiffness,
+        pm.rest_length,
         c,
         pm.offset_table,
         im,
         ms,
         G=pm.G,
-        plane=(H + 2) * (W + 2),
-        scalars=(*g, dt, keep),
+        plane=pm.plane,
+        scalars=scalars,
     )
     return xo, vo

@@ -129,6 +129,8 @@ class PackedModel(Model):
         grid = model.grid
         D, H, W = grid.shape
         plane, row = (H + 2) * (W + 2), W + 2
+        #: nodes of one padded ``(H + 2)(W + 2)`` plane: the linear offset of one step along D
+        self.plane = plane
         self.G = plane + row + 1
         self._P_grid = (D + 2) * plane
         self.P = self._P_grid + (2 * self.G - self._P_grid) % BLOCK
