@@ -107,6 +107,28 @@ def test_version_prints_the_package_version_in_a_clean_process():
     assert done.stdout.strip() == f"torchdeform {td.__version__}"
 
 
+class _Exited(Exception):
+    pass
+
+
+@pytest.mark.parametrize(("argv", "status"), [(["--version"], 0), (["--help"], 0), (["run"], 2)])
+def test_argparse_exits_take_the_quick_exit_with_their_status(argv, status, monkeypatch, capsys):
+    """--version, --help and usage errors leave through os._exit (no teardown of torch) with argparse's status."""
+    import torchdeform.cli as cli
+
+    def fake_exit(code):
+        raise _Exited(code)
+
+    monkeypatch.setattr(cli.os, "_exit", fake_exit)
+    monkeypatch.setattr(cli.atexit, "_run_exitfuncs", lambda: None)  # this process's own exit functions stay
+    monkeypatch.setattr(sys, "argv", ["torchdeform", *argv])
+    with pytest.raises(_Exited) as exited:
+        cli.entry()
+    assert exited.value.args == (status,)
+    out, err = capsys.readouterr()
+    assert (out if status == 0 else err).strip()
+
+
 # ------------------------------------------------------------------ A2 run --set
 def test_run_set_overrides_dotted_keys(tmp_path, capsys):
     path, out = scene(tmp_path, CUBE), tmp_path / "out"
