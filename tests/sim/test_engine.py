@@ -14,6 +14,7 @@ from tests.helpers import F64, make_grid, make_model
 from torchdeform.errors import ConfigError
 from torchdeform.sim import engine as engine_mod
 from torchdeform.sim import native, native_cuda
+from torchdeform.sim import threads as threads_mod
 from torchdeform.sim.engine import Engine, gradient_needed
 from torchdeform.sim.packed import PackedModel
 
@@ -129,6 +130,35 @@ def test_auto_decides_native_then_compiled_by_hand():
     engine = Engine(mode="auto")  # an implicit step compiles directly
     assert engine.decide(td.ImplicitEuler(), [0.05, 0.03, 0.03], 200_000, threads=2, model=model)
     assert engine.choice == "compiled"
+
+
+def test_auto_decides_the_compile_on_the_steps_the_thread_governor_settled_on(monkeypatch):
+    """Beside a busy process a native step's first steps run on two threads, many times slower than on
+    the one the governor moves to: the compile decision waits for the governor and uses its settled
+    steps. Oracle: the stand-in machine's step times, 6 ms on two threads and 0.15 ms on one; over
+    20,000 steps to come a compile repays at 6 ms (30 s saved) and not at 0.15 ms (0.75 s)."""
+
+    class Sampler:  # the machine's load as /proc/stat would give it: another process keeps a core busy
+        def others(self):
+            return 1.0
+
+    monkeypatch.setattr(threads_mod, "CpuSampler", Sampler)
+    gov = threads_mod.ThreadGovernor(2)
+
+    class Step:  # the packed step of the run: its governor, no fused kernel
+        governor, fused = gov, None
+
+    engine = Engine(mode="auto")
+    engine.ran, engine._probing, engine._samples = "native", "native", []
+    steps = 0
+    while engine._probing == "native":
+        n = gov.choose()
+        seconds = 0.006 if n == 2 else 0.00015
+        gov.record(n, seconds)
+        assert engine.after_packed(Step, seconds, 20_000 - steps) is Step  # stays native
+        steps += 1
+    assert gov.current == 1 and steps > engine.probe_steps
+    assert engine.native_ms == pytest.approx(0.15) and "<= 2 x" in engine.reason
 
 
 @needs_cc

@@ -17,7 +17,9 @@ An engine runs a simulation's steps as
 * ``"auto"``: eager steps first; after :attr:`Engine.probe_steps` of them it moves on when the
   eager time still to come is worth more than :attr:`Engine.payback` times the expected cost of
   the next engine: to ``"native"`` where it can run, and from there, after timing as many native
-  steps, to ``"compiled"`` when what compiling saves repays its compile (never for a native step
+  steps (and waiting, up to :attr:`Engine.SETTLE_STEPS`, for the thread governor to settle on a
+  thread count: beside a busy process the first steps on two threads are many times slower than
+  the run's), to ``"compiled"`` when what compiling saves repays its compile (never for a native step
   that one fused kernel makes whole: symplectic Euler with Hooke springs, gravity, fixed nodes and
   the global drag, faster than its compiled form); straight to
   ``"compiled"`` where the kernel cannot run. It stays eager when no faster engine can run the
@@ -143,6 +145,11 @@ class Engine:
     #: 2 cores: native 6.3 ms, compiled 4.7 ms; the eager update is ~8 passes over the nodes, the
     #: compiled one a single loop). A native step that one fused kernel makes whole is not compiled.
     COMPILED_SAVES = 1 / 4
+    #: native steps ``"auto"`` waits at most for the thread governor to settle before its compile
+    #: decision. Beside a busy process the first steps run on two threads, 20-40 times slower than
+    #: on the one the governor moves to after its first look at the machine's load (0.1 s of steps:
+    #: 20-300 steps of the 11^3 cube); decided on those, a 2 s run of the cube compiled for 7 s
+    SETTLE_STEPS = 512
 
     def __init__(
         self,
@@ -255,15 +262,17 @@ class Engine:
             self.reason += "; compiled"
         return worth
 
-    def decide_compiled(self, native_s: list, remaining: int, *, fused: bool = False) -> bool:
+    def decide_compiled(self, native_s: list, remaining: int, *, fused: bool = False, warm_up: bool = True) -> bool:
         """``"auto"`` after its native probe: compile for the ``remaining`` steps? Extends :attr:`reason`.
+
+        ``native_s``: native step times (s), the first a warm-up left out unless ``warm_up`` is False.
 
         Never when the native step is ``fused`` (one C kernel makes the whole step: the compiled
         step, the force kernel plus a fused update, is slower). Otherwise compiles when the time
         the compiled step saves (:attr:`COMPILED_SAVES` of a native step) over the steps to come
         exceeds :attr:`payback` times the expected compile (:attr:`COMPILE_S` ``["explicit"]``).
         """
-        self.native_ms = _median_ms(native_s)
+        self.native_ms = _median_ms(native_s, warm_up=warm_up)
         if fused:
             self.reason += f"; {self.native_ms:.3g} ms per native step, one fused kernel (nothing to compile)"
             return False
@@ -380,10 +389,17 @@ class Engine:
         if self._probing != "native":
             return step
         self._samples.append(seconds)
-        if len(self._samples) < self.probe_steps:
+        gov = getattr(step, "governor", None)
+        waiting = gov is not None and not gov.settled and len(self._samples) < self.SETTLE_STEPS
+        if len(self._samples) < self.probe_steps or waiting:
             return step
         self._probing = None
-        if not self.decide_compiled(self._samples, remaining, fused=step.fused is not None):
+        # the steps on the count the governor settled on (its first steps may be on a count it left)
+        if gov is not None and gov.settled:
+            samples, warm_up = list(gov.recent), False
+        else:
+            samples, warm_up = self._samples, True
+        if not self.decide_compiled(samples, remaining, fused=step.fused is not None, warm_up=warm_up):
             return step
         self.ran, self._timed = "compiled", 0
         return self._start("compiled")
@@ -424,9 +440,9 @@ def _kernel_built(model: Model) -> bool:
         return False
 
 
-def _median_ms(samples: list) -> float:
-    """Median step time (ms) of a probe, its first step (a warm-up) left out."""
-    return 1e3 * statistics.median(samples[1:] if len(samples) > 1 else samples)
+def _median_ms(samples: list, *, warm_up: bool = True) -> float:
+    """Median step time (ms) of a probe, its first step (a warm-up) left out unless ``warm_up`` is False."""
+    return 1e3 * statistics.median(samples[1:] if warm_up and len(samples) > 1 else samples)
 
 
 def _reads_positions(callback) -> bool:

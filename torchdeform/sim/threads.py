@@ -131,6 +131,7 @@ class ThreadGovernor:
         current: the count steps run on (outside probes).
         steps: ``Counter`` of steps per thread count.
         switches: how many times :attr:`current` changed.
+        recent: the latest step times (s) on the current count, at most ``window`` of them.
     """
 
     def __init__(
@@ -161,6 +162,17 @@ class ThreadGovernor:
         #: started at the first recorded step (not during the compile, whose compiler runs beside it)
         self._sampler: CpuSampler | None = None
         self._sample = self.full > 1 and busy_cores is not None
+
+    @property
+    def settled(self) -> bool:
+        """Whether the step times now say what a step costs on this machine.
+
+        The first look at the machine's load is done (or not asked for), no probe is under way, and
+        ``recent`` holds at least ``probe`` steps on the current count. Until then a step may run
+        on a count the governor is about to leave (two threads beside a busy process: many times
+        slower).
+        """
+        return not self._sample and self.probing is None and len(self.recent) >= min(self.window, self.probe_steps)
 
     def choose(self) -> int:
         """The thread count of the next step."""
