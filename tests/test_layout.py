@@ -251,7 +251,7 @@ def test_heavy_library_check_can_fail():
 # ------------------------------------------------------------------ layers
 #: the floors of the package, bottom to top (``../DESIGN.md``); an import runs down or sideways, never up
 LAYERS = [
-    {"errors", "options", "outputs", "checks", "_compile"},  # the ground floor
+    {"errors", "options", "outputs", "checks", "cpu_load", "_compile"},  # the ground floor
     {"sim"},
     {"fuzzy", "volume", "chainmail", "mesh"},
     {"interact", "topology", "learn", "anatomy", "texture"},

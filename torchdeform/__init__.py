@@ -25,6 +25,8 @@ import gc as _gc
 # collector would rescan several times on the way (0.2 s of a 1.3 s import): paused for the imports
 _gc_was_enabled = _gc.isenabled()
 _gc.disable()
+from . import cpu_load  # noqa: F401  # first: the machine's load is sampled over torch's import
+
 try:
     from . import chainmail, interact, learn, scene, sim, topology, volume
     from .chainmail import ChainMail, Limits, limit_violation, tensor_chainmail

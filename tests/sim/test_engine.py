@@ -138,11 +138,10 @@ def test_auto_decides_the_compile_on_the_steps_the_thread_governor_settled_on(mo
     steps. Oracle: the stand-in machine's step times, 6 ms on two threads and 0.15 ms on one; over
     20,000 steps to come a compile repays at 6 ms (30 s saved) and not at 0.15 ms (0.75 s)."""
 
-    class Sampler:  # the machine's load as /proc/stat would give it: another process keeps a core busy
-        def others(self):
-            return 1.0
-
-    monkeypatch.setattr(threads_mod, "CpuSampler", Sampler)
+    # the machine's load as /proc/stat would give it: another process keeps a core busy, found by the
+    # governor's first look (nothing known before the run)
+    monkeypatch.setattr(threads_mod.CpuSampler, "others", lambda self: 1.0)
+    monkeypatch.setattr(threads_mod, "recent_load", lambda: None)
     gov = threads_mod.ThreadGovernor(2)
 
     class Step:  # the packed step of the run: its governor, no fused kernel

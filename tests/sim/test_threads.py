@@ -59,11 +59,61 @@ def test_a_busy_neighbour_moves_the_step_to_one_thread_and_back():
 
 
 def test_a_machine_busy_from_the_start_is_noticed(monkeypatch):
+    monkeypatch.setattr(T, "recent_load", lambda: None)  # nothing known before the run: the first window looks
     monkeypatch.setattr(T.CpuSampler, "others", lambda self: 1.0)  # /proc/stat: one core busy elsewhere
     gov, machine = ThreadGovernor(2), Machine(2)
     machine.busy = True  # no jump to see: it was busy all along
     _run(gov, machine, 200)
     assert gov.current == 1 and gov.switches == 1
+
+
+def test_a_load_known_before_the_run_starts_it_on_one_thread_and_no_probe_runs_while_it_lasts(monkeypatch):
+    """Busy before and during the run: every step on one thread (a probe of two threads beside a busy
+    process cost 0.1 s on the demo's liver); free again: the full count is probed and kept."""
+    load = {"cores": 1.0}
+    monkeypatch.setattr(T, "recent_load", lambda: load["cores"])  # the set-up saw a core busy elsewhere
+    monkeypatch.setattr(T.CpuSampler, "others", lambda self: load["cores"])
+    gov, machine = ThreadGovernor(2), Machine(3)
+    machine.busy = True
+    _run(gov, machine, 3000)
+    assert gov.steps == {1: 3000} and gov.switches == 0
+    load["cores"], machine.busy = 0.0, False
+    _run(gov, machine, 600)
+    assert gov.current == 2 and gov.switches == 1
+
+
+def test_a_load_too_short_to_measure_delays_the_probe(monkeypatch):
+    """A window of a few fast steps says nothing (fewer than 10 jiffies a core): no probe until it does."""
+    monkeypatch.setattr(T, "recent_load", lambda: 1.0)
+    gov = ThreadGovernor(2)
+    monkeypatch.setattr(T.CpuSampler, "others", lambda self: None)  # every window too short
+    _run(gov, lambda n: 1e-4, 2000)
+    assert gov.steps == {1: 2000}
+
+
+def test_recent_load_reads_windows_of_at_least_a_tenth_of_a_second(monkeypatch):
+    """Oracle: a stand-in sampler that tells once its window is long enough; the reading is kept
+    for the calls that follow within ``max_age`` and forgotten after it."""
+    clock = {"t": 100.0}
+    monkeypatch.setattr(T.time, "perf_counter", lambda: clock["t"])
+
+    class Sampler:
+        def __init__(self):
+            self.start = (None, 0.0, clock["t"])
+
+        def others(self):
+            return 0.8 if clock["t"] - self.start[2] >= 0.1 else None
+
+    monkeypatch.setattr(T, "CpuSampler", Sampler)
+    monkeypatch.setattr(T, "_window", Sampler())
+    monkeypatch.setattr(T, "_last", None)
+    assert T.recent_load() is None  # nothing yet, and no wait for it
+    clock["t"] += 1.0  # torch's import
+    assert T.recent_load() == 0.8
+    clock["t"] += 0.05
+    assert T.recent_load() == 0.8  # too short a window: the latest reading
+    clock["t"] += 30.0
+    assert T.recent_load() is None  # an old window and an old reading: nothing recent is known
 
 
 def test_a_lost_probe_does_not_probe_again_at_every_step():
@@ -96,7 +146,8 @@ def test_which_steps_get_a_governor():
 
 
 @pytest.mark.slow
-def test_a_compiled_step_on_either_thread_count_equals_the_eager_step():
+def test_a_compiled_step_on_either_thread_count_equals_the_eager_step(monkeypatch):
+    monkeypatch.setattr(T, "recent_load", lambda: 0.0)  # an idle machine: the governor starts on both threads
     grid = td.Grid((8, 8, 8), spacing=0.01, topology=26)
     model = td.Model(
         grid,

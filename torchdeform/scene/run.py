@@ -24,7 +24,7 @@ from ..sim.engine import Engine, simulate
 from ..sim.model import Model, State
 from ..sim.stability import check_dt, time_step_bound
 from ..sim.static import solve_static
-from ..sim.threads import CpuSampler, after_step_threads, omp_threads
+from ..sim.threads import CpuSampler, after_step_threads, omp_threads, setup_threads
 from .bodies import BodiesScene, bodies_report, bodies_scene, read_scene
 from .chainmail import ChainMailScene, chainmail_scene
 from .mass_spring import EXPLICIT, Scene, StaticSolve, StaticSolveError, mass_spring_scene
@@ -272,22 +272,23 @@ def _run(scene: Scene, out: Path, progress: bool, device) -> dict:
     """:func:`run_scene` of a mass-spring scene, with the scene's threads set."""
     if isinstance(scene.integrator, StaticSolve):
         return _run_static(scene, out, device)
-    model = scene.build(device=device)
-    recorder = None
-    if scene.tools is not None:  # fresh contacts and grasps: they keep state
-        model = copy.copy(model)
-        model.interactions = scene.tools.interactions()
-        if scene.tools.tools:
-            recorder = ToolRecorder(scene.tools.names, scene.steps, model.device, model.dtype)
-    integrator = scene.integrator
-    bound = time_step_bound(model, integrator=integrator)
-    dt = scene.time_step(bound)
-    if integrator.name in EXPLICIT:
-        check_dt(model, dt, integrator, bound=bound)
-    state = model.rest_state()
-    settled = None
-    if scene.settle:
-        state, settled = settle_state(scene, model, dt)
+    with omp_threads(setup_threads()):  # beside a busy process on one thread: its bound took 4 s on two
+        model = scene.build(device=device)
+        recorder = None
+        if scene.tools is not None:  # fresh contacts and grasps: they keep state
+            model = copy.copy(model)
+            model.interactions = scene.tools.interactions()
+            if scene.tools.tools:
+                recorder = ToolRecorder(scene.tools.names, scene.steps, model.device, model.dtype)
+        integrator = scene.integrator
+        bound = time_step_bound(model, integrator=integrator)
+        dt = scene.time_step(bound)
+        if integrator.name in EXPLICIT:
+            check_dt(model, dt, integrator, bound=bound)
+        state = model.rest_state()
+        settled = None
+        if scene.settle:
+            state, settled = settle_state(scene, model, dt)
     callback, events = recorder, None
     if scene.topology is not None:  # topology changes edit a copy of the model
         if scene.topology.checked_end is None:  # dt = "auto": the run's length is known now
