@@ -132,11 +132,12 @@ def accumulate(grid: Grid, fn: Callable, *fields: torch.Tensor, channels: int | 
             out = out + _padded(a, src, grid.shape)
             out = out - _padded(a, dst, grid.shape) if b is None else out + _padded(b, dst, grid.shape)
             continue
-        out[(..., *src)] += a
+        # add_ / sub_ on the slice's view: ``out[i] += a`` would also copy the view back onto itself
+        out[(..., *src)].add_(a)
         if b is None:
-            out[(..., *dst)] -= a
+            out[(..., *dst)].sub_(a)
         else:
-            out[(..., *dst)] += b
+            out[(..., *dst)].add_(b)
     return out
 
 
