@@ -180,8 +180,8 @@ def adjoint(f: torch.Tensor, grid: Grid) -> torch.Tensor:
     out = torch.zeros((f.shape[0],) + f.shape[2:], dtype=f.dtype, device=f.device)
     for s, (src, dst) in enumerate(grid.stencil):
         fs = f[(slice(None), s, slice(None), *src)]
-        out[(..., src[0], src[1], src[2])] -= fs
-        out[(..., dst[0], dst[1], dst[2])] += fs
+        out[(..., *src)].sub_(fs)  # in place on the views (see accumulate)
+        out[(..., *dst)].add_(fs)
     return out
 
 
