@@ -36,6 +36,7 @@ that it covers them; a box body (``[grid] shape``) covers what lies in its box.
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -185,13 +186,27 @@ def label_body_section(
     return grid, args, embedded
 
 
-def _phantom(t: Table, which: int):
-    """The abdominal phantom of ``[grid] labels = "phantom[:VOXEL]"``: its labels (``which = 0``) or CT (1).
+@functools.lru_cache(maxsize=2)
+def _phantom_images(voxel: float) -> tuple:
+    """:func:`~torchdeform.anatomy.phantom.abdominal_phantom` at ``voxel``, made once per process.
 
-    :func:`~torchdeform.anatomy.phantom.abdominal_phantom` at that voxel size (m, default 1 mm).
+    A scene of the phantom reads its labels (the body) and its CT (the volume): one phantom, not
+    two (0.3 s each at 2 mm). The arrays are read-only, so no reader can change what the next one gets.
     """
     from ..anatomy.phantom import abdominal_phantom
 
+    images = abdominal_phantom(voxel=voxel)
+    for image in images:
+        image.array.setflags(write=False)
+    return images
+
+
+def _phantom(t: Table, which: int):
+    """The abdominal phantom of ``[grid] labels = "phantom[:VOXEL]"``: its labels (``which = 0``) or CT (1).
+
+    :func:`~torchdeform.anatomy.phantom.abdominal_phantom` at that voxel size (m, default 1 mm),
+    made once per voxel size (:func:`_phantom_images`).
+    """
     name = t.data["labels"]
     voxel = 0.001
     if ":" in name:
@@ -199,7 +214,7 @@ def _phantom(t: Table, which: int):
             voxel = float(name.split(":", 1)[1])
         except ValueError:
             raise t.fail("labels", '"phantom" or "phantom:VOXEL" (the voxel size in metres)', got=name) from None
-    return abdominal_phantom(voxel=voxel)[which]
+    return _phantom_images(voxel)[which]
 
 
 def _surface_labels(t: Table, default: list) -> list:
