@@ -2,8 +2,9 @@
 
 Oracle: the thread count torch reports inside the post-processing (a spy on the energy series),
 with the machine's load given by a stand-in for :func:`torchdeform.sim.threads.others_busy`; and
-the scene's own thread setting restored afterwards. The energy series in batches against each
-frame's energy computed alone.
+the scene's own thread setting restored afterwards; the same for a run's set-up, with the load of
+the last seconds given by a stand-in for :func:`torchdeform.sim.threads.recent_load`. The energy
+series in batches against each frame's energy computed alone.
 """
 
 from __future__ import annotations
@@ -12,9 +13,11 @@ import numpy as np
 import pytest
 import torch
 
+import torchdeform.scene.commands as commands_mod
 import torchdeform.scene.run as run_mod
 import torchdeform.sim.threads as threads_mod
 from tests.scene.test_scene import TINY, write
+from torchdeform import cli
 from torchdeform.scene import load_scene, run_scene
 
 
@@ -66,3 +69,28 @@ def test_energy_series_in_batches_equals_each_frame_alone(tmp_path, nodes_per_ca
             assert series[k][i] == pytest.approx(float(val), rel=1e-12, abs=1e-18), k
         assert series["max_displacement"][i] == pytest.approx(u[i].max(), rel=1e-12)
         assert series["max_free_displacement"][i] == pytest.approx(u[i][free].max(), rel=1e-12)
+
+
+@pytest.mark.parametrize(("load", "expected"), [(1.0, 1), (0.0, 2)], ids=["busy", "idle"])
+def test_a_runs_set_up_takes_one_thread_beside_a_busy_process(tmp_path, monkeypatch, load, expected):
+    """The command's scene loading and the run's stability bound run on one thread when the load of
+    the last seconds (a stand-in for ``recent_load``) says another process keeps a core busy."""
+    seen = {}
+    bound, read = run_mod.time_step_bound, commands_mod.scene_with_values
+
+    def spy_bound(*args, **kwargs):
+        seen["bound"] = torch.get_num_threads()
+        return bound(*args, **kwargs)
+
+    def spy_read(*args, **kwargs):
+        seen["scene"] = torch.get_num_threads()
+        return read(*args, **kwargs)
+
+    monkeypatch.setattr(threads_mod, "recent_load", lambda: load)
+    monkeypatch.setattr(run_mod, "time_step_bound", spy_bound)
+    monkeypatch.setattr(commands_mod, "scene_with_values", spy_read)
+    path = write(tmp_path, TINY)
+    with threads_mod.omp_threads(2):
+        status = cli.main(argv=["run", str(path), "--out", str(tmp_path / "out"), "--quiet"])
+        assert torch.get_num_threads() == 2  # the caller's setting is back
+    assert status == 0 and seen == {"scene": expected, "bound": expected}
