@@ -122,8 +122,10 @@ class ThreadGovernor:
         margin: move to the probed count when its median is below ``margin`` x the current one.
         period, max_period: away from the full count, probe it again after ``period`` steps,
             doubling after every lost probe up to ``max_period``.
-        busy_cores: other processes keeping this many cores busy (:func:`others_busy`, checked
-            once, over the first ~0.1 s of steps) start a probe; None: no check.
+        busy_cores: other processes keeping this many cores busy start on one thread (the load of
+            the last seconds, :func:`recent_load`, where known) or start a probe (checked once, over
+            the first ~0.1 s of steps, where it is not); away from the full count they hold off its
+            probes. None: no look at the load.
 
     Attributes:
         current: the count steps run on (outside probes).
