@@ -66,6 +66,6 @@ def others_busy(*, seconds: float = 0.2) -> float | None:
     return s.others()
 
 
-#: started when the package is imported (before torch); :func:`torchdeform.sim.threads.setup_threads`
-#: reads it and starts the next window
+#: started when the package is imported (before torch); the first window that
+#: :func:`torchdeform.sim.threads.recent_load` reads
 since_import = CpuSampler()

@@ -144,7 +144,7 @@ class ThreadGovernor:
         margin: float = 0.9,
         period: int = 32,
         max_period: int = 512,
-        busy_cores: float = 0.5,
+        busy_cores: float = BUSY_CORES,
     ):
         self.full = self.current = max(1, int(threads))
         self.options = sorted({self.full, max(1, self.full // 2), 1}, reverse=True)
@@ -164,7 +164,7 @@ class ThreadGovernor:
         self._sample = self.full > 1 and busy_cores is not None
         #: the machine's load since the last probe of the full count (None: not watched)
         self._load: CpuSampler | None = None
-        if self._sample and busy_cores is not None:
+        if self._sample:
             known = recent_load()
             if known is not None:  # the load before the run (the set-up) already tells: no first look
                 self._sample = False
@@ -294,6 +294,11 @@ def after_step_threads(*, busy: float | None = None, since: CpuSampler | None = 
         busy = since.others()  # None when the run was too short to tell
     if busy is None:
         busy = others_busy(seconds=0.1)
+    return _one_if_busy(busy)
+
+
+def _one_if_busy(busy: float | None) -> int:
+    """One thread when other processes keep :data:`BUSY_CORES` or more busy, else torch's setting."""
     return 1 if busy is not None and busy >= BUSY_CORES else torch.get_num_threads()
 
 
@@ -309,7 +314,4 @@ def setup_threads() -> int:
         >>> setup_threads() in (1, torch.get_num_threads())
         True
     """
-    if torch.get_num_threads() == 1:
-        return 1
-    busy = recent_load()
-    return 1 if busy is not None and busy >= BUSY_CORES else torch.get_num_threads()
+    return 1 if torch.get_num_threads() == 1 else _one_if_busy(recent_load())
